@@ -55,8 +55,8 @@ echo "$VENV" >"$ROOT/.ae_venv_path"
 
 # ---- colcon build (only when build inputs changed; Python edits are symlinked) ----
 build_hash="$( { echo "$env_hash"; cd "$ROOT" && cat CMakeLists.txt package.xml msg/*.msg; \
-                 find ae_tactile scripts launch config -type f 2>/dev/null -not -path '*/__pycache__/*' \
-                      -not -name '*.pyc' | LC_ALL=C sort; } | hash_of)"
+                 find ae_tactile scripts launch config -type f -not -path '*/__pycache__/*' \
+                      -not -name '*.pyc' 2>/dev/null | LC_ALL=C sort || true; } | hash_of)"
 build_stamp="$ROOT/install/.ae_tactile_build_$build_hash"
 if [ ! -f "$build_stamp" ]; then
   log "colcon build (messages + Python package)"
