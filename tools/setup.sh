@@ -73,5 +73,7 @@ if [ ! -f "$build_stamp" ]; then
     --cmake-args -DPython3_EXECUTABLE="$VENV/bin/python" -DBUILD_TESTING=OFF \
     >"$ROOT/log/ae_tactile_build.txt" 2>&1 || { cat "$ROOT/log/ae_tactile_build.txt"; log "colcon build failed"; exit 1; }
   grep -E "Generating (C|Python) code for ROS interfaces|Finished <<<|Summary" "$ROOT/log/ae_tactile_build.txt" >&2 || true
+  log "messages generated: $(ls "$ROOT"/build/ae_tactile/rosidl_generator_py/ae_tactile/msg/_*.py 2>/dev/null \
+        | sed -n 's|.*/_\([a-z_]*\)\.py$|\1|p' | grep -v '_s$\|^_' | tr '\n' ' ')"
   touch "$build_stamp"
 fi
