@@ -1,6 +1,7 @@
 # make demo : set up (as needed) and run the main job on the simulated fingertip
 # make test : set up (as needed) and run the test suite (what CI runs)
-.PHONY: demo test setup bench clean
+.PHONY: demo test setup bench bench-% clean
+BENCH_REQ = tools/run.sh python -m pip install -q --disable-pip-version-check -r bench/requirements.txt
 SHELL := /bin/bash
 
 demo:
@@ -8,6 +9,15 @@ demo:
 
 test:
 	@AE_TACTILE_REQUIRE_ROS=1 tools/run.sh pytest -q -p no:cacheprovider test
+
+# make bench: every benchmark; make bench-sim: bench/bench_sim.py alone (results in bench/results/)
+bench:
+	@$(BENCH_REQ)
+	@set -e; for b in bench/bench_*.py; do echo "== $$b"; tools/run.sh python $$b; done
+
+bench-%:
+	@$(BENCH_REQ)
+	@tools/run.sh python bench/bench_$*.py
 
 setup:
 	@tools/setup.sh
