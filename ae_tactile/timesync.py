@@ -1,0 +1,135 @@
+"""Device clock -> host (ROS) clock mapping, drift-robust, monotonic, re-syncing.
+
+Each received frame gives a pair (d, h): d = device time of the frame (ns, from the
+unwrapped microsecond counter), h = host receive time (ns). The host time is the
+device time mapped through an affine clock model plus a non-negative transport
+latency:
+
+    h = h_ref + (d - d_ref) * (1 + skew) + offset + latency,   latency >= 0.
+
+The latency (USB polling, OS scheduling) is positive and heavy-tailed, so the model is
+fitted to the *lower envelope* of the offsets (h - d): the window of recent pairs is
+split into buckets, each bucket keeps its minimum offset (the least-delayed frame), and
+a line through those minima gives offset and skew (least squares, robust because each
+minimum is already a near-zero-latency sample). Arrival time alone would carry all the
+jitter; the lower envelope carries only the smallest latency.
+
+Guarantees: mapped times never go backwards for increasing device times (a would-be
+step back is clamped and counted); a device restart (device time going backwards) or
+a jump of the offset beyond ``max_jump_s`` resets the model (counted as a re-sync).
+"""
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+
+class DeviceClockMapper:
+    """Map device timestamps (ns) to host timestamps (ns) through the lower envelope."""
+
+    def __init__(self, window_s: float = 20.0, bucket_s: float = 0.5,
+                 max_jump_s: float = 0.25, min_span_for_skew_s: float = 2.0,
+                 max_skew: float = 500e-6):
+        if not (window_s > 0 and bucket_s > 0 and bucket_s < window_s):
+            raise ValueError("need 0 < bucket_s < window_s")
+        if not (max_jump_s > 0 and min_span_for_skew_s > 0 and 0 <= max_skew < 0.01):
+            raise ValueError("max_jump_s and min_span_for_skew_s must be > 0, 0 <= max_skew < 0.01")
+        self.window_ns = int(window_s * 1e9)
+        self.bucket_ns = int(bucket_s * 1e9)
+        self.max_jump_ns = int(max_jump_s * 1e9)
+        self.min_span_ns = int(min_span_for_skew_s * 1e9)
+        self.max_skew = float(max_skew)
+        self.resyncs = 0          # model resets (device restart, offset jump)
+        self.clamped = 0          # outputs held back to stay monotonic
+        self.reset()
+        self.resyncs = 0
+
+    def reset(self) -> None:
+        """Forget the model (next update starts a new one); counts as a re-sync."""
+        self._buckets: deque[list[int]] = deque()   # [bucket_id, d_at_min, offset_min]
+        self._d_ref: int | None = None
+        self._last_d: int | None = None
+        self._last_out: int | None = None
+        self._last_out_d: int | None = None
+        self._offset_ns = 0.0
+        self._skew = 0.0
+        self.resyncs += 1
+
+    @property
+    def synced(self) -> bool:
+        return self._d_ref is not None
+
+    @property
+    def skew(self) -> float:
+        """Fitted d(h - d)/dd: host clock rate over device clock rate, minus 1."""
+        return self._skew
+
+    @property
+    def device_rate_error(self) -> float:
+        """Device clock rate error vs the host (e.g. +8e-5: device crystal 80 ppm fast)."""
+        return -self._skew / (1.0 + self._skew)
+
+    def update(self, device_ns: int, host_ns: int) -> bool:
+        """Add one (device, host receive) pair; returns True if the model was reset by it."""
+        device_ns = int(device_ns)
+        host_ns = int(host_ns)
+        did_reset = False
+        if self._last_d is not None and device_ns < self._last_d:
+            self.reset()                      # device clock restarted
+            did_reset = True
+        elif self._d_ref is not None:
+            # latency = host - model >= 0; a frame earlier than the model by more than
+            # max_jump means a clock jumped (device time forward, host clock back): start over.
+            if host_ns - self._predict(device_ns) < -self.max_jump_ns:
+                self.reset()
+                did_reset = True
+        if self._d_ref is None:
+            self._d_ref = device_ns
+        self._last_d = device_ns
+        offset = host_ns - device_ns
+        bucket = (device_ns - self._d_ref) // self.bucket_ns
+        if self._buckets and self._buckets[-1][0] == bucket:
+            if offset < self._buckets[-1][2]:
+                self._buckets[-1][1:] = [device_ns, offset]
+        else:
+            self._buckets.append([bucket, device_ns, offset])
+        oldest = bucket - self.window_ns // self.bucket_ns
+        while self._buckets and self._buckets[0][0] < oldest:
+            self._buckets.popleft()
+        self._fit()
+        return did_reset
+
+    def _fit(self) -> None:
+        b = np.array(self._buckets, dtype=np.float64)
+        d = b[:, 1] - self._d_ref
+        off = b[:, 2]
+        span = d[-1] - d[0] if len(d) > 1 else 0.0
+        if len(d) >= 3 and span >= self.min_span_ns:
+            # Line through the bucket minima, then lower it onto the envelope of the points
+            # (the fitted line must not sit above any minimum: latency >= 0).
+            slope, intercept = np.polyfit(d, off, 1)
+            slope = float(np.clip(slope, -self.max_skew, self.max_skew))
+            intercept = float(np.min(off - slope * d))
+            self._skew, self._offset_ns = slope, intercept
+        else:
+            self._skew, self._offset_ns = 0.0, float(off.min())
+
+    def _predict(self, device_ns: int) -> int:
+        dd = device_ns - self._d_ref
+        return device_ns + int(round(self._offset_ns + self._skew * dd))
+
+    def to_host_ns(self, device_ns: int) -> int:
+        """Host time (ns) of a device time (ns); monotonic in device time. Needs one update."""
+        if self._d_ref is None:
+            raise RuntimeError("DeviceClockMapper.to_host_ns called before any update()")
+        device_ns = int(device_ns)
+        out = self._predict(device_ns)
+        if self._last_out is not None and device_ns >= self._last_out_d:
+            floor = self._last_out + (1 if device_ns > self._last_out_d else 0)
+            if out < floor:
+                out = floor
+                self.clamped += 1
+        if self._last_out is None or device_ns >= self._last_out_d:
+            self._last_out, self._last_out_d = out, device_ns
+        return out
