@@ -1,0 +1,221 @@
+"""Simulator configuration: sensor, medium, front end and effect switches (SI units).
+
+`SimConfig` is a frozen, validated dataclass. Everything the renderers derive from it
+(filter poles and residues, exponential tables) is cached on the instance, so build one
+config and reuse it.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from functools import cached_property
+
+import numpy as np
+
+from ae_tactile.geometry import MEDIA, FingertipGeometry
+
+
+@dataclass(frozen=True)
+class Medium:
+    """Acoustic medium of the fingertip body.
+
+    ``attenuation_db_per_m_at_1mhz``: amplitude loss at 1 MHz per metre of path, used only
+    when the config's ``attenuation`` switch is on. The loss grows as f^2 at low
+    frequency (viscous / Kelvin-Voigt law), realised causally as one real pole per path
+    (see `ae_tactile.sim.propagation.attenuation_pole_rad_s`).
+    """
+
+    name: str
+    sound_speed_m_s: float
+    density_kg_m3: float
+    attenuation_db_per_m_at_1mhz: float
+
+
+#: Medium presets. Water: 0.0022 dB/cm at 1 MHz (f^2 law), i.e. negligible over 1 cm.
+#: Medical silicone (the paper's Shin-Etsu lens rubber): c ~ 1000 m/s, and an ASSUMED
+#: 2 dB/cm at 1 MHz (order of magnitude of silicone lens rubbers; the paper gives no
+#: figure). Override with ``attenuation_db_per_m_at_1mhz``.
+MEDIUM_PRESETS = {
+    "water_skin": Medium("water_skin", MEDIA["water_skin"]["sound_speed_m_s"],
+                         MEDIA["water_skin"]["density_kg_m3"], 0.22),
+    "silicone": Medium("silicone", MEDIA["silicone"]["sound_speed_m_s"],
+                       MEDIA["silicone"]["density_kg_m3"], 200.0),
+}
+
+
+def _pos(name, value, allow_none=False):
+    if value is None and allow_none:
+        return None
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a positive number, got {value!r}") from None
+    if not math.isfinite(v) or v <= 0.0:
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+    return v
+
+
+def _int_in(name, value, lo, hi):
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"{name} must be an integer in [{lo}, {hi}], got {value!r}")
+    if not lo <= int(value) <= hi:
+        raise ValueError(f"{name} must be an integer in [{lo}, {hi}], got {value!r}")
+    return int(value)
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Everything fixed about the simulated sensor. Defaults: the paper's water-skin tip.
+
+    Geometry and medium
+      geometry            FingertipGeometry (R = 10 mm, a = 1.5 mm, c = 1480 m/s).
+      medium              'water_skin' | 'silicone' | 'custom'. For a preset, the
+                          geometry's sound speed must match the preset's (use
+                          ``SimConfig.for_medium('silicone')``); 'custom' needs
+                          density_kg_m3 and attenuation_db_per_m_at_1mhz.
+      density_kg_m3       rho of Eq. 10 (None: the preset's).
+      attenuation_db_per_m_at_1mhz   None: the preset's.
+    Front end (PVDF + amplifier + filters + ADC)
+      sensitivity_v_per_pa   PVDF + amplifier gain, flat in band (default 0.01 V/Pa:
+                          ~10 uV/Pa of a 28 um PVDF film times a 60 dB amplifier).
+      highpass_hz, highpass_order   Butterworth high-pass (paper: 100 kHz; order 2).
+      lowpass_hz, lowpass_order     Butterworth anti-alias / PVDF band limit (1 MHz,
+                          order 4); ``lowpass_hz=None`` disables it.
+      sample_rate_hz      ADC rate, an integer number of Hz (10 MS/s).
+      adc_bits, adc_full_scale_v    codes in [-2^(b-1), 2^(b-1)-1], LSB = 2 FS / 2^b,
+                          clipping at full scale (12 bit, +-1 V).
+    Effects (each costs nothing when off)
+      attenuation         frequency-dependent loss of the medium along each path.
+      reflections         specular wall echoes (see propagation.py).
+      reflection_coefficient, n_reflections   echo amplitude ratio per bounce, echo count.
+      quantization        round to ADC codes and clip (noise is on iff a level is given).
+    Rendering
+      support_rel_tol     each arrival's response is truncated once a bound on its
+                          remaining tail falls below this fraction of its jump |A| G.
+      max_support_s       hard cap on an arrival's response length (200 us).
+    """
+
+    geometry: FingertipGeometry = field(default_factory=FingertipGeometry)
+    medium: str = "water_skin"
+    density_kg_m3: float | None = None
+    attenuation_db_per_m_at_1mhz: float | None = None
+    sensitivity_v_per_pa: float = 0.01
+    highpass_hz: float = 100e3
+    highpass_order: int = 2
+    lowpass_hz: float | None = 1e6
+    lowpass_order: int = 4
+    sample_rate_hz: float = 10e6
+    adc_bits: int = 12
+    adc_full_scale_v: float = 1.0
+    attenuation: bool = False
+    reflections: bool = False
+    reflection_coefficient: float = -0.5
+    n_reflections: int = 2
+    quantization: bool = True
+    support_rel_tol: float = 1e-6
+    max_support_s: float = 200e-6
+
+    # ---------------------------------------------------------------- validation
+    def __post_init__(self) -> None:
+        if not isinstance(self.geometry, FingertipGeometry):
+            raise ValueError(f"geometry must be a FingertipGeometry, got {type(self.geometry).__name__}")
+        if self.medium not in MEDIUM_PRESETS and self.medium != "custom":
+            raise ValueError(f"unknown medium {self.medium!r}; choose one of "
+                             f"{sorted(MEDIUM_PRESETS) + ['custom']}")
+        if self.medium == "custom":
+            if self.density_kg_m3 is None or self.attenuation_db_per_m_at_1mhz is None:
+                raise ValueError("medium='custom' needs density_kg_m3 and attenuation_db_per_m_at_1mhz")
+        else:
+            preset = MEDIUM_PRESETS[self.medium]
+            c = self.geometry.sound_speed_m_s
+            if abs(c - preset.sound_speed_m_s) > 0.2 * preset.sound_speed_m_s:
+                raise ValueError(
+                    f"geometry.sound_speed_m_s={c} does not match medium {self.medium!r}"
+                    f" ({preset.sound_speed_m_s} m/s); use SimConfig.for_medium({self.medium!r})"
+                    " or medium='custom'")
+        _pos("density_kg_m3", self.density_kg_m3, allow_none=True)
+        if self.attenuation_db_per_m_at_1mhz is not None:
+            v = float(self.attenuation_db_per_m_at_1mhz)
+            if not math.isfinite(v) or v < 0:
+                raise ValueError("attenuation_db_per_m_at_1mhz must be finite and >= 0, "
+                                 f"got {self.attenuation_db_per_m_at_1mhz!r}")
+        _pos("sensitivity_v_per_pa", self.sensitivity_v_per_pa)
+        fs = _pos("sample_rate_hz", self.sample_rate_hz)
+        if fs != round(fs):
+            raise ValueError(f"sample_rate_hz must be an integer number of Hz, got {fs!r}")
+        hp = _pos("highpass_hz", self.highpass_hz)
+        _int_in("highpass_order", self.highpass_order, 1, 8)
+        lp = _pos("lowpass_hz", self.lowpass_hz, allow_none=True)
+        _int_in("lowpass_order", self.lowpass_order, 1, 8)
+        if hp >= fs / 2:
+            raise ValueError(f"highpass_hz={hp} must be below Nyquist ({fs / 2} Hz)")
+        if lp is not None and lp <= hp:
+            raise ValueError(f"lowpass_hz={lp} must be above highpass_hz={hp}")
+        _int_in("adc_bits", self.adc_bits, 2, 24)
+        _pos("adc_full_scale_v", self.adc_full_scale_v)
+        for name in ("attenuation", "reflections", "quantization"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
+        r = float(self.reflection_coefficient)
+        if not math.isfinite(r) or abs(r) >= 1.0:
+            raise ValueError(f"reflection_coefficient must satisfy |r| < 1, got {self.reflection_coefficient!r}")
+        _int_in("n_reflections", self.n_reflections, 0, 16)
+        tol = _pos("support_rel_tol", self.support_rel_tol)
+        if tol >= 1:
+            raise ValueError(f"support_rel_tol must be < 1, got {tol}")
+        ms = _pos("max_support_s", self.max_support_s)
+        if ms * fs < 16:
+            raise ValueError(f"max_support_s={ms} is shorter than 16 samples")
+
+    @classmethod
+    def for_medium(cls, medium: str, **kwargs) -> "SimConfig":
+        """Config whose geometry uses the preset's sound speed (other geometry fields default
+        or from ``radius_m`` / ``element_offset_m`` keyword arguments)."""
+        if medium not in MEDIUM_PRESETS:
+            raise ValueError(f"unknown medium preset {medium!r}; choose one of {sorted(MEDIUM_PRESETS)}")
+        geo_kw = {k: kwargs.pop(k) for k in ("radius_m", "element_offset_m") if k in kwargs}
+        geo = FingertipGeometry(sound_speed_m_s=MEDIUM_PRESETS[medium].sound_speed_m_s, **geo_kw)
+        return cls(geometry=geo, medium=medium, **kwargs)
+
+    def replace(self, **changes) -> "SimConfig":
+        """A validated copy with some fields changed."""
+        return replace(self, **changes)
+
+    # ---------------------------------------------------------------- derived
+    @property
+    def density(self) -> float:
+        if self.density_kg_m3 is not None:
+            return float(self.density_kg_m3)
+        return MEDIUM_PRESETS[self.medium].density_kg_m3
+
+    @property
+    def attenuation_db_per_m(self) -> float:
+        """Loss at 1 MHz per metre actually used (0 when the attenuation switch is off)."""
+        if not self.attenuation:
+            return 0.0
+        if self.attenuation_db_per_m_at_1mhz is not None:
+            return float(self.attenuation_db_per_m_at_1mhz)
+        return MEDIUM_PRESETS[self.medium].attenuation_db_per_m_at_1mhz
+
+    @property
+    def dt_s(self) -> float:
+        return 1.0 / float(self.sample_rate_hz)
+
+    @property
+    def fs_int(self) -> int:
+        return int(round(self.sample_rate_hz))
+
+    @property
+    def lsb_v(self) -> float:
+        """ADC step: 2 FS / 2^bits (volts)."""
+        return 2.0 * self.adc_full_scale_v / (1 << self.adc_bits)
+
+    @property
+    def max_support_samples(self) -> int:
+        return int(math.ceil(self.max_support_s * self.sample_rate_hz))
+
+    @cached_property
+    def frontend(self):
+        """Cached `ae_tactile.sim.frontend.FrontEnd` (filter poles, residues, tables)."""
+        from ae_tactile.sim.frontend import FrontEnd
+        return FrontEnd(self)

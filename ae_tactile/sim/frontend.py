@@ -1,0 +1,154 @@
+"""Front end: PVDF + amplifier gain, Butterworth high-pass and anti-alias low-pass, noise, ADC.
+
+The analog chain is the rational transfer function (volts per pascal)
+
+    F(s) = G * HP_n(s) * LP_m(s)
+
+with G = ``sensitivity_v_per_pa``, HP_n an n-th order Butterworth high-pass at
+``highpass_hz`` (paper: 100 kHz) and LP_m an m-th order Butterworth low-pass at
+``lowpass_hz`` (1 MHz: the PVDF/amplifier band and the ADC's anti-alias filter).
+It is applied causally, as the analog front end would be. Because the emission (Eq. 9)
+is rational too, the filtered response to each arrival is a finite sum of complex
+exponentials, evaluated *exactly* at the sample instants (see `response.py`); sampling
+then aliases whatever the low-pass lets through above fs/2, as a real ADC does.
+
+Noise: white Gaussian, variance sigma^2 per channel over 0..fs/2, added at the ADC
+input. SNR (docs/conventions.md): SNR_dB = 10 log10(P_signal / sigma^2), P_signal the
+mean power of the noise-free signal over the 4 channels and the 30 us window that
+starts at the earliest direct arrival. `noise_rms_for_snr` is the one conversion.
+
+ADC: codes = clip(round(v / LSB), -2^(b-1), 2^(b-1) - 1), LSB = 2 FS / 2^b; the
+output in volts is codes * LSB.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import signal
+
+#: Length of the SNR window after the earliest direct arrival (docs/conventions.md).
+SNR_WINDOW_S = 30e-6
+
+
+class FrontEnd:
+    """Poles, residues and exponential tables of F(s) for one `SimConfig` (built lazily
+    via ``config.frontend``)."""
+
+    def __init__(self, config):
+        self.config = config
+        zs, ps, ks = [], [], []
+        z, p, k = signal.butter(config.highpass_order, 2 * math.pi * config.highpass_hz,
+                                btype="highpass", analog=True, output="zpk")
+        zs.append(z); ps.append(p); ks.append(k)
+        if config.lowpass_hz is not None:
+            z, p, k = signal.butter(config.lowpass_order, 2 * math.pi * config.lowpass_hz,
+                                    btype="lowpass", analog=True, output="zpk")
+            zs.append(z); ps.append(p); ks.append(k)
+        self.zeros = np.concatenate(zs).astype(complex)
+        self.poles = np.concatenate(ps).astype(complex)
+        self.gain = float(np.prod(ks)) * config.sensitivity_v_per_pa
+        # F(s) -> gain * s^(nz - np): direct term only when as many zeros as poles.
+        self.direct = self.gain if len(self.zeros) == len(self.poles) else 0.0
+        # Keep one pole of each conjugate pair (Im > 0) plus the real poles; a pair
+        # contributes 2 Re(c e^{q t}), a real pole c e^{q t}.
+        p = self.poles
+        keep = p.imag > 1e-9 * np.abs(p)
+        real = np.abs(p.imag) <= 1e-9 * np.abs(p)
+        self.fast_poles = np.concatenate([p[keep], p[real].real.astype(complex)])
+        self.fast_weights = np.concatenate([np.full(keep.sum(), 2.0), np.ones(real.sum())])
+        self.fast_residues = np.array([self._residue(q) for q in self.fast_poles])
+        # Slowest filter pole sets how long the fast part lasts.
+        self.fast_decay_rate = float(np.min(-self.fast_poles.real))
+
+    def _residue(self, q):
+        others = [pp for pp in self.poles if abs(pp - q) > 1e-9 * abs(q)]
+        assert len(others) == len(self.poles) - 1, "Butterworth poles are simple"
+        return self.gain * np.prod(q - self.zeros) / np.prod(q - np.array(others))
+
+    def transfer(self, s):
+        """F(s) (V/Pa) at complex or real s (any shape)."""
+        s = np.asarray(s, dtype=complex)
+        num = np.ones_like(s)
+        for z in self.zeros:
+            num = num * (s - z)
+        den = np.ones_like(s)
+        for p in self.poles:
+            den = den * (s - p)
+        return self.gain * num / den
+
+    def frequency_response(self, f_hz):
+        """F(j 2 pi f) (V/Pa)."""
+        return self.transfer(2j * math.pi * np.asarray(f_hz, dtype=float))
+
+    def exp_table(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """(Re, Im) of e^{q_j dt k}, shape (n_fast, n) each, for k = 0..n-1 (cached)."""
+        cached = getattr(self, "_table", None)
+        if cached is None or cached[0].shape[1] < n:
+            k = np.arange(max(n, self.config.max_support_samples), dtype=float)
+            e = np.exp(self.fast_poles[:, None] * (self.config.dt_s * k)[None, :])
+            self._table = (np.ascontiguousarray(e.real), np.ascontiguousarray(e.imag))
+        re, im = self._table
+        return re[:, :n], im[:, :n]
+
+
+# ------------------------------------------------------------------------ SNR / noise
+def signal_power_v2(clean_v, onset_index, sample_rate_hz, window_s=SNR_WINDOW_S):
+    """Mean power (V^2) of noise-free packets over the 4 channels and the SNR window.
+
+    ``clean_v`` (N, 4, M); ``onset_index`` (N,) the first sample at or after the earliest
+    direct arrival. The window holds round(window_s * fs) samples from the onset; it must
+    fit inside the packet (ValueError otherwise).
+    """
+    x = np.asarray(clean_v, dtype=float)
+    if x.ndim != 3 or x.shape[1] != 4:
+        raise ValueError(f"clean_v must have shape (N, 4, M), got {x.shape}")
+    on = np.asarray(onset_index, dtype=np.int64).reshape(-1)
+    if on.shape[0] != x.shape[0]:
+        raise ValueError("onset_index must have one entry per packet")
+    w = int(round(window_s * float(sample_rate_hz)))
+    if w < 1:
+        raise ValueError("SNR window shorter than one sample")
+    if np.any(on < 0) or np.any(on + w > x.shape[2]):
+        raise ValueError(f"the {window_s * 1e6:g} us SNR window after the onset does not fit in"
+                         f" packets of {x.shape[2]} samples")
+    e = np.concatenate([np.zeros((x.shape[0], 1)), np.cumsum(np.sum(x * x, axis=1), axis=1)], axis=1)
+    rows = np.arange(x.shape[0])
+    return (e[rows, on + w] - e[rows, on]) / (4.0 * w)
+
+
+def noise_rms_for_snr(signal_power_v2_, snr_db):
+    """sigma_n (V) such that 10 log10(P_signal / sigma_n^2) = snr_db (conventions.md)."""
+    p = np.asarray(signal_power_v2_, dtype=float)
+    snr = np.asarray(snr_db, dtype=float)
+    if np.any(~np.isfinite(snr)):
+        raise ValueError(f"snr_db must be finite, got {snr_db!r}")
+    return np.sqrt(p / 10.0 ** (snr / 10.0))
+
+
+def snr_db_from_noise(signal_power_v2_, noise_rms_v):
+    """Inverse of `noise_rms_for_snr`: 10 log10(P_signal / sigma_n^2)."""
+    return 10.0 * np.log10(np.asarray(signal_power_v2_, float) / np.asarray(noise_rms_v, float) ** 2)
+
+
+def noise_rms_from_density(density_v_per_rthz, sample_rate_hz):
+    """sigma_n = density * sqrt(fs / 2): white noise over 0..fs/2."""
+    return float(density_v_per_rthz) * math.sqrt(float(sample_rate_hz) / 2.0)
+
+
+# ------------------------------------------------------------------------ ADC
+def quantize(v, config, out=None):
+    """ADC: volts -> codes * LSB with clipping at full scale. Returns (volts, clipped_mask)."""
+    lsb = config.lsb_v
+    half = 1 << (config.adc_bits - 1)
+    codes = np.rint(np.multiply(v, 1.0 / lsb, out=out))
+    clipped = (codes < -half) | (codes > half - 1)
+    np.clip(codes, -half, half - 1, out=codes)
+    codes *= lsb
+    return codes, clipped
+
+
+def to_codes(v, config):
+    """ADC codes (int16 for <= 16 bits, else int32) of already-quantized volts."""
+    dtype = np.int16 if config.adc_bits <= 16 else np.int32
+    return np.rint(np.asarray(v) / config.lsb_v).astype(dtype)

@@ -1,0 +1,200 @@
+"""Batch triggered renderer: one short 4-channel window per emission, as a hardware
+trigger would capture it. Vectorized over packets.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ae_tactile.sim.config import SimConfig
+from ae_tactile.sim.emission import (DEFAULT_ALPHA_1_S, DEFAULT_CURVATURE_1_M, DEFAULT_SPEED_M_S,
+                                     source_strength_pa_m)
+from ae_tactile.sim.frontend import SNR_WINDOW_S, noise_rms_for_snr, quantize, signal_power_v2
+from ae_tactile.sim.propagation import compute_arrivals
+from ae_tactile.sim.response import arrival_coefficients, evaluate
+
+_BATCH = 1024
+
+
+@dataclass(frozen=True)
+class TriggeredPackets:
+    """Rendered packets and their ground truth. All times relative to each window's first
+    sample (sample m is at t = m / fs).
+
+    samples_v       (N, 4, M) float64 ADC output in volts (codes * LSB when quantizing)
+    clean_v         (N, 4, M) noise-free, unquantized front-end output (for CRLBs)
+    sample_rate_hz  float
+    onset_index     (N,) int64 first sample at or after the earliest direct arrival
+    points_m        (N, 3) true contact points
+    delays_s        (N, 2) exact (tau_x, tau_y) of the direct wave (geometry.py definition)
+    twist_s         (N,) the exact geometry's twist term
+    arrival_times_s (N, 4) direct-wave arrival time at each element
+    emission_time_s (N,) emission instant (may be negative: before the window)
+    noise_rms_v     (N,) sigma of the added noise (0 if none)
+    snr_db          (N,) SNR per docs/conventions.md (inf without noise)
+    signal_power_v2 (N,) P_signal of that definition
+    saturated       (N,) bool, some sample clipped at ADC full scale
+    polarity        (N,) +1 touch, -1 release
+    """
+
+    samples_v: np.ndarray
+    clean_v: np.ndarray
+    sample_rate_hz: float
+    onset_index: np.ndarray
+    points_m: np.ndarray
+    delays_s: np.ndarray
+    twist_s: np.ndarray
+    arrival_times_s: np.ndarray
+    emission_time_s: np.ndarray
+    noise_rms_v: np.ndarray
+    snr_db: np.ndarray
+    signal_power_v2: np.ndarray
+    saturated: np.ndarray
+    polarity: np.ndarray
+
+    def __len__(self):
+        return int(self.samples_v.shape[0])
+
+
+def validate_surface_points(points_m, geometry, rel_tol=1e-6) -> np.ndarray:
+    """(N, 3) float array of points on the upper hemisphere, else a ValueError naming the
+    first offending point."""
+    p = np.asarray(points_m, dtype=float)
+    if p.ndim == 1 and p.shape == (3,):
+        p = p[None, :]
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"points_m must have shape (N, 3), got {np.shape(points_m)}")
+    bad = ~np.all(np.isfinite(p), axis=1)
+    if np.any(bad):
+        i = int(np.argmax(bad))
+        raise ValueError(f"point {i} is not finite: {p[i].tolist()}")
+    r = np.linalg.norm(p, axis=1)
+    off = np.abs(r - geometry.radius_m) > rel_tol * geometry.radius_m
+    if np.any(off):
+        i = int(np.argmax(off))
+        raise ValueError(f"point {i} = {p[i].tolist()} m is off the sensing surface: |s| = {r[i]:.6g} m,"
+                         f" expected R = {geometry.radius_m} m (use geometry.surface_point_from_xy)")
+    below = p[:, 2] < -rel_tol * geometry.radius_m
+    if np.any(below):
+        i = int(np.argmax(below))
+        raise ValueError(f"point {i} = {p[i].tolist()} m is below the sensing hemisphere (z < 0)")
+    return p
+
+
+def _per_packet(name, value, n, positive=True):
+    v = np.asarray(value, dtype=float)
+    if v.ndim == 0:
+        v = np.full(n, float(v))
+    if v.shape != (n,):
+        raise ValueError(f"{name} must be a scalar or have shape ({n},), got {v.shape}")
+    if not np.all(np.isfinite(v)) or (positive and np.any(v <= 0)):
+        raise ValueError(f"{name} must be {'positive and ' if positive else ''}finite")
+    return v
+
+
+def render_triggered(points_m, config: SimConfig | None = None, *, snr_db=None, noise_rms_v=None,
+                     polarity=1, speed_m_s=DEFAULT_SPEED_M_S, curvature_1_m=DEFAULT_CURVATURE_1_M,
+                     alpha_1_s=DEFAULT_ALPHA_1_S, pretrigger_s=8e-6, window_s=40e-6,
+                     subsample_offset="random", rng=None) -> TriggeredPackets:
+    """Render one triggered window per emission at ``points_m`` (N, 3) on the sphere.
+
+    The window holds M = round(window_s fs) samples; the earliest direct arrival lies at
+    pretrigger_s + u / fs after its first sample, u = ``subsample_offset`` in [0, 1) or
+    uniform random ('random', the default: real triggers are not sample-aligned).
+    Defaults (8 us + 32 us) leave the 30 us SNR window after the onset inside the packet.
+
+    Noise: ``snr_db`` (scalar or (N,), conventions.md definition, per packet) or
+    ``noise_rms_v`` (scalar or (N,)), not both; neither = noise-free.
+    Event parameters (scalar or (N,)): ``polarity`` +1 touch / -1 release, ``speed_m_s``,
+    ``curvature_1_m``, ``alpha_1_s`` (emission.py). ``rng``: seed or numpy Generator.
+    """
+    cfg = SimConfig() if config is None else config
+    if not isinstance(cfg, SimConfig):
+        raise TypeError(f"config must be a SimConfig, got {type(cfg).__name__}")
+    pts = validate_surface_points(points_m, cfg.geometry)
+    n = pts.shape[0]
+    fs = float(cfg.sample_rate_hz)
+    dt = cfg.dt_s
+    m_len = int(round(float(window_s) * fs))
+    pre = float(pretrigger_s)
+    if not (math.isfinite(pre) and pre >= 0):
+        raise ValueError(f"pretrigger_s must be >= 0, got {pretrigger_s!r}")
+    if m_len < 2 or pre * fs + 1 >= m_len:
+        raise ValueError(f"window_s={window_s} must exceed pretrigger_s={pretrigger_s} by at least a sample")
+    if snr_db is not None and noise_rms_v is not None:
+        raise ValueError("give snr_db or noise_rms_v, not both")
+    if snr_db is not None and (m_len - (pre * fs + 1)) < round(SNR_WINDOW_S * fs):
+        raise ValueError(f"snr_db needs the {SNR_WINDOW_S * 1e6:g} us SNR window after the onset inside"
+                         f" the packet: window_s - pretrigger_s must be >= {SNR_WINDOW_S * 1e6:g} us + 1 sample")
+    pol = _per_packet("polarity", polarity, n, positive=False)
+    if not np.all(np.isin(pol, (-1.0, 1.0))):
+        raise ValueError("polarity must be +1 (touch) or -1 (release)")
+    speed = _per_packet("speed_m_s", speed_m_s, n)
+    curv = _per_packet("curvature_1_m", curvature_1_m, n)
+    alpha = _per_packet("alpha_1_s", alpha_1_s, n)
+    gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    if isinstance(subsample_offset, str):
+        if subsample_offset != "random":
+            raise ValueError("subsample_offset must be 'random' or a number in [0, 1)")
+        u = gen.random(n)
+    else:
+        u = _per_packet("subsample_offset", subsample_offset, n, positive=False)
+        if np.any((u < 0) | (u >= 1)):
+            raise ValueError("subsample_offset must lie in [0, 1)")
+
+    geo = cfg.geometry
+    direct_t = geo.arrival_times_s(pts)                       # (N, 4) travel times
+    t_first = pre + u * dt                                    # earliest direct arrival
+    t_emit = t_first - direct_t.min(axis=1)
+    arrival_times = t_emit[:, None] + direct_t
+    onset = np.ceil(t_first * fs - 1e-9).astype(np.int64)
+    strength = source_strength_pa_m(speed, curv, cfg.density, pol)
+
+    clean = np.zeros((n, 4, m_len))
+    for b0 in range(0, n, _BATCH):
+        sl = slice(b0, min(n, b0 + _BATCH))
+        nb = sl.stop - sl.start
+        arr = compute_arrivals(pts[sl], strength[sl], alpha[sl], cfg)
+        # offset from the window start = t_first + (delay - min direct delay) >= 0
+        off = (t_first[sl] - direct_t[sl].min(axis=1))[arr.emission] + arr.delay_s
+        co = arrival_coefficients(arr.amplitude_pa, arr.alpha_1_s, arr.att_pole_rad_s,
+                                  np.zeros(len(arr), np.int64), off, cfg)
+        y = evaluate(co, cfg, n_samples=m_len, deterministic=False)   # (n_arr, M)
+        # shift row a right by n0_a samples: window M - n0_a of [zeros(M) | y]
+        padded = np.concatenate([np.zeros_like(y), y], axis=1)
+        view = np.lib.stride_tricks.sliding_window_view(padded, m_len, axis=1)
+        placed = view[np.arange(len(co)), np.clip(m_len - co.n0, 0, m_len)]
+        n_paths = len(arr) // (4 * nb)
+        clean[sl] = placed.reshape(nb, n_paths, 4, m_len).sum(axis=1)
+
+    if snr_db is not None:
+        snr = _per_packet("snr_db", snr_db, n, positive=False)
+        p_sig = signal_power_v2(clean, onset, fs)
+        sigma = noise_rms_for_snr(p_sig, snr)
+    else:
+        p_sig = (signal_power_v2(clean, onset, fs)
+                 if m_len - onset.max() >= round(SNR_WINDOW_S * fs) else np.full(n, np.nan))
+        if noise_rms_v is not None:
+            sigma = _per_packet("noise_rms_v", noise_rms_v, n, positive=False)
+            if np.any(sigma < 0):
+                raise ValueError("noise_rms_v must be >= 0")
+        else:
+            sigma = np.zeros(n)
+        with np.errstate(divide="ignore"):
+            snr = 10.0 * np.log10(p_sig / sigma ** 2)
+    samples = clean.copy()
+    if np.any(sigma > 0):
+        samples += sigma[:, None, None] * gen.standard_normal(samples.shape)
+    if cfg.quantization:
+        samples, clipped = quantize(samples, cfg, out=samples)
+        saturated = clipped.any(axis=(1, 2))
+    else:
+        saturated = (np.abs(samples) >= cfg.adc_full_scale_v).any(axis=(1, 2))
+    d = geo.delays_from_arrival_times(direct_t)
+    return TriggeredPackets(samples_v=samples, clean_v=clean, sample_rate_hz=fs, onset_index=onset,
+                            points_m=pts, delays_s=d[:, :2], twist_s=d[:, 2],
+                            arrival_times_s=arrival_times, emission_time_s=t_emit,
+                            noise_rms_v=sigma, snr_db=np.asarray(snr, float), signal_power_v2=p_sig,
+                            saturated=saturated, polarity=pol)
