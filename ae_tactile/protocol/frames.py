@@ -212,7 +212,8 @@ def _v_per_count(value) -> float:
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise TypeError(f"v_per_count must be a real number, got {type(value).__name__} {value!r}")
     v = float(value)
-    f32 = float(np.float32(v)) if math.isfinite(v) and abs(v) < 3.4e38 else math.inf
+    with np.errstate(over="ignore"):
+        f32 = float(np.float32(v))          # the value the wire carries
     if not (math.isfinite(f32) and f32 > 0.0):
         raise ValueError(f"v_per_count (volts per ADC count, float32) must be finite and > 0, got {v!r}")
     return f32
