@@ -116,8 +116,8 @@ def raw_frame(ftype, payload, seq=0, ts=0, flags=0, version=1, reserved=0, lengt
     """Frame bytes with arbitrary header fields but correct CRCs (for crafted rejections)."""
     length = len(payload) if length is None else length
     head = struct.pack("<4sBBBBIII", SYNC, version, ftype, flags, reserved, length, seq, ts)
-    head += struct.pack("<I", zlib.crc32(head))
-    return head + payload + struct.pack("<I", zlib.crc32(payload, zlib.crc32(head)))
+    hcrc = zlib.crc32(head)
+    return head + struct.pack("<I", hcrc) + payload + struct.pack("<I", zlib.crc32(payload, hcrc))
 
 
 def full(frame: Frame):

@@ -216,7 +216,7 @@ class StreamDecoder:
                     pos = i + 1
                     continue
                 (fcrc,) = _U32LE.unpack_from(buf, end - CRC_LEN)
-                crc = zlib.crc32(mv[i:end - CRC_LEN])
+                crc = zlib.crc32(mv[i + HEADER_LEN:end - CRC_LEN], h.header_crc)
                 if crc != fcrc:
                     self.crc_errors += 1
                     self.bytes_discarded += 1

@@ -13,7 +13,8 @@ Every frame, little-endian (docs/protocol.md is the normative description)::
      16    4   timestamp_us  u32 sender clock in microseconds, wraps every 71.6 min
      20    4   header_crc    CRC-32 of bytes 0..19
      24    L   payload       per frame type
-   24+L    4   frame_crc     CRC-32 of bytes 0..23+L (header incl. header_crc, payload)
+   24+L    4   frame_crc     CRC-32 of bytes 0..19 followed by the payload, i.e. the CRC
+                             computation continued from header_crc over the payload
 
 Sample blocks (PACKET, STREAM) are int16 ADC counts, 4 x N, channel-major in the
 channel order of ``ae_tactile.geometry`` (k = 0..3 <-> (xi, eta) = (+1,+1),
@@ -64,6 +65,7 @@ _U8, _U16, _U32, _U64 = 0xFF, 0xFFFF, 0xFFFFFFFF, 0xFFFFFFFFFFFFFFFF
 _HEADER = struct.Struct("<4sBBBBIII")        # bytes 0..19
 _HEADER_FULL = struct.Struct("<4xBBBBIIII")  # bytes 0..23 (with header_crc)
 _U32LE = struct.Struct("<I")
+_F32 = struct.Struct("<f")
 _PACKET = struct.Struct("<IfQHHHBB")         # 24 bytes
 _STREAM = struct.Struct("<IfQHBB")           # 20 bytes
 _STATUS = struct.Struct("<QIfHHHBBIIBBBB")   # 36 bytes
@@ -212,8 +214,10 @@ def _v_per_count(value) -> float:
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise TypeError(f"v_per_count must be a real number, got {type(value).__name__} {value!r}")
     v = float(value)
-    with np.errstate(over="ignore"):
-        f32 = float(np.float32(v))          # the value the wire carries
+    try:
+        (f32,) = _F32.unpack(_F32.pack(v))  # the value the wire carries
+    except OverflowError:
+        f32 = math.inf
     if not (math.isfinite(f32) and f32 > 0.0):
         raise ValueError(f"v_per_count (volts per ADC count, float32) must be finite and > 0, got {v!r}")
     return f32
@@ -700,8 +704,8 @@ def encode_frame(body: Body, seq: int, timestamp_us: int, flags: int = 0) -> byt
                          f" got 0x{flags:02x}")
     payload = body._pack()
     head = _HEADER.pack(SYNC, PROTOCOL_VERSION, body.frame_type, flags, 0, len(payload), seq, timestamp_us)
-    head += _U32LE.pack(zlib.crc32(head))
-    return b"".join((head, payload, _U32LE.pack(zlib.crc32(payload, zlib.crc32(head)))))
+    hcrc = zlib.crc32(head)
+    return b"".join((head, _U32LE.pack(hcrc), payload, _U32LE.pack(zlib.crc32(payload, hcrc))))
 
 
 class FrameEncoder:
@@ -731,9 +735,11 @@ class FrameEncoder:
 class Header:
     """Parsed, validated header fields (internal helper shared with the decoder)."""
 
-    __slots__ = ("frame_type", "flags", "payload_len", "seq", "timestamp_us")
+    __slots__ = ("frame_type", "flags", "payload_len", "seq", "timestamp_us", "header_crc")
 
-    def __init__(self, frame_type: int, flags: int, payload_len: int, seq: int, timestamp_us: int):
+    def __init__(self, frame_type: int, flags: int, payload_len: int, seq: int, timestamp_us: int,
+                 header_crc: int):
+        self.header_crc = header_crc
         self.frame_type = frame_type
         self.flags = flags
         self.payload_len = payload_len
@@ -757,7 +763,7 @@ def parse_header(buf, pos: int = 0) -> Header:
     if length > MAX_PAYLOAD_LEN:
         raise ProtocolError(Reason.LENGTH_TOO_LARGE,
                             f"payload_len {length} > MAX_PAYLOAD_LEN {MAX_PAYLOAD_LEN}")
-    return Header(ftype, flags, length, seq, ts)
+    return Header(ftype, flags, length, seq, ts, hcrc)
 
 
 def parse_body(frame_type: int, buf, off: int, length: int) -> Body:
@@ -790,7 +796,7 @@ def decode_frame(data) -> Frame:
         raise ProtocolError(Reason.TRUNCATED if len(data) < end else Reason.BAD_HEADER,
                             f"header says the frame has {end} bytes, got {len(data)}")
     (fcrc,) = _U32LE.unpack_from(data, end - CRC_LEN)
-    crc = zlib.crc32(memoryview(data)[:end - CRC_LEN])
+    crc = zlib.crc32(memoryview(data)[HEADER_LEN:end - CRC_LEN], h.header_crc)
     if crc != fcrc:
         raise ProtocolError(Reason.FRAME_CRC, f"frame CRC 0x{fcrc:08x} != computed 0x{crc:08x}")
     body = parse_body(h.frame_type, data, HEADER_LEN, h.payload_len)
