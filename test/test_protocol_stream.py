@@ -509,3 +509,24 @@ def test_accepts_memoryview_and_bytearray_reads():
     out = dec.feed(memoryview(data)[:100]) + dec.feed(bytearray(data[100:]))
     assert out == frames
     assert not out[0].body.samples.flags.writeable      # read-only views of the frame bytes
+
+
+def test_memoryview_of_wider_items_counts_bytes():
+    frames, wire = encode_all([small_packet(k) for k in range(2)])
+    data = b"".join(wire)
+    words = np.frombuffer(data + b"\0" * (-len(data) % 4), dtype=np.uint32)
+    dec = StreamDecoder()
+    assert dec.feed(memoryview(words)) == frames
+    check_invariants(dec)
+    assert dec.bytes_received == words.nbytes
+
+
+def test_bodies_are_immutable():
+    s = np.zeros((4, 8), np.int16)
+    p = Packet(s, 10_000_000, 1e-6)
+    s[0, 0] = 99                                        # the caller's array is not aliased
+    assert p.samples[0, 0] == 0 and not p.samples.flags.writeable
+    with pytest.raises(ValueError):
+        p.samples[0, 0] = 1
+    with pytest.raises(AttributeError):
+        p.sample_rate_hz = 5

@@ -75,7 +75,7 @@ def _sync_prefix_tail(buf: bytearray, start: int, end: int) -> int:
 
 
 class StreamDecoder:
-    """Incremental decoder of one byte stream (one serial port, one direction).
+    """Incremental decoder of one byte stream (one serial port, one direction); not thread-safe.
 
     direction: frames accepted; the other direction's frames are rejected and counted
                (``wrong_direction``). ``None`` accepts both, each with its own sequence
@@ -126,7 +126,7 @@ class StreamDecoder:
         if isinstance(data, str) or not isinstance(data, (bytes, bytearray, memoryview)):
             raise TypeError(f"feed() takes bytes, bytearray or memoryview, got {type(data).__name__}")
         self._buf += data
-        self.bytes_received += len(data)
+        self.bytes_received += data.nbytes if isinstance(data, memoryview) else len(data)
         if len(self._buf) < self._need:
             return []
         return self._process(final=False)

@@ -20,6 +20,9 @@ Sample blocks (PACKET, STREAM) are int16 ADC counts, 4 x N, channel-major in the
 channel order of ``ae_tactile.geometry`` (k = 0..3 <-> (xi, eta) = (+1,+1),
 (+1,-1), (-1,+1), (-1,-1)); volts at the sensor = counts * v_per_count.
 
+Bodies are immutable: their sample arrays are read-only int16 arrays (a private copy of
+what the caller passed, or a view of the received frame bytes).
+
 Validation: constructing a frame body checks every field. Wrong Python types raise
 TypeError; wrong shapes, dtypes and out-of-range values raise ValueError with the
 field name and the allowed range. The decoder builds bodies through the same
@@ -234,8 +237,8 @@ def _samples(value) -> np.ndarray:
     n = a.shape[1]
     if not 1 <= n <= MAX_SAMPLES:
         raise ValueError(f"samples per channel N must be in [1, {MAX_SAMPLES}], got {n}")
-    if a.dtype == np.int16:
-        return a
+    if a.dtype == np.int16 and not a.flags.writeable:
+        return a                     # e.g. decoded: a read-only view of immutable frame bytes
     if a.dtype.kind not in "iu":
         raise ValueError(f"samples must have an integer dtype (int16 ADC counts), got {a.dtype};"
                          " convert explicitly (e.g. np.rint(x).astype(np.int16))")
@@ -243,7 +246,9 @@ def _samples(value) -> np.ndarray:
         lo, hi = int(a.min()), int(a.max())
         if lo < -32768 or hi > 32767:
             raise ValueError(f"samples must fit in int16 [-32768, 32767], got range [{lo}, {hi}]")
-    return a.astype(np.int16)
+    a = a.astype(np.int16)           # always a private copy, so the frozen body stays frozen
+    a.flags.writeable = False
+    return a
 
 
 def _arrays_equal(a, b) -> bool:
