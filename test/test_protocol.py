@@ -17,7 +17,7 @@ from hypothesis.extra import numpy as hnp
 from ae_tactile.geometry import N_CHANNELS
 from ae_tactile.protocol import (
     CRC32_CHECK, FLAG_BOOT, FRAME_OVERHEAD, HEADER_LEN, MAX_FRAME_LEN, MAX_PAYLOAD_LEN,
-    MAX_SAMPLES, NO_ONSET, PROTOCOL_VERSION, SYNC, Ack, AckResult, AcqMode, Command,
+    MAX_SAMPLES, PROTOCOL_VERSION, SYNC, Ack, AckResult, AcqMode, Command,
     DeviceState, ErrorBits, Frame, FrameEncoder, FrameType, Opcode, Packet, ProtocolError,
     Reason, SequenceTracker, Status, StreamBlock, StreamDecoder, TimestampUnwrapper, crc32,
     crc32_reference, decode_frame, encode_frame, format_hex, parse_hex,

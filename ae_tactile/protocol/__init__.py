@@ -4,7 +4,7 @@ Normative description: docs/protocol.md. This package never imports rclpy.
 
 Sending::
 
-    from ae_tactile.protocol import FrameEncoder, Packet, Command, encode_frame
+    from ae_tactile.protocol import AcqMode, Command, FrameEncoder, Packet, encode_frame
     enc = FrameEncoder()                       # device side: seq 0, 1, ...; BOOT on the first
     wire = enc.encode(Packet(samples, 10_000_000, 0.5e-3 / 2048, first_sample_index=k,
                              pre_trigger=100), timestamp_us=t_us & 0xFFFFFFFF)
