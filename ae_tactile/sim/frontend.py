@@ -60,6 +60,14 @@ class FrontEnd:
         self.fast_residues = np.array([self._residue(q) for q in self.fast_poles])
         # Slowest filter pole sets how long the fast part lasts.
         self.fast_decay_rate = float(np.min(-self.fast_poles.real))
+        from ae_tactile.sim.propagation import path_lengths
+        from ae_tactile.sim.response import att_support_samples, fast_support_samples
+        #: config-constant truncation lengths (samples) of the fast / attenuation parts
+        self.support_fast = fast_support_samples(config, self)
+        r = config.geometry.radius_m
+        far = np.array([[r, 0.0, 0.0]])
+        self.max_path_m = float(path_lengths(far, config).max()) + config.geometry.element_offset_m
+        self.support_att = att_support_samples(config, self.max_path_m)
 
     def _residue(self, q):
         others = [pp for pp in self.poles if abs(pp - q) > 1e-9 * abs(q)]

@@ -161,7 +161,7 @@ def render_triggered(points_m, config: SimConfig | None = None, *, snr_db=None, 
         off = (t_first[sl] - direct_t[sl].min(axis=1))[arr.emission] + arr.delay_s
         co = arrival_coefficients(arr.amplitude_pa, arr.alpha_1_s, arr.att_pole_rad_s,
                                   np.zeros(len(arr), np.int64), off, cfg)
-        y = evaluate(co, cfg, n_samples=m_len, deterministic=False)   # (n_arr, M)
+        y = evaluate(co, cfg, n_samples=m_len)                # (n_arr, M)
         # shift row a right by n0_a samples: window M - n0_a of [zeros(M) | y]
         padded = np.concatenate([np.zeros_like(y), y], axis=1)
         view = np.lib.stride_tricks.sliding_window_view(padded, m_len, axis=1)

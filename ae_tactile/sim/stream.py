@@ -1,0 +1,498 @@
+"""Streaming renderer: emissions with integer-nanosecond times -> 4-channel samples.
+
+Any window [n0, n1) of absolute sample indices is rendered by summing only the
+emissions whose responses overlap it, so the cost grows with the number of emissions,
+not with the silent time between them; a 60 s scene streams chunk by chunk.
+
+Chunk invariance (tested): a window is bit-identical to the same samples of a full
+render, because
+  * each arrival's response at absolute sample n is computed from the emission's own
+    parameters and n - n0 by the same elementwise operations (response.py), and is
+    exactly zero outside its truncated support;
+  * contributions are accumulated with ``np.add.at`` in one fixed global order
+    (emission time, then event id; within an emission path then channel), starting
+    from 0.0, so every sample sees the same additions in the same order;
+  * noise for absolute sample block b (``noise_block`` samples, all 4 channels) comes
+    from its own generator seeded by (seed, b) (numpy SeedSequence -> PCG64), so it
+    does not depend on where windows start;
+  * quantization and clipping are elementwise and come last.
+
+Noise is float32 Box-Muller from float32 uniforms (exact Gaussian transform; tails
+reach ~5.8 sigma), scaled by noise_rms_v and added in float64 (the float32 noise has
+~1e-7 relative resolution, far below the ADC step).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ae_tactile.sim.config import SimConfig
+from ae_tactile.sim.emission import source_strength_pa_m
+from ae_tactile.sim.propagation import compute_arrivals, path_lengths
+from ae_tactile.sim.response import SlowTables, accumulate, arrival_coefficients
+
+#: Emission types (``EmissionList.kind`` codes index this tuple).
+KINDS = ("touch", "release", "micro_slip", "slip", "texture")
+KIND_CODE = {k: i for i, k in enumerate(KINDS)}
+
+_NS = 1_000_000_000
+
+
+@dataclass(frozen=True)
+class EmissionList:
+    """Ground truth of emissions, columnar and sorted by (time_ns, event_id).
+
+    time_ns        (N,) int64 emission instant
+    point_m        (N, 3) contact point on the sensing surface
+    kind           (N,) int8 code into KINDS
+    strength_pa_m  (N,) signed source strength S = polarity rho v0^2 / a_c; the jump at
+                   distance l is S / l (the "amplitude" of the ground truth)
+    speed_m_s, curvature_1_m, alpha_1_s   (N,) Eq. 10 event parameters
+    event_id       (N,) int64, unique per emission within a scene
+    """
+
+    time_ns: np.ndarray
+    point_m: np.ndarray
+    kind: np.ndarray
+    strength_pa_m: np.ndarray
+    speed_m_s: np.ndarray
+    curvature_1_m: np.ndarray
+    alpha_1_s: np.ndarray
+    event_id: np.ndarray
+
+    def __len__(self):
+        return int(self.time_ns.shape[0])
+
+    @property
+    def polarity(self) -> np.ndarray:
+        return np.sign(self.strength_pa_m)
+
+    @property
+    def kind_names(self) -> list[str]:
+        return [KINDS[k] for k in self.kind]
+
+    @classmethod
+    def empty(cls) -> "EmissionList":
+        z = np.zeros(0)
+        return cls(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int8), z, z, z, z,
+                   np.zeros(0, np.int64))
+
+    @classmethod
+    def create(cls, time_ns, point_m, kind, *, polarity=1, speed_m_s, curvature_1_m, alpha_1_s,
+               density_kg_m3, event_id) -> "EmissionList":
+        """Build and sort a list; scalars broadcast. ``kind`` names or codes."""
+        t = np.atleast_1d(np.asarray(time_ns, dtype=np.int64))
+        n = t.shape[0]
+        p = np.asarray(point_m, dtype=float).reshape(n, 3)
+        if isinstance(kind, str):
+            k = np.full(n, KIND_CODE[kind], np.int8)
+        else:
+            k = np.asarray([KIND_CODE[x] if isinstance(x, str) else int(x) for x in np.atleast_1d(kind)],
+                           np.int8)
+            k = np.broadcast_to(k, (n,)).copy()
+        b = lambda v: np.broadcast_to(np.asarray(v, dtype=float), (n,)).copy()   # noqa: E731
+        pol, v, a, al = b(polarity), b(speed_m_s), b(curvature_1_m), b(alpha_1_s)
+        s = source_strength_pa_m(v, a, density_kg_m3, pol)
+        eid = np.broadcast_to(np.asarray(event_id, dtype=np.int64), (n,)).copy()
+        out = cls(t, p, k, s, v, a, al, eid)
+        return out.sorted()
+
+    def sorted(self) -> "EmissionList":
+        order = np.lexsort((self.event_id, self.time_ns))
+        return self.take(order)
+
+    def take(self, idx) -> "EmissionList":
+        return EmissionList(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
+
+    @staticmethod
+    def concat(lists) -> "EmissionList":
+        lists = [x for x in lists if len(x)]
+        if not lists:
+            return EmissionList.empty()
+        f = EmissionList.__dataclass_fields__
+        return EmissionList(*(np.concatenate([getattr(x, k) for x in lists]) for k in f)).sorted()
+
+    def between(self, t0_ns, t1_ns) -> "EmissionList":
+        """Emissions with t0 <= time_ns < t1."""
+        i0, i1 = np.searchsorted(self.time_ns, [t0_ns, t1_ns], side="left")
+        return self.take(slice(int(i0), int(i1)))
+
+    def to_records(self) -> list[dict]:
+        """Plain-Python ground-truth records (for YAML/JSON/printing)."""
+        return [dict(event_id=int(self.event_id[i]), time_ns=int(self.time_ns[i]),
+                     type=KINDS[self.kind[i]], point_m=[float(x) for x in self.point_m[i]],
+                     strength_pa_m=float(self.strength_pa_m[i]), speed_m_s=float(self.speed_m_s[i]),
+                     curvature_1_m=float(self.curvature_1_m[i]), alpha_1_s=float(self.alpha_1_s[i]))
+                for i in range(len(self))]
+
+    def as_arrays(self, prefix="truth_") -> dict:
+        """Arrays for ``np.savez`` (kind as codes plus the KINDS table)."""
+        d = {prefix + k: getattr(self, k) for k in self.__dataclass_fields__}
+        d[prefix + "kind_names"] = np.array(KINDS)
+        return d
+
+
+def sample_index_of_ns(time_ns, sample_rate_hz) -> tuple[np.ndarray, np.ndarray]:
+    """(n, frac_s): sample n = floor(t fs) in exact integer arithmetic, and t - n/fs (s)."""
+    t = np.asarray(time_ns, dtype=np.int64)
+    fs = np.int64(int(round(sample_rate_hz)))
+    sec, rem = np.divmod(t, np.int64(_NS))
+    prod = rem * fs                              # < 1e9 * fs, fits int64 for fs < 9e9
+    n = sec * fs + prod // np.int64(_NS)
+    frac = (prod % np.int64(_NS)).astype(float) / (float(_NS) * float(fs))
+    return n, frac
+
+
+def time_ns_of_sample(n, sample_rate_hz) -> np.ndarray:
+    """Start time (ns, rounded down) of absolute sample n."""
+    n = np.asarray(n, dtype=np.int64)
+    fs = np.int64(int(round(sample_rate_hz)))
+    sec, rem = np.divmod(n, fs)
+    return sec * np.int64(_NS) + (rem * np.int64(_NS)) // fs
+
+
+class StreamRenderer:
+    """Render absolute sample windows of a stream from an `EmissionList`.
+
+    ``noise_rms_v``: sigma per channel (0 = no noise); ``seed`` fixes the noise.
+    """
+
+    def __init__(self, config: SimConfig, *, noise_rms_v: float = 0.0, seed: int = 0,
+                 noise_block: int = 8192, batch_emissions: int = 32):
+        if not isinstance(config, SimConfig):
+            raise TypeError(f"config must be a SimConfig, got {type(config).__name__}")
+        sigma = float(noise_rms_v)
+        if not math.isfinite(sigma) or sigma < 0:
+            raise ValueError(f"noise_rms_v must be finite and >= 0, got {noise_rms_v!r}")
+        self.config = config
+        self.noise_rms_v = sigma
+        self.seed = int(seed)
+        self.noise_block = int(noise_block)
+        self.batch_emissions = int(batch_emissions)
+        geo = config.geometry
+        far = np.array([[0.0, 0.0, geo.radius_m], [geo.radius_m, 0.0, 0.0]])
+        max_path = float(path_lengths(far, config).max()) + geo.element_offset_m
+        #: emissions earlier than this many samples before a window cannot reach it
+        self.lookback_samples = int(math.ceil(max_path / geo.sound_speed_m_s * config.sample_rate_hz)) \
+            + config.max_support_samples + 2
+        self._noise_cache: dict[int, np.ndarray] = {}
+        self._bm_u = np.empty(2 * self.noise_block, np.float32)
+        self._bm_v = np.empty(2 * self.noise_block, np.float32)
+        self._tables = SlowTables(config, self.lookback_samples + 2)
+
+    # ------------------------------------------------------------------ signal
+    def render_clean(self, emissions: EmissionList, n0: int, n1: int, out=None) -> np.ndarray:
+        """Noise-free, unquantized (4, n1 - n0) float64 for absolute samples [n0, n1).
+
+        ``out``: optional preallocated (4, n1 - n0) float64 array to fill (reusing one
+        buffer across chunks avoids page-faulting fresh memory on every chunk)."""
+        n0, n1 = int(n0), int(n1)
+        width = n1 - n0
+        if width < 0:
+            raise ValueError(f"empty window [{n0}, {n1})")
+        if out is None:
+            out = np.zeros((4, width))
+        else:
+            if out.shape != (4, width) or out.dtype != np.float64:
+                raise ValueError(f"out must be a float64 array of shape (4, {width})")
+            out.fill(0.0)
+        if len(emissions) == 0 or width == 0:
+            return out
+        cfg = self.config
+        t_lo, t_hi = time_ns_of_sample([n0 - self.lookback_samples - 1, n1 + 1], cfg.sample_rate_hz)
+        i0, i1 = np.searchsorted(emissions.time_ns, [t_lo, t_hi], side="left")
+        n_e, frac = sample_index_of_ns(emissions.time_ns[i0:i1], cfg.sample_rate_hz)
+        sel = np.nonzero((n_e >= n0 - self.lookback_samples) & (n_e < n1))[0]
+        emissions = emissions.take(slice(int(i0), int(i1)))
+        for b0 in range(0, sel.shape[0], self.batch_emissions):
+            idx = sel[b0:b0 + self.batch_emissions]
+            arr = compute_arrivals(emissions.point_m[idx], emissions.strength_pa_m[idx],
+                                   emissions.alpha_1_s[idx], cfg)
+            ne = n_e[idx][arr.emission]
+            co = arrival_coefficients(arr.amplitude_pa, arr.alpha_1_s, arr.att_pole_rad_s,
+                                      ne, frac[idx][arr.emission] + arr.delay_s, cfg)
+            accumulate(co, arr.channel, cfg, self._tables, out, n0)
+        return out
+
+    # ------------------------------------------------------------------ noise
+    def _noise_block(self, b: int) -> np.ndarray:
+        blk = self._noise_cache.get(b)
+        if blk is not None:
+            return blk
+        if len(self._noise_cache) >= 3:
+            blk = self._noise_cache.pop(next(iter(self._noise_cache)))   # reuse its memory
+        else:
+            blk = np.empty((4, self.noise_block), np.float32)
+        gen = np.random.Generator(np.random.PCG64(np.random.SeedSequence([self.seed, 0x5EED, b])))
+        h = 2 * self.noise_block
+        u = self._bm_u
+        v = self._bm_v
+        gen.random(h, dtype=np.float32, out=u)
+        gen.random(h, dtype=np.float32, out=v)
+        np.subtract(np.float32(1.0), u, out=u)          # (0, 1]
+        np.log(u, out=u)
+        u *= np.float32(-2.0 * self.noise_rms_v ** 2)
+        np.sqrt(u, out=u)                               # sigma sqrt(-2 ln u)
+        v *= np.float32(2.0 * np.pi)
+        flat = blk.reshape(-1)
+        np.cos(v, out=flat[:h])
+        np.sin(v, out=flat[h:])
+        flat[:h] *= u
+        flat[h:] *= u
+        self._noise_cache[b] = blk
+        return blk
+
+    def add_noise(self, y: np.ndarray, n0: int) -> None:
+        """Add the stream's noise (sigma = noise_rms_v) for absolute samples [n0, n0 + n) to y."""
+        if self.noise_rms_v <= 0:
+            return
+        n1 = n0 + y.shape[1]
+        B = self.noise_block
+        b = n0 // B
+        pos = n0
+        while pos < n1:
+            blk = self._noise_block(b)
+            lo = pos - b * B
+            hi = min(B, n1 - b * B)
+            y[:, pos - n0:pos - n0 + hi - lo] += blk[:, lo:hi]
+            pos += hi - lo
+            b += 1
+
+    def noise(self, n0: int, n1: int) -> np.ndarray:
+        """The stream's noise (volts, float64 (4, n1 - n0)) for absolute samples [n0, n1)."""
+        y = np.zeros((4, n1 - n0))
+        self.add_noise(y, n0)
+        return y
+
+    # ------------------------------------------------------------------ output
+    def render(self, emissions: EmissionList, n0: int, n1: int, *, out=None, return_clean=False):
+        """ADC output (volts, (4, n1 - n0) float64) for absolute samples [n0, n1): signal,
+        plus noise, then quantization/clipping if on. With ``return_clean`` also the
+        noise-free signal. Returns (samples, clipped_any[, clean])."""
+        y = self.render_clean(emissions, n0, n1, out=out)
+        clean = y.copy() if return_clean else None
+        self.add_noise(y, n0)
+        if self.config.quantization:
+            clipped = _quantize_inplace(y, self.config)
+        else:
+            clipped = bool(np.any(np.abs(y) >= self.config.adc_full_scale_v))
+        return (y, clipped, clean) if return_clean else (y, clipped)
+
+
+def _quantize_inplace(y: np.ndarray, config) -> bool:
+    """codes = clip(round(y / LSB)), y = codes * LSB in place; True if anything clipped."""
+    lsb = config.lsb_v
+    half = float(1 << (config.adc_bits - 1))
+    y *= 1.0 / lsb
+    np.rint(y, out=y)
+    clipped = bool(y.max(initial=0.0) > half - 1 or y.min(initial=0.0) < -half)
+    if clipped:
+        np.clip(y, -half, half - 1, out=y)
+    y *= lsb
+    return clipped
+
+
+# ---------------------------------------------------------------------- sources
+class StaticEmissions:
+    """An emission process over a fixed, pre-generated `EmissionList`."""
+
+    def __init__(self, emissions: EmissionList, truth: dict | None = None):
+        self.emissions = emissions.sorted()
+        self.truth = dict(truth or {})
+        self._horizon_ns = None
+
+    def advance(self, t_ns: int) -> EmissionList:
+        """Emissions with previous horizon <= time_ns < t_ns (everything before, first call)."""
+        lo = np.iinfo(np.int64).min if self._horizon_ns is None else self._horizon_ns
+        if self._horizon_ns is not None and t_ns <= self._horizon_ns:
+            return EmissionList.empty()
+        self._horizon_ns = int(t_ns)
+        return self.emissions.between(lo, t_ns)
+
+    def scene_truth(self) -> dict:
+        return dict(self.truth)
+
+
+def _as_process(src):
+    if isinstance(src, EmissionList):
+        return StaticEmissions(src)
+    if hasattr(src, "advance"):
+        return src
+    raise TypeError("expected an EmissionList or an emission process with advance(t_ns)")
+
+
+@dataclass
+class Chunk:
+    """``samples_v`` (4, n) ADC volts for absolute samples [start_index, start_index + n);
+    ``emissions``: ground truth of the emissions whose time falls in the chunk."""
+
+    samples_v: np.ndarray
+    start_index: int
+    start_time_ns: int
+    sample_rate_hz: float
+    emissions: EmissionList
+    clipped: bool
+    clean_v: np.ndarray | None = None
+
+
+class StreamingSource:
+    """Continuous 4-channel stream: ``next_chunk(n)`` returns the next n samples and the
+    ground truth falling in them. Source: an `EmissionList` or an emission process (an
+    object with ``advance(t_ns) -> EmissionList`` returning, deterministically, the
+    emissions up to t_ns not returned before; e.g. `generators.IncipientSlipProcess`).
+    Memory is bounded: emissions older than the renderer's look-back are dropped.
+    """
+
+    def __init__(self, source, config: SimConfig, *, noise_rms_v: float = 0.0, seed: int = 0,
+                 start_index: int = 0, keep_clean: bool = False):
+        self.process = _as_process(source)
+        self.config = config
+        self.renderer = StreamRenderer(config, noise_rms_v=noise_rms_v, seed=seed)
+        self.position = int(start_index)
+        self.keep_clean = keep_clean
+        self._buffer = EmissionList.empty()
+
+    @property
+    def time_ns(self) -> int:
+        """Start time (ns) of the next sample."""
+        return int(time_ns_of_sample(self.position, self.config.sample_rate_hz))
+
+    def _pull(self, n1: int) -> EmissionList:
+        t_end = int(time_ns_of_sample(n1, self.config.sample_rate_hz)) + 1
+        new = self.process.advance(t_end)
+        if len(new):
+            self._buffer = EmissionList.concat([self._buffer, new])
+        return new
+
+    def next_chunk(self, n_samples: int, out=None) -> Chunk:
+        n = int(n_samples)
+        if n <= 0:
+            raise ValueError(f"n_samples must be positive, got {n_samples!r}")
+        n0, n1 = self.position, self.position + n
+        fs = self.config.sample_rate_hz
+        self._pull(n1)
+        t0, t1 = (int(x) for x in time_ns_of_sample([n0, n1], fs))
+        res = self.renderer.render(self._buffer, n0, n1, out=out, return_clean=self.keep_clean)
+        truth = self._buffer.between(t0, t1)
+        # drop emissions that can no longer reach future samples
+        t_keep = int(time_ns_of_sample(n1 - self.renderer.lookback_samples - 1, fs))
+        self._buffer = self._buffer.between(t_keep, np.iinfo(np.int64).max)
+        self.position = n1
+        return Chunk(samples_v=res[0], start_index=n0, start_time_ns=t0, sample_rate_hz=fs,
+                     emissions=truth, clipped=res[1], clean_v=res[2] if self.keep_clean else None)
+
+
+@dataclass(frozen=True)
+class StreamPackets:
+    """Triggered windows cut from a stream, one per emission (hardware-trigger view).
+
+    samples_v (N, 4, M), clean_v (N, 4, M) or None, start_index (N,) absolute first sample,
+    onset_index (N,) first sample at/after the earliest direct arrival (window-relative),
+    arrival_times_s (N, 4) direct arrivals relative to the window's first sample,
+    delays_s (N, 2) exact (tau_x, tau_y), emissions (the triggering emissions' truth),
+    n_overlapping (N,) other emissions whose direct arrivals fall inside the window,
+    saturated (N,).
+    """
+
+    samples_v: np.ndarray
+    clean_v: np.ndarray | None
+    sample_rate_hz: float
+    start_index: np.ndarray
+    onset_index: np.ndarray
+    arrival_times_s: np.ndarray
+    delays_s: np.ndarray
+    emissions: EmissionList
+    n_overlapping: np.ndarray
+    saturated: np.ndarray
+
+    def __len__(self):
+        return int(self.samples_v.shape[0])
+
+
+class TriggeredSource:
+    """Windows around each emission, as an ideal hardware trigger would capture them: the
+    window starts ``pretrigger_s`` before the emission's earliest direct arrival and holds
+    ``window_s`` of the *stream* (overlapping emissions, echoes and the stream's noise
+    included). ``next_packets(n)`` returns up to n packets in emission order."""
+
+    def __init__(self, source, config: SimConfig, *, noise_rms_v: float = 0.0, seed: int = 0,
+                 pretrigger_s: float = 8e-6, window_s: float = 40e-6, keep_clean: bool = False):
+        self.process = _as_process(source)
+        self.config = config
+        self.renderer = StreamRenderer(config, noise_rms_v=noise_rms_v, seed=seed)
+        fs = config.sample_rate_hz
+        self.pre = int(round(pretrigger_s * fs))
+        self.m = int(round(window_s * fs))
+        if self.m <= self.pre:
+            raise ValueError("window_s must exceed pretrigger_s")
+        self.keep_clean = keep_clean
+        self._buffer = EmissionList.empty()
+        self._next = 0                    # index into _buffer of the next emission to serve
+        self._horizon_ns = 0
+        self._lookahead_ns = int(1e9 * (self.m / fs + 10 * config.max_support_s)) + 1
+
+    def _ensure(self, t_ns):
+        if t_ns > self._horizon_ns:
+            new = self.process.advance(t_ns)
+            self._horizon_ns = t_ns
+            if len(new):
+                self._buffer = EmissionList.concat([self._buffer, new])
+
+    def next_packets(self, n: int, horizon_ns: int | None = None) -> StreamPackets:
+        """Up to n packets (fewer if the source ends, or none beyond ``horizon_ns``)."""
+        cfg = self.config
+        fs = cfg.sample_rate_hz
+        geo = cfg.geometry
+        step = self._lookahead_ns
+        limit = horizon_ns if horizon_ns is not None else None
+        while len(self._buffer) - self._next < n:
+            target = self._horizon_ns + 100 * step
+            if limit is not None:
+                target = min(target, int(limit))
+            if target <= self._horizon_ns:
+                break
+            before = len(self._buffer)
+            self._ensure(target)
+            if len(self._buffer) == before and limit is None and isinstance(self.process, StaticEmissions):
+                if self._horizon_ns > int(self.process.emissions.time_ns.max(initial=0)):
+                    break
+        take = list(range(self._next, min(len(self._buffer), self._next + n)))
+        if limit is not None:
+            take = [i for i in take if self._buffer.time_ns[i] < limit]
+        em = self._buffer.take(np.array(take, dtype=np.int64))
+        k = len(em)
+        samples = np.zeros((k, 4, self.m))
+        clean = np.zeros((k, 4, self.m)) if self.keep_clean else None
+        n_e, frac = sample_index_of_ns(em.time_ns, fs)
+        direct = geo.arrival_times_s(em.point_m) if k else np.zeros((0, 4))
+        first = frac + direct.min(axis=1, initial=np.inf) if k else np.zeros(0)
+        onset_abs = n_e + np.ceil(first * fs - 1e-9).astype(np.int64)
+        start = onset_abs - self.pre
+        sat = np.zeros(k, bool)
+        n_over = np.zeros(k, np.int64)
+        all_ne, all_frac = sample_index_of_ns(self._buffer.time_ns, fs)
+        all_first = all_ne + np.ceil((all_frac + geo.arrival_times_s(self._buffer.point_m).min(axis=1)) * fs)
+        for i in range(k):
+            self._ensure(int(time_ns_of_sample(start[i] + self.m, fs)) + step)
+            res = self.renderer.render(self._buffer, int(start[i]), int(start[i]) + self.m,
+                                       return_clean=self.keep_clean)
+            samples[i] = res[0]
+            sat[i] = res[1]
+            if self.keep_clean:
+                clean[i] = res[2]
+            n_over[i] = int(np.sum((all_first >= start[i]) & (all_first < start[i] + self.m))) - 1
+        self._next += k
+        # drop served emissions that can no longer reach future windows
+        if k:
+            t_keep = int(time_ns_of_sample(int(start[-1]) - self.renderer.lookback_samples - 1, fs))
+            drop = int(np.searchsorted(self._buffer.time_ns[:self._next], t_keep))
+            if drop:
+                self._buffer = self._buffer.take(slice(drop, None))
+                self._next -= drop
+        arrival = (n_e - start)[:, None] / fs + frac[:, None] + direct if k else np.zeros((0, 4))
+        delays = geo.exact_delays_s(em.point_m) if k else np.zeros((0, 2))
+        return StreamPackets(samples_v=samples, clean_v=clean, sample_rate_hz=fs, start_index=start,
+                             onset_index=onset_abs - start, arrival_times_s=arrival, delays_s=delays,
+                             emissions=em, n_overlapping=n_over, saturated=sat)
