@@ -15,7 +15,7 @@ from ae_tactile.sim.response import arrival_coefficients, evaluate
 def _single_response(cfg, amplitude=9.0, alpha=3000.0, att=None, offset=0.0, n=None):
     co = arrival_coefficients([amplitude], [alpha], None if att is None else [att],
                               [0], [offset], cfg)
-    return co, evaluate(co, cfg, n_samples=n)[0]
+    return co, evaluate(co, cfg, n_samples=int(co.length[0]) if n is None else n)[0]
 
 
 # ----------------------------------------------------------------- emission, Eq. 10-11
