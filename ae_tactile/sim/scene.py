@@ -1,0 +1,392 @@
+"""YAML scene format, validation and loading.
+
+A scene file (all values SI, the unit is in the key name)::
+
+    generator: single_touch     # which built-in generator (see GENERATORS)
+    duration_s: 0.01            # length of the scene
+    seed: 0                     # all randomness of the scene (emissions and noise)
+    sensor: {...}               # optional SimConfig overrides (SENSOR_KEYS)
+    effects: {...}              # optional switches (EFFECT_KEYS)
+    noise: {snr_db: 30}         # optional, exactly one of snr_db / rms_v / density_v_per_rthz
+    params: {...}               # generator parameters (GENERATORS[name] schema)
+
+``load_scene(path_or_dict)`` validates everything and fails with a ValueError naming the
+offending key: unknown keys (with the allowed ones), missing required keys, values of
+the wrong type or given with units as strings ("10 mm"), implausible magnitudes (e.g. a
+radius in millimetres), and contact points off the sensing surface.
+
+noise.snr_db is relative to the scene's reference emission: a default touch (0.3 m/s,
+a_c = 1/mm) at the apex, with the SNR definition of docs/conventions.md; rms_v is the
+per-channel sigma; density_v_per_rthz gives sigma = density sqrt(fs/2).
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+import yaml
+
+from ae_tactile.geometry import FingertipGeometry
+from ae_tactile.sim.config import MEDIUM_PRESETS, SimConfig
+from ae_tactile.sim.emission import DEFAULT_ALPHA_1_S, DEFAULT_CURVATURE_1_M, DEFAULT_SPEED_M_S
+from ae_tactile.sim.frontend import noise_rms_for_snr, noise_rms_from_density
+from ae_tactile.sim import generators as G
+from ae_tactile.sim.stream import StreamingSource, TriggeredSource
+
+REQUIRED = object()
+
+
+@dataclass(frozen=True)
+class Key:
+    """One schema entry: kind in {'float', 'int', 'bool', 'str', 'xy_list', 'float_list',
+    'float_or_null'}, default (REQUIRED if none), and plausibility bounds [lo, hi]."""
+
+    kind: str
+    default: object
+    doc: str
+    lo: float | None = None
+    hi: float | None = None
+    choices: tuple | None = None
+
+
+def _f(default, doc, lo=None, hi=None):
+    return Key("float", default, doc, lo, hi)
+
+
+TOP_KEYS = {
+    "generator": Key("str", REQUIRED, "name of a built-in generator"),
+    "duration_s": _f(REQUIRED, "scene length (s)", 1e-6, 3600.0),
+    "seed": Key("int", 0, "seed of every random draw in the scene"),
+    "name": Key("str", None, "free-form scene name"),
+    "description": Key("str", None, "free-form description"),
+    "sensor": Key("map", {}, "SimConfig overrides"),
+    "effects": Key("map", {}, "effect switches"),
+    "noise": Key("map", None, "noise level (absent: noise off)"),
+    "params": Key("map", {}, "generator parameters"),
+}
+
+SENSOR_KEYS = {
+    "medium": Key("str", "water_skin", "medium preset", choices=tuple(MEDIUM_PRESETS) + ("custom",)),
+    "radius_m": _f(10e-3, "fingertip sphere radius R (m)", 1e-3, 0.1),
+    "element_offset_m": _f(1.5e-3, "element centre offset a (m)", 1e-4, 0.05),
+    "sound_speed_m_s": _f(None, "sound speed (m/s); default: the medium's", 100.0, 10000.0),
+    "density_kg_m3": _f(None, "density rho (kg/m^3); default: the medium's", 100.0, 20000.0),
+    "attenuation_db_per_m_at_1mhz": _f(None, "loss at 1 MHz (dB/m); default: the medium's", 0.0, 1e5),
+    "sensitivity_v_per_pa": _f(0.01, "PVDF + amplifier gain (V/Pa)", 1e-9, 1e3),
+    "highpass_hz": _f(100e3, "high-pass cut-off (Hz)", 1.0, 1e8),
+    "highpass_order": Key("int", 2, "high-pass order", 1, 8),
+    "lowpass_hz": _f(1e6, "anti-alias low-pass cut-off (Hz); null disables", 1.0, 1e9),
+    "lowpass_order": Key("int", 4, "low-pass order", 1, 8),
+    "sample_rate_hz": _f(10e6, "ADC sample rate (Hz, integer)", 1e3, 1e9),
+    "adc_bits": Key("int", 12, "ADC resolution (bits)", 2, 24),
+    "adc_full_scale_v": _f(1.0, "ADC full scale (V)", 1e-6, 1e3),
+    "reflection_coefficient": _f(-0.5, "wall echo amplitude ratio per bounce", -0.999, 0.999),
+    "n_reflections": Key("int", 2, "number of wall echoes", 0, 16),
+    "support_rel_tol": _f(1e-6, "response truncation tolerance (relative)", 1e-12, 0.1),
+    "max_support_s": _f(200e-6, "response length cap (s)", 1e-6, 0.1),
+}
+
+EFFECT_KEYS = {
+    "attenuation": Key("bool", False, "frequency-dependent loss of the medium"),
+    "reflections": Key("bool", False, "wall echoes"),
+    "quantization": Key("bool", True, "ADC rounding and clipping"),
+    "release_emissions": Key("bool", True, "releases (detouch) emit, opposite polarity"),
+}
+
+NOISE_KEYS = {
+    "snr_db": _f(None, "SNR of the reference touch (dB)", -40.0, 120.0),
+    "rms_v": _f(None, "noise sigma per channel (V)", 0.0, 100.0),
+    "density_v_per_rthz": _f(None, "noise density (V/sqrt(Hz)), white to fs/2", 0.0, 1.0),
+}
+
+_EV = {
+    "speed_m_s": _f(DEFAULT_SPEED_M_S, "contact speed v0 (m/s)", 1e-4, 20.0),
+    "curvature_1_m": _f(DEFAULT_CURVATURE_1_M, "object curvature a_c (1/m)", 1.0, 1e6),
+    "alpha_1_s": _f(DEFAULT_ALPHA_1_S, "indentation rate alpha (1/s)", 1.0, 1e6),
+}
+_XY = {"x_m": _f(0.0, "contact x (m)", -0.1, 0.1), "y_m": _f(0.0, "contact y (m)", -0.1, 0.1)}
+
+GENERATORS = {
+    "single_touch": (G.single_touch, {**_XY, "time_s": _f(1e-3, "touch time (s)", 0.0, 3600.0), **_EV}),
+    "paper_positions": (G.paper_positions, {
+        "xs_m": Key("float_list", [0.0, 2.5e-3, 5.0e-3], "touch x positions (m), y = 0", -0.1, 0.1),
+        "start_s": _f(1e-3, "first touch (s)", 0.0, 3600.0),
+        "interval_s": _f(5e-3, "time between touches (s)", 1e-6, 3600.0), **_EV}),
+    "three_pins": (G.three_pins, {
+        "points_xy_m": Key("xy_list", [[-3e-3, 2e-3], [3e-3, 2e-3], [0.0, -3e-3]], "pin (x, y) (m)",
+                           -0.1, 0.1),
+        "times_s": Key("float_list", [1e-3, 1.7e-3, 2.9e-3], "pin touch times (s)", 0.0, 3600.0), **_EV}),
+    "plane_slip": (G.plane_slip, {
+        **_XY, "start_s": _f(1e-3, "slip start (s)", 0.0, 3600.0),
+        "slip_duration_s": _f(10e-3, "slip duration (s)", 0.0, 3600.0),
+        "rate_hz": _f(300.0, "slip emission rate (1/s)", 0.0, 1e6),
+        "contact_radius_m": _f(3e-3, "contact disc radius (m)", 0.0, 0.05),
+        "drift_m_s": _f(0.0, "contact centre drift along x (m/s)", -10.0, 10.0),
+        **{**_EV, "speed_m_s": _f(0.15, "local slip speed (m/s)", 1e-4, 20.0)}}),
+    "random_touches": (G.random_touches, {
+        "rate_hz": _f(20.0, "touch rate (1/s)", 0.0, 1e6),
+        "max_polar_deg": _f(60.0, "touches within this polar angle (deg)", 0.0, 90.0),
+        "speed_min_m_s": _f(0.1, "min touch speed (m/s)", 1e-4, 20.0),
+        "speed_max_m_s": _f(0.5, "max touch speed (m/s)", 1e-4, 20.0),
+        "hold_min_s": _f(5e-3, "min hold time (s)", 0.0, 3600.0),
+        "hold_max_s": _f(50e-3, "max hold time (s)", 0.0, 3600.0),
+        "release_speed_ratio": _f(0.5, "release speed / touch speed", 1e-3, 10.0),
+        "curvature_1_m": _EV["curvature_1_m"], "alpha_1_s": _EV["alpha_1_s"]}),
+    "touch_hold_release": (G.touch_hold_release, {
+        **_XY, "time_s": _f(1e-3, "touch time (s)", 0.0, 3600.0),
+        "hold_s": _f(20e-3, "hold time (s)", 0.0, 3600.0),
+        "release_speed_m_s": _f(0.15, "separation speed (m/s)", 1e-4, 20.0), **_EV}),
+    "incipient_slip": (G.incipient_slip, {
+        **_XY, "normal_load_n": _f(1.0, "normal load P (N)", 1e-4, 1e3),
+        "object_radius_m": Key("float_or_null", None, "object radius (m); null = plane", 1e-4, 10.0),
+        "youngs_modulus_pa": _f(1.0e6, "fingertip Young's modulus E (Pa)", 1e3, 1e11),
+        "poisson_ratio": _f(0.5, "fingertip Poisson ratio", 0.0, 0.5),
+        "friction_coefficient": _f(1.0, "Coulomb friction mu", 1e-3, 10.0),
+        "start_s": _f(0.0, "tangential ramp start (s)", 0.0, 3600.0),
+        "tangential_load_start_n": _f(0.0, "Q at the ramp start (N)", 0.0, 1e3),
+        "tangential_load_rate_n_per_s": _f(1.0, "dQ/dt (N/s)", 0.0, 1e4),
+        "tangential_load_max_n": Key("float_or_null", None, "Q stops growing here (N); null: never", 0.0, 1e3),
+        "front_density_per_m2": _f(20e6, "micro-slip emissions per m^2 of newly slipping area", 0.0, 1e12),
+        "background_rate_hz": _f(100.0, "micro-slip rate at full slip fraction (1/s)", 0.0, 1e6),
+        "slip_rate_hz": _f(500.0, "emission rate during gross slip (1/s)", 0.0, 1e6),
+        "micro_slip_speed_m_s": _f(0.1, "local speed of a micro-slip event (m/s)", 1e-4, 20.0),
+        "slip_speed_m_s": _f(0.2, "local speed of a gross-slip event (m/s)", 1e-4, 20.0),
+        "curvature_1_m": _EV["curvature_1_m"], "alpha_1_s": _EV["alpha_1_s"],
+        "step_s": _f(1e-3, "random-draw time step (s)", 1e-6, 1.0)}),
+    "texture": (G.texture, {
+        **_XY, "slide_speed_m_s": _f(0.02, "sliding speed v (m/s)", 1e-6, 10.0),
+        "period_m": _f(0.5e-3, "texture spatial period lambda (m)", 1e-6, 0.1),
+        "jitter_fraction": _f(0.05, "timing jitter, std / period", 0.0, 10.0),
+        "start_s": _f(0.0, "sliding start (s)", 0.0, 3600.0),
+        "slide_duration_s": _f(3600.0, "sliding duration (s)", 0.0, 1e6),
+        "contact_radius_m": _f(1e-3, "contact patch radius (m)", 0.0, 0.05),
+        "random_polarity": Key("bool", True, "random emission polarity"),
+        **{**_EV, "speed_m_s": _f(0.1, "local impact speed per ridge (m/s)", 1e-4, 20.0)}}),
+}
+
+
+class SceneError(ValueError):
+    """A scene that does not validate (a ValueError with the offending key in the message)."""
+
+
+def _check_value(where, key, spec: Key, v):
+    if v is None:
+        if spec.kind == "float_or_null" or spec.default is None:
+            return None
+        raise SceneError(f"{where}.{key}: null is not allowed ({spec.doc})")
+    if isinstance(v, str) and spec.kind in ("float", "int", "float_or_null"):
+        try:
+            v = float(v)      # YAML 1.1 reads 1e-3 as a string; accept plain numbers
+        except ValueError:
+            raise SceneError(f"{where}.{key}: expected a number in SI units ({spec.doc}), got {v!r};"
+                             " write the value in the unit of the key name, without a unit string") from None
+    if spec.kind in ("float", "float_or_null"):
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise SceneError(f"{where}.{key}: expected a number ({spec.doc}), got {v!r}")
+        v = float(v)
+        if not math.isfinite(v):
+            raise SceneError(f"{where}.{key}: must be finite, got {v!r}")
+    elif spec.kind == "int":
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or float(v) != int(v):
+            raise SceneError(f"{where}.{key}: expected an integer ({spec.doc}), got {v!r}")
+        v = int(v)
+    elif spec.kind == "bool":
+        if not isinstance(v, bool):
+            raise SceneError(f"{where}.{key}: expected true or false, got {v!r}")
+        return v
+    elif spec.kind == "str":
+        if not isinstance(v, str):
+            raise SceneError(f"{where}.{key}: expected a string, got {v!r}")
+        if spec.choices and v not in spec.choices:
+            raise SceneError(f"{where}.{key}: {v!r} is not one of {list(spec.choices)}")
+        return v
+    elif spec.kind == "float_list":
+        if not isinstance(v, (list, tuple)) or not v:
+            raise SceneError(f"{where}.{key}: expected a non-empty list of numbers ({spec.doc})")
+        return [_check_value(where, f"{key}[{i}]", Key("float", 0.0, spec.doc, spec.lo, spec.hi), x)
+                for i, x in enumerate(v)]
+    elif spec.kind == "xy_list":
+        if not isinstance(v, (list, tuple)) or not v or not all(isinstance(x, (list, tuple)) and len(x) == 2
+                                                                for x in v):
+            raise SceneError(f"{where}.{key}: expected a list of [x, y] pairs in metres")
+        return [[_check_value(where, f"{key}[{i}][{j}]", Key("float", 0.0, spec.doc, spec.lo, spec.hi), c)
+                 for j, c in enumerate(x)] for i, x in enumerate(v)]
+    if spec.lo is not None and v < spec.lo or spec.hi is not None and v > spec.hi:
+        unit_hint = ""
+        if key.endswith("_m") and v > (spec.hi or 0):
+            unit_hint = " (units are metres: 10 mm is 0.01)"
+        raise SceneError(f"{where}.{key}={v!r} is outside the plausible range [{spec.lo}, {spec.hi}]"
+                         f" ({spec.doc}){unit_hint}")
+    return v
+
+
+def _validate_map(where, data, schema, required_ok=True):
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise SceneError(f"{where}: expected a mapping of key: value, got {type(data).__name__}")
+    unknown = sorted(set(data) - set(schema))
+    if unknown:
+        raise SceneError(f"{where}: unknown key(s) {unknown}; allowed: {sorted(schema)}")
+    out = {}
+    for key, spec in schema.items():
+        if key in data:
+            out[key] = _check_value(where, key, spec, data[key]) if spec.kind != "map" else data[key]
+        elif spec.default is REQUIRED:
+            raise SceneError(f"{where}: missing required key {key!r} ({spec.doc})")
+        else:
+            out[key] = spec.default
+    return out
+
+
+@dataclass
+class SceneContext:
+    config: SimConfig
+    seed: int
+    duration_s: float
+    effects: dict
+
+
+@dataclass
+class Scene:
+    """A validated scene: config, noise level, and the emission process with ground truth."""
+
+    name: str
+    generator: str
+    duration_s: float
+    seed: int
+    config: SimConfig
+    noise_rms_v: float
+    effects: dict
+    params: dict
+    process: object
+    spec: dict = field(repr=False, default_factory=dict)
+
+    @property
+    def n_samples(self) -> int:
+        return int(round(self.duration_s * self.config.sample_rate_hz))
+
+    @property
+    def truth(self) -> dict:
+        """Scene-level ground truth (e.g. gross_slip_time_ns)."""
+        return self.process.scene_truth()
+
+    def streaming_source(self, **kw) -> StreamingSource:
+        """A fresh stream of this scene (the process is shared: build the scene again for
+        an independent replay)."""
+        return StreamingSource(self.process, self.config, noise_rms_v=self.noise_rms_v,
+                               seed=self.seed, **kw)
+
+    def triggered_source(self, **kw) -> TriggeredSource:
+        return TriggeredSource(self.process, self.config, noise_rms_v=self.noise_rms_v,
+                               seed=self.seed, **kw)
+
+
+def reference_noise_rms(config: SimConfig, snr_db: float) -> float:
+    """sigma giving ``snr_db`` (conventions.md) for the reference touch at the apex."""
+    from ae_tactile.sim.triggered import render_triggered
+    apex = np.array([[0.0, 0.0, config.geometry.radius_m]])
+    pk = render_triggered(apex, config.replace(quantization=False), subsample_offset=0.0)
+    return float(noise_rms_for_snr(pk.signal_power_v2[0], snr_db))
+
+
+def build_config(sensor: dict, effects: dict) -> SimConfig:
+    s = dict(sensor)
+    medium = s.pop("medium")
+    c = s.pop("sound_speed_m_s")
+    geo_kw = {k: s.pop(k) for k in ("radius_m", "element_offset_m")}
+    if c is None:
+        if medium == "custom":
+            raise SceneError("sensor.sound_speed_m_s is required with medium: custom")
+        c = MEDIUM_PRESETS[medium].sound_speed_m_s
+    try:
+        geo = FingertipGeometry(sound_speed_m_s=c, **geo_kw)
+        kw = {k: v for k, v in s.items() if v is not None or k == "lowpass_hz"}
+        return SimConfig(geometry=geo, medium=medium, attenuation=effects["attenuation"],
+                         reflections=effects["reflections"], quantization=effects["quantization"], **kw)
+    except ValueError as e:
+        raise SceneError(f"sensor: {e}") from None
+
+
+def load_scene(source, overrides: dict | None = None) -> Scene:
+    """Load and validate a scene from a YAML path, a YAML string, or a dict.
+
+    ``overrides`` (optional) are top-level keys replacing the file's (e.g. duration_s, seed).
+    """
+    if isinstance(source, dict):
+        spec = dict(source)
+    else:
+        text = source
+        name_hint = None
+        if isinstance(source, (str, os.PathLike)) and os.path.exists(str(source)):
+            with open(source, encoding="utf-8") as fh:
+                text = fh.read()
+            name_hint = os.path.splitext(os.path.basename(str(source)))[0]
+        elif isinstance(source, os.PathLike) or (isinstance(source, str) and "\n" not in source
+                                                  and source.strip().endswith((".yaml", ".yml"))):
+            raise SceneError(f"scene file not found: {source}")
+        try:
+            spec = yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            raise SceneError(f"scene is not valid YAML: {e}") from None
+        if not isinstance(spec, dict):
+            raise SceneError("a scene must be a YAML mapping with at least 'generator' and 'duration_s'")
+        if name_hint and "name" not in spec:
+            spec["name"] = name_hint
+    if overrides:
+        spec.update({k: v for k, v in overrides.items() if v is not None})
+    top = _validate_map("scene", spec, TOP_KEYS)
+    gen = top["generator"]
+    if gen not in GENERATORS:
+        raise SceneError(f"scene.generator: unknown generator {gen!r}; choose one of {sorted(GENERATORS)}")
+    sensor = _validate_map("sensor", top["sensor"], SENSOR_KEYS)
+    effects = _validate_map("effects", top["effects"], EFFECT_KEYS)
+    factory, schema = GENERATORS[gen]
+    params = _validate_map("params", top["params"], schema)
+    config = build_config(sensor, effects)
+    noise_rms = 0.0
+    if top["noise"] is not None:
+        noise = _validate_map("noise", top["noise"], NOISE_KEYS)
+        given = [k for k, v in noise.items() if v is not None]
+        if len(given) != 1:
+            raise SceneError(f"noise: give exactly one of {sorted(NOISE_KEYS)}, got {given}")
+        k = given[0]
+        if k == "snr_db":
+            noise_rms = reference_noise_rms(config, noise[k])
+        elif k == "rms_v":
+            noise_rms = noise[k]
+        else:
+            noise_rms = noise_rms_from_density(noise[k], config.sample_rate_hz)
+    ctx = SceneContext(config=config, seed=top["seed"], duration_s=top["duration_s"], effects=effects)
+    try:
+        process = factory(ctx, params)
+    except SceneError:
+        raise
+    except ValueError as e:
+        raise SceneError(f"params ({gen}): {e}") from None
+    return Scene(name=top["name"] or gen, generator=gen, duration_s=top["duration_s"], seed=top["seed"],
+                 config=config, noise_rms_v=float(noise_rms), effects=effects, params=params,
+                 process=process, spec=spec)
+
+
+def scene_schema_markdown() -> str:
+    """Markdown tables of every scene key with its default and meaning (for the docs)."""
+    lines = []
+
+    def table(title, schema):
+        lines.append(f"\n**{title}**\n")
+        lines.append("| key | default | meaning |")
+        lines.append("|---|---|---|")
+        for k, s in schema.items():
+            d = "required" if s.default is REQUIRED else ("null" if s.default is None else repr(s.default))
+            lines.append(f"| `{k}` | {d} | {s.doc} |")
+
+    table("top level", TOP_KEYS)
+    table("sensor", SENSOR_KEYS)
+    table("effects", EFFECT_KEYS)
+    table("noise (exactly one)", NOISE_KEYS)
+    for name, (_, schema) in GENERATORS.items():
+        table(f"params of `{name}`", schema)
+    return "\n".join(lines)
