@@ -76,6 +76,18 @@ class FingertipGeometry:
         return np.stack([_XI * a, _ETA * a, np.zeros(4)], axis=1)
 
     @property
+    def echo_free_duration_s(self) -> float:
+        """Shortest time between the direct wave and the first wall echo at any element (s).
+
+        The first echo crosses the body through the centre: path 2R + |s + e_k| against
+        |s - e_k| for the direct wave, so at every element the echo lags the direct
+        arrival by at least (2R - 2 |e_k|)/c = (2R - 2 sqrt(2) a)/c (10.6 us for the
+        default tip; ~2R/c = 13.5 us for a contact above the centre). Analysis windows
+        that end within this time after each channel's arrival see only the direct wave.
+        """
+        return (2.0 * self.radius_m - 2.0 * np.sqrt(2.0) * self.element_offset_m) / self.sound_speed_m_s
+
+    @property
     def max_delay_s(self) -> float:
         """Largest |tau_x| or |tau_y| the far-field model allows: a / c (s)."""
         return self.element_offset_m / self.sound_speed_m_s
@@ -146,6 +158,28 @@ class FingertipGeometry:
         base = self.radius_m ** 2 + 2.0 * a * a
         arg = base - 2.0 * a * (_XI * sx[..., None] + _ETA * sy[..., None])
         return np.sqrt(arg)
+
+    def arrival_time_derivatives(self, sx_m, sy_m):
+        """Exact travel times on the sphere and their first and second derivatives in (s_x, s_y).
+
+        t_k = d_k / c with d_k = sqrt(R^2 + 2 a^2 - 2 a (xi_k s_x + eta_k s_y)), so with
+        v_k = (xi_k, eta_k): d t_k/d s = -a v_k / (c d_k) and
+        d^2 t_k/d s d s^T = -a^2 v_k v_k^T / (c d_k^3).
+
+        Returns (t (..., 4) s, dt (..., 4, 2) s/m, d2t (..., 4, 2, 2) s/m^2).
+        """
+        sx = np.asarray(sx_m, dtype=float)
+        sy = np.asarray(sy_m, dtype=float)
+        sx, sy = np.broadcast_arrays(sx, sy)
+        a = self.element_offset_m
+        c = self.sound_speed_m_s
+        d = self._xy_distances(sx, sy)
+        v = CHANNEL_XI_ETA.astype(float)                          # (4, 2)
+        t = d / c
+        dt = (-a / c) * v / d[..., None]
+        vv = v[:, :, None] * v[:, None, :]                        # (4, 2, 2)
+        d2t = (-a * a / c) * vv / (d * d * d)[..., None, None]
+        return t, dt, d2t
 
     def delay_jacobian(self, sx_m, sy_m) -> np.ndarray:
         """d(tau_x, tau_y)/d(s_x, s_y) of the exact model on the sphere, shape (..., 2, 2), s/m.

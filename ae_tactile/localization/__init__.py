@@ -1,0 +1,21 @@
+"""Contact localization from the four PVDF channels (issue 4). Pure numpy/scipy, no rclpy.
+
+    from ae_tactile.localization import localize, available_methods
+    res = localize(windows (K, 4, M), sample_rate_hz, onset_index (K,), method="ml")
+    res.point_m, res.covariance_m2, res.accepted, res.reason, res.polarity, res.confidence
+
+Methods (registry ``ESTIMATORS``, pick by name): ``ml`` (exact-sphere maximum
+likelihood), ``gradient`` (the paper's gradient method, iterated), ``gcc_phat``,
+``xcorr_farfield`` (the paper's one-shot Eq. 2 baseline). Cramer-Rao bounds: `crlb`.
+See docs/localization.md.
+"""
+from ae_tactile.localization.common import REASON_DESCRIPTIONS, Reason
+from ae_tactile.localization.estimators import (DEFAULT_BAND_HZ, ESTIMATORS, EstimatorInfo, default_band_hz,
+                                                LocalizationResult, Localizer, available_methods,
+                                                get_estimator, localize, register_estimator)
+
+__all__ = [
+    "localize", "Localizer", "LocalizationResult", "Reason", "REASON_DESCRIPTIONS",
+    "ESTIMATORS", "EstimatorInfo", "available_methods", "get_estimator", "register_estimator",
+    "DEFAULT_BAND_HZ", "default_band_hz",
+]

@@ -1,0 +1,508 @@
+"""Shared machinery of the delay estimators: validation, analysis plan, segments, spectra.
+
+Every estimator works on the *well-ordered* part of each packet, the direct wave before
+the first wall echo: per channel, from ``pre_onset_s`` before its arrival to
+``geometry.echo_free_duration_s - echo_guard_s`` after it (derived from R, a and c, see
+`FingertipGeometry.echo_free_duration_s`). The *coarse* segment is common to the four
+channels and starts ``pre_onset_s`` before the packet onset (earliest arrival); the
+*aligned* segments start at each channel's own (integer-sample) arrival, so that the
+four windows hold the same part of the waveform.
+
+Each segment is mean-removed per channel before any transform, which makes every
+estimate exactly invariant to a DC offset (and, because every statistic is a ratio, to
+a common gain).
+
+Spectra are unnormalised DFTs of zero-padded segments: Y(f) = sum_n y[n] e^{-j w n/fs}.
+White noise of variance sigma^2 over L samples gives E|N(f)|^2 = L sigma^2 per bin.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import IntEnum
+from functools import lru_cache
+
+import numpy as np
+import scipy.fft as sfft
+from numpy.lib.stride_tricks import sliding_window_view
+
+from ae_tactile.geometry import CHANNEL_XI_ETA, FingertipGeometry
+
+XI = CHANNEL_XI_ETA[:, 0].astype(float)
+ETA = CHANNEL_XI_ETA[:, 1].astype(float)
+#: Rows of t_k = T0 + ROW_k . (tau_x, tau_y, twist): t_k = T0 - xi tau_x - eta tau_y + xi eta twist.
+CHANNEL_ROWS = np.stack([-XI, -ETA, XI * ETA], axis=1)
+#: Contrasts giving (tau_x, tau_y, twist) from arrival times (geometry.delays_from_arrival_times).
+CONTRASTS = np.stack([-XI, -ETA, XI * ETA], axis=0) / 4.0
+#: The 6 channel pairs (i, j) used by the pairwise estimators.
+PAIRS = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
+#: Pair design matrix: t_i - t_j = PAIR_DESIGN @ (tau_x, tau_y, twist).
+PAIR_DESIGN = CHANNEL_ROWS[PAIRS[:, 0]] - CHANNEL_ROWS[PAIRS[:, 1]]
+PAIR_PINV = np.linalg.pinv(PAIR_DESIGN)                       # (3, 6)
+#: Pair incidence (6, 4): +1 at i, -1 at j.
+PAIR_INCIDENCE = np.zeros((6, 4))
+PAIR_INCIDENCE[np.arange(6), PAIRS[:, 0]] = 1.0
+PAIR_INCIDENCE[np.arange(6), PAIRS[:, 1]] = -1.0
+
+#: Length of the SNR window after the onset (docs/conventions.md).
+SNR_WINDOW_S = 30e-6
+
+
+class Reason(IntEnum):
+    """Why a packet was rejected (``LocalizationResult.reason``; 0 = accepted).
+
+    When several apply, ``reason`` holds the first in this order and ``reason_flags``
+    has bit ``1 << code`` set for each of them.
+    """
+
+    OK = 0
+    NONFINITE = 1      # NaN or inf samples in the window
+    NO_SIGNAL = 2      # a channel is constant over the analysis segment (all-zero, constant, dead)
+    WINDOW = 3         # onset outside the window, or too little of the packet inside it
+    SATURATED = 4      # clipped samples (flag from upstream, full scale, or a flat top)
+    LOW_SNR = 5        # estimated SNR (conventions.md) below min_snr_db
+    OVERLAP = 6        # the four channels are not shifted copies of one waveform
+    OUT_OF_RANGE = 7   # delays beyond the sphere's horizon by more than the noise allows
+
+
+REASON_DESCRIPTIONS = {
+    Reason.OK: "accepted",
+    Reason.NONFINITE: "NaN or inf samples in the window",
+    Reason.NO_SIGNAL: "a channel is constant over the analysis segment (zero/constant window or dead channel)",
+    Reason.WINDOW: "onset outside the window or too little of the packet inside it",
+    Reason.SATURATED: "clipped (saturated) samples in the analysis segment",
+    Reason.LOW_SNR: "estimated SNR below min_snr_db",
+    Reason.OVERLAP: "the four channels are not shifted copies of one waveform (overlapping packets)",
+    Reason.OUT_OF_RANGE: "delays imply a point beyond the horizon by more than the noise allows",
+}
+
+
+def primary_reason(flags: np.ndarray) -> np.ndarray:
+    """First reason (in `Reason` order) whose bit is set in ``flags``; 0 when none."""
+    flags = np.asarray(flags, dtype=np.int64)
+    out = np.zeros(flags.shape, dtype=np.uint8)
+    for r in reversed(list(Reason)[1:]):
+        out = np.where(flags & (1 << int(r)), np.uint8(r), out)
+    return out
+
+
+def _positive(name, value):
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a positive number, got {value!r}") from None
+    if not math.isfinite(v) or v <= 0:
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+    return v
+
+
+# --------------------------------------------------------------------------- plan
+@dataclass(frozen=True)
+class Plan:
+    """Sizes and frequency grids for one (fs, geometry, window length, band).
+
+    pre        samples kept before each arrival
+    seg_len    L, samples per (coarse or aligned) segment
+    n_fft      coarse DFT length (>= L + largest pair lag: no circular wrap of lags)
+    n_fft_al   aligned DFT length (L + a few samples of zero padding)
+    band, band_al   boolean masks over the rfft bins of n_fft / n_fft_al
+    w, w_al    angular frequencies of those band bins (rad/s)
+    max_lag    (6,) largest |t_i - t_j| of each pair, in samples (+ 2 of margin)
+    snr_len    samples of the SNR window (30 us)
+    """
+
+    fs: float
+    geometry: FingertipGeometry
+    n_samples: int
+    band_hz: tuple
+    pre: int
+    seg_len: int
+    n_fft: int
+    n_fft_al: int
+    band: np.ndarray
+    band_al: np.ndarray
+    w: np.ndarray
+    w_al: np.ndarray
+    w_full_al: np.ndarray
+    max_lag: np.ndarray
+    snr_len: int
+    flat_run: int
+
+
+@lru_cache(maxsize=64)
+def _make_plan(fs, geometry, n_samples, lo, hi, pre_onset_s, echo_guard_s) -> Plan:
+    pre = max(2, int(math.ceil(pre_onset_s * fs)))
+    n_ef = int(math.floor((geometry.echo_free_duration_s - echo_guard_s) * fs))
+    n_ef = max(n_ef, 4)
+    seg_len = pre + n_ef
+    e = geometry.element_positions_m
+    dist = np.linalg.norm(e[PAIRS[:, 0]] - e[PAIRS[:, 1]], axis=1)
+    max_lag = np.ceil(dist / geometry.sound_speed_m_s * fs).astype(int) + 2
+    n_fft = sfft.next_fast_len(seg_len + int(max_lag.max()) + 1, real=True)
+    n_fft_al = sfft.next_fast_len(seg_len + 4, real=True)
+    f = np.fft.rfftfreq(n_fft, 1.0 / fs)
+    f_al = np.fft.rfftfreq(n_fft_al, 1.0 / fs)
+    band = (f >= lo) & (f <= hi) & (f > 0)
+    band_al = (f_al >= lo) & (f_al <= hi) & (f_al > 0)
+    if band_al.sum() < 2 or band.sum() < 2:
+        # Too few bins in the band at this window length: widen to the nearest bins.
+        band = (f > 0) & (f >= min(lo, f[1])) & (f <= max(hi, f[min(3, len(f) - 1)]))
+        band_al = (f_al > 0) & (f_al >= min(lo, f_al[1])) & (f_al <= max(hi, f_al[min(3, len(f_al) - 1)]))
+    flat_run = max(3, int(math.ceil(0.3e-6 * fs)))
+    return Plan(fs=fs, geometry=geometry, n_samples=n_samples, band_hz=(lo, hi), pre=pre,
+                seg_len=seg_len, n_fft=n_fft, n_fft_al=n_fft_al, band=band, band_al=band_al,
+                w=2 * np.pi * f[band], w_al=2 * np.pi * f_al[band_al], w_full_al=2 * np.pi * f_al,
+                max_lag=max_lag, snr_len=int(round(SNR_WINDOW_S * fs)), flat_run=flat_run)
+
+
+def make_plan(sample_rate_hz, geometry, n_samples, band_hz, pre_onset_s=1e-6, echo_guard_s=0.3e-6) -> Plan:
+    """Validated, cached `Plan`. ValueError on bad parameters."""
+    fs = _positive("sample_rate_hz", sample_rate_hz)
+    if not isinstance(geometry, FingertipGeometry):
+        raise TypeError(f"geometry must be a FingertipGeometry, got {type(geometry).__name__}")
+    try:
+        lo, hi = (float(b) for b in band_hz)
+    except (TypeError, ValueError):
+        raise ValueError(f"band_hz must be a pair (lo, hi) in Hz, got {band_hz!r}") from None
+    if not (math.isfinite(lo) and math.isfinite(hi)) or lo < 0 or hi <= lo:
+        raise ValueError(f"band_hz must satisfy 0 <= lo < hi, got {band_hz!r}")
+    if lo >= fs / 2:
+        raise ValueError(f"band_hz lower edge {lo} Hz is at or above Nyquist ({fs / 2} Hz)")
+    hi = min(hi, fs / 2)
+    pre_s = float(pre_onset_s)
+    guard = float(echo_guard_s)
+    if not (math.isfinite(pre_s) and pre_s >= 0):
+        raise ValueError(f"pre_onset_s must be >= 0, got {pre_onset_s!r}")
+    if not (math.isfinite(guard) and 0 <= guard < geometry.echo_free_duration_s):
+        raise ValueError(f"echo_guard_s must lie in [0, {geometry.echo_free_duration_s}), got {echo_guard_s!r}")
+    return _make_plan(fs, geometry, int(n_samples), lo, hi, pre_s, guard)
+
+
+# --------------------------------------------------------------------------- input
+def validate_windows(windows, onset_index):
+    """(K, 4, M) float64 copy of the windows and (K,) int64 onsets; ValueError on bad shapes."""
+    x = np.asarray(windows)
+    if x.dtype == object or not (np.issubdtype(x.dtype, np.floating) or np.issubdtype(x.dtype, np.integer)):
+        raise TypeError(f"windows must be a real numeric array, got dtype {x.dtype}")
+    if x.ndim == 2 and x.shape[0] == 4:
+        x = x[None]
+    if x.ndim != 3 or x.shape[1] != 4:
+        raise ValueError(f"windows must have shape (K, 4, M), got {np.shape(windows)}")
+    if x.shape[2] < 4:
+        raise ValueError(f"windows need at least 4 samples per channel, got {x.shape[2]}")
+    x = np.array(x, dtype=np.float64, copy=True)
+    on = np.asarray(onset_index)
+    if on.ndim == 0:
+        on = np.full(x.shape[0], on)
+    if on.shape != (x.shape[0],):
+        raise ValueError(f"onset_index must have shape ({x.shape[0]},), got {on.shape}")
+    if on.dtype == bool or not (np.issubdtype(on.dtype, np.integer) or np.issubdtype(on.dtype, np.floating)):
+        raise TypeError(f"onset_index must be integer sample indices, got dtype {on.dtype}")
+    if np.issubdtype(on.dtype, np.floating):
+        if not np.all(np.isfinite(on)) or np.any(on != np.round(on)):
+            raise ValueError("onset_index must hold integer sample indices")
+    return x, on.astype(np.int64)
+
+
+def per_packet(name, value, k, *, dtype=float):
+    """Scalar or (K,) parameter -> (K,) array."""
+    v = np.asarray(value, dtype=dtype)
+    if v.ndim == 0:
+        v = np.full(k, v, dtype=dtype)
+    if v.shape != (k,):
+        raise ValueError(f"{name} must be a scalar or have shape ({k},), got {v.shape}")
+    return v
+
+
+# --------------------------------------------------------------------------- segments
+def raw_gather(x, start, length):
+    """Raw samples x[k, c, start[k, c] : start[k, c] + length] (K, 4, length) and the count
+    of samples inside the window (K, 4); positions outside the window hold the nearest
+    edge sample (`demean` masks them)."""
+    k, _, m = x.shape
+    lo, hi = int(start.min(initial=0)), int(start.max(initial=0))
+    full = np.full(start.shape, length)
+    if lo == hi and 0 <= lo and lo + length <= m:
+        return x[:, :, lo: lo + length], full
+    if 0 <= lo and hi + length <= m:
+        v = sliding_window_view(x, length, axis=2)
+        return v[np.arange(k)[:, None], np.arange(4)[None, :], start], full
+    idx = start[..., None] + np.arange(length)
+    inside = (idx >= 0) & (idx < m)
+    seg = np.take_along_axis(x, np.clip(idx, 0, m - 1), axis=2)
+    return seg, inside.sum(axis=2)
+
+
+def demean(raw, start, count, m):
+    """Mean-removed copy of gathered segments; samples outside the window set to 0."""
+    length = raw.shape[2]
+    if np.all(count == length):
+        return raw - raw.mean(axis=2, keepdims=True)
+    idx = start[..., None] + np.arange(length)
+    inside = (idx >= 0) & (idx < m)
+    seg = raw * inside
+    mean = seg.sum(axis=2) / np.maximum(count, 1)
+    seg -= mean[..., None]
+    seg *= inside
+    return seg
+
+
+def gather(x, start, length):
+    """Mean-removed segments (K, 4, length) starting at start (K, 4), zero outside the
+    window, and the count of samples inside it (K, 4)."""
+    raw, count = raw_gather(x, start, length)
+    return demean(raw, start, count, x.shape[2]), count
+
+
+@dataclass
+class Prepared:
+    """Sanitised input and what every estimator shares."""
+
+    x: np.ndarray            # (K, 4, M) float64, non-finite samples zeroed, gains divided
+    onset: np.ndarray        # (K,) int64 (clipped into the window)
+    flags: np.ndarray        # (K,) int64 reason bits so far
+    sigma2: np.ndarray       # (K,) noise variance (V^2), NaN where unknown yet
+    pre_mean: np.ndarray     # (K, 4) channel baselines (pre-onset mean or segment mean)
+    seg_start: np.ndarray    # (K,) first sample of the coarse segment
+    X: np.ndarray            # (K, 4, n_fft//2+1) coarse spectra (full rfft)
+    seg_count: np.ndarray    # (K, 4) samples of the coarse segment inside the window
+    p_signal: np.ndarray     # (K,) mean power over the SNR window (V^2), noise included
+    quant2: np.ndarray       # (K,) q^2 / 12 of the apparent ADC quantum q (V^2), 0 if none
+
+
+def flat_top(seg_raw, run):
+    """(K,) True where the packet's dominant extreme (the larger deviation from the mean)
+    repeats ``run`` times in a row in some channel: the signature of a clipped ADC when
+    neither the full scale nor an upstream flag is known. Only the dominant side is
+    tested: the slow after-lobe of the high-passed pulse has a quantized flat bottom."""
+    k = seg_raw.shape[0]
+    if seg_raw.shape[2] < run:
+        return np.zeros(k, bool)
+    flat = seg_raw.reshape(k, -1)
+    vmax = flat.max(axis=1)
+    vmin = flat.min(axis=1)
+    mean = flat.mean(axis=1)
+    v = np.where(vmax - mean >= mean - vmin, vmax, vmin)
+    eq = seg_raw == v[:, None, None]
+    r = eq[..., : eq.shape[2] - run + 1].copy()
+    for i in range(1, run):
+        r &= eq[..., i: eq.shape[2] - run + 1 + i]
+    return r.any(axis=(1, 2)) & (vmax > vmin)
+
+
+def prepare(x, onset, plan: Plan, *, noise_rms_v=None, saturated=None, full_scale_v=None,
+            channel_gains=None) -> Prepared:
+    """Sanitise, flag and transform a batch (see the module docstring)."""
+    k, _, m = x.shape
+    flags = np.zeros(k, np.int64)
+    total = x.sum(axis=(1, 2))
+    suspect = ~np.isfinite(total)
+    if suspect.any():
+        ids = np.nonzero(suspect)[0]
+        sub = x[ids]
+        fin = np.isfinite(sub)
+        bad_sub = ~fin.all(axis=(1, 2))
+        sub[~fin] = 0.0
+        x[ids] = sub
+        flags[ids[bad_sub]] |= 1 << Reason.NONFINITE
+    if full_scale_v is not None:
+        fsv = _positive("full_scale_v", full_scale_v)
+    if channel_gains is not None:
+        g = np.asarray(channel_gains, dtype=float)
+        if g.shape != (4,) or not np.all(np.isfinite(g)) or np.any(g <= 0):
+            raise ValueError(f"channel_gains must be 4 positive finite numbers, got {channel_gains!r}")
+        x /= g[None, :, None]
+    outside = (onset < 0) | (onset >= m)
+    on = np.clip(onset, 0, m - 1)
+    # Too little of the packet inside the window: fewer than a quarter of the
+    # echo-free samples after the onset.
+    short = (m - on) < max(4, (plan.seg_len - plan.pre) // 4)
+    flags[outside | short] |= 1 << Reason.WINDOW
+    seg_start = on - plan.pre
+
+    # Noise from the pre-onset samples [0, onset - pre), pooled over the 4 channels
+    # (relative to each channel's first sample: no cancellation under DC offsets).
+    n_pre = np.clip(seg_start, 0, m)
+    p_max = int(n_pre.max(initial=0))
+    x0 = x[:, :, :1]
+    if p_max > 0:
+        xp = x[:, :, :p_max] - x0
+        if int(n_pre.min()) < p_max:
+            xp *= (np.arange(p_max)[None, :] < n_pre[:, None])[:, None, :]
+        n = np.maximum(n_pre, 1)[:, None]
+        mu = xp.sum(axis=2) / n
+        s2 = np.einsum("kcm,kcm->kc", xp, xp)
+        var = np.maximum(s2 - n * mu * mu, 0.0) / np.maximum(n - 1, 1)
+        sigma2 = var.mean(axis=1)
+        pre_mean = x0[:, :, 0] + mu
+    else:
+        sigma2 = np.zeros(k)
+        pre_mean = x0[:, :, 0].copy()
+    sigma2 = np.where(n_pre >= 8, sigma2, np.nan)
+    if noise_rms_v is not None:
+        nr = per_packet("noise_rms_v", noise_rms_v, k)
+        ok = np.isfinite(nr) & (nr > 0)
+        if channel_gains is not None:
+            nr = nr / np.sqrt(np.mean(np.asarray(channel_gains, float) ** 2))
+        sigma2 = np.where(ok, nr * nr, sigma2)
+
+    # Coarse segment (common start), raw for saturation checks, mean-removed for spectra.
+    start4 = np.repeat(seg_start[:, None], 4, axis=1)
+    raw, count = raw_gather(x, start4, plan.seg_len)
+    seg = demean(raw, start4, count, m)
+    const = (raw.max(axis=2) == raw.min(axis=2)).any(axis=1)
+    flags[const] |= 1 << Reason.NO_SIGNAL
+    sat = flat_top(raw, plan.flat_run)
+    if saturated is not None:
+        sat |= per_packet("saturated", saturated, k, dtype=bool)
+    if full_scale_v is not None:
+        sat |= (np.abs(raw) >= fsv * (1.0 - 1e-3)).any(axis=(1, 2))
+    flags[sat] |= 1 << Reason.SATURATED
+    no_pre = n_pre < 8
+    if no_pre.any():
+        pre_mean = np.where(no_pre[:, None], raw.mean(axis=2), pre_mean)
+
+    # Mean power over the SNR window after the onset (what the window holds of it).
+    w_len = min(plan.snr_len, m)
+    s0 = np.minimum(on, m - w_len)
+    lo, hi = int(s0.min()), int(s0.max())
+    if lo == hi:
+        sw = x[:, :, lo: lo + w_len]
+    else:
+        sw = sliding_window_view(x, w_len, axis=2)[np.arange(k)[:, None], np.arange(4)[None, :],
+                                                   np.repeat(s0[:, None], 4, axis=1)]
+    sw = sw - pre_mean[..., None]
+    p_total = np.einsum("kcm,kcm->k", sw, sw) / (4.0 * w_len)
+
+    # ADC quantum q: the smallest non-zero step between successive raw samples (exact for
+    # quantized data, negligible otherwise). Below ~1 LSB of noise the pre-onset samples
+    # under-read the noise while the signal dithers the quantizer: the estimators use
+    # sigma^2 + q^2 / 12.
+    dif = np.abs(np.diff(raw, axis=2))
+    dif[dif == 0] = np.inf
+    dif = dif.min(axis=(1, 2))
+    q2 = np.where(np.isfinite(dif), dif * dif / 12.0, 0.0)
+
+    X = sfft.rfft(seg, n=plan.n_fft, axis=2)
+    return Prepared(x=x, onset=on, flags=flags, sigma2=sigma2, pre_mean=pre_mean,
+                    seg_start=seg_start, X=X, seg_count=count, p_signal=p_total, quant2=q2)
+
+
+# --------------------------------------------------------------------------- pairs
+def pair_delays(X, plan: Plan, *, phat=False, refine=0, full_band=False):
+    """Delays t_i - t_j (s) of the 6 channel pairs from the peak of their cross-correlation.
+
+    ``X`` (K, 4, F) coarse spectra. The cross-spectrum X_i X_j^* is restricted to the
+    signal band (or the whole band but DC with ``full_band``); with ``phat`` each band
+    bin is divided by |X_i X_j^*| (PHAT inside the band only, zero outside). Integer
+    peak within the physically possible lags, parabolic interpolation, then ``refine``
+    Newton steps on the band-limited correlation r(d) = sum_f W Re(G e^{j w d}).
+
+    Returns (delays (K, 6) s, peak (K, 6) normalised correlation in [-1, 1]).
+    """
+    n = plan.n_fft
+    fs = plan.fs
+    band = plan.band.copy()
+    if full_band:
+        band = np.ones_like(band)
+        band[0] = False
+    Xi = X[:, PAIRS[:, 0]][..., band]
+    Xj = X[:, PAIRS[:, 1]][..., band]
+    G = Xi * np.conj(Xj)                                       # (K, 6, nb)
+    ei = (np.abs(Xi) ** 2).sum(axis=2)
+    ej = (np.abs(Xj) ** 2).sum(axis=2)
+    if phat:
+        mag = np.abs(G)
+        floor = 1e-6 * mag.max(axis=2, keepdims=True) + 1e-300
+        Wt = 1.0 / np.maximum(mag, floor)
+    else:
+        Wt = None
+    Gw = G * Wt if phat else G
+    full = np.zeros(G.shape[:2] + (n // 2 + 1,), complex)
+    full[..., band] = Gw
+    r = sfft.irfft(full, n=n, axis=2)                          # (K, 6, n)
+    lags = np.arange(n)
+    lags = np.where(lags > n // 2, lags - n, lags)
+    allowed = np.abs(lags)[None, :] <= plan.max_lag[:, None]   # (6, n)
+    rm = np.where(allowed[None], r, -np.inf)
+    i0 = np.argmax(rm, axis=2)
+    kk = np.arange(r.shape[0])[:, None]
+    pp = np.arange(6)[None, :]
+    y0 = r[kk, pp, i0]
+    ym = r[kk, pp, (i0 - 1) % n]
+    yp = r[kk, pp, (i0 + 1) % n]
+    den = ym - 2 * y0 + yp
+    frac = np.where(den < 0, 0.5 * (ym - yp) / np.where(den < 0, den, -1.0), 0.0)
+    frac = np.clip(frac, -0.5, 0.5)
+    d = (lags[i0] + frac) / fs
+    w = (2 * np.pi * np.fft.rfftfreq(n, 1.0 / fs))[band]
+    for _ in range(refine):
+        ph = np.exp(1j * w * d[..., None])
+        z = Gw * ph
+        g1 = -(w * z.imag).sum(axis=2)                         # r'(d)
+        g2 = -(w * w * z.real).sum(axis=2)                     # r''(d) (< 0 at a peak)
+        step = np.where(g2 < 0, -g1 / np.where(g2 < 0, g2, -1.0), 0.0)
+        step = np.clip(step, -0.5 / fs, 0.5 / fs)
+        d = d + step
+    ph = np.exp(1j * w * d[..., None])
+    peak_plain = (G * ph).real.sum(axis=2) / np.sqrt(np.maximum(ei * ej, 1e-300))
+    return d, np.clip(peak_plain, -1.0, 1.0)
+
+
+def delays_from_pairs(d):
+    """LS (tau_x, tau_y, twist) (K, 3) from the 6 pair delays, and the rms LS residual (s)."""
+    theta = d @ PAIR_PINV.T
+    res = d - theta @ PAIR_DESIGN.T
+    return theta, np.sqrt((res * res).mean(axis=1))
+
+
+def relative_arrivals(theta):
+    """Arrival times t_k - T0 (K, 4) of the model t_k = T0 - xi tau_x - eta tau_y + xi eta twist."""
+    return theta @ CHANNEL_ROWS.T
+
+
+# --------------------------------------------------------------------------- aligned
+@dataclass
+class Aligned:
+    """Aligned segments' spectra: Y (K, 4, F_al) full rfft, band part Yb, residual shifts eps."""
+
+    Y: np.ndarray
+    Yb: np.ndarray
+    shift: np.ndarray        # (K, 4) integer sample shift of each channel's segment
+    ref: np.ndarray          # (K,) common time reference (s) subtracted from arrivals
+    count: np.ndarray        # (K, 4) samples inside the window
+
+
+def aligned_spectra(prep: Prepared, plan: Plan, arrivals_rel) -> Aligned:
+    """Re-cut each channel's segment at its own arrival (integer samples) and transform.
+
+    ``arrivals_rel`` (K, 4): arrival times relative to any per-packet constant (s).
+    The residual (fractional) shifts are eps_k = arrivals_rel_k - ref - shift_k / fs.
+    """
+    fs = plan.fs
+    t = np.asarray(arrivals_rel, float)
+    ref = t.min(axis=1)
+    shift = np.rint((t - ref[:, None]) * fs).astype(np.int64)
+    max_shift = int(plan.max_lag.max()) + 2
+    shift = np.clip(shift, 0, max_shift)
+    start = prep.seg_start[:, None] + shift
+    seg, count = gather(prep.x, start, plan.seg_len)
+    Y = sfft.rfft(seg, n=plan.n_fft_al, axis=2)
+    return Aligned(Y=Y, Yb=Y[..., plan.band_al], shift=shift, ref=ref, count=count)
+
+
+def residual_shifts(al: Aligned, plan: Plan, arrivals_rel):
+    """eps_k (K, 4) in seconds: what is left to align after the integer shifts."""
+    return arrivals_rel - al.ref[:, None] - al.shift / plan.fs
+
+
+def misfit(Zb):
+    """Fraction of in-band energy not explained by one common waveform, and its parts.
+
+    Zb (K, 4, nb) aligned band spectra. Returns (misfit in [0, 1], residual energy,
+    total energy).
+    """
+    B = Zb.mean(axis=1, keepdims=True)
+    res = (np.abs(Zb - B) ** 2).sum(axis=(1, 2))
+    tot = (np.abs(Zb) ** 2).sum(axis=(1, 2))
+    return np.clip(res / np.maximum(tot, 1e-300), 0.0, 1.0), res, tot

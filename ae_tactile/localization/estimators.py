@@ -1,0 +1,295 @@
+"""One interface for the delay estimators: `localize`, `LocalizationResult`, the registry.
+
+    res = localize(windows (K, 4, M), sample_rate_hz, onset_index (K,), method="ml")
+
+Pipeline (vectorised over the K packets, never raising on data):
+  1. validate shapes and parameters (ValueError / TypeError), copy to float64;
+  2. flag non-finite samples (zeroed), constant channels, onsets outside the window,
+     saturation; estimate the noise from the pre-onset samples;
+  3. the chosen estimator (registry ``ESTIMATORS``) returns delays, the contact point and
+     the four channels aligned by its fit;
+  4. common post-processing: misfit of the aligned channels (overlap test), SNR
+     estimate (conventions.md definition), covariance, polarity, amplitude, horizon
+     check, confidence, and the reason code of every rejected packet.
+
+Every output array is finite. For a rejected packet the position is still the
+estimator's answer when it had one (e.g. overlap, low SNR: useful for diagnostics),
+else the pole (0, 0, R); only ``accepted`` packets should be published.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from typing import Callable
+
+import numpy as np
+
+from ae_tactile.geometry import FingertipGeometry
+from ae_tactile.localization import gcc, gradient, ml
+from ae_tactile.localization.common import (Reason, REASON_DESCRIPTIONS, make_plan, misfit, prepare,
+                                            primary_reason, validate_windows)
+from ae_tactile.localization.events import confidence, polarity_amplitude
+
+#: Default signal band (Hz): the front end's 100 kHz high-pass to its 1 MHz low-pass,
+#: the upper edge lowered to fs/4 at low sample rates (see `default_band_hz`).
+DEFAULT_BAND_HZ = (100e3, 1e6)
+
+
+def default_band_hz(sample_rate_hz):
+    """(100 kHz, min(1 MHz, fs/4)): above fs/4 a 1 MHz front end aliases at low rates, and
+    aliased content does not shift like the rest of the waveform (bias, not noise)."""
+    return (DEFAULT_BAND_HZ[0], min(DEFAULT_BAND_HZ[1], 0.25 * float(sample_rate_hz)))
+
+
+@dataclass(frozen=True)
+class EstimatorInfo:
+    """A registered delay estimator."""
+
+    name: str
+    function: Callable
+    description: str
+    #: Default overlap threshold on the excess misfit (calibrated, see docs/localization.md).
+    overlap_threshold: float
+
+
+ESTIMATORS: dict[str, EstimatorInfo] = {}
+
+
+def register_estimator(name, function, description, overlap_threshold=0.1):
+    """Add an estimator ``function(prepared, plan, **options) -> core dict`` to the registry."""
+    if not isinstance(name, str) or not name:
+        raise ValueError("estimator name must be a non-empty string")
+    ESTIMATORS[name] = EstimatorInfo(name, function, description, float(overlap_threshold))
+
+
+def available_methods() -> list[str]:
+    return sorted(ESTIMATORS)
+
+
+def get_estimator(name) -> EstimatorInfo:
+    try:
+        return ESTIMATORS[name]
+    except (KeyError, TypeError):
+        raise ValueError(f"unknown localization method {name!r}; choose one of {available_methods()}") from None
+
+
+register_estimator("ml", ml.estimate,
+                   "maximum likelihood on the exact sphere: steered response power over (s_x, s_y), "
+                   "Newton from a cross-correlation start")
+register_estimator("gradient", gradient.estimate,
+                   "the paper's gradient method (ref. [8]) iterated with re-alignment, band-limited derivative")
+register_estimator("gcc_phat", gcc.estimate_gcc_phat,
+                   "GCC-PHAT over the 6 pairs, PHAT in band only, Newton sub-sample peak, LS, exact inversion")
+register_estimator("xcorr_farfield", gcc.estimate_xcorr_farfield,
+                   "paper baseline: plain cross-correlation peaks of channel sums, far-field Eq. 2 inversion")
+
+
+@dataclass
+class LocalizationResult:
+    """Per-packet results, arrays with K rows (SI units).
+
+    tau_x_s, tau_y_s, twist_s   delays of the fit (geometry.py definitions)
+    point_m (K, 3)              contact point on the upper hemisphere
+    covariance_m2 (K, 3, 3)     its covariance (linear propagation of the delay covariance)
+    delay_covariance_s2 (K, 2, 2)  covariance of (tau_x, tau_y)
+    polar_rad, azimuth_rad      direction of point_m
+    residual                    misfit: fraction of in-band energy of the aligned channels
+                                not explained by one common waveform, in [0, 1]
+    overlap_excess              residual minus its expected noise-only value
+    pair_residual_s             RMS residual of the 6-pair LS (pairwise methods' start), s
+    snr_db_est                  SNR per docs/conventions.md, estimated from the data
+    noise_rms_v_est             noise sigma used (pre-onset, given, or fit residual)
+    polarity                    +1 touch, -1 release, 0 undetermined (int8)
+    amplitude_v                 signed first-lobe amplitude of the aligned channel mean
+    confidence                  in [0, 1] (events.py); 0 when rejected
+    clamped                     point clamped onto the horizon (|sin theta| > 1 implied)
+    accepted                    bool
+    reason                      uint8 `Reason` code (0 when accepted)
+    reason_flags                bit (1 << code) for every reason that applied
+    """
+
+    method: str
+    tau_x_s: np.ndarray
+    tau_y_s: np.ndarray
+    twist_s: np.ndarray
+    point_m: np.ndarray
+    covariance_m2: np.ndarray
+    delay_covariance_s2: np.ndarray
+    polar_rad: np.ndarray
+    azimuth_rad: np.ndarray
+    residual: np.ndarray
+    overlap_excess: np.ndarray
+    pair_residual_s: np.ndarray
+    snr_db_est: np.ndarray
+    noise_rms_v_est: np.ndarray
+    polarity: np.ndarray
+    amplitude_v: np.ndarray
+    confidence: np.ndarray
+    clamped: np.ndarray
+    accepted: np.ndarray
+    reason: np.ndarray
+    reason_flags: np.ndarray
+    options: dict = field(default_factory=dict)
+
+    def __len__(self):
+        return int(self.accepted.shape[0])
+
+    @property
+    def reason_names(self) -> list[str]:
+        return [Reason(int(r)).name for r in self.reason]
+
+    @staticmethod
+    def describe_reason(code) -> str:
+        return REASON_DESCRIPTIONS[Reason(int(code))]
+
+    def packet(self, i) -> dict:
+        """Row i as a plain dict (for logging and tests)."""
+        out = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            out[f.name] = v[i] if isinstance(v, np.ndarray) else v
+        out["reason_name"] = Reason(int(self.reason[i])).name
+        return out
+
+
+def _empty(method, options):
+    z = np.zeros(0)
+    return LocalizationResult(method, z, z, z, np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 2, 2)),
+                              z, z, z, z, z, z, z, np.zeros(0, np.int8), z, z, np.zeros(0, bool),
+                              np.zeros(0, bool), np.zeros(0, np.uint8), np.zeros(0, np.uint16), options)
+
+
+def _horizon_excess(geometry, tau):
+    """|tau| beyond the exact horizon delay along the measured azimuth (s; <= 0 inside)."""
+    phi = np.arctan2(tau[:, 1], tau[:, 0])
+    h = geometry.exact_delays_s(geometry.surface_point_from_angles(np.full_like(phi, np.pi / 2), phi))
+    return np.hypot(tau[:, 0], tau[:, 1]) - np.hypot(h[:, 0], h[:, 1])
+
+
+def localize(windows, sample_rate_hz, onset_index, *, method="ml", geometry=None,
+             band_hz=None, noise_rms_v=None, saturated=None, full_scale_v=None,
+             channel_gains=None, min_snr_db=5.0, overlap_threshold=None, pre_onset_s=1e-6,
+             echo_guard_s=0.3e-6, **options) -> LocalizationResult:
+    """Localize K packets (see the module docstring).
+
+    windows (K, 4, M) volts (any real dtype; a single (4, M) window is accepted),
+    sample_rate_hz, onset_index (K,) first sample at/after the earliest arrival (the
+    detector's or the simulator's), method: a name in `available_methods()`.
+    geometry: FingertipGeometry (default tip). band_hz: signal band for the estimators
+    (default `default_band_hz(fs)`).
+    noise_rms_v: scalar or (K,) known noise sigma (default: measured on the samples
+    before ``onset - pre_onset_s``, else from the fit residual). saturated: (K,) flags
+    from upstream; full_scale_v: ADC clip level (either one, or neither: a flat top of
+    >= max(3, 0.3 us fs) samples at the packet's dominant extreme then flags saturation).
+    channel_gains: relative gains of the 4 channels (divided out). min_snr_db: LOW_SNR
+    below this. overlap_threshold: OVERLAP when the excess misfit exceeds it (default
+    per method). Extra keyword options go to the estimator (e.g. iterations=).
+    """
+    info = get_estimator(method)
+    geo = FingertipGeometry() if geometry is None else geometry
+    x, onset = validate_windows(windows, onset_index)
+    if band_hz is None:
+        try:
+            band_hz = default_band_hz(sample_rate_hz)
+        except (TypeError, ValueError):
+            band_hz = DEFAULT_BAND_HZ          # make_plan reports the bad sample rate
+    plan = make_plan(sample_rate_hz, geo, x.shape[2], band_hz, pre_onset_s, echo_guard_s)
+    min_snr_db = float(min_snr_db)
+    if not np.isfinite(min_snr_db):
+        raise ValueError(f"min_snr_db must be finite, got {min_snr_db!r}")
+    thr = info.overlap_threshold if overlap_threshold is None else float(overlap_threshold)
+    if not (np.isfinite(thr) and thr > 0):
+        raise ValueError(f"overlap_threshold must be positive, got {overlap_threshold!r}")
+    k = x.shape[0]
+    if k == 0:
+        return _empty(method, options)
+    prep = prepare(x, onset, plan, noise_rms_v=noise_rms_v, saturated=saturated,
+                   full_scale_v=full_scale_v, channel_gains=channel_gains)
+    with np.errstate(all="ignore"):
+        core = info.function(prep, plan, **options)
+        return _finish(core, prep, plan, geo, method, min_snr_db, thr, options)
+
+
+def _finish(core, prep, plan, geo, method, min_snr_db, thr, options):
+    flags = prep.flags.copy()
+    zb = core["zb"]
+    count = core["count"]
+    mis, res_e, tot_e = misfit(zb)
+    nb = zb.shape[2]
+    L = count.mean(axis=1)
+    # Noise: pre-onset (or given), else from the residual of the fit.
+    sigma2 = prep.sigma2.copy()
+    fallback = ~np.isfinite(sigma2)
+    sigma2[fallback] = res_e[fallback] / np.maximum(3.0 * nb * L[fallback], 1.0)
+    sigma2 = np.where(fallback, sigma2, sigma2 + prep.quant2)
+    p_total = prep.p_signal
+    floor = 1e-12 * np.maximum(p_total, 0.0) + 1e-300
+    sigma2 = np.maximum(sigma2, floor)
+    p_sig = np.maximum(p_total - sigma2, 1e-300)
+    snr = np.clip(10.0 * np.log10(p_sig / sigma2), -100.0, 120.0)
+    flags[snr < min_snr_db] |= 1 << Reason.LOW_SNR
+    excess = mis - 3.0 * nb * L * sigma2 / np.maximum(tot_e, 1e-300)
+    excess = np.where(np.isfinite(excess), excess, 1.0)
+    flags[excess > thr] |= 1 << Reason.OVERLAP
+
+    theta = np.asarray(core["theta"], float)
+    point = np.asarray(core["point"], float)
+    clamped = np.asarray(core["clamped"], bool).copy()
+    c_tau, cov_ok = core["covariance"](sigma2)
+    c_tau = np.where(np.isfinite(c_tau), c_tau, np.nan)
+    # Horizon check on the raw delays of the method.
+    raw = np.asarray(core["raw_delays"], float)
+    sd = np.sqrt(np.maximum(np.trace(np.nan_to_num(c_tau, nan=0.0), axis1=1, axis2=2), 0.0))
+    over = _horizon_excess(geo, np.nan_to_num(raw)) > 4.0 * sd + 0.25 / plan.fs
+    flags[over] |= 1 << Reason.OUT_OF_RANGE
+
+    finite_pt = np.all(np.isfinite(point), axis=1) & np.all(np.isfinite(theta), axis=1)
+    pole = np.array([0.0, 0.0, geo.radius_m])
+    point = np.where(finite_pt[:, None], point, pole)
+    theta = np.where(finite_pt[:, None], theta, 0.0)
+    big = geo.radius_m ** 2
+    cov_fin = finite_pt & cov_ok & np.all(np.isfinite(c_tau), axis=(1, 2))
+    c_tau_safe = np.where(cov_fin[:, None, None], c_tau, np.eye(2) * geo.max_delay_s ** 2)
+    cov = geo.point_covariance(point, c_tau_safe)
+    cov_good = cov_fin & np.all(np.isfinite(cov), axis=(1, 2))
+    cov = np.where(cov_good[:, None, None], cov, np.eye(3) * big)
+    cov = np.minimum(cov, 1e3 * big)
+    cov = np.maximum(cov, -1e3 * big)
+    bad_numeric = ~finite_pt
+    flags[bad_numeric & (flags == 0)] |= 1 << Reason.OUT_OF_RANGE
+
+    pol, amp = polarity_amplitude(core["z"], plan)
+    amp = np.where(np.isfinite(amp), amp, 0.0)
+    reason = primary_reason(flags)
+    accepted = reason == 0
+    polar, azim = geo.angles_from_points(point)
+    sigma_pos = np.sqrt(np.maximum(cov[:, 0, 0] + cov[:, 1, 1], 0.0))
+    conf = confidence(accepted, snr, min_snr_db, excess, thr, sigma_pos, clamped)
+    no_sig = (flags & ((1 << Reason.NONFINITE) | (1 << Reason.NO_SIGNAL))) != 0
+    pol = np.where(no_sig, 0, pol).astype(np.int8)
+    amp = np.where(no_sig, 0.0, amp)
+
+    def fin(a, fill=0.0):
+        return np.where(np.isfinite(a), a, fill)
+
+    return LocalizationResult(
+        method=method, tau_x_s=fin(theta[:, 0]), tau_y_s=fin(theta[:, 1]), twist_s=fin(theta[:, 2]),
+        point_m=point, covariance_m2=cov, delay_covariance_s2=fin(c_tau_safe),
+        polar_rad=fin(polar), azimuth_rad=fin(azim), residual=fin(mis, 1.0), overlap_excess=excess,
+        pair_residual_s=fin(np.asarray(core["pair_residual_s"], float)), snr_db_est=snr,
+        noise_rms_v_est=np.sqrt(sigma2), polarity=pol, amplitude_v=amp, confidence=conf,
+        clamped=clamped, accepted=accepted, reason=reason, reason_flags=flags.astype(np.uint16),
+        options=dict(options))
+
+
+class Localizer:
+    """A configured `localize` (what the ROS node holds): ``Localizer(method='ml', ...)(windows, fs, onset)``."""
+
+    def __init__(self, method="ml", **kwargs):
+        get_estimator(method)
+        self.method = method
+        self.kwargs = kwargs
+
+    def __call__(self, windows, sample_rate_hz, onset_index, **overrides):
+        kw = dict(self.kwargs)
+        kw.update(overrides)
+        return localize(windows, sample_rate_hz, onset_index, method=self.method, **kw)

@@ -1,0 +1,142 @@
+"""Maximum-likelihood fit of the exact spherical geometry (method ``"ml"``).
+
+For an unknown deterministic waveform in white noise with equal channel gains, the
+likelihood of a contact point s on the sphere is maximised by the steered response power
+
+    P(s) = sum_{f in band} | sum_k Y_k(f) exp(+j w eps_k(s)) |^2,
+    eps_k(s) = t_k(s) - c_k,   t_k(s) = |s - e_k| / c   (exact, no far-field step),
+
+Y_k the spectra of the aligned segments (each cut at its own integer-sample arrival,
+offset c_k). The two unknowns are the in-plane coordinates (s_x, s_y) of the point on
+the upper hemisphere; P does not depend on the emission time.
+
+Start: the band-limited cross-correlation of the 6 channel pairs (integer lag + parabola,
+LS for tau_x, tau_y, twist), inverted exactly with `point_from_delays`. Then damped
+Newton steps on P with the analytic gradient and Hessian through d t_k / d s and
+d^2 t_k / d s^2 (`FingertipGeometry.arrival_time_derivatives`), a vectorised line search
+(step 1, 1/2, 1/4, 1/8 or none), and a projection onto the horizon circle
+rho <= R. If the fit drifts by more than 3/4 sample from the integer cut, the segments
+are re-cut once and the Newton steps repeated.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ae_tactile.localization.common import (Plan, Prepared, aligned_spectra, delays_from_pairs,
+                                            pair_delays)
+from ae_tactile.localization.covariance import arrival_fisher, sphere_covariance
+
+_ALPHAS = np.array([1.0, 0.5, 0.25, 0.125, 0.0])
+
+
+def _project(sx, sy, r):
+    rho = np.hypot(sx, sy)
+    lim = r * (1.0 - 1e-9)
+    over = rho > lim
+    f = np.where(over, lim / np.where(rho > 0, rho, 1.0), 1.0)
+    return sx * f, sy * f, over
+
+
+def srp(Yb, w, eps):
+    """P (K, ...) for residual shifts eps (K, ..., 4)."""
+    z = Yb.reshape(Yb.shape[:1] + (1,) * (eps.ndim - 2) + Yb.shape[1:]) * np.exp(1j * w * eps[..., None])
+    b = z.sum(axis=-2)
+    return (b.real ** 2 + b.imag ** 2).sum(axis=-1)
+
+
+def newton(Yb, w, geometry, s, c0, iterations, max_step_m, tol_m):
+    """Damped Newton ascent of P over (s_x, s_y) for all packets at once."""
+    r = geometry.radius_m
+    sx, sy = s[:, 0].copy(), s[:, 1].copy()
+    w2 = w * w
+    clamped = np.zeros(sx.shape, bool)
+    for _ in range(iterations):
+        t, dt, d2t = geometry.arrival_time_derivatives(sx, sy)
+        eps = t - c0
+        z = Yb * np.exp(1j * w * eps[..., None])
+        b = z.sum(axis=1)
+        cb = np.conj(b)[:, None, :] * z                        # (K, 4, nb)
+        g_e = -2.0 * (w * cb.imag).sum(axis=2)                 # dP/d eps_k
+        q = np.einsum("kaf,kbf,f->kab", z, np.conj(z), w2).real
+        h_e = 2.0 * q
+        idx = np.arange(4)
+        h_e[:, idx, idx] -= 2.0 * (w2 * cb.real).sum(axis=2)
+        g = np.einsum("kai,ka->ki", dt, g_e)
+        h = np.einsum("kai,kab,kbj->kij", dt, h_e, dt) + np.einsum("ka,kaij->kij", g_e, d2t)
+        a, bb, d = h[:, 0, 0], h[:, 0, 1], h[:, 1, 1]
+        mid = 0.5 * (a + d)
+        rad = np.sqrt(0.25 * (a - d) ** 2 + bb * bb)
+        lmax, lmin = mid + rad, mid - rad
+        scale = np.abs(a) + np.abs(d) + 1e-300
+        mu = np.where(lmax > -1e-6 * scale, lmax + 0.1 * np.abs(lmin) + 1e-3 * scale, 0.0)
+        a, d = a - mu, d - mu
+        det = a * d - bb * bb
+        det = np.where(np.abs(det) > 0, det, 1e-300)
+        stx = -(d * g[:, 0] - bb * g[:, 1]) / det
+        sty = -(a * g[:, 1] - bb * g[:, 0]) / det
+        norm = np.hypot(stx, sty)
+        f = np.where(norm > max_step_m, max_step_m / np.where(norm > 0, norm, 1.0), 1.0)
+        stx = np.where(np.isfinite(stx), stx * f, 0.0)
+        sty = np.where(np.isfinite(sty), sty * f, 0.0)
+        # Full step for everyone; a line search (1/2, 1/4, 1/8 or no step) only where P fell.
+        nx, ny, over = _project(sx + stx, sy + sty, r)
+        p_new = srp(Yb, w, _times(geometry, nx, ny) - c0)
+        p_old = (b.real ** 2 + b.imag ** 2).sum(axis=1)
+        worse = ~(p_new >= p_old)
+        taken = norm * f
+        if worse.any():
+            ids = np.nonzero(worse)[0]
+            al = _ALPHAS[1:]
+            cx = sx[ids, None] + al * stx[ids, None]
+            cy = sy[ids, None] + al * sty[ids, None]
+            cx, cy, ov = _project(cx, cy, r)
+            pc = srp(Yb[ids], w, _times(geometry, cx, cy) - c0[ids, None, :])
+            best = np.argmax(pc, axis=1)
+            rows = np.arange(len(ids))
+            nx[ids], ny[ids], over[ids] = cx[rows, best], cy[rows, best], ov[rows, best]
+            taken[ids] = taken[ids] * al[best]
+        sx, sy, clamped = nx, ny, over
+        if np.all(taken < tol_m):
+            break
+    return np.stack([sx, sy], axis=1), clamped
+
+
+def _times(geometry, sx, sy):
+    return geometry._xy_distances(sx, sy) / geometry.sound_speed_m_s
+
+
+def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4):
+    """Exact-sphere ML fit. Returns the estimator core dict (see estimators.py)."""
+    geo = plan.geometry
+    fs = plan.fs
+    d, _ = pair_delays(prep.X, plan)
+    theta0, pair_res = delays_from_pairs(d)
+    pts0, _ = geo.point_from_delays(theta0[:, 0], theta0[:, 1], exact=True)
+    s = np.nan_to_num(pts0[:, :2])
+    # One Newton step is worth about one sample of delay at most.
+    max_step = geo.radius_m * geo.sound_speed_m_s / (geo.element_offset_m * fs)
+    for _outer in range(2):
+        t = _times(geo, s[:, 0], s[:, 1])
+        al = aligned_spectra(prep, plan, t)
+        c0 = al.ref[:, None] + al.shift / fs
+        s, clamped = newton(al.Yb, plan.w_al, geo, s, c0, iterations, max_step, 1e-4 * max_step)
+        eps = _times(geo, s[:, 0], s[:, 1]) - c0
+        if np.all(np.abs(eps - eps.mean(axis=1, keepdims=True)) * fs < 0.75):
+            break
+    t, dt, _ = geo.arrival_time_derivatives(s[:, 0], s[:, 1])
+    eps = t - c0
+    zb = al.Yb * np.exp(1j * plan.w_al * eps[..., None])
+    z = al.Y * np.exp(1j * plan.w_full_al * eps[..., None])
+    sz = np.sqrt(np.maximum(geo.radius_m ** 2 - s[:, 0] ** 2 - s[:, 1] ** 2, 0.0))
+    point = np.stack([s[:, 0], s[:, 1], sz], axis=1)
+    delays = geo.delays_from_arrival_times(t)
+
+    def covariance(sigma2):
+        F = arrival_fisher(zb, plan.w_al, sigma2, al.count, plan.n_fft_al)
+        c_xy, ok = sphere_covariance(F, dt)
+        jac = geo.delay_jacobian(s[:, 0], s[:, 1])
+        c_tau = jac @ c_xy @ np.swapaxes(jac, 1, 2)
+        return c_tau, ok
+
+    return dict(theta=delays, point=point, clamped=clamped, zb=zb, z=z, count=al.count,
+                raw_delays=theta0[:, :2], covariance=covariance, pair_residual_s=pair_res)
