@@ -99,6 +99,15 @@ class FrontEnd:
         re, im = self._table
         return re[:, :n], im[:, :n]
 
+    @property
+    def fast_basis(self) -> np.ndarray:
+        """[Re E; Im E] stacked, (2 n_fast, max_support_samples), C-contiguous (cached)."""
+        b = getattr(self, "_basis", None)
+        if b is None:
+            re, im = self.exp_table(self.config.max_support_samples)
+            b = self._basis = np.ascontiguousarray(np.vstack([re, im]))
+        return b
+
 
 # ------------------------------------------------------------------------ SNR / noise
 def signal_power_v2(clean_v, onset_index, sample_rate_hz, window_s=SNR_WINDOW_S):

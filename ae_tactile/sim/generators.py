@@ -260,6 +260,7 @@ class IncipientSlipProcess:
         self.E = p["youngs_modulus_pa"]
         self.nu = p["poisson_ratio"]
         self.center = self.geometry.surface_point_from_xy(p["x_m"], p["y_m"])
+        self._e1, self._e2 = tangent_basis(self.center)
         self.step_ns = int(round(p["step_s"] * _NS))
         self.t_start_ns = int(round(p["start_s"] * _NS))
         # load history: list of (time_ns, P); index = load-change key
@@ -384,7 +385,10 @@ class IncipientSlipProcess:
                 n = rng.poisson(self.p["front_density_per_m2"] * math.pi * aH * aH * (f_hi - f_lo))
                 u = rng.uniform(f_lo, f_hi, n)
                 q = 1.0 - (1.0 - u) ** 1.5
-                t = np.array([self._time_of_q(x, P) for x in q])
+                if self.qdot > 0:
+                    t = self.t_start_ns + (q * self.mu * P - self.q0) / self.qdot * _NS
+                else:
+                    t = np.full(n, float(a))
                 times.append(np.clip(t, a, stick_end - 1))
                 kinds += ["micro_slip"] * n
             bg = self.p["background_rate_hz"]
@@ -402,28 +406,34 @@ class IncipientSlipProcess:
             times.append(rng.uniform(slide_from, b, n))
             kinds += ["slip"] * n
         if not kinds:
-            return EmissionList.empty(), fmax_new, sliding_new
+            return None, fmax_new, sliding_new
         t = np.floor(np.concatenate(times)).astype(np.int64)
-        kinds = np.array(kinds)
+        code = np.where(np.array(kinds) == "micro_slip", 0, 1)
         # positions: micro-slip in the annulus c(t) < r < a_H, slip anywhere in the disc
         Q = self.tangential_load(t)
         c = stick_radius_m(aH, Q, self.mu, P)
-        r_in = np.where(kinds == "micro_slip", c, 0.0)
+        r_in = np.where(code == 0, c, 0.0)
         rr = np.sqrt(rng.uniform(0, 1, t.size) * (aH ** 2 - r_in ** 2) + r_in ** 2)
         th = rng.uniform(0, 2 * np.pi, t.size)
-        pts = patch_points(self.geometry, self.center, rr * np.cos(th), rr * np.sin(th))
+        pts = (self.center + (rr * np.cos(th))[:, None] * self._e1 + (rr * np.sin(th))[:, None] * self._e2)
+        pts *= self.geometry.radius_m / np.linalg.norm(pts, axis=1, keepdims=True)
         pol = rng.choice([-1.0, 1.0], t.size)
+        ids = (step << 24) + (key << 16) + np.arange(t.size)
+        return (t, code, pts, pol, ids), fmax_new, sliding_new
+
+    def _to_list(self, parts) -> EmissionList:
+        if not parts:
+            return EmissionList.empty()
+        t, code, pts, pol, ids = (np.concatenate(x) for x in zip(*parts))
         lists = []
-        base = (step << 24) + (key << 16)
-        ids = base + np.arange(t.size)
-        for kind in ("micro_slip", "slip"):
-            m = kinds == kind
+        for c, kind in enumerate(("micro_slip", "slip")):
+            m = code == c
             if m.any():
                 ev = self.event_params[kind]
                 lists.append(EmissionList.create(t[m], pts[m], kind, polarity=pol[m], speed_m_s=ev.speed_m_s,
                                                  curvature_1_m=ev.curvature_1_m, alpha_1_s=ev.alpha_1_s,
                                                  density_kg_m3=self.density, event_id=ids[m]))
-        return EmissionList.concat(lists), fmax_new, sliding_new
+        return EmissionList.concat(lists)
 
     def advance(self, t_ns: int) -> EmissionList:
         """Emissions with horizon <= time < t_ns (generated step by step, deterministically)."""
@@ -432,11 +442,12 @@ class IncipientSlipProcess:
             return EmissionList.empty()
         if t_ns > self._gen_ns:
             end = (-(-t_ns // self.step_ns)) * self.step_ns         # whole steps
-            new = [self._pending]
+            parts = []
             for a, b, P, key in self._segments(self._gen_ns, end):
-                em, self._fmax, self._sliding = self._generate(a, b, P, key, self._fmax, self._sliding)
-                new.append(em)
-            self._pending = EmissionList.concat(new)
+                raw, self._fmax, self._sliding = self._generate(a, b, P, key, self._fmax, self._sliding)
+                if raw is not None:
+                    parts.append(raw)
+            self._pending = EmissionList.concat([self._pending, self._to_list(parts)])
             self._gen_ns = end
         out = self._pending.between(self.horizon_ns, t_ns)
         self._pending = self._pending.between(t_ns, np.iinfo(np.int64).max)

@@ -154,7 +154,7 @@ GENERATORS = {
         "micro_slip_speed_m_s": _f(0.1, "local speed of a micro-slip event (m/s)", 1e-4, 20.0),
         "slip_speed_m_s": _f(0.2, "local speed of a gross-slip event (m/s)", 1e-4, 20.0),
         "curvature_1_m": _EV["curvature_1_m"], "alpha_1_s": _EV["alpha_1_s"],
-        "step_s": _f(1e-3, "random-draw time step (s)", 1e-6, 1.0)}),
+        "step_s": _f(10e-3, "random-draw time step (s)", 1e-6, 1.0)}),
     "texture": (G.texture, {
         **_XY, "slide_speed_m_s": _f(0.02, "sliding speed v (m/s)", 1e-6, 10.0),
         "period_m": _f(0.5e-3, "texture spatial period lambda (m)", 1e-6, 0.1),

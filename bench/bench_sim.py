@@ -1,0 +1,152 @@
+"""Benchmark of the simulated fingertip (issue 3).
+
+Measures, on one core, samples generated per second (4 channels x sample rate counted
+as 4 samples per instant), the real-time factor at 4 ch x 10 MS/s, and the peak Python
+heap (tracemalloc) while streaming a scene in 100 ms chunks into a reused buffer, for a
+sparse touch scene and a dense slip scene, with every effect off, each effect on alone,
+and every effect on. Also times the batch triggered renderer.
+
+    python3 bench/bench_sim.py [--duration 1.0] [--out bench/results/sim.json] [--png]
+
+Results go to bench/results/sim.json (and sim.png with --png if matplotlib exists);
+docs/simulator.md summarises them.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+import tracemalloc
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")   # one core, before numpy loads BLAS
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from ae_tactile.sim import render_triggered  # noqa: E402
+from ae_tactile.sim.scene import load_scene  # noqa: E402
+
+SCENES = {
+    "sparse_touch": {"generator": "random_touches", "params": {"rate_hz": 20.0, "max_polar_deg": 60.0}},
+    "dense_slip": {"generator": "incipient_slip",
+                   "params": {"tangential_load_rate_n_per_s": 10.0, "normal_load_n": 1.0,
+                              "friction_coefficient": 0.5, "background_rate_hz": 500.0,
+                              "slip_rate_hz": 2000.0, "front_density_per_m2": 1e8}},
+}
+VARIANTS = {
+    "all_off": {"effects": {"attenuation": False, "reflections": False, "quantization": False}, "noise": None},
+    "attenuation": {"effects": {"attenuation": True, "reflections": False, "quantization": False}, "noise": None},
+    "reflections": {"effects": {"attenuation": False, "reflections": True, "quantization": False}, "noise": None},
+    "noise": {"effects": {"attenuation": False, "reflections": False, "quantization": False},
+              "noise": {"snr_db": 30.0}},
+    "quantization": {"effects": {"attenuation": False, "reflections": False, "quantization": True}, "noise": None},
+    "all_on": {"effects": {"attenuation": True, "reflections": True, "quantization": True},
+               "noise": {"snr_db": 30.0}},
+}
+
+
+def make_scene(name, variant, duration):
+    spec = {**SCENES[name], "duration_s": duration, "seed": 1, "sensor": {"medium": "silicone"},
+            **{k: v for k, v in VARIANTS[variant].items() if v is not None}}
+    spec["effects"] = dict(VARIANTS[variant]["effects"], release_emissions=True)
+    return load_scene(spec)
+
+
+def stream(scene, chunk):
+    src = scene.streaming_source()
+    buf = np.empty((4, chunk))
+    n_total = scene.n_samples
+    pos, n_em = 0, 0
+    while pos < n_total:
+        n = min(chunk, n_total - pos)
+        c = src.next_chunk(n, out=buf if n == chunk else None)
+        n_em += len(c.emissions)
+        pos += n
+    return n_em
+
+
+def run_case(name, variant, duration, chunk, repeats):
+    times = []
+    for _ in range(repeats):
+        sc = make_scene(name, variant, duration)
+        t0 = time.perf_counter()
+        n_em = stream(sc, chunk)
+        times.append(time.perf_counter() - t0)
+    best = min(times)
+    sc = make_scene(name, variant, duration)
+    tracemalloc.start()
+    stream(sc, chunk)
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    n = sc.n_samples
+    return {"scene": name, "variant": variant, "duration_s": duration, "emissions": n_em,
+            "emissions_per_s": n_em / duration, "wall_s": best, "wall_s_all": times,
+            "samples_per_s": 4 * n / best, "realtime_factor": duration / best,
+            "peak_heap_mb": peak / 1e6}
+
+
+def run_triggered(n_packets=10_000):
+    rng = np.random.default_rng(0)
+    from ae_tactile.geometry import FingertipGeometry
+    g = FingertipGeometry()
+    pts = g.surface_point_from_angles(np.arccos(rng.uniform(0.2, 1, n_packets)), rng.uniform(0, 2 * np.pi, n_packets))
+    render_triggered(pts[:100], snr_db=30, rng=1)
+    t0 = time.perf_counter()
+    render_triggered(pts, snr_db=30, rng=1)
+    dt = time.perf_counter() - t0
+    return {"n_packets": n_packets, "samples_per_packet": "4 x 400", "wall_s": dt, "packets_per_s": n_packets / dt}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--duration", type=float, default=1.0, help="simulated seconds per case")
+    ap.add_argument("--chunk", type=int, default=1_000_000, help="samples per chunk (100 ms at 10 MS/s)")
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "sim.json"))
+    ap.add_argument("--png", action="store_true", help="also write a bar chart (needs matplotlib)")
+    args = ap.parse_args(argv)
+    rows = []
+    for name in SCENES:
+        for variant in VARIANTS:
+            r = run_case(name, variant, args.duration, args.chunk, args.repeats)
+            rows.append(r)
+            print(f"{name:13s} {variant:13s} {r['emissions_per_s']:7.0f} em/s  {r['samples_per_s'] / 1e6:7.1f} MS/s"
+                  f"  {r['realtime_factor']:5.2f}x real time  peak heap {r['peak_heap_mb']:6.1f} MB", flush=True)
+    trig = run_triggered()
+    print(f"render_triggered: {trig['n_packets']} packets of 4 x 400 in {trig['wall_s']:.2f} s")
+    res = {"machine": {"python": platform.python_version(), "numpy": np.__version__,
+                       "processor": platform.processor() or platform.machine(), "cores_used": 1},
+           "sensor": "silicone preset, 4 ch x 10 MS/s, 12 bit; chunk = %d samples" % args.chunk,
+           "target_realtime_factor": 2.0, "cases": rows, "triggered": trig,
+           "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    os.makedirs(os.path.dirname(args.out), exist_ok=True)
+    with open(args.out, "w") as fh:
+        json.dump(res, fh, indent=1)
+    print("wrote", args.out)
+    if args.png:
+        try:
+            import matplotlib
+            matplotlib.use("Agg")
+            import matplotlib.pyplot as plt
+        except ImportError:
+            print("matplotlib not available: no PNG")
+            return 0
+        fig, ax = plt.subplots(figsize=(8, 4))
+        labels = [f"{r['scene']}\n{r['variant']}" for r in rows]
+        ax.bar(range(len(rows)), [r["realtime_factor"] for r in rows])
+        ax.axhline(2.0, color="r", ls="--", label="target 2x")
+        ax.set_xticks(range(len(rows)), labels, rotation=90, fontsize=7)
+        ax.set_ylabel("real-time factor (4 ch x 10 MS/s)")
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(os.path.splitext(args.out)[0] + ".png", dpi=120)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
