@@ -8,9 +8,9 @@ channels and starts ``pre_onset_s`` before the packet onset (earliest arrival); 
 *aligned* segments start at each channel's own (integer-sample) arrival, so that the
 four windows hold the same part of the waveform.
 
-Each segment is mean-removed per channel before any transform, which makes every
-estimate exactly invariant to a DC offset (and, because every statistic is a ratio, to
-a common gain).
+Each segment has its channel's pre-onset mean (its segment mean when there are fewer
+than 4 pre-onset samples) removed before any transform, which makes every estimate
+invariant to a DC offset (and, because every statistic is a ratio, to a common gain).
 
 Spectra are unnormalised DFTs of zero-padded segments: Y(f) = sum_n y[n] e^{-j w n/fs}.
 White noise of variance sigma^2 over L samples gives E|N(f)|^2 = L sigma^2 per bin.
@@ -233,25 +233,33 @@ def raw_gather(x, start, length):
     return seg, inside.sum(axis=2)
 
 
-def demean(raw, start, count, m):
-    """Mean-removed copy of gathered segments; samples outside the window set to 0."""
+def demean(raw, start, count, m, baseline=None):
+    """Segments minus a per-channel baseline (K, 4) (default: their own mean); samples
+    outside the window set to 0.
+
+    The estimators subtract the pre-onset mean: it removes any DC offset exactly without
+    subtracting the packet's own mean, which would add a rectangle that does not move
+    with the delays (a bias at low sample rates)."""
     length = raw.shape[2]
-    if np.all(count == length):
-        return raw - raw.mean(axis=2, keepdims=True)
-    idx = start[..., None] + np.arange(length)
-    inside = (idx >= 0) & (idx < m)
-    seg = raw * inside
-    mean = seg.sum(axis=2) / np.maximum(count, 1)
-    seg -= mean[..., None]
-    seg *= inside
+    inside_all = bool(np.all(count == length))
+    if baseline is None:
+        if inside_all:
+            return raw - raw.mean(axis=2, keepdims=True)
+        idx = start[..., None] + np.arange(length)
+        inside = (idx >= 0) & (idx < m)
+        baseline = (raw * inside).sum(axis=2) / np.maximum(count, 1)
+    seg = raw - baseline[..., None]
+    if not inside_all:
+        idx = start[..., None] + np.arange(length)
+        seg *= (idx >= 0) & (idx < m)
     return seg
 
 
-def gather(x, start, length):
-    """Mean-removed segments (K, 4, length) starting at start (K, 4), zero outside the
+def gather(x, start, length, baseline=None):
+    """Baseline-removed segments (K, 4, length) starting at start (K, 4), zero outside the
     window, and the count of samples inside it (K, 4)."""
     raw, count = raw_gather(x, start, length)
-    return demean(raw, start, count, x.shape[2]), count
+    return demean(raw, start, count, x.shape[2], baseline), count
 
 
 @dataclass
@@ -338,7 +346,7 @@ def prepare(x, onset, plan: Plan, *, noise_rms_v=None, saturated=None, full_scal
     else:
         sigma2 = np.zeros(k)
         pre_mean = x0[:, :, 0].copy()
-    sigma2 = np.where(n_pre >= 8, sigma2, np.nan)
+    sigma2 = np.where(n_pre >= 4, sigma2, np.nan)
     if noise_rms_v is not None:
         nr = per_packet("noise_rms_v", noise_rms_v, k)
         ok = np.isfinite(nr) & (nr > 0)
@@ -349,7 +357,6 @@ def prepare(x, onset, plan: Plan, *, noise_rms_v=None, saturated=None, full_scal
     # Coarse segment (common start), raw for saturation checks, mean-removed for spectra.
     start4 = np.repeat(seg_start[:, None], 4, axis=1)
     raw, count = raw_gather(x, start4, plan.seg_len)
-    seg = demean(raw, start4, count, m)
     const = (raw.max(axis=2) == raw.min(axis=2)).any(axis=1)
     flags[const] |= 1 << Reason.NO_SIGNAL
     sat = flat_top(raw, plan.flat_run)
@@ -358,9 +365,10 @@ def prepare(x, onset, plan: Plan, *, noise_rms_v=None, saturated=None, full_scal
     if full_scale_v is not None:
         sat |= (np.abs(raw) >= fsv * (1.0 - 1e-3)).any(axis=(1, 2))
     flags[sat] |= 1 << Reason.SATURATED
-    no_pre = n_pre < 8
+    no_pre = n_pre < 4
     if no_pre.any():
         pre_mean = np.where(no_pre[:, None], raw.mean(axis=2), pre_mean)
+    seg = demean(raw, start4, count, m, pre_mean)
 
     # Mean power over the SNR window after the onset (what the window holds of it).
     w_len = min(plan.snr_len, m)
@@ -486,7 +494,7 @@ def aligned_spectra(prep: Prepared, plan: Plan, arrivals_rel) -> Aligned:
     max_shift = int(plan.max_lag.max()) + 2
     shift = np.clip(shift, 0, max_shift)
     start = prep.seg_start[:, None] + shift
-    seg, count = gather(prep.x, start, plan.seg_len)
+    seg, count = gather(prep.x, start, plan.seg_len, prep.pre_mean)
     Y = sfft.rfft(seg, n=plan.n_fft_al, axis=2)
     return Aligned(Y=Y, Yb=Y[..., plan.band_al], shift=shift, ref=ref, count=count)
 

@@ -28,14 +28,25 @@ from ae_tactile.localization.covariance import arrival_fisher, delay_covariance_
 _SIGNS = CONTRASTS * 4.0      # rows: -xi, -eta, xi eta
 
 
-def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4):
+def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4, start: str = "xcorr"):
+    """``start='xcorr'`` (default) or ``'zero'``: with ``start='zero', iterations=1`` this is
+    the paper's one-shot estimate on the unaligned channels (valid only near the pole)."""
     geo = plan.geometry
     fs = plan.fs
     w = plan.w_al
-    d, _ = pair_delays(prep.X, plan)
-    theta, pair_res = delays_from_pairs(d)
+    if start == "xcorr":
+        d, _ = pair_delays(prep.X, plan)
+        theta, pair_res = delays_from_pairs(d)
+        lim = 0.5 / fs
+    elif start == "zero":
+        theta = np.zeros((prep.x.shape[0], 3))
+        pair_res = np.zeros(prep.x.shape[0])
+        lim = np.inf
+    else:
+        raise ValueError(f"start must be 'xcorr' or 'zero', got {start!r}")
+    if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 1:
+        raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
     raw0 = theta[:, :2].copy()
-    lim = 0.5 / fs
     for _outer in range(2):
         al = aligned_spectra(prep, plan, relative_arrivals(theta))
         c0 = al.ref[:, None] + al.shift / fs

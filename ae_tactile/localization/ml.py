@@ -107,6 +107,8 @@ def _times(geometry, sx, sy):
 
 def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4):
     """Exact-sphere ML fit. Returns the estimator core dict (see estimators.py)."""
+    if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 1:
+        raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
     geo = plan.geometry
     fs = plan.fs
     d, _ = pair_delays(prep.X, plan)

@@ -1,0 +1,121 @@
+"""Cramer-Rao lower bound on the contact position for a given pulse, noise and geometry.
+
+Model (white Gaussian noise of variance sigma^2 per sample, per channel):
+
+    x_k[n] = A c_k(t_n - (t_k(s) - t_k(s0)) - T0) + noise,
+
+c_k the noise-free signal of channel k for the true point s0 (e.g. the simulator's
+``clean_v``), s = (s_x, s_y) on the sphere, T0 the unknown emission time, A an unknown
+amplitude. The Fisher matrix over theta = (s_x, s_y, T0, A) is
+
+    F = (1/sigma^2) sum_{k, n} d mu/d theta  d mu/d theta^T,
+    d mu/d s_i = -c_k'(t_n) d t_k / d s_i,   d mu / d T0 = -c_k'(t_n),   d mu / d A = c_k(t_n),
+
+and the in-plane bound is CRB_xy = (F^-1)[:2, :2]; we report sqrt(tr CRB_xy) (RMS
+in-plane error of an unbiased estimator). This is the *known pulse shape* bound (the
+amplitude ratios between channels, from 1/l spreading, are not used as position
+information). For an *unknown* waveform the waveform nuisance removes the common shift
+only (Schur complement): F_t = (diag(E) - E E^T / sum E) / sigma^2 with
+E_k = sum_n c_k'(t_n)^2, F_s = J^T F_t J; both are returned (they agree to a few
+percent: the unknown-waveform bound is the slightly higher one).
+
+The samples used are those an echo-free analysis can use: per channel, everything
+before its arrival + ``geometry.echo_free_duration_s - echo_guard_s`` (``window='echo_free'``,
+as the estimators do), or the whole window (``window='full'``; meaningful only when the
+simulation has no wall echoes).
+
+c_k' is needed at the sample instants: `simulated_crlb` gets it exactly from the
+simulator (which evaluates the continuous-time response at any sub-sample offset) by a
+central difference over +-1e-3 sample of the trigger offset.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ae_tactile.geometry import FingertipGeometry
+
+
+def position_crlb(clean_v, dclean_dt_v, sample_rate_hz, noise_var_v2, points_m, arrival_times_s,
+                  geometry: FingertipGeometry, *, window="echo_free", echo_guard_s=0.3e-6):
+    """Bounds for K packets. Arrays: clean_v, dclean_dt_v (K, 4, M) (V, V/s), noise_var_v2
+    (K,) or scalar, points_m (K, 3), arrival_times_s (K, 4) (relative to the first sample).
+
+    Returns dict: crb_xy_m2 (K, 2, 2) known-shape bound, rms_m (K,) = sqrt(tr),
+    crb_xy_unknown_m2 and rms_unknown_m (K,) for an unknown waveform.
+    """
+    c = np.asarray(clean_v, float)
+    dc = np.asarray(dclean_dt_v, float)
+    k, _, m = c.shape
+    fs = float(sample_rate_hz)
+    var = np.broadcast_to(np.asarray(noise_var_v2, float), (k,))
+    pts = np.asarray(points_m, float)
+    arr = np.asarray(arrival_times_s, float)
+    t = np.arange(m) / fs
+    if window == "echo_free":
+        mask = t[None, None, :] < (arr + geometry.echo_free_duration_s - echo_guard_s)[..., None]
+    elif window == "full":
+        mask = np.ones((k, 4, m), bool)
+    else:
+        raise ValueError("window must be 'echo_free' or 'full'")
+    _, dt, _ = geometry.arrival_time_derivatives(pts[:, 0], pts[:, 1])   # (K, 4, 2)
+    dcm = dc * mask
+    cm = c * mask
+    # Per-channel sums.
+    e_dd = np.einsum("kcn,kcn->kc", dcm, dcm)          # sum c'^2
+    e_dc = np.einsum("kcn,kcn->kc", dcm, cm)           # sum c' c
+    e_cc = np.einsum("kcn,kcn->kc", cm, cm)
+    f = np.zeros((k, 4, 4))
+    # d mu/d s_i = -c' dt_i, d mu/d T0 = -c', d mu/d A = c
+    f[:, :2, :2] = np.einsum("kc,kci,kcj->kij", e_dd, dt, dt)
+    f[:, :2, 2] = np.einsum("kc,kci->ki", e_dd, dt)
+    f[:, :2, 3] = -np.einsum("kc,kci->ki", e_dc, dt)
+    f[:, 2, 2] = e_dd.sum(axis=1)
+    f[:, 2, 3] = -e_dc.sum(axis=1)
+    f[:, 3, 3] = e_cc.sum(axis=1)
+    f = np.triu(f) + np.swapaxes(np.triu(f, 1), 1, 2)
+    f /= var[:, None, None]
+    crb = np.linalg.inv(f)[:, :2, :2]
+    # Unknown waveform.
+    e = e_dd
+    ft = np.zeros((k, 4, 4))
+    idx = np.arange(4)
+    ft[:, idx, idx] = e
+    ft -= e[:, :, None] * e[:, None, :] / e.sum(axis=1)[:, None, None]
+    ft /= var[:, None, None]
+    fsph = np.einsum("kai,kab,kbj->kij", dt, ft, dt)
+    crb_u = np.linalg.inv(fsph)
+    return dict(crb_xy_m2=crb, rms_m=np.sqrt(np.trace(crb, axis1=1, axis2=2)),
+                crb_xy_unknown_m2=crb_u, rms_unknown_m=np.sqrt(np.trace(crb_u, axis1=1, axis2=2)))
+
+
+def simulated_crlb(points_m, config=None, *, snr_db, subsample_offset=0.5, include_quantization=True,
+                   window="echo_free", echo_guard_s=0.3e-6, **render_kwargs):
+    """CRLB for the simulator's pulse at ``points_m`` (N, 3) and ``snr_db`` (conventions.md).
+
+    The noise variance is sigma_n^2 of the SNR definition, plus LSB^2/12 when the config
+    quantizes and ``include_quantization`` (the ADC's rounding noise, which the data
+    carry too). ``subsample_offset`` in [1e-3, 1 - 1e-3] (scalar or (N,)). Returns the
+    dict of `position_crlb` plus ``noise_var_v2`` and ``sigma_n_v``.
+    """
+    from ae_tactile.sim import SimConfig, noise_rms_for_snr, render_triggered, signal_power_v2
+
+    cfg = SimConfig() if config is None else config
+    h = 1e-3
+    u = np.clip(np.asarray(subsample_offset, float), h, 1 - h)
+    kw = dict(render_kwargs)
+    base = render_triggered(points_m, cfg, subsample_offset=u, **kw)
+    plus = render_triggered(points_m, cfg, subsample_offset=u + h, **kw)
+    minus = render_triggered(points_m, cfg, subsample_offset=u - h, **kw)
+    fs = base.sample_rate_hz
+    # A later trigger offset delays the signal: c(t - d) -> d/dd = -c'.
+    dcdt = -(plus.clean_v - minus.clean_v) / (2.0 * h / fs)
+    p_sig = signal_power_v2(base.clean_v, base.onset_index, fs)
+    sigma_n = noise_rms_for_snr(p_sig, snr_db)
+    var = sigma_n ** 2
+    if include_quantization and cfg.quantization:
+        var = var + cfg.lsb_v ** 2 / 12.0
+    out = position_crlb(base.clean_v, dcdt, fs, var, base.points_m, base.arrival_times_s,
+                        cfg.geometry, window=window, echo_guard_s=echo_guard_s)
+    out["noise_var_v2"] = np.broadcast_to(var, (len(base),)).copy()
+    out["sigma_n_v"] = np.broadcast_to(sigma_n, (len(base),)).copy()
+    return out

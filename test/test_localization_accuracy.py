@@ -1,0 +1,189 @@
+"""Localization accuracy on simulated packets: the paper's Fig. 7(d) and Fig. 8(e) cases,
+accuracy against the Cramer-Rao bound, covariance calibration, touch vs release."""
+import numpy as np
+import pytest
+
+from ae_tactile.localization import localize
+from ae_tactile.localization.crlb import simulated_crlb
+from ae_tactile.sim import SimConfig, noise_rms_for_snr, render_triggered, signal_power_v2
+from ae_tactile.sim.stream import EmissionList, StreamRenderer
+
+CFG = SimConfig()                 # the paper's water-skin tip, 10 MS/s, 12-bit ADC
+GEO = CFG.geometry
+FS = CFG.sample_rate_hz
+
+
+def cap_points(rng, n, max_deg=60.0):
+    ct = rng.uniform(np.cos(np.deg2rad(max_deg)), 1, n)
+    return GEO.surface_point_from_angles(np.arccos(ct), rng.uniform(0, 2 * np.pi, n))
+
+
+def test_fig7d_touches_at_0_25_5_mm_within_50_um():
+    # Fig. 7(d): touches at (x, y) = (0, 0), (2.5, 0), (5, 0) mm, SNR 30 dB, 10 MS/s.
+    xs = np.repeat([0.0, 2.5e-3, 5e-3], 25)
+    pts = GEO.surface_point_from_xy(xs, np.zeros_like(xs))
+    pk = render_triggered(pts, CFG, snr_db=30, rng=70)
+    res = localize(pk.samples_v, FS, pk.onset_index, method="ml")
+    assert res.accepted.all()
+    err = np.linalg.norm(res.point_m - pts, axis=1)
+    assert err.max() < 50e-6
+    # in-plane x as the paper plots it
+    np.testing.assert_allclose(res.point_m[:, 0], xs, atol=50e-6)
+    assert np.all(res.polarity == 1)
+    # the paper's own processing (Eq. 2 from cross-correlation peaks) is near, not exact
+    ff = localize(pk.samples_v, FS, pk.onset_index, method="xcorr_farfield")
+    err_ff = np.linalg.norm(ff.point_m - pts, axis=1)
+    assert err_ff.max() < 0.3e-3 and np.sqrt(np.mean(err_ff ** 2)) > 2 * np.sqrt(np.mean(err ** 2))
+
+
+def test_fig8e_three_pins_in_one_stream_within_50_um():
+    # Fig. 8(e): a plate with three pins; three touches within 2 ms in one stream, with the
+    # wall echoes on (the estimators must stop before them). SNR 30 dB for a touch at the apex.
+    cfg = CFG.replace(reflections=True)
+    xy = np.array([[-3e-3, 2e-3], [3e-3, 2e-3], [0.0, -3e-3]])       # the simulator's three_pins scene
+    pts = GEO.surface_point_from_xy(xy[:, 0], xy[:, 1])
+    t_ns = np.array([100_000, 800_000, 1_900_000])                  # 1.8 ms apart at most
+    em = EmissionList.create(t_ns, pts, "touch", speed_m_s=0.3, curvature_1_m=1000.0, alpha_1_s=3000.0,
+                             density_kg_m3=cfg.density, event_id=np.arange(3))
+    apex = render_triggered(np.array([[0, 0, GEO.radius_m]]), cfg.replace(quantization=False), subsample_offset=0.0)
+    sigma = float(noise_rms_for_snr(signal_power_v2(apex.clean_v, apex.onset_index, FS), 30.0)[0])
+    n_total = int(2.1e-3 * FS)
+    for seed in range(5):
+        stream, clipped = StreamRenderer(cfg, noise_rms_v=sigma, seed=seed).render(em, 0, n_total)
+        assert not clipped
+        # windows cut like a detector would: 8 us before the first arrival, 40 us long
+        first = t_ns * 1e-9 + GEO.arrival_times_s(pts).min(axis=1)
+        onset_abs = np.ceil(first * FS).astype(int)
+        starts = onset_abs - 80
+        win = np.stack([stream[:, s: s + 400] for s in starts])
+        res = localize(win, FS, onset_abs - starts, method="ml")
+        assert res.accepted.all(), res.reason_names
+        assert np.linalg.norm(res.point_m - pts, axis=1).max() < 50e-6
+        assert np.all(res.polarity == 1)
+
+
+@pytest.mark.parametrize("snr_db", [20.0, 30.0])
+def test_accuracy_against_crlb(snr_db):
+    rng = np.random.default_rng(int(snr_db))
+    pts = cap_points(rng, 300)
+    u = rng.uniform(0.01, 0.99, 300)
+    pk = render_triggered(pts, CFG, snr_db=snr_db, subsample_offset=u, rng=rng)
+    bound = simulated_crlb(pts, CFG, snr_db=snr_db, subsample_offset=u)
+    crlb = np.sqrt(np.mean(bound["rms_m"] ** 2))
+    assert 5e-6 < crlb < 30e-6          # tens of micrometres at 20 dB, a few at 30 dB
+    rms = {}
+    for m in ("ml", "gradient", "gcc_phat", "xcorr_farfield"):
+        r = localize(pk.samples_v, FS, pk.onset_index, method=m)
+        assert r.accepted.mean() > 0.98
+        e = (r.point_m - pts)[r.accepted, :2]
+        rms[m] = np.sqrt(np.mean(np.sum(e ** 2, axis=1)))
+    assert rms["ml"] < 1.3 * crlb
+    assert rms["gradient"] < 1.3 * crlb
+    assert rms["gcc_phat"] < 2.0 * crlb
+    assert rms["xcorr_farfield"] > 2.0 * rms["ml"]
+
+
+def _calibration(err, cov):
+    """Fractions of 2-D errors within Mahalanobis 1 and 1.515, and within 1 sigma along
+    each principal axis of the reported covariance."""
+    d2 = np.einsum("ki,kij,kj->k", err, np.linalg.inv(cov), err)
+    lam, vec = np.linalg.eigh(cov)
+    proj = np.einsum("kij,ki->kj", vec, err) / np.sqrt(lam)
+    return np.mean(d2 < 1.0), np.mean(d2 < 1.515 ** 2), np.mean(np.abs(proj) < 1.0, axis=0)
+
+
+@pytest.mark.parametrize("method", ["ml", "gradient"])
+@pytest.mark.parametrize("where", ["pole", "off_axis", "random"])
+def test_covariance_is_calibrated(method, where):
+    # Reading of "the 1-sigma ellipse holds about 68 %": the reported 2x2 in-plane
+    # covariance C is right when the errors e satisfy e^T C^-1 e ~ chi^2(2): 39.3 % within
+    # the 1-sigma ellipse, 68.3 % within 1.515 sigma, and 68.3 % of the errors projected
+    # on each principal axis within that axis' sigma.
+    rng = np.random.default_rng({"pole": 1, "off_axis": 2, "random": 3}[where])
+    n = 2000
+    if where == "pole":
+        pts = np.tile([0.0, 0.0, GEO.radius_m], (n, 1))
+    elif where == "off_axis":
+        pts = np.tile(GEO.surface_point_from_angles(np.deg2rad(45.0), 0.5), (n, 1))
+    else:
+        pts = cap_points(rng, n)
+    snr = rng.choice([20.0, 30.0], n)
+    pk = render_triggered(pts, CFG, snr_db=snr, rng=rng)
+    r = localize(pk.samples_v, FS, pk.onset_index, method=method)
+    assert r.accepted.all()
+    err = (r.point_m - pts)[:, :2]
+    in1, in1515, axes = _calibration(err, r.covariance_m2[:, :2, :2])
+    assert 0.34 < in1 < 0.45, in1
+    assert 0.62 < in1515 < 0.74, in1515
+    assert np.all((axes > 0.62) & (axes < 0.75)), axes
+
+
+def test_touch_and_release_polarity_and_amplitude():
+    rng = np.random.default_rng(5)
+    n = 600
+    pts = cap_points(rng, n, 80.0)
+    pol = rng.choice([-1, 1], n)
+    snr = rng.choice([10.0, 20.0, 30.0, 40.0], n)
+    pk = render_triggered(pts, CFG, snr_db=snr, polarity=pol, rng=rng)
+    for m in ("ml", "gcc_phat", "xcorr_farfield"):
+        r = localize(pk.samples_v, FS, pk.onset_index, method=m)
+        assert np.all(r.polarity == pol), m
+        assert np.all(np.sign(r.amplitude_v) == pol)
+    # amplitude: the first-lobe peak of the aligned channel mean = the mean of the clean
+    # channels' peaks (up to noise and sub-sample peak position)
+    r = localize(pk.samples_v, FS, pk.onset_index, method="ml")
+    clean_peak = np.abs(pk.clean_v).max(axis=2).mean(axis=1)
+    hi = snr >= 30
+    np.testing.assert_allclose(np.abs(r.amplitude_v[hi]), clean_peak[hi], rtol=0.05)
+    assert np.all((r.confidence > 0) & (r.confidence <= 1))
+    # confidence grows with SNR
+    assert np.median(r.confidence[snr == 40]) > np.median(r.confidence[snr == 10])
+
+
+def test_snr_estimate_follows_the_package_definition():
+    rng = np.random.default_rng(6)
+    pts = cap_points(rng, 400)
+    for snr in (10.0, 20.0):
+        pk = render_triggered(pts, CFG.replace(quantization=False), snr_db=snr, rng=rng)
+        r = localize(pk.samples_v, FS, pk.onset_index)
+        assert abs(np.median(r.snr_db_est) - snr) < 0.3
+        np.testing.assert_allclose(np.median(r.noise_rms_v_est / pk.noise_rms_v), 1.0, atol=0.03)
+
+
+def test_false_rejections_of_clean_single_packets_are_rare():
+    # Overlap thresholds are calibrated on single packets at the lowest accepted SNR.
+    rng = np.random.default_rng(8)
+    n = 1000
+    pts = cap_points(rng, n, 90.0)
+    for fs in (5e6, 10e6):
+        cfg = CFG.replace(sample_rate_hz=fs)
+        pk = render_triggered(pts, cfg, snr_db=8.0, rng=rng)
+        for m in ("ml", "gradient", "gcc_phat", "xcorr_farfield"):
+            r = localize(pk.samples_v, fs, pk.onset_index, method=m)
+            assert np.mean(r.reason == 6) < 0.01, (fs, m)        # OVERLAP
+            assert np.mean(~r.accepted) < 0.02, (fs, m, np.bincount(r.reason))
+
+
+def test_overlapping_packets_are_rejected():
+    rng = np.random.default_rng(9)
+    n = 300
+    p1, p2 = cap_points(rng, n), cap_points(rng, n)
+    cfg = CFG.replace(quantization=False)
+    a = render_triggered(p1, cfg, subsample_offset=0.3, window_s=60e-6)
+    b = render_triggered(p2, cfg, subsample_offset=0.3, window_s=60e-6)
+    sigma = np.sqrt(a.signal_power_v2 / 10 ** 2.0)                     # 20 dB
+    far = np.linalg.norm(p1 - p2, axis=1) > 3e-3
+    for delay_us in (1.0, 3.0, 6.0):
+        d = int(delay_us * 10)
+        x = a.clean_v.copy()
+        x[:, :, d:] += rng.uniform(0.5, 2.0, (n, 1, 1)) * b.clean_v[:, :, :x.shape[2] - d]
+        x += sigma[:, None, None] * rng.standard_normal(x.shape)
+        r = localize(x, FS, a.onset_index, method="ml")
+        assert np.mean(r.reason[far] == 6) > 0.9, delay_us
+    # a second packet after the echo-free segment does not disturb the first
+    x = a.clean_v.copy()
+    x[:, :, 150:] += b.clean_v[:, :, :x.shape[2] - 150]
+    x += sigma[:, None, None] * rng.standard_normal(x.shape)
+    r = localize(x, FS, a.onset_index, method="ml")
+    assert r.accepted.mean() > 0.97
+    assert np.sqrt(np.mean(np.sum((r.point_m - p1)[r.accepted] ** 2, axis=1))) < 40e-6
