@@ -1,0 +1,469 @@
+"""Host side of the fingertip serial link (pure Python, no rclpy).
+
+`FingertipLink` owns the port (any pyserial URL: a device path, a pty, ``socket://``,
+``loop://``), reads it in a background thread, decodes frames with the protocol's
+incremental decoder, maps device time to host time (`DeviceClockMapper`), turns
+PACKET frames (triggered mode) or STREAM blocks cut by the packet detector (stream
+mode) into `PacketRecord`s, and hands them out in bounded per-read-cycle batches.
+
+It survives unplugging: a read error or 3 s without any frame closes the port, the
+state becomes ``disconnected``, and it retries with exponential back-off until the
+device returns; then it re-configures the device, restarts acquisition and re-syncs
+the clock mapping. Nothing is silently lost: sequence gaps, bad CRCs, queue
+overflows and stream gaps are counted (`stats()`).
+
+Reads are neither byte-by-byte nor timeout-bound: each cycle blocks for the first
+byte (up to ``read_timeout_s``, only when idle) and then takes everything waiting.
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import serial
+
+from ae_tactile.protocol import (
+    NO_ONSET, Ack, AckResult, AcqMode, Command, FrameEncoder, Packet, Status, StreamBlock,
+    StreamDecoder,
+)
+from ae_tactile.timesync import DeviceClockMapper
+
+LOG = logging.getLogger("ae_tactile.link")
+
+MODES = ("triggered", "stream")
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """Settings of the link; None keeps the device's own setting.
+
+    port: pyserial URL or device path. baudrate: bits/s (ignored by USB CDC, ptys, sockets).
+    mode: "triggered" (device sends PACKET frames) or "stream" (STREAM blocks, cut on the host).
+    sample_rate_hz, threshold_counts, packet_samples, pre_trigger_samples: device settings.
+    read_timeout_s: longest idle block of one read (s). link_timeout_s: silence that means
+    the link is dead (the device sends a heartbeat >= 1 Hz). reconnect_*: back-off (s).
+    queue_max_batches: bound of the hand-over queue (overflow is counted as drops).
+    command_timeout_s / command_retries: ACK wait per command and retries.
+    detector: keyword arguments of the stream-mode packet detector.
+    """
+
+    port: str
+    baudrate: int = 3_000_000
+    mode: str = "triggered"
+    sample_rate_hz: int | None = None
+    threshold_counts: int | None = None
+    packet_samples: int | None = None
+    pre_trigger_samples: int | None = None
+    read_timeout_s: float = 0.002
+    read_chunk_bytes: int = 1 << 16
+    link_timeout_s: float = 3.0
+    reconnect_initial_s: float = 0.2
+    reconnect_max_s: float = 5.0
+    queue_max_batches: int = 256
+    command_timeout_s: float = 0.5
+    command_retries: int = 3
+    detector: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.port, str) or not self.port:
+            raise ValueError("port must be a non-empty device path or pyserial URL")
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if not 50 <= int(self.baudrate) <= 100_000_000:
+            raise ValueError(f"baudrate must be in [50, 1e8], got {self.baudrate}")
+        for name in ("read_timeout_s", "link_timeout_s", "reconnect_initial_s",
+                     "reconnect_max_s", "command_timeout_s"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive number of seconds, got {v!r}")
+        if self.reconnect_max_s < self.reconnect_initial_s:
+            raise ValueError("reconnect_max_s must be >= reconnect_initial_s")
+        if int(self.queue_max_batches) < 1 or int(self.read_chunk_bytes) < 1:
+            raise ValueError("queue_max_batches and read_chunk_bytes must be >= 1")
+        if self.packet_samples is not None and self.pre_trigger_samples is not None \
+                and not 0 <= self.pre_trigger_samples < self.packet_samples:
+            raise ValueError("pre_trigger_samples must be in [0, packet_samples)")
+
+
+@dataclass
+class PacketRecord:
+    """One packet ready to publish. stamp_ns: host time of samples_v[:, 0] (int ns)."""
+
+    stamp_ns: int
+    samples_v: np.ndarray          # (4, N) float32 volts
+    sample_rate_hz: float
+    onset_index: int
+    sequence_id: int
+    noise_rms_v: float
+    saturated: bool
+    device_sample_index: int       # device sample counter of samples_v[:, 0]
+
+
+@dataclass
+class PacketBatch:
+    """The packets of one read cycle, with the running loss counters at that time."""
+
+    receive_ns: int
+    packets: list[PacketRecord]
+    packets_dropped: int
+    frames_bad_crc: int
+
+
+def window_noise_and_onset(volts: np.ndarray, pre_trigger: int) -> tuple[float, int]:
+    """Noise RMS (V, DC removed) of the pre-trigger samples, and the onset index.
+
+    The device triggered at sample ``pre_trigger``; the onset is the first sample at or
+    after ``pre_trigger // 2`` whose largest |x - DC| over the 4 channels exceeds 4 noise
+    sigma (``pre_trigger`` if none does or the pre-trigger part is too short).
+    """
+    x = np.asarray(volts, dtype=np.float64)
+    n = x.shape[1]
+    pre_trigger = int(min(max(pre_trigger, 0), n - 1))
+    if pre_trigger < 4:
+        return 0.0, pre_trigger
+    dc = x[:, :pre_trigger].mean(axis=1, keepdims=True)
+    pre = x[:, :pre_trigger] - dc
+    noise = float(np.sqrt(np.mean(pre * pre)))
+    env = np.abs(x - dc).max(axis=0)
+    start = pre_trigger // 2
+    above = np.flatnonzero(env[start:] > 4.0 * noise)
+    onset = int(start + above[0]) if above.size and noise > 0 else pre_trigger
+    return noise, onset
+
+
+class FingertipLink:
+    """Background reader of one fingertip. Thread-safe `poll()`, `stats()`, `stop()`.
+
+    clock_ns: host clock for time stamps (the ROS node passes its ROS clock).
+    on_batch: called from the reader thread after a batch is queued (e.g. to wake an
+    executor through a guard condition); keep it cheap.
+    """
+
+    def __init__(self, config: LinkConfig, clock_ns: Callable[[], int] = time.time_ns,
+                 on_batch: Callable[[], None] | None = None,
+                 logger: logging.Logger | None = None):
+        self.config = config
+        self.clock_ns = clock_ns
+        self.on_batch = on_batch
+        self.log = logger or LOG
+        self._queue: queue.Queue[PacketBatch] = queue.Queue(maxsize=int(config.queue_max_batches))
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._serial = None
+        self._lock = threading.Lock()
+        self.decoder = StreamDecoder()
+        self.mapper = DeviceClockMapper()
+        self.encoder = FrameEncoder(boot=False)
+        self._detector = None
+        self._next_sequence_id = 0
+        self._next_command_id = 1
+        self._pending_acks: dict[int, Ack] = {}
+        self._stream_next_index: int | None = None
+        self._stream_ref: tuple[int, int, float] | None = None   # (sample index, device ns, fs)
+        self.state = "disconnected"
+        self.device_status: Status | None = None
+        self.counters = {
+            "connects": 0, "disconnects": 0, "connect_failures": 0, "read_errors": 0,
+            "link_timeouts": 0, "packets_out": 0, "batches_out": 0, "queue_overflow_packets": 0,
+            "stream_gaps": 0, "stream_samples_lost": 0, "device_restarts_handled": 0,
+            "commands_sent": 0, "commands_unacked": 0, "commands_failed": 0,
+            "frames_ignored": 0,
+        }
+        self.last_error = ""
+        self._last_rx_mono = 0.0
+        self._reconfigure_pending = False
+        self._open_failure_logged = False
+        self._detector_fs = 0.0
+
+    # ---------------------------------------------------------------- control
+    def start(self) -> None:
+        if self._thread is not None:
+            raise RuntimeError("FingertipLink already started")
+        self._thread = threading.Thread(target=self._run, name="ae_tactile_link", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        """Stop the reader; sends STOP to the device if connected; closes the port."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+        self._close("stopped")
+
+    def poll(self, max_batches: int = 64) -> list[PacketBatch]:
+        """Batches queued since the last call (non-blocking)."""
+        out = []
+        while len(out) < max_batches:
+            try:
+                out.append(self._queue.get_nowait())
+            except queue.Empty:
+                break
+        return out
+
+    def stats(self) -> dict:
+        """Snapshot of counters and link state (decoder counters merged in)."""
+        with self._lock:
+            s = dict(self.counters)
+            s.update(self.decoder.stats())
+            s.update(state=self.state, queue_depth=self._queue.qsize(), last_error=self.last_error,
+                     clock_resyncs=self.mapper.resyncs, clock_clamped=self.mapper.clamped,
+                     packets_dropped=self.packets_dropped())
+            st = self.device_status
+            if st is not None:
+                s.update(device_serial=st.serial_number,
+                         device_firmware=".".join(str(v) for v in st.firmware_version),
+                         device_state=st.state.name, device_sample_rate_hz=st.sample_rate_hz,
+                         device_v_per_count=st.v_per_count, device_dropped=st.device_dropped)
+            return s
+
+    def packets_dropped(self) -> int:
+        """Frames lost on the link (sequence gaps; a lost frame's type is unknown, so each
+        counts as one packet) + packets dropped by a full hand-over queue."""
+        return int(self.decoder.stats()["dropped_frames"] + self.counters["queue_overflow_packets"])
+
+    # ---------------------------------------------------------------- thread
+    def _run(self) -> None:
+        backoff = self.config.reconnect_initial_s
+        while not self._stop.is_set():
+            if self._serial is None:
+                if not self._open():
+                    self._stop.wait(backoff)
+                    backoff = min(2 * backoff, self.config.reconnect_max_s)
+                    continue
+                backoff = self.config.reconnect_initial_s
+                self._configure_device()
+                continue
+            self._cycle()
+            if self._reconfigure_pending and self._serial is not None:
+                self._reconfigure_pending = False
+                self._configure_device()
+
+    def _cycle(self) -> None:
+        try:
+            ser = self._serial
+            if ser is None:
+                return
+            data = ser.read(min(max(ser.in_waiting, 1), self.config.read_chunk_bytes))
+        except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+            # TypeError/AttributeError: pyserial internals after the fd vanished.
+            self.counters["read_errors"] += 1
+            self._close(f"read failed: {exc}")
+            return
+        now_mono = time.monotonic()
+        if data:
+            self._last_rx_mono = now_mono
+            self._handle_bytes(data)
+        elif now_mono - self._last_rx_mono > self.config.link_timeout_s:
+            self.counters["link_timeouts"] += 1
+            self._close(f"no frame for {self.config.link_timeout_s:g} s")
+
+    def _open(self) -> bool:
+        self.state = "connecting"
+        try:
+            ser = serial.serial_for_url(self.config.port, baudrate=int(self.config.baudrate),
+                                        timeout=self.config.read_timeout_s, write_timeout=1.0)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            self.counters["connect_failures"] += 1
+            if not self._open_failure_logged:   # once per outage, not every retry
+                self.log.warning("cannot open %s: %s (retrying with back-off)", self.config.port, exc)
+                self._open_failure_logged = True
+            self.last_error = f"open failed: {exc}"
+            self.state = "disconnected"
+            return False
+        with self._lock:
+            self._serial = ser
+            # A (re)connected device may have restarted: decode it as a new sender and
+            # rebuild the clock mapping from scratch.
+            self.decoder.flush()
+            self.decoder.forget_senders()
+            self.mapper.reset()
+            self._stream_next_index = None
+            self._stream_ref = None
+            self._reset_detector()
+            self.state = "connected"
+            self.counters["connects"] += 1
+            self._open_failure_logged = False
+        self._last_rx_mono = time.monotonic()
+        self.log.info("connected to %s", self.config.port)
+        return True
+
+    def _close(self, reason: str) -> None:
+        with self._lock:
+            ser, self._serial = self._serial, None
+            was = self.state
+            self.state = "disconnected"
+        if ser is None:
+            return
+        if reason == "stopped":
+            try:
+                ser.write(self.encoder.encode(Command.stop(self._new_command_id()), 0))
+                ser.flush()
+            except (serial.SerialException, OSError, TypeError, AttributeError):
+                pass
+        try:
+            ser.close()
+        except (serial.SerialException, OSError, TypeError, AttributeError):
+            pass
+        self.decoder.flush()
+        if was == "connected" and reason != "stopped":
+            self.counters["disconnects"] += 1
+            self.last_error = reason
+            self.log.warning("link to %s lost: %s; reconnecting", self.config.port, reason)
+
+    # ---------------------------------------------------------------- commands
+    def _new_command_id(self) -> int:
+        cid = self._next_command_id
+        self._next_command_id = cid % 0xFFFF + 1
+        return cid
+
+    def _configure_device(self) -> None:
+        """Stop, apply the configured settings, start in the configured mode."""
+        cfg = self.config
+        commands = [Command.stop]
+        if cfg.sample_rate_hz is not None:
+            commands.append(lambda cid: Command.set_sample_rate(int(cfg.sample_rate_hz), cid))
+        if cfg.threshold_counts is not None:
+            commands.append(lambda cid: Command.set_threshold(int(cfg.threshold_counts), cid))
+        if cfg.packet_samples is not None:
+            pre = cfg.pre_trigger_samples if cfg.pre_trigger_samples is not None else cfg.packet_samples // 4
+            commands.append(lambda cid: Command.set_packet_length(int(cfg.packet_samples), int(pre), cid))
+        mode = AcqMode.STREAM if cfg.mode == "stream" else AcqMode.TRIGGERED
+        commands.append(lambda cid: Command.start(mode, cid))
+        commands.append(Command.get_status)
+        for make in commands:
+            if self._stop.is_set() or self._serial is None:
+                return
+            self.send_command(make)
+
+    def send_command(self, make: Callable[[int], Command]) -> Ack | None:
+        """Send a command built by ``make(command_id)`` and wait for its ACK (reader thread)."""
+        for _ in range(self.config.command_retries):
+            cid = self._new_command_id()
+            cmd = make(cid)
+            try:
+                self._serial.write(self.encoder.encode(cmd, int(time.monotonic() * 1e6) & 0xFFFFFFFF))
+            except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+                self._close(f"write failed: {exc}")
+                return None
+            self.counters["commands_sent"] += 1
+            deadline = time.monotonic() + self.config.command_timeout_s
+            while time.monotonic() < deadline and self._serial is not None and not self._stop.is_set():
+                self._cycle()
+                ack = self._pending_acks.pop(cid, None)
+                if ack is not None:
+                    if ack.result != AckResult.OK:
+                        self.counters["commands_failed"] += 1
+                        self.log.warning("device refused %s: %s", cmd.opcode.name, ack.result.name)
+                    return ack
+        self.counters["commands_unacked"] += 1
+        self.log.warning("no ACK for %s after %d tries", cmd.opcode.name, self.config.command_retries)
+        return None
+
+    # ---------------------------------------------------------------- frames
+    def _handle_bytes(self, data: bytes) -> None:
+        frames = self.decoder.feed(data)
+        for ev in self.decoder.pop_events():
+            self.log.debug("decoder: %s at byte %s: %s", ev.reason, ev.stream_offset, ev.detail)
+        if not frames:
+            return
+        receive_ns = int(self.clock_ns())
+        records: list[PacketRecord] = []
+        for frame in frames:
+            if frame.restart and self.mapper.synced:
+                # The device rebooted under us: new clock, and it lost its settings.
+                self.mapper.reset()
+                self.counters["device_restarts_handled"] += 1
+                self._stream_next_index = None
+                self._reset_detector()
+                self._reconfigure_pending = True
+            body = frame.body
+            device_ns = int(frame.device_time_us) * 1000
+            if isinstance(body, (Packet, StreamBlock)):
+                last_ns = device_ns + int(round((body.n_samples - 1) * 1e9 / body.sample_rate_hz))
+                self.mapper.update(last_ns, receive_ns)
+            else:
+                self.mapper.update(device_ns, receive_ns)
+            if isinstance(body, Packet):
+                records.append(self._packet_record(body, device_ns))
+            elif isinstance(body, StreamBlock):
+                records.extend(self._stream_records(body, device_ns))
+            elif isinstance(body, Status):
+                self.device_status = body
+            elif isinstance(body, Ack):
+                self._pending_acks[body.command_id] = body
+                if len(self._pending_acks) > 64:
+                    self._pending_acks.pop(next(iter(self._pending_acks)))
+            else:
+                self.counters["frames_ignored"] += 1
+        if records:
+            self._emit(receive_ns, records)
+
+    def _next_id(self) -> int:
+        sid = self._next_sequence_id
+        self._next_sequence_id += 1
+        return sid
+
+    def _packet_record(self, body: Packet, device_ns: int) -> PacketRecord:
+        volts = (body.samples * np.float32(body.v_per_count)).astype(np.float32)
+        noise, onset = window_noise_and_onset(volts, body.pre_trigger)
+        if body.onset_index != NO_ONSET:
+            onset = int(body.onset_index)
+        return PacketRecord(
+            stamp_ns=self.mapper.to_host_ns(device_ns), samples_v=volts,
+            sample_rate_hz=float(body.sample_rate_hz), onset_index=onset,
+            sequence_id=self._next_id(), noise_rms_v=noise,
+            saturated=bool(body.saturation_mask), device_sample_index=int(body.first_sample_index))
+
+    # ---------------------------------------------------------------- stream mode
+    def _reset_detector(self) -> None:
+        self._detector = None
+
+    def _stream_records(self, body: StreamBlock, device_ns: int) -> list[PacketRecord]:
+        from ae_tactile.dsp import PacketDetector   # imported lazily: stream mode only
+        fs = float(body.sample_rate_hz)
+        if self._detector is None or self._detector_fs != fs:
+            self._detector = PacketDetector(sample_rate_hz=fs, **self.config.detector)
+            self._detector_fs = fs
+            self._stream_next_index = None
+        first = int(body.first_sample_index)
+        if self._stream_next_index is not None and first != self._stream_next_index:
+            self.counters["stream_gaps"] += 1
+            self.counters["stream_samples_lost"] += max(first - self._stream_next_index, 0)
+        self._stream_next_index = body.next_sample_index
+        self._stream_ref = (first, device_ns, fs)
+        volts = body.samples * np.float32(body.v_per_count)
+        batch = self._detector.process(volts, first)
+        out = []
+        for k in range(len(batch.start_index)):
+            if hasattr(batch, "valid") and not bool(batch.valid[k]):
+                continue
+            start = int(batch.start_index[k])
+            start_ns = device_ns + int(round((start - first) * 1e9 / fs))
+            out.append(PacketRecord(
+                stamp_ns=self.mapper.to_host_ns(start_ns),
+                samples_v=np.asarray(batch.samples[k], dtype=np.float32),
+                sample_rate_hz=fs, onset_index=int(batch.onset_index[k]),
+                sequence_id=self._next_id(), noise_rms_v=float(batch.noise_rms_v[k]),
+                saturated=bool(batch.saturated[k]), device_sample_index=start))
+        return out
+
+    # ---------------------------------------------------------------- hand-over
+    def _emit(self, receive_ns: int, records: list[PacketRecord]) -> None:
+        batch = PacketBatch(receive_ns, records, 0, 0)
+        try:
+            with self._lock:
+                batch.packets_dropped = self.packets_dropped()
+                batch.frames_bad_crc = int(self.decoder.stats()["crc_errors"])
+            self._queue.put_nowait(batch)
+        except queue.Full:
+            self.counters["queue_overflow_packets"] += len(records)
+            self.log.warning("hand-over queue full: %d packets dropped", len(records))
+            return
+        self.counters["packets_out"] += len(records)
+        self.counters["batches_out"] += 1
+        if self.on_batch is not None:
+            self.on_batch()
