@@ -179,6 +179,7 @@ class FingertipLink:
         self._reconfigure_pending = False
         self._open_failure_logged = False
         self._detector_fs = 0.0
+        self._is_socket = config.port.startswith("socket://")
 
     # ---------------------------------------------------------------- control
     def start(self) -> None:
@@ -247,7 +248,7 @@ class FingertipLink:
             ser = self._serial
             if ser is None:
                 return
-            data = ser.read(min(max(ser.in_waiting, 1), self.config.read_chunk_bytes))
+            data = self._read(ser)
         except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
             # TypeError/AttributeError: pyserial internals after the fd vanished.
             self.counters["read_errors"] += 1
@@ -260,6 +261,28 @@ class FingertipLink:
         elif now_mono - self._last_rx_mono > self.config.link_timeout_s:
             self.counters["link_timeouts"] += 1
             self._close(f"no frame for {self.config.link_timeout_s:g} s")
+
+    def _read(self, ser) -> bytes:
+        """Everything waiting, or block (<= read_timeout_s) for the first byte when idle.
+
+        pyserial's in_waiting is a byte count for serial ports and ptys, but only 0/1 for
+        socket:// URLs, so sockets take the rest with a zero-timeout read instead.
+        """
+        chunk = self.config.read_chunk_bytes
+        n = ser.in_waiting
+        if n > 1 and not self._is_socket:
+            return ser.read(min(n, chunk))
+        data = ser.read(1)
+        if not data:
+            return data
+        if self._is_socket:
+            ser.timeout = 0
+            try:
+                return data + ser.read(chunk - 1)
+            finally:
+                ser.timeout = self.config.read_timeout_s
+        n = ser.in_waiting
+        return data + ser.read(min(n, chunk - 1)) if n else data
 
     def _open(self) -> bool:
         self.state = "connecting"

@@ -86,7 +86,7 @@ class VirtualFingertip:
 
     def __init__(self, scene, *, serial_number: str = "AE-SIM-0001", speed: float = 1.0,
                  packet_samples: int = 400, pre_trigger: int = 80, threshold_counts: int | None = None,
-                 stream_block_samples: int = 2000, clock_ns=time.monotonic_ns):
+                 stream_block_samples: int = 2000, clock_ns=time.monotonic_ns, record: bool = False):
         self.spec = load_scene_spec(scene)
         if not (np.isfinite(speed) and 1e-3 <= speed <= 1e3):
             raise ValueError(f"speed must be in [0.001, 1000], got {speed}")
@@ -97,6 +97,8 @@ class VirtualFingertip:
         self.serial_number = serial_number
         self.speed = float(speed)
         self.clock_ns = clock_ns
+        self.record = bool(record)
+        self.sent_log: list[tuple] = []   # (kind, seq, body, 'sent'|'dropped'|'corrupted') if record
         self.packet_samples = int(packet_samples)
         self.pre_trigger = int(pre_trigger)
         self.stream_block_samples = int(stream_block_samples)
@@ -144,17 +146,24 @@ class VirtualFingertip:
     # ------------------------------------------------------------------ framing
     def _send(self, body, device_time_ns: int, kind: str) -> None:
         ts_us = ((int(device_time_ns) - self.boot_ns) // 1000) & 0xFFFFFFFF
+        seq = self.encoder.next_seq
         data = self.encoder.encode(body, ts_us)
+        fate = "sent"
         if kind in ("packet", "stream") and self._drop > 0:
             self._drop -= 1
-            return
-        if kind in ("packet", "stream") and self._corrupt > 0:
+            fate = "dropped"
+        elif kind in ("packet", "stream") and self._corrupt > 0:
             self._corrupt -= 1
             data = bytearray(data)
             data[len(data) // 2] ^= 0x10            # a payload bit: frame CRC fails
-            data = bytes(data)
+            fate = "corrupted"
+        if self.record:
+            self.sent_log.append((kind, seq, body, fate))
+        if fate == "dropped":
+            return
         self.out += data
-        self.frames_sent[kind] += 1
+        if fate == "sent":
+            self.frames_sent[kind] += 1
 
     def status(self, now_ns: int) -> Status:
         return Status(uptime_us=self.device_us(now_ns), state=self.state,

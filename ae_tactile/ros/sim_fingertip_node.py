@@ -1,0 +1,131 @@
+"""`sim_fingertip` node: a simulated fingertip serving the serial protocol on a pty or TCP port.
+
+Plays a scene (config/scenes/*.yaml) in real time, or at ``speed`` x real time, through
+`ae_tactile.virtual_device` (firmware model + transport), so the `driver` node can be
+pointed at it exactly as at hardware. The port (a pty path, or the stable symlink
+``link_path``, or ``socket://host:port``) is logged and published latched on
+``sim/port``. The scene's ground truth is published as ContactEvents on
+``sim/ground_truth``, stamped with the ROS time at which each emission is played (the
+same clock the driver maps device time to): micro-slips as SLIP_PRECURSOR, releases as
+DETOUCH; ``packet_ids`` holds the scene's emission id; ``confidence`` is 1 for emissions
+the device captured and 0 for those it could not (below threshold, not acquiring).
+"""
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+
+import numpy as np
+from rclpy.node import Node
+from std_msgs.msg import String
+
+from ae_tactile.msg import ContactEvent
+from ae_tactile.ros.conversions import ns_to_time_msg
+from ae_tactile.ros.driver_node import LATCHED, run_node
+from ae_tactile.ros.params import Param, ParameterError, declare
+from ae_tactile.virtual_device import DeviceRunner, PtyTransport, TcpTransport, VirtualFingertip
+
+KIND_TO_EVENT = {"touch": ContactEvent.TOUCH, "release": ContactEvent.DETOUCH,
+                 "micro_slip": ContactEvent.SLIP_PRECURSOR, "slip": ContactEvent.SLIP,
+                 "texture": ContactEvent.TEXTURE}
+
+
+def default_scene_path(name: str = "random_touches.yaml") -> str:
+    """A scene shipped with the package (install share dir, else the source tree)."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    candidates = [os.path.join(here, "..", "..", "config", "scenes", name)]
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        candidates.insert(0, os.path.join(get_package_share_directory("ae_tactile"), "config", "scenes", name))
+    except Exception:   # ament index not available (pip install): fall back to the source tree
+        pass
+    for c in candidates:
+        if os.path.exists(c):
+            return os.path.normpath(c)
+    return name
+
+
+SIM_PARAMS = [
+    Param("scene", "", "Scene YAML file (config/scenes/*.yaml); empty = random_touches.yaml"),
+    Param("transport", "pty", "Serve the protocol on a pseudo-terminal ('pty') or a TCP port ('tcp')",
+          choices=("pty", "tcp")),
+    Param("link_path", "", "pty only: stable symlink to the pty (like a udev rule); empty = none"),
+    Param("tcp_port", 0, "tcp only: port on 127.0.0.1 (0 = pick a free one)", 0, 65535),
+    Param("speed", 1.0, "Playback speed (1 = real time)", 0.001, 1000.0),
+    Param("serial_number", "AE-SIM-0001", "Serial number the virtual device reports",
+          check=lambda v: None if 1 <= len(v) <= 32 and v.isprintable() and v.isascii() else "1..32 printable ASCII"),
+    Param("packet_samples", 400, "Samples per channel of a triggered packet", 16, 8192),
+    Param("pre_trigger_samples", 80, "Samples before the earliest arrival in a packet", 0, 8191),
+    Param("threshold_counts", 0, "Trigger threshold (ADC counts); 0 = 6 noise sigma", 0, 32767),
+    Param("stream_block_samples", 2000, "Samples per channel of a STREAM block", 1, 8192),
+    Param("frame_id", "ae_tactile_fingertip", "Frame of the ground-truth ContactEvents"),
+]
+
+
+class SimFingertipNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__("sim_fingertip", **kwargs)
+        p = self.p = declare(self, SIM_PARAMS)
+        scene = p["scene"] or default_scene_path()
+        try:
+            self.device = VirtualFingertip(
+                scene, serial_number=p["serial_number"], speed=p["speed"],
+                packet_samples=p["packet_samples"], pre_trigger=p["pre_trigger_samples"],
+                threshold_counts=p["threshold_counts"] or None,
+                stream_block_samples=p["stream_block_samples"])
+        except (ValueError, OSError) as exc:
+            raise ParameterError(f"parameter 'scene' = {scene!r}: {exc}") from exc
+        if p["transport"] == "pty":
+            self.transport = PtyTransport(link_path=p["link_path"] or None)
+        else:
+            self.transport = TcpTransport(port=p["tcp_port"])
+        self.runner = DeviceRunner(self.device, self.transport)
+        self.pub_port = self.create_publisher(String, "sim/port", LATCHED)
+        self.pub_truth = self.create_publisher(ContactEvent, "sim/ground_truth", 100)
+        self.pub_port.publish(String(data=self.transport.port))
+        self.truth_published = 0
+        self.create_timer(0.005, self._publish_truth)
+        self.runner.start()
+        self.get_logger().info(f"simulated fingertip '{self.device.spec.get('name', scene)}' serving on "
+                               f"{self.transport.port} (speed x{p['speed']:g})")
+
+    @property
+    def port(self) -> str:
+        return self.transport.port
+
+    def ros_ns_of_device_ns(self, device_ns: int) -> int:
+        """ROS time of a device-clock instant (the device clock is this host's monotonic clock)."""
+        return int(device_ns) + (self.get_clock().now().nanoseconds - time.monotonic_ns())
+
+    def _publish_truth(self) -> None:
+        for t in self.device.pop_truth():
+            ev = ContactEvent()
+            ev.header.stamp = ns_to_time_msg(self.ros_ns_of_device_ns(t.device_time_ns))
+            ev.header.frame_id = self.p["frame_id"]
+            ev.event_type = KIND_TO_EVENT[t.kind]
+            ev.position.x, ev.position.y, ev.position.z = (float(v) for v in t.point_m)
+            polar, azimuth = np.arctan2(np.hypot(t.point_m[0], t.point_m[1]), t.point_m[2]), \
+                np.arctan2(t.point_m[1], t.point_m[0])
+            ev.polar_angle_rad, ev.azimuth_angle_rad = float(polar), float(azimuth)
+            ev.tau_x_s = ev.tau_y_s = math.nan
+            ev.amplitude_v = float(np.sign(t.amplitude_pa_m))
+            ev.confidence = 1.0 if t.captured else 0.0
+            ev.packet_ids = [int(t.event_id)]
+            ev.emission_rate_hz = ev.spatial_period_m = math.nan
+            ev.slip_direction.x = ev.slip_direction.y = ev.slip_direction.z = math.nan
+            self.pub_truth.publish(ev)
+            self.truth_published += 1
+
+    def destroy_node(self):
+        self.runner.stop()
+        return super().destroy_node()
+
+
+def main(args=None) -> int:
+    return run_node(SimFingertipNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

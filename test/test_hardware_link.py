@@ -1,0 +1,150 @@
+"""Driver link <-> virtual fingertip over a real pty (and TCP): exactness and faults.
+
+No ROS here: these exercise ae_tactile.link and ae_tactile.virtual_device directly;
+test_driver_node.py repeats the end-to-end check through the ROS nodes.
+"""
+import os
+import time
+
+import numpy as np
+import pytest
+import yaml
+
+from ae_tactile.link import FingertipLink, LinkConfig
+from ae_tactile.protocol import Packet
+from ae_tactile.virtual_device import DeviceRunner, PtyTransport, TcpTransport, VirtualFingertip
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SCENE = os.path.join(ROOT, "config", "scenes", "random_touches.yaml")
+
+
+class Rig:
+    """A virtual fingertip on a transport and a link reading it, clocks shared."""
+
+    def __init__(self, transport, scene=SCENE, **link_kw):
+        self.device = VirtualFingertip(scene, record=True)
+        self.transport = transport
+        self.runner = DeviceRunner(self.device, transport)
+        self.link = FingertipLink(LinkConfig(port=transport.port, **link_kw), clock_ns=time.monotonic_ns)
+        self.records = []
+        self.truth = []
+
+    def __enter__(self):
+        self.runner.start()
+        self.link.start()
+        return self
+
+    def run(self, seconds, until=None):
+        t_end = time.monotonic() + seconds
+        while time.monotonic() < t_end and not (until and until()):
+            for b in self.link.poll():
+                self.records.extend(b.packets)
+            self.truth.extend(self.device.pop_truth())
+            time.sleep(0.005)
+
+    def wait_connected(self, timeout=5.0):
+        self.run(timeout, until=lambda: self.link.stats()["state"] == "connected"
+                 and self.device.scene_t0_ns is not None)
+
+    def sent_packets(self, fate="sent"):
+        return [body for kind, _, body, f in self.device.sent_log if kind == "packet" and f == fate]
+
+    def __exit__(self, *exc):
+        self.link.stop()
+        self.runner.stop()
+
+
+@pytest.mark.parametrize("kind", ["pty", "tcp"])
+def test_every_packet_arrives_once_in_order_exact_and_well_stamped(tmp_path, kind):
+    transport = PtyTransport(str(tmp_path / "fingertip")) if kind == "pty" else TcpTransport()
+    with Rig(transport) as rig:
+        rig.wait_connected()
+        rig.run(1.6, until=lambda: rig.device.finished(time.monotonic_ns()))
+        rig.run(0.3)
+        sent = rig.sent_packets()
+        captured = [t for t in rig.truth if t.captured]
+        assert len(sent) >= 30 and len(captured) == len(sent)
+        assert len(rig.records) == len(sent)                       # exactly once
+        idx = [r.device_sample_index for r in rig.records]
+        assert idx == [p.first_sample_index for p in sent]          # in order, none missing
+        assert [r.sequence_id for r in rig.records] == list(range(len(sent)))
+        for r, p in zip(rig.records, sent):                         # samples exact after scaling
+            expect = (p.samples.astype(np.float32) * np.float32(p.v_per_count)).astype(np.float32)
+            assert np.array_equal(r.samples_v, expect)
+        # Stamp of the first sample + onset vs the emission's ground-truth time: < 1 ms.
+        err_ms = [(r.stamp_ns + r.onset_index * 1e9 / r.sample_rate_hz - t.device_time_ns) / 1e6
+                  for r, t in zip(rig.records, captured)]
+        assert max(abs(e) for e in err_ms) < 1.0, err_ms
+        s = rig.link.stats()
+        assert s["crc_errors"] == s["dropped_frames"] == s["bytes_discarded"] == 0
+        assert s["device_serial"] == "AE-SIM-0001"
+
+
+def test_garbage_and_crc_faults_are_counted_exactly_and_lose_nothing_valid(tmp_path):
+    rng = np.random.default_rng(3)
+    garbage = bytes(rng.integers(0, 256, 5000, dtype=np.uint8))
+    with Rig(PtyTransport(str(tmp_path / "fingertip"))) as rig:
+        rig.wait_connected()
+        rig.run(0.2)
+        rig.device.inject_garbage(garbage)     # between two frames
+        rig.device.corrupt_next(3)             # three PACKET frames with one bad bit each
+        rig.run(1.6, until=lambda: rig.device.finished(time.monotonic_ns()))
+        rig.run(0.3)
+        sent, corrupted = rig.sent_packets(), rig.sent_packets("corrupted")
+        assert len(corrupted) == 3
+        assert [r.device_sample_index for r in rig.records] == [p.first_sample_index for p in sent]
+        s = rig.link.stats()
+        assert s["crc_errors"] == 3
+        assert s["dropped_frames"] == 3 and s["packets_dropped"] == 3    # their sequence numbers are gone
+        corrupt_bytes = sum(len(Packet(p.samples, p.sample_rate_hz, p.v_per_count).__class__._pack(p))
+                            for p in corrupted) + 3 * 28
+        assert s["bytes_discarded"] == len(garbage) + corrupt_bytes
+        assert s["bytes_received"] == s["bytes_decoded"] + s["bytes_discarded"] + s["pending_bytes"]
+
+
+def test_unplug_for_one_second_reconnects_and_resumes(tmp_path):
+    with open(SCENE) as fh:
+        scene = dict(yaml.safe_load(fh), duration_s=6.0, name="long_random_touches")
+    with Rig(PtyTransport(str(tmp_path / "fingertip")), scene=scene, reconnect_initial_s=0.1,
+             reconnect_max_s=0.4) as rig:
+        rig.wait_connected()
+        rig.run(0.3)
+        before = len(rig.records)
+        assert before == len(rig.sent_packets())
+        rig.runner.unplug(1.0)
+        rig.run(0.5)
+        assert rig.link.stats()["state"] != "connected"
+        rig.run(3.0, until=lambda: rig.link.stats()["connects"] == 2 and len(rig.records) > before + 3)
+        s = rig.link.stats()
+        assert s["disconnects"] == 1 and s["connects"] == 2 and s["state"] == "connected"
+        assert rig.device.boots == 1                        # re-plug rebooted the device
+        assert s["clock_resyncs"] >= 2                       # time mapping rebuilt
+        after = rig.records[before:]
+        assert len(after) > 3
+        stamps = [r.stamp_ns for r in rig.records]
+        assert all(b > a for a, b in zip(stamps, stamps[1:]))   # monotonic across the outage
+        # what the rebooted device sent arrived, exactly once
+        resent = [p for kind, _, p, f in rig.device.sent_log[-len(after) - 50:] if kind == "packet"]
+        assert [r.device_sample_index for r in after] == [p.first_sample_index for p in resent][-len(after):]
+
+
+def test_bad_link_parameters_are_rejected_with_the_reason():
+    with pytest.raises(ValueError, match="mode"):
+        LinkConfig(port="/dev/null", mode="burst")
+    with pytest.raises(ValueError, match="port"):
+        LinkConfig(port="")
+    with pytest.raises(ValueError, match="pre_trigger"):
+        LinkConfig(port="loop://", packet_samples=100, pre_trigger_samples=100)
+    with pytest.raises(ValueError, match="speed"):
+        VirtualFingertip(SCENE, speed=0)
+
+
+def test_missing_port_retries_without_crashing():
+    link = FingertipLink(LinkConfig(port="/nonexistent/ttyACM9", reconnect_initial_s=0.05,
+                                    reconnect_max_s=0.1))
+    link.start()
+    time.sleep(0.5)
+    s = link.stats()
+    link.stop()
+    assert s["state"] == "disconnected" and s["connect_failures"] >= 3
+    assert "open failed" in s["last_error"]
