@@ -168,6 +168,24 @@ def test_raising_normal_load_averts_gross_slip_and_keeps_the_past():
         sc.process.set_normal_load(3.0, 100)
 
 
+def test_grip_reflex_in_a_streaming_loop():
+    """Closed loop through the streaming source: raise P at the end of the chunk in which
+    the micro-slip count crosses a threshold; gross slip is then averted."""
+    sc = _slip_scene(front_density_per_m2=2e7)
+    src = sc.streaming_source()
+    seen, raised_at = 0, None
+    for _ in range(30):                       # 30 x 50 ms = 1.5 s
+        c = src.next_chunk(500_000)
+        seen += int(np.sum(c.emissions.kind == KIND_CODE["micro_slip"]))
+        assert np.all(c.emissions.kind != KIND_CODE["slip"])
+        if raised_at is None and seen >= 30:
+            raised_at = src.time_ns
+            sc.process.set_normal_load(3.0, raised_at)
+    assert raised_at is not None and raised_at < 0.8e9
+    assert sc.truth["gross_slip_time_ns"] is None
+    assert sc.truth["normal_load_changes"][-1] == [raised_at, 3.0]
+
+
 def test_incipient_slip_is_chunk_invariant():
     a = _slip_scene(background_rate_hz=200.0)
     b = _slip_scene(background_rate_hz=200.0)

@@ -42,13 +42,25 @@ sample_rate_hz (10e6), adc_bits (12), adc_full_scale_v (1.0), attenuation (False
 reflections (False), reflection_coefficient (-0.5), n_reflections (2),
 quantization (True), support_rel_tol (1e-6), max_support_s (200e-6).
 
-Streaming, scenes, CLI: see docs/simulator.md.
+Streaming (`stream.py`): `EmissionList` (ground truth: time_ns, point_m, kind, signed
+strength, event parameters, event_id), `StreamRenderer.render(emissions, n0, n1)` for any
+window of absolute samples (bit-identical to a full render), `StreamingSource.next_chunk(n)`
+(samples (4, n) + the emissions in them), `TriggeredSource.next_packets(n)` (windows cut
+from the stream around each emission).
+
+Scenes (`scene.py`, `generators.py`): `load_scene('config/scenes/x.yaml')` -> `Scene`
+with `.streaming_source()`, `.triggered_source()`, `.truth`; the incipient-slip scene's
+`scene.process.set_normal_load(P, at_time_ns)` changes the grip while it plays.
+CLI: ``python3 -m ae_tactile.sim.cli scene.yaml -o out.npz``. Full description, scene
+keys and benchmark: docs/simulator.md.
 """
 from ae_tactile.sim.config import MEDIUM_PRESETS, Medium, SimConfig
 from ae_tactile.sim.emission import (DEFAULT_ALPHA_1_S, DEFAULT_CURVATURE_1_M, DEFAULT_SPEED_M_S,
                                      collision_pressure_pa, peak_pressure_pa, source_strength_pa_m)
 from ae_tactile.sim.frontend import (SNR_WINDOW_S, noise_rms_for_snr, noise_rms_from_density,
                                      signal_power_v2, snr_db_from_noise)
+from ae_tactile.sim.stream import (KINDS, Chunk, EmissionList, StreamingSource, StreamPackets,
+                                   StreamRenderer, TriggeredSource)
 from ae_tactile.sim.triggered import TriggeredPackets, render_triggered, validate_surface_points
 
 __all__ = [
@@ -58,4 +70,6 @@ __all__ = [
     "SNR_WINDOW_S", "noise_rms_for_snr", "noise_rms_from_density", "signal_power_v2",
     "snr_db_from_noise",
     "TriggeredPackets", "render_triggered", "validate_surface_points",
+    "KINDS", "EmissionList", "StreamRenderer", "StreamingSource", "TriggeredSource", "Chunk",
+    "StreamPackets",
 ]
