@@ -27,7 +27,7 @@ on a 2^-23 grid: tails reach ~5.6 sigma), scaled by noise_rms_v and added in flo
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
