@@ -25,4 +25,5 @@ setup(
                            exclude=["ae_tactile.ros", "ae_tactile.ros.*"]),
     install_requires=["numpy>=1.24", "scipy>=1.10", "pyserial>=3.5", "pyyaml>=6.0"],
     extras_require={"test": ["pytest>=7.0", "hypothesis>=6.80"]},
+    entry_points={"console_scripts": ["ae-tactile-sim = ae_tactile.sim.cli:main"]},
 )

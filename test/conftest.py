@@ -35,3 +35,15 @@ def ros_context():
     rclpy.init(context=context)
     yield context
     rclpy.try_shutdown(context=context)
+
+
+def installed_executable(name):
+    """Path of a node executable in the colcon install space, or skip (fail under make test)."""
+    require_ros()
+    root = os.environ.get("AE_TACTILE_ROOT", os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    exe = os.path.join(root, "install", "ae_tactile", "lib", "ae_tactile", name)
+    if not os.path.exists(exe):
+        if os.environ.get("AE_TACTILE_REQUIRE_ROS") == "1":
+            raise FileNotFoundError(f"{exe} missing: colcon install incomplete")
+        pytest.skip(f"{name} executable not installed (run through `make test`)")
+    return exe
