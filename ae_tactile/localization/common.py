@@ -148,7 +148,7 @@ def _make_plan(fs, geometry, n_samples, lo, hi, pre_onset_s, echo_guard_s) -> Pl
         # Too few bins in the band at this window length: widen to the nearest bins.
         band = (f > 0) & (f >= min(lo, f[1])) & (f <= max(hi, f[min(3, len(f) - 1)]))
         band_al = (f_al > 0) & (f_al >= min(lo, f_al[1])) & (f_al <= max(hi, f_al[min(3, len(f_al) - 1)]))
-    flat_run = max(3, int(math.ceil(0.3e-6 * fs)))
+    flat_run = max(4, int(math.ceil(0.3e-6 * fs)))
     return Plan(fs=fs, geometry=geometry, n_samples=n_samples, band_hz=(lo, hi), pre=pre,
                 seg_len=seg_len, n_fft=n_fft, n_fft_al=n_fft_al, band=band, band_al=band_al,
                 w=2 * np.pi * f[band], w_al=2 * np.pi * f_al[band_al], w_full_al=2 * np.pi * f_al,
@@ -278,24 +278,29 @@ class Prepared:
     quant2: np.ndarray       # (K,) q^2 / 12 of the apparent ADC quantum q (V^2), 0 if none
 
 
+def subset(prep: Prepared, ids) -> Prepared:
+    """The packets ``ids`` of a prepared batch."""
+    return Prepared(**{f: getattr(prep, f)[ids] for f in prep.__dataclass_fields__})
+
+
 def flat_top(seg_raw, run):
-    """(K,) True where the packet's dominant extreme (the larger deviation from the mean)
-    repeats ``run`` times in a row in some channel: the signature of a clipped ADC when
-    neither the full scale nor an upstream flag is known. Only the dominant side is
-    tested: the slow after-lobe of the high-passed pulse has a quantized flat bottom."""
+    """(K,) True where, in some channel, the dominant extreme (the larger deviation from the
+    channel's mean) repeats ``run`` times in a row: the signature of a clipped ADC when
+    neither the full scale nor an upstream flag is known. Per channel, so that channel DC
+    offsets do not matter; only the dominant side, because the slow after-lobe of the
+    high-passed pulse has a quantized flat bottom."""
     k = seg_raw.shape[0]
     if seg_raw.shape[2] < run:
         return np.zeros(k, bool)
-    flat = seg_raw.reshape(k, -1)
-    vmax = flat.max(axis=1)
-    vmin = flat.min(axis=1)
-    mean = flat.mean(axis=1)
+    vmax = seg_raw.max(axis=2)
+    vmin = seg_raw.min(axis=2)
+    mean = seg_raw.mean(axis=2)
     v = np.where(vmax - mean >= mean - vmin, vmax, vmin)
-    eq = seg_raw == v[:, None, None]
+    eq = seg_raw == v[:, :, None]
     r = eq[..., : eq.shape[2] - run + 1].copy()
     for i in range(1, run):
         r &= eq[..., i: eq.shape[2] - run + 1 + i]
-    return r.any(axis=(1, 2)) & (vmax > vmin)
+    return (r.any(axis=2) & (vmax > vmin)).any(axis=1)
 
 
 def prepare(x, onset, plan: Plan, *, noise_rms_v=None, saturated=None, full_scale_v=None,
@@ -406,7 +411,9 @@ def pair_delays(X, plan: Plan, *, phat=False, refine=0, full_band=False):
     peak within the physically possible lags, parabolic interpolation, then ``refine``
     Newton steps on the band-limited correlation r(d) = sum_f W Re(G e^{j w d}).
 
-    Returns (delays (K, 6) s, peak (K, 6) normalised correlation in [-1, 1]).
+    Returns (delays (K, 6) s, peak (K, 6) normalised correlation in [-1, 1], at_edge (K,)
+    True when some pair peaked at the edge of its lag range, i.e. its delay is probably
+    beyond what the geometry allows).
     """
     n = plan.n_fft
     fs = plan.fs
@@ -434,6 +441,7 @@ def pair_delays(X, plan: Plan, *, phat=False, refine=0, full_band=False):
     allowed = np.abs(lags)[None, :] <= plan.max_lag[:, None]   # (6, n)
     rm = np.where(allowed[None], r, -np.inf)
     i0 = np.argmax(rm, axis=2)
+    at_edge = (np.abs(lags[i0]) >= plan.max_lag[None, :]).any(axis=1)
     kk = np.arange(r.shape[0])[:, None]
     pp = np.arange(6)[None, :]
     y0 = r[kk, pp, i0]
@@ -454,7 +462,7 @@ def pair_delays(X, plan: Plan, *, phat=False, refine=0, full_band=False):
         d = d + step
     ph = np.exp(1j * w * d[..., None])
     peak_plain = (G * ph).real.sum(axis=2) / np.sqrt(np.maximum(ei * ej, 1e-300))
-    return d, np.clip(peak_plain, -1.0, 1.0)
+    return d, np.clip(peak_plain, -1.0, 1.0), at_edge
 
 
 def delays_from_pairs(d):

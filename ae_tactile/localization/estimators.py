@@ -185,7 +185,7 @@ def localize(windows, sample_rate_hz, onset_index, *, method="ml", geometry=None
     noise_rms_v: scalar or (K,) known noise sigma (default: measured on the samples
     before ``onset - pre_onset_s``, else from the fit residual). saturated: (K,) flags
     from upstream; full_scale_v: ADC clip level (either one, or neither: a flat top of
-    >= max(3, 0.3 us fs) samples at the packet's dominant extreme then flags saturation).
+    >= max(4, 0.3 us fs) samples at a channel's dominant extreme then flags saturation).
     channel_gains: relative gains of the 4 channels (divided out). min_snr_db: LOW_SNR
     below this. overlap_threshold: OVERLAP when the excess misfit exceeds it (default
     per method). Extra keyword options go to the estimator (e.g. iterations=).
@@ -246,6 +246,7 @@ def _finish(core, prep, plan, geo, method, min_snr_db, thr, options):
     raw = np.asarray(core["raw_delays"], float)
     sd = np.sqrt(np.maximum(np.trace(np.nan_to_num(c_tau, nan=0.0), axis1=1, axis2=2), 0.0))
     over = _horizon_excess(geo, np.nan_to_num(raw)) > 4.0 * sd + 0.25 / plan.fs
+    over |= np.asarray(core.get("at_edge", False), bool)
     flags[over] |= 1 << Reason.OUT_OF_RANGE
 
     finite_pt = np.all(np.isfinite(point), axis=1) & np.all(np.isfinite(theta), axis=1)

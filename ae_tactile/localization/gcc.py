@@ -25,7 +25,7 @@ from ae_tactile.localization.covariance import (arrival_fisher, delay_covariance
                                                 weighted_pair_delay_covariance)
 
 
-def _finish(prep, plan, theta, point, clamped, cov_kind, pair_res, raw):
+def _finish(prep, plan, theta, point, clamped, cov_kind, pair_res, raw, edge):
     fs = plan.fs
     t = relative_arrivals(theta)
     al = aligned_spectra(prep, plan, t)
@@ -46,18 +46,19 @@ def _finish(prep, plan, theta, point, clamped, cov_kind, pair_res, raw):
         return c, np.ones(len(sigma2), bool)
 
     return dict(theta=theta, point=point, clamped=clamped, zb=zb, z=z, count=al.count,
-                raw_delays=raw, covariance=covariance, pair_residual_s=pair_res)
+                raw_delays=raw, covariance=covariance, pair_residual_s=pair_res, at_edge=edge)
 
 
 def estimate_gcc_phat(prep: Prepared, plan: Plan, *, refine: int = 3):
-    d, _ = pair_delays(prep.X, plan, phat=True, refine=refine)
+    d, _, edge = pair_delays(prep.X, plan, phat=True, refine=refine)
     theta, pair_res = delays_from_pairs(d)
     point, clamped = plan.geometry.point_from_delays(theta[:, 0], theta[:, 1], exact=True)
-    return _finish(prep, plan, theta, point, clamped, "phat", pair_res, theta[:, :2])
+    return _finish(prep, plan, theta, point, clamped, "phat", pair_res, theta[:, :2], edge)
 
 
 def _sum_pair_lag(U, V, plan, max_lag):
-    """Lag (samples) of the plain full-band cross-correlation peak of U against V (K,)."""
+    """Lag (samples) of the plain full-band cross-correlation peak of U against V (K,), and
+    whether it sits at the edge of the allowed lags (K,)."""
     n = plan.n_fft
     G = U * np.conj(V)
     G[:, 0] = 0.0
@@ -70,17 +71,17 @@ def _sum_pair_lag(U, V, plan, max_lag):
     y0, ym, yp = r[rows, i0], r[rows, (i0 - 1) % n], r[rows, (i0 + 1) % n]
     den = ym - 2 * y0 + yp
     frac = np.where(den < 0, 0.5 * (ym - yp) / np.where(den < 0, den, -1.0), 0.0)
-    return lags[i0] + np.clip(frac, -0.5, 0.5)
+    return lags[i0] + np.clip(frac, -0.5, 0.5), np.abs(lags[i0]) >= max_lag
 
 
 def estimate_xcorr_farfield(prep: Prepared, plan: Plan):
     X = prep.X
     fs = plan.fs
     max_lag = int(plan.max_lag[0])          # elements 2a apart
-    lx = _sum_pair_lag(X[:, 0] + X[:, 1], X[:, 2] + X[:, 3], plan, max_lag)
-    ly = _sum_pair_lag(X[:, 0] + X[:, 2], X[:, 1] + X[:, 3], plan, max_lag)
+    lx, ex = _sum_pair_lag(X[:, 0] + X[:, 1], X[:, 2] + X[:, 3], plan, max_lag)
+    ly, ey = _sum_pair_lag(X[:, 0] + X[:, 2], X[:, 1] + X[:, 3], plan, max_lag)
     tx = -lx / (2.0 * fs)
     ty = -ly / (2.0 * fs)
     theta = np.stack([tx, ty, np.zeros_like(tx)], axis=1)
     point, clamped = plan.geometry.point_from_delays(tx, ty, exact=False)
-    return _finish(prep, plan, theta, point, clamped, "plain", np.zeros_like(tx), theta[:, :2])
+    return _finish(prep, plan, theta, point, clamped, "plain", np.zeros_like(tx), theta[:, :2], ex | ey)

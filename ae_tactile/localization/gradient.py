@@ -22,10 +22,30 @@ from __future__ import annotations
 import numpy as np
 
 from ae_tactile.localization.common import (CONTRASTS, Plan, Prepared, aligned_spectra,
-                                            delays_from_pairs, pair_delays, relative_arrivals)
+                                            delays_from_pairs, pair_delays, relative_arrivals, subset)
 from ae_tactile.localization.covariance import arrival_fisher, delay_covariance_from_fisher
 
 _SIGNS = CONTRASTS * 4.0      # rows: -xi, -eta, xi eta
+
+
+def _iterate(Yb, w, theta, c0, iterations, lim, fs):
+    """LS steps with re-alignment; a packet stops once its step is below 1e-4 sample."""
+    theta = theta.copy()
+    act = np.arange(theta.shape[0])
+    for _ in range(iterations):
+        if act.size == 0:
+            break
+        eps = relative_arrivals(theta[act]) - c0[act]
+        z = Yb[act] * np.exp(1j * w * eps[..., None])
+        dm = 1j * w * z.mean(axis=1)                           # band-limited m'
+        den = np.maximum((np.abs(dm) ** 2).sum(axis=1), 1e-300)
+        diffs = np.einsum("ck,kbf->bcf", _SIGNS, np.moveaxis(z, 0, 1)) / 4.0   # (K, 3, nb)
+        num = (diffs * np.conj(dm)[:, None, :]).real.sum(axis=2) / den[:, None]
+        # diffs ~ j w M (estimate - truth) projected on each contrast: step back by it.
+        step = np.clip(-num, -lim, lim)
+        theta[act] += step
+        act = act[np.abs(step).max(axis=1) >= 1e-4 / fs]
+    return theta
 
 
 def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4, start: str = "xcorr"):
@@ -35,36 +55,32 @@ def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4, start: str = "x
     fs = plan.fs
     w = plan.w_al
     if start == "xcorr":
-        d, _ = pair_delays(prep.X, plan)
+        d, _, edge = pair_delays(prep.X, plan)
         theta, pair_res = delays_from_pairs(d)
         lim = 0.5 / fs
     elif start == "zero":
         theta = np.zeros((prep.x.shape[0], 3))
         pair_res = np.zeros(prep.x.shape[0])
+        edge = np.zeros(prep.x.shape[0], bool)
         lim = np.inf
     else:
         raise ValueError(f"start must be 'xcorr' or 'zero', got {start!r}")
     if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 1:
         raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
     raw0 = theta[:, :2].copy()
-    for _outer in range(2):
-        al = aligned_spectra(prep, plan, relative_arrivals(theta))
-        c0 = al.ref[:, None] + al.shift / fs
-        for _ in range(iterations):
-            eps = relative_arrivals(theta) - c0
-            z = al.Yb * np.exp(1j * w * eps[..., None])
-            dm = 1j * w * z.mean(axis=1)                       # band-limited m'
-            den = np.maximum((np.abs(dm) ** 2).sum(axis=1), 1e-300)
-            diffs = np.einsum("ck,kbf->bcf", _SIGNS, np.moveaxis(z, 0, 1)) / 4.0   # (K, 3, nb)
-            num = (diffs * np.conj(dm)[:, None, :]).real.sum(axis=2) / den[:, None]
-            # diffs ~ j w M (model - estimate): for tau_x, tau_y the sign rows are -xi, -eta.
-            step = np.clip(-num, -lim, lim)
-            theta = theta + step
-            if np.abs(step).max() < 1e-4 / fs:
-                break
-        eps = relative_arrivals(theta) - c0
-        if np.all(np.abs(eps - eps.mean(axis=1, keepdims=True)) * fs < 0.75):
-            break
+    al = aligned_spectra(prep, plan, relative_arrivals(theta))
+    c0 = al.ref[:, None] + al.shift / fs
+    theta = _iterate(al.Yb, w, theta, c0, iterations, lim, fs)
+    # Re-cut (once) the packets whose estimate drifted more than 3/4 sample from the cut.
+    eps = relative_arrivals(theta) - c0
+    drift = np.abs(eps - eps.mean(axis=1, keepdims=True)).max(axis=1) * fs >= 0.75
+    if drift.any():
+        ids = np.nonzero(drift)[0]
+        al2 = aligned_spectra(subset(prep, ids), plan, relative_arrivals(theta[ids]))
+        c2 = al2.ref[:, None] + al2.shift / fs
+        theta[ids] = _iterate(al2.Yb, w, theta[ids], c2, iterations, lim, fs)
+        al.Y[ids], al.Yb[ids], al.shift[ids], al.ref[ids], al.count[ids] = al2.Y, al2.Yb, al2.shift, al2.ref, al2.count
+        c0[ids] = c2
     eps = relative_arrivals(theta) - c0
     zb = al.Yb * np.exp(1j * w * eps[..., None])
     z = al.Y * np.exp(1j * plan.w_full_al * eps[..., None])
@@ -76,4 +92,4 @@ def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4, start: str = "x
 
     return dict(theta=theta, point=point, clamped=clamped, zb=zb, z=z, count=al.count,
                 raw_delays=theta[:, :2], covariance=covariance, pair_residual_s=pair_res,
-                start_delays=raw0)
+                start_delays=raw0, at_edge=edge)

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from ae_tactile.localization.common import (Plan, Prepared, aligned_spectra, delays_from_pairs,
-                                            pair_delays)
+                                            pair_delays, subset)
 from ae_tactile.localization.covariance import arrival_fisher, sphere_covariance
 
 _ALPHAS = np.array([1.0, 0.5, 0.25, 0.125, 0.0])
@@ -45,20 +45,24 @@ def srp(Yb, w, eps):
 
 
 def newton(Yb, w, geometry, s, c0, iterations, max_step_m, tol_m):
-    """Damped Newton ascent of P over (s_x, s_y) for all packets at once."""
+    """Damped Newton ascent of P over (s_x, s_y), vectorised; a packet stops moving once its
+    step falls below ``tol_m`` (so results do not depend on the rest of the batch)."""
     r = geometry.radius_m
     sx, sy = s[:, 0].copy(), s[:, 1].copy()
     w2 = w * w
     clamped = np.zeros(sx.shape, bool)
+    act = np.arange(len(sx))
     for _ in range(iterations):
-        t, dt, d2t = geometry.arrival_time_derivatives(sx, sy)
-        eps = t - c0
-        z = Yb * np.exp(1j * w * eps[..., None])
+        if act.size == 0:
+            break
+        yb, c = Yb[act], c0[act]
+        ax, ay = sx[act], sy[act]
+        t, dt, d2t = geometry.arrival_time_derivatives(ax, ay)
+        z = yb * np.exp(1j * w * (t - c)[..., None])
         b = z.sum(axis=1)
         cb = np.conj(b)[:, None, :] * z                        # (K, 4, nb)
         g_e = -2.0 * (w * cb.imag).sum(axis=2)                 # dP/d eps_k
-        q = np.einsum("kaf,kbf,f->kab", z, np.conj(z), w2).real
-        h_e = 2.0 * q
+        h_e = 2.0 * np.einsum("kaf,kbf,f->kab", z, np.conj(z), w2).real
         idx = np.arange(4)
         h_e[:, idx, idx] -= 2.0 * (w2 * cb.real).sum(axis=2)
         g = np.einsum("kai,ka->ki", dt, g_e)
@@ -68,6 +72,7 @@ def newton(Yb, w, geometry, s, c0, iterations, max_step_m, tol_m):
         rad = np.sqrt(0.25 * (a - d) ** 2 + bb * bb)
         lmax, lmin = mid + rad, mid - rad
         scale = np.abs(a) + np.abs(d) + 1e-300
+        # Levenberg shift where the Hessian is not negative definite.
         mu = np.where(lmax > -1e-6 * scale, lmax + 0.1 * np.abs(lmin) + 1e-3 * scale, 0.0)
         a, d = a - mu, d - mu
         det = a * d - bb * bb
@@ -78,26 +83,25 @@ def newton(Yb, w, geometry, s, c0, iterations, max_step_m, tol_m):
         f = np.where(norm > max_step_m, max_step_m / np.where(norm > 0, norm, 1.0), 1.0)
         stx = np.where(np.isfinite(stx), stx * f, 0.0)
         sty = np.where(np.isfinite(sty), sty * f, 0.0)
-        # Full step for everyone; a line search (1/2, 1/4, 1/8 or no step) only where P fell.
-        nx, ny, over = _project(sx + stx, sy + sty, r)
-        p_new = srp(Yb, w, _times(geometry, nx, ny) - c0)
+        taken = np.where(np.isfinite(norm), norm * f, 0.0)
+        # Full step; a line search (1/2, 1/4, 1/8 or no step) only where P fell.
+        nx, ny, over = _project(ax + stx, ay + sty, r)
+        p_new = srp(yb, w, _times(geometry, nx, ny) - c)
         p_old = (b.real ** 2 + b.imag ** 2).sum(axis=1)
         worse = ~(p_new >= p_old)
-        taken = norm * f
         if worse.any():
             ids = np.nonzero(worse)[0]
             al = _ALPHAS[1:]
-            cx = sx[ids, None] + al * stx[ids, None]
-            cy = sy[ids, None] + al * sty[ids, None]
+            cx = ax[ids, None] + al * stx[ids, None]
+            cy = ay[ids, None] + al * sty[ids, None]
             cx, cy, ov = _project(cx, cy, r)
-            pc = srp(Yb[ids], w, _times(geometry, cx, cy) - c0[ids, None, :])
+            pc = srp(yb[ids], w, _times(geometry, cx, cy) - c[ids, None, :])
             best = np.argmax(pc, axis=1)
             rows = np.arange(len(ids))
             nx[ids], ny[ids], over[ids] = cx[rows, best], cy[rows, best], ov[rows, best]
             taken[ids] = taken[ids] * al[best]
-        sx, sy, clamped = nx, ny, over
-        if np.all(taken < tol_m):
-            break
+        sx[act], sy[act], clamped[act] = nx, ny, over
+        act = act[taken >= tol_m]
     return np.stack([sx, sy], axis=1), clamped
 
 
@@ -111,20 +115,29 @@ def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4):
         raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
     geo = plan.geometry
     fs = plan.fs
-    d, _ = pair_delays(prep.X, plan)
+    d, _, edge = pair_delays(prep.X, plan)
     theta0, pair_res = delays_from_pairs(d)
     pts0, _ = geo.point_from_delays(theta0[:, 0], theta0[:, 1], exact=True)
     s = np.nan_to_num(pts0[:, :2])
     # One Newton step is worth about one sample of delay at most.
     max_step = geo.radius_m * geo.sound_speed_m_s / (geo.element_offset_m * fs)
-    for _outer in range(2):
-        t = _times(geo, s[:, 0], s[:, 1])
-        al = aligned_spectra(prep, plan, t)
-        c0 = al.ref[:, None] + al.shift / fs
-        s, clamped = newton(al.Yb, plan.w_al, geo, s, c0, iterations, max_step, 1e-4 * max_step)
-        eps = _times(geo, s[:, 0], s[:, 1]) - c0
-        if np.all(np.abs(eps - eps.mean(axis=1, keepdims=True)) * fs < 0.75):
-            break
+    t = _times(geo, s[:, 0], s[:, 1])
+    al = aligned_spectra(prep, plan, t)
+    c0 = al.ref[:, None] + al.shift / fs
+    s, clamped = newton(al.Yb, plan.w_al, geo, s, c0, iterations, max_step, 1e-4 * max_step)
+    # Re-cut (once) the packets whose fit drifted more than 3/4 sample from the integer cut.
+    eps = _times(geo, s[:, 0], s[:, 1]) - c0
+    drift = np.abs(eps - eps.mean(axis=1, keepdims=True)).max(axis=1) * fs >= 0.75
+    if drift.any():
+        ids = np.nonzero(drift)[0]
+        sub = subset(prep, ids)
+        t = _times(geo, s[ids, 0], s[ids, 1])
+        al2 = aligned_spectra(sub, plan, t)
+        c2 = al2.ref[:, None] + al2.shift / fs
+        s2, cl2 = newton(al2.Yb, plan.w_al, geo, s[ids], c2, iterations, max_step, 1e-4 * max_step)
+        s[ids], clamped[ids] = s2, cl2
+        al.Y[ids], al.Yb[ids], al.shift[ids], al.ref[ids], al.count[ids] = al2.Y, al2.Yb, al2.shift, al2.ref, al2.count
+        c0[ids] = c2
     t, dt, _ = geo.arrival_time_derivatives(s[:, 0], s[:, 1])
     eps = t - c0
     zb = al.Yb * np.exp(1j * plan.w_al * eps[..., None])
@@ -141,4 +154,5 @@ def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4):
         return c_tau, ok
 
     return dict(theta=delays, point=point, clamped=clamped, zb=zb, z=z, count=al.count,
-                raw_delays=theta0[:, :2], covariance=covariance, pair_residual_s=pair_res)
+                raw_delays=theta0[:, :2], covariance=covariance, pair_residual_s=pair_res,
+                at_edge=edge)
