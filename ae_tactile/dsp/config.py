@@ -44,8 +44,9 @@ def _int(name, value, lo, hi):
 class SampleParams:
     """DetectorConfig times in samples (see DetectorConfig.samples).
 
-    The trigger path runs at trigger_rate_hz = fs / decim: hold, jump_lookback,
-    min_separation, hdt, hlt, block and settle count *trigger* samples; everything
+    The trigger path runs at trigger_rate_hz = fs / decim: hold, onset_window,
+    onset_decay (per trigger sample, energy), channel_refractory, min_separation, hdt,
+    hlt, echo_*, block and settle count *trigger* samples; everything
     else (windows, AIC, features, block_full) counts input samples.
     """
 
@@ -55,11 +56,17 @@ class SampleParams:
     posttrigger: int
     window: int
     hold: int
-    jump_lookback: int
+    onset_window: int
+    onset_decay: float
+    channel_refractory: int
+    channel_spread: int
     min_separation: int
     hdt: int
     hlt: int
+    echo_delay: int
+    echo_tolerance: int
     aic_pre: int
+    reonset_aic_pre: int
     aic_post: int
     block: int
     block_full: int
@@ -91,18 +98,38 @@ class DetectorConfig:
                           for envelope_hold_s (3).
       envelope_hold_s     peak-hold of the envelope for the hysteresis, longer than the
                           gaps at the waveform's zero crossings (2 us).
-      jump_ratio          a new emission inside a running packet: e rises to at least
-                          this times its peak over [t - lookback - hold, t - lookback] (3).
-      jump_lookback_s     (0.5 us).
+    Re-trigger inside a running packet (per-channel onsets, docs/detection.md)
+      channel_onset_sigma a channel onset needs the channel's first difference of the
+                          band-passed signal to reach this many of its noise sigmas (6) ...
+      jump_ratio          ... and this times its exponentially decayed maximum over the
+                          preceding onset_window_s (3, amplitude ratio) ...
+      onset_window_s      (4 us)
+      onset_decay_s       amplitude decay time of that maximum (3 us).
+      channel_refractory_s  a channel's second onset within one hit, at least this long
+                          after its first, starts a new emission (2 us) ...
+      channel_spread_s    ... unless an emission was accepted less than this before it
+                          (it is then that emission's late channel): the largest arrival
+                          spread over the 4 elements, 2 sqrt(2) a / c (2.9 us for the
+                          paper's water tip; set 4.3 us for silicone) (3 us).
       min_separation_s    onsets closer than this are one emission (2 us).
     Acoustic-emission timing rules
       hit_definition_time_s   HDT: a hit ends when e stayed below rearm_sigma this long (10 us).
       hit_lockout_time_s      HLT: no new hit starts within HLT after a hit ended (0: off,
                               so that every emission gets a window).
+    Wall echoes (off by default)
+      echo_delay_s        delay of the first wall echo after the direct wave (2 R / c:
+                          13.5 us for the paper's water tip). When set, a re-trigger whose
+                          crossing lies within echo_tolerance_s of k * echo_delay_s
+                          (k = 1 .. echo_orders) after an accepted emission's crossing is
+                          taken for its echo: counted, no window. None: every re-trigger
+                          gets a window (echoes then appear as in-hit emissions).
     Windows
       pretrigger_s, posttrigger_s   window = [onset - pre, onset + post) (10 us, 30 us).
       aic_pre_s, aic_post_s         AIC search segment [crossing - pre, crossing + post)
                                     (4 us, 1 us).
+      reonset_aic_pre_s   for an emission found by a channel re-onset (inside a running
+                          packet) the AIC may not pick earlier than this before it (3 us),
+                          nor before the previous emission's crossing + channel_spread_s.
     Noise floor (see ae_tactile/dsp/noise.py)
       noise_block_s (100 us), noise_history_blocks (16), noise_min_blocks (2),
       noise_epoch_blocks (16), burst_ratio (6), settle_s (20 us).
@@ -126,15 +153,23 @@ class DetectorConfig:
     threshold_sigma: float = 5.0
     rearm_sigma: float = 3.0
     envelope_hold_s: float = 2e-6
+    channel_onset_sigma: float = 6.0
     jump_ratio: float = 3.0
-    jump_lookback_s: float = 0.5e-6
+    onset_window_s: float = 4e-6
+    onset_decay_s: float = 3e-6
+    channel_refractory_s: float = 2e-6
+    channel_spread_s: float = 3e-6
     min_separation_s: float = 2e-6
     hit_definition_time_s: float = 10e-6
     hit_lockout_time_s: float = 0.0
+    echo_delay_s: float | None = None
+    echo_orders: int = 2
+    echo_tolerance_s: float = 1.5e-6
     pretrigger_s: float = 10e-6
     posttrigger_s: float = 30e-6
     aic_pre_s: float = 4e-6
     aic_post_s: float = 1e-6
+    reonset_aic_pre_s: float = 3e-6
     noise_block_s: float = 100e-6
     noise_history_blocks: int = 16
     noise_min_blocks: int = 2
@@ -168,11 +203,17 @@ class DetectorConfig:
             raise ValueError(f"rearm_sigma={self.rearm_sigma!r} must be below threshold_sigma="
                              f"{self.threshold_sigma!r} (hysteresis)")
         _num("jump_ratio", self.jump_ratio, lo=1.0, lo_open=True)
-        for name in ("envelope_hold_s", "jump_lookback_s", "min_separation_s",
+        _num("channel_onset_sigma", self.channel_onset_sigma, lo=0.0, lo_open=True)
+        for name in ("envelope_hold_s", "onset_window_s", "onset_decay_s",
+                     "channel_refractory_s", "channel_spread_s", "min_separation_s",
+                     "reonset_aic_pre_s",
                      "hit_definition_time_s", "posttrigger_s", "aic_pre_s", "aic_post_s",
                      "noise_block_s", "peak_window_s", "polarity_window_s", "snr_window_s"):
             _num(name, getattr(self, name), lo=0.0, lo_open=True, hi=1.0)
-        for name in ("hit_lockout_time_s", "pretrigger_s", "settle_s", "noise_guard_s"):
+        _num("echo_delay_s", self.echo_delay_s, lo=0.0, lo_open=True, hi=1.0, allow_none=True)
+        _int("echo_orders", self.echo_orders, 1, 16)
+        for name in ("hit_lockout_time_s", "pretrigger_s", "settle_s", "noise_guard_s",
+                     "echo_tolerance_s"):
             _num(name, getattr(self, name), lo=0.0, hi=1.0)
         m = _int("noise_history_blocks", self.noise_history_blocks, 1, 4096)
         _int("noise_min_blocks", self.noise_min_blocks, 1, m)
@@ -214,15 +255,20 @@ class DetectorConfig:
         # the crossing is known to a group of d samples: widen the AIC segment by d
         aic_pre = n(self.aic_pre_s, 4) + d - 1
         hold = nt(self.envelope_hold_s, 1)
-        look = nt(self.jump_lookback_s, 1)
         block = nt(self.noise_block_s, 32)
         release_lag = pre + aic_pre + aic_post
         return SampleParams(
             decim=d, trigger_rate_hz=ft,
             pretrigger=pre, posttrigger=post, window=pre + post, hold=hold,
-            jump_lookback=look, min_separation=nt(self.min_separation_s, 1),
+            onset_window=nt(self.onset_window_s, 1),
+            onset_decay=math.exp(-2.0 / (float(self.onset_decay_s) * ft)),
+            channel_refractory=nt(self.channel_refractory_s, 1),
+            channel_spread=nt(self.channel_spread_s, 1),
+            min_separation=nt(self.min_separation_s, 1),
             hdt=nt(self.hit_definition_time_s, 1), hlt=nt(self.hit_lockout_time_s, 0),
-            aic_pre=aic_pre, aic_post=aic_post, block=block, block_full=block * d,
+            echo_delay=0 if self.echo_delay_s is None else nt(self.echo_delay_s, 1),
+            echo_tolerance=nt(self.echo_tolerance_s, 0),
+            aic_pre=aic_pre, aic_post=aic_post, reonset_aic_pre=n(self.reonset_aic_pre_s, 2) + d, block=block, block_full=block * d,
             settle=nt(self.settle_s, 0), noise_guard=n(self.noise_guard_s, 0),
             peak_window=n(self.peak_window_s, 1), polarity_window=n(self.polarity_window_s, 1),
             snr_window=n(self.snr_window_s, 1), release_lag=release_lag,

@@ -53,7 +53,7 @@ from ..geometry import N_CHANNELS
 from .batch import PacketBatch
 from .config import DetectorConfig
 from .features import window_features, window_features_fixed
-from .filters import StreamingSOS, design_bandpass_sos
+from .filters import StreamingSOS, design_bandpass_sos, diff_noise_ratio
 from .noise import BlockNoiseTracker
 from .onset import aic_pick
 
@@ -79,6 +79,7 @@ class DetectorStats:
     hits: int = 0                   #: AE hits (first emission of each hit)
     in_hit_emissions: int = 0       #: emissions detected inside a running hit
     locked_out: int = 0             #: candidates suppressed by the hit lockout time
+    echoes: int = 0                 #: re-triggers taken for wall echoes (echo_delay_s)
     packets: int = 0                #: windows published
     overlapping_packets: int = 0    #: published windows flagged overlap
     saturated_packets: int = 0      #: published windows flagged saturated
@@ -90,14 +91,16 @@ class DetectorStats:
 
 
 class _Pending:
-    __slots__ = ("pid", "crossing", "hit_id", "in_hit", "weights", "onset")
+    __slots__ = ("pid", "crossing", "hit_id", "in_hit", "weights", "aic_lo", "reonset", "onset")
 
-    def __init__(self, pid, crossing, hit_id, in_hit, weights):
+    def __init__(self, pid, crossing, hit_id, in_hit, weights, aic_lo, reonset):
         self.pid = pid
-        self.crossing = crossing
+        self.crossing = crossing        # input-sample index of the trigger
         self.hit_id = hit_id
         self.in_hit = in_hit
-        self.weights = weights
+        self.weights = weights          # 1 / sigma_k^2 for the AIC
+        self.aic_lo = aic_lo            # the AIC may not pick before this input index
+        self.reonset = reonset          # found by a channel re-onset inside a packet
         self.onset = None
 
 
@@ -123,7 +126,11 @@ class PacketDetector:
         self._kon2 = float(config.threshold_sigma) ** 2
         self._koff2 = float(config.rearm_sigma) ** 2
         self._jump2 = float(config.jump_ratio) ** 2
-        self._jump_offs = np.arange(1, self.sp.hold + 1)[None, :]
+        # per-channel onsets: window offsets, decay weights, noise of the first difference
+        self._onset_offs = np.arange(1, self.sp.onset_window + 1)[None, :]
+        self._onset_gpow = self.sp.onset_decay ** np.arange(1, self.sp.onset_window + 1)
+        self._chk2 = float(config.channel_onset_sigma) ** 2
+        self._wd_scale = 4.0 / diff_noise_ratio(self.sos)
         self._aic_range = np.arange(self.sp.aic_pre + self.sp.aic_post)[None, :]
         self._win_range = np.arange(self.sp.window)[None, :]
         self._floor_var = (0.1 * config.lsb_v) ** 2
@@ -276,15 +283,18 @@ class PacketDetector:
         self._raw_last = None
         self._blk_y2 = np.zeros((N_CHANNELS, 0))      # y^2 of the current partial block
         self._blk_var = np.full(N_CHANNELS, np.nan)   # variance in use for that block
-        self._e2_hist = np.zeros(sp.hold + sp.jump_lookback)
+        self._y_hist = np.zeros((N_CHANNELS, sp.onset_window + 1))
+        self._ch_last_event = [0] * N_CHANNELS
+        self._ch_last_cluster = [None] * N_CHANNELS
+        self._ch_last_cond = [None] * N_CHANNELS
         self._last_active = None
         self._seg_triggered = False
         self._cluster = -1
         self._hit_cluster = None
         self._hit_cluster_last = None
         self._last_cand = None
-        self._last_on = None
-        self._last_on_jump = False
+        self._assign_until = -1
+        self._accepted_u: list[int] = []
         self._pending: list[_Pending] = []
         self._recent: list[tuple[int, int]] = []      # (pid, onset) of released/dropped
 
@@ -435,10 +445,12 @@ class PacketDetector:
         e2 = e2.reshape(-1)[p:total]
         if self._invalid:
             self._zero_invalid(e2, u0)
-        lag = sp.hold + sp.jump_lookback
-        e2_ext = np.concatenate([self._e2_hist, e2])
-        self._trigger(e2, e2_ext, u0, w, blk0)
-        self._e2_hist = e2_ext[-lag:].copy()
+        self._trigger(e2, y, u0, w, blk0)
+        lh = sp.onset_window + 1
+        if m >= lh:
+            self._y_hist = y[:, m - lh:].copy()
+        else:
+            self._y_hist = np.concatenate([self._y_hist, y], axis=1)[:, -lh:]
 
     def _invalid_u(self):
         """Invalid ranges in trigger-path indices: groups touching an invalid sample."""
@@ -462,9 +474,10 @@ class PacketDetector:
         keep_from = self._proc_end - self.sp.history - self.sp.window
         self._invalid = [(s, e) for s, e in self._invalid if e > keep_from]
 
-    def _trigger(self, e2: np.ndarray, e2_ext: np.ndarray, u0: int, w: np.ndarray,
+    def _trigger(self, e2: np.ndarray, y: np.ndarray, u0: int, w: np.ndarray,
                  blk0: int) -> None:
-        """Schmitt trigger, jumps and AE hit rules on e2 (trigger indices from u0)."""
+        """Schmitt trigger, per-channel re-onsets and AE hit rules on e2 (trigger indices
+        from u0); y (4, m) is the band-passed trigger-path signal."""
         sp = self.sp
         act = np.flatnonzero(e2 >= self._koff2)
         if act.size == 0:
@@ -478,6 +491,7 @@ class PacketDetector:
         seg_start = gaps > sp.hold
         clu_gid = np.cumsum(gaps > sp.hdt)
         clu_gid += self._cluster
+        events = []                    # (position in act, channel or -1 for a rising edge)
         if on_pos.size:
             seg_id = np.cumsum(seg_start)
             sid = seg_id[on_pos]
@@ -489,27 +503,13 @@ class PacketDetector:
                 rising = rising[1:]
             last_sid = int(seg_id[-1])
             self._seg_triggered = bool(sid[-1] == last_sid or (last_sid == 0 and self._seg_triggered))
-            # jump criterion on the on samples: e2_ext[j + lag] is e2[j]; reference window
-            # e2[j - look - hold + 1 .. j - look] = e2_ext[j + 1 .. j + hold]
-            o_rel = act[on_pos]
-            ref = e2_ext[o_rel[:, None] + self._jump_offs].max(axis=1)
-            jump = e2[o_rel] >= self._jump2 * ref
-            o_abs = a_abs[on_pos]
-            jl = jump.tolist()
-            ol = o_abs.tolist()
-            last_on, last_jump = self._last_on, self._last_on_jump
-            cands = set(rising.tolist())
-            if any(jl):
-                for i, (o, j) in enumerate(zip(ol, jl)):
-                    if j and not (last_jump and last_on is not None and o - last_on == 1):
-                        cands.add(int(on_pos[i]))
-                    last_on, last_jump = o, j
-            self._last_on = ol[-1]
-            self._last_on_jump = jl[-1]
-            if cands:
-                self._accept(sorted(cands), a_abs, clu_gid, u0, w, blk0)
+            events.extend((p_, -1) for p_ in rising.tolist())
         elif seg_start.any():
             self._seg_triggered = False
+        events.extend(self._channel_onsets(act, a_abs, y, w, blk0))
+        if events:
+            events.sort()
+            self._events(events, a_abs, clu_gid, w, blk0)
         self._last_active = int(a_abs[-1])
         self._cluster = int(clu_gid[-1])
         if self._hit_cluster is not None and self._hit_cluster >= int(clu_gid[0]):
@@ -517,15 +517,74 @@ class PacketDetector:
             if sel.size:
                 self._hit_cluster_last = int(a_abs[sel[-1]])
 
-    def _accept(self, cands, a_abs, clu_gid, u0, w, blk0) -> None:
-        """min_separation, AE hits and lockout for the candidates (positions in a_abs)."""
+    def _channel_onsets(self, act, a_abs, y, w, blk0) -> list:
+        """Channel onsets on the active samples: [(position in act, channel)].
+
+        z_k[n] = (y_k[n] - y_k[n-1])^2 / sigma_dk^2 (first difference of the band-passed
+        signal, in its own noise units) reaches channel_onset_sigma^2 and jump_ratio^2
+        times max_{l=1..L} z_k[n-l] g^l (the decayed maximum of the preceding
+        onset_window); the first sample of each run is the onset.
+        """
+        sp = self.sp
+        lh = sp.onset_window + 1
+        # first differences over the span the active samples and their windows need
+        lo = int(act[0]) - lh                                # may reach into the history
+        hi = int(act[-1]) + 1
+        if lo >= 0:
+            ys = y[:, lo:hi]
+        else:
+            ys = np.concatenate([self._y_hist[:, lh + lo:], y[:, :hi]], axis=1)
+        d = ys[:, 1:] - ys[:, :-1]                          # d[j] = y[lo + j + 1] - y[lo + j]
+        d *= d
+        q = act - (lo + 1)                                   # d[q] is (y[n] - y[n-1])^2
+        cur = d[:, q]
+        ref = (d[:, q[:, None] - self._onset_offs] * self._onset_gpow).max(axis=-1)   # (4, na)
+        wd = w[:, (a_abs - blk0) // sp.block] * self._wd_scale   # 1 / sigma_dk^2
+        cond = (cur * wd >= self._chk2) & (cur >= self._jump2 * ref)
+        out = []
+        if not cond.any():
+            return out
+        for k in range(N_CHANNELS):
+            pos = np.flatnonzero(cond[k])
+            if pos.size == 0:
+                continue
+            last_cond = self._ch_last_cond[k]
+            for p_, t in zip(pos.tolist(), a_abs[pos].tolist()):
+                if last_cond is None or t - last_cond != 1:
+                    out.append((p_, k))
+                last_cond = t
+            self._ch_last_cond[k] = last_cond
+        return out
+
+    def _events(self, events, a_abs, clu_gid, w, blk0) -> None:
+        """Turn rising edges and channel onsets (time order) into emissions.
+
+        A rising edge is a candidate. A channel onset is a candidate (a re-onset: a new
+        emission inside a running packet) when the same channel already had an onset in
+        the same hit at least channel_refractory earlier, and no emission was accepted
+        within channel_spread before it (then it is that emission's late channel).
+        Candidates then go through min_separation, the echo rule and the AE hit rules.
+        """
         sp = self.sp
         d = sp.decim
-        for pos in cands:
-            c = int(a_abs[pos])
+        for p_, k in events:
+            c = int(a_abs[p_])
+            g = int(clu_gid[p_])
+            if k >= 0:
+                is_re = (self._ch_last_cluster[k] == g
+                         and c - self._ch_last_event[k] >= sp.channel_refractory)
+                if self._ch_last_cluster[k] == g and not is_re:
+                    continue                               # same burst as before
+                self._ch_last_event[k] = c
+                self._ch_last_cluster[k] = g
+                if not is_re or c <= self._assign_until:
+                    continue
             if self._last_cand is not None and c - self._last_cand < sp.min_separation:
                 continue
-            g = int(clu_gid[pos])
+            if sp.echo_delay and self._is_echo(c):
+                self.stats.echoes += 1
+                self._assign_until = c + sp.channel_spread      # its late channels too
+                continue
             if g == self._hit_cluster:
                 in_hit = True
                 self.stats.in_hit_emissions += 1
@@ -540,12 +599,38 @@ class PacketDetector:
                 self.stats.hits += 1
                 self._hit_id += 1
                 self._hit_cluster = g
+            # the previous emission's channels have all arrived by its crossing + spread:
+            # the AIC must not pick them
+            aic_lo = -1 if self._last_cand is None else \
+                (self._last_cand + sp.channel_spread) * d + d - 1
+            if k >= 0:
+                # a re-onset is timed by the channel's own onset: search close to it (the
+                # decaying packet before it would pull the AIC early)
+                aic_lo = max(aic_lo, c * d + d - sp.reonset_aic_pre)
             self._last_cand = c
+            self._assign_until = c + sp.channel_spread
+            if sp.echo_delay:
+                self._accepted_u.append(c)
             wc = 4.0 * w[:, (c - blk0) // sp.block]          # 1 / sigma_k^2 (0 if blind)
             # crossing in input samples: the last sample of the trigger group
             self._pending.append(_Pending(self._next_id, c * d + d - 1, self._hit_id, in_hit,
-                                          np.where(wc > 0, wc, 1.0)))
+                                          np.where(wc > 0, wc, 1.0), aic_lo, k >= 0))
             self._next_id += 1
+
+    def _is_echo(self, c: int) -> bool:
+        """c lies in [k D - tol, k D + spread + tol] after an accepted crossing (D: echo
+        delay, k = 1 .. echo_orders; the echo's first element can be as late as the
+        direct wave's last one, hence the spread)."""
+        sp = self.sp
+        dly, tol = sp.echo_delay, sp.echo_tolerance
+        span = self.config.echo_orders * dly + sp.channel_spread + tol
+        self._accepted_u = [a for a in self._accepted_u if c - a <= span]
+        for a in self._accepted_u:
+            dt = c - a
+            for k in range(1, self.config.echo_orders + 1):
+                if k * dly - tol <= dt <= k * dly + sp.channel_spread + tol:
+                    return True
+        return False
 
     def _refine(self, raw_ext: np.ndarray) -> None:
         """AIC onsets for the pending candidates whose search segment is complete."""
@@ -568,7 +653,14 @@ class PacketDetector:
         idx = (starts - ext_start)[:, None] + self._aic_range
         seg = raw_ext[:, idx].transpose(1, 0, 2)                    # (K, 4, L)
         wts = np.stack([p.weights for p in todo])
-        m, _ = aic_pick(seg, wts, margin=2)
+        re = np.array([p.reonset for p in todo])
+        if re.any():
+            # inside a decaying packet the AIC works on the first difference, which keeps
+            # the new emission's sharp onset and drops the slow tail of the previous one
+            dseg = np.diff(seg, axis=-1, prepend=seg[..., :1])
+            seg = np.where(re[:, None, None], dseg, seg)
+        lo = np.array([p.aic_lo for p in todo], dtype=np.int64) - starts
+        m, _ = aic_pick(seg, wts, margin=2, start=np.maximum(lo, 0) if (lo > 0).any() else None)
         for p, st, mm in zip(todo, starts.tolist(), m.tolist()):
             p.onset = st + mm
 

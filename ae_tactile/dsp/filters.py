@@ -65,6 +65,16 @@ def noise_power_gain(sos: np.ndarray, n: int = 1 << 16) -> float:
     return float(np.dot(h, h))
 
 
+def diff_noise_ratio(sos: np.ndarray, n: int = 1 << 16) -> float:
+    """var(y[n] - y[n-1]) / var(y) for white noise through the filter:
+    sum (h[n] - h[n-1])^2 / sum h[n]^2 over its impulse response h."""
+    imp = np.zeros(n)
+    imp[0] = 1.0
+    h = signal.sosfilt(sos, imp)
+    dh = np.diff(np.concatenate([[0.0], h]))
+    return float(np.dot(dh, dh) / np.dot(h, h))
+
+
 def _kernel_works() -> bool:
     """True if scipy's private in-place kernel matches the public sosfilt bit for bit."""
     if _sosfilt_kernel is None:

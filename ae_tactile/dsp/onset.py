@@ -20,11 +20,13 @@ from __future__ import annotations
 import numpy as np
 
 
-def aic_pick(segments: np.ndarray, weights: np.ndarray | None = None, margin: int = 2
-             ) -> tuple[np.ndarray, np.ndarray]:
-    """Onset index m in [margin, L - margin] for each segment, and its AIC curve.
+def aic_pick(segments: np.ndarray, weights: np.ndarray | None = None, margin: int = 2,
+             start=None) -> tuple[np.ndarray, np.ndarray]:
+    """Onset index m in [start + margin, L - margin] for each segment, and its AIC curve.
 
-    segments: (K, C, L) float; weights: (K, C) non-negative (None: all ones).
+    segments: (K, C, L) float; weights: (K, C) non-negative (None: all ones); start:
+    (K,) ints, the first sample of each segment that counts (default 0: the AIC then
+    splits [start, L) only, so an earlier disturbance cannot win).
     Returns (onset (K,) int64, aic (K, L - 1) float64 for m = 1 .. L - 1, +inf outside
     the allowed range). Constant segments give a finite curve (variances are floored);
     the pick is then the first allowed m.
@@ -41,27 +43,43 @@ def aic_pick(segments: np.ndarray, weights: np.ndarray | None = None, margin: in
         w = np.asarray(weights, dtype=np.float64)
         if w.shape != (k, c):
             raise ValueError(f"weights must have shape {(k, c)}, got {w.shape}")
+    if start is None:
+        lo = np.zeros(k, np.int64)
+    else:
+        lo = np.asarray(start, dtype=np.int64).reshape(-1)
+        if lo.shape != (k,):
+            raise ValueError(f"start must have shape ({k},), got {np.shape(start)}")
+        lo = np.clip(lo, 0, length - 2 * margin - 1)
     if k == 0:
         return np.zeros(0, np.int64), np.zeros((0, length - 1))
     # pooled variances of sqrt(w_k) x_k: V = sum_k w_k var(x_k); x - x[0] limits
     # cancellation in the running sums when the segment has a DC offset
     x = (x - x[..., :1]) * np.sqrt(np.maximum(w, 0.0))[..., None]
+    rows = np.arange(k)
+    if start is not None and lo.any():
+        keep = np.arange(length)[None, :] >= lo[:, None]
+        x = np.where(keep[:, None, :], x - x[rows, :, lo][..., None], 0.0)
     s1 = np.cumsum(x, axis=-1)                          # (K, C, L) per channel
     s2 = np.cumsum(_channel_sum(x * x), axis=-1)        # (K, L) pooled
-    m = _M_CACHE.get(length)
-    if m is None:
-        m = np.arange(1, length, dtype=np.float64)
-        _M_CACHE[length] = m
-    n2 = length - m
-    a1 = s1[..., :-1] / m
+    mi = _M_CACHE.get(length)
+    if mi is None:
+        mi = np.arange(1, length, dtype=np.float64)
+        _M_CACHE[length] = mi
+    m = mi[None, :] - lo[:, None]                        # samples in [lo, m)
+    n2 = length - mi
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a1 = s1[..., :-1] / m[:, None, :]
+        v1 = s2[:, :-1] / m - _channel_sum(a1 * a1)
     a2 = (s1[..., -1:] - s1[..., :-1]) / n2
-    v1 = s2[:, :-1] / m - _channel_sum(a1 * a1)
     v2 = (s2[:, -1:] - s2[:, :-1]) / n2 - _channel_sum(a2 * a2)
-    total = s2[:, -1] / length - _channel_sum((s1[..., -1] / length) ** 2)
+    n_tot = (length - lo).astype(np.float64)
+    total = s2[:, -1] / n_tot - _channel_sum((s1[..., -1] / n_tot[:, None]) ** 2)
     floor = (1e-12 * np.maximum(total, 0.0) + 1e-300)[:, None]
-    aic = m * np.log(np.maximum(v1, 0.0) + floor) + n2 * np.log(np.maximum(v2, 0.0) + floor)
-    aic[:, :margin - 1] = np.inf
-    aic[:, length - margin:] = np.inf
+    allowed = (m >= margin) & (mi[None, :] <= length - margin)
+    m_pos = np.where(allowed, m, 1.0)
+    v1 = np.where(allowed, v1, 1.0)
+    aic = m_pos * np.log(np.maximum(v1, 0.0) + floor) + n2 * np.log(np.maximum(v2, 0.0) + floor)
+    aic = np.where(allowed, aic, np.inf)
     onset = np.argmin(aic, axis=-1).astype(np.int64) + 1
     return onset, aic
 

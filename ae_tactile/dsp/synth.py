@@ -62,8 +62,14 @@ def tone_burst(t_s: np.ndarray, freq_hz: float = 500e3, width_s: float = 1.5e-6)
 
 
 def random_delays(rng: np.random.Generator, max_delay_s: float = 1.0e-6) -> tuple:
-    """Plausible per-channel delays: t_k = -(xi_k tau_x + eta_k tau_y), |tau| <= max."""
-    tx, ty = rng.uniform(-max_delay_s, max_delay_s, 2)
+    """Per-channel delays of a random source direction (far field, paper Eq. 1-3):
+    t_k = -(xi_k tau_x + eta_k tau_y) with (tau_x, tau_y) = max_delay sin(theta) (cos phi,
+    sin phi), theta uniform in solid angle over the upper hemisphere; shifted so the
+    earliest channel has delay 0. max_delay = a / c (1 us for the paper's tip)."""
+    cos_t = rng.uniform(0.0, 1.0)
+    sin_t = math.sqrt(1.0 - cos_t * cos_t)
+    phi = rng.uniform(0.0, 2.0 * math.pi)
+    tx, ty = max_delay_s * sin_t * math.cos(phi), max_delay_s * sin_t * math.sin(phi)
     xi = np.array([1, 1, -1, -1])
     eta = np.array([1, -1, 1, -1])
     d = -(xi * tx + eta * ty)
