@@ -18,7 +18,9 @@ byte (up to ``read_timeout_s``, only when idle) and then takes everything waitin
 from __future__ import annotations
 
 import logging
+import os
 import queue
+import select
 import threading
 import time
 from dataclasses import dataclass, field
@@ -180,6 +182,7 @@ class FingertipLink:
         self._open_failure_logged = False
         self._detector_fs = 0.0
         self._is_socket = config.port.startswith("socket://")
+        self._fd: int | None = None
 
     # ---------------------------------------------------------------- control
     def start(self) -> None:
@@ -195,9 +198,14 @@ class FingertipLink:
             self._thread.join(timeout_s)
         self._close("stopped")
 
-    def poll(self, max_batches: int = 64) -> list[PacketBatch]:
-        """Batches queued since the last call (non-blocking)."""
+    def poll(self, max_batches: int = 64, timeout_s: float = 0.0) -> list[PacketBatch]:
+        """Batches queued since the last call; waits up to timeout_s for the first one."""
         out = []
+        if timeout_s > 0:
+            try:
+                out.append(self._queue.get(timeout=timeout_s))
+            except queue.Empty:
+                return out
         while len(out) < max_batches:
             try:
                 out.append(self._queue.get_nowait())
@@ -265,13 +273,20 @@ class FingertipLink:
     def _read(self, ser) -> bytes:
         """Everything waiting, or block (<= read_timeout_s) for the first byte when idle.
 
-        pyserial's in_waiting is a byte count for serial ports and ptys, but only 0/1 for
-        socket:// URLs, so sockets take the rest with a zero-timeout read instead.
+        Serial ports and ptys: one select() and one os.read() of whatever is there (pyserial's
+        own read(n) waits for n bytes or the timeout). socket:// URLs: pyserial's in_waiting
+        is only 0/1 there, so the first byte is awaited and the rest taken with a zero timeout.
         """
         chunk = self.config.read_chunk_bytes
-        n = ser.in_waiting
-        if n > 1 and not self._is_socket:
-            return ser.read(min(n, chunk))
+        fd = self._fd
+        if fd is not None:
+            ready, _, _ = select.select([fd], [], [], self.config.read_timeout_s)
+            if not ready:
+                return b""
+            data = os.read(fd, chunk)
+            if not data:
+                raise serial.SerialException("port readable but returned no data (device disconnected?)")
+            return data
         data = ser.read(1)
         if not data:
             return data
@@ -297,8 +312,15 @@ class FingertipLink:
             self.last_error = f"open failed: {exc}"
             self.state = "disconnected"
             return False
+        fd = None
+        if not self._is_socket:
+            try:
+                fd = ser.fileno()
+            except (AttributeError, NotImplementedError, serial.SerialException, OSError):
+                fd = None            # loop://, rfc2217:// ...: pyserial's own read
         with self._lock:
             self._serial = ser
+            self._fd = fd
             # A (re)connected device may have restarted: decode it as a new sender and
             # rebuild the clock mapping from scratch.
             self.decoder.flush()
@@ -317,6 +339,7 @@ class FingertipLink:
     def _close(self, reason: str) -> None:
         with self._lock:
             ser, self._serial = self._serial, None
+            self._fd = None
             was = self.state
             self.state = "disconnected"
         if ser is None:

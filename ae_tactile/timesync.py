@@ -89,15 +89,20 @@ class DeviceClockMapper:
         self._last_d = device_ns
         offset = host_ns - device_ns
         bucket = (device_ns - self._d_ref) // self.bucket_ns
+        changed = False
         if self._buckets and self._buckets[-1][0] == bucket:
             if offset < self._buckets[-1][2]:
                 self._buckets[-1][1:] = [device_ns, offset]
+                changed = True
         else:
             self._buckets.append([bucket, device_ns, offset])
+            changed = True
         oldest = bucket - self.window_ns // self.bucket_ns
         while self._buckets and self._buckets[0][0] < oldest:
             self._buckets.popleft()
-        self._fit()
+            changed = True
+        if changed:          # the envelope only moves when a bucket minimum does
+            self._fit()
         return did_reset
 
     def _fit(self) -> None:

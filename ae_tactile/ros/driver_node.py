@@ -3,8 +3,10 @@
 Publishes only raw packets (the localizer interprets them), like velodyne's driver.
 All link work (reading, decoding, reconnecting, time mapping, stream-mode packet
 cutting) is in the core (`ae_tactile.link`); this node declares parameters, converts
-batches to messages and publishes them as soon as the reader thread hands them over
-(a guard condition wakes the executor: no polling latency).
+batches to messages and publishes them as soon as the reader thread hands them over:
+a publisher thread blocks on the link's bounded queue (rclpy publishers are
+thread-safe), so packets neither wait for an executor wake-up nor pay its overhead;
+the executor only runs the diagnostics timer.
 
 Topics (relative, so a namespace per finger works):
   packets      ae_tactile/PacketArray   sensor-data QoS (best effort), or reliable with
@@ -15,6 +17,7 @@ Topics (relative, so a namespace per finger works):
 from __future__ import annotations
 
 import sys
+import threading
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -96,22 +99,32 @@ class DriverNode(Node):
         self.pub_packets = self.create_publisher(PacketArray, "packets", packet_qos(self.p["reliable_qos"]))
         self.pub_info = self.create_publisher(SensorInfo, "sensor_info", LATCHED)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.guard = self.create_guard_condition(self._publish_batches)
-        self.link = FingertipLink(self.link_config, clock_ns=lambda: self.get_clock().now().nanoseconds,
-                                  on_batch=self.guard.trigger, logger=None)
+        self.link = FingertipLink(self.link_config, clock_ns=lambda: self.get_clock().now().nanoseconds)
         self._info_key = None
         self._last_diag = None
         self.published_packets = 0
         self.create_timer(self.p["diagnostics_period_s"], self._publish_diagnostics)
         self._publish_sensor_info()
+        self._running = True
+        self._publisher_thread = threading.Thread(target=self._publish_loop, name="ae_tactile_publisher",
+                                                  daemon=True)
         self.link.start()
+        self._publisher_thread.start()
         self.get_logger().info(
             f"driver on {self.link_config.port} ({self.link_config.mode} mode), frame '{self.p['frame_id']}', "
             f"{'reliable' if self.p['reliable_qos'] else 'sensor-data'} QoS")
 
     # -------------------------------------------------------------- packets
-    def _publish_batches(self) -> None:
-        for batch in self.link.poll():
+    def _publish_loop(self) -> None:
+        while self._running:
+            try:
+                self._publish_batches(self.link.poll(timeout_s=0.1))
+            except Exception as exc:   # never let the publisher thread die silently
+                if self._running:
+                    self.get_logger().error(f"publishing failed: {exc!r}")
+
+    def _publish_batches(self, batches) -> None:
+        for batch in batches:
             msg = PacketArray()
             msg.header.stamp = ns_to_time_msg(batch.receive_ns)
             msg.header.frame_id = self.p["frame_id"]
@@ -193,7 +206,9 @@ class DriverNode(Node):
         self.pub_diag.publish(msg)
 
     def destroy_node(self):
+        self._running = False
         self.link.stop()
+        self._publisher_thread.join(1.0)
         return super().destroy_node()
 
 
