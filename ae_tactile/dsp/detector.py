@@ -2,16 +2,16 @@
 
 `PacketDetector.process(samples (4, n), first_sample_index)` returns a `PacketBatch` with
 every packet whose window is complete; `flush()` ends the stream. The output does not
-depend on how the stream is cut into chunks (bit-identical), because every stage works
-on the absolute sample-index grid:
+depend on how the stream is cut into chunks (bit-identical, tested), because every stage
+works on the absolute sample-index grid and carries its state:
 
 1. Input check. NaN, +-inf and |x| > max_abs_v are *invalid samples*: counted, replaced
    by the channel's last valid value (so the filter sees no step), and any window that
    touches one is dropped (counted), never published.
-2. Band-pass (ae_tactile/dsp/filters.py), state carried across calls.
-3. Noise floor per channel in blocks of B samples on the index grid
-   (ae_tactile/dsp/noise.py). Samples are processed in whole blocks: the tail of a chunk
-   waits in a buffer for the next call (latency <= B, 100 us by default).
+2. Trigger path at fs / D (D = 2 at 10 MS/s): sums of D samples on the index grid, then
+   the band-pass of ae_tactile/dsp/filters.py with its state carried across calls.
+3. Noise floor per channel in blocks of B trigger samples on the grid
+   (ae_tactile/dsp/noise.py); the variance of a block is known when it starts.
 4. Envelope e[n] = sqrt( (1/4) sum_k y_k[n]^2 / sigma_k^2 ) in noise sigmas (a chi
    distribution with 4 degrees of freedom under noise: P(e >= 5) ~ 1e-20 per sample).
 5. Trigger (docs/detection.md):
@@ -20,18 +20,27 @@ on the absolute sample-index grid:
      on sample until no active sample occurred for ``hold`` samples; every rising edge
      is an emission candidate (so a second crossing after a quiet gap, however short
      compared with HDT, gets its own window);
-   - jump: an on sample where e >= jump_ratio * max(e[n - look - hold + 1 .. n - look])
-     starts a new emission inside a running packet (the first sample of each run);
+   - re-onsets: inside a running packet, per channel, the squared first difference of
+     the band-passed signal (in its noise units) that reaches channel_onset_sigma^2 and
+     jump_ratio^2 times its exponentially decayed maximum over the last onset_window is
+     a channel onset; a channel's second onset in the same hit, >= channel_refractory
+     after its first and not within channel_spread after an accepted emission, is a new
+     emission (the first difference keeps sharp onsets and drops the slow tail of the
+     decaying packet, and looking per channel avoids mistaking a packet's own late
+     elements for a new emission);
    - candidates closer than ``min_separation`` to the previous accepted one are the same
-     emission;
+     emission; with ``echo_delay_s`` set, candidates at k echo delays after an accepted
+     one are wall echoes (counted, no window);
    - AE hits: active samples with gaps <= HDT form one hit; a candidate in the cluster
-     of the running hit is an in-hit emission (``in_hit``: overlapping emission or
-     echo, windowed and counted); a candidate in a later cluster starts a new hit unless
-     it falls within HLT after the previous hit ended (last active + HDT), in which case
-     it is locked out (counted, no window).
+     of the running hit is an in-hit emission (``in_hit``: an overlapping emission, or an
+     echo when echo rejection is off), windowed and counted; a candidate in a later
+     cluster starts a new hit unless it falls within HLT after the previous hit ended
+     (last active + HDT): then it is locked out (counted, no window).
    Only the (sparse) active samples are visited in Python; everything per sample is numpy.
 6. Onset: multichannel AIC (ae_tactile/dsp/onset.py) on the raw samples of
-   [crossing - aic_pre, crossing + aic_post), weighted by 1 / sigma_k^2.
+   [crossing - aic_pre, crossing + aic_post), weighted by 1 / sigma_k^2, never earlier
+   than the previous emission's crossing + channel_spread; for re-onsets on the first
+   difference of the samples, within reonset_aic_pre of the re-onset.
 7. Window [onset - pre, onset + post) of the original samples. A packet is released once
    the stream has reached window end + pre + aic_pre + aic_post, by when every other
    emission whose window can intersect it is known, so the overlap flags are final.
@@ -471,7 +480,12 @@ class PacketDetector:
                 e2[a:z] = 0.0
 
     def _prune_invalid(self) -> None:
-        keep_from = self._proc_end - self.sp.history - self.sp.window
+        """Forget invalid ranges no window or trigger block can touch any more."""
+        sp = self.sp
+        keep_from = self._proc_end - sp.history - sp.window - sp.block_full
+        for p in self._pending:
+            lo = (p.onset if p.onset is not None else p.crossing + 1 - sp.aic_pre) - sp.pretrigger
+            keep_from = min(keep_from, lo)
         self._invalid = [(s, e) for s, e in self._invalid if e > keep_from]
 
     def _trigger(self, e2: np.ndarray, y: np.ndarray, u0: int, w: np.ndarray,
@@ -559,10 +573,11 @@ class PacketDetector:
     def _events(self, events, a_abs, clu_gid, w, blk0) -> None:
         """Turn rising edges and channel onsets (time order) into emissions.
 
-        A rising edge is a candidate. A channel onset is a candidate (a re-onset: a new
-        emission inside a running packet) when the same channel already had an onset in
-        the same hit at least channel_refractory earlier, and no emission was accepted
-        within channel_spread before it (then it is that emission's late channel).
+        A rising edge is a candidate when it is not inside the running hit (its cluster
+        of active samples). A channel onset is a candidate (a re-onset: a new emission
+        inside a running packet) when the same channel already had an onset in the same
+        hit at least channel_refractory earlier, and no emission was accepted within
+        channel_spread before it (then it is that emission's late channel).
         Candidates then go through min_separation, the echo rule and the AE hit rules.
         """
         sp = self.sp
@@ -579,6 +594,10 @@ class PacketDetector:
                 self._ch_last_cluster[k] = g
                 if not is_re or c <= self._assign_until:
                     continue
+            elif g == self._hit_cluster:
+                # a threshold re-crossing inside the running hit is the packet's own tail
+                # unless a channel onset says otherwise (handled above)
+                continue
             if self._last_cand is not None and c - self._last_cand < sp.min_separation:
                 continue
             if sp.echo_delay and self._is_echo(c):
