@@ -145,6 +145,8 @@ class PacketDetector:
         self._floor_var = (0.1 * config.lsb_v) ** 2
         self._sat_lo, self._sat_hi = config.saturation_levels_v
         self._invalid_level = config.invalid_level_v
+        # filtered energy no valid input can reach (|x| <= max_abs_v, sums of D, gain < 2)
+        self._invalid_y2 = (2.0 * self.sp.decim * self._invalid_level) ** 2
         self._filter = StreamingSOS(self.sos, N_CHANNELS)
         self._tracker = BlockNoiseTracker(N_CHANNELS, config.noise_history_blocks,
                                           config.noise_min_blocks, config.burst_ratio,
@@ -211,7 +213,16 @@ class PacketDetector:
             self._start_stream(idx)
         self._expected = idx + n
         outs = [] if first is None else [first]
-        # long chunks are cut into cache-sized pieces (the result does not depend on it)
+        # short chunks are gathered up to min_batch samples (per-call overhead), long ones
+        # cut into cache-sized pieces; the result does not depend on either
+        if self._inbuf or n < self.sp.min_batch:
+            self._inbuf.append(np.array(x, dtype=np.float64, copy=True))
+            self._inlen += n
+            if self._inlen < self.sp.min_batch:
+                return first if first is not None and len(first) else self._empty_batch
+            x = np.concatenate(self._inbuf, axis=1) if len(self._inbuf) > 1 else self._inbuf[0]
+            n = x.shape[1]
+            self._inbuf, self._inlen = [], 0
         for i in range(0, n, _MAX_PIECE):
             self._run(x[:, i:i + _MAX_PIECE])
             outs.append(self._release(final=False))
@@ -283,6 +294,8 @@ class PacketDetector:
         self._origin_u = 0
         self._proc_end = 0
         self._lead = np.zeros((N_CHANNELS, 0))        # raw samples of an incomplete group
+        self._inbuf: list[np.ndarray] = []            # short chunks waiting for min_batch
+        self._inlen = 0
         self._skip = 0
         self._u_next = 0
         self._last_valid = np.zeros(N_CHANNELS)
@@ -321,39 +334,48 @@ class PacketDetector:
     def _finish(self) -> PacketBatch:
         if self._expected is None:
             return self._empty_batch
+        if self._inbuf:
+            x = np.concatenate(self._inbuf, axis=1) if len(self._inbuf) > 1 else self._inbuf[0]
+            self._inbuf, self._inlen = [], 0
+            outs = []
+            for i in range(0, x.shape[1], _MAX_PIECE):
+                self._run(x[:, i:i + _MAX_PIECE])
+                outs.append(self._release(final=False))
+            outs.append(self._release(final=True))
+            return PacketBatch.concatenate(outs, self.sample_rate_hz, self.sp.window)
         return self._release(final=True)
 
     # ------------------------------------------------------------------ core
     def _run(self, x: np.ndarray) -> None:
         """Take the chunk x (4, n) (any real dtype) that starts at self._proc_end."""
         sp = self.sp
-        d = sp.decim
         s0 = self._proc_end
         n = x.shape[1]
-        lim = self._invalid_level
         if x.dtype != np.float64 or not x.flags.c_contiguous:
             xf = np.ascontiguousarray(x, dtype=np.float64)
         else:
             xf = x
-        # fast validity check on the group sums (NaN/inf propagate); exact check if it fails
+        # Fast path: NaN/inf propagate through the group sums and the filter into the
+        # block statistics, which are checked before anything is committed; absurd finite
+        # values show as absurd filtered energy. Then the exact check, sanitizing and a
+        # second pass from the saved state.
+        zi = self._filter.state()
+        skip0, lead0 = self._skip, self._lead
         xd, skip_used, lead = self._decimate(xf)
-        ok = True
-        if xd.shape[1]:
-            lo, hi = xd.min(), xd.max()
-            ok = bool(lo >= -d * lim and hi <= d * lim)
-        if ok and lead.shape[1]:
-            ok = bool(np.all(np.abs(lead) <= lim))
-        if ok:
-            self._last_valid = xf[:, -1].copy()
-        else:
+        ok = bool(np.all(np.abs(lead) <= self._invalid_level)) if lead.shape[1] else True
+        phase = self._filter_phase(xd) if ok and xd.shape[1] else None
+        if not ok or (phase is not None and not phase[-1]):
+            self._filter.set_state(zi)
+            self._skip, self._lead = skip0, lead0
             xf = self._sanitize(xf, s0)
-            self._last_valid = xf[:, -1].copy()
             xd, skip_used, lead = self._decimate(xf)
+            phase = self._filter_phase(xd) if xd.shape[1] else None
+        self._last_valid = xf[:, -1].copy()
         self._skip -= skip_used
         self._lead = lead
-        if xd.shape[1]:
+        if phase is not None:
             u0 = self._u_next
-            self._trigger_path(xd, u0)
+            self._trigger_path(phase, u0)
             self._u_next = u0 + xd.shape[1]
         self._proc_end = s0 + n
         h = sp.history
@@ -409,15 +431,15 @@ class PacketDetector:
             xd = np.ascontiguousarray(xd)
         return xd, skip, xf[:, pos:].copy()
 
-    def _trigger_path(self, xd: np.ndarray, u0: int) -> None:
-        """Band-pass, noise floor, envelope and trigger on trigger-path samples xd (4, m)
-        with absolute trigger indices u0 .. u0 + m - 1."""
-        sp = self.sp
-        b = sp.block
+    def _filter_phase(self, xd: np.ndarray):
+        """Band-pass xd (4, m) and square it into whole blocks; block statistics.
+
+        Returns (y, r (4, nbs, B) y^2 with the current block's earlier part in front and
+        zeros after the end, ms, pk (4, ncomp) of the completed blocks, finite flag)."""
+        b = self.sp.block
         m = xd.shape[1]
         y = self._filter.process(xd, inplace=True)
-        p = self._blk_y2.shape[1]              # samples of the current block seen before
-        blk0 = u0 - p                           # its first trigger index
+        p = self._blk_y2.shape[1]               # samples of the current block seen before
         total = p + m
         nbs = -(-total // b)
         ncomp = total // b
@@ -428,10 +450,26 @@ class PacketDetector:
         if total < nbs * b:
             y2pad[:, total:] = 0.0
         r = y2pad.reshape(N_CHANNELS, nbs, b)
+        ms = r[:, :ncomp].mean(axis=-1)
+        pk = r[:, :ncomp].max(axis=-1)
+        lim = self._invalid_y2
+        finite = bool(pk.max() <= lim) if ncomp else True      # False for NaN, inf, absurd
+        if finite and total > ncomp * b:
+            finite = bool(r[:, ncomp].max() <= lim)
+        return y, r, ms, pk, p, finite
+
+    def _trigger_path(self, phase, u0: int) -> None:
+        """Noise floor, envelope and trigger on the filtered trigger-path samples (absolute
+        trigger indices u0 ..)."""
+        sp = self.sp
+        b = sp.block
+        y, r, ms, pk, p, _ = phase
+        m = y.shape[1]
+        blk0 = u0 - p                           # first trigger index of the first block
+        total = p + m
+        nbs = r.shape[1]
+        ncomp = ms.shape[1]
         if ncomp:
-            rc = r[:, :ncomp]
-            ms = rc.mean(axis=-1)
-            pk = rc.max(axis=-1)
             starts = blk0 + b * np.arange(ncomp)
             missing = starts < self._origin_u + sp.settle
             if self._invalid:
@@ -441,17 +479,16 @@ class PacketDetector:
             self._blk_var = var_all[:, -1].copy()
         else:
             var = self._blk_var[:, None]
-        self._blk_y2 = y2pad[:, ncomp * b:total].copy()
+        self._blk_y2 = r.reshape(N_CHANNELS, -1)[:, ncomp * b:total].copy()
         blind = np.isnan(var[0])
         if blind.any():
             nb_blind = int(blind.sum())
             self.stats.blind_samples += sp.decim * (nb_blind * b - (p if blind[0] else 0)
                                                     - ((nbs * b - total) if blind[-1] else 0))
-        w = np.where(np.isnan(var), 0.0, 0.25 / np.where(np.isnan(var), 1.0, var))
-        e2 = r[0] * w[0][:, None]
-        for k in range(1, N_CHANNELS):
-            e2 = e2 + r[k] * w[k][:, None]
-        e2 = e2.reshape(-1)[p:total]
+            w = np.where(np.isnan(var), 0.0, 0.25 / np.where(np.isnan(var), 1.0, var))
+        else:
+            w = 0.25 / var
+        e2 = np.einsum("kbn,kb->bn", r, w).reshape(-1)[p:total]
         if self._invalid:
             self._zero_invalid(e2, u0)
         self._trigger(e2, y, u0, w, blk0)
@@ -541,7 +578,7 @@ class PacketDetector:
         """
         sp = self.sp
         lh = sp.onset_window + 1
-        # first differences over the span the active samples and their windows need
+        # squared first differences over the span the active samples and their windows need
         lo = int(act[0]) - lh                                # may reach into the history
         hi = int(act[-1]) + 1
         if lo >= 0:
@@ -551,23 +588,27 @@ class PacketDetector:
         d = ys[:, 1:] - ys[:, :-1]                          # d[j] = y[lo + j + 1] - y[lo + j]
         d *= d
         q = act - (lo + 1)                                   # d[q] is (y[n] - y[n-1])^2
+        # absolute level first (cheap, prunes most samples), then the decayed reference
+        wd = w[:, (a_abs - blk0) // sp.block] * self._wd_scale   # 1 / sigma_dk^2, (4, na)
         cur = d[:, q]
-        ref = (d[:, q[:, None] - self._onset_offs] * self._onset_gpow).max(axis=-1)   # (4, na)
-        wd = w[:, (a_abs - blk0) // sp.block] * self._wd_scale   # 1 / sigma_dk^2
-        cond = (cur * wd >= self._chk2) & (cur >= self._jump2 * ref)
+        kk, pp = np.nonzero(cur * wd >= self._chk2)
+        if kk.size == 0:
+            return []
+        qq = q[pp]
+        ref = (d[kk[:, None], qq[:, None] - self._onset_offs] * self._onset_gpow).max(axis=-1)
+        ok = cur[kk, pp] >= self._jump2 * ref
+        if not ok.any():
+            return []
+        kk, pp = kk[ok], pp[ok]
         out = []
-        if not cond.any():
-            return out
-        for k in range(N_CHANNELS):
-            pos = np.flatnonzero(cond[k])
-            if pos.size == 0:
-                continue
-            last_cond = self._ch_last_cond[k]
-            for p_, t in zip(pos.tolist(), a_abs[pos].tolist()):
-                if last_cond is None or t - last_cond != 1:
-                    out.append((p_, k))
-                last_cond = t
-            self._ch_last_cond[k] = last_cond
+        tt = a_abs[pp].tolist()
+        last = list(self._ch_last_cond)
+        for k, p_, t in zip(kk.tolist(), pp.tolist(), tt):    # channel-major, time order
+            lc = last[k]
+            if lc is None or t - lc != 1:
+                out.append((p_, k))
+            last[k] = t
+        self._ch_last_cond = last
         return out
 
     def _events(self, events, a_abs, clu_gid, w, blk0) -> None:

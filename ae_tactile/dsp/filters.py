@@ -117,6 +117,14 @@ class StreamingSOS:
     def reset(self) -> None:
         self._zi = None
 
+    def state(self):
+        """A copy of the filter state (None before the first sample)."""
+        return None if self._zi is None else self._zi.copy()
+
+    def set_state(self, zi) -> None:
+        """Restore a state returned by `state`."""
+        self._zi = None if zi is None else np.array(zi, dtype=np.float64, order="C", copy=True)
+
     def process(self, x: np.ndarray, inplace: bool = False) -> np.ndarray:
         if x.shape[-1] == 0:
             return np.zeros(x.shape, dtype=np.float64)
