@@ -61,16 +61,19 @@ def test_reference_stream_is_interesting():
 
 
 @pytest.mark.parametrize("size", [1, 7, 399, 400, 401, 8192])
-def test_fixed_chunk_sizes_give_identical_output(size):
+@pytest.mark.parametrize("min_batch_s", [0.0, 1e-3])
+def test_fixed_chunk_sizes_give_identical_output(size, min_batch_s):
+    """min_batch_s=0 processes every chunk as it comes (arbitrary internal boundaries)."""
     n = STREAM.shape[1]
-    b, stats = _run(STREAM, [size] * (n // size) + ([n % size] if n % size else []))
+    b, stats = _run(STREAM, [size] * (n // size) + ([n % size] if n % size else []),
+                    min_batch_s=min_batch_s)
     assert b.equals(REF) and _same_stats(stats, REF_STATS)
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.lists(st.sampled_from([1, 3, 7, 64, 399, 400, 401, 1000, 4096, 20000]),
-                min_size=1, max_size=60))
-def test_random_chunkings_give_identical_output(sizes):
+                min_size=1, max_size=60), st.sampled_from([0.0, 0.3e-3, 1e-3]))
+def test_random_chunkings_give_identical_output(sizes, min_batch_s):
     n = STREAM.shape[1]
     chunks, total = [], 0
     while total < n:
@@ -80,7 +83,7 @@ def test_random_chunkings_give_identical_output(sizes):
                 break
             chunks.append(s)
             total += s
-    b, stats = _run(STREAM, chunks)
+    b, stats = _run(STREAM, chunks, min_batch_s=min_batch_s)
     assert b.equals(REF) and _same_stats(stats, REF_STATS)
 
 
@@ -91,8 +94,9 @@ def test_chunkings_are_identical_at_other_rates_and_with_float32():
                for t, s in ((0.5e-3, 1), (0.7e-3, -1), (0.7e-3 + 8e-6, 1))]
         x = synth_stream(int(1e-3 * fs), fs, evs, noise_rms_v=SIGMA, seed=1).astype(np.float32)
         a, _ = _run(x, [x.shape[1]], sample_rate_hz=fs)
-        b, _ = _run(x, [5] * (x.shape[1] // 5), sample_rate_hz=fs)
-        c, _ = _run(x, [777] * (x.shape[1] // 777) + [x.shape[1] % 777], sample_rate_hz=fs)
+        b, _ = _run(x, [5] * (x.shape[1] // 5), sample_rate_hz=fs, min_batch_s=0.0)
+        c, _ = _run(x, [777] * (x.shape[1] // 777) + [x.shape[1] % 777], sample_rate_hz=fs,
+                    min_batch_s=0.0)
         assert len(a) == 3 and a.equals(b) and a.equals(c)
 
 
