@@ -151,6 +151,12 @@ def main(argv=None):
               f"= x{rt:5.2f} real time (wall x{row['x_real_time_wall']:5.2f}); "
               f"recall {row['recall']:.3f} precision {row['precision']:.3f} "
               f"windows {row['windows']} / {row['emissions']}", flush=True)
+    print("\n| case | emissions/s | fs (MS/s) | chunk | M instants/s | x real time | recall | precision |")
+    print("|---|---|---|---|---|---|---|---|")
+    for r in results["cases"]:
+        print(f"| {r['case']} | {r['emission_rate_hz']:.0f} | {r['sample_rate_hz'] / 1e6:.0f} | "
+              f"{r['chunk']} | {r['instants_per_s'] / 1e6:.1f} | {r['x_real_time']:.2f} | "
+              f"{r['recall']:.3f} | {r['precision']:.3f} |")
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
     with open(args.out, "w") as f:
         json.dump(results, f, indent=1)

@@ -24,7 +24,10 @@ def test_bandpass_design_corners_and_low_rate_clipping():
     assert g[1] == pytest.approx(1 / math.sqrt(2), rel=0.05)    # -3 dB at both corners
     assert g[3] == pytest.approx(1 / math.sqrt(2), rel=0.05)
     assert g[2] > 0.95 and g[0] < 0.3 and g[4] < 0.2
-    # at 1 MS/s the 1.5 MHz low-pass is above 0.4 fs: dropped, a pure high-pass remains
+    # at low rates the low-pass is clipped to 0.36 fs (Nyquist), dropped at 1 MS/s where
+    # that would leave less than a factor 4 above the high-pass: a pure high-pass remains
+    w, h = signal.sosfreqz(design_bandpass_sos(10e6 / 3, 100e3, 1.5e6), worN=[1.2e6], fs=10e6 / 3)
+    assert abs(h[0]) == pytest.approx(1 / math.sqrt(2), rel=0.05)
     assert design_bandpass_sos(1e6, 100e3, 1.5e6).shape == (1, 6)
     with pytest.raises(ValueError, match="highpass_hz"):
         design_bandpass_sos(1e6, 450e3, None)
@@ -214,12 +217,13 @@ def test_bad_parameters_raise_clear_value_errors(kw, match):
 def test_config_samples_and_dict_round_trip():
     c = DetectorConfig()
     sp = c.samples()
-    assert (sp.decim, sp.trigger_rate_hz) == (2, 5e6)
+    assert (sp.decim, sp.trigger_rate_hz) == (3, 10e6 / 3)
     assert (sp.pretrigger, sp.posttrigger, sp.window) == (100, 300, 400)
     assert DetectorConfig.from_dict(c.as_dict()) == c
     with pytest.raises(ValueError, match="unknown"):
         DetectorConfig.from_dict({"threshold": 5})
-    assert DetectorConfig(sample_rate_hz=20e6).samples().decim == 5
+    assert DetectorConfig(sample_rate_hz=20e6).samples().decim == 6
+    assert DetectorConfig(sample_rate_hz=5e6).samples().decim == 1
     assert DetectorConfig(sample_rate_hz=1e6).samples().decim == 1
     lo, hi = c.saturation_levels_v
     lsb = 2.0 / 4096

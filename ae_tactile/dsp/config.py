@@ -87,11 +87,12 @@ class DetectorConfig:
     Filter (trigger path only; windows carry the original samples)
       sample_rate_hz      ADC rate (Hz), 0.25 .. 1000 MS/s (tested 1 - 20 MS/s).
       trigger_min_rate_hz the trigger path runs on sums of D consecutive samples,
-                          D = max(1, floor(fs / trigger_min_rate_hz)) (4 MS/s: D = 2 at
-                          10 MS/s, 5 at 20 MS/s, 1 up to 7.99 MS/s). Halves the cost of the
-                          trigger at 10 MS/s; onsets are refined at the full rate.
+                          D = max(1, floor(fs / trigger_min_rate_hz)) (3 MS/s: D = 3 at
+                          10 MS/s, 6 at 20 MS/s, 1 below 6 MS/s). Cuts the cost of the
+                          trigger; onsets and windows use the full rate.
       highpass_hz         Butterworth high-pass corner (100 kHz, the paper's band edge).
-      lowpass_hz          Butterworth low-pass corner (1.5 MHz); None or >= 0.4 fs: none.
+      lowpass_hz          Butterworth low-pass corner (1.5 MHz; clipped to 0.36 of the
+                          trigger rate, dropped below 4 highpass_hz); None: none.
       filter_order        order of each of the two (2).
     Trigger (on the channel-RMS envelope e = sqrt(mean_k y_k^2 / sigma_k^2), in noise sigmas)
       threshold_sigma     a hit starts when e reaches this (5).
@@ -150,7 +151,7 @@ class DetectorConfig:
     """
 
     sample_rate_hz: float = 10e6
-    trigger_min_rate_hz: float = 4e6
+    trigger_min_rate_hz: float = 3e6
     highpass_hz: float = 100e3
     lowpass_hz: float | None = 1.5e6
     filter_order: int = 2

@@ -692,14 +692,38 @@ class PacketDetector:
                     return True
         return False
 
-    def _refine(self, raw_ext: np.ndarray) -> None:
+    def _raw_span(self) -> int:
+        """First absolute index of the raw samples held (history + last piece)."""
+        held = self._raw_hist_prev.shape[1] + self._raw_last.shape[1] \
+            if self._raw_last is not None else self._raw_hist.shape[1]
+        return self._proc_end - held
+
+    def _gather(self, idx: np.ndarray) -> np.ndarray:
+        """Raw samples at absolute indices idx (K, L) -> (K, 4, L), from the history and
+        the last piece without joining them."""
+        last = self._raw_last
+        if last is None:
+            src = self._raw_hist
+            out = src[:, idx - (self._proc_end - src.shape[1])]
+        else:
+            rel = idx - (self._proc_end - last.shape[1])
+            if rel.min() >= 0:
+                out = last[:, rel]
+            else:
+                hist = self._raw_hist_prev
+                nl, nh = last.shape[1], hist.shape[1]
+                out = np.where(rel >= 0, last[:, np.clip(rel, 0, nl - 1)],
+                               hist[:, np.clip(rel + nh, 0, nh - 1)])
+        return np.ascontiguousarray(out.transpose(1, 0, 2))
+
+    def _refine(self) -> None:
         """AIC onsets for the pending candidates whose search segment is complete."""
         sp = self.sp
         todo = [p for p in self._pending if p.onset is None
                 and p.crossing + 1 + sp.aic_post <= self._proc_end]
         if not todo:
             return
-        ext_start = self._proc_end - raw_ext.shape[1]
+        ext_start = self._raw_span()
         starts = np.array([p.crossing + 1 - sp.aic_pre for p in todo], dtype=np.int64)
         ok = starts >= max(ext_start, self._origin)
         if not ok.all():
@@ -710,8 +734,7 @@ class PacketDetector:
             starts = starts[ok]
             if not todo:
                 return
-        idx = (starts - ext_start)[:, None] + self._aic_range
-        seg = raw_ext[:, idx].transpose(1, 0, 2)                    # (K, 4, L)
+        seg = self._gather(starts[:, None] + self._aic_range)        # (K, 4, L)
         wts = np.stack([p.weights for p in todo])
         re = np.array([p.reonset for p in todo])
         if re.any():
@@ -734,9 +757,7 @@ class PacketDetector:
                     for p in self._pending)
         if not final and lower + sp.posttrigger + sp.release_lag > self._proc_end:
             return self._empty_batch
-        raw = np.concatenate([self._raw_hist_prev, self._raw_last], axis=1) \
-            if self._raw_last is not None else self._raw_hist
-        self._refine(raw)
+        self._refine()
         if final:
             for p in self._pending:
                 if p.onset is None:
@@ -748,8 +769,7 @@ class PacketDetector:
             return self._empty_batch
         # neighbours for the overlap flags: recent released + all known pending
         neigh = self._recent + [(p.pid, p.onset) for p in known if p.onset >= 0]
-        ext_start = self._proc_end - raw.shape[1]
-        lo_ok = max(self._origin, ext_start)
+        lo_ok = max(self._origin, self._raw_span())
         cand = []
         drop_trunc = 0
         for p in ready:
@@ -767,8 +787,7 @@ class PacketDetector:
             return self._empty_batch
         onset = np.array([p.onset for p in cand], dtype=np.int64)
         start = onset - sp.pretrigger
-        idx = (start - ext_start)[:, None] + self._win_range
-        win = raw[:, idx].transpose(1, 0, 2)                          # (K, 4, M) copy
+        win = self._gather(start[:, None] + self._win_range)          # (K, 4, M)
         good = np.abs(win).max(axis=(1, 2)) <= self._invalid_level
         if self._invalid:
             end = start + sp.window
@@ -781,7 +800,6 @@ class PacketDetector:
             if not cand:
                 return self._empty_batch
             onset, start, win = onset[good], start[good], win[good]
-        win = np.ascontiguousarray(win)
         k = len(cand)
         m = sp.window
         prev_id = [-1] * k

@@ -7,9 +7,10 @@ The detector band-passes the raw stream before it looks for packets:
 with the high-pass at ``highpass_hz`` (default 100 kHz, the paper's front-end corner: it
 removes DC offsets and drift) and the low-pass at ``lowpass_hz`` (default 1.5 MHz, just
 above the ~1 MHz emission band: it removes the out-of-band part of the white noise, about
-5 dB of it at 10 MS/s). The low-pass is dropped when ``lowpass_hz >= 0.4 fs`` (e.g. at
-1-3 MS/s): the ADC's anti-alias filter then limits the band, and a corner that close to
-Nyquist would only add delay.
+5 dB of it at 10 MS/s). At low rates the low-pass corner is clipped to 0.36 fs (below
+Nyquist, where a Butterworth corner is still well behaved), and dropped when that leaves
+less than a factor 4 above the high-pass corner (fs below ~1.1 MS/s): the ADC's
+anti-alias filter then limits the band.
 
 The state (``zi``) is carried from call to call, so the output is bit-identical however
 the stream is cut into chunks: scipy's ``sosfilt`` runs the same recursion on the same
@@ -26,8 +27,12 @@ try:  # scipy's compiled kernel without the per-call argument handling of sosfil
 except Exception:  # noqa: BLE001 - any scipy layout change: use the public API
     _sosfilt_kernel = None
 
-#: Low-pass corners at or above this fraction of fs are dropped (see module docstring).
+#: The high-pass corner must lie below this fraction of fs.
 LOWPASS_MAX_FRACTION = 0.4
+#: The low-pass corner is clipped to this fraction of fs ...
+LOWPASS_CLIP_FRACTION = 0.36
+#: ... and dropped when that leaves less than this ratio to the high-pass corner.
+LOWPASS_MIN_RATIO = 4.0
 
 
 def design_bandpass_sos(sample_rate_hz: float, highpass_hz: float, lowpass_hz: float | None,
@@ -51,7 +56,8 @@ def design_bandpass_sos(sample_rate_hz: float, highpass_hz: float, lowpass_hz: f
         lp = float(lowpass_hz)
         if not (np.isfinite(lp) and lp > hp):
             raise ValueError(f"lowpass_hz={lowpass_hz!r} must be finite and above highpass_hz={hp:g}")
-        if lp < LOWPASS_MAX_FRACTION * fs:
+        lp = min(lp, LOWPASS_CLIP_FRACTION * fs)
+        if lp >= LOWPASS_MIN_RATIO * hp:
             sos.append(signal.butter(int(order), lp, btype="lowpass", fs=fs, output="sos"))
     return np.ascontiguousarray(np.concatenate(sos, axis=0), dtype=np.float64)
 
