@@ -8,7 +8,7 @@ works on the absolute sample-index grid and carries its state:
 1. Input check. NaN, +-inf and |x| > max_abs_v are *invalid samples*: counted, replaced
    by the channel's last valid value (so the filter sees no step), and any window that
    touches one is dropped (counted), never published.
-2. Trigger path at fs / D (D = 2 at 10 MS/s): sums of D samples on the index grid, then
+2. Trigger path at fs / D (D = 3 at 10 MS/s): sums of D samples on the index grid, then
    the band-pass of ae_tactile/dsp/filters.py with its state carried across calls.
 3. Noise floor per channel in blocks of B trigger samples on the grid
    (ae_tactile/dsp/noise.py); the variance of a block is known when it starts.
