@@ -211,3 +211,34 @@ def test_empty_chunks_and_overrides():
         PacketDetector(config={"threshold_sigma": 5})
     with pytest.raises(TypeError):
         PacketDetector(threshold=5)
+
+
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.sampled_from([1e6, 2e6, 3e6, 5e6, 7.5e6, 10e6, 12e6, 20e6]),
+       st.integers(0, 2 ** 31 - 1), st.booleans(), st.booleans(),
+       st.sampled_from([0.0, 1e-3]), st.sampled_from([None, 13.5e-6]))
+def test_fuzz_never_raises_never_nan(fs, seed, float32, corrupt, min_batch_s, echo):
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1000, 30000))
+    evs = [SynthEvent(float(t), float(rng.choice([-1, 1]) * 10 ** rng.uniform(-3, 0.5)),
+                      random_delays(rng)) for t in rng.uniform(0, n / fs, rng.integers(0, 8))]
+    x = synth_stream(n, fs, evs, noise_rms_v=float(10 ** rng.uniform(-5, -1)),
+                     dc_v=float(rng.uniform(-0.5, 0.5)), seed=seed % 1000,
+                     full_scale_v=1.0 if rng.random() < 0.5 else None)
+    if float32:
+        x = x.astype(np.float32)
+    if corrupt:
+        k = int(rng.integers(1, 20))
+        x[rng.integers(0, 4, k), rng.integers(0, n, k)] = rng.choice(
+            [np.nan, np.inf, -np.inf, 1e30], k)
+    det = PacketDetector(sample_rate_hz=fs, min_batch_s=min_batch_s, echo_delay_s=echo)
+    out, i, start = [], 0, int(rng.integers(0, 10 ** 9))
+    with np.errstate(all="raise"):           # no floating-point warning may escape either
+        while i < n:
+            c = int(rng.integers(1, 9000))
+            if rng.random() < 0.05:
+                start += int(rng.integers(1, 5000))        # a dropped block
+            out.append(det.process(x[:, i:i + c], start + i))
+            i += c
+        out.append(det.flush())
+    _finite(PacketBatch.concatenate(out, fs, det.window_samples))

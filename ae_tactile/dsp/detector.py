@@ -363,7 +363,8 @@ class PacketDetector:
         skip0, lead0 = self._skip, self._lead
         xd, skip_used, lead = self._decimate(xf)
         ok = bool(np.all(np.abs(lead) <= self._invalid_level)) if lead.shape[1] else True
-        phase = self._filter_phase(xd) if ok and xd.shape[1] else None
+        with np.errstate(all="ignore"):          # NaN/inf/absurd are caught just below
+            phase = self._filter_phase(xd) if ok and xd.shape[1] else None
         if not ok or (phase is not None and not phase[-1]):
             self._filter.set_state(zi)
             self._skip, self._lead = skip0, lead0
