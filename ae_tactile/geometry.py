@@ -239,6 +239,9 @@ class FingertipGeometry:
                 dx = (jac[..., 1, 1] * resid[..., 0] - jac[..., 0, 1] * resid[..., 1]) / det
                 dy = (jac[..., 0, 0] * resid[..., 1] - jac[..., 1, 0] * resid[..., 0]) / det
                 sx, sy, over = clamp(sx + dx, sy + dy)
+                # quadratic convergence: stop once every step is below 1e-13 R (~1 fm)
+                if not np.any(np.abs(dx) + np.abs(dy) > 1e-13 * r):
+                    break
             clamped = over
         bad = ~(np.isfinite(sx) & np.isfinite(sy))
         sz = np.sqrt(np.maximum(r * r - sx * sx - sy * sy, 0.0))

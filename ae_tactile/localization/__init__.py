@@ -12,10 +12,11 @@ See docs/localization.md.
 from ae_tactile.localization.common import REASON_DESCRIPTIONS, Reason
 from ae_tactile.localization.estimators import (DEFAULT_BAND_HZ, ESTIMATORS, EstimatorInfo, default_band_hz,
                                                 LocalizationResult, Localizer, available_methods,
-                                                get_estimator, localize, register_estimator)
+                                                get_estimator, localize, localize_packets,
+                                                register_estimator)
 
 __all__ = [
-    "localize", "Localizer", "LocalizationResult", "Reason", "REASON_DESCRIPTIONS",
+    "localize", "localize_packets", "Localizer", "LocalizationResult", "Reason", "REASON_DESCRIPTIONS",
     "ESTIMATORS", "EstimatorInfo", "available_methods", "get_estimator", "register_estimator",
     "DEFAULT_BAND_HZ", "default_band_hz",
 ]

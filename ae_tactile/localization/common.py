@@ -266,7 +266,7 @@ def gather(x, start, length, baseline=None):
 class Prepared:
     """Sanitised input and what every estimator shares."""
 
-    x: np.ndarray            # (K, 4, M) float64, non-finite samples zeroed, gains divided
+    x: np.ndarray            # (K, 4, M) float64 (x - first sample) / scale; non-finite zeroed, gains divided
     onset: np.ndarray        # (K,) int64 (clipped into the window)
     flags: np.ndarray        # (K,) int64 reason bits so far
     sigma2: np.ndarray       # (K,) noise variance (V^2), NaN where unknown yet
@@ -275,7 +275,8 @@ class Prepared:
     X: np.ndarray            # (K, 4, n_fft//2+1) coarse spectra (full rfft)
     seg_count: np.ndarray    # (K, 4) samples of the coarse segment inside the window
     p_signal: np.ndarray     # (K,) mean power over the SNR window (V^2), noise included
-    quant2: np.ndarray       # (K,) q^2 / 12 of the apparent ADC quantum q (V^2), 0 if none
+    quant2: np.ndarray       # (K,) q^2 / 12 of the apparent ADC quantum q, 0 if none
+    scale: np.ndarray        # (K,) volts per unit of x (sigma2, p_signal, quant2 are in units^2)
 
 
 def subset(prep: Prepared, ids) -> Prepared:
@@ -318,13 +319,6 @@ def prepare(x, onset, plan: Plan, *, noise_rms_v=None, saturated=None, full_scal
         sub[~fin] = 0.0
         x[ids] = sub
         flags[ids[bad_sub]] |= 1 << Reason.NONFINITE
-    if full_scale_v is not None:
-        fsv = _positive("full_scale_v", full_scale_v)
-    if channel_gains is not None:
-        g = np.asarray(channel_gains, dtype=float)
-        if g.shape != (4,) or not np.all(np.isfinite(g)) or np.any(g <= 0):
-            raise ValueError(f"channel_gains must be 4 positive finite numbers, got {channel_gains!r}")
-        x /= g[None, :, None]
     outside = (onset < 0) | (onset >= m)
     on = np.clip(onset, 0, m - 1)
     # Too little of the packet inside the window: fewer than a quarter of the
@@ -332,6 +326,29 @@ def prepare(x, onset, plan: Plan, *, noise_rms_v=None, saturated=None, full_scal
     short = (m - on) < max(4, (plan.seg_len - plan.pre) // 4)
     flags[outside | short] |= 1 << Reason.WINDOW
     seg_start = on - plan.pre
+    start4 = np.repeat(seg_start[:, None], 4, axis=1)
+    sat = np.zeros(k, bool)
+    if full_scale_v is not None:
+        fsv = _positive("full_scale_v", full_scale_v)
+        sat |= (np.abs(raw_gather(x, start4, plan.seg_len)[0]) >= fsv * (1.0 - 1e-3)).any(axis=(1, 2))
+    if saturated is not None:
+        sat |= per_packet("saturated", saturated, k, dtype=bool)
+    if channel_gains is not None:
+        g = np.asarray(channel_gains, dtype=float)
+        if g.shape != (4,) or not np.all(np.isfinite(g)) or np.any(g <= 0):
+            raise ValueError(f"channel_gains must be 4 positive finite numbers, got {channel_gains!r}")
+        x /= g[None, :, None]
+    # Per-packet scale: the estimators work on (x - x[:, :, :1]) / scale, scale the largest
+    # deviation from the first samples, so that every statistic is gain- and DC-invariant
+    # to rounding and nothing overflows; volts are restored on output.
+    x -= x[:, :, :1].copy()
+    dev = np.abs(x).max(axis=(1, 2))
+    huge = ~np.isfinite(dev)
+    if huge.any():                        # |x| ~ 1e308: as unusable as inf
+        x[huge] = 0.0
+        flags[huge] |= 1 << Reason.NONFINITE
+    scale = np.where(np.isfinite(dev) & (dev > 0), dev, 1.0)
+    x /= scale[:, None, None]
 
     # Noise from the pre-onset samples [0, onset - pre), pooled over the 4 channels
     # (relative to each channel's first sample: no cancellation under DC offsets).
@@ -357,18 +374,14 @@ def prepare(x, onset, plan: Plan, *, noise_rms_v=None, saturated=None, full_scal
         ok = np.isfinite(nr) & (nr > 0)
         if channel_gains is not None:
             nr = nr / np.sqrt(np.mean(np.asarray(channel_gains, float) ** 2))
+        nr = nr / scale
         sigma2 = np.where(ok, nr * nr, sigma2)
 
-    # Coarse segment (common start), raw for saturation checks, mean-removed for spectra.
-    start4 = np.repeat(seg_start[:, None], 4, axis=1)
+    # Coarse segment (common start), raw for saturation checks, baseline-removed for spectra.
     raw, count = raw_gather(x, start4, plan.seg_len)
     const = (raw.max(axis=2) == raw.min(axis=2)).any(axis=1)
     flags[const] |= 1 << Reason.NO_SIGNAL
-    sat = flat_top(raw, plan.flat_run)
-    if saturated is not None:
-        sat |= per_packet("saturated", saturated, k, dtype=bool)
-    if full_scale_v is not None:
-        sat |= (np.abs(raw) >= fsv * (1.0 - 1e-3)).any(axis=(1, 2))
+    sat |= flat_top(raw, plan.flat_run)
     flags[sat] |= 1 << Reason.SATURATED
     no_pre = n_pre < 4
     if no_pre.any():
@@ -398,18 +411,18 @@ def prepare(x, onset, plan: Plan, *, noise_rms_v=None, saturated=None, full_scal
 
     X = sfft.rfft(seg, n=plan.n_fft, axis=2)
     return Prepared(x=x, onset=on, flags=flags, sigma2=sigma2, pre_mean=pre_mean,
-                    seg_start=seg_start, X=X, seg_count=count, p_signal=p_total, quant2=q2)
+                    seg_start=seg_start, X=X, seg_count=count, p_signal=p_total, quant2=q2, scale=scale)
 
 
 # --------------------------------------------------------------------------- pairs
-def pair_delays(X, plan: Plan, *, phat=False, refine=0, full_band=False):
+def pair_delays(X, plan: Plan, *, phat=False, refine=0):
     """Delays t_i - t_j (s) of the 6 channel pairs from the peak of their cross-correlation.
 
     ``X`` (K, 4, F) coarse spectra. The cross-spectrum X_i X_j^* is restricted to the
-    signal band (or the whole band but DC with ``full_band``); with ``phat`` each band
-    bin is divided by |X_i X_j^*| (PHAT inside the band only, zero outside). Integer
-    peak within the physically possible lags, parabolic interpolation, then ``refine``
-    Newton steps on the band-limited correlation r(d) = sum_f W Re(G e^{j w d}).
+    signal band; with ``phat`` each band bin is divided by |X_i X_j^*| (PHAT inside the
+    band only, zero outside). Integer peak within the physically possible lags, parabolic
+    interpolation, then ``refine`` Newton steps on the band-limited correlation
+    r(d) = sum_f W Re(G e^{j w d}).
 
     Returns (delays (K, 6) s, peak (K, 6) normalised correlation in [-1, 1], at_edge (K,)
     True when some pair peaked at the edge of its lag range, i.e. its delay is probably
@@ -417,10 +430,7 @@ def pair_delays(X, plan: Plan, *, phat=False, refine=0, full_band=False):
     """
     n = plan.n_fft
     fs = plan.fs
-    band = plan.band.copy()
-    if full_band:
-        band = np.ones_like(band)
-        band[0] = False
+    band = plan.band
     Xi = X[:, PAIRS[:, 0]][..., band]
     Xj = X[:, PAIRS[:, 1]][..., band]
     G = Xi * np.conj(Xj)                                       # (K, 6, nb)
@@ -505,11 +515,6 @@ def aligned_spectra(prep: Prepared, plan: Plan, arrivals_rel) -> Aligned:
     seg, count = gather(prep.x, start, plan.seg_len, prep.pre_mean)
     Y = sfft.rfft(seg, n=plan.n_fft_al, axis=2)
     return Aligned(Y=Y, Yb=Y[..., plan.band_al], shift=shift, ref=ref, count=count)
-
-
-def residual_shifts(al: Aligned, plan: Plan, arrivals_rel):
-    """eps_k (K, 4) in seconds: what is left to align after the integer shifts."""
-    return arrivals_rel - al.ref[:, None] - al.shift / plan.fs
 
 
 def misfit(Zb):

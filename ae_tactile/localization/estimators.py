@@ -208,9 +208,9 @@ def localize(windows, sample_rate_hz, onset_index, *, method="ml", geometry=None
     k = x.shape[0]
     if k == 0:
         return _empty(method, options)
-    prep = prepare(x, onset, plan, noise_rms_v=noise_rms_v, saturated=saturated,
-                   full_scale_v=full_scale_v, channel_gains=channel_gains)
     with np.errstate(all="ignore"):
+        prep = prepare(x, onset, plan, noise_rms_v=noise_rms_v, saturated=saturated,
+                       full_scale_v=full_scale_v, channel_gains=channel_gains)
         core = info.function(prep, plan, **options)
         return _finish(core, prep, plan, geo, method, min_snr_db, thr, options)
 
@@ -283,9 +283,18 @@ def _finish(core, prep, plan, geo, method, min_snr_db, thr, options):
         point_m=point, covariance_m2=cov, delay_covariance_s2=fin(c_tau_safe),
         polar_rad=fin(polar), azimuth_rad=fin(azim), residual=fin(mis, 1.0), overlap_excess=excess,
         pair_residual_s=fin(np.asarray(core["pair_residual_s"], float)), snr_db_est=snr,
-        noise_rms_v_est=np.sqrt(sigma2), polarity=pol, amplitude_v=amp, confidence=conf,
+        noise_rms_v_est=fin(np.sqrt(sigma2) * prep.scale), polarity=pol, amplitude_v=fin(amp * prep.scale),
+        confidence=conf,
         clamped=clamped, accepted=accepted, reason=reason, reason_flags=flags.astype(np.uint16),
         options=dict(options))
+
+
+def localize_packets(batch, *, method="ml", **kwargs) -> LocalizationResult:
+    """`localize` the windows of a detector's `ae_tactile.dsp.PacketBatch` (or anything with
+    ``samples``, ``sample_rate_hz``, ``onset_index`` and ``saturated``): its saturation
+    flags are used; the noise is measured here on the same pre-onset samples."""
+    return localize(batch.samples, batch.sample_rate_hz, batch.onset_index, method=method,
+                    saturated=batch.saturated, **kwargs)
 
 
 class Localizer:
