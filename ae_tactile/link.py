@@ -51,7 +51,9 @@ class LinkConfig:
     the link is dead (the device sends a heartbeat >= 1 Hz). reconnect_*: back-off (s).
     queue_max_batches: bound of the hand-over queue (overflow is counted as drops).
     command_timeout_s / command_retries: ACK wait per command and retries.
-    detector: keyword arguments of the stream-mode packet detector.
+    sync_good_pings / sync_max_pings / sync_rtt_s: clock sync before START (see _sync_clock).
+    adc_bits: ADC resolution (full scale = v_per_count * 2^(adc_bits-1), for saturation).
+    detector: keyword arguments of the stream-mode `ae_tactile.dsp.DetectorConfig`.
     """
 
     port: str
@@ -69,6 +71,10 @@ class LinkConfig:
     queue_max_batches: int = 256
     command_timeout_s: float = 0.5
     command_retries: int = 3
+    sync_good_pings: int = 3
+    sync_max_pings: int = 100
+    sync_rtt_s: float = 0.0015
+    adc_bits: int = 12
     detector: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -174,13 +180,15 @@ class FingertipLink:
             "link_timeouts": 0, "packets_out": 0, "batches_out": 0, "queue_overflow_packets": 0,
             "stream_gaps": 0, "stream_samples_lost": 0, "device_restarts_handled": 0,
             "commands_sent": 0, "commands_unacked": 0, "commands_failed": 0,
-            "frames_ignored": 0,
+            "frames_ignored": 0, "sync_good_pings": 0,
         }
         self.last_error = ""
         self._last_rx_mono = 0.0
         self._reconfigure_pending = False
+        self._last_ack_receive_ns = 0
         self._open_failure_logged = False
-        self._detector_fs = 0.0
+        self._detector_key = None
+        self._stream_ref = None
         self._is_socket = config.port.startswith("socket://")
         self._fd: int | None = None
 
@@ -327,8 +335,6 @@ class FingertipLink:
             self.decoder.forget_senders()
             self.mapper.reset()
             self._stream_next_index = None
-            self._stream_ref = None
-            self._reset_detector()
             self.state = "connected"
             self.counters["connects"] += 1
             self._open_failure_logged = False
@@ -337,6 +343,8 @@ class FingertipLink:
         return True
 
     def _close(self, reason: str) -> None:
+        self._reset_detector()
+        self._stream_ref = None
         with self._lock:
             ser, self._serial = self._serial, None
             self._fd = None
@@ -378,12 +386,36 @@ class FingertipLink:
             pre = cfg.pre_trigger_samples if cfg.pre_trigger_samples is not None else cfg.packet_samples // 4
             commands.append(lambda cid: Command.set_packet_length(int(cfg.packet_samples), int(pre), cid))
         mode = AcqMode.STREAM if cfg.mode == "stream" else AcqMode.TRIGGERED
-        commands.append(lambda cid: Command.start(mode, cid))
-        commands.append(Command.get_status)
         for make in commands:
             if self._stop.is_set() or self._serial is None:
                 return
             self.send_command(make)
+        self._sync_clock()
+        for make in (lambda cid: Command.start(mode, cid), Command.get_status):
+            if self._stop.is_set() or self._serial is None:
+                return
+            self.send_command(make)
+
+    def _sync_clock(self) -> None:
+        """Status round trips before acquisition starts, until ``sync_good_pings`` of them
+        took less than ``sync_rtt_s`` (or ``sync_max_pings`` were sent).
+
+        Each ACK is a (device time, host arrival) sample of the clock mapping whose latency
+        is at most its round-trip time, so fast round trips pin the mapping down before the
+        first packet. Without them the first packets would be stamped with whatever latency
+        the first frames after a (re)connect had (port buffers, a process still starting).
+        """
+        cfg = self.config
+        good = 0
+        for _ in range(cfg.sync_max_pings):
+            if good >= cfg.sync_good_pings or self._stop.is_set() or self._serial is None:
+                break
+            t_send = int(self.clock_ns())
+            ack = self.send_command(Command.get_status)
+            if ack is not None and self._last_ack_receive_ns - t_send <= cfg.sync_rtt_s * 1e9:
+                good += 1
+            self._stop.wait(0.003)
+        self.counters["sync_good_pings"] = good
 
     def send_command(self, make: Callable[[int], Command]) -> Ack | None:
         """Send a command built by ``make(command_id)`` and wait for its ACK (reader thread)."""
@@ -401,6 +433,7 @@ class FingertipLink:
                 self._cycle()
                 ack = self._pending_acks.pop(cid, None)
                 if ack is not None:
+                    ack, self._last_ack_receive_ns = ack
                     if ack.result != AckResult.OK:
                         self.counters["commands_failed"] += 1
                         self.log.warning("device refused %s: %s", cmd.opcode.name, ack.result.name)
@@ -421,10 +454,11 @@ class FingertipLink:
         for frame in frames:
             if frame.restart and self.mapper.synced:
                 # The device rebooted under us: new clock, and it lost its settings.
+                self._reset_detector()
                 self.mapper.reset()
                 self.counters["device_restarts_handled"] += 1
                 self._stream_next_index = None
-                self._reset_detector()
+                self._stream_ref = None
                 self._reconfigure_pending = True
             body = frame.body
             device_ns = int(frame.device_time_us) * 1000
@@ -440,7 +474,7 @@ class FingertipLink:
             elif isinstance(body, Status):
                 self.device_status = body
             elif isinstance(body, Ack):
-                self._pending_acks[body.command_id] = body
+                self._pending_acks[body.command_id] = (body, receive_ns)
                 if len(self._pending_acks) > 64:
                     self._pending_acks.pop(next(iter(self._pending_acks)))
             else:
@@ -466,14 +500,24 @@ class FingertipLink:
 
     # ---------------------------------------------------------------- stream mode
     def _reset_detector(self) -> None:
-        self._detector = None
+        """End the detector's stream (gap, reconnect, restart): complete windows it still
+        holds are published, windows the gap cuts are dropped (counted by the detector)."""
+        det, self._detector = self._detector, None
+        if det is None or self._stream_ref is None:
+            return
+        records = self._records_from_batch(det.flush(), *self._stream_ref)
+        if records:
+            self._emit(int(self.clock_ns()), records)
 
     def _stream_records(self, body: StreamBlock, device_ns: int) -> list[PacketRecord]:
         from ae_tactile.dsp import PacketDetector   # imported lazily: stream mode only
         fs = float(body.sample_rate_hz)
-        if self._detector is None or self._detector_fs != fs:
-            self._detector = PacketDetector(sample_rate_hz=fs, **self.config.detector)
-            self._detector_fs = fs
+        full_scale_v = float(body.v_per_count) * 2 ** (self.config.adc_bits - 1)
+        if self._detector is None or self._detector_key != (fs, full_scale_v):
+            self._reset_detector()
+            self._detector = PacketDetector(sample_rate_hz=fs, full_scale_v=full_scale_v,
+                                            adc_bits=self.config.adc_bits, **self.config.detector)
+            self._detector_key = (fs, full_scale_v)
             self._stream_next_index = None
         first = int(body.first_sample_index)
         if self._stream_next_index is not None and first != self._stream_next_index:
@@ -481,14 +525,18 @@ class FingertipLink:
             self.counters["stream_samples_lost"] += max(first - self._stream_next_index, 0)
         self._stream_next_index = body.next_sample_index
         self._stream_ref = (first, device_ns, fs)
-        volts = body.samples * np.float32(body.v_per_count)
-        batch = self._detector.process(volts, first)
+        batch = self._detector.process(body.samples * np.float32(body.v_per_count), first)
+        return self._records_from_batch(batch, first, device_ns, fs)
+
+    def _records_from_batch(self, batch, ref_index: int, ref_device_ns: int, fs: float) -> list[PacketRecord]:
+        """PacketRecords of a detector batch; sample index -> device time through the
+        reference (sample ref_index was taken at device time ref_device_ns)."""
         out = []
         for k in range(len(batch.start_index)):
-            if hasattr(batch, "valid") and not bool(batch.valid[k]):
+            if not bool(batch.valid[k]):
                 continue
             start = int(batch.start_index[k])
-            start_ns = device_ns + int(round((start - first) * 1e9 / fs))
+            start_ns = ref_device_ns + int(round((start - ref_index) * 1e9 / fs))
             out.append(PacketRecord(
                 stamp_ns=self.mapper.to_host_ns(start_ns),
                 samples_v=np.asarray(batch.samples[k], dtype=np.float32),

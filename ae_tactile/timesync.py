@@ -15,8 +15,9 @@ minimum is already a near-zero-latency sample). Arrival time alone would carry a
 jitter; the lower envelope carries only the smallest latency.
 
 Guarantees: mapped times never go backwards for increasing device times (a would-be
-step back is clamped and counted); a device restart (device time going backwards) or
-a jump of the offset beyond ``max_jump_s`` resets the model (counted as a re-sync).
+step back is clamped and counted); a device restart (device time going backwards by
+more than ``max_backstep_s``; the link also resets on the protocol's BOOT flag) or a
+jump of the offset beyond ``max_jump_s`` resets the model (counted as a re-sync).
 """
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ class DeviceClockMapper:
 
     def __init__(self, window_s: float = 20.0, bucket_s: float = 0.5,
                  max_jump_s: float = 0.25, min_span_for_skew_s: float = 2.0,
-                 max_skew: float = 500e-6):
+                 max_skew: float = 500e-6, max_backstep_s: float = 1.0):
         if not (window_s > 0 and bucket_s > 0 and bucket_s < window_s):
             raise ValueError("need 0 < bucket_s < window_s")
         if not (max_jump_s > 0 and min_span_for_skew_s > 0 and 0 <= max_skew < 0.01):
@@ -40,6 +41,7 @@ class DeviceClockMapper:
         self.max_jump_ns = int(max_jump_s * 1e9)
         self.min_span_ns = int(min_span_for_skew_s * 1e9)
         self.max_skew = float(max_skew)
+        self.max_backstep_ns = int(max_backstep_s * 1e9)
         self.resyncs = 0          # model resets (device restart, offset jump)
         self.clamped = 0          # outputs held back to stay monotonic
         self.reset()
@@ -75,8 +77,11 @@ class DeviceClockMapper:
         device_ns = int(device_ns)
         host_ns = int(host_ns)
         did_reset = False
-        if self._last_d is not None and device_ns < self._last_d:
-            self.reset()                      # device clock restarted
+        if self._last_d is not None and device_ns < self._last_d - self.max_backstep_ns:
+            # Frames carry sample times, so a packet's device time may precede frames sent
+            # before it (by its window and the device's queue); a step back by more than
+            # max_backstep_s is a restarted device clock.
+            self.reset()
             did_reset = True
         elif self._d_ref is not None:
             # latency = host - model >= 0; a frame earlier than the model by more than
@@ -86,7 +91,7 @@ class DeviceClockMapper:
                 did_reset = True
         if self._d_ref is None:
             self._d_ref = device_ns
-        self._last_d = device_ns
+        self._last_d = device_ns if self._last_d is None else max(self._last_d, device_ns)
         offset = host_ns - device_ns
         bucket = (device_ns - self._d_ref) // self.bucket_ns
         changed = False

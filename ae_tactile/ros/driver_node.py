@@ -72,6 +72,14 @@ LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                      reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
+def detector_options(p: dict) -> dict:
+    """Stream-mode detector settings: threshold, and the geometry's wall-echo delay 2R/c
+    and largest arrival spread over the elements 2 sqrt(2) a / c."""
+    c = p["sound_speed_m_s"] or MEDIA.get(p["medium"], MEDIA["water_skin"])["sound_speed_m_s"]
+    return {"threshold_sigma": p["detector_threshold_sigma"], "echo_delay_s": 2.0 * p["radius_m"] / c,
+            "channel_spread_s": max(3e-6, 2.0 * 2 ** 0.5 * p["element_offset_m"] / c)}
+
+
 def link_config_from_params(p: dict) -> LinkConfig:
     """LinkConfig from validated parameter values (0 = keep the device's setting)."""
     none0 = lambda v: None if v == 0 else int(v)   # noqa: E731
@@ -86,7 +94,7 @@ def link_config_from_params(p: dict) -> LinkConfig:
                           packet_samples=packet_samples, pre_trigger_samples=pre or None,
                           queue_max_batches=p["queue_max_batches"], link_timeout_s=p["link_timeout_s"],
                           reconnect_max_s=max(p["reconnect_max_s"], 0.2),
-                          detector={"threshold_sigma": p["detector_threshold_sigma"]})
+                          detector=detector_options(p))
     except ValueError as exc:
         raise ParameterError(str(exc)) from exc
 

@@ -1,0 +1,108 @@
+"""RViz markers: the fingertip sphere, the PVDF matrix, and recent events as fading spheres.
+
+Each event is drawn as a sphere at its position, 2 sigma across (largest principal axis of
+its covariance, at least 0.3 mm), coloured by type, fading out over its lifetime. Markers
+carry a lifetime, so RViz removes them by itself; no TF is needed beyond the fingertip
+frame (use it as RViz's fixed frame, or publish a static transform to the hand).
+"""
+from __future__ import annotations
+
+import numpy as np
+from builtin_interfaces.msg import Duration
+from geometry_msgs.msg import Point
+from std_msgs.msg import ColorRGBA
+from visualization_msgs.msg import Marker, MarkerArray
+
+from ae_tactile.geometry import FingertipGeometry
+from ae_tactile.msg import ContactEvent
+
+#: RGB per event type.
+EVENT_COLORS = {
+    ContactEvent.TOUCH: (0.1, 0.8, 0.2),
+    ContactEvent.DETOUCH: (0.2, 0.4, 1.0),
+    ContactEvent.SLIP_PRECURSOR: (1.0, 0.6, 0.0),
+    ContactEvent.SLIP: (1.0, 0.1, 0.1),
+    ContactEvent.TEXTURE: (0.7, 0.2, 0.9),
+}
+EVENT_NAMES = {ContactEvent.TOUCH: "TOUCH", ContactEvent.DETOUCH: "DETOUCH",
+               ContactEvent.SLIP_PRECURSOR: "SLIP_PRECURSOR", ContactEvent.SLIP: "SLIP",
+               ContactEvent.TEXTURE: "TEXTURE"}
+
+
+def _duration(seconds: float) -> Duration:
+    sec = int(seconds)
+    return Duration(sec=sec, nanosec=int((seconds - sec) * 1e9))
+
+
+def sensor_markers(geometry: FingertipGeometry, frame_id: str, stamp) -> MarkerArray:
+    """The sensing sphere (translucent) and the four PVDF elements (static, no lifetime)."""
+    arr = MarkerArray()
+    sphere = Marker()
+    sphere.header.frame_id, sphere.header.stamp = frame_id, stamp
+    sphere.ns, sphere.id, sphere.type, sphere.action = "ae_tactile/fingertip", 0, Marker.SPHERE, Marker.ADD
+    d = 2.0 * geometry.radius_m
+    sphere.scale.x = sphere.scale.y = sphere.scale.z = d
+    sphere.pose.orientation.w = 1.0
+    sphere.color = ColorRGBA(r=0.9, g=0.85, b=0.75, a=0.25)
+    arr.markers.append(sphere)
+    a = geometry.element_offset_m
+    for k, (x, y, _) in enumerate(geometry.element_positions_m):
+        m = Marker()
+        m.header.frame_id, m.header.stamp = frame_id, stamp
+        m.ns, m.id, m.type, m.action = "ae_tactile/pvdf", k, Marker.CUBE, Marker.ADD
+        m.pose.position.x, m.pose.position.y = float(x), float(y)
+        m.pose.orientation.w = 1.0
+        m.scale.x = m.scale.y = 1.8 * a
+        m.scale.z = 0.2e-3
+        m.color = ColorRGBA(r=0.3, g=0.3, b=0.3, a=0.9)
+        arr.markers.append(m)
+    return arr
+
+
+class EventMarkers:
+    """Keeps the recent events and renders them as fading spheres."""
+
+    def __init__(self, frame_id: str, lifetime_s: float = 2.0, max_events: int = 64,
+                 namespace: str = "ae_tactile/events"):
+        self.frame_id = frame_id
+        self.lifetime_s = float(lifetime_s)
+        self.max_events = int(max_events)
+        self.namespace = namespace
+        self.events: list[tuple[int, ContactEvent]] = []   # (received ns, event)
+        self._next_id = 0
+
+    def add(self, event: ContactEvent, now_ns: int) -> None:
+        self.events.append((now_ns, event))
+        if len(self.events) > self.max_events:
+            del self.events[:len(self.events) - self.max_events]
+
+    def render(self, now_ns: int, stamp) -> MarkerArray:
+        arr = MarkerArray()
+        keep = []
+        for i, (t_ns, ev) in enumerate(self.events):
+            age = (now_ns - t_ns) * 1e-9
+            if age > self.lifetime_s:
+                continue
+            keep.append((t_ns, ev))
+            cov = np.asarray(ev.position_covariance, dtype=float).reshape(3, 3)
+            sigma = float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (cov + cov.T)).max(), 0.0))) \
+                if np.all(np.isfinite(cov)) else 0.0
+            size = max(4.0 * sigma, 0.3e-3)             # 2 sigma radius -> diameter 4 sigma
+            m = Marker()
+            m.header.frame_id, m.header.stamp = self.frame_id or ev.header.frame_id, stamp
+            m.ns, m.id, m.type, m.action = self.namespace, i, Marker.SPHERE, Marker.ADD
+            m.pose.position = Point(x=ev.position.x, y=ev.position.y, z=ev.position.z)
+            m.pose.orientation.w = 1.0
+            m.scale.x = m.scale.y = m.scale.z = size
+            r, g, b = EVENT_COLORS.get(ev.event_type, (1.0, 1.0, 1.0))
+            m.color = ColorRGBA(r=r, g=g, b=b, a=float(max(0.05, 1.0 - age / self.lifetime_s)))
+            m.lifetime = _duration(max(self.lifetime_s - age, 0.05))
+            arr.markers.append(m)
+        self.events = keep
+        # delete markers beyond the live ones (ids are positions in the list)
+        for i in range(len(keep), self.max_events):
+            m = Marker()
+            m.header.frame_id, m.header.stamp = self.frame_id, stamp
+            m.ns, m.id, m.action = self.namespace, i, Marker.DELETE
+            arr.markers.append(m)
+        return arr
