@@ -171,6 +171,44 @@ class SceneError(ValueError):
     """A scene that does not validate (a ValueError with the offending key in the message)."""
 
 
+PART_KEYS = {
+    "at_s": _f(REQUIRED, "start of this part on the scene's timeline (s)", 0.0, 3600.0),
+    "name": Key("str", None, "label of the part"),
+    "generator": Key("str", REQUIRED, "a built-in generator other than composite"),
+    "params": Key("map", {}, "that generator's parameters"),
+}
+
+
+def composite(ctx, p):
+    """Parts ``[{at_s, generator, params, name}]`` played on one timeline (CompositeProcess)."""
+    parts = p["parts"]
+    if not isinstance(parts, list) or not parts:
+        raise SceneError("params.parts: expected a non-empty list of {at_s, generator, params}")
+    built = []
+    for i, raw in enumerate(parts):
+        where = f"params.parts[{i}]"
+        part = _validate_map(where, raw, PART_KEYS)
+        gen = part["generator"]
+        if gen not in GENERATORS or gen == "composite":
+            raise SceneError(f"{where}.generator: {gen!r} is not one of "
+                             f"{sorted(g for g in GENERATORS if g != 'composite')}")
+        factory, schema = GENERATORS[gen]
+        params = _validate_map(f"{where}.params", part["params"], schema)
+        sub = SceneContext(config=ctx.config, seed=ctx.seed + 1000 * (i + 1),
+                           duration_s=max(ctx.duration_s - part["at_s"], 1e-6), effects=ctx.effects)
+        try:
+            proc = factory(sub, params)
+        except SceneError:
+            raise
+        except ValueError as e:
+            raise SceneError(f"{where} ({gen}): {e}") from None
+        built.append((int(round(part["at_s"] * 1e9)), proc, part["name"] or gen))
+    return G.CompositeProcess(built)
+
+
+GENERATORS["composite"] = (composite, {"parts": Key("map", REQUIRED, "list of {at_s, generator, params, name}")})
+
+
 def _check_value(where, key, spec: Key, v):
     if v is None:
         if spec.kind == "float_or_null" or spec.default is None:
