@@ -323,6 +323,24 @@ class VirtualFingertip:
             self._send(StreamBlock(counts, self.sample_rate_hz, self.v_per_count, first_sample_index=dev_first,
                                    saturation_mask=mask), self._device_ns_of_sample(dev_first), "stream")
 
+    def set_normal_load(self, load_n: float, now_ns: int) -> int:
+        """Change the scene's normal load P (closed-loop grip) from the earliest scene time
+        not yet produced, at or after now. Returns that scene time (ns). ValueError if the
+        scene has no normal load or is not playing."""
+        proc = self.scene_process
+        if proc is None or not hasattr(proc, "set_normal_load"):
+            raise ValueError("this scene has no normal load to change (or is not playing)")
+        at = max(self.scene_ns(now_ns), self._process_horizon_ns(proc))
+        proc.set_normal_load(float(load_n), at)
+        return at
+
+    @staticmethod
+    def _process_horizon_ns(proc) -> int:
+        if hasattr(proc, "parts"):           # composite: the part timelines, shifted back
+            return max([off + getattr(p, "horizon_ns", 0) for off, p, _ in proc.parts if hasattr(p, "horizon_ns")]
+                       or [0])
+        return int(getattr(proc, "horizon_ns", 0))
+
     def finished(self, now_ns: int) -> bool:
         """True once the scene's duration has been played."""
         return self.scene_t0_ns is not None and self.scene_ns(now_ns) > self.duration_ns + 50_000_000
@@ -498,6 +516,11 @@ class DeviceRunner:
         self._stop.set()
         self.thread.join(2.0)
         self.transport.close()
+
+    def call(self, fn, *args):
+        """Run fn(*args) while the device loop is held (for changes from other threads)."""
+        with self._lock:
+            return fn(*args)
 
     def unplug(self, duration_s: float) -> None:
         """Pull the cable for duration_s: transport closed, device unpowered; then re-plug,

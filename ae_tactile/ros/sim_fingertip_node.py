@@ -9,6 +9,8 @@ pointed at it exactly as at hardware. The port (a pty path, or the stable symlin
 same clock the driver maps device time to): micro-slips as SLIP_PRECURSOR, releases as
 DETOUCH; ``packet_ids`` holds the scene's emission id; ``confidence`` is 1 for emissions
 the device captured and 0 for those it could not (below threshold, not acquiring).
+Closed loop: a std_msgs/Float64 on ``grip_force_command`` (N) sets the scene's normal
+load P (incipient-slip scenes), as a hand's grip would.
 """
 from __future__ import annotations
 
@@ -19,7 +21,7 @@ import time
 
 import numpy as np
 from rclpy.node import Node
-from std_msgs.msg import String
+from std_msgs.msg import Float64, String
 
 from ae_tactile.msg import ContactEvent
 from ae_tactile.ros.conversions import ns_to_time_msg
@@ -86,6 +88,8 @@ class SimFingertipNode(Node):
         self.pub_truth = self.create_publisher(ContactEvent, "sim/ground_truth", 100)
         self.pub_port.publish(String(data=self.transport.port))
         self.truth_published = 0
+        self.load_changes: list[tuple[int, float]] = []     # (scene ns, P) applied
+        self.create_subscription(Float64, "grip_force_command", self._on_grip_force, 10)
         self.create_timer(0.005, self._publish_truth)
         self.runner.start()
         self.get_logger().info(f"simulated fingertip '{self.device.spec.get('name', scene)}' serving on "
@@ -98,6 +102,17 @@ class SimFingertipNode(Node):
     def ros_ns_of_device_ns(self, device_ns: int) -> int:
         """ROS time of a device-clock instant (the device clock is this host's monotonic clock)."""
         return int(device_ns) + (self.get_clock().now().nanoseconds - time.monotonic_ns())
+
+    def _on_grip_force(self, msg: Float64) -> None:
+        """Closed loop: the commanded grip force becomes the scene's normal load P (N)."""
+        try:
+            at = self.runner.call(self.device.set_normal_load, float(msg.data), time.monotonic_ns())
+        except ValueError as exc:
+            self.get_logger().warning(f"grip_force_command {msg.data} N ignored: {exc}",
+                                      throttle_duration_sec=5.0)
+            return
+        self.load_changes.append((at, float(msg.data)))
+        self.get_logger().info(f"normal load set to {msg.data:.2f} N at scene time {at * 1e-9:.4f} s")
 
     def _publish_truth(self) -> None:
         for t in self.device.pop_truth():

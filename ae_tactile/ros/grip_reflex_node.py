@@ -1,0 +1,63 @@
+"""`grip_reflex` (example hand-side node): squeeze harder when the fingertip feels slip coming.
+
+On every SLIP_PRECURSOR (or SLIP) event on `slip`, the commanded grip force on
+`grip_force_command` (std_msgs/Float64, N) is multiplied by ``gain`` (up to
+``max_force_n``), at most once per ``refractory_s``. The reaction time from the
+precursor's emission stamp to the command is logged and kept (`reactions_ms`). It is a
+documented example of closing the loop, not a grasp controller: a real hand would feed
+the command to its force controller.
+"""
+from __future__ import annotations
+
+import sys
+
+from rclpy.node import Node
+from std_msgs.msg import Float64
+
+from ae_tactile.msg import ContactEvent
+from ae_tactile.ros.conversions import time_msg_to_ns
+from ae_tactile.ros.driver_node import run_node
+from ae_tactile.ros.params import Param, declare
+
+REFLEX_PARAMS = [
+    Param("initial_force_n", 1.0, "Grip force before any reflex (N)", 0.0, 1000.0),
+    Param("gain", 1.6, "Factor applied to the force on a slip precursor", 1.0, 100.0),
+    Param("max_force_n", 5.0, "Largest force the reflex commands (N)", 0.0, 1000.0),
+    Param("refractory_s", 0.05, "Shortest time between two force increases (s)", 0.0, 10.0),
+]
+
+
+class GripReflexNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__("grip_reflex", **kwargs)
+        self.p = declare(self, REFLEX_PARAMS)
+        self.force_n = self.p["initial_force_n"]
+        self.last_ns = None
+        self.reactions_ms: list[float] = []
+        self.commands: list[tuple[int, float]] = []       # (ROS ns, N)
+        self.pub = self.create_publisher(Float64, "grip_force_command", 10)
+        self.create_subscription(ContactEvent, "slip", self.on_slip, 100)
+
+    def on_slip(self, ev: ContactEvent) -> None:
+        if ev.event_type not in (ContactEvent.SLIP_PRECURSOR, ContactEvent.SLIP):
+            return
+        now = self.get_clock().now().nanoseconds
+        if self.last_ns is not None and now - self.last_ns < self.p["refractory_s"] * 1e9:
+            return
+        new = min(self.force_n * self.p["gain"], self.p["max_force_n"])
+        if new <= self.force_n:
+            return
+        self.force_n, self.last_ns = new, now
+        self.pub.publish(Float64(data=float(new)))
+        reaction = (now - time_msg_to_ns(ev.header.stamp)) * 1e-6
+        self.reactions_ms.append(reaction)
+        self.commands.append((now, new))
+        self.get_logger().info(f"slip precursor -> grip force {new:.2f} N ({reaction:.1f} ms after the emission)")
+
+
+def main(args=None) -> int:
+    return run_node(GripReflexNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

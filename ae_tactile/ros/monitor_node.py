@@ -1,0 +1,162 @@
+"""`monitor`: a readable live log of events, scored against the simulator's ground truth.
+
+Subscribes to `contacts` (localizer), `slip` (slip detector), `contact_state` and, when a
+simulated fingertip runs, `sim/ground_truth`. Each event is printed once its ground truth
+had time to arrive (``print_delay_s``), with its position error and end-to-end latency
+(receive time - emission stamp). `summary()` scores the run: emissions found / missed /
+false, touch-release typing, RMS position error, slip precursor lead time, latency.
+"""
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+from rclpy.node import Node
+
+from ae_tactile.evaluation import match_by_time, score
+from ae_tactile.msg import ContactEvent, ContactState
+from ae_tactile.ros.conversions import time_msg_to_ns
+from ae_tactile.ros.driver_node import LATCHED
+from ae_tactile.ros.markers import EVENT_NAMES
+
+STATE_NAMES = {ContactState.NO_CONTACT: "NO_CONTACT", ContactState.STICK: "STICK",
+               ContactState.INCIPIENT_SLIP: "INCIPIENT_SLIP", ContactState.GROSS_SLIP: "GROSS_SLIP"}
+TRUTH_KIND = {ContactEvent.TOUCH: "touch", ContactEvent.DETOUCH: "release",
+              ContactEvent.SLIP_PRECURSOR: "micro_slip", ContactEvent.SLIP: "slip",
+              ContactEvent.TEXTURE: "texture"}
+
+
+@dataclass
+class Seen:
+    stamp_ns: int
+    received_ns: int
+    msg: ContactEvent
+
+
+class MonitorNode(Node):
+    def __init__(self, print_live: bool = True, print_delay_s: float = 0.05, out=sys.stdout, **kwargs):
+        super().__init__("monitor", **kwargs)
+        self.print_live = print_live
+        self.print_delay_ns = int(print_delay_s * 1e9)
+        self.out = out
+        self.truth: list[ContactEvent] = []
+        self.contacts: list[Seen] = []
+        self.slip: list[Seen] = []
+        self.states: list[tuple[int, int]] = []
+        self._queue: list[tuple[str, Seen]] = []
+        self.t0_ns: int | None = None
+        self.create_subscription(ContactEvent, "sim/ground_truth", self.truth.append, 1000)
+        self.create_subscription(ContactEvent, "contacts", lambda m: self._on(m, self.contacts, "contact"), 1000)
+        self.create_subscription(ContactEvent, "slip", lambda m: self._on(m, self.slip, "slip"), 1000)
+        self.create_subscription(ContactState, "contact_state", self._on_state, LATCHED)
+        self.create_timer(0.02, self._flush)
+
+    def _now(self) -> int:
+        return self.get_clock().now().nanoseconds
+
+    def _on(self, msg: ContactEvent, store: list, kind: str) -> None:
+        seen = Seen(time_msg_to_ns(msg.header.stamp), self._now(), msg)
+        store.append(seen)
+        if self.t0_ns is None:
+            self.t0_ns = seen.stamp_ns
+        self._queue.append((kind, seen))
+
+    def _on_state(self, msg: ContactState) -> None:
+        self.states.append((time_msg_to_ns(msg.header.stamp), msg.state))
+        if self.print_live:
+            t = (time_msg_to_ns(msg.header.stamp) - (self.t0_ns or time_msg_to_ns(msg.header.stamp))) * 1e-9
+            print(f"{t:9.4f} s  state -> {STATE_NAMES.get(msg.state, msg.state)}", file=self.out, flush=True)
+
+    def _nearest_truth(self, stamp_ns: int, tolerance_ns: int = 300_000):
+        best, best_dt = None, tolerance_ns + 1
+        for t in reversed(self.truth[-400:]):
+            dt = abs(time_msg_to_ns(t.header.stamp) - stamp_ns)
+            if dt < best_dt:
+                best, best_dt = t, dt
+        return best
+
+    def _flush(self) -> None:
+        now = self._now()
+        ready = [q for q in self._queue if now - q[1].received_ns >= self.print_delay_ns]
+        self._queue = [q for q in self._queue if now - q[1].received_ns < self.print_delay_ns]
+        if not self.print_live:
+            return
+        for kind, s in ready:
+            m = s.msg
+            t = (s.stamp_ns - self.t0_ns) * 1e-9
+            p = m.position
+            line = (f"{t:9.4f} s  {EVENT_NAMES.get(m.event_type, m.event_type):<14s} "
+                    f"at ({p.x * 1e3:+6.2f}, {p.y * 1e3:+6.2f}, {p.z * 1e3:+6.2f}) mm")
+            if kind == "contact":
+                truth = self._nearest_truth(s.stamp_ns)
+                if truth is not None:
+                    err = math.dist((p.x, p.y, p.z), (truth.position.x, truth.position.y, truth.position.z))
+                    line += f"  err {err * 1e6:6.1f} um  [truth: {TRUTH_KIND.get(truth.event_type, '?')}]"
+                line += f"  conf {m.confidence:.2f}"
+            else:
+                if not math.isnan(m.emission_rate_hz):
+                    line += f"  rate {m.emission_rate_hz:6.1f} Hz"
+                if not math.isnan(m.spatial_period_m):
+                    line += f"  period {m.spatial_period_m * 1e3:.3f} mm"
+                if not math.isnan(m.slip_direction.x):
+                    line += f"  dir ({m.slip_direction.x:+.2f}, {m.slip_direction.y:+.2f}, {m.slip_direction.z:+.2f})"
+            line += f"  latency {(s.received_ns - s.stamp_ns) * 1e-6:5.2f} ms"
+            print(line, file=self.out, flush=True)
+
+    # ------------------------------------------------------------------ summary
+    def summary(self, gross_slip_times_ns=()) -> dict:
+        """Scores of the run so far (see the module docstring)."""
+        captured = [t for t in self.truth if t.confidence > 0]
+        tr_ns = [time_msg_to_ns(t.header.stamp) for t in captured]
+        tr_pt = [(t.position.x, t.position.y, t.position.z) for t in captured]
+        tr_pol = [t.amplitude_v for t in captured]
+        ev_ns = [s.stamp_ns for s in self.contacts]
+        ev_pt = [(s.msg.position.x, s.msg.position.y, s.msg.position.z) for s in self.contacts]
+        ev_pol = [1 if s.msg.event_type == ContactEvent.TOUCH else -1 for s in self.contacts]
+        sc = score(tr_ns, tr_pt, tr_pol, ev_ns, ev_pt, ev_pol)
+        out = {"emissions": sc.as_dict(), "truth_total": len(self.truth),
+               "truth_not_captured_by_device": len(self.truth) - len(captured)}
+        # touch / release only
+        tr_idx = [i for i, t in enumerate(captured) if t.event_type in (ContactEvent.TOUCH, ContactEvent.DETOUCH)]
+        pairs = dict(match_by_time(tr_ns, ev_ns, 300_000))
+        found = [i for i in tr_idx if i in pairs]
+        typed = [i for i in found if (captured[i].event_type == ContactEvent.TOUCH) == (ev_pol[pairs[i]] > 0)]
+        out["touch_release"] = {"truth": len(tr_idx), "found": len(found), "typed_correctly": len(typed)}
+        lat = np.array([(s.received_ns - s.stamp_ns) * 1e-6 for s in self.contacts + self.slip])
+        out["latency_ms"] = ({"median": float(np.median(lat)), "p99": float(np.percentile(lat, 99)),
+                              "max": float(lat.max())} if lat.size else {})
+        counts = {}
+        for s in self.slip:
+            name = EVENT_NAMES.get(s.msg.event_type, str(s.msg.event_type))
+            counts[name] = counts.get(name, 0) + 1
+        out["slip_events"] = counts
+        leads = []
+        for g in gross_slip_times_ns:
+            pre = [s.stamp_ns for s in self.slip if s.msg.event_type == ContactEvent.SLIP_PRECURSOR
+                   and s.stamp_ns < g]
+            leads.append((g - min(pre)) * 1e-6 if pre else None)
+        out["slip_precursor_lead_ms"] = leads
+        return out
+
+
+def format_summary(s: dict) -> str:
+    e = s["emissions"]
+    tr = s["touch_release"]
+    lines = ["", "=== summary ===",
+             f"emissions captured by the device: {e['truth']}  (not captured: {s['truth_not_captured_by_device']})",
+             f"localized: found {e['matched']}, missed {e['truth'] - e['matched']}, "
+             f"false {e['events'] - e['matched']}  (recall {e['recall']:.3f}, precision {e['precision']:.3f})",
+             f"touch/release: {tr['found']}/{tr['truth']} found, {tr['typed_correctly']} typed correctly",
+             f"RMS position error: {e['rms_position_error_mm'] * 1e3:.1f} um"]
+    if s["slip_events"]:
+        lines.append("slip detector: " + ", ".join(f"{k} x{v}" for k, v in sorted(s["slip_events"].items())))
+    for lead in s["slip_precursor_lead_ms"]:
+        lines.append("slip precursor lead time: " + ("none before gross slip" if lead is None
+                                                      else f"{lead:.0f} ms before gross slip"))
+    if s["latency_ms"]:
+        la = s["latency_ms"]
+        lines.append(f"end-to-end latency (emission -> event received): median {la['median']:.2f} ms, "
+                     f"p99 {la['p99']:.2f} ms")
+    return "\n".join(lines)
