@@ -324,7 +324,7 @@ def plot(res, path):
     ax.set_xlabel("time per packet, one core (us)  [marker: batched; line to: one per call]")
     ax.set_ylabel("RMS in-plane error (um)")
     ax.set_title("speed vs error, 10 MS/s (circles 20 dB, squares 30 dB)")
-    ax.legend(fontsize=8, loc="upper left")
+    ax.legend(fontsize=8, loc="lower right")
     ax.grid(True, which="both", alpha=0.3)
     ax = axes[1]
     for label, ls in (("10", "-"), ("5", "--"), ("2", ":"), ("2 (0.6 MHz anti-alias)", "-.")):
@@ -364,10 +364,15 @@ def update_doc(table):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer packets (a smoke run)")
+    ap.add_argument("--report-only", action="store_true",
+                    help="redo the table, plot and docs from the last JSON without running")
     args = ap.parse_args(argv)
-    res = run(quick=args.quick)
-    RESULTS.mkdir(parents=True, exist_ok=True)
     suffix = "_quick" if args.quick else ""
+    if args.report_only:
+        res = json.loads((RESULTS / f"localization{suffix}.json").read_text())
+    else:
+        res = run(quick=args.quick)
+    RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"localization{suffix}.json").write_text(json.dumps(res, indent=1))
     table = table_markdown(res)
     (RESULTS / f"localization_table{suffix}.md").write_text(table)
