@@ -1,0 +1,513 @@
+"""Evaluation of the slip detector on the simulator's scenes (issue 6).
+
+The real pipeline at core level, per trial: a scene with its own seed and randomised
+parameters -> the simulator's triggered source (windows cut from the stream around each
+emission, as the device's trigger cuts them: overlaps, noise and quantization included)
+-> ``ae_tactile.localization.localize`` (default estimator, accepted packets only, time
+stamp = onset time - travel time from the fitted point, as the localizer node stamps
+events) -> ``SlipDetector``. Nothing of the ground truth reaches the detector.
+
+Trials (each function takes a seed and returns a JSON-able dict):
+  incipient_slip_trial   Cattaneo-Mindlin incipient slip (optionally announced by a touch
+                         at the contact centre): precursor before gross slip, lead time,
+                         load fraction q = Q/(mu P) at detection, SLIP delay
+  closed_loop_trial      the same scene, P raised (grip reflex) once SLIP_PRECURSOR arrives:
+                         was gross slip averted
+  touch_hold_release_trial, random_touches_trial   false alarms (any SLIP_PRECURSOR /
+                         SLIP / TEXTURE) and the latched state
+  texture_trial          spatial period error of TEXTURE, detection time
+  drift_slip_trial       plane slip drifting along x: SLIP delay and direction error
+``run_evaluation`` runs them all and summarises (bench/bench_slip.py, test_slip_eval.py).
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from ae_tactile.localization import localize
+from ae_tactile.sim.generators import hertz_contact_radius_m
+from ae_tactile.sim.scene import load_scene
+from ae_tactile.sim.stream import EmissionList, time_ns_of_sample
+
+from .config import SlipConfig
+from .detector import SlipDetector
+from .types import ContactState, LocalizedEvent, SlipEventType
+
+_NS = 1_000_000_000
+SLIP_KINDS = (SlipEventType.SLIP_PRECURSOR, SlipEventType.SLIP, SlipEventType.TEXTURE)
+
+# Randomised parameter ranges (SI units); "log" = log-uniform.
+INCIPIENT_RANGES = {
+    "max_polar_deg": 50.0,                    # contact centre, uniform by area over this cap
+    "normal_load_n": (0.5, 2.0, "log"),
+    "youngs_modulus_pa": (0.7e6, 2.0e6, "log"),   # a_H = 1.1 .. 2.5 mm
+    "friction_coefficient": (0.5, 1.2, "uniform"),
+    "time_to_gross_slip_s": (0.25, 2.5, "log"),   # mu P / (dQ/dt): sets dQ/dt
+    "snr_db": (25.0, 35.0, "uniform"),
+}
+
+
+def _draw(rng, spec):
+    lo, hi, kind = spec
+    return float(math.exp(rng.uniform(math.log(lo), math.log(hi)))) if kind == "log" else float(rng.uniform(lo, hi))
+
+
+def _cap_point_xy(rng, radius_m, max_polar_deg):
+    cmin = math.cos(math.radians(max_polar_deg))
+    th = math.acos(rng.uniform(cmin, 1.0))
+    ph = rng.uniform(0.0, 2.0 * math.pi)
+    return radius_m * math.sin(th) * math.cos(ph), radius_m * math.sin(th) * math.sin(ph)
+
+
+class _WithTouch:
+    """An emission process plus fixed extra emissions (a touch announcing the contact)."""
+
+    def __init__(self, process, extra: EmissionList):
+        self.process = process
+        self.extra = extra.sorted()
+        self._h = None
+
+    def advance(self, t_ns):
+        lo = np.iinfo(np.int64).min if self._h is None else self._h
+        if self._h is not None and t_ns <= self._h:
+            return EmissionList.empty()
+        self._h = int(t_ns)
+        return EmissionList.concat([self.extra.between(lo, t_ns), self.process.advance(t_ns)]).sorted()
+
+    def scene_truth(self):
+        return self.process.scene_truth()
+
+
+# ---------------------------------------------------------------------- pipeline
+def localized_events(packets, geometry, *, id_offset: int = 0) -> list[LocalizedEvent]:
+    """Localize triggered packets (``StreamPackets``) and turn the accepted ones into
+    LocalizedEvents stamped at onset time - travel time (the localizer node's stamp)."""
+    k = len(packets.emissions)
+    if k == 0:
+        return []
+    fs = packets.sample_rate_hz
+    res = localize(packets.samples_v, fs, packets.onset_index, geometry=geometry)
+    onset_ns = time_ns_of_sample(packets.start_index + packets.onset_index, fs)
+    travel_ns = np.round(geometry.arrival_times_s(res.point_m).min(axis=1) * 1e9).astype(np.int64)
+    t = onset_ns - travel_ns
+    out = []
+    for i in np.flatnonzero(res.accepted):
+        out.append(LocalizedEvent(int(t[i]), res.point_m[i], res.covariance_m2[i], int(res.polarity[i]),
+                                  float(res.amplitude_v[i]), float(res.confidence[i]), id_offset + int(i)))
+    out.sort(key=lambda e: e.time_ns)
+    return out
+
+
+def run_detector(events, config: SlipConfig | None = None, end_ns: int | None = None, *,
+                 sliding_speed_m_s=None, tick_ns: int | None = None):
+    """Feed events (time order) to a fresh detector; ``advance`` every ``tick_ns`` between
+    events (a node's timer) and up to ``end_ns``. Returns (detector, outputs, state trace
+    [(time_ns, ContactState)])."""
+    det = SlipDetector(config)
+    if sliding_speed_m_s is not None:
+        det.set_sliding_speed(sliding_speed_m_s)
+    outs, trace = [], []
+    last = None
+
+    def note(t):
+        nonlocal last
+        s = det.state.state
+        if s != last:
+            trace.append((int(t), s))
+            last = s
+
+    t_prev = None
+    for ev in events:
+        if tick_ns and t_prev is not None:
+            for tt in range(t_prev + tick_ns, ev.time_ns, tick_ns):
+                det.advance(tt)
+                note(tt)
+        outs.extend(det.process(ev))
+        note(ev.time_ns)
+        t_prev = ev.time_ns
+    if end_ns is not None:
+        if tick_ns and t_prev is not None:
+            for tt in range(t_prev + tick_ns, end_ns, tick_ns):
+                det.advance(tt)
+                note(tt)
+        det.advance(int(end_ns))
+        note(end_ns)
+    return det, outs, trace
+
+
+def _first(outs, kind, onset=True):
+    for o in outs:
+        if o.kind == kind and (o.onset or not onset):
+            return o
+    return None
+
+
+# ---------------------------------------------------------------------- incipient slip
+def incipient_slip_scene(seed: int, *, announce_touch: bool = False, post_s: float = 0.25,
+                         ranges: dict | None = None):
+    """(scene, process wrapper or None, drawn parameters) for one randomised trial."""
+    r = dict(INCIPIENT_RANGES, **(ranges or {}))
+    rng = np.random.default_rng([7001, int(seed)])
+    R = 0.01
+    x, y = _cap_point_xy(rng, R, r["max_polar_deg"])
+    P = _draw(rng, r["normal_load_n"])
+    E = _draw(rng, r["youngs_modulus_pa"])
+    mu = _draw(rng, r["friction_coefficient"])
+    T = _draw(rng, r["time_to_gross_slip_s"])
+    snr = _draw(rng, r["snr_db"])
+    start_s = 0.1 if announce_touch else 0.0
+    qdot = mu * P / T
+    spec = {
+        "generator": "incipient_slip", "duration_s": start_s + T + post_s, "seed": int(seed) + 1000,
+        "sensor": {"medium": "silicone"}, "effects": {"attenuation": True}, "noise": {"snr_db": snr},
+        "params": {"x_m": x, "y_m": y, "normal_load_n": P, "youngs_modulus_pa": E, "friction_coefficient": mu,
+                   "start_s": start_s, "tangential_load_rate_n_per_s": qdot},
+    }
+    scene = load_scene(spec)
+    a_h = float(hertz_contact_radius_m(P, R, E, 0.5))
+    params = {"seed": int(seed), "x_m": x, "y_m": y, "normal_load_n": P, "youngs_modulus_pa": E,
+              "friction_coefficient": mu, "tangential_load_rate_n_per_s": qdot, "time_to_gross_slip_s": T,
+              "snr_db": snr, "hertz_radius_m": a_h, "announce_touch": bool(announce_touch)}
+    source = None
+    if announce_touch:
+        c = scene.process.center
+        touch = EmissionList.create(np.array([int(0.02 * _NS)]), c[None, :], "touch", polarity=1, speed_m_s=0.3,
+                                    curvature_1_m=1000.0, alpha_1_s=3000.0, density_kg_m3=scene.config.density,
+                                    event_id=np.array([1 << 40]))
+        source = _WithTouch(scene.process, touch)
+    return scene, source, params
+
+
+def _triggered(scene, source):
+    from ae_tactile.sim.stream import TriggeredSource
+    if source is None:
+        return scene.triggered_source()
+    return TriggeredSource(source, scene.config, noise_rms_v=scene.noise_rms_v, seed=scene.seed)
+
+
+def incipient_slip_trial(seed: int, config: SlipConfig | None = None, *, announce_touch: bool = False,
+                         post_s: float = 0.25, ranges: dict | None = None) -> dict:
+    """One open-loop incipient-slip trial: precursor, lead time, q at detection, SLIP delay."""
+    scene, source, params = incipient_slip_scene(seed, announce_touch=announce_touch, post_s=post_s, ranges=ranges)
+    end_ns = int(round(scene.duration_s * _NS))
+    pk = _triggered(scene, source).next_packets(1 << 30, horizon_ns=end_ns)
+    events = localized_events(pk, scene.config.geometry)
+    det, outs, trace = run_detector(events, config, end_ns)
+    proc = scene.process
+    t_gross = proc.scene_truth(end_ns)["gross_slip_time_ns"]
+    pre = _first(outs, SlipEventType.SLIP_PRECURSOR)
+    slip = _first(outs, SlipEventType.SLIP)
+    out = dict(params)
+    out.update({
+        "n_emissions": int(len(pk.emissions)), "n_events": len(events),
+        "gross_slip_time_ns": t_gross,
+        "precursor_time_ns": None if pre is None else pre.time_ns,
+        "slip_time_ns": None if slip is None else slip.time_ns,
+        "precursor_before_gross": bool(pre is not None and t_gross is not None and pre.time_ns < t_gross),
+        "lead_ms": None if pre is None or t_gross is None else (t_gross - pre.time_ns) / 1e6,
+        "q_at_precursor": None if pre is None else float(proc.state_at(pre.time_ns)["load_ratio"]),
+        "slip_delay_ms": None if slip is None or t_gross is None else (slip.time_ns - t_gross) / 1e6,
+        "q_at_slip": None if slip is None else float(proc.state_at(slip.time_ns)["load_ratio"]),
+        "precursor_error_to_ring_m": None,
+        "n_precursor_events": sum(o.kind == SlipEventType.SLIP_PRECURSOR for o in outs),
+        "n_slip_events": sum(o.kind == SlipEventType.SLIP for o in outs),
+        "n_texture_events": sum(o.kind == SlipEventType.TEXTURE for o in outs),
+        "states": [[t, int(s)] for t, s in trace],
+    })
+    if pre is not None:
+        c = np.asarray(proc.center)
+        out["precursor_error_to_ring_m"] = float(abs(np.linalg.norm(pre.position_m - c) - params["hertz_radius_m"]))
+    return out
+
+
+def closed_loop_trial(seed: int, config: SlipConfig | None = None, *, latency_s: float = 0.05,
+                      load_factor: float = 1.5, chunk_s: float = 0.005, margin_s: float = 0.2,
+                      announce_touch: bool = False, ranges: dict | None = None) -> dict:
+    """Grip reflex: when the first SLIP_PRECURSOR arrives, raise P by ``load_factor`` at
+    ``latency_s`` after its emission time (or as soon as the stream allows); the scene
+    runs ``margin_s`` past the open-loop gross-slip time. Averted = no gross slip by then."""
+    scene, source, params = incipient_slip_scene(seed, announce_touch=announce_touch, post_s=margin_s, ranges=ranges)
+    proc = scene.process
+    src = _triggered(scene, source)
+    geo = scene.config.geometry
+    det = SlipDetector(config)
+    end_ns = int(round(scene.duration_s * _NS))
+    step = int(round(chunk_s * _NS))
+    t_reflex = None
+    t_pre = None
+    h = 0
+    n_id = 0
+    while h < end_ns:
+        h = min(end_ns, h + step)
+        pk = src.next_packets(1 << 30, horizon_ns=h)
+        evs = localized_events(pk, geo, id_offset=n_id)
+        n_id += len(pk.emissions)
+        for ev in evs:
+            for o in det.process(ev):
+                if t_pre is None and o.kind == SlipEventType.SLIP_PRECURSOR:
+                    t_pre = o.time_ns
+        det.advance(h)
+        if t_pre is not None and t_reflex is None:
+            t_reflex = max(t_pre + int(round(latency_s * _NS)), proc.horizon_ns, h)
+            proc.set_normal_load(params["normal_load_n"] * load_factor, t_reflex)
+    truth = proc.scene_truth(end_ns)
+    out = dict(params)
+    out.update({"latency_s": latency_s, "load_factor": load_factor, "precursor_time_ns": t_pre,
+                "reflex_time_ns": t_reflex, "gross_slip_intervals_ns": truth["gross_slip_intervals_ns"],
+                "averted": not truth["gross_slip_intervals_ns"],
+                "q_at_reflex": None if t_reflex is None else float(proc.state_at(t_reflex - 1)["load_ratio"])})
+    return out
+
+
+# ---------------------------------------------------------------------- false alarms
+def _alarm_summary(outs):
+    return {"n_precursor": sum(o.kind == SlipEventType.SLIP_PRECURSOR for o in outs),
+            "n_slip": sum(o.kind == SlipEventType.SLIP for o in outs),
+            "n_texture": sum(o.kind == SlipEventType.TEXTURE for o in outs),
+            "n_alarm_onsets": sum(o.onset for o in outs if o.kind in SLIP_KINDS)}
+
+
+def _state_at(trace, t):
+    s = ContactState.NO_CONTACT
+    for tt, st in trace:
+        if tt <= t:
+            s = st
+    return s
+
+
+def touch_hold_release_trial(seed: int, config: SlipConfig | None = None) -> dict:
+    """Touch anywhere on the cap (polar <= 60 deg), hold 20 ms .. 2 s, release; random
+    speeds, medium and SNR. False alarms and the latched state during the hold / after."""
+    rng = np.random.default_rng([7002, int(seed)])
+    medium = "silicone" if rng.uniform() < 0.5 else "water_skin"
+    x, y = _cap_point_xy(rng, 0.01, 60.0)
+    hold = float(math.exp(rng.uniform(math.log(0.02), math.log(2.0))))
+    t0 = 0.005
+    spec = {"generator": "touch_hold_release", "duration_s": t0 + hold + 0.1, "seed": int(seed) + 2000,
+            "sensor": {"medium": medium}, "effects": {"attenuation": medium == "silicone"},
+            "noise": {"snr_db": float(rng.uniform(25, 35))},
+            "params": {"x_m": x, "y_m": y, "time_s": t0, "hold_s": hold,
+                       "speed_m_s": float(rng.uniform(0.15, 0.5)), "release_speed_m_s": float(rng.uniform(0.1, 0.3))}}
+    scene = load_scene(spec)
+    end_ns = int(round(scene.duration_s * _NS))
+    pk = scene.triggered_source().next_packets(1 << 30, horizon_ns=end_ns)
+    events = localized_events(pk, scene.config.geometry)
+    det, outs, trace = run_detector(events, config, end_ns, tick_ns=int(0.01 * _NS))
+    out = {"seed": int(seed), "duration_s": scene.duration_s, "hold_s": hold, "medium": medium,
+           "n_emissions": int(len(pk.emissions)), "n_events": len(events),
+           "state_mid_hold": int(_state_at(trace, int((t0 + hold / 2) * _NS))),
+           "state_end": int(det.state.state)}
+    out.update(_alarm_summary(outs))
+    return out
+
+
+def random_touches_trial(seed: int, config: SlipConfig | None = None, *, duration_s: float = 10.0,
+                         rate_hz: float = 20.0, hold_max_s: float = 0.05) -> dict:
+    """The random_touches scene (Poisson touches over the cap with releases): false alarms."""
+    rng = np.random.default_rng([7003, int(seed)])
+    medium = "silicone" if rng.uniform() < 0.5 else "water_skin"
+    spec = {"generator": "random_touches", "duration_s": duration_s, "seed": int(seed) + 3000,
+            "sensor": {"medium": medium}, "effects": {"attenuation": medium == "silicone", "release_emissions": True},
+            "noise": {"snr_db": 30.0},
+            "params": {"rate_hz": rate_hz, "max_polar_deg": 60.0, "hold_min_s": 0.005, "hold_max_s": hold_max_s}}
+    scene = load_scene(spec)
+    end_ns = int(round(duration_s * _NS))
+    pk = scene.triggered_source().next_packets(1 << 30, horizon_ns=end_ns)
+    events = localized_events(pk, scene.config.geometry)
+    det, outs, trace = run_detector(events, config, end_ns, tick_ns=int(0.01 * _NS))
+    out = {"seed": int(seed), "duration_s": duration_s, "rate_hz": rate_hz, "hold_max_s": hold_max_s,
+           "medium": medium, "n_emissions": int(len(pk.emissions)), "n_events": len(events),
+           "counts": dict(det.counts)}
+    out.update(_alarm_summary(outs))
+    return out
+
+
+# ---------------------------------------------------------------------- texture, drift
+def texture_trial(seed: int, config: SlipConfig | None = None, *, speed_known: bool = True) -> dict:
+    """Sliding at v (5-50 mm/s) over a texture with emission rate v/lambda in 10-150 Hz."""
+    rng = np.random.default_rng([7004, int(seed)])
+    v = float(math.exp(rng.uniform(math.log(0.005), math.log(0.05))))
+    rate = float(math.exp(rng.uniform(math.log(10.0), math.log(150.0))))
+    lam = v / rate
+    x, y = _cap_point_xy(rng, 0.01, 50.0)
+    dur = max(1.0, 40.0 / rate)
+    spec = {"generator": "texture", "duration_s": dur, "seed": int(seed) + 4000,
+            "sensor": {"medium": "silicone"}, "effects": {"attenuation": True},
+            "noise": {"snr_db": float(rng.uniform(25, 35))},
+            "params": {"x_m": x, "y_m": y, "slide_speed_m_s": v, "period_m": lam,
+                       "jitter_fraction": float(rng.uniform(0.02, 0.08)),
+                       "contact_radius_m": float(rng.uniform(0.5e-3, 1.5e-3))}}
+    scene = load_scene(spec)
+    end_ns = int(round(dur * _NS))
+    pk = scene.triggered_source().next_packets(1 << 30, horizon_ns=end_ns)
+    events = localized_events(pk, scene.config.geometry)
+    det, outs, trace = run_detector(events, config, end_ns, sliding_speed_m_s=v if speed_known else None)
+    tex = [o for o in outs if o.kind == SlipEventType.TEXTURE]
+    first = tex[0] if tex else None
+    lam_est = np.array([o.spatial_period_m for o in tex])
+    out = {"seed": int(seed), "slide_speed_m_s": v, "period_m": lam, "rate_hz": rate,
+           "jitter_fraction": spec["params"]["jitter_fraction"], "n_emissions": int(len(pk.emissions)),
+           "n_events": len(events), "n_texture": len(tex),
+           "texture_time_ms": None if first is None else first.time_ns / 1e6,
+           "period_first_m": None if first is None else float(first.spatial_period_m),
+           "period_median_m": None if not tex else float(np.median(lam_est)),
+           "rate_first_hz": None if first is None else float(first.emission_rate_hz),
+           "rel_error_first": None if first is None else float(first.spatial_period_m / lam - 1.0),
+           "rel_error_median": None if not tex else float(np.median(lam_est) / lam - 1.0),
+           "rel_error_max": None if not tex else float(np.max(np.abs(lam_est / lam - 1.0))),
+           "final_state": int(det.state.state)}
+    out.update({"n_precursor": sum(o.kind == SlipEventType.SLIP_PRECURSOR for o in outs),
+                "n_slip": sum(o.kind == SlipEventType.SLIP for o in outs)})
+    return out
+
+
+def drift_slip_trial(seed: int, config: SlipConfig | None = None) -> dict:
+    """plane_slip with the contact drifting along +x: SLIP delay after the slip start and
+    the angle between the reported direction and +x (projected on the tangent plane)."""
+    rng = np.random.default_rng([7005, int(seed)])
+    drift = float(rng.uniform(0.01, 0.04))
+    rad = float(rng.uniform(1e-3, 2.5e-3))
+    x0 = float(rng.uniform(-3e-3, 0.0))
+    y0 = float(rng.uniform(-2e-3, 2e-3))
+    dur_slip = 0.15
+    spec = {"generator": "plane_slip", "duration_s": 0.2, "seed": int(seed) + 5000,
+            "sensor": {"medium": "silicone"}, "effects": {"attenuation": True}, "noise": {"snr_db": 30.0},
+            "params": {"x_m": x0, "y_m": y0, "start_s": 0.01, "slip_duration_s": dur_slip,
+                       "rate_hz": float(rng.uniform(150, 500)), "contact_radius_m": rad, "drift_m_s": drift}}
+    scene = load_scene(spec)
+    end_ns = int(0.2 * _NS)
+    pk = scene.triggered_source().next_packets(1 << 30, horizon_ns=end_ns)
+    events = localized_events(pk, scene.config.geometry)
+    det, outs, trace = run_detector(events, config, end_ns)
+    slips = [o for o in outs if o.kind == SlipEventType.SLIP]
+    first = _first(outs, SlipEventType.SLIP)
+    angles = []
+    for o in slips:
+        if np.all(np.isfinite(o.slip_direction)):
+            n = o.position_m / np.linalg.norm(o.position_m)
+            ex = np.array([1.0, 0.0, 0.0]) - n[0] * n
+            ex /= np.linalg.norm(ex)
+            angles.append(math.degrees(math.acos(float(np.clip(o.slip_direction @ ex, -1, 1)))))
+    return {"seed": int(seed), "drift_m_s": drift, "contact_radius_m": rad,
+            "rate_hz": spec["params"]["rate_hz"], "n_events": len(events),
+            "slip_delay_ms": None if first is None else (first.time_ns - int(0.01 * _NS)) / 1e6,
+            "n_slip": len(slips), "n_with_direction": len(angles),
+            "direction_error_deg_median": None if not angles else float(np.median(angles)),
+            "direction_error_deg_max": None if not angles else float(np.max(angles))}
+
+
+# ---------------------------------------------------------------------- summary
+def _pct(x, qs=(0, 5, 50, 95, 100)):
+    x = np.asarray([v for v in x if v is not None], dtype=float)
+    if x.size == 0:
+        return None
+    return {("min" if q == 0 else "max" if q == 100 else f"p{q}"): float(np.percentile(x, q)) for q in qs}
+
+
+def summarize_incipient(trials: list[dict]) -> dict:
+    n = len(trials)
+    ok = [t for t in trials if t["precursor_before_gross"]]
+    return {
+        "n_trials": n,
+        "precursor_before_gross_rate": len(ok) / n if n else None,
+        "n_precursor_before_gross": len(ok),
+        "lead_ms": _pct([t["lead_ms"] for t in ok]),
+        "lead_fraction_of_ramp": _pct([t["lead_ms"] / (1e3 * t["time_to_gross_slip_s"]) for t in ok]),
+        "q_at_precursor": _pct([t["q_at_precursor"] for t in ok]),
+        "lead_ge_100ms_rate": (sum(t["lead_ms"] >= 100 for t in ok) / n) if n else None,
+        "lead_ge_74ms_rate": (sum(t["lead_ms"] >= 74 for t in ok) / n) if n else None,
+        "slip_detected_rate": sum(t["slip_time_ns"] is not None for t in trials) / n if n else None,
+        "slip_delay_ms": _pct([t["slip_delay_ms"] for t in trials]),
+        "q_at_slip": _pct([t["q_at_slip"] for t in trials]),
+        "slip_before_gross_rate": (sum(t["slip_delay_ms"] is not None and t["slip_delay_ms"] < 0 for t in trials) / n
+                                   if n else None),
+        "precursor_error_to_ring_m": _pct([t["precursor_error_to_ring_m"] for t in trials]),
+        "texture_events_total": int(sum(t["n_texture_events"] for t in trials)),
+        "failures": [t["seed"] for t in trials if not t["precursor_before_gross"]],
+    }
+
+
+def summarize_alarms(trials: list[dict]) -> dict:
+    minutes = sum(t["duration_s"] for t in trials) / 60.0
+    onsets = sum(t["n_alarm_onsets"] for t in trials)
+    return {"n_trials": len(trials), "minutes": minutes, "alarm_onsets": onsets,
+            "false_alarms_per_minute": onsets / minutes if minutes else None,
+            "precursor_events": sum(t["n_precursor"] for t in trials),
+            "slip_events": sum(t["n_slip"] for t in trials),
+            "texture_events": sum(t["n_texture"] for t in trials),
+            "trials_with_alarm": [t["seed"] for t in trials if t["n_alarm_onsets"]]}
+
+
+def summarize_texture(trials: list[dict]) -> dict:
+    det = [t for t in trials if t["n_texture"]]
+    n = len(trials)
+    return {"n_trials": n, "detected_rate": len(det) / n if n else None,
+            "abs_rel_error_first": _pct([abs(t["rel_error_first"]) for t in det]),
+            "abs_rel_error_median": _pct([abs(t["rel_error_median"]) for t in det]),
+            "abs_rel_error_max_over_events": _pct([t["rel_error_max"] for t in det]),
+            "within_10pct_rate": (sum(t["rel_error_max"] <= 0.10 for t in det) / n) if n else None,
+            "detection_time_ms": _pct([t["texture_time_ms"] for t in det]),
+            "failures": [t["seed"] for t in trials if not t["n_texture"]]}
+
+
+def run_evaluation(*, n_incipient: int = 100, n_incipient_touch: int = 30, n_closed_loop: int = 30,
+                   n_thr: int = 100, n_random: int = 12, random_duration_s: float = 10.0,
+                   n_texture: int = 50, n_drift: int = 20, seed: int = 0,
+                   config: SlipConfig | None = None, post_s: float = 0.25, progress=None) -> dict:
+    """Every trial family with consecutive seeds from ``seed``; returns the summaries and
+    the per-trial records (JSON-able)."""
+    cfg = config or SlipConfig()
+    out = {"config": cfg.as_dict(), "ranges": {k: list(v) if isinstance(v, tuple) else v
+                                               for k, v in INCIPIENT_RANGES.items()}}
+    timing = {}
+
+    def run(name, fn, n):
+        t0 = time.perf_counter()
+        rows = []
+        for i in range(n):
+            rows.append(fn(seed + i))
+            if progress:
+                progress(name, i + 1, n)
+        timing[name] = time.perf_counter() - t0
+        return rows
+
+    inc = run("incipient", lambda s: incipient_slip_trial(s, cfg, post_s=post_s), n_incipient)
+    inc_t = run("incipient_touch", lambda s: incipient_slip_trial(s, cfg, announce_touch=True, post_s=post_s),
+                n_incipient_touch)
+    cl = run("closed_loop", lambda s: closed_loop_trial(s, cfg), n_closed_loop)
+    thr = run("touch_hold_release", lambda s: touch_hold_release_trial(s, cfg), n_thr)
+    rnd = run("random_touches", lambda s: random_touches_trial(s, cfg, duration_s=random_duration_s), n_random)
+    rnd_dense = run("random_touches_dense", lambda s: random_touches_trial(
+        s + 10_000, cfg, duration_s=random_duration_s, rate_hz=50.0, hold_max_s=0.5), n_random)
+    tex = run("texture", lambda s: texture_trial(s, cfg), n_texture)
+    drift = run("drift", lambda s: drift_slip_trial(s, cfg), n_drift)
+    out["summary"] = {
+        "incipient_slip": summarize_incipient(inc),
+        "incipient_slip_announced": summarize_incipient(inc_t) if inc_t else None,
+        "closed_loop": None if not cl else {
+            "n_trials": len(cl), "averted_rate": sum(t["averted"] for t in cl) / len(cl),
+            "latency_s": cl[0]["latency_s"], "load_factor": cl[0]["load_factor"],
+            "q_at_reflex": _pct([t["q_at_reflex"] for t in cl]),
+            "failures": [t["seed"] for t in cl if not t["averted"]]},
+        "touch_hold_release": dict(summarize_alarms(thr), **{
+            "state_mid_hold_stick_rate": (sum(t["state_mid_hold"] == ContactState.STICK for t in thr) / len(thr)
+                                          if thr else None),
+            "state_end_no_contact_rate": (sum(t["state_end"] == ContactState.NO_CONTACT for t in thr) / len(thr)
+                                          if thr else None)}),
+        "random_touches": summarize_alarms(rnd) if rnd else None,
+        "random_touches_dense": summarize_alarms(rnd_dense) if rnd_dense else None,
+        "texture": summarize_texture(tex) if tex else None,
+        "drift": None if not drift else {
+            "n_trials": len(drift), "slip_detected_rate": sum(t["slip_delay_ms"] is not None for t in drift) / len(drift),
+            "slip_delay_ms": _pct([t["slip_delay_ms"] for t in drift]),
+            "direction_reported_rate": sum(t["n_with_direction"] > 0 for t in drift) / len(drift),
+            "direction_error_deg_median": _pct([t["direction_error_deg_median"] for t in drift]),
+            "direction_error_deg_max": _pct([t["direction_error_deg_max"] for t in drift])},
+    }
+    out["timing_s"] = timing
+    out["trials"] = {"incipient_slip": inc, "incipient_slip_announced": inc_t, "closed_loop": cl,
+                     "touch_hold_release": thr, "random_touches": rnd, "random_touches_dense": rnd_dense,
+                     "texture": tex, "drift": drift}
+    return out
