@@ -24,6 +24,7 @@ setup(
     packages=find_packages(include=["ae_tactile", "ae_tactile.*"],
                            exclude=["ae_tactile.ros", "ae_tactile.ros.*"]),
     install_requires=["numpy>=1.24", "scipy>=1.10", "pyserial>=3.5", "pyyaml>=6.0"],
-    extras_require={"test": ["pytest>=7.0", "hypothesis>=6.80"]},
-    entry_points={"console_scripts": ["ae-tactile-sim = ae_tactile.sim.cli:main"]},
+    extras_require={"test": ["pytest>=7.0", "hypothesis>=6.80"], "bag": ["rosbags>=0.10"]},
+    entry_points={"console_scripts": ["ae-tactile-sim = ae_tactile.sim.cli:main",
+                                      "ae-tactile-replay = ae_tactile.bagtools:main"]},
 )
