@@ -111,7 +111,7 @@ class SlipConfig:
 
     association_radius_m: float = 5e-3
     release_gate_sigma: float = 4.0
-    release_floor_m: float = 0.1e-3
+    release_floor_m: float = 0.05e-3
     release_confirm_s: float = 0.03
     max_contacts: int = 16
     member_history: int = 64

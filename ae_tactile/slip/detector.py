@@ -295,17 +295,19 @@ class SlipDetector:
                 # two touches side by side) is no micro-slip evidence
                 w = 0.0 if same is not None else self.config.touch_evidence_weight
                 self._add_slip(c, ev, weight=w, cancels=False, out=out)
-        self._mark_overlaps(ev)
+        self._mark_overlaps(ev, out)
         self._update_finger(t)
         return out
 
     # ------------------------------------------------------------------ internals
-    def _mark_overlaps(self, ev):
-        """Flag this emission's member and the previous one when they may share a window."""
+    def _mark_overlaps(self, ev, out):
+        """Flag this emission's member and the previous one when they may share a window;
+        run the texture test on the contact that took the emission."""
         new = None
         for c in self.contacts:
             if c.members and c.members[-1].pid == ev.packet_id and c.members[-1].t == ev.time_ns:
                 new = c.members[-1]
+                self._texture(c, ev, c.rate_hz(ev.time_ns, self._w_rate), out)
                 break
         prev = self._last_member
         if prev is not None and new is not None and abs(ev.time_ns - prev.t) < self._guard:
@@ -424,11 +426,12 @@ class SlipDetector:
             c.state, c.since_ns, c.confirmed = ContactState.INCIPIENT_SLIP, t, True
             c.last_slip_ns = t
             ids = tuple(x.pid for x in c.slip_members(since_ns=t - self._w_ev) if x.w > 0)
+            for x in c.members:         # the unreleased compressions were micro-slips
+                if x.role == SUB and x.open:
+                    x.role, x.open, x.w = SLIP, False, max(x.w, weight)
             out.append(self._precursor(c, ev, rate, evidence, ids, onset=True))
         elif c.state == ContactState.INCIPIENT_SLIP and self._due(c, SlipEventType.SLIP_PRECURSOR, t):
             out.append(self._precursor(c, ev, rate, evidence, (ev.packet_id,), onset=False))
-        if c.state in _SLIPPING or evidence > 0:
-            self._texture(c, ev, rate, out)
         if c.state == ContactState.INCIPIENT_SLIP:
             n_in, sm = self._inner(c, cfg.gross_window_events)
             if (n_in >= cfg.gross_min_inner and rate >= cfg.gross_min_rate_hz
@@ -474,9 +477,17 @@ class SlipDetector:
                          math.nan, self._direction(c, ev.time_ns), float(conf), ids, onset, n_in)
 
     def _texture(self, c, ev, rate, out):
+        """Periodicity of all the contact's latest emissions (touch/release pairs included:
+        in a small patch a texture's rarefactions fall in the release gate of its
+        compressions). A strictly alternating +,-,+,- run is tapping, not texture."""
         cfg = self.config
-        sm = c.slip_members(n=cfg.texture_min_intervals + 1)
-        if len(sm) < cfg.texture_min_intervals + 1:
+        n = cfg.texture_min_intervals + 1
+        if len(c.members) < n:
+            return
+        sm = list(c.members)[-n:]
+        pol = np.array([m.pol for m in sm])
+        if np.all(pol[1:] * pol[:-1] == -1):
+            c.texture_on = False
             return
         res = periodicity([m.t for m in sm], tolerance=cfg.texture_tolerance,
                           min_fraction=cfg.texture_min_fraction, max_multiple=cfg.texture_max_multiple)

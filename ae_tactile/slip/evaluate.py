@@ -146,7 +146,7 @@ def _first(outs, kind, onset=True):
 
 # ---------------------------------------------------------------------- incipient slip
 def incipient_slip_scene(seed: int, *, announce_touch: bool = False, post_s: float = 0.25,
-                         ranges: dict | None = None):
+                         ranges: dict | None = None, overload: float | None = None):
     """(scene, process wrapper or None, drawn parameters) for one randomised trial."""
     r = dict(INCIPIENT_RANGES, **(ranges or {}))
     rng = np.random.default_rng([7001, int(seed)])
@@ -163,7 +163,8 @@ def incipient_slip_scene(seed: int, *, announce_touch: bool = False, post_s: flo
         "generator": "incipient_slip", "duration_s": start_s + T + post_s, "seed": int(seed) + 1000,
         "sensor": {"medium": "silicone"}, "effects": {"attenuation": True}, "noise": {"snr_db": snr},
         "params": {"x_m": x, "y_m": y, "normal_load_n": P, "youngs_modulus_pa": E, "friction_coefficient": mu,
-                   "start_s": start_s, "tangential_load_rate_n_per_s": qdot},
+                   "start_s": start_s, "tangential_load_rate_n_per_s": qdot,
+                   "tangential_load_max_n": None if overload is None else overload * mu * P},
     }
     scene = load_scene(spec)
     a_h = float(hertz_contact_radius_m(P, R, E, 0.5))
@@ -223,12 +224,17 @@ def incipient_slip_trial(seed: int, config: SlipConfig | None = None, *, announc
 
 
 def closed_loop_trial(seed: int, config: SlipConfig | None = None, *, latency_s: float = 0.05,
-                      load_factor: float = 1.5, chunk_s: float = 0.005, margin_s: float = 0.2,
-                      announce_touch: bool = False, ranges: dict | None = None) -> dict:
-    """Grip reflex: when the first SLIP_PRECURSOR arrives, raise P by ``load_factor`` at
-    ``latency_s`` after its emission time (or as soon as the stream allows); the scene
-    runs ``margin_s`` past the open-loop gross-slip time. Averted = no gross slip by then."""
-    scene, source, params = incipient_slip_scene(seed, announce_touch=announce_touch, post_s=margin_s, ranges=ranges)
+                      load_factor: float = 1.5, overload: float = 1.2, chunk_s: float = 0.005,
+                      margin_s: float = 0.2, announce_touch: bool = False, ranges: dict | None = None) -> dict:
+    """Grip reflex: the tangential load ramps to ``overload`` x mu P (open loop: gross slip
+    at mu P / Qdot) and stays there; when the first SLIP_PRECURSOR arrives, P is raised by
+    ``load_factor`` at ``latency_s`` after its emission time (or as soon as the stream
+    allows), so that q stays below overload / load_factor < 1 if the reflex comes before
+    q reaches 1. The scene runs ``margin_s`` past the end of the ramp. Averted = no gross
+    slip in the whole scene."""
+    scene, source, params = incipient_slip_scene(seed, announce_touch=announce_touch,
+                                                 post_s=(overload - 1.0) * INCIPIENT_RANGES["time_to_gross_slip_s"][1]
+                                                 + margin_s, ranges=ranges, overload=overload)
     proc = scene.process
     src = _triggered(scene, source)
     geo = scene.config.geometry
@@ -254,7 +260,7 @@ def closed_loop_trial(seed: int, config: SlipConfig | None = None, *, latency_s:
             proc.set_normal_load(params["normal_load_n"] * load_factor, t_reflex)
     truth = proc.scene_truth(end_ns)
     out = dict(params)
-    out.update({"latency_s": latency_s, "load_factor": load_factor, "precursor_time_ns": t_pre,
+    out.update({"latency_s": latency_s, "load_factor": load_factor, "overload": overload, "precursor_time_ns": t_pre,
                 "reflex_time_ns": t_reflex, "gross_slip_intervals_ns": truth["gross_slip_intervals_ns"],
                 "averted": not truth["gross_slip_intervals_ns"],
                 "q_at_reflex": None if t_reflex is None else float(proc.state_at(t_reflex - 1)["load_ratio"])})

@@ -1,0 +1,364 @@
+"""Slip detector core on hand-built event sequences (no simulator): tracker, state
+machine, precursor / gross slip / texture / direction, bad input, bounded memory."""
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from ae_tactile.slip import (ContactState, LocalizedEvent, SlipConfig, SlipDetector, SlipEventType, periodicity)
+
+R = 0.01
+MS = 1_000_000
+SIG = 20e-6          # localization 1-sigma used for the hand-built events
+
+
+def surf(x, y):
+    return np.array([x, y, math.sqrt(R * R - x * x - y * y)])
+
+
+def ev(t_ns, x, y, pol, pid=0, sig=SIG, conf=0.8):
+    return LocalizedEvent(int(t_ns), surf(x, y), np.eye(3) * sig * sig, pol, 0.01 * pol, conf, pid)
+
+
+def ring_events(rng, n, t0_ns, rate_hz, centre_xy, radius_m, width_m=0.0, pid0=0):
+    """n micro-slip-like emissions: Poisson times, uniform angle, random polarity, on the
+    annulus radius - width .. radius around centre_xy (tangent-plane approximation)."""
+    t = t0_ns + np.cumsum(rng.exponential(1e9 / rate_hz, n)).astype(np.int64)
+    th = rng.uniform(0, 2 * np.pi, n)
+    r = np.sqrt(rng.uniform((radius_m - width_m) ** 2, radius_m ** 2, n))
+    pol = rng.choice([-1, 1], n)
+    noise = rng.normal(0, SIG, (n, 2))
+    return [ev(t[i], centre_xy[0] + r[i] * np.cos(th[i]) + noise[i, 0], centre_xy[1] + r[i] * np.sin(th[i])
+               + noise[i, 1], int(pol[i]), pid0 + i) for i in range(n)]
+
+
+def run(det, events):
+    outs = []
+    for e in events:
+        outs.extend(det.process(e))
+    return outs
+
+
+def kinds(outs, onset=None):
+    return [o.kind for o in outs if onset is None or o.onset == onset]
+
+
+# ---------------------------------------------------------------------- touch / release
+def test_touch_hold_release_no_alarm_and_states():
+    det = SlipDetector()
+    assert det.state.state == ContactState.NO_CONTACT
+    outs = det.process(ev(10 * MS, 2e-3, -1e-3, +1, 1))
+    assert outs == []
+    s = det.state
+    assert s.state == ContactState.STICK and s.since_ns == 10 * MS and s.n_contacts == 1
+    assert np.allclose(s.contact_point_m, surf(2e-3, -1e-3))
+    det.advance(500 * MS)                       # a held contact is silent: still STICK
+    assert det.state.state == ContactState.STICK
+    outs = det.process(ev(510 * MS, 2e-3 + 15e-6, -1e-3, -1, 2))
+    assert outs == []
+    assert det.state.state == ContactState.STICK          # release pending confirmation
+    det.advance(510 * MS + int(det.config.release_confirm_s * 1e9))
+    s = det.state
+    assert s.state == ContactState.NO_CONTACT and s.since_ns == 510 * MS
+    assert det.counts["releases"] == 1 and det.counts["orphans"] == 0
+
+
+def test_two_contacts_and_release_of_one():
+    det = SlipDetector()
+    run(det, [ev(0, -4e-3, 0, 1, 1), ev(5 * MS, 4e-3, 0, 1, 2)])
+    assert det.state.n_contacts == 2
+    run(det, [ev(50 * MS, 4e-3, 10e-6, -1, 3)])
+    det.advance(200 * MS)
+    s = det.state
+    assert s.n_contacts == 1 and s.state == ContactState.STICK
+    assert np.linalg.norm(s.contact_point_m - surf(-4e-3, 0)) < 1e-6
+
+
+def test_nearby_touches_with_releases_never_alarm():
+    """Touches side by side inside one association radius, each released where it began:
+    every rarefaction is explained, no evidence survives, no alarm."""
+    rng = np.random.default_rng(3)
+    det = SlipDetector()
+    events = [ev(0, 0, 0, 1, 0)]
+    t = 1 * MS
+    pid = 1
+    for k in range(200):
+        x, y = rng.uniform(-2.5e-3, 2.5e-3, 2)
+        hold = int(rng.uniform(5, 300) * MS)
+        events.append(ev(t, x, y, 1, pid))
+        events.append(ev(t + hold, x + rng.normal(0, SIG), y + rng.normal(0, SIG), -1, pid + 1))
+        pid += 2
+        t += int(rng.uniform(5, 40) * MS)
+    events.sort(key=lambda e: e.time_ns)
+    outs = run(det, events)
+    assert outs == []
+    assert det.counts["orphans"] == 0
+    assert det.state.state == ContactState.STICK          # the first touch is still held
+
+
+def test_lone_orphan_release_is_not_a_contact_nor_a_precursor():
+    det = SlipDetector()
+    outs = det.process(ev(0, 1e-3, 1e-3, -1, 1))        # its touch was missed
+    assert outs == [] and det.state.state == ContactState.NO_CONTACT
+    det.advance(int(2 * det.config.evidence_window_s * 1e9))
+    assert det.contact_infos() == []
+
+
+# ---------------------------------------------------------------------- precursor
+@pytest.mark.parametrize("announced", [True, False])
+def test_micro_slip_ring_gives_precursor(announced):
+    rng = np.random.default_rng(11 if announced else 12)
+    det = SlipDetector()
+    centre = (1e-3, -2e-3)
+    events = [ev(0, *centre, 1, 999)] if announced else []
+    events += ring_events(rng, 40, 50 * MS, 60.0, centre, 1.6e-3, width_m=0.2e-3)
+    outs = run(det, events)
+    pre = [o for o in outs if o.kind == SlipEventType.SLIP_PRECURSOR]
+    assert pre and pre[0].onset
+    i_first = next(i for i, e in enumerate(events) if e.time_ns == pre[0].time_ns)
+    assert i_first <= (9 if announced else 8)         # a handful of emissions
+    assert SlipEventType.SLIP not in kinds(outs)       # the stick zone is still there
+    s = det.state
+    assert s.state == ContactState.INCIPIENT_SLIP and s.precursor_count == len(pre)
+    # the contact centre comes from the ring even when it was never announced
+    assert np.linalg.norm(s.contact_point_m - surf(*centre)) < 0.25e-3
+    # precursor positions are the emission points, on the ring
+    d = [np.linalg.norm(o.position_m - surf(*centre)) for o in pre]
+    assert min(d) > 1.2e-3 and max(d) < 1.8e-3
+    assert all(0 < o.confidence <= 1 and o.emission_rate_hz > 0 for o in pre)
+    assert all(np.all(np.isnan(o.slip_direction)) and math.isnan(o.spatial_period_m) for o in pre)
+    assert set(pre[0].packet_ids) <= {e.packet_id for e in events}
+    # repeated precursor reports respect the report interval
+    t = [o.time_ns for o in pre if not o.onset]
+    assert all(b - a >= det.config.report_interval_s * 1e9 for a, b in zip(t, t[1:]))
+
+
+def test_precursor_returns_to_stick_after_quiet():
+    rng = np.random.default_rng(5)
+    det = SlipDetector()
+    events = [ev(0, 0, 0, 1, 999)] + ring_events(rng, 12, 10 * MS, 80.0, (0, 0), 1.5e-3)
+    run(det, events)
+    assert det.state.state == ContactState.INCIPIENT_SLIP
+    t_last = events[-1].time_ns
+    det.advance(t_last + int(det.config.quiet_s * 1e9) - 1)
+    assert det.state.state == ContactState.INCIPIENT_SLIP
+    det.advance(t_last + int(det.config.quiet_s * 1e9))
+    s = det.state
+    assert s.state == ContactState.STICK and s.since_ns == t_last + int(det.config.quiet_s * 1e9)
+
+
+def test_micro_slip_near_the_centre_cancels_a_false_release():
+    """A slipping contact: an emission inside the release gate of the touch is not taken
+    as the end of the contact when more slip emissions follow within the confirmation."""
+    rng = np.random.default_rng(8)
+    det = SlipDetector()
+    run(det, [ev(0, 0, 0, 1, 999)] + ring_events(rng, 15, 10 * MS, 100.0, (0, 0), 1.5e-3))
+    t = det.now_ns
+    assert det.state.state == ContactState.INCIPIENT_SLIP
+    run(det, [ev(t + 2 * MS, 10e-6, 0, -1, 2000)])            # looks like the release
+    run(det, ring_events(rng, 5, t + 4 * MS, 200.0, (0, 0), 1.5e-3, pid0=3000))
+    det.advance(det.now_ns + 200 * MS)
+    assert det.state.state != ContactState.NO_CONTACT
+    assert det.counts["releases_cancelled"] >= 1
+
+
+def test_real_release_after_micro_slip_ends_the_contact():
+    rng = np.random.default_rng(9)
+    det = SlipDetector()
+    run(det, [ev(0, 0, 0, 1, 999)] + ring_events(rng, 15, 10 * MS, 100.0, (0, 0), 1.5e-3))
+    t = det.now_ns + int(0.4e9)                        # quiet, then the object is let go
+    det.advance(t)
+    assert det.state.state == ContactState.STICK
+    assert det.process(ev(t + MS, 5e-6, -5e-6, -1, 5000)) == []
+    det.advance(t + 100 * MS)
+    assert det.state.state == ContactState.NO_CONTACT
+
+
+# ---------------------------------------------------------------------- gross slip, direction
+def test_gross_slip_when_emissions_reach_the_centre():
+    rng = np.random.default_rng(21)
+    det = SlipDetector()
+    ring = ring_events(rng, 40, 10 * MS, 150.0, (0, 0), 1.6e-3, width_m=0.3e-3)
+    outs = run(det, ring)
+    assert SlipEventType.SLIP not in kinds(outs)
+    t0 = ring[-1].time_ns
+    disc = ring_events(rng, 60, t0, 500.0, (0, 0), 1.6e-3, width_m=1.6e-3, pid0=100)
+    outs = run(det, disc)
+    slips = [o for o in outs if o.kind == SlipEventType.SLIP]
+    assert slips and slips[0].onset
+    assert slips[0].time_ns - t0 < 80 * MS
+    assert det.state.state == ContactState.GROSS_SLIP
+    assert np.linalg.norm(slips[0].position_m - surf(0, 0)) < 0.3e-3
+    assert all(np.all(np.isnan(o.slip_direction)) for o in slips)   # no drift
+    assert slips[0].emission_rate_hz > 100
+
+
+def test_direction_of_a_drifting_contact():
+    rng = np.random.default_rng(22)
+    det = SlipDetector()
+    events = []
+    t = 0
+    for i in range(150):
+        t += int(rng.exponential(1e9 / 400))
+        cx = -2e-3 + 0.02 * t * 1e-9                    # 20 mm/s along +x
+        r, th = 1.2e-3 * math.sqrt(rng.uniform()), rng.uniform(0, 2 * np.pi)
+        events.append(ev(t, cx + r * math.cos(th), r * math.sin(th), int(rng.choice([-1, 1])), i))
+    outs = run(det, events)
+    dirs = [o.slip_direction for o in outs if o.kind == SlipEventType.SLIP and np.all(np.isfinite(o.slip_direction))]
+    assert dirs
+    for d in dirs:
+        assert abs(np.linalg.norm(d) - 1) < 1e-9
+        assert d[0] > math.cos(math.radians(25))
+
+
+# ---------------------------------------------------------------------- texture
+def _texture_events(rng, rate_hz, n, jitter=0.05, patch=1e-3, centre=(1e-3, 0), drop=0.05, random_pol=True):
+    t = (np.arange(n) / rate_hz + rng.normal(0, jitter / rate_hz, n)) * 1e9 + 5 * MS
+    keep = rng.uniform(size=n) > drop
+    out = []
+    for i in np.flatnonzero(keep):
+        r, th = patch * math.sqrt(rng.uniform()), rng.uniform(0, 2 * np.pi)
+        pol = int(rng.choice([-1, 1])) if random_pol else 1
+        out.append(ev(int(t[i]), centre[0] + r * math.cos(th), centre[1] + r * math.sin(th), pol, i))
+    return sorted(out, key=lambda e: e.time_ns)
+
+
+@pytest.mark.parametrize("random_pol", [True, False])
+def test_texture_period(random_pol):
+    rng = np.random.default_rng(31)
+    v, lam = 0.02, 0.5e-3                      # 40 Hz
+    det = SlipDetector(SlipConfig(sliding_speed_m_s=v))
+    outs = run(det, _texture_events(rng, v / lam, 60, random_pol=random_pol))
+    tex = [o for o in outs if o.kind == SlipEventType.TEXTURE]
+    assert tex and tex[0].onset
+    for o in tex:
+        assert abs(o.spatial_period_m / lam - 1) < 0.02
+        assert abs(o.emission_rate_hz - v / lam) < 0.02 * v / lam
+    assert det.state.state == ContactState.GROSS_SLIP      # sliding over the texture
+    det.set_sliding_speed(None)
+    outs = run(det, _texture_events(np.random.default_rng(32), v / lam, 30)[:0])
+    det2 = SlipDetector()
+    outs = run(det2, _texture_events(rng, v / lam, 60))
+    tex2 = [o for o in outs if o.kind == SlipEventType.TEXTURE]
+    assert tex2 and all(math.isnan(o.spatial_period_m) for o in tex2)
+
+
+def test_no_texture_from_poisson_or_tapping():
+    rng = np.random.default_rng(41)
+    det = SlipDetector()
+    outs = run(det, ring_events(rng, 400, 0, 500.0, (0, 0), 1.5e-3, width_m=1.5e-3))
+    assert SlipEventType.TEXTURE not in kinds(outs)
+    det = SlipDetector()
+    taps = []
+    for k in range(40):                              # regular tapping at one spot, 10 Hz
+        taps.append(ev(k * 100 * MS, 0, 0, 1, 2 * k))
+        taps.append(ev(k * 100 * MS + 30 * MS, 5e-6, 0, -1, 2 * k + 1))
+    outs = run(det, taps)
+    assert outs == []
+
+
+def test_periodicity_function():
+    rng = np.random.default_rng(51)
+    fp = sum(periodicity((np.cumsum(rng.exponential(2e-3, 17)) * 1e9).astype(np.int64)).periodic
+             for _ in range(3000))
+    assert fp <= 3
+    T = 1 / 40
+    hits = 0
+    for _ in range(300):
+        t = np.arange(20) * T + rng.normal(0, 0.05 * T, 20)
+        t = np.sort(t[rng.uniform(size=20) > 0.05])[:17]
+        r = periodicity((t * 1e9).astype(np.int64))
+        hits += r.periodic
+        if r.periodic:
+            assert abs(r.period_s / T - 1) < 0.03
+    assert hits >= 290
+    assert not periodicity([0, 1, 2]).periodic
+
+
+# ---------------------------------------------------------------------- bad input, bounds
+@pytest.mark.parametrize("kw", [
+    {"association_radius_m": 0}, {"association_radius_m": -1e-3}, {"association_radius_m": 5.0},
+    {"release_gate_sigma": 0}, {"release_confirm_s": -0.1}, {"evidence_window_s": float("nan")},
+    {"precursor_threshold": 0}, {"touch_evidence_weight": 1.5}, {"gross_inner_fraction": 0},
+    {"gross_min_inner": 20, "gross_window_events": 10}, {"member_history": 4}, {"max_contacts": 0},
+    {"texture_tolerance": 0.5}, {"texture_min_fraction": 0.2}, {"sliding_speed_m_s": 0},
+    {"sliding_speed_m_s": "20 mm/s"}, {"quiet_s": True}, {"max_contacts": 2.5},
+    {"member_history": 16, "texture_min_intervals": 16}, {"report_interval_s": -1},
+])
+def test_bad_config_raises(kw):
+    with pytest.raises(ValueError, match="SlipConfig"):
+        SlipConfig(**kw)
+
+
+def test_bad_events_and_calls():
+    with pytest.raises(ValueError):
+        LocalizedEvent(0, [0, 0, np.nan])
+    with pytest.raises(ValueError):
+        LocalizedEvent(0, [0, 0])
+    with pytest.raises(ValueError):
+        LocalizedEvent(0, [0, 0, R], polarity=2)
+    with pytest.raises(ValueError):
+        LocalizedEvent(0, [0, 0, R], confidence=1.5)
+    with pytest.raises(ValueError):
+        LocalizedEvent(0, [0, 0, R], covariance_m2=np.eye(2))
+    with pytest.raises(TypeError):
+        LocalizedEvent(0.5, [0, 0, R])
+    det = SlipDetector()
+    with pytest.raises(TypeError):
+        det.process((0, [0, 0, R]))
+    with pytest.raises(TypeError):
+        det.advance(1.5)
+    with pytest.raises(ValueError):
+        det.set_sliding_speed(-1.0)
+    with pytest.raises(TypeError):
+        SlipDetector({"association_radius_m": 1e-3})
+    e = LocalizedEvent(np.int64(5), [0, 0, R], None, np.int8(-1))
+    assert e.time_ns == 5 and e.polarity == -1 and np.all(e.covariance_m2 == 0)
+
+
+def test_out_of_order_and_low_confidence_are_counted():
+    det = SlipDetector(SlipConfig(min_confidence=0.3))
+    det.process(ev(100 * MS, 0, 0, 1, 1))
+    assert det.process(ev(50 * MS, 1e-3, 0, -1, 2)) == []
+    assert det.counts["rejected_out_of_order"] == 1
+    det.process(ev(100 * MS - 100_000, 3e-3, 0, 1, 3))        # inside the reorder tolerance
+    assert det.counts["events"] == 2
+    det.process(ev(101 * MS, 5e-3, 0, -1, 4, conf=0.1))
+    assert det.counts["ignored_low_confidence"] == 1
+
+
+def test_memory_is_bounded():
+    cfg = SlipConfig(max_contacts=4, member_history=32, texture_min_intervals=8, gross_exit_events=20,
+                     gross_min_events=10)
+    det = SlipDetector(cfg)
+    rng = np.random.default_rng(61)
+    t = 0
+    for i in range(3000):
+        t += int(rng.exponential(2 * MS))
+        x, y = rng.uniform(-6e-3, 6e-3, 2)
+        det.process(ev(t, x, y, int(rng.choice([-1, 1])), i))
+        assert len(det.contacts) <= 4
+        assert all(len(c.members) <= 32 for c in det.contacts)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 2_000), st.floats(-6e-3, 6e-3), st.floats(-6e-3, 6e-3),
+                          st.sampled_from([-1, 0, 1])), min_size=1, max_size=120))
+def test_arbitrary_sequences_keep_valid_outputs(items):
+    det = SlipDetector(SlipConfig(sliding_speed_m_s=0.01))
+    t = 0
+    for dt, x, y, pol in items:
+        t += dt * 10_000
+        for o in det.process(ev(t, x, y, pol, t)):
+            assert o.kind in (SlipEventType.SLIP_PRECURSOR, SlipEventType.SLIP, SlipEventType.TEXTURE)
+            assert np.all(np.isfinite(o.position_m)) and 0 <= o.confidence <= 1
+            assert np.all(np.isfinite(o.covariance_m2))
+            d = o.slip_direction
+            assert np.all(np.isnan(d)) or abs(np.linalg.norm(d) - 1) < 1e-9
+        s = det.state
+        assert s.state in tuple(ContactState)
+        assert (s.state == ContactState.NO_CONTACT) == (s.n_contacts == 0)
+    det.advance(t + 10 ** 10)
+    assert det.state.state in (ContactState.NO_CONTACT, ContactState.STICK)
