@@ -11,19 +11,29 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
-def match_by_time(truth_ns, event_ns, tolerance_ns: int) -> list[tuple[int, int]]:
+def match_by_time(truth_ns, event_ns, tolerance_ns: int, truth_points_m=None, event_points_m=None,
+                  position_scale_m: float = 1e-3) -> list[tuple[int, int]]:
     """Pairs (truth index, event index) with |t_truth - t_event| <= tolerance, one-to-one,
-    closest pairs first. O((N + M) log(N + M)) for sparse candidates."""
+    cheapest first; cost = (dt / tolerance)^2 (+ (distance / position_scale_m)^2 when points
+    are given, which separates dense emissions that are close in time but not in space)."""
     t = np.asarray(truth_ns, dtype=np.int64)
     e = np.asarray(event_ns, dtype=np.int64)
     if t.size == 0 or e.size == 0:
         return []
+    tp = None if truth_points_m is None else np.asarray(truth_points_m, float).reshape(-1, 3)
+    ep = None if event_points_m is None else np.asarray(event_points_m, float).reshape(-1, 3)
     order = np.argsort(t, kind="stable")
     ts = t[order]
     lo = np.searchsorted(ts, e - tolerance_ns, side="left")
     hi = np.searchsorted(ts, e + tolerance_ns, side="right")
-    cand = [(abs(int(ts[k]) - int(e[j])), int(order[k]), j)
-            for j in range(e.size) for k in range(lo[j], hi[j])]
+    cand = []
+    for j in range(e.size):
+        for k in range(lo[j], hi[j]):
+            i = int(order[k])
+            cost = ((int(ts[k]) - int(e[j])) / tolerance_ns) ** 2
+            if tp is not None and ep is not None:
+                cost += float(np.sum((tp[i] - ep[j]) ** 2)) / position_scale_m ** 2
+            cand.append((cost, i, j))
     cand.sort()
     used_t, used_e, pairs = set(), set(), []
     for _, i, j in cand:
@@ -70,9 +80,10 @@ class Score:
 
 
 def score(truth_ns, truth_points_m, truth_polarity, event_ns, event_points_m, event_polarity,
-          tolerance_ns: int = 300_000) -> Score:
-    """Score localized events (time, point, polarity +1/-1) against truth emissions."""
-    pairs = match_by_time(truth_ns, event_ns, tolerance_ns)
+          tolerance_ns: int = 1_000_000) -> Score:
+    """Score localized events (time, point, polarity +1/-1) against truth emissions
+    (matched within tolerance_ns in time, nearest in time and space)."""
+    pairs = match_by_time(truth_ns, event_ns, tolerance_ns, truth_points_m, event_points_m)
     tp = np.asarray(truth_points_m, float).reshape(-1, 3)
     ep = np.asarray(event_points_m, float).reshape(-1, 3)
     tpol = np.asarray(truth_polarity)

@@ -14,6 +14,10 @@ a line through those minima gives offset and skew (least squares, robust because
 minimum is already a near-zero-latency sample). Arrival time alone would carry all the
 jitter; the lower envelope carries only the smallest latency.
 
+Skew is only fitted over at least ``min_span_for_skew_s`` (10 s) and bounded by
+``max_skew`` (200 ppm, several times a crystal's tolerance): a latency floor that rises
+for a while (a loaded host) must not pass for clock drift.
+
 Guarantees: mapped times never go backwards for increasing device times (a would-be
 step back is clamped and counted); a device restart (device time going backwards by
 more than ``max_backstep_s``; the link also resets on the protocol's BOOT flag) or a
@@ -29,9 +33,9 @@ import numpy as np
 class DeviceClockMapper:
     """Map device timestamps (ns) to host timestamps (ns) through the lower envelope."""
 
-    def __init__(self, window_s: float = 20.0, bucket_s: float = 0.5,
-                 max_jump_s: float = 0.25, min_span_for_skew_s: float = 2.0,
-                 max_skew: float = 500e-6, max_backstep_s: float = 1.0):
+    def __init__(self, window_s: float = 30.0, bucket_s: float = 0.5,
+                 max_jump_s: float = 0.25, min_span_for_skew_s: float = 10.0,
+                 max_skew: float = 200e-6, max_backstep_s: float = 1.0):
         if not (window_s > 0 and bucket_s > 0 and bucket_s < window_s):
             raise ValueError("need 0 < bucket_s < window_s")
         if not (max_jump_s > 0 and min_span_for_skew_s > 0 and 0 <= max_skew < 0.01):

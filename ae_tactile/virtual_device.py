@@ -232,6 +232,7 @@ class VirtualFingertip:
                                                   window_s=self.packet_samples / fs)
             self._skip_before_ns = self.scene_at_start_ns
         self._pending = None
+        self._exhausted = False
 
     # ------------------------------------------------------------------ time
     def scene_ns(self, now_ns: int) -> int:
@@ -261,12 +262,12 @@ class VirtualFingertip:
         return out
 
     def _poll_triggered(self, now_ns: int) -> None:
-        fs = self.sample_rate_hz
-        horizon = self.scene_ns(now_ns)
+        horizon = min(self.scene_ns(now_ns), self.duration_ns)     # the scene ends: silence
         while True:
             if self._pending is None:
                 batch = self._source.next_packets(16, horizon_ns=horizon)
                 if len(batch) == 0:
+                    self._exhausted = horizon >= self.duration_ns
                     return
                 self._pending = (batch, 0)
             batch, i = self._pending
@@ -342,8 +343,13 @@ class VirtualFingertip:
         return int(getattr(proc, "horizon_ns", 0))
 
     def finished(self, now_ns: int) -> bool:
-        """True once the scene's duration has been played."""
-        return self.scene_t0_ns is not None and self.scene_ns(now_ns) > self.duration_ns + 50_000_000
+        """True once the scene's duration has been played and, in triggered mode, every
+        packet of it has been served (the device may lag real time on a loaded host)."""
+        if self.scene_t0_ns is None or self.scene_ns(now_ns) <= self.duration_ns + 50_000_000:
+            return False
+        if self.state == DeviceState.TRIGGERED:
+            return self._pending is None and getattr(self, "_exhausted", False)
+        return True
 
     def pop_truth(self) -> list[TruthEvent]:
         out = list(self.truth)

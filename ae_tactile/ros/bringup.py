@@ -16,6 +16,8 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
+import subprocess
 import sys
 import tempfile
 import time
@@ -41,43 +43,95 @@ def parse_args(argv):
                     help="seconds to run (default with --scene: until it has played; 0: until Ctrl-C)")
     ap.add_argument("--monitor", action="store_true", help="print a live log and a summary vs ground truth")
     ap.add_argument("--grip-reflex", action="store_true", help="run the example grip reflex (closes the loop)")
-    ap.add_argument("--reliable", action="store_true", help="reliable QoS on packets (for recording)")
+    ap.add_argument("--best-effort", dest="reliable", action="store_false",
+                    help="sensor-data (best-effort) QoS on packets instead of reliable")
     ap.add_argument("--summary-json", default="", help="write the monitor's summary here")
     return ap.parse_args(argv)
 
 
-class Bringup:
-    """The composed system; `nodes` in start order. Usable from tests."""
+def make_executor(context=None):
+    """rclpy's EventsExecutor where available (Jazzy+; far less per-callback overhead, which
+    is what limits a Python node at hundreds of messages per second), else multi-threaded.
+    The heavy work runs in the nodes' own threads (link reader, publisher, localizer
+    worker), so one dispatching thread is enough."""
+    try:
+        from rclpy.experimental import EventsExecutor
+        return EventsExecutor(context=context) if context is not None else EventsExecutor()
+    except (ImportError, TypeError):
+        return MultiThreadedExecutor(num_threads=3, context=context)
 
-    def __init__(self, args, context=None):
-        from ae_tactile.ros.driver_node import DriverNode
+
+def _installed_executable(name: str) -> str:
+    """Path of one of this package's node executables (colcon install, or next to us)."""
+    try:
+        from ament_index_python.packages import get_package_prefix
+        path = os.path.join(get_package_prefix("ae_tactile"), "lib", "ae_tactile", name)
+        if os.path.exists(path):
+            return path
+    except Exception:   # not in an ament environment
+        pass
+    return os.path.join(os.path.dirname(os.path.abspath(sys.argv[0])), name)
+
+
+class Bringup:
+    """The composed system; `nodes` in start order. Usable from tests.
+
+    The simulated fingertip is a device, not part of the host: by default it runs as its
+    own process (the `sim_fingertip` executable), serving a pty like USB hardware, so it
+    does not share the host process's interpreter; ``sim_in_process`` keeps it in this
+    process (tests that reach into the device).
+    """
+
+    def __init__(self, args, context=None, sim_in_process: bool = False):
+        from std_msgs.msg import String
+        from ae_tactile.ros.driver_node import LATCHED, DriverNode
         from ae_tactile.ros.localizer_node import LocalizerNode
         from ae_tactile.ros.slip_node import SlipDetectorNode
-        kw = {"context": context, "namespace": args.namespace} if context else {"namespace": args.namespace}
+        kw = {"namespace": args.namespace}
+        if context is not None:
+            kw["context"] = context
         self.args = args
         self.nodes = []
         self.sim = None
+        self.sim_process = None
         self.monitor = None
+        self.reflex = None
+        self.scene_info = None
         self._tmp = None
         if args.use_sim:
             from ae_tactile.ros.sim_fingertip_node import SimFingertipNode, default_scene_path
             self._tmp = tempfile.TemporaryDirectory(prefix="ae_tactile_")
-            scene = args.scene or default_scene_path("showcase.yaml")
-            self.sim = SimFingertipNode(parameter_overrides=[
-                Parameter("scene", value=scene), Parameter("speed", value=float(args.speed)),
-                Parameter("link_path", value=os.path.join(self._tmp.name, "fingertip")),
-                Parameter("frame_id", value=args.frame_id)], **kw)
-            self.nodes.append(self.sim)
-            port = self.sim.port
+            scene = os.path.abspath(args.scene) if args.scene else default_scene_path("showcase.yaml")
+            port = os.path.join(self._tmp.name, "fingertip")
+            sim_params = {"scene": scene, "speed": float(args.speed), "link_path": port, "frame_id": args.frame_id}
+            if sim_in_process:
+                self.sim = SimFingertipNode(parameter_overrides=[Parameter(k, value=v) for k, v in sim_params.items()],
+                                            **kw)
+                self.nodes.append(self.sim)
+            else:
+                cmd = [_installed_executable("sim_fingertip"), "--ros-args"]
+                for k, v in sim_params.items():
+                    cmd += ["-p", f"{k}:={v}"]
+                if args.namespace:
+                    cmd += ["-r", f"__ns:=/{args.namespace.strip('/')}"]
+                self.sim_process = subprocess.Popen(cmd, stdout=sys.stdout, stderr=sys.stderr)
+                t_end = time.monotonic() + 20.0
+                while not os.path.exists(port) and time.monotonic() < t_end and self.sim_process.poll() is None:
+                    time.sleep(0.02)
+                if not os.path.exists(port):
+                    raise RuntimeError(f"the simulated fingertip did not start (exit code {self.sim_process.poll()})")
         else:
             port = args.port
         self.driver = DriverNode(parameter_overrides=[
             Parameter("port", value=port), Parameter("frame_id", value=args.frame_id),
             Parameter("reliable_qos", value=bool(args.reliable))], **kw)
-        loc_params = [Parameter("method", value=args.method)] if args.method else []
+        loc_params = [Parameter("reliable_qos", value=bool(args.reliable))]
+        if args.method:
+            loc_params.append(Parameter("method", value=args.method))
         self.localizer = LocalizerNode(parameter_overrides=loc_params, **kw)
         self.slip = SlipDetectorNode(**kw)
         self.nodes += [self.driver, self.localizer, self.slip]
+        self.driver.create_subscription(String, "sim/scene_truth", self._on_scene_info, LATCHED)
         if args.grip_reflex:
             from ae_tactile.ros.grip_reflex_node import GripReflexNode
             self.reflex = GripReflexNode(**kw)
@@ -86,46 +140,70 @@ class Bringup:
             from ae_tactile.ros.monitor_node import MonitorNode
             self.monitor = MonitorNode(**kw)
             self.nodes.append(self.monitor)
-        self.executor = MultiThreadedExecutor(num_threads=4, context=context)
+        self.executor = make_executor(context)
         for n in self.nodes:
             self.executor.add_node(n)
 
-    def scene_done(self) -> bool:
-        return self.sim is not None and self.sim.device.finished(time.monotonic_ns())
+    def _on_scene_info(self, msg) -> None:
+        try:
+            self.scene_info = json.loads(msg.data)
+        except ValueError:
+            pass
 
-    def spin(self, duration_s: float) -> None:
-        """Spin for duration_s (0: forever); negative: until the scene has played (+0.5 s)."""
+    def scene_done(self) -> bool:
+        """The simulated fingertip has played its whole scene (sim/scene_truth received)."""
+        return bool(self.scene_info and self.scene_info.get("finished"))
+
+    def drained(self) -> bool:
+        """Every packet the driver published has been localized and its events passed on."""
+        return (self.driver.link.stats()["queue_depth"] == 0
+                and self.localizer.counts["packets"] >= self.driver.published_packets
+                and self.localizer.idle() and self.slip.received >= self.localizer.counts["events"])
+
+    def spin(self, duration_s: float, drain_timeout_s: float = 10.0) -> None:
+        """Spin for duration_s (0: forever); negative: until the scene has played and the
+        pipeline has drained (at most drain_timeout_s after the scene's end)."""
         t_end = time.monotonic() + duration_s if duration_s > 0 else None
-        done_at = None
+        done_at = quiet_since = None
         while rclpy.ok(context=self.executor.context):
             self.executor.spin_once(timeout_sec=0.05)
             now = time.monotonic()
             if t_end is not None and now >= t_end:
                 return
-            if duration_s < 0 and self.sim is not None:
+            if duration_s < 0 and self.args.use_sim:
                 if done_at is None and self.scene_done():
                     done_at = now
-                if done_at is not None and now - done_at > 0.5:
-                    return
+                if done_at is not None:
+                    quiet_since = (quiet_since or now) if self.drained() else None
+                    if (quiet_since and now - quiet_since > 0.3) or now - done_at > drain_timeout_s:
+                        return
 
     def gross_slip_times_ns(self) -> list[int]:
-        """Ground-truth gross-slip onsets of the scene, as ROS time (ns)."""
-        if self.sim is None or self.sim.device.scene_process is None:
+        """Ground-truth gross-slip onsets of the scene (ROS time, ns), from sim/scene_truth."""
+        if not self.scene_info:
             return []
-        truth = self.sim.device.scene_process.scene_truth()
+        truth = self.scene_info.get("truth", {})
         parts = truth.get("parts", [truth])
-        out = []
-        for p in parts:
-            t = p.get("gross_slip_time_ns")
-            if t is not None:
-                dev_ns = self.sim.device.device_ns_of_scene(int(t))
-                out.append(self.sim.ros_ns_of_device_ns(dev_ns))
-        return out
+        return [int(p["gross_slip_time_ns"]) for p in parts if p.get("gross_slip_time_ns") is not None]
+
+    def slip_part_starts_ns(self) -> list[int]:
+        """Start (ROS ns) of each scene part that has a gross slip (0 if not a composite)."""
+        if not self.scene_info:
+            return []
+        truth = self.scene_info.get("truth", {})
+        parts = truth.get("parts", [truth])
+        return [int(p.get("start_time_ns") or 0) for p in parts if p.get("gross_slip_time_ns") is not None]
 
     def close(self) -> None:
         self.executor.shutdown()
         for n in reversed(self.nodes):
             n.destroy_node()
+        if self.sim_process is not None and self.sim_process.poll() is None:
+            self.sim_process.send_signal(signal.SIGINT)
+            try:
+                self.sim_process.wait(5.0)
+            except subprocess.TimeoutExpired:
+                self.sim_process.kill()
         if self._tmp is not None:
             self._tmp.cleanup()
 
@@ -142,7 +220,7 @@ def main(argv=None) -> int:
             print(f"[ae_tactile] not starting: parameter file {args.params_file} not found", file=sys.stderr)
             return 2
         ros_args = (ros_args or ["--ros-args"]) + ["--params-file", args.params_file]
-    sys.setswitchinterval(0.001)      # I/O threads (serial reader, publisher) wake sooner
+    sys.setswitchinterval(0.0002)     # I/O threads (serial reader, publisher) get the GIL sooner
     rclpy.init(args=["bringup"] + ros_args)
     system = None
     try:
@@ -153,7 +231,7 @@ def main(argv=None) -> int:
             from ae_tactile.ros.monitor_node import format_summary
             system.executor.spin_once(timeout_sec=0.1)
             system.monitor._flush()
-            summary = system.monitor.summary(system.gross_slip_times_ns())
+            summary = system.monitor.summary(system.gross_slip_times_ns(), system.slip_part_starts_ns())
             print(format_summary(summary), flush=True)
             if args.summary_json:
                 with open(args.summary_json, "w") as fh:

@@ -99,10 +99,5 @@ class EventMarkers:
             m.lifetime = _duration(max(self.lifetime_s - age, 0.05))
             arr.markers.append(m)
         self.events = keep
-        # delete markers beyond the live ones (ids are positions in the list)
-        for i in range(len(keep), self.max_events):
-            m = Marker()
-            m.header.frame_id, m.header.stamp = self.frame_id, stamp
-            m.ns, m.id, m.action = self.namespace, i, Marker.DELETE
-            arr.markers.append(m)
+        # No DELETE markers: every marker carries its remaining lifetime, RViz drops it.
         return arr

@@ -8,6 +8,7 @@ false, touch-release typing, RMS position error, slip precursor lead time, laten
 """
 from __future__ import annotations
 
+import bisect
 import math
 import sys
 from dataclasses import dataclass
@@ -20,6 +21,7 @@ from ae_tactile.msg import ContactEvent, ContactState
 from ae_tactile.ros.conversions import time_msg_to_ns
 from ae_tactile.ros.driver_node import LATCHED
 from ae_tactile.ros.markers import EVENT_NAMES
+from ae_tactile.ros.sim_fingertip_node import TRUTH_QOS
 
 STATE_NAMES = {ContactState.NO_CONTACT: "NO_CONTACT", ContactState.STICK: "STICK",
                ContactState.INCIPIENT_SLIP: "INCIPIENT_SLIP", ContactState.GROSS_SLIP: "GROSS_SLIP"}
@@ -42,16 +44,23 @@ class MonitorNode(Node):
         self.print_delay_ns = int(print_delay_s * 1e9)
         self.out = out
         self.truth: list[ContactEvent] = []
+        self.truth_ns: list[int] = []
         self.contacts: list[Seen] = []
         self.slip: list[Seen] = []
         self.states: list[tuple[int, int]] = []
         self._queue: list[tuple[str, Seen]] = []
         self.t0_ns: int | None = None
-        self.create_subscription(ContactEvent, "sim/ground_truth", self.truth.append, 1000)
+        self.create_subscription(ContactEvent, "sim/ground_truth", self._on_truth, TRUTH_QOS)
         self.create_subscription(ContactEvent, "contacts", lambda m: self._on(m, self.contacts, "contact"), 1000)
         self.create_subscription(ContactEvent, "slip", lambda m: self._on(m, self.slip, "slip"), 1000)
         self.create_subscription(ContactState, "contact_state", self._on_state, LATCHED)
         self.create_timer(0.02, self._flush)
+
+    def _on_truth(self, msg: ContactEvent) -> None:
+        t = time_msg_to_ns(msg.header.stamp)
+        i = bisect.bisect_right(self.truth_ns, t)
+        self.truth_ns.insert(i, t)
+        self.truth.insert(i, msg)
 
     def _now(self) -> int:
         return self.get_clock().now().nanoseconds
@@ -69,13 +78,11 @@ class MonitorNode(Node):
             t = (time_msg_to_ns(msg.header.stamp) - (self.t0_ns or time_msg_to_ns(msg.header.stamp))) * 1e-9
             print(f"{t:9.4f} s  state -> {STATE_NAMES.get(msg.state, msg.state)}", file=self.out, flush=True)
 
-    def _nearest_truth(self, stamp_ns: int, tolerance_ns: int = 300_000):
-        best, best_dt = None, tolerance_ns + 1
-        for t in reversed(self.truth[-400:]):
-            dt = abs(time_msg_to_ns(t.header.stamp) - stamp_ns)
-            if dt < best_dt:
-                best, best_dt = t, dt
-        return best
+    def _nearest_truth(self, stamp_ns: int, tolerance_ns: int = 1_000_000):
+        i = bisect.bisect_left(self.truth_ns, stamp_ns)
+        cands = [j for j in (i - 1, i) if 0 <= j < len(self.truth_ns)
+                 and abs(self.truth_ns[j] - stamp_ns) <= tolerance_ns]
+        return self.truth[min(cands, key=lambda j: abs(self.truth_ns[j] - stamp_ns))] if cands else None
 
     def _flush(self) -> None:
         now = self._now()
@@ -106,8 +113,10 @@ class MonitorNode(Node):
             print(line, file=self.out, flush=True)
 
     # ------------------------------------------------------------------ summary
-    def summary(self, gross_slip_times_ns=()) -> dict:
-        """Scores of the run so far (see the module docstring)."""
+    def summary(self, gross_slip_times_ns=(), slip_windows_ns=()) -> dict:
+        """Scores of the run so far (see the module docstring). ``slip_windows_ns``: per
+        gross slip, the start of the part of the scene it belongs to (precursors count from
+        there); default: anything before the gross slip."""
         captured = [t for t in self.truth if t.confidence > 0]
         tr_ns = [time_msg_to_ns(t.header.stamp) for t in captured]
         tr_pt = [(t.position.x, t.position.y, t.position.z) for t in captured]
@@ -120,7 +129,7 @@ class MonitorNode(Node):
                "truth_not_captured_by_device": len(self.truth) - len(captured)}
         # touch / release only
         tr_idx = [i for i, t in enumerate(captured) if t.event_type in (ContactEvent.TOUCH, ContactEvent.DETOUCH)]
-        pairs = dict(match_by_time(tr_ns, ev_ns, 300_000))
+        pairs = dict(match_by_time(tr_ns, ev_ns, 1_000_000, tr_pt, ev_pt))
         found = [i for i in tr_idx if i in pairs]
         typed = [i for i in found if (captured[i].event_type == ContactEvent.TOUCH) == (ev_pol[pairs[i]] > 0)]
         out["touch_release"] = {"truth": len(tr_idx), "found": len(found), "typed_correctly": len(typed)}
@@ -133,9 +142,10 @@ class MonitorNode(Node):
             counts[name] = counts.get(name, 0) + 1
         out["slip_events"] = counts
         leads = []
-        for g in gross_slip_times_ns:
+        starts = list(slip_windows_ns) + [0] * (len(gross_slip_times_ns) - len(slip_windows_ns))
+        for g, start in zip(gross_slip_times_ns, starts):
             pre = [s.stamp_ns for s in self.slip if s.msg.event_type == ContactEvent.SLIP_PRECURSOR
-                   and s.stamp_ns < g]
+                   and start <= s.stamp_ns < g]
             leads.append((g - min(pre)) * 1e-6 if pre else None)
         out["slip_precursor_lead_ms"] = leads
         return out

@@ -10,10 +10,13 @@ same clock the driver maps device time to): micro-slips as SLIP_PRECURSOR, relea
 DETOUCH; ``packet_ids`` holds the scene's emission id; ``confidence`` is 1 for emissions
 the device captured and 0 for those it could not (below threshold, not acquiring).
 Closed loop: a std_msgs/Float64 on ``grip_force_command`` (N) sets the scene's normal
-load P (incipient-slip scenes), as a hand's grip would.
+load P (incipient-slip scenes), as a hand's grip would. When the scene has been played,
+``sim/scene_truth`` (std_msgs/String, JSON, latched) carries its truth (e.g. gross-slip
+times as ROS time) and the load changes applied.
 """
 from __future__ import annotations
 
+import json
 import math
 import os
 import sys
@@ -21,6 +24,7 @@ import time
 
 import numpy as np
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64, String
 
 from ae_tactile.msg import ContactEvent
@@ -28,6 +32,10 @@ from ae_tactile.ros.conversions import ns_to_time_msg
 from ae_tactile.ros.driver_node import LATCHED, run_node
 from ae_tactile.ros.params import Param, ParameterError, declare
 from ae_tactile.virtual_device import DeviceRunner, PtyTransport, TcpTransport, VirtualFingertip
+
+#: Ground truth is kept for late joiners (a monitor or recorder that starts after the scene).
+TRUTH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5000, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 KIND_TO_EVENT = {"touch": ContactEvent.TOUCH, "release": ContactEvent.DETOUCH,
                  "micro_slip": ContactEvent.SLIP_PRECURSOR, "slip": ContactEvent.SLIP,
@@ -63,6 +71,7 @@ SIM_PARAMS = [
     Param("threshold_counts", 0, "Trigger threshold (ADC counts); 0 = 6 noise sigma", 0, 32767),
     Param("stream_block_samples", 2000, "Samples per channel of a STREAM block", 1, 8192),
     Param("frame_id", "ae_tactile_fingertip", "Frame of the ground-truth ContactEvents"),
+    Param("exit_when_done", False, "Shut down once the scene has been played"),
 ]
 
 
@@ -85,12 +94,15 @@ class SimFingertipNode(Node):
             self.transport = TcpTransport(port=p["tcp_port"])
         self.runner = DeviceRunner(self.device, self.transport)
         self.pub_port = self.create_publisher(String, "sim/port", LATCHED)
-        self.pub_truth = self.create_publisher(ContactEvent, "sim/ground_truth", 100)
+        self.pub_truth = self.create_publisher(ContactEvent, "sim/ground_truth", TRUTH_QOS)
         self.pub_port.publish(String(data=self.transport.port))
         self.truth_published = 0
         self.load_changes: list[tuple[int, float]] = []     # (scene ns, P) applied
         self.create_subscription(Float64, "grip_force_command", self._on_grip_force, 10)
-        self.create_timer(0.005, self._publish_truth)
+        self.pub_scene = self.create_publisher(String, "sim/scene_truth", LATCHED)
+        self.scene_finished = False
+        self.create_timer(0.01, self._publish_truth)
+        self.create_timer(0.1, self._check_finished)
         self.runner.start()
         self.get_logger().info(f"simulated fingertip '{self.device.spec.get('name', scene)}' serving on "
                                f"{self.transport.port} (speed x{p['speed']:g})")
@@ -102,6 +114,33 @@ class SimFingertipNode(Node):
     def ros_ns_of_device_ns(self, device_ns: int) -> int:
         """ROS time of a device-clock instant (the device clock is this host's monotonic clock)."""
         return int(device_ns) + (self.get_clock().now().nanoseconds - time.monotonic_ns())
+
+    def scene_truth_ros(self) -> dict:
+        """The scene's truth with every *_time_ns (scene time) as ROS time (ns)."""
+        proc = self.device.scene_process
+        truth = proc.scene_truth() if proc is not None else {}
+
+        def conv(obj):
+            if isinstance(obj, dict):
+                return {k: (self.ros_ns_of_device_ns(self.device.device_ns_of_scene(int(v)))
+                            if k.endswith("_time_ns") and v is not None else conv(v)) for k, v in obj.items()}
+            if isinstance(obj, list):
+                return [conv(v) for v in obj]
+            return obj
+        return conv(truth)
+
+    def _check_finished(self) -> None:
+        if self.scene_finished or not self.runner.call(self.device.finished, time.monotonic_ns()):
+            return
+        self._publish_truth()
+        self.scene_finished = True
+        info = {"finished": True, "scene": self.device.spec.get("name", ""),
+                "truth": self.runner.call(self.scene_truth_ros),
+                "load_changes": [[int(t), float(p)] for t, p in self.load_changes]}
+        self.pub_scene.publish(String(data=json.dumps(info, default=float)))
+        self.get_logger().info("scene played to the end")
+        if self.p["exit_when_done"]:
+            raise SystemExit(0)
 
     def _on_grip_force(self, msg: Float64) -> None:
         """Closed loop: the commanded grip force becomes the scene's normal load P (N)."""

@@ -28,7 +28,8 @@ from ae_tactile.slip import LocalizedEvent, SlipConfig, SlipDetector
 NODE_PARAMS = [
     Param("advance_lag_s", 0.02, "Let the detector's clock trail ROS time by this much, so events still in "
           "flight are not overtaken (s)", 0.0, 1.0),
-    Param("advance_period_s", 0.01, "Period of the time-keeping tick (s)", 0.001, 1.0),
+    Param("advance_period_s", 0.02, "Period of the time-keeping tick (s)", 0.001, 1.0),
+    Param("marker_period_s", 0.1, "Marker refresh period (s)", 0.02, 5.0),
     Param("frame_id", "", "Frame of the outputs; empty = the incoming events' frame"),
     Param("markers", True, "Publish slip markers on 'markers'"),
 ]
@@ -66,10 +67,13 @@ class SlipDetectorNode(Node):
         self.create_subscription(ContactEvent, "contacts", self.on_contact, 1000)
         self.create_subscription(Float64, "sliding_speed", self.on_speed, 10)
         self.create_timer(self.p["advance_period_s"], self.tick)
+        if self.pub_markers is not None:
+            self.create_timer(self.p["marker_period_s"], self.publish_markers)
         self.frame_id = self.p["frame_id"]
         self.last_state_key = None
         self.last_state_pub_ns = 0
         self.published = 0
+        self.received = 0
         self.publish_state(force=True)
 
     def on_speed(self, msg: Float64) -> None:
@@ -80,6 +84,7 @@ class SlipDetectorNode(Node):
             self.get_logger().warning(f"sliding_speed {v} ignored: {exc}", throttle_duration_sec=5.0)
 
     def on_contact(self, msg: ContactEvent) -> None:
+        self.received += 1
         if msg.event_type not in (ContactEvent.TOUCH, ContactEvent.DETOUCH):
             return
         if not self.frame_id:
@@ -103,9 +108,12 @@ class SlipDetectorNode(Node):
         now = self.get_clock().now().nanoseconds
         self.detector.advance(now - int(self.p["advance_lag_s"] * 1e9))
         self.publish_state()
-        if self.pub_markers is not None and self.frame_id:
+
+    def publish_markers(self) -> None:
+        if self.frame_id and self.markers.events:
+            now = self.get_clock().now()
             self.markers.frame_id = self.frame_id
-            self.pub_markers.publish(self.markers.render(now, self.get_clock().now().to_msg()))
+            self.pub_markers.publish(self.markers.render(now.nanoseconds, now.to_msg()))
 
     def publish_event(self, out) -> None:
         ev = ContactEvent()

@@ -533,5 +533,5 @@ class CompositeProcess:
                     truth[k] = int(v) + off
                 elif k.endswith("_intervals_ns") and v:
                     truth[k] = [[a + off, None if b is None else b + off] for a, b in v]
-            parts.append({"name": name, "offset_ns": off, **truth})
+            parts.append({"name": name, "offset_ns": off, "start_time_ns": off, **truth})
         return {"generator": "composite", "parts": parts}
