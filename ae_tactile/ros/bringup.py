@@ -124,7 +124,8 @@ class Bringup:
             port = args.port
         self.driver = DriverNode(parameter_overrides=[
             Parameter("port", value=port), Parameter("frame_id", value=args.frame_id),
-            Parameter("reliable_qos", value=bool(args.reliable))], **kw)
+            Parameter("reliable_qos", value=bool(args.reliable)),
+            Parameter("wait_for_subscribers", value=1)], **kw)
         loc_params = [Parameter("reliable_qos", value=bool(args.reliable))]
         if args.method:
             loc_params.append(Parameter("method", value=args.method))
@@ -155,16 +156,16 @@ class Bringup:
         return bool(self.scene_info and self.scene_info.get("finished"))
 
     def drained(self) -> bool:
-        """Every packet the driver published has been localized and its events passed on."""
-        return (self.driver.link.stats()["queue_depth"] == 0
-                and self.localizer.counts["packets"] >= self.driver.published_packets
-                and self.localizer.idle() and self.slip.received >= self.localizer.counts["events"])
+        """Nothing queued in the driver or the localizer, and every event passed on."""
+        return (self.driver.link.stats()["queue_depth"] == 0 and self.localizer.idle()
+                and self.slip.received >= self.localizer.counts["events"])
 
     def spin(self, duration_s: float, drain_timeout_s: float = 10.0) -> None:
         """Spin for duration_s (0: forever); negative: until the scene has played and the
-        pipeline has drained (at most drain_timeout_s after the scene's end)."""
+        pipeline has drained (quiet for 0.3 s; at most drain_timeout_s after the end)."""
         t_end = time.monotonic() + duration_s if duration_s > 0 else None
         done_at = quiet_since = None
+        last_count = -1
         while rclpy.ok(context=self.executor.context):
             self.executor.spin_once(timeout_sec=0.05)
             now = time.monotonic()
@@ -174,7 +175,10 @@ class Bringup:
                 if done_at is None and self.scene_done():
                     done_at = now
                 if done_at is not None:
-                    quiet_since = (quiet_since or now) if self.drained() else None
+                    count = self.driver.published_packets + self.localizer.counts["events"]
+                    busy = count != last_count or not self.drained()
+                    last_count = count
+                    quiet_since = None if busy else (quiet_since or now)
                     if (quiet_since and now - quiet_since > 0.3) or now - done_at > drain_timeout_s:
                         return
 

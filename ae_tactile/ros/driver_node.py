@@ -49,6 +49,8 @@ DRIVER_PARAMS = [
     Param("link_timeout_s", 3.0, "Silence after which the link counts as lost (s); the device beats >= 1 Hz", 0.1, 60.0),
     Param("reconnect_max_s", 5.0, "Longest wait between reconnection attempts (s)", 0.1, 300.0),
     Param("diagnostics_period_s", 1.0, "Period of /diagnostics messages (s)", 0.05, 60.0),
+    Param("wait_for_subscribers", 0, "Open the port only once 'packets' has this many subscribers "
+          "(0: at once), so no packet is published before its consumers are matched", 0, 100),
     Param("detector_threshold_sigma", 6.0, "Stream mode: trigger threshold in noise sigmas", 2.0, 100.0),
     Param("medium", "water_skin", "Fingertip body for SensorInfo: 'water_skin', 'silicone' or a label"),
     Param("radius_m", 10e-3, "Sphere radius R (m)", 1e-3, 0.1),
@@ -116,11 +118,19 @@ class DriverNode(Node):
         self._running = True
         self._publisher_thread = threading.Thread(target=self._publish_loop, name="ae_tactile_publisher",
                                                   daemon=True)
-        self.link.start()
         self._publisher_thread.start()
+        if self.p["wait_for_subscribers"] > 0:
+            self._start_timer = self.create_timer(0.02, self._start_when_subscribed)
+        else:
+            self.link.start()
         self.get_logger().info(
             f"driver on {self.link_config.port} ({self.link_config.mode} mode), frame '{self.p['frame_id']}', "
             f"{'reliable' if self.p['reliable_qos'] else 'sensor-data'} QoS")
+
+    def _start_when_subscribed(self) -> None:
+        if self.pub_packets.get_subscription_count() >= self.p["wait_for_subscribers"]:
+            self._start_timer.cancel()
+            self.link.start()
 
     # -------------------------------------------------------------- packets
     def _publish_loop(self) -> None:
@@ -215,7 +225,8 @@ class DriverNode(Node):
 
     def destroy_node(self):
         self._running = False
-        self.link.stop()
+        if self.link._thread is not None:
+            self.link.stop()
         self._publisher_thread.join(1.0)
         return super().destroy_node()
 

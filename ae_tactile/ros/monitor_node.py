@@ -73,8 +73,9 @@ class MonitorNode(Node):
         self._queue.append((kind, seen))
 
     def _on_state(self, msg: ContactState) -> None:
+        changed = not self.states or self.states[-1][1] != msg.state
         self.states.append((time_msg_to_ns(msg.header.stamp), msg.state))
-        if self.print_live:
+        if self.print_live and changed:
             t = (time_msg_to_ns(msg.header.stamp) - (self.t0_ns or time_msg_to_ns(msg.header.stamp))) * 1e-9
             print(f"{t:9.4f} s  state -> {STATE_NAMES.get(msg.state, msg.state)}", file=self.out, flush=True)
 
