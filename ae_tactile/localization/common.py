@@ -381,7 +381,10 @@ def prepare(x, onset, plan: Plan, *, noise_rms_v=None, saturated=None, full_scal
     raw, count = raw_gather(x, start4, plan.seg_len)
     const = (raw.max(axis=2) == raw.min(axis=2)).any(axis=1)
     flags[const] |= 1 << Reason.NO_SIGNAL
-    sat |= flat_top(raw, plan.flat_run)
+    if saturated is None and full_scale_v is None:
+        # Only without upstream knowledge: a weak, slow pulse quantized to a few LSB also
+        # shows a flat top, so the heuristic must not overrule a driver's saturation flags.
+        sat |= flat_top(raw, plan.flat_run)
     flags[sat] |= 1 << Reason.SATURATED
     no_pre = n_pre < 4
     if no_pre.any():

@@ -45,6 +45,8 @@ def parse_args(argv):
     ap.add_argument("--grip-reflex", action="store_true", help="run the example grip reflex (closes the loop)")
     ap.add_argument("--best-effort", dest="reliable", action="store_false",
                     help="sensor-data (best-effort) QoS on packets instead of reliable")
+    ap.add_argument("--sliding-speed", type=float, default=0.0,
+                    help="known sliding speed (m/s) for TEXTURE spatial periods (0: unknown)")
     ap.add_argument("--summary-json", default="", help="write the monitor's summary here")
     return ap.parse_args(argv)
 
@@ -122,7 +124,8 @@ class Bringup:
                     raise RuntimeError(f"the simulated fingertip did not start (exit code {self.sim_process.poll()})")
         else:
             port = args.port
-        self.driver = DriverNode(parameter_overrides=[
+        sensor = self._scene_sensor_params(scene) if args.use_sim else []
+        self.driver = DriverNode(parameter_overrides=sensor + [
             Parameter("port", value=port), Parameter("frame_id", value=args.frame_id),
             Parameter("reliable_qos", value=bool(args.reliable)),
             Parameter("wait_for_subscribers", value=1)], **kw)
@@ -130,7 +133,8 @@ class Bringup:
         if args.method:
             loc_params.append(Parameter("method", value=args.method))
         self.localizer = LocalizerNode(parameter_overrides=loc_params, **kw)
-        self.slip = SlipDetectorNode(**kw)
+        slip_params = [Parameter("sliding_speed_m_s", value=float(args.sliding_speed))] if args.sliding_speed else []
+        self.slip = SlipDetectorNode(parameter_overrides=slip_params, **kw)
         self.nodes += [self.driver, self.localizer, self.slip]
         self.driver.create_subscription(String, "sim/scene_truth", self._on_scene_info, LATCHED)
         if args.grip_reflex:
@@ -144,6 +148,20 @@ class Bringup:
         self.executor = make_executor(context)
         for n in self.nodes:
             self.executor.add_node(n)
+
+    @staticmethod
+    def _scene_sensor_params(scene_path: str) -> list:
+        """The simulated sensor's geometry and medium as driver parameters, so that the
+        latched sensor_info (and hence the localizer) matches the fingertip being played,
+        as a user would pick config/water_skin.yaml or config/silicone.yaml for hardware."""
+        from ae_tactile.sim.scene import load_scene
+        cfg = load_scene(scene_path).config
+        g = cfg.geometry
+        return [Parameter("medium", value=str(cfg.medium.name if hasattr(cfg.medium, "name") else cfg.medium)),
+                Parameter("radius_m", value=float(g.radius_m)),
+                Parameter("element_offset_m", value=float(g.element_offset_m)),
+                Parameter("sound_speed_m_s", value=float(g.sound_speed_m_s)),
+                Parameter("highpass_hz", value=float(cfg.highpass_hz))]
 
     def _on_scene_info(self, msg) -> None:
         try:

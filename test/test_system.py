@@ -1,0 +1,167 @@
+"""End to end with real rclpy: simulated fingertip (own process, pty) -> driver -> localizer
+-> slip detector (-> grip reflex), scored against the scene's ground truth.
+
+Each run is the `bringup` composition the demo uses; the simulated fingertip runs as a
+separate process, like hardware on a USB port.
+"""
+import argparse
+import json
+import os
+import subprocess
+
+import numpy as np
+import pytest
+import yaml
+
+from conftest import installed_executable, require_ros
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SCENES = os.path.join(ROOT, "config", "scenes")
+
+
+def run_system(ros_context, scene, *, grip_reflex=False, namespace="", method="", sliding_speed=0.0):
+    """Play a scene through the composed system; return (bringup, summary)."""
+    require_ros()
+    from ae_tactile.ros.bringup import Bringup, parse_args
+    argv = ["--scene", scene, "--monitor"] + (["--grip-reflex"] if grip_reflex else [])
+    argv += ["--namespace", namespace] if namespace else []
+    argv += ["--method", method] if method else []
+    argv += ["--sliding-speed", str(sliding_speed)] if sliding_speed else []
+    system = Bringup(parse_args(argv), context=ros_context)
+    system.monitor.print_live = False
+    try:
+        system.spin(-1.0, drain_timeout_s=15.0)
+        summary = system.monitor.summary(system.gross_slip_times_ns(), system.slip_part_starts_ns())
+    except BaseException:
+        system.close()
+        raise
+    return system, summary
+
+
+def scene_file(tmp_path, name, **changes):
+    """A copy of a built-in scene with top-level keys or params changed."""
+    with open(os.path.join(SCENES, name + ".yaml")) as fh:
+        spec = yaml.safe_load(fh)
+    for k, v in changes.items():
+        if k in ("duration_s", "seed", "noise", "effects"):
+            spec[k] = v
+        else:
+            spec.setdefault("params", {})[k] = v
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    return str(path)
+
+
+@pytest.mark.parametrize("scene", ["single_touch", "paper_positions", "three_pins", "touch_hold_release",
+                                   "random_touches", "plane_slip", "texture", "incipient_slip"])
+def test_every_builtin_scene_is_found_and_localized(ros_context, scene):
+    system, s = run_system(ros_context, os.path.join(SCENES, scene + ".yaml"))
+    try:
+        e, tr = s["emissions"], s["touch_release"]
+        print(scene, s)
+        assert e["truth"] >= 1
+        assert e["recall"] >= 0.98 and e["precision"] >= 0.98, e
+        assert e["rms_position_error_mm"] <= 0.3, e
+        if tr["truth"]:
+            assert tr["found"] / tr["truth"] >= 0.98 and tr["typed_correctly"] == tr["found"], tr
+        assert s["latency_ms"]["median"] < 200
+    finally:
+        system.close()
+
+
+def test_touch_hold_release_raises_no_slip_alarm(ros_context, tmp_path):
+    path = scene_file(tmp_path, "touch_hold_release", duration_s=1.0, hold_s=0.8)
+    system, s = run_system(ros_context, path)
+    try:
+        assert s["touch_release"] == {"truth": 2, "found": 2, "typed_correctly": 2}
+        assert s["slip_events"] == {}, s["slip_events"]          # no false slip alarm
+    finally:
+        system.close()
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_incipient_slip_precursor_comes_before_gross_slip(ros_context, tmp_path, seed):
+    system, s = run_system(ros_context, scene_file(tmp_path, "incipient_slip", seed=seed))
+    try:
+        gross = system.gross_slip_times_ns()
+        assert len(gross) == 1                                     # the scene does slip
+        lead = s["slip_precursor_lead_ms"][0]
+        print(f"seed {seed}: precursor {lead} ms before gross slip")
+        assert lead is not None and lead > 74.0                    # earlier than a human reflex
+        assert s["slip_events"].get("SLIP", 0) >= 1                # and gross slip is reported
+    finally:
+        system.close()
+
+
+def test_grip_reflex_averts_gross_slip(ros_context, tmp_path):
+    path = scene_file(tmp_path, "incipient_slip", duration_s=1.4)
+    off, s_off = run_system(ros_context, path)
+    try:
+        assert len(off.gross_slip_times_ns()) == 1                 # without the reflex it slips
+    finally:
+        off.close()
+    on, s_on = run_system(ros_context, path, grip_reflex=True)
+    try:
+        assert on.gross_slip_times_ns() == []                      # the reflex averted it
+        assert on.reflex.commands and on.scene_info["load_changes"]
+        first_micro = min(t for t, k in [(int(m.header.stamp.sec) * 10**9 + m.header.stamp.nanosec, m.event_type)
+                                         for m in on.monitor.truth] if k == 3)
+        reaction_ms = (on.reflex.commands[0][0] - first_micro) * 1e-6
+        print(f"reaction: first micro-slip emission -> force command {reaction_ms:.1f} ms; "
+              f"precursor -> command {on.reflex.reactions_ms[0]:.1f} ms")
+        assert 0 < reaction_ms < 1000
+    finally:
+        on.close()
+
+
+def test_texture_spatial_period_within_ten_percent(ros_context, tmp_path):
+    path = scene_file(tmp_path, "texture", duration_s=1.0)
+    with open(path) as fh:
+        spec = yaml.safe_load(fh)
+    speed, period = spec["params"]["slide_speed_m_s"], spec["params"]["period_m"]
+    system, s = run_system(ros_context, path, sliding_speed=float(speed))
+    try:
+        periods = [x.msg.spatial_period_m for x in system.monitor.slip if x.msg.event_type == 5]
+        assert periods, s["slip_events"]
+        assert abs(np.median(periods) - period) / period < 0.10, (np.median(periods), period)
+    finally:
+        system.close()
+
+
+def test_namespaced_bringup(ros_context):
+    system, s = run_system(ros_context, os.path.join(SCENES, "paper_positions.yaml"), namespace="hand/index",
+                           method="gradient")
+    try:
+        assert system.driver.get_namespace() == "/hand/index"
+        assert system.localizer.p["method"] == "gradient"
+        names = dict(system.driver.get_topic_names_and_types())
+        assert "/hand/index/packets" in names and "/hand/index/contacts" in names
+        assert s["emissions"]["matched"] == 3
+    finally:
+        system.close()
+
+
+def test_bringup_executable_with_parameter_file_and_namespace(tmp_path):
+    """The demo's entry point as a user runs it: parameter file, namespace, summary file."""
+    exe = installed_executable("bringup")
+    out = tmp_path / "summary.json"
+    proc = subprocess.run([exe, "--scene", os.path.join(SCENES, "three_pins.yaml"), "--monitor",
+                           "--namespace", "finger1", "--params-file", os.path.join(ROOT, "config", "water_skin.yaml"),
+                           "--summary-json", str(out)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "=== summary ===" in proc.stdout and "Traceback" not in proc.stderr
+    s = json.loads(out.read_text())
+    assert s["emissions"]["matched"] == 3 and s["touch_release"]["typed_correctly"] == 3
+    assert s["emissions"]["rms_position_error_mm"] < 0.05
+    bad = subprocess.run([exe, "--params-file", str(tmp_path / "missing.yaml")], capture_output=True, text=True,
+                         timeout=60)
+    assert bad.returncode == 2 and "not found" in bad.stderr
+
+
+def test_bringup_cli_parses_the_documented_arguments():
+    from ae_tactile.ros.bringup import parse_args
+    a = parse_args(["--scene", "x.yaml", "--namespace", "f1", "--params-file", "p.yaml", "--no-sim",
+                    "--port", "socket://localhost:5000", "--method", "ml", "--grip-reflex", "--best-effort"])
+    assert isinstance(a, argparse.Namespace)
+    assert (a.scene, a.namespace, a.params_file, a.use_sim, a.port, a.method, a.grip_reflex, a.reliable) == \
+        ("x.yaml", "f1", "p.yaml", False, "socket://localhost:5000", "ml", True, False)
