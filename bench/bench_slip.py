@@ -8,7 +8,9 @@ seed) -> the simulator's triggered windows -> ``localize`` (default estimator) -
 ``SlipDetector`` with default parameters. Families: open-loop incipient slip (never
 announced by a touch, and announced by a touch at the contact centre), closed-loop
 grip reflex, touch-hold-release, random touches (20 Hz, holds <= 50 ms; and dense: 50 Hz,
-holds <= 0.5 s), textures, and drifting plane slip. Parameter ranges: see
+holds <= 0.5 s), textures, and drifting plane slip; and some incipient-slip and
+touch-hold-release trials through the stream path instead (StreamingSource -> dsp
+PacketDetector -> localize_packets). Parameter ranges: see
 ``ae_tactile.slip.evaluate`` and docs/slip.md.
 
 Writes bench/results/slip.json (``--quick``: slip_quick.json) and the table in
@@ -88,7 +90,8 @@ def table(res: dict) -> str:
                      f"max {fmt(d, 'max', scale, nd)}{unit} |")
 
     for label, d in (("incipient slip, contact never announced", inc),
-                     ("incipient slip, announced by a touch", inc_t)):
+                     ("incipient slip, announced by a touch", inc_t),
+                     ("incipient slip, stream + dsp packet detector (not ideal triggers)", s.get("incipient_slip_stream"))):
         if d is None:
             continue
         lines.append(f"| **{label}** ({d['n_trials']} trials) | |")
@@ -110,9 +113,11 @@ def table(res: dict) -> str:
                      f"{1e3 * cl['latency_s']:.0f} ms after the first precursor, Q ramps to 1.2 mu P | "
                      f"gross slip averted in {100 * cl['averted_rate']:.1f} % |")
         pct_row("q when P was raised", cl["q_at_reflex"], nd=3)
-    for key, label in (("touch_hold_release", "touch-hold-release"), ("random_touches", "random touches 20 Hz"),
+    for key, label in (("touch_hold_release", "touch-hold-release"),
+                       ("touch_hold_release_stream", "touch-hold-release, stream + dsp detector"),
+                       ("random_touches", "random touches 20 Hz"),
                        ("random_touches_dense", "random touches 50 Hz, holds <= 0.5 s")):
-        a = s[key]
+        a = s.get(key)
         if a:
             lines.append(f"| **{label}** ({a['n_trials']} trials, {a['minutes']:.1f} min) | false alarms "
                          f"{a['alarm_onsets']} = {a['false_alarms_per_minute']:.2f} /min "
@@ -149,9 +154,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
     n = dict(n_incipient=20, n_incipient_touch=6, n_closed_loop=6, n_thr=30, n_random=1, random_duration_s=10.0,
-             n_texture=10, n_drift=5) if args.quick else dict(
+             n_texture=10, n_drift=5, n_incipient_stream=2, n_thr_stream=5) if args.quick else dict(
         n_incipient=200, n_incipient_touch=50, n_closed_loop=50, n_thr=300, n_random=6, random_duration_s=60.0,
-        n_texture=100, n_drift=30)
+        n_texture=100, n_drift=30, n_incipient_stream=30, n_thr_stream=50)
     t0 = time.perf_counter()
 
     def progress(name, i, total):

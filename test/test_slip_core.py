@@ -106,6 +106,15 @@ def test_lone_orphan_release_is_not_a_contact_nor_a_precursor():
     assert det.contact_infos() == []
 
 
+def test_touch_next_to_a_lone_orphan_is_reported():
+    det = SlipDetector()
+    det.process(ev(0, 1e-3, 1e-3, -1, 1))             # a release whose touch was missed
+    det.process(ev(20 * MS, 2e-3, 1e-3, 1, 2))        # a real touch 1 mm away
+    s = det.state
+    assert s.state == ContactState.STICK and s.n_contacts == 1
+    assert np.linalg.norm(s.contact_point_m - surf(2e-3, 1e-3)) < 1e-6
+
+
 # ---------------------------------------------------------------------- precursor
 @pytest.mark.parametrize("announced", [True, False])
 def test_micro_slip_ring_gives_precursor(announced):

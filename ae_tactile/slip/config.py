@@ -87,6 +87,10 @@ class SlipConfig:
       texture_min_fraction   fraction of regular intervals needed (and of single ones:
                              texture_min_fraction - 0.15)
       texture_max_multiple   largest multiple of the period accepted for one interval
+      texture_confirm_events a texture run starts after this many consecutive periodic
+                             tests (one per emission; Poisson emissions pass one 16-interval
+                             test with probability ~2e-5, two in a row ~3e-6, three: none in
+                             3e5 windows)
       sliding_speed_m_s      sliding speed (None: unknown, spatial period NaN); settable
                              at run time (``SlipDetector.set_sliding_speed``)
     Direction of travel (SLIP / TEXTURE)
@@ -131,6 +135,7 @@ class SlipConfig:
     texture_tolerance: float = 0.2
     texture_min_fraction: float = 0.75
     texture_max_multiple: int = 3
+    texture_confirm_events: int = 3
     sliding_speed_m_s: float | None = None
     direction_window_s: float = 0.2
     direction_min_events: int = 6
@@ -165,6 +170,7 @@ class SlipConfig:
         s(self, "texture_tolerance", _num("texture_tolerance", self.texture_tolerance, lo=0, lo_open=True, hi=0.5, hi_open=True))
         s(self, "texture_min_fraction", _num("texture_min_fraction", self.texture_min_fraction, lo=0.5, hi=1))
         s(self, "texture_max_multiple", _int("texture_max_multiple", self.texture_max_multiple, 1, 10))
+        s(self, "texture_confirm_events", _int("texture_confirm_events", self.texture_confirm_events, 1, 1000))
         s(self, "sliding_speed_m_s", _num("sliding_speed_m_s", self.sliding_speed_m_s, lo=0, lo_open=True, hi=100,
                                           allow_none=True))
         s(self, "direction_window_s", _num("direction_window_s", self.direction_window_s, lo=0, lo_open=True, hi=60))

@@ -123,6 +123,7 @@ class _Contact:
         self.precursor_count = 0
         self.last_report = {}
         self.texture_on = False
+        self.texture_run = 0                 # consecutive periodic tests
         self.centre = None
         self.radius = 0.0
 
@@ -267,6 +268,7 @@ class SlipDetector:
                 c.state = ContactState.STICK
                 c.since_ns = c.last_slip_ns + self._quiet
                 c.texture_on = False
+                c.texture_run = 0
         self._update_finger(now)
         return self._finger
 
@@ -304,6 +306,13 @@ class SlipDetector:
                 c = self._new_contact(t, announced=True)
                 c.members.append(_Member(ev, MAIN, 0.0, True))
                 c.update_geometry()
+            elif not c.confirmed:
+                # a touch next to an unconfirmed candidate (a lone orphan): a contact now,
+                # announced by this touch; the orphan stays as evidence
+                c.announced = c.confirmed = True
+                c.members.append(_Member(ev, MAIN, 0.0, True))
+                c.last_ns = t
+                c.update_geometry()
             else:
                 # a compression on top of an open touch (the same spot touched again, or
                 # two touches side by side) is no micro-slip evidence
@@ -329,6 +338,7 @@ class SlipDetector:
             new.clean = False
         if new is not None:
             self._last_member = new
+
     def _new_contact(self, t_ns, announced):
         if len(self.contacts) >= self.config.max_contacts:
             idle = [c for c in self.contacts if c.state not in _SLIPPING] or self.contacts
@@ -502,11 +512,16 @@ class SlipDetector:
         pol = np.array([m.pol for m in sm])
         if np.all(pol[1:] * pol[:-1] == -1):
             c.texture_on = False
+            c.texture_run = 0
             return
         res = periodicity([m.t for m in sm], tolerance=cfg.texture_tolerance,
                           min_fraction=cfg.texture_min_fraction, max_multiple=cfg.texture_max_multiple)
         if not res.periodic:
             c.texture_on = False
+            c.texture_run = 0
+            return
+        c.texture_run += 1
+        if c.texture_run < cfg.texture_confirm_events:
             return
         t = ev.time_ns
         onset = not c.texture_on

@@ -100,6 +100,36 @@ def localized_events(packets, geometry, *, id_offset: int = 0) -> list[Localized
     return out
 
 
+def stream_localized_events(source, geometry, n_samples: int, *, chunk_samples: int = 1_000_000,
+                            detector_config=None) -> list[LocalizedEvent]:
+    """The stream path instead of ideal triggers: a ``StreamingSource`` read in chunks ->
+    ``ae_tactile.dsp.PacketDetector`` (default configuration at the stream's rate) ->
+    ``localize_packets``; re-triggers inside a hit (``in_hit``, wall echoes) are dropped as
+    the localizer node does; packet ids are the detector's."""
+    from ae_tactile.dsp import DetectorConfig, PacketBatch, PacketDetector
+    from ae_tactile.localization import localize_packets
+    fs = source.config.sample_rate_hz
+    det = PacketDetector(detector_config or DetectorConfig(sample_rate_hz=fs))
+    parts, pos = [], 0
+    while pos < n_samples:
+        ch = source.next_chunk(min(chunk_samples, n_samples - pos))
+        parts.append(det.process(ch.samples_v, ch.start_index))
+        pos += ch.samples_v.shape[1]
+    parts.append(det.flush())
+    b = PacketBatch.concatenate(parts, det.sample_rate_hz, det.window_samples)
+    if len(b) == 0:
+        return []
+    res = localize_packets(b, geometry=geometry)
+    onset_ns = time_ns_of_sample(b.start_index + b.onset_index, fs)
+    travel_ns = np.round(geometry.arrival_times_s(res.point_m).min(axis=1) * 1e9).astype(np.int64)
+    t = onset_ns - travel_ns
+    out = [LocalizedEvent(int(t[i]), res.point_m[i], res.covariance_m2[i], int(res.polarity[i]),
+                          float(res.amplitude_v[i]), float(res.confidence[i]), int(b.packet_id[i]))
+           for i in np.flatnonzero(res.accepted & ~np.asarray(b.in_hit, bool))]
+    out.sort(key=lambda e: e.time_ns)
+    return out
+
+
 def run_detector(events, config: SlipConfig | None = None, end_ns: int | None = None, *,
                  sliding_speed_m_s=None, tick_ns: int | None = None):
     """Feed events (time order) to a fresh detector; ``advance`` every ``tick_ns`` between
@@ -181,6 +211,24 @@ def incipient_slip_scene(seed: int, *, announce_touch: bool = False, post_s: flo
     return scene, source, params
 
 
+def _streaming(scene, source):
+    from ae_tactile.sim.stream import StreamingSource
+    if source is None:
+        return scene.streaming_source()
+    return StreamingSource(source, scene.config, noise_rms_v=scene.noise_rms_v, seed=scene.seed)
+
+
+def _events(scene, source, end_ns, pipeline):
+    """(events, number of true emissions) through the chosen pipeline."""
+    if pipeline == "triggered":
+        pk = _triggered(scene, source).next_packets(1 << 30, horizon_ns=end_ns)
+        return localized_events(pk, scene.config.geometry), int(len(pk.emissions))
+    if pipeline == "stream":
+        n = int(round(end_ns * 1e-9 * scene.config.sample_rate_hz))
+        return stream_localized_events(_streaming(scene, source), scene.config.geometry, n), None
+    raise ValueError(f"pipeline must be 'triggered' or 'stream', got {pipeline!r}")
+
+
 def _triggered(scene, source):
     from ae_tactile.sim.stream import TriggeredSource
     if source is None:
@@ -189,12 +237,12 @@ def _triggered(scene, source):
 
 
 def incipient_slip_trial(seed: int, config: SlipConfig | None = None, *, announce_touch: bool = False,
-                         post_s: float = 0.25, ranges: dict | None = None) -> dict:
-    """One open-loop incipient-slip trial: precursor, lead time, q at detection, SLIP delay."""
+                         post_s: float = 0.25, ranges: dict | None = None, pipeline: str = "triggered") -> dict:
+    """One open-loop incipient-slip trial: precursor, lead time, q at detection, SLIP delay.
+    ``pipeline``: 'triggered' (ideal trigger windows) or 'stream' (stream + dsp detector)."""
     scene, source, params = incipient_slip_scene(seed, announce_touch=announce_touch, post_s=post_s, ranges=ranges)
     end_ns = int(round(scene.duration_s * _NS))
-    pk = _triggered(scene, source).next_packets(1 << 30, horizon_ns=end_ns)
-    events = localized_events(pk, scene.config.geometry)
+    events, n_em = _events(scene, source, end_ns, pipeline)
     det, outs, trace = run_detector(events, config, end_ns)
     proc = scene.process
     t_gross = proc.scene_truth(end_ns)["gross_slip_time_ns"]
@@ -202,7 +250,7 @@ def incipient_slip_trial(seed: int, config: SlipConfig | None = None, *, announc
     slip = _first(outs, SlipEventType.SLIP)
     out = dict(params)
     out.update({
-        "n_emissions": int(len(pk.emissions)), "n_events": len(events),
+        "pipeline": pipeline, "n_emissions": n_em, "n_events": len(events),
         "gross_slip_time_ns": t_gross,
         "precursor_time_ns": None if pre is None else pre.time_ns,
         "slip_time_ns": None if slip is None else slip.time_ns,
@@ -283,7 +331,7 @@ def _state_at(trace, t):
     return s
 
 
-def touch_hold_release_trial(seed: int, config: SlipConfig | None = None) -> dict:
+def touch_hold_release_trial(seed: int, config: SlipConfig | None = None, *, pipeline: str = "triggered") -> dict:
     """Touch anywhere on the cap (polar <= 60 deg), hold 20 ms .. 2 s, release; random
     speeds, medium and SNR. False alarms and the latched state during the hold / after."""
     rng = np.random.default_rng([7002, int(seed)])
@@ -298,11 +346,10 @@ def touch_hold_release_trial(seed: int, config: SlipConfig | None = None) -> dic
                        "speed_m_s": float(rng.uniform(0.15, 0.5)), "release_speed_m_s": float(rng.uniform(0.1, 0.3))}}
     scene = load_scene(spec)
     end_ns = int(round(scene.duration_s * _NS))
-    pk = scene.triggered_source().next_packets(1 << 30, horizon_ns=end_ns)
-    events = localized_events(pk, scene.config.geometry)
+    events, n_em = _events(scene, None, end_ns, pipeline)
     det, outs, trace = run_detector(events, config, end_ns, tick_ns=int(0.01 * _NS))
     out = {"seed": int(seed), "duration_s": scene.duration_s, "hold_s": hold, "medium": medium,
-           "n_emissions": int(len(pk.emissions)), "n_events": len(events),
+           "pipeline": pipeline, "n_emissions": n_em, "n_events": len(events),
            "state_mid_hold": int(_state_at(trace, int((t0 + hold / 2) * _NS))),
            "state_end": int(det.state.state)}
     out.update(_alarm_summary(outs))
@@ -460,7 +507,8 @@ def summarize_texture(trials: list[dict]) -> dict:
 
 def run_evaluation(*, n_incipient: int = 100, n_incipient_touch: int = 30, n_closed_loop: int = 30,
                    n_thr: int = 100, n_random: int = 12, random_duration_s: float = 10.0,
-                   n_texture: int = 50, n_drift: int = 20, seed: int = 0,
+                   n_texture: int = 50, n_drift: int = 20, n_incipient_stream: int = 0,
+                   n_thr_stream: int = 0, seed: int = 0,
                    config: SlipConfig | None = None, post_s: float = 0.25, progress=None) -> dict:
     """Every trial family with consecutive seeds from ``seed``; returns the summaries and
     the per-trial records (JSON-able)."""
@@ -489,6 +537,10 @@ def run_evaluation(*, n_incipient: int = 100, n_incipient_touch: int = 30, n_clo
         s + 10_000, cfg, duration_s=random_duration_s, rate_hz=50.0, hold_max_s=0.5), n_random)
     tex = run("texture", lambda s: texture_trial(s, cfg), n_texture)
     drift = run("drift", lambda s: drift_slip_trial(s, cfg), n_drift)
+    inc_s = run("incipient_stream", lambda s: incipient_slip_trial(s, cfg, post_s=post_s, pipeline="stream"),
+                n_incipient_stream)
+    thr_s = run("touch_hold_release_stream", lambda s: touch_hold_release_trial(s, cfg, pipeline="stream"),
+                n_thr_stream)
     out["summary"] = {
         "incipient_slip": summarize_incipient(inc),
         "incipient_slip_announced": summarize_incipient(inc_t) if inc_t else None,
@@ -502,6 +554,8 @@ def run_evaluation(*, n_incipient: int = 100, n_incipient_touch: int = 30, n_clo
                                           if thr else None),
             "state_end_no_contact_rate": (sum(t["state_end"] == ContactState.NO_CONTACT for t in thr) / len(thr)
                                           if thr else None)}),
+        "incipient_slip_stream": summarize_incipient(inc_s) if inc_s else None,
+        "touch_hold_release_stream": summarize_alarms(thr_s) if thr_s else None,
         "random_touches": summarize_alarms(rnd) if rnd else None,
         "random_touches_dense": summarize_alarms(rnd_dense) if rnd_dense else None,
         "texture": summarize_texture(tex) if tex else None,
@@ -515,5 +569,6 @@ def run_evaluation(*, n_incipient: int = 100, n_incipient_touch: int = 30, n_clo
     out["timing_s"] = timing
     out["trials"] = {"incipient_slip": inc, "incipient_slip_announced": inc_t, "closed_loop": cl,
                      "touch_hold_release": thr, "random_touches": rnd, "random_touches_dense": rnd_dense,
-                     "texture": tex, "drift": drift}
+                     "texture": tex, "drift": drift, "incipient_slip_stream": inc_s,
+                     "touch_hold_release_stream": thr_s}
     return out
