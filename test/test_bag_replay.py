@@ -95,7 +95,8 @@ def test_live_packets_record_and_replay(ros_context, tmp_path):
     from rosbags.rosbag2 import Writer
     from ae_tactile.msg import ContactEvent, PacketArray, SensorInfo
     from ae_tactile.ros.conversions import time_msg_to_ns
-    from ae_tactile.ros.driver_node import LATCHED, DriverNode
+    from ae_tactile.ros.driver_node import DriverNode
+    from ae_tactile.ros.node_utils import LATCHED
     from ae_tactile.ros.localizer_node import LocalizerNode
     from ae_tactile.ros.sim_fingertip_node import SimFingertipNode, default_scene_path
     from ros_helpers import spin_until

@@ -8,7 +8,6 @@ bad parameters stop the node with the reason; SIGINT stops the executable cleanl
 import os
 import signal
 import subprocess
-import sys
 import time
 
 import numpy as np
@@ -38,7 +37,8 @@ class System:
         from rclpy.parameter import Parameter
         from diagnostic_msgs.msg import DiagnosticArray
         from ae_tactile.msg import ContactEvent, PacketArray, SensorInfo
-        from ae_tactile.ros.driver_node import LATCHED, DriverNode
+        from ae_tactile.ros.driver_node import DriverNode
+        from ae_tactile.ros.node_utils import LATCHED
         from ae_tactile.ros.sim_fingertip_node import SimFingertipNode
         link = str(tmp_path / "fingertip0")
         self.sim = SimFingertipNode(context=ctx, parameter_overrides=[

@@ -23,10 +23,10 @@ import tempfile
 import time
 
 import rclpy
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import MultiThreadedExecutor
 from rclpy.parameter import Parameter
 
-from ae_tactile.ros.params import ParameterError
+from ae_tactile.ros.node_utils import ros_session
 
 
 def parse_args(argv):
@@ -86,7 +86,8 @@ class Bringup:
 
     def __init__(self, args, context=None, sim_in_process: bool = False):
         from std_msgs.msg import String
-        from ae_tactile.ros.driver_node import LATCHED, DriverNode
+        from ae_tactile.ros.driver_node import DriverNode
+        from ae_tactile.ros.node_utils import LATCHED
         from ae_tactile.ros.localizer_node import LocalizerNode
         from ae_tactile.ros.slip_node import SlipDetectorNode
         kw = {"namespace": args.namespace}
@@ -243,31 +244,25 @@ def main(argv=None) -> int:
             return 2
         ros_args = (ros_args or ["--ros-args"]) + ["--params-file", args.params_file]
     sys.setswitchinterval(0.0002)     # I/O threads (serial reader, publisher) get the GIL sooner
-    rclpy.init(args=["bringup"] + ros_args)
     system = None
-    try:
-        system = Bringup(args)
-        duration = args.duration if args.duration >= 0 or args.use_sim else 0.0
-        system.spin(duration)
-        if system.monitor is not None:
-            from ae_tactile.ros.monitor_node import format_summary
-            system.executor.spin_once(timeout_sec=0.1)
-            system.monitor._flush()
-            summary = system.monitor.summary(system.gross_slip_times_ns(), system.slip_part_starts_ns())
-            print(format_summary(summary), flush=True)
-            if args.summary_json:
-                with open(args.summary_json, "w") as fh:
-                    json.dump(summary, fh, indent=2)
-    except ParameterError as exc:
-        print(f"[ae_tactile] not starting: {exc}", file=sys.stderr, flush=True)
-        return 2
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if system is not None:
-            system.close()
-        rclpy.try_shutdown()
-    return 0
+    with ros_session(["bringup"] + ros_args) as state:
+        try:
+            system = Bringup(args)
+            duration = args.duration if args.duration >= 0 or args.use_sim else 0.0
+            system.spin(duration)
+            if system.monitor is not None:
+                from ae_tactile.ros.monitor_node import format_summary
+                system.executor.spin_once(timeout_sec=0.1)
+                system.monitor._flush()
+                summary = system.monitor.summary(system.gross_slip_times_ns(), system.slip_part_starts_ns())
+                print(format_summary(summary), flush=True)
+                if args.summary_json:
+                    with open(args.summary_json, "w") as fh:
+                        json.dump(summary, fh, indent=2)
+        finally:
+            if system is not None:
+                system.close()
+    return state["exit"]
 
 
 if __name__ == "__main__":

@@ -19,9 +19,7 @@ from __future__ import annotations
 import sys
 import threading
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
@@ -30,6 +28,7 @@ from ae_tactile.geometry import MEDIA
 from ae_tactile.link import MODES, FingertipLink, LinkConfig
 from ae_tactile.msg import PacketArray, SensorInfo
 from ae_tactile.ros.conversions import make_packet, ns_to_time_msg
+from ae_tactile.ros.node_utils import LATCHED, run_node
 from ae_tactile.ros.params import Param, ParameterError, declare
 
 DRIVER_PARAMS = [
@@ -70,8 +69,6 @@ def packet_qos(reliable: bool) -> QoSProfile:
     return qos_profile_sensor_data
 
 
-LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                     reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def detector_options(p: dict) -> dict:
@@ -229,27 +226,6 @@ class DriverNode(Node):
             self.link.stop()
         self._publisher_thread.join(1.0)
         return super().destroy_node()
-
-
-def run_node(node_factory, args=None) -> int:
-    """Init rclpy, spin one node until SIGINT/shutdown, clean up; 2 on a parameter error."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = node_factory()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        executor.spin()
-    except ParameterError as exc:
-        print(f"[ae_tactile] not starting: {exc}", file=sys.stderr, flush=True)
-        return 2
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
 
 
 def main(args=None) -> int:

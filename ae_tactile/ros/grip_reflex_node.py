@@ -16,7 +16,7 @@ from std_msgs.msg import Float64
 
 from ae_tactile.msg import ContactEvent
 from ae_tactile.ros.conversions import time_msg_to_ns
-from ae_tactile.ros.driver_node import run_node
+from ae_tactile.ros.node_utils import run_node
 from ae_tactile.ros.params import Param, declare
 
 REFLEX_PARAMS = [

@@ -28,7 +28,7 @@ from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import Localizer, Reason, available_methods
 from ae_tactile.msg import ContactEvent, PacketArray, SensorInfo
 from ae_tactile.ros.conversions import ns_to_time_msg, packet_samples, time_msg_to_ns
-from ae_tactile.ros.driver_node import LATCHED, run_node
+from ae_tactile.ros.node_utils import LATCHED, run_node
 from ae_tactile.ros.markers import EventMarkers, sensor_markers
 from ae_tactile.ros.params import Param, declare
 

@@ -19,7 +19,7 @@ from rclpy.node import Node
 from ae_tactile.evaluation import match_by_time, score
 from ae_tactile.msg import ContactEvent, ContactState
 from ae_tactile.ros.conversions import time_msg_to_ns
-from ae_tactile.ros.driver_node import LATCHED
+from ae_tactile.ros.node_utils import LATCHED
 from ae_tactile.ros.markers import EVENT_NAMES
 from ae_tactile.ros.sim_fingertip_node import TRUTH_QOS
 

@@ -29,7 +29,7 @@ from std_msgs.msg import Float64, String
 
 from ae_tactile.msg import ContactEvent
 from ae_tactile.ros.conversions import ns_to_time_msg
-from ae_tactile.ros.driver_node import LATCHED, run_node
+from ae_tactile.ros.node_utils import LATCHED, run_node
 from ae_tactile.ros.params import Param, ParameterError, declare
 from ae_tactile.virtual_device import DeviceRunner, PtyTransport, TcpTransport, VirtualFingertip
 

@@ -20,7 +20,7 @@ from visualization_msgs.msg import MarkerArray
 
 from ae_tactile.msg import ContactEvent, ContactState
 from ae_tactile.ros.conversions import ns_to_time_msg, time_msg_to_ns
-from ae_tactile.ros.driver_node import LATCHED, run_node
+from ae_tactile.ros.node_utils import LATCHED, run_node
 from ae_tactile.ros.markers import EventMarkers
 from ae_tactile.ros.params import Param, ParameterError, declare
 from ae_tactile.slip import LocalizedEvent, SlipConfig, SlipDetector
