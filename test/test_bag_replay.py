@@ -103,8 +103,9 @@ def test_live_packets_record_and_replay(ros_context, tmp_path):
     sim = SimFingertipNode(context=ros_context, parameter_overrides=[
         Parameter("scene", value=default_scene_path("random_touches.yaml"))])
     drv = DriverNode(context=ros_context, parameter_overrides=[
-        Parameter("port", value=sim.port), Parameter("reliable_qos", value=True)])
-    loc = LocalizerNode(context=ros_context)
+        Parameter("port", value=sim.port), Parameter("reliable_qos", value=True),
+        Parameter("wait_for_subscribers", value=2)])           # the recorder and the localizer
+    loc = LocalizerNode(context=ros_context, parameter_overrides=[Parameter("reliable_qos", value=True)])
     rec = __import__("rclpy").create_node("recorder", context=ros_context)
     store = typestore()
     raw_packets, raw_info, live = [], [], []
@@ -117,8 +118,11 @@ def test_live_packets_record_and_replay(ros_context, tmp_path):
     for n in (sim, drv, loc, rec):
         ex.add_node(n)
     try:
-        spin_until(ex, lambda: sim.device.finished(time.monotonic_ns()), 6.0)
-        spin_until(ex, lambda: False, 0.5)
+        spin_until(ex, lambda: sim.device.finished(time.monotonic_ns()), 10.0)
+        # until every published packet is recorded, localized and its event received
+        spin_until(ex, lambda: (loc.counts["packets"] == drv.published_packets and loc.idle()
+                                and len(live) == loc.counts["events"]), 10.0)
+        spin_until(ex, lambda: False, 0.3)
     finally:
         ex.shutdown()
         for n in (drv, loc, rec, sim):
@@ -132,8 +136,8 @@ def test_live_packets_record_and_replay(ros_context, tmp_path):
         for t, b in raw_packets:
             w.write(cp, t, b)
     # the recorded bytes decode with the package's own definitions
-    n_bag = sum(len(m.packets) for _, mt, _, m in read_bag(tmp_path / "live", store) if mt.endswith("PacketArray"))
-    assert n_bag == sum(1 for _ in raw_packets) and n_bag >= 20
+    arrays = [m for _, mt, _, m in read_bag(tmp_path / "live", store) if mt.endswith("PacketArray")]
+    assert len(arrays) == len(raw_packets) and sum(len(m.packets) for m in arrays) >= 20
     res = replay(tmp_path / "live", method="ml")
     assert len(res.contacts) == len(live) >= 20
     live_xyz = np.array([[e.position.x, e.position.y, e.position.z] for e in

@@ -94,7 +94,8 @@ def test_end_to_end_every_packet_once_in_order_exact_and_stamped(system_factory)
     from ae_tactile.ros.conversions import packet_samples, time_msg_to_ns
     sys_ = system_factory()
     dev = sys_.sim.device
-    sys_.spin(5.0, until=lambda: dev.finished(time.monotonic_ns()))
+    sys_.spin(8.0, until=lambda: dev.finished(time.monotonic_ns()))
+    sys_.spin(5.0, until=lambda: len(sys_.packets()) >= len(sys_.sent()))   # in flight: arrive
     sys_.spin(0.5)
     sent, pk = sys_.sent(), sys_.packets()
     assert len(sent) >= 30

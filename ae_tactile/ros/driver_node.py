@@ -221,6 +221,8 @@ class DriverNode(Node):
         self.pub_diag.publish(msg)
 
     def destroy_node(self):
+        if not hasattr(self, "link"):       # constructor stopped early (bad parameter)
+            return super().destroy_node()
         self._running = False
         if self.link._thread is not None:
             self.link.stop()

@@ -106,6 +106,8 @@ class LocalizerNode(Node):
                     self._busy = False
 
     def destroy_node(self):
+        if not hasattr(self, "_worker"):       # constructor stopped early (bad parameter)
+            return super().destroy_node()
         self._running = False
         self._wake.set()
         self._worker.join(1.0)

@@ -173,6 +173,8 @@ class SimFingertipNode(Node):
             self.truth_published += 1
 
     def destroy_node(self):
+        if not hasattr(self, "runner"):       # constructor stopped early (bad parameter)
+            return super().destroy_node()
         self.runner.stop()
         return super().destroy_node()
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
+from collections import deque
 
 import numpy as np
 from rclpy.node import Node
@@ -26,8 +27,8 @@ from ae_tactile.ros.params import Param, ParameterError, declare
 from ae_tactile.slip import LocalizedEvent, SlipConfig, SlipDetector
 
 NODE_PARAMS = [
-    Param("advance_lag_s", 0.02, "Let the detector's clock trail ROS time by this much, so events still in "
-          "flight are not overtaken (s)", 0.0, 1.0),
+    Param("advance_lag_s", 0.02, "Least time the detector's clock trails ROS time, so events still in "
+          "flight are not overtaken (s); it grows to 1.5 x the latency seen over the last 2 s", 0.0, 1.0),
     Param("advance_period_s", 0.02, "Period of the time-keeping tick (s)", 0.001, 1.0),
     Param("marker_period_s", 0.1, "Marker refresh period (s)", 0.02, 5.0),
     Param("frame_id", "", "Frame of the outputs; empty = the incoming events' frame"),
@@ -74,6 +75,7 @@ class SlipDetectorNode(Node):
         self.last_state_pub_ns = 0
         self.published = 0
         self.received = 0
+        self._latencies: deque[tuple[int, int]] = deque()     # (receive ns, latency ns), last 2 s
         self.publish_state(force=True)
 
     def on_speed(self, msg: Float64) -> None:
@@ -89,6 +91,10 @@ class SlipDetectorNode(Node):
             return
         if not self.frame_id:
             self.frame_id = msg.header.frame_id
+        now = self.get_clock().now().nanoseconds
+        self._latencies.append((now, now - time_msg_to_ns(msg.header.stamp)))
+        while self._latencies and now - self._latencies[0][0] > 2_000_000_000:
+            self._latencies.popleft()
         try:
             ev = LocalizedEvent(
                 time_ns=time_msg_to_ns(msg.header.stamp),
@@ -100,13 +106,24 @@ class SlipDetectorNode(Node):
         except (TypeError, ValueError) as exc:
             self.get_logger().warning(f"contact event rejected: {exc}", throttle_duration_sec=5.0)
             return
+        rejected = self.detector.counts.get("rejected_out_of_order", 0)
         for out in self.detector.process(ev):
             self.publish_event(out)
+        if self.detector.counts.get("rejected_out_of_order", 0) > rejected:
+            self.get_logger().warning("contact event older than the detector's clock dropped "
+                                      "(raise advance_lag_s)", throttle_duration_sec=5.0)
         self.publish_state()
+
+    def lag_ns(self) -> int:
+        """How far the detector's clock trails ROS time: advance_lag_s, or 1.5 x the largest
+        delivery latency of the last 2 s when that is more (a loaded host), so that events
+        in flight are never older than the detector's clock when they arrive."""
+        seen = max((lat for _, lat in self._latencies), default=0)
+        return max(int(self.p["advance_lag_s"] * 1e9), int(1.5 * seen))
 
     def tick(self) -> None:
         now = self.get_clock().now().nanoseconds
-        self.detector.advance(now - int(self.p["advance_lag_s"] * 1e9))
+        self.detector.advance(now - self.lag_ns())
         self.publish_state()
 
     def publish_markers(self) -> None:
