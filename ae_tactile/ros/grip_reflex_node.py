@@ -16,7 +16,7 @@ from std_msgs.msg import Float64
 
 from ae_tactile.msg import ContactEvent
 from ae_tactile.ros.conversions import time_msg_to_ns
-from ae_tactile.ros.node_utils import run_node
+from ae_tactile.ros.node_utils import LATCHED, run_node
 from ae_tactile.ros.params import Param, declare
 
 REFLEX_PARAMS = [
@@ -35,7 +35,9 @@ class GripReflexNode(Node):
         self.last_ns = None
         self.reactions_ms: list[float] = []
         self.commands: list[tuple[int, float]] = []       # (ROS ns, N)
-        self.pub = self.create_publisher(Float64, "grip_force_command", 10)
+        # Latched: the command is a state (the force to hold), so a hand controller or the
+        # simulated fingertip that subscribes late still gets the latest one.
+        self.pub = self.create_publisher(Float64, "grip_force_command", LATCHED)
         self.create_subscription(ContactEvent, "slip", self.on_slip, 100)
 
     def on_slip(self, ev: ContactEvent) -> None:

@@ -98,7 +98,7 @@ class SimFingertipNode(Node):
         self.pub_port.publish(String(data=self.transport.port))
         self.truth_published = 0
         self.load_changes: list[tuple[int, float]] = []     # (scene ns, P) applied
-        self.create_subscription(Float64, "grip_force_command", self._on_grip_force, 10)
+        self.create_subscription(Float64, "grip_force_command", self._on_grip_force, LATCHED)
         self.pub_scene = self.create_publisher(String, "sim/scene_truth", LATCHED)
         self.scene_finished = False
         self.create_timer(0.01, self._publish_truth)
