@@ -79,11 +79,14 @@ class MonitorNode(Node):
             t = (time_msg_to_ns(msg.header.stamp) - (self.t0_ns or time_msg_to_ns(msg.header.stamp))) * 1e-9
             print(f"{t:9.4f} s  state -> {STATE_NAMES.get(msg.state, msg.state)}", file=self.out, flush=True)
 
-    def _nearest_truth(self, stamp_ns: int, tolerance_ns: int = 1_000_000):
-        i = bisect.bisect_left(self.truth_ns, stamp_ns)
-        cands = [j for j in (i - 1, i) if 0 <= j < len(self.truth_ns)
-                 and abs(self.truth_ns[j] - stamp_ns) <= tolerance_ns]
-        return self.truth[min(cands, key=lambda j: abs(self.truth_ns[j] - stamp_ns))] if cands else None
+    def _nearest_truth(self, stamp_ns: int, point, tolerance_ns: int = 1_000_000):
+        """The ground-truth emission within tolerance_ns of stamp_ns nearest to ``point``
+        (dense emissions can be closer in time than the stamps' accuracy)."""
+        lo = bisect.bisect_left(self.truth_ns, stamp_ns - tolerance_ns)
+        hi = bisect.bisect_right(self.truth_ns, stamp_ns + tolerance_ns)
+        if lo >= hi:
+            return None
+        return min(self.truth[lo:hi], key=lambda t: math.dist(point, (t.position.x, t.position.y, t.position.z)))
 
     def _flush(self) -> None:
         now = self._now()
@@ -98,7 +101,7 @@ class MonitorNode(Node):
             line = (f"{t:9.4f} s  {EVENT_NAMES.get(m.event_type, m.event_type):<14s} "
                     f"at ({p.x * 1e3:+6.2f}, {p.y * 1e3:+6.2f}, {p.z * 1e3:+6.2f}) mm")
             if kind == "contact":
-                truth = self._nearest_truth(s.stamp_ns)
+                truth = self._nearest_truth(s.stamp_ns, (p.x, p.y, p.z))
                 if truth is not None:
                     err = math.dist((p.x, p.y, p.z), (truth.position.x, truth.position.y, truth.position.z))
                     line += f"  err {err * 1e6:6.1f} um  [truth: {TRUTH_KIND.get(truth.event_type, '?')}]"
