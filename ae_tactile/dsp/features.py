@@ -80,10 +80,15 @@ def window_features(w: np.ndarray, onset: np.ndarray, *, noise_guard: int, peak_
     snr_mask = (after & (t[None, :] < onset[:, None] + snr_window))[:, None, :]
     nsnr = c * np.maximum(snr_mask[:, 0].sum(axis=-1), 1).astype(np.float64)
     power = _chan_sum(np.where(snr_mask, d * d, 0.0).sum(axis=-1)) / nsnr
-    p_sig = np.maximum(power - nvar, 1e-3 * nvar)
-    snr_db = 10.0 * np.log10(p_sig / nvar)
 
     sat_ch = np.any((w <= sat_lo) | (w >= sat_hi), axis=-1)
+    return _features(nvar, var, sat_ch, peak, pol, power)
+
+
+def _features(nvar, var, sat_ch, peak, pol, power) -> dict:
+    """The per-window feature dict both variants return; SNR = (P - sigma^2) / sigma^2 in
+    dB, the signal power floored at 1e-3 sigma^2."""
+    p_sig = np.maximum(power - nvar, 1e-3 * nvar)
     return {
         "noise_rms_v": np.sqrt(nvar),
         "noise_rms_channel_v": np.sqrt(var),
@@ -91,7 +96,7 @@ def window_features(w: np.ndarray, onset: np.ndarray, *, noise_guard: int, peak_
         "saturated_channels": sat_ch,
         "peak_amplitude_v": peak,
         "polarity": pol,
-        "snr_db": snr_db,
+        "snr_db": 10.0 * np.log10(p_sig / nvar),
     }
 
 
@@ -121,15 +126,5 @@ def window_features_fixed(w: np.ndarray, onset: int, *, noise_guard: int, peak_w
     pol = np.where(np.abs(sj) > 3.0 * np.sqrt(_chan_sum(var)), np.sign(sj), 0.0).astype(np.int8)
     ds = d[:, :, :snr_window]
     power = _chan_sum((ds * ds).sum(axis=-1)) / (c * ds.shape[-1])
-    p_sig = np.maximum(power - nvar, 1e-3 * nvar)
-    snr_db = 10.0 * np.log10(p_sig / nvar)
     sat_ch = (w.max(axis=-1) >= sat_hi) | (w.min(axis=-1) <= sat_lo)
-    return {
-        "noise_rms_v": np.sqrt(nvar),
-        "noise_rms_channel_v": np.sqrt(var),
-        "saturated": sat_ch.any(axis=-1),
-        "saturated_channels": sat_ch,
-        "peak_amplitude_v": peak,
-        "polarity": pol,
-        "snr_db": snr_db,
-    }
+    return _features(nvar, var, sat_ch, peak, pol, power)

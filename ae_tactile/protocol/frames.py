@@ -34,7 +34,7 @@ import enum
 import math
 import struct
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import ClassVar, Union
 
 import numpy as np
@@ -269,8 +269,30 @@ class _Body:
 
 
 # ---------------------------------------------------------------- sample blocks
+class _SampleBlock(_Body):
+    """What PACKET and STREAM bodies share: (4, N) int16 samples with a gain, equality by
+    every dataclass field (arrays compared by shape and value)."""
+
+    __hash__ = None  # type: ignore[assignment]  (holds an array)
+
+    @property
+    def n_samples(self) -> int:
+        """Samples per channel N."""
+        return self.samples.shape[1]
+
+    def volts(self) -> np.ndarray:
+        """Samples in volts at the sensor, float64 (4, N): samples * v_per_count."""
+        return self.samples * self.v_per_count
+
+    def __eq__(self, other) -> bool:
+        if type(other) is not type(self):
+            return NotImplemented
+        return all(_arrays_equal(a, b) if isinstance(a, np.ndarray) else a == b
+                   for a, b in ((getattr(self, f.name), getattr(other, f.name)) for f in fields(self)))
+
+
 @dataclass(frozen=True, eq=False)
-class Packet(_Body):
+class Packet(_SampleBlock):
     """Triggered acoustic-emission packet (frame type PACKET).
 
     samples:            (4, N) int16 ADC counts, channel-major, 1 <= N <= MAX_SAMPLES.
@@ -294,7 +316,6 @@ class Packet(_Body):
     saturation_mask: int = 0
 
     frame_type: ClassVar[FrameType] = FrameType.PACKET
-    __hash__ = None  # type: ignore[assignment]  (holds an array)
 
     def __post_init__(self) -> None:
         s = _samples(self.samples)
@@ -310,24 +331,6 @@ class Packet(_Body):
             raise ValueError(f"onset_index must be < N = {n} or NO_ONSET (0xFFFF), got {onset}")
         object.__setattr__(self, "onset_index", onset)
         object.__setattr__(self, "saturation_mask", _int("saturation_mask", self.saturation_mask, 0, 15))
-
-    @property
-    def n_samples(self) -> int:
-        """Samples per channel N."""
-        return self.samples.shape[1]
-
-    def volts(self) -> np.ndarray:
-        """Samples in volts at the sensor, float64 (4, N): samples * v_per_count."""
-        return self.samples * self.v_per_count
-
-    def __eq__(self, other) -> bool:
-        if type(other) is not type(self):
-            return NotImplemented
-        return (self.sample_rate_hz == other.sample_rate_hz and self.v_per_count == other.v_per_count
-                and self.first_sample_index == other.first_sample_index
-                and self.pre_trigger == other.pre_trigger and self.onset_index == other.onset_index
-                and self.saturation_mask == other.saturation_mask
-                and _arrays_equal(self.samples, other.samples))
 
     def _pack(self) -> bytes:
         s = self.samples
@@ -357,7 +360,7 @@ def _unpack_samples(kind: str, buf, off: int, length: int, prefix: int, n: int, 
 
 
 @dataclass(frozen=True, eq=False)
-class StreamBlock(_Body):
+class StreamBlock(_SampleBlock):
     """Block of continuous samples (frame type STREAM).
 
     samples:            (4, N) int16 ADC counts, channel-major, 1 <= N <= MAX_SAMPLES.
@@ -375,7 +378,6 @@ class StreamBlock(_Body):
     saturation_mask: int = 0
 
     frame_type: ClassVar[FrameType] = FrameType.STREAM
-    __hash__ = None  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "samples", _samples(self.samples))
@@ -386,25 +388,9 @@ class StreamBlock(_Body):
         object.__setattr__(self, "saturation_mask", _int("saturation_mask", self.saturation_mask, 0, 15))
 
     @property
-    def n_samples(self) -> int:
-        return self.samples.shape[1]
-
-    @property
     def next_sample_index(self) -> int:
         """first_sample_index of the block that follows this one without a gap."""
         return self.first_sample_index + self.samples.shape[1]
-
-    def volts(self) -> np.ndarray:
-        """Samples in volts at the sensor, float64 (4, N)."""
-        return self.samples * self.v_per_count
-
-    def __eq__(self, other) -> bool:
-        if type(other) is not type(self):
-            return NotImplemented
-        return (self.sample_rate_hz == other.sample_rate_hz and self.v_per_count == other.v_per_count
-                and self.first_sample_index == other.first_sample_index
-                and self.saturation_mask == other.saturation_mask
-                and _arrays_equal(self.samples, other.samples))
 
     def _pack(self) -> bytes:
         s = self.samples
