@@ -1,4 +1,6 @@
-# Source this (bash) after tools/setup.sh: activates the venv and the colcon install.
+# SPDX-License-Identifier: Apache-2.0
+# Source this (bash) after tools/setup.sh: activates the venv, ROS 2 launch (when set up
+# from ../shared/ros2-launch) and the colcon install.
 _ae_root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 _ae_venv="$(cat "$_ae_root/.ae_venv_path")"
 # shellcheck disable=SC1091
@@ -9,6 +11,10 @@ if [ -z "${ROS_DISTRO:-}" ]; then
   export RMW_IMPLEMENTATION="${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}"
 fi
 _ae_nounset=0; case $- in *u*) _ae_nounset=1; set +u;; esac
+if [ -z "${ROS_DISTRO:-}" ] && [ -f "$_ae_venv/ros2_launch/install/local_setup.bash" ]; then
+  # shellcheck disable=SC1091
+  source "$_ae_venv/ros2_launch/install/local_setup.bash"   # composition_interfaces
+fi
 # shellcheck disable=SC1091
 source "$_ae_root/install/setup.bash"
 [ "$_ae_nounset" = 1 ] && set -u

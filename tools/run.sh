@@ -1,4 +1,5 @@
 #!/usr/bin/env bash
+# SPDX-License-Identifier: Apache-2.0
 # tools/run.sh CMD [ARGS...]: set up what is missing (tools/setup.sh), then run CMD with
 # the package's environment (venv + colcon install) from the repository root.
 set -euo pipefail

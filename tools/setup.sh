@@ -1,4 +1,5 @@
 #!/usr/bin/env bash
+# SPDX-License-Identifier: Apache-2.0
 # Idempotent set-up of everything `make demo` / `make test` need, then `colcon build`.
 #
 # - A sourced ROS 2 (ROS_DISTRO set, e.g. Jazzy or Kilted from apt): that ROS is used;
@@ -54,6 +55,41 @@ if [ ! -f "$env_stamp" ]; then
   touch "$env_stamp"
 fi
 echo "$VENV" >"$ROOT/.ae_venv_path"
+
+# ---- ROS 2 launch + ros2 CLI for `ros2 launch` without apt ROS (../shared/ros2-launch) ----
+# launch, launch_ros and ros2cli are not on PyPI: pure-Python wheels of them (with
+# --no-index, so pip never picks PyPI's unrelated `launch`) go into the venv, and the one
+# message package launch_ros imports, composition_interfaces, is built with colcon into
+# $VENV/ros2_launch/install, which tools/env.sh sources. A sourced ROS 2 has all of this;
+# without either, everything but `ros2 launch` / `ros2 run` still works.
+LAUNCH_SRC="${AE_TACTILE_ROS2_LAUNCH:-$ROOT/../shared/ros2-launch}"
+if [ "$MODE" = wheels ] && [ -d "$LAUNCH_SRC/wheels" ] && [ -d "$LAUNCH_SRC/src" ]; then
+  LAUNCH_SRC="$(cd "$LAUNCH_SRC" && pwd)"
+  launch_hash="$( { echo "$env_hash"; cd "$LAUNCH_SRC" && find wheels src -type f \
+                    | LC_ALL=C sort | xargs sha256sum; } | hash_of)"
+  LAUNCH_PREFIX="$VENV/ros2_launch"
+  launch_stamp="$LAUNCH_PREFIX/.ready_$launch_hash"
+  if [ ! -f "$launch_stamp" ]; then
+    log "installing ROS 2 launch and the ros2 CLI from $LAUNCH_SRC"
+    rm -rf "$LAUNCH_PREFIX"; mkdir -p "$LAUNCH_PREFIX"
+    pip_quiet "$VENV/bin/python" -m pip install -q --disable-pip-version-check --no-index \
+      --no-deps --find-links "$LAUNCH_SRC/wheels" "$LAUNCH_SRC"/wheels/*.whl
+    (
+      # shellcheck disable=SC1091
+      source "$VENV/bin/activate"
+      export CMAKE_PREFIX_PATH="$VENV${CMAKE_PREFIX_PATH:+:$CMAKE_PREFIX_PATH}"
+      export AMENT_PREFIX_PATH="$VENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
+      cd "$LAUNCH_PREFIX"
+      colcon --log-base "$LAUNCH_PREFIX/log" build --base-paths "$LAUNCH_SRC/src" \
+        --packages-select composition_interfaces \
+        --build-base "$LAUNCH_PREFIX/build" --install-base "$LAUNCH_PREFIX/install" \
+        --event-handlers console_direct- console_cohesion+ \
+        --cmake-args -DPython3_EXECUTABLE="$VENV/bin/python" -DBUILD_TESTING=OFF \
+        >"$LAUNCH_PREFIX/build.txt" 2>&1
+    ) || { cat "$LAUNCH_PREFIX/build.txt"; log "composition_interfaces build failed"; exit 1; }
+    touch "$launch_stamp"
+  fi
+fi
 
 # ---- colcon build (only when build inputs changed; Python edits are symlinked) ----
 build_hash="$( { echo "$env_hash"; cd "$ROOT" && cat CMakeLists.txt package.xml msg/*.msg; \
