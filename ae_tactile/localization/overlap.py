@@ -1,0 +1,882 @@
+"""Overlapping emissions: localize two or three emissions that share one packet window.
+
+Several touches within microseconds (three pins, a plate landing, slip bursts) put two or
+three emissions from different points into one window. The single-source estimators
+(`localize`) reject them (OVERLAP) or, when the second emission arrives late in the
+echo-free segment, accept a wrong point. This module fits them jointly.
+
+Model (white Gaussian noise sigma^2 per sample, per channel): J emissions, source j at
+the surface point s_j = (s_x, s_y, sqrt(R^2 - s_x^2 - s_y^2)), emission time T_j, direct
+amplitude A_j (signed: touch > 0) and first-echo amplitude B_j:
+
+    y_k(t) = sum_j [ A_j (R / d_jk) h(t - T_j - d_jk / c) + B_j h(t - T_j - e_jk / c) ] + n_k(t)
+
+    d_jk = |s_j - e_k| (direct path),  e_jk = 2R + |s_j + e_k| (first wall echo: the
+    hemisphere on its base acts, by the mirror image in the base plane, as a full sphere;
+    the concave wall refocuses the echo, so its amplitude is the same on all elements).
+
+h(t) is the *known pulse shape*: the response of the front end (Butterworth high-pass and
+anti-alias low-pass, `PulseModel`) to the collision pressure of the paper's Eq. 9,
+P1(s) = 2/(s + 2 alpha) - 1/(s + alpha) (a step for omega >> alpha), evaluated in closed
+form at any sub-sample time (partial fractions) and normalised to a unit peak. Unknowns
+per emission: (s_x, s_y, T_j) nonlinear, (A_j, B_j) linear: 5 per emission.
+
+Fit over the window from 1 us before the onset to before the *second* wall echo of the
+earliest emission (4R/c - 2 sqrt(2) a / c after it: 24 us in water), so that an emission
+arriving up to ~10 us after the first is still seen whole; the first echoes of every
+emission are part of the model. Search (RELAX, cyclic superimposed-signal estimation):
+
+  1. matched-filter grid: per channel correlation with h, summed over channels along the
+     travel times of a 1.25 mm grid of surface points -> best (s, T), Levenberg-Marquardt
+     refinement of the one-emission model;
+  2. the residual's best grid point starts emission 2, joint LM over both; then emission 1
+     is re-started from the data minus emission 2 and the joint fit repeated (kept when
+     better); the same for a third emission;
+  3. model order: J + 1 emissions only if the residual energy falls by more than
+     ``add_threshold`` sigma^2 (a generalised likelihood-ratio test; single-source packets
+     stay single, calibrated in docs/overlap.md);
+  4. the final residual must be consistent with noise (chi^2 per degree of freedom below
+     ``max_chi2_ratio``), else the packet is rejected (a wrong or missing emission always
+     leaves its energy in the residual);
+  5. covariance of each point: the (s_x, s_y) block of the inverse Fisher matrix of the
+     joint model, F = J^T J / sigma^2 (all 5J parameters), inflated by the chi^2 ratio
+     when it exceeds 1; an emission whose in-plane 1-sigma exceeds ``max_sigma_m`` is not
+     reported (counted in ``n_dropped``).
+
+`suspect_overlap` is the cheap test for packets `localize` accepted as single: the
+one-emission model started at their point, three LM steps, chi^2 per degree of freedom
+against ``max_chi2_ratio``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from enum import IntEnum
+
+import numpy as np
+import scipy.fft as sfft
+from numpy.lib.stride_tricks import sliding_window_view
+from scipy import signal
+
+from ae_tactile.geometry import CHANNEL_XI_ETA, FingertipGeometry
+from ae_tactile.localization.common import Reason, make_plan, prepare, validate_windows
+
+__all__ = ["PulseModel", "OverlapReason", "OverlapSource", "OverlapPacket", "resolve_overlaps",
+           "suspect_overlap", "fit_sources", "simulate_pairs", "joint_crlb"]
+
+
+class OverlapReason(IntEnum):
+    """Why `resolve_overlaps` rejected a packet (0 = accepted). Codes 1-5 are those of
+    `Reason` (input problems), 8 and 9 are specific to the overlap fit."""
+
+    OK = 0
+    NONFINITE = int(Reason.NONFINITE)
+    NO_SIGNAL = int(Reason.NO_SIGNAL)
+    WINDOW = int(Reason.WINDOW)
+    SATURATED = int(Reason.SATURATED)
+    LOW_SNR = int(Reason.LOW_SNR)
+    UNRESOLVED = 8    # residual inconsistent with noise even with max_sources emissions
+    UNCERTAIN = 9     # no emission could be localized with in-plane sigma <= max_sigma_m
+
+
+# --------------------------------------------------------------------------- pulse model
+@dataclass(frozen=True)
+class PulseModel:
+    """Known pulse shape h(t): front-end response to the collision pressure (paper Eq. 9).
+
+    H(s) = P1(s) HP_n(s) LP_m(s), P1(s) = s / ((s + alpha)(s + 2 alpha)) (= 2/(s + 2 alpha)
+    - 1/(s + alpha)), Butterworth HP (``highpass_hz``, order ``highpass_order``) and LP
+    (``lowpass_hz``, order ``lowpass_order``; None: no low-pass). h(t) = sum_p r_p e^{p t}
+    for t >= 0 (simple poles), 0 before, scaled to a peak of +1 (a touch starts positive).
+    Parameters of the product's front end, not of any simulator.
+    """
+
+    highpass_hz: float = 100e3
+    highpass_order: int = 2
+    lowpass_hz: float | None = 1e6
+    lowpass_order: int = 4
+    alpha_1_s: float = 3000.0
+
+    @classmethod
+    def from_config(cls, config) -> "PulseModel":
+        """From any object with the front-end attributes of ``ae_tactile.sim.SimConfig``."""
+        return cls(float(config.highpass_hz), int(config.highpass_order),
+                   None if config.lowpass_hz is None else float(config.lowpass_hz),
+                   int(config.lowpass_order))
+
+    def poles_residues(self):
+        """(poles (P,) complex, residues (P,) complex) of h, peak-normalised (cached)."""
+        cache = _PR_CACHE.get(self)
+        if cache is not None:
+            return cache
+        zs, ps, k = [np.zeros(1, complex)], [np.array([-self.alpha_1_s, -2.0 * self.alpha_1_s], complex)], 1.0
+        z, p, kk = signal.butter(self.highpass_order, 2 * math.pi * self.highpass_hz, btype="highpass",
+                                 analog=True, output="zpk")
+        zs.append(z); ps.append(p); k *= kk
+        if self.lowpass_hz is not None:
+            z, p, kk = signal.butter(self.lowpass_order, 2 * math.pi * self.lowpass_hz, btype="lowpass",
+                                     analog=True, output="zpk")
+            zs.append(z); ps.append(p); k *= kk
+        zeros = np.concatenate(zs).astype(complex)
+        poles = np.concatenate(ps).astype(complex)
+        res = np.array([k * np.prod(q - zeros) / np.prod(q - np.delete(poles, i))
+                        for i, q in enumerate(poles)])
+        t = np.linspace(0.0, 20.0 / (2 * math.pi * self.highpass_hz), 20001)
+        h = (res[None, :] * np.exp(poles[None, :] * t[:, None])).sum(axis=1).real
+        res = res / h[np.argmax(np.abs(h))]
+        _PR_CACHE[self] = (poles, res)
+        return poles, res
+
+    def waveform(self, t_s):
+        """h(t) (unit peak) at times t_s (s, any shape)."""
+        p, r = self.poles_residues()
+        t = np.asarray(t_s, float)
+        v = (r * np.exp(p * np.maximum(t, 0.0)[..., None])).sum(axis=-1).real
+        return np.where(t >= 0, v, 0.0)
+
+
+_PR_CACHE: dict = {}
+
+
+@dataclass(frozen=True)
+class _Tables:
+    """Exponential tables E_p[m] = e^{p m dt} stacked [Re; Im] (2P, L) for h and h'."""
+
+    poles: np.ndarray
+    res: np.ndarray
+    table: np.ndarray
+    h_samples: np.ndarray     # h(m dt), m = 0..L-1 (matched filter)
+
+
+def _tables(pulse: PulseModel, fs: float, n: int) -> _Tables:
+    key = (pulse, fs, n)
+    t = _TAB_CACHE.get(key)
+    if t is None:
+        p, r = pulse.poles_residues()
+        e = np.exp(p[:, None] * (np.arange(n) / fs)[None, :])
+        tab = np.ascontiguousarray(np.vstack([e.real, e.imag]))
+        h = (r[:, None] * e).sum(axis=0).real
+        t = _TAB_CACHE[key] = _Tables(p, r, tab, h)
+    return t
+
+
+_TAB_CACHE: dict = {}
+
+
+# --------------------------------------------------------------------------- results
+@dataclass
+class OverlapSource:
+    """One localized emission (SI units).
+
+    point_m (3,)            contact point on the upper hemisphere
+    covariance_m2 (3, 3)    its covariance (joint-model Fisher information, see module doc)
+    sigma_m                 in-plane 1-sigma, sqrt(C_xx + C_yy)
+    confidence              in [0, 1]
+    polarity                +1 touch, -1 release
+    amplitude_v             signed direct-wave peak amplitude at distance R (V)
+    emission_time_s         emission instant relative to the window's first sample (s)
+    arrival_times_s (4,)    direct arrival at each element, same reference (s)
+    snr_db                  SNR of this emission alone (docs/conventions.md definition)
+    """
+
+    point_m: np.ndarray
+    covariance_m2: np.ndarray
+    sigma_m: float
+    confidence: float
+    polarity: int
+    amplitude_v: float
+    emission_time_s: float
+    arrival_times_s: np.ndarray
+    snr_db: float
+
+
+@dataclass
+class OverlapPacket:
+    """Result for one window: ``sources`` (accepted emissions, earliest first) or a rejection.
+
+    accepted      bool, True when at least one emission was localized
+    reason        `OverlapReason` code (0 when accepted)
+    n_fitted      emissions in the selected model (0 when not fitted)
+    n_dropped     fitted emissions not reported (in-plane sigma > max_sigma_m)
+    chi2_ratio    residual energy / (sigma^2 x degrees of freedom) of the selected model
+    noise_rms_v   noise sigma used (V)
+    """
+
+    accepted: bool
+    reason: int
+    sources: list = field(default_factory=list)
+    n_fitted: int = 0
+    n_dropped: int = 0
+    chi2_ratio: float = float("nan")
+    noise_rms_v: float = float("nan")
+
+    @property
+    def reason_name(self) -> str:
+        return OverlapReason(self.reason).name
+
+
+# --------------------------------------------------------------------------- model
+class _Model:
+    """Batched evaluation of the J-emission model on K analysis segments."""
+
+    def __init__(self, geo: FingertipGeometry, fs: float, start: np.ndarray, length: int,
+                 pulse: PulseModel, echo: bool):
+        self.geo = geo
+        self.fs = fs
+        self.start = start.astype(float)          # (K,) first sample of each segment
+        self.L = int(length)
+        self.tab = _tables(pulse, fs, self.L)
+        self.echo = echo
+        self.e = geo.element_positions_m          # (4, 3)
+        self.c = geo.sound_speed_m_s
+        self.R = geo.radius_m
+
+    def _paths(self, s):
+        """Path lengths and their (s_x, s_y) gradients. s (K, J, 2).
+
+        Returns d (K, J, P, 4) with P = 2 paths (direct, echo) and dd (K, J, P, 4, 2)."""
+        sx, sy = s[..., 0], s[..., 1]
+        sz = np.sqrt(np.maximum(self.R ** 2 - sx * sx - sy * sy, (1e-3 * self.R) ** 2))
+        pt = np.stack([sx, sy, sz], axis=-1)                          # (K, J, 3)
+        out_d, out_g = [], []
+        for sign, base in ((-1.0, 0.0), (1.0, 2.0 * self.R)):
+            v = pt[..., None, :] + sign * self.e                      # (K, J, 4, 3)
+            d = np.sqrt((v * v).sum(axis=-1))
+            # d d/d s_x = (v_x + v_z d s_z/d s_x) / d, d s_z/d s_x = -s_x / s_z
+            gx = (v[..., 0] - v[..., 2] * (sx / sz)[..., None]) / d
+            gy = (v[..., 1] - v[..., 2] * (sy / sz)[..., None]) / d
+            out_d.append(d + base)
+            out_g.append(np.stack([gx, gy], axis=-1))
+        return np.stack(out_d, axis=2), np.stack(out_g, axis=2)
+
+    def pulses(self, t_arr):
+        """h and h' on the segment grid for arrivals t_arr (K, A) (s, window time).
+
+        Returns (h, dh) (K, A, L)."""
+        K, A = t_arr.shape
+        fs, L = self.fs, self.L
+        p, r = self.tab.poles, self.tab.res
+        n0 = np.ceil(t_arr * fs - self.start[:, None] - 1e-9)
+        n0 = np.clip(n0, 0, L).astype(np.int64)
+        eps = (self.start[:, None] + n0) / fs - t_arr                # >= 0
+        c = r * np.exp(p * eps[..., None])                            # (K, A, P)
+        cd = c * p
+        coef = np.concatenate([np.concatenate([c.real, -c.imag], -1)[:, :, None],
+                               np.concatenate([cd.real, -cd.imag], -1)[:, :, None]], axis=2)
+        vals = coef.reshape(K * A * 2, -1) @ self.tab.table          # (K A 2, L)
+        vals = vals.reshape(K, A, 2, L)
+        padded = np.concatenate([np.zeros_like(vals), vals], axis=-1)
+        view = sliding_window_view(padded, L, axis=-1)                # (K, A, 2, L+1, L)
+        kk = np.arange(K)[:, None, None]
+        aa = np.arange(A)[None, :, None]
+        ii = np.arange(2)[None, None, :]
+        placed = view[kk, aa, ii, (L - n0)[:, :, None]]               # (K, A, 2, L)
+        return placed[:, :, 0], placed[:, :, 1]
+
+    def evaluate(self, theta):
+        """Basis Phi (K, 4L, 2J) and d(model)/d(theta) pieces for theta (K, J, 3) =
+        (s_x, s_y, T). Returns Phi and dPhi (K, 4L, 2J, 3): derivative of each basis
+        column with respect to its emission's (s_x, s_y, T)."""
+        K, J, _ = theta.shape
+        L = self.L
+        d, dd = self._paths(theta[..., :2])                           # (K,J,2,4), (K,J,2,4,2)
+        t_arr = theta[..., 2][..., None, None] + d / self.c           # (K, J, 2, 4)
+        h, dh = self.pulses(t_arr.reshape(K, -1))
+        h = h.reshape(K, J, 2, 4, L)
+        dh = dh.reshape(K, J, 2, 4, L)
+        gain = np.ones((K, J, 2, 4))
+        gain[:, :, 0] = self.R / d[:, :, 0]
+        dgain = np.zeros((K, J, 2, 4, 2))
+        dgain[:, :, 0] = -(self.R / d[:, :, 0] ** 2)[..., None] * dd[:, :, 0]
+        if not self.echo:
+            gain[:, :, 1] = 0.0
+        col = gain[..., None] * h                                      # (K, J, 2, 4, L)
+        # d col / d s_i = dgain_i h - gain h' dd_i / c ;  d col / d T = -gain h'
+        ds = dgain[..., None, :] * h[..., None] - (gain[..., None] * dh)[..., None] * (dd / self.c)[..., None, :]
+        dT = -(gain[..., None] * dh)[..., None]
+        dcol = np.concatenate([ds, dT], axis=-1)                       # (K, J, 2, 4, L, 3)
+        phi = col.reshape(K, J * 2, 4 * L).transpose(0, 2, 1)
+        dphi = dcol.reshape(K, J * 2, 4 * L, 3).transpose(0, 2, 1, 3)
+        return phi, dphi
+
+
+def _lstsq_amplitudes(phi, y, ridge=1e-9):
+    """LS amplitudes a (K, 2J) of y (K, N) on columns phi (K, N, 2J) (ridge for empty ones)."""
+    g = np.einsum("kni,knj->kij", phi, phi)
+    b = np.einsum("kni,kn->ki", phi, y)
+    scale = np.maximum(np.trace(g, axis1=1, axis2=2) / g.shape[1], 1e-300)
+    g = g + ridge * scale[:, None, None] * np.eye(g.shape[1])
+    return np.linalg.solve(g, b[..., None])[..., 0]
+
+
+def _clip_theta(theta, geo, max_rho):
+    s = theta[..., :2]
+    rho = np.hypot(s[..., 0], s[..., 1])
+    f = np.where(rho > max_rho, max_rho / np.maximum(rho, 1e-300), 1.0)
+    out = theta.copy()
+    out[..., :2] = s * f[..., None]
+    return out
+
+
+def _lm(model: _Model, y, theta, iterations=12, max_rho=None):
+    """Levenberg-Marquardt over all 5J parameters (K packets in parallel); after each step
+    the linear amplitudes are re-solved by LS (variable projection). Returns theta,
+    amplitudes (K, 2J), rss (K,), and the final Jacobian (K, N, 5J)."""
+    K, J, _ = theta.shape
+    geo = model.geo
+    max_rho = geo.radius_m * math.sin(math.radians(85.0)) if max_rho is None else max_rho
+    theta = _clip_theta(theta, geo, max_rho)
+    phi, dphi = model.evaluate(theta)
+    amp = _lstsq_amplitudes(phi, y)
+    res = y - np.einsum("kni,ki->kn", phi, amp)
+    rss = (res * res).sum(axis=1)
+    lam = np.full(K, 1e-3)
+    active = np.ones(K, bool)
+
+    def jacobian(phi, dphi, amp):
+        # d model / d theta_j = sum_{columns c of emission j} amp_c dPhi_c
+        dm = (dphi * amp[:, None, :, None]).reshape(K_, N, J, 2, 3).sum(axis=3).reshape(K_, N, 3 * J)
+        return np.concatenate([dm, phi], axis=2)
+
+    N = y.shape[1]
+    for _ in range(iterations):
+        ids = np.nonzero(active)[0]
+        if ids.size == 0:
+            break
+        K_ = ids.size
+        jac = jacobian(phi[ids], dphi[ids], amp[ids])
+        jtj = np.einsum("kni,knj->kij", jac, jac)
+        jtr = np.einsum("kni,kn->ki", jac, res[ids])
+        dg = np.einsum("kii->ki", jtj)
+        dg = np.maximum(dg, 1e-12 * dg.max(axis=1, keepdims=True) + 1e-300)
+        a = jtj + (lam[ids][:, None] * dg)[:, :, None] * np.eye(jtj.shape[1])
+        try:
+            step = np.linalg.solve(a, jtr[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            step = np.zeros_like(jtr)
+        step = np.where(np.isfinite(step), step, 0.0)
+        new = theta[ids] + step[:, : 3 * J].reshape(K_, J, 3)
+        new = _clip_theta(new, geo, max_rho)
+        sub = _Model.__new__(_Model)
+        sub.__dict__.update(model.__dict__)
+        sub.start = model.start[ids]
+        ph2, dph2 = sub.evaluate(new)
+        amp2 = _lstsq_amplitudes(ph2, y[ids])
+        res2 = y[ids] - np.einsum("kni,ki->kn", ph2, amp2)
+        rss2 = (res2 * res2).sum(axis=1)
+        better = rss2 < rss[ids]
+        gi = ids[better]
+        theta[gi], amp[gi], res[gi], phi[gi], dphi[gi] = new[better], amp2[better], res2[better], \
+            ph2[better], dph2[better]
+        rel = (rss[gi] - rss2[better]) / np.maximum(rss[gi], 1e-300)
+        rss[gi] = rss2[better]
+        lam[gi] = np.maximum(lam[gi] / 4.0, 1e-7)
+        bi = ids[~better]
+        lam[bi] = lam[bi] * 8.0
+        done = np.zeros(K, bool)
+        done[gi[rel < 1e-9]] = True
+        done[bi[lam[bi] > 1e6]] = True
+        active &= ~done
+    K_ = K
+    jac = jacobian(phi, dphi, amp)
+    return theta, amp, rss, jac
+
+
+# --------------------------------------------------------------------------- grid search
+def _surface_grid(geo: FingertipGeometry, spacing_m, max_polar_deg=80.0):
+    rmax = geo.radius_m * math.sin(math.radians(max_polar_deg))
+    n = int(math.ceil(rmax / spacing_m))
+    g = np.arange(-n, n + 1) * spacing_m
+    gx, gy = np.meshgrid(g, g, indexing="ij")
+    keep = np.hypot(gx, gy) <= rmax
+    return np.stack([gx[keep], gy[keep]], axis=1)
+
+
+def _grid_search(model: _Model, r, grid, chunk=64):
+    """Best (s_x, s_y, T) (K, 3) of one emission in residual r (K, 4, L): matched filter per
+    channel (correlation with h), summed over channels along each grid point's travel
+    times (integer samples), maximising |C|^2 / ||phi||^2."""
+    K, _, L = r.shape
+    fs = model.fs
+    h = model.tab.h_samples
+    nfft = sfft.next_fast_len(2 * L, real=True)
+    H = np.conj(sfft.rfft(h, n=nfft))
+    corr = sfft.irfft(sfft.rfft(r, n=nfft, axis=2) * H, n=nfft, axis=2)[..., :L]   # arrival at n
+    d = model.geo._xy_distances(grid[:, 0], grid[:, 1])                  # (G, 4)
+    gain = model.R / d
+    tt = d / model.c
+    rel = np.rint((tt - tt.min(axis=1, keepdims=True)) * fs).astype(np.int64)  # (G, 4)
+    pad = int(rel.max()) + 1
+    # ||phi||^2 for an arrival inside the segment: sum_k gain^2 sum h^2
+    norm = (gain ** 2).sum(axis=1) * float((h * h).sum())
+    best_val = np.full(K, -np.inf)
+    best_g = np.zeros(K, np.int64)
+    best_m = np.zeros(K, np.int64)
+    cp = np.concatenate([corr, np.zeros((K, 4, pad))], axis=2)
+    idx = rel[:, :, None] + np.arange(L)[None, None, :]                  # (G, 4, L)
+    for k0 in range(0, K, chunk):
+        sl = slice(k0, min(K, k0 + chunk))
+        c = np.zeros((sl.stop - sl.start, grid.shape[0], L))
+        for ch in range(4):
+            c += gain[None, :, ch, None] * cp[sl, ch][:, idx[:, ch]]
+        stat = (c * c) / norm[None, :, None]
+        flat = stat.reshape(stat.shape[0], -1)
+        i = np.argmax(flat, axis=1)
+        best_val[sl] = flat[np.arange(len(i)), i]
+        best_g[sl] = i // L
+        best_m[sl] = i % L
+    s = grid[best_g]
+    t_first = (model.start + best_m) / fs
+    T = t_first - tt[best_g].min(axis=1)
+    return np.concatenate([s, T[:, None]], axis=1), best_val
+
+
+# --------------------------------------------------------------------------- driver
+@dataclass
+class _Fit:
+    theta: np.ndarray      # (K, J, 3)
+    amp: np.ndarray        # (K, 2J)
+    rss: np.ndarray        # (K,)
+    jac: np.ndarray        # (K, N, 5J)
+
+
+def _segments(prep, plan, geo, fs, analysis_s):
+    m = prep.x.shape[2]
+    if analysis_s is None:
+        a = geo.element_offset_m
+        analysis_s = (4.0 * geo.radius_m - 2.0 * math.sqrt(2.0) * a) / geo.sound_speed_m_s - 0.3e-6
+    start = np.clip(prep.onset - plan.pre, 0, m - 1)
+    length = int(min(m - int(start.max()), plan.pre + math.floor(analysis_s * fs)))
+    length = max(length, 8)
+    idx = start[:, None] + np.arange(length)[None, :]
+    inside = idx < m
+    seg = np.take_along_axis(prep.x, np.clip(idx, 0, m - 1)[:, None, :].repeat(4, axis=1), axis=2)
+    seg = (seg - prep.pre_mean[..., None]) * inside[:, None, :]
+    return seg, start, length
+
+
+def fit_sources(windows, sample_rate_hz, onset_index, n_sources, *, geometry=None, pulse=None,
+                echo=True, band_hz=(100e3, 1e6), analysis_s=None, grid_spacing_m=1.25e-3):
+    """Fit exactly ``n_sources`` emissions to each window (no order selection, no rejection).
+
+    Returns dict: theta (K, J, 3) = (s_x, s_y, emission time) (m, m, s), amplitudes (K, 2J)
+    (V; direct, echo per emission), rss (K,) (V^2), sigma2 (K,) noise variance (V^2)."""
+    geo = FingertipGeometry() if geometry is None else geometry
+    pulse = PulseModel() if pulse is None else pulse
+    x, on = validate_windows(windows, onset_index)
+    plan = make_plan(sample_rate_hz, geo, x.shape[2], band_hz)
+    with np.errstate(all="ignore"):
+        prep = prepare(x, on, plan)
+        seg, start, length = _segments(prep, plan, geo, plan.fs, analysis_s)
+        model = _Model(geo, plan.fs, start, length, pulse, echo)
+        fits = _search(model, seg, int(n_sources), _surface_grid(geo, grid_spacing_m))
+    f = fits[-1]
+    sc = prep.scale
+    return dict(theta=f.theta, amplitudes=f.amp * sc[:, None], rss=f.rss * sc ** 2,
+                sigma2=(prep.sigma2 + prep.quant2) * sc ** 2)
+
+
+def _search(model: _Model, seg, max_sources, grid, sigma2=None, add_threshold=None):
+    """RELAX search for 1..max_sources emissions. Returns the list of _Fit, one per J
+    (packets that stop adding emissions keep their previous fit in later entries)."""
+    K = seg.shape[0]
+    y = seg.reshape(K, -1)
+    th0, _ = _grid_search(model, seg, grid)
+    theta, amp, rss, jac = _lm(model, y, th0[:, None, :])
+    fits = [_Fit(theta, amp, rss, jac)]
+    for j in range(2, max_sources + 1):
+        prev = fits[-1]
+        go = np.ones(K, bool)
+        if sigma2 is not None and j > 2:
+            # only packets whose previous addition was significant go on
+            go = (fits[-2].rss - prev.rss) > add_threshold * sigma2
+        ids = np.nonzero(go)[0]
+        theta = np.concatenate([prev.theta, np.zeros((K, 1, 3))], axis=1)
+        amp = np.concatenate([prev.amp, np.zeros((K, 2))], axis=1)
+        rss = prev.rss.copy()
+        jac = np.zeros(prev.jac.shape[:2] + (5 * j,))
+        if ids.size:
+            sub = _sub(model, ids)
+            ys = y[ids]
+            phi, _ = sub.evaluate(prev.theta[ids])
+            res = ys - np.einsum("kni,ki->kn", phi, prev.amp[ids])
+            thn, _ = _grid_search(sub, res.reshape(len(ids), 4, -1), grid)
+            start = np.concatenate([prev.theta[ids], thn[:, None, :]], axis=1)
+            t1, a1, r1, j1 = _lm(sub, ys, start)
+            # RELAX: re-start each earlier emission from the data minus the others.
+            for i in range(j - 1):
+                keep = [q for q in range(j) if q != i]
+                phi, _ = sub.evaluate(t1[:, keep])
+                cols = np.concatenate([[2 * q, 2 * q + 1] for q in keep])
+                res = ys - np.einsum("kni,ki->kn", phi, a1[:, cols])
+                thi, _ = _grid_search(sub, res.reshape(len(ids), 4, -1), grid)
+                st = t1.copy()
+                st[:, i] = thi
+                t2, a2, r2, j2 = _lm(sub, ys, st)
+                b = r2 < r1
+                t1[b], a1[b], r1[b], j1[b] = t2[b], a2[b], r2[b], j2[b]
+            # order emissions by emission time
+            order = np.argsort(t1[..., 2], axis=1)
+            t1 = np.take_along_axis(t1, order[..., None], axis=1)
+            ao = np.stack([2 * order, 2 * order + 1], axis=2).reshape(len(ids), -1)
+            a1 = np.take_along_axis(a1, ao, axis=1)
+            jo = np.concatenate([(3 * order[..., None] + np.arange(3)).reshape(len(ids), -1),
+                                 3 * j + ao], axis=1)
+            j1 = np.take_along_axis(j1, jo[:, None, :], axis=2)
+            theta[ids], amp[ids], rss[ids], jac[ids] = t1, a1, r1, j1
+        fits.append(_Fit(theta, amp, rss, jac))
+    return fits
+
+
+def _sub(model: _Model, ids) -> _Model:
+    sub = _Model.__new__(_Model)
+    sub.__dict__.update(model.__dict__)
+    sub.start = model.start[ids]
+    return sub
+
+
+def _positive(name, v):
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a positive number, got {v!r}") from None
+    if not (math.isfinite(f) and f > 0):
+        raise ValueError(f"{name} must be a positive finite number, got {v!r}")
+    return f
+
+
+def resolve_overlaps(windows, sample_rate_hz, onset_index, *, geometry=None, pulse=None,
+                     noise_rms_v=None, saturated=None, full_scale_v=None, max_sources=3,
+                     band_hz=(100e3, 1e6), analysis_s=None, add_threshold=60.0,
+                     max_chi2_ratio=None, max_sigma_m=0.2e-3, min_snr_db=5.0, echo=True,
+                     grid_spacing_m=1.25e-3) -> list:
+    """Localize every emission in each of K windows (two or three overlapping emissions).
+
+    windows (K, 4, M) volts (a (4, M) window is accepted), sample_rate_hz, onset_index (K,)
+    the first sample at/after the earliest arrival (detector or trigger). geometry:
+    FingertipGeometry (default tip); pulse: `PulseModel` of the front end (default: 100 kHz
+    2nd-order high-pass, 1 MHz 4th-order low-pass). noise_rms_v: known sigma (scalar or
+    (K,)), default measured before the onset (plus the ADC's q^2/12). saturated,
+    full_scale_v: as `localize`. max_sources: 1-3. add_threshold: residual-energy drop
+    (in sigma^2) needed to add an emission. max_chi2_ratio: largest accepted residual /
+    (sigma^2 dof) (default 1 + 5 sqrt(2/n_noise + 2/dof)). max_sigma_m: emissions with a
+    larger in-plane 1-sigma are dropped. echo: model the first wall echo.
+
+    Returns a list of K `OverlapPacket` (``sources`` earliest first, or a rejection reason).
+    Parameter and shape errors raise ValueError / TypeError; data problems are rejections.
+    """
+    geo = FingertipGeometry() if geometry is None else geometry
+    if not isinstance(geo, FingertipGeometry):
+        raise TypeError(f"geometry must be a FingertipGeometry, got {type(geo).__name__}")
+    pulse = PulseModel() if pulse is None else pulse
+    if not isinstance(pulse, PulseModel):
+        raise TypeError(f"pulse must be a PulseModel, got {type(pulse).__name__}")
+    if isinstance(max_sources, bool) or not isinstance(max_sources, (int, np.integer)) \
+            or not 1 <= max_sources <= 3:
+        raise ValueError(f"max_sources must be 1, 2 or 3, got {max_sources!r}")
+    add_threshold = _positive("add_threshold", add_threshold)
+    max_sigma_m = _positive("max_sigma_m", max_sigma_m)
+    if max_chi2_ratio is not None:
+        max_chi2_ratio = _positive("max_chi2_ratio", max_chi2_ratio)
+    min_snr_db = float(min_snr_db)
+    if not math.isfinite(min_snr_db):
+        raise ValueError(f"min_snr_db must be finite, got {min_snr_db!r}")
+    if analysis_s is not None:
+        analysis_s = _positive("analysis_s", analysis_s)
+    grid_spacing_m = _positive("grid_spacing_m", grid_spacing_m)
+    x, on = validate_windows(windows, onset_index)
+    plan = make_plan(sample_rate_hz, geo, x.shape[2], band_hz)
+    K = x.shape[0]
+    if K == 0:
+        return []
+    with np.errstate(all="ignore"):
+        prep = prepare(x, on, plan, noise_rms_v=noise_rms_v, saturated=saturated,
+                       full_scale_v=full_scale_v)
+        seg, start, length = _segments(prep, plan, geo, plan.fs, analysis_s)
+        sigma2 = prep.sigma2 + prep.quant2
+        n_noise = np.maximum(4 * (start - 0), 4).astype(float)
+        if noise_rms_v is not None:
+            n_noise[:] = np.inf
+        unknown = ~np.isfinite(sigma2) | (sigma2 <= 0)
+        flags = prep.flags.copy()
+        flags[unknown] |= 1 << Reason.WINDOW
+        ok = flags == 0
+        out: list = [None] * K
+        ids = np.nonzero(ok)[0]
+        if ids.size:
+            model = _Model(geo, plan.fs, start[ids], length, pulse, echo)
+            res = _decide(model, seg[ids], sigma2[ids], n_noise[ids], max_sources, add_threshold,
+                          max_chi2_ratio, max_sigma_m, min_snr_db, prep.scale[ids], geo,
+                          _surface_grid(geo, grid_spacing_m))
+            for i, r in zip(ids, res):
+                out[i] = r
+        for i in np.nonzero(~ok)[0]:
+            code = _first_reason(int(flags[i]))
+            out[i] = OverlapPacket(False, code, noise_rms_v=float(np.sqrt(np.nan_to_num(sigma2[i]))
+                                                                   * prep.scale[i]))
+    return out
+
+
+def _first_reason(flags: int) -> int:
+    for r in Reason:
+        if r != Reason.OK and flags & (1 << int(r)):
+            return int(r)
+    return int(OverlapReason.UNRESOLVED)
+
+
+def _chi2_limit(n_noise, dof, max_chi2_ratio):
+    if max_chi2_ratio is not None:
+        return np.full(np.shape(dof), max_chi2_ratio)
+    return 1.0 + 5.0 * np.sqrt(2.0 / n_noise + 2.0 / dof)
+
+
+def _decide(model, seg, sigma2, n_noise, max_sources, add_threshold, max_chi2_ratio, max_sigma_m,
+            min_snr_db, scale, geo, grid):
+    K = seg.shape[0]
+    fits = _search(model, seg, max_sources, grid, sigma2, add_threshold)
+    N = seg.shape[1] * seg.shape[2]
+    # Model order: add emission j+1 while the residual energy drops by > add_threshold sigma^2.
+    J = np.ones(K, np.int64)
+    going = np.ones(K, bool)
+    for j in range(2, max_sources + 1):
+        gain = (fits[j - 2].rss - fits[j - 1].rss) / sigma2
+        step = going & (gain > add_threshold)
+        J[step] = j
+        going &= step
+    out = []
+    snr_len = int(round(30e-6 * model.fs))
+    for i in range(K):
+        f = fits[J[i] - 1]
+        j = int(J[i])
+        theta, amp, rss, jac = f.theta[i, :j], f.amp[i, : 2 * j], f.rss[i], f.jac[i, :, : 5 * j]
+        dof = max(N - 5 * j, 1)
+        ratio = rss / (sigma2[i] * dof)
+        noise_v = float(np.sqrt(sigma2[i]) * scale[i])
+        limit = float(_chi2_limit(n_noise[i], dof, max_chi2_ratio))
+        if not np.isfinite(ratio) or ratio > limit:
+            out.append(OverlapPacket(False, int(OverlapReason.UNRESOLVED), n_fitted=j,
+                                     chi2_ratio=float(ratio), noise_rms_v=noise_v))
+            continue
+        s2 = sigma2[i] * max(ratio, 1.0)
+        fis = jac.T @ jac / s2
+        try:
+            cov = np.linalg.pinv(fis, rcond=1e-13, hermitian=True)
+        except np.linalg.LinAlgError:
+            cov = np.full(fis.shape, np.nan)
+        sources = []
+        dropped = 0
+        for q in range(j):
+            c_xy = cov[3 * q: 3 * q + 2, 3 * q: 3 * q + 2]
+            sx, sy, T = theta[q]
+            sig = float(np.sqrt(max(c_xy[0, 0] + c_xy[1, 1], 0.0))) if np.all(np.isfinite(c_xy)) else np.inf
+            a_dir = float(amp[2 * q])
+            d = geo._xy_distances(np.array(sx), np.array(sy))
+            # SNR of this emission alone: power of its direct wave over the 30 us window
+            e_pulse = float((model.tab.h_samples[:snr_len] ** 2).sum())
+            p_sig = a_dir ** 2 * float(((geo.radius_m / d) ** 2).sum()) * e_pulse / (4.0 * snr_len)
+            snr = 10.0 * math.log10(max(p_sig, 1e-300) / sigma2[i])
+            if not (sig <= max_sigma_m) or snr < min_snr_db:
+                dropped += 1
+                continue
+            sz = math.sqrt(max(geo.radius_m ** 2 - sx * sx - sy * sy, 0.0))
+            g = np.array([[1.0, 0.0], [0.0, 1.0], [-sx / max(sz, 1e-6 * geo.radius_m),
+                                                    -sy / max(sz, 1e-6 * geo.radius_m)]])
+            c3 = g @ c_xy @ g.T
+            c_snr = math.sqrt(min(max((snr - min_snr_db) / 20.0, 0.0), 1.0))
+            c_pos = 1.0 / (1.0 + (sig / 0.5e-3) ** 2)
+            c_fit = min(max(1.0 - max(ratio - 1.0, 0.0) / max(limit - 1.0, 1e-9), 0.0), 1.0)
+            conf = float(np.clip(c_snr * c_pos * c_fit, 0.0, 1.0))
+            sources.append(OverlapSource(
+                point_m=np.array([sx, sy, sz]), covariance_m2=c3, sigma_m=sig, confidence=conf,
+                polarity=int(np.sign(a_dir)) if a_dir != 0 else 0, amplitude_v=a_dir * float(scale[i]),
+                emission_time_s=float(T), arrival_times_s=T + d / geo.sound_speed_m_s,
+                snr_db=float(snr)))
+        if not sources:
+            out.append(OverlapPacket(False, int(OverlapReason.UNCERTAIN), n_fitted=j, n_dropped=dropped,
+                                     chi2_ratio=float(ratio), noise_rms_v=noise_v))
+        else:
+            out.append(OverlapPacket(True, 0, sources, n_fitted=j, n_dropped=dropped,
+                                     chi2_ratio=float(ratio), noise_rms_v=noise_v))
+    return out
+
+
+def suspect_overlap(windows, sample_rate_hz, onset_index, single_source_result, *, geometry=None,
+                    pulse=None, noise_rms_v=None, band_hz=(100e3, 1e6), analysis_s=None, echo=True,
+                    max_chi2_ratio=None, iterations=3):
+    """(K,) bool: packets that `localize` ACCEPTED as single-source but whose one-emission fit
+    (known pulse, first echo, started at the accepted point) leaves a residual inconsistent
+    with noise (chi^2 per degree of freedom above the limit of `resolve_overlaps`): hand
+    those to `resolve_overlaps`. Rejected packets give False (they are not single-source
+    answers to withdraw). Cost: a 1-D matched-filter search of the emission time and
+    ``iterations`` LM steps per accepted packet."""
+    geo = FingertipGeometry() if geometry is None else geometry
+    pulse = PulseModel() if pulse is None else pulse
+    x, on = validate_windows(windows, onset_index)
+    K = x.shape[0]
+    acc = np.asarray(single_source_result.accepted, bool)
+    pts = np.asarray(single_source_result.point_m, float)
+    if acc.shape != (K,) or pts.shape != (K, 3):
+        raise ValueError(f"single_source_result must hold {K} packets, got {acc.shape[0]}")
+    plan = make_plan(sample_rate_hz, geo, x.shape[2], band_hz)
+    out = np.zeros(K, bool)
+    ids = np.nonzero(acc)[0]
+    if ids.size == 0:
+        return out
+    with np.errstate(all="ignore"):
+        prep = prepare(x[ids], on[ids], plan, noise_rms_v=None if noise_rms_v is None else
+                       np.broadcast_to(np.asarray(noise_rms_v, float), (K,))[ids])
+        seg, start, length = _segments(prep, plan, geo, plan.fs, analysis_s)
+        sigma2 = prep.sigma2 + prep.quant2
+        model = _Model(geo, plan.fs, start, length, pulse, echo)
+        # emission time: matched filter along the accepted point's travel times
+        th0 = _time_search(model, seg, pts[ids, :2])
+        theta, amp, rss, jac = _lm(model, seg.reshape(len(ids), -1), th0[:, None, :], iterations)
+        dof = seg.shape[1] * seg.shape[2] - 5
+        n_noise = np.maximum(4 * start, 4).astype(float)
+        if noise_rms_v is not None:
+            n_noise[:] = np.inf
+        limit = _chi2_limit(n_noise, dof, max_chi2_ratio)
+        ratio = rss / (sigma2 * dof)
+        out[ids] = ~(ratio <= limit)
+    return out
+
+
+def _time_search(model: _Model, seg, s_xy):
+    """(s_x, s_y, T) (K, 3): the emission time maximising the channel-summed matched filter
+    along the travel times of the given points (K, 2)."""
+    K, _, L = seg.shape
+    fs = model.fs
+    h = model.tab.h_samples
+    nfft = sfft.next_fast_len(2 * L, real=True)
+    corr = sfft.irfft(sfft.rfft(seg, n=nfft, axis=2) * np.conj(sfft.rfft(h, n=nfft)), n=nfft,
+                      axis=2)[..., :L]
+    d = model.geo._xy_distances(s_xy[:, 0], s_xy[:, 1])
+    tt = d / model.c
+    rel = np.rint((tt - tt.min(axis=1, keepdims=True)) * fs).astype(np.int64)
+    idx = np.clip(rel[:, :, None] + np.arange(L), 0, L - 1)
+    c = (np.take_along_axis(corr, idx, axis=2) * (model.R / d)[..., None]).sum(axis=1)
+    m = np.argmax(c * c, axis=1)
+    T = (model.start + m) / fs - tt.min(axis=1)
+    return np.concatenate([s_xy, T[:, None]], axis=1)
+
+
+# --------------------------------------------------------------------------- simulation, bound
+def simulate_pairs(n, config=None, *, separation_s, amplitude_ratio=1.0, snr_db=25.0,
+                   snr_reference="weaker", min_distance_m=2e-3, max_polar_deg=60.0, rng=None,
+                   pretrigger_s=8e-6, window_s=40e-6):
+    """``n`` windows holding two emissions from the simulator (``ae_tactile.sim``; linear
+    acoustics: each emission rendered alone, noise-free, by `render_triggered`, the second
+    shifted by an exact sub-sample delay, summed, then noise and the ADC).
+
+    separation_s: emission-time difference (scalar or (n,)). amplitude_ratio: stronger /
+    weaker source strength (>= 1); which of the two is stronger is random. snr_db: the SNR
+    (docs/conventions.md, over each emission's own 30 us window) of the weaker
+    (``snr_reference='weaker'``) or the stronger emission. Points uniform by area over the
+    cap polar <= max_polar_deg, at least ``min_distance_m`` apart; random polarities.
+
+    Returns dict: samples_v (n, 4, M), clean_v, onset_index (n,), points_m (n, 2, 3),
+    emission_time_s (n, 2) (window time), polarity (n, 2), strength (n, 2) relative,
+    noise_rms_v (n,), arrival_times_s (n, 2, 4), sample_rate_hz.
+    """
+    from ae_tactile.sim import SimConfig, render_triggered, signal_power_v2
+    from ae_tactile.sim.frontend import noise_rms_for_snr, quantize
+
+    cfg = SimConfig(reflections=True) if config is None else config
+    gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    geo = cfg.geometry
+    fs = float(cfg.sample_rate_hz)
+    n = int(n)
+    ratio = float(amplitude_ratio)
+    if not ratio >= 1.0:
+        raise ValueError("amplitude_ratio must be >= 1 (stronger / weaker)")
+    if snr_reference not in ("weaker", "stronger"):
+        raise ValueError("snr_reference must be 'weaker' or 'stronger'")
+    sep = np.broadcast_to(np.asarray(separation_s, float), (n,)).copy()
+
+    def draw(m):
+        cos_t = gen.uniform(math.cos(math.radians(max_polar_deg)), 1.0, m)
+        phi = gen.uniform(0.0, 2 * math.pi, m)
+        return geo.surface_point_from_angles(np.arccos(cos_t), phi)
+
+    p1, p2 = draw(n), draw(n)
+    close = np.linalg.norm(p1 - p2, axis=1) < min_distance_m
+    while close.any():
+        p2[close] = draw(int(close.sum()))
+        close = np.linalg.norm(p1 - p2, axis=1) < min_distance_m
+    strong_first = gen.random(n) < 0.5
+    rel = np.where(strong_first[:, None], [1.0, 1.0 / ratio], [1.0 / ratio, 1.0])
+    pol = gen.choice([-1.0, 1.0], size=(n, 2))
+    speed = 0.3 * np.sqrt(rel)
+    clean_cfg = cfg.replace(quantization=False)
+    a = render_triggered(p1, clean_cfg, polarity=pol[:, 0], speed_m_s=speed[:, 0],
+                         pretrigger_s=pretrigger_s, window_s=window_s, rng=gen)
+    m_len = a.clean_v.shape[2]
+    t_emit2 = a.emission_time_s + sep
+    t_first2 = t_emit2 + geo.arrival_times_s(p2).min(axis=1)
+    n_int = np.floor(t_first2 * fs).astype(np.int64)
+    u2 = t_first2 * fs - n_int
+    u2 = np.clip(u2, 0.0, 1.0 - 1e-12)
+    b = render_triggered(p2, clean_cfg, polarity=pol[:, 1], speed_m_s=speed[:, 1], pretrigger_s=0.0,
+                         window_s=window_s, subsample_offset=u2, rng=gen)
+    clean2 = np.zeros_like(b.clean_v)
+    for i in range(n):
+        k = int(n_int[i])
+        if 0 <= k < m_len:
+            clean2[i, :, k:] = b.clean_v[i, :, : m_len - k]
+    p_1 = signal_power_v2(a.clean_v, a.onset_index, fs)
+    p_2 = signal_power_v2(b.clean_v, b.onset_index, fs)
+    p_ref = np.minimum(p_1, p_2) if snr_reference == "weaker" else np.maximum(p_1, p_2)
+    sigma = noise_rms_for_snr(p_ref, np.broadcast_to(np.asarray(snr_db, float), (n,)))
+    clean = a.clean_v + clean2
+    noisy = clean + sigma[:, None, None] * gen.standard_normal(clean.shape)
+    if cfg.quantization:
+        noisy, _ = quantize(noisy, cfg, out=noisy)
+    t_first = np.minimum(a.arrival_times_s.min(axis=1), t_first2)
+    onset = np.ceil(t_first * fs - 1e-9).astype(np.int64)
+    arr2 = t_emit2[:, None] + geo.arrival_times_s(p2)
+    return dict(samples_v=noisy, clean_v=clean, onset_index=onset, points_m=np.stack([p1, p2], 1),
+                emission_time_s=np.stack([a.emission_time_s, t_emit2], 1), polarity=pol, strength=rel,
+                noise_rms_v=sigma, arrival_times_s=np.stack([a.arrival_times_s, arr2], 1),
+                sample_rate_hz=fs, config=cfg)
+
+
+def joint_crlb(points_m, emission_time_s, amplitudes, noise_var, sample_rate_hz, onset_index, n_samples,
+               *, geometry=None, pulse=None, echo_amplitudes=None, analysis_s=None, pre_onset_s=1e-6):
+    """Cramer-Rao bound of the J-emission model (known pulse shape h; unknowns per emission:
+    s_x, s_y, emission time, direct and echo amplitudes) over the window `resolve_overlaps`
+    analyses. points_m (K, J, 3), emission_time_s (K, J), amplitudes (K, J) (V, direct wave
+    at distance R), echo_amplitudes (K, J) (default -0.5 x amplitude x ... : pass the true
+    ones), noise_var (K,) V^2. Returns dict: crb_xy_m2 (K, J, 2, 2) joint bound,
+    rms_m (K, J) = sqrt(tr); single_rms_m (K, J): the bound of each emission alone (the
+    other one absent) over the same samples."""
+    geo = FingertipGeometry() if geometry is None else geometry
+    pulse = PulseModel() if pulse is None else pulse
+    fs = float(sample_rate_hz)
+    pts = np.asarray(points_m, float)
+    K, J, _ = pts.shape
+    pre = max(2, int(math.ceil(pre_onset_s * fs)))
+    if analysis_s is None:
+        a = geo.element_offset_m
+        analysis_s = (4.0 * geo.radius_m - 2.0 * math.sqrt(2.0) * a) / geo.sound_speed_m_s - 0.3e-6
+    start = np.clip(np.asarray(onset_index) - pre, 0, n_samples - 1)
+    length = int(min(n_samples - int(start.max()), pre + math.floor(analysis_s * fs)))
+    model = _Model(geo, fs, start, length, pulse, True)
+    theta = np.concatenate([pts[..., :2], np.asarray(emission_time_s, float)[..., None]], axis=2)
+    amp = np.zeros((K, 2 * J))
+    amp[:, 0::2] = amplitudes
+    amp[:, 1::2] = 0.0 if echo_amplitudes is None else echo_amplitudes
+    phi, dphi = model.evaluate(theta)
+    N = phi.shape[1]
+    dm = (dphi * amp[:, None, :, None]).reshape(K, N, J, 2, 3).sum(axis=3).reshape(K, N, 3 * J)
+    jac = np.concatenate([dm, phi], axis=2)
+    var = np.broadcast_to(np.asarray(noise_var, float), (K,))
+    fis = np.einsum("kni,knj->kij", jac, jac) / var[:, None, None]
+    cov = np.linalg.pinv(fis, hermitian=True)
+    crb = np.stack([cov[:, 3 * q: 3 * q + 2, 3 * q: 3 * q + 2] for q in range(J)], axis=1)
+    single = np.zeros((K, J))
+    for q in range(J):
+        cols = [3 * q, 3 * q + 1, 3 * q + 2, 3 * J + 2 * q, 3 * J + 2 * q + 1]
+        f1 = fis[:, cols][:, :, cols]
+        c1 = np.linalg.pinv(f1, hermitian=True)
+        single[:, q] = np.sqrt(np.trace(c1[:, :2, :2], axis1=1, axis2=2))
+    return dict(crb_xy_m2=crb, rms_m=np.sqrt(np.trace(crb, axis1=2, axis2=3)), single_rms_m=single)
