@@ -270,20 +270,27 @@ def test_truncated_last_frame_is_given_up_by_flush(data, bodies):
 
 
 def test_truncated_frame_swallowing_valid_frames_is_recovered():
-    """A cut-off PACKET whose header claims more bytes than follow before the end of input."""
+    """A cut-off PACKET (a device reset mid-frame) whose header claims more bytes than
+    follow: the valid frames inside its claimed length are delivered at once, without
+    waiting for the claimed length nor for flush()."""
     big = Packet(np.ones((4, 2000), np.int16), 10_000_000, 1e-6)
     frames, wire = encode_all([small_packet(k) for k in range(5)], first_seq=100, boot=False)
     cut = encode_frame(big, 99, 0)[:500]
     dec = StreamDecoder()
-    assert dec.feed(cut + b"".join(wire)) == []          # still waiting for 16 kB
-    assert dec.flush() == frames
+    assert dec.feed(cut + b"".join(wire)) == frames       # 16 kB claimed, none waited for
     assert dec.truncated_frames == 1 and dec.crc_errors == 0 and dec.dropped_frames == 0
-    # with enough later traffic the same happens without flush: CRC fails, rescan, recover
-    more, more_wire = encode_all([small_packet(k) for k in range(400)], first_seq=105, boot=False)
+    assert dec.pending_bytes == 0 and dec.bytes_discarded == len(cut)
+    (ev,) = [e for e in dec.events if e.reason is Reason.TRUNCATED]
+    assert ev.stream_offset == 0 and "cut short by the valid frame at byte 500" in ev.detail
+    # the same, fed a byte at a time: each frame is out as soon as its last byte is in
     dec = StreamDecoder()
-    out = dec.feed(cut + b"".join(wire) + b"".join(more_wire))
-    assert out == frames + more[:len(out) - len(frames)] and len(out) > len(frames)
-    assert dec.crc_errors == 1
+    stream = cut + b"".join(wire)
+    ends = np.cumsum([len(cut)] + [len(w) for w in wire])[1:]
+    got_at = []
+    for k in range(len(stream)):
+        if dec.feed(stream[k:k + 1]):
+            got_at.append(k + 1)
+    assert got_at == list(ends)
 
 
 # ------------------------------------------------------------------ splitting

@@ -3,49 +3,64 @@
 Algorithm (decisions depend only on the byte stream, never on how it was split into
 reads, so any split gives the same frames, events and final counters):
 
-1. Find the sync word with ``bytearray.find`` from the current position; bytes skipped
-   on the way are discarded (counted in ``bytes_discarded``). With no sync in sight, all
-   but the longest tail that is a prefix of the sync word are discarded.
-2. With 24 header bytes available, check the header CRC, version, flags/reserved and
-   payload_len <= MAX_PAYLOAD_LEN. Failure: ``header_errors``, and the search restarts
-   ONE byte after the rejected sync word (a valid frame starting inside the rejected
-   bytes is never skipped). The header CRC means a corrupted length is caught at once
-   instead of stalling the decoder while it waits for up to 64 KiB of "payload".
-3. With the whole frame available, check the frame CRC. Failure: ``crc_errors`` and,
-   again, restart one byte after the sync word. (A frame cut short by a sender reset
-   is followed by the next valid frame inside its claimed length; skipping the whole
-   claimed length would lose that frame.)
-4. CRC good: the frame is consumed whole. The sequence number is accounted for even
-   if the payload is then rejected (``payload_errors``, ``unknown_frames``,
-   ``wrong_direction``): the frame arrived, it was not dropped on the link.
+1. Every sync word is examined once, in stream order. With its 24 header bytes in, the
+   header CRC, version, flags/reserved and payload_len <= MAX_PAYLOAD_LEN are checked;
+   a failure is a ``header_errors`` rejection and the search goes on ONE byte after the
+   sync word (a valid frame starting inside rejected bytes is never skipped). A good
+   header makes a *candidate* spanning its claimed length.
+2. The next frame delivered is the CRC-valid candidate that ENDS first (ties: the first
+   to start). Candidates are CRC-checked in the order of their ends, and only while one
+   could still end first; a failure is a ``crc_errors`` rejection.
+3. Delivering a frame consumes it whole. Candidates that started before it but end
+   after it (a frame cut short by a sender reset, a fake header claiming 64 KiB) are
+   given up as ``truncated_frames`` without waiting for, or CRC-checking, their claimed
+   length: the first valid frame after a device resumes is delivered as soon as its own
+   last byte is in. (A valid frame inside a real frame's payload would win over it; in
+   protocol v1 that cannot happen with 12-bit samples, and takes a full CRC-valid frame,
+   2^-64, otherwise.) Sync words inside a delivered frame are part of its payload:
+   they are neither counted nor reported.
+4. CRC good: the sequence number is accounted for even if the payload is then rejected
+   (``payload_errors``, ``unknown_frames``, ``wrong_direction``): the frame arrived.
+   A frame equal to one of the last ``DUPLICATE_WINDOW`` frames of its sender (same
+   sequence number and same frame CRC) is a repeat: counted in ``duplicate_frames``,
+   never delivered twice and never taken for a sender restart.
 
-Only ``flush()`` (end of input, or the link idle for longer than one frame takes to
-send) gives up on an incomplete frame: it counts it in ``truncated_frames``, rescans
-the bytes after its sync word, and discards what remains.
+``flush()`` (end of input, or an idle link) gives up the candidates still incomplete
+(``truncated_frames``) and discards what remains.
 
-Memory: the buffer holds at most one incomplete frame (<= MAX_FRAME_LEN bytes) plus
-the last read; consumed bytes are deleted once per ``feed`` (amortised O(1) per byte).
+Memory: the buffer holds at most the bytes from the earliest incomplete candidate on
+(< MAX_FRAME_LEN) plus the last read; the examined sync words kept with it are at most
+one per 4 of those bytes. Cost: one ``bytearray.find`` pass over the input, one header
+check per sync word, one CRC per candidate that is checked (fake headers followed by
+valid frames are never CRC-checked); consumed bytes are deleted once per ``feed``.
 """
 from __future__ import annotations
 
 import struct
 import zlib
 from collections import deque
+from operator import itemgetter
 from dataclasses import dataclass
 from typing import Callable
 
-from .frames import (CRC_LEN, FLAG_BOOT, HEADER_LEN, SYNC, Direction, Frame, ProtocolError,
-                     Reason, direction_of, parse_body, parse_header, _BODY_BY_TYPE_INT)
+from .frames import (CRC_LEN, FLAG_BOOT, FRAME_OVERHEAD, HEADER_LEN, SYNC, Direction, Frame,
+                     ProtocolError, Reason, direction_of, parse_body, parse_header,
+                     _BODY_BY_TYPE_INT)
 from .unwrap import SequenceTracker, TimestampUnwrapper
 
 _U32LE = struct.Struct("<I")
+_END = itemgetter(2)
 
 #: Names of the integer counters reported by ``StreamDecoder.stats()``.
 COUNTER_NAMES = (
     "bytes_received", "bytes_decoded", "bytes_discarded", "frames_ok", "header_errors",
     "crc_errors", "truncated_frames", "payload_errors", "unknown_frames", "wrong_direction",
     "sequence_gaps", "dropped_frames", "device_restarts", "timestamp_backsteps",
+    "duplicate_frames",
 )
+
+#: How many recent frames per sender are remembered to recognise a repeated frame.
+DUPLICATE_WINDOW = 64
 
 
 @dataclass(frozen=True)
@@ -92,13 +107,14 @@ class StreamDecoder:
       frames_ok        frames returned
       header_errors    sync word found but header rejected (CRC/version/flags/length)
       crc_errors       header fine, frame CRC wrong
-      truncated_frames incomplete frames given up by flush()
+      truncated_frames incomplete frames given up (cut short by a valid frame, or flush())
       payload_errors   CRC fine but payload inconsistent (e.g. n_samples vs length)
       unknown_frames   CRC fine, frame type unknown to protocol v1 (skipped whole)
       wrong_direction  CRC fine, frame of the other direction
       sequence_gaps    gap events; dropped_frames: frames missing by sequence number
       device_restarts  sender restarts seen (BOOT flag, or seq going backwards)
       timestamp_backsteps  device clock stepped back within a session
+      duplicate_frames frames received again (same seq and CRC as a recent one), dropped
     """
 
     def __init__(self, direction: Direction | None = Direction.DEVICE_TO_HOST,
@@ -116,7 +132,12 @@ class StreamDecoder:
         self._buf = bytearray()
         self._base = 0   # stream offset of _buf[0]
         self._need = 0   # len(_buf) needed before processing can make progress
-        self._sessions: dict[Direction, tuple[SequenceTracker, TimestampUnwrapper]] = {}
+        self._scan = 0   # stream offset of the first position not yet searched for SYNC
+        # Examined sync words not yet resolved, in stream order: [offset, header or None,
+        # end offset (or Reason if the header was rejected), CRC-failure detail or None].
+        self._items: list[list] = []
+        self._cands: list[list] = []      # the items with a good header, CRC not failed
+        self._sessions: dict[Direction, tuple] = {}
         for name in COUNTER_NAMES:
             setattr(self, name, 0)
 
@@ -176,70 +197,167 @@ class StreamDecoder:
         buf = self._buf
         n = len(buf)
         base = self._base
-        pos = 0
-        need = 0
+        end_abs = base + n
+        items, cands = self._items, self._cands
+        pos = base                      # stream offset: bytes before it are consumed
         out: list[Frame] = []
         mv = memoryview(buf)
         try:
             while True:
-                i = buf.find(SYNC, pos)
-                if i < 0:
-                    keep = 0 if final else _sync_prefix_tail(buf, pos, n)
-                    self.bytes_discarded += n - keep - pos
-                    pos = n - keep
+                self._examine(buf, mv, base, n)
+                best = self._first_complete_frame(mv, base, end_abs)
+                if best is None:
                     break
-                if i > pos:
-                    self.bytes_discarded += i - pos
-                    pos = i
-                if n - i < HEADER_LEN:
-                    if not final:
-                        need = HEADER_LEN
+                bj, h, be, _ = best
+                if items[0][0] < bj:
+                    self._commit(bj, bj)
+                # sync words inside the delivered frame are payload: forget them
+                k = 1
+                for k in range(1, len(items) + 1):
+                    if k == len(items) or items[k][0] >= be:
                         break
-                    self._give_up(i, base, f"input ended {n - i} bytes into a header")
-                    pos = i + 1
-                    continue
-                try:
-                    h = parse_header(buf, i)
-                except ProtocolError as exc:
-                    self.header_errors += 1
-                    self.bytes_discarded += 1
-                    self._event(exc.reason, base + i, exc.detail)
-                    pos = i + 1
-                    continue
-                end = i + HEADER_LEN + h.payload_len + CRC_LEN
-                if end > n:
-                    if not final:
-                        need = end - i
+                del items[:k]
+                k = 0
+                for c in cands:
+                    if c[0] >= be:
                         break
-                    self._give_up(i, base, f"input ended {n - i} of {end - i} bytes into a frame"
-                                           f" (seq {h.seq})")
-                    pos = i + 1
-                    continue
-                (fcrc,) = _U32LE.unpack_from(buf, end - CRC_LEN)
-                crc = zlib.crc32(mv[i + HEADER_LEN:end - CRC_LEN], h.header_crc)
-                if crc != fcrc:
-                    self.crc_errors += 1
-                    self.bytes_discarded += 1
-                    self._event(Reason.FRAME_CRC, base + i,
-                                f"frame CRC 0x{fcrc:08x} != computed 0x{crc:08x}"
-                                f" ({end - i} bytes, header seq {h.seq}); rescanning from the next byte")
-                    pos = i + 1
-                    continue
-                pos = end
-                frame = self._accept(h, mv, i, end, base + i)
+                    k += 1
+                del cands[:k]
+                self.bytes_discarded += bj - pos
+                pos = be
+                if self._scan < be:
+                    self._scan = be
+                frame = self._accept(h, mv, bj - base, be - base, bj)
                 if frame is not None:
                     out.append(frame)
+            if final:
+                j = buf.find(SYNC, self._scan - base)
+                while j >= 0:              # sync words whose header never came
+                    items.append([base + j, None, Reason.TRUNCATED,
+                                  f"input ended {n - j} bytes into a header"])
+                    j = buf.find(SYNC, j + 1)
+                for c in cands:
+                    if c[3] is None:
+                        c[3] = (f"input ended {end_abs - c[0]} of {c[2] - c[0]} bytes into a frame"
+                                f" (seq {c[1].seq})")
+                self._commit(end_abs, None)
+                cands.clear()
+                self.bytes_discarded += end_abs - pos
+                pos = end_abs
+                self._scan = end_abs
+                self._need = 0
+            else:
+                # keep from the earliest candidate, or a header / sync prefix still coming
+                scan_rel = self._scan - base
+                j = buf.find(SYNC, scan_rel)
+                keep = base + (j if j >= 0 else n - _sync_prefix_tail(buf, scan_rel, n))
+                need = keep + FRAME_OVERHEAD
+                if cands:
+                    keep = min(keep, cands[0][0])
+                    need = min(need, min(c[2] for c in cands))
+                if items and items[0][0] < keep:
+                    self._commit(keep, None)
+                if keep > pos:
+                    self.bytes_discarded += keep - pos
+                    pos = keep
+                self._need = need - pos
         finally:
             mv.release()
-        del buf[:pos]
-        self._base = base + pos
-        self._need = need
+        del buf[:pos - base]
+        self._base = pos
+        if self._scan < pos:
+            self._scan = pos
         return out
 
-    def _give_up(self, i: int, base: int, detail: str) -> None:
-        self.truncated_frames += 1
-        self.bytes_discarded += 1
-        self._event(Reason.TRUNCATED, base + i, detail)
+    def _examine(self, buf: bytearray, mv: memoryview, base: int, n: int) -> None:
+        """Check the header of every new sync word whose 24 header bytes are in."""
+        items, cands = self._items, self._cands
+        j = self._scan - base
+        while True:
+            j = buf.find(SYNC, j)
+            if j < 0:
+                j = max(self._scan - base, n - len(SYNC) + 1)
+                break
+            if n - j < HEADER_LEN:
+                break
+            try:
+                h = parse_header(buf, j)
+            except ProtocolError as exc:
+                items.append([base + j, None, exc.reason, exc.detail])
+            else:
+                it = [base + j, h, base + j + HEADER_LEN + h.payload_len + CRC_LEN, None]
+                items.append(it)
+                cands.append(it)
+            j += 1
+        self._scan = base + j
+
+    def _first_complete_frame(self, mv: memoryview, base: int, end_abs: int):
+        """The CRC-valid complete candidate that ends first (rule 2), or None."""
+        cands = self._cands
+        if not cands:
+            return None
+        c = cands[0]
+        if c[2] <= end_abs and (len(cands) == 1 or cands[1][0] >= c[2]):
+            # the usual case: the earliest candidate is complete and no other can end first
+            i, e = c[0] - base, c[2] - base
+            (fcrc,) = _U32LE.unpack_from(mv, e - CRC_LEN)
+            if zlib.crc32(mv[i + HEADER_LEN:e - CRC_LEN], c[1].header_crc) == fcrc:
+                return c
+        while cands:
+            bound = None
+            complete = []
+            for c in cands:                   # stream order
+                if bound is not None and c[0] >= bound:
+                    break                     # starts after a complete one ends: cannot win
+                e = c[2]
+                if e <= end_abs:
+                    complete.append(c)
+                    if bound is None or e < bound:
+                        bound = e
+            if not complete:
+                return None
+            if len(complete) > 1:
+                complete.sort(key=_END)
+            for c in complete:
+                i, e = c[0] - base, c[2] - base
+                (fcrc,) = _U32LE.unpack_from(mv, e - CRC_LEN)
+                crc = zlib.crc32(mv[i + HEADER_LEN:e - CRC_LEN], c[1].header_crc)
+                if crc == fcrc:
+                    return c
+                c[3] = (f"frame CRC 0x{fcrc:08x} != computed 0x{crc:08x} ({e - i} bytes,"
+                        f" header seq {c[1].seq}); rescanning from the next byte")
+                cands.remove(c)
+        return None
+
+    def _commit(self, upto: int, cut_by: int | None) -> None:
+        """Count and report the examined sync words before stream offset ``upto``
+        (``cut_by``: offset of the valid frame that cuts short the candidates there)."""
+        items = self._items
+        k = 0
+        for it in items:
+            off, h, x, detail = it
+            if off >= upto:
+                break
+            k += 1
+            if h is None:
+                if x is Reason.TRUNCATED:
+                    self.truncated_frames += 1
+                else:
+                    self.header_errors += 1
+                self._event(x, off, detail)
+            elif detail is not None and detail.startswith("frame CRC"):
+                self.crc_errors += 1
+                self._event(Reason.FRAME_CRC, off, detail)
+            else:
+                self.truncated_frames += 1
+                self._event(Reason.TRUNCATED, off, detail or
+                            f"frame claiming {x - off} bytes (seq {h.seq}) cut short by the"
+                            f" valid frame at byte {cut_by}")
+        if k:
+            del items[:k]
+            cands = self._cands
+            if cands and cands[0][0] < upto:
+                cands[:] = [c for c in cands if c[0] >= upto]
 
     def _accept(self, h, mv: memoryview, i: int, end: int, offset: int) -> Frame | None:
         size = end - i
@@ -254,8 +372,18 @@ class StreamDecoder:
             return None
         session = self._sessions.get(d)
         if session is None:
-            session = self._sessions[d] = (SequenceTracker(), TimestampUnwrapper())
-        tracker, unwrapper = session
+            session = self._sessions[d] = (SequenceTracker(), TimestampUnwrapper(), {})
+        tracker, unwrapper, recent = session
+        key = (h.seq, _U32LE.unpack_from(mv, end - CRC_LEN)[0])
+        if key in recent:
+            self.duplicate_frames += 1
+            self.bytes_discarded += size
+            self._event(Reason.DUPLICATE, offset,
+                        f"frame seq {h.seq} received again (same CRC); dropped")
+            return None
+        recent[key] = None
+        if len(recent) > DUPLICATE_WINDOW:
+            del recent[next(iter(recent))]
         boot = bool(h.flags & FLAG_BOOT)
         su = tracker.update(h.seq, boot)
         if su.dropped:

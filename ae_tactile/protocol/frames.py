@@ -175,10 +175,11 @@ class Reason(str, enum.Enum):
     BAD_HEADER = "bad_header"                  #: unknown flag bits / reserved byte not 0
     LENGTH_TOO_LARGE = "length_too_large"      #: payload_len > MAX_PAYLOAD_LEN
     FRAME_CRC = "frame_crc"                    #: header ok, frame CRC wrong
-    TRUNCATED = "truncated"                    #: input ended (flush) inside a frame
+    TRUNCATED = "truncated"                    #: frame cut short (by a valid frame or the end)
     BAD_PAYLOAD = "bad_payload"                #: CRC ok, payload violates its layout
     UNKNOWN_FRAME_TYPE = "unknown_frame_type"  #: CRC ok, type not known to this version
     WRONG_DIRECTION = "wrong_direction"        #: CRC ok, frame of the other direction
+    DUPLICATE = "duplicate"                    #: CRC ok, same frame received again (dropped)
     SEQUENCE_GAP = "sequence_gap"              #: frames missing (not a rejection)
     SENDER_RESTART = "sender_restart"          #: sender reset (not a rejection)
     TIMESTAMP_BACKSTEP = "timestamp_backstep"  #: device clock went back (not a rejection)
