@@ -1,71 +1,235 @@
-"""Launch one ae_tactile fingertip: (simulated fingertip +) driver, localizer, slip detector.
+# SPDX-License-Identifier: Apache-2.0
+"""Launch one ae_tactile fingertip: the driver (+ the simulated fingertip).
 
-Arguments (ros2 launch ae_tactile ae_tactile.launch.py <arg>:=<value>):
-  use_sim      true   serve a simulated scene on a pty instead of reading hardware
-  port         /dev/ttyACM0   serial port or pyserial URL of the real fingertip (use_sim:=false)
-  scene        <share>/config/scenes/showcase.yaml   scene of the simulated fingertip
-  params_file  <share>/config/water_skin.yaml        parameters for every node (/**: keys)
-  namespace    ""     namespace of every node and topic: one include per finger
-  frame_id     ae_tactile_fingertip                  fingertip TF frame
-  rviz         false  start RViz with config/ae_tactile.rviz
-  record       false  `ros2 bag record` the package's topics (packets reliable for the bag)
+The driver hosts the whole pipeline (read, localize, detect slip) in-process and
+publishes `contacts`, `slip`, `contact_state`, `sensor_info` and /diagnostics. With
+split_pipeline:=true it publishes raw `packets` only and the separate `localizer` and
+`slip_detector` nodes do the rest (the set-up for replaying bags).
 
-Include it once per finger from a hand's launch file, e.g.
-  IncludeLaunchDescription(PythonLaunchDescriptionSource(<share>/launch/ae_tactile.launch.py),
-      launch_arguments={"namespace": "hand/index", "port": "/dev/ae_tactile_index",
-                        "use_sim": "false", "frame_id": "index_tip"}.items())
+    ros2 launch ae_tactile ae_tactile.launch.py --show-args     # every argument
+
+Every boolean argument takes true/false/1/0 (any case). Arguments are checked before
+anything starts (parameter file, scene, rviz2 and `ros2 bag` present): a bad one stops
+the launch with a message naming it. Every process is required: when one exits, the
+launch stops (with exit code 1 if it failed), so no node is left running alone.
+
+Include it once per finger from a hand's launch file; wrap each include in a scoped
+GroupAction so one finger's arguments do not leak into the next include:
+
+    GroupAction([IncludeLaunchDescription(
+        PythonLaunchDescriptionSource(<share>/launch/ae_tactile.launch.py),
+        launch_arguments={"namespace": "hand/index", "port": "/dev/ae_tactile_index",
+                          "use_sim": "false", "frame_id": "index_tip"}.items())])
 """
+import atexit
+import importlib.util
 import os
+import shutil
+import tempfile
 
+from ament_index_python.packages import PackageNotFoundError, get_package_prefix
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, ExecuteProcess, OpaqueFunction
-from launch.conditions import IfCondition
-from launch.substitutions import LaunchConfiguration, PythonExpression
+from launch.actions import DeclareLaunchArgument, ExecuteProcess, OpaqueFunction, Shutdown
+from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-TOPICS = ["packets", "sensor_info", "contacts", "slip", "contact_state", "sim/ground_truth",
-          "grip_force_command"]
+PACKAGE = "ae_tactile"
+TRUE_WORDS, FALSE_WORDS = ("true", "1"), ("false", "0")
+#: Topics `record:=true` writes (relative to the namespace) besides /diagnostics.
+RECORDED_TOPICS = ["packets", "sensor_info", "contacts", "slip", "contact_state",
+                   "sim/ground_truth", "sim/scene_truth", "grip_force_command"]
 
 
-def _record(context):
-    if LaunchConfiguration("record").perform(context).lower() != "true":
-        return []
-    ns = LaunchConfiguration("namespace").perform(context).strip("/")
-    topics = [f"/{ns}/{t}" if ns else f"/{t}" for t in TOPICS] + ["/diagnostics"]
-    return [ExecuteProcess(cmd=["ros2", "bag", "record", "--storage", "mcap", *topics], output="screen")]
+class LaunchArgumentError(RuntimeError):
+    """A launch argument that cannot work; the message names it and says why."""
+
+
+def _share() -> str:
+    return get_package_share_directory(PACKAGE)
+
+
+def arguments():
+    """(name, default, description) of every launch argument."""
+    share = _share()
+    return [
+        ("use_sim", "true", "Serve a simulated scene on a pty instead of reading hardware "
+         "(true/false/1/0)"),
+        ("port", "/dev/ttyACM0", "Serial port or pyserial URL of the real fingertip "
+         "(with use_sim:=false)"),
+        ("scene", os.path.join(share, "config", "scenes", "showcase.yaml"),
+         "Scene of the simulated fingertip: a YAML path or a built-in name "
+         "(showcase, three_pins, texture, ...)"),
+        ("params_file", os.path.join(share, "config", "water_skin.yaml"),
+         "ROS parameter file with one section per node (/**/driver: ...); "
+         "config/silicone.yaml for the silicone fingertip"),
+        ("namespace", "", "Namespace of every node and topic: one include per finger"),
+        ("frame_id", "ae_tactile_fingertip", "TF frame of the fingertip (sphere centre)"),
+        ("split_pipeline", "false", "Run localizer and slip_detector as separate nodes on "
+         "the driver's raw packets instead of in the driver (true/false/1/0)"),
+        ("wait_for_subscribers", "0", "Driver starts acquiring only once this many "
+         "subscribers are matched (0: at once); a managed start loses no first event"),
+        ("rviz", "false", "Start RViz 2 with config/ae_tactile.rviz (true/false/1/0)"),
+        ("record", "false", "Record the package's topics with `ros2 bag record` (MCAP) into "
+         "the working directory; packets reliable (true/false/1/0)"),
+    ]
 
 
 def generate_launch_description():
-    share = get_package_share_directory("ae_tactile")
-    ns = LaunchConfiguration("namespace")
-    params = LaunchConfiguration("params_file")
-    frame = LaunchConfiguration("frame_id")
-    use_sim = LaunchConfiguration("use_sim")
-    sim_link = PythonExpression(["'/tmp/ae_tactile_' + '", ns, "'.replace('/', '_') + '_sim_port'"])
-    port = PythonExpression(["'", sim_link, "' if '", use_sim, "'.lower() == 'true' else '",
-                             LaunchConfiguration("port"), "'"])
-    return LaunchDescription([
-        DeclareLaunchArgument("use_sim", default_value="true"),
-        DeclareLaunchArgument("port", default_value="/dev/ttyACM0"),
-        DeclareLaunchArgument("scene", default_value=os.path.join(share, "config", "scenes", "showcase.yaml")),
-        DeclareLaunchArgument("params_file", default_value=os.path.join(share, "config", "water_skin.yaml")),
-        DeclareLaunchArgument("namespace", default_value=""),
-        DeclareLaunchArgument("frame_id", default_value="ae_tactile_fingertip"),
-        DeclareLaunchArgument("rviz", default_value="false"),
-        DeclareLaunchArgument("record", default_value="false"),
-        Node(package="ae_tactile", executable="sim_fingertip", namespace=ns, output="screen",
-             condition=IfCondition(use_sim),
-             parameters=[params, {"scene": LaunchConfiguration("scene"), "link_path": sim_link,
-                                  "frame_id": frame}]),
-        Node(package="ae_tactile", executable="driver", namespace=ns, output="screen",
-             parameters=[params, {"port": port, "frame_id": frame,
-                                  "reliable_qos": PythonExpression(["'", LaunchConfiguration("record"),
-                                                                    "'.lower() == 'true'"])}]),
-        Node(package="ae_tactile", executable="localizer", namespace=ns, output="screen", parameters=[params]),
-        Node(package="ae_tactile", executable="slip_detector", namespace=ns, output="screen", parameters=[params]),
-        Node(package="rviz2", executable="rviz2", namespace=ns, output="screen",
-             arguments=["-d", os.path.join(share, "config", "ae_tactile.rviz"), "-f", frame],
-             condition=IfCondition(LaunchConfiguration("rviz"))),
-        OpaqueFunction(function=_record),
-    ])
+    return LaunchDescription(
+        [DeclareLaunchArgument(name, default_value=default, description=description)
+         for name, default, description in arguments()]
+        + [OpaqueFunction(function=_setup)])
+
+
+# ------------------------------------------------------------------ argument checks
+def flag(value: str, name: str) -> bool:
+    """The one truthiness rule of every boolean argument: true/1 or false/0, any case."""
+    word = value.strip().lower()
+    if word in TRUE_WORDS:
+        return True
+    if word in FALSE_WORDS:
+        return False
+    raise LaunchArgumentError(f"launch argument '{name}' = {value!r} is not a boolean "
+                              "(true, false, 1 or 0)")
+
+
+def _existing_file(path: str, name: str) -> str:
+    if not path or not os.path.isfile(path):
+        raise LaunchArgumentError(f"launch argument '{name}': file {path!r} not found")
+    return os.path.abspath(path)
+
+
+def _scene_path(value: str) -> str:
+    """A scene file, or a built-in scene name resolved in <share>/config/scenes."""
+    if os.path.isfile(value):
+        return os.path.abspath(value)
+    name = value if value.endswith(".yaml") else value + ".yaml"
+    builtin = os.path.join(_share(), "config", "scenes", name)
+    if os.sep not in value and os.path.isfile(builtin):
+        return builtin
+    known = sorted(f[:-5] for f in os.listdir(os.path.join(_share(), "config", "scenes"))
+                   if f.endswith(".yaml"))
+    raise LaunchArgumentError(f"launch argument 'scene': {value!r} is neither a file nor a "
+                              f"built-in scene ({', '.join(known)})")
+
+
+def _count(value: str, name: str) -> int:
+    try:
+        n = int(value)
+    except ValueError:
+        n = -1
+    if not 0 <= n <= 100:
+        raise LaunchArgumentError(f"launch argument '{name}' = {value!r} must be an integer "
+                                  "in 0 .. 100")
+    return n
+
+
+def _namespace(value: str) -> str:
+    ns = value.strip().strip("/")
+    parts = ns.split("/") if ns else []
+    if any(not p or not (p[0].isalpha() or p[0] == "_")
+           or not all(c.isalnum() or c == "_" for c in p) for p in parts):
+        raise LaunchArgumentError(f"launch argument 'namespace' = {value!r} is not a valid "
+                                  "ROS namespace (letters, digits, '_', separated by '/')")
+    return ns
+
+
+def _require_package(package: str, why: str, apt: str) -> None:
+    try:
+        get_package_prefix(package)
+    except (PackageNotFoundError, KeyError, ValueError):
+        raise LaunchArgumentError(f"{why}, but ROS package '{package}' is not installed "
+                                  f"(e.g. apt install ros-$ROS_DISTRO-{apt}); nothing started")
+
+
+def _require_rviz() -> None:
+    _require_package("rviz2", "rviz:=true needs RViz 2", "rviz2")
+
+
+def _require_ros2_bag() -> None:
+    if shutil.which("ros2") is None or importlib.util.find_spec("ros2bag") is None:
+        raise LaunchArgumentError("record:=true needs `ros2 bag` (Python package ros2bag), "
+                                  "which is not installed (e.g. apt install "
+                                  "ros-$ROS_DISTRO-rosbag2); nothing started")
+    _require_package("rosbag2_storage_mcap", "record:=true writes MCAP",
+                     "rosbag2-storage-mcap")
+
+
+def _driver_has_pipeline() -> bool:
+    """Whether the installed driver runs the pipeline in-process (`pipeline` parameter);
+    a driver without it needs the separate localizer and slip_detector nodes."""
+    try:
+        from ae_tactile.ros.driver_node import DRIVER_PARAMS
+    except ImportError:
+        return True
+    return any(p.name == "pipeline" for p in DRIVER_PARAMS)
+
+
+# ------------------------------------------------------------------ processes
+def _required(name: str):
+    """on_exit of a required process: stop the launch; a failure makes it exit 1."""
+    def on_exit(event, context):
+        if context.is_shutdown:
+            return None
+        if event.returncode != 0:
+            raise LaunchArgumentError(f"{name} exited with code {event.returncode}; "
+                                      "stopping every process of this launch")
+        return [Shutdown(reason=f"{name} exited")]
+    return on_exit
+
+
+def _setup(context):
+    def arg(name):
+        return LaunchConfiguration(name).perform(context)
+
+    use_sim = flag(arg("use_sim"), "use_sim")
+    split = flag(arg("split_pipeline"), "split_pipeline")
+    rviz = flag(arg("rviz"), "rviz")
+    record = flag(arg("record"), "record")
+    ns = _namespace(arg("namespace"))
+    frame = arg("frame_id").strip()
+    if not frame:
+        raise LaunchArgumentError("launch argument 'frame_id' must not be empty")
+    params_file = _existing_file(arg("params_file"), "params_file")
+    wait = _count(arg("wait_for_subscribers"), "wait_for_subscribers")
+    scene = _scene_path(arg("scene")) if use_sim else None
+    if rviz:
+        _require_rviz()
+    if record:
+        _require_ros2_bag()
+    if not split and not _driver_has_pipeline():
+        split = True
+
+    actions = []
+    if use_sim:
+        # The pty link lives in a private directory removed when the launch exits, so no
+        # two launches share it and nothing is left in /tmp.
+        link_dir = tempfile.mkdtemp(prefix="ae_tactile_sim_")
+        atexit.register(shutil.rmtree, link_dir, True)
+        port = os.path.join(link_dir, "port")
+        actions.append(Node(
+            package=PACKAGE, executable="sim_fingertip", namespace=ns, output="screen",
+            parameters=[params_file, {"scene": scene, "link_path": port, "frame_id": frame}],
+            on_exit=_required("sim_fingertip")))
+    else:
+        port = arg("port")
+    actions.append(Node(
+        package=PACKAGE, executable="driver", namespace=ns, output="screen",
+        parameters=[params_file, {"port": port, "frame_id": frame, "pipeline": not split,
+                                  "wait_for_subscribers": wait, "reliable_qos": record}],
+        on_exit=_required("driver")))
+    if split:
+        for exe in ("localizer", "slip_detector"):
+            actions.append(Node(package=PACKAGE, executable=exe, namespace=ns, output="screen",
+                                parameters=[params_file], on_exit=_required(exe)))
+    if rviz:   # closing RViz ends nothing else
+        actions.append(Node(
+            package="rviz2", executable="rviz2", namespace=ns, output="screen",
+            arguments=["-d", os.path.join(_share(), "config", "ae_tactile.rviz"), "-f", frame]))
+    if record:
+        topics = [f"/{ns}/{t}" if ns else f"/{t}" for t in RECORDED_TOPICS] + ["/diagnostics"]
+        actions.append(ExecuteProcess(
+            cmd=["ros2", "bag", "record", "--storage", "mcap", *topics], output="screen",
+            name="recorder", on_exit=_required("ros2 bag record")))
+    return actions

@@ -1,47 +1,263 @@
-"""Shared bits of the nodes: latched QoS, and running a node (or several) with clean exits."""
+# SPDX-License-Identifier: Apache-2.0
+"""Shared bits of the nodes: latched QoS, clean start and stop, `--help`, Python logging.
+
+- `run_node` / `ros_session`: the first SIGINT or SIGTERM asks the process to stop; later
+  ones (a terminal's Ctrl-C reaches every process of the group, then `ros2 launch` sends
+  its own SIGINT) are ignored while the nodes are destroyed, *before* the context is shut
+  down, so no callback or publisher thread meets an invalid context. Exit code 0 on a
+  signal, 2 when a node refused its parameters (message on stderr), no traceback.
+- `node_main`: the entry point of a node executable; `--help` prints the usage and the
+  node's parameters from its `Param` table and exits 0 without starting anything.
+- `forward_python_logging`: records of the core's Python loggers (`ae_tactile.*`, e.g. the
+  serial link's warnings) go to the node's rclpy logger, hence to the console and /rosout.
+"""
 from __future__ import annotations
 
+import importlib
+import logging
+import os
+import signal
 import sys
+import threading
 from contextlib import contextmanager
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 
-from ae_tactile.ros.params import ParameterError
+from ae_tactile.ros.params import Param, ParameterError
 
 #: Latched topics (sensor_info, contact_state, sim/port): reliable, transient local, depth 1.
 LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                     reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+                     reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+#: Longest time the spin loop blocks before it looks at the stop request (s). A Python
+#: signal handler only runs between bytecodes, never inside rcl_wait.
+STOP_POLL_S = 0.1
+
+_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+# ------------------------------------------------------------------ start and stop
+@contextmanager
+def _stop_on_signals(stop: threading.Event, interrupt: bool):
+    """Route SIGINT/SIGTERM to ``stop``; with ``interrupt`` the first one also raises
+    KeyboardInterrupt in the main thread (for loops that do not poll ``stop``)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield                      # signals are delivered to the main thread only
+        return
+
+    def handler(signum, frame):
+        first = not stop.is_set()
+        stop.set()
+        if first and interrupt:
+            raise KeyboardInterrupt
+
+    previous = {sig: signal.signal(sig, handler) for sig in _STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
 
 
 @contextmanager
-def ros_session(args=None):
-    """rclpy.init ... try_shutdown; yields a dict whose 'exit' is the process exit code:
-    2 when a node refused its parameters (message on stderr), 0 on Ctrl-C / shutdown."""
-    rclpy.init(args=args)
-    state = {"exit": 0}
-    try:
-        yield state
-    except ParameterError as exc:
-        print(f"[ae_tactile] not starting: {exc}", file=sys.stderr, flush=True)
-        state["exit"] = 2
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        rclpy.try_shutdown()
+def ros_session(args=None, interrupt: bool = True):
+    """rclpy.init ... try_shutdown around a node's life; yields a dict with 'exit' (the
+    process exit code: 2 when a node refused its parameters, else 0) and 'stop' (a
+    threading.Event set by the first SIGINT/SIGTERM).
+
+    rclpy's own signal handlers are not installed: they shut the context down from the
+    signal, while node threads may still publish ("context is not valid"). Here a signal
+    only requests the stop; the body destroys its nodes and the context goes last. With
+    ``interrupt`` (default) the first signal also raises KeyboardInterrupt in the body;
+    later signals are ignored, so the clean-up is never interrupted.
+    """
+    state = {"exit": 0, "stop": threading.Event()}
+    with _stop_on_signals(state["stop"], interrupt):
+        try:
+            rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+            yield state
+        except ParameterError as exc:
+            print(f"[ae_tactile] not starting: {exc}", file=sys.stderr, flush=True)
+            state["exit"] = 2
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        finally:
+            rclpy.try_shutdown()
 
 
-def run_node(node_factory, args=None) -> int:
-    """Spin one node until SIGINT/shutdown and clean up; exit code 2 on a parameter error."""
+def spin_until_stopped(executor, stop: threading.Event) -> None:
+    """Spin ``executor`` until ``stop`` is set or the context is shut down elsewhere."""
+    context = executor.context
+    while not stop.is_set() and context.ok():
+        executor.spin_once(timeout_sec=STOP_POLL_S)
+
+
+def run_node(node_factory, args=None, executor_factory=SingleThreadedExecutor) -> int:
+    """Create one node, spin it until SIGINT/SIGTERM/shutdown and destroy it while the
+    context is still valid. Returns the exit code: 0, or 2 on a parameter error."""
     node = None
-    with ros_session(args) as state:
+    with ros_session(args, interrupt=False) as state, forward_python_logging(lambda: node):
         try:
             node = node_factory()
-            executor = SingleThreadedExecutor()
-            executor.add_node(node)
-            executor.spin()
+            if not state["stop"].is_set():
+                executor = executor_factory()
+                executor.add_node(node)
+                try:
+                    spin_until_stopped(executor, state["stop"])
+                finally:
+                    executor.shutdown(timeout_sec=1.0)
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
         finally:
             if node is not None:
                 node.destroy_node()
     return state["exit"]
+
+
+# ------------------------------------------------------------------ Python logging
+class RosLogHandler(logging.Handler):
+    """logging.Handler that re-emits records through an rclpy logger.
+
+    ``get_ros_logger()`` returns the rclpy logger to use (the node's, so records reach
+    /rosout) or None (then an rclpy logger named ``fallback_name``: console only, for
+    records logged while the node is being constructed).
+    """
+
+    def __init__(self, get_ros_logger, fallback_name: str = "ae_tactile"):
+        super().__init__(logging.DEBUG)
+        self._get_ros_logger = get_ros_logger
+        self._fallback = rclpy.logging.get_logger(fallback_name)
+        self.setFormatter(logging.Formatter("[%(name)s] %(message)s"))
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            logger = self._get_ros_logger() or self._fallback
+            msg = self.format(record)
+            # rclpy keys each call site to one severity: one call per level.
+            if record.levelno >= logging.ERROR:
+                logger.error(msg)
+            elif record.levelno >= logging.WARNING:
+                logger.warning(msg)
+            elif record.levelno >= logging.INFO:
+                logger.info(msg)
+            else:
+                logger.debug(msg)
+        except Exception:   # a logging failure must never take the node down
+            self.handleError(record)
+
+
+@contextmanager
+def forward_python_logging(get_node, logger_name: str = "ae_tactile", level=logging.INFO):
+    """While active, records of ``logger_name`` and its children go to the rclpy logger
+    of ``get_node()`` (None while the node does not exist yet) instead of stderr."""
+    def ros_logger():
+        node = get_node()
+        return node.get_logger() if node is not None else None
+
+    handler = RosLogHandler(ros_logger)
+    py_logger = logging.getLogger(logger_name)
+    saved = (py_logger.level, py_logger.propagate)
+    py_logger.addHandler(handler)
+    py_logger.setLevel(level)
+    py_logger.propagate = False
+    try:
+        yield handler
+    finally:
+        py_logger.removeHandler(handler)
+        py_logger.setLevel(saved[0])
+        py_logger.propagate = saved[1]
+
+
+# ------------------------------------------------------------------ --help
+def _ros_type(value) -> str:
+    if isinstance(value, bool):
+        return "bool"
+    if isinstance(value, int):
+        return "int"
+    if isinstance(value, float):
+        return "double"
+    if isinstance(value, str):
+        return "string"
+    if isinstance(value, (list, tuple)):
+        inner = _ros_type(value[0]) if value else "double"
+        return f"{inner}[]"
+    return type(value).__name__
+
+
+def _fmt_default(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return f"{value:g}"
+    if isinstance(value, str):
+        return repr(value)
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_fmt_default(v) for v in value) + "]"
+    return str(value)
+
+
+def format_usage(executable: str, doc: str, params: list[Param]) -> str:
+    """Usage text of a node executable: synopsis, description, one entry per parameter."""
+    lines = [f"usage: ros2 run ae_tactile {executable} [-h] "
+             "[--ros-args [-p NAME:=VALUE ...] [--params-file FILE] [-r __ns:=/NS]]", ""]
+    if doc:
+        lines += [doc.strip(), ""]
+    lines.append("parameters (-p NAME:=VALUE, or a --params-file section for this node):")
+    for p in params:
+        rng = ""
+        if p.choices:
+            rng = "; one of " + ", ".join(map(str, p.choices))
+        elif p.lo is not None and p.hi is not None and not isinstance(p.default, bool):
+            rng = f"; {_fmt_default(p.lo)} .. {_fmt_default(p.hi)}"
+        lines.append(f"  {p.name} ({_ros_type(p.default)}, default {_fmt_default(p.default)}{rng})")
+        lines.append(f"      {p.description}")
+    return "\n".join(lines)
+
+
+def module_params(module, tables=None) -> list[Param]:
+    """Parameters a node module declares: the named tables (a list of Param, or a function
+    returning one), or by default every module-level ``*_PARAMS`` list of Param."""
+    if tables is None:
+        tables = [name for name, value in vars(module).items()
+                  if name.endswith("_PARAMS") and isinstance(value, (list, tuple))
+                  and all(isinstance(p, Param) for p in value)]
+    out: list[Param] = []
+    for name in tables:
+        table = getattr(module, name)
+        out.extend(table() if callable(table) else table)
+    return out
+
+
+def split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
+    """(arguments before --ros-args, --ros-args and what follows)."""
+    if "--ros-args" in argv:
+        i = argv.index("--ros-args")
+        return argv[:i], argv[i:]
+    return argv, []
+
+
+def node_main(module_name: str, tables=None, argv=None) -> int:
+    """Entry point of a node executable.
+
+    ``-h``/``--help`` (before ``--ros-args``) prints the usage with every parameter of the
+    node and returns 0 without initialising ROS; any other non-ROS argument is refused
+    with exit code 2; otherwise ``module.main()`` runs the node.
+    """
+    argv = sys.argv[1:] if argv is None else list(argv)
+    executable = os.path.basename(sys.argv[0]) or module_name
+    own, _ = split_ros_args(argv)
+    module = importlib.import_module(module_name)
+    if any(a in ("-h", "--help") for a in own):
+        doc = (module.__doc__ or "").strip()
+        print(format_usage(executable, doc, module_params(module, tables)))
+        return 0
+    if own:
+        print(f"{executable}: unrecognized arguments: {' '.join(own)}\n"
+              f"(parameters go after --ros-args: -p NAME:=VALUE; see {executable} --help)",
+              file=sys.stderr)
+        return 2
+    return module.main()
