@@ -6,17 +6,31 @@ incremental decoder, maps device time to host time (`DeviceClockMapper`), turns
 PACKET frames (triggered mode) or STREAM blocks cut by the packet detector (stream
 mode) into `PacketRecord`s, and hands them out in bounded per-read-cycle batches.
 
-It survives unplugging: a read error or 3 s without any frame closes the port, the
-state becomes ``disconnected``, and it retries with exponential back-off until the
-device returns; then it re-configures the device, restarts acquisition and re-syncs
-the clock mapping. Nothing is silently lost: sequence gaps, bad CRCs, queue
-overflows and stream gaps are counted (`stats()`).
+Liveness is valid frames, not bytes. States: ``disconnected`` (port closed),
+``connecting`` (port open, no valid frame yet), ``connected`` (a valid frame within
+``link_timeout_s``). A real read error (EIO, a hang-up), or ``link_timeout_s`` without a
+valid frame (a dead device, a reset device that stays silent, a wrong baud rate that
+only yields garbage) closes the port; it is reopened with exponential back-off, the
+device re-configured, acquisition restarted and the clock mapping re-synced. A
+spurious wake-up (readable but nothing to read, EAGAIN) is counted, never a disconnect.
+A partial frame left waiting ``idle_flush_s`` with no byte arriving is flushed.
+
+Nothing is silently lost: every byte (decoded or discarded), every rejected frame by
+reason, duplicates, sequence gaps, queue overflows, stream gaps and packets refused by
+the link (non-finite volts) are counted (`stats()`). No input stops the reader thread:
+an unexpected error while handling a frame is counted (``internal_errors``) and logged.
+
+Memory is bounded: the decoder holds < MAX_FRAME_LEN + ``read_chunk_bytes`` bytes, the
+hand-over queue ``queue_max_batches`` batches of one read each (a read of
+``read_chunk_bytes`` yields at most read_chunk_bytes / 60 packets; 2 float32 bytes per
+wire byte of samples), the ACK table 64 entries; overload is dropped and counted.
 
 Reads are neither byte-by-byte nor timeout-bound: each cycle blocks for the first
 byte (up to ``read_timeout_s``, only when idle) and then takes everything waiting.
 """
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import queue
@@ -38,6 +52,7 @@ from ae_tactile.timesync import DeviceClockMapper
 LOG = logging.getLogger("ae_tactile.link")
 
 MODES = ("triggered", "stream")
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 @dataclass(frozen=True)
@@ -47,8 +62,11 @@ class LinkConfig:
     port: pyserial URL or device path. baudrate: bits/s (ignored by USB CDC, ptys, sockets).
     mode: "triggered" (device sends PACKET frames) or "stream" (STREAM blocks, cut on the host).
     sample_rate_hz, threshold_counts, packet_samples, pre_trigger_samples: device settings.
-    read_timeout_s: longest idle block of one read (s). link_timeout_s: silence that means
-    the link is dead (the device sends a heartbeat >= 1 Hz). reconnect_*: back-off (s).
+    read_timeout_s: longest idle block of one read (s). link_timeout_s: time without a valid
+    frame that means the link is dead (the device sends a heartbeat >= 1 Hz).
+    idle_flush_s: a partial frame is given up after this long without any byte (the
+    default exceeds the 0.22 s a MAX_FRAME_LEN frame takes at 3 Mbit/s).
+    reconnect_*: back-off (s).
     queue_max_batches: bound of the hand-over queue (overflow is counted as drops).
     command_timeout_s / command_retries: ACK wait per command and retries.
     sync_good_pings / sync_max_pings / sync_rtt_s: clock sync before START (see _sync_clock).
@@ -66,6 +84,7 @@ class LinkConfig:
     read_timeout_s: float = 0.002
     read_chunk_bytes: int = 1 << 16
     link_timeout_s: float = 3.0
+    idle_flush_s: float = 0.25
     reconnect_initial_s: float = 0.2
     reconnect_max_s: float = 5.0
     queue_max_batches: int = 256
@@ -84,7 +103,7 @@ class LinkConfig:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
         if not 50 <= int(self.baudrate) <= 100_000_000:
             raise ValueError(f"baudrate must be in [50, 1e8], got {self.baudrate}")
-        for name in ("read_timeout_s", "link_timeout_s", "reconnect_initial_s",
+        for name in ("read_timeout_s", "link_timeout_s", "idle_flush_s", "reconnect_initial_s",
                      "reconnect_max_s", "command_timeout_s"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
@@ -187,9 +206,13 @@ class FingertipLink:
             "stream_gaps": 0, "stream_samples_lost": 0, "device_restarts_handled": 0,
             "commands_sent": 0, "commands_unacked": 0, "commands_failed": 0,
             "frames_ignored": 0, "sync_good_pings": 0, "sink_errors": 0,
+            "idle_flushes": 0, "spurious_wakeups": 0, "hangups": 0, "internal_errors": 0,
+            "packets_rejected_nonfinite": 0, "frames_unusable": 0,
         }
         self.last_error = ""
-        self._last_rx_mono = 0.0
+        self._last_frame_mono = 0.0      # last valid frame (liveness)
+        self._last_byte_mono = 0.0       # last byte of any kind (idle flush)
+        self._empty_hup_reads = 0
         self._reconfigure_pending = False
         self._last_ack_receive_ns = 0
         self._open_failure_logged = False
@@ -252,18 +275,24 @@ class FingertipLink:
     def _run(self) -> None:
         backoff = self.config.reconnect_initial_s
         while not self._stop.is_set():
-            if self._serial is None:
-                if not self._open():
-                    self._stop.wait(backoff)
-                    backoff = min(2 * backoff, self.config.reconnect_max_s)
+            try:
+                if self._serial is None:
+                    if not self._open():
+                        self._stop.wait(backoff)
+                        backoff = min(2 * backoff, self.config.reconnect_max_s)
+                        continue
+                    backoff = self.config.reconnect_initial_s
+                    self._configure_device()
                     continue
-                backoff = self.config.reconnect_initial_s
-                self._configure_device()
-                continue
-            self._cycle()
-            if self._reconfigure_pending and self._serial is not None:
-                self._reconfigure_pending = False
-                self._configure_device()
+                self._cycle()
+                if self._reconfigure_pending and self._serial is not None:
+                    self._reconfigure_pending = False
+                    self._configure_device()
+            except Exception as exc:         # no input may stop the reader: count, go on
+                self.counters["internal_errors"] += 1
+                self.last_error = f"internal error: {exc!r}"
+                self.log.exception("link: unexpected error (reader continues)")
+                self._stop.wait(self.config.read_timeout_s)
 
     def _cycle(self) -> None:
         try:
@@ -278,11 +307,16 @@ class FingertipLink:
             return
         now_mono = time.monotonic()
         if data:
-            self._last_rx_mono = now_mono
-            self._handle_bytes(data)
-        elif now_mono - self._last_rx_mono > self.config.link_timeout_s:
+            self._last_byte_mono = now_mono
+            self._handle_frames(self.decoder.feed(data))
+        elif self.decoder.pending_bytes and now_mono - self._last_byte_mono > self.config.idle_flush_s:
+            self.counters["idle_flushes"] += 1     # a frame cut short, then silence
+            self._handle_frames(self.decoder.flush())
+        if self._serial is not None and \
+                time.monotonic() - self._last_frame_mono > self.config.link_timeout_s:
             self.counters["link_timeouts"] += 1
-            self._close(f"no frame for {self.config.link_timeout_s:g} s")
+            self._close(f"no valid frame for {self.config.link_timeout_s:g} s"
+                        f" ({self.decoder.bytes_received} bytes received in all)")
 
     def _read(self, ser) -> bytes:
         """Everything waiting, or block (<= read_timeout_s) for the first byte when idle.
@@ -294,13 +328,34 @@ class FingertipLink:
         chunk = self.config.read_chunk_bytes
         fd = self._fd
         if fd is not None:
-            ready, _, _ = select.select([fd], [], [], self.config.read_timeout_s)
-            if not ready:
+            events = self._poller.poll(self.config.read_timeout_s * 1e3)
+            if not events:
                 return b""
-            data = os.read(fd, chunk)
-            if not data:
-                raise serial.SerialException("port readable but returned no data (device disconnected?)")
-            return data
+            flags = events[0][1]
+            if flags & select.POLLNVAL:
+                raise serial.SerialException("port file descriptor closed (POLLNVAL)")
+            try:
+                data = os.read(fd, chunk)
+            except (BlockingIOError, InterruptedError):
+                data = None                     # readable, then nothing: spurious
+            except OSError as exc:
+                if exc.errno in (errno.EAGAIN, errno.EINTR):
+                    data = None
+                else:
+                    raise                       # EIO of a vanished pty, ENXIO, ...
+            if data:
+                self._empty_hup_reads = 0
+                return data
+            if flags & (select.POLLHUP | select.POLLERR):
+                # Hang-up: a few empty reads in a row mean the other end is gone.
+                self._empty_hup_reads += 1
+                if self._empty_hup_reads >= 3:
+                    self.counters["hangups"] += 1
+                    raise serial.SerialException("port hung up (POLLHUP and no data)")
+                self._stop.wait(self.config.read_timeout_s)
+                return b""
+            self.counters["spurious_wakeups"] += 1
+            return b""
         data = ser.read(1)
         if not data:
             return data
@@ -332,6 +387,10 @@ class FingertipLink:
                 fd = ser.fileno()
             except (AttributeError, NotImplementedError, serial.SerialException, OSError):
                 fd = None            # loop://, rfc2217:// ...: pyserial's own read
+        if fd is not None:
+            self._poller = select.poll()
+            self._poller.register(fd, select.POLLIN | select.POLLPRI)
+            self._empty_hup_reads = 0
         with self._lock:
             self._serial = ser
             self._fd = fd
@@ -341,10 +400,10 @@ class FingertipLink:
             self.decoder.forget_senders()
             self.mapper.reset()
             self._stream_next_index = None
-            self.state = "connected"
+            self.state = "connecting"          # "connected" once a valid frame arrives
             self.counters["connects"] += 1
             self._open_failure_logged = False
-        self._last_rx_mono = time.monotonic()
+        self._last_frame_mono = self._last_byte_mono = time.monotonic()
         self.log.info("connected to %s", self.config.port)
         return True
 
@@ -369,7 +428,7 @@ class FingertipLink:
         except (serial.SerialException, OSError, TypeError, AttributeError):
             pass
         self.decoder.flush()
-        if was == "connected" and reason != "stopped":
+        if was in ("connected", "connecting") and reason != "stopped":
             self.counters["disconnects"] += 1
             self.last_error = reason
             self.log.warning("link to %s lost: %s; reconnecting", self.config.port, reason)
@@ -450,43 +509,61 @@ class FingertipLink:
 
     # ---------------------------------------------------------------- frames
     def _handle_bytes(self, data: bytes) -> None:
-        frames = self.decoder.feed(data)
+        self._handle_frames(self.decoder.feed(data))
+
+    def _handle_frames(self, frames: list) -> None:
         for ev in self.decoder.pop_events():
             self.log.debug("decoder: %s at byte %s: %s", ev.reason, ev.stream_offset, ev.detail)
         if not frames:
             return
+        self._last_frame_mono = time.monotonic()
+        if self.state != "connected" and self._serial is not None:
+            with self._lock:
+                self.state = "connected"
         receive_ns = int(self.clock_ns())
         records: list[PacketRecord] = []
         for frame in frames:
-            if frame.restart and self.mapper.synced:
-                # The device rebooted under us: new clock, and it lost its settings.
-                self._reset_detector()
-                self.mapper.reset()
-                self.counters["device_restarts_handled"] += 1
-                self._stream_next_index = None
-                self._stream_ref = None
-                self._reconfigure_pending = True
-            body = frame.body
-            device_ns = int(frame.device_time_us) * 1000
-            if isinstance(body, (Packet, StreamBlock)):
-                last_ns = device_ns + int(round((body.n_samples - 1) * 1e9 / body.sample_rate_hz))
-                self.mapper.update(last_ns, receive_ns)
-            else:
-                self.mapper.update(device_ns, receive_ns)
-            if isinstance(body, Packet):
-                records.append(self._packet_record(body, device_ns))
-            elif isinstance(body, StreamBlock):
-                records.extend(self._stream_records(body, device_ns))
-            elif isinstance(body, Status):
-                self.device_status = body
-            elif isinstance(body, Ack):
-                self._pending_acks[body.command_id] = (body, receive_ns)
-                if len(self._pending_acks) > 64:
-                    self._pending_acks.pop(next(iter(self._pending_acks)))
-            else:
-                self.counters["frames_ignored"] += 1
+            try:
+                self._handle_frame(frame, receive_ns, records)
+            except Exception as exc:         # e.g. a stream block the detector refuses
+                self.counters["frames_unusable"] += 1
+                self.log.warning("frame seq %d unusable: %r", frame.seq, exc)
         if records:
             self._emit(receive_ns, records)
+
+    def _handle_frame(self, frame, receive_ns: int, records: list) -> None:
+        """One decoded frame: clock mapping, device status, ACKs, packet records."""
+        if frame.restart and self.mapper.synced:
+            # The device rebooted under us: new clock, and it lost its settings.
+            self._reset_detector()
+            self.mapper.reset()
+            self.counters["device_restarts_handled"] += 1
+            self._stream_next_index = None
+            self._stream_ref = None
+            self._reconfigure_pending = True
+        body = frame.body
+        device_ns = int(frame.device_time_us) * 1000
+        if isinstance(body, (Packet, StreamBlock)):
+            last_ns = device_ns + int(round((body.n_samples - 1) * 1e9 / body.sample_rate_hz))
+            self.mapper.update(last_ns, receive_ns)
+        else:
+            self.mapper.update(device_ns, receive_ns)
+        if isinstance(body, (Packet, StreamBlock)) and \
+                float(body.v_per_count) * 32768.0 > _FLOAT32_MAX:
+            self.counters["packets_rejected_nonfinite"] += 1   # counts x v_per_count = inf
+            return
+        if isinstance(body, Packet):
+            records.append(self._packet_record(body, device_ns))
+        elif isinstance(body, StreamBlock):
+            records.extend(self._stream_records(body, device_ns))
+        elif isinstance(body, Status):
+            self.device_status = body
+        elif isinstance(body, Ack):
+            self._pending_acks[body.command_id] = (body, receive_ns)
+            if len(self._pending_acks) > 64:
+                self._pending_acks.pop(next(iter(self._pending_acks)))
+        else:
+            self.counters["frames_ignored"] += 1
 
     def _next_id(self) -> int:
         sid = self._next_sequence_id

@@ -17,7 +17,10 @@ Device model (documented in docs/protocol.md and docs/simulator.md):
   simulator's `TriggeredSource`, ``pre_trigger`` samples before the earliest arrival),
   sent once its last sample has been taken, if its peak |count| reaches the threshold.
 * Fault injection for tests: `inject_garbage`, `corrupt_next` (flip one payload bit:
-  the host sees a CRC error and a sequence gap), `drop_next` (sequence gap).
+  the host sees a CRC error and a sequence gap), `drop_next` (sequence gap),
+  `repeat_next` (a frame sent twice), `inject_frame` (any body, numbered like the rest),
+  `reset_mid_frame` (a watchdog reset while a frame is on the wire, port left open),
+  `garble` (every output byte replaced by noise, as a wrong baud rate would).
 """
 from __future__ import annotations
 
@@ -116,6 +119,9 @@ class VirtualFingertip:
         self.packets_below_threshold = 0
         self._corrupt = 0
         self._drop = 0
+        self._repeat = 0
+        self.garbled = False
+        self._garble_rng = np.random.default_rng(12345)
         self.boot()
 
     # ------------------------------------------------------------------ power
@@ -143,6 +149,32 @@ class VirtualFingertip:
     def drop_next(self, n: int = 1) -> None:
         self._drop += int(n)
 
+    def repeat_next(self, n: int = 1) -> None:
+        """The next n PACKET/STREAM frames are sent twice (byte-identical)."""
+        self._repeat += int(n)
+
+    def inject_frame(self, body, now_ns: int) -> None:
+        """Send any frame body now, numbered and stamped like the device's own frames."""
+        self._send(body, int(now_ns), "injected")
+
+    def reset_mid_frame(self, now_ns: int, n_samples: int = MAX_SAMPLES,
+                        fraction: float = 0.5) -> int:
+        """A watchdog reset while a PACKET of ``n_samples`` is on the wire: its first
+        ``fraction`` goes out, then the device reboots (the port stays open; the host sees
+        the rebooted device's BOOT frame and heartbeats next). Returns the bytes cut off."""
+        body = Packet(np.zeros((4, int(n_samples)), np.int16), self.sample_rate_hz,
+                      self.v_per_count)
+        frame = self.encoder.encode(body, self.device_us(now_ns) & 0xFFFFFFFF)
+        cut = frame[:max(24, int(len(frame) * float(fraction)))]
+        pending = bytes(self.out)
+        self.boot()
+        self.out += pending + cut
+        return len(frame) - len(cut)
+
+    def garble(self, on: bool = True) -> None:
+        """Replace every output byte by noise (a wrong baud rate) until garble(False)."""
+        self.garbled = bool(on)
+
     # ------------------------------------------------------------------ framing
     def _send(self, body, device_time_ns: int, kind: str) -> None:
         ts_us = ((int(device_time_ns) - self.boot_ns) // 1000) & 0xFFFFFFFF
@@ -162,7 +194,11 @@ class VirtualFingertip:
         if fate == "dropped":
             return
         self.out += data
-        if fate == "sent":
+        if kind in ("packet", "stream") and fate == "sent" and self._repeat > 0:
+            self._repeat -= 1
+            self.out += data                        # the same frame, byte for byte, again
+            self.frames_repeated = getattr(self, "frames_repeated", 0) + 1
+        if fate == "sent" and kind in self.frames_sent:
             self.frames_sent[kind] += 1
 
     def status(self, now_ns: int) -> Status:
@@ -259,6 +295,8 @@ class VirtualFingertip:
             elif self.state == DeviceState.STREAMING:
                 self._poll_stream(now_ns)
         out, self.out = bytes(self.out), bytearray()
+        if self.garbled and out:
+            out = self._garble_rng.integers(0, 256, len(out), dtype=np.uint8).tobytes()
         return out
 
     def _poll_triggered(self, now_ns: int) -> None:
@@ -424,14 +462,40 @@ class PtyTransport:
             os.unlink(self.link_path)
 
 
-class TcpTransport:
-    """A TCP server on ``host:port`` (port 0 picks one); the driver opens socket://host:port."""
+class _TcpClient:
+    __slots__ = ("sock", "out", "last_progress", "address")
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 0):
+    def __init__(self, sock, address, now: float):
+        self.sock, self.address, self.out, self.last_progress = sock, address, bytearray(), now
+
+
+class TcpTransport:
+    """A TCP server on ``host:port`` (127.0.0.1 unless told otherwise; port 0 picks one);
+    the driver opens ``socket://host:port``.
+
+    Several clients at once (up to ``max_clients``; one more is accepted and closed at
+    once, counted in ``refused``). Each client gets every device byte sent after it
+    connected, through its own buffer of at most ``max_client_buffer`` bytes; commands
+    from any client reach the device. A client that takes no byte for ``idle_timeout_s``
+    while bytes wait for it, or whose buffer overflows, is disconnected (``timed_out``,
+    ``overflowed``): a client that connects and never reads cannot lock the others out
+    nor make the device's memory grow.
+    """
+
+    def __init__(self, host: str = "127.0.0.1", port: int = 0, *, max_clients: int = 4,
+                 idle_timeout_s: float = 5.0, max_client_buffer: int = 4 << 20,
+                 client_sndbuf: int | None = None):
+        if int(max_clients) < 1 or not idle_timeout_s > 0 or int(max_client_buffer) < 1:
+            raise ValueError("need max_clients >= 1, idle_timeout_s > 0, max_client_buffer >= 1")
         self.host = host
         self._port = port
+        self.max_clients = int(max_clients)
+        self.idle_timeout_s = float(idle_timeout_s)
+        self.max_client_buffer = int(max_client_buffer)
+        self.client_sndbuf = client_sndbuf
         self.listener = None
-        self.conn = None
+        self.clients: list[_TcpClient] = []
+        self.accepted = self.refused = self.timed_out = self.overflowed = 0
         self.replug()
 
     def replug(self) -> None:
@@ -439,54 +503,111 @@ class TcpTransport:
         self.listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self.listener.bind((self.host, self._port))
         self._port = self.listener.getsockname()[1]
-        self.listener.listen(1)
+        self.listener.listen(16)
         self.listener.setblocking(False)
 
     def unplug(self) -> None:
-        for s in (self.conn, self.listener):
-            if s is not None:
-                s.close()
-        self.conn = self.listener = None
+        for c in self.clients:
+            c.sock.close()
+        self.clients = []
+        if self.listener is not None:
+            self.listener.close()
+        self.listener = None
+
+    @property
+    def conn(self):
+        """The first client's socket (None without clients)."""
+        return self.clients[0].sock if self.clients else None
 
     @property
     def port(self) -> str:
         return f"socket://{self.host}:{self._port}"
 
     def fileno(self):
-        return self.conn.fileno() if self.conn is not None else (self.listener.fileno() if self.listener else None)
+        return self.listener.fileno() if self.listener is not None else None
+
+    def filenos(self) -> list[int]:
+        """Descriptors to wait on: the listener and every client."""
+        if self.listener is None:
+            return []
+        return [self.listener.fileno()] + [c.sock.fileno() for c in self.clients]
+
+    def _drop(self, c: _TcpClient, why: str) -> None:
+        LOG.info("virtual device: client %s disconnected (%s)", c.address, why)
+        try:
+            c.sock.close()
+        except OSError:
+            pass
+        self.clients.remove(c)
+
+    def _accept(self) -> None:
+        while self.listener is not None:
+            try:
+                sock, address = self.listener.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                return
+            if len(self.clients) >= self.max_clients:
+                self.refused += 1                # accepted and closed: a clean refusal
+                sock.close()
+                continue
+            sock.setblocking(False)
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            if self.client_sndbuf:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, int(self.client_sndbuf))
+            self.clients.append(_TcpClient(sock, address, time.monotonic()))
+            self.accepted += 1
 
     def read(self) -> bytes:
-        if self.conn is None:
-            if self.listener is None:
-                return b""
+        """Accept new clients; the bytes (commands) every client sent, concatenated."""
+        self._accept()
+        data = []
+        for c in list(self.clients):
             try:
-                self.conn, _ = self.listener.accept()
-                self.conn.setblocking(False)
-                self.conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            except BlockingIOError:
-                return b""
-        try:
-            data = self.conn.recv(65536)
-        except BlockingIOError:
-            return b""
-        except OSError:
-            data = b""
-        if not data:                         # host closed: wait for the next client
-            self.conn.close()
-            self.conn = None
-        return data
+                got = c.sock.recv(65536)
+            except (BlockingIOError, InterruptedError):
+                continue
+            except OSError:
+                got = b""
+            if not got:                          # the client closed
+                self._drop(c, "closed by the client")
+                continue
+            data.append(got)
+        return b"".join(data)
 
     def write(self, data: memoryview) -> int:
-        if self.conn is None:
-            return len(data)                  # nobody listening: bytes fall on the floor
-        try:
-            return self.conn.send(data)
-        except BlockingIOError:
-            return 0
-        except OSError:
-            self.conn.close()
-            self.conn = None
-            return len(data)
+        """Queue the device bytes for every client and send what they take; all consumed."""
+        data = bytes(data)
+        for c in list(self.clients):
+            if len(c.out) + len(data) > self.max_client_buffer:
+                self.overflowed += 1
+                self._drop(c, f"more than {self.max_client_buffer} bytes waiting")
+                continue
+            c.out += data
+        self.service()
+        return len(data)
+
+    def service(self) -> None:
+        """Send what each client takes; disconnect the ones stuck for idle_timeout_s."""
+        now = time.monotonic()
+        for c in list(self.clients):
+            if c.out:
+                try:
+                    n = c.sock.send(c.out)
+                except (BlockingIOError, InterruptedError):
+                    n = 0
+                except OSError:
+                    self._drop(c, "send failed")
+                    continue
+                if n:
+                    del c.out[:n]
+                    c.last_progress = now
+            else:
+                c.last_progress = now
+            if c.out and now - c.last_progress > self.idle_timeout_s:
+                self.timed_out += 1
+                self._drop(c, f"took no byte for {self.idle_timeout_s:g} s")
 
     def connected(self) -> bool:
         return self.listener is not None
@@ -567,10 +688,16 @@ class DeviceRunner:
                         except OSError:
                             n = len(self._out)
                         del self._out[:n]
-                fd = self.transport.fileno() if self.transport.connected() else None
-            if fd is not None and not self._out:
+                    if hasattr(self.transport, "service"):
+                        self.transport.service()
+                fds = []
+                if self.transport.connected():
+                    fds = (self.transport.filenos() if hasattr(self.transport, "filenos")
+                           else [self.transport.fileno()])
+                    fds = [fd for fd in fds if fd is not None]
+            if fds and not self._out:
                 try:
-                    select.select([fd], [], [], self.period_s)
+                    select.select(fds, [], [], self.period_s)
                 except (OSError, ValueError):
                     time.sleep(self.period_s)
             else:

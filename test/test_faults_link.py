@@ -1,0 +1,242 @@
+"""Fault injection on a real pty (and TCP) with a real FingertipLink and VirtualFingertip:
+a device reset mid-frame with the port open, a device that only sends garbage, repeated
+frames, spurious wake-ups, overload, non-finite packets, stuck TCP clients.
+
+No wall-clock bounds: every wait is on a condition with a generous timeout, and the
+assertions are on counters and on what is delivered.
+"""
+import os
+import socket
+import threading
+import time
+
+import numpy as np
+import pytest
+import yaml
+
+from ae_tactile.link import FingertipLink, LinkConfig
+from ae_tactile.protocol import MAX_FRAME_LEN, Packet
+from ae_tactile.virtual_device import DeviceRunner, PtyTransport, TcpTransport, VirtualFingertip
+from test_hardware_link import SCENE, Rig
+
+LONG = dict(yaml.safe_load(open(SCENE)), duration_s=8.0, name="long_random_touches")
+
+
+def now_ns():
+    return time.monotonic_ns()
+
+
+def sent_after(rig, log_index):
+    return [p.first_sample_index for kind, _, p, f in rig.device.sent_log[log_index:]
+            if kind == "packet" and f == "sent"]
+
+
+def test_device_reset_mid_frame_with_the_port_open_recovers_without_reconnecting(tmp_path):
+    with Rig(PtyTransport(str(tmp_path / "fingertip")), scene=LONG) as rig:
+        rig.wait_connected()
+        rig.run(0.5)
+        before = len(rig.records)
+        log_at_reset = len(rig.device.sent_log)
+        missing = rig.runner.call(rig.device.reset_mid_frame, now_ns())   # 8192-sample frame
+        assert missing > 30_000              # bytes the cut frame still claims
+        rig.run(20.0, until=lambda: rig.link.stats()["device_restarts_handled"] == 1
+                and len(rig.records) > before + 3)
+        resent = sent_after(rig, log_at_reset)
+        rig.run(10.0, until=lambda: len(rig.records) - before >= len(resent))
+        s = rig.link.stats()
+        assert s["device_restarts_handled"] == 1 and rig.device.boots == 1
+        assert s["truncated_frames"] == 1 and s["crc_errors"] == 0     # the cut frame
+        assert s["disconnects"] == 0 and s["link_timeouts"] == 0 and s["idle_flushes"] == 0
+        assert s["state"] == "connected"
+        after = [r.device_sample_index for r in rig.records[before:]]
+        assert len(after) > 3 and after[:len(resent)] == resent        # all of them, once
+        assert s["pending_bytes"] < MAX_FRAME_LEN
+
+
+def test_device_sending_only_garbage_is_not_connected_and_recovers(tmp_path):
+    with Rig(PtyTransport(str(tmp_path / "fingertip")), scene=LONG, link_timeout_s=1.0,
+             reconnect_initial_s=0.1, reconnect_max_s=0.3) as rig:
+        rig.wait_connected()
+        rig.run(0.3)
+        rig.device.garble(True)                     # a wrong baud rate: bytes, no frames
+        rig.run(20.0, until=lambda: rig.link.stats()["link_timeouts"] >= 1)
+        s0 = rig.link.stats()
+        assert s0["state"] != "connected" and s0["link_timeouts"] >= 1
+        assert "no valid frame" in s0["last_error"]
+        states, worst_pending = set(), 0
+        t_end = time.monotonic() + 2.5              # sample the state for a while
+        while time.monotonic() < t_end:
+            s = rig.link.stats()
+            states.add(s["state"])
+            worst_pending = max(worst_pending, s["pending_bytes"])
+            rig.run(0.02)
+        s1 = rig.link.stats()
+        assert states <= {"connecting", "disconnected"}          # never "connected"
+        assert s1["frames_ok"] == s0["frames_ok"]                 # nothing decoded from noise
+        assert s1["bytes_received"] > s0["bytes_received"]        # although bytes arrive
+        assert s1["link_timeouts"] > s0["link_timeouts"]          # and it keeps retrying
+        assert worst_pending < MAX_FRAME_LEN + rig.link.config.read_chunk_bytes
+        n_records = len(rig.records)
+        rig.device.garble(False)
+        rig.run(20.0, until=lambda: rig.link.stats()["state"] == "connected"
+                and len(rig.records) > n_records)
+        assert rig.link.stats()["state"] == "connected" and len(rig.records) > n_records
+
+
+def test_repeated_frames_are_delivered_once_and_are_not_a_reboot(tmp_path):
+    with Rig(PtyTransport(str(tmp_path / "fingertip"))) as rig:
+        rig.wait_connected()
+        rig.run(0.2)
+        rig.device.repeat_next(3)
+        rig.run(10.0, until=lambda: rig.device.finished(time.monotonic_ns()))
+        sent = rig.sent_packets()
+        rig.run(5.0, until=lambda: len(rig.records) >= len(sent))
+        rig.run(0.2)
+        assert getattr(rig.device, "frames_repeated", 0) == 3
+        assert [r.device_sample_index for r in rig.records] == [p.first_sample_index for p in sent]
+        s = rig.link.stats()
+        assert s["duplicate_frames"] == 3
+        assert s["device_restarts"] == 0 and s["device_restarts_handled"] == 0
+        assert s["dropped_frames"] == 0 and s["packets_dropped"] == 0
+
+
+def test_spurious_wakeups_and_eagain_are_not_disconnects(tmp_path):
+    """A second reader on the same pty takes some bytes between the link's poll() and its
+    read(): the link then finds nothing to read (EAGAIN). That is no lost device."""
+    with Rig(PtyTransport(str(tmp_path / "fingertip")), scene=LONG, link_timeout_s=60.0) as rig:
+        rig.wait_connected()
+        fd = os.open(rig.transport.path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        stop = threading.Event()
+        stolen = [0]
+
+        def steal():
+            import select
+            p = select.poll()
+            p.register(fd, select.POLLIN)
+            while not stop.is_set():
+                if p.poll(5):
+                    try:
+                        stolen[0] += len(os.read(fd, 1 << 16))
+                    except BlockingIOError:
+                        pass
+        th = threading.Thread(target=steal, daemon=True)
+        th.start()
+        try:
+            rig.run(30.0, until=lambda: rig.link.stats()["spurious_wakeups"] >= 3)
+        finally:
+            stop.set()
+            th.join(2.0)
+            os.close(fd)
+        s = rig.link.stats()
+        assert s["spurious_wakeups"] >= 3 and stolen[0] > 0
+        assert s["disconnects"] == 0 and s["read_errors"] == 0 and s["connects"] == 1
+        assert s["hangups"] == 0
+        n = len(rig.records)
+        rig.run(10.0, until=lambda: len(rig.records) > n + 2)    # still delivering
+        assert len(rig.records) > n + 2 and rig.link.stats()["disconnects"] == 0
+
+
+def test_overload_is_bounded_and_every_packet_accounted_for(tmp_path):
+    """Nobody polls: the hand-over queue stays at its bound, the rest is counted as drops."""
+    t = PtyTransport(str(tmp_path / "fingertip"))
+    rig = Rig(t, queue_max_batches=4)
+    with rig:
+        deadline = time.monotonic() + 30.0
+        depth = 0
+        while not rig.device.finished(time.monotonic_ns()) and time.monotonic() < deadline:
+            depth = max(depth, rig.link.stats()["queue_depth"])
+            time.sleep(0.01)
+        sent = rig.sent_packets()
+        rig.run(0.01)               # poll once: takes what the queue holds
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:
+            s = rig.link.stats()
+            if s["packets_out"] + s["queue_overflow_packets"] >= len(sent):
+                break
+            time.sleep(0.01)
+        rig.run(0.2)
+        s = rig.link.stats()
+    assert depth <= 4 and s["queue_overflow_packets"] > 0
+    assert len(rig.records) + s["queue_overflow_packets"] == len(sent)
+    assert s["packets_dropped"] == s["queue_overflow_packets"]
+    delivered = [r.device_sample_index for r in rig.records]
+    assert set(delivered) <= {p.first_sample_index for p in sent}
+
+
+def test_packets_whose_volts_would_not_be_finite_are_rejected_and_counted(tmp_path):
+    with Rig(PtyTransport(str(tmp_path / "fingertip"))) as rig:
+        rig.wait_connected()
+        rig.run(0.2)
+        huge = Packet(np.full((4, 64), 1000, np.int16), 10_000_000, 3e38, pre_trigger=8)
+        rig.runner.call(rig.device.inject_frame, huge, now_ns())
+        rig.run(10.0, until=lambda: rig.link.stats()["packets_rejected_nonfinite"] >= 1)
+        rig.run(10.0, until=lambda: rig.device.finished(time.monotonic_ns()))
+        rig.run(0.3)
+        s = rig.link.stats()
+        assert s["packets_rejected_nonfinite"] == 1 and s["internal_errors"] == 0
+        assert all(np.isfinite(r.samples_v).all() and np.isfinite(r.noise_rms_v)
+                   for r in rig.records)
+        assert len(rig.records) == len(rig.sent_packets())
+
+
+def test_tcp_server_serves_several_clients_refuses_extra_ones_and_drops_stuck_ones():
+    transport = TcpTransport(max_clients=2, idle_timeout_s=3.0, client_sndbuf=4096)
+    assert transport.listener.getsockname()[0] == "127.0.0.1"
+    host, port = transport.host, int(transport.port.rsplit(":", 1)[1])
+    stuck = socket.create_connection((host, port))           # connects, never reads
+    stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    with Rig(transport) as rig:
+        rig.wait_connected(timeout=20.0)
+        assert rig.link.stats()["state"] == "connected"
+        extra = socket.create_connection((host, port))       # a third one: refused cleanly
+        extra.settimeout(10.0)
+        assert extra.recv(10) == b""                          # closed by the server
+        extra.close()
+        rig.runner.call(rig.device.inject_garbage, bytes(300_000))   # fills the stuck one
+        rig.run(30.0, until=lambda: transport.timed_out + transport.overflowed >= 1)
+        assert transport.timed_out == 1 and transport.refused == 1
+        assert len(transport.clients) == 1                    # the link is still served
+        assert rig.link.stats()["disconnects"] == 0
+        rig.run(20.0, until=lambda: rig.device.finished(time.monotonic_ns()))
+        sent = rig.sent_packets()
+        rig.run(10.0, until=lambda: len(rig.records) >= len(sent))
+        assert [r.device_sample_index for r in rig.records] == [p.first_sample_index for p in sent]
+        assert rig.link.stats()["disconnects"] == 0
+    stuck.close()
+
+
+def test_tcp_transport_parameters_are_checked():
+    with pytest.raises(ValueError):
+        TcpTransport(max_clients=0)
+    with pytest.raises(ValueError):
+        TcpTransport(idle_timeout_s=0)
+
+
+def test_link_idle_flush_parameter_is_checked():
+    with pytest.raises(ValueError, match="idle_flush_s"):
+        LinkConfig(port="loop://", idle_flush_s=0)
+    with pytest.raises(ValueError, match="idle_flush_s"):
+        LinkConfig(port="loop://", idle_flush_s=float("nan"))
+
+
+def test_link_survives_a_consumer_and_a_device_that_never_answer(tmp_path):
+    """A pty with nobody behind it (a device that never speaks): connecting, timeouts,
+    reconnects; never an exception, never 'connected'."""
+    master, slave = os.openpty()
+    path = os.ttyname(slave)
+    link = FingertipLink(LinkConfig(port=path, link_timeout_s=0.3, command_timeout_s=0.05,
+                                    command_retries=1, sync_max_pings=2,
+                                    reconnect_initial_s=0.05, reconnect_max_s=0.1))
+    link.start()
+    try:
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline and link.stats()["link_timeouts"] < 2:
+            assert link.stats()["state"] != "connected"
+            time.sleep(0.01)
+        s = link.stats()
+    finally:
+        link.stop()
+        os.close(master)
+        os.close(slave)
+    assert s["link_timeouts"] >= 2 and s["connects"] >= 2 and s["internal_errors"] == 0
+    assert s["frames_ok"] == 0 and s["state"] != "connected"
