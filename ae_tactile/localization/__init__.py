@@ -7,16 +7,22 @@
 Methods (registry ``ESTIMATORS``, pick by name): ``ml`` (exact-sphere maximum
 likelihood), ``gradient`` (the paper's gradient method, iterated), ``gcc_phat``,
 ``xcorr_farfield`` (the paper's one-shot Eq. 2 baseline). Cramer-Rao bounds: `crlb`.
+
+Per-packet hot path (compiled with numba when available, `fast.py`):
+
+    loc = Localizer("ml").warm_up(geometry, fs, n_samples)
+    r = loc.localize_one(window (4, M), fs, onset)   # PacketLocation: accepted, reason, point_m, ...
 See docs/localization.md.
 """
 from ae_tactile.localization.common import REASON_DESCRIPTIONS, Reason
 from ae_tactile.localization.estimators import (DEFAULT_BAND_HZ, ESTIMATORS, EstimatorInfo, default_band_hz,
-                                                LocalizationResult, Localizer, available_methods,
-                                                get_estimator, localize, localize_packets,
-                                                register_estimator)
+                                                LocalizationResult, Localizer, PacketLocation,
+                                                available_methods, get_estimator, localize,
+                                                localize_packets, register_estimator)
+from ae_tactile.localization.fast import NUMBA_AVAILABLE
 
 __all__ = [
     "localize", "localize_packets", "Localizer", "LocalizationResult", "Reason", "REASON_DESCRIPTIONS",
     "ESTIMATORS", "EstimatorInfo", "available_methods", "get_estimator", "register_estimator",
-    "DEFAULT_BAND_HZ", "default_band_hz",
+    "DEFAULT_BAND_HZ", "default_band_hz", "PacketLocation", "NUMBA_AVAILABLE",
 ]

@@ -500,6 +500,7 @@ class Aligned:
     shift: np.ndarray        # (K, 4) integer sample shift of each channel's segment
     ref: np.ndarray          # (K,) common time reference (s) subtracted from arrivals
     count: np.ndarray        # (K, 4) samples inside the window
+    seg: np.ndarray = None   # (K, 4, L) the aligned segments themselves (time domain)
 
 
 def aligned_spectra(prep: Prepared, plan: Plan, arrivals_rel) -> Aligned:
@@ -517,7 +518,7 @@ def aligned_spectra(prep: Prepared, plan: Plan, arrivals_rel) -> Aligned:
     start = prep.seg_start[:, None] + shift
     seg, count = gather(prep.x, start, plan.seg_len, prep.pre_mean)
     Y = sfft.rfft(seg, n=plan.n_fft_al, axis=2)
-    return Aligned(Y=Y, Yb=Y[..., plan.band_al], shift=shift, ref=ref, count=count)
+    return Aligned(Y=Y, Yb=Y[..., plan.band_al], shift=shift, ref=ref, count=count, seg=seg)
 
 
 def misfit(Zb):

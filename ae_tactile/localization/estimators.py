@@ -18,16 +18,20 @@ else the pole (0, 0, R); only ``accepted`` packets should be published.
 """
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field, fields
 from typing import Callable
 
 import numpy as np
 
 from ae_tactile.geometry import FingertipGeometry
-from ae_tactile.localization import gcc, gradient, ml
-from ae_tactile.localization.common import (Reason, REASON_DESCRIPTIONS, make_plan, misfit, prepare,
-                                            primary_reason, validate_windows)
-from ae_tactile.localization.events import confidence, polarity_amplitude
+from ae_tactile.localization import fast, gcc, gradient, ml
+from ae_tactile.localization.common import (REASON_DESCRIPTIONS, Reason, make_plan, misfit,
+                                            per_packet, prepare, primary_reason,
+                                            validate_windows)
+from ae_tactile.localization.events import (confidence, polarity_amplitude,
+                                            polarity_amplitude_aligned)
 
 #: Default signal band (Hz): the front end's 100 kHz high-pass to its 1 MHz low-pass,
 #: the upper edge lowered to fs/4 at low sample rates (see `default_band_hz`).
@@ -111,6 +115,9 @@ class LocalizationResult:
     accepted                    bool
     reason                      uint8 `Reason` code (0 when accepted)
     reason_flags                bit (1 << code) for every reason that applied
+    emission_offset_s           emission instant relative to the window's first sample:
+                                onset_index / fs - min_k |s - e_k| / c (the onset marks the
+                                arrival at the nearest element), s
     """
 
     method: str
@@ -135,6 +142,7 @@ class LocalizationResult:
     reason: np.ndarray
     reason_flags: np.ndarray
     options: dict = field(default_factory=dict)
+    emission_offset_s: np.ndarray = None
 
     def __len__(self):
         return int(self.accepted.shape[0])
@@ -161,7 +169,8 @@ def _empty(method, options):
     z = np.zeros(0)
     return LocalizationResult(method, z, z, z, np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 2, 2)),
                               z, z, z, z, z, z, z, np.zeros(0, np.int8), z, z, np.zeros(0, bool),
-                              np.zeros(0, bool), np.zeros(0, np.uint8), np.zeros(0, np.uint16), options)
+                              np.zeros(0, bool), np.zeros(0, np.uint8), np.zeros(0, np.uint16),
+                              options, z)
 
 
 def _horizon_excess(geometry, tau):
@@ -171,10 +180,45 @@ def _horizon_excess(geometry, tau):
     return np.hypot(tau[:, 0], tau[:, 1]) - np.hypot(h[:, 0], h[:, 1])
 
 
+def _noise_arg(noise_rms_v, k):
+    """(K,) noise sigma, NaN where unknown; ValueError for <= 0 or infinite values."""
+    if noise_rms_v is None:
+        return np.full(k, np.nan)
+    try:
+        nr = per_packet("noise_rms_v", noise_rms_v, k)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"noise_rms_v must be a positive number or (K,) array: {exc}") from None
+    bad = ~np.isnan(nr) & ~(np.isfinite(nr) & (nr > 0))
+    if bad.any():
+        raise ValueError("noise_rms_v must be positive and finite (NaN: unknown), "
+                         f"got {nr[bad][0]!r}")
+    return nr
+
+
+def resolve_engine(engine, method="ml", options=None):
+    """'numba' or 'numpy': the compiled kernel serves ``ml`` (its only option: iterations)
+    when numba is importable and AE_TACTILE_NO_NUMBA is not set; ``engine`` forces one."""
+    if engine not in (None, "auto", "numba", "numpy"):
+        raise ValueError(f"engine must be 'numba', 'numpy' or None, got {engine!r}")
+    if engine == "numpy":
+        return "numpy"
+    ok = fast.NUMBA_AVAILABLE and method == "ml" and set(options or ()) <= {"iterations"}
+    if engine == "numba" and not ok:
+        raise ValueError("engine='numba' needs numba and method 'ml' (options: iterations only)")
+    return "numba" if ok else "numpy"
+
+
+def _iterations(options):
+    it = options.get("iterations", 4)
+    if isinstance(it, bool) or not isinstance(it, (int, np.integer)) or it < 1:
+        raise ValueError(f"iterations must be a positive integer, got {it!r}")
+    return int(it)
+
+
 def localize(windows, sample_rate_hz, onset_index, *, method="ml", geometry=None,
              band_hz=None, noise_rms_v=None, saturated=None, full_scale_v=None,
              channel_gains=None, min_snr_db=5.0, overlap_threshold=None, pre_onset_s=1e-6,
-             echo_guard_s=0.3e-6, **options) -> LocalizationResult:
+             echo_guard_s=0.3e-6, engine=None, **options) -> LocalizationResult:
     """Localize K packets (see the module docstring).
 
     windows (K, 4, M) volts (any real dtype; a single (4, M) window is accepted),
@@ -182,16 +226,19 @@ def localize(windows, sample_rate_hz, onset_index, *, method="ml", geometry=None
     detector's or the simulator's), method: a name in `available_methods()`.
     geometry: FingertipGeometry (default tip). band_hz: signal band for the estimators
     (default `default_band_hz(fs)`).
-    noise_rms_v: scalar or (K,) known noise sigma (default: measured on the samples
-    before ``onset - pre_onset_s``, else from the fit residual). saturated: (K,) flags
-    from upstream; full_scale_v: ADC clip level (either one, or neither: a flat top of
-    >= max(4, 0.3 us fs) samples at a channel's dominant extreme then flags saturation).
-    channel_gains: relative gains of the 4 channels (divided out). min_snr_db: LOW_SNR
-    below this. overlap_threshold: OVERLAP when the excess misfit exceeds it (default
-    per method). Extra keyword options go to the estimator (e.g. iterations=).
+    noise_rms_v: scalar or (K,) known noise sigma (V, > 0; NaN entries: unknown). Default:
+    measured on the samples before ``onset - pre_onset_s``, else from the fit residual.
+    saturated: (K,) flags from upstream; full_scale_v: ADC clip level (either one, or
+    neither: a flat top of >= max(4, 0.3 us fs) samples at a channel's dominant extreme
+    then flags saturation). channel_gains: relative gains of the 4 channels (divided out).
+    min_snr_db: LOW_SNR below this. overlap_threshold: OVERLAP when the excess misfit
+    exceeds it (default per method). engine: None (compiled kernel for ``ml`` when numba
+    is available), 'numba' or 'numpy'. Extra keyword options go to the estimator (e.g.
+    iterations=).
     """
     info = get_estimator(method)
     geo = FingertipGeometry() if geometry is None else geometry
+    eng = resolve_engine(engine, method, options)
     x, onset = validate_windows(windows, onset_index)
     if band_hz is None:
         try:
@@ -206,13 +253,59 @@ def localize(windows, sample_rate_hz, onset_index, *, method="ml", geometry=None
     if not (np.isfinite(thr) and thr > 0):
         raise ValueError(f"overlap_threshold must be positive, got {overlap_threshold!r}")
     k = x.shape[0]
+    noise = _noise_arg(noise_rms_v, k)
+    if eng == "numba":
+        iterations = _iterations(options)
+        sat = (np.full(k, -1, np.int8) if saturated is None
+               else per_packet("saturated", saturated, k, dtype=bool).astype(np.int8))
+        fsv = np.nan if full_scale_v is None else _positive_arg("full_scale_v", full_scale_v)
+        gains = _gains_arg(channel_gains)
+        if k == 0:
+            return _empty(method, options)
+        out, pt, cov, ctau = fast.run_batch(x, onset, fast.tables_for(plan), noise_rms=noise,
+                                            sat=sat, full_scale=fsv, gains=gains,
+                                            iterations=iterations, min_snr_db=min_snr_db,
+                                            thr=thr)
+        return _result_from_kernel(method, options, out, pt, cov, ctau)
     if k == 0:
         return _empty(method, options)
     with np.errstate(all="ignore"):
-        prep = prepare(x, onset, plan, noise_rms_v=noise_rms_v, saturated=saturated,
-                       full_scale_v=full_scale_v, channel_gains=channel_gains)
+        prep = prepare(x, onset, plan, noise_rms_v=None if noise_rms_v is None else noise,
+                       saturated=saturated, full_scale_v=full_scale_v, channel_gains=channel_gains)
         core = info.function(prep, plan, **options)
         return _finish(core, prep, plan, geo, method, min_snr_db, thr, options)
+
+
+def _positive_arg(name, value):
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a positive number, got {value!r}") from None
+    if not (np.isfinite(v) and v > 0):
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+    return v
+
+
+def _gains_arg(channel_gains):
+    if channel_gains is None:
+        return None
+    g = np.asarray(channel_gains, dtype=float)
+    if g.shape != (4,) or not np.all(np.isfinite(g)) or np.any(g <= 0):
+        raise ValueError(f"channel_gains must be 4 positive finite numbers, got {channel_gains!r}")
+    return g
+
+
+def _result_from_kernel(method, options, out, pt, cov, ctau):
+    flags = out[:, 12].astype(np.int64)
+    reason = primary_reason(flags)
+    col = out.T.copy()
+    return LocalizationResult(
+        method=method, tau_x_s=col[0], tau_y_s=col[1], twist_s=col[2], point_m=pt,
+        covariance_m2=cov, delay_covariance_s2=ctau, polar_rad=col[14], azimuth_rad=col[15],
+        residual=col[3], overlap_excess=col[4], pair_residual_s=col[5], snr_db_est=col[6],
+        noise_rms_v_est=col[7], polarity=col[8].astype(np.int8), amplitude_v=col[9],
+        confidence=col[10], clamped=col[11] > 0, accepted=reason == 0, reason=reason,
+        reason_flags=flags.astype(np.uint16), options=dict(options), emission_offset_s=col[13])
 
 
 def _finish(core, prep, plan, geo, method, min_snr_db, thr, options):
@@ -264,7 +357,10 @@ def _finish(core, prep, plan, geo, method, min_snr_db, thr, options):
     bad_numeric = ~finite_pt
     flags[bad_numeric & (flags == 0)] |= 1 << Reason.OUT_OF_RANGE
 
-    pol, amp = polarity_amplitude(core["z"], plan)
+    if core.get("aligned_seg") is not None:
+        pol, amp = polarity_amplitude_aligned(core["aligned_seg"], core["eps_samples"], plan)
+    else:
+        pol, amp = polarity_amplitude(core["z"], plan)
     amp = np.where(np.isfinite(amp), amp, 0.0)
     reason = primary_reason(flags)
     accepted = reason == 0
@@ -286,7 +382,8 @@ def _finish(core, prep, plan, geo, method, min_snr_db, thr, options):
         noise_rms_v_est=fin(np.sqrt(sigma2) * prep.scale), polarity=pol, amplitude_v=fin(amp * prep.scale),
         confidence=conf,
         clamped=clamped, accepted=accepted, reason=reason, reason_flags=flags.astype(np.uint16),
-        options=dict(options))
+        options=dict(options),
+        emission_offset_s=prep.onset / plan.fs - geo.arrival_times_s(point).min(axis=1))
 
 
 def localize_packets(batch, *, method="ml", **kwargs) -> LocalizationResult:
@@ -297,15 +394,180 @@ def localize_packets(batch, *, method="ml", **kwargs) -> LocalizationResult:
                     saturated=batch.saturated, **kwargs)
 
 
+_FLOATS = (np.dtype(np.float64), np.dtype(np.float32))
+_REALS = (int, np.integer, float, np.floating)
+
+
+class PacketLocation:
+    """One packet's localization (`Localizer.localize_one`), SI units; fields as in
+    `LocalizationResult` (scalars, point_m (3,), covariance_m2 (3, 3)), plus snr_db (the
+    estimated SNR) and emission_offset_s (emission instant relative to the window's first
+    sample: the onset time minus the travel time from the fitted point to the nearest
+    element)."""
+
+    __slots__ = ("accepted", "reason", "reason_flags", "point_m", "covariance_m2",
+                 "delay_covariance_s2", "polar_rad", "azimuth_rad", "tau_x_s", "tau_y_s",
+                 "twist_s", "amplitude_v", "confidence", "polarity", "snr_db", "noise_rms_v_est",
+                 "residual", "overlap_excess", "clamped", "emission_offset_s")
+
+    def __init__(self, out, point, cov, ctau):
+        flags = int(out[12])
+        reason = 0
+        for r in range(1, 8):
+            if flags & (1 << r):
+                reason = r
+                break
+        self.accepted = reason == 0
+        self.reason = Reason(reason)
+        self.reason_flags = flags
+        self.point_m = point
+        self.covariance_m2 = cov
+        self.delay_covariance_s2 = ctau
+        (self.tau_x_s, self.tau_y_s, self.twist_s, self.residual, self.overlap_excess, _,
+         self.snr_db, self.noise_rms_v_est, pol, self.amplitude_v, self.confidence, clamped, _,
+         self.emission_offset_s, self.polar_rad, self.azimuth_rad) = out.tolist()
+        self.polarity = int(pol)
+        self.clamped = bool(clamped)
+
+    @classmethod
+    def from_result(cls, res: LocalizationResult, i: int = 0):
+        """Row i of a batched result."""
+        out = np.array([res.tau_x_s[i], res.tau_y_s[i], res.twist_s[i], res.residual[i],
+                        res.overlap_excess[i], res.pair_residual_s[i], res.snr_db_est[i],
+                        res.noise_rms_v_est[i], res.polarity[i], res.amplitude_v[i],
+                        res.confidence[i], res.clamped[i], res.reason_flags[i],
+                        res.emission_offset_s[i], res.polar_rad[i], res.azimuth_rad[i]],
+                       dtype=float)
+        return cls(out, res.point_m[i].copy(), res.covariance_m2[i].copy(),
+                   res.delay_covariance_s2[i].copy())
+
+    def __repr__(self):
+        p = self.point_m * 1e3
+        return (f"PacketLocation({self.reason.name}, "
+                f"point_mm=({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}), "
+                f"polarity={self.polarity:+d}, snr_db={self.snr_db:.1f})")
+
+
 class Localizer:
-    """A configured `localize` (what the ROS node holds): ``Localizer(method='ml', ...)(windows, fs, onset)``."""
+    """A configured `localize` (what the ROS node holds):
+    ``Localizer(method='ml', ...)(windows, fs, onset)``.
+
+    ``localize_one(window (4, M), fs, onset)`` is the per-packet hot path: with numba and
+    ``ml`` one compiled call per packet (plans and tables cached per (fs, M, geometry));
+    ``warm_up(geometry, fs, n_samples)`` compiles and caches it before acquisition.
+    """
+
+    _ONE_KEYS = frozenset({"band_hz", "min_snr_db", "overlap_threshold", "pre_onset_s",
+                           "echo_guard_s", "full_scale_v", "engine", "iterations", "geometry"})
 
     def __init__(self, method="ml", **kwargs):
-        get_estimator(method)
+        info = get_estimator(method)
         self.method = method
         self.kwargs = kwargs
+        opts = {k: v for k, v in kwargs.items() if k not in self._ONE_KEYS and k not in (
+            "noise_rms_v", "saturated", "channel_gains")}
+        if "iterations" in kwargs:
+            opts["iterations"] = kwargs["iterations"]
+        self._one_engine = resolve_engine(kwargs.get("engine"), method, opts)
+        if self._one_engine == "numba":
+            self._iterations = _iterations(kwargs)
+            self._min_snr_db = float(kwargs.get("min_snr_db", 5.0))
+            thr = kwargs.get("overlap_threshold")
+            self._thr = info.overlap_threshold if thr is None else float(thr)
+            fsv = kwargs.get("full_scale_v")
+            self._full_scale = np.nan if fsv is None else _positive_arg("full_scale_v", fsv)
+            if not (np.isfinite(self._min_snr_db) and np.isfinite(self._thr) and self._thr > 0):
+                raise ValueError("min_snr_db must be finite and overlap_threshold positive")
+        self._plans = {}
+        self._default_geometry = kwargs.get("geometry") or FingertipGeometry()
 
     def __call__(self, windows, sample_rate_hz, onset_index, **overrides):
         kw = dict(self.kwargs)
         kw.update(overrides)
         return localize(windows, sample_rate_hz, onset_index, method=self.method, **kw)
+
+    def _tables(self, fs, m, geometry):
+        key = (fs, m, geometry)
+        hit = self._plans.get(key)
+        if hit is None:
+            band = self.kwargs.get("band_hz")
+            if band is None:
+                band = default_band_hz(fs)
+            plan = make_plan(fs, geometry, m, band, self.kwargs.get("pre_onset_s", 1e-6),
+                             self.kwargs.get("echo_guard_s", 0.3e-6))
+            hit = fast.tables_for(plan)
+            if len(self._plans) > 32:
+                self._plans.clear()
+            self._plans[key] = hit
+        return hit
+
+    def localize_one(self, samples_v, sample_rate_hz, onset_index, *, noise_rms_v=None,
+                     saturated=False, geometry=None, channel_gains=None) -> PacketLocation:
+        """Localize one (4, M) window (float32 / float64 volts). Never raises on the data
+        (NaN, zeros, clipping: a rejection with its reason); ValueError / TypeError on bad
+        arguments. noise_rms_v: known sigma (V, > 0) or None / NaN (measured);
+        saturated: upstream clip flag (None: the flat-top heuristic decides)."""
+        geo = self._default_geometry if geometry is None else geometry
+        if self._one_engine != "numba":
+            kw = dict(self.kwargs)
+            kw.update(geometry=geo, noise_rms_v=noise_rms_v, channel_gains=channel_gains,
+                      saturated=None if saturated is None else [bool(saturated)])
+            x = np.asarray(samples_v)
+            if x.ndim != 2:
+                raise ValueError(f"samples_v must have shape (4, M), got {x.shape}")
+            res = localize(x[None], sample_rate_hz, [onset_index], method=self.method, **kw)
+            return PacketLocation.from_result(res, 0)
+        x = samples_v
+        if not (type(x) is np.ndarray and x.dtype in _FLOATS and x.flags.c_contiguous):
+            x = np.asarray(x)
+            if x.dtype == object or not (np.issubdtype(x.dtype, np.floating)
+                                         or np.issubdtype(x.dtype, np.integer)):
+                raise TypeError(f"samples_v must be a real numeric array, got dtype {x.dtype}")
+            x = np.ascontiguousarray(x, dtype=np.float64)
+        if x.ndim != 2 or x.shape[0] != 4 or x.shape[1] < 4:
+            raise ValueError(f"samples_v must have shape (4, M) with M >= 4, got {x.shape}")
+        fs = sample_rate_hz
+        if type(fs) is not float:
+            fs = _positive_arg("sample_rate_hz", fs)
+        elif not (fs > 0 and fs < np.inf):
+            raise ValueError("sample_rate_hz must be a positive finite number, "
+                             f"got {sample_rate_hz!r}")
+        on = onset_index
+        if type(on) is not int:
+            if isinstance(on, (bool, np.bool_)) or not isinstance(on, _REALS):
+                raise TypeError(f"onset_index must be an integer sample index, got {on!r}")
+            if not (np.isfinite(on) and on == int(on)):
+                raise ValueError(f"onset_index must be an integer sample index, got {on!r}")
+            on = int(on)
+        if noise_rms_v is None:
+            nr = np.nan
+        else:
+            nr = float(noise_rms_v)
+            if not (nr > 0 and nr < np.inf) and not math.isnan(nr):
+                raise ValueError("noise_rms_v must be positive and finite (NaN: unknown), "
+                                 f"got {noise_rms_v!r}")
+        sat = -1 if saturated is None else int(bool(saturated))
+        if not isinstance(geo, FingertipGeometry):
+            raise TypeError(f"geometry must be a FingertipGeometry, got {type(geo).__name__}")
+        tb = self._tables(fs, x.shape[1], geo)
+        gains = None if channel_gains is None else _gains_arg(channel_gains)
+        out = np.empty(fast.N_SCALAR_OUT)
+        pt = np.empty(3)
+        cov = np.empty((3, 3))
+        ctau = np.empty((2, 2))
+        fast.run_one(x, on, nr, sat, self._full_scale, gains, tb, self._iterations,
+                     self._min_snr_db, self._thr, out, pt, cov, ctau)
+        return PacketLocation(out, pt, cov, ctau)
+
+    def warm_up(self, geometry=None, sample_rate_hz=10e6, n_samples=400):
+        """Compile and cache the kernels (float32 and float64 windows) and the plan for this
+        (geometry, fs, M) so that the first packet is fast. Returns self."""
+        geo = self._default_geometry if geometry is None else geometry
+        fs = _positive_arg("sample_rate_hz", sample_rate_hz)
+        m = int(n_samples)
+        rng = np.random.default_rng(0)
+        x = rng.standard_normal((4, m)) * 1e-3
+        for dt in (np.float64, np.float32):
+            self.localize_one(x.astype(dt), fs, m // 4, geometry=geo)
+            self(x.astype(dt)[None], fs, [m // 4], geometry=geo)
+        return self

@@ -26,6 +26,36 @@ import scipy.fft as sfft
 def polarity_amplitude(z, plan):
     """(polarity (K,) int8, amplitude (K,) V) from aligned full spectra z (K, 4, F)."""
     b = sfft.irfft(z.mean(axis=1), n=plan.n_fft_al, axis=1)[:, : plan.seg_len]
+    return _first_lobe(b, plan)
+
+
+def lagrange4(seg, e):
+    """b[k, c, n] = seg[k, c](n + e[k, c]) by 4-point Lagrange interpolation (zeros outside
+    the segment); seg (K, 4, L), e (K, 4) in samples."""
+    k, nc, L = seg.shape
+    p = np.arange(L)[None, None, :] + e[..., None]
+    i = np.floor(p)
+    u = p - i
+    i = i.astype(np.int64)
+    wts = (-u * (u - 1.0) * (u - 2.0) / 6.0, (u + 1.0) * (u - 1.0) * (u - 2.0) / 2.0,
+           -(u + 1.0) * u * (u - 2.0) / 2.0, (u + 1.0) * u * (u - 1.0) / 6.0)
+    out = np.zeros(seg.shape)
+    for off, w in zip((-1, 0, 1, 2), wts):
+        j = i + off
+        ok = (j >= 0) & (j < L)
+        out += np.where(ok, w * np.take_along_axis(seg, np.clip(j, 0, L - 1), axis=2), 0.0)
+    return out
+
+
+def polarity_amplitude_aligned(seg, eps_samples, plan):
+    """(polarity (K,) int8, amplitude (K,)) from the aligned time-domain segments (K, 4, L)
+    and the fit's residual shifts (K, 4) in samples: the channel mean b[n] = mean_k
+    y_k(n + eps_k) (4-point Lagrange interpolation), then the first-lobe rule above."""
+    b = lagrange4(seg, np.asarray(eps_samples, float)).mean(axis=1)
+    return _first_lobe(b, plan)
+
+
+def _first_lobe(b, plan):
     mag = np.abs(b)
     peak = mag.max(axis=1)
     stop = min(plan.seg_len, plan.pre + int(math.ceil(3e-6 * plan.fs)) + 1)

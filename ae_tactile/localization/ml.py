@@ -137,6 +137,7 @@ def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4):
         s2, cl2 = newton(al2.Yb, plan.w_al, geo, s[ids], c2, iterations, max_step, 1e-4 * max_step)
         s[ids], clamped[ids] = s2, cl2
         al.Y[ids], al.Yb[ids], al.shift[ids], al.ref[ids], al.count[ids] = al2.Y, al2.Yb, al2.shift, al2.ref, al2.count
+        al.seg[ids] = al2.seg
         c0[ids] = c2
     t, dt, _ = geo.arrival_time_derivatives(s[:, 0], s[:, 1])
     eps = t - c0
@@ -155,4 +156,4 @@ def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4):
 
     return dict(theta=delays, point=point, clamped=clamped, zb=zb, z=z, count=al.count,
                 raw_delays=theta0[:, :2], covariance=covariance, pair_residual_s=pair_res,
-                at_edge=edge)
+                at_edge=edge, aligned_seg=al.seg, eps_samples=eps * fs)
