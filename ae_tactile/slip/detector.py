@@ -2,76 +2,69 @@
 events and a latched per-finger contact state out. Pure Python + numpy, no rclpy.
 
     det = SlipDetector(SlipConfig())
-    for ev in localized_events:            # LocalizedEvent, in time order
+    for ev in localized_events:            # LocalizedEvent, in time order (+- reorder tolerance)
         for out in det.process(ev):        # SlipEvent list (often empty)
             publish(out)
     det.advance(now_ns)                    # time passing without events (timer)
     det.state                              # FingerState (latched)
 
-Model (docs/slip.md). A held contact is silent; micro-slip under a growing tangential
-load emits from the Cattaneo-Mindlin annulus c < r < a_H at the contact edge, with random
-polarity, and the localizer types each emission TOUCH (+1) or DETOUCH (-1) by polarity
-only. The tracker therefore keeps, per contact, its emissions and its *open touches*
-(compressions not yet released):
+Model (docs/slip.md). A held contact is silent. Under a growing tangential load Q the
+Cattaneo-Mindlin slip annulus c < r < a_H, c = a_H (1 - Q/(mu P))^(1/3), spreads inward
+from the contact edge and its micro-slips emit from ever more places around the edge.
+The evidence is *where* emissions come from, not their sign:
 
-* a rarefaction (-1) inside the release gate of an open touch (Mahalanobis distance under
-  C_touch + C_release + floor^2 I) is that touch's release: it ends the contact after
-  ``release_confirm_s`` unless slip emissions of the contact cancel it;
-* a rarefaction that matches no open touch is an *orphan*: no touch can explain it, so it
-  is micro-slip evidence (weight 1) for the contact it falls in (within
-  ``association_radius_m`` of the centre), or starts an unconfirmed candidate contact;
-* a compression near an existing contact is ambiguous (a new touch, or a micro-slip): an
-  open sub-touch with evidence weight ``touch_evidence_weight``, withdrawn if its release
-  arrives; a compression far from every contact is a new contact (TOUCH);
-* SLIP_PRECURSOR when the evidence of a contact within ``evidence_window_s`` reaches
-  ``precursor_threshold`` (STICK -> INCIPIENT_SLIP); while slipping every emission of the
-  contact is a slip emission;
-* SLIP (-> GROSS_SLIP) when the stick zone is gone: at least ``gross_min_inner`` of the
-  latest ``gross_window_events`` slip emissions lie within ``gross_inner_fraction`` of the
-  contact radius from its centre (Cattaneo-Mindlin: no micro-slip inside the stick radius
-  c = a_H (1 - q)^(1/3)), at a rate >= ``gross_min_rate_hz``; or a periodic texture run;
-* TEXTURE while the contact's latest emissions are periodic (`periodicity`), with
-  spatial period v T when the sliding speed v is known.
+* an emission far from every contact founds a contact (its founding emission: a touch,
+  or the first micro-slip of a contact nobody announced);
+* two emissions of a contact on one spot (within the gate of their position
+  uncertainties) are a touch and its release, or repeated taps: a pair. Polarity helps
+  where it is informative: only opposite polarities pair (a release is a rarefaction,
+  a touch a compression); a later emission on a paired spot is a repeat (no evidence);
+  the founding emission paired ends the contact after ``release_confirm_s``;
+* an emission of a contact on no other emission's spot is micro-slip evidence:
+  SLIP_PRECURSOR (STICK -> INCIPIENT_SLIP) when ``precursor_min_emissions`` of them fall
+  within ``evidence_window_s``. Micro-slips come from random places round the annulus;
+  touches, releases and taps come from a few fixed spots. Any polarity mix is the same;
+* SLIP (-> GROSS_SLIP), whether or not a precursor came first, when in the latest
+  ``gross_window_s`` at least ``gross_min_events`` emissions came and either one lies
+  inside the stick zone (closer than ``gross_inner_fraction`` of the contact radius to the
+  centre fitted to its emissions), or their rate jumped ``gross_rate_ratio`` times above
+  the preceding ``gross_history_s`` (the part of it the contact has lived); or the
+  contact moves;
+* a contact's motion (centre and velocity along the surface) is regressed on its
+  emissions over ``track_window_s``; a contact that moves significantly is predicted
+  forward for association, so a dragged stylus stays one contact;
+* TEXTURE while the contact's latest intervals are periodic (robust dispersion test),
+  with spatial period = tracked speed x period (moving contact) or the configured sliding
+  speed x period (fixed contact).
 
-Work per event is bounded by ``member_history`` x ``max_contacts`` (bounded deques).
+Work per event is bounded: ring buffers of ``member_history`` emissions per contact,
+at most ``max_contacts`` contacts, small fits run only when their input changed.
 """
 from __future__ import annotations
 
 import math
-from collections import deque
 
 import numpy as np
 
 from .config import SlipConfig
-from .periodicity import periodicity
 from .types import ContactInfo, ContactState, FingerState, LocalizedEvent, SlipEvent, SlipEventType
 
-MAIN, SUB, SLIP, PAIRED = 0, 1, 2, 3          # member roles
-_ROLE_NAMES = {MAIN: "touch", SUB: "sub_touch", SLIP: "slip", PAIRED: "paired"}
+FOUNDER, EVID, PAIRED, REPEAT, OVERLAP = 1, 2, 4, 8, 16       # member flags
 _SLIPPING = (ContactState.INCIPIENT_SLIP, ContactState.GROSS_SLIP)
 _NAN3 = np.full(3, np.nan)
 
 
-def _p90(d):
-    """90th percentile (linear interpolation, as numpy's default) without the overhead."""
-    n = d.size
-    pos = 0.9 * (n - 1)
-    i = int(pos)
-    part = np.partition(d, (i, min(i + 1, n - 1)))
-    return float(part[i] + (pos - i) * (part[min(i + 1, n - 1)] - part[i]))
-
-
 def _circle_centre(P):
-    """Centre (3,) of the circle best fitting points P (n, 3) on the sphere, by the
-    algebraic (Kasa) fit u^2 + v^2 = 2 cu u + 2 cv v + k in the tangent plane at their
-    centroid, projected back onto the sphere; None when the points are nearly collinear
-    or the centre lands implausibly far (more than 3 spreads) from the centroid."""
+    """Centre (3,) of the circle best fitting points P (n, 3) on the sphere (algebraic Kasa
+    fit u^2 + v^2 = 2 cu u + 2 cv v + k in the tangent plane at their centroid, projected
+    back on the sphere); None when the points are nearly collinear or the centre lands
+    more than 3 spreads from the centroid."""
     m = P.mean(axis=0)
-    rn = float(np.linalg.norm(P, axis=1).mean())
-    n = m / np.linalg.norm(m)
+    rn = float(np.sqrt((P * P).sum(axis=1)).mean())
+    n = m / math.sqrt(float(m @ m))
     ref = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     e1 = ref - (ref @ n) * n
-    e1 /= np.linalg.norm(e1)
+    e1 /= math.sqrt(float(e1 @ e1))
     e2 = np.cross(n, e1)
     D = P - m
     u, v = D @ e1, D @ e2
@@ -79,105 +72,78 @@ def _circle_centre(P):
     k = len(u)
     tr, det = (suu + svv) / k, (suu * svv - suv * suv) / (k * k)
     disc = math.sqrt(max(tr * tr / 4 - det, 0.0))
-    lo, hi = tr / 2 - disc, tr / 2 + disc            # eigenvalues of the 2x2 covariance
+    lo, hi = tr / 2 - disc, tr / 2 + disc
     if hi <= 0.0 or lo < 0.01 * hi:
         return None
-    spread = math.sqrt(hi)
-    # normal equations of [2u 2v 1] [cu cv k]^T = u^2 + v^2 (u, v centred: block diagonal)
     b = u * u + v * v
-    rhs = np.array([2 * float(u @ b), 2 * float(v @ b)])
-    sol = np.linalg.solve(np.array([[4 * suu, 4 * suv], [4 * suv, 4 * svv]]), rhs)
-    if math.hypot(sol[0], sol[1]) > 3.0 * spread:
+    r1, r2 = 2 * float(u @ b), 2 * float(v @ b)
+    a11, a12, a22 = 4 * suu, 4 * suv, 4 * svv
+    dd = a11 * a22 - a12 * a12
+    cu, cv = (a22 * r1 - a12 * r2) / dd, (a11 * r2 - a12 * r1) / dd
+    if math.hypot(cu, cv) > 3.0 * math.sqrt(hi):
         return None
-    c = m + sol[0] * e1 + sol[1] * e2
-    return c * (rn / np.linalg.norm(c))
-
-
-class _Member:
-    __slots__ = ("t", "p", "cov", "pol", "role", "w", "pid", "open", "clean")
-
-    def __init__(self, ev: LocalizedEvent, role: int, w: float, is_open: bool):
-        self.t = ev.time_ns
-        self.p = ev.point_m
-        self.cov = ev.covariance_m2
-        self.pol = ev.polarity
-        self.role = role
-        self.w = w
-        self.pid = ev.packet_id
-        self.open = is_open
-        self.clean = True            # not within the overlap guard of another emission
+    c = m + cu * e1 + cv * e2
+    return c * (rn / math.sqrt(float(c @ c)))
 
 
 class _Contact:
-    def __init__(self, cid: int, t_ns: int, announced: bool, history: int):
+    """One tracked contact: ring buffers of its emissions and its state."""
+
+    def __init__(self, cid, t_ns, history, confirmed):
+        H = history
         self.id = cid
-        self.members: deque[_Member] = deque(maxlen=history)
+        self.H = H
+        self.t = np.zeros(H, np.int64)
+        self.p = np.zeros((H, 3))
+        self.var = np.zeros(H)                # per-axis position variance (m^2)
+        self.pol = np.zeros(H, np.int8)
+        self.pid = np.zeros(H, np.int64)
+        self.flags = np.zeros(H, np.uint8)
+        self.n = 0
         self.state = ContactState.STICK
         self.since_ns = t_ns
-        self.announced = announced
-        self.confirmed = announced
         self.created_ns = t_ns
         self.last_ns = t_ns
-        self.last_slip_ns = None
-        self.pending_release = None          # (time_ns, member) of a matched release
+        self.confirmed = confirmed
+        self.pending_release_ns = None
+        self.founder = None                   # (point, variance, polarity) of the founder
         self.precursor_count = 0
         self.last_report = {}
         self.texture_on = False
-        self.texture_run = 0                 # consecutive periodic tests
+        self.texture_run = 0
         self.centre = None
+        self.fitted = False                   # centre from a circle fit to micro-slips
         self.radius = 0.0
+        self.n_evid_fit = -1                  # evidence count at the last circle fit
+        self.moving = False
+        self.vel = np.zeros(3)
+        self.track_t = 0.0                    # reference time (s) of the motion fit
+        self.track_c = None                   # centre at track_t
+        self.track_se = math.inf              # standard error of the speed (m/s)
+        self.events_since_track = 0
 
-    # -------------------------------------------------------------- geometry
-    def update_geometry(self, fit_min: int = 8):
-        """Centre and radius of the contact. With >= ``fit_min`` slip emissions: a circle
-        fitted to them in the tangent plane (algebraic least squares, `_circle_centre`):
-        micro-slips lie on the Cattaneo-Mindlin annulus around the centre, and a circle fit
-        does not care how unevenly they cover it (the centroid does). Before that: the
-        open touch that announced the contact, else the centroid. Radius: 90th percentile
-        of the slip emissions' distances from the centre."""
-        use = [m for m in self.members if m.role in (MAIN, SLIP) or (m.role == SUB and m.open)]
-        clean = [m for m in use if m.clean] or use or list(self.members)
-        slip = [m.p for m in clean if m.role != MAIN]
-        main = [m for m in self.members if m.role == MAIN and m.open]
-        centre = None
-        if len(slip) >= fit_min:
-            centre = _circle_centre(np.asarray(slip))
-        if centre is None:
-            centre = main[-1].p if main else np.mean([m.p for m in clean], axis=0)
-        self.centre = centre
-        if len(slip) >= 2:
-            d = np.linalg.norm(np.asarray(slip) - centre, axis=1)
-            self.radius = _p90(d)
-        else:
-            self.radius = 0.0
+    # -------------------------------------------------------------- buffers
+    def add(self, t, p, var, pol, pid, flags):
+        i = self.n % self.H
+        self.t[i] = t
+        self.p[i] = p
+        self.var[i] = var
+        self.pol[i] = pol
+        self.pid[i] = pid
+        self.flags[i] = flags
+        self.n += 1
+        if t > self.last_ns:
+            self.last_ns = t
+        return i
 
-    def slip_members(self, n=None, since_ns=None, clean=False):
-        """Latest slip emissions (orphans, open sub-touches, slipping-state emissions)."""
-        out = []
-        for m in reversed(self.members):
-            if since_ns is not None and m.t <= since_ns:
-                break
-            if clean and not m.clean:
-                continue
-            if m.role == SLIP or (m.role == SUB and m.open):
-                out.append(m)
-                if n is not None and len(out) >= n:
-                    break
-        out.reverse()
-        return out
+    def valid(self):
+        """Number of valid slots (the first ``k`` slots)."""
+        return self.n if self.n < self.H else self.H
 
-    def evidence(self, now_ns, window_ns):
-        return sum(m.w for m in self.slip_members(since_ns=now_ns - window_ns))
-
-    def orphans(self, now_ns, window_ns):
-        """Unmatched rarefactions in the window."""
-        return sum(1 for m in self.slip_members(since_ns=now_ns - window_ns) if m.role == SLIP and m.pol < 0)
-
-    def rate_hz(self, now_ns, window_ns):
-        return len(self.slip_members(since_ns=now_ns - window_ns)) / (window_ns * 1e-9)
-
-    def open_touches(self):
-        return [m for m in self.members if m.open and m.role in (MAIN, SUB)]
+    def centre_at(self, t_ns):
+        if self.moving and self.track_c is not None:
+            return self.track_c + self.vel * (t_ns * 1e-9 - self.track_t)
+        return self.centre
 
 
 class SlipDetector:
@@ -188,27 +154,37 @@ class SlipDetector:
             config = SlipConfig()
         if not isinstance(config, SlipConfig):
             raise TypeError(f"config must be a SlipConfig, got {type(config).__name__}")
-        self.config = config
-        c = config
-        self._ns = lambda s: int(round(s * 1e9))
-        self._w_ev = self._ns(c.evidence_window_s)
-        self._w_rate = self._ns(c.rate_window_s)
-        self._w_dir = self._ns(c.direction_window_s)
-        self._confirm = self._ns(c.release_confirm_s)
-        self._quiet = self._ns(c.quiet_s)
-        self._report = self._ns(c.report_interval_s)
-        self._reorder = self._ns(c.reorder_tolerance_s)
-        self._guard = self._ns(c.overlap_guard_s)
-        self._last_member = None
-        self._speed = c.sliding_speed_m_s
+        self._apply(config)
+        self._speed = config.sliding_speed_m_s
         self.contacts: list[_Contact] = []
         self._next_id = 1
         self.now_ns = None
-        self.counts = {"events": 0, "ignored_low_confidence": 0, "rejected_out_of_order": 0,
-                       "releases": 0, "releases_cancelled": 0, "orphans": 0, "sub_touches": 0,
+        self.counts = {"events": 0, "rejected_low_confidence": 0, "rejected_out_of_order": 0,
+                       "rejected_non_finite": 0, "rejected_bad_type": 0, "releases": 0,
+                       "releases_cancelled": 0, "pairs": 0, "repeats": 0, "evidence": 0,
                        "contacts_created": 0, "contacts_dropped": 0}
         self._finger = FingerState(ContactState.NO_CONTACT, 0, _NAN3.copy(), 0.0, 0, -1, 0, 0)
         self._last_end_ns = 0
+        self._last_t = None
+
+    def _apply(self, c: SlipConfig):
+        def ns(s):
+            return int(round(s * 1e9))
+        self.config = c
+        self._w_ev, self._w_rate, self._w_track = ns(c.evidence_window_s), ns(c.rate_window_s), \
+            ns(c.track_window_s)
+        self._confirm, self._quiet, self._report = ns(c.release_confirm_s), ns(c.quiet_s), \
+            ns(c.report_interval_s)
+        self._reorder, self._guard = ns(c.reorder_tolerance_s), ns(c.overlap_guard_s)
+        self._w_gross, self._w_hist = ns(c.gross_window_s), ns(c.gross_history_s)
+        self._assoc2 = c.association_radius_m ** 2
+        # interval model of a texture: k periods (k = 1, 2, 3: missed packets), sd s sqrt(k)
+        km = np.arange(1, c.texture_max_multiple + 1, dtype=float)[:, None]
+        prior = np.where(km == 1, 0.9, 0.1 / max(1, c.texture_max_multiple - 1))
+        self._tex_k, self._tex_s = km, c.texture_interval_sd * np.sqrt(km)
+        self._tex_w = np.log(prior) - 0.5 * math.log(2 * math.pi)
+        self._g2 = c.release_gate_sigma ** 2
+        self._f2 = c.release_floor_m ** 2
 
     # ------------------------------------------------------------------ public API
     @property
@@ -216,8 +192,21 @@ class SlipDetector:
         """Latched finger state (as of the last ``process`` / ``advance``)."""
         return self._finger
 
+    def update_config(self, **changes) -> SlipConfig:
+        """Change run-time-safe parameters (``SlipConfig.runtime_fields()``) at once; the
+        whole new configuration is validated first (ValueError, nothing changed)."""
+        bad = sorted(set(changes) - set(SlipConfig.runtime_fields()))
+        if bad:
+            raise ValueError(f"SlipConfig fields {bad} cannot change at run time "
+                             f"(runtime fields: {', '.join(SlipConfig.runtime_fields())})")
+        new = self.config.replace(**changes)
+        self._apply(new)
+        if "sliding_speed_m_s" in changes:
+            self._speed = new.sliding_speed_m_s
+        return new
+
     def set_sliding_speed(self, speed_m_s: float | None) -> None:
-        """Sliding speed for TEXTURE spatial periods (m/s, > 0), or None (unknown)."""
+        """Sliding speed for TEXTURE spatial periods of fixed contacts (m/s, > 0), or None."""
         if speed_m_s is not None:
             v = float(speed_m_s)
             if not math.isfinite(v) or v <= 0:
@@ -230,15 +219,17 @@ class SlipDetector:
         now = self.now_ns if self.now_ns is not None else 0
         out = []
         for c in self.contacts:
-            out.append(ContactInfo(c.id, c.state, c.since_ns, c.centre.copy(), c.radius, c.announced,
-                                   c.confirmed, c.pending_release is not None,
-                                   c.rate_hz(now, self._w_rate), c.precursor_count, len(c.members), c.last_ns))
+            out.append(ContactInfo(c.id, c.state, c.since_ns, c.centre_at(now).copy(), c.radius, True,
+                                   c.confirmed, c.pending_release_ns is not None,
+                                   self._rate(c, now), c.precursor_count, c.valid(), c.last_ns,
+                                   c.vel.copy() if c.moving else np.zeros(3), c.moving))
         return out
 
     def reset(self) -> None:
         """Forget every contact (e.g. after a gap in the data)."""
         self.contacts.clear()
         self.now_ns = None
+        self._last_t = None
         self._finger = FingerState(ContactState.NO_CONTACT, 0, _NAN3.copy(), 0.0, 0, -1, 0, 0)
 
     def process_batch(self, events) -> list[SlipEvent]:
@@ -258,325 +249,377 @@ class SlipDetector:
             return self._finger
         self.now_ns = now
         for c in list(self.contacts):
-            if c.pending_release is not None and now - c.pending_release[0] >= self._confirm:
+            if c.pending_release_ns is not None and now - c.pending_release_ns >= self._confirm:
                 self._end_contact(c)
                 continue
             if not c.confirmed and now - c.last_ns >= self._w_ev:
                 self.contacts.remove(c)
                 continue
-            if c.state in _SLIPPING and c.last_slip_ns is not None and now - c.last_slip_ns >= self._quiet:
+            if c.state in _SLIPPING and now - c.last_ns >= self._quiet:
                 c.state = ContactState.STICK
-                c.since_ns = c.last_slip_ns + self._quiet
+                c.since_ns = c.last_ns + self._quiet
                 c.texture_on = False
                 c.texture_run = 0
+                c.moving = False
         self._update_finger(now)
         return self._finger
 
     def process(self, ev: LocalizedEvent) -> list[SlipEvent]:
-        """Feed one localized emission (time order); returns the events it produced."""
+        """Feed one localized emission; returns the events it produced. Never raises on
+        bad event data: it is rejected and counted in ``counts``."""
         if not isinstance(ev, LocalizedEvent):
-            raise TypeError(f"process() takes a LocalizedEvent, got {type(ev).__name__}")
-        if self.now_ns is not None and ev.time_ns < self.now_ns - self._reorder:
+            self.counts["rejected_bad_type"] += 1
+            return []
+        p = ev.point_m
+        px, py, pz = float(p[0]), float(p[1]), float(p[2])
+        cov = ev.covariance_m2
+        tr = float(cov[0, 0] + cov[1, 1] + cov[2, 2])
+        if not (math.isfinite(px + py + pz) and math.isfinite(tr) and bool(np.isfinite(cov).all())
+                and px * px + py * py + pz * pz > 0.0):
+            self.counts["rejected_non_finite"] += 1
+            return []
+        t = ev.time_ns
+        if self.now_ns is not None and t < self.now_ns - self._reorder:
             self.counts["rejected_out_of_order"] += 1
             return []
         if ev.confidence < self.config.min_confidence:
-            self.counts["ignored_low_confidence"] += 1
+            self.counts["rejected_low_confidence"] += 1
             return []
         self.counts["events"] += 1
-        self.advance(max(ev.time_ns, self.now_ns if self.now_ns is not None else ev.time_ns))
+        if self.now_ns is None or t > self.now_ns:
+            self.advance(t)
         out: list[SlipEvent] = []
-        t = ev.time_ns
-        if ev.polarity < 0:
-            touch, owner = self._match_release(ev)
-            if touch is not None:
-                self._release(ev, touch, owner, out)
-            else:
-                self.counts["orphans"] += 1
-                c = self._associate(ev)
-                if c is None:
-                    c = self._new_contact(t, announced=False)
-                    c.members.append(_Member(ev, SLIP, 1.0, False))
-                    c.update_geometry()
-                else:
-                    self._add_slip(c, ev, weight=1.0, cancels=True, out=out)
-        else:
-            same = self._match_release(ev)[0] if ev.polarity > 0 else None
-            c = self._associate(ev)
-            if c is None:
-                c = self._new_contact(t, announced=True)
-                c.members.append(_Member(ev, MAIN, 0.0, True))
-                c.update_geometry()
-            elif not c.confirmed:
-                # a touch next to an unconfirmed candidate (a lone orphan): a contact now,
-                # announced by this touch; the orphan stays as evidence
-                c.announced = c.confirmed = True
-                c.members.append(_Member(ev, MAIN, 0.0, True))
-                c.last_ns = t
-                c.update_geometry()
-            else:
-                # a compression on top of an open touch (the same spot touched again, or
-                # two touches side by side) is no micro-slip evidence
-                w = 0.0 if same is not None else self.config.touch_evidence_weight
-                self._add_slip(c, ev, weight=w, cancels=False, out=out)
-        self._mark_overlaps(ev, out)
-        self._update_finger(t)
+        var = 0.5 * max(tr, 0.0)
+        c = self._associate(px, py, pz, t)
+        overlap = self._last_t is not None and abs(t - self._last_t) < self._guard
+        self._last_t = t if self._last_t is None else max(t, self._last_t)
+        if c is None:
+            self._found(ev, p, var, t, overlap)
+            self._update_finger(self.now_ns)
+            return out
+        self._member(c, ev, p, var, t, overlap, out)
+        self._update_finger(self.now_ns)
         return out
 
-    # ------------------------------------------------------------------ internals
-    def _mark_overlaps(self, ev, out):
-        """Flag this emission's member and the previous one when they may share a window;
-        run the texture test on the contact that took the emission."""
-        new = None
+    # ------------------------------------------------------------------ tracking
+    def _associate(self, px, py, pz, t):
+        best, best_d2 = None, self._assoc2
         for c in self.contacts:
-            if c.members and c.members[-1].pid == ev.packet_id and c.members[-1].t == ev.time_ns:
-                new = c.members[-1]
-                self._texture(c, ev, c.rate_hz(ev.time_ns, self._w_rate), out)
-                break
-        prev = self._last_member
-        if prev is not None and new is not None and abs(ev.time_ns - prev.t) < self._guard:
-            prev.clean = False
-            new.clean = False
-        if new is not None:
-            self._last_member = new
+            q = c.centre_at(t)
+            dx, dy, dz = px - q[0], py - q[1], pz - q[2]
+            d2 = dx * dx + dy * dy + dz * dz
+            if d2 <= best_d2:
+                best, best_d2 = c, d2
+        return best
 
-    def _new_contact(self, t_ns, announced):
+    def _found(self, ev, p, var, t, overlap):
+        """A new contact founded by ``ev``. A lone rarefaction (a release, or a micro-slip
+        of a contact nobody announced) stays unconfirmed until a second emission joins."""
         if len(self.contacts) >= self.config.max_contacts:
             idle = [c for c in self.contacts if c.state not in _SLIPPING] or self.contacts
             drop = min(idle, key=lambda c: (c.confirmed, c.last_ns))
             self.contacts.remove(drop)
             self.counts["contacts_dropped"] += 1
-        c = _Contact(self._next_id, t_ns, announced, self.config.member_history)
+        c = _Contact(self._next_id, t, self.config.member_history, confirmed=ev.polarity >= 0)
         self._next_id += 1
+        c.add(t, p, var, ev.polarity, ev.packet_id, FOUNDER | (OVERLAP if overlap else 0))
+        c.founder = (p.copy(), var, int(ev.polarity))
+        c.centre = p.copy()
         self.contacts.append(c)
         self.counts["contacts_created"] += 1
         return c
 
-    def _associate(self, ev):
-        best, best_d = None, self.config.association_radius_m
-        for c in self.contacts:
-            d = float(np.linalg.norm(ev.point_m - c.centre))
-            if d <= best_d:
-                best, best_d = c, d
-        return best
+    def _member(self, c, ev, p, var, t, overlap, out):
+        cfg = self.config
+        k = c.valid()
+        T, F = c.t[:k], c.flags[:k]
+        slipping = c.state in _SLIPPING
+        flags = OVERLAP if overlap else 0
+        if slipping:
+            # every emission of a slipping contact is a slip emission; one on the founding
+            # touch's spot with the opposite polarity may be its release: the contact ends
+            # unless another emission follows within release_confirm_s
+            flags |= EVID
+            fp, fvar, fpol = c.founder
+            fd = fp - p
+            if ev.polarity * fpol < 0 and float(fd @ fd) <= self._g2 * (fvar + var + self._f2):
+                c.pending_release_ns = t
+                self.counts["releases"] += 1
+            elif c.pending_release_ns is not None:
+                c.pending_release_ns = None
+                self.counts["releases_cancelled"] += 1
+        else:
+            D = c.p[:k] - p
+            d2 = np.einsum("ij,ij->i", D, D)
+            near = (d2 <= self._g2 * (c.var[:k] + var + self._f2)) & (T >= t - self._w_ev)
+            if near.any():
+                # on the spot of an earlier emission: a release / tap pair, or a repeat
+                cand = near & ((F & (PAIRED | REPEAT)) == 0)
+                if ev.polarity != 0:
+                    cand &= c.pol[:k] != ev.polarity
+                if cand.any():
+                    j = int(np.flatnonzero(cand)[np.argmin(d2[cand])])
+                    F[j] = (F[j] | PAIRED) & (0xFF ^ EVID)
+                    flags |= PAIRED
+                    self.counts["pairs"] += 1
+                    if F[j] & FOUNDER:
+                        c.pending_release_ns = t
+                        self.counts["releases"] += 1
+                else:
+                    flags |= REPEAT
+                    self.counts["repeats"] += 1
+            else:
+                if c.pending_release_ns is not None:
+                    ev_m = (F & EVID) != 0
+                    if not (T[ev_m] >= t - self._w_ev).any():
+                        # the founder was released: this is a new touch nearby
+                        self._end_contact(c)
+                        self._found(ev, p, var, t, overlap)
+                        return
+                    c.pending_release_ns = None
+                    self.counts["releases_cancelled"] += 1
+                flags |= EVID
+                self.counts["evidence"] += 1
+        c.add(t, p, var, ev.polarity, ev.packet_id, flags)
+        c.confirmed = True
+        self._geometry(c)
+        c.events_since_track += 1
+        if c.events_since_track >= 4 or (c.moving and c.events_since_track >= 2):
+            self._track(c, t)
+        k = c.valid()
+        T, F = c.t[:k], c.flags[:k]
+        ev_mask = ((F & EVID) != 0) & (T > t - self._w_ev)
+        n_ev = int(ev_mask.sum())
+        if c.state == ContactState.STICK and flags & EVID and n_ev >= cfg.precursor_min_emissions:
+            c.state, c.since_ns = ContactState.INCIPIENT_SLIP, t
+            idx = np.flatnonzero(ev_mask)
+            idx = idx[np.argsort(T[idx], kind="stable")]
+            ids = tuple(int(x) for x in c.pid[idx] if x != ev.packet_id) + (ev.packet_id,)
+            out.append(self._precursor(c, ev, n_ev, ids, onset=True))
+        elif c.state == ContactState.INCIPIENT_SLIP and flags & EVID and self._due(c, 3, t):
+            out.append(self._precursor(c, ev, n_ev, (ev.packet_id,), onset=False))
+        if c.state != ContactState.GROSS_SLIP and flags & (EVID | REPEAT):
+            why = self._gross_test(c, t)
+            if why:
+                c.state, c.since_ns = ContactState.GROSS_SLIP, t
+                out.append(self._slip_event(c, ev, why, onset=True))
+        elif c.state == ContactState.GROSS_SLIP and self._due(c, 4, t):
+            out.append(self._slip_event(c, ev, 0.0, onset=False))
+        self._texture(c, ev, out)
 
-    def _match_release(self, ev):
-        """Open touch (member, contact) whose release gate holds ``ev``, or (None, None)."""
-        g2 = self.config.release_gate_sigma ** 2
-        f2 = self.config.release_floor_m ** 2
-        best, owner, best_m2 = None, None, g2
-        for c in self.contacts:
-            for m in c.members:
-                if not m.open or m.role not in (MAIN, SUB):
-                    continue
-                d = ev.point_m - m.p
-                if float(d @ d) > g2 * (3.0 * f2 + np.trace(m.cov) + np.trace(ev.covariance_m2)):
-                    continue     # |d|^2 / tr(S) bounds the Mahalanobis distance from below
-                S = m.cov + ev.covariance_m2 + f2 * np.eye(3)
-                try:
-                    m2 = float(d @ np.linalg.solve(S, d))
-                except np.linalg.LinAlgError:
-                    continue
-                if m2 <= best_m2:
-                    best, owner, best_m2 = m, c, m2
-        return best, owner
+    def _geometry(self, c):
+        """Centre (circle fit to the evidence emissions, refitted when their number changed:
+        every one up to 16, then every 4th) and radius (90th percentile of their distances)."""
+        k = c.valid()
+        F = c.flags[:k]
+        m = ((F & EVID) != 0) & ((F & OVERLAP) == 0)
+        n = int(m.sum())
+        if n < 3 or n == c.n_evid_fit or (n > 16 and abs(n - c.n_evid_fit) < 4):
+            return
+        c.n_evid_fit = n
+        P = c.p[:k][m]
+        centre = _circle_centre(P) if n >= 5 else None
+        if centre is not None:
+            c.centre, c.fitted = centre, True
+        d = np.sqrt(np.einsum("ij,ij->i", P - c.centre, P - c.centre))
+        c.radius = float(np.percentile(d, 90))
 
-    def _release(self, ev, touch, c, out):
-        t = ev.time_ns
-        touch.open = False
-        self.counts["releases"] += 1
-        if touch.role == SUB:
-            touch.role = PAIRED
-            touch.w = 0.0
-            c.members.append(_Member(ev, PAIRED, 0.0, False))
-            c.last_ns = t
-            c.update_geometry()
+    def _track(self, c, t):
+        """Motion regression p(t) = c0 + v (t - t_mean) over the track window."""
+        c.events_since_track = 0
+        cfg = self.config
+        k = c.valid()
+        F = c.flags[:k]
+        m = ((F & (PAIRED | OVERLAP)) == 0) & (c.t[:k] > t - self._w_track)
+        n = int(m.sum())
+        if n < max(cfg.track_min_events, 3):
+            c.moving = False
             return
-        subs = [m for m in c.members if m.role == SUB and m.open]
-        if subs and c.state not in _SLIPPING:
-            # another touch of the same contact region is still held: it carries on
-            subs[0].role = MAIN
-            subs[0].w = 0.0
-            c.members.append(_Member(ev, PAIRED, 0.0, False))
-            c.last_ns = t
-            c.update_geometry()
+        ts = c.t[:k][m] * 1e-9
+        P = c.p[:k][m]
+        tm = float(ts.mean())
+        tc = ts - tm
+        stt = float(tc @ tc)
+        if stt <= 0:
             return
-        c.pending_release = (t, touch)
-        if c.state in _SLIPPING:
-            # a centre emission of a slipping contact looks like a release: count it as a
-            # slip emission too; the confirmation window decides
-            self._add_slip(c, ev, weight=1.0, cancels=False, out=out)
+        pm = P.mean(axis=0)
+        v = (tc @ (P - pm)) / stt
+        nrm = pm / math.sqrt(float(pm @ pm))
+        v = v - (v @ nrm) * nrm
+        res = (P - pm) - np.outer(tc, v)
+        s2 = float(np.einsum("ij,ij->", res, res)) / max(1, 2 * (n - 2))
+        se = math.sqrt(s2 / stt)
+        speed = math.sqrt(float(v @ v))
+        c.track_se = se
+        was = c.moving
+        c.moving = speed >= cfg.min_speed_m_s and speed >= cfg.track_significance * se
+        if c.moving:
+            c.vel, c.track_t, c.track_c = v, tm, pm
+        elif was:
+            c.centre = c.centre_at(t) if c.track_c is not None else c.centre
 
     def _end_contact(self, c):
-        t_rel = c.pending_release[0]
-        self.contacts.remove(c)
-        self._last_end_ns = t_rel
-        subs = [m for m in c.members if m.role == SUB and m.open]
-        if subs:       # touches still held in the region become a contact of their own
-            n = _Contact(self._next_id, t_rel, True, self.config.member_history)
-            self._next_id += 1
-            self.counts["contacts_created"] += 1
-            for i, m in enumerate(subs):
-                if i == 0:
-                    m.role, m.w = MAIN, 0.0
-                n.members.append(m)
-            n.last_ns = subs[-1].t
-            n.update_geometry()
-            self.contacts.append(n)
+        if c in self.contacts:
+            self.contacts.remove(c)
+        if c.pending_release_ns is not None:
+            self._last_end_ns = c.pending_release_ns
 
-    def _add_slip(self, c, ev, *, weight, cancels, out):
+    # ------------------------------------------------------------------ decisions
+    def _rate(self, c, t):
+        k = c.valid()
+        F = c.flags[:k]
+        return float((((F & PAIRED) == 0) & (c.t[:k] > t - self._w_rate)).sum()) / (self._w_rate * 1e-9)
+
+    def _gross_test(self, c, t):
+        """0 or the reason for GROSS_SLIP (1 inner emission, 2 rate jump, 3 fast, 4 moving)."""
         cfg = self.config
-        t = ev.time_ns
-        slipping = c.state in _SLIPPING
-        if c.pending_release is not None:
-            recent = c.evidence(t, self._w_ev) > 0
-            if slipping or cancels or recent:
-                c.pending_release[1].open = True        # the touch is still there
-                c.pending_release = None
-                self.counts["releases_cancelled"] += 1
-        if slipping or ev.polarity < 0:
-            m = _Member(ev, SLIP, 1.0 if slipping else weight, False)
-        else:
-            m = _Member(ev, SUB, weight, True)
-            self.counts["sub_touches"] += 1
-        c.members.append(m)
-        c.last_ns = t
-        c.update_geometry()
-        if c.state in _SLIPPING or m.w > 0:
-            c.last_slip_ns = t
-        evidence = c.evidence(t, self._w_ev)
-        rate = c.rate_hz(t, self._w_rate)
-        if (c.state == ContactState.STICK and evidence >= cfg.precursor_threshold
-                and c.orphans(t, self._w_ev) >= cfg.precursor_min_orphans):
-            c.state, c.since_ns, c.confirmed = ContactState.INCIPIENT_SLIP, t, True
-            c.last_slip_ns = t
-            ids = tuple(x.pid for x in c.slip_members(since_ns=t - self._w_ev) if x.w > 0)
-            for x in c.members:         # the unreleased compressions were micro-slips
-                if x.role == SUB and x.open:
-                    x.role, x.open, x.w = SLIP, False, max(x.w, weight)
-            out.append(self._precursor(c, ev, rate, evidence, ids, onset=True))
-        elif c.state == ContactState.INCIPIENT_SLIP and self._due(c, SlipEventType.SLIP_PRECURSOR, t):
-            out.append(self._precursor(c, ev, rate, evidence, (ev.packet_id,), onset=False))
-        if c.state == ContactState.INCIPIENT_SLIP:
-            n_in, sm = self._inner(c, cfg.gross_window_events)
-            if (n_in >= cfg.gross_min_inner and rate >= cfg.gross_min_rate_hz
-                    and len(c.slip_members(n=cfg.gross_min_events, clean=True)) >= cfg.gross_min_events):
-                self._to_gross(c, ev, rate, float(n_in), tuple(x.pid for x in sm), out)
-        elif c.state == ContactState.GROSS_SLIP:
-            n_in, sm = self._inner(c, cfg.gross_exit_events)
-            if n_in == 0 and len(sm) >= cfg.gross_exit_events and not c.texture_on:
-                c.state, c.since_ns = ContactState.INCIPIENT_SLIP, t
-            elif self._due(c, SlipEventType.SLIP, t):
-                out.append(self._slip_event(c, ev, rate, float(n_in), (ev.packet_id,), onset=False))
-
-    def _inner(self, c, n):
-        sm = c.slip_members(n=n, clean=True)
-        if not sm or c.radius <= 0:
-            return 0, sm
-        P = np.asarray([m.p for m in sm])
-        d = np.linalg.norm(P - c.centre, axis=1)
-        return int(np.sum(d < self.config.gross_inner_fraction * c.radius)), sm
+        k = c.valid()
+        T, F = c.t[:k], c.flags[:k]
+        use = (F & (PAIRED | REPEAT)) == 0
+        w = use & (T > t - self._w_gross)
+        n_w = int(w.sum())
+        if c.moving and n_w >= 2:
+            return 4
+        if n_w < cfg.gross_min_events:
+            return 0
+        if c.fitted and c.radius > 0:
+            D = c.p[:k][w] - c.centre
+            r2 = np.einsum("ij,ij->i", D, D)
+            if float(r2.min()) < (cfg.gross_inner_fraction * c.radius) ** 2:
+                return 1
+        # rate jump (scan statistic): the latest j emissions span tau; under the contact's
+        # prior rate lambda (over the part of gross_history_s before them that it has
+        # lived) j - 1 of them in tau is a Poisson tail P(N >= j - 1 | lambda tau); SLIP
+        # when that is below gross_rate_alpha / (number of spans tested)
+        ts = np.sort(T[use])[-cfg.gross_scan_events:]
+        n = ts.size
+        for j in range(cfg.gross_min_events, n + 1):
+            t0 = int(ts[n - j])
+            covered = min(self._w_hist, t0 - c.created_ns)
+            if covered < 2 * self._w_gross:
+                continue
+            n_p = int((use & (T < t0) & (T >= t0 - covered)).sum())
+            mu = max(n_p, 1) / covered * (t - t0)
+            # P(N >= j - 1) for N ~ Poisson(mu)
+            term, cdf = math.exp(-mu), 0.0
+            for i in range(j - 1):
+                cdf += term
+                term *= mu / (i + 1)
+            if 1.0 - cdf < cfg.gross_rate_alpha / (n - cfg.gross_min_events + 1):
+                return 2
+        return 0
 
     def _due(self, c, kind, t):
         last = c.last_report.get(kind)
         return last is None or t - last >= self._report
 
-    def _precursor(self, c, ev, rate, evidence, ids, onset):
+    def _precursor(self, c, ev, n_ev, ids, onset):
         c.precursor_count += 1
-        c.last_report[SlipEventType.SLIP_PRECURSOR] = ev.time_ns
-        conf = 1.0 - 2.0 ** (-evidence / self.config.precursor_threshold)
-        return SlipEvent(SlipEventType.SLIP_PRECURSOR, ev.time_ns, ev.point_m.copy(), ev.covariance_m2.copy(),
-                         c.id, rate, math.nan, _NAN3.copy(), float(conf) * (0.5 + 0.5 * ev.confidence), ids,
-                         onset, float(evidence))
+        c.last_report[3] = ev.time_ns
+        conf = 1.0 - 2.0 ** (-n_ev / self.config.precursor_min_emissions)
+        return SlipEvent(SlipEventType.SLIP_PRECURSOR, ev.time_ns, ev.point_m.copy(),
+                         ev.covariance_m2.copy(), c.id, self._rate(c, ev.time_ns), math.nan,
+                         _NAN3.copy(), float(conf) * (0.5 + 0.5 * ev.confidence), ids, onset, float(n_ev))
 
-    def _to_gross(self, c, ev, rate, n_in, ids, out):
-        c.state, c.since_ns = ContactState.GROSS_SLIP, ev.time_ns
-        out.append(self._slip_event(c, ev, rate, n_in, ids, onset=True))
+    def _slip_event(self, c, ev, why, onset):
+        t = ev.time_ns
+        c.last_report[4] = t
+        k = c.valid()
+        w = ((c.flags[:k] & (PAIRED | REPEAT)) == 0) & (c.t[:k] > t - self._w_gross)
+        ids = tuple(int(x) for x in c.pid[:k][w] if x != ev.packet_id) + (ev.packet_id,) if onset \
+            else (ev.packet_id,)
+        conf = 0.9 if why in (1, 4) or c.texture_on else 0.75
+        return SlipEvent(SlipEventType.SLIP, t, c.centre_at(t).copy(), self._centre_cov(c), c.id,
+                         self._rate(c, t), math.nan, self._direction(c), conf, ids, onset, float(why))
 
-    def _slip_event(self, c, ev, rate, n_in, ids, onset):
-        c.last_report[SlipEventType.SLIP] = ev.time_ns
-        conf = 1.0 - 2.0 ** (-max(n_in, 1.0) / self.config.gross_min_inner)
-        if c.texture_on:
-            conf = max(conf, 0.75)
-        return SlipEvent(SlipEventType.SLIP, ev.time_ns, c.centre.copy(), self._centre_cov(c), c.id, rate,
-                         math.nan, self._direction(c, ev.time_ns), float(conf), ids, onset, n_in)
-
-    def _texture(self, c, ev, rate, out):
-        """Periodicity of all the contact's latest emissions (touch/release pairs included:
-        in a small patch a texture's rarefactions fall in the release gate of its
-        compressions). A strictly alternating +,-,+,- run is tapping, not texture."""
+    def _texture(self, c, ev, out):
+        """Periodicity of the contact's latest intervals: robust dispersion MAD/median of the
+        intervals (counting multiples of the period for missed packets) below
+        ``texture_max_dispersion``; period by least squares on the cumulative counts."""
         cfg = self.config
         n = cfg.texture_min_intervals + 1
-        if len(c.members) < n:
+        k = c.valid()
+        if k < n:
             return
-        sm = list(c.members)[-n:]
-        pol = np.array([m.pol for m in sm])
-        if np.all(pol[1:] * pol[:-1] == -1):
-            c.texture_on = False
-            c.texture_run = 0
+        sel = ((c.flags[:k] & (PAIRED | REPEAT)) == 0)
+        if int(sel.sum()) < n:
             return
-        res = periodicity([m.t for m in sm], tolerance=cfg.texture_tolerance,
-                          min_fraction=cfg.texture_min_fraction, max_multiple=cfg.texture_max_multiple)
-        if not res.periodic:
-            c.texture_on = False
-            c.texture_run = 0
+        ts = np.sort(c.t[:k][sel])[-n:]
+        if ts[-1] != ev.time_ns and not c.texture_on:
+            pass
+        dt = np.diff(ts).astype(float)
+        m = float(np.median(dt))
+        if not m > 0:
+            c.texture_on, c.texture_run = False, 0
             return
+        kk = np.maximum(1.0, np.round(dt / m))
+        if kk.max() > cfg.texture_max_multiple:
+            c.texture_on, c.texture_run = False, 0
+            return
+        period = float(dt.sum() / kk.sum())
+        x = dt / period
+        llr = float((np.logaddexp.reduce(self._tex_w - np.log(self._tex_s) - 0.5 * (
+            (x - self._tex_k) / self._tex_s) ** 2, axis=0) + np.log(x.mean()) + x / x.mean()).sum())
+        if llr < cfg.texture_min_llr:
+            c.texture_on, c.texture_run = False, 0
+            return
+        K = np.concatenate(([0.0], np.cumsum(kk)))
+        tt = (ts - ts[0]) * 1e-9
+        Kc = K - K.mean()
+        period = float(Kc @ (tt - tt.mean()) / (Kc @ Kc))
         c.texture_run += 1
-        if c.texture_run < cfg.texture_confirm_events:
+        if c.texture_run < cfg.texture_confirm_events or not period > 0:
             return
         t = ev.time_ns
+        lam = math.nan
+        if c.moving:
+            speed = math.sqrt(float(c.vel @ c.vel))
+            if c.track_se > cfg.texture_period_rel_se * speed:
+                self._track(c, t)
+                speed = math.sqrt(float(c.vel @ c.vel))
+                if not c.moving or c.track_se > cfg.texture_period_rel_se * speed:
+                    return           # periodic, but the spatial period is not known well yet
+            lam = speed * period
+        elif self._speed is not None:
+            lam = self._speed * period
         onset = not c.texture_on
         c.texture_on = True
         if c.state != ContactState.GROSS_SLIP:
-            if c.state == ContactState.STICK:
-                c.confirmed = True
-            self._to_gross(c, ev, rate, 0.0, tuple(m.pid for m in sm), out)
-        if onset or self._due(c, SlipEventType.TEXTURE, t):
-            c.last_report[SlipEventType.TEXTURE] = t
-            lam = res.period_s * self._speed if self._speed is not None else math.nan
-            out.append(SlipEvent(SlipEventType.TEXTURE, t, c.centre.copy(), self._centre_cov(c), c.id,
-                                 res.rate_hz, lam, self._direction(c, t), float(res.regular_fraction),
-                                 tuple(m.pid for m in sm), onset, float(res.regular_fraction)))
+            c.state, c.since_ns = ContactState.GROSS_SLIP, t
+            out.append(self._slip_event(c, ev, 5.0, onset=True))
+        if onset or self._due(c, 5, t):
+            c.last_report[5] = t
+            ids = tuple(int(x) for x in c.pid[:k][sel] if x != ev.packet_id)[-n + 1:] + (ev.packet_id,)
+            frac = float((kk == 1).mean())
+            out.append(SlipEvent(SlipEventType.TEXTURE, t, c.centre_at(t).copy(), self._centre_cov(c), c.id,
+                                 1.0 / period, lam, self._direction(c), frac, ids, onset, llr))
 
     def _centre_cov(self, c):
-        P = np.asarray([m.p for m in c.members if m.role != PAIRED])
-        if len(P) < 2:
-            return c.members[-1].cov.copy()
+        k = c.valid()
+        m = (c.flags[:k] & PAIRED) == 0
+        P = c.p[:k][m]
+        if len(P) < 3 or c.moving:
+            v = max(float(c.var[(c.n - 1) % c.H]), 1e-12)
+            return np.eye(3) * v
         return np.cov(P.T) / len(P)
 
-    def _direction(self, c, t):
-        """Unit tangent direction of the drift of the contact's emissions, or NaN."""
-        cfg = self.config
-        sm = c.slip_members(since_ns=t - self._w_dir)
-        if len(sm) < cfg.direction_min_events:
+    def _direction(self, c):
+        """Unit tangent direction of the contact's tracked motion, or NaN."""
+        if not c.moving:
             return _NAN3.copy()
-        ts = np.array([m.t for m in sm], dtype=float) * 1e-9
-        P = np.asarray([m.p for m in sm])
-        tc = ts - ts.mean()
-        stt = float(tc @ tc)
-        if stt <= 0:
-            return _NAN3.copy()
-        v = (tc @ (P - P.mean(axis=0))) / stt
-        n = c.centre / np.linalg.norm(c.centre)
-        v = v - (v @ n) * n
-        res = (P - P.mean(axis=0)) - np.outer(tc, v)
-        s2 = float((res * res).sum()) / max(1, 2 * (len(sm) - 2))
-        se = math.sqrt(s2 / stt)
-        speed = float(np.linalg.norm(v))
-        if speed < cfg.direction_min_speed_m_s or speed < cfg.direction_significance * se or speed == 0:
-            return _NAN3.copy()
-        return v / speed
+        s = math.sqrt(float(c.vel @ c.vel))
+        return c.vel / s if s > 0 else _NAN3.copy()
 
     def _update_finger(self, t):
-        confirmed = [c for c in self.contacts if c.confirmed]
+        if t is None:
+            return
         prev = self._finger
+        confirmed = [c for c in self.contacts if c.confirmed]
         if not confirmed:
-            state, since = ContactState.NO_CONTACT, (prev.since_ns if prev.state == ContactState.NO_CONTACT
-                                                     else self._last_end_ns)
-            self._finger = FingerState(state, since, _NAN3.copy(), 0.0, 0, -1, 0, t)
+            since = prev.since_ns if prev.state == ContactState.NO_CONTACT else self._last_end_ns
+            self._finger = FingerState(ContactState.NO_CONTACT, since, _NAN3.copy(), 0.0, 0, -1, 0, t)
             return
         top = max(confirmed, key=lambda c: (int(c.state), c.last_ns))
         since = top.since_ns if top.state != prev.state else prev.since_ns
-        if top.state != prev.state:
-            since = top.since_ns
-        self._finger = FingerState(top.state, int(since), top.centre.copy(), top.rate_hz(t, self._w_rate),
+        self._finger = FingerState(top.state, int(since), top.centre_at(t).copy(), self._rate(top, t),
                                    top.precursor_count, top.id, len(confirmed), t)

@@ -36,6 +36,8 @@ class LocalizedEvent:
     time_ns        emission (or onset) time, integer ns
     point_m        (3,) point on the fingertip surface (fingertip frame, m)
     covariance_m2  (3, 3) its covariance (m^2); None: unknown (zeros)
+    (non-finite point or covariance values are kept: the detector rejects and counts them,
+    ``SlipDetector.counts["rejected_non_finite"]``)
     polarity       +1 compression (TOUCH-like), -1 rarefaction (DETOUCH-like), 0 unknown
     amplitude_v    signed first-lobe amplitude (V)
     confidence     localization confidence in [0, 1]
@@ -55,15 +57,15 @@ class LocalizedEvent:
             raise TypeError(f"LocalizedEvent.time_ns must be an integer (ns), got {self.time_ns!r}")
         object.__setattr__(self, "time_ns", int(self.time_ns.__index__()))
         p = np.asarray(self.point_m, dtype=float)
-        if p.shape != (3,) or not np.all(np.isfinite(p)):
-            raise ValueError(f"LocalizedEvent.point_m must be 3 finite numbers, got {self.point_m!r}")
+        if p.shape != (3,):
+            raise ValueError(f"LocalizedEvent.point_m must be 3 numbers, got {self.point_m!r}")
         object.__setattr__(self, "point_m", p)
         if self.covariance_m2 is None:
             c = np.zeros((3, 3))
         else:
             c = np.asarray(self.covariance_m2, dtype=float)
-            if c.shape != (3, 3) or not np.all(np.isfinite(c)):
-                raise ValueError("LocalizedEvent.covariance_m2 must be a finite 3x3 array (m^2)")
+            if c.shape != (3, 3):
+                raise ValueError("LocalizedEvent.covariance_m2 must be a 3x3 array (m^2)")
             c = 0.5 * (c + c.T)
         object.__setattr__(self, "covariance_m2", c)
         pol = self.polarity
@@ -94,6 +96,7 @@ class SlipEvent:
                        TEXTURE: the periodic emission rate 1/T (Hz)
     spatial_period_m   TEXTURE with a known sliding speed: v T (m); NaN otherwise
     slip_direction     (3,) unit tangent direction of travel of the contact (NaN if unknown)
+    (packet_ids ends with the packet of the emission that decided the event)
     confidence         in [0, 1]
     packet_ids         source packets (the evidence behind the event)
     onset              True for the event that started the state (first SLIP_PRECURSOR
@@ -133,6 +136,8 @@ class ContactInfo:
     precursor_count: int
     n_members: int
     last_time_ns: int
+    velocity_m_s: np.ndarray = field(default_factory=_nan3)   # along the surface (0 if held)
+    moving: bool = False
 
 
 @dataclass(frozen=True)

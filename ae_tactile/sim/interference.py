@@ -1,0 +1,139 @@
+"""Common-mode electrical interference packets (not acoustic: rendered here, not by the
+acoustic renderer): one waveform on all four channels, the front end's noise and ADC.
+
+Waveforms (``kind``), amplitude ``amplitude_v`` at the ADC:
+  spike     a Gaussian pulse of FWHM 30 .. 300 ns (ESD, a gate driver's spike)
+  edge      a switching edge: a step (rise 20 .. 200 ns) settling with time constant
+            5 .. 50 us, with ringing at 1.5 .. 5 MHz decaying in 0.3 .. 2 us
+  ringing   a damped sinusoid at 1.5 .. 5 MHz, decay 0.5 .. 5 us
+Coupling (``coupling``):
+  adc       added after the front end's filters (ADC lines, ground bounce): the
+            waveform keeps its own spectrum
+  input     added at the amplifier's input: shaped by the front end's high-pass and
+            low-pass (Butterworth, the SimConfig orders and cut-offs), so its spectrum is an
+            acoustic packet's band
+Each channel gets the common waveform times a gain 1 + N(0, ``gain_mismatch``), then
+independent white noise of ``noise_rms_v`` and the ADC's quantization and clipping.
+
+``burst_times_s`` gives trigger times of a switching source: bursts at ``rate_hz``
+(1 Hz .. 10 kHz), periodic with timing jitter or Poisson.
+
+The returned ``TriggeredPackets`` have the triggered renderer's format (onset after
+``pretrigger_s``), NaN points and delays, polarity 0.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ae_tactile.sim.config import SimConfig
+from ae_tactile.sim.frontend import quantize
+from ae_tactile.sim.triggered import TriggeredPackets
+
+KINDS = ("spike", "edge", "ringing")
+COUPLINGS = ("adc", "input")
+
+
+def _rng(rng):
+    return rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+
+
+def burst_times_s(duration_s: float, rate_hz: float, *, periodic: bool = True, jitter_s: float = 0.0,
+                  start_s: float = 0.0, rng=None) -> np.ndarray:
+    """Burst times (s) in [start_s, duration_s): periodic at ``rate_hz`` (jitter: Gaussian
+    std ``jitter_s``) or Poisson."""
+    g = _rng(rng)
+    if not (rate_hz > 0 and duration_s > start_s):
+        return np.zeros(0)
+    if periodic:
+        t = start_s + g.uniform(0, 1.0 / rate_hz) + np.arange(int((duration_s - start_s) * rate_hz) + 1) / rate_hz
+        t = t + g.normal(0.0, jitter_s, t.size) if jitter_s > 0 else t
+    else:
+        n = g.poisson(rate_hz * (duration_s - start_s))
+        t = np.sort(g.uniform(start_s, duration_s, n))
+    return np.sort(t[(t >= start_s) & (t < duration_s)])
+
+
+def _waveforms(kind, n, t, g):
+    """(n, M) unit-amplitude waveforms starting at t = 0 (t: (M,) seconds, may be < 0)."""
+    tt = t[None, :]
+    after = tt >= 0
+    if kind == "spike":
+        fwhm = np.exp(g.uniform(math.log(30e-9), math.log(300e-9), n))[:, None]
+        sig = fwhm / 2.355
+        w = np.exp(-0.5 * ((tt - 3 * sig) / sig) ** 2)
+    elif kind == "edge":
+        rise = np.exp(g.uniform(math.log(20e-9), math.log(200e-9), n))[:, None]
+        tau = np.exp(g.uniform(math.log(5e-6), math.log(50e-6), n))[:, None]
+        f = g.uniform(1.5e6, 5e6, n)[:, None]
+        dec = g.uniform(0.3e-6, 2e-6, n)[:, None]
+        step = 0.5 * (1 + np.tanh(tt / rise))
+        w = step * np.exp(-np.maximum(tt, 0) / tau)
+        w = w + after * 0.3 * np.sin(2 * np.pi * f * tt) * np.exp(-np.maximum(tt, 0) / dec)
+    elif kind == "ringing":
+        f = g.uniform(1.5e6, 5e6, n)[:, None]
+        dec = np.exp(g.uniform(math.log(0.5e-6), math.log(5e-6), n))[:, None]
+        w = after * np.sin(2 * np.pi * f * tt) * np.exp(-np.maximum(tt, 0) / dec)
+    else:
+        raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+    peak = np.abs(w).max(axis=1, keepdims=True)
+    return w / np.where(peak > 0, peak, 1.0)
+
+
+def _front_end_filter(w, config: SimConfig):
+    from scipy import signal
+    fs = config.sample_rate_hz
+    sos = [signal.butter(config.highpass_order, config.highpass_hz, "highpass", fs=fs, output="sos")]
+    if config.lowpass_hz is not None and config.lowpass_hz < 0.5 * fs:
+        sos.append(signal.butter(config.lowpass_order, config.lowpass_hz, "lowpass", fs=fs, output="sos"))
+    for s in sos:
+        w = signal.sosfilt(s, w, axis=-1)
+    peak = np.abs(w).max(axis=1, keepdims=True)
+    return w / np.where(peak > 0, peak, 1.0)
+
+
+def render_interference(n: int, config: SimConfig | None = None, *, kind="mixed", coupling="adc",
+                        amplitude_v=None, noise_rms_v: float = 0.0, gain_mismatch: float = 0.01,
+                        pretrigger_s: float = 8e-6, window_s: float = 40e-6, rng=None) -> TriggeredPackets:
+    """``n`` common-mode interference packets (see the module docstring). ``kind``: one of
+    KINDS or 'mixed' (uniform choice per packet); ``amplitude_v``: scalar, (n,), or None
+    (log-uniform 10 .. 300 noise sigmas, or 0.01 .. 0.3 V without noise)."""
+    cfg = SimConfig() if config is None else config
+    g = _rng(rng)
+    if coupling not in COUPLINGS:
+        raise ValueError(f"coupling must be one of {COUPLINGS}, got {coupling!r}")
+    n = int(n)
+    fs = float(cfg.sample_rate_hz)
+    m_len = int(round(window_s * fs))
+    pre = int(round(pretrigger_s * fs))
+    if n < 0 or m_len <= pre + 1:
+        raise ValueError("need n >= 0 and a window longer than the pretrigger")
+    frac = g.uniform(0, 1, n)
+    kinds = g.choice(KINDS, n) if kind == "mixed" else np.full(n, kind)
+    # a long pre-roll so 'input' coupling sees the filters' full transient
+    roll = int(round(60e-6 * fs))
+    t = (np.arange(-roll, m_len)[None, :] - pre - frac[:, None]) / fs
+    w = np.zeros((n, roll + m_len))
+    for k in KINDS:
+        sel = kinds == k
+        if sel.any():
+            w[sel] = np.concatenate([_waveforms(k, 1, t[i], g) for i in np.flatnonzero(sel)])
+    if coupling == "input" and n:
+        w = _front_end_filter(w, cfg)
+    w = w[:, roll:]
+    if amplitude_v is None:
+        lo, hi = (10 * noise_rms_v, 300 * noise_rms_v) if noise_rms_v > 0 else (0.01, 0.3)
+        amplitude_v = np.exp(g.uniform(math.log(lo), math.log(hi), n))
+    amp = np.broadcast_to(np.asarray(amplitude_v, float), (n,)) * g.choice([-1.0, 1.0], n)
+    gains = 1.0 + gain_mismatch * g.normal(size=(n, 4))
+    clean = (amp[:, None, None] * gains[:, :, None]) * w[:, None, :]
+    noisy = clean + (g.normal(0.0, noise_rms_v, clean.shape) if noise_rms_v > 0 else 0.0)
+    samples, clipped = quantize(noisy, cfg)
+    nanv = np.full((n, 3), np.nan)
+    return TriggeredPackets(
+        samples_v=samples, clean_v=clean, sample_rate_hz=fs, onset_index=np.full(n, pre + 1, np.int64),
+        points_m=nanv, delays_s=np.zeros((n, 2)), twist_s=np.zeros(n), arrival_times_s=np.zeros((n, 4)),
+        emission_time_s=np.full(n, np.nan), noise_rms_v=np.full(n, float(noise_rms_v)),
+        snr_db=np.full(n, np.nan), signal_power_v2=np.full(n, np.nan),
+        saturated=clipped.any(axis=(1, 2)), polarity=np.zeros(n))
