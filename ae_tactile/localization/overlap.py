@@ -62,7 +62,7 @@ from ae_tactile.geometry import CHANNEL_XI_ETA, FingertipGeometry
 from ae_tactile.localization.common import Reason, make_plan, prepare, validate_windows
 
 __all__ = ["PulseModel", "OverlapReason", "OverlapSource", "OverlapPacket", "resolve_overlaps",
-           "suspect_overlap", "fit_sources", "simulate_pairs", "joint_crlb"]
+           "suspect_overlap", "fit_sources", "simulate_overlaps", "joint_crlb"]
 
 
 class OverlapReason(IntEnum):
@@ -252,31 +252,25 @@ class _Model:
     def pulses(self, t_arr):
         """h and h' on the segment grid for arrivals t_arr (K, A) (s, window time).
 
-        Returns (h, dh) (K, A, L)."""
+        h(t_n - t_a) = Re sum_p [r_p e^{p (t_0 - t_a)}] e^{p n dt} for n >= n0 (first sample
+        at/after the arrival), 0 before: one real matrix product with the exponential
+        table, no per-sample exponentials. Returns (h, dh) (K, A, L)."""
         K, A = t_arr.shape
         fs, L = self.fs, self.L
         p, r = self.tab.poles, self.tab.res
-        n0 = np.ceil(t_arr * fs - self.start[:, None] - 1e-9)
-        n0 = np.clip(n0, 0, L).astype(np.int64)
-        eps = (self.start[:, None] + n0) / fs - t_arr                # >= 0
-        c = r * np.exp(p * eps[..., None])                            # (K, A, P)
+        off = self.start[:, None] / fs - t_arr                        # t_0 - t_a
+        n0 = np.ceil(-off * fs - 1e-9)
+        c = r * np.exp(p * off[..., None])                            # (K, A, P)
         cd = c * p
-        coef = np.concatenate([np.concatenate([c.real, -c.imag], -1)[:, :, None],
-                               np.concatenate([cd.real, -cd.imag], -1)[:, :, None]], axis=2)
-        vals = coef.reshape(K * A * 2, -1) @ self.tab.table          # (K A 2, L)
-        vals = vals.reshape(K, A, 2, L)
-        padded = np.concatenate([np.zeros_like(vals), vals], axis=-1)
-        view = sliding_window_view(padded, L, axis=-1)                # (K, A, 2, L+1, L)
-        kk = np.arange(K)[:, None, None]
-        aa = np.arange(A)[None, :, None]
-        ii = np.arange(2)[None, None, :]
-        placed = view[kk, aa, ii, (L - n0)[:, :, None]]               # (K, A, 2, L)
-        return placed[:, :, 0], placed[:, :, 1]
+        coef = np.stack([np.concatenate([c.real, -c.imag], -1),
+                         np.concatenate([cd.real, -cd.imag], -1)], axis=2)   # (K, A, 2, 2P)
+        vals = (coef.reshape(K * A * 2, -1) @ self.tab.table).reshape(K, A, 2, L)
+        vals *= (np.arange(L) >= n0[..., None])[:, :, None, :]
+        return vals[:, :, 0], vals[:, :, 1]
 
     def evaluate(self, theta):
-        """Basis Phi (K, 4L, 2J) and d(model)/d(theta) pieces for theta (K, J, 3) =
-        (s_x, s_y, T). Returns Phi and dPhi (K, 4L, 2J, 3): derivative of each basis
-        column with respect to its emission's (s_x, s_y, T)."""
+        """Basis Phi (K, 2J, N) (columns: direct, echo of each emission; N = 4L, channel-major)
+        and the parts the Jacobian needs, for theta (K, J, 3) = (s_x, s_y, T)."""
         K, J, _ = theta.shape
         L = self.L
         d, dd = self._paths(theta[..., :2])                           # (K,J,2,4), (K,J,2,4,2)
@@ -290,23 +284,36 @@ class _Model:
         dgain[:, :, 0] = -(self.R / d[:, :, 0] ** 2)[..., None] * dd[:, :, 0]
         if not self.echo:
             gain[:, :, 1] = 0.0
-        col = gain[..., None] * h                                      # (K, J, 2, 4, L)
-        # d col / d s_i = dgain_i h - gain h' dd_i / c ;  d col / d T = -gain h'
-        ds = dgain[..., None, :] * h[..., None] - (gain[..., None] * dh)[..., None] * (dd / self.c)[..., None, :]
-        dT = -(gain[..., None] * dh)[..., None]
-        dcol = np.concatenate([ds, dT], axis=-1)                       # (K, J, 2, 4, L, 3)
-        phi = col.reshape(K, J * 2, 4 * L).transpose(0, 2, 1)
-        dphi = dcol.reshape(K, J * 2, 4 * L, 3).transpose(0, 2, 1, 3)
-        return phi, dphi
+        phi = (gain[..., None] * h).reshape(K, 2 * J, 4 * L)
+        return phi, (h, dh, gain, dgain, dd / self.c)
+
+    @staticmethod
+    def jacobian(parts, amp):
+        """d model / d theta (K, 3J, N) for amplitudes amp (K, 2J):
+        d/d s_i = sum_paths a (dgain_i h - gain h' dt_i),  d/d T = -sum_paths a gain h'."""
+        h, dh, gain, dgain, dtds = parts
+        K, J = h.shape[:2]
+        a = amp.reshape(K, J, 2)
+        ag = (a[..., None] * gain)                                    # (K, J, 2, 4)
+        ads = a[..., None, None] * dgain                              # (K, J, 2, 4, 2)
+        agt = ag[..., None] * dtds                                    # (K, J, 2, 4, 2)
+        dsx = np.einsum("kjec,kjecl->kjcl", ads[..., 0], h) - np.einsum("kjec,kjecl->kjcl", agt[..., 0], dh)
+        dsy = np.einsum("kjec,kjecl->kjcl", ads[..., 1], h) - np.einsum("kjec,kjecl->kjcl", agt[..., 1], dh)
+        dT = -np.einsum("kjec,kjecl->kjcl", ag, dh)
+        return np.stack([dsx, dsy, dT], axis=2).reshape(K, 3 * J, -1)
 
 
 def _lstsq_amplitudes(phi, y, ridge=1e-9):
-    """LS amplitudes a (K, 2J) of y (K, N) on columns phi (K, N, 2J) (ridge for empty ones)."""
-    g = np.einsum("kni,knj->kij", phi, phi)
-    b = np.einsum("kni,kn->ki", phi, y)
+    """LS amplitudes a (K, 2J) of y (K, N) on columns phi (K, 2J, N) (ridge for empty ones)."""
+    g = phi @ phi.transpose(0, 2, 1)
+    b = (phi @ y[..., None])[..., 0]
     scale = np.maximum(np.trace(g, axis1=1, axis2=2) / g.shape[1], 1e-300)
     g = g + ridge * scale[:, None, None] * np.eye(g.shape[1])
     return np.linalg.solve(g, b[..., None])[..., 0]
+
+
+def _model_values(phi, amp):
+    return (amp[:, None, :] @ phi)[:, 0]
 
 
 def _clip_theta(theta, geo, max_rho):
@@ -318,35 +325,31 @@ def _clip_theta(theta, geo, max_rho):
     return out
 
 
-def _lm(model: _Model, y, theta, iterations=12, max_rho=None):
+def _lm(model: "_Model", y, theta, iterations=12, max_rho=None):
     """Levenberg-Marquardt over all 5J parameters (K packets in parallel); after each step
     the linear amplitudes are re-solved by LS (variable projection). Returns theta,
-    amplitudes (K, 2J), rss (K,), and the final Jacobian (K, N, 5J)."""
+    amplitudes (K, 2J), rss (K,), and the Gram matrix of the final Jacobian (K, 5J, 5J)
+    (parameter order: (s_x, s_y, T) per emission, then (direct, echo) amplitudes)."""
     K, J, _ = theta.shape
     geo = model.geo
     max_rho = geo.radius_m * math.sin(math.radians(85.0)) if max_rho is None else max_rho
     theta = _clip_theta(theta, geo, max_rho)
-    phi, dphi = model.evaluate(theta)
+    phi, parts = model.evaluate(theta)
     amp = _lstsq_amplitudes(phi, y)
-    res = y - np.einsum("kni,ki->kn", phi, amp)
+    res = y - _model_values(phi, amp)
     rss = (res * res).sum(axis=1)
     lam = np.full(K, 1e-3)
     active = np.ones(K, bool)
-
-    def jacobian(phi, dphi, amp):
-        # d model / d theta_j = sum_{columns c of emission j} amp_c dPhi_c
-        dm = (dphi * amp[:, None, :, None]).reshape(K_, N, J, 2, 3).sum(axis=3).reshape(K_, N, 3 * J)
-        return np.concatenate([dm, phi], axis=2)
-
-    N = y.shape[1]
+    parts = list(parts)
     for _ in range(iterations):
         ids = np.nonzero(active)[0]
         if ids.size == 0:
             break
         K_ = ids.size
-        jac = jacobian(phi[ids], dphi[ids], amp[ids])
-        jtj = np.einsum("kni,knj->kij", jac, jac)
-        jtr = np.einsum("kni,kn->ki", jac, res[ids])
+        pa = tuple(q[ids] for q in parts)
+        jac = np.concatenate([model.jacobian(pa, amp[ids]), phi[ids]], axis=1)   # (K_, 5J, N)
+        jtj = jac @ jac.transpose(0, 2, 1)
+        jtr = (jac @ res[ids][..., None])[..., 0]
         dg = np.einsum("kii->ki", jtj)
         dg = np.maximum(dg, 1e-12 * dg.max(axis=1, keepdims=True) + 1e-300)
         a = jtj + (lam[ids][:, None] * dg)[:, :, None] * np.eye(jtj.shape[1])
@@ -355,19 +358,17 @@ def _lm(model: _Model, y, theta, iterations=12, max_rho=None):
         except np.linalg.LinAlgError:
             step = np.zeros_like(jtr)
         step = np.where(np.isfinite(step), step, 0.0)
-        new = theta[ids] + step[:, : 3 * J].reshape(K_, J, 3)
-        new = _clip_theta(new, geo, max_rho)
-        sub = _Model.__new__(_Model)
-        sub.__dict__.update(model.__dict__)
-        sub.start = model.start[ids]
-        ph2, dph2 = sub.evaluate(new)
+        new = _clip_theta(theta[ids] + step[:, : 3 * J].reshape(K_, J, 3), geo, max_rho)
+        sub = _sub(model, ids)
+        ph2, pa2 = sub.evaluate(new)
         amp2 = _lstsq_amplitudes(ph2, y[ids])
-        res2 = y[ids] - np.einsum("kni,ki->kn", ph2, amp2)
+        res2 = y[ids] - _model_values(ph2, amp2)
         rss2 = (res2 * res2).sum(axis=1)
         better = rss2 < rss[ids]
         gi = ids[better]
-        theta[gi], amp[gi], res[gi], phi[gi], dphi[gi] = new[better], amp2[better], res2[better], \
-            ph2[better], dph2[better]
+        theta[gi], amp[gi], res[gi], phi[gi] = new[better], amp2[better], res2[better], ph2[better]
+        for q, q2 in zip(parts, pa2):
+            q[gi] = q2[better]
         rel = (rss[gi] - rss2[better]) / np.maximum(rss[gi], 1e-300)
         rss[gi] = rss2[better]
         lam[gi] = np.maximum(lam[gi] / 4.0, 1e-7)
@@ -377,13 +378,13 @@ def _lm(model: _Model, y, theta, iterations=12, max_rho=None):
         done[gi[rel < 1e-9]] = True
         done[bi[lam[bi] > 1e6]] = True
         active &= ~done
-    K_ = K
-    jac = jacobian(phi, dphi, amp)
-    return theta, amp, rss, jac
+    jac = np.concatenate([model.jacobian(tuple(parts), amp), phi], axis=1)
+    return theta, amp, rss, jac @ jac.transpose(0, 2, 1)
 
 
 # --------------------------------------------------------------------------- grid search
 def _surface_grid(geo: FingertipGeometry, spacing_m, max_polar_deg=80.0):
+    """(G, 2) square grid of (s_x, s_y) over the cap polar <= max_polar_deg."""
     rmax = geo.radius_m * math.sin(math.radians(max_polar_deg))
     n = int(math.ceil(rmax / spacing_m))
     g = np.arange(-n, n + 1) * spacing_m
@@ -392,10 +393,12 @@ def _surface_grid(geo: FingertipGeometry, spacing_m, max_polar_deg=80.0):
     return np.stack([gx[keep], gy[keep]], axis=1)
 
 
-def _grid_search(model: _Model, r, grid, chunk=64):
+def _grid_search(model: _Model, r, grid, chunk=64, n_peaks=1, min_sep=8):
     """Best (s_x, s_y, T) (K, 3) of one emission in residual r (K, 4, L): matched filter per
     channel (correlation with h), summed over channels along each grid point's travel
-    times (integer samples), maximising |C|^2 / ||phi||^2."""
+    times (integer samples), maximising |C|^2 / ||phi||^2. With ``n_peaks`` > 1 it returns
+    (K, n_peaks, 3): the best, then the best points at the next peaks in time of the
+    profile max_g |C|^2 / ||phi||^2 (>= ``min_sep`` samples from earlier ones)."""
     K, _, L = r.shape
     fs = model.fs
     h = model.tab.h_samples
@@ -412,23 +415,60 @@ def _grid_search(model: _Model, r, grid, chunk=64):
     best_val = np.full(K, -np.inf)
     best_g = np.zeros(K, np.int64)
     best_m = np.zeros(K, np.int64)
-    cp = np.concatenate([corr, np.zeros((K, 4, pad))], axis=2)
-    idx = rel[:, :, None] + np.arange(L)[None, None, :]                  # (G, 4, L)
+    cp = np.concatenate([corr, np.zeros((K, 4, pad + 2))], axis=2).astype(np.float32)
+    gain32 = gain.astype(np.float32)
+    # every second arrival sample first (the matched filter is smooth: band <= fs/10),
+    # then the best point's neighbours
+    mm = np.arange(0, L, 2)
+    idx = rel[:, :, None] + mm[None, None, :]                             # (G, 4, L/2)
+    prof = np.zeros((K, mm.size))
+    prof_g = np.zeros((K, mm.size), np.int64)
     for k0 in range(0, K, chunk):
         sl = slice(k0, min(K, k0 + chunk))
-        c = np.zeros((sl.stop - sl.start, grid.shape[0], L))
+        c = np.zeros((sl.stop - sl.start, grid.shape[0], mm.size), np.float32)
         for ch in range(4):
-            c += gain[None, :, ch, None] * cp[sl, ch][:, idx[:, ch]]
-        stat = (c * c) / norm[None, :, None]
-        flat = stat.reshape(stat.shape[0], -1)
-        i = np.argmax(flat, axis=1)
-        best_val[sl] = flat[np.arange(len(i)), i]
-        best_g[sl] = i // L
-        best_m[sl] = i % L
+            c += gain32[None, :, ch, None] * cp[sl, ch][:, idx[:, ch]]
+        stat = (c * c) / norm[None, :, None].astype(np.float32)
+        gi = np.argmax(stat, axis=1)                                       # (k, L/2)
+        prof_g[sl] = gi
+        prof[sl] = np.take_along_axis(stat, gi[:, None, :], axis=1)[:, 0]
+    i = np.argmax(prof, axis=1)
+    best_g = prof_g[np.arange(K), i]
+    best_m = mm[i]
+    if n_peaks > 1:
+        # further peaks of the time profile max_g stat(g, m), >= min_sep samples apart
+        peaks = [np.stack([grid[best_g, 0], grid[best_g, 1], best_m.astype(float)], 1)]
+        pr = prof.copy()
+        rows_ = np.arange(K)
+        last = i
+        for _ in range(n_peaks - 1):
+            lo = np.searchsorted(mm, mm[last] - min_sep)
+            hi = np.searchsorted(mm, mm[last] + min_sep, side="right")
+            mask = (np.arange(mm.size)[None, :] >= lo[:, None]) & (np.arange(mm.size)[None, :] < hi[:, None])
+            pr[mask] = -np.inf
+            last = np.argmax(pr, axis=1)
+            g2 = prof_g[rows_, last]
+            peaks.append(np.stack([grid[g2, 0], grid[g2, 1], mm[last].astype(float)], 1))
+        extra = []
+        for pk in peaks[1:]:
+            gidx = np.argmin(np.abs(grid[:, None, 0] - pk[None, :, 0]) + np.abs(grid[:, None, 1] - pk[None, :, 1]), axis=0)
+            T2 = (model.start + pk[:, 2]) / fs - tt[gidx].min(axis=1)
+            extra.append(np.stack([pk[:, 0], pk[:, 1], T2], 1))
+    rows = np.arange(K)
+    cand = np.clip(best_m[:, None] + np.array([-1, 0, 1]), 0, L - 1)     # (K, 3)
+    ix = rel[best_g][:, :, None] + cand[:, None, :]                       # (K, 4, 3)
+    cv = (gain[best_g][:, :, None] * cp[rows[:, None, None], np.arange(4)[None, :, None], ix]).sum(axis=1)
+    st = cv * cv / norm[best_g][:, None]
+    pick = np.argmax(st, axis=1)
+    best_m = cand[rows, pick]
+    best_val = st[rows, pick]
     s = grid[best_g]
     t_first = (model.start + best_m) / fs
     T = t_first - tt[best_g].min(axis=1)
-    return np.concatenate([s, T[:, None]], axis=1), best_val
+    best = np.concatenate([s, T[:, None]], axis=1)
+    if n_peaks > 1:
+        return np.stack([best] + extra, axis=1), best_val
+    return best, best_val
 
 
 # --------------------------------------------------------------------------- driver
@@ -437,7 +477,7 @@ class _Fit:
     theta: np.ndarray      # (K, J, 3)
     amp: np.ndarray        # (K, 2J)
     rss: np.ndarray        # (K,)
-    jac: np.ndarray        # (K, N, 5J)
+    gram: np.ndarray       # (K, 5J, 5J) Gram matrix of the Jacobian (Fisher x sigma^2)
 
 
 def _segments(prep, plan, geo, fs, analysis_s):
@@ -476,45 +516,69 @@ def fit_sources(windows, sample_rate_hz, onset_index, n_sources, *, geometry=Non
                 sigma2=(prep.sigma2 + prep.quant2) * sc ** 2)
 
 
-def _search(model: _Model, seg, max_sources, grid, sigma2=None, add_threshold=None):
+def _search(model: _Model, seg, max_sources, grid, sigma2=None, add_threshold=None, search_limit=None):
     """RELAX search for 1..max_sources emissions. Returns the list of _Fit, one per J
-    (packets that stop adding emissions keep their previous fit in later entries)."""
+    (packets that stop adding emissions keep their previous fit in later entries).
+
+    With ``sigma2`` (K,), emission j + 1 is searched only where the j-emission residual is
+    above ``search_limit`` (K,) x sigma^2 x dof (the data are not yet explained: a
+    single-source packet costs one fit) and, for j >= 2, the j-th emission was significant
+    (residual drop > ``add_threshold`` sigma^2)."""
     K = seg.shape[0]
     y = seg.reshape(K, -1)
-    th0, _ = _grid_search(model, seg, grid)
-    theta, amp, rss, jac = _lm(model, y, th0[:, None, :])
+    cands, _ = _grid_search(model, seg, grid, n_peaks=3)
+    theta, amp, rss, jac = _lm(model, y, cands[:, :1].copy())
     fits = [_Fit(theta, amp, rss, jac)]
     for j in range(2, max_sources + 1):
         prev = fits[-1]
         go = np.ones(K, bool)
-        if sigma2 is not None and j > 2:
-            # only packets whose previous addition was significant go on
-            go = (fits[-2].rss - prev.rss) > add_threshold * sigma2
+        if sigma2 is not None:
+            dof = y.shape[1] - 5 * (j - 1)
+            go = prev.rss > search_limit * sigma2 * dof
+            if j > 2:
+                go &= (fits[-2].rss - prev.rss) > add_threshold * sigma2
         ids = np.nonzero(go)[0]
         theta = np.concatenate([prev.theta, np.zeros((K, 1, 3))], axis=1)
         amp = np.concatenate([prev.amp, np.zeros((K, 2))], axis=1)
         rss = prev.rss.copy()
-        jac = np.zeros(prev.jac.shape[:2] + (5 * j,))
+        jac = np.zeros((K, 5 * j, 5 * j))
         if ids.size:
             sub = _sub(model, ids)
             ys = y[ids]
             phi, _ = sub.evaluate(prev.theta[ids])
-            res = ys - np.einsum("kni,ki->kn", phi, prev.amp[ids])
+            res = ys - _model_values(phi, prev.amp[ids])
             thn, _ = _grid_search(sub, res.reshape(len(ids), 4, -1), grid)
             start = np.concatenate([prev.theta[ids], thn[:, None, :]], axis=1)
             t1, a1, r1, j1 = _lm(sub, ys, start)
+            if j == 2:
+                # pairs of the first search's peaks in time (two similar emissions a few
+                # us apart make a spurious single-emission optimum between them)
+                cs = cands[ids]
+                for q, p in ((0, 1), (0, 2), (1, 2)):
+                    t2, a2, r2, j2 = _lm(sub, ys, cs[:, [q, p]].copy())
+                    b = r2 < r1
+                    t1[b], a1[b], r1[b], j1[b] = t2[b], a2[b], r2[b], j2[b]
             # RELAX: re-start each earlier emission from the data minus the others.
             for i in range(j - 1):
                 keep = [q for q in range(j) if q != i]
                 phi, _ = sub.evaluate(t1[:, keep])
                 cols = np.concatenate([[2 * q, 2 * q + 1] for q in keep])
-                res = ys - np.einsum("kni,ki->kn", phi, a1[:, cols])
+                res = ys - _model_values(phi, a1[:, cols])
                 thi, _ = _grid_search(sub, res.reshape(len(ids), 4, -1), grid)
                 st = t1.copy()
                 st[:, i] = thi
                 t2, a2, r2, j2 = _lm(sub, ys, st)
                 b = r2 < r1
                 t1[b], a1[b], r1[b], j1[b] = t2[b], a2[b], r2[b], j2[b]
+            # Swapped points (same emission times): the local optimum of nearly
+            # simultaneous emissions of similar strength.
+            for q in range(j):
+                for p in range(q + 1, j):
+                    st = t1.copy()
+                    st[:, q, :2], st[:, p, :2] = t1[:, p, :2], t1[:, q, :2]
+                    t2, a2, r2, j2 = _lm(sub, ys, st)
+                    b = r2 < r1
+                    t1[b], a1[b], r1[b], j1[b] = t2[b], a2[b], r2[b], j2[b]
             # order emissions by emission time
             order = np.argsort(t1[..., 2], axis=1)
             t1 = np.take_along_axis(t1, order[..., None], axis=1)
@@ -522,7 +586,7 @@ def _search(model: _Model, seg, max_sources, grid, sigma2=None, add_threshold=No
             a1 = np.take_along_axis(a1, ao, axis=1)
             jo = np.concatenate([(3 * order[..., None] + np.arange(3)).reshape(len(ids), -1),
                                  3 * j + ao], axis=1)
-            j1 = np.take_along_axis(j1, jo[:, None, :], axis=2)
+            j1 = np.take_along_axis(np.take_along_axis(j1, jo[:, None, :], axis=2), jo[:, :, None], axis=1)
             theta[ids], amp[ids], rss[ids], jac[ids] = t1, a1, r1, j1
         fits.append(_Fit(theta, amp, rss, jac))
     return fits
@@ -633,8 +697,9 @@ def _chi2_limit(n_noise, dof, max_chi2_ratio):
 def _decide(model, seg, sigma2, n_noise, max_sources, add_threshold, max_chi2_ratio, max_sigma_m,
             min_snr_db, scale, geo, grid):
     K = seg.shape[0]
-    fits = _search(model, seg, max_sources, grid, sigma2, add_threshold)
     N = seg.shape[1] * seg.shape[2]
+    search_limit = 1.0 + 2.0 * np.sqrt(2.0 / n_noise + 2.0 / N)
+    fits = _search(model, seg, max_sources, grid, sigma2, add_threshold, search_limit)
     # Model order: add emission j+1 while the residual energy drops by > add_threshold sigma^2.
     J = np.ones(K, np.int64)
     going = np.ones(K, bool)
@@ -648,7 +713,7 @@ def _decide(model, seg, sigma2, n_noise, max_sources, add_threshold, max_chi2_ra
     for i in range(K):
         f = fits[J[i] - 1]
         j = int(J[i])
-        theta, amp, rss, jac = f.theta[i, :j], f.amp[i, : 2 * j], f.rss[i], f.jac[i, :, : 5 * j]
+        theta, amp, rss, gram = f.theta[i, :j], f.amp[i, : 2 * j], f.rss[i], f.gram[i]
         dof = max(N - 5 * j, 1)
         ratio = rss / (sigma2[i] * dof)
         noise_v = float(np.sqrt(sigma2[i]) * scale[i])
@@ -658,7 +723,7 @@ def _decide(model, seg, sigma2, n_noise, max_sources, add_threshold, max_chi2_ra
                                      chi2_ratio=float(ratio), noise_rms_v=noise_v))
             continue
         s2 = sigma2[i] * max(ratio, 1.0)
-        fis = jac.T @ jac / s2
+        fis = gram / s2
         try:
             cov = np.linalg.pinv(fis, rcond=1e-13, hermitian=True)
         except np.linalg.LinAlgError:
@@ -761,22 +826,25 @@ def _time_search(model: _Model, seg, s_xy):
 
 
 # --------------------------------------------------------------------------- simulation, bound
-def simulate_pairs(n, config=None, *, separation_s, amplitude_ratio=1.0, snr_db=25.0,
-                   snr_reference="weaker", min_distance_m=2e-3, max_polar_deg=60.0, rng=None,
-                   pretrigger_s=8e-6, window_s=40e-6):
-    """``n`` windows holding two emissions from the simulator (``ae_tactile.sim``; linear
-    acoustics: each emission rendered alone, noise-free, by `render_triggered`, the second
-    shifted by an exact sub-sample delay, summed, then noise and the ADC).
+def simulate_overlaps(n, config=None, *, separation_s, n_sources=2, amplitude_ratio=1.0,
+                      snr_db=25.0, snr_reference="weaker", min_distance_m=2e-3, max_polar_deg=60.0,
+                      rng=None, pretrigger_s=8e-6, window_s=40e-6):
+    """``n`` windows holding ``n_sources`` (2 or 3) emissions, from the simulator
+    (``ae_tactile.sim``). Linear acoustics: each emission is rendered alone, noise-free, by
+    `render_triggered` (exact sub-sample arrival, wall echoes per ``config``), shifted to its
+    emission time and summed; then white noise and the ADC.
 
-    separation_s: emission-time difference (scalar or (n,)). amplitude_ratio: stronger /
-    weaker source strength (>= 1); which of the two is stronger is random. snr_db: the SNR
-    (docs/conventions.md, over each emission's own 30 us window) of the weaker
-    (``snr_reference='weaker'``) or the stronger emission. Points uniform by area over the
-    cap polar <= max_polar_deg, at least ``min_distance_m`` apart; random polarities.
+    separation_s: time between successive emissions (scalar, (n,) or (n, J-1)).
+    amplitude_ratio: strongest / weakest source strength (>= 1). Two emissions: which one
+    is stronger is random; three: the strengths are log-uniform in [1/ratio, 1] with one
+    of them at 1 and one at 1/ratio. snr_db: the SNR (docs/conventions.md, over each
+    emission's own 30 us window) of the weakest (``snr_reference='weaker'``) or strongest
+    emission. Points uniform by area over the cap polar <= max_polar_deg, pairwise at
+    least ``min_distance_m`` apart; random polarities.
 
-    Returns dict: samples_v (n, 4, M), clean_v, onset_index (n,), points_m (n, 2, 3),
-    emission_time_s (n, 2) (window time), polarity (n, 2), strength (n, 2) relative,
-    noise_rms_v (n,), arrival_times_s (n, 2, 4), sample_rate_hz.
+    Returns dict: samples_v (n, 4, M), clean_v, onset_index (n,), points_m (n, J, 3),
+    emission_time_s (n, J) (window time), polarity (n, J), strength (n, J) relative,
+    noise_rms_v (n,), arrival_times_s (n, J, 4), sample_rate_hz, config.
     """
     from ae_tactile.sim import SimConfig, render_triggered, signal_power_v2
     from ae_tactile.sim.frontend import noise_rms_for_snr, quantize
@@ -786,97 +854,120 @@ def simulate_pairs(n, config=None, *, separation_s, amplitude_ratio=1.0, snr_db=
     geo = cfg.geometry
     fs = float(cfg.sample_rate_hz)
     n = int(n)
+    J = int(n_sources)
+    if J not in (2, 3):
+        raise ValueError("n_sources must be 2 or 3")
     ratio = float(amplitude_ratio)
     if not ratio >= 1.0:
-        raise ValueError("amplitude_ratio must be >= 1 (stronger / weaker)")
+        raise ValueError("amplitude_ratio must be >= 1 (strongest / weakest)")
     if snr_reference not in ("weaker", "stronger"):
         raise ValueError("snr_reference must be 'weaker' or 'stronger'")
-    sep = np.broadcast_to(np.asarray(separation_s, float), (n,)).copy()
+    sep = np.asarray(separation_s, float)
+    sep = np.broadcast_to(sep[:, None] if sep.ndim == 1 else sep, (n, J - 1)).copy()
 
     def draw(m):
         cos_t = gen.uniform(math.cos(math.radians(max_polar_deg)), 1.0, m)
         phi = gen.uniform(0.0, 2 * math.pi, m)
         return geo.surface_point_from_angles(np.arccos(cos_t), phi)
 
-    p1, p2 = draw(n), draw(n)
-    close = np.linalg.norm(p1 - p2, axis=1) < min_distance_m
-    while close.any():
-        p2[close] = draw(int(close.sum()))
-        close = np.linalg.norm(p1 - p2, axis=1) < min_distance_m
-    strong_first = gen.random(n) < 0.5
-    rel = np.where(strong_first[:, None], [1.0, 1.0 / ratio], [1.0 / ratio, 1.0])
-    pol = gen.choice([-1.0, 1.0], size=(n, 2))
+    pts = [draw(n)]
+    for _ in range(1, J):
+        p = draw(n)
+        close = np.min([np.linalg.norm(q - p, axis=1) for q in pts], axis=0) < min_distance_m
+        while close.any():
+            p[close] = draw(int(close.sum()))
+            close = np.min([np.linalg.norm(q - p, axis=1) for q in pts], axis=0) < min_distance_m
+        pts.append(p)
+    pts = np.stack(pts, axis=1)
+    if J == 2:
+        strong_first = gen.random(n) < 0.5
+        rel = np.where(strong_first[:, None], [1.0, 1.0 / ratio], [1.0 / ratio, 1.0])
+    else:
+        rel = np.exp(gen.uniform(-math.log(ratio), 0.0, (n, J)))
+        perm = np.argsort(gen.random((n, J)), axis=1)
+        rows = np.arange(n)
+        rel[rows, perm[:, 0]] = 1.0
+        rel[rows, perm[:, 1]] = 1.0 / ratio
+    pol = gen.choice([-1.0, 1.0], size=(n, J))
     speed = 0.3 * np.sqrt(rel)
     clean_cfg = cfg.replace(quantization=False)
-    a = render_triggered(p1, clean_cfg, polarity=pol[:, 0], speed_m_s=speed[:, 0],
-                         pretrigger_s=pretrigger_s, window_s=window_s, rng=gen)
-    m_len = a.clean_v.shape[2]
-    t_emit2 = a.emission_time_s + sep
-    t_first2 = t_emit2 + geo.arrival_times_s(p2).min(axis=1)
-    n_int = np.floor(t_first2 * fs).astype(np.int64)
-    u2 = t_first2 * fs - n_int
-    u2 = np.clip(u2, 0.0, 1.0 - 1e-12)
-    b = render_triggered(p2, clean_cfg, polarity=pol[:, 1], speed_m_s=speed[:, 1], pretrigger_s=0.0,
-                         window_s=window_s, subsample_offset=u2, rng=gen)
-    clean2 = np.zeros_like(b.clean_v)
-    for i in range(n):
-        k = int(n_int[i])
-        if 0 <= k < m_len:
-            clean2[i, :, k:] = b.clean_v[i, :, : m_len - k]
-    p_1 = signal_power_v2(a.clean_v, a.onset_index, fs)
-    p_2 = signal_power_v2(b.clean_v, b.onset_index, fs)
-    p_ref = np.minimum(p_1, p_2) if snr_reference == "weaker" else np.maximum(p_1, p_2)
+    first = render_triggered(pts[:, 0], clean_cfg, polarity=pol[:, 0], speed_m_s=speed[:, 0],
+                             pretrigger_s=pretrigger_s, window_s=window_s, rng=gen)
+    m_len = first.clean_v.shape[2]
+    clean = first.clean_v.copy()
+    powers = [signal_power_v2(first.clean_v, first.onset_index, fs)]
+    t_emit = [first.emission_time_s]
+    arrivals = [first.arrival_times_s]
+    for j in range(1, J):
+        te = t_emit[-1] + sep[:, j - 1]
+        tf = te + geo.arrival_times_s(pts[:, j]).min(axis=1)
+        n_int = np.floor(tf * fs).astype(np.int64)
+        u = np.clip(tf * fs - n_int, 0.0, 1.0 - 1e-12)
+        b = render_triggered(pts[:, j], clean_cfg, polarity=pol[:, j], speed_m_s=speed[:, j],
+                             pretrigger_s=0.0, window_s=window_s, subsample_offset=u, rng=gen)
+        for i in range(n):
+            k = int(n_int[i])
+            if 0 <= k < m_len:
+                clean[i, :, k:] += b.clean_v[i, :, : m_len - k]
+        powers.append(signal_power_v2(b.clean_v, b.onset_index, fs))
+        t_emit.append(te)
+        arrivals.append(te[:, None] + geo.arrival_times_s(pts[:, j]))
+    powers = np.stack(powers, axis=1)
+    p_ref = powers.min(axis=1) if snr_reference == "weaker" else powers.max(axis=1)
     sigma = noise_rms_for_snr(p_ref, np.broadcast_to(np.asarray(snr_db, float), (n,)))
-    clean = a.clean_v + clean2
     noisy = clean + sigma[:, None, None] * gen.standard_normal(clean.shape)
     if cfg.quantization:
         noisy, _ = quantize(noisy, cfg, out=noisy)
-    t_first = np.minimum(a.arrival_times_s.min(axis=1), t_first2)
-    onset = np.ceil(t_first * fs - 1e-9).astype(np.int64)
-    arr2 = t_emit2[:, None] + geo.arrival_times_s(p2)
-    return dict(samples_v=noisy, clean_v=clean, onset_index=onset, points_m=np.stack([p1, p2], 1),
-                emission_time_s=np.stack([a.emission_time_s, t_emit2], 1), polarity=pol, strength=rel,
-                noise_rms_v=sigma, arrival_times_s=np.stack([a.arrival_times_s, arr2], 1),
-                sample_rate_hz=fs, config=cfg)
+    arrivals = np.stack(arrivals, axis=1)
+    onset = np.ceil(arrivals.min(axis=(1, 2)) * fs - 1e-9).astype(np.int64)
+    return dict(samples_v=noisy, clean_v=clean, onset_index=onset, points_m=pts,
+                emission_time_s=np.stack(t_emit, axis=1), polarity=pol, strength=rel,
+                noise_rms_v=sigma, arrival_times_s=arrivals, sample_rate_hz=fs, config=cfg)
 
 
-def joint_crlb(points_m, emission_time_s, amplitudes, noise_var, sample_rate_hz, onset_index, n_samples,
-               *, geometry=None, pulse=None, echo_amplitudes=None, analysis_s=None, pre_onset_s=1e-6):
-    """Cramer-Rao bound of the J-emission model (known pulse shape h; unknowns per emission:
-    s_x, s_y, emission time, direct and echo amplitudes) over the window `resolve_overlaps`
-    analyses. points_m (K, J, 3), emission_time_s (K, J), amplitudes (K, J) (V, direct wave
-    at distance R), echo_amplitudes (K, J) (default -0.5 x amplitude x ... : pass the true
-    ones), noise_var (K,) V^2. Returns dict: crb_xy_m2 (K, J, 2, 2) joint bound,
-    rms_m (K, J) = sqrt(tr); single_rms_m (K, J): the bound of each emission alone (the
-    other one absent) over the same samples."""
+def joint_crlb(clean_v, sample_rate_hz, onset_index, points_m, emission_time_s, noise_var_v2, *,
+               geometry=None, pulse=None, analysis_s=None, pre_onset_s=1e-6):
+    """Cramer-Rao bound of the J-emission model over the samples `resolve_overlaps` analyses.
+
+    Model: the module's (known pulse shape h; unknowns per emission s_x, s_y, emission time,
+    direct and echo amplitudes: 5J), white noise of variance ``noise_var_v2`` (K,) V^2.
+    clean_v (K, 4, M): the noise-free windows (the true amplitudes are their LS fit at the
+    true points and times, which also measures how well the model describes them),
+    points_m (K, J, 3), emission_time_s (K, J) (window time).
+
+    Returns dict: crb_xy_m2 (K, J, 2, 2), rms_m (K, J) = sqrt(tr) (joint bound),
+    single_rms_m (K, J) (the bound of each emission were it alone, same samples),
+    amplitudes (K, 2J) (V), model_mismatch (K,) = ||clean - model|| / ||clean|| at the truth.
+    """
     geo = FingertipGeometry() if geometry is None else geometry
     pulse = PulseModel() if pulse is None else pulse
     fs = float(sample_rate_hz)
+    c = np.asarray(clean_v, float)
     pts = np.asarray(points_m, float)
     K, J, _ = pts.shape
+    m = c.shape[2]
     pre = max(2, int(math.ceil(pre_onset_s * fs)))
     if analysis_s is None:
         a = geo.element_offset_m
         analysis_s = (4.0 * geo.radius_m - 2.0 * math.sqrt(2.0) * a) / geo.sound_speed_m_s - 0.3e-6
-    start = np.clip(np.asarray(onset_index) - pre, 0, n_samples - 1)
-    length = int(min(n_samples - int(start.max()), pre + math.floor(analysis_s * fs)))
+    start = np.clip(np.asarray(onset_index, np.int64) - pre, 0, m - 1)
+    length = int(min(m - int(start.max()), pre + math.floor(analysis_s * fs)))
+    idx = np.clip(start[:, None] + np.arange(length), 0, m - 1)
+    y = np.take_along_axis(c, idx[:, None, :].repeat(4, axis=1), axis=2).reshape(K, -1)
     model = _Model(geo, fs, start, length, pulse, True)
     theta = np.concatenate([pts[..., :2], np.asarray(emission_time_s, float)[..., None]], axis=2)
-    amp = np.zeros((K, 2 * J))
-    amp[:, 0::2] = amplitudes
-    amp[:, 1::2] = 0.0 if echo_amplitudes is None else echo_amplitudes
-    phi, dphi = model.evaluate(theta)
-    N = phi.shape[1]
-    dm = (dphi * amp[:, None, :, None]).reshape(K, N, J, 2, 3).sum(axis=3).reshape(K, N, 3 * J)
-    jac = np.concatenate([dm, phi], axis=2)
-    var = np.broadcast_to(np.asarray(noise_var, float), (K,))
-    fis = np.einsum("kni,knj->kij", jac, jac) / var[:, None, None]
+    phi, parts = model.evaluate(theta)
+    amp = _lstsq_amplitudes(phi, y, ridge=1e-12)
+    mismatch = np.linalg.norm(y - _model_values(phi, amp), axis=1) / np.linalg.norm(y, axis=1)
+    jac = np.concatenate([model.jacobian(parts, amp), phi], axis=1)
+    var = np.broadcast_to(np.asarray(noise_var_v2, float), (K,))
+    fis = jac @ jac.transpose(0, 2, 1) / var[:, None, None]
     cov = np.linalg.pinv(fis, hermitian=True)
     crb = np.stack([cov[:, 3 * q: 3 * q + 2, 3 * q: 3 * q + 2] for q in range(J)], axis=1)
     single = np.zeros((K, J))
     for q in range(J):
         cols = [3 * q, 3 * q + 1, 3 * q + 2, 3 * J + 2 * q, 3 * J + 2 * q + 1]
-        f1 = fis[:, cols][:, :, cols]
-        c1 = np.linalg.pinv(f1, hermitian=True)
+        c1 = np.linalg.pinv(fis[:, cols][:, :, cols], hermitian=True)
         single[:, q] = np.sqrt(np.trace(c1[:, :2, :2], axis1=1, axis2=2))
-    return dict(crb_xy_m2=crb, rms_m=np.sqrt(np.trace(crb, axis1=2, axis2=3)), single_rms_m=single)
+    return dict(crb_xy_m2=crb, rms_m=np.sqrt(np.trace(crb, axis1=2, axis2=3)), single_rms_m=single,
+                amplitudes=amp, model_mismatch=mismatch)

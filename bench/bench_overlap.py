@@ -1,0 +1,316 @@
+"""Overlapping emissions: accuracy of `resolve_overlaps` against the joint Cramer-Rao bound.
+
+    python3 bench/bench_overlap.py [--quick]        (or: make bench-overlap)
+
+Windows from the simulator (ae_tactile.sim; 10 MS/s, 1 MHz front end, 12-bit ADC, two
+wall echoes) holding two emissions (`ae_tactile.localization.overlap.simulate_overlaps`:
+each rendered alone and summed with an exact sub-sample delay, then noise and the ADC):
+points uniform over the cap polar <= 60 deg and >= 2 mm apart, emission-time separation
+1-10 us, strength ratio (stronger / weaker) 1, 2, 4 (which one comes first is random),
+random polarities, SNR uniform in 20-30 dB for the *weaker* emission (docs/conventions.md
+definition over its own 30 us window), water-skin and silicone tips.
+
+Per cell: success rate (both points reported, each within 0.1 mm), RMS error of reported
+points, wrong accepts (a reported point > 0.5 mm off), the fraction of reported points
+inside their 1.515-sigma ellipse (68.3 % if the covariance is right), the joint CRLB
+(`joint_crlb`) and the single-emission bound on the same samples. Also: single-emission
+packets (how often they stay one emission), the single-source `localize` (ml) on the
+pairs (rejected as OVERLAP / accepted, how far off), `suspect_overlap` on what ml
+accepted, three emissions, the stronger-emission SNR reference, pulse-shape mismatch.
+
+Writes bench/results/overlap.json, bench/results/overlap_table.md,
+bench/results/overlap_success.png.
+"""
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")              # one core
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from ae_tactile.localization import localize  # noqa: E402
+from ae_tactile.localization.overlap import (PulseModel, joint_crlb, resolve_overlaps,  # noqa: E402
+                                             simulate_overlaps, suspect_overlap)
+from ae_tactile.sim import SimConfig, render_triggered  # noqa: E402
+
+RESULTS = ROOT / "bench" / "results"
+SEPARATIONS_US = [1, 2, 3, 5, 7, 10]
+RATIOS = [1, 2, 4]
+KEY = {(2, 1), (2, 4), (5, 1), (5, 4)}        # (separation us, ratio) cells with the most pairs
+CHI2_683 = 2.2957                             # chi^2(2) quantile 0.683 (1.515 sigma in 2-D)
+
+
+def configs():
+    return {"water": SimConfig(reflections=True),
+            "silicone": SimConfig.for_medium("silicone", reflections=True)}
+
+
+def match_errors(truth, sources):
+    """Errors (m) of reported sources against the best assignment to true points, the
+    normalised squared errors, and the per-truth error (inf when not reported)."""
+    J = truth.shape[0]
+    per_truth = np.full(J, np.inf)
+    errs, nrm = [], []
+    if not sources:
+        return errs, nrm, per_truth
+    pts = np.array([s.point_m for s in sources])
+    d = np.linalg.norm(pts[:, None, :] - truth[None, :, :], axis=2)     # (S, J)
+    import itertools
+    best, best_cost = None, np.inf
+    S = len(sources)
+    for perm in itertools.permutations(range(J), min(S, J)):
+        cost = sum(d[i, perm[i]] for i in range(len(perm)))
+        if cost < best_cost:
+            best, best_cost = perm, cost
+    for i, j in enumerate(best):
+        e = pts[i] - truth[j]
+        c = sources[i].covariance_m2[:2, :2]
+        errs.append(float(np.linalg.norm(e)))
+        try:
+            nrm.append(float(e[:2] @ np.linalg.solve(c, e[:2])))
+        except np.linalg.LinAlgError:
+            nrm.append(float("inf"))
+        per_truth[j] = min(per_truth[j], np.linalg.norm(e))
+    for i in range(len(best), S):       # extra reported sources: matched to nearest truth
+        errs.append(float(d[i].min()))
+        nrm.append(float("inf"))
+    return errs, nrm, per_truth
+
+
+def evaluate(d, res, cfg, crlb=True):
+    n, J = d["points_m"].shape[:2]
+    ok = np.zeros(n, bool)
+    errs, nrms, wrong, wrong_small, rejected, extra, missing = [], [], 0, 0, 0, 0, 0
+    weak_err, strong_err = [], []
+    for i, r in enumerate(res):
+        if not r.accepted:
+            rejected += 1
+            continue
+        e, q, per_truth = match_errors(d["points_m"][i], r.sources)
+        errs += e
+        nrms += q
+        wrong += sum(x > 0.5e-3 for x in e)
+        wrong_small += sum(x > 0.5e-3 and s.sigma_m < 0.1e-3 for x, s in zip(e, r.sources))
+        extra += max(len(r.sources) - J, 0)
+        missing += max(J - len(r.sources), 0)
+        ok[i] = len(r.sources) == J and np.all(per_truth <= 0.1e-3)
+        st = d["strength"][i]
+        for j in range(J):
+            if np.isfinite(per_truth[j]):
+                (weak_err if st[j] < st.max() else strong_err).append(per_truth[j])
+    out = dict(n=n, success=float(ok.mean()), rejected=rejected / n, wrong_accepts=int(wrong),
+               wrong_accepts_sigma_lt_0p1mm=int(wrong_small), extra_sources=int(extra),
+               missing_sources=int(missing),
+               rms_um=float(np.sqrt(np.mean(np.square(errs))) * 1e6) if errs else None,
+               rms_weak_um=float(np.sqrt(np.mean(np.square(np.minimum(weak_err, 0.5e-3)))) * 1e6)
+               if weak_err else None,
+               inside_1p515_sigma=float(np.mean(np.array(nrms) <= CHI2_683)) if nrms else None)
+    if crlb:
+        var = d["noise_rms_v"] ** 2 + cfg.lsb_v ** 2 / 12.0
+        b = joint_crlb(d["clean_v"], d["sample_rate_hz"], d["onset_index"], d["points_m"],
+                       d["emission_time_s"], var, geometry=cfg.geometry)
+        out["crlb_um"] = float(np.sqrt(np.mean(b["rms_m"] ** 2)) * 1e6)
+        out["crlb_single_um"] = float(np.sqrt(np.mean(b["single_rms_m"] ** 2)) * 1e6)
+        out["model_mismatch_max"] = float(b["model_mismatch"].max())
+    return out, ok
+
+
+def timed_resolve(d, cfg, **kw):
+    t0 = time.perf_counter()
+    res = resolve_overlaps(d["samples_v"], d["sample_rate_hz"], d["onset_index"],
+                           geometry=cfg.geometry, **kw)
+    return res, time.perf_counter() - t0
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="few pairs per cell (smoke run)")
+    ap.add_argument("--seed", type=int, default=2026)
+    args = ap.parse_args()
+    n_key, n_other = (30, 10) if args.quick else (200, 60)
+    rng = np.random.default_rng(args.seed)
+    t_start = time.perf_counter()
+    out = dict(setup=dict(fs_hz=10e6, snr_db="uniform 20-30 (weaker emission)", max_polar_deg=60,
+                          min_distance_mm=2.0, pairs_per_key_cell=n_key, pairs_per_other_cell=n_other,
+                          key_cells="separation 2 and 5 us x ratio 1 and 4",
+                          machine=platform.platform(), load_before=os.getloadavg()),
+               cells=[], singles={}, ml_on_pairs={}, three={}, stronger_reference={}, mismatch={})
+    t_resolve, n_resolve = 0.0, 0
+    for medium, cfg in configs().items():
+        for sep in SEPARATIONS_US:
+            for ratio in RATIOS:
+                n = n_key if (sep, ratio) in KEY else n_other
+                d = simulate_overlaps(n, cfg, separation_s=sep * 1e-6, amplitude_ratio=ratio,
+                                      snr_db=rng.uniform(20, 30, n), rng=rng)
+                res, dt = timed_resolve(d, cfg)
+                t_resolve += dt
+                n_resolve += n
+                cell, _ = evaluate(d, res, cfg)
+                cell.update(medium=medium, separation_us=sep, ratio=ratio)
+                out["cells"].append(cell)
+                print(f"{medium:8s} sep {sep:2d} us ratio 1:{ratio}  n {n:3d}  success "
+                      f"{cell['success']:.3f}  rms {cell['rms_um'] or 0:6.1f} um  crlb "
+                      f"{cell['crlb_um']:5.1f}  wrong {cell['wrong_accepts']}  rej {cell['rejected']:.2f}",
+                      flush=True)
+        # single emissions: stay single?
+        n = n_key
+        pts = cfg.geometry.surface_point_from_angles(np.arccos(rng.uniform(0.5, 1.0, n)),
+                                                     rng.uniform(0, 2 * np.pi, n))
+        pk = render_triggered(pts, cfg, snr_db=rng.uniform(20, 30, n), rng=rng)
+        t0 = time.perf_counter()
+        res = resolve_overlaps(pk.samples_v, pk.sample_rate_hz, pk.onset_index, geometry=cfg.geometry)
+        t_single = time.perf_counter() - t0
+        one = [r.accepted and len(r.sources) == 1 for r in res]
+        err1 = [np.linalg.norm(r.sources[0].point_m - pts[i]) for i, r in enumerate(res)
+                if r.accepted and len(r.sources) == 1]
+        t0 = time.perf_counter()
+        ml = localize(pk.samples_v, pk.sample_rate_hz, pk.onset_index, geometry=cfg.geometry)
+        t_ml = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        sus = suspect_overlap(pk.samples_v, pk.sample_rate_hz, pk.onset_index, ml, geometry=cfg.geometry)
+        t_sus = time.perf_counter() - t0
+        out["singles"][medium] = dict(
+            n=n, one_source=float(np.mean(one)), split=float(np.mean([r.accepted and len(r.sources) > 1
+                                                                       for r in res])),
+            rejected=float(np.mean([not r.accepted for r in res])),
+            rms_um=float(np.sqrt(np.mean(np.square(err1))) * 1e6) if err1 else None,
+            ml_accepted=float(ml.accepted.mean()),
+            suspect_false_positive=float(sus[ml.accepted].mean()) if ml.accepted.any() else None,
+            ms_per_packet_resolve=1e3 * t_single / n, us_per_packet_ml=1e6 * t_ml / n,
+            us_per_packet_suspect=1e6 * t_sus / n)
+        print(medium, "singles", out["singles"][medium], flush=True)
+        # the single-source localizer on pairs, and suspect_overlap on what it accepted
+        rows = {}
+        for sep in (2, 5, 8.5, 10):
+            n = n_other
+            d = simulate_overlaps(n, cfg, separation_s=sep * 1e-6, amplitude_ratio=2,
+                                  snr_db=rng.uniform(20, 30, n), rng=rng)
+            ml = localize(d["samples_v"], d["sample_rate_hz"], d["onset_index"], geometry=cfg.geometry)
+            sus = suspect_overlap(d["samples_v"], d["sample_rate_hz"], d["onset_index"], ml,
+                                  geometry=cfg.geometry)
+            near = np.min(np.linalg.norm(d["points_m"] - ml.point_m[:, None, :], axis=2), axis=1)
+            acc = ml.accepted
+            rows[str(sep)] = dict(
+                n=n, ml_rejected_overlap=float(np.mean(ml.reason == 6)), ml_accepted=float(acc.mean()),
+                ml_accepted_off_gt_0p1mm=float(np.mean(acc & (near > 0.1e-3))),
+                ml_accepted_off_gt_0p5mm=float(np.mean(acc & (near > 0.5e-3))),
+                suspect_flagged_of_accepted=float(sus[acc].mean()) if acc.any() else None)
+        out["ml_on_pairs"][medium] = rows
+        print(medium, "ml on pairs", rows, flush=True)
+    cfg = configs()["water"]
+    # three emissions, 3 us apart
+    n = n_other
+    d = simulate_overlaps(n, cfg, n_sources=3, separation_s=3e-6, amplitude_ratio=2,
+                          snr_db=rng.uniform(20, 30, n), rng=rng)
+    res, dt = timed_resolve(d, cfg)
+    out["three"], _ = evaluate(d, res, cfg)
+    out["three"].update(separation_us=3, ratio=2, ms_per_packet=1e3 * dt / n)
+    print("three", out["three"], flush=True)
+    # SNR of the stronger emission 20-30 dB, ratio 4 (the weaker one at 8-18 dB)
+    for sep in (2, 5):
+        d = simulate_overlaps(n_other, cfg, separation_s=sep * 1e-6, amplitude_ratio=4,
+                              snr_db=rng.uniform(20, 30, n_other), snr_reference="stronger", rng=rng)
+        res, _ = timed_resolve(d, cfg)
+        out["stronger_reference"][str(sep)], _ = evaluate(d, res, cfg)
+        print("stronger ref", sep, out["stronger_reference"][str(sep)], flush=True)
+    # pulse-shape mismatch: the data's front end or emission differs from the model
+    cases = {"highpass 90 kHz (model 100)": (cfg.replace(highpass_hz=90e3), {}),
+             "lowpass 1.1 MHz (model 1.0)": (cfg.replace(lowpass_hz=1.1e6), {}),
+             "silicone with attenuation (2 dB/cm at 1 MHz)":
+                 (SimConfig.for_medium("silicone", reflections=True, attenuation=True), {})}
+    for name, (c2, kw) in cases.items():
+        d = simulate_overlaps(n_other, c2, separation_s=5e-6, amplitude_ratio=2,
+                              snr_db=rng.uniform(20, 30, n_other), rng=rng)
+        res, _ = timed_resolve(d, c2, pulse=PulseModel())
+        out["mismatch"][name], _ = evaluate(d, res, c2, crlb=False)
+        print("mismatch", name, out["mismatch"][name], flush=True)
+    out["timing"] = dict(ms_per_pair_resolve=1e3 * t_resolve / max(n_resolve, 1),
+                         total_s=time.perf_counter() - t_start, load_after=os.getloadavg())
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    name = "overlap_quick" if args.quick else "overlap"
+    (RESULTS / f"{name}.json").write_text(json.dumps(out, indent=1))
+    table = make_table(out)
+    (RESULTS / f"{name}_table.md").write_text(table)
+    plot(out, RESULTS / f"{name}_success.png")
+    print(table)
+    print(f"total {out['timing']['total_s']:.1f} s")
+
+
+def make_table(out):
+    lines = ["Success (both points within 0.1 mm) / RMS error of reported points (um) / joint CRLB (um)"
+             " / wrong accepts (> 0.5 mm); pairs per cell in brackets.", ""]
+    for medium in ("water", "silicone"):
+        cells = [c for c in out["cells"] if c["medium"] == medium]
+        lines.append(f"**{medium}** (SNR of the weaker emission 20-30 dB)")
+        lines.append("")
+        lines.append("| ratio \\ separation | " + " | ".join(f"{s} us" for s in SEPARATIONS_US) + " |")
+        lines.append("|---" * (len(SEPARATIONS_US) + 1) + "|")
+        for ratio in RATIOS:
+            row = [f"1:{ratio}"]
+            for s in SEPARATIONS_US:
+                c = next(c for c in cells if c["separation_us"] == s and c["ratio"] == ratio)
+                rms = "-" if c["rms_um"] is None else f"{c['rms_um']:.0f}"
+                row.append(f"{100 * c['success']:.1f} % / {rms} / {c['crlb_um']:.0f} / "
+                           f"{c['wrong_accepts']} ({c['n']})")
+            lines.append("| " + " | ".join(row) + " |")
+        lines.append("")
+    allc = [c for c in out["cells"] if c["separation_us"] >= 2]
+    n = sum(c["n"] for c in allc)
+    lines.append(f"Separation >= 2 us, all ratios and media: success "
+                 f"{100 * sum(c['success'] * c['n'] for c in allc) / n:.1f} % of {n} pairs; "
+                 f"wrong accepts {sum(c['wrong_accepts'] for c in out['cells'])} of "
+                 f"{sum(c['n'] for c in out['cells'])} pairs (all separations); reported points "
+                 f"inside their 1.515-sigma ellipse: "
+                 f"{100 * np.mean([c['inside_1p515_sigma'] for c in allc if c['inside_1p515_sigma']]):.1f} %"
+                 " (68.3 % expected).")
+    lines.append("")
+    return "\n".join(lines) + "\n"
+
+
+def plot(out, path):
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib missing: no plot")
+        return
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    for medium, ls in (("water", "-"), ("silicone", "--")):
+        for ratio, col in zip(RATIOS, ("C0", "C1", "C2")):
+            cells = sorted([c for c in out["cells"] if c["medium"] == medium and c["ratio"] == ratio],
+                           key=lambda c: c["separation_us"])
+            x = [c["separation_us"] for c in cells]
+            axes[0].plot(x, [100 * c["success"] for c in cells], ls, color=col, marker="o",
+                         label=f"{medium} 1:{ratio}")
+            axes[1].plot(x, [c["rms_um"] or np.nan for c in cells], ls, color=col, marker="o",
+                         label=f"{medium} 1:{ratio}")
+            axes[1].plot(x, [c["crlb_um"] for c in cells], ls, color=col, alpha=0.35)
+    axes[0].axhline(90, color="k", lw=0.8)
+    axes[0].set_xlabel("emission separation (us)")
+    axes[0].set_ylabel("both points within 0.1 mm (%)")
+    axes[0].set_ylim(0, 102)
+    axes[0].legend(fontsize=7)
+    axes[1].set_xlabel("emission separation (us)")
+    axes[1].set_ylabel("RMS error of reported points (um); pale: joint CRLB")
+    axes[1].set_yscale("log")
+    fig.suptitle("Two overlapping emissions, 10 MS/s, SNR of the weaker 20-30 dB")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()
