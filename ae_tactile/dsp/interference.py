@@ -26,25 +26,56 @@ rates for both couplings.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 
 COMMON_MIN = 0.9
 LOW_MAX = 0.25
 HIGH_MAX = 1.5
+SHAPE_MIN = 0.8
+
+
+@lru_cache(maxsize=32)
+def acoustic_templates(sample_rate_hz: float, n_samples: int, highpass_hz: float, highpass_order: int,
+                       lowpass_hz: float | None, lowpass_order: int, n_offsets: int = 4) -> np.ndarray:
+    """Unit-norm templates (n_offsets, n_samples) of an acoustic packet: the front end's
+    response to a pressure step (a touch's Eq. 9 pulse is a step in the band, emission.py),
+    the step at sub-sample offsets j / n_offsets before the first sample... + 1 sample."""
+    from scipy import signal
+    z, p, k = signal.butter(highpass_order, 2 * math.pi * highpass_hz, "highpass", analog=True,
+                            output="zpk")
+    if lowpass_hz is not None:
+        z2, p2, k2 = signal.butter(lowpass_order, 2 * math.pi * lowpass_hz, "lowpass", analog=True,
+                                   output="zpk")
+        z, p, k = np.concatenate([z, z2]), np.concatenate([p, p2]), k * k2
+    sys_ = signal.lti(z, p, k)
+    fine = np.arange((n_samples + 2) * 8 * n_offsets) / (8 * n_offsets * sample_rate_hz)
+    _, yf = signal.step(sys_, T=fine)
+    out = np.zeros((n_offsets, n_samples))
+    for j in range(n_offsets):
+        t = (np.arange(n_samples) + 1.0 - j / n_offsets) / sample_rate_hz
+        y = np.interp(t, fine, yf)
+        out[j] = y / np.linalg.norm(y)
+    return out
 
 
 def common_mode_interference(windows, sample_rate_hz: float, onset_index, *, geometry=None,
-                             noise_rms_v=None, lowpass_hz: float = 1e6, highpass_hz: float = 100e3,
-                             window_s: float = 20e-6, common_min: float = COMMON_MIN,
+                             noise_rms_v=None, lowpass_hz: float = 1e6, window_s: float = 20e-6,
+                             echo_min: float | None = None, common_min: float = COMMON_MIN,
+                             highpass_hz: float = 100e3, highpass_order: int = 2, lowpass_order: int = 4,
+                             shape_min: float | None = SHAPE_MIN, shape_snr_min: float = 30.0,
                              low_max: float = LOW_MAX, high_max: float = HIGH_MAX):
     """(mask (K,) bool: interference, score (K,) float) for packets ``windows`` (K, 4, M)
     volts at ``sample_rate_hz`` with onsets ``onset_index`` (K,) (window-relative samples).
 
     ``noise_rms_v``: per-channel noise sigma (scalar or (K,)), removed from the energies
-    (None: not removed). ``lowpass_hz`` / ``highpass_hz``: the front end's band edges
-    (SimConfig.lowpass_hz / highpass_hz); ``window_s``: analysis length after the onset;
-    ``geometry`` is accepted for the pipeline's uniform call signature (unused).
+    (None: not removed). ``lowpass_hz``: the front end's anti-alias cut-off;
+    ``window_s``: analysis length after the onset. ``echo_min`` (needs ``geometry``):
+    on a device with wall echoes, a common-mode packet whose echo at 2R/c (regression
+    coefficient beta of the common mode at that lag on the direct packet, -0.5 for the
+    simulator's wall) is weaker than ``|beta| >= echo_min`` is interference too (catches
+    interference shaped by the front end); None: no echo test (a device without echoes).
     Non-finite windows give mask False and score NaN (the localizer rejects them)."""
     x = np.asarray(windows, dtype=float)
     if x.ndim != 3 or x.shape[1] != 4:
@@ -62,23 +93,53 @@ def common_mode_interference(windows, sample_rate_hz: float, onset_index, *, geo
         return np.zeros(0, bool), np.zeros(0)
     w = max(4, min(m, int(round(window_s * fs))))
     start = np.clip(on - 1, 0, max(0, m - w))
+    s_full = x.mean(axis=1)                                       # (K, M) common mode
+    q_full = np.einsum("kcm,kcm->km", x, x) * 0.25                # (K, M) mean channel power
+    rows = np.arange(k)[:, None]
     idx = start[:, None] + np.arange(w)[None, :]
-    seg = np.take_along_axis(x, np.broadcast_to(idx[:, None, :], (k, 4, w)), axis=2)
-    s = seg.mean(axis=1)                                          # (K, W)
+    s = s_full[rows, idx]
     nv = 0.0 if noise_rms_v is None else np.asarray(noise_rms_v, float).reshape(-1) ** 2
-    e_ch = (seg * seg).sum(axis=2).mean(axis=1) - w * nv          # signal energy per channel
-    e_s = (s * s).sum(axis=1) - w * nv / 4.0
+    e_ch = q_full[rows, idx].sum(axis=1) - w * nv
+    e_s = np.einsum("kw,kw->k", s, s) - w * nv * 0.25
     tiny = 1e-30
     common = np.clip(e_s / np.maximum(e_ch, tiny), 0.0, 1.0)
-    mean = s.mean(axis=1)
-    low = np.clip((mean * mean * w - nv / 4.0) / np.maximum(e_s, tiny), 0.0, None)
-    d = np.diff(s, axis=1)
+    mean = s.sum(axis=1) / w
+    low = np.maximum((mean * mean * w - nv * 0.25) / np.maximum(e_s, tiny), 0.0)
+    d = s[:, 1:] - s[:, :-1]
     band = 2.0 * (1.0 - math.cos(2.0 * math.pi * min(lowpass_hz, 0.5 * fs) / fs))
-    e_d = (d * d).sum(axis=1) - (w - 1) * 2.0 * nv / 4.0
-    high = np.clip(e_d / np.maximum(e_s * band, tiny), 0.0, None)
-    score = common * np.maximum(low / low_max, high / high_max)
-    score = np.where(e_s > 0, score, 0.0)
-    finite = np.isfinite(x).all(axis=(1, 2))
-    score = np.where(finite, score, np.nan)
+    e_d = np.einsum("kw,kw->k", d, d) - (w - 1) * nv * 0.5
+    high = np.maximum(e_d / np.maximum(e_s * band, tiny), 0.0)
+    score = common * np.maximum(low * (1.0 / low_max), high * (1.0 / high_max))
+    if shape_min is not None:
+        # shape: share of the (noise-corrected) common-mode energy explained by the best
+        # acoustic template (sub-sample offsets x integer lags -1..+2); judged only when
+        # the packet stands well above the noise (weak touches are never rejected)
+        # (before the first wall echo, 2R/c after the onset, when the geometry is known)
+        t_echo = 10e-6 if geometry is None else 2.0 * geometry.radius_m / geometry.sound_speed_m_s
+        wt = max(4, min(w, m - 3, int(t_echo * fs) - 1))
+        tpl = acoustic_templates(fs, wt, float(highpass_hz), int(highpass_order),
+                                 None if lowpass_hz is None else float(lowpass_hz), int(lowpass_order))
+        st = np.clip(on - 2, 0, m - wt - 3)
+        lags = st[:, None, None] + np.arange(4)[None, :, None] + np.arange(wt)[None, None, :]
+        seg = s_full[np.arange(k)[:, None, None], lags]                 # (K, 4 lags, wt)
+        c = np.einsum("klw,jw->klj", seg, tpl)
+        best = (c * c).reshape(k, -1).max(axis=1)
+        e_seg = np.einsum("kw,kw->k", seg[:, 1], seg[:, 1]) - wt * nv * 0.25
+        explained = best / np.maximum(e_seg, tiny)
+        strong = e_seg > shape_snr_min * wt * np.maximum(nv, tiny) * 0.25
+        shape_score = np.where(strong, common * (1.0 - explained) / (1.0 - shape_min), 0.0)
+        score = np.maximum(score, shape_score)
+    if echo_min is not None and geometry is not None:
+        lag = int(round(2.0 * geometry.radius_m / geometry.sound_speed_m_s * fs))
+        wd = max(2, min(lag, int(round(5e-6 * fs))))
+        a0 = np.clip(on - 1, 0, max(0, m - lag - wd))
+        i0 = a0[:, None] + np.arange(wd)[None, :]
+        direct, echo = s_full[rows, i0], s_full[rows, i0 + lag]
+        if m >= lag + wd:
+            ed = np.einsum("kw,kw->k", direct, direct)
+            beta = np.einsum("kw,kw->k", direct, echo) / np.maximum(ed, tiny)
+            score = np.maximum(score, common * (1.0 - np.minimum(np.abs(beta) / echo_min, 1.0)) * 2.0)
+    finite = np.isfinite(score) & np.isfinite(e_ch)
+    score = np.where(finite, np.where(e_s > 0, score, 0.0), np.nan)
     mask = finite & (common >= common_min) & (score >= 1.0)
     return mask, score
