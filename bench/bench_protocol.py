@@ -7,12 +7,20 @@ frame) with a STATUS heartbeat every 1000 packets, decoded from
 * clean:      the error-free stream, in reads of 4 KiB (a typical serial read size),
               64 KiB, and one byte at a time (worst case for the Python loop, fewer frames);
 * corrupted:  the same stream with 1 % of the frames hit by a random bit flip and
-              random garbage (0..64 bytes) between 1 % of the frames, in 4 KiB reads.
+              random garbage (0..64 bytes) between 1 % of the frames, in 4 KiB reads;
+* adversarial: a fake header (valid header CRC) claiming 64 KiB before EVERY frame, in
+              4 KiB and 64 KiB reads (the contract: >= 50 % of the clean throughput);
+              and a flood of nothing but such fake headers (no valid frame at all).
+
+``--faults`` instead measures the recovery of a real FingertipLink from a simulated
+fingertip over a pty (device reset mid-frame, garbage-only device, unplug, repeated
+frames, stuck TCP client) and writes bench/results/protocol_faults.json.
 
 Each figure is the best of ``--repeats`` runs (least disturbed by other processes on
 the machine). Writes bench/results/protocol.json and prints a summary.
 
     python3 bench/bench_protocol.py [--packets 20000] [--samples 400] [--repeats 3]
+    python3 bench/bench_protocol.py --faults [--trials 3]
 """
 from __future__ import annotations
 
@@ -20,16 +28,18 @@ import argparse
 import json
 import os
 import platform
+import struct
 import sys
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from ae_tactile.protocol import (DeviceState, FrameEncoder, Packet, Status,  # noqa: E402
-                                 StreamDecoder)
+from ae_tactile.protocol import (MAX_PAYLOAD_LEN, SYNC, DeviceState, FrameEncoder,  # noqa: E402
+                                 Packet, Status, StreamDecoder)
 
 
 def make_frames(n_packets: int, n_samples: int, seed: int = 1) -> list[bytes]:
@@ -70,6 +80,12 @@ def corrupt(frames: list[bytes], seed: int = 2) -> tuple[bytes, int, int]:
     return b"".join(parts), n_flipped, len(frames)
 
 
+def fake_header(seq: int) -> bytes:
+    """A header with a valid header CRC claiming MAX_PAYLOAD_LEN (64 KiB) of payload."""
+    head = struct.pack("<4sBBBBIII", SYNC, 1, 1, 0, 0, MAX_PAYLOAD_LEN, seq, 0)
+    return head + struct.pack("<I", zlib.crc32(head))
+
+
 def run_decoder(stream: bytes, chunk: int, repeats: int) -> dict:
     best = None
     for _ in range(repeats):
@@ -94,9 +110,13 @@ def main(argv=None) -> dict:
     ap.add_argument("--packets", type=int, default=20000)
     ap.add_argument("--samples", type=int, default=400, help="samples per channel per packet")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--faults", action="store_true", help="measure fault recovery instead")
+    ap.add_argument("--trials", type=int, default=3, help="trials per fault (--faults)")
     ap.add_argument("--out", type=Path,
                     default=Path(__file__).resolve().parent / "results" / "protocol.json")
     args = ap.parse_args(argv)
+    if args.faults:
+        return bench_faults(args.trials, args.out.parent / "protocol_faults.json")
 
     # encoder throughput
     best_enc = None
@@ -131,6 +151,22 @@ def main(argv=None) -> dict:
     r["frames_expected"] = n_total - n_flipped
     results["decode_corrupted"] = r
 
+    adv = b"".join(fake_header(k) + f for k, f in enumerate(frames))
+    results["decode_adversarial"] = {}
+    for chunk in (4096, 65536):
+        r = run_decoder(adv, chunk, args.repeats)
+        assert r["frames"] == len(frames), (r["frames"], len(frames))
+        clean = results["decode_clean"][f"chunk_{chunk}"]
+        r["ratio_to_clean_bytes_per_s"] = r["bytes_per_s"] / clean["bytes_per_s"]
+        r["ratio_to_clean_frames_per_s"] = r["frames_per_s"] / clean["frames_per_s"]
+        r["note"] = "a fake 64 KiB header (valid header CRC) before every frame"
+        results["decode_adversarial"][f"chunk_{chunk}"] = r
+    flood = b"".join(fake_header(k) for k in range(2 * 65588 // 24 * 8))
+    r = run_decoder(flood, 4096, 1)
+    r["note"] = "nothing but fake 64 KiB headers, back to back (no valid frame)"
+    results["decode_fake_header_flood"] = r
+
+    results["load_average"] = os.getloadavg()
     results["environment"] = {
         "python": sys.version.split()[0], "numpy": np.__version__,
         "machine": platform.machine(), "processor": platform.processor() or platform.machine(),
@@ -149,8 +185,147 @@ def main(argv=None) -> dict:
           f"  ({r['frames']} of {r['frames_expected']} intact frames decoded;"
           f" crc_errors {r['stats']['crc_errors']}, header_errors {r['stats']['header_errors']},"
           f" dropped {r['stats']['dropped_frames']})")
+    for name, r in results["decode_adversarial"].items():
+        print(f"decode fake-64k {name:10s} {r['frames_per_s']:9.0f} frames/s"
+              f"  {r['mbytes_per_s']:7.1f} MB/s  ({100 * r['ratio_to_clean_bytes_per_s']:.0f} %"
+              f" of clean; truncated {r['stats']['truncated_frames']},"
+              f" crc_errors {r['stats']['crc_errors']})")
+    r = results["decode_fake_header_flood"]
+    print(f"decode fake-header flood  {r['mbytes_per_s']:7.2f} MB/s (no valid frame;"
+          f" truncated {r['stats']['truncated_frames']}, crc_errors {r['stats']['crc_errors']})")
     print(f"wrote {args.out}")
     return results
+
+
+# ---------------------------------------------------------------------- faults
+def _wait(cond, timeout_s: float, poll=None) -> float | None:
+    """Seconds until cond() (polling every ms), or None after timeout_s."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout_s:
+        if poll is not None:
+            poll()
+        if cond():
+            return time.monotonic() - t0
+        time.sleep(0.001)
+    return None
+
+
+def bench_faults(trials: int, out: Path) -> dict:
+    """Recovery times of a real FingertipLink from injected faults (pty / TCP)."""
+    import tempfile
+
+    import yaml
+
+    from ae_tactile.link import FingertipLink, LinkConfig
+    from ae_tactile.virtual_device import (DeviceRunner, PtyTransport, TcpTransport,
+                                           VirtualFingertip)
+    root = Path(__file__).resolve().parents[1]
+    with open(root / "config" / "scenes" / "random_touches.yaml") as fh:
+        scene = dict(yaml.safe_load(fh), duration_s=12.0, name="long")
+    res: dict = {"trials": trials}
+
+    def rig(tmp, transport=None, **kw):
+        dev = VirtualFingertip(scene, record=True)
+        tr = transport or PtyTransport(str(Path(tmp) / "tip"))
+        runner = DeviceRunner(dev, tr)
+        link = FingertipLink(LinkConfig(port=tr.port, **kw), clock_ns=time.monotonic_ns)
+        records = []
+        runner.start()
+        link.start()
+
+        def poll():
+            for b in link.poll():
+                records.extend(b.packets)
+        # configured and acquiring: the first packet is in
+        assert _wait(lambda: link.stats()["state"] == "connected" and records, 30, poll) is not None
+        _wait(lambda: False, 0.3, poll)
+        return dev, runner, link, records, poll
+
+    def close(runner, link):
+        link.stop()
+        runner.stop()
+
+    def add(name, key, value):
+        res.setdefault(name, {}).setdefault(key, []).append(value)
+
+    def since(t0, cond, timeout_s, poll):
+        dt = _wait(cond, timeout_s, poll)
+        return None if dt is None else time.monotonic() - t0
+
+    for _ in range(trials):
+        with tempfile.TemporaryDirectory() as tmp:
+            dev, runner, link, records, poll = rig(tmp)
+            # 1. watchdog reset mid-frame (8192-sample PACKET cut in half), port open
+            n0 = len(records)
+            d0 = link.stats()["disconnects"]
+            t0 = time.monotonic()
+            runner.call(dev.reset_mid_frame, time.monotonic_ns())
+            add("reset_mid_frame", "boot_frame_delivered_s",
+                since(t0, lambda: link.stats()["device_restarts_handled"] >= 1, 30, poll))
+            add("reset_mid_frame", "first_packet_s",
+                since(t0, lambda: len(records) > n0, 30, poll))
+            s = link.stats()
+            add("reset_mid_frame", "disconnects", s["disconnects"] - d0)
+            add("reset_mid_frame", "truncated_frames", s["truncated_frames"])
+            # 2. repeated frames
+            runner.call(dev.repeat_next, 5)
+            _wait(lambda: link.stats()["duplicate_frames"] >= 5, 30, poll)
+            s = link.stats()
+            add("repeated_frames", "duplicates", s["duplicate_frames"])
+            add("repeated_frames", "restarts_handled_extra", s["device_restarts_handled"] - 1)
+            # 3. garbage only (wrong baud rate)
+            t0 = time.monotonic()
+            dev.garble(True)
+            add("garbage_only", "not_connected_after_s",
+                since(t0, lambda: link.stats()["state"] != "connected", 30, poll))
+            _wait(lambda: False, 1.0, poll)
+            dev.garble(False)
+            n0 = len(records)
+            t0 = time.monotonic()
+            add("garbage_only", "connected_again_s",
+                since(t0, lambda: link.stats()["state"] == "connected", 30, poll))
+            add("garbage_only", "first_packet_again_s",
+                since(t0, lambda: len(records) > n0, 30, poll))
+            # 4. unplug for 1 s
+            c0 = link.stats()["connects"]
+            runner.unplug(1.0)
+            t0 = time.monotonic()
+            add("unplug_1s", "not_connected_after_s",
+                since(t0, lambda: link.stats()["state"] != "connected", 30, poll))
+            add("unplug_1s", "connected_again_after_unplug_s",
+                since(t0, lambda: link.stats()["connects"] > c0
+                      and link.stats()["state"] == "connected", 30, poll))
+            close(runner, link)
+        # 5. a stuck TCP client next to the driver
+        tr = TcpTransport(idle_timeout_s=5.0, client_sndbuf=4096)
+        import socket
+        stuck = socket.create_connection((tr.host, int(tr.port.rsplit(":", 1)[1])))
+        stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        dev, runner, link, records, poll = rig(None, transport=tr)
+        runner.call(dev.inject_garbage, bytes(300_000))
+        t0 = time.monotonic()
+        add("stuck_tcp_client", "dropped_after_s", since(t0, lambda: tr.timed_out >= 1, 60, poll))
+        add("stuck_tcp_client", "driver_disconnects", link.stats()["disconnects"])
+        close(runner, link)
+        stuck.close()
+    summary = {}
+    for name, d in res.items():
+        if isinstance(d, dict):
+            summary[name] = {k: {"median": float(np.median([v for v in vals if v is not None]))
+                                 if any(v is not None for v in vals) else None,
+                                 "max": max((v for v in vals if v is not None), default=None),
+                                 "values": vals} for k, vals in d.items()}
+    summary["trials"] = trials
+    summary["load_average"] = os.getloadavg()
+    summary["link_defaults"] = {"link_timeout_s": 3.0, "idle_flush_s": 0.25,
+                                "reconnect_initial_s": 0.2}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(summary, indent=2) + "\n")
+    for name, d in summary.items():
+        if isinstance(d, dict) and name != "link_defaults":
+            print(name, {k: v["median"] for k, v in d.items()})
+    print(f"wrote {out}")
+    return summary
 
 
 if __name__ == "__main__":
