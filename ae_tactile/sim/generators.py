@@ -199,6 +199,16 @@ def texture(ctx, p):
     return StaticEmissions(em, {"generator": "texture", "emission_rate_hz": rate})
 
 
+def _polarity(drawn, mode):
+    """Emission polarities: the random draw (kept so the random stream never changes),
+    or all compressions / all rarefactions."""
+    if mode == "compression":
+        return np.ones_like(drawn)
+    if mode == "rarefaction":
+        return -np.ones_like(drawn)
+    return drawn
+
+
 # ---------------------------------------------------------------------- incipient slip
 def hertz_contact_radius_m(load_n, radius_m, youngs_modulus_pa, poisson_ratio=0.5):
     """Hertz: a_H = (3 P R / (4 E*))^(1/3), rigid object on an elastic tip:
@@ -234,6 +244,10 @@ class IncipientSlipProcess:
         since df/dq = (2/3)(1 - q)^(-1/3), the rate grows as the stick zone shrinks;
       * background events at rate ``background_rate_hz`` f(q) (ongoing micro-slip in the
         slipping annulus).
+    ``micro_slip_count`` (optional) replaces the density: the front then emits that many on
+    average over a whole ramp (q from 0 to 1), whatever the contact's size.
+    ``micro_slip_polarity``: 'random' (each emission +1 or -1), 'compression' (+1),
+    'rarefaction' (-1); it applies to gross-slip emissions too.
     Gross slip once q reaches 1 (Q = mu P): the time goes in the truth
     (``gross_slip_time_ns``), and while q >= 1 'slip' emissions come at ``slip_rate_hz``
     from the whole contact disc. Raising P so that q < 1 again re-sticks the contact
@@ -382,7 +396,9 @@ class IncipientSlipProcess:
             f_lo = max(fmax, float(slip_fraction(qa)))
             f_hi = float(slip_fraction(min(qe, 1.0)))
             if f_hi > f_lo:            # front events, uniform in f
-                n = rng.poisson(self.p["front_density_per_m2"] * math.pi * aH * aH * (f_hi - f_lo))
+                count = self.p.get("micro_slip_count")
+                n_full = count if count is not None else self.p["front_density_per_m2"] * math.pi * aH * aH
+                n = rng.poisson(n_full * (f_hi - f_lo))
                 u = rng.uniform(f_lo, f_hi, n)
                 q = 1.0 - (1.0 - u) ** 1.5
                 if self.qdot > 0:
@@ -417,7 +433,7 @@ class IncipientSlipProcess:
         th = rng.uniform(0, 2 * np.pi, t.size)
         pts = (self.center + (rr * np.cos(th))[:, None] * self._e1 + (rr * np.sin(th))[:, None] * self._e2)
         pts *= self.geometry.radius_m / np.linalg.norm(pts, axis=1, keepdims=True)
-        pol = rng.choice([-1.0, 1.0], t.size)
+        pol = _polarity(rng.choice([-1.0, 1.0], t.size), self.p.get("micro_slip_polarity", "random"))
         ids = (step << 24) + (key << 16) + np.arange(t.size)
         return (t, code, pts, pol, ids), fmax_new, sliding_new
 
@@ -487,6 +503,102 @@ class IncipientSlipProcess:
 
 def incipient_slip(ctx, p):
     return IncipientSlipProcess(ctx, p)
+
+
+# ---------------------------------------------------------------------- moving contact
+def rotate_on_sphere(p0_m, direction, angle_rad):
+    """Points (n, 3): p0 (3,) rotated by ``angle_rad`` (n,) about the axis p0 x direction,
+    i.e. moved along the great circle through p0 heading along ``direction`` (tangent)."""
+    p0 = np.asarray(p0_m, float)
+    k = np.cross(p0, np.asarray(direction, float))
+    k /= np.linalg.norm(k)
+    a = np.asarray(angle_rad, float)[:, None]
+    return p0 * np.cos(a) + np.cross(k, p0) * np.sin(a) + k * (k @ p0) * (1 - np.cos(a))
+
+
+def stylus(ctx, p):
+    """A stylus dragged over the tip: it touches at (x_m, y_m) at start_s (a touch
+    emission), slides along the great circle heading ``heading_deg`` (from +x toward +y in
+    the tangent plane) at ``slide_speed_m_s`` for ``path_m``, then lifts off (a release,
+    when release_emissions is on). While it slides over a texture of spatial period
+    ``period_m`` it emits at arc lengths n lambda (times n lambda / v + Gaussian jitter,
+    std ``jitter_fraction`` of the period), from points uniform in a patch of radius
+    ``contact_radius_m`` around the moving centre; a fraction ``miss_fraction`` of the
+    ridges stays silent. Polarity: 'random', 'compression' or 'rarefaction'. Truth: the
+    track (centre and velocity at any time), the period and the speed."""
+    geo = ctx.config.geometry
+    rng = _rng(ctx.seed, 71)
+    R = geo.radius_m
+    p0 = geo.surface_point_from_xy(p["x_m"], p["y_m"])
+    e1, e2 = tangent_basis(p0)
+    h = math.radians(p["heading_deg"])
+    d = math.cos(h) * e1 + math.sin(h) * e2
+    v, lam = p["slide_speed_m_s"], p["period_m"]
+    t0 = p["start_s"]
+    dur = p["path_m"] / v
+    end = rotate_on_sphere(p0, d, [p["path_m"] / R])[0]
+    for q in (p0, end):
+        _check_patch(geo, q, p["contact_radius_m"], "stylus")
+    n = int(math.floor(p["path_m"] / lam))
+    k = np.arange(1, n + 1)
+    t = t0 + k * lam / v + rng.normal(0.0, p["jitter_fraction"] * lam / v, n)
+    keep = (rng.uniform(0, 1, n) >= p["miss_fraction"]) & (t > t0) & (t < min(t0 + dur, ctx.duration_s))
+    centres = rotate_on_sphere(p0, d, v * (t - t0) / R)
+    u, w = uniform_disc(rng, n, 0.0, p["contact_radius_m"])
+    f1, f2 = tangent_basis(centres) if n else (np.zeros((0, 3)), np.zeros((0, 3)))
+    pts = centres + u[:, None] * f1 + w[:, None] * f2
+    pts *= R / np.linalg.norm(pts, axis=1, keepdims=True) if n else 1.0
+    ev = EventParams(p["speed_m_s"], p["curvature_1_m"], p["alpha_1_s"])
+    pol = _polarity(rng.choice([-1.0, 1.0], n), p["polarity"])
+    lists = [_make(ctx, t[keep], pts[keep], "texture", ev, pol[keep], 2 + np.arange(n)[keep])]
+    if t0 < ctx.duration_s:
+        lists.append(_make(ctx, [t0], p0[None, :], "touch", EventParams(p["touch_speed_m_s"], p["curvature_1_m"],
+                                                                        p["alpha_1_s"]), 1, [0]))
+    t_end = t0 + dur
+    if ctx.effects["release_emissions"] and t_end < ctx.duration_s:
+        lists.append(_make(ctx, [t_end], rotate_on_sphere(p0, d, [p["path_m"] / R]), "release",
+                           EventParams(p["touch_speed_m_s"] * 0.5, p["curvature_1_m"], p["alpha_1_s"]), -1, [1]))
+    truth = {"generator": "stylus", "start_time_ns": int(_ns(t0)), "end_time_ns": int(_ns(t_end)),
+             "slide_speed_m_s": v, "period_m": lam, "emission_rate_hz": v / lam,
+             "start_point_m": [float(x) for x in p0], "direction": [float(x) for x in d],
+             "n_texture_emissions": int(keep.sum())}
+    return StaticEmissions(EmissionList.concat(lists), truth)
+
+
+def stylus_track(truth: dict, radius_m: float, t_ns):
+    """(centre (n, 3), velocity (n, 3)) of a stylus scene's contact at times t_ns (n,)."""
+    t = (np.atleast_1d(np.asarray(t_ns, float)) - truth["start_time_ns"]) * 1e-9
+    t = np.clip(t, 0.0, (truth["end_time_ns"] - truth["start_time_ns"]) * 1e-9)
+    p0, d, v = np.asarray(truth["start_point_m"]), np.asarray(truth["direction"]), truth["slide_speed_m_s"]
+    c = rotate_on_sphere(p0, d, v * t / radius_m)
+    c2 = rotate_on_sphere(p0, d, v * (t + 1e-6) / radius_m)
+    return c, (c2 - c) / 1e-6
+
+
+# ---------------------------------------------------------------------- interference
+def interference(ctx, p):
+    """Common-mode electrical interference bursts (a switching motor driver, ESD): no
+    acoustic emission; the burst times and waveform options go in the scene truth, for
+    `ae_tactile.sim.interference.InterferenceSource` to render as packets (the acoustic
+    renderer cannot). Bursts at ``rate_hz`` from ``start_s`` for ``burst_duration_s``,
+    periodic (jitter ``jitter_s``) or Poisson. With ``hold_s`` > 0 a touch at (x_m, y_m)
+    at ``touch_time_s`` is held that long under the bursts and released."""
+    from ae_tactile.sim.interference import burst_times_s
+    rng = _rng(ctx.seed, 81)
+    end = min(ctx.duration_s, p["start_s"] + p["burst_duration_s"])
+    t = burst_times_s(end, p["rate_hz"], periodic=p["periodic"], jitter_s=p["jitter_s"], start_s=p["start_s"],
+                      rng=rng)
+    truth = {"generator": "interference", "burst_times_ns": [int(x) for x in _ns(t)],
+             "kind": p["kind"], "coupling": p["coupling"], "amplitude_snr_db": p["amplitude_snr_db"],
+             "seed": int(ctx.seed)}
+    em = EmissionList.empty()
+    if p["hold_s"] > 0:
+        # a held touch (touch_hold_release) under the interference: the false-alarm scene
+        sub = touch_hold_release(ctx, {**p, "time_s": p["touch_time_s"]})
+        em = sub.emissions
+        truth.update({"touch_time_ns": int(_ns(p["touch_time_s"])),
+                      "release_time_ns": sub.truth["release_time_ns"]})
+    return StaticEmissions(em, truth)
 
 
 # ---------------------------------------------------------------------- composite

@@ -137,3 +137,58 @@ def render_interference(n: int, config: SimConfig | None = None, *, kind="mixed"
         emission_time_s=np.full(n, np.nan), noise_rms_v=np.full(n, float(noise_rms_v)),
         snr_db=np.full(n, np.nan), signal_power_v2=np.full(n, np.nan),
         saturated=clipped.any(axis=(1, 2)), polarity=np.zeros(n))
+
+
+def scene_bursts(truth: dict) -> list[dict]:
+    """Interference burst specs of a scene truth (an 'interference' scene, or the parts of
+    a composite one, times shifted onto the scene's timeline): [{times_ns, kind, coupling,
+    amplitude_snr_db, seed}]."""
+    if truth.get("generator") == "interference":
+        return [dict(truth, times_ns=np.asarray(truth["burst_times_ns"], np.int64))]
+    out = []
+    for part in truth.get("parts", []):
+        if part.get("generator") == "interference":
+            out.append(dict(part, times_ns=np.asarray(part["burst_times_ns"], np.int64) + int(part["offset_ns"])))
+    return out
+
+
+class InterferenceSource:
+    """The interference packets of a scene, in time order: ``next_packets(horizon_ns)``
+    returns (trigger times (N,) int ns of the packets' onsets, TriggeredPackets) of the
+    bursts before ``horizon_ns`` not returned yet. Amplitude: ``amplitude_snr_db`` above
+    ``noise_rms_v`` (the scene's noise; 1 mV if the scene has none). The window's first
+    sample is ``pretrigger_s`` before the burst, as the triggered renderer's windows."""
+
+    def __init__(self, scene, *, pretrigger_s: float = 8e-6, window_s: float = 40e-6):
+        self.config = scene.config
+        self.noise_rms_v = float(scene.noise_rms_v or 0.0)
+        self.pre, self.win = pretrigger_s, window_s
+        truth = scene.process.scene_truth()
+        self.bursts = scene_bursts(truth)
+        self.seed = int(scene.seed)
+        self._h = np.iinfo(np.int64).min
+
+    def next_packets(self, horizon_ns: int):
+        times, parts = [], []
+        for i, b in enumerate(self.bursts):
+            t = b["times_ns"]
+            sel = t[(t >= self._h) & (t < horizon_ns)]
+            if sel.size == 0:
+                continue
+            ref = self.noise_rms_v if self.noise_rms_v > 0 else 1e-3
+            amp = ref * 10 ** (b["amplitude_snr_db"] / 20.0)
+            rng = np.random.default_rng([self.seed, 91, i, int(sel[0])])
+            parts.append(render_interference(sel.size, self.config, kind=b["kind"], coupling=b["coupling"],
+                                              amplitude_v=amp, noise_rms_v=self.noise_rms_v,
+                                              pretrigger_s=self.pre, window_s=self.win, rng=rng))
+            times.append(sel)
+        self._h = max(self._h, int(horizon_ns))
+        if not parts:
+            return np.zeros(0, np.int64), None
+        t = np.concatenate(times)
+        order = np.argsort(t, kind="stable")
+        cat = {f: np.concatenate([getattr(p, f) for p in parts])[order]
+               for f in ("samples_v", "clean_v", "onset_index", "points_m", "delays_s", "twist_s",
+                         "arrival_times_s", "emission_time_s", "noise_rms_v", "snr_db", "signal_power_v2",
+                         "saturated", "polarity")}
+        return t[order], TriggeredPackets(sample_rate_hz=parts[0].sample_rate_hz, **cat)
