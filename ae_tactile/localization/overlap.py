@@ -59,7 +59,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from scipy import signal
 
 from ae_tactile.geometry import CHANNEL_XI_ETA, FingertipGeometry
-from ae_tactile.localization.common import Reason, make_plan, prepare, validate_windows
+from ae_tactile.localization.common import Reason, make_plan, prepare, subset, validate_windows
 
 __all__ = ["PulseModel", "OverlapReason", "OverlapSource", "OverlapPacket", "resolve_overlaps",
            "suspect_overlap", "fit_sources", "simulate_overlaps", "joint_crlb"]
@@ -220,7 +220,10 @@ class _Model:
     """Batched evaluation of the J-emission model on K analysis segments."""
 
     def __init__(self, geo: FingertipGeometry, fs: float, start: np.ndarray, length: int,
-                 pulse: PulseModel, echo: bool):
+                 pulse: PulseModel, echo: bool, inside=None):
+        #: (K, 4L) 1 where the segment's sample lies inside the window, else 0
+        self.mask = None if inside is None else np.repeat(inside[:, None, :], 4, axis=1).reshape(
+            len(start), -1).astype(float)
         self.geo = geo
         self.fs = fs
         self.start = start.astype(float)          # (K,) first sample of each segment
@@ -285,10 +288,11 @@ class _Model:
         if not self.echo:
             gain[:, :, 1] = 0.0
         phi = (gain[..., None] * h).reshape(K, 2 * J, 4 * L)
+        if self.mask is not None:
+            phi *= self.mask[:, None, :]
         return phi, (h, dh, gain, dgain, dd / self.c)
 
-    @staticmethod
-    def jacobian(parts, amp):
+    def jacobian(self, parts, amp):
         """d model / d theta (K, 3J, N) for amplitudes amp (K, 2J):
         d/d s_i = sum_paths a (dgain_i h - gain h' dt_i),  d/d T = -sum_paths a gain h'."""
         h, dh, gain, dgain, dtds = parts
@@ -300,7 +304,10 @@ class _Model:
         dsx = np.einsum("kjec,kjecl->kjcl", ads[..., 0], h) - np.einsum("kjec,kjecl->kjcl", agt[..., 0], dh)
         dsy = np.einsum("kjec,kjecl->kjcl", ads[..., 1], h) - np.einsum("kjec,kjecl->kjcl", agt[..., 1], dh)
         dT = -np.einsum("kjec,kjecl->kjcl", ag, dh)
-        return np.stack([dsx, dsy, dT], axis=2).reshape(K, 3 * J, -1)
+        jac = np.stack([dsx, dsy, dT], axis=2).reshape(K, 3 * J, -1)
+        if self.mask is not None:
+            jac *= self.mask[:, None, :]
+        return jac
 
 
 def _lstsq_amplitudes(phi, y, ridge=1e-9):
@@ -347,7 +354,8 @@ def _lm(model: "_Model", y, theta, iterations=12, max_rho=None):
             break
         K_ = ids.size
         pa = tuple(q[ids] for q in parts)
-        jac = np.concatenate([model.jacobian(pa, amp[ids]), phi[ids]], axis=1)   # (K_, 5J, N)
+        sub = _sub(model, ids)
+        jac = np.concatenate([sub.jacobian(pa, amp[ids]), phi[ids]], axis=1)     # (K_, 5J, N)
         jtj = jac @ jac.transpose(0, 2, 1)
         jtr = (jac @ res[ids][..., None])[..., 0]
         dg = np.einsum("kii->ki", jtj)
@@ -359,7 +367,6 @@ def _lm(model: "_Model", y, theta, iterations=12, max_rho=None):
             step = np.zeros_like(jtr)
         step = np.where(np.isfinite(step), step, 0.0)
         new = _clip_theta(theta[ids] + step[:, : 3 * J].reshape(K_, J, 3), geo, max_rho)
-        sub = _sub(model, ids)
         ph2, pa2 = sub.evaluate(new)
         amp2 = _lstsq_amplitudes(ph2, y[ids])
         res2 = y[ids] - _model_values(ph2, amp2)
@@ -486,13 +493,13 @@ def _segments(prep, plan, geo, fs, analysis_s):
         a = geo.element_offset_m
         analysis_s = (4.0 * geo.radius_m - 2.0 * math.sqrt(2.0) * a) / geo.sound_speed_m_s - 0.3e-6
     start = np.clip(prep.onset - plan.pre, 0, m - 1)
-    length = int(min(m - int(start.max()), plan.pre + math.floor(analysis_s * fs)))
-    length = max(length, 8)
+    nominal = plan.pre + int(math.floor(analysis_s * fs))
+    length = max(int(np.max(np.minimum(m - start, nominal), initial=8)), 8)
     idx = start[:, None] + np.arange(length)[None, :]
-    inside = idx < m
+    inside = idx < m              # samples past the window end are masked out of the fit
     seg = np.take_along_axis(prep.x, np.clip(idx, 0, m - 1)[:, None, :].repeat(4, axis=1), axis=2)
     seg = (seg - prep.pre_mean[..., None]) * inside[:, None, :]
-    return seg, start, length
+    return seg, start, length, inside
 
 
 def fit_sources(windows, sample_rate_hz, onset_index, n_sources, *, geometry=None, pulse=None,
@@ -507,8 +514,8 @@ def fit_sources(windows, sample_rate_hz, onset_index, n_sources, *, geometry=Non
     plan = make_plan(sample_rate_hz, geo, x.shape[2], band_hz)
     with np.errstate(all="ignore"):
         prep = prepare(x, on, plan)
-        seg, start, length = _segments(prep, plan, geo, plan.fs, analysis_s)
-        model = _Model(geo, plan.fs, start, length, pulse, echo)
+        seg, start, length, inside = _segments(prep, plan, geo, plan.fs, analysis_s)
+        model = _Model(geo, plan.fs, start, length, pulse, echo, inside)
         fits = _search(model, seg, int(n_sources), _surface_grid(geo, grid_spacing_m))
     f = fits[-1]
     sc = prep.scale
@@ -533,7 +540,8 @@ def _search(model: _Model, seg, max_sources, grid, sigma2=None, add_threshold=No
         prev = fits[-1]
         go = np.ones(K, bool)
         if sigma2 is not None:
-            dof = y.shape[1] - 5 * (j - 1)
+            n_in = y.shape[1] if model.mask is None else model.mask.sum(axis=1)
+            dof = np.maximum(n_in - 5 * (j - 1), 1)
             go = prev.rss > search_limit * sigma2 * dof
             if j > 2:
                 go &= (fits[-2].rss - prev.rss) > add_threshold * sigma2
@@ -596,6 +604,8 @@ def _sub(model: _Model, ids) -> _Model:
     sub = _Model.__new__(_Model)
     sub.__dict__.update(model.__dict__)
     sub.start = model.start[ids]
+    if model.mask is not None:
+        sub.mask = model.mask[ids]
     return sub
 
 
@@ -613,7 +623,7 @@ def resolve_overlaps(windows, sample_rate_hz, onset_index, *, geometry=None, pul
                      noise_rms_v=None, saturated=None, full_scale_v=None, max_sources=3,
                      band_hz=(100e3, 1e6), analysis_s=None, add_threshold=60.0,
                      max_chi2_ratio=None, max_sigma_m=0.2e-3, min_snr_db=5.0, echo=True,
-                     grid_spacing_m=1.25e-3) -> list:
+                     grid_spacing_m=1.25e-3, min_separation_s=1.5e-6) -> list:
     """Localize every emission in each of K windows (two or three overlapping emissions).
 
     windows (K, 4, M) volts (a (4, M) window is accepted), sample_rate_hz, onset_index (K,)
@@ -625,6 +635,9 @@ def resolve_overlaps(windows, sample_rate_hz, onset_index, *, geometry=None, pul
     (in sigma^2) needed to add an emission. max_chi2_ratio: largest accepted residual /
     (sigma^2 dof) (default 1 + 5 sqrt(2/n_noise + 2/dof)). max_sigma_m: emissions with a
     larger in-plane 1-sigma are dropped. echo: model the first wall echo.
+    min_separation_s: emissions fitted closer than this in time are not separated reliably
+    (the joint likelihood has several nearly equal optima): such packets are rejected
+    (UNRESOLVED).
 
     Returns a list of K `OverlapPacket` (``sources`` earliest first, or a rejection reason).
     Parameter and shape errors raise ValueError / TypeError; data problems are rejections.
@@ -648,6 +661,9 @@ def resolve_overlaps(windows, sample_rate_hz, onset_index, *, geometry=None, pul
     if analysis_s is not None:
         analysis_s = _positive("analysis_s", analysis_s)
     grid_spacing_m = _positive("grid_spacing_m", grid_spacing_m)
+    min_separation_s = float(min_separation_s)
+    if not (math.isfinite(min_separation_s) and min_separation_s >= 0):
+        raise ValueError(f"min_separation_s must be >= 0, got {min_separation_s!r}")
     x, on = validate_windows(windows, onset_index)
     plan = make_plan(sample_rate_hz, geo, x.shape[2], band_hz)
     K = x.shape[0]
@@ -656,9 +672,8 @@ def resolve_overlaps(windows, sample_rate_hz, onset_index, *, geometry=None, pul
     with np.errstate(all="ignore"):
         prep = prepare(x, on, plan, noise_rms_v=noise_rms_v, saturated=saturated,
                        full_scale_v=full_scale_v)
-        seg, start, length = _segments(prep, plan, geo, plan.fs, analysis_s)
         sigma2 = prep.sigma2 + prep.quant2
-        n_noise = np.maximum(4 * (start - 0), 4).astype(float)
+        n_noise = np.maximum(4 * (prep.onset - plan.pre), 4).astype(float)
         if noise_rms_v is not None:
             n_noise[:] = np.inf
         unknown = ~np.isfinite(sigma2) | (sigma2 <= 0)
@@ -668,10 +683,11 @@ def resolve_overlaps(windows, sample_rate_hz, onset_index, *, geometry=None, pul
         out: list = [None] * K
         ids = np.nonzero(ok)[0]
         if ids.size:
-            model = _Model(geo, plan.fs, start[ids], length, pulse, echo)
-            res = _decide(model, seg[ids], sigma2[ids], n_noise[ids], max_sources, add_threshold,
+            seg, start, length, inside = _segments(subset(prep, ids), plan, geo, plan.fs, analysis_s)
+            model = _Model(geo, plan.fs, start, length, pulse, echo, inside)
+            res = _decide(model, seg, sigma2[ids], n_noise[ids], max_sources, add_threshold,
                           max_chi2_ratio, max_sigma_m, min_snr_db, prep.scale[ids], geo,
-                          _surface_grid(geo, grid_spacing_m))
+                          _surface_grid(geo, grid_spacing_m), min_separation_s)
             for i, r in zip(ids, res):
                 out[i] = r
         for i in np.nonzero(~ok)[0]:
@@ -695,9 +711,9 @@ def _chi2_limit(n_noise, dof, max_chi2_ratio):
 
 
 def _decide(model, seg, sigma2, n_noise, max_sources, add_threshold, max_chi2_ratio, max_sigma_m,
-            min_snr_db, scale, geo, grid):
+            min_snr_db, scale, geo, grid, min_separation_s):
     K = seg.shape[0]
-    N = seg.shape[1] * seg.shape[2]
+    N = model.mask.sum(axis=1) if model.mask is not None else np.full(K, seg.shape[1] * seg.shape[2])
     search_limit = 1.0 + 2.0 * np.sqrt(2.0 / n_noise + 2.0 / N)
     fits = _search(model, seg, max_sources, grid, sigma2, add_threshold, search_limit)
     # Model order: add emission j+1 while the residual energy drops by > add_threshold sigma^2.
@@ -714,11 +730,12 @@ def _decide(model, seg, sigma2, n_noise, max_sources, add_threshold, max_chi2_ra
         f = fits[J[i] - 1]
         j = int(J[i])
         theta, amp, rss, gram = f.theta[i, :j], f.amp[i, : 2 * j], f.rss[i], f.gram[i]
-        dof = max(N - 5 * j, 1)
+        dof = max(N[i] - 5 * j, 1)
         ratio = rss / (sigma2[i] * dof)
         noise_v = float(np.sqrt(sigma2[i]) * scale[i])
         limit = float(_chi2_limit(n_noise[i], dof, max_chi2_ratio))
-        if not np.isfinite(ratio) or ratio > limit:
+        too_close = j > 1 and np.min(np.diff(theta[:, 2])) < min_separation_s
+        if not np.isfinite(ratio) or ratio > limit or too_close:
             out.append(OverlapPacket(False, int(OverlapReason.UNRESOLVED), n_fitted=j,
                                      chi2_ratio=float(ratio), noise_rms_v=noise_v))
             continue
@@ -790,13 +807,13 @@ def suspect_overlap(windows, sample_rate_hz, onset_index, single_source_result, 
     with np.errstate(all="ignore"):
         prep = prepare(x[ids], on[ids], plan, noise_rms_v=None if noise_rms_v is None else
                        np.broadcast_to(np.asarray(noise_rms_v, float), (K,))[ids])
-        seg, start, length = _segments(prep, plan, geo, plan.fs, analysis_s)
+        seg, start, length, inside = _segments(prep, plan, geo, plan.fs, analysis_s)
         sigma2 = prep.sigma2 + prep.quant2
-        model = _Model(geo, plan.fs, start, length, pulse, echo)
+        model = _Model(geo, plan.fs, start, length, pulse, echo, inside)
         # emission time: matched filter along the accepted point's travel times
         th0 = _time_search(model, seg, pts[ids, :2])
         theta, amp, rss, jac = _lm(model, seg.reshape(len(ids), -1), th0[:, None, :], iterations)
-        dof = seg.shape[1] * seg.shape[2] - 5
+        dof = np.maximum(model.mask.sum(axis=1) - 5, 1)
         n_noise = np.maximum(4 * start, 4).astype(float)
         if noise_rms_v is not None:
             n_noise[:] = np.inf
