@@ -42,17 +42,19 @@ _STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 # ------------------------------------------------------------------ start and stop
 @contextmanager
-def _stop_on_signals(stop: threading.Event, interrupt: bool):
-    """Route SIGINT/SIGTERM to ``stop``; with ``interrupt`` the first one also raises
-    KeyboardInterrupt in the main thread (for loops that do not poll ``stop``)."""
+def _stop_on_signals(state: dict):
+    """Route SIGINT/SIGTERM to ``state['stop']``; while ``state['interrupt']`` is true the
+    first one also raises KeyboardInterrupt in the main thread (to abort a long start-up,
+    or for loops that do not poll the event). Later signals are ignored."""
     if threading.current_thread() is not threading.main_thread():
         yield                      # signals are delivered to the main thread only
         return
+    stop = state["stop"]
 
     def handler(signum, frame):
         first = not stop.is_set()
         stop.set()
-        if first and interrupt:
+        if first and state["interrupt"]:
             raise KeyboardInterrupt
 
     previous = {sig: signal.signal(sig, handler) for sig in _STOP_SIGNALS}
@@ -66,17 +68,17 @@ def _stop_on_signals(stop: threading.Event, interrupt: bool):
 @contextmanager
 def ros_session(args=None, interrupt: bool = True):
     """rclpy.init ... try_shutdown around a node's life; yields a dict with 'exit' (the
-    process exit code: 2 when a node refused its parameters, else 0) and 'stop' (a
-    threading.Event set by the first SIGINT/SIGTERM).
+    process exit code: 2 when a node refused its parameters, else 0), 'stop' (a
+    threading.Event set by the first SIGINT/SIGTERM) and 'interrupt' (whether that first
+    signal also raises KeyboardInterrupt in the body; the body may change it).
 
     rclpy's own signal handlers are not installed: they shut the context down from the
     signal, while node threads may still publish ("context is not valid"). Here a signal
-    only requests the stop; the body destroys its nodes and the context goes last. With
-    ``interrupt`` (default) the first signal also raises KeyboardInterrupt in the body;
-    later signals are ignored, so the clean-up is never interrupted.
+    only requests the stop; the body destroys its nodes and the context goes last; later
+    signals are ignored, so the clean-up is never interrupted.
     """
-    state = {"exit": 0, "stop": threading.Event()}
-    with _stop_on_signals(state["stop"], interrupt):
+    state = {"exit": 0, "stop": threading.Event(), "interrupt": interrupt}
+    with _stop_on_signals(state):
         try:
             rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
             yield state
@@ -86,6 +88,7 @@ def ros_session(args=None, interrupt: bool = True):
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         finally:
+            state["interrupt"] = False
             rclpy.try_shutdown()
 
 
@@ -98,11 +101,15 @@ def spin_until_stopped(executor, stop: threading.Event) -> None:
 
 def run_node(node_factory, args=None, executor_factory=SingleThreadedExecutor) -> int:
     """Create one node, spin it until SIGINT/SIGTERM/shutdown and destroy it while the
-    context is still valid. Returns the exit code: 0, or 2 on a parameter error."""
+    context is still valid. Returns the exit code: 0, or 2 on a parameter error.
+
+    A signal during the node's construction (which may JIT-compile for a while) aborts
+    the construction; during spinning it ends the loop within STOP_POLL_S."""
     node = None
-    with ros_session(args, interrupt=False) as state, forward_python_logging(lambda: node):
+    with ros_session(args, interrupt=True) as state, forward_python_logging(lambda: node):
         try:
             node = node_factory()
+            state["interrupt"] = False
             if not state["stop"].is_set():
                 executor = executor_factory()
                 executor.add_node(node)
@@ -113,9 +120,23 @@ def run_node(node_factory, args=None, executor_factory=SingleThreadedExecutor) -
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         finally:
+            state["interrupt"] = False
             if node is not None:
                 node.destroy_node()
     return state["exit"]
+
+
+def exit_process(code: int) -> None:
+    """Flush and leave at once, skipping interpreter finalization: native threads of DDS
+    and JIT code (daemon threads frozen mid-call) can deadlock the final garbage
+    collection, which would hang a node's exit after a clean shutdown."""
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code)
 
 
 # ------------------------------------------------------------------ Python logging
@@ -260,4 +281,4 @@ def node_main(module_name: str, tables=None, argv=None) -> int:
               f"(parameters go after --ros-args: -p NAME:=VALUE; see {executable} --help)",
               file=sys.stderr)
         return 2
-    return module.main()
+    exit_process(module.main())
