@@ -27,8 +27,11 @@ import os
 import shutil
 import tempfile
 
-from ament_index_python.packages import PackageNotFoundError, get_package_prefix
-from ament_index_python.packages import get_package_share_directory
+from ament_index_python.packages import (
+    PackageNotFoundError,
+    get_package_prefix,
+    get_package_share_directory,
+)
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, ExecuteProcess, OpaqueFunction, Shutdown
 from launch.substitutions import LaunchConfiguration
@@ -140,7 +143,8 @@ def _require_package(package: str, why: str, apt: str) -> None:
         get_package_prefix(package)
     except (PackageNotFoundError, KeyError, ValueError):
         raise LaunchArgumentError(f"{why}, but ROS package '{package}' is not installed "
-                                  f"(e.g. apt install ros-$ROS_DISTRO-{apt}); nothing started")
+                                  f"(e.g. apt install ros-$ROS_DISTRO-{apt}); nothing started"
+                                  ) from None
 
 
 def _require_rviz() -> None:

@@ -259,8 +259,9 @@ def test_show_args_describes_every_argument(tmp_path):
 def test_defaults_run_the_simulated_fingertip_and_stop_cleanly(launch):
     """No arguments: the simulated fingertip plays its scene through the driver (the scene
     clock starts at the driver's START), sensor_info is latched with the default frame."""
-    from ae_tactile.msg import ContactEvent, SensorInfo
     from std_msgs.msg import String
+
+    from ae_tactile.msg import ContactEvent, SensorInfo
     latched, _, truth_qos = _qos()
     s = launch()
     info = s.probe.listen(SensorInfo, "/sensor_info", latched)
@@ -312,8 +313,9 @@ def test_namespace_frame_id_and_managed_start_lose_no_first_event(launch, run_in
 @needs_launch
 def test_split_pipeline_runs_the_separate_nodes(launch):
     """split_pipeline:=true: localizer and slip_detector run as nodes and contacts arrive."""
-    from ae_tactile.msg import ContactEvent, PacketArray
     from rclpy.qos import qos_profile_sensor_data
+
+    from ae_tactile.msg import ContactEvent, PacketArray
     _, events, _ = _qos()
     s = launch()
     contacts = s.probe.listen(ContactEvent, "/contacts", events)

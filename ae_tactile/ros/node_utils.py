@@ -234,7 +234,8 @@ def format_usage(executable: str, doc: str, params: list[Param]) -> str:
             rng = "; one of " + ", ".join(map(str, p.choices))
         elif p.lo is not None and p.hi is not None and not isinstance(p.default, bool):
             rng = f"; {_fmt_default(p.lo)} .. {_fmt_default(p.hi)}"
-        lines.append(f"  {p.name} ({_ros_type(p.default)}, default {_fmt_default(p.default)}{rng})")
+        kind = _ros_type(p.default)
+        lines.append(f"  {p.name} ({kind}, default {_fmt_default(p.default)}{rng})")
         lines.append(f"      {p.description}")
     return "\n".join(lines)
 
