@@ -1,13 +1,15 @@
 # SPDX-License-Identifier: Apache-2.0
 """Shared bits of the nodes: latched QoS, clean start and stop, `--help`, Python logging.
 
-- `run_node` / `ros_session`: the first SIGINT or SIGTERM asks the process to stop; later
-  ones (a terminal's Ctrl-C reaches every process of the group, then `ros2 launch` sends
-  its own SIGINT) are ignored while the nodes are destroyed, *before* the context is shut
-  down, so no callback or publisher thread meets an invalid context. Exit code 0 on a
-  signal, 2 when a node refused its parameters (message on stderr), no traceback.
+- `run_node` / `ros_session`: the first SIGINT or SIGTERM asks the process to stop; the
+  second (a terminal's Ctrl-C reaches every process of the group, then `ros2 launch`
+  sends its own SIGINT) is ignored while the nodes are destroyed, *before* the context
+  is shut down, so no callback or publisher thread meets an invalid context; a third
+  forces the exit. Exit code 0 on a signal, 2 when a node refused its parameters
+  (message on stderr), no traceback.
 - `node_main`: the entry point of a node executable; `--help` prints the usage and the
-  node's parameters from its `Param` table and exits 0 without starting anything.
+  node's parameters from its `Param` table and exits 0 without starting anything; the
+  process leaves without interpreter finalization once its nodes are destroyed.
 - `forward_python_logging`: records of the core's Python loggers (`ae_tactile.*`, e.g. the
   serial link's warnings) go to the node's rclpy logger, hence to the console and /rosout.
 """
@@ -38,6 +40,10 @@ LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 STOP_POLL_S = 0.1
 
 _STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+#: The signal that forces an immediate exit: a terminal's Ctrl-C and `ros2 launch` each
+#: send one SIGINT (ignored while cleaning up); a third (launch's SIGTERM after its
+#: timeout, or Ctrl-C pressed again) means the clean-up hangs.
+FORCE_EXIT_SIGNALS = 3
 
 
 # ------------------------------------------------------------------ start and stop
@@ -45,13 +51,19 @@ _STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 def _stop_on_signals(state: dict):
     """Route SIGINT/SIGTERM to ``state['stop']``; while ``state['interrupt']`` is true the
     first one also raises KeyboardInterrupt in the main thread (to abort a long start-up,
-    or for loops that do not poll the event). Later signals are ignored."""
+    or for loops that do not poll the event). The second is ignored, the third forces
+    the exit."""
     if threading.current_thread() is not threading.main_thread():
         yield                      # signals are delivered to the main thread only
         return
     stop = state["stop"]
+    count = [0]
 
     def handler(signum, frame):
+        count[0] += 1
+        if count[0] >= FORCE_EXIT_SIGNALS:   # the clean-up hangs: the user insists
+            os.write(2, b"[ae_tactile] clean-up interrupted again: forced exit\n")
+            os._exit(1)
         first = not stop.is_set()
         stop.set()
         if first and state["interrupt"]:
@@ -74,8 +86,8 @@ def ros_session(args=None, interrupt: bool = True):
 
     rclpy's own signal handlers are not installed: they shut the context down from the
     signal, while node threads may still publish ("context is not valid"). Here a signal
-    only requests the stop; the body destroys its nodes and the context goes last; later
-    signals are ignored, so the clean-up is never interrupted.
+    only requests the stop; the body destroys its nodes and the context goes last; a
+    second signal is ignored, so the clean-up is not interrupted (a third forces the exit).
     """
     state = {"exit": 0, "stop": threading.Event(), "interrupt": interrupt}
     with _stop_on_signals(state):
