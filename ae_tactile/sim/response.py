@@ -195,6 +195,18 @@ class SlowTables:
             self._work[i] = buf
         return buf[:n * k].reshape(n, k)
 
+    def stacked(self, alphas) -> np.ndarray:
+        """(len(alphas), 2, length) tables of the pole pairs (-2 alpha, -alpha) (the last
+        stack is kept: scenes mostly use one alpha)."""
+        key = tuple(alphas)
+        last = getattr(self, "_stacked", None)
+        if last is not None and last[0] == key:
+            return last[1]
+        t = (np.stack([self.get((-2.0 * a, -a)) for a in key]) if key
+             else np.zeros((0, 2, self.length)))
+        self._stacked = (key, t)
+        return t
+
     def get(self, rho_pair) -> np.ndarray:
         """(2, length) table for the pole pair (rho_0, rho_1)."""
         key = (float(rho_pair[0]), float(rho_pair[1]))
@@ -208,27 +220,120 @@ class SlowTables:
         return t
 
 
+class KernelInputs:
+    """Per-arrival inputs of the elementwise sample formula (kernels.py), shared by the
+    numpy and numba paths so that both see the same bits."""
+
+    __slots__ = ("n0", "length", "channel", "key", "cs", "tabs", "fcoef", "basis",
+                 "k_fast", "att", "k_att")
+
+    def __init__(self, coefs: ResponseCoefs, channel, config, tables: SlowTables):
+        fe = config.frontend
+        n = len(coefs)
+        self.n0 = np.ascontiguousarray(coefs.n0, dtype=np.int64)
+        self.length = np.ascontiguousarray(coefs.length, dtype=np.int64)
+        self.channel = np.ascontiguousarray(channel, dtype=np.int64)
+        # event poles (-2 alpha, -alpha): (c e^{rho eps}) x table e^{rho dt k}, per alpha
+        rho = coefs.slow_poles[:, :2]
+        self.cs = coefs.slow_c[:, :2] * np.exp(rho * coefs.eps_s[:, None])
+        if n:
+            keys, inverse = np.unique(rho, axis=0, return_inverse=True)
+        else:
+            keys, inverse = np.zeros((0, 2)), np.zeros(0, np.int64)
+        self.key = np.ascontiguousarray(inverse.reshape(-1), dtype=np.int64)
+        self.tabs = (np.stack([tables.get(k) for k in keys]) if len(keys)
+                     else np.zeros((0, 2, tables.length)))
+        # filter poles: Re sum_j C_j E_j[k] = sum_j [Re C, -Im C]_j [Re E; Im E]_j[k]
+        self.fcoef = np.ascontiguousarray(np.hstack([coefs.fast_re, -coefs.fast_im]))
+        self.basis = fe.fast_basis
+        self.k_fast = int(fe.support_fast)
+        # attenuation pole (per arrival): c e^{w (eps + dt k)}, k < L_att, numpy exp
+        ka = int(fe.support_att) if coefs.slow_poles.shape[1] > 2 else 0
+        att = np.empty((n, ka))
+        if ka:
+            np.multiply(config.dt_s, np.arange(ka)[None, :], out=att)
+            att += coefs.eps_s[:, None]
+            att *= coefs.slow_poles[:, 2:3]
+            np.exp(att, out=att)
+            att *= coefs.slow_c[:, 2:3]
+        self.att = att
+        self.k_att = ka
+
+    @classmethod
+    def compiled(cls, points_m, strength_pa_m, alpha_1_s, n_e, frac_s, config,
+                 tables: SlowTables) -> "KernelInputs":
+        """The numba engine: inputs of emissions at absolute sample n_e + frac_s fs computed
+        by `kernels.arrival_inputs` in one compiled call (arrivals ordered emission, path,
+        channel, as `propagation.compute_arrivals`)."""
+        from ae_tactile.sim.kernels import arrival_inputs
+        fe = config.frontend
+        geo = config.geometry
+        real = fe.fast_poles.real[np.abs(fe.fast_poles.imag) == 0]
+        n_paths = 1 + (config.n_reflections if config.reflections else 0)
+        n0, length, channel, al, cs, fcoef, att = arrival_inputs(
+            np.ascontiguousarray(points_m, dtype=float), np.ascontiguousarray(strength_pa_m, float),
+            np.ascontiguousarray(alpha_1_s, float), np.ascontiguousarray(n_e, np.int64),
+            np.ascontiguousarray(frac_s, float), np.ascontiguousarray(geo.element_positions_m),
+            float(geo.radius_m), float(geo.sound_speed_m_s), n_paths,
+            float(config.reflection_coefficient), float(config.attenuation_db_per_m),
+            np.concatenate([-real, -real / 2.0]), -real, fe.zeros, fe.poles, float(fe.gain),
+            fe.fast_poles, fe.fast_weights * fe.fast_residues, int(fe.support_fast),
+            int(fe.support_att), int(config.max_support_samples), float(config.support_rel_tol),
+            float(config.sensitivity_v_per_pa), float(config.sample_rate_hz), float(config.dt_s))
+        self = cls.__new__(cls)
+        self.n0, self.length, self.channel, self.cs, self.fcoef = n0, length, channel, cs, fcoef
+        per = 4 * n_paths
+        if al.shape[0] and np.all(al == al[0]):
+            keys = al[:1]
+            self.key = np.zeros(n0.shape[0], np.int64)
+        else:
+            keys, inv = np.unique(al, return_inverse=True)
+            self.key = np.repeat(inv.reshape(-1).astype(np.int64), per)
+        self.tabs = tables.stacked(keys.tolist())
+        self.basis = fe.fast_basis
+        self.k_fast = int(fe.support_fast)
+        self.att = att
+        self.k_att = att.shape[1]
+        return self
+
+    def call_kernel(self, out, w0, a_lo, a_hi):
+        """The compiled kernel over windows ``out`` (n_win, 4, width) at ``w0``."""
+        from ae_tactile.sim.kernels import accumulate_windows
+        accumulate_windows(out, np.asarray(w0, np.int64), np.asarray(a_lo, np.int64),
+                           np.asarray(a_hi, np.int64), self.n0, self.length, self.channel,
+                           self.key, self.cs, self.tabs, self.fcoef, self.basis, self.k_fast,
+                           self.att, self.k_att)
+
+
+def default_engine(engine=None) -> str:
+    """'numba' when the compiled kernel is available (kernels.HAVE_NUMBA), else 'numpy';
+    an explicit 'numba' / 'numpy' is checked and returned."""
+    from ae_tactile.sim.kernels import HAVE_NUMBA
+    if engine in (None, "auto"):
+        return "numba" if HAVE_NUMBA else "numpy"
+    if engine not in ("numba", "numpy"):
+        raise ValueError(f"engine must be 'numba', 'numpy' or None, got {engine!r}")
+    if engine == "numba" and not HAVE_NUMBA:
+        raise ValueError("engine='numba' needs numba (not importable, or AE_TACTILE_NO_NUMBA set)")
+    return engine
+
+
 def accumulate(coefs: ResponseCoefs, channel, config, tables: SlowTables, out: np.ndarray,
-               w0: int) -> None:
+               w0: int, engine=None) -> None:
     """Add the truncated responses of arrivals (in the given order) into ``out`` (4, W),
     whose column 0 is absolute sample ``w0``.
 
-    Every part is (coefficient including e^{pole eps}) x (shared table e^{pole dt k}):
-    filter poles from ``config.frontend.fast_basis``, the event poles (-2 alpha, -alpha)
-    from ``tables`` (each a small matrix product), the per-arrival attenuation pole by
-    direct exponentials. Arrival a contributes the full sum of its parts on
-    [n0_a, n0_a + L_a), added by sequential slice additions in arrival order, so every
-    output sample sums the same terms in the same order whatever the window. The only
-    window-dependent rounding is inside the BLAS products (a row's dot products may be
-    rounded differently depending on the row's position in the batch): a few ulp of the
-    terms, i.e. < 1e-15 of the peak, far inside the 1e-12 relative budget.
+    Sample values follow the elementwise formula of kernels.py (event-pole tables from
+    ``tables``, filter poles from ``config.frontend.fast_basis``, the attenuation pole by
+    numpy exponentials); arrival a contributes on [n0_a, n0_a + L_a), added in arrival
+    order, so every output sample sums the same terms in the same order whatever the
+    window, and the numba kernel (``engine='numba'``, the default when available) and
+    this numpy code (``engine='numpy'``, the reference) give the same bits.
     """
     n = len(coefs)
     if n == 0:
         return
     width = out.shape[1]
-    dt = config.dt_s
-    fe = config.frontend
     length = coefs.length
     start = coefs.n0 - w0
     keep = (start < width) & (start + length > 0) & (length > 0)
@@ -239,39 +344,35 @@ def accumulate(coefs: ResponseCoefs, channel, config, tables: SlowTables, out: n
         channel = np.asarray(channel)[keep]
         start, length = start[keep], length[keep]
         n = len(coefs)
+    ki = KernelInputs(coefs, channel, config, tables)
+    if default_engine(engine) == "numba":
+        if not (out.flags.c_contiguous and out.dtype == np.float64):
+            raise ValueError("out must be a C-contiguous float64 array")
+        ki.call_kernel(out[None], [w0], [0], [n])
+        return
     K = int(length.max())
     vals = tables.work(0, n, K)
-    # event poles (-2 alpha, -alpha): (c e^{rho eps}) e^{rho dt k}, one product per alpha
-    rho = coefs.slow_poles[:, :2]
-    cs = coefs.slow_c[:, :2] * np.exp(rho * coefs.eps_s[:, None])
-    keys, inverse = np.unique(rho, axis=0, return_inverse=True)
-    inverse = inverse.reshape(-1)
-    for g in range(keys.shape[0]):
-        tab = tables.get(keys[g])[:, :K]
-        if keys.shape[0] == 1:
-            np.matmul(cs, tab, out=vals)
-        else:
-            rows = np.nonzero(inverse == g)[0]
-            vals[rows] = cs[rows] @ tab
-    # fast part (config-constant length): Re sum_j C_j E_j[k] as one real product
-    kf = min(K, fe.support_fast)
-    if kf > 0:
-        vals[:, :kf] += np.hstack([coefs.fast_re, -coefs.fast_im]) @ fe.fast_basis[:, :kf]
     tmp = tables.work(1, n, K)
-    # attenuation pole (per arrival, config-constant short length): direct exponentials
-    ka = min(K, fe.support_att) if coefs.slow_poles.shape[1] > 2 else 0
+    for g in range(ki.tabs.shape[0]):
+        tab = ki.tabs[g]
+        rows = np.nonzero(ki.key == g)[0]
+        if rows.shape[0] == n:
+            np.multiply(ki.cs[:, 0:1], tab[0:1, :K], out=vals)
+            np.multiply(ki.cs[:, 1:2], tab[1:2, :K], out=tmp)
+            vals += tmp
+        else:
+            vals[rows] = ki.cs[rows, 0:1] * tab[0:1, :K] + ki.cs[rows, 1:2] * tab[1:2, :K]
+    kf = min(K, ki.k_fast)
+    for j in range(ki.fcoef.shape[1]):
+        np.multiply(ki.fcoef[:, j:j + 1], ki.basis[j:j + 1, :kf], out=tmp[:, :kf])
+        vals[:, :kf] += tmp[:, :kf]
+    ka = min(K, ki.k_att)
     if ka > 0:
-        ta = tmp[:, :ka]
-        np.multiply(dt, np.arange(ka)[None, :], out=ta)
-        ta += coefs.eps_s[:, None]
-        ta *= coefs.slow_poles[:, 2:3]
-        np.exp(ta, out=ta)
-        ta *= coefs.slow_c[:, 2:3]
-        vals[:, :ka] += ta
+        vals[:, :ka] += ki.att[:, :ka]
     flat = out.reshape(-1)
     lo = np.maximum(0, -start)
     hi = np.minimum(length, width - start)
-    base = np.asarray(channel, dtype=np.int64) * width + start
+    base = ki.channel * width + start
     # sequential in arrival order (fixed summation order per output sample)
     for row, l0, h0, b in zip(vals, lo.tolist(), hi.tolist(), (base + lo).tolist()):
         flat[b:b + h0 - l0] += row[l0:h0]

@@ -34,7 +34,8 @@ import numpy as np
 from ae_tactile.sim.config import SimConfig
 from ae_tactile.sim.emission import source_strength_pa_m
 from ae_tactile.sim.propagation import compute_arrivals, path_lengths
-from ae_tactile.sim.response import SlowTables, accumulate, arrival_coefficients
+from ae_tactile.sim.response import (KernelInputs, SlowTables, accumulate, arrival_coefficients,
+                                     default_engine)
 
 #: Emission types (``EmissionList.kind`` codes index this tuple).
 KINDS = ("touch", "release", "micro_slip", "slip", "texture")
@@ -163,7 +164,7 @@ class StreamRenderer:
     """
 
     def __init__(self, config: SimConfig, *, noise_rms_v: float = 0.0, seed: int = 0,
-                 noise_block: int = 32768, batch_emissions: int = 32):
+                 noise_block: int = 32768, batch_emissions: int = 32, engine=None):
         if not isinstance(config, SimConfig):
             raise TypeError(f"config must be a SimConfig, got {type(config).__name__}")
         sigma = float(noise_rms_v)
@@ -174,6 +175,7 @@ class StreamRenderer:
         self.seed = int(seed)
         self.noise_block = int(noise_block)
         self.batch_emissions = int(batch_emissions)
+        self.engine = default_engine(engine)
         geo = config.geometry
         far = np.array([[0.0, 0.0, geo.radius_m], [geo.radius_m, 0.0, 0.0]])
         max_path = float(path_lengths(far, config).max()) + geo.element_offset_m
@@ -181,6 +183,7 @@ class StreamRenderer:
         self.lookback_samples = int(math.ceil(max_path / geo.sound_speed_m_s * config.sample_rate_hz)) \
             + config.max_support_samples + 2
         self._noise_cache: dict[int, np.ndarray] = {}
+        self._pcg: dict[int, list] = {}
         self._bm_u = np.empty(2 * self.noise_block, np.float32)
         self._bm_v = np.empty(2 * self.noise_block, np.float32)
         self._tables = SlowTables(config, self.lookback_samples + 2)
@@ -209,6 +212,15 @@ class StreamRenderer:
         n_e, frac = sample_index_of_ns(emissions.time_ns[i0:i1], cfg.sample_rate_hz)
         sel = np.nonzero((n_e >= n0 - self.lookback_samples) & (n_e < n1))[0]
         emissions = emissions.take(slice(int(i0), int(i1)))
+        if self.engine == "numba":
+            if not out.flags.c_contiguous:
+                raise ValueError("out must be C-contiguous")
+            if sel.shape[0]:
+                ki = KernelInputs.compiled(emissions.point_m[sel], emissions.strength_pa_m[sel],
+                                           emissions.alpha_1_s[sel], n_e[sel], frac[sel], cfg,
+                                           self._tables)
+                ki.call_kernel(out[None], [n0], [0], [ki.n0.shape[0]])
+            return out
         for b0 in range(0, sel.shape[0], self.batch_emissions):
             idx = sel[b0:b0 + self.batch_emissions]
             arr = compute_arrivals(emissions.point_m[idx], emissions.strength_pa_m[idx],
@@ -216,7 +228,7 @@ class StreamRenderer:
             ne = n_e[idx][arr.emission]
             co = arrival_coefficients(arr.amplitude_pa, arr.alpha_1_s, arr.att_pole_rad_s,
                                       ne, frac[idx][arr.emission] + arr.delay_s, cfg)
-            accumulate(co, arr.channel, cfg, self._tables, out, n0)
+            accumulate(co, arr.channel, cfg, self._tables, out, n0, engine=self.engine)
         return out
 
     # ------------------------------------------------------------------ noise
@@ -265,6 +277,74 @@ class StreamRenderer:
             y[:, pos - n0:pos - n0 + hi - lo] += blk[:, lo:hi]
             pos += hi - lo
             b += 1
+
+    def _block_words(self, b: int, ranges) -> np.ndarray:
+        """uint32 words [lo, hi) of block b's raw stream, for increasing disjoint ranges of
+        equal length, as rows (len(ranges), n): PCG64 jumped ahead (``advance``) instead
+        of drawing the whole block."""
+        ent = self._pcg.get(b)
+        if ent is None:
+            if len(self._pcg) >= 8:
+                self._pcg.pop(next(iter(self._pcg)))
+            bg = np.random.PCG64(np.random.SeedSequence([self.seed, 0x5EED, b]))
+            ent = self._pcg[b] = [bg, 0, bg.state]
+        bg, pos = ent[0], ent[1]
+        if (ranges[0][0] // 2) < pos:             # behind: restart the block's stream
+            bg.state = ent[2]
+            pos = 0
+        n = ranges[0][1] - ranges[0][0]
+        out = np.empty((len(ranges), n), np.uint32)
+        for i, (lo, hi) in enumerate(ranges):
+            r0, r1 = lo // 2, (hi + 1) // 2
+            if r0 > pos:
+                bg.advance(r0 - pos)
+            raw = bg.random_raw(r1 - r0).view(np.uint32)
+            out[i] = raw[lo - 2 * r0:lo - 2 * r0 + n]
+            pos = r1
+        ent[1] = pos
+        return out
+
+    def _noise_piece(self, b: int, lo: int, hi: int) -> np.ndarray:
+        """Samples [lo, hi) of noise block b, (4, hi - lo) float32, bit-identical to
+        ``_noise_block(b)[:, lo:hi]`` (same words, same float32 operations) at a cost
+        proportional to hi - lo."""
+        B = self.noise_block
+        h = 2 * B
+        # u of channels (0, 2) at word j, of (1, 3) at word B + j; v at h + those
+        words = self._block_words(b, [(lo, hi), (B + lo, B + hi), (h + lo, h + hi),
+                                      (h + B + lo, h + B + hi)])
+        words >>= np.uint32(9)
+        words |= np.uint32(0x3F800000)
+        f = words.view(np.float32)
+        u = np.subtract(np.float32(2.0), f[:2])
+        np.log(u, out=u)
+        u *= np.float32(-2.0 * self.noise_rms_v ** 2)
+        np.sqrt(u, out=u)
+        v = f[2:]
+        v *= np.float32(2.0 * np.pi)
+        out = np.empty((4, hi - lo), np.float32)
+        np.cos(v, out=out[:2])
+        np.sin(v, out=out[2:])
+        out[:2] *= u
+        out[2:] *= u
+        return out
+
+    def add_noise_window(self, y: np.ndarray, n0: int) -> None:
+        """Same result as `add_noise` (bit for bit), drawing only the noise of [n0, n0 + n):
+        the short-window path (triggered packets) that avoids rendering whole blocks."""
+        if self.noise_rms_v <= 0:
+            return
+        n1 = n0 + y.shape[1]
+        B = self.noise_block
+        pos = n0
+        while pos < n1:
+            b = pos // B
+            lo = pos - b * B
+            hi = min(B, n1 - b * B)
+            blk = self._noise_cache.get(b)
+            piece = blk[:, lo:hi] if blk is not None else self._noise_piece(b, lo, hi)
+            y[:, pos - n0:pos - n0 + hi - lo] += piece
+            pos += hi - lo
 
     def noise(self, n0: int, n1: int) -> np.ndarray:
         """The stream's noise (volts, float64 (4, n1 - n0)) for absolute samples [n0, n1)."""
@@ -427,10 +507,14 @@ class TriggeredSource:
     included). ``next_packets(n)`` returns up to n packets in emission order."""
 
     def __init__(self, source, config: SimConfig, *, noise_rms_v: float = 0.0, seed: int = 0,
-                 pretrigger_s: float = 8e-6, window_s: float = 40e-6, keep_clean: bool = False):
+                 pretrigger_s: float = 8e-6, window_s: float = 40e-6, keep_clean: bool = False,
+                 render_path: str = "fast", engine=None):
+        if render_path not in ("fast", "reference"):
+            raise ValueError(f"render_path must be 'fast' or 'reference', got {render_path!r}")
         self.process = _as_process(source)
         self.config = config
-        self.renderer = StreamRenderer(config, noise_rms_v=noise_rms_v, seed=seed)
+        self.render_path = render_path
+        self.renderer = StreamRenderer(config, noise_rms_v=noise_rms_v, seed=seed, engine=engine)
         fs = config.sample_rate_hz
         self.pre = int(round(pretrigger_s * fs))
         self.m = int(round(window_s * fs))
@@ -438,16 +522,93 @@ class TriggeredSource:
             raise ValueError("window_s must exceed pretrigger_s")
         self.keep_clean = keep_clean
         self._buffer = EmissionList.empty()
+        self._derived = self._derive(self._buffer)
         self._next = 0                    # index into _buffer of the next emission to serve
         self._horizon_ns = 0
         self._lookahead_ns = int(1e9 * (self.m / fs + 10 * config.max_support_s)) + 1
+
+    def _derive(self, em: EmissionList):
+        """Per-emission (sample index n_e, fraction frac_s, absolute first-arrival sample)."""
+        fs = self.config.sample_rate_hz
+        ne, frac = sample_index_of_ns(em.time_ns, fs)
+        first = ne + np.ceil((frac + self.config.geometry.arrival_times_s(em.point_m).min(axis=1))
+                             * fs) if len(em) else np.zeros(0)
+        return ne, frac, first
 
     def _ensure(self, t_ns):
         if t_ns > self._horizon_ns:
             new = self.process.advance(t_ns)
             self._horizon_ns = t_ns
             if len(new):
-                self._buffer = EmissionList.concat([self._buffer, new])
+                old = self._buffer
+                self._buffer = EmissionList.concat([old, new])
+                appended = (len(old) == 0 or (new.time_ns[0], new.event_id[0])
+                            > (old.time_ns[-1], old.event_id[-1]))
+                if appended:        # the usual case: derived columns of the new ones only
+                    d = self._derive(new)
+                    self._derived = tuple(np.concatenate([a, b]) for a, b in zip(self._derived, d))
+                else:
+                    self._derived = self._derive(self._buffer)
+
+    def _drop(self, n: int):
+        self._buffer = self._buffer.take(slice(n, None))
+        self._derived = tuple(a[n:] for a in self._derived)
+
+    def _render_windows(self, start):
+        """Fast path: all windows [start_i, start_i + M) at once, bit-identical to
+        rendering each from the stream (`StreamRenderer.render`): one set of arrival
+        coefficients for every emission reaching any window, only the window's columns
+        of each response evaluated (compiled kernel), only the window's noise drawn.
+        Returns (samples (k, 4, M), clean or None, saturated (k,))."""
+        cfg = self.config
+        fs = cfg.sample_rate_hz
+        r = self.renderer
+        k, m = start.shape[0], self.m
+        out = np.zeros((k, 4, m))
+        buf = self._buffer
+        if len(buf):
+            ne_all, frac_all, _ = self._derived
+            i0, i1 = np.searchsorted(ne_all, [int(start.min()) - r.lookback_samples,
+                                              int(start.max()) + m], side="left")
+            i0, i1 = int(i0), int(i1)
+        else:
+            i0 = i1 = 0
+        if i1 > i0:
+            ne, frac = ne_all[i0:i1], frac_all[i0:i1]
+            sl = slice(i0, i1)
+            e_lo = np.searchsorted(ne, start - r.lookback_samples, side="left")
+            e_hi = np.searchsorted(ne, start + m, side="left")
+            if r.engine == "numba":
+                ki = KernelInputs.compiled(buf.point_m[sl], buf.strength_pa_m[sl],
+                                           buf.alpha_1_s[sl], ne, frac, cfg, r._tables)
+                per = ki.n0.shape[0] // (i1 - i0)         # arrivals per emission
+                ki.call_kernel(out, start, e_lo * per, e_hi * per)
+            else:
+                arr = compute_arrivals(buf.point_m[sl], buf.strength_pa_m[sl], buf.alpha_1_s[sl],
+                                       cfg)
+                co = arrival_coefficients(arr.amplitude_pa, arr.alpha_1_s, arr.att_pole_rad_s,
+                                          ne[arr.emission], frac[arr.emission] + arr.delay_s, cfg)
+                per = len(arr) // (i1 - i0)
+                for i in range(k):
+                    sl = slice(int(e_lo[i]) * per, int(e_hi[i]) * per)
+                    accumulate(co.take(sl), arr.channel[sl], cfg, r._tables, out[i], int(start[i]),
+                               engine="numpy")
+        clean = out.copy() if self.keep_clean else None
+        for i in range(k):
+            r.add_noise_window(out[i], int(start[i]))
+        if cfg.quantization:
+            lsb = cfg.lsb_v
+            half = float(1 << (cfg.adc_bits - 1))
+            out *= 1.0 / lsb
+            np.rint(out, out=out)
+            sat = (out.max(axis=(1, 2)) > half - 1) | (out.min(axis=(1, 2)) < -half)
+            if np.any(sat):
+                np.clip(out, -half, half - 1, out=out)
+            out *= lsb
+        else:
+            fs_v = cfg.adc_full_scale_v
+            sat = (out.max(axis=(1, 2), initial=0.0) >= fs_v) | (out.min(axis=(1, 2), initial=0.0) <= -fs_v)
+        return out, clean, sat
 
     def next_packets(self, n: int, horizon_ns: int | None = None) -> StreamPackets:
         """Up to n packets (fewer if the source ends, or none beyond ``horizon_ns``)."""
@@ -472,36 +633,51 @@ class TriggeredSource:
             take = [i for i in take if self._buffer.time_ns[i] < limit]
         em = self._buffer.take(np.array(take, dtype=np.int64))
         k = len(em)
-        samples = np.zeros((k, 4, self.m))
-        clean = np.zeros((k, 4, self.m)) if self.keep_clean else None
-        n_e, frac = sample_index_of_ns(em.time_ns, fs)
-        direct = geo.arrival_times_s(em.point_m) if k else np.zeros((0, 4))
-        first = frac + direct.min(axis=1, initial=np.inf) if k else np.zeros(0)
+        if k == 0:
+            z = np.zeros((0, 4, self.m))
+            return StreamPackets(samples_v=z, clean_v=z.copy() if self.keep_clean else None,
+                                 sample_rate_hz=fs, start_index=np.zeros(0, np.int64),
+                                 onset_index=np.zeros(0, np.int64), arrival_times_s=np.zeros((0, 4)),
+                                 delays_s=np.zeros((0, 2)), emissions=em,
+                                 n_overlapping=np.zeros(0, np.int64), saturated=np.zeros(0, bool))
+        sel = np.array(take, dtype=np.int64)
+        n_e, frac = self._derived[0][sel], self._derived[1][sel]
+        direct = geo.arrival_times_s(em.point_m)
+        first = frac + direct.min(axis=1)
         onset_abs = n_e + np.ceil(first * fs - 1e-9).astype(np.int64)
         start = onset_abs - self.pre
-        sat = np.zeros(k, bool)
-        n_over = np.zeros(k, np.int64)
-        all_ne, all_frac = sample_index_of_ns(self._buffer.time_ns, fs)
-        all_first = all_ne + np.ceil((all_frac + geo.arrival_times_s(self._buffer.point_m).min(axis=1)) * fs)
-        for i in range(k):
-            self._ensure(int(time_ns_of_sample(start[i] + self.m, fs)) + step)
-            res = self.renderer.render(self._buffer, int(start[i]), int(start[i]) + self.m,
-                                       return_clean=self.keep_clean)
-            samples[i] = res[0]
-            sat[i] = res[1]
-            if self.keep_clean:
-                clean[i] = res[2]
-            n_over[i] = int(np.sum((all_first >= start[i]) & (all_first < start[i] + self.m))) - 1
+        if self.render_path == "reference":
+            samples = np.zeros((k, 4, self.m))
+            clean = np.zeros((k, 4, self.m)) if self.keep_clean else None
+            sat = np.zeros(k, bool)
+            for i in range(k):
+                self._ensure(int(time_ns_of_sample(start[i] + self.m, fs)) + step)
+                res = self.renderer.render(self._buffer, int(start[i]), int(start[i]) + self.m,
+                                           return_clean=self.keep_clean)
+                samples[i] = res[0]
+                sat[i] = res[1]
+                if self.keep_clean:
+                    clean[i] = res[2]
+        else:
+            self._ensure(int(time_ns_of_sample(int(start.max()) + self.m, fs)) + step)
+            samples, clean, sat = self._render_windows(start)
+        all_first = self._derived[2]
+        s0 = np.searchsorted(all_first, start, side="left") if np.all(np.diff(all_first) >= 0) else None
+        if s0 is not None:
+            n_over = np.searchsorted(all_first, start + self.m, side="left") - s0 - 1
+        else:
+            n_over = np.array([int(np.sum((all_first >= s) & (all_first < s + self.m))) - 1
+                               for s in start.tolist()], np.int64)
         self._next += k
-        # drop served emissions that can no longer reach future windows
-        if k:
-            t_keep = int(time_ns_of_sample(int(start[-1]) - self.renderer.lookback_samples - 1, fs))
-            drop = int(np.searchsorted(self._buffer.time_ns[:self._next], t_keep))
-            if drop:
-                self._buffer = self._buffer.take(slice(drop, None))
-                self._next -= drop
-        arrival = (n_e - start)[:, None] / fs + frac[:, None] + direct if k else np.zeros((0, 4))
-        delays = geo.exact_delays_s(em.point_m) if k else np.zeros((0, 2))
+        # drop served emissions that can no longer reach future windows (later emissions'
+        # windows may start a little earlier than this batch's: travel times differ)
+        t_keep = int(time_ns_of_sample(int(start.min()) - 2 * self.renderer.lookback_samples, fs))
+        drop = int(np.searchsorted(self._buffer.time_ns[:self._next], t_keep))
+        if drop:
+            self._drop(drop)
+            self._next -= drop
+        arrival = (n_e - start)[:, None] / fs + frac[:, None] + direct
+        delays = geo.delays_from_arrival_times(direct)[:, :2]      # = geo.exact_delays_s
         return StreamPackets(samples_v=samples, clean_v=clean, sample_rate_hz=fs, start_index=start,
                              onset_index=onset_abs - start, arrival_times_s=arrival, delays_s=delays,
                              emissions=em, n_overlapping=n_over, saturated=sat)
