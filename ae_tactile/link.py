@@ -190,7 +190,10 @@ class FingertipLink:
         self._serial = None
         self._lock = threading.Lock()
         self.decoder = StreamDecoder()
-        self.mapper = DeviceClockMapper()
+        # Restarts come from the protocol (BOOT flag, sequence): the mapper's own
+        # "device time stepped back by > 1 s" guess would fire on a device that lags
+        # (packets carry their sample time, older than the STATUS it sent just before).
+        self.mapper = DeviceClockMapper(max_backstep_s=3600.0)
         self.encoder = FrameEncoder(boot=False)
         self._detector = None
         self._next_sequence_id = 0

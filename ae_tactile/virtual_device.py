@@ -120,6 +120,8 @@ class VirtualFingertip:
         self._corrupt = 0
         self._drop = 0
         self._repeat = 0
+        self._pending = None          # triggered mode: packets of the source not yet served
+        self._exhausted = False
         self.garbled = False
         self._garble_rng = np.random.default_rng(12345)
         self.boot()
@@ -219,7 +221,10 @@ class VirtualFingertip:
         result, value = AckResult.OK, 0
         op = cmd.opcode
         if op == Opcode.START:
-            self._start(cmd.mode, now_ns)
+            running = {AcqMode.TRIGGERED: DeviceState.TRIGGERED, AcqMode.STREAM: DeviceState.STREAMING}
+            if self.state != running[cmd.mode]:      # START in the running mode: idempotent
+                self._start(cmd.mode, now_ns)
+            value = int(cmd.mode)
         elif op == Opcode.STOP:
             self.state = DeviceState.IDLE
             self._source = None
@@ -250,6 +255,8 @@ class VirtualFingertip:
         return load_scene(spec)
 
     def _start(self, mode: AcqMode, now_ns: int) -> None:
+        self._pending = None          # first, for finished() called from other threads
+        self._exhausted = False
         if self.scene_t0_ns is None:
             self.scene_t0_ns = now_ns
         scene = self._scene()
@@ -267,8 +274,6 @@ class VirtualFingertip:
             self._source = scene.triggered_source(pretrigger_s=self.pre_trigger / fs,
                                                   window_s=self.packet_samples / fs)
             self._skip_before_ns = self.scene_at_start_ns
-        self._pending = None
-        self._exhausted = False
 
     # ------------------------------------------------------------------ time
     def scene_ns(self, now_ns: int) -> int:

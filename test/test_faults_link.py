@@ -240,3 +240,30 @@ def test_link_survives_a_consumer_and_a_device_that_never_answer(tmp_path):
         os.close(slave)
     assert s["link_timeouts"] >= 2 and s["connects"] >= 2 and s["internal_errors"] == 0
     assert s["frames_ok"] == 0 and s["state"] != "connected"
+
+
+def test_hostile_but_crc_valid_frames_never_stop_the_link(tmp_path):
+    """Frames that pass every protocol check but carry extreme values (1 Hz sample rate,
+    1-sample packets, a STREAM block in triggered mode, ACKs nobody asked for, clock
+    jumps): each is used or counted, the reader never stops, packets keep flowing."""
+    from ae_tactile.protocol import Ack, AckResult, Opcode, StreamBlock
+    with Rig(PtyTransport(str(tmp_path / "fingertip")), scene=LONG) as rig:
+        rig.wait_connected()
+        rig.run(0.3)
+        one = np.ones((4, 1), np.int16)
+        hostile = [Packet(one, 1, 1e-6), Packet(np.full((4, 8), 32767, np.int16), 4_294_967_295,
+                                                1e-30, pre_trigger=7, onset_index=7),
+                   StreamBlock(np.zeros((4, 16), np.int16), 1, 1e-6),
+                   Ack(65535, 200, AckResult.INTERNAL_ERROR, 7)]
+        for body in hostile:
+            rig.runner.call(rig.device.inject_frame, body, now_ns())
+        n = len(rig.records)
+        rig.run(20.0, until=lambda: len(rig.records) > n + 3)
+        s = rig.link.stats()
+        assert s["internal_errors"] == 0 and s["disconnects"] == 0 and s["state"] == "connected"
+        assert s["frames_ok"] >= 4 and s["crc_errors"] == 0
+        got = [r for r in rig.records if r.sample_rate_hz in (1.0, 4_294_967_295.0)]
+        assert len(got) == 2 and all(np.isfinite(r.samples_v).all() for r in got)
+        assert all(np.isfinite(r.noise_rms_v) and 0 <= r.onset_index < r.samples_v.shape[1]
+                   for r in rig.records)
+        assert len(rig.records) > n + 3                     # still delivering
