@@ -1,0 +1,258 @@
+# SPDX-License-Identifier: Apache-2.0
+"""A picture of what happened in a run: one PNG with three panels.
+
+- Top view of the fingertip (x, y in mm): the sphere's outline (radius R), the 2x2 PVDF
+  matrix at (+-a, +-a), every localized event by type (hollow markers: lower hemisphere,
+  z < 0, seen through the body) and the ground truth where known.
+- Timeline: events by type against time, and the contact state as coloured spans.
+- Latency histogram (ms) with median and 95th percentile.
+
+Plain data in, no rclpy: the live monitor and the bag replay tool both call
+`write_run_summary`. Events are a list of dicts or a dict of equal-length arrays with
+keys ``time_s``, ``type`` (name such as "TOUCH" or the ContactEvent number), ``x_m``,
+``y_m``, ``z_m`` and optionally ``latency_s``. Rows with a non-finite time or position
+are left out of the panel that needs them and counted in the returned summary.
+matplotlib is optional at run time: without it `ReportUnavailable` says how to get it.
+"""
+from __future__ import annotations
+
+import math
+import os
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+
+#: Event type names in ContactEvent order (1..5), with their plot style.
+EVENT_TYPES = ("TOUCH", "DETOUCH", "SLIP_PRECURSOR", "SLIP", "TEXTURE")
+STYLE = {
+    "TOUCH": ("#1f77b4", "o"),
+    "DETOUCH": ("#ff7f0e", "s"),
+    "SLIP_PRECURSOR": ("#2ca02c", "^"),
+    "SLIP": ("#d62728", "D"),
+    "TEXTURE": ("#9467bd", "P"),
+}
+STATE_COLOURS = {"NO_CONTACT": "#dddddd", "STICK": "#9ecae1", "INCIPIENT_SLIP": "#fdd0a2",
+                 "SLIP": "#fc9272", "TEXTURE": "#dadaeb"}
+TRUTH_COLOUR = "#000000"
+
+
+class ReportUnavailable(RuntimeError):
+    """matplotlib is not installed: no PNG summary (everything else works)."""
+
+
+def _columns(rows, keys: Iterable[str], required: Iterable[str], what: str) -> dict:
+    """Equal-length numpy columns from a list of dicts, a dict of arrays or a structured
+    array; missing optional keys become NaN. ValueError names what is wrong."""
+    keys, required = list(keys), set(required)
+    if rows is None:
+        rows = []
+    if isinstance(rows, np.ndarray) and rows.dtype.names:
+        rows = {k: rows[k] for k in rows.dtype.names}
+    if isinstance(rows, Mapping):
+        n = None
+        cols = {}
+        for k in keys:
+            if k not in rows:
+                if k in required:
+                    raise ValueError(f"{what}: missing column {k!r}")
+                continue
+            col = np.asarray(rows[k])
+            if col.ndim != 1:
+                raise ValueError(f"{what}: column {k!r} must be 1-D, got shape {col.shape}")
+            if n is not None and len(col) != n:
+                raise ValueError(f"{what}: column {k!r} has {len(col)} rows, expected {n}")
+            n = len(col)
+            cols[k] = col
+        n = n or 0
+    else:
+        rows = list(rows)
+        for i, r in enumerate(rows):
+            if not isinstance(r, Mapping):
+                raise ValueError(f"{what}: row {i} is a {type(r).__name__}, expected a dict")
+            missing = required - set(r)
+            if missing:
+                raise ValueError(f"{what}: row {i} misses {sorted(missing)}")
+        n = len(rows)
+        cols = {k: np.array([r.get(k) for r in rows], dtype=object) for k in keys
+                if any(k in r for r in rows)}
+    out = {}
+    for k in keys:
+        if k == "type" or k == "state":
+            out[k] = cols.get(k, np.full(n, None, dtype=object))
+            continue
+        col = cols.get(k)
+        if col is None:
+            out[k] = np.full(n, np.nan)
+            continue
+        try:
+            out[k] = np.array([np.nan if v is None else v for v in col], dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{what}: column {k!r} is not numeric ({exc})") from exc
+    out["n"] = n
+    return out
+
+
+def _type_name(value) -> str:
+    if isinstance(value, (int, np.integer)) and 1 <= int(value) <= len(EVENT_TYPES):
+        return EVENT_TYPES[int(value) - 1]
+    name = str(value).upper()
+    if name not in EVENT_TYPES:
+        raise ValueError(f"event type {value!r} is not one of {', '.join(EVENT_TYPES)} (or 1..5)")
+    return name
+
+
+def _state_spans(states, end_time_s: float) -> list[tuple[str, float, float]]:
+    """(state name, start, duration) spans from time-ordered state changes."""
+    cols = _columns(states, ("time_s", "state"), ("time_s", "state"), "contact_state")
+    t = cols["time_s"]
+    ok = np.isfinite(t)
+    order = np.argsort(t[ok], kind="stable")
+    times, names = t[ok][order], [str(s).upper() for s in cols["state"][ok][order]]
+    spans = []
+    for i, (t0, name) in enumerate(zip(times, names)):
+        t1 = times[i + 1] if i + 1 < len(times) else max(end_time_s, t0)
+        if t1 > t0:
+            spans.append((name, float(t0), float(t1 - t0)))
+    return spans
+
+
+def write_run_summary(path: str | os.PathLike, events=None, *, truth=None, contact_state=None,
+                      latencies_s=None, radius_m: float = 10e-3,
+                      element_offset_m: float = 1.5e-3, title: str = "",
+                      size_px: tuple[int, int] = (1500, 900), dpi: int = 100) -> dict[str, Any]:
+    """Write the PNG summary of a run to ``path``; returns what was plotted:
+    {"path", "events", "events_plotted", "events_without_position", "events_without_time",
+    "truth_points", "latencies", "latency_median_s", "latency_p95_s"}.
+
+    events         rows with time_s, type, x_m, y_m, z_m [, latency_s] (see module doc)
+    truth          rows with x_m, y_m [, z_m, time_s]: ground-truth contact points
+    contact_state  rows with time_s, state (e.g. NO_CONTACT, STICK, SLIP): state changes
+    latencies_s    latencies (s); default: the events' latency_s column
+    radius_m       sphere radius R (m); element_offset_m: PVDF centres at (+-a, +-a) (m)
+    """
+    if not (math.isfinite(radius_m) and radius_m > 0):
+        raise ValueError(f"radius_m must be a positive number, got {radius_m!r}")
+    if not (math.isfinite(element_offset_m) and 0 < element_offset_m < radius_m):
+        raise ValueError(f"element_offset_m must be in (0, radius_m), got {element_offset_m!r}")
+    width_px, height_px = (int(v) for v in size_px)
+    if not (200 <= width_px <= 10000 and 200 <= height_px <= 10000) or dpi <= 0:
+        raise ValueError(f"size_px must be within 200..10000 pixels, got {size_px!r}")
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+        from matplotlib.patches import Circle, Rectangle
+    except ImportError as exc:
+        raise ReportUnavailable(
+            "PNG summaries need matplotlib, which is not installed (pip install matplotlib, "
+            f"or apt install python3-matplotlib): {exc}") from exc
+
+    ev = _columns(events, ("time_s", "type", "x_m", "y_m", "z_m", "latency_s"),
+                  ("time_s", "type"), "events")
+    types = np.array([_type_name(v) for v in ev["type"]], dtype=object)
+    tr = _columns(truth, ("x_m", "y_m", "z_m", "time_s"), ("x_m", "y_m"), "truth")
+    if latencies_s is None:
+        lat = ev["latency_s"]
+    else:
+        lat = np.asarray(latencies_s, dtype=float)
+        if lat.ndim != 1:
+            raise ValueError(f"latencies_s must be 1-D, got shape {lat.shape}")
+    lat = lat[np.isfinite(lat)]
+
+    has_xy = np.isfinite(ev["x_m"]) & np.isfinite(ev["y_m"])
+    has_t = np.isfinite(ev["time_s"])
+    scale = 1e3   # m -> mm
+
+    fig = Figure(figsize=(width_px / dpi, height_px / dpi), dpi=dpi)
+    FigureCanvasAgg(fig)
+    grid = fig.add_gridspec(2, 2, width_ratios=(1.0, 1.35), hspace=0.35, wspace=0.32,
+                            left=0.06, right=0.98, top=0.9, bottom=0.1)
+    ax_top = fig.add_subplot(grid[:, 0])
+    ax_time = fig.add_subplot(grid[0, 1])
+    ax_lat = fig.add_subplot(grid[1, 1])
+    if title:
+        fig.suptitle(title)
+
+    # --- top view -------------------------------------------------------------
+    r_mm, a_mm = radius_m * scale, element_offset_m * scale
+    ax_top.add_patch(Circle((0, 0), r_mm, fill=False, lw=1.5, color="#555555"))
+    side = 0.8 * a_mm
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            ax_top.add_patch(Rectangle((sx * a_mm - side / 2, sy * a_mm - side / 2), side, side,
+                                       color="#bbbbbb", zorder=1))
+    tr_xy = np.isfinite(tr["x_m"]) & np.isfinite(tr["y_m"])
+    if tr_xy.any():
+        ax_top.scatter(tr["x_m"][tr_xy] * scale, tr["y_m"][tr_xy] * scale, marker="x", s=70,
+                       color=TRUTH_COLOUR, lw=1.5, zorder=4, label="ground truth")
+    for name in EVENT_TYPES:
+        colour, marker = STYLE[name]
+        sel = has_xy & (types == name)
+        if not sel.any():
+            continue
+        below = sel & (ev["z_m"] < 0)
+        above = sel & ~below
+        if above.any():
+            ax_top.scatter(ev["x_m"][above] * scale, ev["y_m"][above] * scale, marker=marker,
+                           s=36, color=colour, zorder=3, label=f"{name} ({int(sel.sum())})")
+        if below.any():
+            ax_top.scatter(ev["x_m"][below] * scale, ev["y_m"][below] * scale, marker=marker,
+                           s=36, facecolors="none", edgecolors=colour, zorder=3,
+                           label=None if above.any() else f"{name} ({int(sel.sum())})")
+    lim = 1.1 * r_mm
+    ax_top.set_xlim(-lim, lim)
+    ax_top.set_ylim(-lim, lim)
+    ax_top.set_aspect("equal")
+    ax_top.set_xlabel("x (mm)")
+    ax_top.set_ylabel("y (mm)")
+    ax_top.set_title(f"fingertip from above: R = {r_mm:g} mm, PVDF at (±{a_mm:g}, ±{a_mm:g}) mm")
+    if ax_top.get_legend_handles_labels()[0]:
+        ax_top.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=3,
+                      fontsize="small", frameon=False)
+
+    # --- timeline ---------------------------------------------------------------
+    t_end = float(np.max(ev["time_s"][has_t])) if has_t.any() else 0.0
+    spans = _state_spans(contact_state, t_end) if contact_state is not None else []
+    if spans:
+        t_end = max(t_end, max(s0 + d for _, s0, d in spans))
+    for name, start, duration in spans:
+        ax_time.broken_barh([(start, duration)], (-0.4, 0.8),
+                            facecolors=STATE_COLOURS.get(name, "#eeeeee"))
+        ax_time.text(start, 0, f" {name}", va="center", fontsize="x-small", clip_on=True)
+    for row, name in enumerate(EVENT_TYPES, start=1):
+        colour, marker = STYLE[name]
+        sel = has_t & (types == name)
+        if sel.any():
+            ax_time.scatter(ev["time_s"][sel], np.full(int(sel.sum()), row), marker=marker,
+                            s=28, color=colour)
+    ax_time.set_yticks(range(len(EVENT_TYPES) + 1), ["contact state", *EVENT_TYPES],
+                       fontsize="small")
+    ax_time.set_ylim(-0.7, len(EVENT_TYPES) + 0.7)
+    ax_time.set_xlabel("time (s)")
+    ax_time.set_title(f"timeline: {int(has_t.sum())} events")
+    if not has_t.any() and not spans:
+        ax_time.set_xlim(0.0, 1.0)
+
+    # --- latency histogram ------------------------------------------------------
+    summary_lat = {"latency_median_s": math.nan, "latency_p95_s": math.nan}
+    if lat.size:
+        lat_ms = lat * 1e3
+        ax_lat.hist(lat_ms, bins=min(50, max(5, int(math.sqrt(lat.size)) * 2)),
+                    color="#4c72b0")
+        med, p95 = np.percentile(lat_ms, [50, 95])
+        summary_lat = {"latency_median_s": float(med) / 1e3, "latency_p95_s": float(p95) / 1e3}
+        for value, style in ((med, "-"), (p95, "--")):
+            ax_lat.axvline(value, color="#333333", ls=style, lw=1)
+        ax_lat.set_title(f"latency: median {med:.2f} ms, 95% {p95:.2f} ms ({lat.size} events)")
+    else:
+        ax_lat.text(0.5, 0.5, "no latency data", ha="center", va="center",
+                    transform=ax_lat.transAxes)
+        ax_lat.set_title("latency")
+    ax_lat.set_xlabel("latency (ms)")
+    ax_lat.set_ylabel("events")
+
+    path = os.fspath(path)
+    fig.savefig(path, dpi=dpi, format="png")
+    return {"path": path, "events": ev["n"], "events_plotted": int(has_xy.sum()),
+            "events_without_position": int((~has_xy).sum()),
+            "events_without_time": int((~has_t).sum()), "truth_points": int(tr_xy.sum()),
+            "latencies": int(lat.size), **summary_lat}
