@@ -133,6 +133,7 @@ class StreamDecoder:
         self._base = 0   # stream offset of _buf[0]
         self._need = 0   # len(_buf) needed before processing can make progress
         self._scan = 0   # stream offset of the first position not yet searched for SYNC
+        self._wait_end = 0   # earliest end (stream offset) of a pending candidate, 0: none
         # Examined sync words not yet resolved, in stream order: [offset, header or None,
         # end offset (or Reason if the header was rejected), CRC-failure detail or None].
         self._items: list[list] = []
@@ -146,10 +147,21 @@ class StreamDecoder:
         """Append ``data`` (bytes-like) to the stream; return the frames it completed, in order."""
         if isinstance(data, str) or not isinstance(data, (bytes, bytearray, memoryview)):
             raise TypeError(f"feed() takes bytes, bytearray or memoryview, got {type(data).__name__}")
-        self._buf += data
+        buf = self._buf
+        buf += data
         self.bytes_received += data.nbytes if isinstance(data, memoryview) else len(data)
-        if len(self._buf) < self._need:
+        n = len(buf)
+        if n < self._need:
             return []
+        if self._wait_end and self._base + n < self._wait_end:
+            # A candidate is pending and none can complete yet: only a new sync word in
+            # the new bytes could change anything (the same outcome as _process, cheaper).
+            start = self._scan - self._base
+            if buf.find(SYNC, start) < 0:
+                scan = max(start, n - len(SYNC) + 1)
+                self._scan = self._base + scan
+                self._need = min(self._wait_end - self._base, scan + FRAME_OVERHEAD)
+                return []
         return self._process(final=False)
 
     def flush(self) -> list[Frame]:
@@ -246,15 +258,18 @@ class StreamDecoder:
                 pos = end_abs
                 self._scan = end_abs
                 self._need = 0
+                self._wait_end = 0
             else:
                 # keep from the earliest candidate, or a header / sync prefix still coming
                 scan_rel = self._scan - base
                 j = buf.find(SYNC, scan_rel)
                 keep = base + (j if j >= 0 else n - _sync_prefix_tail(buf, scan_rel, n))
                 need = keep + FRAME_OVERHEAD
+                self._wait_end = 0
                 if cands:
                     keep = min(keep, cands[0][0])
-                    need = min(need, min(c[2] for c in cands))
+                    self._wait_end = min(c[2] for c in cands)
+                    need = min(need, self._wait_end)
                 if items and items[0][0] < keep:
                     self._commit(keep, None)
                 if keep > pos:
