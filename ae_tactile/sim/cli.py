@@ -15,6 +15,7 @@ The .npz holds (np.load(...)):
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 import zipfile
@@ -23,7 +24,7 @@ import numpy as np
 import yaml
 
 from ae_tactile.geometry import CHANNEL_XI_ETA
-from ae_tactile.sim.scene import SceneError, load_scene
+from ae_tactile.sim.scene import CLI_BUDGET, Budget, SceneCost, SceneError, load_scene
 from ae_tactile.sim.stream import KINDS, EmissionList
 
 
@@ -33,12 +34,41 @@ def _write_npy_header(fh, shape, dtype, fortran):
              "shape": tuple(shape)})
 
 
-def render_to_npz(scene, path, *, chunk_samples=1_000_000, sample_dtype=None, progress=None):
-    """Stream ``scene`` into ``path`` (npz); returns a summary dict."""
+def render_to_npz(scene, path, *, chunk_samples=1_000_000, sample_dtype=None, progress=None,
+                  budget=CLI_BUDGET):
+    """Stream ``scene`` into ``path`` (npz); returns a summary dict.
+
+    The estimated file size must fit ``budget.max_output_bytes`` (SceneError before
+    anything is written). The file is written under a temporary name in the same
+    directory and renamed when complete: a failed render leaves no partial output."""
     cfg = scene.config
     n_total = scene.n_samples
     if sample_dtype is None:
         sample_dtype = np.int16 if cfg.quantization and cfg.adc_bits <= 16 else np.float32
+    chunk_samples = int(chunk_samples)
+    if chunk_samples < 1:
+        raise ValueError(f"chunk_samples must be >= 1, got {chunk_samples}")
+    if budget is not None and budget.max_output_bytes is not None:
+        n_em = scene.cost.n_emissions if scene.cost is not None else 0.0
+        size = 4.0 * n_total * np.dtype(sample_dtype).itemsize + 81.0 * n_em
+        SceneCost(n_em, n_total, 0.0, size).check(Budget(None, budget.max_output_bytes))
+    final = os.fspath(path)
+    tmp = os.path.join(os.path.dirname(os.path.abspath(final)),
+                       f".{os.path.basename(final)}.part{os.getpid()}")
+    try:
+        summary = _render_npz(scene, tmp, chunk_samples, sample_dtype, progress)
+        os.replace(tmp, final)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    summary["path"] = str(path)
+    return summary
+
+
+def _render_npz(scene, path, chunk_samples, sample_dtype, progress):
+    cfg = scene.config
+    n_total = scene.n_samples
     src = scene.streaming_source()
     truths = []
     clipped = 0
@@ -103,15 +133,28 @@ def main(argv=None) -> int:
     g = ap.add_mutually_exclusive_group()
     g.add_argument("--float32", action="store_true", help="store volts as float32 even when quantizing")
     g.add_argument("--float64", action="store_true", help="store volts as float64")
+    ap.add_argument("--max-memory-gib", type=float, default=CLI_BUDGET.max_memory_bytes / 2 ** 30,
+                    help="refuse scenes estimated to need more memory (GiB; default %(default)g)")
+    ap.add_argument("--max-output-gib", type=float, default=CLI_BUDGET.max_output_bytes / 2 ** 30,
+                    help="refuse outputs estimated larger than this (GiB; default %(default)g)")
     ap.add_argument("--quiet", action="store_true")
     args = ap.parse_args(argv)
+    dtype = np.float32 if args.float32 else (np.float64 if args.float64 else None)
     try:
-        scene = load_scene(args.scene, overrides={"duration_s": args.duration, "seed": args.seed})
+        for name in ("max_memory_gib", "max_output_gib"):
+            v = getattr(args, name)
+            if not (np.isfinite(v) and v > 0):
+                raise SceneError(f"--{name.replace('_', '-')} must be a positive number, got {v}")
+        if args.chunk_samples < 1:
+            raise SceneError(f"--chunk-samples must be >= 1, got {args.chunk_samples}")
+        budget = Budget(int(args.max_memory_gib * 2 ** 30), int(args.max_output_gib * 2 ** 30))
+        scene = load_scene(args.scene, overrides={"duration_s": args.duration, "seed": args.seed},
+                           budget=budget)
+        s = render_to_npz(scene, args.output, chunk_samples=args.chunk_samples,
+                          sample_dtype=dtype, budget=budget)
     except (SceneError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    dtype = np.float32 if args.float32 else (np.float64 if args.float64 else None)
-    s = render_to_npz(scene, args.output, chunk_samples=args.chunk_samples, sample_dtype=dtype)
     if not args.quiet:
         cfg = scene.config
         print(f"scene      {scene.name} (generator {scene.generator}, seed {scene.seed})")
