@@ -27,7 +27,7 @@ arriving up to ~10 us after the first is still seen whole; the first echoes of e
 emission are part of the model. Search (RELAX, cyclic superimposed-signal estimation):
 
   1. matched-filter grid: per channel correlation with h, summed over channels along the
-     travel times of a 1.25 mm grid of surface points -> best (s, T), Levenberg-Marquardt
+     travel times of a 1 mm grid of surface points -> best (s, T), Levenberg-Marquardt
      refinement of the one-emission model;
   2. the residual's best grid point starts emission 2, joint LM over both; then emission 1
      is re-started from the data minus emission 2 and the joint fit repeated (kept when
@@ -62,7 +62,7 @@ from ae_tactile.geometry import CHANNEL_XI_ETA, FingertipGeometry
 from ae_tactile.localization.common import Reason, make_plan, prepare, subset, validate_windows
 
 __all__ = ["PulseModel", "OverlapReason", "OverlapSource", "OverlapPacket", "resolve_overlaps",
-           "suspect_overlap", "fit_sources", "simulate_overlaps", "joint_crlb"]
+           "suspect_overlap", "fit_sources", "simulate_overlaps", "joint_crlb", "calibrate_pulse"]
 
 
 class OverlapReason(IntEnum):
@@ -503,7 +503,7 @@ def _segments(prep, plan, geo, fs, analysis_s):
 
 
 def fit_sources(windows, sample_rate_hz, onset_index, n_sources, *, geometry=None, pulse=None,
-                echo=True, band_hz=(100e3, 1e6), analysis_s=None, grid_spacing_m=1.25e-3):
+                echo=True, band_hz=(100e3, 1e6), analysis_s=None, grid_spacing_m=1.0e-3):
     """Fit exactly ``n_sources`` emissions to each window (no order selection, no rejection).
 
     Returns dict: theta (K, J, 3) = (s_x, s_y, emission time) (m, m, s), amplitudes (K, 2J)
@@ -623,7 +623,7 @@ def resolve_overlaps(windows, sample_rate_hz, onset_index, *, geometry=None, pul
                      noise_rms_v=None, saturated=None, full_scale_v=None, max_sources=3,
                      band_hz=(100e3, 1e6), analysis_s=None, add_threshold=60.0,
                      max_chi2_ratio=None, max_sigma_m=0.2e-3, min_snr_db=5.0, echo=True,
-                     grid_spacing_m=1.25e-3, min_separation_s=1.5e-6) -> list:
+                     grid_spacing_m=1.0e-3, min_separation_s=1.5e-6) -> list:
     """Localize every emission in each of K windows (two or three overlapping emissions).
 
     windows (K, 4, M) volts (a (4, M) window is accepted), sample_rate_hz, onset_index (K,)
@@ -988,3 +988,54 @@ def joint_crlb(clean_v, sample_rate_hz, onset_index, points_m, emission_time_s, 
         single[:, q] = np.sqrt(np.trace(c1[:, :2, :2], axis1=1, axis2=2))
     return dict(crb_xy_m2=crb, rms_m=np.sqrt(np.trace(crb, axis1=2, axis2=3)), single_rms_m=single,
                 amplitudes=amp, model_mismatch=mismatch)
+
+
+def calibrate_pulse(windows, sample_rate_hz, onset_index, *, geometry=None, initial=None,
+                    noise_rms_v=None, max_packets=64, echo=True):
+    """Fit the front end's corner frequencies (`PulseModel` high-pass and low-pass) to
+    single-emission packets, e.g. a few dozen single touches recorded at start-up.
+
+    The known-pulse model needs the pulse shape: a front end whose corners are off by 10 %
+    makes every overlap fit fail the residual test (rejected, not wrong; docs/overlap.md).
+    Each packet is localized by `localize` (ml); the objective is the summed residual of
+    the one-emission model (3 LM steps from that point) over the accepted packets,
+    minimised over (log f_hp, log f_lp) by Nelder-Mead from ``initial``.
+    Returns the fitted `PulseModel` (orders and alpha as in ``initial``)."""
+    from scipy.optimize import minimize
+
+    from ae_tactile.localization import localize
+
+    geo = FingertipGeometry() if geometry is None else geometry
+    init = PulseModel() if initial is None else initial
+    x, on = validate_windows(windows, onset_index)
+    ml = localize(x, sample_rate_hz, on, geometry=geo, noise_rms_v=noise_rms_v)
+    ids = np.nonzero(ml.accepted)[0][: int(max_packets)]
+    if ids.size == 0:
+        raise ValueError("calibrate_pulse needs single-emission packets that localize accepts")
+    plan = make_plan(sample_rate_hz, geo, x.shape[2], (100e3, 1e6))
+    with np.errstate(all="ignore"):
+        prep = prepare(x[ids], on[ids], plan)
+        seg, start, length, inside = _segments(prep, plan, geo, plan.fs, None)
+    y = seg.reshape(len(ids), -1)
+    pts = ml.point_m[ids, :2]
+    lp0 = init.lowpass_hz
+
+    def model_of(v):
+        return PulseModel(float(np.exp(v[0])), init.highpass_order,
+                          None if lp0 is None else float(np.exp(v[1])), init.lowpass_order, init.alpha_1_s)
+
+    def objective(v):
+        pm = model_of(v)
+        with np.errstate(all="ignore"):
+            model = _Model(geo, plan.fs, start, length, pm, echo, inside)
+            th0 = _time_search(model, seg, pts)
+            _, _, rss, _ = _lm(model, y, th0[:, None, :], iterations=3)
+        _TAB_CACHE.pop((pm, plan.fs, length), None)
+        _PR_CACHE.pop(pm, None)
+        return float(np.sum(rss))
+
+    v0 = np.log([init.highpass_hz, lp0 if lp0 is not None else 1.0])
+    r = minimize(objective, v0, method="Nelder-Mead",
+                 options=dict(xatol=2e-3, fatol=1e-9, initial_simplex=[v0, v0 + [0.15, 0], v0 + [0, 0.15]],
+                              maxfev=80))
+    return model_of(r.x)
