@@ -526,6 +526,7 @@ class TriggeredSource:
         self._next = 0                    # index into _buffer of the next emission to serve
         self._horizon_ns = 0
         self._lookahead_ns = int(1e9 * (self.m / fs + 10 * config.max_support_s)) + 1
+        config.frontend.fast_basis            # the config's tables now, not at the first packet
 
     def _derive(self, em: EmissionList):
         """Per-emission (sample index n_e, fraction frac_s, absolute first-arrival sample)."""
@@ -610,6 +611,15 @@ class TriggeredSource:
             sat = (out.max(axis=(1, 2), initial=0.0) >= fs_v) | (out.min(axis=(1, 2), initial=0.0) <= -fs_v)
         return out, clean, sat
 
+    def _empty_packets(self) -> StreamPackets:
+        z = np.zeros((0, 4, self.m))
+        i0 = np.zeros(0, np.int64)
+        return StreamPackets(samples_v=z, clean_v=z.copy() if self.keep_clean else None,
+                             sample_rate_hz=self.config.sample_rate_hz, start_index=i0,
+                             onset_index=i0.copy(), arrival_times_s=np.zeros((0, 4)),
+                             delays_s=np.zeros((0, 2)), emissions=EmissionList.empty(),
+                             n_overlapping=i0.copy(), saturated=np.zeros(0, bool))
+
     def next_packets(self, n: int, horizon_ns: int | None = None) -> StreamPackets:
         """Up to n packets (fewer if the source ends, or none beyond ``horizon_ns``)."""
         cfg = self.config
@@ -631,15 +641,10 @@ class TriggeredSource:
         take = list(range(self._next, min(len(self._buffer), self._next + n)))
         if limit is not None:
             take = [i for i in take if self._buffer.time_ns[i] < limit]
+        if not take:
+            return self._empty_packets()
         em = self._buffer.take(np.array(take, dtype=np.int64))
         k = len(em)
-        if k == 0:
-            z = np.zeros((0, 4, self.m))
-            return StreamPackets(samples_v=z, clean_v=z.copy() if self.keep_clean else None,
-                                 sample_rate_hz=fs, start_index=np.zeros(0, np.int64),
-                                 onset_index=np.zeros(0, np.int64), arrival_times_s=np.zeros((0, 4)),
-                                 delays_s=np.zeros((0, 2)), emissions=em,
-                                 n_overlapping=np.zeros(0, np.int64), saturated=np.zeros(0, bool))
         sel = np.array(take, dtype=np.int64)
         n_e, frac = self._derived[0][sel], self._derived[1][sel]
         direct = geo.arrival_times_s(em.point_m)
