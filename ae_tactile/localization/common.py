@@ -127,10 +127,18 @@ class Plan:
     max_lag: np.ndarray
     snr_len: int
     flat_run: int
+    #: Data-driven upper band edge (`band_edge_hz`): 0 for a fixed band, else the edge (Hz)
+    #: used when the noise is unknown; ``band`` then holds the candidate bins.
+    auto_fallback_hz: float = 0.0
+
+
+#: Per-bin SNR (channel-summed power over its noise expectation, 3-bin mean) above which a
+#: bin counts as signal for the data-driven band edge.
+BAND_EDGE_POWER_RATIO = 2.0
 
 
 @lru_cache(maxsize=64)
-def _make_plan(fs, geometry, n_samples, lo, hi, pre_onset_s, echo_guard_s) -> Plan:
+def _make_plan(fs, geometry, n_samples, lo, hi, pre_onset_s, echo_guard_s, auto_fallback_hz=0.0) -> Plan:
     pre = max(2, int(math.ceil(pre_onset_s * fs)))
     n_ef = int(math.floor((geometry.echo_free_duration_s - echo_guard_s) * fs))
     n_ef = max(n_ef, 4)
@@ -152,11 +160,16 @@ def _make_plan(fs, geometry, n_samples, lo, hi, pre_onset_s, echo_guard_s) -> Pl
     return Plan(fs=fs, geometry=geometry, n_samples=n_samples, band_hz=(lo, hi), pre=pre,
                 seg_len=seg_len, n_fft=n_fft, n_fft_al=n_fft_al, band=band, band_al=band_al,
                 w=2 * np.pi * f[band], w_al=2 * np.pi * f_al[band_al], w_full_al=2 * np.pi * f_al,
-                max_lag=max_lag, snr_len=int(round(SNR_WINDOW_S * fs)), flat_run=flat_run)
+                max_lag=max_lag, snr_len=int(round(SNR_WINDOW_S * fs)), flat_run=flat_run,
+                auto_fallback_hz=float(auto_fallback_hz))
 
 
-def make_plan(sample_rate_hz, geometry, n_samples, band_hz, pre_onset_s=1e-6, echo_guard_s=0.3e-6) -> Plan:
-    """Validated, cached `Plan`. ValueError on bad parameters."""
+def make_plan(sample_rate_hz, geometry, n_samples, band_hz, pre_onset_s=1e-6, echo_guard_s=0.3e-6,
+              auto_fallback_hz=None) -> Plan:
+    """Validated, cached `Plan`. ValueError on bad parameters.
+
+    ``auto_fallback_hz``: choose each packet's upper band edge from its spectrum
+    (`band_edge_hz`) within ``band_hz``; this edge applies when the noise is unknown."""
     fs = _positive("sample_rate_hz", sample_rate_hz)
     if not isinstance(geometry, FingertipGeometry):
         raise TypeError(f"geometry must be a FingertipGeometry, got {type(geometry).__name__}")
@@ -175,7 +188,52 @@ def make_plan(sample_rate_hz, geometry, n_samples, band_hz, pre_onset_s=1e-6, ec
         raise ValueError(f"pre_onset_s must be >= 0, got {pre_onset_s!r}")
     if not (math.isfinite(guard) and 0 <= guard < geometry.echo_free_duration_s):
         raise ValueError(f"echo_guard_s must lie in [0, {geometry.echo_free_duration_s}), got {echo_guard_s!r}")
-    return _make_plan(fs, geometry, int(n_samples), lo, hi, pre_s, guard)
+    auto = 0.0 if auto_fallback_hz is None else _positive("auto_fallback_hz", auto_fallback_hz)
+    return _make_plan(fs, geometry, int(n_samples), lo, hi, pre_s, guard, auto)
+
+
+def adc_noise(var, quant2, given):
+    """Noise variance including the ADC's rounding q^2/12 (``quant2``, q the apparent
+    quantum). A given (analog) sigma^2 gets + q^2/12. A measured variance V of quantized
+    samples already holds q^2/12 when sigma >~ q/2 (Sheppard), while below that the quiet
+    pre-onset samples under-read it (all on one level when the offset sits mid-level):
+    V + q^2/12 for V <= 0.1 q^2, V for V >= q^2/3, linear in between."""
+    q2 = 12.0 * np.asarray(quant2)
+    v = np.asarray(var) / np.where(q2 > 0, q2, 1.0)
+    w = np.clip((1.0 / 3.0 - v) / (1.0 / 3.0 - 0.1), 0.0, 1.0)
+    w = np.where(given, 1.0, w)
+    return var + w * quant2
+
+
+def band_edge_hz(Xb, sigma2, count, plan: Plan):
+    """Data-driven upper band edge (K,) in Hz from the coarse spectra's band bins Xb (K, 4, nb).
+
+    Per bin the channel-summed power P(f) = sum_k |X_k(f)|^2 against its noise expectation
+    4 L sigma^2 (L samples inside the window); the edge is the highest band bin whose 3-bin
+    mean of P exceeds BAND_EDGE_POWER_RATIO times that (per-bin SNR ~ 1: beyond it a bin
+    adds more noise-by-noise variance than timing information), at least the 4th band bin.
+    Aliasing guard: when the candidate band reaches 0.4 fs and the signal is still there at
+    its top bin, the packet's spectrum runs past Nyquist and the bins near fs/2 hold folded
+    content that does not shift like the rest: the edge drops to fs/4.
+    Unknown noise (NaN): ``plan.auto_fallback_hz``."""
+    f = plan.w / (2 * np.pi)
+    p = (Xb.real ** 2 + Xb.imag ** 2).sum(axis=1)                  # (K, nb)
+    nb = p.shape[1]
+    sm = p.copy()
+    sm[:, 1:] += p[:, :-1]
+    sm[:, :-1] += p[:, 1:]
+    div = np.full(nb, 3.0)
+    div[0] -= 1.0
+    div[-1] -= 1.0
+    sm /= np.maximum(div, 1.0)
+    n0 = 4.0 * count.mean(axis=1) * sigma2
+    above = sm > BAND_EDGE_POWER_RATIO * n0[:, None]
+    last = np.where(above.any(axis=1), nb - 1 - np.argmax(above[:, ::-1], axis=1), 0)
+    last = np.maximum(last, min(3, nb - 1))
+    edge = f[last]
+    if f[-1] >= 0.4 * plan.fs:
+        edge = np.where(last == nb - 1, np.minimum(edge, 0.25 * plan.fs), edge)
+    return np.where(np.isfinite(sigma2), edge, plan.auto_fallback_hz)
 
 
 # --------------------------------------------------------------------------- input
@@ -277,11 +335,13 @@ class Prepared:
     p_signal: np.ndarray     # (K,) mean power over the SNR window (V^2), noise included
     quant2: np.ndarray       # (K,) q^2 / 12 of the apparent ADC quantum q, 0 if none
     scale: np.ndarray        # (K,) volts per unit of x (sigma2, p_signal, quant2 are in units^2)
+    noise_given: np.ndarray = None   # (K,) bool: sigma2 from the caller's noise_rms_v
 
 
 def subset(prep: Prepared, ids) -> Prepared:
     """The packets ``ids`` of a prepared batch."""
-    return Prepared(**{f: getattr(prep, f)[ids] for f in prep.__dataclass_fields__})
+    return Prepared(**{f: (None if getattr(prep, f) is None else getattr(prep, f)[ids])
+                       for f in prep.__dataclass_fields__})
 
 
 def flat_top(seg_raw, run):
@@ -369,6 +429,7 @@ def prepare(x, onset, plan: Plan, *, noise_rms_v=None, saturated=None, full_scal
         sigma2 = np.zeros(k)
         pre_mean = x0[:, :, 0].copy()
     sigma2 = np.where(n_pre >= 4, sigma2, np.nan)
+    given = np.zeros(k, bool)
     if noise_rms_v is not None:
         nr = per_packet("noise_rms_v", noise_rms_v, k)
         ok = np.isfinite(nr) & (nr > 0)
@@ -376,6 +437,7 @@ def prepare(x, onset, plan: Plan, *, noise_rms_v=None, saturated=None, full_scal
             nr = nr / np.sqrt(np.mean(np.asarray(channel_gains, float) ** 2))
         nr = nr / scale
         sigma2 = np.where(ok, nr * nr, sigma2)
+        given = ok
 
     # Coarse segment (common start), raw for saturation checks, baseline-removed for spectra.
     raw, count = raw_gather(x, start4, plan.seg_len)
@@ -414,7 +476,8 @@ def prepare(x, onset, plan: Plan, *, noise_rms_v=None, saturated=None, full_scal
 
     X = sfft.rfft(seg, n=plan.n_fft, axis=2)
     return Prepared(x=x, onset=on, flags=flags, sigma2=sigma2, pre_mean=pre_mean,
-                    seg_start=seg_start, X=X, seg_count=count, p_signal=p_total, quant2=q2, scale=scale)
+                    seg_start=seg_start, X=X, seg_count=count, p_signal=p_total, quant2=q2, scale=scale,
+                    noise_given=given)
 
 
 # --------------------------------------------------------------------------- pairs

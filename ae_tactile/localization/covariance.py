@@ -29,12 +29,13 @@ import numpy as np
 from ae_tactile.localization.common import (CONTRASTS, PAIR_INCIDENCE, PAIR_PINV)
 
 
-def signal_spectrum(Zb, sigma2, count):
-    """Noise-debiased |S(f)|^2 (K, nb) of the common waveform and the channel gains^2 (K, 4)."""
+def signal_spectrum(Zb, sigma2, count, n_bins=None):
+    """Noise-debiased |S(f)|^2 (K, nb) of the common waveform and the channel gains^2 (K, 4).
+    ``n_bins`` (K,): bins in use per packet (the others are zero), default all."""
     L = count.mean(axis=1)
     B = Zb.mean(axis=1)
     s2 = np.maximum(np.abs(B) ** 2 - L[:, None] * sigma2[:, None] / 4.0, 0.0)
-    nb = Zb.shape[2]
+    nb = Zb.shape[2] if n_bins is None else np.asarray(n_bins)[:, None]
     e = (np.abs(Zb) ** 2).sum(axis=2) - nb * L[:, None] * sigma2[:, None]
     e = np.maximum(e, 1e-12 * np.abs(e).max(axis=1, keepdims=True) + 1e-300)
     g2 = e / np.maximum(e.mean(axis=1, keepdims=True), 1e-300)
@@ -42,9 +43,9 @@ def signal_spectrum(Zb, sigma2, count):
     return s2, g2
 
 
-def arrival_fisher(Zb, w, sigma2, count, n_fft):
+def arrival_fisher(Zb, w, sigma2, count, n_fft, n_bins=None):
     """F_eps (K, 4, 4) of the four arrival times (s^-2), see the module docstring."""
-    s2, g2 = signal_spectrum(Zb, sigma2, count)
+    s2, g2 = signal_spectrum(Zb, sigma2, count, n_bins)
     e_mean = (2.0 / n_fft) * (w * w * s2).sum(axis=1)          # (K,)
     e = g2 * e_mean[:, None]                                   # (K, 4)
     f = np.zeros(e.shape + (4,))

@@ -27,7 +27,7 @@ import numpy as np
 
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import fast, gcc, gradient, ml
-from ae_tactile.localization.common import (REASON_DESCRIPTIONS, Reason, make_plan, misfit,
+from ae_tactile.localization.common import (REASON_DESCRIPTIONS, Reason, adc_noise, make_plan, misfit,
                                             per_packet, prepare, primary_reason,
                                             validate_windows)
 from ae_tactile.localization.events import (confidence, polarity_amplitude,
@@ -36,6 +36,16 @@ from ae_tactile.localization.events import (confidence, polarity_amplitude,
 #: Default signal band (Hz): the front end's 100 kHz high-pass to its 1 MHz low-pass,
 #: the upper edge lowered to fs/4 at low sample rates (see `default_band_hz`).
 DEFAULT_BAND_HZ = (100e3, 1e6)
+
+
+#: Candidate band of the data-driven edge (``ml`` with ``band_hz=None``): 100 kHz to
+#: min(0.45 fs, 4 MHz); the edge then follows each packet's spectrum (`common.band_edge_hz`).
+AUTO_BAND_MAX_HZ = 4e6
+
+
+def auto_band_hz(sample_rate_hz):
+    """Candidate band (lo, hi) of the data-driven edge."""
+    return (DEFAULT_BAND_HZ[0], min(AUTO_BAND_MAX_HZ, 0.45 * float(sample_rate_hz)))
 
 
 def default_band_hz(sample_rate_hz):
@@ -240,12 +250,7 @@ def localize(windows, sample_rate_hz, onset_index, *, method="ml", geometry=None
     geo = FingertipGeometry() if geometry is None else geometry
     eng = resolve_engine(engine, method, options)
     x, onset = validate_windows(windows, onset_index)
-    if band_hz is None:
-        try:
-            band_hz = default_band_hz(sample_rate_hz)
-        except (TypeError, ValueError):
-            band_hz = DEFAULT_BAND_HZ          # make_plan reports the bad sample rate
-    plan = make_plan(sample_rate_hz, geo, x.shape[2], band_hz, pre_onset_s, echo_guard_s)
+    plan = _plan(sample_rate_hz, geo, x.shape[2], band_hz, pre_onset_s, echo_guard_s, method)
     min_snr_db = float(min_snr_db)
     if not np.isfinite(min_snr_db):
         raise ValueError(f"min_snr_db must be finite, got {min_snr_db!r}")
@@ -274,6 +279,22 @@ def localize(windows, sample_rate_hz, onset_index, *, method="ml", geometry=None
                        saturated=saturated, full_scale_v=full_scale_v, channel_gains=channel_gains)
         core = info.function(prep, plan, **options)
         return _finish(core, prep, plan, geo, method, min_snr_db, thr, options)
+
+
+def _plan(sample_rate_hz, geo, n, band_hz, pre_onset_s, echo_guard_s, method):
+    """The analysis plan: ``band_hz`` given -> that fixed band; else ``ml`` chooses each
+    packet's upper edge from its spectrum within `auto_band_hz` (fallback
+    `default_band_hz` when the noise is unknown), the other methods use `default_band_hz`."""
+    auto = None
+    if band_hz is None:
+        try:
+            band_hz = default_band_hz(sample_rate_hz)
+            if method == "ml":
+                auto = band_hz[1]
+                band_hz = auto_band_hz(sample_rate_hz)
+        except (TypeError, ValueError):
+            band_hz = DEFAULT_BAND_HZ          # make_plan reports the bad sample rate
+    return make_plan(sample_rate_hz, geo, n, band_hz, pre_onset_s, echo_guard_s, auto)
 
 
 def _positive_arg(name, value):
@@ -313,13 +334,20 @@ def _finish(core, prep, plan, geo, method, min_snr_db, thr, options):
     zb = core["zb"]
     count = core["count"]
     mis, res_e, tot_e = misfit(zb)
-    nb = zb.shape[2]
     L = count.mean(axis=1)
+    # bins in use per packet (a data-driven band zeroes the others)
+    nb = np.broadcast_to(np.asarray(core.get("n_bins", zb.shape[2]), float), L.shape)
     # Noise: pre-onset (or given), else from the residual of the fit.
     sigma2 = prep.sigma2.copy()
     fallback = ~np.isfinite(sigma2)
-    sigma2[fallback] = res_e[fallback] / np.maximum(3.0 * nb * L[fallback], 1.0)
-    sigma2 = np.where(fallback, sigma2, sigma2 + prep.quant2)
+    sigma2[fallback] = res_e[fallback] / np.maximum(3.0 * nb[fallback] * L[fallback], 1.0)
+    # ADC rounding (q = apparent quantum): a given (analog) sigma gets + q^2/12. A measured
+    # variance V of quantized samples already holds q^2/12 when sigma >~ q/2 (Sheppard),
+    # while below that the quiet pre-onset samples under-read it (all on one level when
+    # the offset sits mid-level): V + q^2/12 for V <= 0.1 q^2, V for V >= q^2/3, linear
+    # in between (`adc_noise`).
+    given = np.zeros(len(sigma2), bool) if prep.noise_given is None else prep.noise_given
+    sigma2 = np.where(fallback, sigma2, adc_noise(sigma2, prep.quant2, given))
     p_total = prep.p_signal
     floor = 1e-12 * np.maximum(p_total, 0.0) + 1e-300
     sigma2 = np.maximum(sigma2, floor)
@@ -490,11 +518,9 @@ class Localizer:
         key = (fs, m, geometry)
         hit = self._plans.get(key)
         if hit is None:
-            band = self.kwargs.get("band_hz")
-            if band is None:
-                band = default_band_hz(fs)
-            plan = make_plan(fs, geometry, m, band, self.kwargs.get("pre_onset_s", 1e-6),
-                             self.kwargs.get("echo_guard_s", 0.3e-6))
+            plan = _plan(fs, geometry, m, self.kwargs.get("band_hz"),
+                         self.kwargs.get("pre_onset_s", 1e-6),
+                         self.kwargs.get("echo_guard_s", 0.3e-6), self.method)
             hit = fast.tables_for(plan)
             if len(self._plans) > 32:
                 self._plans.clear()

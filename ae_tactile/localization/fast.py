@@ -29,7 +29,7 @@ import os
 
 import numpy as np
 
-from ae_tactile.localization.common import PAIR_PINV, PAIRS
+from ae_tactile.localization.common import BAND_EDGE_POWER_RATIO, PAIR_PINV, PAIRS
 
 try:  # pragma: no cover - import guard
     if os.environ.get("AE_TACTILE_NO_NUMBA", "").strip() not in ("", "0"):
@@ -82,6 +82,10 @@ class Tables:
         ph = 2 * np.pi * np.outer(ka, nn) / n_al
         self.ca, self.sa = np.cos(ph), np.sin(ph)  # (nba, L)
         self.wa = 2 * np.pi * ka * plan.fs / n_al
+        # band bin frequencies exactly as the numpy path computes them (band edge tests)
+        self.fc = plan.w / (2 * np.pi)
+        self.fa = plan.w_al / (2 * np.pi)
+        self.auto = np.array([plan.auto_fallback_hz, 1.0 if self.fc[-1] >= 0.4 * plan.fs else 0.0])
         lmax = int(plan.max_lag.max())
         lags = np.arange(-lmax - 1, lmax + 2)  # +-1 beyond for the parabola
         ph = 2 * np.pi * np.outer(lags, kc) / n
@@ -105,6 +109,9 @@ class Tables:
         self.fs = float(plan.fs)
         # One Newton step is worth about one sample of delay at most (ml.estimate).
         self.max_step = g.radius_m * g.sound_speed_m_s / (g.element_offset_m * plan.fs)
+        self.packed = (self.cc, self.sc, self.ca, self.sa, self.wa, self.lc, self.ls, self.max_lag,
+                       self.geo, self.ints, self.fc, self.fa, self.auto,
+                       np.array([self.fs, self.max_step, float(self.lag0)]))
 
 
 _TABLES: dict = {}
@@ -406,6 +413,8 @@ def _polarity(seg, e, pre, stop_s, span, b):
 
 @njit(cache=True, nogil=True, fastmath=_FM)
 def _corr_at(gr, gi, lc, ls, row):
+    """r(d) = sum_f Re(G_f e^{j w_f d}) (irfft weights in the tables) at lag row ``row``;
+    only the first len(gr) bins."""
     rr = 0.0
     for f in range(gr.shape[0]):
         rr += gr[f] * lc[row, f] - gi[f] * ls[row, f]
@@ -429,37 +438,12 @@ def _peak_lag(gr, gi, lc, ls, lag0, ml_):
 
 # --------------------------------------------------------------------------- kernel
 @njit(cache=True, nogil=True)
-def _packet(
-    xin,
-    onset,
-    noise_rms,
-    sat_in,
-    full_scale,
-    gains,
-    has_gains,
-    gain_rms,
-    cc,
-    sc,
-    ca,
-    sa,
-    wa,
-    lc,
-    ls,
-    lag0,
-    max_lag,
-    geo,
-    ints,
-    fs,
-    max_step,
-    iterations,
-    min_snr_db,
-    thr,
-    out,
-    pt,
-    cov,
-    ctau,
-):
-    """One packet. out: 16 scalars (see `_unpack`); pt (3,), cov (3, 3), ctau (2, 2)."""
+def _packet(xin, onset, noise_rms, sat_in, full_scale, gains, has_gains, gain_rms, tabs,
+            iterations, min_snr_db, thr, out, pt, cov, ctau):
+    """One packet. out: 16 scalars (see estimators.PacketLocation); pt (3,), cov (3, 3),
+    ctau (2, 2). tabs: `Tables.packed`."""
+    cc, sc, ca, sa, wa, lc, ls, max_lag, geo, ints, fc, fa, auto, scal = tabs
+    fs, max_step, lag0 = scal[0], scal[1], int(scal[2])
     pre, L, snr_len, flat_run, max_shift, stop_s, span, n_al = (
         ints[0],
         ints[1],
@@ -535,7 +519,8 @@ def _packet(
     sigma2 /= 4.0
     if n_pre < 4:
         sigma2 = np.nan
-    if math.isfinite(noise_rms):
+    given = math.isfinite(noise_rms)
+    if given:
         nr = noise_rms
         if has_gains:
             nr /= gain_rms
@@ -607,13 +592,47 @@ def _packet(
     nbc = cc.shape[0]
     xb = np.empty((4, nbc), np.complex128)
     _dft(seg, cc, sc, xb)
+    # data-driven band (common.band_edge_hz): bins up to each packet's own edge
+    nbc_u = nbc
+    nba_u = wa.shape[0]
+    if auto[0] > 0:
+        edge = auto[0]
+        s2e = sigma2
+        if math.isfinite(s2e):
+            if not given and quant2 > 0:
+                wq = min(max((1.0 / 3.0 - s2e / (12.0 * quant2)) / (1.0 / 3.0 - 0.1), 0.0), 1.0)
+                s2e = s2e + wq * quant2
+            elif given:
+                s2e = s2e + quant2
+            n0 = (count[0] + count[1] + count[2] + count[3]) * s2e
+            last = 0
+            for f in range(nbc):
+                acc = 0.0
+                nacc = 0
+                for f2 in range(max(f - 1, 0), min(f + 2, nbc)):
+                    for k in range(4):
+                        acc += xb[k, f2].real ** 2 + xb[k, f2].imag ** 2
+                    nacc += 1
+                if acc / nacc > BAND_EDGE_POWER_RATIO * n0:
+                    last = f
+            last = max(last, min(3, nbc - 1))
+            edge = fc[last]
+            if auto[1] > 0 and last == nbc - 1:
+                edge = min(edge, 0.25 * fs)
+        # the pair start needs the integer lag only: bins up to min(edge, fallback edge)
+        nbc_u = 0
+        while nbc_u < nbc and fc[nbc_u] <= min(edge, auto[0]):
+            nbc_u += 1
+        nba_u = 0
+        while nba_u < wa.shape[0] and fa[nba_u] <= edge:
+            nba_u += 1
     d6 = np.empty(6)
-    gr = np.empty(nbc)
-    gi = np.empty(nbc)
+    gr = np.empty(nbc_u)
+    gi = np.empty(nbc_u)
     at_edge = False
     for p in range(6):
         i, j = _PAIR_I[p], _PAIR_J[p]
-        for f in range(nbc):
+        for f in range(nbc_u):
             g = xb[i, f] * xb[j, f].conjugate()
             gr[f] = g.real
             gi[f] = g.imag
@@ -644,7 +663,10 @@ def _packet(
     # ---- fit
     t = np.empty(4)
     _times(geo, sx, sy, t)
-    nba = wa.shape[0]
+    nba = nba_u
+    ca = ca[:nba]
+    sa = sa[:nba]
+    wa = wa[:nba]
     yb = np.empty((4, nba), np.complex128)
     c0 = np.empty(4)
     cnt_al = np.empty(4, np.int64)
@@ -683,7 +705,11 @@ def _packet(
     if not math.isfinite(sigma2):
         sigma2 = res_e / max(3.0 * nba * Lm, 1.0)
     else:
-        sigma2 = sigma2 + quant2
+        # ADC rounding (estimators.adc_noise)
+        wq = 1.0
+        if not given and quant2 > 0:
+            wq = min(max((1.0 / 3.0 - sigma2 / (12.0 * quant2)) / (1.0 / 3.0 - 0.1), 0.0), 1.0)
+        sigma2 = sigma2 + wq * quant2
     sigma2 = max(sigma2, 1e-12 * max(p_total, 0.0) + 1e-300)
     p_sig = max(p_total - sigma2, 1e-300)
     snr = min(max(10.0 * math.log10(p_sig / sigma2), -100.0), 120.0)
@@ -852,72 +878,15 @@ def _packet(
 
 
 @njit(cache=True, nogil=True)
-def _batch(
-    x,
-    onset,
-    noise_rms,
-    sat,
-    full_scale,
-    gains,
-    has_gains,
-    gain_rms,
-    cc,
-    sc,
-    ca,
-    sa,
-    wa,
-    lc,
-    ls,
-    lag0,
-    max_lag,
-    geo,
-    ints,
-    fs,
-    max_step,
-    iterations,
-    min_snr_db,
-    thr,
-    out,
-    pt,
-    cov,
-    ctau,
-):
+def _batch(x, onset, noise_rms, sat, full_scale, gains, has_gains, gain_rms, tabs, iterations,
+           min_snr_db, thr, out, pt, cov, ctau):
     for i in range(x.shape[0]):
-        _packet(
-            x[i],
-            onset[i],
-            noise_rms[i],
-            sat[i],
-            full_scale,
-            gains,
-            has_gains,
-            gain_rms,
-            cc,
-            sc,
-            ca,
-            sa,
-            wa,
-            lc,
-            ls,
-            lag0,
-            max_lag,
-            geo,
-            ints,
-            fs,
-            max_step,
-            iterations,
-            min_snr_db,
-            thr,
-            out[i],
-            pt[i],
-            cov[i],
-            ctau[i],
-        )
+        _packet(x[i], onset[i], noise_rms[i], sat[i], full_scale, gains, has_gains, gain_rms, tabs,
+                iterations, min_snr_db, thr, out[i], pt[i], cov[i], ctau[i])
 
 
-def run_batch(
-    x, onset, tables: Tables, *, noise_rms, sat, full_scale, gains, iterations, min_snr_db, thr
-):
+def run_batch(x, onset, tables: Tables, *, noise_rms, sat, full_scale, gains, iterations,
+              min_snr_db, thr):
     """Localize K packets with the kernel. x (K, 4, M) float32/float64 C-contiguous,
     onset (K,) int64, noise_rms (K,) float (NaN: measure), sat (K,) int8 (-1 unknown),
     full_scale float (NaN: unknown), gains (4,) or None. Returns (out (K, 16), point (K, 3),
@@ -930,92 +899,20 @@ def run_batch(
     has_gains = gains is not None
     g = np.ones(4) if gains is None else np.asarray(gains, float)
     gain_rms = float(np.sqrt(np.mean(g * g)))
-    tb = tables
-    _batch(
-        x,
-        onset,
-        noise_rms,
-        sat,
-        float(full_scale),
-        g,
-        has_gains,
-        gain_rms,
-        tb.cc,
-        tb.sc,
-        tb.ca,
-        tb.sa,
-        tb.wa,
-        tb.lc,
-        tb.ls,
-        tb.lag0,
-        tb.max_lag,
-        tb.geo,
-        tb.ints,
-        tb.fs,
-        tb.max_step,
-        int(iterations),
-        float(min_snr_db),
-        float(thr),
-        out,
-        pt,
-        cov,
-        ctau,
-    )
+    _batch(x, onset, noise_rms, sat, float(full_scale), g, has_gains, gain_rms, tables.packed,
+           int(iterations), float(min_snr_db), float(thr), out, pt, cov, ctau)
     return out, pt, cov, ctau
 
 
 _ONES = np.ones(4)
 
 
-def run_one(
-    x,
-    onset,
-    noise_rms,
-    sat,
-    full_scale,
-    gains,
-    tables: Tables,
-    iterations,
-    min_snr_db,
-    thr,
-    out,
-    pt,
-    cov,
-    ctau,
-):
+def run_one(x, onset, noise_rms, sat, full_scale, gains, tables: Tables, iterations, min_snr_db,
+            thr, out, pt, cov, ctau):
     """One (4, M) window into out (16,), pt (3,), cov (3, 3), ctau (2, 2) (see `_packet`)."""
-    tb = tables
     if gains is None:
         g, has, grms = _ONES, False, 1.0
     else:
         g, has, grms = gains, True, float(np.sqrt(np.mean(gains * gains)))
-    _packet(
-        x,
-        onset,
-        noise_rms,
-        sat,
-        full_scale,
-        g,
-        has,
-        grms,
-        tb.cc,
-        tb.sc,
-        tb.ca,
-        tb.sa,
-        tb.wa,
-        tb.lc,
-        tb.ls,
-        tb.lag0,
-        tb.max_lag,
-        tb.geo,
-        tb.ints,
-        tb.fs,
-        tb.max_step,
-        iterations,
-        min_snr_db,
-        thr,
-        out,
-        pt,
-        cov,
-        ctau,
-    )
+    _packet(x, onset, noise_rms, sat, full_scale, g, has, grms, tables.packed, iterations,
+            min_snr_db, thr, out, pt, cov, ctau)

@@ -22,8 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ae_tactile.localization.common import (Plan, Prepared, aligned_spectra, delays_from_pairs,
-                                            pair_delays, subset)
+from ae_tactile.localization.common import (Plan, Prepared, adc_noise, aligned_spectra,
+                                            band_edge_hz, delays_from_pairs, pair_delays, subset)
 from ae_tactile.localization.covariance import arrival_fisher, sphere_covariance
 
 _ALPHAS = np.array([1.0, 0.5, 0.25, 0.125, 0.0])
@@ -115,7 +115,19 @@ def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4):
         raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
     geo = plan.geometry
     fs = plan.fs
-    d, _, edge = pair_delays(prep.X, plan)
+    X = prep.X
+    mask_al = None
+    if plan.auto_fallback_hz > 0:
+        # Data-driven band: each packet keeps the candidate bins up to its own edge.
+        given = np.zeros(len(prep.sigma2), bool) if prep.noise_given is None else prep.noise_given
+        s2 = adc_noise(prep.sigma2, prep.quant2, given)
+        f_edge = band_edge_hz(X[..., plan.band], s2, prep.seg_count, plan)
+        X = X.copy()
+        # the pair start needs the integer lag only: bins up to min(edge, fallback edge)
+        f_start = np.minimum(f_edge, plan.auto_fallback_hz)
+        X[..., plan.band] *= (plan.w / (2 * np.pi) <= f_start[:, None])[:, None, :]
+        mask_al = (plan.w_al / (2 * np.pi) <= f_edge[:, None])[:, None, :]
+    d, _, edge = pair_delays(X, plan)
     theta0, pair_res = delays_from_pairs(d)
     pts0, _ = geo.point_from_delays(theta0[:, 0], theta0[:, 1], exact=True)
     s = np.nan_to_num(pts0[:, :2])
@@ -123,6 +135,8 @@ def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4):
     max_step = geo.radius_m * geo.sound_speed_m_s / (geo.element_offset_m * fs)
     t = _times(geo, s[:, 0], s[:, 1])
     al = aligned_spectra(prep, plan, t)
+    if mask_al is not None:
+        al.Yb = al.Yb * mask_al
     c0 = al.ref[:, None] + al.shift / fs
     s, clamped = newton(al.Yb, plan.w_al, geo, s, c0, iterations, max_step, 1e-4 * max_step)
     # Re-cut (once) the packets whose fit drifted more than 3/4 sample from the integer cut.
@@ -133,6 +147,8 @@ def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4):
         sub = subset(prep, ids)
         t = _times(geo, s[ids, 0], s[ids, 1])
         al2 = aligned_spectra(sub, plan, t)
+        if mask_al is not None:
+            al2.Yb = al2.Yb * mask_al[ids]
         c2 = al2.ref[:, None] + al2.shift / fs
         s2, cl2 = newton(al2.Yb, plan.w_al, geo, s[ids], c2, iterations, max_step, 1e-4 * max_step)
         s[ids], clamped[ids] = s2, cl2
@@ -147,8 +163,10 @@ def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4):
     point = np.stack([s[:, 0], s[:, 1], sz], axis=1)
     delays = geo.delays_from_arrival_times(t)
 
+    n_bins = np.full(len(s), zb.shape[2]) if mask_al is None else mask_al[:, 0, :].sum(axis=1)
+
     def covariance(sigma2):
-        F = arrival_fisher(zb, plan.w_al, sigma2, al.count, plan.n_fft_al)
+        F = arrival_fisher(zb, plan.w_al, sigma2, al.count, plan.n_fft_al, n_bins)
         c_xy, ok = sphere_covariance(F, dt)
         jac = geo.delay_jacobian(s[:, 0], s[:, 1])
         c_tau = jac @ c_xy @ np.swapaxes(jac, 1, 2)
@@ -156,4 +174,4 @@ def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4):
 
     return dict(theta=delays, point=point, clamped=clamped, zb=zb, z=z, count=al.count,
                 raw_delays=theta0[:, :2], covariance=covariance, pair_residual_s=pair_res,
-                at_edge=edge, aligned_seg=al.seg, eps_samples=eps * fs)
+                at_edge=edge, aligned_seg=al.seg, eps_samples=eps * fs, n_bins=n_bins)
