@@ -1,128 +1,291 @@
-"""End-to-end latency and sustained packet rate of the composed system (bench/results/system.json).
+"""Reflex latency of the live path: device bytes -> ContactEvent received by another process.
 
-1. Floor: two rclpy hops with an empty message (std_msgs/Empty ping -> pong), measured
-   in the same process and run as the pipeline: what any rclpy pipeline pays at least.
-2. Latency: emission (ground-truth time of the touch) -> ContactEvent received by a
-   subscriber, through sim_fingertip (own process, pty) -> driver -> localizer, for a
-   sparse random-touch scene; median and p99.
-3. Sustained rate: random touches at increasing rates; for each, packets published by
-   the driver, localized, dropped, and whether the latency stays bounded (no backlog).
+Three processes, as on a robot: a light fingertip (bench/fingertip_writer.py) writes
+pre-rendered PACKET frames on a pty at real time; the `driver` executable (in-process
+pipeline: decode, localize, slip detection, publish) reads it; this process subscribes to
+`contacts` and `slip` like a hand controller. Latency of an event = time it is received
+here - time the last byte of the packet that produced it (for a slip event: the packet
+of the emission that decided it, the last of its packet_ids) was written on the pty.
+Both are CLOCK_REALTIME readings on this machine.
 
-Run: make bench-system
+1. Floor: two bare rclpy hops (ping -> pong -> back, std_msgs/Empty), measured in this run.
+2. Random touches (Poisson) at 20, 100, 1,000 and 5,000 emissions/s: median / p99 / max
+   latency, events lost, the driver's CPU (% of one core).
+3. Slip: the incipient-slip scene (packets from the simulator): SLIP_PRECURSOR / SLIP latency.
+4. Knee: increasing rates until a backlog builds (latency grows during the run, or the
+   writer cannot hand its bytes over on time).
+
+Run: make bench-system   (bench/results/system.json, system_table.md; README figures)
+     AE_BENCH_QUICK=1 for a short run.
 """
 from __future__ import annotations
 
 import json
 import os
 import platform
+import subprocess
 import sys
 import tempfile
 import time
 
 import numpy as np
-import yaml
 
 ROOT = os.environ.get("AE_TACTILE_ROOT", os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+RESULTS = os.path.join(ROOT, "bench", "results")
+QUICK = bool(os.environ.get("AE_BENCH_QUICK"))
+N_SAMPLES, PRE = 400, 80
 
 
-def two_hop_floor(n=400):
-    import rclpy
-    from rclpy.experimental import EventsExecutor
-    from std_msgs.msg import Empty
-    a, b = rclpy.create_node("bench_ping"), rclpy.create_node("bench_pong")
-    ex = EventsExecutor()
-    ex.add_node(a)
-    ex.add_node(b)
-    pong_pub = b.create_publisher(Empty, "bench/pong", 10)
-    b.create_subscription(Empty, "bench/ping", lambda m: pong_pub.publish(Empty()), 10)
-    got = []
-    a.create_subscription(Empty, "bench/pong", lambda m: got.append(time.perf_counter_ns()), 10)
-    ping_pub = a.create_publisher(Empty, "bench/ping", 10)
-    t_end = time.monotonic() + 5
-    while (ping_pub.get_subscription_count() < 1 or pong_pub.get_subscription_count() < 1) and time.monotonic() < t_end:
-        ex.spin_once(timeout_sec=0.05)
-    rtts = []
-    for _ in range(n):
-        t0 = time.perf_counter_ns()
-        k = len(got)
-        ping_pub.publish(Empty())
-        while len(got) == k:
-            ex.spin_once(timeout_sec=0.1)
-        rtts.append((got[-1] - t0) * 1e-6)
-    ex.shutdown()
-    a.destroy_node()
-    b.destroy_node()
-    r = np.array(rtts[20:])
-    return {"median_ms": float(np.median(r)), "p99_ms": float(np.percentile(r, 99)), "n": int(r.size)}
+# ---------------------------------------------------------------------------- packets
+def render_scene_packets(scene: str, overrides: dict | None = None, max_packets: int = 100_000):
+    """Packets of a scene as the virtual fingertip would send them: int16 counts, window
+    first-sample index (at the scene's sample rate) and the scene's sensor body."""
+    from ae_tactile.sim.scene import load_scene
+    sc = load_scene(os.path.join(ROOT, "config", "scenes", scene + ".yaml"), overrides)
+    cfg = sc.config
+    fs = cfg.sample_rate_hz
+    src = sc.triggered_source(pretrigger_s=PRE / fs, window_s=N_SAMPLES / fs)
+    vpc = float(np.float32(cfg.lsb_v))
+    adc_max = (1 << (cfg.adc_bits - 1)) - 1
+    counts, first = [], []
+    while len(counts) < max_packets:
+        b = src.next_packets(256)
+        if len(b) == 0:
+            break
+        counts.append(np.clip(np.rint(b.samples_v / vpc), -adc_max - 1, adc_max).astype(np.int16))
+        first.append(np.asarray(b.start_index, dtype=np.int64))
+    g = cfg.geometry
+    body = {"medium": cfg.medium.name if hasattr(cfg.medium, "name") else str(cfg.medium),
+            "radius_m": g.radius_m, "element_offset_m": g.element_offset_m,
+            "sound_speed_m_s": g.sound_speed_m_s}
+    return np.concatenate(counts), np.concatenate(first), float(fs), vpc, body
 
 
-def run_scene(path):
-    from ae_tactile.ros.bringup import Bringup, parse_args
-    system = Bringup(parse_args(["--scene", path, "--monitor"]))
-    system.monitor.print_live = False
-    t0 = time.monotonic()
-    system.spin(-1.0, drain_timeout_s=20.0)
-    wall = time.monotonic() - t0
-    s = system.monitor.summary()
-    lat = np.array([(x.received_ns - x.stamp_ns) * 1e-6 for x in system.monitor.contacts])
-    out = {"wall_s": wall, "truth": s["emissions"]["truth"], "localized": s["emissions"]["matched"],
-           "driver_published": system.driver.published_packets,
-           "driver_dropped": system.driver.link.packets_dropped(),
-           "localizer_packets": system.localizer.counts["packets"],
-           "rejected": {k: v for k, v in system.localizer.counts.items() if k.startswith("rejected_")},
-           "latency_ms": {"median": float(np.median(lat)), "p99": float(np.percentile(lat, 99)),
-                          "first_quarter_median": float(np.median(lat[: max(1, lat.size // 4)])),
-                          "last_quarter_median": float(np.median(lat[-max(1, lat.size // 4):]))}
-           if lat.size else {}}
-    system.close()
+def poisson_schedule(rate_hz: float, duration_s: float, fs: float, seed: int) -> np.ndarray:
+    """Window first-sample indices of Poisson emissions at rate_hz (windows never overlap)."""
+    rng = np.random.default_rng(seed)
+    n = max(int(rate_hz * duration_s), 1)
+    gaps = rng.exponential(1.0 / rate_hz, n)
+    gaps = np.maximum(gaps, 1.2 * N_SAMPLES / fs)
+    t = 0.05 + np.cumsum(gaps)
+    return np.rint(t * fs).astype(np.int64)
+
+
+# ---------------------------------------------------------------------------- one run
+def cpu_seconds(pid: int) -> float:
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            f = fh.read().rsplit(")", 1)[1].split()
+        return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+    except OSError:
+        return float("nan")
+
+
+class Listener:
+    """Subscribes to contacts and slip; records (receive ns, type, deciding packet id)."""
+
+    def __init__(self, namespace: str):
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+
+        from ae_tactile.msg import ContactEvent
+        from ae_tactile.ros.driver_node import EVENT_QOS
+        self.node = rclpy.create_node("bench_hand", namespace=namespace)
+        self.rows: list[tuple[int, int, int]] = []
+        cb = self._on
+        self.node.create_subscription(ContactEvent, "contacts", cb, EVENT_QOS)
+        self.node.create_subscription(ContactEvent, "slip", cb, EVENT_QOS)
+        self.ex = SingleThreadedExecutor()
+        self.ex.add_node(self.node)
+
+    def _on(self, msg) -> None:
+        self.rows.append((time.time_ns(), msg.event_type, msg.packet_ids[-1] if len(msg.packet_ids) else -1))
+
+    def spin_for(self, seconds: float) -> None:
+        t_end = time.monotonic() + seconds
+        while time.monotonic() < t_end:
+            self.ex.spin_once(timeout_sec=0.01)
+
+    def close(self) -> None:
+        self.ex.shutdown()
+        self.node.destroy_node()
+
+
+def run_case(name: str, counts, first, fs, vpc, body, *, namespace: str) -> dict:
+    """Play packets through writer -> driver -> this process; latencies by event type."""
+    exe = os.path.join(ROOT, "install", "ae_tactile", "lib", "ae_tactile", "driver")
+    tmp = tempfile.mkdtemp(prefix="ae_bench_")
+    pk = os.path.join(tmp, "packets.npz")
+    due = (first + N_SAMPLES) / fs
+    np.savez(pk, counts=counts, due_s=due, first_sample_index=first, pre_trigger=PRE,
+             sample_rate_hz=int(fs), v_per_count=vpc)
+    log = os.path.join(tmp, "log.npz")
+    port_file = os.path.join(tmp, "port")
+    writer = subprocess.Popen([sys.executable, os.path.join(ROOT, "bench", "fingertip_writer.py"), pk, log,
+                               port_file])
+    t_end = time.monotonic() + 20
+    while not os.path.exists(port_file) and time.monotonic() < t_end:
+        time.sleep(0.01)
+    port = open(port_file).read().strip()
+    listener = Listener(namespace)
+    params = {"port": port, "wait_for_subscribers": 1, "medium": body["medium"],
+              "radius_m": body["radius_m"], "element_offset_m": body["element_offset_m"],
+              "sound_speed_m_s": body["sound_speed_m_s"], "packet_samples": N_SAMPLES,
+              "pre_trigger_samples": PRE}
+    cmd = [exe, "--ros-args", "-r", f"__ns:=/{namespace}", "--log-level", "warn"]
+    for k, v in params.items():
+        cmd += ["-p", f"{k}:={v}"]
+    driver = subprocess.Popen(cmd)
+    cpu0 = None
+    t_start = time.monotonic()
+    t_stop = None
+    while True:
+        listener.spin_for(0.05)
+        if cpu0 is None and writer.poll() is None and time.monotonic() - t_start > 0.5:
+            cpu0 = (cpu_seconds(driver.pid), time.monotonic())
+        if writer.poll() is not None and t_stop is None:
+            t_stop = time.monotonic()
+            cpu1 = (cpu_seconds(driver.pid), time.monotonic())
+        if t_stop is not None and time.monotonic() - t_stop > 1.5:
+            break
+        if time.monotonic() - t_start > 120:
+            writer.terminate()
+    driver.send_signal(2)
+    try:
+        driver.wait(10)
+    except subprocess.TimeoutExpired:
+        driver.kill()
+    listener.close()
+    w = np.load(log)
+    written = w["written_ns"]
+    rows = np.array(listener.rows, dtype=np.int64).reshape(-1, 3)
+    out = {"case": name, "packets": int(len(counts)), "packets_written": int((written >= 0).sum()),
+           "duration_s": float(due[-1] - due[0]) if len(due) > 1 else 0.0}
+    if cpu0 is not None and t_stop is not None:
+        out["driver_cpu_percent_of_one_core"] = 100.0 * (cpu1[0] - cpu0[0]) / max(cpu1[1] - cpu0[1], 1e-9)
+    sched = w["start_ns"] + np.rint(due * 1e9).astype(np.int64)
+    ok = written >= 0
+    out["writer_lag_ms_p99"] = float(np.percentile((written[ok] - sched[ok]) * 1e-6, 99)) if ok.any() else None
+    for label, types in (("contact", (1, 2)), ("slip_precursor", (3,)), ("slip", (4,)),
+                         ("slip_any", (3, 4))):
+        sel = rows[np.isin(rows[:, 1], types)] if rows.size else rows
+        ids = sel[:, 2] if sel.size else np.zeros(0, np.int64)
+        good = (ids >= 0) & (ids < len(written))
+        lat = (sel[good, 0] - written[ids[good]]) * 1e-6 if good.any() else np.zeros(0)
+        lat = lat[np.isfinite(lat)]
+        entry = {"events": int(lat.size)}
+        if lat.size:
+            entry.update(median_ms=float(np.median(lat)), p99_ms=float(np.percentile(lat, 99)),
+                         max_ms=float(lat.max()))
+            q = max(lat.size // 4, 1)
+            entry["first_quarter_median_ms"] = float(np.median(lat[:q]))
+            entry["last_quarter_median_ms"] = float(np.median(lat[-q:]))
+        out[label] = entry
     return out
 
 
-def scene_with_rate(tmp, rate_hz, duration_s):
-    with open(os.path.join(ROOT, "config", "scenes", "random_touches.yaml")) as fh:
-        spec = yaml.safe_load(fh)
-    spec["duration_s"] = duration_s
-    spec["params"]["rate_hz"] = rate_hz
-    spec["params"]["hold_min_s"], spec["params"]["hold_max_s"] = 0.002, 0.01
-    path = os.path.join(tmp, f"rate_{rate_hz}.yaml")
-    with open(path, "w") as fh:
-        yaml.safe_dump(spec, fh)
-    return path
+def backlog(r: dict) -> bool:
+    """A backlog builds: latency grows over the run, or the port could not take the bytes."""
+    c = r["contact"]
+    if not c.get("events"):
+        return True
+    grows = c["last_quarter_median_ms"] > max(3.0 * c["first_quarter_median_ms"], 5.0)
+    lost = c["events"] < 0.9 * r["packets_written"]
+    stalled = (r.get("writer_lag_ms_p99") or 0.0) > 20.0
+    return grows or lost or stalled
+
+
+def floor_ms() -> dict:
+    from ae_tactile.ros.monitor_node import two_hop_floor_ms
+    return two_hop_floor_ms(n=200 if QUICK else 1000)
+
+
+def fmt(e: dict) -> str:
+    if not e.get("events"):
+        return "n/a"
+    return f"{e['median_ms']:.3f} / {e['p99_ms']:.3f} / {e['max_ms']:.2f}"
+
+
+def markdown(res: dict) -> str:
+    fl = res["floor_two_hop_ms"]
+    lines = [f"Floor, two bare rclpy hops (same run): median {fl['median']:.3f} ms, p99 {fl['p99']:.3f} ms.",
+             "",
+             "| emissions/s | contact events | latency median / p99 / max (ms) | median / floor "
+             "| driver CPU (% of a core) |",
+             "|---|---|---|---|---|"]
+    for r in res["rates"]:
+        c = r["contact"]
+        ratio = f"{c['median_ms'] / fl['median']:.0f}x" if c.get("events") and fl.get("median") else "n/a"
+        lines.append(f"| {r['rate_hz']:g} | {c['events']} of {r['packets_written']} | {fmt(c)} | {ratio} | "
+                     f"{r.get('driver_cpu_percent_of_one_core', float('nan')):.0f} |")
+    s = res.get("slip")
+    if s:
+        lines += ["", f"Slip (incipient-slip scene, {s['packets']} packets): SLIP_PRECURSOR "
+                      f"{fmt(s['slip_precursor'])} ms, SLIP {fmt(s['slip'])} ms (median / p99 / max, "
+                      f"{s['slip_precursor']['events']} and {s['slip']['events']} events); contact events "
+                      f"{fmt(s['contact'])} ms."]
+    k = res.get("knee")
+    if k:
+        lines += ["", f"Sustained without backlog up to {k['sustained_hz']:g} emissions/s "
+                      f"(backlog from {k['backlog_from_hz']} emissions/s)" if k.get("backlog_from_hz") else
+                  f"Sustained without backlog up to {k['sustained_hz']:g} emissions/s (the highest rate tried)."]
+    return "\n".join(lines)
 
 
 def main() -> int:
     import rclpy
-    os.environ.setdefault("ROS_DOMAIN_ID", "78")
+    os.environ.setdefault("ROS_DOMAIN_ID", str(60 + os.getpid() % 40))
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    sys.setswitchinterval(0.0002)
     rclpy.init()
-    rates = [int(r) for r in os.environ.get("AE_BENCH_RATES", "25,100,200,400").split(",")]
-    out = {"machine": platform.platform(), "cpus": os.cpu_count()}
-    try:
-        out["two_hop_floor"] = two_hop_floor()
-        print(f"two rclpy hops, empty message: median {out['two_hop_floor']['median_ms']:.3f} ms, "
-              f"p99 {out['two_hop_floor']['p99_ms']:.3f} ms", flush=True)
-        with tempfile.TemporaryDirectory() as tmp:
-            out["latency_sparse"] = run_scene(scene_with_rate(tmp, 20, 5.0))
-            la = out["latency_sparse"]["latency_ms"]
-            print(f"emission -> ContactEvent (20 touches/s): median {la['median']:.2f} ms, p99 {la['p99']:.2f} ms",
-                  flush=True)
-            out["rates"] = []
-            for rate in rates:
-                r = run_scene(scene_with_rate(tmp, rate, 3.0))
-                r["touch_rate_hz"] = rate
-                r["emission_rate_hz"] = r["truth"] / 3.0
-                out["rates"].append(r)
-                la = r["latency_ms"]
-                print(f"{r['emission_rate_hz']:6.0f} emissions/s: {r['localized']}/{r['truth']} localized, "
-                      f"driver dropped {r['driver_dropped']}, latency median {la.get('median', float('nan')):.1f} ms "
-                      f"(first quarter {la.get('first_quarter_median', float('nan')):.1f}, last "
-                      f"{la.get('last_quarter_median', float('nan')):.1f}), wall {r['wall_s']:.1f} s", flush=True)
-    finally:
-        rclpy.try_shutdown()
-    os.makedirs(os.path.join(ROOT, "bench", "results"), exist_ok=True)
-    with open(os.path.join(ROOT, "bench", "results", "system.json"), "w") as fh:
-        json.dump(out, fh, indent=2)
+    load_before = os.getloadavg()
+    pool_counts, _, fs, vpc, body = render_scene_packets("random_touches", {"duration_s": 8.0}, 800)
+    res = {"benchmark": __doc__.split("\n")[0], "machine": platform.platform(), "cpus": os.cpu_count(),
+           "load_average_before": load_before, "rates": []}
+    res["floor_two_hop_ms"] = floor_ms()
+    print("floor:", res["floor_two_hop_ms"], flush=True)
+    rates = [20, 100, 1000, 5000]
+    seconds = {20: 10.0, 100: 5.0, 1000: 4.0, 5000: 3.0}
+    for i, rate in enumerate(rates):
+        dur = seconds[rate] * (0.4 if QUICK else 1.0)
+        first = poisson_schedule(rate, dur, fs, seed=i)
+        counts = pool_counts[np.arange(len(first)) % len(pool_counts)]
+        r = run_case(f"random touches {rate}/s", counts, first, fs, vpc, body, namespace=f"bench{i}")
+        r["rate_hz"] = rate
+        res["rates"].append(r)
+        print(f"{rate:>6}/s: contact {fmt(r['contact'])} ms ({r['contact']['events']} of {r['packets_written']}),"
+              f" driver CPU {r.get('driver_cpu_percent_of_one_core', float('nan')):.0f} %", flush=True)
+    counts, first, fs_s, vpc_s, body_s = render_scene_packets("incipient_slip")
+    first = first - first[0] + int(0.05 * fs_s)
+    r = run_case("incipient slip", counts, first, fs_s, vpc_s, body_s, namespace="bench_slip")
+    res["slip"] = r
+    print(f"slip: precursor {fmt(r['slip_precursor'])} ms, SLIP {fmt(r['slip'])} ms", flush=True)
+    knee = {"tried": []}
+    sustained, backlog_from = 0, None
+    for j, rate in enumerate([2000, 5000, 8000, 12000, 16000, 24000]):
+        first = poisson_schedule(rate, 1.5 if QUICK else 2.5, fs, seed=100 + j)
+        counts = pool_counts[np.arange(len(first)) % len(pool_counts)]
+        r = run_case(f"knee {rate}/s", counts, first, fs, vpc, body, namespace=f"bench_knee{j}")
+        bl = backlog(r)
+        knee["tried"].append({"rate_hz": rate, "backlog": bl, "contact": r["contact"],
+                              "writer_lag_ms_p99": r["writer_lag_ms_p99"],
+                              "driver_cpu_percent_of_one_core": r.get("driver_cpu_percent_of_one_core")})
+        print(f"knee {rate}/s: backlog {bl}, contact {fmt(r['contact'])} ms", flush=True)
+        if bl:
+            backlog_from = rate
+            break
+        sustained = rate
+    knee.update(sustained_hz=sustained, backlog_from_hz=backlog_from)
+    res["knee"] = knee
+    res["floor_two_hop_ms_after"] = floor_ms()
+    res["load_average_after"] = os.getloadavg()
+    rclpy.shutdown()
+    os.makedirs(RESULTS, exist_ok=True)
+    with open(os.path.join(RESULTS, "system.json"), "w") as fh:
+        json.dump(res, fh, indent=2)
+    md = markdown(res)
+    with open(os.path.join(RESULTS, "system_table.md"), "w") as fh:
+        fh.write(md + "\n")
+    print(md)
     return 0
 
 

@@ -1,5 +1,7 @@
-"""README documents every node parameter exactly as the nodes declare it."""
+"""README.md and the parameter files hold exactly what the nodes declare (one source)."""
 import os
+
+import yaml
 
 from conftest import require_ros
 
@@ -13,15 +15,32 @@ def test_readme_parameter_tables_match_the_code():
     assert markdown() in readme, "README parameters are stale: run tools/update_param_docs.sh"
 
 
-def test_every_declared_parameter_has_a_description_and_unit_in_its_name_where_physical():
+def test_parameter_files_are_generated_from_the_tables_with_one_section_per_node():
     require_ros()
-    from ae_tactile.ros.param_docs import slip_config_descriptions
-    from ae_tactile.ros.driver_node import DRIVER_PARAMS
-    from ae_tactile.ros.grip_reflex_node import REFLEX_PARAMS
-    from ae_tactile.ros.localizer_node import LOCALIZER_PARAMS
-    from ae_tactile.ros.sim_fingertip_node import SIM_PARAMS
-    from ae_tactile.ros.slip_node import NODE_PARAMS, slip_config_params
-    for p in DRIVER_PARAMS + SIM_PARAMS + LOCALIZER_PARAMS + NODE_PARAMS + REFLEX_PARAMS:
-        assert len(p.description) > 10, p.name
-    desc = slip_config_descriptions()
-    assert all(p.name in desc for p in slip_config_params()), set(p.name for p in slip_config_params()) - set(desc)
+    from ae_tactile.ros.param_docs import BODY_VALUES, parameter_file
+    for body in BODY_VALUES:
+        path = os.path.join(ROOT, "config", f"{body}.yaml")
+        text = open(path, encoding="utf-8").read()
+        assert text == parameter_file(body), f"{path} is stale: run tools/update_param_docs.sh"
+        data = yaml.safe_load(text)
+        assert "/**" not in data                       # no section that sets every node at once
+        assert set(data) == {"/**/driver", "/**/sim_fingertip", "/**/localizer", "/**/slip_detector",
+                             "/**/grip_reflex"}
+        drv = data["/**/driver"]["ros__parameters"]
+        assert drv["medium"] == body and drv["localization"]["method"] == "ml"
+        # the localizer's and the slip detector's min_confidence are separate parameters now
+        assert "min_confidence" in drv["localization"] and "min_confidence" in drv["slip"]
+
+
+def test_every_parameter_is_described_with_unit_and_range():
+    require_ros()
+    from ae_tactile.ros.param_docs import SECTIONS, _table_of
+    from ae_tactile.ros.params import describe
+    for _, node, tables in SECTIONS:
+        for prefix, t in tables:
+            for p in _table_of(prefix, t):
+                assert len(p.description) > 10 and "SlipConfig." not in p.description, (node, p.name)
+                text = describe(p)
+                if isinstance(p.default, (int, float)) and not isinstance(p.default, bool) \
+                        and p.choices is None:
+                    assert "range:" in text, (node, p.name, text)

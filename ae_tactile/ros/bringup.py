@@ -1,15 +1,15 @@
-"""`bringup`: every node of one fingertip in one process, on a multi-threaded executor.
+"""`bringup`: one fingertip's nodes in one process (the demo and the end-to-end tests).
 
     bringup [--scene FILE] [--no-sim --port URL] [--namespace NS] [--params-file FILE]
             [--frame-id F] [--method M] [--speed X] [--duration S] [--monitor]
-            [--grip-reflex] [--summary-json FILE]
+            [--grip-reflex] [--split] [--summary-json FILE] [--report-png FILE]
 
-With the simulated fingertip (default) the scene is served on a pty and the driver reads
-it exactly as it would read hardware. Composing the nodes in one process gives the
-lowest latency on a robot (no inter-process hops) and is what the demo and the
-end-to-end tests run; `launch/ae_tactile.launch.py` starts the same nodes as separate
-processes where ROS 2 launch is installed. ``--params-file`` takes a ROS parameter file
-(`/**:` keys apply to every node, e.g. config/water_skin.yaml).
+With the simulated fingertip (default) the scene is served on a pty by the
+`sim_fingertip` process and the driver reads it exactly as it would read hardware. The
+driver localizes and detects slip in-process; ``--split`` runs the velodyne-style split
+instead (driver publishing raw packets, separate localizer and slip_detector nodes).
+``--params-file`` takes the same parameter file as the launch file (one section per node,
+config/water_skin.yaml or config/silicone.yaml; the parameters' defaults are in the code).
 """
 from __future__ import annotations
 
@@ -47,7 +47,10 @@ def parse_args(argv):
                     help="sensor-data (best-effort) QoS on packets instead of reliable")
     ap.add_argument("--sliding-speed", type=float, default=0.0,
                     help="known sliding speed (m/s) for TEXTURE spatial periods (0: unknown)")
+    ap.add_argument("--split", action="store_true",
+                    help="separate localizer and slip_detector nodes on the packets topic")
     ap.add_argument("--summary-json", default="", help="write the monitor's summary here")
+    ap.add_argument("--report-png", default="", help="write a PNG summary of the run here (monitor)")
     return ap.parse_args(argv)
 
 
@@ -126,17 +129,27 @@ class Bringup:
         else:
             port = args.port
         sensor = self._scene_sensor_params(scene) if args.use_sim else []
-        self.driver = DriverNode(parameter_overrides=sensor + [
-            Parameter("port", value=port), Parameter("frame_id", value=args.frame_id),
-            Parameter("reliable_qos", value=bool(args.reliable)),
-            Parameter("wait_for_subscribers", value=1)], **kw)
-        loc_params = [Parameter("reliable_qos", value=bool(args.reliable))]
-        if args.method:
-            loc_params.append(Parameter("method", value=args.method))
-        self.localizer = LocalizerNode(parameter_overrides=loc_params, **kw)
-        slip_params = [Parameter("sliding_speed_m_s", value=float(args.sliding_speed))] if args.sliding_speed else []
-        self.slip = SlipDetectorNode(parameter_overrides=slip_params, **kw)
-        self.nodes += [self.driver, self.localizer, self.slip]
+        driver_params = sensor + [Parameter("port", value=port), Parameter("frame_id", value=args.frame_id),
+                                  Parameter("pipeline", value=not args.split),
+                                  Parameter("wait_for_subscribers", value=1 if (args.monitor or args.split) else 0)]
+        if args.split:
+            driver_params.append(Parameter("reliable_qos", value=bool(args.reliable)))
+        elif args.method:
+            driver_params.append(Parameter("localization.method", value=args.method))
+        if args.sliding_speed and not args.split:
+            driver_params.append(Parameter("slip.sliding_speed_m_s", value=float(args.sliding_speed)))
+        self.driver = DriverNode(parameter_overrides=driver_params, **kw)
+        self.nodes.append(self.driver)
+        self.localizer = self.slip = None
+        if args.split:
+            loc_params = [Parameter("reliable_qos", value=bool(args.reliable))]
+            if args.method:
+                loc_params.append(Parameter("localization.method", value=args.method))
+            self.localizer = LocalizerNode(parameter_overrides=loc_params, **kw)
+            slip_params = ([Parameter("slip.sliding_speed_m_s", value=float(args.sliding_speed))]
+                           if args.sliding_speed else [])
+            self.slip = SlipDetectorNode(parameter_overrides=slip_params, **kw)
+            self.nodes += [self.localizer, self.slip]
         self.driver.create_subscription(String, "sim/scene_truth", self._on_scene_info, LATCHED)
         if args.grip_reflex:
             from ae_tactile.ros.grip_reflex_node import GripReflexNode
@@ -174,10 +187,18 @@ class Bringup:
         """The simulated fingertip has played its whole scene (sim/scene_truth received)."""
         return bool(self.scene_info and self.scene_info.get("finished"))
 
+    def events_published(self) -> int:
+        """Contact events published so far (driver, or the separate localizer)."""
+        if self.localizer is not None:
+            return self.localizer.counts["events"]
+        return self.driver.published_events
+
     def drained(self) -> bool:
-        """Nothing queued in the driver or the localizer, and every event passed on."""
-        return (self.driver.link.stats()["queue_depth"] == 0 and self.localizer.idle()
-                and self.slip.received >= self.localizer.counts["events"])
+        """Nothing queued anywhere, and every event passed on."""
+        if self.localizer is not None:
+            return (self.driver.link.stats()["queue_depth"] == 0 and self.localizer.idle()
+                    and self.slip.received >= self.localizer.counts["events"])
+        return True
 
     def spin(self, duration_s: float, drain_timeout_s: float = 10.0) -> None:
         """Spin for duration_s (0: forever); negative: until the scene has played and the
@@ -194,7 +215,7 @@ class Bringup:
                 if done_at is None and self.scene_done():
                     done_at = now
                 if done_at is not None:
-                    count = self.driver.published_packets + self.localizer.counts["events"]
+                    count = self.driver.link.stats()["packets_out"] + self.events_published()
                     busy = count != last_count or not self.drained()
                     last_count = count
                     quiet_since = None if busy else (quiet_since or now)
@@ -216,6 +237,15 @@ class Bringup:
         truth = self.scene_info.get("truth", {})
         parts = truth.get("parts", [truth])
         return [int(p.get("start_time_ns") or 0) for p in parts if p.get("gross_slip_time_ns") is not None]
+
+    def write_report(self, path: str, summary: dict) -> None:
+        """PNG summary of the run (ae_tactile.report; needs matplotlib)."""
+        try:
+            from ae_tactile.report import write_run_report
+        except ImportError as exc:
+            print(f"[ae_tactile] no PNG report: {exc}", file=sys.stderr)
+            return
+        write_run_report(path, self.monitor.report_data(), summary)
 
     def close(self) -> None:
         self.executor.shutdown()
@@ -255,7 +285,11 @@ def main(argv=None) -> int:
                 system.executor.spin_once(timeout_sec=0.1)
                 system.monitor._flush()
                 summary = system.monitor.summary(system.gross_slip_times_ns(), system.slip_part_starts_ns())
+                from ae_tactile.ros.monitor_node import two_hop_floor_ms
+                summary["floor_two_hop_ms"] = two_hop_floor_ms()
                 print(format_summary(summary), flush=True)
+                if args.report_png:
+                    system.write_report(args.report_png, summary)
                 if args.summary_json:
                     with open(args.summary_json, "w") as fh:
                         json.dump(summary, fh, indent=2)

@@ -70,3 +70,65 @@ def packet_samples(msg: Packet) -> np.ndarray:
             f"inconsistent Packet {msg.sequence_id}: channel_count={count}, "
             f"samples_per_channel={n}, len(samples)={data.size}")
     return data.reshape(count, n)
+
+
+def contact_event_msg(rec, frame_id: str):
+    """ContactEvent message of a core `ae_tactile.pipeline.ContactRecord` (~8 us)."""
+    from ae_tactile.msg import ContactEvent
+    ev = ContactEvent()
+    sec, nanosec = divmod(int(rec.time_ns), NS_PER_S)
+    ev.header.stamp.sec, ev.header.stamp.nanosec = sec, nanosec
+    ev.header.frame_id = frame_id
+    ev.event_type = int(rec.event_type)
+    ev.position.x, ev.position.y, ev.position.z = rec.point_m
+    ev.position_covariance = rec.covariance_m2.ravel().tolist()
+    ev.polar_angle_rad, ev.azimuth_angle_rad = rec.polar_rad, rec.azimuth_rad
+    ev.tau_x_s, ev.tau_y_s = rec.tau_x_s, rec.tau_y_s
+    ev.amplitude_v = rec.amplitude_v
+    ev.confidence = rec.confidence
+    ev.packet_ids = list(rec.packet_ids)
+    ev.emission_rate_hz, ev.spatial_period_m = rec.emission_rate_hz, rec.spatial_period_m
+    ev.slip_direction.x, ev.slip_direction.y, ev.slip_direction.z = rec.slip_direction
+    return ev
+
+
+def contact_record_of_msg(msg):
+    """Core ContactRecord of a received ContactEvent (the slip_detector node's input)."""
+    from ae_tactile.pipeline import ContactRecord
+    return ContactRecord(
+        event_type=int(msg.event_type), time_ns=time_msg_to_ns(msg.header.stamp),
+        point_m=(float(msg.position.x), float(msg.position.y), float(msg.position.z)),
+        covariance_m2=np.asarray(msg.position_covariance, dtype=float).reshape(3, 3),
+        packet_ids=tuple(int(i) for i in msg.packet_ids), polar_rad=msg.polar_angle_rad,
+        azimuth_rad=msg.azimuth_angle_rad, tau_x_s=msg.tau_x_s, tau_y_s=msg.tau_y_s,
+        amplitude_v=float(msg.amplitude_v), confidence=float(msg.confidence))
+
+
+def contact_state_msg(st, frame_id: str, now_ns: int):
+    """ContactState message of the slip detector's FingerState."""
+    from ae_tactile.msg import ContactState
+    msg = ContactState()
+    msg.header.stamp = ns_to_time_msg(st.time_ns if st.time_ns > 0 else now_ns)
+    msg.header.frame_id = frame_id
+    msg.state = int(st.state)
+    msg.state_since = ns_to_time_msg(max(int(st.since_ns), 0))
+    p = np.asarray(st.contact_point_m, dtype=float)
+    msg.contact_point.x, msg.contact_point.y, msg.contact_point.z = (float(v) for v in p)
+    msg.slip_emission_rate_hz = float(st.slip_emission_rate_hz)
+    msg.precursor_count = int(st.precursor_count)
+    return msg
+
+
+def packet_array_msg(batch, frame_id: str):
+    """PacketArray of a link PacketBatch."""
+    from ae_tactile.msg import PacketArray
+    msg = PacketArray()
+    msg.header.stamp = ns_to_time_msg(batch.receive_ns)
+    msg.header.frame_id = frame_id
+    msg.packets = [make_packet(r.samples_v, stamp_ns=r.stamp_ns, sample_rate_hz=r.sample_rate_hz,
+                               onset_index=r.onset_index, sequence_id=r.sequence_id,
+                               noise_rms_v=r.noise_rms_v, saturated=r.saturated)
+                   for r in batch.packets]
+    msg.packets_dropped = batch.packets_dropped
+    msg.frames_bad_crc = batch.frames_bad_crc
+    return msg

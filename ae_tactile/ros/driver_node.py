@@ -1,35 +1,57 @@
-"""`driver` node: fingertip serial link -> PacketArray, diagnostics, latched SensorInfo.
+"""`driver` node: the fingertip from serial bytes to contact and slip events, in one process.
 
-Publishes only raw packets (the localizer interprets them), like velodyne's driver.
-All link work (reading, decoding, reconnecting, time mapping, stream-mode packet
-cutting) is in the core (`ae_tactile.link`); this node declares parameters, converts
-batches to messages and publishes them as soon as the reader thread hands them over:
-a publisher thread blocks on the link's bounded queue (rclpy publishers are
-thread-safe), so packets neither wait for an executor wake-up nor pay its overhead;
-the executor only runs the diagnostics timer.
+The hot path runs in the serial reader thread, with no message hop between stages: the
+link (`ae_tactile.link`) decodes frames and hands each batch of packets to the core
+pipeline (`ae_tactile.pipeline`: validation, interference rejection, localization, slip
+detection), and this node publishes what comes out at once: contact events first, then
+slip events and the contact state, then (only when someone subscribes or records) the
+raw packets. With ``pipeline:=false`` it publishes raw packets only, for the separate
+`localizer` and `slip_detector` nodes (replaying bags, velodyne-style: same core code).
+
+Acquisition starts once the pipeline is ready (compiled, geometry known) and, with
+``wait_for_subscribers:=N``, once N subscribers are matched on ``contacts`` (``packets``
+without the pipeline): no first event is lost.
 
 Topics (relative, so a namespace per finger works):
-  packets      ae_tactile/PacketArray   sensor-data QoS (best effort), or reliable with
-                                        reliable_qos:=true (for `ros2 bag record`)
-  sensor_info  ae_tactile/SensorInfo    transient-local, depth 1 (bags self-describing)
-  /diagnostics diagnostic_msgs/DiagnosticArray  at diagnostics_period_s
+  contacts      ae_tactile/ContactEvent  TOUCH / DETOUCH, reliable, depth 100
+  slip          ae_tactile/ContactEvent  SLIP_PRECURSOR / SLIP / TEXTURE, reliable, depth 100
+  contact_state ae_tactile/ContactState  latched (transient local, depth 1)
+  markers       visualization_msgs/MarkerArray  when subscribed
+  packets       ae_tactile/PacketArray   sensor-data QoS, or reliable with reliable_qos:=true
+                                         (for `ros2 bag record`); only when subscribed
+  sensor_info   ae_tactile/SensorInfo    latched (bags self-describing)
+  /diagnostics  diagnostic_msgs/DiagnosticArray  link, localization and slip status
+Subscribes: sliding_speed (std_msgs/Float64, m/s; TEXTURE spatial periods),
+  sim/scene_truth (the simulated fingertip's body: a mismatch with the parameters is warned
+  about once and the device's body is used).
 """
 from __future__ import annotations
 
+import json
+import logging
+import math
 import sys
 import threading
+from collections import deque
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
+from std_msgs.msg import Float64, String
+from visualization_msgs.msg import MarkerArray
 
-from ae_tactile.geometry import MEDIA
+from ae_tactile.geometry import MEDIA, FingertipGeometry
 from ae_tactile.link import MODES, FingertipLink, LinkConfig
-from ae_tactile.msg import PacketArray, SensorInfo
-from ae_tactile.ros.conversions import make_packet, ns_to_time_msg
+from ae_tactile.msg import ContactEvent, ContactState, PacketArray, SensorInfo
+from ae_tactile.pipeline import ContactPipeline, PacketLocalizer, SlipStage
+from ae_tactile.ros.conversions import (contact_event_msg, contact_state_msg, ns_to_time_msg,
+                                        packet_array_msg)
+from ae_tactile.ros.markers import EventMarkers, sensor_markers
 from ae_tactile.ros.node_utils import LATCHED, run_node
-from ae_tactile.ros.params import Param, ParameterError, declare
+from ae_tactile.ros.params import (LOCALIZATION_PARAMS, Param, ParameterError, ParamSet,
+                                   slip_config_kwargs, slip_params, tunable)
+from ae_tactile.slip import SlipConfig
 
 DRIVER_PARAMS = [
     Param("port", "/dev/ttyACM0", "Serial device path or pyserial URL (socket://host:port, loop://, a pty path)",
@@ -48,8 +70,18 @@ DRIVER_PARAMS = [
     Param("link_timeout_s", 3.0, "Silence after which the link counts as lost (s); the device beats >= 1 Hz", 0.1, 60.0),
     Param("reconnect_max_s", 5.0, "Longest wait between reconnection attempts (s)", 0.1, 300.0),
     Param("diagnostics_period_s", 1.0, "Period of /diagnostics messages (s)", 0.05, 60.0),
-    Param("wait_for_subscribers", 0, "Open the port only once 'packets' has this many subscribers "
-          "(0: at once), so no packet is published before its consumers are matched", 0, 100),
+    Param("wait_for_subscribers", 0, "Start acquisition only once this many subscribers are matched "
+          "on 'contacts' ('packets' with pipeline:=false), so no event is published before its "
+          "consumers listen (0: at once)", 0, 100),
+    Param("pipeline", True, "Localize and detect slip inside the driver (lowest latency); false: "
+          "publish raw packets only, for the separate localizer and slip_detector nodes"),
+    tunable(Param("markers", True, "Publish RViz markers on 'markers' (only while subscribed)")),
+    Param("marker_period_s", 0.1, "Marker refresh period", 0.02, 5.0),
+    Param("marker_lifetime_s", 2.0, "How long an event marker stays (fading)", 0.1, 60.0),
+    Param("slip_tick_period_s", 0.02, "Period of the slip detector's time-keeping tick (quiet "
+          "contacts fall back to STICK)", 0.001, 1.0),
+    Param("slip_lag_s", 0.02, "The tick never moves the slip detector's clock past now minus this, "
+          "so emissions still in flight are not overtaken", 0.0, 1.0),
     Param("detector_threshold_sigma", 6.0, "Stream mode: trigger threshold in noise sigmas", 2.0, 100.0),
     Param("medium", "water_skin", "Fingertip body for SensorInfo: 'water_skin', 'silicone' or a label"),
     Param("radius_m", 10e-3, "Sphere radius R (m)", 1e-3, 0.1),
@@ -59,6 +91,17 @@ DRIVER_PARAMS = [
           check=lambda v: None if len(v) == 4 and all(g > 0 for g in v) else "needs 4 positive gains"),
     Param("highpass_hz", 100e3, "Analog front-end high-pass corner (Hz), for SensorInfo", 0.0, 5e6),
 ]
+
+
+#: Event topics: reliable, so a hand's controller never misses a touch or a slip.
+EVENT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                       reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+
+
+def geometry_from_params(p: dict) -> FingertipGeometry:
+    """Fingertip geometry of the driver parameters (c = 0: the medium preset's)."""
+    c = p["sound_speed_m_s"] or MEDIA.get(p["medium"], MEDIA["water_skin"])["sound_speed_m_s"]
+    return FingertipGeometry(p["radius_m"], p["element_offset_m"], c)
 
 
 def packet_qos(reliable: bool) -> QoSProfile:
@@ -83,6 +126,9 @@ def link_config_from_params(p: dict) -> LinkConfig:
     """LinkConfig from validated parameter values (0 = keep the device's setting)."""
     none0 = lambda v: None if v == 0 else int(v)   # noqa: E731
     packet_samples = none0(p["packet_samples"])
+    if p["pre_trigger_samples"] and not packet_samples:
+        raise ParameterError("parameter 'pre_trigger_samples' needs 'packet_samples' (the device "
+                             "takes both together); set packet_samples too")
     pre = p["pre_trigger_samples"] if packet_samples else None
     if packet_samples and pre >= packet_samples:
         raise ParameterError(f"parameter 'pre_trigger_samples' = {pre} must be < packet_samples = {packet_samples}")
@@ -101,74 +147,213 @@ def link_config_from_params(p: dict) -> LinkConfig:
 class DriverNode(Node):
     def __init__(self, **kwargs):
         super().__init__("driver", **kwargs)
-        self.p = declare(self, DRIVER_PARAMS)
-        self.link_config = link_config_from_params(self.p)
-        self.pub_packets = self.create_publisher(PacketArray, "packets", packet_qos(self.p["reliable_qos"]))
+        self.params = ParamSet(self, DRIVER_PARAMS, on_change=self._on_driver_change)
+        p = self.p = self.params.values
+        self.link_config = link_config_from_params(p)
+        self.frame_id = p["frame_id"]
+        self.pub_packets = self.create_publisher(PacketArray, "packets", packet_qos(p["reliable_qos"]))
         self.pub_info = self.create_publisher(SensorInfo, "sensor_info", LATCHED)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.link = FingertipLink(self.link_config, clock_ns=lambda: self.get_clock().now().nanoseconds)
         self._info_key = None
         self._last_diag = None
         self.published_packets = 0
-        self.create_timer(self.p["diagnostics_period_s"], self._publish_diagnostics)
+        self.published_events = 0
+        self.published_slip = 0
+        self.scene_body = None
+        self._body_warned = False
+        try:
+            self.geometry = geometry_from_params(p)
+        except ValueError as exc:
+            raise ParameterError(f"fingertip geometry: {exc}") from exc
+        self.pipeline = None
+        if p["pipeline"]:
+            self._make_pipeline()
+        self.create_subscription(String, "sim/scene_truth", self._on_scene_truth, LATCHED)
+        self.link = FingertipLink(self.link_config, clock_ns=lambda: self.get_clock().now().nanoseconds,
+                                  sink=self._on_batch, logger=logging.getLogger("ae_tactile.link"))
+        self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
         self._publish_sensor_info()
-        self._running = True
-        self._publisher_thread = threading.Thread(target=self._publish_loop, name="ae_tactile_publisher",
-                                                  daemon=True)
-        self._publisher_thread.start()
-        if self.p["wait_for_subscribers"] > 0:
-            self._start_timer = self.create_timer(0.02, self._start_when_subscribed)
+        if self.pipeline is not None:
+            fs = float(p["sample_rate_hz"] or 10e6)
+            self.pipeline.localizer.warm_up(fs, int(p["packet_samples"] or 400))
+        if p["wait_for_subscribers"] > 0:
+            self._start_timer = self.create_timer(0.01, self._start_when_subscribed)
         else:
             self.link.start()
         self.get_logger().info(
-            f"driver on {self.link_config.port} ({self.link_config.mode} mode), frame '{self.p['frame_id']}', "
-            f"{'reliable' if self.p['reliable_qos'] else 'sensor-data'} QoS")
+            f"driver on {self.link_config.port} ({self.link_config.mode} mode), frame '{self.frame_id}', "
+            + (f"in-process pipeline ({self.pipeline.localizer.method})" if self.pipeline else
+               "raw packets only"))
 
+    # -------------------------------------------------------------- pipeline
+    def _make_pipeline(self) -> None:
+        self.loc_params = ParamSet(self, LOCALIZATION_PARAMS, "localization.",
+                                   on_change=self._on_localization_change)
+        self.slip_params = ParamSet(self, slip_params(), "slip.", on_change=self._on_slip_change)
+        lp = self.loc_params.values
+        try:
+            slip_config = SlipConfig(**slip_config_kwargs(self.slip_params.values))
+        except (TypeError, ValueError) as exc:
+            raise ParameterError(f"slip parameters: {exc}") from exc
+        localizer = PacketLocalizer(lp["method"], min_snr_db=lp["min_snr_db"],
+                                    min_confidence=lp["min_confidence"], geometry=self.geometry,
+                                    channel_gains=self.p["channel_gains"],
+                                    reject_interference=lp["reject_interference"])
+        self.slip_stage = SlipStage(slip_config, lag_s=self.p["slip_lag_s"])
+        self.pipeline = ContactPipeline(localizer, self.slip_stage)
+        self.pub_contacts = self.create_publisher(ContactEvent, "contacts", EVENT_QOS)
+        self.pub_slip = self.create_publisher(ContactEvent, "slip", EVENT_QOS)
+        self.pub_state = self.create_publisher(ContactState, "contact_state", LATCHED)
+        self.pub_markers = self.create_publisher(MarkerArray, "markers", 10)
+        self.markers = EventMarkers(self.frame_id, self.p["marker_lifetime_s"])
+        self._marker_inbox: deque = deque(maxlen=64)
+        self._state_key = None
+        self._state_pub_ns = 0
+        self.create_subscription(Float64, "sliding_speed", self._on_sliding_speed, 10)
+        self.create_timer(self.p["slip_tick_period_s"], self._tick)
+        self.create_timer(self.p["marker_period_s"], self._publish_markers)
+
+    def _on_batch(self, batch) -> None:
+        """Reader thread: one decoded batch -> events, published at once."""
+        if self.pipeline is not None:
+            self.pipeline.process(batch.packets, self._publish_contacts, self._publish_slip)
+            self._publish_state()
+        if self.pub_packets.get_subscription_count() > 0:
+            self.pub_packets.publish(packet_array_msg(batch, self.frame_id))
+            self.published_packets += len(batch.packets)
+
+    def _publish_contacts(self, records) -> None:
+        for r in records:
+            msg = contact_event_msg(r, self.frame_id)
+            self.pub_contacts.publish(msg)
+            self._marker_inbox.append(msg)
+        self.published_events += len(records)
+
+    def _publish_slip(self, records) -> None:
+        for r in records:
+            msg = contact_event_msg(r, self.frame_id)
+            self.pub_slip.publish(msg)
+            self._marker_inbox.append(msg)
+        self.published_slip += len(records)
+
+    def _publish_state(self, force: bool = False) -> None:
+        st = self.slip_stage.state
+        key = (int(st.state), int(st.since_ns), int(st.contact_id))
+        now = self.get_clock().now().nanoseconds
+        if not force and key == self._state_key and now - self._state_pub_ns < 1_000_000_000:
+            return
+        self._state_key, self._state_pub_ns = key, now
+        self.pub_state.publish(contact_state_msg(st, self.frame_id, now))
+
+    def _tick(self) -> None:
+        self.slip_stage.tick(self.get_clock().now().nanoseconds)
+        self._publish_state()
+
+    def _publish_markers(self) -> None:
+        if not self.p["markers"] or self.pub_markers.get_subscription_count() == 0:
+            self._marker_inbox.clear()
+            return
+        now = self.get_clock().now()
+        while self._marker_inbox:
+            self.markers.add(self._marker_inbox.popleft(), now.nanoseconds)
+        stamp = now.to_msg()
+        arr = sensor_markers(self.geometry, self.frame_id, stamp)
+        arr.markers.extend(self.markers.render(now.nanoseconds, stamp).markers)
+        self.pub_markers.publish(arr)
+
+    def _on_sliding_speed(self, msg: Float64) -> None:
+        v = float(msg.data)
+        try:
+            with self.slip_stage.lock:
+                self.slip_stage.detector.set_sliding_speed(v if v > 0 and math.isfinite(v) else None)
+        except ValueError as exc:
+            self.get_logger().warning(f"sliding_speed {v} ignored: {exc}", throttle_duration_sec=5.0)
+
+    # -------------------------------------------------------------- run-time parameters
+    def _on_driver_change(self, changes: dict) -> None:
+        pass   # the tunable driver parameters (markers) are read where they are used
+
+    def _on_localization_change(self, changes: dict) -> None:
+        self.pipeline.localizer.update(**changes_for_localizer(changes))
+        if "reject_interference" in changes:
+            self.pipeline.localizer.set_interference(changes["reject_interference"])
+        self.get_logger().info(f"localization parameters changed: {changes}")
+
+    def _on_slip_change(self, changes: dict) -> None:
+        values = dict(self.slip_params.values, **changes)
+        config = SlipConfig(**slip_config_kwargs(values))      # ValueError rejects the change
+        with self.slip_stage.lock:
+            det = self.slip_stage.detector
+            update = getattr(det, "update_config", None)
+            if update is not None:
+                update(**{k: config.__getattribute__(k) for k in changes})
+            else:
+                det.config = config
+        self.get_logger().info(f"slip parameters changed: {changes}")
+
+    # -------------------------------------------------------------- start
     def _start_when_subscribed(self) -> None:
-        if self.pub_packets.get_subscription_count() >= self.p["wait_for_subscribers"]:
+        pub = self.pub_contacts if self.pipeline is not None else self.pub_packets
+        if pub.get_subscription_count() >= self.p["wait_for_subscribers"]:
             self._start_timer.cancel()
             self.link.start()
 
-    # -------------------------------------------------------------- packets
-    def _publish_loop(self) -> None:
-        while self._running:
-            try:
-                self._publish_batches(self.link.poll(timeout_s=0.1))
-            except Exception as exc:   # never let the publisher thread die silently
-                if self._running:
-                    self.get_logger().error(f"publishing failed: {exc!r}")
-
-    def _publish_batches(self, batches) -> None:
-        for batch in batches:
-            msg = PacketArray()
-            msg.header.stamp = ns_to_time_msg(batch.receive_ns)
-            msg.header.frame_id = self.p["frame_id"]
-            msg.packets = [make_packet(r.samples_v, stamp_ns=r.stamp_ns, sample_rate_hz=r.sample_rate_hz,
-                                       onset_index=r.onset_index, sequence_id=r.sequence_id,
-                                       noise_rms_v=r.noise_rms_v, saturated=r.saturated)
-                           for r in batch.packets]
-            msg.packets_dropped = batch.packets_dropped
-            msg.frames_bad_crc = batch.frames_bad_crc
-            self.pub_packets.publish(msg)
-            self.published_packets += len(batch.packets)
+    def _on_scene_truth(self, msg: String) -> None:
+        """The simulated fingertip's body: it wins over the parameters (warned once)."""
+        try:
+            body = json.loads(msg.data).get("sensor")
+        except ValueError:
+            return
+        if not body or self.scene_body == body:
+            return
+        self.scene_body = body
+        try:
+            geo = FingertipGeometry(float(body["radius_m"]), float(body["element_offset_m"]),
+                                    float(body["sound_speed_m_s"]))
+        except (KeyError, TypeError, ValueError):
+            return
+        mine = self.geometry
+        differs = (body.get("medium") != self.p["medium"]
+                   or not math.isclose(geo.radius_m, mine.radius_m, rel_tol=1e-3)
+                   or not math.isclose(geo.element_offset_m, mine.element_offset_m, rel_tol=1e-3)
+                   or not math.isclose(geo.sound_speed_m_s, mine.sound_speed_m_s, rel_tol=1e-3))
+        if not differs:
+            return
+        if not self._body_warned:
+            self._body_warned = True
+            self.get_logger().warning(
+                f"the fingertip reports {body.get('medium')} (R={geo.radius_m * 1e3:.2f} mm, "
+                f"a={geo.element_offset_m * 1e3:.2f} mm, c={geo.sound_speed_m_s:.0f} m/s) but the "
+                f"parameters say {self.p['medium']} (R={mine.radius_m * 1e3:.2f} mm, "
+                f"a={mine.element_offset_m * 1e3:.2f} mm, c={mine.sound_speed_m_s:.0f} m/s): "
+                "using the fingertip's; fix the parameter file (config/water_skin.yaml or "
+                "config/silicone.yaml)")
+        self.geometry = geo
+        self.p["medium"] = str(body.get("medium", self.p["medium"]))
+        self.p["radius_m"], self.p["element_offset_m"] = geo.radius_m, geo.element_offset_m
+        self.p["sound_speed_m_s"] = geo.sound_speed_m_s
+        if self.pipeline is not None:
+            self.pipeline.localizer.update(geometry=geo)
+        self._info_key = None
+        self._publish_sensor_info()
 
     # -------------------------------------------------------------- sensor info
     def _publish_sensor_info(self) -> None:
+        """Latched SensorInfo, re-published only when the device's identity or settings change."""
         st = self.link.device_status
-        key = None if st is None else (st.serial_number, st.firmware_version, st.sample_rate_hz, st.v_per_count,
-                                       st.threshold_counts)
-        if self._info_key is not None and key == self._info_key:
+        key = ("no device",) if st is None else (st.serial_number, st.firmware_version,
+                                                 st.sample_rate_hz, st.v_per_count, st.threshold_counts)
+        if key == self._info_key:
             return
-        self._info_key = key if key is not None else ("",)
+        self._info_key = key
         p = self.p
         msg = SensorInfo()
         msg.header.stamp = self.get_clock().now().to_msg()
-        msg.header.frame_id = p["frame_id"]
+        msg.header.frame_id = self.frame_id
         msg.medium = p["medium"]
-        msg.radius_m = p["radius_m"]
-        msg.element_offset_m = p["element_offset_m"]
-        preset = MEDIA.get(p["medium"], MEDIA["water_skin"])
-        msg.sound_speed_m_s = p["sound_speed_m_s"] or preset["sound_speed_m_s"]
+        msg.radius_m = self.geometry.radius_m
+        msg.element_offset_m = self.geometry.element_offset_m
+        msg.sound_speed_m_s = self.geometry.sound_speed_m_s
         msg.channel_gains = [float(g) for g in p["channel_gains"]]
         msg.highpass_hz = p["highpass_hz"]
         msg.adc_bits = 12
@@ -185,6 +370,10 @@ class DriverNode(Node):
         self.pub_info.publish(msg)
 
     # -------------------------------------------------------------- diagnostics
+    def hardware_id(self) -> str:
+        st = self.link.device_status
+        return st.serial_number if st is not None else self.link_config.port
+
     def _publish_diagnostics(self) -> None:
         self._publish_sensor_info()
         s = self.link.stats()
@@ -193,44 +382,80 @@ class DriverNode(Node):
         if self._last_diag is not None:
             t0, s0 = self._last_diag
             dt = max((now - t0) * 1e-9, 1e-9)
-            rates = {"frame_rate_hz": (s["frames_ok"] - s0["frames_ok"]) / dt,
-                     "packet_rate_hz": (s["packets_out"] - s0["packets_out"]) / dt}
+            rates = {"frame_rate_hz": (s.get("frames_ok", 0) - s0.get("frames_ok", 0)) / dt,
+                     "packet_rate_hz": (s.get("packets_out", 0) - s0.get("packets_out", 0)) / dt}
         self._last_diag = (now, s)
-        status = DiagnosticStatus()
-        status.name = f"{self.get_fully_qualified_name()}: fingertip link"
-        status.hardware_id = str(s.get("device_serial", self.link_config.port))
+        link = DiagnosticStatus()
+        link.name = f"{self.get_fully_qualified_name()}: fingertip link"
+        link.hardware_id = self.hardware_id()
+        problems = {k: s.get(k, 0) for k in ("crc_errors", "packets_dropped", "header_errors",
+                                             "duplicates", "sink_errors") if s.get(k, 0)}
         if s["state"] != "connected":
-            status.level, status.message = DiagnosticStatus.ERROR, f"link {s['state']}: {s['last_error']}"
-        elif s["crc_errors"] or s["packets_dropped"] or s["header_errors"]:
-            status.level = DiagnosticStatus.WARN
-            status.message = (f"connected; {s['packets_dropped']} dropped, {s['crc_errors']} bad CRC, "
-                              f"{s['header_errors']} bad headers so far")
+            link.level, link.message = DiagnosticStatus.ERROR, f"link {s['state']}: {s['last_error']}"
+        elif problems:
+            link.level = DiagnosticStatus.WARN
+            link.message = "connected; " + ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in problems.items())
         else:
-            status.level, status.message = DiagnosticStatus.OK, "connected"
-        keys = ["state", "frames_ok", "crc_errors", "header_errors", "dropped_frames", "packets_dropped",
-                "queue_overflow_packets", "queue_depth", "packets_out", "connects", "disconnects",
-                "connect_failures", "link_timeouts", "device_restarts", "clock_resyncs", "bytes_received",
-                "bytes_discarded", "stream_gaps", "commands_unacked", "device_serial", "device_firmware",
-                "device_state", "device_dropped"]
-        status.values = [KeyValue(key=k, value=str(s[k])) for k in keys if k in s]
-        status.values += [KeyValue(key=k, value=f"{v:.3f}") for k, v in rates.items()]
-        status.values.append(KeyValue(key="published_packets", value=str(self.published_packets)))
+            link.level, link.message = DiagnosticStatus.OK, "connected"
+        link.values = [KeyValue(key=k, value=str(v)) for k, v in sorted(s.items())]
+        link.values += [KeyValue(key=k, value=f"{v:.3f}") for k, v in rates.items()]
+        link.values += [KeyValue(key="published_packets", value=str(self.published_packets))]
+        statuses = [link]
+        if self.pipeline is not None:
+            statuses += pipeline_statuses(self.get_fully_qualified_name(), self.hardware_id(),
+                                          self.pipeline.localizer, self.slip_stage,
+                                          self.published_events, self.published_slip)
         msg = DiagnosticArray()
         msg.header.stamp = ns_to_time_msg(now)
-        msg.status = [status]
+        msg.status = statuses
         self.pub_diag.publish(msg)
 
     def destroy_node(self):
-        if not hasattr(self, "link"):       # constructor stopped early (bad parameter)
-            return super().destroy_node()
-        self._running = False
-        if self.link._thread is not None:
+        if hasattr(self, "link") and self.link._thread is not None:
             self.link.stop()
-        self._publisher_thread.join(1.0)
         return super().destroy_node()
 
 
+def changes_for_localizer(changes: dict) -> dict:
+    """Localization parameter changes as PacketLocalizer.update() arguments."""
+    return {k: v for k, v in changes.items() if k in ("method", "min_snr_db", "min_confidence")}
+
+
+def pipeline_statuses(node_name: str, hardware_id: str, localizer, slip_stage, events: int,
+                      slip_events: int) -> list:
+    """DiagnosticStatus of the localization and slip stages (counts by reason)."""
+    loc = DiagnosticStatus()
+    loc.name = f"{node_name}: localization"
+    loc.hardware_id = hardware_id
+    c = localizer.counts
+    rejected = sum(v for k, v in c.items() if k.startswith("rejected_"))
+    loc.level = DiagnosticStatus.OK
+    loc.message = f"{c['events']} events from {c['packets']} packets, {rejected} rejected"
+    if c["packets"] >= 20 and rejected > 0.5 * c["packets"]:
+        loc.level = DiagnosticStatus.WARN
+    loc.values = [KeyValue(key=k, value=str(v)) for k, v in sorted(c.items())]
+    loc.values += [KeyValue(key="method", value=localizer.method),
+                   KeyValue(key="published_events", value=str(events))]
+    out = [loc]
+    if slip_stage is not None:
+        slip = DiagnosticStatus()
+        slip.name = f"{node_name}: slip detection"
+        slip.hardware_id = hardware_id
+        counts = slip_stage.all_counts()
+        st = slip_stage.state
+        slip.level = DiagnosticStatus.OK
+        dropped = sum(v for k, v in counts.items() if "rejected" in k)
+        slip.message = f"{st.state.name}, {slip_events} slip events, {dropped} inputs rejected"
+        if dropped:
+            slip.level = DiagnosticStatus.WARN
+        slip.values = [KeyValue(key=k, value=str(v)) for k, v in sorted(counts.items())]
+        slip.values += [KeyValue(key="published_slip_events", value=str(slip_events))]
+        out.append(slip)
+    return out
+
+
 def main(args=None) -> int:
+    sys.setswitchinterval(0.0005)   # the reader thread gets the GIL back quickly
     return run_node(DriverNode, args)
 
 

@@ -1,9 +1,10 @@
 """`localizer` node: PacketArray -> ContactEvent (TOUCH / DETOUCH), markers, diagnostics.
 
-Packets are localized in batches (`ae_tactile.localization.localize`, estimator chosen by
-the `method` parameter) by a worker thread that takes every PacketArray queued since its
-last pass: one packet costs ~1.5 ms alone but ~0.05 ms in a batch of 64, so the node keeps
-the lowest latency when packets are sparse and batches itself up when they come fast. The
+The replay half of the velodyne-style split: the driver localizes in-process by default;
+this node does the same work (`ae_tactile.pipeline.PacketLocalizer`, the same code) on a
+`packets` topic, e.g. from a bag or a driver run with ``pipeline:=false``. A worker thread
+takes every PacketArray queued since its last pass (one packet alone takes the
+single-packet path, a backlog is localized in batches). The
 geometry comes from the driver's latched `sensor_info` when it arrives (so a bag is
 self-describing), else from the parameters. Each accepted packet gives one ContactEvent
 on `contacts`: TOUCH for compressive onsets, DETOUCH for rarefactions, stamped at the
@@ -13,38 +14,35 @@ Markers (`markers`, MarkerArray): the fingertip, the PVDF matrix, recent events.
 """
 from __future__ import annotations
 
-import math
 import sys
 import threading
-from collections import Counter, deque
+from collections import deque
 
-import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, KeyValue
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from visualization_msgs.msg import MarkerArray
 
 from ae_tactile.geometry import FingertipGeometry
-from ae_tactile.localization import Localizer, Reason, available_methods
 from ae_tactile.msg import ContactEvent, PacketArray, SensorInfo
-from ae_tactile.ros.conversions import ns_to_time_msg, packet_samples, time_msg_to_ns
-from ae_tactile.ros.node_utils import LATCHED, run_node
+from ae_tactile.pipeline import PacketLocalizer, PacketView
+from ae_tactile.ros.conversions import contact_event_msg, packet_samples, time_msg_to_ns
+from ae_tactile.ros.driver_node import EVENT_QOS, changes_for_localizer, pipeline_statuses
 from ae_tactile.ros.markers import EventMarkers, sensor_markers
-from ae_tactile.ros.params import Param, declare
+from ae_tactile.ros.node_utils import LATCHED, run_node
+from ae_tactile.ros.params import LOCALIZATION_PARAMS, Param, ParamSet, declare, tunable
 
 LOCALIZER_PARAMS = [
-    Param("method", "ml", "Delay estimator: " + ", ".join(available_methods()), choices=tuple(available_methods())),
-    Param("min_snr_db", 5.0, "Reject packets below this SNR (dB, docs/conventions.md)", -20.0, 80.0),
-    Param("min_confidence", 0.0, "Do not publish events below this confidence", 0.0, 1.0),
     Param("use_sensor_info", True, "Take geometry and gains from the driver's latched sensor_info"),
-    Param("radius_m", 10e-3, "Sphere radius R (m), until sensor_info arrives", 1e-3, 0.1),
-    Param("element_offset_m", 1.5e-3, "Element offset a (m), until sensor_info arrives", 1e-4, 0.02),
-    Param("sound_speed_m_s", 1480.0, "Sound speed c (m/s), until sensor_info arrives", 100.0, 10_000.0),
-    Param("reliable_qos", False, "Subscribe to packets reliably (needs a reliable driver; no loss under load)"),
-    Param("markers", True, "Publish RViz markers on 'markers'"),
-    Param("marker_lifetime_s", 2.0, "How long an event marker stays (fading) (s)", 0.1, 60.0),
-    Param("marker_period_s", 0.1, "Marker refresh period (s)", 0.02, 5.0),
-    Param("diagnostics_period_s", 1.0, "Period of /diagnostics messages (s)", 0.05, 60.0),
+    Param("radius_m", 10e-3, "Sphere radius R, until sensor_info arrives", 1e-3, 0.1),
+    Param("element_offset_m", 1.5e-3, "Element offset a, until sensor_info arrives", 1e-4, 0.02),
+    Param("sound_speed_m_s", 1480.0, "Sound speed c, until sensor_info arrives", 100.0, 10_000.0),
+    Param("reliable_qos", False, "Subscribe to packets reliably (needs a reliable driver; no loss "
+          "under load)"),
+    tunable(Param("markers", True, "Publish RViz markers on 'markers'")),
+    Param("marker_lifetime_s", 2.0, "How long an event marker stays (fading)", 0.1, 60.0),
+    Param("marker_period_s", 0.1, "Marker refresh period", 0.02, 5.0),
+    Param("diagnostics_period_s", 1.0, "Period of /diagnostics messages", 0.05, 60.0),
 ]
 
 
@@ -52,13 +50,18 @@ class LocalizerNode(Node):
     def __init__(self, **kwargs):
         super().__init__("localizer", **kwargs)
         p = self.p = declare(self, LOCALIZER_PARAMS)
+        self.loc_params = ParamSet(self, LOCALIZATION_PARAMS, "localization.",
+                                   on_change=self._on_localization_change)
+        lp = self.loc_params.values
         self.geometry = FingertipGeometry(p["radius_m"], p["element_offset_m"], p["sound_speed_m_s"])
-        self.channel_gains = None
-        self.localizer = Localizer(p["method"], min_snr_db=p["min_snr_db"])
+        self.localizer = PacketLocalizer(lp["method"], min_snr_db=lp["min_snr_db"],
+                                         min_confidence=lp["min_confidence"], geometry=self.geometry,
+                                         reject_interference=lp["reject_interference"])
+        self.counts = self.localizer.counts
         self.frame_id = ""
-        self.pub_events = self.create_publisher(ContactEvent, "contacts", 100)
+        self.pub_events = self.create_publisher(ContactEvent, "contacts", EVENT_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.pub_markers = self.create_publisher(MarkerArray, "markers", 10) if p["markers"] else None
+        self.pub_markers = self.create_publisher(MarkerArray, "markers", 10)
         self._inbox: deque[PacketArray] = deque()
         self._wake = threading.Event()
         self._running = True
@@ -70,15 +73,18 @@ class LocalizerNode(Node):
                                  QoSProfile(depth=1000, reliability=reliability))
         if p["use_sensor_info"]:
             self.create_subscription(SensorInfo, "sensor_info", self.on_sensor_info, LATCHED)
-        self.counts = Counter()
         self.last_upstream = (0, 0)          # (packets_dropped, frames_bad_crc) seen upstream
         self.events = EventMarkers("", p["marker_lifetime_s"])
-        if self.pub_markers is not None:
-            self.create_timer(p["marker_period_s"], self.publish_markers)
+        self.create_timer(p["marker_period_s"], self.publish_markers)
         self.create_timer(p["diagnostics_period_s"], self.publish_diagnostics)
         self._worker = threading.Thread(target=self._work, name="ae_tactile_localizer", daemon=True)
         self._worker.start()
-        self.get_logger().info(f"localizer: method '{p['method']}', min SNR {p['min_snr_db']:g} dB")
+        self.get_logger().info(f"localizer: method '{lp['method']}', min SNR {lp['min_snr_db']:g} dB")
+
+    def _on_localization_change(self, changes: dict) -> None:
+        self.localizer.update(**changes_for_localizer(changes))
+        if "reject_interference" in changes:
+            self.localizer.set_interference(changes["reject_interference"])
 
     # ------------------------------------------------------------------ batching
     def _enqueue(self, msg: PacketArray) -> None:
@@ -119,70 +125,40 @@ class LocalizerNode(Node):
         except ValueError as exc:
             self.get_logger().error(f"ignoring invalid sensor_info: {exc}")
             return
-        gains = np.asarray(msg.channel_gains, dtype=float)
-        self.channel_gains = gains if gains.shape == (4,) and np.all(gains > 0) else None
+        self.hardware_id = msg.serial_number or self.hardware_id
+        self.localizer.update(geometry=self.geometry, channel_gains=list(msg.channel_gains))
         self.get_logger().info(f"geometry from sensor_info ({msg.serial_number or 'no serial'}): "
                                f"R={msg.radius_m * 1e3:.2f} mm, a={msg.element_offset_m * 1e3:.2f} mm, "
                                f"c={msg.sound_speed_m_s:.0f} m/s")
 
     # ------------------------------------------------------------------ packets
+    hardware_id = "unknown fingertip"
+
     def on_packets(self, msgs: list[PacketArray]) -> None:
-        """Localize the packets of several PacketArrays, grouped by window length and rate."""
-        groups: dict[tuple[int, float], list] = {}
+        """Localize the packets of several PacketArrays (bad packets counted one by one)."""
+        views = []
         for msg in msgs:
             self.frame_id = msg.header.frame_id
             self.last_upstream = (msg.packets_dropped, msg.frames_bad_crc)
             for p in msg.packets:
-                self.counts["packets"] += 1
                 try:
                     x = packet_samples(p)
                 except ValueError as exc:
-                    self.counts["rejected_MALFORMED"] += 1
+                    self.counts["packets"] += 1
+                    self.counts["rejected_MALFORMED_inconsistent"] += 1
                     self.get_logger().warning(str(exc), throttle_duration_sec=5.0)
                     continue
-                groups.setdefault((x.shape[1], p.sample_rate_hz), []).append((p, x, msg.header.frame_id))
-        for (_, fs), items in groups.items():
-            self.localize_group(fs, items)
-
-    def localize_group(self, fs: float, items) -> None:
-        windows = np.stack([x for _, x, _ in items])
-        onset = np.array([p.onset_index for p, _, _ in items], dtype=np.int64)
-        saturated = np.array([p.saturated for p, _, _ in items], dtype=bool)
-        res = self.localizer(windows, fs, onset, geometry=self.geometry, saturated=saturated,
-                             channel_gains=self.channel_gains)
-        travel = self.geometry.arrival_times_s(np.nan_to_num(res.point_m)).min(axis=-1)
-        order = np.argsort([time_msg_to_ns(p.stamp) for p, _, _ in items], kind="stable")
-        for i in order:
-            p, _, frame_id = items[i]
-            if not res.accepted[i]:
-                self.counts["rejected_" + Reason(int(res.reason[i])).name] += 1
-                continue
-            if res.confidence[i] < self.p["min_confidence"]:
-                self.counts["below_min_confidence"] += 1
-                continue
-            stamp_ns = time_msg_to_ns(p.stamp) + int(round(p.onset_index * 1e9 / fs - travel[i] * 1e9))
-            ev = ContactEvent()
-            ev.header.stamp = ns_to_time_msg(stamp_ns)
-            ev.header.frame_id = frame_id
-            ev.event_type = ContactEvent.DETOUCH if res.polarity[i] < 0 else ContactEvent.TOUCH
-            ev.position.x, ev.position.y, ev.position.z = (float(v) for v in res.point_m[i])
-            ev.position_covariance = [float(v) for v in res.covariance_m2[i].ravel()]
-            ev.polar_angle_rad, ev.azimuth_angle_rad = float(res.polar_rad[i]), float(res.azimuth_rad[i])
-            ev.tau_x_s, ev.tau_y_s = float(res.tau_x_s[i]), float(res.tau_y_s[i])
-            ev.amplitude_v = float(res.amplitude_v[i])
-            ev.confidence = float(res.confidence[i])
-            ev.packet_ids = [int(p.sequence_id)]
-            ev.emission_rate_hz = ev.spatial_period_m = math.nan
-            ev.slip_direction.x = ev.slip_direction.y = ev.slip_direction.z = math.nan
+                views.append(PacketView(x, p.sample_rate_hz, p.onset_index, time_msg_to_ns(p.stamp),
+                                        p.sequence_id, p.noise_rms_v, p.saturated))
+        for rec in self.localizer.process(views):
+            ev = contact_event_msg(rec, self.frame_id)
             self.pub_events.publish(ev)
-            self.counts["events"] += 1
-            self.counts["touch" if ev.event_type == ContactEvent.TOUCH else "detouch"] += 1
-            if self.pub_markers is not None:
+            if self.p["markers"]:
                 self.events.add(ev, self.get_clock().now().nanoseconds)
 
     # ------------------------------------------------------------------ outputs
     def publish_markers(self) -> None:
-        if not self.frame_id:
+        if not self.frame_id or not self.p["markers"] or self.pub_markers.get_subscription_count() == 0:
             return
         now = self.get_clock().now()
         stamp = now.to_msg()
@@ -192,20 +168,13 @@ class LocalizerNode(Node):
         self.pub_markers.publish(arr)
 
     def publish_diagnostics(self) -> None:
-        st = DiagnosticStatus()
-        st.name = f"{self.get_fully_qualified_name()}: localization"
-        rejected = sum(v for k, v in self.counts.items() if k.startswith("rejected_"))
-        st.level = DiagnosticStatus.OK
-        st.message = f"{self.counts['events']} events, {rejected} packets rejected"
-        if self.counts["packets"] and rejected > 0.5 * self.counts["packets"]:
-            st.level = DiagnosticStatus.WARN
-        st.values = [KeyValue(key=k, value=str(v)) for k, v in sorted(self.counts.items())]
-        st.values += [KeyValue(key="method", value=self.p["method"]),
-                      KeyValue(key="upstream_packets_dropped", value=str(self.last_upstream[0])),
-                      KeyValue(key="upstream_frames_bad_crc", value=str(self.last_upstream[1]))]
+        st = pipeline_statuses(self.get_fully_qualified_name(), self.hardware_id, self.localizer,
+                               None, self.counts["events"], 0)
+        st[0].values += [KeyValue(key="upstream_packets_dropped", value=str(self.last_upstream[0])),
+                         KeyValue(key="upstream_frames_bad_crc", value=str(self.last_upstream[1]))]
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()
-        msg.status = [st]
+        msg.status = st
         self.pub_diag.publish(msg)
 
 

@@ -155,6 +155,53 @@ class MonitorNode(Node):
         return out
 
 
+def two_hop_floor_ms(context=None, n: int = 300, timeout_s: float = 10.0) -> dict:
+    """The rclpy floor: ping -> pong -> back (two hops, std_msgs/Empty) between two nodes of
+    this process on their own executor; median / p99 / max of one-way (RTT / 2) in ms.
+
+    What any rclpy pipeline pays at least for one hop pair; measured in the same run as
+    the latency it is compared with."""
+    import time as _time
+
+    from rclpy.executors import SingleThreadedExecutor
+    from std_msgs.msg import Empty
+    kw = {"context": context} if context is not None else {}
+    a = Node("ae_tactile_floor_ping", **kw)
+    b = Node("ae_tactile_floor_pong", **kw)
+    ex = SingleThreadedExecutor(**kw)
+    ex.add_node(a)
+    ex.add_node(b)
+    try:
+        pong = b.create_publisher(Empty, "ae_tactile_floor/pong", 10)
+        b.create_subscription(Empty, "ae_tactile_floor/ping", lambda m: pong.publish(Empty()), 10)
+        got = []
+        a.create_subscription(Empty, "ae_tactile_floor/pong", lambda m: got.append(_time.perf_counter_ns()), 10)
+        ping = a.create_publisher(Empty, "ae_tactile_floor/ping", 10)
+        t_end = _time.monotonic() + timeout_s
+        while (ping.get_subscription_count() < 1 or pong.get_subscription_count() < 1) \
+                and _time.monotonic() < t_end:
+            ex.spin_once(timeout_sec=0.05)
+        rtt = []
+        for _ in range(n):
+            k = len(got)
+            t0 = _time.perf_counter_ns()
+            ping.publish(Empty())
+            t_stop = _time.monotonic() + 1.0
+            while len(got) == k and _time.monotonic() < t_stop:
+                ex.spin_once(timeout_sec=0.1)
+            if len(got) > k:
+                rtt.append((got[-1] - t0) * 1e-6)
+        if not rtt:
+            return {}
+        r = np.asarray(rtt)
+        return {"median": float(np.median(r)), "p99": float(np.percentile(r, 99)), "max": float(r.max()),
+                "samples": int(r.size), "what": "two rclpy hops (ping -> pong -> back), same process"}
+    finally:
+        ex.shutdown()
+        a.destroy_node()
+        b.destroy_node()
+
+
 def format_summary(s: dict) -> str:
     e = s["emissions"]
     tr = s["touch_release"]
@@ -173,4 +220,11 @@ def format_summary(s: dict) -> str:
         la = s["latency_ms"]
         lines.append(f"end-to-end latency (emission -> event received): median {la['median']:.2f} ms, "
                      f"p99 {la['p99']:.2f} ms")
+    fl = s.get("floor_two_hop_ms")
+    if fl:
+        line = f"rclpy floor, same run (two bare hops, empty message): median {fl['median']:.3f} ms, " \
+               f"p99 {fl['p99']:.3f} ms"
+        if s["latency_ms"] and fl["median"] > 0:
+            line += f"  (latency / floor: {s['latency_ms']['median'] / fl['median']:.0f}x median)"
+        lines.append(line)
     return "\n".join(lines)

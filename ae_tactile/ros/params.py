@@ -1,21 +1,38 @@
-"""Declaring and validating node parameters from one table (descriptions, ranges, defaults).
+"""Node parameters from one table: descriptors, validation, run-time changes.
 
-Each node lists its parameters as `Param`s; `declare(node, params)` declares them with
-a ParameterDescriptor (description, range, read-only flag) and returns their values as
-a dict, raising `ParameterError` naming the parameter and the reason when a value is
-invalid, so the node can refuse to start with a clear message.
+Each node lists its parameters as `Param`s. `ParamSet(node, table, prefix, on_change)`
+declares them (description with unit and range, read-only flag with its reason),
+validates the start-up values (raising `ParameterError` naming the parameter and why, so
+the node refuses to start with a clear message), and installs a parameter callback:
+`ros2 param set` on a tunable parameter is validated against the same table and handed
+to ``on_change({name: value})``, which applies it at once (a ValueError from it rejects
+the change with its message). Integers are accepted for floating-point parameters.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                SetParametersResult)
+
+#: Why structural parameters cannot change while the node runs.
+RESTART = "read-only: takes effect at start-up (restart the node to change it)"
 
 
 class ParameterError(ValueError):
     """An invalid parameter value: message names the parameter and why."""
+
+
+def unit_of(name: str) -> str:
+    """SI unit from a parameter name's suffix ('' when dimensionless)."""
+    for suffix, unit in (("_hz", "Hz"), ("_m_s", "m/s"), ("_m2", "m^2"), ("_s", "s"), ("_m", "m"),
+                         ("_n", "N"), ("_db", "dB"), ("_v", "V")):
+        if name.endswith(suffix):
+            return unit
+    return ""
 
 
 @dataclass(frozen=True)
@@ -27,51 +44,181 @@ class Param:
     hi: float | None = None
     choices: tuple | None = None       # allowed values (strings)
     check: Callable[[Any], str | None] | None = None   # returns an error text or None
-    read_only: bool = True
+    read_only: bool = True             # False: tunable with `ros2 param set`
+    unit: str | None = None            # None: from the name's suffix
+    allow_zero_as_none: bool = False   # 0 means "unknown / device's own" (documented in text)
+
+    @property
+    def si_unit(self) -> str:
+        return unit_of(self.name) if self.unit is None else self.unit
 
 
-def _descriptor(p: Param) -> ParameterDescriptor:
-    d = ParameterDescriptor(description=p.description, read_only=p.read_only)
+def tunable(p: Param) -> Param:
+    return dataclasses.replace(p, read_only=False)
+
+
+def describe(p: Param) -> str:
+    """Description with unit and range, as the descriptor and the docs show it."""
+    parts = [p.description]
+    if p.si_unit:
+        parts.append(f"unit: {p.si_unit}")
+    if p.choices:
+        parts.append("one of: " + ", ".join(map(str, p.choices)))
+    elif p.lo is not None and p.hi is not None:
+        parts.append(f"range: [{p.lo:g}, {p.hi:g}]")
+    if p.read_only:
+        parts.append(RESTART)
+    return "; ".join(parts)
+
+
+def descriptor(p: Param, full_name: str) -> ParameterDescriptor:
+    d = ParameterDescriptor(name=full_name, description=describe(p), read_only=p.read_only)
     if p.choices:
         d.additional_constraints = "one of: " + ", ".join(map(str, p.choices))
+    if isinstance(p.default, float):
+        d.dynamic_typing = True       # so that an integer (`min_snr_db:=10`) is accepted
     if p.lo is not None and p.hi is not None and not isinstance(p.default, bool):
         if isinstance(p.default, int):
             d.integer_range = [IntegerRange(from_value=int(p.lo), to_value=int(p.hi), step=0)]
         elif isinstance(p.default, float):
-            d.floating_point_range = [FloatingPointRange(from_value=float(p.lo), to_value=float(p.hi), step=0.0)]
+            d.floating_point_range = [FloatingPointRange(from_value=float(p.lo),
+                                                         to_value=float(p.hi), step=0.0)]
     return d
 
 
-def validate(p: Param, value: Any) -> Any:
-    """The checked value, or ParameterError('<name>: <why>')."""
+def validate(p: Param, value: Any, full_name: str | None = None) -> Any:
+    """The checked value (ints converted for float parameters), or ParameterError."""
+    name = full_name or p.name
     if isinstance(p.default, float) and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
     if isinstance(p.default, float):
         if not isinstance(value, float) or not math.isfinite(value):
-            raise ParameterError(f"parameter '{p.name}' must be a finite number, got {value!r}")
+            raise ParameterError(f"parameter '{name}' must be a finite number, got {value!r}")
+    elif isinstance(p.default, bool):
+        if not isinstance(value, bool):
+            raise ParameterError(f"parameter '{name}' must be true or false, got {value!r}")
+    elif isinstance(p.default, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ParameterError(f"parameter '{name}' must be an integer, got {value!r}")
+    elif isinstance(p.default, str) and not isinstance(value, str):
+        raise ParameterError(f"parameter '{name}' must be a string, got {value!r}")
+    elif isinstance(p.default, list):
+        try:
+            value = [float(v) for v in value]
+        except (TypeError, ValueError):
+            raise ParameterError(f"parameter '{name}' must be a list of numbers, got {value!r}") from None
     if p.lo is not None and isinstance(value, (int, float)) and not isinstance(value, bool):
         if not p.lo <= value <= p.hi:
-            raise ParameterError(f"parameter '{p.name}' = {value!r} is outside [{p.lo}, {p.hi}]")
+            raise ParameterError(f"parameter '{name}' = {value!r} is outside [{p.lo:g}, {p.hi:g}]")
     if p.choices is not None and value not in p.choices:
-        raise ParameterError(f"parameter '{p.name}' = {value!r} is not one of {list(p.choices)}")
+        raise ParameterError(f"parameter '{name}' = {value!r} is not one of {list(p.choices)}")
     if p.check is not None:
         why = p.check(value)
         if why:
-            raise ParameterError(f"parameter '{p.name}' = {value!r}: {why}")
+            raise ParameterError(f"parameter '{name}' = {value!r}: {why}")
     return value
 
 
-def declare(node, params: list[Param]) -> dict[str, Any]:
-    """Declare every parameter on ``node`` and return {name: validated value}.
+class ParamSet:
+    """The parameters of one table on a node (names ``prefix + p.name``).
 
-    rclpy itself rejects values outside a declared range or of the wrong type when set
-    from a YAML file or the command line; those errors are re-raised as ParameterError.
+    ``values``: {p.name: validated value}. ``on_change(changes)`` is called with the
+    validated new values of tunable parameters set at run time.
     """
-    values = {}
-    for p in params:
-        try:
-            node.declare_parameter(p.name, p.default, _descriptor(p))
-        except Exception as exc:   # rclpy's InvalidParameterValueException, type errors
-            raise ParameterError(f"parameter '{p.name}': {exc}") from exc
-        values[p.name] = validate(p, node.get_parameter(p.name).value)
-    return values
+
+    def __init__(self, node, table: list[Param], prefix: str = "",
+                 on_change: Callable[[dict], None] | None = None):
+        self.node = node
+        self.prefix = prefix
+        self.table = {prefix + p.name: p for p in table}
+        self.on_change = on_change
+        self.values: dict[str, Any] = {}
+        for full, p in self.table.items():
+            try:
+                node.declare_parameter(full, p.default, descriptor(p, full))
+            except Exception as exc:   # rclpy's InvalidParameterValueException, type errors
+                raise ParameterError(f"parameter '{full}': {exc}") from exc
+            self.values[p.name] = validate(p, node.get_parameter(full).value, full)
+        node.add_on_set_parameters_callback(self._on_set)
+
+    def __getitem__(self, name: str):
+        return self.values[name]
+
+    def _on_set(self, params) -> SetParametersResult:
+        changes = {}
+        for prm in params:
+            p = self.table.get(prm.name)
+            if p is None:
+                continue
+            if p.read_only:
+                return SetParametersResult(successful=False, reason=f"{prm.name}: {RESTART}")
+            try:
+                changes[p.name] = validate(p, prm.value, prm.name)
+            except ParameterError as exc:
+                return SetParametersResult(successful=False, reason=str(exc))
+        if changes and self.on_change is not None:
+            try:
+                self.on_change(dict(changes))
+            except (ValueError, TypeError) as exc:
+                return SetParametersResult(successful=False, reason=str(exc))
+        self.values.update(changes)
+        return SetParametersResult(successful=True)
+
+
+def declare(node, params: list[Param], prefix: str = "",
+            on_change: Callable[[dict], None] | None = None) -> dict[str, Any]:
+    """Declare ``params`` on ``node``; returns the live dict of validated values."""
+    return ParamSet(node, params, prefix, on_change).values
+
+
+# ---------------------------------------------------------------------- shared tables
+def _method_choices() -> tuple:
+    from ae_tactile.localization import available_methods
+    return tuple(available_methods())
+
+
+#: In-process localization (driver, prefix 'localization.') and the localizer node.
+LOCALIZATION_PARAMS = [
+    tunable(Param("method", "ml", "Delay estimator (ml: exact-sphere maximum likelihood)",
+                  choices=_method_choices())),
+    tunable(Param("min_snr_db", 5.0, "Reject packets below this SNR (docs/conventions.md)",
+                  -20.0, 80.0)),
+    tunable(Param("min_confidence", 0.0, "Do not publish contact events below this "
+                  "localization confidence", 0.0, 1.0)),
+    tunable(Param("reject_interference", True, "Reject common-mode electrical interference "
+                  "(identical waveforms on the four channels) before localization")),
+]
+
+
+def slip_params() -> list[Param]:
+    """One parameter per SlipConfig field, with its description, unit and range from the
+    field metadata (prefix 'slip.'); run-time fields are tunable."""
+    from ae_tactile.slip import SlipConfig
+    out = []
+    for f in dataclasses.fields(SlipConfig):
+        md = f.metadata or {}
+        default = f.default
+        text = md.get("doc") or f"SlipConfig.{f.name} (docs/slip.md)"
+        if default is None or (f.name == "sliding_speed_m_s"):
+            default = 0.0 if default is None else default
+            text += "; 0 = unknown"
+        if md.get("kind") == "int":
+            default = int(default)
+        elif isinstance(default, (int, float)) and not isinstance(default, bool):
+            default = float(default)
+        if not isinstance(default, (bool, int, float)):
+            continue
+        lo, hi = md.get("lo"), md.get("hi")
+        if md.get("allow_none") and lo is not None:
+            lo = min(lo, 0.0)
+        out.append(Param(f.name, default, text, lo, hi, unit=md.get("unit"),
+                         read_only=not md.get("runtime", True)))
+    return out
+
+
+def slip_config_kwargs(values: dict) -> dict:
+    """SlipConfig keyword arguments from slip parameter values (0 speed = unknown)."""
+    kw = dict(values)
+    if kw.get("sliding_speed_m_s", 0.0) <= 0.0:
+        kw["sliding_speed_m_s"] = None
+    return kw

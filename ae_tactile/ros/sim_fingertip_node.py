@@ -75,6 +75,17 @@ SIM_PARAMS = [
 ]
 
 
+def scene_body(scene_path: str) -> dict:
+    """The simulated fingertip's body (medium and geometry), as the driver compares it with
+    its parameters."""
+    from ae_tactile.sim.scene import load_scene
+    cfg = load_scene(scene_path).config
+    g = cfg.geometry
+    medium = cfg.medium.name if hasattr(cfg.medium, "name") else str(cfg.medium)
+    return {"medium": medium, "radius_m": float(g.radius_m), "element_offset_m": float(g.element_offset_m),
+            "sound_speed_m_s": float(g.sound_speed_m_s), "highpass_hz": float(cfg.highpass_hz)}
+
+
 class SimFingertipNode(Node):
     def __init__(self, **kwargs):
         super().__init__("sim_fingertip", **kwargs)
@@ -100,6 +111,8 @@ class SimFingertipNode(Node):
         self.load_changes: list[tuple[int, float]] = []     # (scene ns, P) applied
         self.create_subscription(Float64, "grip_force_command", self._on_grip_force, LATCHED)
         self.pub_scene = self.create_publisher(String, "sim/scene_truth", LATCHED)
+        self.sensor_body = scene_body(scene)
+        self.pub_scene.publish(String(data=json.dumps({"finished": False, "sensor": self.sensor_body})))
         self.scene_finished = False
         self.create_timer(0.01, self._publish_truth)
         self.create_timer(0.1, self._check_finished)
@@ -134,7 +147,7 @@ class SimFingertipNode(Node):
             return
         self._publish_truth()
         self.scene_finished = True
-        info = {"finished": True, "scene": self.device.spec.get("name", ""),
+        info = {"finished": True, "scene": self.device.spec.get("name", ""), "sensor": self.sensor_body,
                 "truth": self.runner.call(self.scene_truth_ros),
                 "load_changes": [[int(t), float(p)] for t, p in self.load_changes]}
         self.pub_scene.publish(String(data=json.dumps(info, default=float)))

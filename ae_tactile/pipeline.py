@@ -1,0 +1,365 @@
+"""The fingertip's hot path: decoded packets -> contact events -> slip events (no rclpy).
+
+One `ContactPipeline` per fingertip does, for each batch of packets the link decodes and
+in the thread that decoded them:
+
+1. per-packet validation (shape, sample rate, finite samples): a bad packet is counted by
+   reason and never costs its neighbours;
+2. common-mode interference rejection (identical waveforms on the four channels, e.g. a
+   motor driver's switching), when the discriminator is available;
+3. localization: one packet alone takes the single-packet fast path, a backlog is
+   localized in batches (the cost per packet falls with the batch size);
+4. contact events (TOUCH for compressions, DETOUCH for rarefactions) handed to the caller
+   at once, *before* the slip step;
+5. the slip detector: SLIP_PRECURSOR / SLIP / TEXTURE events and the finger's contact state.
+
+The ROS driver calls it from its serial reader thread and publishes what it returns; the
+separate `localizer` and `slip_detector` nodes (replaying recorded packets) use the same
+`PacketLocalizer` and `SlipStage`.
+
+Emission time of a contact event (int ns, host clock):
+    t_emit = t_first_sample + emission_offset_s,
+emission_offset_s being the fitted arrival at the nearest element minus the travel time
+from the fitted point to it (or onset_index / fs minus that travel time when the
+estimator gives no fitted arrival).
+"""
+from __future__ import annotations
+
+import math
+import threading
+from collections import Counter
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ae_tactile.geometry import FingertipGeometry
+from ae_tactile.localization import Localizer, Reason
+from ae_tactile.slip import LocalizedEvent, SlipConfig, SlipDetector
+
+
+class EventType(IntEnum):
+    """ContactEvent types (the values of ContactEvent.msg; a test checks they agree)."""
+
+    TOUCH = 1
+    DETOUCH = 2
+    SLIP_PRECURSOR = 3
+    SLIP = 4
+    TEXTURE = 5
+
+
+_NAN3 = (math.nan, math.nan, math.nan)
+
+
+@dataclass(slots=True)
+class ContactRecord:
+    """One event for the robot hand (core side of ContactEvent.msg), SI units, int ns.
+
+    point_m (3,) fingertip frame; covariance_m2 (3, 3); angles in rad; delays in s;
+    packet_ids: the source packets (a slip event's last id is the emission that decided it).
+    """
+
+    event_type: int
+    time_ns: int
+    point_m: tuple
+    covariance_m2: np.ndarray
+    packet_ids: tuple
+    polar_rad: float = math.nan
+    azimuth_rad: float = math.nan
+    tau_x_s: float = math.nan
+    tau_y_s: float = math.nan
+    amplitude_v: float = math.nan
+    confidence: float = 0.0
+    emission_rate_hz: float = math.nan
+    spatial_period_m: float = math.nan
+    slip_direction: tuple = _NAN3
+
+
+@dataclass
+class PacketView:
+    """What the pipeline needs of one packet (a link PacketRecord or a received message)."""
+
+    samples_v: np.ndarray        # (4, N) volts
+    sample_rate_hz: float
+    onset_index: int
+    stamp_ns: int                # host time of samples_v[:, 0]
+    sequence_id: int
+    noise_rms_v: float = 0.0
+    saturated: bool = False
+
+
+def packet_problem(samples_v, sample_rate_hz, onset_index) -> str | None:
+    """Why a packet cannot be localized at all (None if it can): the per-packet check that
+    keeps one bad packet from costing its neighbours."""
+    x = samples_v
+    if not isinstance(x, np.ndarray) or x.ndim != 2 or x.shape[0] != 4:
+        return "shape"
+    if x.shape[1] < 8:
+        return "too_short"
+    try:
+        fs = float(sample_rate_hz)
+    except (TypeError, ValueError):
+        return "sample_rate"
+    if not math.isfinite(fs) or fs <= 0:
+        return "sample_rate"
+    if not 0 <= int(onset_index) < x.shape[1]:
+        return "onset"
+    return None
+
+
+def _interference_check():
+    """The common-mode interference discriminator, where the core has it."""
+    try:
+        from ae_tactile.dsp.interference import common_mode_interference
+    except ImportError:
+        return None
+    return common_mode_interference
+
+
+class PacketLocalizer:
+    """Packets -> contact events (TOUCH / DETOUCH), counting every rejection by reason.
+
+    ``batch_min`` packets or more in one call are localized as a batch (cheaper per
+    packet under load); fewer take the single-packet path (lowest latency).
+    """
+
+    def __init__(self, method: str = "ml", *, min_snr_db: float = 5.0, min_confidence: float = 0.0,
+                 geometry: FingertipGeometry | None = None, channel_gains=None,
+                 reject_interference: bool = True, batch_min: int = 4):
+        self.localizer = Localizer(method, min_snr_db=min_snr_db)
+        self.method = method
+        self.min_snr_db = float(min_snr_db)
+        self.min_confidence = float(min_confidence)
+        self.geometry = geometry or FingertipGeometry()
+        self.channel_gains = channel_gains
+        self.batch_min = int(batch_min)
+        self.interference = _interference_check() if reject_interference else None
+        self.counts: Counter = Counter()
+        self._one = getattr(self.localizer, "localize_one", None)
+
+    # ---------------------------------------------------------------- settings
+    def update(self, *, method: str | None = None, min_snr_db: float | None = None,
+               min_confidence: float | None = None, geometry: FingertipGeometry | None = None,
+               channel_gains=None) -> None:
+        """Change settings at run time (validated by the caller); takes effect at once."""
+        if method is not None or min_snr_db is not None:
+            m = method if method is not None else self.method
+            s = min_snr_db if min_snr_db is not None else self.min_snr_db
+            self.localizer = Localizer(m, min_snr_db=s)
+            self._one = getattr(self.localizer, "localize_one", None)
+            self.method, self.min_snr_db = m, float(s)
+        if min_confidence is not None:
+            self.min_confidence = float(min_confidence)
+        if geometry is not None:
+            self.geometry = geometry
+        if channel_gains is not None:
+            g = np.asarray(channel_gains, dtype=float)
+            self.channel_gains = g if g.shape == (4,) and np.all(g > 0) else None
+
+    def set_interference(self, enabled: bool) -> None:
+        """Switch the common-mode interference rejection on or off."""
+        self.interference = _interference_check() if enabled else None
+
+    def warm_up(self, sample_rate_hz: float = 10e6, n_samples: int = 400) -> None:
+        """Compile / cache what the first packet would otherwise pay for."""
+        warm = getattr(self.localizer, "warm_up", None)
+        if warm is not None:
+            warm(self.geometry, sample_rate_hz, n_samples)
+        rng = np.random.default_rng(0)
+        x = rng.normal(0.0, 1e-3, (4, int(n_samples))).astype(np.float32)
+        self.process([PacketView(x, sample_rate_hz, int(n_samples) // 4, 0, -1)], count=False)
+
+    # ---------------------------------------------------------------- packets
+    def process(self, packets: Sequence, *, count: bool = True) -> list[ContactRecord]:
+        """Contact events of the accepted packets, in packet order."""
+        counts = self.counts if count else Counter()
+        good = []
+        for p in packets:
+            counts["packets"] += 1
+            why = packet_problem(p.samples_v, p.sample_rate_hz, p.onset_index)
+            if why is not None:
+                counts["rejected_MALFORMED_" + why] += 1
+                continue
+            good.append(p)
+        if not good:
+            return []
+        if self.interference is not None:
+            good = self._drop_interference(good, counts)
+        if len(good) >= self.batch_min or self._one is None:
+            return self._batched(good, counts)
+        out = []
+        for p in good:
+            ev = self._single(p, counts)
+            if ev is not None:
+                out.append(ev)
+        return out
+
+    def _drop_interference(self, packets, counts):
+        groups: dict[tuple, list[int]] = {}
+        for i, p in enumerate(packets):
+            groups.setdefault((p.samples_v.shape[1], float(p.sample_rate_hz)), []).append(i)
+        keep = np.ones(len(packets), bool)
+        for (_, fs), ids in groups.items():
+            w = np.stack([np.asarray(packets[i].samples_v, dtype=np.float64) for i in ids])
+            onset = np.array([int(packets[i].onset_index) for i in ids])
+            try:
+                mask, _ = self.interference(w, fs, onset, geometry=self.geometry)
+            except ValueError:
+                continue
+            keep[np.asarray(ids)[np.asarray(mask, bool)]] = False
+        n = int((~keep).sum())
+        if n:
+            counts["rejected_INTERFERENCE"] += n
+        return [p for p, k in zip(packets, keep) if k]
+
+    def _single(self, p, counts) -> ContactRecord | None:
+        r = self._one(p.samples_v, p.sample_rate_hz, int(p.onset_index),
+                      saturated=bool(p.saturated), geometry=self.geometry,
+                      channel_gains=self.channel_gains)
+        if not r.accepted:
+            counts["rejected_" + Reason(int(r.reason)).name] += 1
+            return None
+        if r.confidence < self.min_confidence:
+            counts["below_min_confidence"] += 1
+            return None
+        return self._record(p, r.point_m, r.covariance_m2, r.polar_rad, r.azimuth_rad, r.tau_x_s,
+                            r.tau_y_s, r.amplitude_v, r.confidence, r.polarity,
+                            r.emission_offset_s, counts)
+
+    def _batched(self, packets, counts) -> list[ContactRecord]:
+        groups: dict[tuple, list[int]] = {}
+        for i, p in enumerate(packets):
+            groups.setdefault((p.samples_v.shape[1], float(p.sample_rate_hz)), []).append(i)
+        found: list[tuple[int, ContactRecord]] = []
+        for (_, fs), ids in groups.items():
+            items = [packets[i] for i in ids]
+            windows = np.stack([np.asarray(p.samples_v) for p in items])
+            onset = np.array([int(p.onset_index) for p in items], dtype=np.int64)
+            sat = np.array([bool(p.saturated) for p in items])
+            res = self.localizer(windows, fs, onset, geometry=self.geometry, saturated=sat,
+                                 channel_gains=self.channel_gains)
+            offsets = getattr(res, "emission_offset_s", None)
+            if offsets is None:
+                travel = self.geometry.arrival_times_s(np.nan_to_num(res.point_m)).min(axis=-1)
+                offsets = onset / fs - travel
+            for j, p in enumerate(items):
+                if not res.accepted[j]:
+                    counts["rejected_" + Reason(int(res.reason[j])).name] += 1
+                    continue
+                if res.confidence[j] < self.min_confidence:
+                    counts["below_min_confidence"] += 1
+                    continue
+                found.append((ids[j], self._record(
+                    p, res.point_m[j], res.covariance_m2[j], res.polar_rad[j], res.azimuth_rad[j],
+                    res.tau_x_s[j], res.tau_y_s[j], res.amplitude_v[j], res.confidence[j],
+                    res.polarity[j], offsets[j], counts)))
+        found.sort(key=lambda t: t[0])
+        return [ev for _, ev in found]
+
+    @staticmethod
+    def _record(p, point, cov, polar, azimuth, tau_x, tau_y, amp, conf, polarity, offset_s,
+                counts) -> ContactRecord:
+        kind = EventType.DETOUCH if polarity < 0 else EventType.TOUCH
+        counts["events"] += 1
+        counts["detouch" if kind == EventType.DETOUCH else "touch"] += 1
+        x, y, z = (float(v) for v in point)
+        return ContactRecord(
+            event_type=int(kind), time_ns=int(p.stamp_ns) + int(round(float(offset_s) * 1e9)),
+            point_m=(x, y, z), covariance_m2=np.asarray(cov, dtype=float).reshape(3, 3),
+            packet_ids=(int(p.sequence_id),), polar_rad=float(polar), azimuth_rad=float(azimuth),
+            tau_x_s=float(tau_x), tau_y_s=float(tau_y), amplitude_v=float(amp),
+            confidence=float(conf))
+
+
+class SlipStage:
+    """Contact events -> slip events and the finger's contact state.
+
+    Events are fed in the order they come; the detector processes an event up to
+    ``SlipConfig.reorder_tolerance_s`` older than the newest one it has seen with its own
+    time stamp, and counts older ones (``counts['rejected_out_of_order']``). `tick` lets
+    time pass without events (quiet slip states fall back to STICK): it never advances the
+    detector's clock past ``now - lag_s``, so events still in flight are not overtaken.
+    Thread-safe: the reader thread feeds events, a timer thread ticks.
+    """
+
+    def __init__(self, config: SlipConfig | None = None, *, lag_s: float = 0.02):
+        self.detector = SlipDetector(config or SlipConfig())
+        self.lag_ns = int(lag_s * 1e9)
+        self.lock = threading.Lock()
+        self.counts: Counter = Counter()
+
+    def process(self, contacts: Sequence[ContactRecord]) -> list[ContactRecord]:
+        """Slip events produced by these contact events (time order)."""
+        out: list[ContactRecord] = []
+        with self.lock:
+            for c in contacts:
+                self.counts["contacts_in"] += 1
+                try:
+                    ev = LocalizedEvent(time_ns=c.time_ns, point_m=np.asarray(c.point_m),
+                                        covariance_m2=c.covariance_m2,
+                                        polarity=-1 if c.event_type == EventType.DETOUCH else 1,
+                                        amplitude_v=c.amplitude_v,
+                                        confidence=min(max(c.confidence, 0.0), 1.0),
+                                        packet_id=c.packet_ids[0] if c.packet_ids else -1)
+                except (TypeError, ValueError):
+                    self.counts["rejected_invalid_contact"] += 1
+                    continue
+                for s in self.detector.process(ev):
+                    out.append(slip_record(s))
+        self.counts["slip_events"] += len(out)
+        return out
+
+    def tick(self, now_ns: int):
+        """Advance the detector to now_ns - lag; returns the finger state."""
+        with self.lock:
+            return self.detector.advance(int(now_ns) - self.lag_ns)
+
+    @property
+    def state(self):
+        with self.lock:
+            return self.detector.state
+
+    def all_counts(self) -> dict:
+        with self.lock:
+            d = {f"slip_{k}": v for k, v in self.detector.counts.items()}
+        d.update(self.counts)
+        return d
+
+
+def slip_record(s) -> ContactRecord:
+    """A slip detector event as a ContactRecord."""
+    x, y, z = (float(v) for v in s.position_m)
+    rho = math.hypot(x, y)
+    return ContactRecord(
+        event_type=int(s.kind), time_ns=int(s.time_ns), point_m=(x, y, z),
+        covariance_m2=np.asarray(s.covariance_m2, dtype=float).reshape(3, 3),
+        packet_ids=tuple(int(i) for i in s.packet_ids),
+        polar_rad=math.atan2(rho, z), azimuth_rad=math.atan2(y, x),
+        confidence=float(s.confidence), emission_rate_hz=float(s.emission_rate_hz),
+        spatial_period_m=float(s.spatial_period_m),
+        slip_direction=tuple(float(v) for v in np.asarray(s.slip_direction, dtype=float)))
+
+
+@dataclass
+class ContactPipeline:
+    """Localizer and slip stage behind one call: ``process(packets, on_contacts, on_slip)``.
+
+    ``on_contacts`` is called with the contact events of the batch before the slip step
+    runs (a touch reaches the hand without waiting for slip analysis), then ``on_slip``
+    with the slip events (if any).
+    """
+
+    localizer: PacketLocalizer
+    slip: SlipStage | None
+    counts: Counter = field(default_factory=Counter)
+
+    def process(self, packets: Sequence, on_contacts: Callable[[list], None],
+                on_slip: Callable[[list], None] | None = None) -> None:
+        contacts = self.localizer.process(packets)
+        if contacts:
+            on_contacts(contacts)
+            if self.slip is not None:
+                slips = self.slip.process(contacts)
+                if slips and on_slip is not None:
+                    on_slip(slips)
