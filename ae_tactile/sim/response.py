@@ -20,8 +20,8 @@ Sampling: with n0 the first sample index at or after t_a and eps = n0 dt - t_a i
 This is exact for any sub-sample arrival time (no rounding, no FFT wrap-around, no
 Gibbs ringing from a sampled step), and the value at absolute sample n depends only on
 the arrival and on n - n0, from tables shared by the config (e^{pole dt k}): that is
-what makes windowed / chunked rendering equal to a full render (see `accumulate` for
-the one caveat, BLAS rounding, a few ulp at most).
+what makes windowed / chunked rendering equal to a full render, bit for bit (`accumulate`
+and kernels.py: an elementwise formula, no matrix products).
 
 Truncation (streaming only; `evaluate`, used for triggered windows, is not truncated):
 the response of arrival a is zero from k = L_a on. L_a = max(L_fast, L_att, L_slow,a):

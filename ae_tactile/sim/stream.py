@@ -15,10 +15,14 @@ render, because
   * noise for absolute sample block b (``noise_block`` samples, all 4 channels) comes
     from its own generator seeded by (seed, b) (numpy SeedSequence -> PCG64), so it
     does not depend on where windows start;
-  * quantization and clipping are elementwise and come last.
-The only operations whose rounding could in principle depend on the window are the two
-small BLAS products per batch (a row may be rounded differently at another position in
-the matrix): a few ulp of the terms, far inside a 1e-12 relative budget.
+  * quantization and clipping are elementwise and come last;
+  * a sample is one fixed sequence of IEEE operations (kernels.py), the same in the
+    numba kernel and the numpy reference; no matrix product whose rounding could
+    depend on the batch.
+Engines (``engine``): 'numba' (compiled, the default when available) and 'numpy' (the
+reference); each is chunk-invariant bit for bit; they agree to rounding (docs/simulator.md).
+Triggered windows (`TriggeredSource`, render_path 'fast') evaluate only the samples of
+each window and draw only its noise (PCG64 jumped ahead), bit-identical to the stream.
 
 Noise is float32 Box-Muller from 23-bit uniforms (exact Gaussian transform of uniforms
 on a 2^-23 grid: tails reach ~5.6 sigma), scaled by noise_rms_v and added in float64 (the float32 noise has
