@@ -27,6 +27,7 @@ import os
 import shutil
 import tempfile
 
+import yaml
 from ament_index_python.packages import (
     PackageNotFoundError,
     get_package_prefix,
@@ -160,16 +161,6 @@ def _require_ros2_bag() -> None:
                      "rosbag2-storage-mcap")
 
 
-def _driver_has_pipeline() -> bool:
-    """Whether the installed driver runs the pipeline in-process (`pipeline` parameter);
-    a driver without it needs the separate localizer and slip_detector nodes."""
-    try:
-        from ae_tactile.ros.driver_node import DRIVER_PARAMS
-    except ImportError:
-        return True
-    return any(p.name == "pipeline" for p in DRIVER_PARAMS)
-
-
 # ------------------------------------------------------------------ processes
 def _required(name: str):
     """on_exit of a required process: stop the launch; a failure makes it exit 1."""
@@ -202,26 +193,34 @@ def _setup(context):
         _require_rviz()
     if record:
         _require_ros2_bag()
-    if not split and not _driver_has_pipeline():
-        split = True
+
+    # The pty link and the per-node parameter overrides live in a private directory that
+    # is removed when the launch exits: no two launches share them, nothing is left in
+    # /tmp (launch_ros would leave a launch_params_* file per dict of parameters).
+    run_dir = tempfile.mkdtemp(prefix="ae_tactile_launch_")
+    atexit.register(shutil.rmtree, run_dir, True)
+
+    def overrides(node: str, values: dict) -> str:
+        path = os.path.join(run_dir, f"{node}.yaml")
+        with open(path, "w", encoding="utf-8") as fh:
+            yaml.safe_dump({"/**": {"ros__parameters": values}}, fh)
+        return path
 
     actions = []
     if use_sim:
-        # The pty link lives in a private directory removed when the launch exits, so no
-        # two launches share it and nothing is left in /tmp.
-        link_dir = tempfile.mkdtemp(prefix="ae_tactile_sim_")
-        atexit.register(shutil.rmtree, link_dir, True)
-        port = os.path.join(link_dir, "port")
+        port = os.path.join(run_dir, "sim_port")
         actions.append(Node(
             package=PACKAGE, executable="sim_fingertip", namespace=ns, output="screen",
-            parameters=[params_file, {"scene": scene, "link_path": port, "frame_id": frame}],
+            parameters=[params_file, overrides("sim_fingertip", {
+                "scene": scene, "link_path": port, "frame_id": frame})],
             on_exit=_required("sim_fingertip")))
     else:
         port = arg("port")
     actions.append(Node(
         package=PACKAGE, executable="driver", namespace=ns, output="screen",
-        parameters=[params_file, {"port": port, "frame_id": frame, "pipeline": not split,
-                                  "wait_for_subscribers": wait, "reliable_qos": record}],
+        parameters=[params_file, overrides("driver", {
+            "port": port, "frame_id": frame, "pipeline": not split,
+            "wait_for_subscribers": wait, "reliable_qos": record})],
         on_exit=_required("driver")))
     if split:
         for exe in ("localizer", "slip_detector"):

@@ -18,6 +18,7 @@ import random
 import shutil
 import signal
 import subprocess
+import tempfile
 import time
 import uuid
 
@@ -177,7 +178,7 @@ class Probe:
         return {ns.rstrip("/") + "/" + name
                 for name, ns in self.node.get_node_names_and_namespaces()}
 
-    def get_parameter(self, node_fqn: str, name: str, timeout_s=60.0):
+    def get_parameter(self, node_fqn: str, name: str, timeout_s=START_TIMEOUT_S):
         from rcl_interfaces.srv import GetParameters
         from rclpy.parameter import parameter_value_to_python
         client = self.node.create_client(GetParameters, f"{node_fqn}/get_parameters")
@@ -275,8 +276,14 @@ def test_defaults_run_the_simulated_fingertip_and_stop_cleanly(launch):
     link = port[0].data
     assert os.path.exists(link)
     assert_clean_stop(run)
-    assert not os.path.lexists(link) and not os.path.exists(os.path.dirname(link)), \
+    run_dir = os.path.dirname(link)
+    assert not os.path.lexists(link) and not os.path.exists(run_dir), \
         f"pty link {link} left behind"
+    tmp = tempfile.gettempdir()
+    for name in os.listdir(tmp):         # launch_ros' own temporary parameter files
+        if name.startswith("launch_params_"):
+            with open(os.path.join(tmp, name), errors="replace") as fh:
+                assert run_dir not in fh.read(), f"{name} left behind in {tmp}"
 
 
 @needs_launch
@@ -468,3 +475,43 @@ def test_node_executable_refuses_unknown_arguments(name):
     out = subprocess.run([exe, "--no-such-option"], capture_output=True, text=True,
                          timeout=START_TIMEOUT_S, stdin=subprocess.DEVNULL)
     assert out.returncode == 2 and "--no-such-option" in out.stderr, out.stderr
+
+
+# ------------------------------------------------------------------ node_utils
+def test_core_python_logging_reaches_the_node_logger_on_rosout(ros_context):
+    """A warning of a core logger (ae_tactile.link) is published on /rosout under the
+    node's logger name while forward_python_logging is active, and not after."""
+    import logging
+
+    import rclpy
+    from rcl_interfaces.msg import Log
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    from ae_tactile.ros.node_utils import forward_python_logging
+    node = rclpy.create_node("log_forward_probe", context=ros_context)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    got = []
+    qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                     reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    node.create_subscription(Log, "/rosout", got.append, qos)
+    tag = uuid.uuid4().hex
+    try:
+        with forward_python_logging(lambda: node):
+            logging.getLogger("ae_tactile.link").warning("link lost %s", tag)
+        logging.getLogger("ae_tactile.link").warning("after %s", tag)   # back to Python's
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while not any(tag in m.msg for m in got) and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        settle = time.monotonic() + 1.0       # a wrongly forwarded second one arrives now
+        while time.monotonic() < settle:
+            executor.spin_once(timeout_sec=0.05)
+        ours = [m for m in got if tag in m.msg]
+        assert len(ours) == 1, [m.msg for m in got]
+        assert ours[0].name == "log_forward_probe" and ours[0].level == Log.WARN
+        assert "ae_tactile.link" in ours[0].msg and "link lost" in ours[0].msg
+    finally:
+        executor.shutdown(timeout_sec=1.0)
+        node.destroy_node()

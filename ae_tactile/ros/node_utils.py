@@ -5,8 +5,8 @@
   second (a terminal's Ctrl-C reaches every process of the group, then `ros2 launch`
   sends its own SIGINT) is ignored while the nodes are destroyed, *before* the context
   is shut down, so no callback or publisher thread meets an invalid context; a third
-  forces the exit. Exit code 0 on a signal, 2 when a node refused its parameters
-  (message on stderr), no traceback.
+  forces the exit. Exit code 0 on a signal, 2 when a node refused its parameters or ROS
+  could not read its arguments (e.g. a --params-file; message on stderr), no traceback.
 - `node_main`: the entry point of a node executable; `--help` prints the usage and the
   node's parameters from its `Param` table and exits 0 without starting anything; the
   process leaves without interpreter finalization once its nodes are destroyed.
@@ -93,6 +93,10 @@ def ros_session(args=None, interrupt: bool = True):
     with _stop_on_signals(state):
         try:
             rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        except Exception as exc:   # RCLError: unreadable --params-file, bad --ros-args
+            print(f"[ae_tactile] not starting: {exc}", file=sys.stderr, flush=True)
+            raise SystemExit(2) from None
+        try:
             yield state
         except ParameterError as exc:
             print(f"[ae_tactile] not starting: {exc}", file=sys.stderr, flush=True)
