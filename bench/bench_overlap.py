@@ -21,12 +21,13 @@ accepted, three emissions, the stronger-emission SNR reference, pulse-shape mism
 Writes bench/results/overlap.json, bench/results/overlap_table.md,
 bench/results/overlap_success.png.
 """
+
 from __future__ import annotations
 
 import os
 
 for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
-    os.environ.setdefault(_v, "1")              # one core
+    os.environ.setdefault(_v, "1")  # one core
 
 import argparse  # noqa: E402
 import json  # noqa: E402
@@ -41,20 +42,28 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ae_tactile.localization import localize  # noqa: E402
-from ae_tactile.localization.overlap import (PulseModel, calibrate_pulse, joint_crlb,  # noqa: E402
-                                             resolve_overlaps, simulate_overlaps, suspect_overlap)
+from ae_tactile.localization.overlap import (  # noqa: E402
+    PulseModel,
+    calibrate_pulse,
+    joint_crlb,
+    resolve_overlaps,
+    simulate_overlaps,
+    suspect_overlap,
+)
 from ae_tactile.sim import SimConfig, render_triggered  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 SEPARATIONS_US = [1, 2, 3, 5, 7, 10]
 RATIOS = [1, 2, 4]
-KEY = {(2, 1), (2, 4), (5, 1), (5, 4)}        # (separation us, ratio) cells with the most pairs
-CHI2_683 = 2.2957                             # chi^2(2) quantile 0.683 (1.515 sigma in 2-D)
+KEY = {(2, 1), (2, 4), (5, 1), (5, 4)}  # (separation us, ratio) cells with the most pairs
+CHI2_683 = 2.2957  # chi^2(2) quantile 0.683 (1.515 sigma in 2-D)
 
 
 def configs():
-    return {"water": SimConfig(reflections=True),
-            "silicone": SimConfig.for_medium("silicone", reflections=True)}
+    return {
+        "water": SimConfig(reflections=True),
+        "silicone": SimConfig.for_medium("silicone", reflections=True),
+    }
 
 
 def match_errors(truth, sources):
@@ -66,8 +75,9 @@ def match_errors(truth, sources):
     if not sources:
         return errs, nrm, per_truth
     pts = np.array([s.point_m for s in sources])
-    d = np.linalg.norm(pts[:, None, :] - truth[None, :, :], axis=2)     # (S, J)
+    d = np.linalg.norm(pts[:, None, :] - truth[None, :, :], axis=2)  # (S, J)
     import itertools
+
     best, best_cost = None, np.inf
     S = len(sources)
     for perm in itertools.permutations(range(J), min(S, J)):
@@ -83,7 +93,7 @@ def match_errors(truth, sources):
         except np.linalg.LinAlgError:
             nrm.append(float("inf"))
         per_truth[j] = min(per_truth[j], np.linalg.norm(e))
-    for i in range(len(best), S):       # extra reported sources: matched to nearest truth
+    for i in range(len(best), S):  # extra reported sources: matched to nearest truth
         errs.append(float(d[i].min()))
         nrm.append(float("inf"))
     return errs, nrm, per_truth
@@ -110,17 +120,31 @@ def evaluate(d, res, cfg, crlb=True):
         for j in range(J):
             if np.isfinite(per_truth[j]):
                 (weak_err if st[j] < st.max() else strong_err).append(per_truth[j])
-    out = dict(n=n, success=float(ok.mean()), rejected=rejected / n, wrong_accepts=int(wrong),
-               wrong_accepts_sigma_lt_0p1mm=int(wrong_small), extra_sources=int(extra),
-               missing_sources=int(missing),
-               rms_um=float(np.sqrt(np.mean(np.square(errs))) * 1e6) if errs else None,
-               rms_weak_um=float(np.sqrt(np.mean(np.square(np.minimum(weak_err, 0.5e-3)))) * 1e6)
-               if weak_err else None,
-               inside_1p515_sigma=float(np.mean(np.array(nrms) <= CHI2_683)) if nrms else None)
+    out = dict(
+        n=n,
+        success=float(ok.mean()),
+        rejected=rejected / n,
+        wrong_accepts=int(wrong),
+        wrong_accepts_sigma_lt_0p1mm=int(wrong_small),
+        extra_sources=int(extra),
+        missing_sources=int(missing),
+        rms_um=float(np.sqrt(np.mean(np.square(errs))) * 1e6) if errs else None,
+        rms_weak_um=float(np.sqrt(np.mean(np.square(np.minimum(weak_err, 0.5e-3)))) * 1e6)
+        if weak_err
+        else None,
+        inside_1p515_sigma=float(np.mean(np.array(nrms) <= CHI2_683)) if nrms else None,
+    )
     if crlb:
-        var = d["noise_rms_v"] ** 2 + cfg.lsb_v ** 2 / 12.0
-        b = joint_crlb(d["clean_v"], d["sample_rate_hz"], d["onset_index"], d["points_m"],
-                       d["emission_time_s"], var, geometry=cfg.geometry)
+        var = d["noise_rms_v"] ** 2 + cfg.lsb_v**2 / 12.0
+        b = joint_crlb(
+            d["clean_v"],
+            d["sample_rate_hz"],
+            d["onset_index"],
+            d["points_m"],
+            d["emission_time_s"],
+            var,
+            geometry=cfg.geometry,
+        )
         out["crlb_um"] = float(np.sqrt(np.mean(b["rms_m"] ** 2)) * 1e6)
         out["crlb_single_um"] = float(np.sqrt(np.mean(b["single_rms_m"] ** 2)) * 1e6)
         out["model_mismatch_max"] = float(b["model_mismatch"].max())
@@ -129,8 +153,9 @@ def evaluate(d, res, cfg, crlb=True):
 
 def timed_resolve(d, cfg, **kw):
     t0 = time.perf_counter()
-    res = resolve_overlaps(d["samples_v"], d["sample_rate_hz"], d["onset_index"],
-                           geometry=cfg.geometry, **kw)
+    res = resolve_overlaps(
+        d["samples_v"], d["sample_rate_hz"], d["onset_index"], geometry=cfg.geometry, **kw
+    )
     return res, time.perf_counter() - t0
 
 
@@ -143,116 +168,193 @@ def main():
     rng = np.random.default_rng(args.seed)
     t_start = time.perf_counter()
     cpu_start = time.process_time()
-    out = dict(setup=dict(fs_hz=10e6, snr_db="uniform 20-30 (weaker emission)", max_polar_deg=60,
-                          min_distance_mm=2.0, pairs_per_key_cell=n_key, pairs_per_other_cell=n_other,
-                          key_cells="separation 2 and 5 us x ratio 1 and 4",
-                          machine=platform.platform(), load_before=os.getloadavg()),
-               cells=[], singles={}, ml_on_pairs={}, three={}, stronger_reference={}, mismatch={})
+    out = dict(
+        setup=dict(
+            fs_hz=10e6,
+            snr_db="uniform 20-30 (weaker emission)",
+            max_polar_deg=60,
+            min_distance_mm=2.0,
+            pairs_per_key_cell=n_key,
+            pairs_per_other_cell=n_other,
+            key_cells="separation 2 and 5 us x ratio 1 and 4",
+            machine=platform.platform(),
+            load_before=os.getloadavg(),
+        ),
+        cells=[],
+        singles={},
+        ml_on_pairs={},
+        three={},
+        stronger_reference={},
+        mismatch={},
+    )
     t_resolve, n_resolve = 0.0, 0
     for medium, cfg in configs().items():
         for sep in SEPARATIONS_US:
             for ratio in RATIOS:
                 n = n_key if (sep, ratio) in KEY else n_other
-                d = simulate_overlaps(n, cfg, separation_s=sep * 1e-6, amplitude_ratio=ratio,
-                                      snr_db=rng.uniform(20, 30, n), rng=rng)
+                d = simulate_overlaps(
+                    n,
+                    cfg,
+                    separation_s=sep * 1e-6,
+                    amplitude_ratio=ratio,
+                    snr_db=rng.uniform(20, 30, n),
+                    rng=rng,
+                )
                 res, dt = timed_resolve(d, cfg)
                 t_resolve += dt
                 n_resolve += n
                 cell, _ = evaluate(d, res, cfg)
                 cell.update(medium=medium, separation_us=sep, ratio=ratio)
                 out["cells"].append(cell)
-                print(f"{medium:8s} sep {sep:2d} us ratio 1:{ratio}  n {n:3d}  success "
-                      f"{cell['success']:.3f}  rms {cell['rms_um'] or 0:6.1f} um  crlb "
-                      f"{cell['crlb_um']:5.1f}  wrong {cell['wrong_accepts']}  rej {cell['rejected']:.2f}",
-                      flush=True)
+                print(
+                    f"{medium:8s} sep {sep:2d} us ratio 1:{ratio}  n {n:3d}  success "
+                    f"{cell['success']:.3f}  rms {cell['rms_um'] or 0:6.1f} um  crlb "
+                    f"{cell['crlb_um']:5.1f}  wrong {cell['wrong_accepts']}  "
+                    f"rej {cell['rejected']:.2f}",
+                    flush=True,
+                )
         # single emissions: stay single?
         n = n_key
-        pts = cfg.geometry.surface_point_from_angles(np.arccos(rng.uniform(0.5, 1.0, n)),
-                                                     rng.uniform(0, 2 * np.pi, n))
+        pts = cfg.geometry.surface_point_from_angles(
+            np.arccos(rng.uniform(0.5, 1.0, n)), rng.uniform(0, 2 * np.pi, n)
+        )
         pk = render_triggered(pts, cfg, snr_db=rng.uniform(20, 30, n), rng=rng)
         t0 = time.perf_counter()
-        res = resolve_overlaps(pk.samples_v, pk.sample_rate_hz, pk.onset_index, geometry=cfg.geometry)
+        res = resolve_overlaps(
+            pk.samples_v, pk.sample_rate_hz, pk.onset_index, geometry=cfg.geometry
+        )
         t_single = time.perf_counter() - t0
         one = [r.accepted and len(r.sources) == 1 for r in res]
-        err1 = [np.linalg.norm(r.sources[0].point_m - pts[i]) for i, r in enumerate(res)
-                if r.accepted and len(r.sources) == 1]
+        err1 = [
+            np.linalg.norm(r.sources[0].point_m - pts[i])
+            for i, r in enumerate(res)
+            if r.accepted and len(r.sources) == 1
+        ]
         t0 = time.perf_counter()
         ml = localize(pk.samples_v, pk.sample_rate_hz, pk.onset_index, geometry=cfg.geometry)
         t_ml = time.perf_counter() - t0
         t0 = time.perf_counter()
-        sus = suspect_overlap(pk.samples_v, pk.sample_rate_hz, pk.onset_index, ml, geometry=cfg.geometry)
+        sus = suspect_overlap(
+            pk.samples_v, pk.sample_rate_hz, pk.onset_index, ml, geometry=cfg.geometry
+        )
         t_sus = time.perf_counter() - t0
         out["singles"][medium] = dict(
-            n=n, one_source=float(np.mean(one)), split=float(np.mean([r.accepted and len(r.sources) > 1
-                                                                       for r in res])),
+            n=n,
+            one_source=float(np.mean(one)),
+            split=float(np.mean([r.accepted and len(r.sources) > 1 for r in res])),
             rejected=float(np.mean([not r.accepted for r in res])),
             rms_um=float(np.sqrt(np.mean(np.square(err1))) * 1e6) if err1 else None,
             ml_accepted=float(ml.accepted.mean()),
             suspect_false_positive=float(sus[ml.accepted].mean()) if ml.accepted.any() else None,
-            ms_per_packet_resolve=1e3 * t_single / n, us_per_packet_ml=1e6 * t_ml / n,
-            us_per_packet_suspect=1e6 * t_sus / n)
+            ms_per_packet_resolve=1e3 * t_single / n,
+            us_per_packet_ml=1e6 * t_ml / n,
+            us_per_packet_suspect=1e6 * t_sus / n,
+        )
         print(medium, "singles", out["singles"][medium], flush=True)
         # the single-source localizer on pairs, and suspect_overlap on what it accepted
         rows = {}
         for sep in (2, 5, 8.5, 10):
             n = n_other
-            d = simulate_overlaps(n, cfg, separation_s=sep * 1e-6, amplitude_ratio=2,
-                                  snr_db=rng.uniform(20, 30, n), rng=rng)
-            ml = localize(d["samples_v"], d["sample_rate_hz"], d["onset_index"], geometry=cfg.geometry)
-            sus = suspect_overlap(d["samples_v"], d["sample_rate_hz"], d["onset_index"], ml,
-                                  geometry=cfg.geometry)
+            d = simulate_overlaps(
+                n,
+                cfg,
+                separation_s=sep * 1e-6,
+                amplitude_ratio=2,
+                snr_db=rng.uniform(20, 30, n),
+                rng=rng,
+            )
+            ml = localize(
+                d["samples_v"], d["sample_rate_hz"], d["onset_index"], geometry=cfg.geometry
+            )
+            sus = suspect_overlap(
+                d["samples_v"], d["sample_rate_hz"], d["onset_index"], ml, geometry=cfg.geometry
+            )
             near = np.min(np.linalg.norm(d["points_m"] - ml.point_m[:, None, :], axis=2), axis=1)
             acc = ml.accepted
             rows[str(sep)] = dict(
-                n=n, ml_rejected_overlap=float(np.mean(ml.reason == 6)), ml_accepted=float(acc.mean()),
+                n=n,
+                ml_rejected_overlap=float(np.mean(ml.reason == 6)),
+                ml_accepted=float(acc.mean()),
                 ml_accepted_off_gt_0p1mm=float(np.mean(acc & (near > 0.1e-3))),
                 ml_accepted_off_gt_0p5mm=float(np.mean(acc & (near > 0.5e-3))),
-                suspect_flagged_of_accepted=float(sus[acc].mean()) if acc.any() else None)
+                suspect_flagged_of_accepted=float(sus[acc].mean()) if acc.any() else None,
+            )
         out["ml_on_pairs"][medium] = rows
         print(medium, "ml on pairs", rows, flush=True)
     cfg = configs()["water"]
     # three emissions, 3 us apart
     n = n_other
-    d = simulate_overlaps(n, cfg, n_sources=3, separation_s=3e-6, amplitude_ratio=2,
-                          snr_db=rng.uniform(20, 30, n), rng=rng)
+    d = simulate_overlaps(
+        n,
+        cfg,
+        n_sources=3,
+        separation_s=3e-6,
+        amplitude_ratio=2,
+        snr_db=rng.uniform(20, 30, n),
+        rng=rng,
+    )
     res, dt = timed_resolve(d, cfg)
     out["three"], _ = evaluate(d, res, cfg)
     out["three"].update(separation_us=3, ratio=2, ms_per_packet=1e3 * dt / n)
     print("three", out["three"], flush=True)
     # SNR of the stronger emission 20-30 dB, ratio 4 (the weaker one at 8-18 dB)
     for sep in (2, 5):
-        d = simulate_overlaps(n_other, cfg, separation_s=sep * 1e-6, amplitude_ratio=4,
-                              snr_db=rng.uniform(20, 30, n_other), snr_reference="stronger", rng=rng)
+        d = simulate_overlaps(
+            n_other,
+            cfg,
+            separation_s=sep * 1e-6,
+            amplitude_ratio=4,
+            snr_db=rng.uniform(20, 30, n_other),
+            snr_reference="stronger",
+            rng=rng,
+        )
         res, _ = timed_resolve(d, cfg)
         out["stronger_reference"][str(sep)], _ = evaluate(d, res, cfg)
         print("stronger ref", sep, out["stronger_reference"][str(sep)], flush=True)
     # pulse-shape mismatch: the data's front end or emission differs from the model; then
     # the model calibrated on 40 single touches of the same sensor (calibrate_pulse)
-    cases = {"high-pass 90 kHz (model 100 kHz)": cfg.replace(highpass_hz=90e3),
-             "low-pass 1.1 MHz (model 1.0 MHz)": cfg.replace(lowpass_hz=1.1e6),
-             "silicone with attenuation (2 dB/cm at 1 MHz)":
-                 SimConfig.for_medium("silicone", reflections=True, attenuation=True)}
+    cases = {
+        "high-pass 90 kHz (model 100 kHz)": cfg.replace(highpass_hz=90e3),
+        "low-pass 1.1 MHz (model 1.0 MHz)": cfg.replace(lowpass_hz=1.1e6),
+        "silicone with attenuation (2 dB/cm at 1 MHz)": SimConfig.for_medium(
+            "silicone", reflections=True, attenuation=True
+        ),
+    }
     for name, c2 in cases.items():
-        d = simulate_overlaps(n_other, c2, separation_s=5e-6, amplitude_ratio=2,
-                              snr_db=rng.uniform(20, 30, n_other), rng=rng)
+        d = simulate_overlaps(
+            n_other,
+            c2,
+            separation_s=5e-6,
+            amplitude_ratio=2,
+            snr_db=rng.uniform(20, 30, n_other),
+            rng=rng,
+        )
         res, _ = timed_resolve(d, c2, pulse=PulseModel())
         row, _ = evaluate(d, res, c2, crlb=False)
-        pts = c2.geometry.surface_point_from_angles(np.arccos(rng.uniform(0.5, 1.0, 40)),
-                                                    rng.uniform(0, 2 * np.pi, 40))
+        pts = c2.geometry.surface_point_from_angles(
+            np.arccos(rng.uniform(0.5, 1.0, 40)), rng.uniform(0, 2 * np.pi, 40)
+        )
         cal = render_triggered(pts, c2, snr_db=30, rng=rng)
         t0 = time.perf_counter()
-        pm = calibrate_pulse(cal.samples_v, cal.sample_rate_hz, cal.onset_index, geometry=c2.geometry)
+        pm = calibrate_pulse(
+            cal.samples_v, cal.sample_rate_hz, cal.onset_index, geometry=c2.geometry
+        )
         t_cal = time.perf_counter() - t0
         res, _ = timed_resolve(d, c2, pulse=pm)
         row_cal, _ = evaluate(d, res, c2, crlb=False)
-        out["mismatch"][name] = dict(default_model=row, calibrated=row_cal,
-                                     calibrated_model=dict(highpass_hz=pm.highpass_hz,
-                                                           lowpass_hz=pm.lowpass_hz),
-                                     calibration_s=t_cal)
+        out["mismatch"][name] = dict(
+            default_model=row,
+            calibrated=row_cal,
+            calibrated_model=dict(highpass_hz=pm.highpass_hz, lowpass_hz=pm.lowpass_hz),
+            calibration_s=t_cal,
+        )
         print("mismatch", name, out["mismatch"][name], flush=True)
-    out["timing"] = dict(ms_per_pair_resolve=1e3 * t_resolve / max(n_resolve, 1),
-                         total_s=time.perf_counter() - t_start,
-                         total_cpu_s=time.process_time() - cpu_start, load_after=os.getloadavg())
+    out["timing"] = dict(
+        ms_per_pair_resolve=1e3 * t_resolve / max(n_resolve, 1),
+        total_s=time.perf_counter() - t_start,
+        total_cpu_s=time.process_time() - cpu_start,
+        load_after=os.getloadavg(),
+    )
     RESULTS.mkdir(parents=True, exist_ok=True)
     name = "overlap_quick" if args.quick else "overlap"
     (RESULTS / f"{name}.json").write_text(json.dumps(out, indent=1))
@@ -264,90 +366,136 @@ def main():
 
 
 def make_table(out):
-    lines = ["Success (both points within 0.1 mm) / RMS error of reported points (um) / joint CRLB (um)"
-             " / wrong accepts (> 0.5 mm); pairs per cell in brackets.", ""]
+    lines = [
+        "Success (both points within 0.1 mm) / RMS error of reported points (um) / joint CRLB (um)"
+        " / wrong accepts (> 0.5 mm); pairs per cell in brackets.",
+        "",
+    ]
     for medium in ("water", "silicone"):
         cells = [c for c in out["cells"] if c["medium"] == medium]
         lines.append(f"**{medium}** (SNR of the weaker emission 20-30 dB)")
         lines.append("")
-        lines.append("| ratio \\ separation | " + " | ".join(f"{s} us" for s in SEPARATIONS_US) + " |")
+        lines.append(
+            "| ratio \\ separation | " + " | ".join(f"{s} us" for s in SEPARATIONS_US) + " |"
+        )
         lines.append("|---" * (len(SEPARATIONS_US) + 1) + "|")
         for ratio in RATIOS:
             row = [f"1:{ratio}"]
             for s in SEPARATIONS_US:
                 c = next(c for c in cells if c["separation_us"] == s and c["ratio"] == ratio)
                 rms = "-" if c["rms_um"] is None else f"{c['rms_um']:.0f}"
-                row.append(f"{100 * c['success']:.1f} % / {rms} / {c['crlb_um']:.0f} / "
-                           f"{c['wrong_accepts']} ({c['n']})")
+                row.append(
+                    f"{100 * c['success']:.1f} % / {rms} / {c['crlb_um']:.0f} / "
+                    f"{c['wrong_accepts']} ({c['n']})"
+                )
             lines.append("| " + " | ".join(row) + " |")
         lines.append("")
     allc = [c for c in out["cells"] if c["separation_us"] >= 2]
     n = sum(c["n"] for c in allc)
-    lines.append(f"Separation >= 2 us, all ratios and media: success "
-                 f"{100 * sum(c['success'] * c['n'] for c in allc) / n:.1f} % of {n} pairs; "
-                 f"wrong accepts {sum(c['wrong_accepts'] for c in out['cells'])} of "
-                 f"{sum(c['n'] for c in out['cells'])} pairs (all separations); reported points "
-                 f"inside their 1.515-sigma ellipse: "
-                 f"{100 * np.mean([c['inside_1p515_sigma'] for c in allc if c['inside_1p515_sigma']]):.1f} %"
-                 " (68.3 % expected).")
+    lines.append(
+        f"Separation >= 2 us, all ratios and media: success "
+        f"{100 * sum(c['success'] * c['n'] for c in allc) / n:.1f} % of {n} pairs; "
+        f"wrong accepts {sum(c['wrong_accepts'] for c in out['cells'])} of "
+        f"{sum(c['n'] for c in out['cells'])} pairs (all separations); reported points "
+        f"inside their 1.515-sigma ellipse: "
+        f"{100 * np.mean([c['inside_1p515_sigma'] for c in allc if c['inside_1p515_sigma']]):.1f}"
+        " %"
+        " (68.3 % expected)."
+    )
     lines.append("")
-    lines.append("Single emissions (resolve_overlaps on one-emission packets, SNR 20-30 dB, polar <= 60 deg):")
+    lines.append(
+        "Single emissions (resolve_overlaps on one-emission packets, SNR 20-30 dB, "
+        "polar <= 60 deg):"
+    )
     lines.append("")
-    lines.append("| medium | n | one source | split into more | rejected | RMS (um) | ml accepted |"
-                 " suspect_overlap false flags | time: resolve / ml / suspect per packet |")
+    lines.append(
+        "| medium | n | one source | split into more | rejected | RMS (um) | ml accepted |"
+        " suspect_overlap false flags | time: resolve / ml / suspect per packet |"
+    )
     lines.append("|---|---|---|---|---|---|---|---|---|")
     for m, r in out["singles"].items():
-        lines.append(f"| {m} | {r['n']} | {100 * r['one_source']:.1f} % | {100 * r['split']:.1f} % | "
-                     f"{100 * r['rejected']:.1f} % | {r['rms_um']:.1f} | {100 * r['ml_accepted']:.1f} % | "
-                     f"{100 * (r['suspect_false_positive'] or 0):.1f} % | {r['ms_per_packet_resolve']:.1f} ms"
-                     f" / {r['us_per_packet_ml']:.0f} us / {r['us_per_packet_suspect']:.0f} us |")
+        lines.append(
+            f"| {m} | {r['n']} | {100 * r['one_source']:.1f} % | {100 * r['split']:.1f} % | "
+            f"{100 * r['rejected']:.1f} % | {r['rms_um']:.1f} | {100 * r['ml_accepted']:.1f} % | "
+            f"{100 * (r['suspect_false_positive'] or 0):.1f} % | "
+            f"{r['ms_per_packet_resolve']:.1f} ms"
+            f" / {r['us_per_packet_ml']:.0f} us / {r['us_per_packet_suspect']:.0f} us |"
+        )
     lines.append("")
-    lines.append("The single-source localizer (ml) on pairs (ratio 1:2, SNR of the weaker 20-30 dB), and"
-                 " suspect_overlap on what it accepted:")
+    lines.append(
+        "The single-source localizer (ml) on pairs (ratio 1:2, SNR of the weaker 20-30 dB), and"
+        " suspect_overlap on what it accepted:"
+    )
     lines.append("")
-    lines.append("| medium | separation (us) | n | ml OVERLAP | ml accepted | accepted > 0.1 mm off |"
-                 " accepted > 0.5 mm off | flagged by suspect_overlap (of accepted) |")
+    lines.append(
+        "| medium | separation (us) | n | ml OVERLAP | ml accepted | accepted > 0.1 mm off |"
+        " accepted > 0.5 mm off | flagged by suspect_overlap (of accepted) |"
+    )
     lines.append("|---|---|---|---|---|---|---|---|")
     for m, rows in out["ml_on_pairs"].items():
         for sep, r in rows.items():
-            fl = "-" if r["suspect_flagged_of_accepted"] is None else f"{100 * r['suspect_flagged_of_accepted']:.0f} %"
-            lines.append(f"| {m} | {sep} | {r['n']} | {100 * r['ml_rejected_overlap']:.0f} % | "
-                         f"{100 * r['ml_accepted']:.0f} % | {100 * r['ml_accepted_off_gt_0p1mm']:.0f} % | "
-                         f"{100 * r['ml_accepted_off_gt_0p5mm']:.0f} % | {fl} |")
+            fl = (
+                "-"
+                if r["suspect_flagged_of_accepted"] is None
+                else f"{100 * r['suspect_flagged_of_accepted']:.0f} %"
+            )
+            lines.append(
+                f"| {m} | {sep} | {r['n']} | {100 * r['ml_rejected_overlap']:.0f} % | "
+                f"{100 * r['ml_accepted']:.0f} % | {100 * r['ml_accepted_off_gt_0p1mm']:.0f} % | "
+                f"{100 * r['ml_accepted_off_gt_0p5mm']:.0f} % | {fl} |"
+            )
     lines.append("")
     t = out["three"]
-    lines.append(f"Three emissions 3 us apart (water, strengths log-uniform within 1:2): success "
-                 f"{100 * t['success']:.1f} % of {t['n']}, RMS {t['rms_um']:.1f} um, joint CRLB "
-                 f"{t['crlb_um']:.1f} um, wrong accepts {t['wrong_accepts']}, "
-                 f"{t['ms_per_packet']:.0f} ms per window.")
+    lines.append(
+        f"Three emissions 3 us apart (water, strengths log-uniform within 1:2): success "
+        f"{100 * t['success']:.1f} % of {t['n']}, RMS {t['rms_um']:.1f} um, joint CRLB "
+        f"{t['crlb_um']:.1f} um, wrong accepts {t['wrong_accepts']}, "
+        f"{t['ms_per_packet']:.0f} ms per window."
+    )
     lines.append("")
-    lines.append("SNR of the *stronger* emission 20-30 dB, ratio 1:4 (the weaker at 8-18 dB), water:")
+    lines.append(
+        "SNR of the *stronger* emission 20-30 dB, ratio 1:4 (the weaker at 8-18 dB), water:"
+    )
     lines.append("")
-    lines.append("| separation (us) | n | success | RMS all / weaker (um) | joint CRLB (um) | wrong accepts | rejected |")
+    lines.append(
+        "| separation (us) | n | success | RMS all / weaker (um) | joint CRLB (um) | wrong accepts"
+        " | rejected |"
+    )
     lines.append("|---|---|---|---|---|---|---|")
     for sep, r in out["stronger_reference"].items():
-        lines.append(f"| {sep} | {r['n']} | {100 * r['success']:.1f} % | {r['rms_um']:.0f} / "
-                     f"{r['rms_weak_um']:.0f} | {r['crlb_um']:.0f} | {r['wrong_accepts']} | "
-                     f"{100 * r['rejected']:.0f} % |")
+        lines.append(
+            f"| {sep} | {r['n']} | {100 * r['success']:.1f} % | {r['rms_um']:.0f} / "
+            f"{r['rms_weak_um']:.0f} | {r['crlb_um']:.0f} | {r['wrong_accepts']} | "
+            f"{100 * r['rejected']:.0f} % |"
+        )
     lines.append("")
-    lines.append("Pulse-shape mismatch (5 us apart, ratio 1:2, water unless stated): default model, then"
-                 " the model calibrated on 40 single touches (calibrate_pulse):")
+    lines.append(
+        "Pulse-shape mismatch (5 us apart, ratio 1:2, water unless stated): default model, then"
+        " the model calibrated on 40 single touches (calibrate_pulse):"
+    )
     lines.append("")
-    lines.append("| data | n | success default / calibrated | rejected default / calibrated |"
-                 " wrong accepts default / calibrated | calibrated corners |")
+    lines.append(
+        "| data | n | success default / calibrated | rejected default / calibrated |"
+        " wrong accepts default / calibrated | calibrated corners |"
+    )
     lines.append("|---|---|---|---|---|---|")
     for name, r in out["mismatch"].items():
         a, b = r["default_model"], r["calibrated"]
         cm = r["calibrated_model"]
-        lines.append(f"| {name} | {a['n']} | {100 * a['success']:.0f} % / {100 * b['success']:.0f} % | "
-                     f"{100 * a['rejected']:.0f} % / {100 * b['rejected']:.0f} % | {a['wrong_accepts']} / "
-                     f"{b['wrong_accepts']} | {cm['highpass_hz'] / 1e3:.1f} kHz, "
-                     f"{cm['lowpass_hz'] / 1e6:.3f} MHz |")
+        lines.append(
+            f"| {name} | {a['n']} | {100 * a['success']:.0f} % / {100 * b['success']:.0f} % | "
+            f"{100 * a['rejected']:.0f} % / {100 * b['rejected']:.0f} % | {a['wrong_accepts']} / "
+            f"{b['wrong_accepts']} | {cm['highpass_hz'] / 1e3:.1f} kHz, "
+            f"{cm['lowpass_hz'] / 1e6:.3f} MHz |"
+        )
     lines.append("")
     tm = out["timing"]
-    lines.append(f"Run: {tm['total_s']:.0f} s wall, {tm['total_cpu_s']:.0f} s CPU, one core; "
-                 f"{tm['ms_per_pair_resolve']:.1f} ms wall per pair in resolve_overlaps (batched); "
-                 f"load average before {out['setup']['load_before'][0]:.1f}, after {tm['load_after'][0]:.1f}.")
+    lines.append(
+        f"Run: {tm['total_s']:.0f} s wall, {tm['total_cpu_s']:.0f} s CPU, one core; "
+        f"{tm['ms_per_pair_resolve']:.1f} ms wall per pair in resolve_overlaps (batched); "
+        f"load average before {out['setup']['load_before'][0]:.1f}, "
+        f"after {tm['load_after'][0]:.1f}."
+    )
     lines.append("")
     return "\n".join(lines) + "\n"
 
@@ -355,6 +503,7 @@ def make_table(out):
 def plot(out, path):
     try:
         import matplotlib
+
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
@@ -363,13 +512,27 @@ def plot(out, path):
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     for medium, ls in (("water", "-"), ("silicone", "--")):
         for ratio, col in zip(RATIOS, ("C0", "C1", "C2")):
-            cells = sorted([c for c in out["cells"] if c["medium"] == medium and c["ratio"] == ratio],
-                           key=lambda c: c["separation_us"])
+            cells = sorted(
+                [c for c in out["cells"] if c["medium"] == medium and c["ratio"] == ratio],
+                key=lambda c: c["separation_us"],
+            )
             x = [c["separation_us"] for c in cells]
-            axes[0].plot(x, [100 * c["success"] for c in cells], ls, color=col, marker="o",
-                         label=f"{medium} 1:{ratio}")
-            axes[1].plot(x, [c["rms_um"] or np.nan for c in cells], ls, color=col, marker="o",
-                         label=f"{medium} 1:{ratio}")
+            axes[0].plot(
+                x,
+                [100 * c["success"] for c in cells],
+                ls,
+                color=col,
+                marker="o",
+                label=f"{medium} 1:{ratio}",
+            )
+            axes[1].plot(
+                x,
+                [c["rms_um"] or np.nan for c in cells],
+                ls,
+                color=col,
+                marker="o",
+                label=f"{medium} 1:{ratio}",
+            )
             axes[1].plot(x, [c["crlb_um"] for c in cells], ls, color=col, alpha=0.35)
     axes[0].axhline(90, color="k", lw=0.8)
     axes[0].set_xlabel("emission separation (us)")

@@ -8,12 +8,19 @@ an independent path, the simulator's stream renderer, which places several emiss
 one timeline. Every random draw is seeded; thresholds leave margins over the measured
 rates (docs/overlap.md) so that the tests do not flake.
 """
+
 import numpy as np
 import pytest
 
 from ae_tactile.localization import localize
-from ae_tactile.localization.overlap import (OverlapReason, PulseModel, joint_crlb, resolve_overlaps,
-                                             simulate_overlaps, suspect_overlap)
+from ae_tactile.localization.overlap import (
+    OverlapReason,
+    PulseModel,
+    joint_crlb,
+    resolve_overlaps,
+    simulate_overlaps,
+    suspect_overlap,
+)
 from ae_tactile.sim import SimConfig, noise_rms_for_snr, render_triggered, signal_power_v2
 from ae_tactile.sim.frontend import quantize
 from ae_tactile.sim.stream import EmissionList, StreamRenderer
@@ -21,7 +28,7 @@ from ae_tactile.sim.stream import EmissionList, StreamRenderer
 WATER = SimConfig(reflections=True)
 SILICONE = SimConfig.for_medium("silicone", reflections=True)
 FS = WATER.sample_rate_hz
-CHI2_2_683 = 2.2957          # 68.3 % quantile of chi^2 with 2 degrees of freedom
+CHI2_2_683 = 2.2957  # 68.3 % quantile of chi^2 with 2 degrees of freedom
 
 
 def per_truth_errors(truth, sources):
@@ -33,8 +40,9 @@ def per_truth_errors(truth, sources):
 
 
 def run(d, cfg, **kw):
-    return resolve_overlaps(d["samples_v"], d["sample_rate_hz"], d["onset_index"],
-                            geometry=cfg.geometry, **kw)
+    return resolve_overlaps(
+        d["samples_v"], d["sample_rate_hz"], d["onset_index"], geometry=cfg.geometry, **kw
+    )
 
 
 @pytest.fixture(scope="module")
@@ -46,9 +54,17 @@ def pairs():
     for name, cfg in (("water", WATER), ("silicone", SILICONE)):
         n = 48
         sep = rng.choice([2e-6, 3.5e-6, 5e-6, 8e-6], n)
-        ds = [simulate_overlaps(n // 3, cfg, separation_s=sep[i::3], amplitude_ratio=r,
-                                snr_db=rng.uniform(20, 30, n // 3), rng=rng)
-              for i, r in enumerate((1.0, 2.0, 4.0))]
+        ds = [
+            simulate_overlaps(
+                n // 3,
+                cfg,
+                separation_s=sep[i::3],
+                amplitude_ratio=r,
+                snr_db=rng.uniform(20, 30, n // 3),
+                rng=rng,
+            )
+            for i, r in enumerate((1.0, 2.0, 4.0))
+        ]
         res = sum((run(d, cfg) for d in ds), [])
         truth = np.concatenate([d["points_m"] for d in ds])
         out[name] = (ds, res, truth)
@@ -60,8 +76,10 @@ def test_both_points_within_0p1_mm_in_most_pairs(pairs, medium):
     # Target: both points within 0.1 mm in >= 90 % of pairs at separations >= 2 us
     # (measured ~99 %, docs/overlap.md); asserted with margin at 85 %.
     ds, res, truth = pairs[medium]
-    ok = [r.accepted and len(r.sources) == 2 and np.all(per_truth_errors(t, r.sources) <= 0.1e-3)
-          for r, t in zip(res, truth)]
+    ok = [
+        r.accepted and len(r.sources) == 2 and np.all(per_truth_errors(t, r.sources) <= 0.1e-3)
+        for r, t in zip(res, truth)
+    ]
     assert np.mean(ok) >= 0.85, np.mean(ok)
 
 
@@ -76,13 +94,13 @@ def test_sources_carry_polarity_time_and_order(pairs, medium):
         if not (r.accepted and len(r.sources) == 2):
             continue
         times = [s.emission_time_s for s in r.sources]
-        assert times == sorted(times)                      # earliest first
+        assert times == sorted(times)  # earliest first
         for s in r.sources:
             j = int(np.argmin(np.linalg.norm(truth[i] - s.point_m, axis=1)))
             if np.linalg.norm(truth[i][j] - s.point_m) > 0.1e-3:
                 continue
             assert s.polarity == pol[i, j]
-            assert abs(s.emission_time_s - t_emit[i, j]) < 50e-9      # 0.5 sample
+            assert abs(s.emission_time_s - t_emit[i, j]) < 50e-9  # 0.5 sample
             np.testing.assert_allclose(s.arrival_times_s, t_arr[i, j], atol=50e-9)
             assert 0.0 < s.confidence <= 1.0
             assert np.all(np.linalg.eigvalsh(s.covariance_m2) >= -1e-18)
@@ -96,14 +114,14 @@ def test_covariance_is_calibrated(pairs):
     for medium in ("water", "silicone"):
         ds, res, truth = pairs[medium]
         for r, t in zip(res, truth):
-            for s in (r.sources if r.accepted else []):
+            for s in r.sources if r.accepted else []:
                 e = s.point_m - t[np.argmin(np.linalg.norm(t - s.point_m, axis=1))]
                 q.append(e[:2] @ np.linalg.solve(s.covariance_m2[:2, :2], e[:2]))
     q = np.array(q)
     assert len(q) >= 150
     inside = np.mean(q <= CHI2_2_683)
     assert 0.55 <= inside <= 0.85, inside
-    assert 1.3 <= np.median(q) / 1.386 * 1.386 <= 2.0 * 1.386, np.median(q)   # chi2(2) median 1.386
+    assert 1.3 <= np.median(q) / 1.386 * 1.386 <= 2.0 * 1.386, np.median(q)  # chi2(2) median 1.386
     assert 0.9 <= np.median(q) <= 2.1, np.median(q)
 
 
@@ -115,10 +133,16 @@ def test_no_wrong_accept_with_small_uncertainty_over_a_sweep():
     for cfg in (WATER, SILICONE):
         for ratio in (1.0, 4.0):
             n = 30
-            d = simulate_overlaps(n, cfg, separation_s=rng.uniform(0.3e-6, 10e-6, n), amplitude_ratio=ratio,
-                                  snr_db=rng.uniform(10, 30, n), rng=rng)
+            d = simulate_overlaps(
+                n,
+                cfg,
+                separation_s=rng.uniform(0.3e-6, 10e-6, n),
+                amplitude_ratio=ratio,
+                snr_db=rng.uniform(10, 30, n),
+                rng=rng,
+            )
             for r, t in zip(run(d, cfg), d["points_m"]):
-                for s in (r.sources if r.accepted else []):
+                for s in r.sources if r.accepted else []:
                     e = np.linalg.norm(t - s.point_m, axis=1).min()
                     if e > 0.5e-3 and s.sigma_m < 0.1e-3:
                         bad.append((e, s.sigma_m))
@@ -131,8 +155,9 @@ def test_single_emissions_stay_single_and_accurate():
     rng = np.random.default_rng(3)
     for cfg in (WATER, SILICONE):
         n = 40
-        pts = cfg.geometry.surface_point_from_angles(np.arccos(rng.uniform(0.5, 1, n)),
-                                                     rng.uniform(0, 2 * np.pi, n))
+        pts = cfg.geometry.surface_point_from_angles(
+            np.arccos(rng.uniform(0.5, 1, n)), rng.uniform(0, 2 * np.pi, n)
+        )
         pk = render_triggered(pts, cfg, snr_db=rng.uniform(20, 30, n), rng=rng)
         res = resolve_overlaps(pk.samples_v, FS, pk.onset_index, geometry=cfg.geometry)
         one = [r.accepted and len(r.sources) == 1 for r in res]
@@ -144,16 +169,25 @@ def test_single_emissions_stay_single_and_accurate():
 
 def test_three_emissions():
     rng = np.random.default_rng(8)
-    d = simulate_overlaps(16, WATER, n_sources=3, separation_s=3e-6, amplitude_ratio=2.0,
-                          snr_db=rng.uniform(20, 30, 16), rng=rng)
+    d = simulate_overlaps(
+        16,
+        WATER,
+        n_sources=3,
+        separation_s=3e-6,
+        amplitude_ratio=2.0,
+        snr_db=rng.uniform(20, 30, 16),
+        rng=rng,
+    )
     res = run(d, WATER)
-    ok = [r.accepted and len(r.sources) == 3 and np.all(per_truth_errors(t, r.sources) <= 0.1e-3)
-          for r, t in zip(res, d["points_m"])]
+    ok = [
+        r.accepted and len(r.sources) == 3 and np.all(per_truth_errors(t, r.sources) <= 0.1e-3)
+        for r, t in zip(res, d["points_m"])
+    ]
     assert np.mean(ok) >= 0.75
     # with max_sources=2 a three-emission window is not explained: rejected, not guessed
     res2 = run(d, WATER, max_sources=2)
     for r, t in zip(res2, d["points_m"]):
-        for s in (r.sources if r.accepted else []):
+        for s in r.sources if r.accepted else []:
             assert np.linalg.norm(t - s.point_m, axis=1).min() < 6 * s.sigma_m + 50e-6
 
 
@@ -164,15 +198,25 @@ def test_stream_rendered_pairs_independent_path():
     geo = WATER.geometry
     ok = 0
     n = 12
-    for i in range(n):
-        p = geo.surface_point_from_angles(np.arccos(rng.uniform(0.5, 1, 2)), rng.uniform(0, 2 * np.pi, 2))
+    for _ in range(n):
+        p = geo.surface_point_from_angles(
+            np.arccos(rng.uniform(0.5, 1, 2)), rng.uniform(0, 2 * np.pi, 2)
+        )
         if np.linalg.norm(p[0] - p[1]) < 2e-3:
             p[1] = geo.surface_point_from_xy([-p[0, 0]], [-p[0, 1]])[0]
         t0 = 100_000 + int(rng.integers(0, 100))
         sep_ns = int(rng.integers(2000, 9000))
-        em = EmissionList.create([t0, t0 + sep_ns], p, "touch", polarity=[1, -1], speed_m_s=[0.3, 0.2],
-                                 curvature_1_m=1000.0, alpha_1_s=3000.0, density_kg_m3=1000.0,
-                                 event_id=[0, 1])
+        em = EmissionList.create(
+            [t0, t0 + sep_ns],
+            p,
+            "touch",
+            polarity=[1, -1],
+            speed_m_s=[0.3, 0.2],
+            curvature_1_m=1000.0,
+            alpha_1_s=3000.0,
+            density_kg_m3=1000.0,
+            event_id=[0, 1],
+        )
         first = (t0 * 1e-9 + geo.arrival_times_s(p[:1]).min()) * FS
         onset_abs = int(np.ceil(first))
         n0 = onset_abs - 80
@@ -181,7 +225,9 @@ def test_stream_rendered_pairs_independent_path():
         sigma = noise_rms_for_snr(p_sig, 25.0)
         x, _ = quantize(clean + sigma[:, None, None] * rng.standard_normal(clean.shape), WATER)
         r = resolve_overlaps(x, FS, 80)[0]
-        ok += r.accepted and len(r.sources) == 2 and np.all(per_truth_errors(p, r.sources) <= 0.1e-3)
+        ok += (
+            r.accepted and len(r.sources) == 2 and np.all(per_truth_errors(p, r.sources) <= 0.1e-3)
+        )
         if r.accepted:
             times = sorted(s.emission_time_s for s in r.sources)
             assert abs((times[1] - times[0]) - sep_ns * 1e-9) < 50e-9
@@ -196,8 +242,15 @@ def test_model_reproduces_the_simulator_and_bound_is_below_single_packet_bound()
     for cfg in (WATER, SILICONE):
         for sep in (1e-6, 8e-6):
             d = simulate_overlaps(10, cfg, separation_s=sep, amplitude_ratio=2, snr_db=25, rng=rng)
-            b = joint_crlb(d["clean_v"], FS, d["onset_index"], d["points_m"], d["emission_time_s"],
-                           d["noise_rms_v"] ** 2, geometry=cfg.geometry)
+            b = joint_crlb(
+                d["clean_v"],
+                FS,
+                d["onset_index"],
+                d["points_m"],
+                d["emission_time_s"],
+                d["noise_rms_v"] ** 2,
+                geometry=cfg.geometry,
+            )
             assert b["model_mismatch"].max() < 1e-5
             assert np.all(b["rms_m"] >= b["single_rms_m"] * (1 - 1e-9))
             if sep == 8e-6:
@@ -208,16 +261,18 @@ def test_model_reproduces_the_simulator_and_bound_is_below_single_packet_bound()
 def test_suspect_overlap_flags_late_second_emission_not_singles():
     rng = np.random.default_rng(4)
     # a second emission 8.5 us later lands at the end of the single-source echo-free segment
-    d = simulate_overlaps(40, WATER, separation_s=8.5e-6, amplitude_ratio=2, snr_db=rng.uniform(20, 30, 40),
-                          rng=rng)
+    d = simulate_overlaps(
+        40, WATER, separation_s=8.5e-6, amplitude_ratio=2, snr_db=rng.uniform(20, 30, 40), rng=rng
+    )
     ml = localize(d["samples_v"], FS, d["onset_index"])
     sus = suspect_overlap(d["samples_v"], FS, d["onset_index"], ml)
     assert not np.any(sus & ~ml.accepted)
     assert np.all(sus[ml.accepted])
     # single packets accepted by ml are (almost) never flagged
     n = 100
-    pts = WATER.geometry.surface_point_from_angles(np.arccos(rng.uniform(0.5, 1, n)),
-                                                   rng.uniform(0, 2 * np.pi, n))
+    pts = WATER.geometry.surface_point_from_angles(
+        np.arccos(rng.uniform(0.5, 1, n)), rng.uniform(0, 2 * np.pi, n)
+    )
     pk = render_triggered(pts, WATER, snr_db=rng.uniform(15, 30, n), rng=rng)
     ml = localize(pk.samples_v, FS, pk.onset_index)
     sus = suspect_overlap(pk.samples_v, FS, pk.onset_index, ml)
@@ -232,7 +287,7 @@ def test_pulse_mismatch_is_rejected_not_guessed():
     cfg = WATER.replace(highpass_hz=80e3)
     d = simulate_overlaps(20, cfg, separation_s=4e-6, amplitude_ratio=2, snr_db=25, rng=rng)
     for r, t in zip(run(d, cfg, pulse=PulseModel()), d["points_m"]):
-        for s in (r.sources if r.accepted else []):
+        for s in r.sources if r.accepted else []:
             assert np.linalg.norm(t - s.point_m, axis=1).min() < 6 * s.sigma_m + 50e-6
 
 
@@ -241,10 +296,10 @@ def test_input_problems_are_rejections_with_reasons():
     d = simulate_overlaps(6, WATER, separation_s=4e-6, snr_db=25, rng=rng)
     x = d["samples_v"].copy()
     on = d["onset_index"].copy()
-    x[0, 1, 100] = np.nan                       # non-finite sample
-    x[1] = 0.0                                  # all-zero window
-    x[2, 3] = 0.25                              # dead (constant) channel
-    on[3] = 10_000                              # onset outside the window
+    x[0, 1, 100] = np.nan  # non-finite sample
+    x[1] = 0.0  # all-zero window
+    x[2, 3] = 0.25  # dead (constant) channel
+    on[3] = 10_000  # onset outside the window
     noise = np.random.default_rng(1).normal(0, 1e-3, (1, 4, 400))
     res = resolve_overlaps(x, FS, on)
     assert res[0].reason == OverlapReason.NONFINITE and not res[0].accepted
@@ -281,3 +336,26 @@ def test_bad_parameters_raise_clear_errors():
     with pytest.raises(ValueError, match="single_source_result"):
         ml = localize(np.random.default_rng(0).normal(size=(3, 4, 400)), FS, [80, 80, 80])
         suspect_overlap(x, FS, [80, 80], ml)
+
+
+def test_localize_with_overlaps_routes_only_what_needs_it():
+    from ae_tactile.localization.overlap import localize_with_overlaps
+
+    rng = np.random.default_rng(12)
+    n = 20
+    pts = WATER.geometry.surface_point_from_angles(
+        np.arccos(rng.uniform(0.5, 1, n)), rng.uniform(0, 2 * np.pi, n)
+    )
+    singles = render_triggered(pts, WATER, snr_db=25, rng=rng)
+    d = simulate_overlaps(6, WATER, separation_s=4e-6, amplitude_ratio=2, snr_db=25, rng=rng)
+    x = np.concatenate([singles.samples_v, d["samples_v"]])
+    on = np.concatenate([singles.onset_index, d["onset_index"]])
+    single, overlap = localize_with_overlaps(x, FS, on)
+    assert single.accepted[:n].all() and not single.accepted[n:].any()
+    assert set(overlap) == set(range(n, n + 6))  # only the pairs took the slow path
+    assert np.all(single.reason[n:] == 6)  # OVERLAP
+    err = np.linalg.norm(single.point_m[:n] - pts, axis=1)
+    assert err.max() < 0.1e-3
+    for i, r in overlap.items():
+        assert r.accepted and len(r.sources) == 2
+        assert np.all(per_truth_errors(d["points_m"][i - n], r.sources) <= 0.1e-3)

@@ -47,6 +47,7 @@ emission are part of the model. Search (RELAX, cyclic superimposed-signal estima
 one-emission model started at their point, three LM steps, chi^2 per degree of freedom
 against ``max_chi2_ratio``.
 """
+
 from __future__ import annotations
 
 import math
@@ -55,14 +56,23 @@ from enum import IntEnum
 
 import numpy as np
 import scipy.fft as sfft
-from numpy.lib.stride_tricks import sliding_window_view
 from scipy import signal
 
-from ae_tactile.geometry import CHANNEL_XI_ETA, FingertipGeometry
+from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization.common import Reason, make_plan, prepare, subset, validate_windows
 
-__all__ = ["PulseModel", "OverlapReason", "OverlapSource", "OverlapPacket", "resolve_overlaps",
-           "suspect_overlap", "fit_sources", "simulate_overlaps", "joint_crlb", "calibrate_pulse"]
+__all__ = [
+    "PulseModel",
+    "OverlapReason",
+    "OverlapSource",
+    "OverlapPacket",
+    "resolve_overlaps",
+    "suspect_overlap",
+    "simulate_overlaps",
+    "joint_crlb",
+    "calibrate_pulse",
+    "localize_with_overlaps",
+]
 
 
 class OverlapReason(IntEnum):
@@ -75,8 +85,8 @@ class OverlapReason(IntEnum):
     WINDOW = int(Reason.WINDOW)
     SATURATED = int(Reason.SATURATED)
     LOW_SNR = int(Reason.LOW_SNR)
-    UNRESOLVED = 8    # residual inconsistent with noise even with max_sources emissions
-    UNCERTAIN = 9     # no emission could be localized with in-plane sigma <= max_sigma_m
+    UNRESOLVED = 8  # residual inconsistent with noise even with max_sources emissions
+    UNCERTAIN = 9  # no emission could be localized with in-plane sigma <= max_sigma_m
 
 
 # --------------------------------------------------------------------------- pulse model
@@ -100,27 +110,52 @@ class PulseModel:
     @classmethod
     def from_config(cls, config) -> "PulseModel":
         """From any object with the front-end attributes of ``ae_tactile.sim.SimConfig``."""
-        return cls(float(config.highpass_hz), int(config.highpass_order),
-                   None if config.lowpass_hz is None else float(config.lowpass_hz),
-                   int(config.lowpass_order))
+        return cls(
+            float(config.highpass_hz),
+            int(config.highpass_order),
+            None if config.lowpass_hz is None else float(config.lowpass_hz),
+            int(config.lowpass_order),
+        )
 
     def poles_residues(self):
         """(poles (P,) complex, residues (P,) complex) of h, peak-normalised (cached)."""
         cache = _PR_CACHE.get(self)
         if cache is not None:
             return cache
-        zs, ps, k = [np.zeros(1, complex)], [np.array([-self.alpha_1_s, -2.0 * self.alpha_1_s], complex)], 1.0
-        z, p, kk = signal.butter(self.highpass_order, 2 * math.pi * self.highpass_hz, btype="highpass",
-                                 analog=True, output="zpk")
-        zs.append(z); ps.append(p); k *= kk
+        zs, ps, k = (
+            [np.zeros(1, complex)],
+            [np.array([-self.alpha_1_s, -2.0 * self.alpha_1_s], complex)],
+            1.0,
+        )
+        z, p, kk = signal.butter(
+            self.highpass_order,
+            2 * math.pi * self.highpass_hz,
+            btype="highpass",
+            analog=True,
+            output="zpk",
+        )
+        zs.append(z)
+        ps.append(p)
+        k *= kk
         if self.lowpass_hz is not None:
-            z, p, kk = signal.butter(self.lowpass_order, 2 * math.pi * self.lowpass_hz, btype="lowpass",
-                                     analog=True, output="zpk")
-            zs.append(z); ps.append(p); k *= kk
+            z, p, kk = signal.butter(
+                self.lowpass_order,
+                2 * math.pi * self.lowpass_hz,
+                btype="lowpass",
+                analog=True,
+                output="zpk",
+            )
+            zs.append(z)
+            ps.append(p)
+            k *= kk
         zeros = np.concatenate(zs).astype(complex)
         poles = np.concatenate(ps).astype(complex)
-        res = np.array([k * np.prod(q - zeros) / np.prod(q - np.delete(poles, i))
-                        for i, q in enumerate(poles)])
+        res = np.array(
+            [
+                k * np.prod(q - zeros) / np.prod(q - np.delete(poles, i))
+                for i, q in enumerate(poles)
+            ]
+        )
         t = np.linspace(0.0, 20.0 / (2 * math.pi * self.highpass_hz), 20001)
         h = (res[None, :] * np.exp(poles[None, :] * t[:, None])).sum(axis=1).real
         res = res / h[np.argmax(np.abs(h))]
@@ -145,7 +180,7 @@ class _Tables:
     poles: np.ndarray
     res: np.ndarray
     table: np.ndarray
-    h_samples: np.ndarray     # h(m dt), m = 0..L-1 (matched filter)
+    h_samples: np.ndarray  # h(m dt), m = 0..L-1 (matched filter)
 
 
 def _tables(pulse: PulseModel, fs: float, n: int) -> _Tables:
@@ -219,18 +254,29 @@ class OverlapPacket:
 class _Model:
     """Batched evaluation of the J-emission model on K analysis segments."""
 
-    def __init__(self, geo: FingertipGeometry, fs: float, start: np.ndarray, length: int,
-                 pulse: PulseModel, echo: bool, inside=None):
+    def __init__(
+        self,
+        geo: FingertipGeometry,
+        fs: float,
+        start: np.ndarray,
+        length: int,
+        pulse: PulseModel,
+        echo: bool,
+        inside=None,
+    ):
         #: (K, 4L) 1 where the segment's sample lies inside the window, else 0
-        self.mask = None if inside is None else np.repeat(inside[:, None, :], 4, axis=1).reshape(
-            len(start), -1).astype(float)
+        self.mask = (
+            None
+            if inside is None
+            else np.repeat(inside[:, None, :], 4, axis=1).reshape(len(start), -1).astype(float)
+        )
         self.geo = geo
         self.fs = fs
-        self.start = start.astype(float)          # (K,) first sample of each segment
+        self.start = start.astype(float)  # (K,) first sample of each segment
         self.L = int(length)
         self.tab = _tables(pulse, fs, self.L)
         self.echo = echo
-        self.e = geo.element_positions_m          # (4, 3)
+        self.e = geo.element_positions_m  # (4, 3)
         self.c = geo.sound_speed_m_s
         self.R = geo.radius_m
 
@@ -239,11 +285,11 @@ class _Model:
 
         Returns d (K, J, P, 4) with P = 2 paths (direct, echo) and dd (K, J, P, 4, 2)."""
         sx, sy = s[..., 0], s[..., 1]
-        sz = np.sqrt(np.maximum(self.R ** 2 - sx * sx - sy * sy, (1e-3 * self.R) ** 2))
-        pt = np.stack([sx, sy, sz], axis=-1)                          # (K, J, 3)
+        sz = np.sqrt(np.maximum(self.R**2 - sx * sx - sy * sy, (1e-3 * self.R) ** 2))
+        pt = np.stack([sx, sy, sz], axis=-1)  # (K, J, 3)
         out_d, out_g = [], []
         for sign, base in ((-1.0, 0.0), (1.0, 2.0 * self.R)):
-            v = pt[..., None, :] + sign * self.e                      # (K, J, 4, 3)
+            v = pt[..., None, :] + sign * self.e  # (K, J, 4, 3)
             d = np.sqrt((v * v).sum(axis=-1))
             # d d/d s_x = (v_x + v_z d s_z/d s_x) / d, d s_z/d s_x = -s_x / s_z
             gx = (v[..., 0] - v[..., 2] * (sx / sz)[..., None]) / d
@@ -261,12 +307,14 @@ class _Model:
         K, A = t_arr.shape
         fs, L = self.fs, self.L
         p, r = self.tab.poles, self.tab.res
-        off = self.start[:, None] / fs - t_arr                        # t_0 - t_a
+        off = self.start[:, None] / fs - t_arr  # t_0 - t_a
         n0 = np.ceil(-off * fs - 1e-9)
-        c = r * np.exp(p * off[..., None])                            # (K, A, P)
+        c = r * np.exp(p * off[..., None])  # (K, A, P)
         cd = c * p
-        coef = np.stack([np.concatenate([c.real, -c.imag], -1),
-                         np.concatenate([cd.real, -cd.imag], -1)], axis=2)   # (K, A, 2, 2P)
+        coef = np.stack(
+            [np.concatenate([c.real, -c.imag], -1), np.concatenate([cd.real, -cd.imag], -1)],
+            axis=2,
+        )  # (K, A, 2, 2P)
         vals = (coef.reshape(K * A * 2, -1) @ self.tab.table).reshape(K, A, 2, L)
         vals *= (np.arange(L) >= n0[..., None])[:, :, None, :]
         return vals[:, :, 0], vals[:, :, 1]
@@ -276,8 +324,8 @@ class _Model:
         and the parts the Jacobian needs, for theta (K, J, 3) = (s_x, s_y, T)."""
         K, J, _ = theta.shape
         L = self.L
-        d, dd = self._paths(theta[..., :2])                           # (K,J,2,4), (K,J,2,4,2)
-        t_arr = theta[..., 2][..., None, None] + d / self.c           # (K, J, 2, 4)
+        d, dd = self._paths(theta[..., :2])  # (K,J,2,4), (K,J,2,4,2)
+        t_arr = theta[..., 2][..., None, None] + d / self.c  # (K, J, 2, 4)
         h, dh = self.pulses(t_arr.reshape(K, -1))
         h = h.reshape(K, J, 2, 4, L)
         dh = dh.reshape(K, J, 2, 4, L)
@@ -298,11 +346,15 @@ class _Model:
         h, dh, gain, dgain, dtds = parts
         K, J = h.shape[:2]
         a = amp.reshape(K, J, 2)
-        ag = (a[..., None] * gain)                                    # (K, J, 2, 4)
-        ads = a[..., None, None] * dgain                              # (K, J, 2, 4, 2)
-        agt = ag[..., None] * dtds                                    # (K, J, 2, 4, 2)
-        dsx = np.einsum("kjec,kjecl->kjcl", ads[..., 0], h) - np.einsum("kjec,kjecl->kjcl", agt[..., 0], dh)
-        dsy = np.einsum("kjec,kjecl->kjcl", ads[..., 1], h) - np.einsum("kjec,kjecl->kjcl", agt[..., 1], dh)
+        ag = a[..., None] * gain  # (K, J, 2, 4)
+        ads = a[..., None, None] * dgain  # (K, J, 2, 4, 2)
+        agt = ag[..., None] * dtds  # (K, J, 2, 4, 2)
+        dsx = np.einsum("kjec,kjecl->kjcl", ads[..., 0], h) - np.einsum(
+            "kjec,kjecl->kjcl", agt[..., 0], dh
+        )
+        dsy = np.einsum("kjec,kjecl->kjcl", ads[..., 1], h) - np.einsum(
+            "kjec,kjecl->kjcl", agt[..., 1], dh
+        )
         dT = -np.einsum("kjec,kjecl->kjcl", ag, dh)
         jac = np.stack([dsx, dsy, dT], axis=2).reshape(K, 3 * J, -1)
         if self.mask is not None:
@@ -357,7 +409,7 @@ def _lm(model: "_Model", y, theta, iterations=12, max_rho=None):
         K_ = ids.size
         pa = tuple(q[ids] for q in parts)
         sub = _sub(model, ids)
-        jac = np.concatenate([sub.jacobian(pa, amp[ids]), phi[ids]], axis=1)     # (K_, 5J, N)
+        jac = np.concatenate([sub.jacobian(pa, amp[ids]), phi[ids]], axis=1)  # (K_, 5J, N)
         jtj = jac @ jac.transpose(0, 2, 1)
         jtr = (jac @ res[ids][..., None])[..., 0]
         dg = np.einsum("kii->ki", jtj)
@@ -413,14 +465,14 @@ def _grid_search(model: _Model, r, grid, chunk=64, n_peaks=1, min_sep=8):
     h = model.tab.h_samples
     nfft = sfft.next_fast_len(2 * L, real=True)
     H = np.conj(sfft.rfft(h, n=nfft))
-    corr = sfft.irfft(sfft.rfft(r, n=nfft, axis=2) * H, n=nfft, axis=2)[..., :L]   # arrival at n
-    d = model.geo._xy_distances(grid[:, 0], grid[:, 1])                  # (G, 4)
+    corr = sfft.irfft(sfft.rfft(r, n=nfft, axis=2) * H, n=nfft, axis=2)[..., :L]  # arrival at n
+    d = model.geo._xy_distances(grid[:, 0], grid[:, 1])  # (G, 4)
     gain = model.R / d
     tt = d / model.c
     rel = np.rint((tt - tt.min(axis=1, keepdims=True)) * fs).astype(np.int64)  # (G, 4)
     pad = int(rel.max()) + 1
     # ||phi||^2 for an arrival inside the segment: sum_k gain^2 sum h^2
-    norm = (gain ** 2).sum(axis=1) * float((h * h).sum())
+    norm = (gain**2).sum(axis=1) * float((h * h).sum())
     best_val = np.full(K, -np.inf)
     best_g = np.zeros(K, np.int64)
     best_m = np.zeros(K, np.int64)
@@ -429,7 +481,7 @@ def _grid_search(model: _Model, r, grid, chunk=64, n_peaks=1, min_sep=8):
     # every second arrival sample first (the matched filter is smooth: band <= fs/10),
     # then the best point's neighbours
     mm = np.arange(0, L, 2)
-    idx = rel[:, :, None] + mm[None, None, :]                             # (G, 4, L/2)
+    idx = rel[:, :, None] + mm[None, None, :]  # (G, 4, L/2)
     prof = np.zeros((K, mm.size))
     prof_g = np.zeros((K, mm.size), np.int64)
     for k0 in range(0, K, chunk):
@@ -438,7 +490,7 @@ def _grid_search(model: _Model, r, grid, chunk=64, n_peaks=1, min_sep=8):
         for ch in range(4):
             c += gain32[None, :, ch, None] * cp[sl, ch][:, idx[:, ch]]
         stat = (c * c) / norm[None, :, None].astype(np.float32)
-        gi = np.argmax(stat, axis=1)                                       # (k, L/2)
+        gi = np.argmax(stat, axis=1)  # (k, L/2)
         prof_g[sl] = gi
         prof[sl] = np.take_along_axis(stat, gi[:, None, :], axis=1)[:, 0]
     i = np.argmax(prof, axis=1)
@@ -453,20 +505,28 @@ def _grid_search(model: _Model, r, grid, chunk=64, n_peaks=1, min_sep=8):
         for _ in range(n_peaks - 1):
             lo = np.searchsorted(mm, mm[last] - min_sep)
             hi = np.searchsorted(mm, mm[last] + min_sep, side="right")
-            mask = (np.arange(mm.size)[None, :] >= lo[:, None]) & (np.arange(mm.size)[None, :] < hi[:, None])
+            mask = (np.arange(mm.size)[None, :] >= lo[:, None]) & (
+                np.arange(mm.size)[None, :] < hi[:, None]
+            )
             pr[mask] = -np.inf
             last = np.argmax(pr, axis=1)
             g2 = prof_g[rows_, last]
             peaks.append(np.stack([grid[g2, 0], grid[g2, 1], mm[last].astype(float)], 1))
         extra = []
         for pk in peaks[1:]:
-            gidx = np.argmin(np.abs(grid[:, None, 0] - pk[None, :, 0]) + np.abs(grid[:, None, 1] - pk[None, :, 1]), axis=0)
+            gidx = np.argmin(
+                np.abs(grid[:, None, 0] - pk[None, :, 0])
+                + np.abs(grid[:, None, 1] - pk[None, :, 1]),
+                axis=0,
+            )
             T2 = (model.start + pk[:, 2]) / fs - tt[gidx].min(axis=1)
             extra.append(np.stack([pk[:, 0], pk[:, 1], T2], 1))
     rows = np.arange(K)
-    cand = np.clip(best_m[:, None] + np.array([-1, 0, 1]), 0, L - 1)     # (K, 3)
-    ix = rel[best_g][:, :, None] + cand[:, None, :]                       # (K, 4, 3)
-    cv = (gain[best_g][:, :, None] * cp[rows[:, None, None], np.arange(4)[None, :, None], ix]).sum(axis=1)
+    cand = np.clip(best_m[:, None] + np.array([-1, 0, 1]), 0, L - 1)  # (K, 3)
+    ix = rel[best_g][:, :, None] + cand[:, None, :]  # (K, 4, 3)
+    cv = (gain[best_g][:, :, None] * cp[rows[:, None, None], np.arange(4)[None, :, None], ix]).sum(
+        axis=1
+    )
     st = cv * cv / norm[best_g][:, None]
     pick = np.argmax(st, axis=1)
     best_m = cand[rows, pick]
@@ -483,10 +543,10 @@ def _grid_search(model: _Model, r, grid, chunk=64, n_peaks=1, min_sep=8):
 # --------------------------------------------------------------------------- driver
 @dataclass
 class _Fit:
-    theta: np.ndarray      # (K, J, 3)
-    amp: np.ndarray        # (K, 2J)
-    rss: np.ndarray        # (K,)
-    gram: np.ndarray       # (K, 5J, 5J) Gram matrix of the Jacobian (Fisher x sigma^2)
+    theta: np.ndarray  # (K, J, 3)
+    amp: np.ndarray  # (K, 2J)
+    rss: np.ndarray  # (K,)
+    gram: np.ndarray  # (K, 5J, 5J) Gram matrix of the Jacobian (Fisher x sigma^2)
 
 
 def _segments(prep, plan, geo, fs, analysis_s):
@@ -498,34 +558,15 @@ def _segments(prep, plan, geo, fs, analysis_s):
     nominal = plan.pre + int(math.floor(analysis_s * fs))
     length = max(int(np.max(np.minimum(m - start, nominal), initial=8)), 8)
     idx = start[:, None] + np.arange(length)[None, :]
-    inside = idx < m              # samples past the window end are masked out of the fit
+    inside = idx < m  # samples past the window end are masked out of the fit
     seg = np.take_along_axis(prep.x, np.clip(idx, 0, m - 1)[:, None, :].repeat(4, axis=1), axis=2)
     seg = (seg - prep.pre_mean[..., None]) * inside[:, None, :]
     return seg, start, length, inside
 
 
-def fit_sources(windows, sample_rate_hz, onset_index, n_sources, *, geometry=None, pulse=None,
-                echo=True, band_hz=(100e3, 1e6), analysis_s=None, grid_spacing_m=1.0e-3):
-    """Fit exactly ``n_sources`` emissions to each window (no order selection, no rejection).
-
-    Returns dict: theta (K, J, 3) = (s_x, s_y, emission time) (m, m, s), amplitudes (K, 2J)
-    (V; direct, echo per emission), rss (K,) (V^2), sigma2 (K,) noise variance (V^2)."""
-    geo = FingertipGeometry() if geometry is None else geometry
-    pulse = PulseModel() if pulse is None else pulse
-    x, on = validate_windows(windows, onset_index)
-    plan = make_plan(sample_rate_hz, geo, x.shape[2], band_hz)
-    with np.errstate(all="ignore"):
-        prep = prepare(x, on, plan)
-        seg, start, length, inside = _segments(prep, plan, geo, plan.fs, analysis_s)
-        model = _Model(geo, plan.fs, start, length, pulse, echo, inside)
-        fits = _search(model, seg, int(n_sources), _surface_grid(geo, grid_spacing_m))
-    f = fits[-1]
-    sc = prep.scale
-    return dict(theta=f.theta, amplitudes=f.amp * sc[:, None], rss=f.rss * sc ** 2,
-                sigma2=(prep.sigma2 + prep.quant2) * sc ** 2)
-
-
-def _search(model: _Model, seg, max_sources, grid, sigma2=None, add_threshold=None, search_limit=None):
+def _search(
+    model: _Model, seg, max_sources, grid, sigma2=None, add_threshold=None, search_limit=None
+):
     """RELAX search for 1..max_sources emissions. Returns the list of _Fit, one per J
     (packets that stop adding emissions keep their previous fit in later entries).
 
@@ -594,9 +635,12 @@ def _search(model: _Model, seg, max_sources, grid, sigma2=None, add_threshold=No
             t1 = np.take_along_axis(t1, order[..., None], axis=1)
             ao = np.stack([2 * order, 2 * order + 1], axis=2).reshape(len(ids), -1)
             a1 = np.take_along_axis(a1, ao, axis=1)
-            jo = np.concatenate([(3 * order[..., None] + np.arange(3)).reshape(len(ids), -1),
-                                 3 * j + ao], axis=1)
-            j1 = np.take_along_axis(np.take_along_axis(j1, jo[:, None, :], axis=2), jo[:, :, None], axis=1)
+            jo = np.concatenate(
+                [(3 * order[..., None] + np.arange(3)).reshape(len(ids), -1), 3 * j + ao], axis=1
+            )
+            j1 = np.take_along_axis(
+                np.take_along_axis(j1, jo[:, None, :], axis=2), jo[:, :, None], axis=1
+            )
             theta[ids], amp[ids], rss[ids], jac[ids] = t1, a1, r1, j1
         fits.append(_Fit(theta, amp, rss, jac))
     return fits
@@ -621,11 +665,27 @@ def _positive(name, v):
     return f
 
 
-def resolve_overlaps(windows, sample_rate_hz, onset_index, *, geometry=None, pulse=None,
-                     noise_rms_v=None, saturated=None, full_scale_v=None, max_sources=3,
-                     band_hz=(100e3, 1e6), analysis_s=None, add_threshold=60.0,
-                     max_chi2_ratio=None, max_sigma_m=0.2e-3, min_snr_db=5.0, echo=True,
-                     grid_spacing_m=1.0e-3, min_separation_s=1.5e-6) -> list:
+def resolve_overlaps(
+    windows,
+    sample_rate_hz,
+    onset_index,
+    *,
+    geometry=None,
+    pulse=None,
+    noise_rms_v=None,
+    saturated=None,
+    full_scale_v=None,
+    max_sources=3,
+    band_hz=(100e3, 1e6),
+    analysis_s=None,
+    add_threshold=60.0,
+    max_chi2_ratio=None,
+    max_sigma_m=0.2e-3,
+    min_snr_db=5.0,
+    echo=True,
+    grid_spacing_m=1.0e-3,
+    min_separation_s=1.5e-6,
+) -> list:
     """Localize every emission in each of K windows (two or three overlapping emissions).
 
     windows (K, 4, M) volts (a (4, M) window is accepted), sample_rate_hz, onset_index (K,)
@@ -650,8 +710,11 @@ def resolve_overlaps(windows, sample_rate_hz, onset_index, *, geometry=None, pul
     pulse = PulseModel() if pulse is None else pulse
     if not isinstance(pulse, PulseModel):
         raise TypeError(f"pulse must be a PulseModel, got {type(pulse).__name__}")
-    if isinstance(max_sources, bool) or not isinstance(max_sources, (int, np.integer)) \
-            or not 1 <= max_sources <= 3:
+    if (
+        isinstance(max_sources, bool)
+        or not isinstance(max_sources, (int, np.integer))
+        or not 1 <= max_sources <= 3
+    ):
         raise ValueError(f"max_sources must be 1, 2 or 3, got {max_sources!r}")
     add_threshold = _positive("add_threshold", add_threshold)
     max_sigma_m = _positive("max_sigma_m", max_sigma_m)
@@ -672,8 +735,9 @@ def resolve_overlaps(windows, sample_rate_hz, onset_index, *, geometry=None, pul
     if K == 0:
         return []
     with np.errstate(all="ignore"):
-        prep = prepare(x, on, plan, noise_rms_v=noise_rms_v, saturated=saturated,
-                       full_scale_v=full_scale_v)
+        prep = prepare(
+            x, on, plan, noise_rms_v=noise_rms_v, saturated=saturated, full_scale_v=full_scale_v
+        )
         sigma2 = prep.sigma2 + prep.quant2
         n_noise = np.maximum(4 * (prep.onset - plan.pre), 4).astype(float)
         if noise_rms_v is not None:
@@ -685,17 +749,32 @@ def resolve_overlaps(windows, sample_rate_hz, onset_index, *, geometry=None, pul
         out: list = [None] * K
         ids = np.nonzero(ok)[0]
         if ids.size:
-            seg, start, length, inside = _segments(subset(prep, ids), plan, geo, plan.fs, analysis_s)
+            seg, start, length, inside = _segments(
+                subset(prep, ids), plan, geo, plan.fs, analysis_s
+            )
             model = _Model(geo, plan.fs, start, length, pulse, echo, inside)
-            res = _decide(model, seg, sigma2[ids], n_noise[ids], max_sources, add_threshold,
-                          max_chi2_ratio, max_sigma_m, min_snr_db, prep.scale[ids], geo,
-                          _surface_grid(geo, grid_spacing_m), min_separation_s)
+            res = _decide(
+                model,
+                seg,
+                sigma2[ids],
+                n_noise[ids],
+                max_sources,
+                add_threshold,
+                max_chi2_ratio,
+                max_sigma_m,
+                min_snr_db,
+                prep.scale[ids],
+                geo,
+                _surface_grid(geo, grid_spacing_m),
+                min_separation_s,
+            )
             for i, r in zip(ids, res):
                 out[i] = r
         for i in np.nonzero(~ok)[0]:
             code = _first_reason(int(flags[i]))
-            out[i] = OverlapPacket(False, code, noise_rms_v=float(np.sqrt(np.nan_to_num(sigma2[i]))
-                                                                   * prep.scale[i]))
+            out[i] = OverlapPacket(
+                False, code, noise_rms_v=float(np.sqrt(np.nan_to_num(sigma2[i])) * prep.scale[i])
+            )
     return out
 
 
@@ -712,10 +791,27 @@ def _chi2_limit(n_noise, dof, max_chi2_ratio):
     return 1.0 + 5.0 * np.sqrt(2.0 / n_noise + 2.0 / dof)
 
 
-def _decide(model, seg, sigma2, n_noise, max_sources, add_threshold, max_chi2_ratio, max_sigma_m,
-            min_snr_db, scale, geo, grid, min_separation_s):
+def _decide(
+    model,
+    seg,
+    sigma2,
+    n_noise,
+    max_sources,
+    add_threshold,
+    max_chi2_ratio,
+    max_sigma_m,
+    min_snr_db,
+    scale,
+    geo,
+    grid,
+    min_separation_s,
+):
     K = seg.shape[0]
-    N = model.mask.sum(axis=1) if model.mask is not None else np.full(K, seg.shape[1] * seg.shape[2])
+    N = (
+        model.mask.sum(axis=1)
+        if model.mask is not None
+        else np.full(K, seg.shape[1] * seg.shape[2])
+    )
     search_limit = 1.0 + 2.0 * np.sqrt(2.0 / n_noise + 2.0 / N)
     fits = _search(model, seg, max_sources, grid, sigma2, add_threshold, search_limit)
     # Model order: add emission j+1 while the residual energy drops by > add_threshold sigma^2.
@@ -738,8 +834,15 @@ def _decide(model, seg, sigma2, n_noise, max_sources, add_threshold, max_chi2_ra
         limit = float(_chi2_limit(n_noise[i], dof, max_chi2_ratio))
         too_close = j > 1 and np.min(np.diff(theta[:, 2])) < min_separation_s
         if not np.isfinite(ratio) or ratio > limit or too_close:
-            out.append(OverlapPacket(False, int(OverlapReason.UNRESOLVED), n_fitted=j,
-                                     chi2_ratio=float(ratio), noise_rms_v=noise_v))
+            out.append(
+                OverlapPacket(
+                    False,
+                    int(OverlapReason.UNRESOLVED),
+                    n_fitted=j,
+                    chi2_ratio=float(ratio),
+                    noise_rms_v=noise_v,
+                )
+            )
             continue
         s2 = sigma2[i] * max(ratio, 1.0)
         fis = gram / s2
@@ -750,43 +853,88 @@ def _decide(model, seg, sigma2, n_noise, max_sources, add_threshold, max_chi2_ra
         sources = []
         dropped = 0
         for q in range(j):
-            c_xy = cov[3 * q: 3 * q + 2, 3 * q: 3 * q + 2]
+            c_xy = cov[3 * q : 3 * q + 2, 3 * q : 3 * q + 2]
             sx, sy, T = theta[q]
-            sig = float(np.sqrt(max(c_xy[0, 0] + c_xy[1, 1], 0.0))) if np.all(np.isfinite(c_xy)) else np.inf
+            sig = (
+                float(np.sqrt(max(c_xy[0, 0] + c_xy[1, 1], 0.0)))
+                if np.all(np.isfinite(c_xy))
+                else np.inf
+            )
             a_dir = float(amp[2 * q])
             d = geo._xy_distances(np.array(sx), np.array(sy))
             # SNR of this emission alone: power of its direct wave over the 30 us window
             e_pulse = float((model.tab.h_samples[:snr_len] ** 2).sum())
-            p_sig = a_dir ** 2 * float(((geo.radius_m / d) ** 2).sum()) * e_pulse / (4.0 * snr_len)
+            p_sig = a_dir**2 * float(((geo.radius_m / d) ** 2).sum()) * e_pulse / (4.0 * snr_len)
             snr = 10.0 * math.log10(max(p_sig, 1e-300) / sigma2[i])
             if not (sig <= max_sigma_m) or snr < min_snr_db:
                 dropped += 1
                 continue
-            sz = math.sqrt(max(geo.radius_m ** 2 - sx * sx - sy * sy, 0.0))
-            g = np.array([[1.0, 0.0], [0.0, 1.0], [-sx / max(sz, 1e-6 * geo.radius_m),
-                                                    -sy / max(sz, 1e-6 * geo.radius_m)]])
+            sz = math.sqrt(max(geo.radius_m**2 - sx * sx - sy * sy, 0.0))
+            g = np.array(
+                [
+                    [1.0, 0.0],
+                    [0.0, 1.0],
+                    [-sx / max(sz, 1e-6 * geo.radius_m), -sy / max(sz, 1e-6 * geo.radius_m)],
+                ]
+            )
             c3 = g @ c_xy @ g.T
             c_snr = math.sqrt(min(max((snr - min_snr_db) / 20.0, 0.0), 1.0))
             c_pos = 1.0 / (1.0 + (sig / 0.5e-3) ** 2)
             c_fit = min(max(1.0 - max(ratio - 1.0, 0.0) / max(limit - 1.0, 1e-9), 0.0), 1.0)
             conf = float(np.clip(c_snr * c_pos * c_fit, 0.0, 1.0))
-            sources.append(OverlapSource(
-                point_m=np.array([sx, sy, sz]), covariance_m2=c3, sigma_m=sig, confidence=conf,
-                polarity=int(np.sign(a_dir)) if a_dir != 0 else 0, amplitude_v=a_dir * float(scale[i]),
-                emission_time_s=float(T), arrival_times_s=T + d / geo.sound_speed_m_s,
-                snr_db=float(snr)))
+            sources.append(
+                OverlapSource(
+                    point_m=np.array([sx, sy, sz]),
+                    covariance_m2=c3,
+                    sigma_m=sig,
+                    confidence=conf,
+                    polarity=int(np.sign(a_dir)) if a_dir != 0 else 0,
+                    amplitude_v=a_dir * float(scale[i]),
+                    emission_time_s=float(T),
+                    arrival_times_s=T + d / geo.sound_speed_m_s,
+                    snr_db=float(snr),
+                )
+            )
         if not sources:
-            out.append(OverlapPacket(False, int(OverlapReason.UNCERTAIN), n_fitted=j, n_dropped=dropped,
-                                     chi2_ratio=float(ratio), noise_rms_v=noise_v))
+            out.append(
+                OverlapPacket(
+                    False,
+                    int(OverlapReason.UNCERTAIN),
+                    n_fitted=j,
+                    n_dropped=dropped,
+                    chi2_ratio=float(ratio),
+                    noise_rms_v=noise_v,
+                )
+            )
         else:
-            out.append(OverlapPacket(True, 0, sources, n_fitted=j, n_dropped=dropped,
-                                     chi2_ratio=float(ratio), noise_rms_v=noise_v))
+            out.append(
+                OverlapPacket(
+                    True,
+                    0,
+                    sources,
+                    n_fitted=j,
+                    n_dropped=dropped,
+                    chi2_ratio=float(ratio),
+                    noise_rms_v=noise_v,
+                )
+            )
     return out
 
 
-def suspect_overlap(windows, sample_rate_hz, onset_index, single_source_result, *, geometry=None,
-                    pulse=None, noise_rms_v=None, band_hz=(100e3, 1e6), analysis_s=None, echo=True,
-                    max_chi2_ratio=None):
+def suspect_overlap(
+    windows,
+    sample_rate_hz,
+    onset_index,
+    single_source_result,
+    *,
+    geometry=None,
+    pulse=None,
+    noise_rms_v=None,
+    band_hz=(100e3, 1e6),
+    analysis_s=None,
+    echo=True,
+    max_chi2_ratio=None,
+):
     """(K,) bool: packets that `localize` ACCEPTED as single-source but whose one-emission fit
     (known pulse, first echo, started at the accepted point) leaves a residual inconsistent
     with noise (chi^2 per degree of freedom above the limit of `resolve_overlaps`): hand
@@ -807,8 +955,14 @@ def suspect_overlap(windows, sample_rate_hz, onset_index, single_source_result, 
     if ids.size == 0:
         return out
     with np.errstate(all="ignore"):
-        prep = prepare(x[ids], on[ids], plan, noise_rms_v=None if noise_rms_v is None else
-                       np.broadcast_to(np.asarray(noise_rms_v, float), (K,))[ids])
+        prep = prepare(
+            x[ids],
+            on[ids],
+            plan,
+            noise_rms_v=None
+            if noise_rms_v is None
+            else np.broadcast_to(np.asarray(noise_rms_v, float), (K,))[ids],
+        )
         seg, start, length, inside = _segments(prep, plan, geo, plan.fs, analysis_s)
         sigma2 = prep.sigma2 + prep.quant2
         model = _Model(geo, plan.fs, start, length, pulse, echo, inside)
@@ -819,7 +973,7 @@ def suspect_overlap(windows, sample_rate_hz, onset_index, single_source_result, 
         # (ml point, matched-filter time +- half a sample); the ml point is good to ~20 um,
         # whose residual is negligible against the noise.
         phi, parts = model.evaluate(th0[:, None, :])
-        h, dh, gain = parts[0], parts[1], parts[2]
+        dh, gain = parts[1], parts[2]
         dcol = (gain[..., None] * dh).reshape(phi.shape)
         if model.mask is not None:
             dcol = dcol * model.mask[:, None, :]
@@ -844,8 +998,9 @@ def _time_search(model: _Model, seg, s_xy):
     fs = model.fs
     h = model.tab.h_samples
     nfft = sfft.next_fast_len(2 * L, real=True)
-    corr = sfft.irfft(sfft.rfft(seg, n=nfft, axis=2) * np.conj(sfft.rfft(h, n=nfft)), n=nfft,
-                      axis=2)[..., :L]
+    corr = sfft.irfft(
+        sfft.rfft(seg, n=nfft, axis=2) * np.conj(sfft.rfft(h, n=nfft)), n=nfft, axis=2
+    )[..., :L]
     d = model.geo._xy_distances(s_xy[:, 0], s_xy[:, 1])
     tt = d / model.c
     rel = np.rint((tt - tt.min(axis=1, keepdims=True)) * fs).astype(np.int64)
@@ -857,9 +1012,21 @@ def _time_search(model: _Model, seg, s_xy):
 
 
 # --------------------------------------------------------------------------- simulation, bound
-def simulate_overlaps(n, config=None, *, separation_s, n_sources=2, amplitude_ratio=1.0,
-                      snr_db=25.0, snr_reference="weaker", min_distance_m=2e-3, max_polar_deg=60.0,
-                      rng=None, pretrigger_s=8e-6, window_s=40e-6):
+def simulate_overlaps(
+    n,
+    config=None,
+    *,
+    separation_s,
+    n_sources=2,
+    amplitude_ratio=1.0,
+    snr_db=25.0,
+    snr_reference="weaker",
+    min_distance_m=2e-3,
+    max_polar_deg=60.0,
+    rng=None,
+    pretrigger_s=8e-6,
+    window_s=40e-6,
+):
     """``n`` windows holding ``n_sources`` (2 or 3) emissions, from the simulator
     (``ae_tactile.sim``). Linear acoustics: each emission is rendered alone, noise-free, by
     `render_triggered` (exact sub-sample arrival, wall echoes per ``config``), shifted to its
@@ -922,8 +1089,15 @@ def simulate_overlaps(n, config=None, *, separation_s, n_sources=2, amplitude_ra
     pol = gen.choice([-1.0, 1.0], size=(n, J))
     speed = 0.3 * np.sqrt(rel)
     clean_cfg = cfg.replace(quantization=False)
-    first = render_triggered(pts[:, 0], clean_cfg, polarity=pol[:, 0], speed_m_s=speed[:, 0],
-                             pretrigger_s=pretrigger_s, window_s=window_s, rng=gen)
+    first = render_triggered(
+        pts[:, 0],
+        clean_cfg,
+        polarity=pol[:, 0],
+        speed_m_s=speed[:, 0],
+        pretrigger_s=pretrigger_s,
+        window_s=window_s,
+        rng=gen,
+    )
     m_len = first.clean_v.shape[2]
     clean = first.clean_v.copy()
     powers = [signal_power_v2(first.clean_v, first.onset_index, fs)]
@@ -934,8 +1108,16 @@ def simulate_overlaps(n, config=None, *, separation_s, n_sources=2, amplitude_ra
         tf = te + geo.arrival_times_s(pts[:, j]).min(axis=1)
         n_int = np.floor(tf * fs).astype(np.int64)
         u = np.clip(tf * fs - n_int, 0.0, 1.0 - 1e-12)
-        b = render_triggered(pts[:, j], clean_cfg, polarity=pol[:, j], speed_m_s=speed[:, j],
-                             pretrigger_s=0.0, window_s=window_s, subsample_offset=u, rng=gen)
+        b = render_triggered(
+            pts[:, j],
+            clean_cfg,
+            polarity=pol[:, j],
+            speed_m_s=speed[:, j],
+            pretrigger_s=0.0,
+            window_s=window_s,
+            subsample_offset=u,
+            rng=gen,
+        )
         for i in range(n):
             k = int(n_int[i])
             if 0 <= k < m_len:
@@ -951,13 +1133,34 @@ def simulate_overlaps(n, config=None, *, separation_s, n_sources=2, amplitude_ra
         noisy, _ = quantize(noisy, cfg, out=noisy)
     arrivals = np.stack(arrivals, axis=1)
     onset = np.ceil(arrivals.min(axis=(1, 2)) * fs - 1e-9).astype(np.int64)
-    return dict(samples_v=noisy, clean_v=clean, onset_index=onset, points_m=pts,
-                emission_time_s=np.stack(t_emit, axis=1), polarity=pol, strength=rel,
-                noise_rms_v=sigma, arrival_times_s=arrivals, sample_rate_hz=fs, config=cfg)
+    return dict(
+        samples_v=noisy,
+        clean_v=clean,
+        onset_index=onset,
+        points_m=pts,
+        emission_time_s=np.stack(t_emit, axis=1),
+        polarity=pol,
+        strength=rel,
+        noise_rms_v=sigma,
+        arrival_times_s=arrivals,
+        sample_rate_hz=fs,
+        config=cfg,
+    )
 
 
-def joint_crlb(clean_v, sample_rate_hz, onset_index, points_m, emission_time_s, noise_var_v2, *,
-               geometry=None, pulse=None, analysis_s=None, pre_onset_s=1e-6):
+def joint_crlb(
+    clean_v,
+    sample_rate_hz,
+    onset_index,
+    points_m,
+    emission_time_s,
+    noise_var_v2,
+    *,
+    geometry=None,
+    pulse=None,
+    analysis_s=None,
+    pre_onset_s=1e-6,
+):
     """Cramer-Rao bound of the J-emission model over the samples `resolve_overlaps` analyses.
 
     Model: the module's (known pulse shape h; unknowns per emission s_x, s_y, emission time,
@@ -994,18 +1197,32 @@ def joint_crlb(clean_v, sample_rate_hz, onset_index, points_m, emission_time_s, 
     var = np.broadcast_to(np.asarray(noise_var_v2, float), (K,))
     fis = jac @ jac.transpose(0, 2, 1) / var[:, None, None]
     cov = np.linalg.pinv(fis, hermitian=True)
-    crb = np.stack([cov[:, 3 * q: 3 * q + 2, 3 * q: 3 * q + 2] for q in range(J)], axis=1)
+    crb = np.stack([cov[:, 3 * q : 3 * q + 2, 3 * q : 3 * q + 2] for q in range(J)], axis=1)
     single = np.zeros((K, J))
     for q in range(J):
         cols = [3 * q, 3 * q + 1, 3 * q + 2, 3 * J + 2 * q, 3 * J + 2 * q + 1]
         c1 = np.linalg.pinv(fis[:, cols][:, :, cols], hermitian=True)
         single[:, q] = np.sqrt(np.trace(c1[:, :2, :2], axis1=1, axis2=2))
-    return dict(crb_xy_m2=crb, rms_m=np.sqrt(np.trace(crb, axis1=2, axis2=3)), single_rms_m=single,
-                amplitudes=amp, model_mismatch=mismatch)
+    return dict(
+        crb_xy_m2=crb,
+        rms_m=np.sqrt(np.trace(crb, axis1=2, axis2=3)),
+        single_rms_m=single,
+        amplitudes=amp,
+        model_mismatch=mismatch,
+    )
 
 
-def calibrate_pulse(windows, sample_rate_hz, onset_index, *, geometry=None, initial=None,
-                    noise_rms_v=None, max_packets=64, echo=True):
+def calibrate_pulse(
+    windows,
+    sample_rate_hz,
+    onset_index,
+    *,
+    geometry=None,
+    initial=None,
+    noise_rms_v=None,
+    max_packets=64,
+    echo=True,
+):
     """Fit the front end's corner frequencies (`PulseModel` high-pass and low-pass) to
     single-emission packets, e.g. a few dozen single touches recorded at start-up.
 
@@ -1035,8 +1252,13 @@ def calibrate_pulse(windows, sample_rate_hz, onset_index, *, geometry=None, init
     lp0 = init.lowpass_hz
 
     def model_of(v):
-        return PulseModel(float(np.exp(v[0])), init.highpass_order,
-                          None if lp0 is None else float(np.exp(v[1])), init.lowpass_order, init.alpha_1_s)
+        return PulseModel(
+            float(np.exp(v[0])),
+            init.highpass_order,
+            None if lp0 is None else float(np.exp(v[1])),
+            init.lowpass_order,
+            init.alpha_1_s,
+        )
 
     def objective(v):
         pm = model_of(v)
@@ -1049,7 +1271,86 @@ def calibrate_pulse(windows, sample_rate_hz, onset_index, *, geometry=None, init
         return float(np.sum(rss))
 
     v0 = np.log([init.highpass_hz, lp0 if lp0 is not None else 1.0])
-    r = minimize(objective, v0, method="Nelder-Mead",
-                 options=dict(xatol=2e-3, fatol=1e-9, initial_simplex=[v0, v0 + [0.15, 0], v0 + [0, 0.15]],
-                              maxfev=80))
+    r = minimize(
+        objective,
+        v0,
+        method="Nelder-Mead",
+        options=dict(
+            xatol=2e-3, fatol=1e-9, initial_simplex=[v0, v0 + [0.15, 0], v0 + [0, 0.15]], maxfev=80
+        ),
+    )
     return model_of(r.x)
+
+
+def localize_with_overlaps(
+    windows,
+    sample_rate_hz,
+    onset_index,
+    *,
+    geometry=None,
+    pulse=None,
+    noise_rms_v=None,
+    saturated=None,
+    max_sources=3,
+    overlap_kwargs=None,
+    **localize_kwargs,
+):
+    """The fast single-source path plus the overlap path only where needed.
+
+    1. ``localize`` (``method``, default ml) on every window;
+    2. `suspect_overlap` on what it accepted;
+    3. `resolve_overlaps` on the windows it rejected as OVERLAP and on the suspects.
+
+    Returns (single, overlap): ``single`` the `LocalizationResult`, with ``accepted`` set to
+    False for the suspects (their single-source point is withdrawn: publish the overlap
+    result instead); ``overlap`` a dict {window index: `OverlapPacket`}.
+    """
+    from ae_tactile.localization import localize
+
+    geo = FingertipGeometry() if geometry is None else geometry
+    x, on = validate_windows(windows, onset_index)
+    single = localize(
+        x,
+        sample_rate_hz,
+        on,
+        geometry=geo,
+        noise_rms_v=noise_rms_v,
+        saturated=saturated,
+        **localize_kwargs,
+    )
+    sus = suspect_overlap(
+        x, sample_rate_hz, on, single, geometry=geo, pulse=pulse, noise_rms_v=noise_rms_v
+    )
+    need = sus | (single.reason == int(Reason.OVERLAP))
+    ids = np.nonzero(need)[0]
+    overlap = {}
+    if ids.size:
+        nr = (
+            None
+            if noise_rms_v is None
+            else np.broadcast_to(np.asarray(noise_rms_v, float), (len(on),))[ids]
+        )
+        sat = (
+            None
+            if saturated is None
+            else np.broadcast_to(np.asarray(saturated, bool), (len(on),))[ids]
+        )
+        res = resolve_overlaps(
+            x[ids],
+            sample_rate_hz,
+            on[ids],
+            geometry=geo,
+            pulse=pulse,
+            noise_rms_v=nr,
+            saturated=sat,
+            max_sources=max_sources,
+            **(overlap_kwargs or {}),
+        )
+        overlap = {int(i): r for i, r in zip(ids, res)}
+    single.accepted = single.accepted & ~sus
+    single.confidence = np.where(sus, 0.0, single.confidence)
+    single.reason = np.where(sus, np.uint8(Reason.OVERLAP), single.reason).astype(np.uint8)
+    single.reason_flags = (
+        single.reason_flags | np.where(sus, 1 << int(Reason.OVERLAP), 0)
+    ).astype(np.uint16)
+    return single, overlap
