@@ -515,3 +515,74 @@ def test_core_python_logging_reaches_the_node_logger_on_rosout(ros_context):
     finally:
         executor.shutdown(timeout_sec=1.0)
         node.destroy_node()
+
+
+def _loaded(pid: int, library: str) -> bool:
+    try:
+        with open(f"/proc/{pid}/maps") as fh:
+            return library in fh.read()
+    except OSError:
+        return False
+
+
+def _run_and_signal(tmp_path, exe_name, args, signals, ready_text=None, delay_s=0.0,
+                    ready_library=None):
+    """Start an installed executable in its own domain; once ``ready_text`` is in its
+    output and ``ready_library`` is mapped in the process, wait ``delay_s`` and send
+    ``signals`` in a row; return (exit code, output)."""
+    exe = installed_executable(exe_name)
+    log = tmp_path / f"{exe_name}.txt"
+    env = dict(os.environ, ROS_DOMAIN_ID=str(next(_domains)), PYTHONUNBUFFERED="1",
+               ROS_LOG_DIR=str(tmp_path / "ros_log"))
+    with open(log, "w") as fh:
+        proc = subprocess.Popen([exe, "--ros-args", *args], stdout=fh, stderr=subprocess.STDOUT,
+                                stdin=subprocess.DEVNULL, env=env, cwd=tmp_path,
+                                start_new_session=True)
+        try:
+            deadline = time.monotonic() + START_TIMEOUT_S
+            if ready_text is not None:
+                while ready_text not in log.read_text() and time.monotonic() < deadline:
+                    assert proc.poll() is None, log.read_text()
+                    time.sleep(0.1)
+                assert ready_text in log.read_text(), log.read_text()
+            if ready_library is not None:
+                while not _loaded(proc.pid, ready_library) and time.monotonic() < deadline:
+                    assert proc.poll() is None, log.read_text()
+                    time.sleep(0.02)
+            time.sleep(delay_s)
+            for sig in signals:
+                os.killpg(proc.pid, sig)
+            code = proc.wait(timeout=STOP_TIMEOUT_S)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(10)
+    return code, log.read_text()
+
+
+@pytest.mark.parametrize("signals", [
+    [signal.SIGINT], [signal.SIGINT, signal.SIGINT], [signal.SIGTERM],
+    [signal.SIGINT, signal.SIGTERM]], ids=["int", "int-int", "term", "int-term"])
+def test_node_stops_cleanly_on_ctrl_c_twice(tmp_path, signals):
+    """A running node (the simulated fingertip, serving and publishing) ends with exit
+    code 0 and no traceback on one or two stop signals, repeated 3 times."""
+    require_ros()
+    scene = os.path.join(os.path.dirname(HERE), "config", "scenes", "touch_hold_release.yaml")
+    for _ in range(3):
+        code, out = _run_and_signal(tmp_path, "sim_fingertip",
+                                    ["-p", f"scene:={scene}", "-p", "speed:=0.2"], signals,
+                                    ready_text="serving on")
+        assert code == 0, out
+        assert "Traceback" not in out and "RCLError" not in out, out
+
+
+@pytest.mark.parametrize("delay_s", [0.0, 1.0, 4.0])
+def test_ctrl_c_at_any_stage_of_start_up_exits_0_quietly(tmp_path, delay_s):
+    """Ctrl-C while the driver imports (from the moment rclpy's library is being loaded),
+    compiles or connects: exit 0, no traceback."""
+    require_ros()
+    code, out = _run_and_signal(tmp_path, "driver", ["-p", "port:=loop://"],
+                                [signal.SIGINT, signal.SIGINT], delay_s=delay_s,
+                                ready_library="_rclpy_pybind11")
+    assert code == 0, out
+    assert "Traceback" not in out, out
