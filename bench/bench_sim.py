@@ -39,19 +39,21 @@ from ae_tactile.sim import render_triggered  # noqa: E402
 from ae_tactile.sim.scene import load_scene  # noqa: E402
 
 SCENES = {
-    "sparse_touch": {"generator": "random_touches", "params": {"rate_hz": 20.0, "max_polar_deg": 60.0}},
+    "sparse_touch": {"generator": "random_touches",
+                     "params": {"rate_hz": 20.0, "max_polar_deg": 60.0}},
     "dense_slip": {"generator": "incipient_slip",
                    "params": {"tangential_load_rate_n_per_s": 10.0, "normal_load_n": 1.0,
                               "friction_coefficient": 0.5, "background_rate_hz": 500.0,
                               "slip_rate_hz": 2000.0, "front_density_per_m2": 1e8}},
 }
+_OFF = {"attenuation": False, "reflections": False, "quantization": False}
 VARIANTS = {
-    "all_off": {"effects": {"attenuation": False, "reflections": False, "quantization": False}, "noise": None},
-    "attenuation": {"effects": {"attenuation": True, "reflections": False, "quantization": False}, "noise": None},
-    "reflections": {"effects": {"attenuation": False, "reflections": True, "quantization": False}, "noise": None},
+    "all_off": {"effects": dict(_OFF), "noise": None},
+    "attenuation": {"effects": {**_OFF, "attenuation": True}, "noise": None},
+    "reflections": {"effects": {**_OFF, "reflections": True}, "noise": None},
     "noise": {"effects": {"attenuation": False, "reflections": False, "quantization": False},
               "noise": {"snr_db": 30.0}},
-    "quantization": {"effects": {"attenuation": False, "reflections": False, "quantization": True}, "noise": None},
+    "quantization": {"effects": {**_OFF, "quantization": True}, "noise": None},
     "all_on": {"effects": {"attenuation": True, "reflections": True, "quantization": True},
                "noise": {"snr_db": 30.0}},
 }
@@ -81,9 +83,9 @@ def run_case(name, variant, duration, chunk, repeats):
     times = []
     for _ in range(repeats):
         sc = make_scene(name, variant, duration)
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         n_em = stream(sc, chunk)
-        times.append(time.perf_counter() - t0)
+        times.append(time.process_time() - t0)
     best = min(times)
     sc = make_scene(name, variant, duration)
     tracemalloc.start()
@@ -92,7 +94,7 @@ def run_case(name, variant, duration, chunk, repeats):
     tracemalloc.stop()
     n = sc.n_samples
     return {"scene": name, "variant": variant, "duration_s": duration, "emissions": n_em,
-            "emissions_per_s": n_em / duration, "wall_s": best, "wall_s_all": times,
+            "emissions_per_s": n_em / duration, "cpu_s": best, "cpu_s_all": times,
             "samples_per_s": 4 * n / best, "realtime_factor": duration / best,
             "peak_heap_mb": peak / 1e6}
 
@@ -173,24 +175,28 @@ def run_triggered(n_packets=10_000):
     rng = np.random.default_rng(0)
     from ae_tactile.geometry import FingertipGeometry
     g = FingertipGeometry()
-    pts = g.surface_point_from_angles(np.arccos(rng.uniform(0.2, 1, n_packets)), rng.uniform(0, 2 * np.pi, n_packets))
+    pts = g.surface_point_from_angles(np.arccos(rng.uniform(0.2, 1, n_packets)),
+                                      rng.uniform(0, 2 * np.pi, n_packets))
     render_triggered(pts[:100], snr_db=30, rng=1)
     times = []
     for _ in range(3):
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         render_triggered(pts, snr_db=30, rng=1)
-        times.append(time.perf_counter() - t0)
+        times.append(time.process_time() - t0)
     dt = min(times)
-    return {"n_packets": n_packets, "samples_per_packet": "4 x 400", "wall_s": dt, "wall_s_all": times,
+    return {"n_packets": n_packets, "samples_per_packet": "4 x 400", "cpu_s": dt,
+            "cpu_s_all": times,
             "packets_per_s": n_packets / dt}
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--duration", type=float, default=1.0, help="simulated seconds per case")
-    ap.add_argument("--chunk", type=int, default=1_000_000, help="samples per chunk (100 ms at 10 MS/s)")
+    ap.add_argument("--chunk", type=int, default=1_000_000,
+                    help="samples per chunk (100 ms at 10 MS/s)")
     ap.add_argument("--repeats", type=int, default=2)
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "sim.json"))
+    ap.add_argument("--out",
+                    default=os.path.join(os.path.dirname(__file__), "results", "sim.json"))
     ap.add_argument("--png", action="store_true", help="also write a bar chart (needs matplotlib)")
     ap.add_argument("--packets-only", action="store_true", help="only the triggered-packet part")
     args = ap.parse_args(argv)
@@ -201,13 +207,16 @@ def main(argv=None):
         for variant in VARIANTS:
             r = run_case(name, variant, args.duration, args.chunk, args.repeats)
             rows.append(r)
-            print(f"{name:13s} {variant:13s} {r['emissions_per_s']:7.0f} em/s  {r['samples_per_s'] / 1e6:7.1f} MS/s"
-                  f"  {r['realtime_factor']:5.2f}x real time  peak heap {r['peak_heap_mb']:6.1f} MB", flush=True)
+            print(f"{name:13s} {variant:13s} {r['emissions_per_s']:7.0f} em/s"
+                  f"  {r['samples_per_s'] / 1e6:7.1f} MS/s  {r['realtime_factor']:5.2f}x real time"
+                  f"  peak heap {r['peak_heap_mb']:6.1f} MB", flush=True)
     trig = run_triggered() if not args.packets_only else None
     if trig:
-        print(f"render_triggered: {trig['n_packets']} packets of 4 x 400 in {trig['wall_s']:.2f} s")
+        print(f"render_triggered: {trig['n_packets']} packets of 4 x 400 in"
+              f" {trig['cpu_s']:.2f} s")
     load_end = os.getloadavg()
-    print(f"load average (1, 5, 15 min) at start {load}, at end {load_end}, {os.cpu_count()} cores")
+    print(f"load average (1, 5, 15 min) at start {load}, at end {load_end},"
+          f" {os.cpu_count()} cores")
     res = {"machine": {"python": platform.python_version(), "numpy": np.__version__,
                        "processor": platform.processor() or platform.machine(), "cores_used": 1,
                        "cpu_count": os.cpu_count(), "loadavg_start": load,

@@ -70,7 +70,8 @@ def test_output_size_checked_before_the_file_is_opened(tmp_path, capsys):
     """1e9 samples/s for an hour: 28.8 TB of int16. The command line refuses it (exit 2,
     a clear message) and creates no file; --max-output-gib raises the limit."""
     scene = tmp_path / "big.yaml"
-    scene.write_text("generator: single_touch\nduration_s: 3600\nsensor: {sample_rate_hz: 1.0e9}\n")
+    scene.write_text("generator: single_touch\nduration_s: 3600\n"
+                     "sensor: {sample_rate_hz: 1.0e9}\n")
     out = tmp_path / "big.npz"
     assert cli_main([str(scene), "-o", str(out)]) == 2
     err = capsys.readouterr().err
@@ -84,7 +85,8 @@ def test_output_size_checked_before_the_file_is_opened(tmp_path, capsys):
     assert np.load(out)["samples"].shape == (4, 20_000)
 
 
-@pytest.mark.parametrize("seed,msg", [(-1, r"scene.seed=-1 is outside"), (1.5, "expected an integer"),
+@pytest.mark.parametrize("seed,msg", [(-1, r"scene.seed=-1 is outside"),
+                                      (1.5, "expected an integer"),
                                       ("abc", "expected a number"), (2 ** 64, "outside")])
 def test_bad_seed_is_a_scene_error(seed, msg):
     with pytest.raises(SceneError, match=msg):

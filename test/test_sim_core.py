@@ -6,8 +6,14 @@ import pytest
 from scipy import signal
 
 from ae_tactile.geometry import FingertipGeometry
-from ae_tactile.sim import (SimConfig, collision_pressure_pa, noise_rms_for_snr, peak_pressure_pa,
-                            render_triggered, signal_power_v2)
+from ae_tactile.sim import (
+    SimConfig,
+    collision_pressure_pa,
+    noise_rms_for_snr,
+    peak_pressure_pa,
+    render_triggered,
+    signal_power_v2,
+)
 from ae_tactile.sim.propagation import attenuation_pole_rad_s
 from ae_tactile.sim.response import arrival_coefficients, evaluate
 
@@ -22,20 +28,22 @@ def _single_response(cfg, amplitude=9.0, alpha=3000.0, att=None, offset=0.0, n=N
 def test_eq11_nine_pascal():
     # rho = 1000 kg/m^3, v0 = 30 cm/s, l = 10 mm, a = 1/mm  ->  rho v0^2/(a l) = 9 Pa
     assert peak_pressure_pa(0.30, 1000.0, 10e-3, 1000.0) == pytest.approx(9.0, rel=1e-12)
-    l, c = 10e-3, 1480.0
-    t0 = l / c
-    p = collision_pressure_pa([t0 - 1e-9, t0 + 1e-12], l, c, speed_m_s=0.3, curvature_1_m=1000.0,
+    dist, c = 10e-3, 1480.0
+    t0 = dist / c
+    p = collision_pressure_pa([t0 - 1e-9, t0 + 1e-12], dist, c, speed_m_s=0.3,
+                              curvature_1_m=1000.0,
                               density_kg_m3=1000.0)
     assert p[0] == 0.0
     assert p[1] == pytest.approx(9.0, rel=1e-6)
 
 
 def test_eq10_pulse_integrates_to_zero_and_recovers():
-    l, c, alpha = 10e-3, 1480.0, 3000.0
-    t = l / c + 1e-12 + np.linspace(0, 40 / alpha, 400001)
-    p = collision_pressure_pa(t, l, c, alpha_1_s=alpha)
+    dist, c, alpha = 10e-3, 1480.0, 3000.0
+    t = dist / c + 1e-12 + np.linspace(0, 40 / alpha, 400001)
+    p = collision_pressure_pa(t, dist, c, alpha_1_s=alpha)
     assert np.trapezoid(p, t) == pytest.approx(0.0, abs=1e-5 * 9.0 / alpha)
-    # zero crossing at tau = ln 2 / alpha, minimum -p0/8... (2x^2 - x, x = e^{-alpha tau}: min at x = 1/4)
+    # zero crossing at tau = ln 2 / alpha, minimum -p0/8
+    # (2x^2 - x, x = e^{-alpha tau}: min at x = 1/4)
     assert p.min() == pytest.approx(-9.0 / 8.0, rel=1e-4)
 
 
@@ -126,10 +134,12 @@ def test_paper_positions_delays_match_geometry_and_waveforms():
     pk = render_triggered(pts, cfg, window_s=100e-6, pretrigger_s=20e-6, rng=3)
     np.testing.assert_allclose(pk.delays_s, geo.exact_delays_s(pts), rtol=0, atol=1e-18)
     np.testing.assert_allclose(pk.arrival_times_s - pk.arrival_times_s[:, :1],
-                               geo.arrival_times_s(pts) - geo.arrival_times_s(pts)[:, :1], atol=1e-15)
+                               geo.arrival_times_s(pts) - geo.arrival_times_s(pts)[:, :1],
+                               atol=1e-15)
     fs = cfg.sample_rate_hz
     for i in range(3):
-        t_meas = np.array([_measured_delay(pk.clean_v[i, 0], pk.clean_v[i, k]) for k in range(4)]) / fs
+        t_meas = np.array([_measured_delay(pk.clean_v[i, 0], pk.clean_v[i, k])
+                           for k in range(4)]) / fs
         t_true = pk.arrival_times_s[i] - pk.arrival_times_s[i, 0]
         np.testing.assert_allclose(t_meas, t_true, atol=1e-9)
         d_meas = geo.delays_from_arrival_times(t_meas)[:2]
@@ -140,7 +150,8 @@ def test_paper_positions_delays_match_geometry_and_waveforms():
     assert np.all(np.abs(pk.delays_s[:, 1]) < 1e-15)
     # far field (Eq. 2): tau_x = (a/c) x / R  -> 0.253 us and 0.507 us; the exact geometry
     # differs at order (a/R)^2 = 2.25 % for a = 1.5 mm, R = 10 mm
-    np.testing.assert_allclose(pk.delays_s[1:, 0], [1.5e-3 / 1480 * 0.25, 1.5e-3 / 1480 * 0.5], rtol=0.03)
+    np.testing.assert_allclose(pk.delays_s[1:, 0], [1.5e-3 / 1480 * 0.25, 1.5e-3 / 1480 * 0.5],
+                               rtol=0.03)
 
 
 def test_far_field_agrees_with_exact_to_first_order():
@@ -217,7 +228,8 @@ def test_first_wall_echo_arrives_two_radii_later():
     b = render_triggered(pts, refl, window_s=60e-6, subsample_offset=0.0)
     diff = np.abs(b.clean_v - a.clean_v)[0]
     geo = base.geometry
-    t_echo = b.emission_time_s[0] + (2 * geo.radius_m + geo.path_lengths_m(-pts)[0]) / geo.sound_speed_m_s
+    t_echo = (b.emission_time_s[0]
+              + (2 * geo.radius_m + geo.path_lengths_m(-pts)[0]) / geo.sound_speed_m_s)
     fs = base.sample_rate_hz
     for k in range(4):
         first = np.argmax(diff[k] > 0) / fs
@@ -227,10 +239,10 @@ def test_first_wall_echo_arrives_two_radii_later():
 
 
 def test_attenuation_pole_gives_configured_loss():
-    for att_db_m, l in ((200.0, 0.01), (200.0, 0.013), (50.0, 0.009)):
-        w = attenuation_pole_rad_s(l, att_db_m)
+    for att_db_m, path_m in ((200.0, 0.01), (200.0, 0.013), (50.0, 0.009)):
+        w = attenuation_pole_rad_s(path_m, att_db_m)
         loss = 10 * np.log10(1 + (2 * np.pi * 1e6 / w) ** 2)
-        assert loss == pytest.approx(att_db_m * l, rel=1e-9)
+        assert loss == pytest.approx(att_db_m * path_m, rel=1e-9)
     assert np.isinf(attenuation_pole_rad_s(0.01, 0.0))
 
 

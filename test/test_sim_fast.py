@@ -129,6 +129,7 @@ def test_without_numba_the_numpy_engine_serves_the_same_packets():
                          cwd=ROOT, timeout=300)
     assert res.stdout[0] == 0
     sc = load_scene(path)
-    here = sc.triggered_source(engine="numpy").next_packets(10, horizon_ns=int(sc.duration_s * 1e9))
+    here = sc.triggered_source(engine="numpy").next_packets(
+        10, horizon_ns=int(sc.duration_s * 1e9))
     assert len(here) == 3
     assert res.stdout[1:] == here.samples_v.tobytes()

@@ -8,7 +8,12 @@ import numpy as np
 import pytest
 
 from ae_tactile.sim.cli import main as cli_main
-from ae_tactile.sim.generators import hertz_contact_radius_m, slip_fraction, stick_radius_m, tangent_basis
+from ae_tactile.sim.generators import (
+    hertz_contact_radius_m,
+    slip_fraction,
+    stick_radius_m,
+    tangent_basis,
+)
 from ae_tactile.sim.scene import SceneError, load_scene
 from ae_tactile.sim.stream import KIND_CODE, StreamRenderer
 
@@ -89,7 +94,8 @@ def test_snr_noise_is_relative_to_reference_touch():
     sc = load_scene({**BASE, "noise": {"snr_db": 20.0}})
     apex = np.array([[0, 0, sc.config.geometry.radius_m]])
     pk = render_triggered(apex, sc.config.replace(quantization=False), subsample_offset=0.0)
-    assert 10 * np.log10(pk.signal_power_v2[0] / sc.noise_rms_v ** 2) == pytest.approx(20.0, abs=1e-9)
+    snr = 10 * np.log10(pk.signal_power_v2[0] / sc.noise_rms_v ** 2)
+    assert snr == pytest.approx(20.0, abs=1e-9)
     d = load_scene({**BASE, "noise": {"density_v_per_rthz": 1e-7}})
     assert d.noise_rms_v == pytest.approx(1e-7 * math.sqrt(5e6))
 
@@ -102,7 +108,8 @@ def test_hertz_and_stick_radius_formulas():
     assert hertz_contact_radius_m(P, R, E, 0.5) == pytest.approx(aH, rel=1e-12)
     assert aH == pytest.approx(1.778e-3, rel=1e-3)
     for q in (0.0, 0.3, 0.875, 1.0):
-        assert stick_radius_m(aH, q * 0.8 * 2.0, 0.8, 2.0) == pytest.approx(aH * (1 - q) ** (1 / 3), abs=1e-15)
+        assert stick_radius_m(aH, q * 0.8 * 2.0, 0.8, 2.0) == pytest.approx(
+            aH * (1 - q) ** (1 / 3), abs=1e-15)
     # slipping area = 1 - (c / a_H)^2 = 1 - (1 - q)^(2/3)
     assert slip_fraction(0.875) == pytest.approx(1 - 0.5 ** 2)
 
@@ -216,7 +223,8 @@ def test_gross_slip_ends_when_load_raised_after_onset():
 def test_texture_rate_is_speed_over_period():
     for v, lam in ((0.02, 0.5e-3), (0.05, 0.2e-3)):
         sc = load_scene({"generator": "texture", "duration_s": 2.0, "seed": 1,
-                         "params": {"slide_speed_m_s": v, "period_m": lam, "jitter_fraction": 0.1}})
+                         "params": {"slide_speed_m_s": v, "period_m": lam,
+                                    "jitter_fraction": 0.1}})
         em = _all(sc)
         rate = v / lam
         assert len(em) / 2.0 == pytest.approx(rate, rel=0.01)

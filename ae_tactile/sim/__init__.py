@@ -18,7 +18,7 @@ Pure Python (numpy/scipy/pyyaml), never imports rclpy. Physics in one line per s
 Triggered-packet API (for localization, CRLBs, benchmarks)
 ----------------------------------------------------------
     from ae_tactile.sim import SimConfig, render_triggered
-    cfg = SimConfig()                        # or SimConfig.for_medium('silicone', attenuation=True)
+    cfg = SimConfig()             # or SimConfig.for_medium('silicone', attenuation=True)
     pk = render_triggered(points_m, cfg, snr_db=30, rng=0)
     pk.samples_v        # (N, 4, M) volts, channel order of geometry.CHANNEL_XI_ETA
     pk.clean_v          # (N, 4, M) noise-free, unquantized
@@ -55,12 +55,30 @@ CLI: ``python3 -m ae_tactile.sim.cli scene.yaml -o out.npz``. Full description, 
 keys and benchmark: docs/simulator.md.
 """
 from ae_tactile.sim.config import MEDIUM_PRESETS, Medium, SimConfig
-from ae_tactile.sim.emission import (DEFAULT_ALPHA_1_S, DEFAULT_CURVATURE_1_M, DEFAULT_SPEED_M_S,
-                                     collision_pressure_pa, peak_pressure_pa, source_strength_pa_m)
-from ae_tactile.sim.frontend import (SNR_WINDOW_S, noise_rms_for_snr, noise_rms_from_density,
-                                     signal_power_v2, snr_db_from_noise)
-from ae_tactile.sim.stream import (KINDS, Chunk, EmissionList, StreamingSource, StreamPackets,
-                                   StreamRenderer, TriggeredSource)
+from ae_tactile.sim.emission import (
+                                     DEFAULT_ALPHA_1_S,
+                                     DEFAULT_CURVATURE_1_M,
+                                     DEFAULT_SPEED_M_S,
+                                     collision_pressure_pa,
+                                     peak_pressure_pa,
+                                     source_strength_pa_m,
+)
+from ae_tactile.sim.frontend import (
+                                     SNR_WINDOW_S,
+                                     noise_rms_for_snr,
+                                     noise_rms_from_density,
+                                     signal_power_v2,
+                                     snr_db_from_noise,
+)
+from ae_tactile.sim.stream import (
+                                     KINDS,
+                                     Chunk,
+                                     EmissionList,
+                                     StreamingSource,
+                                     StreamPackets,
+                                     StreamRenderer,
+                                     TriggeredSource,
+)
 from ae_tactile.sim.triggered import TriggeredPackets, render_triggered, validate_surface_points
 
 __all__ = [

@@ -99,16 +99,20 @@ def _render_npz(scene, path, chunk_samples, sample_dtype, progress):
                  "start_time_ns": np.int64(0), "channel_xi_eta": CHANNEL_XI_ETA,
                  "noise_rms_v": np.float64(scene.noise_rms_v),
                  "scene_yaml": np.array(yaml.safe_dump(scene.spec, sort_keys=False)),
-                 "scene_truth_yaml": np.array(yaml.safe_dump(_plain(scene.truth), sort_keys=False)),
+                 "scene_truth_yaml": np.array(yaml.safe_dump(_plain(scene.truth),
+                                                             sort_keys=False)),
                  **truth.as_arrays()}
         for k, v in extra.items():
             with zf.open(k + ".npy", "w", force_zip64=True) as fh:
                 np.lib.format.write_array(fh, np.asanyarray(v), allow_pickle=False)
     return {"path": str(path), "n_samples": n_total, "duration_s": scene.duration_s,
-            "elapsed_s": elapsed, "realtime_factor": scene.duration_s / elapsed if elapsed > 0 else float("inf"),
+            "elapsed_s": elapsed,
+            "realtime_factor": scene.duration_s / elapsed if elapsed > 0 else float("inf"),
             "n_emissions": len(truth),
-            "by_type": {k: int(np.sum(truth.kind == i)) for i, k in enumerate(KINDS) if np.any(truth.kind == i)},
-            "clipped_chunks": clipped, "scene_truth": _plain(scene.truth), "noise_rms_v": scene.noise_rms_v,
+            "by_type": {k: int(np.sum(truth.kind == i)) for i, k in enumerate(KINDS)
+                        if np.any(truth.kind == i)},
+            "clipped_chunks": clipped, "scene_truth": _plain(scene.truth),
+            "noise_rms_v": scene.noise_rms_v,
             "sample_dtype": np.dtype(sample_dtype).name}
 
 
@@ -129,9 +133,11 @@ def main(argv=None) -> int:
     ap.add_argument("-o", "--output", required=True, help="output .npz path")
     ap.add_argument("--duration", type=float, default=None, help="override duration_s (s)")
     ap.add_argument("--seed", type=int, default=None, help="override the scene seed")
-    ap.add_argument("--chunk-samples", type=int, default=1_000_000, help="samples per rendered chunk")
+    ap.add_argument("--chunk-samples", type=int, default=1_000_000,
+                    help="samples per rendered chunk")
     g = ap.add_mutually_exclusive_group()
-    g.add_argument("--float32", action="store_true", help="store volts as float32 even when quantizing")
+    g.add_argument("--float32", action="store_true",
+                   help="store volts as float32 even when quantizing")
     g.add_argument("--float64", action="store_true", help="store volts as float64")
     ap.add_argument("--max-memory-gib", type=float, default=CLI_BUDGET.max_memory_bytes / 2 ** 30,
                     help="refuse scenes estimated to need more memory (GiB; default %(default)g)")
@@ -159,13 +165,17 @@ def main(argv=None) -> int:
         cfg = scene.config
         print(f"scene      {scene.name} (generator {scene.generator}, seed {scene.seed})")
         print(f"sensor     {cfg.medium}, R = {cfg.geometry.radius_m * 1e3:g} mm, a = "
-              f"{cfg.geometry.element_offset_m * 1e3:g} mm, c = {cfg.geometry.sound_speed_m_s:g} m/s, "
+              f"{cfg.geometry.element_offset_m * 1e3:g} mm, "
+              f"c = {cfg.geometry.sound_speed_m_s:g} m/s, "
               f"{cfg.sample_rate_hz / 1e6:g} MS/s, {cfg.adc_bits} bit")
-        on = [k for k in ("attenuation", "reflections", "quantization", "release_emissions") if scene.effects[k]]
+        on = [k for k in ("attenuation", "reflections", "quantization", "release_emissions")
+              if scene.effects[k]]
         print(f"effects    {', '.join(on) or 'none'}; noise rms {s['noise_rms_v'] * 1e3:.4g} mV")
-        print(f"rendered   {s['n_samples']} samples x 4 ch ({s['duration_s']:g} s) in {s['elapsed_s']:.2f} s"
+        print(f"rendered   {s['n_samples']} samples x 4 ch ({s['duration_s']:g} s)"
+              f" in {s['elapsed_s']:.2f} s"
               f" ({s['realtime_factor']:.2f}x real time), stored as {s['sample_dtype']}")
-        print(f"emissions  {s['n_emissions']} " + ", ".join(f"{k}: {v}" for k, v in s["by_type"].items()))
+        print(f"emissions  {s['n_emissions']} "
+              + ", ".join(f"{k}: {v}" for k, v in s["by_type"].items()))
         if s["clipped_chunks"]:
             print(f"warning    {s['clipped_chunks']} chunk(s) clipped at ADC full scale")
         st = {k: v for k, v in s["scene_truth"].items() if k != "generator"}

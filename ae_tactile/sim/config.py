@@ -118,13 +118,15 @@ class SimConfig:
     # ---------------------------------------------------------------- validation
     def __post_init__(self) -> None:
         if not isinstance(self.geometry, FingertipGeometry):
-            raise ValueError(f"geometry must be a FingertipGeometry, got {type(self.geometry).__name__}")
+            raise ValueError("geometry must be a FingertipGeometry, got "
+                             f"{type(self.geometry).__name__}")
         if self.medium not in MEDIUM_PRESETS and self.medium != "custom":
             raise ValueError(f"unknown medium {self.medium!r}; choose one of "
                              f"{sorted(MEDIUM_PRESETS) + ['custom']}")
         if self.medium == "custom":
             if self.density_kg_m3 is None or self.attenuation_db_per_m_at_1mhz is None:
-                raise ValueError("medium='custom' needs density_kg_m3 and attenuation_db_per_m_at_1mhz")
+                raise ValueError("medium='custom' needs density_kg_m3 and"
+                                 " attenuation_db_per_m_at_1mhz")
         else:
             preset = MEDIUM_PRESETS[self.medium]
             c = self.geometry.sound_speed_m_s
@@ -158,7 +160,8 @@ class SimConfig:
                 raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
         r = float(self.reflection_coefficient)
         if not math.isfinite(r) or abs(r) >= 1.0:
-            raise ValueError(f"reflection_coefficient must satisfy |r| < 1, got {self.reflection_coefficient!r}")
+            raise ValueError("reflection_coefficient must satisfy |r| < 1, got "
+                             f"{self.reflection_coefficient!r}")
         _int_in("n_reflections", self.n_reflections, 0, 16)
         tol = _pos("support_rel_tol", self.support_rel_tol)
         if tol >= 1:
@@ -172,7 +175,8 @@ class SimConfig:
         """Config whose geometry uses the preset's sound speed (other geometry fields default
         or from ``radius_m`` / ``element_offset_m`` keyword arguments)."""
         if medium not in MEDIUM_PRESETS:
-            raise ValueError(f"unknown medium preset {medium!r}; choose one of {sorted(MEDIUM_PRESETS)}")
+            raise ValueError(f"unknown medium preset {medium!r}; choose one of"
+                             f" {sorted(MEDIUM_PRESETS)}")
         geo_kw = {k: kwargs.pop(k) for k in ("radius_m", "element_offset_m") if k in kwargs}
         geo = FingertipGeometry(sound_speed_m_s=MEDIUM_PRESETS[medium].sound_speed_m_s, **geo_kw)
         return cls(geometry=geo, medium=medium, **kwargs)

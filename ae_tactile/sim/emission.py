@@ -46,7 +46,8 @@ def source_strength_pa_m(speed_m_s, curvature_1_m, density_kg_m3, polarity=1):
 
 def peak_pressure_pa(speed_m_s, curvature_1_m, distance_m, density_kg_m3):
     """Eq. (11): high-passed pressure just after the arrival, rho v0^2 / (a_c l) (Pa)."""
-    return source_strength_pa_m(speed_m_s, curvature_1_m, density_kg_m3) / np.asarray(distance_m, float)
+    s = source_strength_pa_m(speed_m_s, curvature_1_m, density_kg_m3)
+    return s / np.asarray(distance_m, float)
 
 
 def collision_pressure_pa(t_s, distance_m, sound_speed_m_s, *, speed_m_s=DEFAULT_SPEED_M_S,
@@ -57,10 +58,10 @@ def collision_pressure_pa(t_s, distance_m, sound_speed_m_s, *, speed_m_s=DEFAULT
     Zero for t <= l/c. Broadcasts over all arguments.
     """
     t = np.asarray(t_s, dtype=float)
-    l = np.asarray(distance_m, dtype=float)
-    tau = t - l / float(sound_speed_m_s)
+    dist = np.asarray(distance_m, dtype=float)
+    tau = t - dist / float(sound_speed_m_s)
     al = np.asarray(alpha_1_s, dtype=float)
-    amp = source_strength_pa_m(speed_m_s, curvature_1_m, density_kg_m3, polarity) / l
+    amp = source_strength_pa_m(speed_m_s, curvature_1_m, density_kg_m3, polarity) / dist
     pos = tau > 0
     taup = np.where(pos, tau, 0.0)
     return np.where(pos, amp * (2.0 * np.exp(-2.0 * al * taup) - np.exp(-al * taup)), 0.0)

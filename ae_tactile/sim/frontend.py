@@ -40,11 +40,15 @@ class FrontEnd:
         zs, ps, ks = [], [], []
         z, p, k = signal.butter(config.highpass_order, 2 * math.pi * config.highpass_hz,
                                 btype="highpass", analog=True, output="zpk")
-        zs.append(z); ps.append(p); ks.append(k)
+        zs.append(z)
+        ps.append(p)
+        ks.append(k)
         if config.lowpass_hz is not None:
             z, p, k = signal.butter(config.lowpass_order, 2 * math.pi * config.lowpass_hz,
                                     btype="lowpass", analog=True, output="zpk")
-            zs.append(z); ps.append(p); ks.append(k)
+            zs.append(z)
+            ps.append(p)
+            ks.append(k)
         self.zeros = np.concatenate(zs).astype(complex)
         self.poles = np.concatenate(ps).astype(complex)
         self.gain = float(np.prod(ks)) * config.sensitivity_v_per_pa
@@ -129,7 +133,8 @@ def signal_power_v2(clean_v, onset_index, sample_rate_hz, window_s=SNR_WINDOW_S)
     if np.any(on < 0) or np.any(on + w > x.shape[2]):
         raise ValueError(f"the {window_s * 1e6:g} us SNR window after the onset does not fit in"
                          f" packets of {x.shape[2]} samples")
-    e = np.concatenate([np.zeros((x.shape[0], 1)), np.cumsum(np.sum(x * x, axis=1), axis=1)], axis=1)
+    e = np.concatenate([np.zeros((x.shape[0], 1)), np.cumsum(np.sum(x * x, axis=1), axis=1)],
+                       axis=1)
     rows = np.arange(x.shape[0])
     return (e[rows, on + w] - e[rows, on]) / (4.0 * w)
 
@@ -145,7 +150,8 @@ def noise_rms_for_snr(signal_power_v2_, snr_db):
 
 def snr_db_from_noise(signal_power_v2_, noise_rms_v):
     """Inverse of `noise_rms_for_snr`: 10 log10(P_signal / sigma_n^2)."""
-    return 10.0 * np.log10(np.asarray(signal_power_v2_, float) / np.asarray(noise_rms_v, float) ** 2)
+    p = np.asarray(signal_power_v2_, float)
+    return 10.0 * np.log10(p / np.asarray(noise_rms_v, float) ** 2)
 
 
 def noise_rms_from_density(density_v_per_rthz, sample_rate_hz):

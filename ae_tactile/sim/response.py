@@ -87,7 +87,8 @@ def fast_support_samples(config, fe) -> int:
     al = np.concatenate([[0.0], np.geomspace(1.0, 1e8, 161)])[:, None]
     p1 = np.abs(2.0 / (q + 2 * al) - 1.0 / (q + al)).max(axis=0)
     w = np.concatenate([[np.inf], np.geomspace(1e4, 1e10, 121)])[:, None]
-    wq = np.where(np.isinf(w), 1.0, np.abs(np.where(np.isinf(w), 1.0, w) / (q + np.where(np.isinf(w), 0.0, w))))
+    inf = np.isinf(w)
+    wq = np.where(inf, 1.0, np.abs(np.where(inf, 1.0, w) / (q + np.where(inf, 0.0, w))))
     bound = 2.0 * fe.fast_weights * np.abs(fe.fast_residues) * p1 * wq.max(axis=0)
     return int(_bound_length(bound[None, :], -q.real, config.sensitivity_v_per_pa,
                              config.support_rel_tol, config.max_support_samples, config.dt_s)[0])
@@ -142,13 +143,15 @@ def arrival_coefficients(amplitude_pa, alpha_1_s, att_pole_rad_s, n_ref, offset_
     C = (fe.fast_weights * fe.fast_residues)[None, :] * Rq * np.exp(q * eps[:, None])
 
     ref = np.abs(A) * config.sensitivity_v_per_pa
-    len_slow = _bound_length(np.abs(slow_c[:, :2]), -rho[:, :2], ref[:, None], config.support_rel_tol,
+    len_slow = _bound_length(np.abs(slow_c[:, :2]), -rho[:, :2], ref[:, None],
+                             config.support_rel_tol,
                              config.max_support_samples, dt)
     length = np.maximum(len_slow, fe.support_fast)
     length = np.maximum(length, fe.support_att)
     length[ref == 0] = 0
     return ResponseCoefs(n0=n0, eps_s=eps, slow_poles=rho, slow_c=slow_c,
-                         fast_re=np.ascontiguousarray(C.real), fast_im=np.ascontiguousarray(C.imag),
+                         fast_re=np.ascontiguousarray(C.real),
+                         fast_im=np.ascontiguousarray(C.imag),
                          length=length)
 
 
@@ -271,7 +274,8 @@ class KernelInputs:
         real = fe.fast_poles.real[np.abs(fe.fast_poles.imag) == 0]
         n_paths = 1 + (config.n_reflections if config.reflections else 0)
         n0, length, channel, al, cs, fcoef, att = arrival_inputs(
-            np.ascontiguousarray(points_m, dtype=float), np.ascontiguousarray(strength_pa_m, float),
+            np.ascontiguousarray(points_m, dtype=float),
+            np.ascontiguousarray(strength_pa_m, float),
             np.ascontiguousarray(alpha_1_s, float), np.ascontiguousarray(n_e, np.int64),
             np.ascontiguousarray(frac_s, float), np.ascontiguousarray(geo.element_positions_m),
             float(geo.radius_m), float(geo.sound_speed_m_s), n_paths,

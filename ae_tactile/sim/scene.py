@@ -29,10 +29,10 @@ import numpy as np
 import yaml
 
 from ae_tactile.geometry import FingertipGeometry
+from ae_tactile.sim import generators as G
 from ae_tactile.sim.config import MEDIUM_PRESETS, SimConfig
 from ae_tactile.sim.emission import DEFAULT_ALPHA_1_S, DEFAULT_CURVATURE_1_M, DEFAULT_SPEED_M_S
 from ae_tactile.sim.frontend import noise_rms_for_snr, noise_rms_from_density
-from ae_tactile.sim import generators as G
 from ae_tactile.sim.stream import StreamingSource, TriggeredSource
 
 REQUIRED = object()
@@ -68,12 +68,14 @@ TOP_KEYS = {
 }
 
 SENSOR_KEYS = {
-    "medium": Key("str", "water_skin", "medium preset", choices=tuple(MEDIUM_PRESETS) + ("custom",)),
+    "medium": Key("str", "water_skin", "medium preset",
+                  choices=tuple(MEDIUM_PRESETS) + ("custom",)),
     "radius_m": _f(10e-3, "fingertip sphere radius R (m)", 1e-3, 0.1),
     "element_offset_m": _f(1.5e-3, "element centre offset a (m)", 1e-4, 0.05),
     "sound_speed_m_s": _f(None, "sound speed (m/s); default: the medium's", 100.0, 10000.0),
     "density_kg_m3": _f(None, "density rho (kg/m^3); default: the medium's", 100.0, 20000.0),
-    "attenuation_db_per_m_at_1mhz": _f(None, "loss at 1 MHz (dB/m); default: the medium's", 0.0, 1e5),
+    "attenuation_db_per_m_at_1mhz": _f(None, "loss at 1 MHz (dB/m); default: the medium's",
+                                       0.0, 1e5),
     "sensitivity_v_per_pa": _f(0.01, "PVDF + amplifier gain (V/Pa)", 1e-9, 1e3),
     "highpass_hz": _f(100e3, "high-pass cut-off (Hz)", 1.0, 1e8),
     "highpass_order": Key("int", 2, "high-pass order", 1, 8),
@@ -248,8 +250,9 @@ def _check_value(where, key, spec: Key, v):
         try:
             v = float(v)      # YAML 1.1 reads 1e-3 as a string; accept plain numbers
         except ValueError:
-            raise SceneError(f"{where}.{key}: expected a number in SI units ({spec.doc}), got {v!r};"
-                             " write the value in the unit of the key name, without a unit string") from None
+            raise SceneError(f"{where}.{key}: expected a number in SI units ({spec.doc}),"
+                             f" got {v!r}; write the value in the unit of the key name,"
+                             " without a unit string") from None
     if spec.kind in ("float", "float_or_null"):
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise SceneError(f"{where}.{key}: expected a number ({spec.doc}), got {v!r}")
@@ -273,20 +276,21 @@ def _check_value(where, key, spec: Key, v):
     elif spec.kind == "float_list":
         if not isinstance(v, (list, tuple)) or not v:
             raise SceneError(f"{where}.{key}: expected a non-empty list of numbers ({spec.doc})")
-        return [_check_value(where, f"{key}[{i}]", Key("float", 0.0, spec.doc, spec.lo, spec.hi), x)
-                for i, x in enumerate(v)]
+        item = Key("float", 0.0, spec.doc, spec.lo, spec.hi)
+        return [_check_value(where, f"{key}[{i}]", item, x) for i, x in enumerate(v)]
     elif spec.kind == "xy_list":
-        if not isinstance(v, (list, tuple)) or not v or not all(isinstance(x, (list, tuple)) and len(x) == 2
-                                                                for x in v):
+        if not isinstance(v, (list, tuple)) or not v or not all(
+                isinstance(x, (list, tuple)) and len(x) == 2 for x in v):
             raise SceneError(f"{where}.{key}: expected a list of [x, y] pairs in metres")
-        return [[_check_value(where, f"{key}[{i}][{j}]", Key("float", 0.0, spec.doc, spec.lo, spec.hi), c)
-                 for j, c in enumerate(x)] for i, x in enumerate(v)]
+        item = Key("float", 0.0, spec.doc, spec.lo, spec.hi)
+        return [[_check_value(where, f"{key}[{i}][{j}]", item, c) for j, c in enumerate(x)]
+                for i, x in enumerate(v)]
     if spec.lo is not None and v < spec.lo or spec.hi is not None and v > spec.hi:
         unit_hint = ""
         if key.endswith("_m") and v > (spec.hi or 0):
             unit_hint = " (units are metres: 10 mm is 0.01)"
-        raise SceneError(f"{where}.{key}={v!r} is outside the plausible range [{spec.lo}, {spec.hi}]"
-                         f" ({spec.doc}){unit_hint}")
+        raise SceneError(f"{where}.{key}={v!r} is outside the plausible range"
+                         f" [{spec.lo}, {spec.hi}] ({spec.doc}){unit_hint}")
     return v
 
 
@@ -301,7 +305,8 @@ def _validate_map(where, data, schema, required_ok=True):
     out = {}
     for key, spec in schema.items():
         if key in data:
-            out[key] = _check_value(where, key, spec, data[key]) if spec.kind != "map" else data[key]
+            out[key] = (_check_value(where, key, spec, data[key]) if spec.kind != "map"
+                        else data[key])
         elif spec.default is REQUIRED:
             raise SceneError(f"{where}: missing required key {key!r} ({spec.doc})")
         else:
@@ -374,7 +379,8 @@ def build_config(sensor: dict, effects: dict) -> SimConfig:
         geo = FingertipGeometry(sound_speed_m_s=c, **geo_kw)
         kw = {k: v for k, v in s.items() if v is not None or k == "lowpass_hz"}
         return SimConfig(geometry=geo, medium=medium, attenuation=effects["attenuation"],
-                         reflections=effects["reflections"], quantization=effects["quantization"], **kw)
+                         reflections=effects["reflections"],
+                         quantization=effects["quantization"], **kw)
     except ValueError as e:
         raise SceneError(f"sensor: {e}") from None
 
@@ -488,7 +494,8 @@ def expected_emissions(gen: str, p: dict, duration_s: float, config: SimConfig,
     if gen == "composite":
         parts = p["parts"]
         if not isinstance(parts, list) or not parts:
-            raise SceneError("params.parts: expected a non-empty list of {at_s, generator, params}")
+            raise SceneError("params.parts: expected a non-empty list of"
+                             " {at_s, generator, params}")
         total = 0.0
         for i, raw in enumerate(parts):
             w = f"{where}.parts[{i}]"
@@ -558,7 +565,8 @@ def load_scene(source, overrides: dict | None = None, *, budget: Budget | None =
             raise SceneError("scene YAML is nested too deeply (a scene is a mapping of"
                              " scalars, lists and mappings a few levels deep)") from None
         if not isinstance(spec, dict):
-            raise SceneError("a scene must be a YAML mapping with at least 'generator' and 'duration_s'")
+            raise SceneError("a scene must be a YAML mapping with at least 'generator' and"
+                             " 'duration_s'")
         if name_hint and "name" not in spec:
             spec["name"] = name_hint
     if overrides:
@@ -566,7 +574,8 @@ def load_scene(source, overrides: dict | None = None, *, budget: Budget | None =
     top = _validate_map("scene", spec, TOP_KEYS)
     gen = top["generator"]
     if gen not in GENERATORS:
-        raise SceneError(f"scene.generator: unknown generator {gen!r}; choose one of {sorted(GENERATORS)}")
+        raise SceneError(f"scene.generator: unknown generator {gen!r}; choose one of"
+                         f" {sorted(GENERATORS)}")
     sensor = _validate_map("sensor", top["sensor"], SENSOR_KEYS)
     effects = _validate_map("effects", top["effects"], EFFECT_KEYS)
     factory, schema = GENERATORS[gen]
@@ -586,14 +595,16 @@ def load_scene(source, overrides: dict | None = None, *, budget: Budget | None =
             noise_rms = noise[k]
         else:
             noise_rms = noise_rms_from_density(noise[k], config.sample_rate_hz)
-    ctx = SceneContext(config=config, seed=top["seed"], duration_s=top["duration_s"], effects=effects)
+    ctx = SceneContext(config=config, seed=top["seed"], duration_s=top["duration_s"],
+                       effects=effects)
     try:
         process = factory(ctx, params)
     except SceneError:
         raise
     except ValueError as e:
         raise SceneError(f"params ({gen}): {e}") from None
-    return Scene(name=top["name"] or gen, generator=gen, duration_s=top["duration_s"], seed=top["seed"],
+    return Scene(name=top["name"] or gen, generator=gen, duration_s=top["duration_s"],
+                 seed=top["seed"],
                  config=config, noise_rms_v=float(noise_rms), effects=effects, params=params,
                  process=process, spec=spec, cost=cost)
 
@@ -607,7 +618,8 @@ def scene_schema_markdown() -> str:
         lines.append("| key | default | meaning |")
         lines.append("|---|---|---|")
         for k, s in schema.items():
-            d = "required" if s.default is REQUIRED else ("null" if s.default is None else repr(s.default))
+            d = ("required" if s.default is REQUIRED
+                 else ("null" if s.default is None else repr(s.default)))
             lines.append(f"| `{k}` | {d} | {s.doc} |")
 
     table("top level", TOP_KEYS)

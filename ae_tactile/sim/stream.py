@@ -25,7 +25,8 @@ Triggered windows (`TriggeredSource`, render_path 'fast') evaluate only the samp
 each window and draw only its noise (PCG64 jumped ahead), bit-identical to the stream.
 
 Noise is float32 Box-Muller from 23-bit uniforms (exact Gaussian transform of uniforms
-on a 2^-23 grid: tails reach ~5.6 sigma), scaled by noise_rms_v and added in float64 (the float32 noise has
+on a 2^-23 grid: tails reach ~5.6 sigma), scaled by noise_rms_v and added in float64
+(the float32 noise has
 ~1e-7 relative resolution, far below the ADC step).
 """
 from __future__ import annotations
@@ -38,8 +39,13 @@ import numpy as np
 from ae_tactile.sim.config import SimConfig
 from ae_tactile.sim.emission import source_strength_pa_m
 from ae_tactile.sim.propagation import compute_arrivals, path_lengths
-from ae_tactile.sim.response import (KernelInputs, SlowTables, accumulate, arrival_coefficients,
-                                     default_engine)
+from ae_tactile.sim.response import (
+    KernelInputs,
+    SlowTables,
+    accumulate,
+    arrival_coefficients,
+    default_engine,
+)
 
 #: Emission types (``EmissionList.kind`` codes index this tuple).
 KINDS = ("touch", "release", "micro_slip", "slip", "texture")
@@ -97,7 +103,8 @@ class EmissionList:
         if isinstance(kind, str):
             k = np.full(n, KIND_CODE[kind], np.int8)
         else:
-            k = np.asarray([KIND_CODE[x] if isinstance(x, str) else int(x) for x in np.atleast_1d(kind)],
+            k = np.asarray([KIND_CODE[x] if isinstance(x, str) else int(x)
+                            for x in np.atleast_1d(kind)],
                            np.int8)
             k = np.broadcast_to(k, (n,)).copy()
         b = lambda v: np.broadcast_to(np.asarray(v, dtype=float), (n,)).copy()   # noqa: E731
@@ -131,8 +138,10 @@ class EmissionList:
         """Plain-Python ground-truth records (for YAML/JSON/printing)."""
         return [dict(event_id=int(self.event_id[i]), time_ns=int(self.time_ns[i]),
                      type=KINDS[self.kind[i]], point_m=[float(x) for x in self.point_m[i]],
-                     strength_pa_m=float(self.strength_pa_m[i]), speed_m_s=float(self.speed_m_s[i]),
-                     curvature_1_m=float(self.curvature_1_m[i]), alpha_1_s=float(self.alpha_1_s[i]))
+                     strength_pa_m=float(self.strength_pa_m[i]),
+                     speed_m_s=float(self.speed_m_s[i]),
+                     curvature_1_m=float(self.curvature_1_m[i]),
+                     alpha_1_s=float(self.alpha_1_s[i]))
                 for i in range(len(self))]
 
     def as_arrays(self, prefix="truth_") -> dict:
@@ -184,7 +193,8 @@ class StreamRenderer:
         far = np.array([[0.0, 0.0, geo.radius_m], [geo.radius_m, 0.0, 0.0]])
         max_path = float(path_lengths(far, config).max()) + geo.element_offset_m
         #: emissions earlier than this many samples before a window cannot reach it
-        self.lookback_samples = int(math.ceil(max_path / geo.sound_speed_m_s * config.sample_rate_hz)) \
+        self.lookback_samples = int(math.ceil(max_path / geo.sound_speed_m_s
+                                              * config.sample_rate_hz)) \
             + config.max_support_samples + 2
         self._noise_cache: dict[int, np.ndarray] = {}
         self._pcg: dict[int, list] = {}
@@ -211,7 +221,8 @@ class StreamRenderer:
         if len(emissions) == 0 or width == 0:
             return out
         cfg = self.config
-        t_lo, t_hi = time_ns_of_sample([n0 - self.lookback_samples - 1, n1 + 1], cfg.sample_rate_hz)
+        t_lo, t_hi = time_ns_of_sample([n0 - self.lookback_samples - 1, n1 + 1],
+                                       cfg.sample_rate_hz)
         i0, i1 = np.searchsorted(emissions.time_ns, [t_lo, t_hi], side="left")
         n_e, frac = sample_index_of_ns(emissions.time_ns[i0:i1], cfg.sample_rate_hz)
         sel = np.nonzero((n_e >= n0 - self.lookback_samples) & (n_e < n1))[0]
@@ -530,7 +541,7 @@ class TriggeredSource:
         self._next = 0                    # index into _buffer of the next emission to serve
         self._horizon_ns = 0
         self._lookahead_ns = int(1e9 * (self.m / fs + 10 * config.max_support_s)) + 1
-        config.frontend.fast_basis            # the config's tables now, not at the first packet
+        _ = config.frontend.fast_basis        # the config's tables now, not at the first packet
 
     def _derive(self, em: EmissionList):
         """Per-emission (sample index n_e, fraction frac_s, absolute first-arrival sample)."""
@@ -566,7 +577,6 @@ class TriggeredSource:
         of each response evaluated (compiled kernel), only the window's noise drawn.
         Returns (samples (k, 4, M), clean or None, saturated (k,))."""
         cfg = self.config
-        fs = cfg.sample_rate_hz
         r = self.renderer
         k, m = start.shape[0], self.m
         out = np.zeros((k, 4, m))
@@ -612,7 +622,8 @@ class TriggeredSource:
             out *= lsb
         else:
             fs_v = cfg.adc_full_scale_v
-            sat = (out.max(axis=(1, 2), initial=0.0) >= fs_v) | (out.min(axis=(1, 2), initial=0.0) <= -fs_v)
+            sat = ((out.max(axis=(1, 2), initial=0.0) >= fs_v)
+                   | (out.min(axis=(1, 2), initial=0.0) <= -fs_v))
         return out, clean, sat
 
     def _empty_packets(self) -> StreamPackets:
@@ -639,7 +650,8 @@ class TriggeredSource:
                 break
             before = len(self._buffer)
             self._ensure(target)
-            if len(self._buffer) == before and limit is None and isinstance(self.process, StaticEmissions):
+            if (len(self._buffer) == before and limit is None
+                    and isinstance(self.process, StaticEmissions)):
                 if self._horizon_ns > int(self.process.emissions.time_ns.max(initial=0)):
                     break
         take = list(range(self._next, min(len(self._buffer), self._next + n)))
@@ -671,7 +683,8 @@ class TriggeredSource:
             self._ensure(int(time_ns_of_sample(int(start.max()) + self.m, fs)) + step)
             samples, clean, sat = self._render_windows(start)
         all_first = self._derived[2]
-        s0 = np.searchsorted(all_first, start, side="left") if np.all(np.diff(all_first) >= 0) else None
+        s0 = (np.searchsorted(all_first, start, side="left")
+              if np.all(np.diff(all_first) >= 0) else None)
         if s0 is not None:
             n_over = np.searchsorted(all_first, start + self.m, side="left") - s0 - 1
         else:
@@ -687,6 +700,7 @@ class TriggeredSource:
             self._next -= drop
         arrival = (n_e - start)[:, None] / fs + frac[:, None] + direct
         delays = geo.delays_from_arrival_times(direct)[:, :2]      # = geo.exact_delays_s
-        return StreamPackets(samples_v=samples, clean_v=clean, sample_rate_hz=fs, start_index=start,
-                             onset_index=onset_abs - start, arrival_times_s=arrival, delays_s=delays,
+        return StreamPackets(samples_v=samples, clean_v=clean, sample_rate_hz=fs,
+                             start_index=start, onset_index=onset_abs - start,
+                             arrival_times_s=arrival, delays_s=delays,
                              emissions=em, n_overlapping=n_over, saturated=sat)

@@ -9,8 +9,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ae_tactile.sim.config import SimConfig
-from ae_tactile.sim.emission import (DEFAULT_ALPHA_1_S, DEFAULT_CURVATURE_1_M, DEFAULT_SPEED_M_S,
-                                     source_strength_pa_m)
+from ae_tactile.sim.emission import (
+    DEFAULT_ALPHA_1_S,
+    DEFAULT_CURVATURE_1_M,
+    DEFAULT_SPEED_M_S,
+    source_strength_pa_m,
+)
 from ae_tactile.sim.frontend import SNR_WINDOW_S, noise_rms_for_snr, quantize, signal_power_v2
 from ae_tactile.sim.propagation import compute_arrivals
 from ae_tactile.sim.response import arrival_coefficients, evaluate
@@ -74,8 +78,9 @@ def validate_surface_points(points_m, geometry, rel_tol=1e-6) -> np.ndarray:
     off = np.abs(r - geometry.radius_m) > rel_tol * geometry.radius_m
     if np.any(off):
         i = int(np.argmax(off))
-        raise ValueError(f"point {i} = {p[i].tolist()} m is off the sensing surface: |s| = {r[i]:.6g} m,"
-                         f" expected R = {geometry.radius_m} m (use geometry.surface_point_from_xy)")
+        raise ValueError(f"point {i} = {p[i].tolist()} m is off the sensing surface:"
+                         f" |s| = {r[i]:.6g} m, expected R = {geometry.radius_m} m"
+                         " (use geometry.surface_point_from_xy)")
     below = p[:, 2] < -rel_tol * geometry.radius_m
     if np.any(below):
         i = int(np.argmax(below))
@@ -122,12 +127,14 @@ def render_triggered(points_m, config: SimConfig | None = None, *, snr_db=None, 
     if not (math.isfinite(pre) and pre >= 0):
         raise ValueError(f"pretrigger_s must be >= 0, got {pretrigger_s!r}")
     if m_len < 2 or pre * fs + 1 >= m_len:
-        raise ValueError(f"window_s={window_s} must exceed pretrigger_s={pretrigger_s} by at least a sample")
+        raise ValueError(f"window_s={window_s} must exceed pretrigger_s={pretrigger_s}"
+                         " by at least a sample")
     if snr_db is not None and noise_rms_v is not None:
         raise ValueError("give snr_db or noise_rms_v, not both")
     if snr_db is not None and (m_len - (pre * fs + 1)) < round(SNR_WINDOW_S * fs):
-        raise ValueError(f"snr_db needs the {SNR_WINDOW_S * 1e6:g} us SNR window after the onset inside"
-                         f" the packet: window_s - pretrigger_s must be >= {SNR_WINDOW_S * 1e6:g} us + 1 sample")
+        raise ValueError(f"snr_db needs the {SNR_WINDOW_S * 1e6:g} us SNR window after the"
+                         " onset inside the packet: window_s - pretrigger_s must be >="
+                         f" {SNR_WINDOW_S * 1e6:g} us + 1 sample")
     pol = _per_packet("polarity", polarity, n, positive=False)
     if not np.all(np.isin(pol, (-1.0, 1.0))):
         raise ValueError("polarity must be +1 (touch) or -1 (release)")
@@ -196,5 +203,6 @@ def render_triggered(points_m, config: SimConfig | None = None, *, snr_db=None, 
     return TriggeredPackets(samples_v=samples, clean_v=clean, sample_rate_hz=fs, onset_index=onset,
                             points_m=pts, delays_s=d[:, :2], twist_s=d[:, 2],
                             arrival_times_s=arrival_times, emission_time_s=t_emit,
-                            noise_rms_v=sigma, snr_db=np.asarray(snr, float), signal_power_v2=p_sig,
+                            noise_rms_v=sigma, snr_db=np.asarray(snr, float),
+                            signal_power_v2=p_sig,
                             saturated=saturated, polarity=pol)
