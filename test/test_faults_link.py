@@ -257,13 +257,59 @@ def test_hostile_but_crc_valid_frames_never_stop_the_link(tmp_path):
                    Ack(65535, 200, AckResult.INTERNAL_ERROR, 7)]
         for body in hostile:
             rig.runner.call(rig.device.inject_frame, body, now_ns())
+        odd = (1.0, 4_294_967_295.0)
+
+        def n_odd():
+            return sum(r.sample_rate_hz in odd for r in rig.records)
+        rig.run(30.0, until=lambda: n_odd() >= 2)
         n = len(rig.records)
-        rig.run(20.0, until=lambda: len(rig.records) > n + 3)
+        rig.run(30.0, until=lambda: len(rig.records) > n + 3)    # still delivering after them
         s = rig.link.stats()
         assert s["internal_errors"] == 0 and s["disconnects"] == 0 and s["state"] == "connected"
         assert s["frames_ok"] >= 4 and s["crc_errors"] == 0
-        got = [r for r in rig.records if r.sample_rate_hz in (1.0, 4_294_967_295.0)]
+        assert s["frames_unusable"] <= 1                     # the 1 Hz STREAM block, if refused
+        got = [r for r in rig.records if r.sample_rate_hz in odd]
         assert len(got) == 2 and all(np.isfinite(r.samples_v).all() for r in got)
         assert all(np.isfinite(r.noise_rms_v) and 0 <= r.onset_index < r.samples_v.shape[1]
                    for r in rig.records)
         assert len(rig.records) > n + 3                     # still delivering
+
+
+def test_partial_frame_then_silence_is_flushed_after_the_idle_time():
+    """A device that sends half a frame and then nothing: the partial frame is given up
+    once no byte came for idle_flush_s (counted), and the next frame is delivered."""
+    from ae_tactile.protocol import DeviceState, FrameEncoder, Status
+    master, slave = os.openpty()
+    import tty
+    tty.setraw(slave)
+    path = os.ttyname(slave)
+    enc = FrameEncoder()
+    status = Status(1500, DeviceState.IDLE, 10_000_000, 1e-6, 200, 400, 100, 0, 0, (1, 0, 0),
+                    "AE-IDLE")
+    first = enc.encode(status, 1500)
+    big = enc.encode(Packet(np.ones((4, 4000), np.int16), 10_000_000, 1e-6), 2000)
+    link = FingertipLink(LinkConfig(port=path, link_timeout_s=60.0, idle_flush_s=0.2,
+                                    command_timeout_s=0.05, command_retries=1, sync_max_pings=1))
+    link.start()
+    try:
+        deadline = time.monotonic() + 30.0
+        while link.stats()["connects"] < 1 and time.monotonic() < deadline:
+            time.sleep(0.01)          # the port is open (opening it empties its input)
+        os.write(master, first)
+        os.write(master, big[:5000])                         # then silence
+        while time.monotonic() < deadline and link.stats()["idle_flushes"] < 1:
+            time.sleep(0.01)
+        s = link.stats()
+        assert s["idle_flushes"] == 1 and s["truncated_frames"] == 1
+        assert s["pending_bytes"] == 0 and s["frames_ok"] == 1
+        os.write(master, enc.encode(status, 2500))
+        while time.monotonic() < deadline and link.stats()["frames_ok"] < 2:
+            time.sleep(0.01)
+        s = link.stats()
+        assert s["frames_ok"] == 2 and s["state"] == "connected"
+        assert s["dropped_frames"] == 1                      # the cut frame's sequence number
+        assert s["bytes_received"] == s["bytes_decoded"] + s["bytes_discarded"]
+    finally:
+        link.stop()
+        os.close(master)
+        os.close(slave)
