@@ -87,10 +87,18 @@ class SlipConfig:
         2, "SLIP_PRECURSOR when this many micro-slip emissions (isolated: on no other emission's "
            "spot, e.g. not a touch's release or a repeated tap) besides the founding one fall in the "
            "contact within the window", "", 1, 1000, kind="int")
+    compression_evidence_weight: float = _p(
+        1.0, "weight of a compression (polarity +1) as micro-slip evidence; 1: polarity-free (any "
+             "polarity mix of micro-slips is detected alike); < 1: a new touch next to a held one "
+             "whose release the localizer lost counts less (fewer false precursors in dense "
+             "touching, later precursors for compressive micro-slips)", "", 0.0, 1.0)
     rate_window_s: float = _p(0.1, "slip emission rate = count in this window / its length", "s",
                               0.0, 60.0, lo_open=True)
     quiet_s: float = _p(0.3, "INCIPIENT_SLIP / GROSS_SLIP fall back to STICK after this long without "
                              "an emission of the contact", "s", 0.0, 600.0, lo_open=True)
+    fit_min_events: int = _p(
+        4, "the contact's centre is fitted (circle through its micro-slips: they ring the stick "
+           "zone) once this many are known; before, the founding emission", "", 3, 1000, kind="int")
     # ------------------------------------------------------------------ gross slip
     gross_window_s: float = _p(0.04, "gross-slip tests look at the contact's emissions in this "
                                      "latest window", "s", 0.0, 10.0, lo_open=True)
@@ -107,21 +115,21 @@ class SlipConfig:
     gross_scan_events: int = _p(8, "see gross_rate_alpha", "", 2, 64, kind="int")
     gross_history_s: float = _p(0.5, "see gross_rate_alpha", "s", 0.0, 60.0, lo_open=True)
     # ------------------------------------------------------------------ texture
-    texture_min_intervals: int = _p(20, "intervals between the contact's latest emissions tested for "
+    texture_min_intervals: int = _p(16, "intervals between the contact's latest emissions tested for "
                                         "periodicity", "", 4, 1000, kind="int")
     texture_interval_sd: float = _p(
         0.3, "standard deviation of one interval of a texture, as a fraction of the period (a "
              "timing jitter sigma of the emissions gives sqrt(2) sigma)", "", 0.0, 1.0, lo_open=True)
     texture_min_llr: float = _p(
         9.0, "periodic when the log-likelihood ratio of the intervals, jittered periodic (with "
-             "missed packets) against Poisson, is at least this (Poisson: above 9 in ~3e-5 of "
-             "20-interval windows; 20 % jitter: ~90 %)", "", 0.0, 1000.0)
+             "missed packets) against Poisson, is at least this (Poisson: above 9 in ~5e-5 of "
+             "16-interval windows; 20 % jitter: ~85 %)", "", 0.0, 1000.0)
     texture_max_multiple: int = _p(3, "largest multiple of the period accepted for one interval "
                                       "(missed packets)", "", 1, 10, kind="int")
     texture_confirm_events: int = _p(2, "a texture run starts after this many consecutive periodic "
                                         "tests", "", 1, 1000, kind="int")
     texture_period_rel_se: float = _p(
-        0.01, "a moving contact's spatial period (tracked speed x period) is reported once its "
+        0.015, "a moving contact's spatial period (tracked speed x period) is reported once its "
               "relative standard error is below this", "", 0.0, 1.0, lo_open=True)
     sliding_speed_m_s: float | None = _p(
         None, "sliding speed of a fixed contact over a texture (spatial period = v T); None: "

@@ -167,6 +167,11 @@ def run_detector(events, config: SlipConfig | None = None, end_ns: int | None = 
     return det, outs, trace
 
 
+def _n_before(events, t_ns):
+    """Localized events before t_ns (all if None): the micro-slips the detector saw."""
+    return sum(1 for e in events if t_ns is None or e.time_ns < t_ns)
+
+
 def _first(outs, kind, onset=True):
     for o in outs:
         if o.kind == kind and (o.onset or not onset):
@@ -176,8 +181,14 @@ def _first(outs, kind, onset=True):
 
 # ---------------------------------------------------------------------- incipient slip
 def incipient_slip_scene(seed: int, *, announce_touch: bool = False, post_s: float = 0.25,
-                         ranges: dict | None = None, overload: float | None = None):
-    """(scene, process wrapper or None, drawn parameters) for one randomised trial."""
+                         ranges: dict | None = None, overload: float | None = None,
+                         polarity: str = "random", micro_slip_count=None, slip_rate_hz=None):
+    """(scene, process wrapper or None, drawn parameters) for one randomised trial.
+
+    ``polarity``: 'random', 'compression', 'rarefaction' or 'mixed' (one of the three
+    drawn per trial); ``micro_slip_count``: None (the simulator's density: dense
+    emitters) or (lo, hi): a mean count drawn uniformly, no background emissions (sparse
+    emitters); ``slip_rate_hz``: None (500 Hz) or (lo, hi) log-uniform gross-slip rate."""
     r = dict(INCIPIENT_RANGES, **(ranges or {}))
     rng = np.random.default_rng([7001, int(seed)])
     R = 0.01
@@ -187,6 +198,17 @@ def incipient_slip_scene(seed: int, *, announce_touch: bool = False, post_s: flo
     mu = _draw(rng, r["friction_coefficient"])
     T = _draw(rng, r["time_to_gross_slip_s"])
     snr = _draw(rng, r["snr_db"])
+    extra = {}
+    prng = np.random.default_rng([7011, int(seed)])
+    if polarity == "mixed":
+        polarity = str(prng.choice(["random", "compression", "rarefaction"]))
+    extra["micro_slip_polarity"] = polarity
+    if micro_slip_count is not None:
+        extra["micro_slip_count"] = float(prng.uniform(*micro_slip_count))
+        extra["background_rate_hz"] = 0.0
+    if slip_rate_hz is not None:
+        lo, hi = slip_rate_hz
+        extra["slip_rate_hz"] = float(math.exp(prng.uniform(math.log(lo), math.log(hi))))
     start_s = 0.1 if announce_touch else 0.0
     qdot = mu * P / T
     spec = {
@@ -194,13 +216,15 @@ def incipient_slip_scene(seed: int, *, announce_touch: bool = False, post_s: flo
         "sensor": {"medium": "silicone"}, "effects": {"attenuation": True}, "noise": {"snr_db": snr},
         "params": {"x_m": x, "y_m": y, "normal_load_n": P, "youngs_modulus_pa": E, "friction_coefficient": mu,
                    "start_s": start_s, "tangential_load_rate_n_per_s": qdot,
-                   "tangential_load_max_n": None if overload is None else overload * mu * P},
+                   "tangential_load_max_n": None if overload is None else overload * mu * P, **extra},
     }
     scene = load_scene(spec)
     a_h = float(hertz_contact_radius_m(P, R, E, 0.5))
     params = {"seed": int(seed), "x_m": x, "y_m": y, "normal_load_n": P, "youngs_modulus_pa": E,
               "friction_coefficient": mu, "tangential_load_rate_n_per_s": qdot, "time_to_gross_slip_s": T,
-              "snr_db": snr, "hertz_radius_m": a_h, "announce_touch": bool(announce_touch)}
+              "snr_db": snr, "hertz_radius_m": a_h, "announce_touch": bool(announce_touch),
+              "polarity": polarity, "micro_slip_count": extra.get("micro_slip_count"),
+              "slip_rate_hz": extra.get("slip_rate_hz", 500.0)}
     source = None
     if announce_touch:
         c = scene.process.center
@@ -218,15 +242,50 @@ def _streaming(scene, source):
     return StreamingSource(source, scene.config, noise_rms_v=scene.noise_rms_v, seed=scene.seed)
 
 
+def emission_events(em: EmissionList, geometry, rng, *, sigma_m: float = 30e-6, drop: float = 0.02,
+                    time_sigma_s: float = 100e-9, id_offset: int = 0) -> list[LocalizedEvent]:
+    """The 'events' pipeline: true emissions -> LocalizedEvents with the localizer's error
+    model instead of rendered waveforms (fast enough for thousands of trials): Gaussian
+    position error of ``sigma_m`` per tangent axis (the covariance says so), Gaussian
+    time error, the emission's polarity, a fraction ``drop`` lost (packets the localizer
+    rejects). bench/bench_slip.py checks it against the waveform pipeline."""
+    n = len(em)
+    if n == 0:
+        return []
+    P = np.asarray(em.point_m, float)
+    nrm = P / np.linalg.norm(P, axis=1, keepdims=True)
+    ref = np.where(np.abs(nrm[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    e1 = ref - (ref * nrm).sum(1, keepdims=True) * nrm
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(nrm, e1)
+    z = rng.normal(0.0, sigma_m, (n, 2))
+    Q = P + z[:, :1] * e1 + z[:, 1:] * e2
+    Q *= geometry.radius_m / np.linalg.norm(Q, axis=1, keepdims=True)
+    cov = sigma_m ** 2 * (e1[:, :, None] * e1[:, None, :] + e2[:, :, None] * e2[:, None, :])
+    t = np.asarray(em.time_ns, np.int64) + np.round(rng.normal(0.0, time_sigma_s * 1e9, n)).astype(np.int64)
+    pol = np.sign(np.asarray(em.strength_pa_m, float)).astype(int)
+    keep = rng.uniform(0, 1, n) >= drop
+    out = [LocalizedEvent(int(t[i]), Q[i], cov[i], int(pol[i]), math.nan, 0.9, id_offset + int(i))
+           for i in np.flatnonzero(keep)]
+    out.sort(key=lambda e: e.time_ns)
+    return out
+
+
 def _events(scene, source, end_ns, pipeline):
     """(events, number of true emissions) through the chosen pipeline."""
+    if pipeline == "events":
+        proc = source if source is not None else scene.process
+        em = proc.advance(end_ns)
+        rng = np.random.default_rng([7100, int(scene.seed)])
+        sigma = float(math.exp(rng.uniform(math.log(10e-6), math.log(80e-6))))
+        return emission_events(em, scene.config.geometry, rng, sigma_m=sigma), int(len(em))
     if pipeline == "triggered":
         pk = _triggered(scene, source).next_packets(1 << 30, horizon_ns=end_ns)
         return localized_events(pk, scene.config.geometry), int(len(pk.emissions))
     if pipeline == "stream":
         n = int(round(end_ns * 1e-9 * scene.config.sample_rate_hz))
         return stream_localized_events(_streaming(scene, source), scene.config.geometry, n), None
-    raise ValueError(f"pipeline must be 'triggered' or 'stream', got {pipeline!r}")
+    raise ValueError(f"pipeline must be 'triggered', 'stream' or 'events', got {pipeline!r}")
 
 
 def _triggered(scene, source):
@@ -237,10 +296,14 @@ def _triggered(scene, source):
 
 
 def incipient_slip_trial(seed: int, config: SlipConfig | None = None, *, announce_touch: bool = False,
-                         post_s: float = 0.25, ranges: dict | None = None, pipeline: str = "triggered") -> dict:
+                         post_s: float = 0.25, ranges: dict | None = None, pipeline: str = "triggered",
+                         polarity: str = "random", micro_slip_count=None, slip_rate_hz=None) -> dict:
     """One open-loop incipient-slip trial: precursor, lead time, q at detection, SLIP delay.
-    ``pipeline``: 'triggered' (ideal trigger windows) or 'stream' (stream + dsp detector)."""
-    scene, source, params = incipient_slip_scene(seed, announce_touch=announce_touch, post_s=post_s, ranges=ranges)
+    ``pipeline``: 'triggered' (ideal trigger windows) or 'stream' (stream + dsp detector);
+    scene options: `incipient_slip_scene`."""
+    scene, source, params = incipient_slip_scene(seed, announce_touch=announce_touch, post_s=post_s, ranges=ranges,
+                                                 polarity=polarity, micro_slip_count=micro_slip_count,
+                                                 slip_rate_hz=slip_rate_hz)
     end_ns = int(round(scene.duration_s * _NS))
     events, n_em = _events(scene, source, end_ns, pipeline)
     det, outs, trace = run_detector(events, config, end_ns)
@@ -251,6 +314,7 @@ def incipient_slip_trial(seed: int, config: SlipConfig | None = None, *, announc
     out = dict(params)
     out.update({
         "pipeline": pipeline, "n_emissions": n_em, "n_events": len(events),
+        "n_micro_slip_events": _n_before(events, t_gross),
         "gross_slip_time_ns": t_gross,
         "precursor_time_ns": None if pre is None else pre.time_ns,
         "slip_time_ns": None if slip is None else slip.time_ns,
@@ -373,6 +437,236 @@ def random_touches_trial(seed: int, config: SlipConfig | None = None, *, duratio
     out = {"seed": int(seed), "duration_s": duration_s, "rate_hz": rate_hz, "hold_max_s": hold_max_s,
            "medium": medium, "n_emissions": int(len(pk.emissions)), "n_events": len(events),
            "counts": dict(det.counts)}
+    out.update(_alarm_summary(outs))
+    return out
+
+
+def _touch_list(scene, t_s, pts, pol, speed, ids):
+    return EmissionList.create(np.round(np.asarray(t_s) * _NS).astype(np.int64), pts,
+                               np.where(np.asarray(pol) > 0, "touch", "release") if np.ndim(pol) else "touch",
+                               polarity=pol, speed_m_s=speed, curvature_1_m=1000.0, alpha_1_s=3000.0,
+                               density_kg_m3=scene.config.density, event_id=ids)
+
+
+def _custom_trial(seed, spec, build, config, pipeline, tick=True):
+    """Run a hand-built emission list (``build(scene, rng) -> EmissionList``) on the base
+    scene ``spec``'s sensor and noise through a pipeline and the detector."""
+    scene = load_scene(spec)
+    rng = np.random.default_rng([7020, int(seed)])
+    em = build(scene, rng)
+    end_ns = int(round(scene.duration_s * _NS))
+    source = _WithTouch(_Empty(), em)
+    events, n_em = _events(scene, source, end_ns, pipeline)
+    det, outs, trace = run_detector(events, config, end_ns, tick_ns=int(0.01 * _NS) if tick else None)
+    return scene, det, outs, trace, events, n_em
+
+
+class _Empty:
+    def advance(self, t_ns):
+        return EmissionList.empty()
+
+    def scene_truth(self):
+        return {}
+
+
+def _cap_xy(rng, r_max=6e-3):
+    r = r_max * math.sqrt(rng.uniform())
+    th = rng.uniform(0, 2 * math.pi)
+    return r * math.cos(th), r * math.sin(th)
+
+
+def tapping_trial(seed: int, config: SlipConfig | None = None, *, pipeline: str = "triggered",
+                  duration_s: float = 3.0) -> dict:
+    """A touch held for the whole trial while another spot 1.5 .. 8 mm away is tapped at
+    1 .. 10 Hz (each tap: a touch, held 10 .. 100 ms, and its release at the same spot):
+    false alarms."""
+    rng = np.random.default_rng([7021, int(seed)])
+    medium = "silicone" if rng.uniform() < 0.5 else "water_skin"
+    spec = {"generator": "single_touch", "duration_s": duration_s, "seed": int(seed) + 6000,
+            "sensor": {"medium": medium}, "effects": {"attenuation": medium == "silicone"},
+            "noise": {"snr_db": float(rng.uniform(25, 35))}}
+    x0, y0 = _cap_xy(rng)
+    d = float(rng.uniform(1.5e-3, 8e-3))
+    ang = rng.uniform(0, 2 * math.pi)
+    x1, y1 = x0 + d * math.cos(ang), y0 + d * math.sin(ang)
+    if math.hypot(x1, y1) > 7.5e-3:
+        x1, y1 = x0 - d * math.cos(ang), y0 - d * math.sin(ang)
+    r1 = math.hypot(x1, y1)
+    if r1 > 7.5e-3:
+        x1, y1 = x1 * 7.5e-3 / r1, y1 * 7.5e-3 / r1
+    rate = float(rng.uniform(1.0, 10.0))
+
+    def build(scene, g):
+        geo = scene.config.geometry
+        p0, p1 = geo.surface_point_from_xy(x0, y0), geo.surface_point_from_xy(x1, y1)
+        n = int(duration_s * rate)
+        t = 0.05 + np.arange(n) / rate + g.uniform(0, 0.2 / rate, n)
+        hold = g.uniform(0.01, 0.1, n)
+        ok = t + hold < duration_s - 0.05
+        t, hold = t[ok], hold[ok]
+        times = np.concatenate([[0.01], t, t + hold, [duration_s - 0.02]])
+        pts = np.vstack([p0[None], np.repeat(p1[None], 2 * t.size, 0), p0[None]])
+        pol = np.concatenate([[1], np.ones(t.size), -np.ones(t.size), [-1]])
+        spd = np.concatenate([[0.3], g.uniform(0.1, 0.5, t.size), g.uniform(0.05, 0.2, t.size), [0.15]])
+        return _touch_list(scene, times, pts, pol, spd, np.arange(times.size))
+
+    scene, det, outs, trace, events, n_em = _custom_trial(seed, spec, build, config, pipeline)
+    out = {"seed": int(seed), "duration_s": duration_s, "distance_m": d, "tap_rate_hz": rate,
+           "medium": medium, "pipeline": pipeline, "n_emissions": n_em, "n_events": len(events),
+           "state_mid": int(_state_at(trace, int(duration_s / 2 * _NS))), "state_end": int(det.state.state)}
+    out.update(_alarm_summary(outs))
+    return out
+
+
+def cycles_trial(seed: int, config: SlipConfig | None = None, *, pipeline: str = "triggered",
+                 duration_s: float = 3.0) -> dict:
+    """Touch-release cycles: touches held 20 .. 500 ms, 10 .. 300 ms apart, each within
+    3 mm of the previous one (a finger pressing and lifting over one area): false alarms."""
+    rng = np.random.default_rng([7022, int(seed)])
+    medium = "silicone" if rng.uniform() < 0.5 else "water_skin"
+    spec = {"generator": "single_touch", "duration_s": duration_s, "seed": int(seed) + 7000,
+            "sensor": {"medium": medium}, "effects": {"attenuation": medium == "silicone"},
+            "noise": {"snr_db": float(rng.uniform(25, 35))}}
+
+    def build(scene, g):
+        geo = scene.config.geometry
+        times, pts, pol, spd = [], [], [], []
+        t = 0.01
+        x, y = _cap_xy(g, 5e-3)
+        while True:
+            hold = g.uniform(0.02, 0.5)
+            if t + hold > duration_s - 0.01:
+                break
+            p = geo.surface_point_from_xy(x, y)
+            times += [t, t + hold]
+            pts += [p, p]
+            pol += [1, -1]
+            spd += [g.uniform(0.1, 0.5), g.uniform(0.05, 0.2)]
+            t += hold + g.uniform(0.01, 0.3)
+            r, a = g.uniform(0, 3e-3), g.uniform(0, 2 * math.pi)
+            x, y = x + r * math.cos(a), y + r * math.sin(a)
+            if math.hypot(x, y) > 7e-3:
+                x, y = 0.5 * x, 0.5 * y
+        return _touch_list(scene, times, np.array(pts), np.array(pol), np.array(spd), np.arange(len(times)))
+
+    scene, det, outs, trace, events, n_em = _custom_trial(seed, spec, build, config, pipeline)
+    out = {"seed": int(seed), "duration_s": duration_s, "medium": medium, "pipeline": pipeline,
+           "n_emissions": n_em, "n_events": len(events), "state_end": int(det.state.state)}
+    out.update(_alarm_summary(outs))
+    return out
+
+
+def stylus_trial(seed: int, config: SlipConfig | None = None, *, pipeline: str = "triggered",
+                 jitter: tuple = (0.0, 0.2), period_m: tuple = (0.2e-3, 0.6e-3)) -> dict:
+    """A stylus dragged over the tip (the stylus scene): one tracked contact, TEXTURE with
+    the spatial period from the tracked speed (no sliding speed given), its error, the
+    time to the first TEXTURE, the number of contacts the emissions were split into."""
+    rng = np.random.default_rng([7023, int(seed)])
+    v = float(math.exp(rng.uniform(math.log(0.005), math.log(0.05))))
+    lam = float(math.exp(rng.uniform(math.log(period_m[0]), math.log(period_m[1]))))
+    jit = float(rng.uniform(*jitter))
+    path = float(min(14e-3, max(8e-3, 40 * lam)))
+    heading = float(rng.uniform(0, 360))
+    h = math.radians(heading)
+    x0, y0 = -0.5 * path * math.cos(h), -0.5 * path * math.sin(h)
+    medium = "silicone" if rng.uniform() < 0.5 else "water_skin"
+    dur = 0.01 + path / v + 0.1
+    spec = {"generator": "stylus", "duration_s": dur, "seed": int(seed) + 8000,
+            "sensor": {"medium": medium}, "effects": {"attenuation": medium == "silicone"},
+            "noise": {"snr_db": float(rng.uniform(25, 35))},
+            "params": {"x_m": x0, "y_m": y0, "heading_deg": heading, "slide_speed_m_s": v, "period_m": lam,
+                       "path_m": path, "jitter_fraction": jit,
+                       "contact_radius_m": float(rng.uniform(0.1e-3, 0.4e-3)),
+                       "polarity": str(rng.choice(["random", "compression", "rarefaction"]))}}
+    scene = load_scene(spec)
+    end_ns = int(round(dur * _NS))
+    events, n_em = _events(scene, None, end_ns, pipeline)
+    det, outs, trace = run_detector(events, config, end_ns)
+    truth = scene.process.scene_truth()
+    tex = [o for o in outs if o.kind == SlipEventType.TEXTURE]
+    lam_est = np.array([o.spatial_period_m for o in tex])
+    first = tex[0] if tex else None
+    ids = {o.contact_id for o in outs}
+    from ae_tactile.sim.generators import stylus_track
+    dir_err = []
+    for o in outs:
+        if o.kind in (SlipEventType.SLIP, SlipEventType.TEXTURE) and np.all(np.isfinite(o.slip_direction)):
+            _, vel = stylus_track(truth, scene.config.geometry.radius_m, [o.time_ns])
+            u = vel[0] / np.linalg.norm(vel[0])
+            dir_err.append(math.degrees(math.acos(float(np.clip(o.slip_direction @ u, -1, 1)))))
+    return {"seed": int(seed), "slide_speed_m_s": v, "period_m": lam, "jitter_fraction": jit, "path_m": path,
+            "polarity": spec["params"]["polarity"], "n_emissions": n_em, "n_events": len(events),
+            "n_contacts_reporting": len(ids), "n_texture": len(tex),
+            "texture_delay_ms": None if first is None else (first.time_ns - truth["start_time_ns"]) / 1e6,
+            "rel_error_first": None if first is None else float(first.spatial_period_m / lam - 1.0),
+            "rel_error_median": None if not tex else float(np.nanmedian(lam_est) / lam - 1.0),
+            "rel_error_max": None if not tex else float(np.nanmax(np.abs(lam_est / lam - 1.0))),
+            "direction_error_deg_median": None if not dir_err else float(np.median(dir_err)),
+            "n_precursor": sum(o.kind == SlipEventType.SLIP_PRECURSOR for o in outs)}
+
+
+def interference_trial(seed: int, config: SlipConfig | None = None, *, discriminate: bool = True,
+                       duration_s: float = 1.0) -> dict:
+    """A held touch under common-mode interference bursts (1 Hz .. 10 kHz, every waveform,
+    ADC coupling; 'input' coupling with wall echoes) through the waveform pipeline:
+    acoustic packets + `InterferenceSource` packets -> (``discriminate``:
+    `common_mode_interference`) -> localize -> detector. Counts: interference packets,
+    rejected, localized (phantom events), contacts and false alarms; the held touch kept."""
+    from ae_tactile.dsp.interference import common_mode_interference
+    from ae_tactile.sim.interference import InterferenceSource
+    rng = np.random.default_rng([7024, int(seed)])
+    medium = "silicone" if rng.uniform() < 0.5 else "water_skin"
+    fs = float(rng.choice([2e6, 5e6, 10e6]))
+    rate = float(math.exp(rng.uniform(math.log(1.0), math.log(1e4))))
+    coupling = "input" if rng.uniform() < 0.25 else "adc"
+    reflections = coupling == "input"
+    x, y = _cap_xy(rng)
+    spec = {"generator": "interference", "duration_s": duration_s, "seed": int(seed) + 9000,
+            "sensor": {"medium": medium, "sample_rate_hz": fs},
+            "effects": {"attenuation": medium == "silicone", "reflections": reflections},
+            "noise": {"snr_db": float(rng.uniform(20, 40))},
+            "params": {"rate_hz": rate, "periodic": bool(rng.uniform() < 0.7), "jitter_s": 0.0,
+                       "kind": "mixed", "coupling": coupling, "amplitude_snr_db": float(rng.uniform(25, 45)),
+                       "x_m": x, "y_m": y, "touch_time_s": 0.005, "hold_s": duration_s - 0.05}}
+    scene = load_scene(spec)
+    geo = scene.config.geometry
+    end_ns = int(round(duration_s * _NS))
+    pk = scene.triggered_source().next_packets(1 << 30, horizon_ns=end_ns)
+    t_if, ip = InterferenceSource(scene).next_packets(end_ns)
+    n_if = int(t_if.size)
+    kw = dict(noise_rms_v=scene.noise_rms_v, geometry=geo, lowpass_hz=scene.config.lowpass_hz,
+              echo_min=0.25 if reflections else None)
+    events = localized_events(pk, geo)
+    kept_acoustic = len(events)
+    n_rej = 0
+    if discriminate and len(pk.emissions):
+        m_ac, _ = common_mode_interference(pk.samples_v, fs, pk.onset_index, **kw)
+        drop = set(np.flatnonzero(m_ac).tolist())
+        events = [e for e in events if e.packet_id not in drop]
+        kept_acoustic = len(events)
+    phantom = []
+    if n_if:
+        mask = np.zeros(n_if, bool)
+        if discriminate:
+            mask, _ = common_mode_interference(ip.samples_v, fs, ip.onset_index, **kw)
+            n_rej = int(mask.sum())
+        keep = np.flatnonzero(~mask)
+        if keep.size:
+            res = localize(ip.samples_v[keep], fs, ip.onset_index[keep], geometry=geo)
+            travel = np.round(geo.arrival_times_s(res.point_m).min(axis=1) * 1e9).astype(np.int64)
+            for j in np.flatnonzero(res.accepted):
+                i = keep[j]
+                onset_ns = int(t_if[i]) + int(round(1e9 / fs))
+                phantom.append(LocalizedEvent(onset_ns - int(travel[j]), res.point_m[j], res.covariance_m2[j],
+                                              int(res.polarity[j]), float(res.amplitude_v[j]),
+                                              float(res.confidence[j]), 1_000_000 + int(i)))
+    allev = sorted(events + phantom, key=lambda e: e.time_ns)
+    det, outs, trace = run_detector(allev, config, end_ns, tick_ns=int(0.01 * _NS))
+    out = {"seed": int(seed), "duration_s": duration_s, "medium": medium, "sample_rate_hz": fs, "rate_hz": rate,
+           "coupling": coupling, "discriminate": discriminate, "n_interference": n_if, "n_rejected": n_rej,
+           "n_phantom_events": len(phantom), "n_acoustic_packets": int(len(pk.emissions)),
+           "n_acoustic_kept": kept_acoustic, "contacts_created": int(det.counts["contacts_created"]),
+           "state_mid": int(_state_at(trace, end_ns // 2))}
     out.update(_alarm_summary(outs))
     return out
 
