@@ -413,9 +413,9 @@ def replay(path, *, method: str = "ml", packet_topic: str | None = None, slip_co
 def _localize(loc, items, fs, geometry, gains, out):
     """Localize a group of packets; if the estimator raises, each packet on its own."""
     def run(group):
-        return loc(np.stack([x for _, x in group]), fs, np.array([int(p.onset_index) for p, _ in group]),
-                   geometry=geometry, channel_gains=gains,
-                   saturated=np.array([bool(p.saturated) for p, _ in group]))
+        onsets = np.array([int(p.onset_index) for p, _ in group])
+        return loc(np.stack([x for _, x in group]), fs, onsets, geometry=geometry,
+                   channel_gains=gains, saturated=np.array([bool(p.saturated) for p, _ in group]))
     try:
         return [(items, run(items))]
     except Exception:                               # noqa: BLE001

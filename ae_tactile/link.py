@@ -312,7 +312,8 @@ class FingertipLink:
         if data:
             self._last_byte_mono = now_mono
             self._handle_frames(self.decoder.feed(data))
-        elif self.decoder.pending_bytes and now_mono - self._last_byte_mono > self.config.idle_flush_s:
+        elif (self.decoder.pending_bytes
+              and now_mono - self._last_byte_mono > self.config.idle_flush_s):
             self.counters["idle_flushes"] += 1     # a frame cut short, then silence
             self._handle_frames(self.decoder.flush())
         if self._serial is not None and \

@@ -221,7 +221,8 @@ class VirtualFingertip:
         result, value = AckResult.OK, 0
         op = cmd.opcode
         if op == Opcode.START:
-            running = {AcqMode.TRIGGERED: DeviceState.TRIGGERED, AcqMode.STREAM: DeviceState.STREAMING}
+            running = {AcqMode.TRIGGERED: DeviceState.TRIGGERED,
+                       AcqMode.STREAM: DeviceState.STREAMING}
             if self.state != running[cmd.mode]:      # START in the running mode: idempotent
                 self._start(cmd.mode, now_ns)
             value = int(cmd.mode)

@@ -38,8 +38,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from ae_tactile.protocol import (MAX_PAYLOAD_LEN, SYNC, DeviceState, FrameEncoder,  # noqa: E402
-                                 Packet, Status, StreamDecoder)
+from ae_tactile.protocol import (  # noqa: E402
+    MAX_PAYLOAD_LEN,
+    SYNC,
+    DeviceState,
+    FrameEncoder,
+    Packet,
+    Status,
+    StreamDecoder,
+)
 
 
 def make_frames(n_packets: int, n_samples: int, seed: int = 1) -> list[bytes]:
@@ -217,8 +224,12 @@ def bench_faults(trials: int, out: Path) -> dict:
     import yaml
 
     from ae_tactile.link import FingertipLink, LinkConfig
-    from ae_tactile.virtual_device import (DeviceRunner, PtyTransport, TcpTransport,
-                                           VirtualFingertip)
+    from ae_tactile.virtual_device import (
+        DeviceRunner,
+        PtyTransport,
+        TcpTransport,
+        VirtualFingertip,
+    )
     root = Path(__file__).resolve().parents[1]
     with open(root / "config" / "scenes" / "random_touches.yaml") as fh:
         scene = dict(yaml.safe_load(fh), duration_s=12.0, name="long")
@@ -237,7 +248,8 @@ def bench_faults(trials: int, out: Path) -> dict:
             for b in link.poll():
                 records.extend(b.packets)
         # configured and acquiring: the first packet is in
-        assert _wait(lambda: link.stats()["state"] == "connected" and records, 30, poll) is not None
+        ready = _wait(lambda: link.stats()["state"] == "connected" and records, 30, poll)
+        assert ready is not None
         _wait(lambda: False, 0.3, poll)
         return dev, runner, link, records, poll
 
@@ -252,62 +264,66 @@ def bench_faults(trials: int, out: Path) -> dict:
         dt = _wait(cond, timeout_s, poll)
         return None if dt is None else time.monotonic() - t0
 
-    for _ in range(trials):
-        with tempfile.TemporaryDirectory() as tmp:
-            dev, runner, link, records, poll = rig(tmp)
-            # 1. watchdog reset mid-frame (8192-sample PACKET cut in half), port open
-            n0 = len(records)
-            d0 = link.stats()["disconnects"]
+    def one_trial() -> None:
+            with tempfile.TemporaryDirectory() as tmp:
+                dev, runner, link, records, poll = rig(tmp)
+                # 1. watchdog reset mid-frame (8192-sample PACKET cut in half), port open
+                n0 = len(records)
+                d0 = link.stats()["disconnects"]
+                t0 = time.monotonic()
+                runner.call(dev.reset_mid_frame, time.monotonic_ns())
+                add("reset_mid_frame", "boot_frame_delivered_s",
+                    since(t0, lambda: link.stats()["device_restarts_handled"] >= 1, 30, poll))
+                add("reset_mid_frame", "first_packet_s",
+                    since(t0, lambda: len(records) > n0, 30, poll))
+                s = link.stats()
+                add("reset_mid_frame", "disconnects", s["disconnects"] - d0)
+                add("reset_mid_frame", "truncated_frames", s["truncated_frames"])
+                # 2. repeated frames
+                runner.call(dev.repeat_next, 5)
+                _wait(lambda: link.stats()["duplicate_frames"] >= 5, 30, poll)
+                s = link.stats()
+                add("repeated_frames", "duplicates", s["duplicate_frames"])
+                add("repeated_frames", "restarts_handled_extra", s["device_restarts_handled"] - 1)
+                # 3. garbage only (wrong baud rate)
+                t0 = time.monotonic()
+                dev.garble(True)
+                add("garbage_only", "not_connected_after_s",
+                    since(t0, lambda: link.stats()["state"] != "connected", 30, poll))
+                _wait(lambda: False, 1.0, poll)
+                dev.garble(False)
+                n0 = len(records)
+                t0 = time.monotonic()
+                add("garbage_only", "connected_again_s",
+                    since(t0, lambda: link.stats()["state"] == "connected", 30, poll))
+                add("garbage_only", "first_packet_again_s",
+                    since(t0, lambda: len(records) > n0, 30, poll))
+                # 4. unplug for 1 s
+                c0 = link.stats()["connects"]
+                runner.unplug(1.0)
+                t0 = time.monotonic()
+                add("unplug_1s", "not_connected_after_s",
+                    since(t0, lambda: link.stats()["state"] != "connected", 30, poll))
+                add("unplug_1s", "connected_again_after_unplug_s",
+                    since(t0, lambda: link.stats()["connects"] > c0
+                          and link.stats()["state"] == "connected", 30, poll))
+                close(runner, link)
+            # 5. a stuck TCP client next to the driver
+            tr = TcpTransport(idle_timeout_s=5.0, client_sndbuf=4096)
+            import socket
+            stuck = socket.create_connection((tr.host, int(tr.port.rsplit(":", 1)[1])))
+            stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            dev, runner, link, records, poll = rig(None, transport=tr)
+            runner.call(dev.inject_garbage, bytes(300_000))
             t0 = time.monotonic()
-            runner.call(dev.reset_mid_frame, time.monotonic_ns())
-            add("reset_mid_frame", "boot_frame_delivered_s",
-                since(t0, lambda: link.stats()["device_restarts_handled"] >= 1, 30, poll))
-            add("reset_mid_frame", "first_packet_s",
-                since(t0, lambda: len(records) > n0, 30, poll))
-            s = link.stats()
-            add("reset_mid_frame", "disconnects", s["disconnects"] - d0)
-            add("reset_mid_frame", "truncated_frames", s["truncated_frames"])
-            # 2. repeated frames
-            runner.call(dev.repeat_next, 5)
-            _wait(lambda: link.stats()["duplicate_frames"] >= 5, 30, poll)
-            s = link.stats()
-            add("repeated_frames", "duplicates", s["duplicate_frames"])
-            add("repeated_frames", "restarts_handled_extra", s["device_restarts_handled"] - 1)
-            # 3. garbage only (wrong baud rate)
-            t0 = time.monotonic()
-            dev.garble(True)
-            add("garbage_only", "not_connected_after_s",
-                since(t0, lambda: link.stats()["state"] != "connected", 30, poll))
-            _wait(lambda: False, 1.0, poll)
-            dev.garble(False)
-            n0 = len(records)
-            t0 = time.monotonic()
-            add("garbage_only", "connected_again_s",
-                since(t0, lambda: link.stats()["state"] == "connected", 30, poll))
-            add("garbage_only", "first_packet_again_s",
-                since(t0, lambda: len(records) > n0, 30, poll))
-            # 4. unplug for 1 s
-            c0 = link.stats()["connects"]
-            runner.unplug(1.0)
-            t0 = time.monotonic()
-            add("unplug_1s", "not_connected_after_s",
-                since(t0, lambda: link.stats()["state"] != "connected", 30, poll))
-            add("unplug_1s", "connected_again_after_unplug_s",
-                since(t0, lambda: link.stats()["connects"] > c0
-                      and link.stats()["state"] == "connected", 30, poll))
+            add("stuck_tcp_client", "dropped_after_s",
+                since(t0, lambda: tr.timed_out >= 1, 60, poll))
+            add("stuck_tcp_client", "driver_disconnects", link.stats()["disconnects"])
             close(runner, link)
-        # 5. a stuck TCP client next to the driver
-        tr = TcpTransport(idle_timeout_s=5.0, client_sndbuf=4096)
-        import socket
-        stuck = socket.create_connection((tr.host, int(tr.port.rsplit(":", 1)[1])))
-        stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-        dev, runner, link, records, poll = rig(None, transport=tr)
-        runner.call(dev.inject_garbage, bytes(300_000))
-        t0 = time.monotonic()
-        add("stuck_tcp_client", "dropped_after_s", since(t0, lambda: tr.timed_out >= 1, 60, poll))
-        add("stuck_tcp_client", "driver_disconnects", link.stats()["disconnects"])
-        close(runner, link)
-        stuck.close()
+            stuck.close()
+
+    for _ in range(trials):
+        one_trial()
     summary = {}
     for name, d in res.items():
         if isinstance(d, dict):

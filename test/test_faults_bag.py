@@ -6,11 +6,13 @@ import shutil
 import numpy as np
 import pytest
 
-pytest.importorskip("rosbags", reason="rosbags is installed by `make test` (tools/requirements.txt)")
+pytest.importorskip("rosbags",
+                    reason="rosbags is installed by `make test` (tools/requirements.txt)")
+
+from test_bag_replay import write_packet_bag  # noqa: E402
 
 from ae_tactile.bagtools import main as replay_main  # noqa: E402
 from ae_tactile.bagtools import replay, typestore  # noqa: E402
-from test_bag_replay import write_packet_bag  # noqa: E402
 
 FILES = {"sqlite3": "*.db3", "mcap": "*.mcap"}
 
@@ -97,6 +99,7 @@ def test_bag_of_other_types_only_is_skipped_with_a_count(tmp_path, capsys):
 def write_bad_packet_bag(path):
     """6 good packets (from write_packet_bag's simulation) and 5 bad ones, one per defect."""
     from rosbags.rosbag2 import Writer
+
     from ae_tactile.geometry import FingertipGeometry
     from ae_tactile.sim import SimConfig, render_triggered
     store = typestore()

@@ -11,7 +11,14 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from ae_tactile.protocol import (
-    MAX_FRAME_LEN, MAX_PAYLOAD_LEN, SYNC, FrameEncoder, Packet, Reason, Status, DeviceState,
+    MAX_FRAME_LEN,
+    MAX_PAYLOAD_LEN,
+    SYNC,
+    DeviceState,
+    FrameEncoder,
+    Packet,
+    Reason,
+    Status,
     StreamDecoder,
 )
 
@@ -96,7 +103,8 @@ def test_frame_cut_by_a_device_reset_does_not_hold_back_the_next_frames(data):
     big = FrameEncoder(77, False).encode(Packet(np.ones((4, 8192), np.int16), 10_000_000, 1e-6), 5)
     cut = big[:data.draw(st.integers(24, len(big) - 1))]          # header complete: a candidate
     boot = FrameEncoder(0, True)
-    after = [boot.encode(status(1500), 1500)] + [boot.encode(packet(k), 2000 + k) for k in range(4)]
+    after = [boot.encode(status(1500), 1500)]
+    after += [boot.encode(packet(k), 2000 + k) for k in range(4)]
     stream = cut + b"".join(after)
     chunks = data.draw(st.lists(st.integers(1, 5000), min_size=1, max_size=20))
     dec = StreamDecoder()

@@ -13,11 +13,11 @@ import time
 import numpy as np
 import pytest
 import yaml
+from test_hardware_link import SCENE, Rig
 
 from ae_tactile.link import FingertipLink, LinkConfig
 from ae_tactile.protocol import MAX_FRAME_LEN, Packet
-from ae_tactile.virtual_device import DeviceRunner, PtyTransport, TcpTransport, VirtualFingertip
-from test_hardware_link import SCENE, Rig
+from ae_tactile.virtual_device import PtyTransport, TcpTransport
 
 LONG = dict(yaml.safe_load(open(SCENE)), duration_s=8.0, name="long_random_touches")
 
@@ -246,7 +246,7 @@ def test_hostile_but_crc_valid_frames_never_stop_the_link(tmp_path):
     """Frames that pass every protocol check but carry extreme values (1 Hz sample rate,
     1-sample packets, a STREAM block in triggered mode, ACKs nobody asked for, clock
     jumps): each is used or counted, the reader never stops, packets keep flowing."""
-    from ae_tactile.protocol import Ack, AckResult, Opcode, StreamBlock
+    from ae_tactile.protocol import Ack, AckResult, StreamBlock
     with Rig(PtyTransport(str(tmp_path / "fingertip")), scene=LONG) as rig:
         rig.wait_connected()
         rig.run(0.3)

@@ -122,7 +122,8 @@ def test_unplug_for_one_second_reconnects_and_resumes(tmp_path):
         assert before <= n_sent          # those in flight at the unplug are lost with it
         rig.run(20.0, until=lambda: rig.link.stats()["state"] != "connected")
         assert rig.link.stats()["state"] != "connected"
-        rig.run(30.0, until=lambda: rig.link.stats()["connects"] == 2 and len(rig.records) > before + 3)
+        rig.run(30.0, until=lambda: rig.link.stats()["connects"] == 2
+                and len(rig.records) > before + 3)
         s = rig.link.stats()
         assert s["disconnects"] == 1 and s["connects"] == 2 and s["state"] == "connected"
         assert rig.device.boots == 1                        # re-plug rebooted the device
