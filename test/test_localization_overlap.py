@@ -291,6 +291,32 @@ def test_pulse_mismatch_is_rejected_not_guessed():
             assert np.linalg.norm(t - s.point_m, axis=1).min() < 6 * s.sigma_m + 50e-6
 
 
+def test_lossy_medium_needs_and_takes_its_loss_in_the_model():
+    # Silicone with attenuation: each path's pulse depends on its length. With the medium's
+    # loss in the model (PulseModel.from_config) the pairs resolve; without it they are
+    # rejected by the residual test, never reported wrong.
+    cfg = SimConfig.for_medium("silicone", reflections=True, attenuation=True)
+    rng = np.random.default_rng(14)
+    d = simulate_overlaps(
+        16, cfg, separation_s=rng.uniform(2e-6, 10e-6, 16), amplitude_ratio=2, snr_db=25, rng=rng
+    )
+    lossy = PulseModel.from_config(cfg)
+    assert lossy.attenuation_db_per_m_at_1mhz == pytest.approx(200.0)
+    b = joint_crlb(
+        d["clean_v"], FS, d["onset_index"], d["points_m"], d["emission_time_s"],
+        d["noise_rms_v"] ** 2, geometry=cfg.geometry, pulse=lossy,
+    )
+    assert b["model_mismatch"].max() < 1e-5
+    ok = [
+        r.accepted and len(r.sources) == 2 and np.all(per_truth_errors(t, r.sources) <= 0.1e-3)
+        for r, t in zip(run(d, cfg, pulse=lossy), d["points_m"])
+    ]
+    assert np.mean(ok) >= 0.85
+    for r, t in zip(run(d, cfg), d["points_m"]):
+        for s in r.sources if r.accepted else []:
+            assert np.linalg.norm(t - s.point_m, axis=1).min() < 6 * s.sigma_m + 50e-6
+
+
 def test_input_problems_are_rejections_with_reasons():
     rng = np.random.default_rng(9)
     d = simulate_overlaps(6, WATER, separation_s=4e-6, snr_db=25, rng=rng)

@@ -99,6 +99,11 @@ class PulseModel:
     (``lowpass_hz``, order ``lowpass_order``; None: no low-pass). h(t) = sum_p r_p e^{p t}
     for t >= 0 (simple poles), 0 before, scaled to a peak of +1 (a touch starts positive).
     Parameters of the product's front end, not of any simulator.
+
+    ``attenuation_db_per_m_at_1mhz`` > 0: a lossy medium, loss att l (f / 1 MHz)^2 dB over
+    a path of length l, realised as one real pole per path, W_l(s) = w_a / (s + w_a) with
+    10 log10(1 + (1 MHz / f_a)^2) = att l (the causal viscous law of docs/simulator.md):
+    every arrival's pulse then depends on its path length.
     """
 
     highpass_hz: float = 100e3
@@ -106,16 +111,26 @@ class PulseModel:
     lowpass_hz: float | None = 1e6
     lowpass_order: int = 4
     alpha_1_s: float = 3000.0
+    attenuation_db_per_m_at_1mhz: float = 0.0
 
     @classmethod
     def from_config(cls, config) -> "PulseModel":
-        """From any object with the front-end attributes of ``ae_tactile.sim.SimConfig``."""
+        """From any object with the front-end attributes of ``ae_tactile.sim.SimConfig``
+        (and its medium loss when its ``attenuation`` is on)."""
+        att = float(getattr(config, "attenuation_db_per_m", 0.0) or 0.0)
         return cls(
             float(config.highpass_hz),
             int(config.highpass_order),
             None if config.lowpass_hz is None else float(config.lowpass_hz),
             int(config.lowpass_order),
+            attenuation_db_per_m_at_1mhz=att,
         )
+
+    def attenuation_pole_rad_s(self, path_m):
+        """w_a (rad/s) of paths of length ``path_m`` (inf when lossless)."""
+        loss_db = np.asarray(path_m, float) * float(self.attenuation_db_per_m_at_1mhz)
+        x = np.expm1(loss_db * (math.log(10.0) / 10.0))
+        return np.where(x > 0, 2.0 * math.pi * 1e6 / np.sqrt(np.where(x > 0, x, 1.0)), np.inf)
 
     def poles_residues(self):
         """(poles (P,) complex, residues (P,) complex) of h, peak-normalised (cached)."""
@@ -275,6 +290,7 @@ class _Model:
         self.start = start.astype(float)  # (K,) first sample of each segment
         self.L = int(length)
         self.tab = _tables(pulse, fs, self.L)
+        self.pulse = pulse
         self.echo = echo
         self.e = geo.element_positions_m  # (4, 3)
         self.c = geo.sound_speed_m_s
@@ -298,24 +314,39 @@ class _Model:
             out_g.append(np.stack([gx, gy], axis=-1))
         return np.stack(out_d, axis=2), np.stack(out_g, axis=2)
 
-    def pulses(self, t_arr):
+    def pulses(self, t_arr, path_m=None):
         """h and h' on the segment grid for arrivals t_arr (K, A) (s, window time).
 
         h(t_n - t_a) = Re sum_p [r_p e^{p (t_0 - t_a)}] e^{p n dt} for n >= n0 (first sample
         at/after the arrival), 0 before: one real matrix product with the exponential
-        table, no per-sample exponentials. Returns (h, dh) (K, A, L)."""
+        table, no per-sample exponentials. In a lossy medium (``path_m`` (K, A) given) each
+        residue is multiplied by W(p) = w_a / (p + w_a) and the term w_a H(-w_a) e^{-w_a t}
+        of the attenuation pole is added. Returns (h, dh) (K, A, L)."""
         K, A = t_arr.shape
         fs, L = self.fs, self.L
         p, r = self.tab.poles, self.tab.res
         off = self.start[:, None] / fs - t_arr  # t_0 - t_a
         n0 = np.ceil(-off * fs - 1e-9)
-        c = r * np.exp(p * off[..., None])  # (K, A, P)
+        lossy = path_m is not None and self.pulse.attenuation_db_per_m_at_1mhz > 0
+        if lossy:
+            wa = self.pulse.attenuation_pole_rad_s(path_m)  # (K, A)
+            wa = np.where(np.isfinite(wa), wa, 1e15)
+            c = r * (wa[..., None] / (p + wa[..., None])) * np.exp(p * off[..., None])
+        else:
+            c = r * np.exp(p * off[..., None])  # (K, A, P)
         cd = c * p
         coef = np.stack(
             [np.concatenate([c.real, -c.imag], -1), np.concatenate([cd.real, -cd.imag], -1)],
             axis=2,
         )  # (K, A, 2, 2P)
         vals = (coef.reshape(K * A * 2, -1) @ self.tab.table).reshape(K, A, 2, L)
+        if lossy:
+            # residue of H(s) W(s) at s = -w_a: w_a H(-w_a), H(s) = sum_p r_p / (s - p)
+            ca = wa * (r / (-wa[..., None] - p)).sum(axis=-1).real  # (K, A)
+            tau = np.arange(L) / fs + off[..., None]  # t_n - t_a (K, A, L)
+            e = ca[..., None] * np.exp(-wa[..., None] * np.maximum(tau, 0.0))
+            vals[:, :, 0] += e
+            vals[:, :, 1] -= wa[..., None] * e
         vals *= (np.arange(L) >= n0[..., None])[:, :, None, :]
         return vals[:, :, 0], vals[:, :, 1]
 
@@ -326,7 +357,7 @@ class _Model:
         L = self.L
         d, dd = self._paths(theta[..., :2])  # (K,J,2,4), (K,J,2,4,2)
         t_arr = theta[..., 2][..., None, None] + d / self.c  # (K, J, 2, 4)
-        h, dh = self.pulses(t_arr.reshape(K, -1))
+        h, dh = self.pulses(t_arr.reshape(K, -1), d.reshape(K, -1))
         h = h.reshape(K, J, 2, 4, L)
         dh = dh.reshape(K, J, 2, 4, L)
         gain = np.ones((K, J, 2, 4))
@@ -1231,7 +1262,7 @@ def calibrate_pulse(
     Each packet is localized by `localize` (ml); the objective is the summed residual of
     the one-emission model (3 LM steps from that point) over the accepted packets,
     minimised over (log f_hp, log f_lp) by Nelder-Mead from ``initial``.
-    Returns the fitted `PulseModel` (orders and alpha as in ``initial``)."""
+    Returns the fitted `PulseModel` (orders, alpha and medium loss as in ``initial``)."""
     from scipy.optimize import minimize
 
     from ae_tactile.localization import localize
@@ -1258,6 +1289,7 @@ def calibrate_pulse(
             None if lp0 is None else float(np.exp(v[1])),
             init.lowpass_order,
             init.alpha_1_s,
+            init.attenuation_db_per_m_at_1mhz,
         )
 
     def objective(v):
