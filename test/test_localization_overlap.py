@@ -303,8 +303,14 @@ def test_lossy_medium_needs_and_takes_its_loss_in_the_model():
     lossy = PulseModel.from_config(cfg)
     assert lossy.attenuation_db_per_m_at_1mhz == pytest.approx(200.0)
     b = joint_crlb(
-        d["clean_v"], FS, d["onset_index"], d["points_m"], d["emission_time_s"],
-        d["noise_rms_v"] ** 2, geometry=cfg.geometry, pulse=lossy,
+        d["clean_v"],
+        FS,
+        d["onset_index"],
+        d["points_m"],
+        d["emission_time_s"],
+        d["noise_rms_v"] ** 2,
+        geometry=cfg.geometry,
+        pulse=lossy,
     )
     assert b["model_mismatch"].max() < 1e-5
     ok = [
