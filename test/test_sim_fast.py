@@ -133,3 +133,26 @@ def test_without_numba_the_numpy_engine_serves_the_same_packets():
         10, horizon_ns=int(sc.duration_s * 1e9))
     assert len(here) == 3
     assert res.stdout[1:] == here.samples_v.tobytes()
+
+
+def test_window_before_sample_zero():
+    """An emission at t = 0: its window starts before the scene's first sample. Noise
+    blocks before sample 0 have their own seeds; fast path = reference = the stream."""
+    spec = {"generator": "single_touch", "duration_s": 0.002, "noise": {"snr_db": 30.0},
+            "params": {"time_s": 0.0}}
+    got = {}
+    for rp in ("fast", "reference"):
+        sc = load_scene(spec)
+        got[rp] = sc.triggered_source(render_path=rp).next_packets(4, horizon_ns=2_000_000)
+    assert len(got["fast"]) == 1 and got["fast"].start_index[0] < 0
+    assert np.array_equal(got["fast"].samples_v, got["reference"].samples_v)
+    sc = load_scene(spec)
+    r = StreamRenderer(sc.config, noise_rms_v=sc.noise_rms_v, seed=sc.seed)
+    n0 = -40_000                                   # two blocks before sample 0
+    full, _ = r.render(sc.process.advance(3_000_000), n0, 20_000)
+    s = int(got["fast"].start_index[0]) - n0
+    assert np.array_equal(full[:, s:s + 400], got["fast"].samples_v[0])
+    y = np.zeros((4, 1000))
+    r.add_noise_window(y, -500)
+    assert np.array_equal(y, r.noise(-500, 500))
+    assert abs(r.noise(-40_000, 0).std() / sc.noise_rms_v - 1) < 0.02

@@ -255,7 +255,7 @@ class StreamRenderer:
             blk = self._noise_cache.pop(next(iter(self._noise_cache)))   # reuse its memory
         else:
             blk = np.empty((4, self.noise_block), np.float32)
-        bitgen = np.random.PCG64(np.random.SeedSequence([self.seed, 0x5EED, b]))
+        bitgen = np.random.PCG64(self._block_seed(b))
         h = 2 * self.noise_block
         # 2h uniform float32 in [1, 2) from the top 23 bits of each raw 32-bit word
         words = bitgen.random_raw(h).view(np.uint32)
@@ -293,6 +293,13 @@ class StreamRenderer:
             pos += hi - lo
             b += 1
 
+    def _block_seed(self, b: int) -> np.random.SeedSequence:
+        """Seed of noise block b: (seed, 0x5EED, b); blocks before sample 0 (a window that
+        starts before the scene, e.g. around an emission at t = 0) use (seed, 0x5EEE, -b)."""
+        if b >= 0:
+            return np.random.SeedSequence([self.seed, 0x5EED, b])
+        return np.random.SeedSequence([self.seed, 0x5EEE, -b])
+
     def _block_words(self, b: int, ranges) -> np.ndarray:
         """uint32 words [lo, hi) of block b's raw stream, for increasing disjoint ranges of
         equal length, as rows (len(ranges), n): PCG64 jumped ahead (``advance``) instead
@@ -301,7 +308,7 @@ class StreamRenderer:
         if ent is None:
             if len(self._pcg) >= 8:
                 self._pcg.pop(next(iter(self._pcg)))
-            bg = np.random.PCG64(np.random.SeedSequence([self.seed, 0x5EED, b]))
+            bg = np.random.PCG64(self._block_seed(b))
             ent = self._pcg[b] = [bg, 0, bg.state]
         bg, pos = ent[0], ent[1]
         if (ranges[0][0] // 2) < pos:             # behind: restart the block's stream
