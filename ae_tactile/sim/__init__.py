@@ -46,38 +46,43 @@ Streaming (`stream.py`): `EmissionList` (ground truth: time_ns, point_m, kind, s
 strength, event parameters, event_id), `StreamRenderer.render(emissions, n0, n1)` for any
 window of absolute samples (bit-identical to a full render), `StreamingSource.next_chunk(n)`
 (samples (4, n) + the emissions in them), `TriggeredSource.next_packets(n)` (windows cut
-from the stream around each emission).
+from the stream around each emission: the virtual device's path, which renders only the
+window's samples and noise, bit-identical to the stream). Engines: compiled kernels
+(kernels.py, numba; call `kernels.warm_up()` at start-up) or numpy (the reference and the
+fallback without numba).
 
 Scenes (`scene.py`, `generators.py`): `load_scene('config/scenes/x.yaml')` -> `Scene`
 with `.streaming_source()`, `.triggered_source()`, `.truth`; the incipient-slip scene's
-`scene.process.set_normal_load(P, at_time_ns)` changes the grip while it plays.
+`scene.process.set_normal_load(P, at_time_ns)` changes the grip while it plays. A scene
+whose estimated cost (`scene.cost`: emissions, memory, output size) exceeds the budget
+(1 GiB of memory; 16 GiB of output on the command line) is refused with a SceneError.
 CLI: ``python3 -m ae_tactile.sim.cli scene.yaml -o out.npz``. Full description, scene
 keys and benchmark: docs/simulator.md.
 """
 from ae_tactile.sim.config import MEDIUM_PRESETS, Medium, SimConfig
 from ae_tactile.sim.emission import (
-                                     DEFAULT_ALPHA_1_S,
-                                     DEFAULT_CURVATURE_1_M,
-                                     DEFAULT_SPEED_M_S,
-                                     collision_pressure_pa,
-                                     peak_pressure_pa,
-                                     source_strength_pa_m,
+    DEFAULT_ALPHA_1_S,
+    DEFAULT_CURVATURE_1_M,
+    DEFAULT_SPEED_M_S,
+    collision_pressure_pa,
+    peak_pressure_pa,
+    source_strength_pa_m,
 )
 from ae_tactile.sim.frontend import (
-                                     SNR_WINDOW_S,
-                                     noise_rms_for_snr,
-                                     noise_rms_from_density,
-                                     signal_power_v2,
-                                     snr_db_from_noise,
+    SNR_WINDOW_S,
+    noise_rms_for_snr,
+    noise_rms_from_density,
+    signal_power_v2,
+    snr_db_from_noise,
 )
 from ae_tactile.sim.stream import (
-                                     KINDS,
-                                     Chunk,
-                                     EmissionList,
-                                     StreamingSource,
-                                     StreamPackets,
-                                     StreamRenderer,
-                                     TriggeredSource,
+    KINDS,
+    Chunk,
+    EmissionList,
+    StreamingSource,
+    StreamPackets,
+    StreamRenderer,
+    TriggeredSource,
 )
 from ae_tactile.sim.triggered import TriggeredPackets, render_triggered, validate_surface_points
 
