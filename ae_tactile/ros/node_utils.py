@@ -237,37 +237,63 @@ def _fmt_default(value) -> str:
     return str(value)
 
 
-def format_usage(executable: str, doc: str, params: list[Param]) -> str:
-    """Usage text of a node executable: synopsis, description, one entry per parameter."""
+def format_usage(executable: str, doc: str, params) -> str:
+    """Usage text of a node executable: synopsis, description, one entry per parameter;
+    ``params`` is a list of (full name, Param)."""
     lines = [f"usage: ros2 run ae_tactile {executable} [-h] "
              "[--ros-args [-p NAME:=VALUE ...] [--params-file FILE] [-r __ns:=/NS]]", ""]
     if doc:
         lines += [doc.strip(), ""]
     lines.append("parameters (-p NAME:=VALUE, or a --params-file section for this node):")
-    for p in params:
+    for name, p in params:
         rng = ""
         if p.choices:
             rng = "; one of " + ", ".join(map(str, p.choices))
         elif p.lo is not None and p.hi is not None and not isinstance(p.default, bool):
             rng = f"; {_fmt_default(p.lo)} .. {_fmt_default(p.hi)}"
         kind = _ros_type(p.default)
-        lines.append(f"  {p.name} ({kind}, default {_fmt_default(p.default)}{rng})")
+        lines.append(f"  {name} ({kind}, default {_fmt_default(p.default)}{rng})")
         lines.append(f"      {p.description}")
     return "\n".join(lines)
 
 
-def module_params(module, tables=None) -> list[Param]:
-    """Parameters a node module declares: the named tables (a list of Param, or a function
-    returning one), or by default every module-level ``*_PARAMS`` list of Param."""
+def _resolve(module, source):
+    """A parameter table: a list of Param, an attribute name of ``module``, or
+    'package.module:attr'; a callable is called. None when it does not exist."""
+    if isinstance(source, str):
+        mod_name, _, attr = source.rpartition(":")
+        try:
+            owner = importlib.import_module(mod_name) if mod_name else module
+        except ImportError:
+            return None
+        source = getattr(owner, attr, None)
+    if callable(source):
+        source = source()
+    if isinstance(source, (list, tuple)) and all(isinstance(p, Param) for p in source):
+        return list(source)
+    return None
+
+
+def module_params(module, tables=None) -> tuple[list, list[str]]:
+    """([(full name, Param)], [tables not found]) of a node module.
+
+    ``tables``: (prefix, source) pairs (see `_resolve`); default: the module's
+    ``NODE_PARAMETERS`` if it has one, else its own module-level ``*_PARAMS`` lists."""
     if tables is None:
-        tables = [name for name, value in vars(module).items()
-                  if name.endswith("_PARAMS") and isinstance(value, (list, tuple))
-                  and all(isinstance(p, Param) for p in value)]
-    out: list[Param] = []
-    for name in tables:
-        table = getattr(module, name)
-        out.extend(table() if callable(table) else table)
-    return out
+        tables = getattr(module, "NODE_PARAMETERS", None)
+    if tables is None:
+        from ae_tactile.ros import params as shared  # tables shared by several nodes
+        tables = [("", name) for name, value in vars(module).items()
+                  if name.endswith("_PARAMS") and _resolve(module, value) is not None
+                  and value is not getattr(shared, name, None)]
+    out, missing = [], []
+    for prefix, source in tables:
+        table = _resolve(module, source)
+        if table is None:
+            missing.append(source if isinstance(source, str) else repr(source))
+            continue
+        out.extend((prefix + p.name, p) for p in table)
+    return out, missing
 
 
 def split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
@@ -279,7 +305,8 @@ def split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
 
 
 def node_main(module_name: str, tables=None, argv=None) -> int:
-    """Entry point of a node executable.
+    """Entry point of a node executable; ``tables``: (prefix, source) pairs of the node's
+    parameters for ``--help`` (see `module_params`).
 
     ``-h``/``--help`` (before ``--ros-args``) prints the usage with every parameter of the
     node and returns 0 without initialising ROS; any other non-ROS argument is refused
@@ -291,7 +318,14 @@ def node_main(module_name: str, tables=None, argv=None) -> int:
     module = importlib.import_module(module_name)
     if any(a in ("-h", "--help") for a in own):
         doc = (module.__doc__ or "").strip()
-        print(format_usage(executable, doc, module_params(module, tables)))
+        params, missing = module_params(module, tables)
+        if missing:        # the help must work even when a table was renamed
+            fallback, _ = module_params(module)
+            known = {name for name, _ in params}
+            params += [(name, p) for name, p in fallback if name not in known]
+        print(format_usage(executable, doc, params))
+        if missing:
+            print(f"\n(parameter tables not found: {', '.join(missing)})")
         return 0
     if own:
         print(f"{executable}: unrecognized arguments: {' '.join(own)}\n"
