@@ -50,7 +50,8 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ae_tactile.localization import available_methods, default_band_hz, localize  # noqa: E402
+from ae_tactile.localization import (NUMBA_AVAILABLE, Localizer, available_methods,  # noqa: E402
+                                     default_band_hz, localize)
 from ae_tactile.localization.common import make_plan  # noqa: E402
 from ae_tactile.localization.crlb import simulated_crlb  # noqa: E402
 from ae_tactile.sim import SimConfig, render_triggered  # noqa: E402
@@ -58,9 +59,10 @@ from ae_tactile.sim import SimConfig, render_triggered  # noqa: E402
 RESULTS = ROOT / "bench" / "results"
 DOC = ROOT / "docs" / "localization.md"
 BEGIN, END = "<!-- bench:localization:begin -->", "<!-- bench:localization:end -->"
-METHODS = ["ml", "gradient", "gcc_phat", "xcorr_farfield"]
+METHODS = ["ml", "ml_fixed_band", "gradient", "gcc_phat", "xcorr_farfield"]
 BASELINES = ["pra_srp_phat", "pra_music"]
-LABELS = {"ml": "ML exact sphere", "gradient": "gradient (iterated)", "gcc_phat": "GCC-PHAT (band)",
+LABELS = {"ml": "ML exact sphere", "ml_fixed_band": "ML, fixed band",
+          "gradient": "gradient (iterated)", "gcc_phat": "GCC-PHAT (band)",
           "xcorr_farfield": "paper: xcorr + Eq. 2", "pra_srp_phat": "pyroomacoustics SRP-PHAT",
           "pra_music": "pyroomacoustics MUSIC"}
 
@@ -144,31 +146,88 @@ class PraBaseline:
 
 
 # ----------------------------------------------------------------- benchmark
+def _localize(method, x, fs, onset, band, geo, engine=None):
+    """ml: data-driven band (band_hz=None); ml_fixed_band and the other methods: ``band``."""
+    if method == "ml":
+        return localize(x, fs, onset, method="ml", geometry=geo, engine=engine)
+    if method == "ml_fixed_band":
+        return localize(x, fs, onset, method="ml", band_hz=band, geometry=geo, engine=engine)
+    return localize(x, fs, onset, method=method, band_hz=band, geometry=geo)
+
+
+def _timing(label, fs, cfg, geo, P, band, rng, quick):
+    """Time per packet on one core: batched (one call, all packets) and one packet per call
+    (`localize` on a (1, 4, M) batch; for ml also `Localizer.localize_one`, p50 and p99),
+    for ml with the compiled kernel (numba) and the numpy path."""
+    pk = render_triggered(P, cfg, snr_db=20.0, rng=rng)
+    n = len(P)
+    x, on = pk.samples_v, pk.onset_index
+    tm = {}
+    variants = [(m, None) for m in METHODS]
+    if NUMBA_AVAILABLE:
+        variants += [("ml", "numpy")]
+    for m, eng in variants:
+        key = m if eng is None else f"{m}_numpy"
+        _localize(m, x[:64], fs, on[:64], band, geo, eng)               # warm caches / compile
+        best = np.inf
+        for _ in range(3):
+            t0 = time.perf_counter()
+            _localize(m, x, fs, on, band, geo, eng)
+            best = min(best, time.perf_counter() - t0)
+        n1 = 60 if quick or eng == "numpy" or m != "ml" else 300
+        t0 = time.perf_counter()
+        for i in range(n1):
+            _localize(m, x[i: i + 1], fs, on[i: i + 1], band, geo, eng)
+        single = (time.perf_counter() - t0) / n1
+        tm[key] = dict(batched_packets_per_s=n / best, batched_us_per_packet=best / n * 1e6,
+                       single_packets_per_s=1.0 / single, single_us_per_packet=single * 1e6,
+                       batch_size=n, engine=eng or ("numba" if NUMBA_AVAILABLE and m.startswith("ml")
+                                                    else "numpy"))
+    # the hot path: Localizer.localize_one on float32 windows (what the link delivers)
+    for eng in (("numba", "numpy") if NUMBA_AVAILABLE else ("numpy",)):
+        loc = Localizer("ml", engine=eng).warm_up(geo, fs, x.shape[2])
+        x32 = x.astype(np.float32)
+        n1 = min(n, 1000 if eng == "numba" and not quick else 100)
+        dts = np.empty(n1)
+        for i in range(n1):
+            t0 = time.perf_counter()
+            loc.localize_one(x32[i], fs, int(on[i]))
+            dts[i] = time.perf_counter() - t0
+        tm[f"localize_one_{eng}"] = dict(single_us_per_packet=float(np.mean(dts) * 1e6),
+                                         p50_us=float(np.percentile(dts, 50) * 1e6),
+                                         p99_us=float(np.percentile(dts, 99) * 1e6),
+                                         single_packets_per_s=float(1.0 / np.mean(dts)), n=int(n1))
+    return tm
+
+
 def run(quick=False):
     t_start = time.perf_counter()
     snrs = [10.0, 20.0, 30.0, 40.0]
-    # (label, sample rate, SimConfig changes, band): the default 1 MHz front end at 2, 5 and
-    # 10 MS/s, and 2 MS/s behind a matched anti-alias filter (0.6 MHz, 8th order).
-    rates = [("2", 2e6, {}, None), ("2 (0.6 MHz anti-alias)", 2e6, dict(lowpass_hz=0.6e6, lowpass_order=8),
-                                                                        (100e3, 0.7e6)),
-             ("5", 5e6, {}, None), ("10", 10e6, {}, None)]
+    # (label, SimConfig, fixed band of the other methods): the default 1 MHz front end at 2, 5
+    # and 10 MS/s, 2 MS/s behind an anti-alias filter (0.6 MHz, 8th order), the silicone tip.
+    water = SimConfig(reflections=True)
+    sil = SimConfig.for_medium("silicone").replace(reflections=True)
+    rates = [("2", water.replace(sample_rate_hz=2e6), None),
+             ("2 (0.6 MHz anti-alias)", water.replace(sample_rate_hz=2e6, lowpass_hz=0.6e6, lowpass_order=8),
+              (100e3, 0.7e6)),
+             ("5", water.replace(sample_rate_hz=5e6), None), ("10", water, None),
+             ("10 silicone", sil, None)]
     n_points, n_real = (20, 10) if quick else (50, 20)
     pra_points, pra_real = (10, 1) if quick else (20, 2)
     n_pra = pra_points * pra_real
     rng = np.random.default_rng(2024)
-    base_cfg = SimConfig(reflections=True)
-    geo = base_cfg.geometry
-    pts = cap_points(geo, n_points)
-    point_id = np.repeat(np.arange(n_points), n_real)
-    P = pts[point_id]
-    n = len(P)
     # pyroomacoustics: the first pra_real realisations of every (n_points / pra_points)-th point
     pra_idx = np.array([p * n_real + r for p in range(0, n_points, n_points // pra_points) for r in range(pra_real)])
     cells = []
     pra_ok = importlib.util.find_spec("pyroomacoustics") is not None
     timing = {}
-    for label, fs, changes, band in rates:
-        cfg = base_cfg.replace(sample_rate_hz=fs, **changes)
+    for label, cfg, band in rates:
+        geo = cfg.geometry
+        fs = cfg.sample_rate_hz
+        pts = cap_points(geo, n_points)
+        point_id = np.repeat(np.arange(n_points), n_real)
+        P = pts[point_id]
+        n = len(P)
         band = default_band_hz(fs) if band is None else band
         pras = {b: PraBaseline(b, geo, fs, int(round(40e-6 * fs)), band) for b in BASELINES} if pra_ok else {}
         for snr in snrs:
@@ -177,14 +236,14 @@ def run(quick=False):
             bound = simulated_crlb(P, cfg, snr_db=snr, subsample_offset=u)
             bound_n = simulated_crlb(P, cfg, snr_db=snr, subsample_offset=u, include_quantization=False)
             cell = dict(label=label, sample_rate_hz=fs, lowpass_hz=cfg.lowpass_hz, lowpass_order=cfg.lowpass_order,
-                        snr_db=snr, band_hz=list(band), n_packets=n,
+                        sound_speed_m_s=geo.sound_speed_m_s, snr_db=snr, band_hz=list(band), n_packets=n,
                         crlb_rms_mm=float(np.sqrt(np.mean(bound["rms_m"] ** 2)) * 1e3),
                         crlb_unknown_waveform_rms_mm=float(np.sqrt(np.mean(bound["rms_unknown_m"] ** 2)) * 1e3),
                         crlb_noise_only_rms_mm=float(np.sqrt(np.mean(bound_n["rms_m"] ** 2)) * 1e3),
                         methods={})
             for m in METHODS:
                 t0 = time.perf_counter()
-                r = localize(pk.samples_v, fs, pk.onset_index, method=m, band_hz=band)
+                r = _localize(m, pk.samples_v, fs, pk.onset_index, band, geo)
                 dt = time.perf_counter() - t0
                 err = (r.point_m - P)[:, :2]
                 rms, bias = error_stats(err, point_id, r.accepted, n_points)
@@ -210,24 +269,10 @@ def run(quick=False):
                                           nfft=obj.nfft, hop=obj.hop)
             cells.append(cell)
             print(f"fs {label} MS/s  SNR {snr:4.1f} dB  CRLB {cell['crlb_rms_mm'] * 1e3:7.2f} um  " +
-                  "  ".join(f"{k} {v['rms_mm'] * 1e3:7.1f}" for k, v in cell["methods"].items()), flush=True)
-        # Speed: batched (all packets of the 20 dB cell, one call) and one packet per call.
-        pk = render_triggered(P, cfg, snr_db=20.0, rng=rng)
-        tm = {}
-        for m in METHODS:
-            localize(pk.samples_v[:64], fs, pk.onset_index[:64], method=m, band_hz=band)     # warm caches
-            best = np.inf
-            for _ in range(3):
-                t0 = time.perf_counter()
-                localize(pk.samples_v, fs, pk.onset_index, method=m, band_hz=band)
-                best = min(best, time.perf_counter() - t0)
-            n1 = 200 if not quick else 60
-            t0 = time.perf_counter()
-            for i in range(n1):
-                localize(pk.samples_v[i: i + 1], fs, pk.onset_index[i: i + 1], method=m, band_hz=band)
-            single = (time.perf_counter() - t0) / n1
-            tm[m] = dict(batched_packets_per_s=n / best, batched_us_per_packet=best / n * 1e6,
-                         single_packets_per_s=1.0 / single, single_us_per_packet=single * 1e6, batch_size=n)
+                  "  ".join(f"{k} {v['rms_mm'] * 1e3:7.1f}" for k, v in cell["methods"].items()) +
+                  f"  ml {cell['methods']['ml']['ratio_to_crlb']:.2f}x "
+                  f"cal {cell['methods']['ml']['in_1515sigma_ellipse']:.2f}", flush=True)
+        tm = _timing(label, fs, cfg, geo, P, band, rng, quick)
         for b in BASELINES:
             vals = [c["methods"][b]["single_us_per_packet"] for c in cells
                     if c["label"] == label and b in c["methods"]]
@@ -235,29 +280,51 @@ def run(quick=False):
                 t = float(np.median(vals))
                 tm[b] = dict(single_us_per_packet=t, single_packets_per_s=1e6 / t)
         timing[f"{label} MS/s"] = tm
-        print("timing", label, {k: round(v.get("batched_packets_per_s", v["single_packets_per_s"])) for k, v in tm.items()},
-              flush=True)
+        print("timing", label, {k: round(v.get("batched_packets_per_s", v["single_packets_per_s"]))
+                                for k, v in tm.items()}, flush=True)
+    load = os.getloadavg() if hasattr(os, "getloadavg") else None
     out = dict(
         description="ae_tactile localization benchmark (bench/bench_localization.py)",
-        setup=dict(geometry=dict(radius_m=geo.radius_m, element_offset_m=geo.element_offset_m,
-                                 sound_speed_m_s=geo.sound_speed_m_s),
-                   sim="SimConfig(reflections=True), default pulse (v0 0.3 m/s, a_c 1/mm), 1 MHz low-pass, 12-bit ADC",
+        setup=dict(geometry="per cell: the simulator's water-skin tip (R 10 mm, a 1.5 mm, c 1480 m/s) or its "
+                            "silicone preset (c 1000 m/s)",
+                   sim="SimConfig(reflections=True), default pulse (v0 0.3 m/s, a_c 1/mm), 1 MHz low-pass "
+                       "(order 4) unless stated, 12-bit ADC",
                    points=f"{n_points} points uniform over polar <= 60 deg x {n_real} noise realisations",
+                   ml="band_hz=None: each packet's upper band edge from its spectrum (data-driven); "
+                      "ml_fixed_band: the fixed default band (100 kHz, min(1 MHz, fs/4)) or the cell's band",
                    pyroomacoustics_packets_per_cell=n_pra if pra_ok else 0,
                    crlb="known pulse shape, unknown emission time and amplitude, echo-free samples, "
                         "noise sigma_n^2 + LSB^2/12 (crlb_noise_only_rms_mm: sigma_n^2 only)",
                    python=platform.python_version(), numpy=np.__version__, machine=platform.machine(),
-                   quick=quick, methods=available_methods()),
+                   numba=_numba_version(), load_average_at_end=list(load) if load else None,
+                   cpu_count=os.cpu_count(), quick=quick, methods=available_methods()),
         cells=cells, timing=timing, run_time_s=time.perf_counter() - t_start)
     return out
+
+
+def _numba_version():
+    try:
+        import numba
+        return numba.__version__ if NUMBA_AVAILABLE else f"{numba.__version__} (disabled)"
+    except ImportError:
+        return None
+
+
+TIMING_ROWS = [("localize_one_numba", "ML `localize_one`, compiled (float32 window)"),
+               ("localize_one_numpy", "ML `localize_one`, numpy path"),
+               ("ml", "ML (data-driven band), `localize`"), ("ml_numpy", "ML, `localize`, numpy path"),
+               ("ml_fixed_band", "ML, fixed band, `localize`"), ("gradient", "gradient (iterated)"),
+               ("gcc_phat", "GCC-PHAT (band)"), ("xcorr_farfield", "paper: xcorr + Eq. 2"),
+               ("pra_srp_phat", "pyroomacoustics SRP-PHAT"), ("pra_music", "pyroomacoustics MUSIC")]
 
 
 def table_markdown(res):
     lines = []
     ms = [m for m in METHODS + BASELINES if any(m in c["methods"] for c in res["cells"])]
     head = "| fs (MS/s) | SNR (dB) | CRLB (um) | " + " | ".join(LABELS[m] for m in ms) + " |"
-    lines.append("RMS in-plane error / RMS bias in micrometres (polar angle <= 60 deg); ratio to the CRLB "
-                 "in brackets for the best estimator.")
+    lines.append("RMS in-plane error / RMS bias in micrometres (polar angle <= 60 deg); for ML the "
+                 "ratio to the CRLB and the share of errors inside the reported 1.515-sigma ellipse "
+                 "(68 % when the covariance is right) in brackets.")
     lines.append("")
     lines.append(head)
     lines.append("|" + "---|" * (3 + len(ms)))
@@ -269,24 +336,33 @@ def table_markdown(res):
                 row.append("-")
                 continue
             s = f"{v['rms_mm'] * 1e3:.1f} / {v['bias_mm'] * 1e3:.1f}"
-            if m == "ml":
-                s += f" ({v['ratio_to_crlb']:.2f}x)"
+            if m in ("ml", "ml_fixed_band"):
+                s += f" ({v['ratio_to_crlb']:.2f}x, {100 * v['in_1515sigma_ellipse']:.0f} %)"
             if v.get("accepted", 1.0) < 0.995:
                 s += f" [{100 * v['accepted']:.0f}% acc.]"
             row.append(s)
         lines.append("| " + " | ".join(row) + " |")
     lines.append("")
-    lines.append("Time per packet on one core (us): batched (one call for all packets) / one packet per call.")
+    load = res["setup"].get("load_average_at_end")
+    lines.append("Time per packet on one core (us): batched (one call for all packets) / one packet "
+                 "per call; `localize_one`: mean (p50, p99) per call. Compiled: numba "
+                 f"{res['setup'].get('numba')}. Load average at the end of the run: "
+                 f"{', '.join(f'{x:.1f}' for x in load) if load else 'n/a'} on "
+                 f"{res['setup'].get('cpu_count')} cores (a shared machine: figures are upper bounds).")
     lines.append("")
     rates = list(res["timing"])
     lines.append("| method | " + " | ".join(rates) + " |")
     lines.append("|---|" + "---|" * len(rates))
-    for m in ms:
-        row = [LABELS[m]]
+    for key, name in TIMING_ROWS:
+        if not any(key in res["timing"][r] for r in rates):
+            continue
+        row = [name]
         for r in rates:
-            v = res["timing"][r].get(m)
+            v = res["timing"][r].get(key)
             if v is None:
                 row.append("-")
+            elif "p99_us" in v:
+                row.append(f"{v['single_us_per_packet']:.0f} ({v['p50_us']:.0f}, {v['p99_us']:.0f})")
             elif "batched_us_per_packet" in v:
                 row.append(f"{v['batched_us_per_packet']:.0f} / {v['single_us_per_packet']:.0f} "
                            f"({v['batched_packets_per_s'] / 1e3:.1f} k/s batched)")
@@ -301,14 +377,18 @@ def plot(res, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(13, 5.2))
+    fig, axes = plt.subplots(1, 3, figsize=(19, 5.6))
     ax = axes[0]
-    colors = dict(zip(METHODS + BASELINES, ["C0", "C1", "C2", "C3", "C4", "C5"]))
+    keys = METHODS + BASELINES
+    colors = dict(zip(keys, [f"C{i}" for i in range(len(keys))]))
     rate = "10 MS/s"
-    for snr, marker in ((20.0, "o"), (30.0, "s")):
-        cell = next(c for c in res["cells"] if c["label"] == "10" and c["snr_db"] == snr)
+    tmr = res["timing"].get(rate, {})
+    for snr, marker in ((20.0, "o"), (40.0, "s")):
+        cell = next((c for c in res["cells"] if c["label"] == "10" and c["snr_db"] == snr), None)
+        if cell is None:
+            continue
         for m, v in cell["methods"].items():
-            t = res["timing"][rate].get(m, {})
+            t = tmr.get(m, {})
             us = t.get("batched_us_per_packet", t.get("single_us_per_packet"))
             if us is None:
                 continue
@@ -317,17 +397,30 @@ def plot(res, path):
             if "single_us_per_packet" in t and "batched_us_per_packet" in t:
                 ax.plot([t["batched_us_per_packet"], t["single_us_per_packet"]], [v["rms_mm"] * 1e3] * 2,
                         color=colors[m], lw=0.8, alpha=0.5)
+        # the same ml estimates through the other paths (identical error)
+        v = cell["methods"]["ml"]
+        extra = (("ml_numpy", "batched_us_per_packet", "x", "ML, numpy path (batched)"),
+                 ("localize_one_numba", "p99_us", "*", "ML localize_one, p99"),
+                 ("localize_one_numpy", "p99_us", "+", "ML localize_one numpy, p99"))
+        for key, field, mk, name in extra:
+            if key in tmr:
+                ax.scatter(tmr[key][field], v["rms_mm"] * 1e3, color="k", marker=mk, s=60,
+                           label=name if snr == 20.0 else None)
         ax.axhline(cell["crlb_rms_mm"] * 1e3, color="k", ls="--" if snr == 20 else ":", lw=1,
                    label=f"CRLB {snr:g} dB")
+    ax.axvline(100.0, color="r", lw=0.8, ls="-.", label="0.1 ms per packet")
+    ax.axvline(20.0, color="g", lw=0.8, ls="-.", label="50 k packets/s")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("time per packet, one core (us)  [marker: batched; line to: one per call]")
     ax.set_ylabel("RMS in-plane error (um)")
-    ax.set_title("speed vs error, 10 MS/s (circles 20 dB, squares 30 dB)")
-    ax.legend(fontsize=8, loc="lower right")
+    ax.set_title("speed vs error, 10 MS/s (circles 20 dB, squares 40 dB)")
+    ax.legend(fontsize=7, loc="upper right")
     ax.grid(True, which="both", alpha=0.3)
+    styles = (("10", "-"), ("10 silicone", (0, (5, 1))), ("5", "--"), ("2", ":"),
+              ("2 (0.6 MHz anti-alias)", "-."))
     ax = axes[1]
-    for label, ls in (("10", "-"), ("5", "--"), ("2", ":"), ("2 (0.6 MHz anti-alias)", "-.")):
+    for label, ls in styles:
         cs = [c for c in res["cells"] if c["label"] == label]
         if not cs:
             continue
@@ -341,11 +434,31 @@ def plot(res, path):
     ax.set_yscale("log")
     ax.set_xlabel("SNR (dB, docs/conventions.md)")
     ax.set_ylabel("RMS in-plane error (um)")
-    ax.set_title("error vs SNR (solid 10, dashed 5, dotted 2, dash-dot 2 MS/s + anti-alias)")
+    ax.set_title("error vs SNR")
+    ax.legend(fontsize=7)
+    ax.grid(True, which="both", alpha=0.3)
+    ax = axes[2]
+    for i, (label, _) in enumerate(styles):
+        cs = [c for c in res["cells"] if c["label"] == label]
+        if not cs:
+            continue
+        snr = [c["snr_db"] for c in cs]
+        ax.plot(snr, [c["methods"]["ml"]["ratio_to_crlb"] for c in cs], color=f"C{i}", marker="o",
+                label=f"ML {label} MS/s")
+        if "ml_fixed_band" in cs[0]["methods"]:
+            ax.plot(snr, [c["methods"]["ml_fixed_band"]["ratio_to_crlb"] for c in cs], color=f"C{i}",
+                    ls=":", marker=".", label="fixed band" if i == 0 else None)
+    ax.axhline(1.1, color="k", lw=0.8, ls="--", label="1.1x / 1.2x")
+    ax.axhline(1.2, color="k", lw=0.8, ls="--")
+    ax.set_yscale("log")
+    ax.set_ylim(0.9, 12)
+    ax.set_xlabel("SNR (dB)")
+    ax.set_ylabel("RMS error / CRLB")
+    ax.set_title("ML against the bound (solid: data-driven band, dotted: fixed band)")
     ax.legend(fontsize=7)
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
 
 

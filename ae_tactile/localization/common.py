@@ -135,6 +135,9 @@ class Plan:
 #: Per-bin SNR (channel-summed power over its noise expectation, 3-bin mean) above which a
 #: bin counts as signal for the data-driven band edge.
 BAND_EDGE_POWER_RATIO = 2.0
+#: Aliasing guard of the data-driven band: the spectrum at the candidate top (>= 0.4 fs)
+#: within this many dB of its peak means folded content (`band_edge_hz`).
+ALIAS_GUARD_DB = -25.0
 
 
 @lru_cache(maxsize=64)
@@ -212,9 +215,11 @@ def band_edge_hz(Xb, sigma2, count, plan: Plan):
     4 L sigma^2 (L samples inside the window); the edge is the highest band bin whose 3-bin
     mean of P exceeds BAND_EDGE_POWER_RATIO times that (per-bin SNR ~ 1: beyond it a bin
     adds more noise-by-noise variance than timing information), at least the 4th band bin.
-    Aliasing guard: when the candidate band reaches 0.4 fs and the signal is still there at
-    its top bin, the packet's spectrum runs past Nyquist and the bins near fs/2 hold folded
-    content that does not shift like the rest: the edge drops to fs/4.
+    Aliasing guard: when the candidate band reaches 0.4 fs and, at its top bin, the signal
+    is still above the noise and within ALIAS_GUARD_DB of the spectrum's peak (it has not
+    rolled off towards Nyquist: no steep anti-alias filter), the content above fs/2 folds
+    into the band and does not shift like the rest between channels: the edge drops to
+    fs/4.
     Unknown noise (NaN): ``plan.auto_fallback_hz``."""
     f = plan.w / (2 * np.pi)
     p = (Xb.real ** 2 + Xb.imag ** 2).sum(axis=1)                  # (K, nb)
@@ -232,7 +237,8 @@ def band_edge_hz(Xb, sigma2, count, plan: Plan):
     last = np.maximum(last, min(3, nb - 1))
     edge = f[last]
     if f[-1] >= 0.4 * plan.fs:
-        edge = np.where(last == nb - 1, np.minimum(edge, 0.25 * plan.fs), edge)
+        flat = sm[:, -1] > 10 ** (ALIAS_GUARD_DB / 10) * sm.max(axis=1)
+        edge = np.where((last == nb - 1) & flat, np.minimum(edge, 0.25 * plan.fs), edge)
     return np.where(np.isfinite(sigma2), edge, plan.auto_fallback_hz)
 
 

@@ -29,7 +29,8 @@ import os
 
 import numpy as np
 
-from ae_tactile.localization.common import BAND_EDGE_POWER_RATIO, PAIR_PINV, PAIRS
+from ae_tactile.localization.common import (ALIAS_GUARD_DB, BAND_EDGE_POWER_RATIO, PAIR_PINV,
+                                            PAIRS)
 
 try:  # pragma: no cover - import guard
     if os.environ.get("AE_TACTILE_NO_NUMBA", "").strip() not in ("", "0"):
@@ -53,6 +54,7 @@ _PAIR_I = PAIRS[:, 0].astype(np.int64).copy()
 _PAIR_J = PAIRS[:, 1].astype(np.int64).copy()
 _PINV = np.ascontiguousarray(PAIR_PINV)  # (3, 6)
 _ALPHAS = np.array([0.5, 0.25, 0.125, 0.0])
+ALIAS_GUARD = 10 ** (ALIAS_GUARD_DB / 10)
 
 # Reason bits (common.Reason).
 _NONFINITE, _NO_SIGNAL, _WINDOW, _SATURATED, _LOW_SNR, _OVERLAP, _OUT_OF_RANGE = (
@@ -606,6 +608,8 @@ def _packet(xin, onset, noise_rms, sat_in, full_scale, gains, has_gains, gain_rm
                 s2e = s2e + quant2
             n0 = (count[0] + count[1] + count[2] + count[3]) * s2e
             last = 0
+            sm_max = 0.0
+            sm = 0.0
             for f in range(nbc):
                 acc = 0.0
                 nacc = 0
@@ -613,11 +617,13 @@ def _packet(xin, onset, noise_rms, sat_in, full_scale, gains, has_gains, gain_rm
                     for k in range(4):
                         acc += xb[k, f2].real ** 2 + xb[k, f2].imag ** 2
                     nacc += 1
-                if acc / nacc > BAND_EDGE_POWER_RATIO * n0:
+                sm = acc / nacc
+                sm_max = max(sm_max, sm)
+                if sm > BAND_EDGE_POWER_RATIO * n0:
                     last = f
             last = max(last, min(3, nbc - 1))
             edge = fc[last]
-            if auto[1] > 0 and last == nbc - 1:
+            if auto[1] > 0 and last == nbc - 1 and sm > ALIAS_GUARD * sm_max:
                 edge = min(edge, 0.25 * fs)
         # the pair start needs the integer lag only: bins up to min(edge, fallback edge)
         nbc_u = 0
