@@ -5,10 +5,12 @@ in the thread that decoded them:
 
 1. per-packet validation (shape, sample rate, finite samples): a bad packet is counted by
    reason and never costs its neighbours;
-2. common-mode interference rejection (identical waveforms on the four channels, e.g. a
-   motor driver's switching), when the discriminator is available;
-3. localization: one packet alone takes the single-packet fast path, a backlog is
+2. localization: one packet alone takes the single-packet fast path, a backlog is
    localized in batches (the cost per packet falls with the batch size);
+3. common-mode interference rejection (identical waveforms on the four channels, e.g. a
+   motor driver's switching): such a packet has zero delays, so the localizer puts it at
+   the apex; the discriminator (`ae_tactile.dsp.interference`) runs on the packets
+   localized within ``APEX_POLAR_RAD`` of the apex, or with a poor fit, only;
 4. contact events (TOUCH for compressions, DETOUCH for rarefactions) handed to the caller
    at once, *before* the slip step;
 5. the slip detector: SLIP_PRECURSOR / SLIP / TEXTURE events and the finger's contact state.
@@ -50,6 +52,13 @@ class EventType(IntEnum):
 
 
 _NAN3 = (math.nan, math.nan, math.nan)
+
+#: Packets localized closer to the apex than this polar angle (rad) are checked for
+#: common-mode interference (whose zero delays put it at the apex; 15 deg leaves room for
+#: channel gain mismatch and noise).
+APEX_POLAR_RAD = math.radians(15.0)
+#: ... and so are poorly fitting packets (interference can also end as a bad fit elsewhere).
+SUSPECT_CONFIDENCE = 0.5
 
 
 @dataclass(slots=True)
@@ -184,34 +193,43 @@ class PacketLocalizer:
             good.append(p)
         if not good:
             return []
-        if self.interference is not None:
-            good = self._drop_interference(good, counts)
         if len(good) >= self.batch_min or self._one is None:
-            return self._batched(good, counts)
-        out = []
-        for p in good:
-            ev = self._single(p, counts)
-            if ev is not None:
-                out.append(ev)
-        return out
+            out = self._batched(good, counts)
+        else:
+            out = []
+            for p in good:
+                ev = self._single(p, counts)
+                if ev is not None:
+                    out.append((p, ev))
+        if self.interference is not None:
+            out = self._drop_interference(out, counts)
+        for _, ev in out:
+            counts["events"] += 1
+            counts["detouch" if ev.event_type == EventType.DETOUCH else "touch"] += 1
+        return [ev for _, ev in out]
 
-    def _drop_interference(self, packets, counts):
+    def _drop_interference(self, found, counts):
+        """Drop the apex events whose packets the discriminator calls interference."""
+        near = [i for i, (_, ev) in enumerate(found)
+                if ev.polar_rad < APEX_POLAR_RAD or ev.confidence < SUSPECT_CONFIDENCE]
+        if not near:
+            return found
+        drop = set()
         groups: dict[tuple, list[int]] = {}
-        for i, p in enumerate(packets):
+        for i in near:
+            p = found[i][0]
             groups.setdefault((p.samples_v.shape[1], float(p.sample_rate_hz)), []).append(i)
-        keep = np.ones(len(packets), bool)
         for (_, fs), ids in groups.items():
-            w = np.stack([np.asarray(packets[i].samples_v, dtype=np.float64) for i in ids])
-            onset = np.array([int(packets[i].onset_index) for i in ids])
+            w = np.stack([np.asarray(found[i][0].samples_v, dtype=np.float64) for i in ids])
+            onset = np.array([int(found[i][0].onset_index) for i in ids])
             try:
                 mask, _ = self.interference(w, fs, onset, geometry=self.geometry)
             except ValueError:
                 continue
-            keep[np.asarray(ids)[np.asarray(mask, bool)]] = False
-        n = int((~keep).sum())
-        if n:
-            counts["rejected_INTERFERENCE"] += n
-        return [p for p, k in zip(packets, keep) if k]
+            drop.update(i for i, m in zip(ids, np.asarray(mask, bool)) if m)
+        if drop:
+            counts["rejected_INTERFERENCE"] += len(drop)
+        return [f for i, f in enumerate(found) if i not in drop]
 
     def _single(self, p, counts) -> ContactRecord | None:
         r = self._one(p.samples_v, p.sample_rate_hz, int(p.onset_index),
@@ -225,9 +243,9 @@ class PacketLocalizer:
             return None
         return self._record(p, r.point_m, r.covariance_m2, r.polar_rad, r.azimuth_rad, r.tau_x_s,
                             r.tau_y_s, r.amplitude_v, r.confidence, r.polarity,
-                            r.emission_offset_s, counts)
+                            r.emission_offset_s)
 
-    def _batched(self, packets, counts) -> list[ContactRecord]:
+    def _batched(self, packets, counts) -> list[tuple]:
         groups: dict[tuple, list[int]] = {}
         for i, p in enumerate(packets):
             groups.setdefault((p.samples_v.shape[1], float(p.sample_rate_hz)), []).append(i)
@@ -250,19 +268,17 @@ class PacketLocalizer:
                 if res.confidence[j] < self.min_confidence:
                     counts["below_min_confidence"] += 1
                     continue
-                found.append((ids[j], self._record(
+                found.append((ids[j], p, self._record(
                     p, res.point_m[j], res.covariance_m2[j], res.polar_rad[j], res.azimuth_rad[j],
                     res.tau_x_s[j], res.tau_y_s[j], res.amplitude_v[j], res.confidence[j],
-                    res.polarity[j], offsets[j], counts)))
+                    res.polarity[j], offsets[j])))
         found.sort(key=lambda t: t[0])
-        return [ev for _, ev in found]
+        return [(p, ev) for _, p, ev in found]
 
     @staticmethod
-    def _record(p, point, cov, polar, azimuth, tau_x, tau_y, amp, conf, polarity, offset_s,
-                counts) -> ContactRecord:
+    def _record(p, point, cov, polar, azimuth, tau_x, tau_y, amp, conf, polarity,
+                offset_s) -> ContactRecord:
         kind = EventType.DETOUCH if polarity < 0 else EventType.TOUCH
-        counts["events"] += 1
-        counts["detouch" if kind == EventType.DETOUCH else "touch"] += 1
         x, y, z = (float(v) for v in point)
         return ContactRecord(
             event_type=int(kind), time_ns=int(p.stamp_ns) + int(round(float(offset_s) * 1e9)),

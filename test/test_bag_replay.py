@@ -104,6 +104,7 @@ def test_live_packets_record_and_replay(ros_context, tmp_path):
         Parameter("scene", value=default_scene_path("random_touches.yaml"))])
     drv = DriverNode(context=ros_context, parameter_overrides=[
         Parameter("port", value=sim.port), Parameter("reliable_qos", value=True),
+        Parameter("pipeline", value=False),                    # the velodyne-style split
         Parameter("wait_for_subscribers", value=2)])           # the recorder and the localizer
     loc = LocalizerNode(context=ros_context, parameter_overrides=[Parameter("reliable_qos", value=True)])
     rec = __import__("rclpy").create_node("recorder", context=ros_context)

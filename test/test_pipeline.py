@@ -98,6 +98,7 @@ def test_run_time_settings_take_effect_at_once():
 
 
 def _slip_scene_packets():
+    """The incipient-slip scene's packets (the virtual device's view), first 1.2 s."""
     from ae_tactile.sim.scene import load_scene
     import os
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -162,3 +163,25 @@ def test_slip_stage_processes_late_events_within_the_tolerance_and_counts_older_
     stage.process(too_old)
     counts = stage.all_counts()
     assert sum(v for k, v in counts.items() if "out_of_order" in k) >= len(too_old)
+
+
+def test_common_mode_interference_is_rejected_and_counted_while_apex_touches_are_kept():
+    from ae_tactile.sim.interference import render_interference
+    geo = FingertipGeometry()
+    cfg = SimConfig()
+    apex = render_triggered(geo.surface_point_from_xy(np.array([0.0, 0.2e-3, -0.3e-3]),
+                                                      np.array([0.0, 0.1e-3, 0.2e-3])),
+                            cfg, snr_db=30.0, rng=6)
+    bursts = render_interference(30, cfg, kind="mixed", coupling="adc",
+                                 noise_rms_v=float(apex.noise_rms_v[0]), rng=5)
+    views = [PacketView(bursts.samples_v[i], FS, int(bursts.onset_index[i]), i * 1_000_000, i)
+             for i in range(len(bursts))]
+    views += [PacketView(apex.samples_v[i], FS, int(apex.onset_index[i]), 10**9 + i, 100 + i)
+              for i in range(len(apex))]
+    loc = PacketLocalizer("ml")
+    events = loc.process(views)
+    kept = {e.packet_ids[0] for e in events}
+    assert {100, 101, 102} <= kept                         # the apex touches are kept
+    assert not kept & set(range(len(bursts)))              # no burst became a contact
+    rejected = sum(v for k, v in loc.counts.items() if k.startswith("rejected_"))
+    assert rejected == len(bursts) and loc.counts["rejected_INTERFERENCE"] >= len(bursts) // 2

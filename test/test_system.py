@@ -1,8 +1,10 @@
-"""End to end with real rclpy: simulated fingertip (own process, pty) -> driver -> localizer
--> slip detector (-> grip reflex), scored against the scene's ground truth.
+"""End to end with real rclpy: simulated fingertip (own process, pty) -> driver (in-process
+localization and slip detection; or the split: driver -> localizer -> slip detector)
+(-> grip reflex), scored against the scene's ground truth.
 
 Each run is the `bringup` composition the demo uses; the simulated fingertip runs as a
-separate process, like hardware on a USB port.
+separate process, like hardware on a USB port. No test here bounds wall-clock time: speed
+is measured by bench/bench_system.py.
 """
 import argparse
 import json
@@ -19,11 +21,13 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENES = os.path.join(ROOT, "config", "scenes")
 
 
-def run_system(ros_context, scene, *, grip_reflex=False, namespace="", method="", sliding_speed=0.0):
+def run_system(ros_context, scene, *, grip_reflex=False, namespace="", method="", sliding_speed=0.0,
+               split=False):
     """Play a scene through the composed system; return (bringup, summary)."""
     require_ros()
     from ae_tactile.ros.bringup import Bringup, parse_args
     argv = ["--scene", scene, "--monitor"] + (["--grip-reflex"] if grip_reflex else [])
+    argv += ["--split"] if split else []
     argv += ["--namespace", namespace] if namespace else []
     argv += ["--method", method] if method else []
     argv += ["--sliding-speed", str(sliding_speed)] if sliding_speed else []
@@ -64,7 +68,24 @@ def test_every_builtin_scene_is_found_and_localized(ros_context, scene):
         assert e["rms_position_error_mm"] <= 0.3, e
         if tr["truth"]:
             assert tr["found"] / tr["truth"] >= 0.98 and tr["typed_correctly"] == tr["found"], tr
-        assert s["latency_ms"]["median"] < 200
+        # every packet the driver decoded was localized or rejected for a counted reason
+        c = system.driver.pipeline.localizer.counts
+        rejected = sum(v for k, v in c.items() if k.startswith("rejected_") or k == "below_min_confidence")
+        assert c["packets"] == c["events"] + rejected
+        assert system.driver.published_events == c["events"]
+    finally:
+        system.close()
+
+
+def test_split_pipeline_gives_the_same_events_through_the_separate_nodes(ros_context):
+    """The velodyne-style split (driver -> packets -> localizer -> contacts -> slip detector)
+    runs the same core code as the in-process pipeline."""
+    system, s = run_system(ros_context, os.path.join(SCENES, "paper_positions.yaml"), split=True)
+    try:
+        assert system.driver.pipeline is None and system.localizer is not None
+        e = s["emissions"]
+        assert e["matched"] == e["truth"] == 3 and e["rms_position_error_mm"] < 0.05, e
+        assert system.slip.received == system.localizer.counts["events"]
     finally:
         system.close()
 
@@ -109,7 +130,7 @@ def test_grip_reflex_averts_gross_slip(ros_context, tmp_path):
         reaction_ms = (on.reflex.commands[0][0] - first_micro) * 1e-6
         print(f"reaction: first micro-slip emission -> force command {reaction_ms:.1f} ms; "
               f"precursor -> command {on.reflex.reactions_ms[0]:.1f} ms")
-        assert 0 < reaction_ms < 1000
+        assert reaction_ms > 0                                     # the command followed the emission
     finally:
         on.close()
 
@@ -133,9 +154,10 @@ def test_namespaced_bringup(ros_context):
                            method="gradient")
     try:
         assert system.driver.get_namespace() == "/hand/index"
-        assert system.localizer.p["method"] == "gradient"
+        assert system.driver.loc_params["method"] == "gradient"
+        assert system.driver.pipeline.localizer.method == "gradient"
         names = dict(system.driver.get_topic_names_and_types())
-        assert "/hand/index/packets" in names and "/hand/index/contacts" in names
+        assert "/hand/index/contacts" in names and "/hand/index/slip" in names
         assert s["emissions"]["matched"] == 3
     finally:
         system.close()
