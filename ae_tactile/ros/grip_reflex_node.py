@@ -11,19 +11,21 @@ from __future__ import annotations
 
 import sys
 
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from std_msgs.msg import Float64
 
 from ae_tactile.msg import ContactEvent
 from ae_tactile.ros.conversions import time_msg_to_ns
 from ae_tactile.ros.node_utils import LATCHED, run_node
-from ae_tactile.ros.params import Param, declare
+from ae_tactile.ros.params import Param, declare, tunable
 
 REFLEX_PARAMS = [
-    Param("initial_force_n", 1.0, "Grip force before any reflex (N)", 0.0, 1000.0),
-    Param("gain", 1.6, "Factor applied to the force on a slip precursor", 1.0, 100.0),
-    Param("max_force_n", 5.0, "Largest force the reflex commands (N)", 0.0, 1000.0),
-    Param("refractory_s", 0.05, "Shortest time between two force increases (s)", 0.0, 10.0),
+    Param("initial_force_n", 1.0, "Grip force before any reflex", 0.0, 1000.0),
+    tunable(Param("gain", 1.6, "Factor applied to the force on a slip precursor", 1.0, 100.0)),
+    tunable(Param("max_force_n", 5.0, "Largest force the reflex commands", 0.0, 1000.0)),
+    tunable(Param("refractory_s", 0.05, "Shortest time between two force increases", 0.0, 10.0)),
+    Param("diagnostics_period_s", 1.0, "Period of /diagnostics messages", 0.05, 60.0),
 ]
 
 
@@ -39,6 +41,18 @@ class GripReflexNode(Node):
         # simulated fingertip that subscribes late still gets the latest one.
         self.pub = self.create_publisher(Float64, "grip_force_command", LATCHED)
         self.create_subscription(ContactEvent, "slip", self.on_slip, 100)
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_timer(self.p["diagnostics_period_s"], self.publish_diagnostics)
+
+    def publish_diagnostics(self) -> None:
+        st = DiagnosticStatus(level=DiagnosticStatus.OK, name=f"{self.get_fully_qualified_name()}: grip reflex",
+                              hardware_id="grip_force_command",
+                              message=f"commanding {self.force_n:.2f} N after {len(self.commands)} reflexes")
+        st.values = [KeyValue(key="force_n", value=f"{self.force_n:.3f}"),
+                     KeyValue(key="reflexes", value=str(len(self.commands)))]
+        msg = DiagnosticArray(status=[st])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.pub_diag.publish(msg)
 
     def on_slip(self, ev: ContactEvent) -> None:
         if ev.event_type not in (ContactEvent.SLIP_PRECURSOR, ContactEvent.SLIP):

@@ -23,6 +23,7 @@ import sys
 import time
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64, String
@@ -116,6 +117,8 @@ class SimFingertipNode(Node):
         self.scene_finished = False
         self.create_timer(0.01, self._publish_truth)
         self.create_timer(0.1, self._check_finished)
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_timer(1.0, self._publish_diagnostics)
         self.runner.start()
         self.get_logger().info(f"simulated fingertip '{self.device.spec.get('name', scene)}' serving on "
                                f"{self.transport.port} (speed x{p['speed']:g})")
@@ -141,6 +144,20 @@ class SimFingertipNode(Node):
                 return [conv(v) for v in obj]
             return obj
         return conv(truth)
+
+    def _publish_diagnostics(self) -> None:
+        dev = self.device
+        st = DiagnosticStatus(level=DiagnosticStatus.OK,
+                              name=f"{self.get_fully_qualified_name()}: simulated fingertip",
+                              hardware_id=self.p["serial_number"],
+                              message=("scene played" if self.scene_finished else f"serving on {self.port}"))
+        st.values = [KeyValue(key="port", value=self.port),
+                     KeyValue(key="scene", value=str(dev.spec.get("name", ""))),
+                     KeyValue(key="truth_events_published", value=str(self.truth_published)),
+                     KeyValue(key="medium", value=str(self.sensor_body.get("medium", "")))]
+        msg = DiagnosticArray(status=[st])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.pub_diag.publish(msg)
 
     def _check_finished(self) -> None:
         if self.scene_finished or not self.runner.call(self.device.finished, time.monotonic_ns()):
