@@ -62,7 +62,7 @@ def test_touch_hold_release_no_alarm_and_states():
     det.advance(510 * MS + int(det.config.release_confirm_s * 1e9))
     s = det.state
     assert s.state == ContactState.NO_CONTACT and s.since_ns == 510 * MS
-    assert det.counts["releases"] == 1 and det.counts["orphans"] == 0
+    assert det.counts["releases"] == 1 and det.counts["evidence"] == 0
 
 
 def test_two_contacts_and_release_of_one():
@@ -76,25 +76,34 @@ def test_two_contacts_and_release_of_one():
     assert np.linalg.norm(s.contact_point_m - surf(-4e-3, 0)) < 1e-6
 
 
-def test_nearby_touches_with_releases_never_alarm():
-    """Touches side by side inside one association radius, each released where it began:
-    every rarefaction is explained, no evidence survives, no alarm."""
+def test_touch_release_cycles_and_taps_near_a_held_touch_never_alarm():
+    """A touch is held while a finger presses and lifts again and again over the area
+    around it (each touch released where it began, before the next one), and while one
+    spot next to it is tapped: every emission is a touch or a release on a spot, none is
+    micro-slip evidence, no alarm, with either polarity of the releases' partners."""
     rng = np.random.default_rng(3)
     det = SlipDetector()
     events = [ev(0, 0, 0, 1, 0)]
-    t = 1 * MS
+    t = 10 * MS
     pid = 1
-    for k in range(200):
-        x, y = rng.uniform(-2.5e-3, 2.5e-3, 2)
-        hold = int(rng.uniform(5, 300) * MS)
+    x, y = 1e-3, 0.0
+    for k in range(150):                           # cycles wandering within 3 mm of the touch
+        hold = int(rng.uniform(20, 300) * MS)
         events.append(ev(t, x, y, 1, pid))
         events.append(ev(t + hold, x + rng.normal(0, SIG), y + rng.normal(0, SIG), -1, pid + 1))
         pid += 2
-        t += int(rng.uniform(5, 40) * MS)
-    events.sort(key=lambda e: e.time_ns)
-    outs = run(det, events)
+        t += hold + int(rng.uniform(10, 200) * MS)
+        r, a = rng.uniform(0, 1e-3), rng.uniform(0, 2 * np.pi)
+        x, y = np.clip(x + r * math.cos(a), -2.5e-3, 2.5e-3), np.clip(y + r * math.sin(a), -2.5e-3, 2.5e-3)
+        if math.hypot(x, y) < 0.8e-3:
+            x += 1e-3
+    for k in range(100):                           # taps on one spot 2 mm away, 5 Hz
+        events.append(ev(t + k * 200 * MS, 0, 2e-3, 1, pid))
+        events.append(ev(t + k * 200 * MS + 40 * MS, 10e-6, 2e-3, -1, pid + 1))
+        pid += 2
+    outs = run(det, sorted(events, key=lambda e: e.time_ns))
     assert outs == []
-    assert det.counts["orphans"] == 0
+    assert det.counts["evidence"] <= 1 + det.counts["pairs"]    # only transient, withdrawn
     assert det.state.state == ContactState.STICK          # the first touch is still held
 
 
@@ -290,9 +299,9 @@ def test_periodicity_function():
 @pytest.mark.parametrize("kw", [
     {"association_radius_m": 0}, {"association_radius_m": -1e-3}, {"association_radius_m": 5.0},
     {"release_gate_sigma": 0}, {"release_confirm_s": -0.1}, {"evidence_window_s": float("nan")},
-    {"precursor_threshold": 0}, {"touch_evidence_weight": 1.5}, {"gross_inner_fraction": 0},
-    {"gross_min_inner": 20, "gross_window_events": 10}, {"member_history": 4}, {"max_contacts": 0},
-    {"texture_tolerance": 0.5}, {"texture_min_fraction": 0.2}, {"sliding_speed_m_s": 0},
+    {"precursor_min_emissions": 0}, {"compression_evidence_weight": 1.5}, {"gross_inner_fraction": 0},
+    {"gross_rate_alpha": 0}, {"member_history": 4}, {"max_contacts": 0},
+    {"texture_interval_sd": 0}, {"texture_min_llr": -1}, {"sliding_speed_m_s": 0},
     {"sliding_speed_m_s": "20 mm/s"}, {"quiet_s": True}, {"max_contacts": 2.5},
     {"member_history": 16, "texture_min_intervals": 16}, {"report_interval_s": -1},
 ])
@@ -302,8 +311,6 @@ def test_bad_config_raises(kw):
 
 
 def test_bad_events_and_calls():
-    with pytest.raises(ValueError):
-        LocalizedEvent(0, [0, 0, np.nan])
     with pytest.raises(ValueError):
         LocalizedEvent(0, [0, 0])
     with pytest.raises(ValueError):
@@ -315,8 +322,13 @@ def test_bad_events_and_calls():
     with pytest.raises(TypeError):
         LocalizedEvent(0.5, [0, 0, R])
     det = SlipDetector()
-    with pytest.raises(TypeError):
-        det.process((0, [0, 0, R]))
+    # bad event data never raises inside the detector: counted rejections
+    assert det.process((0, [0, 0, R])) == []
+    assert det.process(LocalizedEvent(0, [0, 0, np.nan])) == []
+    assert det.process(LocalizedEvent(0, [0, 0, R], covariance_m2=np.full((3, 3), np.inf))) == []
+    assert det.process(LocalizedEvent(0, [0, 0, 0])) == []
+    assert det.counts["rejected_bad_type"] == 1 and det.counts["rejected_non_finite"] == 3
+    assert det.counts["events"] == 0 and det.contacts == []
     with pytest.raises(TypeError):
         det.advance(1.5)
     with pytest.raises(ValueError):
@@ -332,15 +344,30 @@ def test_out_of_order_and_low_confidence_are_counted():
     det.process(ev(100 * MS, 0, 0, 1, 1))
     assert det.process(ev(50 * MS, 1e-3, 0, -1, 2)) == []
     assert det.counts["rejected_out_of_order"] == 1
-    det.process(ev(100 * MS - 100_000, 3e-3, 0, 1, 3))        # inside the reorder tolerance
-    assert det.counts["events"] == 2
     det.process(ev(101 * MS, 5e-3, 0, -1, 4, conf=0.1))
-    assert det.counts["ignored_low_confidence"] == 1
+    assert det.counts["rejected_low_confidence"] == 1
+    assert det.counts["events"] == 1
+
+
+def test_late_events_within_the_reorder_tolerance_are_processed_alike():
+    """Micro-slips delivered out of order by up to reorder_tolerance_s give the same
+    precursor (same emission, same evidence) as in time order."""
+    rng = np.random.default_rng(71)
+    evs = [ev(0, 0, 0, 1, 999)] + ring_events(rng, 12, 10 * MS, 2000.0, (0, 0), 1.5e-3)
+    shuffled = list(evs)
+    for i in range(1, len(shuffled) - 1, 2):          # swap neighbours (< 1 ms apart)
+        if shuffled[i + 1].time_ns - shuffled[i].time_ns < 0.9 * MS:
+            shuffled[i], shuffled[i + 1] = shuffled[i + 1], shuffled[i]
+    assert shuffled != evs
+    a, b = SlipDetector(), SlipDetector()
+    pa = [o for o in run(a, evs) if o.kind == SlipEventType.SLIP_PRECURSOR and o.onset]
+    pb = [o for o in run(b, shuffled) if o.kind == SlipEventType.SLIP_PRECURSOR and o.onset]
+    assert b.counts["rejected_out_of_order"] == 0 and b.counts["events"] == len(evs)
+    assert pa and pb and sorted(pa[0].packet_ids) == sorted(pb[0].packet_ids)
 
 
 def test_memory_is_bounded():
-    cfg = SlipConfig(max_contacts=4, member_history=32, texture_min_intervals=8, gross_exit_events=20,
-                     gross_min_events=10)
+    cfg = SlipConfig(max_contacts=4, member_history=32, texture_min_intervals=8)
     det = SlipDetector(cfg)
     rng = np.random.default_rng(61)
     t = 0
@@ -349,7 +376,7 @@ def test_memory_is_bounded():
         x, y = rng.uniform(-6e-3, 6e-3, 2)
         det.process(ev(t, x, y, int(rng.choice([-1, 1])), i))
         assert len(det.contacts) <= 4
-        assert all(len(c.members) <= 32 for c in det.contacts)
+        assert all(c.valid() <= 32 and c.t.size == 32 for c in det.contacts)
 
 
 @settings(max_examples=25, deadline=None)

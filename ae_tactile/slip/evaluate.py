@@ -277,7 +277,7 @@ def _events(scene, source, end_ns, pipeline):
         proc = source if source is not None else scene.process
         em = proc.advance(end_ns)
         rng = np.random.default_rng([7100, int(scene.seed)])
-        sigma = float(math.exp(rng.uniform(math.log(10e-6), math.log(80e-6))))
+        sigma = float(math.exp(rng.uniform(math.log(5e-6), math.log(40e-6))))
         return emission_events(em, scene.config.geometry, rng, sigma_m=sigma), int(len(em))
     if pipeline == "triggered":
         pk = _triggered(scene, source).next_packets(1 << 30, horizon_ns=end_ns)
