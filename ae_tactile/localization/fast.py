@@ -742,9 +742,13 @@ def _packet(xin, onset, noise_rms, sat_in, full_scale, gains, has_gains, gain_rm
         esum += e[k]
     emean = max(esum / 4.0, 1e-300)
     e_mean = 0.0
+    sw2 = 0.0
     for f in range(nba):
         e_mean += wa[f] * wa[f] * max(bb2[f] - Lm * sigma2 / 4.0, 0.0)
+        sw2 += wa[f] * wa[f]
+    kappa = 0.5 * Lm * sigma2 * sw2 / max(e_mean, 1e-300)     # noise-by-noise share
     e_mean *= 2.0 / n_al
+    e_mean /= 1.0 + kappa
     ee = np.empty(4)
     esum = 0.0
     for k in range(4):

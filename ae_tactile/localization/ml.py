@@ -166,7 +166,8 @@ def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4):
     n_bins = np.full(len(s), zb.shape[2]) if mask_al is None else mask_al[:, 0, :].sum(axis=1)
 
     def covariance(sigma2):
-        F = arrival_fisher(zb, plan.w_al, sigma2, al.count, plan.n_fft_al, n_bins)
+        F = arrival_fisher(zb, plan.w_al, sigma2, al.count, plan.n_fft_al, n_bins,
+                           noise_by_noise=True)
         c_xy, ok = sphere_covariance(F, dt)
         jac = geo.delay_jacobian(s[:, 0], s[:, 1])
         c_tau = jac @ c_xy @ np.swapaxes(jac, 1, 2)
