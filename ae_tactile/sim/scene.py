@@ -33,6 +33,7 @@ from ae_tactile.sim import generators as G
 from ae_tactile.sim.config import MEDIUM_PRESETS, SimConfig
 from ae_tactile.sim.emission import DEFAULT_ALPHA_1_S, DEFAULT_CURVATURE_1_M, DEFAULT_SPEED_M_S
 from ae_tactile.sim.frontend import noise_rms_for_snr, noise_rms_from_density
+from ae_tactile.sim.kernels import warm_up
 from ae_tactile.sim.stream import StreamingSource, TriggeredSource
 
 REQUIRED = object()
@@ -603,6 +604,7 @@ def load_scene(source, overrides: dict | None = None, *, budget: Budget | None =
         raise
     except ValueError as e:
         raise SceneError(f"params ({gen}): {e}") from None
+    warm_up()          # compiled renderer ready now, not at the first packet played
     return Scene(name=top["name"] or gen, generator=gen, duration_s=top["duration_s"],
                  seed=top["seed"],
                  config=config, noise_rms_v=float(noise_rms), effects=effects, params=params,
