@@ -48,8 +48,8 @@ window of absolute samples (bit-identical to a full render), `StreamingSource.ne
 (samples (4, n) + the emissions in them), `TriggeredSource.next_packets(n)` (windows cut
 from the stream around each emission: the virtual device's path, which renders only the
 window's samples and noise, bit-identical to the stream). Engines: compiled kernels
-(kernels.py, numba; call `kernels.warm_up()` at start-up) or numpy (the reference and the
-fallback without numba).
+(kernels.py, numba; compiled or loaded from the cache by the first `load_scene`, or by
+`kernels.warm_up()`) or numpy (the reference and the fallback without numba).
 
 Scenes (`scene.py`, `generators.py`): `load_scene('config/scenes/x.yaml')` -> `Scene`
 with `.streaming_source()`, `.triggered_source()`, `.truth`; the incipient-slip scene's
