@@ -27,25 +27,29 @@ arriving up to ~10 us after the first is still seen whole; the first echoes of e
 emission are part of the model. Search (RELAX, cyclic superimposed-signal estimation):
 
   1. matched-filter grid: per channel correlation with h, summed over channels along the
-     travel times of a 1 mm grid of surface points -> best (s, T), Levenberg-Marquardt
-     refinement of the one-emission model;
-  2. the residual's best grid point starts emission 2, joint LM over both; then emission 1
-     is re-started from the data minus emission 2 and the joint fit repeated (kept when
-     better); the same for a third emission;
+     travel times of a 1 mm grid of surface points; the three best points at distinct
+     times are kept, the best starts the Levenberg-Marquardt fit of one emission;
+  2. emission 2 is searched only when the one-emission residual is not noise: joint LM
+     from (emission 1, best grid point of the residual), from each pair of the three time
+     peaks of step 1, from emission 1 re-searched on the data minus emission 2 (RELAX),
+     and with the points swapped; the best residual wins. A third emission likewise;
   3. model order: J + 1 emissions only if the residual energy falls by more than
      ``add_threshold`` sigma^2 (a generalised likelihood-ratio test; single-source packets
-     stay single, calibrated in docs/overlap.md);
+     stay single, measured in docs/overlap.md);
   4. the final residual must be consistent with noise (chi^2 per degree of freedom below
-     ``max_chi2_ratio``), else the packet is rejected (a wrong or missing emission always
-     leaves its energy in the residual);
+     ``max_chi2_ratio``) and no two emissions closer than ``min_separation_s``, else the
+     packet is rejected (a wrong or missing emission leaves its energy in the residual);
   5. covariance of each point: the (s_x, s_y) block of the inverse Fisher matrix of the
      joint model, F = J^T J / sigma^2 (all 5J parameters), inflated by the chi^2 ratio
      when it exceeds 1; an emission whose in-plane 1-sigma exceeds ``max_sigma_m`` is not
      reported (counted in ``n_dropped``).
 
 `suspect_overlap` is the cheap test for packets `localize` accepted as single: the
-one-emission model started at their point, three LM steps, chi^2 per degree of freedom
-against ``max_chi2_ratio``.
+emission time by the matched filter along the accepted point's travel times, one linear
+LS on [h, h'] (direct wave and echo), chi^2 per degree of freedom against the same limit.
+`localize_with_overlaps` chains the fast path, the test and the overlap fit.
+`calibrate_pulse` fits the front-end corners of `PulseModel` to single touches;
+`simulate_overlaps` and `joint_crlb` make test windows and the Cramer-Rao bound.
 """
 
 from __future__ import annotations
@@ -485,12 +489,12 @@ def _surface_grid(geo: FingertipGeometry, spacing_m, max_polar_deg=80.0):
     return np.stack([gx[keep], gy[keep]], axis=1)
 
 
-def _grid_search(model: _Model, r, grid, chunk=64, n_peaks=1, min_sep=8):
+def _grid_search(model: _Model, r, grid, chunk=64, n_peaks=1, min_sep_s=0.8e-6):
     """Best (s_x, s_y, T) (K, 3) of one emission in residual r (K, 4, L): matched filter per
     channel (correlation with h), summed over channels along each grid point's travel
     times (integer samples), maximising |C|^2 / ||phi||^2. With ``n_peaks`` > 1 it returns
     (K, n_peaks, 3): the best, then the best points at the next peaks in time of the
-    profile max_g |C|^2 / ||phi||^2 (>= ``min_sep`` samples from earlier ones)."""
+    profile max_g |C|^2 / ||phi||^2 (>= ``min_sep_s`` from earlier ones)."""
     K, _, L = r.shape
     fs = model.fs
     h = model.tab.h_samples
@@ -509,9 +513,10 @@ def _grid_search(model: _Model, r, grid, chunk=64, n_peaks=1, min_sep=8):
     best_m = np.zeros(K, np.int64)
     cp = np.concatenate([corr, np.zeros((K, 4, pad + 2))], axis=2).astype(np.float32)
     gain32 = gain.astype(np.float32)
-    # every second arrival sample first (the matched filter is smooth: band <= fs/10),
-    # then the best point's neighbours
-    mm = np.arange(0, L, 2)
+    # every second arrival sample first at >= 5 MS/s (the matched filter is smooth: the
+    # band ends at 1 MHz <= fs/5), then the best point's neighbours
+    mm = np.arange(0, L, 2 if fs >= 5e6 else 1)
+    min_sep = max(1, int(round(min_sep_s * fs)))
     idx = rel[:, :, None] + mm[None, None, :]  # (G, 4, L/2)
     prof = np.zeros((K, mm.size))
     prof_g = np.zeros((K, mm.size), np.int64)
