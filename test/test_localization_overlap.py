@@ -323,6 +323,43 @@ def test_lossy_medium_needs_and_takes_its_loss_in_the_model():
             assert np.linalg.norm(t - s.point_m, axis=1).min() < 6 * s.sigma_m + 50e-6
 
 
+def test_calibrate_pulse_recovers_the_front_end_from_single_touches():
+    # The data's high-pass corner is 90 kHz, the default model's 100 kHz: calibration on
+    # single touches finds the corners, and overlapping pairs then resolve.
+    from ae_tactile.localization.overlap import calibrate_pulse
+
+    cfg = WATER.replace(highpass_hz=90e3)
+    rng = np.random.default_rng(15)
+    n = 30
+    pts = cfg.geometry.surface_point_from_angles(
+        np.arccos(rng.uniform(0.5, 1, n)), rng.uniform(0, 2 * np.pi, n)
+    )
+    pk = render_triggered(pts, cfg, snr_db=30, rng=rng)
+    pm = calibrate_pulse(pk.samples_v, FS, pk.onset_index)
+    assert pm.highpass_hz == pytest.approx(90e3, rel=0.02)
+    assert pm.lowpass_hz == pytest.approx(1e6, rel=0.03)
+    d = simulate_overlaps(8, cfg, separation_s=4e-6, amplitude_ratio=2, snr_db=25, rng=rng)
+    ok = [
+        r.accepted and len(r.sources) == 2 and np.all(per_truth_errors(t, r.sources) <= 0.1e-3)
+        for r, t in zip(run(d, cfg, pulse=pm), d["points_m"])
+    ]
+    assert np.mean(ok) >= 0.75
+    with pytest.raises(ValueError, match="single-emission"):
+        calibrate_pulse(np.zeros((2, 4, 400)), FS, [80, 80])
+
+
+def test_other_sample_rate():
+    cfg = SimConfig(reflections=True, sample_rate_hz=5e6)
+    rng = np.random.default_rng(16)
+    d = simulate_overlaps(10, cfg, separation_s=4e-6, amplitude_ratio=2, snr_db=25, rng=rng)
+    res = resolve_overlaps(d["samples_v"], 5e6, d["onset_index"])
+    ok = [
+        r.accepted and len(r.sources) == 2 and np.all(per_truth_errors(t, r.sources) <= 0.1e-3)
+        for r, t in zip(res, d["points_m"])
+    ]
+    assert np.mean(ok) >= 0.8
+
+
 def test_input_problems_are_rejections_with_reasons():
     rng = np.random.default_rng(9)
     d = simulate_overlaps(6, WATER, separation_s=4e-6, snr_db=25, rng=rng)
