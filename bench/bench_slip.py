@@ -1,20 +1,30 @@
-"""Slip detector benchmark: precursor / gross slip / texture / false alarms on the
-simulator (issue 6), and the detector's cost per event.
+"""Slip detector benchmark: precursor, gross slip, texture of a moving contact, direction,
+false alarms and interference, over randomized trials; the detector's and the
+interference discriminator's cost.
 
-    python3 bench/bench_slip.py [--quick]        (or: make bench-slip)
+    python3 bench/bench_slip.py [--quick]
 
-Runs ``ae_tactile.slip.evaluate.run_evaluation``: per trial a randomised scene (own
-seed) -> the simulator's triggered windows -> ``localize`` (default estimator) ->
-``SlipDetector`` with default parameters. Families: open-loop incipient slip (never
-announced by a touch, and announced by a touch at the contact centre), closed-loop
-grip reflex, touch-hold-release, random touches (20 Hz, holds <= 50 ms; and dense: 50 Hz,
-holds <= 0.5 s), textures, and drifting plane slip; and some incipient-slip and
-touch-hold-release trials through the stream path instead (StreamingSource -> dsp
-PacketDetector -> localize_packets). Parameter ranges: see
-``ae_tactile.slip.evaluate`` and docs/slip.md.
+Pipelines (ae_tactile.slip.evaluate): 'events' = the simulator's true emissions ->
+LocalizedEvents with the localizer's error model (Gaussian, 5 .. 40 um per axis, 2 %
+lost, ``emission_events``): fast enough for >= 1,000 trials per family; 'triggered' =
+rendered trigger windows (noise, quantization, overlaps) -> ``localize`` -> detector: a
+smaller validation set of the same families (the two must agree); interference trials
+always render waveforms. Families:
 
-Writes bench/results/slip.json (``--quick``: slip_quick.json) and the table in
-docs/slip.md between the bench markers (full run only).
+  incipient     Cattaneo-Mindlin ramp (docs/slip.md), never announced by a touch;
+                dense emitters (the simulator's density) and sparse ones (4 .. 12
+                micro-slips per ramp, gross slip at 100 .. 200 Hz), micro-slip polarity
+                random / all compressions / all rarefactions
+  false alarms  touch-hold-release, a held touch with another spot tapped 1 .. 10 Hz,
+                touch-release cycles wandering within 3 mm
+  stylus        a stylus dragged over a texture (period 0.2 .. 0.8 mm, 5 .. 50 mm/s,
+                jitter 0 .. 20 %): TEXTURE from the tracked speed, no sliding speed given
+  drift         plane slip drifting along x: SLIP direction error
+  interference  a held touch under common-mode bursts (1 Hz .. 10 kHz, every waveform,
+                2 / 5 / 10 MS/s), with and without the discriminator
+
+Writes bench/results/slip.json (``--quick``: slip_quick.json) and, for a full run, the
+tables in docs/slip.md between the bench markers. Records the machine's load.
 """
 from __future__ import annotations
 
@@ -25,9 +35,11 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXP
 
 import argparse  # noqa: E402
 import json  # noqa: E402
+import math  # noqa: E402
 import platform  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+import warnings  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -41,17 +53,19 @@ from ae_tactile.slip import evaluate as ev  # noqa: E402
 RESULTS = ROOT / "bench" / "results"
 DOC = ROOT / "docs" / "slip.md"
 BEGIN, END = "<!-- bench:slip:begin -->", "<!-- bench:slip:end -->"
+SPARSE = dict(micro_slip_count=(4.0, 12.0), slip_rate_hz=(100.0, 200.0))
 
 
+# ---------------------------------------------------------------------- cost
 def detector_speed(n_events: int = 20000, seed: int = 0) -> dict:
-    """Cost per event of SlipDetector.process on a dense mixed stream (ring micro-slips,
-    gross slip, touches elsewhere), one core."""
+    """Cost of SlipDetector.process per event (us) on a dense mixed stream (~1000 events/s:
+    70 % micro-slips round one contact, 30 % touches anywhere), one core: per-call times."""
     rng = np.random.default_rng(seed)
     R = 0.01
     evs = []
     t = 0
     for i in range(n_events):
-        t += int(rng.exponential(1e6))                          # ~1000 events/s
+        t += int(rng.exponential(1e6))
         if rng.uniform() < 0.7:
             r, th = 1.5e-3 * np.sqrt(rng.uniform(0.3, 1.0)), rng.uniform(0, 2 * np.pi)
             x, y = r * np.cos(th), r * np.sin(th)
@@ -60,119 +74,308 @@ def detector_speed(n_events: int = 20000, seed: int = 0) -> dict:
         p = np.array([x, y, np.sqrt(R * R - x * x - y * y)])
         evs.append(LocalizedEvent(t, p, np.eye(3) * 4e-10, int(rng.choice([-1, 1])), 0.01, 0.8, i))
     det = SlipDetector()
-    t0 = time.perf_counter()
+    dts = np.zeros(n_events)
     n_out = 0
-    for e in evs:
+    clock = time.perf_counter_ns
+    t0 = time.perf_counter()
+    for i, e in enumerate(evs):
+        a = clock()
         n_out += len(det.process(e))
-    dt = time.perf_counter() - t0
-    return {"n_events": n_events, "us_per_event": 1e6 * dt / n_events, "events_per_s": n_events / dt,
-            "n_outputs": n_out}
+        dts[i] = clock() - a
+    wall = time.perf_counter() - t0
+    us = dts / 1e3
+    return {"n_events": n_events, "us_per_event_mean": float(us.mean()), "us_p50": float(np.median(us)),
+            "us_p99": float(np.percentile(us, 99)), "us_max": float(us.max()),
+            "events_per_s": n_events / wall, "n_outputs": n_out}
 
 
-def fmt(d, key, scale=1.0, nd=0):
-    if d is None or d.get(key) is None:
-        return "-"
-    v = d[key]
-    return f"{v * scale:.{nd}f}"
+def interference_speed() -> dict:
+    """common_mode_interference cost per packet (us): one packet per call and 256 per call."""
+    from ae_tactile.dsp.interference import common_mode_interference
+    from ae_tactile.geometry import FingertipGeometry
+    g = FingertipGeometry()
+    rng = np.random.default_rng(0)
+    out = {}
+    for k, reps in ((1, 2000), (256, 20)):
+        x = rng.normal(0, 1e-3, (k, 4, 400))
+        on = np.full(k, 81)
+        common_mode_interference(x, 10e6, on, geometry=g, noise_rms_v=1e-3)
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            common_mode_interference(x, 10e6, on, geometry=g, noise_rms_v=1e-3)
+        out[f"us_per_packet_batch{k}"] = (time.perf_counter() - t0) / reps / k * 1e6
+    return out
 
 
-def table(res: dict) -> str:
-    s = res["summary"]
-    inc, inc_t = s["incipient_slip"], s["incipient_slip_announced"]
-    lines = ["| measure | value |", "|---|---|"]
+# ---------------------------------------------------------------------- summaries
+def _pct(x, qs=(0, 5, 50, 95, 99, 100)):
+    x = np.asarray([v for v in x if v is not None and np.isfinite(v)], float)
+    if x.size == 0:
+        return None
+    return {("min" if q == 0 else "max" if q == 100 else f"p{q}"): float(np.percentile(x, q)) for q in qs}
 
-    def pct_row(name, d, scale=1.0, nd=0, unit=""):
-        if d is None:
-            lines.append(f"| {name} | - |")
-            return
-        lines.append(f"| {name} | min {fmt(d, 'min', scale, nd)}, p5 {fmt(d, 'p5', scale, nd)}, "
-                     f"median {fmt(d, 'p50', scale, nd)}, p95 {fmt(d, 'p95', scale, nd)}, "
-                     f"max {fmt(d, 'max', scale, nd)}{unit} |")
 
-    for label, d in (("incipient slip, contact never announced", inc),
-                     ("incipient slip, announced by a touch", inc_t),
-                     ("incipient slip, stream + dsp packet detector (not ideal triggers)", s.get("incipient_slip_stream"))):
-        if d is None:
+def summarize_incipient(rows) -> dict:
+    out = {"n_trials": len(rows)}
+    nm = np.array([r["n_micro_slip_events"] for r in rows])
+    for name, lo, hi in (("lt5", 0, 5), ("5to10", 5, 10), ("ge10", 10, 10 ** 9)):
+        sel = [r for r, n in zip(rows, nm) if lo <= n < hi]
+        ok = [r for r in sel if r["precursor_before_gross"]]
+        out[f"micro_{name}"] = {
+            "n_trials": len(sel), "precursor_before_gross_rate": len(ok) / len(sel) if sel else None,
+            "q_at_precursor": _pct([r["q_at_precursor"] for r in ok]),
+            "lead_ms": _pct([r["lead_ms"] for r in ok]),
+            "failures": [r["seed"] for r in sel if not r["precursor_before_gross"]][:20]}
+    d = [r["slip_delay_ms"] if r["slip_delay_ms"] is not None else math.inf for r in rows]
+    out["slip_detected_rate"] = float(np.mean([r["slip_time_ns"] is not None for r in rows]))
+    out["slip_delay_ms"] = _pct([x for x in d if np.isfinite(x)])
+    out["slip_delay_p95_ms_missing_as_inf"] = float(np.percentile(d, 95)) if rows else None
+    out["slip_within_50ms_rate"] = float(np.mean([x <= 50.0 for x in d])) if rows else None
+    out["q_at_slip"] = _pct([r["q_at_slip"] for r in rows])
+    out["slip_before_q090_rate"] = float(np.mean([r["q_at_slip"] is not None and r["q_at_slip"] < 0.9
+                                                  for r in rows])) if rows else None
+    out["texture_events_total"] = int(sum(r["n_texture_events"] for r in rows))
+    return out
+
+
+def summarize_alarms(rows) -> dict:
+    s = ev.summarize_alarms(rows)
+    hours = s["minutes"] / 60.0
+    s["hours"] = hours
+    s["false_alarms_per_hour"] = s["alarm_onsets"] / hours if hours else None
+    return s
+
+
+def summarize_stylus(rows) -> dict:
+    det = [r for r in rows if r["n_texture"]]
+    out = {"n_trials": len(rows), "found_rate": len(det) / len(rows) if rows else None,
+           "one_contact_rate": float(np.mean([r["n_contacts_reporting"] <= 1 for r in rows])) if rows else None,
+           "period_within_3pct_first": float(np.mean([abs(r["rel_error_first"]) <= 0.03 for r in det])) if det else None,
+           "period_within_3pct_median": float(np.mean([abs(r["rel_error_median"]) <= 0.03 for r in det]))
+           if det else None,
+           "abs_rel_error_first_pct": _pct([100 * abs(r["rel_error_first"]) for r in det]),
+           "time_to_first_texture_ms": _pct([r["texture_delay_ms"] for r in det]),
+           "direction_error_deg": _pct([r["direction_error_deg_median"] for r in rows])}
+    bins = {}
+    for name, key, edges in (("period_mm", "period_m", (0.2e-3, 0.3e-3, 0.5e-3, 0.81e-3)),
+                             ("jitter", "jitter_fraction", (0.0, 0.1, 0.15, 0.2001))):
+        rows_b = []
+        for lo, hi in zip(edges, edges[1:]):
+            sel = [r for r in rows if lo <= r[key] < hi]
+            d = [r for r in sel if r["n_texture"]]
+            rows_b.append({"lo": lo, "hi": hi, "n": len(sel), "found": len(d) / len(sel) if sel else None,
+                           "within_3pct": float(np.mean([abs(r["rel_error_first"]) <= 0.03 for r in d])) if d else None})
+        bins[name] = rows_b
+    out["bins"] = bins
+    return out
+
+
+def summarize_drift(rows) -> dict:
+    errs = [a for r in rows for a in r["direction_errors_deg"]]
+    return {"n_trials": len(rows), "slip_detected_rate": float(np.mean([r["slip_delay_ms"] is not None for r in rows])),
+            "slip_delay_ms": _pct([r["slip_delay_ms"] for r in rows]),
+            "direction_reported_rate": float(np.mean([r["n_with_direction"] > 0 for r in rows])),
+            "direction_error_deg_mean_abs": float(np.mean(errs)) if errs else None,
+            "direction_error_deg": _pct(errs), "n_direction_reports": len(errs)}
+
+
+def summarize_interference(rows) -> dict:
+    out = {}
+    for disc in (True, False):
+        sel = [r for r in rows if r["discriminate"] == disc]
+        if not sel:
             continue
-        lines.append(f"| **{label}** ({d['n_trials']} trials) | |")
-        lines.append(f"| precursor before gross slip | {d['n_precursor_before_gross']}/{d['n_trials']} "
-                     f"= {100 * d['precursor_before_gross_rate']:.1f} % |")
-        pct_row("lead time (ms)", d["lead_ms"])
-        pct_row("load fraction q = Q/(mu P) at the precursor", d["q_at_precursor"], nd=3)
-        pct_row("lead / (mu P / Qdot)", d["lead_fraction_of_ramp"], nd=3)
-        lines.append(f"| lead >= 74 ms / >= 100 ms | {100 * d['lead_ge_74ms_rate']:.1f} % / "
-                     f"{100 * d['lead_ge_100ms_rate']:.1f} % of trials |")
-        lines.append(f"| SLIP detected | {100 * d['slip_detected_rate']:.1f} % |")
-        pct_row("SLIP delay after the true gross-slip onset (ms)", d["slip_delay_ms"], nd=1)
-        pct_row("q at SLIP", d["q_at_slip"], nd=3)
-        pct_row("precursor position: distance from the ring r = a_H (mm)", d["precursor_error_to_ring_m"],
-                1e3, 2)
-    cl = s["closed_loop"]
-    if cl:
-        lines.append(f"| **closed loop** ({cl['n_trials']} trials): P x {cl['load_factor']:g} "
-                     f"{1e3 * cl['latency_s']:.0f} ms after the first precursor, Q ramps to 1.2 mu P | "
-                     f"gross slip averted in {100 * cl['averted_rate']:.1f} % |")
-        pct_row("q when P was raised", cl["q_at_reflex"], nd=3)
-    for key, label in (("touch_hold_release", "touch-hold-release"),
-                       ("touch_hold_release_stream", "touch-hold-release, stream + dsp detector"),
-                       ("random_touches", "random touches 20 Hz"),
-                       ("random_touches_dense", "random touches 50 Hz, holds <= 0.5 s")):
-        a = s.get(key)
-        if a:
-            lines.append(f"| **{label}** ({a['n_trials']} trials, {a['minutes']:.1f} min) | false alarms "
-                         f"{a['alarm_onsets']} = {a['false_alarms_per_minute']:.2f} /min "
-                         f"(events: {a['precursor_events']} precursor, {a['slip_events']} slip, "
-                         f"{a['texture_events']} texture) |")
-    thr = s["touch_hold_release"]
-    if thr and thr["n_trials"]:
-        lines.append(f"| touch-hold-release state | STICK mid-hold {100 * thr['state_mid_hold_stick_rate']:.1f} %, "
-                     f"NO_CONTACT at the end {100 * thr['state_end_no_contact_rate']:.1f} % |")
-    tx = s["texture"]
-    if tx:
-        lines.append(f"| **texture** ({tx['n_trials']} trials) | detected {100 * tx['detected_rate']:.1f} %, "
-                     f"every reported period within 10 %: {100 * tx['within_10pct_rate']:.1f} % |")
-        pct_row("spatial period error, first TEXTURE event (%)", tx["abs_rel_error_first"], 100, 2)
-        pct_row("worst spatial period error over a trial's events (%)", tx["abs_rel_error_max_over_events"],
-                100, 2)
-        pct_row("time to the first TEXTURE event (ms)", tx["detection_time_ms"])
+        n_if = sum(r["n_interference"] for r in sel)
+        s = summarize_alarms(sel)
+        s.update({"n_interference_packets": n_if,
+                  "rejected_rate": sum(r["n_rejected"] for r in sel) / n_if if n_if else None,
+                  "phantom_events": sum(r["n_phantom_events"] for r in sel),
+                  "acoustic_kept_rate": (sum(r["n_acoustic_kept"] for r in sel)
+                                         / max(1, sum(r["n_acoustic_packets"] for r in sel))),
+                  "extra_contacts": sum(r["contacts_created"] - 1 for r in sel)})
+        by = {}
+        for key in ("coupling", "sample_rate_hz", "medium"):
+            for v in sorted({r[key] for r in sel}):
+                ss = [r for r in sel if r[key] == v]
+                n = sum(r["n_interference"] for r in ss)
+                by[f"{key}={v}"] = {"packets": n, "rejected_rate": (sum(r["n_rejected"] for r in ss) / n) if n else None,
+                                    "alarm_onsets": sum(r["n_alarm_onsets"] for r in ss)}
+        s["by"] = by
+        out["with_discriminator" if disc else "without_discriminator"] = s
+    return out
+
+
+# ---------------------------------------------------------------------- tables
+def _f(d, k, nd=0, scale=1.0):
+    if d is None or d.get(k) is None:
+        return "-"
+    return f"{d[k] * scale:.{nd}f}"
+
+
+def _dist(d, nd=0, scale=1.0):
+    if d is None:
+        return "-"
+    return (f"median {_f(d, 'p50', nd, scale)}, p5 {_f(d, 'p5', nd, scale)}, p95 {_f(d, 'p95', nd, scale)} "
+            f"(min {_f(d, 'min', nd, scale)}, max {_f(d, 'max', nd, scale)})")
+
+
+def _rate(x):
+    return "-" if x is None else f"{100 * x:.1f} %"
+
+
+def tables(res: dict) -> str:
+    s = res["summary"]
+    L = []
+    L.append("**Incipient slip** (precursor before gross slip; q = Q/(mu P) at the precursor; "
+             "pipeline 'events'). Micro-slip counts are the emissions the detector received "
+             "before gross slip.\n")
+    L.append("| emitters | polarity | trials | precursor, >= 10 micro-slips | precursor, 5-10 | "
+             "median q (>= 10 / 5-10) | median lead ms (>= 10 / 5-10) | SLIP <= 50 ms | SLIP delay p95 ms | "
+             "SLIP at q < 0.9 |")
+    L.append("|---|---|---|---|---|---|---|---|---|---|")
+    for key, d in s["incipient"].items():
+        mode, pol = key.split(":")
+        a, b = d["micro_ge10"], d["micro_5to10"]
+        L.append(f"| {mode} | {pol} | {d['n_trials']} | {_rate(a['precursor_before_gross_rate'])} ({a['n_trials']}) | "
+                 f"{_rate(b['precursor_before_gross_rate'])} ({b['n_trials']}) | "
+                 f"{_f(a['q_at_precursor'], 'p50', 2)} / {_f(b['q_at_precursor'], 'p50', 2)} | "
+                 f"{_f(a['lead_ms'], 'p50')} / {_f(b['lead_ms'], 'p50')} | {_rate(d['slip_within_50ms_rate'])} | "
+                 f"{d['slip_delay_p95_ms_missing_as_inf']:.0f} | {_rate(d['slip_before_q090_rate'])} |")
+    L.append("")
+    L.append("**False alarms** (SLIP_PRECURSOR / SLIP / TEXTURE onsets).\n")
+    L.append("| family | pipeline | trials | hours | alarm onsets | per hour |")
+    L.append("|---|---|---|---|---|---|")
+    for key, d in s["alarms"].items():
+        fam, pl = key.split(":")
+        L.append(f"| {fam} | {pl} | {d['n_trials']} | {d['hours']:.2f} | {d['alarm_onsets']} | "
+                 f"{d['false_alarms_per_hour']:.1f} |")
+    L.append("")
+    st = s["stylus"]
+    L.append("**Moving contact: stylus over a texture** (TEXTURE from the tracked speed, no sliding speed "
+             "given).\n")
+    L.append("| pipeline | trials | TEXTURE found | one contact | period within 3 % (first event) | "
+             "time to first TEXTURE (ms) | direction error (deg) |")
+    L.append("|---|---|---|---|---|---|---|")
+    for key, d in st.items():
+        L.append(f"| {key} | {d['n_trials']} | {_rate(d['found_rate'])} | {_rate(d['one_contact_rate'])} | "
+                 f"{_rate(d['period_within_3pct_first'])} | {_dist(d['time_to_first_texture_ms'])} | "
+                 f"{_dist(d['direction_error_deg'], 1)} |")
+    d = st.get("events")
+    if d:
+        L.append("")
+        L.append("| period (mm) | trials | found | within 3 % | | jitter | trials | found | within 3 % |")
+        L.append("|---|---|---|---|---|---|---|---|---|")
+        for a, b in zip(d["bins"]["period_mm"], d["bins"]["jitter"] + [None]):
+            right = (f"{b['lo']:.2f}-{min(b['hi'], 0.2):.2f} | {b['n']} | {_rate(b['found'])} | {_rate(b['within_3pct'])}"
+                     if b else " | | | ")
+            L.append(f"| {1e3 * a['lo']:.1f}-{1e3 * min(a['hi'], 0.8e-3):.1f} | {a['n']} | {_rate(a['found'])} | "
+                     f"{_rate(a['within_3pct'])} | | {right} |")
+    L.append("")
     dr = s["drift"]
-    if dr:
-        lines.append(f"| **drifting plane slip** ({dr['n_trials']} trials) | SLIP detected "
-                     f"{100 * dr['slip_detected_rate']:.1f} %, direction reported {100 * dr['direction_reported_rate']:.1f} % |")
-        pct_row("SLIP delay after the slip start (ms)", dr["slip_delay_ms"], nd=1)
-        pct_row("direction error, trial median (deg)", dr["direction_error_deg_median"], nd=1)
-    sp = res.get("detector_speed")
-    if sp:
-        lines.append(f"| detector cost | {sp['us_per_event']:.0f} us per event on one core "
-                     f"({sp['events_per_s'] / 1e3:.1f} k events/s) |")
-    return "\n".join(lines)
+    L.append(f"**Slip direction** (plane slip drifting at 10-40 mm/s, {dr['n_trials']} trials, "
+             f"{dr['n_direction_reports']} SLIP reports with a direction): mean absolute error "
+             f"**{dr['direction_error_deg_mean_abs']:.1f} deg**, {_dist(dr['direction_error_deg'], 1)}; "
+             f"SLIP detected {_rate(dr['slip_detected_rate'])}, delay {_dist(dr['slip_delay_ms'], 1)} ms.\n")
+    it = s.get("interference")
+    if it:
+        L.append("**Interference** (a held touch under common-mode bursts, waveform pipeline).\n")
+        L.append("| | trials | bursts | rejected | phantom localized events | extra contacts | alarm onsets | "
+                 "acoustic packets kept |")
+        L.append("|---|---|---|---|---|---|---|---|")
+        for key, d in it.items():
+            L.append(f"| {key.replace('_', ' ')} | {d['n_trials']} | {d['n_interference_packets']} | "
+                     f"{_rate(d['rejected_rate'])} | {d['phantom_events']} | {d['extra_contacts']} | "
+                     f"{d['alarm_onsets']} | {_rate(d['acoustic_kept_rate'])} |")
+        w = it.get("with_discriminator")
+        if w:
+            L.append("")
+            L.append("| with the discriminator, by | bursts | rejected | alarm onsets |")
+            L.append("|---|---|---|---|")
+            for k, v in w["by"].items():
+                L.append(f"| {k} | {v['packets']} | {_rate(v['rejected_rate'])} | {v['alarm_onsets']} |")
+    L.append("")
+    ds = res.get("detector_speed")
+    isp = res.get("interference_speed")
+    if ds:
+        L.append(f"**Cost** (one core, load average {res['meta']['load_before'][0]:.1f} before / "
+                 f"{res['meta']['load_after'][0]:.1f} after the run on {os.cpu_count()} cores): "
+                 f"SlipDetector.process {ds['us_p50']:.0f} us median, {ds['us_p99']:.0f} us p99, "
+                 f"{ds['us_max']:.0f} us max per event ({ds['events_per_s'] / 1e3:.1f} k events/s)"
+                 + (f"; common_mode_interference {isp['us_per_packet_batch1']:.0f} us per packet one at a "
+                    f"time, {isp['us_per_packet_batch256']:.1f} us per packet in batches of 256" if isp else "")
+                 + ".")
+    return "\n".join(L)
 
 
+# ---------------------------------------------------------------------- main
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="reduced trial counts (smoke run)")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
-    n = dict(n_incipient=20, n_incipient_touch=6, n_closed_loop=6, n_thr=30, n_random=1, random_duration_s=10.0,
-             n_texture=10, n_drift=5, n_incipient_stream=2, n_thr_stream=5) if args.quick else dict(
-        n_incipient=200, n_incipient_touch=50, n_closed_loop=50, n_thr=300, n_random=6, random_duration_s=60.0,
-        n_texture=100, n_drift=30, n_incipient_stream=30, n_thr_stream=50)
+    warnings.simplefilter("ignore", RuntimeWarning)
+    q = args.quick
+    n_inc, n_fa, n_sty, n_drift = (60, 60, 60, 30) if q else (1000, 1000, 1000, 1000)
+    n_if, n_if_off, n_val = (8, 4, 4) if q else (150, 40, 30)
+    load_before = os.getloadavg()
     t0 = time.perf_counter()
+    s0 = args.seed
+    timing = {}
 
-    def progress(name, i, total):
-        if i == total or i % 25 == 0:
-            print(f"  {name}: {i}/{total} ({time.perf_counter() - t0:.0f} s)", flush=True)
+    def run(name, fn, n):
+        a = time.perf_counter()
+        rows = []
+        for i in range(n):
+            rows.append(fn(s0 + i))
+        timing[name] = time.perf_counter() - a
+        print(f"  {name}: {n} trials ({timing[name]:.0f} s, total {time.perf_counter() - t0:.0f} s)", flush=True)
+        return rows
 
-    res = ev.run_evaluation(seed=args.seed, progress=progress, **n)
+    trials, summary = {}, {"incipient": {}, "alarms": {}, "stylus": {}}
+    for mode, kw in (("dense", {}), ("sparse", SPARSE)):
+        for pol in ("random", "compression", "rarefaction"):
+            key = f"{mode}:{pol}"
+            rows = run(f"incipient {key}", lambda s: ev.incipient_slip_trial(
+                s, post_s=0.15, polarity=pol, pipeline="events", **kw), n_inc)
+            trials[f"incipient:{key}"] = rows
+            summary["incipient"][key] = summarize_incipient(rows)
+    for mode, kw in (("dense", {}), ("sparse", SPARSE)):
+        key = f"{mode}:random, waveforms"
+        rows = run(f"incipient {key}", lambda s: ev.incipient_slip_trial(
+            s + 50_000, post_s=0.15, pipeline="triggered", **kw), n_val)
+        trials[f"incipient:{key}"] = rows
+        summary["incipient"][key] = summarize_incipient(rows)
+    fams = (("touch-hold-release", ev.touch_hold_release_trial), ("tapping another spot", ev.tapping_trial),
+            ("touch-release cycles", ev.cycles_trial))
+    for name, fn in fams:
+        for pl, n in (("events", n_fa), ("triggered", n_val)):
+            rows = run(f"{name} {pl}", lambda s: fn(s, pipeline=pl), n)
+            trials[f"alarms:{name}:{pl}"] = rows
+            summary["alarms"][f"{name}:{pl}"] = summarize_alarms(rows)
+    for pl, n in (("events", n_sty), ("triggered", n_val)):
+        rows = run(f"stylus {pl}", lambda s: ev.stylus_trial(s, pipeline=pl, period_m=(0.2e-3, 0.8e-3)), n)
+        trials[f"stylus:{pl}"] = rows
+        summary["stylus"][pl] = summarize_stylus(rows)
+    rows = run("drift", lambda s: ev.drift_slip_trial(s, pipeline="events"), n_drift)
+    trials["drift"] = rows
+    summary["drift"] = summarize_drift(rows)
+    rows = run("interference", lambda s: ev.interference_trial(s), n_if)
+    rows += run("interference, no discriminator", lambda s: ev.interference_trial(s, discriminate=False), n_if_off)
+    trials["interference"] = rows
+    summary["interference"] = summarize_interference(rows)
+    res = {"summary": summary, "timing_s": timing}
     res["detector_speed"] = detector_speed()
-    res["meta"] = {"quick": args.quick, "seed": args.seed, "trial_counts": n, "python": platform.python_version(),
-                   "numpy": np.__version__, "machine": platform.machine(), "wall_s": time.perf_counter() - t0}
+    res["interference_speed"] = interference_speed()
+    res["meta"] = {"quick": q, "seed": s0, "python": platform.python_version(), "numpy": np.__version__,
+                   "machine": platform.machine(), "cpu_count": os.cpu_count(), "wall_s": time.perf_counter() - t0,
+                   "load_before": list(load_before), "load_after": list(os.getloadavg())}
+    res["trials"] = trials
     RESULTS.mkdir(parents=True, exist_ok=True)
-    out = RESULTS / ("slip_quick.json" if args.quick else "slip.json")
+    out = RESULTS / ("slip_quick.json" if q else "slip.json")
     out.write_text(json.dumps(res, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
-    tab = table(res)
+    tab = tables(res)
     print(tab)
-    if not args.quick and DOC.exists():
+    if not q and DOC.exists():
         text = DOC.read_text()
         if BEGIN in text and END in text:
             head, rest = text.split(BEGIN, 1)

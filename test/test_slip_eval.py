@@ -1,71 +1,90 @@
 """Reduced statistical evaluation of the slip detector on the simulator (the full one is
-bench/bench_slip.py): scene -> triggered windows -> localize -> SlipDetector."""
+bench/bench_slip.py, >= 1,000 trials per family). Most families use the 'events' pipeline
+(true emissions + the localizer's error model), a few the rendered waveforms. Seeded;
+thresholds leave margins to the rates the benchmark measures (docs/slip.md)."""
 import numpy as np
 import pytest
 
-from ae_tactile.slip import ContactState, SlipEventType
+from ae_tactile.slip import ContactState
 from ae_tactile.slip import evaluate as ev
+
+SPARSE = dict(micro_slip_count=(4.0, 12.0), slip_rate_hz=(100.0, 200.0))
 
 
 @pytest.fixture(scope="module")
-def incipient():
-    return [ev.incipient_slip_trial(s, post_s=0.15) for s in range(24)]
+def dense():
+    return {pol: [ev.incipient_slip_trial(s, post_s=0.15, polarity=pol, pipeline="events") for s in range(30)]
+            for pol in ("random", "compression", "rarefaction")}
 
 
-def test_precursor_before_gross_slip(incipient):
-    s = ev.summarize_incipient(incipient)
-    assert s["precursor_before_gross_rate"] >= 0.95, s["failures"]
-    # comfortably early: q at detection well below 1 and a lead above the human reflex
-    assert s["q_at_precursor"]["p95"] < 0.3
-    assert s["lead_ge_74ms_rate"] >= 0.95
-    # the precursor is a micro-slip emission on the ring at the contact edge
-    assert s["precursor_error_to_ring_m"]["p95"] < 0.5e-3
+@pytest.fixture(scope="module")
+def sparse():
+    return {pol: [ev.incipient_slip_trial(s, post_s=0.15, polarity=pol, pipeline="events", **SPARSE)
+                  for s in range(60)] for pol in ("random", "compression", "rarefaction")}
 
 
-def test_gross_slip_detected_near_the_true_onset(incipient):
-    s = ev.summarize_incipient(incipient)
-    assert s["slip_detected_rate"] >= 0.95
-    # the stick zone vanishes continuously (c = a_H (1 - q)^(1/3)): SLIP fires when it is
-    # below ~0.4 a_H, i.e. q > ~0.94, and within ~150 ms after the true onset
-    assert s["q_at_slip"]["min"] > 0.9
-    assert s["slip_delay_ms"]["max"] < 150
-    assert s["texture_events_total"] == 0
+@pytest.mark.parametrize("pol", ["random", "compression", "rarefaction"])
+def test_dense_emitters_precursor_any_polarity(dense, pol):
+    rows = dense[pol]
+    assert all(r["precursor_before_gross"] for r in rows), [r["seed"] for r in rows if not r["precursor_before_gross"]]
+    assert np.median([r["q_at_precursor"] for r in rows]) <= 0.1
+    # the precursor is a micro-slip emission on the Cattaneo-Mindlin annulus (r <= a_H)
+    assert max(r["precursor_error_to_ring_m"] for r in rows) < 0.5 * min(r["hertz_radius_m"] for r in rows) + 0.2e-3
+    assert all(r["slip_time_ns"] is not None for r in rows)
+    assert np.percentile([r["slip_delay_ms"] for r in rows], 90) <= 50.0
+    assert sum(r["n_texture_events"] for r in rows) == 0
 
 
-def test_announced_contact_and_closed_loop():
-    rows = [ev.incipient_slip_trial(s, announce_touch=True, post_s=0.1) for s in range(100, 106)]
-    assert all(r["precursor_before_gross"] for r in rows)
-    assert all(r["states"][0][1] == int(ContactState.STICK) for r in rows)   # the touch: STICK first
-    loop = [ev.closed_loop_trial(s) for s in range(200, 205)]
-    assert all(r["averted"] for r in loop), [r["seed"] for r in loop if not r["averted"]]
+def test_sparse_emitters_precursor_polarity_free(sparse):
+    """All compressions, all rarefactions or a random mix: the same detections (the
+    micro-slips are the same places and times; only their sign differs)."""
+    hit = {}
+    for pol, rows in sparse.items():
+        sel = [r for r in rows if r["n_micro_slip_events"] >= 5]
+        assert len(sel) >= 30
+        hit[pol] = np.mean([r["precursor_before_gross"] for r in sel])
+        assert hit[pol] >= 0.9, pol
+        q = [r["q_at_precursor"] for r in sel if r["precursor_before_gross"]]
+        assert np.median(q) <= 0.6
+        # gross slip is detected whether or not a precursor came first
+        assert np.mean([r["slip_time_ns"] is not None for r in rows]) >= 0.9
+        assert np.median([r["slip_delay_ms"] for r in rows if r["slip_delay_ms"] is not None]) <= 50.0
+    assert max(hit.values()) - min(hit.values()) <= 0.05
 
 
-def test_no_false_alarms_touch_hold_release():
-    rows = [ev.touch_hold_release_trial(s) for s in range(30)]
-    s = ev.summarize_alarms(rows)
-    assert s["alarm_onsets"] == 0 and s["precursor_events"] == 0 and s["slip_events"] == 0
-    assert s["texture_events"] == 0
-    assert sum(r["state_mid_hold"] == ContactState.STICK for r in rows) >= 29
-    assert sum(r["state_end"] == ContactState.NO_CONTACT for r in rows) >= 29
+def test_no_false_alarms_holds_taps():
+    for fn, n in ((ev.touch_hold_release_trial, 30), (ev.tapping_trial, 30)):
+        rows = [fn(s, pipeline="events") for s in range(n)]
+        s = ev.summarize_alarms(rows)
+        assert s["alarm_onsets"] == 0 and s["precursor_events"] == 0 and s["slip_events"] == 0, s
+        assert s["texture_events"] == 0
+    rows = [ev.tapping_trial(s, pipeline="events") for s in range(10)]
+    assert all(r["state_mid"] == ContactState.STICK for r in rows)
 
 
-def test_no_false_alarms_random_touches():
-    rows = [ev.random_touches_trial(0, duration_s=10.0),
-            ev.random_touches_trial(10_000, duration_s=5.0, rate_hz=50.0, hold_max_s=0.5)]
-    s = ev.summarize_alarms(rows)
-    assert s["alarm_onsets"] == 0, s
+def test_no_false_alarms_touch_release_cycles_waveforms():
+    rows = [ev.cycles_trial(s, pipeline="triggered", duration_s=2.0) for s in range(6)]
+    assert ev.summarize_alarms(rows)["alarm_onsets"] == 0
 
 
-def test_texture_spatial_period_within_10_percent():
-    rows = [ev.texture_trial(s) for s in range(10)]
-    s = ev.summarize_texture(rows)
-    assert s["detected_rate"] == 1.0, s["failures"]
-    assert s["within_10pct_rate"] == 1.0
-    assert all(r["final_state"] == ContactState.GROSS_SLIP for r in rows)
+def test_stylus_is_one_contact_with_its_texture():
+    rows = [ev.stylus_trial(s, pipeline="events", period_m=(0.25e-3, 0.5e-3), jitter=(0.0, 0.1)) for s in range(30)]
+    found = [r for r in rows if r["n_texture"]]
+    assert len(found) >= 24
+    assert np.mean([abs(r["rel_error_first"]) <= 0.03 for r in found]) >= 0.85
+    assert np.mean([r["n_contacts_reporting"] == 1 for r in rows]) >= 0.85
 
 
-def test_drifting_slip_direction():
-    rows = [ev.drift_slip_trial(s) for s in range(4)]
+def test_drifting_slip_direction_beats_the_reference():
+    rows = [ev.drift_slip_trial(s, pipeline="events") for s in range(20)]
     assert all(r["slip_delay_ms"] is not None for r in rows)
-    med = [r["direction_error_deg_median"] for r in rows if r["direction_error_deg_median"] is not None]
-    assert len(med) >= 3 and np.median(med) < 20
+    errs = [a for r in rows for a in r["direction_errors_deg"]]
+    assert len(errs) >= 10 and np.mean(errs) < 14.1      # a learned 4-microphone gripper: 14.1 deg
+
+
+def test_interference_never_becomes_an_alarm():
+    rows = [ev.interference_trial(s, duration_s=0.3) for s in range(3)]
+    assert sum(r["n_alarm_onsets"] for r in rows) == 0
+    n = sum(r["n_interference"] for r in rows)
+    assert n > 0 and sum(r["n_rejected"] for r in rows) >= 0.9 * n
+    assert all(r["n_acoustic_kept"] == r["n_acoustic_packets"] for r in rows)

@@ -81,6 +81,9 @@ class SlipConfig:
     track_max_residual_m: float = _p(
         0.6e-3, "... and when its emissions stay this close (rms per axis) to the fitted track",
         "m", 0.0, 0.05, lo_open=True)
+    direction_significance: float = _p(
+        4.0, "a SLIP of a contact not (yet) tracked as moving reports the direction of its "
+             "emissions' drift when that exceeds this many standard errors", "", 0.0, 100.0)
     min_speed_m_s: float = _p(1e-3, "slower drift is no motion (direction NaN)", "m/s", 0.0, 10.0)
     # ------------------------------------------------------------------ precursor
     evidence_window_s: float = _p(

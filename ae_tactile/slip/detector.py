@@ -609,7 +609,7 @@ class SlipDetector:
             else (ev.packet_id,)
         conf = 0.9 if why in (1, 4) or c.texture_on else 0.75
         return SlipEvent(SlipEventType.SLIP, t, c.centre_at(t).copy(), self._centre_cov(c), c.id,
-                         self._rate(c, t), math.nan, self._direction(c), conf, ids, onset, float(why))
+                         self._rate(c, t), math.nan, self._direction(c, t), conf, ids, onset, float(why))
 
     def _texture(self, c, ev, out):
         """Periodicity of the contact's latest intervals: robust dispersion MAD/median of the
@@ -702,10 +702,35 @@ class SlipDetector:
         D = P - P.mean(axis=0)
         return (D.T @ D) / (len(P) * (len(P) - 1))
 
-    def _direction(self, c):
-        """Unit tangent direction of the contact's tracked motion, or NaN."""
+    def _direction(self, c, t=None):
+        """Unit tangent direction of travel: the tracked motion of a moving contact, else a
+        fresh regression of the slip emissions over track_window_s when its drift exceeds
+        ``direction_significance`` standard errors (and min_speed_m_s); else NaN."""
         if not c.moving:
-            return _NAN3.copy()
+            if t is None:
+                return _NAN3.copy()
+            cfg = self.config
+            k = c.valid()
+            m = ((c.flags[:k] & (OVERLAP | EVID)) == EVID) & (c.t[:k] > t - self._w_track)
+            n = int(m.sum())
+            if n < cfg.track_min_events:
+                return _NAN3.copy()
+            ts = c.t[:k][m] * 1e-9
+            P = c.p[:k][m]
+            tc = ts - ts.mean()
+            stt = float(tc @ tc)
+            if stt <= 0:
+                return _NAN3.copy()
+            pm = P.mean(axis=0)
+            v = (tc @ (P - pm)) / stt
+            nrm = pm / math.sqrt(float(pm @ pm))
+            v = v - (v @ nrm) * nrm
+            res = (P - pm) - np.outer(tc, v)
+            se = math.sqrt(float(np.einsum("ij,ij->", res, res)) / max(1, 2 * (n - 2)) / stt)
+            sp = math.sqrt(float(v @ v))
+            if sp < cfg.min_speed_m_s or sp < cfg.direction_significance * se:
+                return _NAN3.copy()
+            return v / sp
         s = math.sqrt(float(c.vel @ c.vel))
         return c.vel / s if s > 0 else _NAN3.copy()
 

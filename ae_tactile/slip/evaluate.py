@@ -710,7 +710,7 @@ def texture_trial(seed: int, config: SlipConfig | None = None, *, speed_known: b
     return out
 
 
-def drift_slip_trial(seed: int, config: SlipConfig | None = None) -> dict:
+def drift_slip_trial(seed: int, config: SlipConfig | None = None, *, pipeline: str = "triggered") -> dict:
     """plane_slip with the contact drifting along +x: SLIP delay after the slip start and
     the angle between the reported direction and +x (projected on the tangent plane)."""
     rng = np.random.default_rng([7005, int(seed)])
@@ -725,8 +725,7 @@ def drift_slip_trial(seed: int, config: SlipConfig | None = None) -> dict:
                        "rate_hz": float(rng.uniform(150, 500)), "contact_radius_m": rad, "drift_m_s": drift}}
     scene = load_scene(spec)
     end_ns = int(0.2 * _NS)
-    pk = scene.triggered_source().next_packets(1 << 30, horizon_ns=end_ns)
-    events = localized_events(pk, scene.config.geometry)
+    events, _ = _events(scene, None, end_ns, pipeline)
     det, outs, trace = run_detector(events, config, end_ns)
     slips = [o for o in outs if o.kind == SlipEventType.SLIP]
     first = _first(outs, SlipEventType.SLIP)
@@ -742,6 +741,8 @@ def drift_slip_trial(seed: int, config: SlipConfig | None = None) -> dict:
             "slip_delay_ms": None if first is None else (first.time_ns - int(0.01 * _NS)) / 1e6,
             "n_slip": len(slips), "n_with_direction": len(angles),
             "direction_error_deg_median": None if not angles else float(np.median(angles)),
+            "direction_error_deg_mean": None if not angles else float(np.mean(angles)),
+            "direction_errors_deg": [float(a) for a in angles],
             "direction_error_deg_max": None if not angles else float(np.max(angles))}
 
 
