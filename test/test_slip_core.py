@@ -398,3 +398,65 @@ def test_arbitrary_sequences_keep_valid_outputs(items):
         assert (s.state == ContactState.NO_CONTACT) == (s.n_contacts == 0)
     det.advance(t + 10 ** 10)
     assert det.state.state in (ContactState.NO_CONTACT, ContactState.STICK)
+
+
+def test_update_config_at_run_time_and_metadata():
+    det = SlipDetector()
+    cfg = det.update_config(quiet_s=0.5, precursor_min_emissions=3, sliding_speed_m_s=0.01)
+    assert det.config is cfg and cfg.quiet_s == 0.5 and det._quiet == 500_000_000
+    with pytest.raises(ValueError, match="quiet_s"):
+        det.update_config(quiet_s=-1.0)                 # validated: nothing changed
+    assert det.config.quiet_s == 0.5
+    with pytest.raises(ValueError, match="run time"):
+        det.update_config(member_history=128)
+    meta = SlipConfig.describe()
+    assert set(meta) == set(SlipConfig.field_names())
+    for name, m in meta.items():
+        assert m["doc"] and isinstance(m["runtime"], bool), name
+        if m["lo"] is not None and m["kind"] != "int" and m["default"] is not None:
+            assert m["lo"] <= m["default"] <= m["hi"], name
+    assert set(SlipConfig.runtime_fields()) == set(meta) - {"max_contacts", "member_history"}
+
+
+def test_packet_ids_end_with_the_deciding_emission():
+    rng = np.random.default_rng(81)
+    det = SlipDetector(SlipConfig(sliding_speed_m_s=0.02))
+    evs = [ev(0, 0, 0, 1, 999)] + ring_events(rng, 10, 10 * MS, 80.0, (0, 0), 1.5e-3)
+    t0 = evs[-1].time_ns
+    evs += ring_events(rng, 60, t0, 400.0, (0, 0), 1.5e-3, width_m=1.5e-3, pid0=100)
+    outs = []
+    for e in evs:
+        for o in det.process(e):
+            assert o.packet_ids[-1] == e.packet_id
+            outs.append(o)
+    assert {SlipEventType.SLIP_PRECURSOR, SlipEventType.SLIP} <= set(kinds(outs))
+    det = SlipDetector(SlipConfig(sliding_speed_m_s=0.02))
+    for e in _texture_events(np.random.default_rng(82), 40.0, 60):
+        for o in det.process(e):
+            assert o.packet_ids[-1] == e.packet_id
+            outs.append(o)
+    assert SlipEventType.TEXTURE in kinds(outs)
+
+
+def test_gross_slip_without_a_precursor_and_a_tracked_moving_contact():
+    """A contact born sliding (no micro-slip phase) gets SLIP; a contact dragged 10 mm
+    across the tip stays one contact whose velocity is tracked."""
+    rng = np.random.default_rng(83)
+    det = SlipDetector()
+    outs = run(det, ring_events(rng, 40, 0, 400.0, (0, 0), 1.5e-3, width_m=1.5e-3))
+    assert SlipEventType.SLIP in kinds(outs)
+    det = SlipDetector()
+    evs = []
+    t = 0
+    for i in range(120):
+        t += int(rng.exponential(1e9 / 60))
+        cx = -5e-3 + 0.02 * t * 1e-9                     # 20 mm/s along +x
+        if cx > 5e-3:
+            break
+        r, th = 0.3e-3 * math.sqrt(rng.uniform()), rng.uniform(0, 2 * np.pi)
+        evs.append(ev(t, cx + r * math.cos(th), r * math.sin(th), 1, i))
+    outs = run(det, evs)
+    assert len({o.contact_id for o in outs}) == 1 and det.counts["contacts_created"] == 1
+    info = det.contact_infos()[0]
+    assert info.moving and abs(np.linalg.norm(info.velocity_m_s) / 0.02 - 1) < 0.25
+    assert info.velocity_m_s[0] > 0.9 * np.linalg.norm(info.velocity_m_s)
