@@ -22,6 +22,7 @@ undecodable messages: the events of what was readable were written, the summary 
 what was lost; 2 nothing to replay (input missing or unreadable, bad arguments) or the
 output could not be written.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -40,8 +41,13 @@ from ae_tactile.geometry import FingertipGeometry
 
 MSG_NAMES = ("Packet", "PacketArray", "ContactEvent", "ContactState", "SensorInfo")
 TOUCH, DETOUCH, SLIP_PRECURSOR, SLIP, TEXTURE = 1, 2, 3, 4, 5
-EVENT_NAMES = {TOUCH: "TOUCH", DETOUCH: "DETOUCH", SLIP_PRECURSOR: "SLIP_PRECURSOR", SLIP: "SLIP",
-               TEXTURE: "TEXTURE"}
+EVENT_NAMES = {
+    TOUCH: "TOUCH",
+    DETOUCH: "DETOUCH",
+    SLIP_PRECURSOR: "SLIP_PRECURSOR",
+    SLIP: "SLIP",
+    TEXTURE: "TEXTURE",
+}
 
 
 def msg_dir() -> Path:
@@ -54,12 +60,15 @@ def msg_dir() -> Path:
     for c in candidates:
         if (c / "PacketArray.msg").exists():
             return c
-    raise FileNotFoundError("ae_tactile .msg definitions not found (source tree or AMENT_PREFIX_PATH)")
+    raise FileNotFoundError(
+        "ae_tactile .msg definitions not found (source tree or AMENT_PREFIX_PATH)"
+    )
 
 
 def typestore():
     """A rosbags typestore (ROS 2 Kilted) with the ae_tactile messages registered."""
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
     store = get_typestore(Stores.ROS2_KILTED)
     types = {}
     for name in MSG_NAMES:
@@ -95,15 +104,19 @@ class ReplayResult:
         return bool(self.read_errors or self.undecodable)
 
     def summary(self) -> str:
-        lines = [f"{self.packets} packets -> {len(self.contacts)} contact events,"
-                 f" {len(self.slip)} slip events; rejected: {self.rejected or 'none'}"]
+        lines = [
+            f"{self.packets} packets -> {len(self.contacts)} contact events,"
+            f" {len(self.slip)} slip events; rejected: {self.rejected or 'none'}"
+        ]
         if self.skipped:
             lines.append(f"skipped messages of other types: {self.skipped}")
         if self.undecodable:
             lines.append(f"undecodable messages: {self.undecodable}")
         if self.read_errors:
-            lines.append(f"bag damaged ({len(self.read_errors)} read error(s)): "
-                         + "; ".join(self.read_errors[:5]))
+            lines.append(
+                f"bag damaged ({len(self.read_errors)} read error(s)): "
+                + "; ".join(self.read_errors[:5])
+            )
             lines.append(f"{self.recovered} message(s) recovered record by record")
         return "\n".join(lines)
 
@@ -128,11 +141,14 @@ def read_bag(path, store, packet_topic: str | None = None, report: ReplayResult 
     report = report if report is not None else ReplayResult()
 
     def wanted(topic, msgtype):
-        return msgtype in WANTED and (packet_topic is None or msgtype != WANTED[0]
-                                      or topic == packet_topic)
+        return msgtype in WANTED and (
+            packet_topic is None or msgtype != WANTED[0] or topic == packet_topic
+        )
+
     seen: set = set()
     try:
         from rosbags.highlevel import AnyReader
+
         with AnyReader([Path(path)], default_typestore=store) as reader:
             conns = []
             for c in reader.connections:
@@ -140,7 +156,7 @@ def read_bag(path, store, packet_topic: str | None = None, report: ReplayResult 
                     conns.append(c)
                 else:
                     _count(report.skipped, c.msgtype, int(getattr(c, "msgcount", 0) or 0))
-            if not conns:          # (an empty list would mean "all connections" to rosbags)
+            if not conns:  # (an empty list would mean "all connections" to rosbags)
                 return
             for conn, t_ns, raw in reader.messages(connections=conns):
                 seen.add((conn.topic, int(t_ns), len(raw)))
@@ -152,7 +168,7 @@ def read_bag(path, store, packet_topic: str | None = None, report: ReplayResult 
         if not Path(path).exists():
             raise
         report.read_errors.append("file missing")
-    except Exception as exc:          # noqa: BLE001 - a damaged bag: fall back below
+    except Exception as exc:  # noqa: BLE001 - a damaged bag: fall back below
         report.read_errors.append(f"{type(exc).__name__}: {exc}")
     skipped_before = dict(report.skipped)
     report.skipped.clear()
@@ -162,7 +178,7 @@ def read_bag(path, store, packet_topic: str | None = None, report: ReplayResult 
             _count(report.skipped, msgtype)
             continue
         if (topic, int(t_ns), len(raw)) in seen:
-            continue                  # already delivered by the normal reader
+            continue  # already delivered by the normal reader
         n_raw += 1
         msg = _deserialize(store, raw, msgtype, report)
         if msg is not None:
@@ -175,7 +191,7 @@ def read_bag(path, store, packet_topic: str | None = None, report: ReplayResult 
 def _deserialize(store, raw, msgtype: str, report: ReplayResult):
     try:
         return store.deserialize_cdr(bytes(raw), msgtype)
-    except Exception:                 # noqa: BLE001 - corrupted or foreign bytes
+    except Exception:  # noqa: BLE001 - corrupted or foreign bytes
         _count(report.undecodable, msgtype)
         return None
 
@@ -202,6 +218,7 @@ def _raw_sqlite(f: Path, report: ReplayResult):
     alone and are stepped over)."""
     import shutil
     import tempfile
+
     with tempfile.TemporaryDirectory(prefix="ae_tactile_bag_") as tmp:
         try:
             with open(f, "rb") as fh:
@@ -231,8 +248,9 @@ def _sqlite_rows(f: Path, report: ReplayResult):
         return
     try:
         try:
-            topics = {int(i): (n, t) for i, n, t in
-                      con.execute("SELECT id, name, type FROM topics")}
+            topics = {
+                int(i): (n, t) for i, n, t in con.execute("SELECT id, name, type FROM topics")
+            }
         except sqlite3.Error as exc:
             report.read_errors.append(f"{f.name}: topics table unreadable: {exc}")
             return
@@ -240,8 +258,9 @@ def _sqlite_rows(f: Path, report: ReplayResult):
         while probes < 64:
             try:
                 for rid, tid, t_ns, data in con.execute(
-                        "SELECT id, topic_id, timestamp, data FROM messages WHERE id > ?"
-                        " ORDER BY id", (last,)):
+                    "SELECT id, topic_id, timestamp, data FROM messages WHERE id > ? ORDER BY id",
+                    (last,),
+                ):
                     last = int(rid)
                     name, msgtype = topics.get(int(tid), (None, None))
                     if name is None:
@@ -253,7 +272,7 @@ def _sqlite_rows(f: Path, report: ReplayResult):
                 if probes == 0:
                     report.read_errors.append(f"{f.name}: rows after id {last}: {exc}")
                 probes += 1
-                last += 1 << probes if probes < 20 else 1 << 20   # step over the damage
+                last += 1 << probes if probes < 20 else 1 << 20  # step over the damage
     finally:
         con.close()
 
@@ -273,13 +292,14 @@ def _raw_mcap(f: Path, report: ReplayResult):
         return
     schemas: dict = {}
     channels: dict = {}
-    yield from _mcap_records(memoryview(data), len(_MCAP_MAGIC), len(data), schemas, channels,
-                             report, f.name)
+    yield from _mcap_records(
+        memoryview(data), len(_MCAP_MAGIC), len(data), schemas, channels, report, f.name
+    )
 
 
 def _mcap_str(mv, i):
     (n,) = struct.unpack_from("<I", mv, i)
-    return bytes(mv[i + 4:i + 4 + n]).decode("utf-8", "replace"), i + 4 + n
+    return bytes(mv[i + 4 : i + 4 + n]).decode("utf-8", "replace"), i + 4 + n
 
 
 def _mcap_records(mv, i, end, schemas, channels, report, name):
@@ -291,32 +311,33 @@ def _mcap_records(mv, i, end, schemas, channels, report, name):
             report.read_errors.append(f"{name}: record 0x{op:02x} at byte {i} cut short")
             if op != 0x06:
                 return
-            i_next = end              # a chunk cut short: its complete records still count
+            i_next = end  # a chunk cut short: its complete records still count
         try:
-            if op == 0x03:                                   # Schema
+            if op == 0x03:  # Schema
                 (sid,) = struct.unpack_from("<H", mv, body)
                 sname, _ = _mcap_str(mv, body + 2)
                 schemas[sid] = sname
-            elif op == 0x04:                                 # Channel
+            elif op == 0x04:  # Channel
                 cid, sid = struct.unpack_from("<HH", mv, body)
                 topic, _ = _mcap_str(mv, body + 4)
                 channels[cid] = (topic, schemas.get(sid, ""))
-            elif op == 0x05:                                 # Message
+            elif op == 0x05:  # Message
                 cid, _, log_time, _ = struct.unpack_from("<HIQQ", mv, body)
                 if cid in channels:
                     topic, msgtype = channels[cid]
-                    yield topic, msgtype, int(log_time), bytes(mv[body + 22:i_next])
+                    yield topic, msgtype, int(log_time), bytes(mv[body + 22 : i_next])
                 else:
                     _count(report.undecodable, f"channel {cid}")
-            elif op == 0x06:                                 # Chunk
+            elif op == 0x06:  # Chunk
                 comp, j = _mcap_str(mv, body + 28)
                 (clen,) = struct.unpack_from("<Q", mv, j)
                 if comp:
                     _count(report.undecodable, f"{comp}-compressed chunk")
                 else:
-                    yield from _mcap_records(mv, j + 8, min(j + 8 + clen, i_next), schemas,
-                                             channels, report, name)
-            elif op == 0x02:                                 # Footer
+                    yield from _mcap_records(
+                        mv, j + 8, min(j + 8 + clen, i_next), schemas, channels, report, name
+                    )
+            elif op == 0x02:  # Footer
                 return
         except (struct.error, IndexError) as exc:
             report.read_errors.append(f"{name}: record 0x{op:02x} at byte {i}: {exc}")
@@ -344,14 +365,21 @@ def check_packet(p) -> tuple[str | None, np.ndarray | None, float]:
     return None, x.reshape(4, n), fs
 
 
-def replay(path, *, method: str = "ml", packet_topic: str | None = None, slip_config=None,
-           localize_options: dict | None = None) -> ReplayResult:
+def replay(
+    path,
+    *,
+    method: str = "ml",
+    packet_topic: str | None = None,
+    slip_config=None,
+    localize_options: dict | None = None,
+) -> ReplayResult:
     """Re-localize every PacketArray of a bag and run the slip detector over the events.
 
     Damaged bags, foreign messages and bad packets are counted in the result (see
     `ReplayResult`), never raised; FileNotFoundError if ``path`` does not exist."""
     from ae_tactile.localization import Localizer, Reason
     from ae_tactile.slip import LocalizedEvent, SlipConfig, SlipDetector
+
     if not Path(path).exists():
         raise FileNotFoundError(f"no such bag: {path}")
     store = typestore()
@@ -364,7 +392,7 @@ def replay(path, *, method: str = "ml", packet_topic: str | None = None, slip_co
         if msgtype.endswith("SensorInfo"):
             try:
                 geo = FingertipGeometry(msg.radius_m, msg.element_offset_m, msg.sound_speed_m_s)
-            except Exception:                       # noqa: BLE001 - values out of range
+            except Exception:  # noqa: BLE001 - values out of range
                 _count(out.undecodable, f"{msgtype} (invalid values, ignored)")
                 continue
             out.geometry = geo
@@ -374,7 +402,7 @@ def replay(path, *, method: str = "ml", packet_topic: str | None = None, slip_co
         try:
             frame = str(msg.header.frame_id)
             packets = list(msg.packets)
-        except Exception:                           # noqa: BLE001 - a foreign definition
+        except Exception:  # noqa: BLE001 - a foreign definition
             _count(out.undecodable, msgtype)
             continue
         groups: dict = {}
@@ -390,40 +418,64 @@ def replay(path, *, method: str = "ml", packet_topic: str | None = None, slip_co
                 _contacts(out, sub, res, fs, frame, topic, Reason)
     out.contacts.sort(key=lambda e: e["time_ns"])
     for e in out.contacts:
-        ev = LocalizedEvent(time_ns=e["time_ns"], point_m=e["point_m"], covariance_m2=e["covariance_m2"],
-                            polarity=1 if e["event_type"] == TOUCH else -1, amplitude_v=e["amplitude_v"],
-                            confidence=e["confidence"], packet_id=e["packet_id"])
+        ev = LocalizedEvent(
+            time_ns=e["time_ns"],
+            point_m=e["point_m"],
+            covariance_m2=e["covariance_m2"],
+            polarity=1 if e["event_type"] == TOUCH else -1,
+            amplitude_v=e["amplitude_v"],
+            confidence=e["confidence"],
+            packet_id=e["packet_id"],
+        )
         try:
             slips = det.process(ev)
-        except Exception:                           # noqa: BLE001 - counted, replay goes on
+        except Exception:  # noqa: BLE001 - counted, replay goes on
             _count(out.rejected, "SLIP_DETECTOR_ERROR")
             continue
         for s in slips:
-            out.slip.append({"time_ns": int(s.time_ns), "frame_id": e["frame_id"], "topic_ns": e["topic_ns"],
-                             "event_type": int(s.kind), "point_m": np.asarray(s.position_m, float),
-                             "covariance_m2": np.asarray(s.covariance_m2, float), "tau_x_s": math.nan,
-                             "tau_y_s": math.nan, "amplitude_v": math.nan, "confidence": float(s.confidence),
-                             "packet_ids": [int(i) for i in s.packet_ids],
-                             "emission_rate_hz": float(s.emission_rate_hz),
-                             "spatial_period_m": float(s.spatial_period_m),
-                             "slip_direction": np.asarray(s.slip_direction, float)})
+            out.slip.append(
+                {
+                    "time_ns": int(s.time_ns),
+                    "frame_id": e["frame_id"],
+                    "topic_ns": e["topic_ns"],
+                    "event_type": int(s.kind),
+                    "point_m": np.asarray(s.position_m, float),
+                    "covariance_m2": np.asarray(s.covariance_m2, float),
+                    "tau_x_s": math.nan,
+                    "tau_y_s": math.nan,
+                    "amplitude_v": math.nan,
+                    "confidence": float(s.confidence),
+                    "packet_ids": [int(i) for i in s.packet_ids],
+                    "emission_rate_hz": float(s.emission_rate_hz),
+                    "spatial_period_m": float(s.spatial_period_m),
+                    "slip_direction": np.asarray(s.slip_direction, float),
+                }
+            )
     return out
 
 
 def _localize(loc, items, fs, geometry, gains, out):
     """Localize a group of packets; if the estimator raises, each packet on its own."""
+
     def run(group):
         onsets = np.array([int(p.onset_index) for p, _ in group])
-        return loc(np.stack([x for _, x in group]), fs, onsets, geometry=geometry,
-                   channel_gains=gains, saturated=np.array([bool(p.saturated) for p, _ in group]))
+        return loc(
+            np.stack([x for _, x in group]),
+            fs,
+            onsets,
+            geometry=geometry,
+            channel_gains=gains,
+            saturated=np.array([bool(p.saturated) for p, _ in group]),
+        )
+
     try:
         return [(items, run(items))]
-    except Exception:                               # noqa: BLE001
+    except Exception:  # noqa: BLE001
         done = []
         for item in items:
             try:
                 done.append(([item], run([item])))
-            except Exception:                       # noqa: BLE001
+            except Exception:  # noqa: BLE001
                 _count(out.rejected, "LOCALIZER_ERROR")
         return done
 
@@ -439,18 +491,42 @@ def _contacts(out, items, res, fs, frame, topic, Reason):
             continue
         stamp = int(p.stamp.sec) * 1_000_000_000 + int(p.stamp.nanosec)
         t_ns = stamp + int(round(int(p.onset_index) * 1e9 / fs - travel[i] * 1e9))
-        out.contacts.append({
-            "time_ns": t_ns, "frame_id": frame, "topic_ns": _topic_ns(topic),
-            "event_type": DETOUCH if res.polarity[i] < 0 else TOUCH,
-            "point_m": res.point_m[i].copy(), "covariance_m2": res.covariance_m2[i].copy(),
-            "tau_x_s": float(res.tau_x_s[i]), "tau_y_s": float(res.tau_y_s[i]),
-            "amplitude_v": float(res.amplitude_v[i]), "confidence": float(res.confidence[i]),
-            "packet_id": int(p.sequence_id)})
+        out.contacts.append(
+            {
+                "time_ns": t_ns,
+                "frame_id": frame,
+                "topic_ns": _topic_ns(topic),
+                "event_type": DETOUCH if res.polarity[i] < 0 else TOUCH,
+                "point_m": res.point_m[i].copy(),
+                "covariance_m2": res.covariance_m2[i].copy(),
+                "tau_x_s": float(res.tau_x_s[i]),
+                "tau_y_s": float(res.tau_y_s[i]),
+                "amplitude_v": float(res.amplitude_v[i]),
+                "confidence": float(res.confidence[i]),
+                "packet_id": int(p.sequence_id),
+            }
+        )
 
 
-CSV_FIELDS = ["time_ns", "topic", "event_type", "x_m", "y_m", "z_m", "sigma_xy_m", "tau_x_s", "tau_y_s",
-              "amplitude_v", "confidence", "packet_ids", "emission_rate_hz", "spatial_period_m",
-              "slip_dir_x", "slip_dir_y", "slip_dir_z"]
+CSV_FIELDS = [
+    "time_ns",
+    "topic",
+    "event_type",
+    "x_m",
+    "y_m",
+    "z_m",
+    "sigma_xy_m",
+    "tau_x_s",
+    "tau_y_s",
+    "amplitude_v",
+    "confidence",
+    "packet_ids",
+    "emission_rate_hz",
+    "spatial_period_m",
+    "slip_dir_x",
+    "slip_dir_y",
+    "slip_dir_z",
+]
 
 
 def _rows(result: ReplayResult):
@@ -458,15 +534,25 @@ def _rows(result: ReplayResult):
         for e in events:
             cov = np.asarray(e["covariance_m2"], float)
             d = e.get("slip_direction", np.full(3, np.nan))
-            yield {"time_ns": e["time_ns"], "topic": topic, "event_type": EVENT_NAMES[e["event_type"]],
-                   "x_m": e["point_m"][0], "y_m": e["point_m"][1], "z_m": e["point_m"][2],
-                   "sigma_xy_m": math.sqrt(max(cov[0, 0] + cov[1, 1], 0.0) / 2.0),
-                   "tau_x_s": e["tau_x_s"], "tau_y_s": e["tau_y_s"], "amplitude_v": e["amplitude_v"],
-                   "confidence": e["confidence"],
-                   "packet_ids": " ".join(map(str, e.get("packet_ids", [e.get("packet_id")]))),
-                   "emission_rate_hz": e.get("emission_rate_hz", math.nan),
-                   "spatial_period_m": e.get("spatial_period_m", math.nan),
-                   "slip_dir_x": d[0], "slip_dir_y": d[1], "slip_dir_z": d[2]}
+            yield {
+                "time_ns": e["time_ns"],
+                "topic": topic,
+                "event_type": EVENT_NAMES[e["event_type"]],
+                "x_m": e["point_m"][0],
+                "y_m": e["point_m"][1],
+                "z_m": e["point_m"][2],
+                "sigma_xy_m": math.sqrt(max(cov[0, 0] + cov[1, 1], 0.0) / 2.0),
+                "tau_x_s": e["tau_x_s"],
+                "tau_y_s": e["tau_y_s"],
+                "amplitude_v": e["amplitude_v"],
+                "confidence": e["confidence"],
+                "packet_ids": " ".join(map(str, e.get("packet_ids", [e.get("packet_id")]))),
+                "emission_rate_hz": e.get("emission_rate_hz", math.nan),
+                "spatial_period_m": e.get("spatial_period_m", math.nan),
+                "slip_dir_x": d[0],
+                "slip_dir_y": d[1],
+                "slip_dir_z": d[2],
+            }
 
 
 def write_csv(result: ReplayResult, path) -> int:
@@ -481,6 +567,7 @@ def write_csv(result: ReplayResult, path) -> int:
 def write_bag(result: ReplayResult, path, storage: str = "sqlite3") -> int:
     """The events as ContactEvent messages on <ns>/contacts and <ns>/slip of a new rosbag2."""
     from rosbags.rosbag2 import StoragePlugin, Writer
+
     store = typestore()
     ContactEvent = store.types["ae_tactile/msg/ContactEvent"]
     Header = store.types["std_msgs/msg/Header"]
@@ -495,23 +582,34 @@ def write_bag(result: ReplayResult, path, storage: str = "sqlite3") -> int:
             for e in events:
                 full = f"{e['topic_ns']}/{topic}" if e["topic_ns"] else f"/{topic}"
                 if full not in conns:
-                    conns[full] = writer.add_connection(full, "ae_tactile/msg/ContactEvent", typestore=store)
+                    conns[full] = writer.add_connection(
+                        full, "ae_tactile/msg/ContactEvent", typestore=store
+                    )
                 sec, nsec = divmod(int(e["time_ns"]), 1_000_000_000)
                 p = e["point_m"]
                 d = e.get("slip_direction", np.full(3, np.nan))
                 x, y, z = (float(v) for v in p)
                 msg = ContactEvent(
                     header=Header(stamp=Time(sec=sec, nanosec=nsec), frame_id=e["frame_id"]),
-                    event_type=e["event_type"], position=Point(x=x, y=y, z=z),
+                    event_type=e["event_type"],
+                    position=Point(x=x, y=y, z=z),
                     position_covariance=np.asarray(e["covariance_m2"], np.float64).ravel(),
-                    polar_angle_rad=math.atan2(math.hypot(x, y), z), azimuth_angle_rad=math.atan2(y, x),
-                    tau_x_s=e["tau_x_s"], tau_y_s=e["tau_y_s"], amplitude_v=e["amplitude_v"],
+                    polar_angle_rad=math.atan2(math.hypot(x, y), z),
+                    azimuth_angle_rad=math.atan2(y, x),
+                    tau_x_s=e["tau_x_s"],
+                    tau_y_s=e["tau_y_s"],
+                    amplitude_v=e["amplitude_v"],
                     confidence=e["confidence"],
                     packet_ids=np.asarray(e.get("packet_ids", [e.get("packet_id", 0)]), np.uint64),
                     emission_rate_hz=e.get("emission_rate_hz", math.nan),
                     spatial_period_m=e.get("spatial_period_m", math.nan),
-                    slip_direction=Vector3(x=float(d[0]), y=float(d[1]), z=float(d[2])))
-                writer.write(conns[full], int(e["time_ns"]), store.serialize_cdr(msg, ContactEvent.__msgtype__))
+                    slip_direction=Vector3(x=float(d[0]), y=float(d[1]), z=float(d[2])),
+                )
+                writer.write(
+                    conns[full],
+                    int(e["time_ns"]),
+                    store.serialize_cdr(msg, ContactEvent.__msgtype__),
+                )
                 n += 1
     return n
 
@@ -521,34 +619,47 @@ def main(argv=None) -> int:
     ap.add_argument("bag", help="input rosbag2 directory (or .mcap / .db3 file) with PacketArray")
     ap.add_argument("out", help="output: a .csv file, or a new rosbag2 directory")
     from ae_tactile.localization import available_methods
-    ap.add_argument("--method", default="ml", choices=available_methods(), help="localization estimator")
+
+    ap.add_argument(
+        "--method", default="ml", choices=available_methods(), help="localization estimator"
+    )
     ap.add_argument("--topic", default=None, help="PacketArray topic (default: all)")
-    ap.add_argument("--storage", default="sqlite3", choices=("sqlite3", "mcap"), help="output bag storage")
-    ap.add_argument("--sliding-speed", type=float, default=0.0, help="known sliding speed (m/s) for textures")
+    ap.add_argument(
+        "--storage", default="sqlite3", choices=("sqlite3", "mcap"), help="output bag storage"
+    )
+    ap.add_argument(
+        "--sliding-speed", type=float, default=0.0, help="known sliding speed (m/s) for textures"
+    )
     args = ap.parse_args(argv)
     from ae_tactile.slip import SlipConfig
+
     cfg = SlipConfig(sliding_speed_m_s=args.sliding_speed or None)
     try:
         res = replay(args.bag, method=args.method, packet_topic=args.topic, slip_config=cfg)
     except (FileNotFoundError, ValueError) as exc:
         print(f"ae-tactile-replay: {exc}", file=sys.stderr)
         return 2
-    except Exception as exc:                        # noqa: BLE001 - a summary, no traceback
-        print(f"ae-tactile-replay: cannot replay {args.bag}: {type(exc).__name__}: {exc}",
-              file=sys.stderr)
+    except Exception as exc:  # noqa: BLE001 - a summary, no traceback
+        print(
+            f"ae-tactile-replay: cannot replay {args.bag}: {type(exc).__name__}: {exc}",
+            file=sys.stderr,
+        )
         return 2
     if res.damaged and not res.packets and not res.contacts:
-        print(f"ae-tactile-replay: nothing readable in {args.bag}\n{res.summary()}",
-              file=sys.stderr)
+        print(
+            f"ae-tactile-replay: nothing readable in {args.bag}\n{res.summary()}", file=sys.stderr
+        )
         return 2
     try:
         if args.out.endswith(".csv"):
             n = write_csv(res, args.out)
         else:
             n = write_bag(res, args.out, args.storage)
-    except Exception as exc:                        # noqa: BLE001
-        print(f"ae-tactile-replay: cannot write {args.out}: {type(exc).__name__}: {exc}",
-              file=sys.stderr)
+    except Exception as exc:  # noqa: BLE001
+        print(
+            f"ae-tactile-replay: cannot write {args.out}: {type(exc).__name__}: {exc}",
+            file=sys.stderr,
+        )
         return 2
     print(f"{res.summary()}\n{n} events written to {args.out}")
     return 3 if res.damaged else 0

@@ -28,6 +28,7 @@ wire byte of samples), the ACK table 64 entries; overload is dropped and counted
 Reads are neither byte-by-byte nor timeout-bound: each cycle blocks for the first
 byte (up to ``read_timeout_s``, only when idle) and then takes everything waiting.
 """
+
 from __future__ import annotations
 
 import errno
@@ -44,7 +45,15 @@ import numpy as np
 import serial
 
 from ae_tactile.protocol import (
-    NO_ONSET, Ack, AckResult, AcqMode, Command, FrameEncoder, Packet, Status, StreamBlock,
+    NO_ONSET,
+    Ack,
+    AckResult,
+    AcqMode,
+    Command,
+    FrameEncoder,
+    Packet,
+    Status,
+    StreamBlock,
     StreamDecoder,
 )
 from ae_tactile.timesync import DeviceClockMapper
@@ -103,8 +112,14 @@ class LinkConfig:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
         if not 50 <= int(self.baudrate) <= 100_000_000:
             raise ValueError(f"baudrate must be in [50, 1e8], got {self.baudrate}")
-        for name in ("read_timeout_s", "link_timeout_s", "idle_flush_s", "reconnect_initial_s",
-                     "reconnect_max_s", "command_timeout_s"):
+        for name in (
+            "read_timeout_s",
+            "link_timeout_s",
+            "idle_flush_s",
+            "reconnect_initial_s",
+            "reconnect_max_s",
+            "command_timeout_s",
+        ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a positive number of seconds, got {v!r}")
@@ -112,8 +127,11 @@ class LinkConfig:
             raise ValueError("reconnect_max_s must be >= reconnect_initial_s")
         if int(self.queue_max_batches) < 1 or int(self.read_chunk_bytes) < 1:
             raise ValueError("queue_max_batches and read_chunk_bytes must be >= 1")
-        if self.packet_samples is not None and self.pre_trigger_samples is not None \
-                and not 0 <= self.pre_trigger_samples < self.packet_samples:
+        if (
+            self.packet_samples is not None
+            and self.pre_trigger_samples is not None
+            and not 0 <= self.pre_trigger_samples < self.packet_samples
+        ):
             raise ValueError("pre_trigger_samples must be in [0, packet_samples)")
 
 
@@ -122,13 +140,13 @@ class PacketRecord:
     """One packet ready to publish. stamp_ns: host time of samples_v[:, 0] (int ns)."""
 
     stamp_ns: int
-    samples_v: np.ndarray          # (4, N) float32 volts
+    samples_v: np.ndarray  # (4, N) float32 volts
     sample_rate_hz: float
     onset_index: int
     sequence_id: int
     noise_rms_v: float
     saturated: bool
-    device_sample_index: int       # device sample counter of samples_v[:, 0]
+    device_sample_index: int  # device sample counter of samples_v[:, 0]
 
 
 @dataclass
@@ -175,10 +193,14 @@ class FingertipLink:
     (``sink_errors``) and logged, never allowed to stop the reader.
     """
 
-    def __init__(self, config: LinkConfig, clock_ns: Callable[[], int] = time.time_ns,
-                 on_batch: Callable[[], None] | None = None,
-                 logger: logging.Logger | None = None,
-                 sink: Callable[[PacketBatch], None] | None = None):
+    def __init__(
+        self,
+        config: LinkConfig,
+        clock_ns: Callable[[], int] = time.time_ns,
+        on_batch: Callable[[], None] | None = None,
+        logger: logging.Logger | None = None,
+        sink: Callable[[PacketBatch], None] | None = None,
+    ):
         self.config = config
         self.sink = sink
         self.clock_ns = clock_ns
@@ -200,21 +222,37 @@ class FingertipLink:
         self._next_command_id = 1
         self._pending_acks: dict[int, Ack] = {}
         self._stream_next_index: int | None = None
-        self._stream_ref: tuple[int, int, float] | None = None   # (sample index, device ns, fs)
+        self._stream_ref: tuple[int, int, float] | None = None  # (sample index, device ns, fs)
         self.state = "disconnected"
         self.device_status: Status | None = None
         self.counters = {
-            "connects": 0, "disconnects": 0, "connect_failures": 0, "read_errors": 0,
-            "link_timeouts": 0, "packets_out": 0, "batches_out": 0, "queue_overflow_packets": 0,
-            "stream_gaps": 0, "stream_samples_lost": 0, "device_restarts_handled": 0,
-            "commands_sent": 0, "commands_unacked": 0, "commands_failed": 0,
-            "frames_ignored": 0, "sync_good_pings": 0, "sink_errors": 0,
-            "idle_flushes": 0, "spurious_wakeups": 0, "hangups": 0, "internal_errors": 0,
-            "packets_rejected_nonfinite": 0, "frames_unusable": 0,
+            "connects": 0,
+            "disconnects": 0,
+            "connect_failures": 0,
+            "read_errors": 0,
+            "link_timeouts": 0,
+            "packets_out": 0,
+            "batches_out": 0,
+            "queue_overflow_packets": 0,
+            "stream_gaps": 0,
+            "stream_samples_lost": 0,
+            "device_restarts_handled": 0,
+            "commands_sent": 0,
+            "commands_unacked": 0,
+            "commands_failed": 0,
+            "frames_ignored": 0,
+            "sync_good_pings": 0,
+            "sink_errors": 0,
+            "idle_flushes": 0,
+            "spurious_wakeups": 0,
+            "hangups": 0,
+            "internal_errors": 0,
+            "packets_rejected_nonfinite": 0,
+            "frames_unusable": 0,
         }
         self.last_error = ""
-        self._last_frame_mono = 0.0      # last valid frame (liveness)
-        self._last_byte_mono = 0.0       # last byte of any kind (idle flush)
+        self._last_frame_mono = 0.0  # last valid frame (liveness)
+        self._last_byte_mono = 0.0  # last byte of any kind (idle flush)
         self._empty_hup_reads = 0
         self._reconfigure_pending = False
         self._last_ack_receive_ns = 0
@@ -258,21 +296,32 @@ class FingertipLink:
         with self._lock:
             s = dict(self.counters)
             s.update(self.decoder.stats())
-            s.update(state=self.state, queue_depth=self._queue.qsize(), last_error=self.last_error,
-                     clock_resyncs=self.mapper.resyncs, clock_clamped=self.mapper.clamped,
-                     packets_dropped=self.packets_dropped())
+            s.update(
+                state=self.state,
+                queue_depth=self._queue.qsize(),
+                last_error=self.last_error,
+                clock_resyncs=self.mapper.resyncs,
+                clock_clamped=self.mapper.clamped,
+                packets_dropped=self.packets_dropped(),
+            )
             st = self.device_status
             if st is not None:
-                s.update(device_serial=st.serial_number,
-                         device_firmware=".".join(str(v) for v in st.firmware_version),
-                         device_state=st.state.name, device_sample_rate_hz=st.sample_rate_hz,
-                         device_v_per_count=st.v_per_count, device_dropped=st.device_dropped)
+                s.update(
+                    device_serial=st.serial_number,
+                    device_firmware=".".join(str(v) for v in st.firmware_version),
+                    device_state=st.state.name,
+                    device_sample_rate_hz=st.sample_rate_hz,
+                    device_v_per_count=st.v_per_count,
+                    device_dropped=st.device_dropped,
+                )
             return s
 
     def packets_dropped(self) -> int:
         """Frames lost on the link (sequence gaps; a lost frame's type is unknown, so each
         counts as one packet) + packets dropped by a full hand-over queue."""
-        return int(self.decoder.stats()["dropped_frames"] + self.counters["queue_overflow_packets"])
+        return int(
+            self.decoder.stats()["dropped_frames"] + self.counters["queue_overflow_packets"]
+        )
 
     # ---------------------------------------------------------------- thread
     def _run(self) -> None:
@@ -291,7 +340,7 @@ class FingertipLink:
                 if self._reconfigure_pending and self._serial is not None:
                     self._reconfigure_pending = False
                     self._configure_device()
-            except Exception as exc:         # no input may stop the reader: count, go on
+            except Exception as exc:  # no input may stop the reader: count, go on
                 self.counters["internal_errors"] += 1
                 self.last_error = f"internal error: {exc!r}"
                 self.log.exception("link: unexpected error (reader continues)")
@@ -312,15 +361,21 @@ class FingertipLink:
         if data:
             self._last_byte_mono = now_mono
             self._handle_frames(self.decoder.feed(data))
-        elif (self.decoder.pending_bytes
-              and now_mono - self._last_byte_mono > self.config.idle_flush_s):
-            self.counters["idle_flushes"] += 1     # a frame cut short, then silence
+        elif (
+            self.decoder.pending_bytes
+            and now_mono - self._last_byte_mono > self.config.idle_flush_s
+        ):
+            self.counters["idle_flushes"] += 1  # a frame cut short, then silence
             self._handle_frames(self.decoder.flush())
-        if self._serial is not None and \
-                time.monotonic() - self._last_frame_mono > self.config.link_timeout_s:
+        if (
+            self._serial is not None
+            and time.monotonic() - self._last_frame_mono > self.config.link_timeout_s
+        ):
             self.counters["link_timeouts"] += 1
-            self._close(f"no valid frame for {self.config.link_timeout_s:g} s"
-                        f" ({self.decoder.bytes_received} bytes received in all)")
+            self._close(
+                f"no valid frame for {self.config.link_timeout_s:g} s"
+                f" ({self.decoder.bytes_received} bytes received in all)"
+            )
 
     def _read(self, ser) -> bytes:
         """Everything waiting, or block (<= read_timeout_s) for the first byte when idle.
@@ -341,12 +396,12 @@ class FingertipLink:
             try:
                 data = os.read(fd, chunk)
             except (BlockingIOError, InterruptedError):
-                data = None                     # readable, then nothing: spurious
+                data = None  # readable, then nothing: spurious
             except OSError as exc:
                 if exc.errno in (errno.EAGAIN, errno.EINTR):
                     data = None
                 else:
-                    raise                       # EIO of a vanished pty, ENXIO, ...
+                    raise  # EIO of a vanished pty, ENXIO, ...
             if data:
                 self._empty_hup_reads = 0
                 return data
@@ -375,12 +430,18 @@ class FingertipLink:
     def _open(self) -> bool:
         self.state = "connecting"
         try:
-            ser = serial.serial_for_url(self.config.port, baudrate=int(self.config.baudrate),
-                                        timeout=self.config.read_timeout_s, write_timeout=1.0)
+            ser = serial.serial_for_url(
+                self.config.port,
+                baudrate=int(self.config.baudrate),
+                timeout=self.config.read_timeout_s,
+                write_timeout=1.0,
+            )
         except (serial.SerialException, OSError, ValueError) as exc:
             self.counters["connect_failures"] += 1
-            if not self._open_failure_logged:   # once per outage, not every retry
-                self.log.warning("cannot open %s: %s (retrying with back-off)", self.config.port, exc)
+            if not self._open_failure_logged:  # once per outage, not every retry
+                self.log.warning(
+                    "cannot open %s: %s (retrying with back-off)", self.config.port, exc
+                )
                 self._open_failure_logged = True
             self.last_error = f"open failed: {exc}"
             self.state = "disconnected"
@@ -390,7 +451,7 @@ class FingertipLink:
             try:
                 fd = ser.fileno()
             except (AttributeError, NotImplementedError, serial.SerialException, OSError):
-                fd = None            # loop://, rfc2217:// ...: pyserial's own read
+                fd = None  # loop://, rfc2217:// ...: pyserial's own read
         if fd is not None:
             self._poller = select.poll()
             self._poller.register(fd, select.POLLIN | select.POLLPRI)
@@ -404,7 +465,7 @@ class FingertipLink:
             self.decoder.forget_senders()
             self.mapper.reset()
             self._stream_next_index = None
-            self.state = "connecting"          # "connected" once a valid frame arrives
+            self.state = "connecting"  # "connected" once a valid frame arrives
             self.counters["connects"] += 1
             self._open_failure_logged = False
         self._last_frame_mono = self._last_byte_mono = time.monotonic()
@@ -452,8 +513,14 @@ class FingertipLink:
         if cfg.threshold_counts is not None:
             commands.append(lambda cid: Command.set_threshold(int(cfg.threshold_counts), cid))
         if cfg.packet_samples is not None:
-            pre = cfg.pre_trigger_samples if cfg.pre_trigger_samples is not None else cfg.packet_samples // 4
-            commands.append(lambda cid: Command.set_packet_length(int(cfg.packet_samples), int(pre), cid))
+            pre = (
+                cfg.pre_trigger_samples
+                if cfg.pre_trigger_samples is not None
+                else cfg.packet_samples // 4
+            )
+            commands.append(
+                lambda cid: Command.set_packet_length(int(cfg.packet_samples), int(pre), cid)
+            )
         mode = AcqMode.STREAM if cfg.mode == "stream" else AcqMode.TRIGGERED
         for make in commands:
             if self._stop.is_set() or self._serial is None:
@@ -492,13 +559,19 @@ class FingertipLink:
             cid = self._new_command_id()
             cmd = make(cid)
             try:
-                self._serial.write(self.encoder.encode(cmd, int(time.monotonic() * 1e6) & 0xFFFFFFFF))
+                self._serial.write(
+                    self.encoder.encode(cmd, int(time.monotonic() * 1e6) & 0xFFFFFFFF)
+                )
             except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
                 self._close(f"write failed: {exc}")
                 return None
             self.counters["commands_sent"] += 1
             deadline = time.monotonic() + self.config.command_timeout_s
-            while time.monotonic() < deadline and self._serial is not None and not self._stop.is_set():
+            while (
+                time.monotonic() < deadline
+                and self._serial is not None
+                and not self._stop.is_set()
+            ):
                 self._cycle()
                 ack = self._pending_acks.pop(cid, None)
                 if ack is not None:
@@ -508,7 +581,9 @@ class FingertipLink:
                         self.log.warning("device refused %s: %s", cmd.opcode.name, ack.result.name)
                     return ack
         self.counters["commands_unacked"] += 1
-        self.log.warning("no ACK for %s after %d tries", cmd.opcode.name, self.config.command_retries)
+        self.log.warning(
+            "no ACK for %s after %d tries", cmd.opcode.name, self.config.command_retries
+        )
         return None
 
     # ---------------------------------------------------------------- frames
@@ -529,7 +604,7 @@ class FingertipLink:
         for frame in frames:
             try:
                 self._handle_frame(frame, receive_ns, records)
-            except Exception as exc:         # e.g. a stream block the detector refuses
+            except Exception as exc:  # e.g. a stream block the detector refuses
                 self.counters["frames_unusable"] += 1
                 self.log.warning("frame seq %d unusable: %r", frame.seq, exc)
         if records:
@@ -552,9 +627,11 @@ class FingertipLink:
             self.mapper.update(last_ns, receive_ns)
         else:
             self.mapper.update(device_ns, receive_ns)
-        if isinstance(body, (Packet, StreamBlock)) and \
-                float(body.v_per_count) * 32768.0 > _FLOAT32_MAX:
-            self.counters["packets_rejected_nonfinite"] += 1   # counts x v_per_count = inf
+        if (
+            isinstance(body, (Packet, StreamBlock))
+            and float(body.v_per_count) * 32768.0 > _FLOAT32_MAX
+        ):
+            self.counters["packets_rejected_nonfinite"] += 1  # counts x v_per_count = inf
             return
         if isinstance(body, Packet):
             records.append(self._packet_record(body, device_ns))
@@ -580,10 +657,15 @@ class FingertipLink:
         if body.onset_index != NO_ONSET:
             onset = int(body.onset_index)
         return PacketRecord(
-            stamp_ns=self.mapper.to_host_ns(device_ns), samples_v=volts,
-            sample_rate_hz=float(body.sample_rate_hz), onset_index=onset,
-            sequence_id=self._next_id(), noise_rms_v=noise,
-            saturated=bool(body.saturation_mask), device_sample_index=int(body.first_sample_index))
+            stamp_ns=self.mapper.to_host_ns(device_ns),
+            samples_v=volts,
+            sample_rate_hz=float(body.sample_rate_hz),
+            onset_index=onset,
+            sequence_id=self._next_id(),
+            noise_rms_v=noise,
+            saturated=bool(body.saturation_mask),
+            device_sample_index=int(body.first_sample_index),
+        )
 
     # ---------------------------------------------------------------- stream mode
     def _reset_detector(self) -> None:
@@ -597,13 +679,18 @@ class FingertipLink:
             self._emit(int(self.clock_ns()), records)
 
     def _stream_records(self, body: StreamBlock, device_ns: int) -> list[PacketRecord]:
-        from ae_tactile.dsp import PacketDetector   # imported lazily: stream mode only
+        from ae_tactile.dsp import PacketDetector  # imported lazily: stream mode only
+
         fs = float(body.sample_rate_hz)
         full_scale_v = float(body.v_per_count) * 2 ** (self.config.adc_bits - 1)
         if self._detector is None or self._detector_key != (fs, full_scale_v):
             self._reset_detector()
-            self._detector = PacketDetector(sample_rate_hz=fs, full_scale_v=full_scale_v,
-                                            adc_bits=self.config.adc_bits, **self.config.detector)
+            self._detector = PacketDetector(
+                sample_rate_hz=fs,
+                full_scale_v=full_scale_v,
+                adc_bits=self.config.adc_bits,
+                **self.config.detector,
+            )
             self._detector_key = (fs, full_scale_v)
             self._stream_next_index = None
         first = int(body.first_sample_index)
@@ -615,7 +702,9 @@ class FingertipLink:
         batch = self._detector.process(body.samples * np.float32(body.v_per_count), first)
         return self._records_from_batch(batch, first, device_ns, fs)
 
-    def _records_from_batch(self, batch, ref_index: int, ref_device_ns: int, fs: float) -> list[PacketRecord]:
+    def _records_from_batch(
+        self, batch, ref_index: int, ref_device_ns: int, fs: float
+    ) -> list[PacketRecord]:
         """PacketRecords of a detector batch; sample index -> device time through the
         reference (sample ref_index was taken at device time ref_device_ns)."""
         out = []
@@ -624,12 +713,18 @@ class FingertipLink:
                 continue
             start = int(batch.start_index[k])
             start_ns = ref_device_ns + int(round((start - ref_index) * 1e9 / fs))
-            out.append(PacketRecord(
-                stamp_ns=self.mapper.to_host_ns(start_ns),
-                samples_v=np.asarray(batch.samples[k], dtype=np.float32),
-                sample_rate_hz=fs, onset_index=int(batch.onset_index[k]),
-                sequence_id=self._next_id(), noise_rms_v=float(batch.noise_rms_v[k]),
-                saturated=bool(batch.saturated[k]), device_sample_index=start))
+            out.append(
+                PacketRecord(
+                    stamp_ns=self.mapper.to_host_ns(start_ns),
+                    samples_v=np.asarray(batch.samples[k], dtype=np.float32),
+                    sample_rate_hz=fs,
+                    onset_index=int(batch.onset_index[k]),
+                    sequence_id=self._next_id(),
+                    noise_rms_v=float(batch.noise_rms_v[k]),
+                    saturated=bool(batch.saturated[k]),
+                    device_sample_index=start,
+                )
+            )
         return out
 
     # ---------------------------------------------------------------- hand-over
@@ -643,7 +738,7 @@ class FingertipLink:
             self.counters["batches_out"] += 1
             try:
                 self.sink(batch)
-            except Exception as exc:          # the reader must survive any consumer bug
+            except Exception as exc:  # the reader must survive any consumer bug
                 self.counters["sink_errors"] += 1
                 self.log.error("packet consumer failed: %r", exc)
             return

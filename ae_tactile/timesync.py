@@ -23,6 +23,7 @@ step back is clamped and counted); a device restart (device time going backwards
 more than ``max_backstep_s``; the link also resets on the protocol's BOOT flag) or a
 jump of the offset beyond ``max_jump_s`` resets the model (counted as a re-sync).
 """
+
 from __future__ import annotations
 
 from collections import deque
@@ -33,27 +34,35 @@ import numpy as np
 class DeviceClockMapper:
     """Map device timestamps (ns) to host timestamps (ns) through the lower envelope."""
 
-    def __init__(self, window_s: float = 30.0, bucket_s: float = 0.5,
-                 max_jump_s: float = 0.25, min_span_for_skew_s: float = 10.0,
-                 max_skew: float = 200e-6, max_backstep_s: float = 1.0):
+    def __init__(
+        self,
+        window_s: float = 30.0,
+        bucket_s: float = 0.5,
+        max_jump_s: float = 0.25,
+        min_span_for_skew_s: float = 10.0,
+        max_skew: float = 200e-6,
+        max_backstep_s: float = 1.0,
+    ):
         if not (window_s > 0 and bucket_s > 0 and bucket_s < window_s):
             raise ValueError("need 0 < bucket_s < window_s")
         if not (max_jump_s > 0 and min_span_for_skew_s > 0 and 0 <= max_skew < 0.01):
-            raise ValueError("max_jump_s and min_span_for_skew_s must be > 0, 0 <= max_skew < 0.01")
+            raise ValueError(
+                "max_jump_s and min_span_for_skew_s must be > 0, 0 <= max_skew < 0.01"
+            )
         self.window_ns = int(window_s * 1e9)
         self.bucket_ns = int(bucket_s * 1e9)
         self.max_jump_ns = int(max_jump_s * 1e9)
         self.min_span_ns = int(min_span_for_skew_s * 1e9)
         self.max_skew = float(max_skew)
         self.max_backstep_ns = int(max_backstep_s * 1e9)
-        self.resyncs = 0          # model resets (device restart, offset jump)
-        self.clamped = 0          # outputs held back to stay monotonic
+        self.resyncs = 0  # model resets (device restart, offset jump)
+        self.clamped = 0  # outputs held back to stay monotonic
         self.reset()
         self.resyncs = 0
 
     def reset(self) -> None:
         """Forget the model (next update starts a new one); counts as a re-sync."""
-        self._buckets: deque[list[int]] = deque()   # [bucket_id, d_at_min, offset_min]
+        self._buckets: deque[list[int]] = deque()  # [bucket_id, d_at_min, offset_min]
         self._d_ref: int | None = None
         self._last_d: int | None = None
         self._last_out: int | None = None
@@ -110,7 +119,7 @@ class DeviceClockMapper:
         while self._buckets and self._buckets[0][0] < oldest:
             self._buckets.popleft()
             changed = True
-        if changed:          # the envelope only moves when a bucket minimum does
+        if changed:  # the envelope only moves when a bucket minimum does
             self._fit()
         return did_reset
 

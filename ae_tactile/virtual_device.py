@@ -22,6 +22,7 @@ Device model (documented in docs/protocol.md and docs/simulator.md):
   `reset_mid_frame` (a watchdog reset while a frame is on the wire, port left open),
   `garble` (every output byte replaced by noise, as a wrong baud rate would).
 """
+
 from __future__ import annotations
 
 import copy
@@ -40,8 +41,19 @@ import numpy as np
 import yaml
 
 from ae_tactile.protocol import (
-    MAX_SAMPLES, Ack, AckResult, AcqMode, Command, DeviceState, Direction, FrameEncoder, Opcode,
-    Packet, Status, StreamBlock, StreamDecoder,
+    MAX_SAMPLES,
+    Ack,
+    AckResult,
+    AcqMode,
+    Command,
+    DeviceState,
+    Direction,
+    FrameEncoder,
+    Opcode,
+    Packet,
+    Status,
+    StreamBlock,
+    StreamDecoder,
 )
 from ae_tactile.sim.scene import SceneError, load_scene
 from ae_tactile.sim.stream import KINDS
@@ -80,16 +92,26 @@ def load_scene_spec(scene) -> dict:
         spec = yaml.safe_load(scene) if isinstance(scene, str) and "\n" in scene else None
         if not isinstance(spec, dict):
             raise SceneError(f"scene file not found or not a YAML mapping: {scene!r}")
-    load_scene(copy.deepcopy(spec))      # validate now: clear errors before anything runs
+    load_scene(copy.deepcopy(spec))  # validate now: clear errors before anything runs
     return spec
 
 
 class VirtualFingertip:
     """Firmware model for one simulated fingertip (see the module docstring)."""
 
-    def __init__(self, scene, *, serial_number: str = "AE-SIM-0001", speed: float = 1.0,
-                 packet_samples: int = 400, pre_trigger: int = 80, threshold_counts: int | None = None,
-                 stream_block_samples: int = 2000, clock_ns=time.monotonic_ns, record: bool = False):
+    def __init__(
+        self,
+        scene,
+        *,
+        serial_number: str = "AE-SIM-0001",
+        speed: float = 1.0,
+        packet_samples: int = 400,
+        pre_trigger: int = 80,
+        threshold_counts: int | None = None,
+        stream_block_samples: int = 2000,
+        clock_ns=time.monotonic_ns,
+        record: bool = False,
+    ):
         self.spec = load_scene_spec(scene)
         if not (np.isfinite(speed) and 1e-3 <= speed <= 1e3):
             raise ValueError(f"speed must be in [0.001, 1000], got {speed}")
@@ -101,7 +123,9 @@ class VirtualFingertip:
         self.speed = float(speed)
         self.clock_ns = clock_ns
         self.record = bool(record)
-        self.sent_log: list[tuple] = []   # (kind, seq, body, 'sent'|'dropped'|'corrupted') if record
+        self.sent_log: list[
+            tuple
+        ] = []  # (kind, seq, body, 'sent'|'dropped'|'corrupted') if record
         self.packet_samples = int(packet_samples)
         self.pre_trigger = int(pre_trigger)
         self.stream_block_samples = int(stream_block_samples)
@@ -111,16 +135,18 @@ class VirtualFingertip:
         self.adc_max = (1 << (scene0.config.adc_bits - 1)) - 1
         self.duration_ns = int(scene0.duration_s * 1e9)
         noise_counts = scene0.noise_rms_v / scene0.config.lsb_v
-        self.threshold_counts = int(threshold_counts) if threshold_counts else int(max(4, np.ceil(6 * noise_counts)))
-        self.scene_t0_ns: int | None = None       # host clock at the first START
-        self.scene_process = None                 # exposed for closed-loop scenes
+        self.threshold_counts = (
+            int(threshold_counts) if threshold_counts else int(max(4, np.ceil(6 * noise_counts)))
+        )
+        self.scene_t0_ns: int | None = None  # host clock at the first START
+        self.scene_process = None  # exposed for closed-loop scenes
         self.truth: deque[TruthEvent] = deque()
         self.frames_sent = {"packet": 0, "stream": 0, "status": 0, "ack": 0}
         self.packets_below_threshold = 0
         self._corrupt = 0
         self._drop = 0
         self._repeat = 0
-        self._pending = None          # triggered mode: packets of the source not yet served
+        self._pending = None  # triggered mode: packets of the source not yet served
         self._exhausted = False
         self.garbled = False
         self._garble_rng = np.random.default_rng(12345)
@@ -159,15 +185,17 @@ class VirtualFingertip:
         """Send any frame body now, numbered and stamped like the device's own frames."""
         self._send(body, int(now_ns), "injected")
 
-    def reset_mid_frame(self, now_ns: int, n_samples: int = MAX_SAMPLES,
-                        fraction: float = 0.5) -> int:
+    def reset_mid_frame(
+        self, now_ns: int, n_samples: int = MAX_SAMPLES, fraction: float = 0.5
+    ) -> int:
         """A watchdog reset while a PACKET of ``n_samples`` is on the wire: its first
         ``fraction`` goes out, then the device reboots (the port stays open; the host sees
         the rebooted device's BOOT frame and heartbeats next). Returns the bytes cut off."""
-        body = Packet(np.zeros((4, int(n_samples)), np.int16), self.sample_rate_hz,
-                      self.v_per_count)
+        body = Packet(
+            np.zeros((4, int(n_samples)), np.int16), self.sample_rate_hz, self.v_per_count
+        )
         frame = self.encoder.encode(body, self.device_us(now_ns) & 0xFFFFFFFF)
-        cut = frame[:max(24, int(len(frame) * float(fraction)))]
+        cut = frame[: max(24, int(len(frame) * float(fraction)))]
         pending = bytes(self.out)
         self.boot()
         self.out += pending + cut
@@ -189,7 +217,7 @@ class VirtualFingertip:
         elif kind in ("packet", "stream") and self._corrupt > 0:
             self._corrupt -= 1
             data = bytearray(data)
-            data[len(data) // 2] ^= 0x10            # a payload bit: frame CRC fails
+            data[len(data) // 2] ^= 0x10  # a payload bit: frame CRC fails
             fate = "corrupted"
         if self.record:
             self.sent_log.append((kind, seq, body, fate))
@@ -198,17 +226,25 @@ class VirtualFingertip:
         self.out += data
         if kind in ("packet", "stream") and fate == "sent" and self._repeat > 0:
             self._repeat -= 1
-            self.out += data                        # the same frame, byte for byte, again
+            self.out += data  # the same frame, byte for byte, again
             self.frames_repeated = getattr(self, "frames_repeated", 0) + 1
         if fate == "sent" and kind in self.frames_sent:
             self.frames_sent[kind] += 1
 
     def status(self, now_ns: int) -> Status:
-        return Status(uptime_us=self.device_us(now_ns), state=self.state,
-                      sample_rate_hz=self.sample_rate_hz, v_per_count=self.v_per_count,
-                      threshold_counts=self.threshold_counts, packet_samples=self.packet_samples,
-                      pre_trigger=self.pre_trigger, error_bits=0, device_dropped=0,
-                      firmware_version=FIRMWARE_VERSION, serial_number=self.serial_number)
+        return Status(
+            uptime_us=self.device_us(now_ns),
+            state=self.state,
+            sample_rate_hz=self.sample_rate_hz,
+            v_per_count=self.v_per_count,
+            threshold_counts=self.threshold_counts,
+            packet_samples=self.packet_samples,
+            pre_trigger=self.pre_trigger,
+            error_bits=0,
+            device_dropped=0,
+            firmware_version=FIRMWARE_VERSION,
+            serial_number=self.serial_number,
+        )
 
     # ------------------------------------------------------------------ commands
     def receive(self, data: bytes, now_ns: int) -> None:
@@ -221,9 +257,11 @@ class VirtualFingertip:
         result, value = AckResult.OK, 0
         op = cmd.opcode
         if op == Opcode.START:
-            running = {AcqMode.TRIGGERED: DeviceState.TRIGGERED,
-                       AcqMode.STREAM: DeviceState.STREAMING}
-            if self.state != running[cmd.mode]:      # START in the running mode: idempotent
+            running = {
+                AcqMode.TRIGGERED: DeviceState.TRIGGERED,
+                AcqMode.STREAM: DeviceState.STREAMING,
+            }
+            if self.state != running[cmd.mode]:  # START in the running mode: idempotent
                 self._start(cmd.mode, now_ns)
             value = int(cmd.mode)
         elif op == Opcode.STOP:
@@ -256,24 +294,27 @@ class VirtualFingertip:
         return load_scene(spec)
 
     def _start(self, mode: AcqMode, now_ns: int) -> None:
-        self._pending = None          # first, for finished() called from other threads
+        self._pending = None  # first, for finished() called from other threads
         self._exhausted = False
         if self.scene_t0_ns is None:
             self.scene_t0_ns = now_ns
         scene = self._scene()
         self.scene_process = scene.process
         fs = self.sample_rate_hz
-        self.start_ns = now_ns                                       # sample 0 of this run
+        self.start_ns = now_ns  # sample 0 of this run
         self.scene_at_start_ns = int((now_ns - self.scene_t0_ns) * self.speed)
         self.mode = mode
         self.state = DeviceState.STREAMING if mode == AcqMode.STREAM else DeviceState.TRIGGERED
-        offset = int(np.ceil(self.scene_at_start_ns * 1e-9 * fs))     # scene sample at device sample 0
+        offset = int(
+            np.ceil(self.scene_at_start_ns * 1e-9 * fs)
+        )  # scene sample at device sample 0
         self.index_offset = offset
         if mode == AcqMode.STREAM:
             self._source = scene.streaming_source(start_index=offset)
         else:
-            self._source = scene.triggered_source(pretrigger_s=self.pre_trigger / fs,
-                                                  window_s=self.packet_samples / fs)
+            self._source = scene.triggered_source(
+                pretrigger_s=self.pre_trigger / fs, window_s=self.packet_samples / fs
+            )
             self._skip_before_ns = self.scene_at_start_ns
 
     # ------------------------------------------------------------------ time
@@ -306,7 +347,7 @@ class VirtualFingertip:
         return out
 
     def _poll_triggered(self, now_ns: int) -> None:
-        horizon = min(self.scene_ns(now_ns), self.duration_ns)     # the scene ends: silence
+        horizon = min(self.scene_ns(now_ns), self.duration_ns)  # the scene ends: silence
         while True:
             if self._pending is None:
                 batch = self._source.next_packets(16, horizon_ns=horizon)
@@ -330,21 +371,36 @@ class VirtualFingertip:
     def _serve(self, batch, i: int, t_scene: int, start_dev: int) -> None:
         em = batch.emissions
         captured = t_scene >= self._skip_before_ns and start_dev >= 0
-        counts = np.clip(np.rint(batch.samples_v[i] / self.v_per_count), -self.adc_max - 1, self.adc_max)
+        counts = np.clip(
+            np.rint(batch.samples_v[i] / self.v_per_count), -self.adc_max - 1, self.adc_max
+        )
         counts = counts.astype(np.int16)
         if captured and int(np.abs(counts).max()) < self.threshold_counts:
             captured = False
             self.packets_below_threshold += 1
-        self.truth.append(TruthEvent(
-            device_time_ns=self.device_ns_of_scene(t_scene), scene_time_ns=t_scene,
-            kind=KINDS[int(em.kind[i])], point_m=np.array(em.point_m[i]),
-            amplitude_pa_m=float(em.strength_pa_m[i]), event_id=int(em.event_id[i]), captured=captured))
+        self.truth.append(
+            TruthEvent(
+                device_time_ns=self.device_ns_of_scene(t_scene),
+                scene_time_ns=t_scene,
+                kind=KINDS[int(em.kind[i])],
+                point_m=np.array(em.point_m[i]),
+                amplitude_pa_m=float(em.strength_pa_m[i]),
+                event_id=int(em.event_id[i]),
+                captured=captured,
+            )
+        )
         if not captured:
             return
         sat = np.abs(counts.astype(np.int32)) >= self.adc_max
         mask = int(sum(1 << k for k in range(4) if sat[k].any()))
-        body = Packet(counts, self.sample_rate_hz, self.v_per_count, first_sample_index=start_dev,
-                      pre_trigger=self.pre_trigger, saturation_mask=mask)
+        body = Packet(
+            counts,
+            self.sample_rate_hz,
+            self.v_per_count,
+            first_sample_index=start_dev,
+            pre_trigger=self.pre_trigger,
+            saturation_mask=mask,
+        )
         self._send(body, self._device_ns_of_sample(start_dev), "packet")
 
     def _poll_stream(self, now_ns: int) -> None:
@@ -354,19 +410,37 @@ class VirtualFingertip:
             if self._device_ns_of_sample(dev_first + n - 1) > now_ns:
                 return
             chunk = self._source.next_chunk(n)
-            counts = np.clip(np.rint(chunk.samples_v / self.v_per_count), -self.adc_max - 1, self.adc_max)
+            counts = np.clip(
+                np.rint(chunk.samples_v / self.v_per_count), -self.adc_max - 1, self.adc_max
+            )
             counts = counts.astype(np.int16)
             sat = np.abs(counts.astype(np.int32)) >= self.adc_max
             mask = int(sum(1 << k for k in range(4) if sat[k].any()))
             em = chunk.emissions
             for j in range(len(em)):
                 t_scene = int(em.time_ns[j])
-                self.truth.append(TruthEvent(
-                    device_time_ns=self.device_ns_of_scene(t_scene), scene_time_ns=t_scene,
-                    kind=KINDS[int(em.kind[j])], point_m=np.array(em.point_m[j]),
-                    amplitude_pa_m=float(em.strength_pa_m[j]), event_id=int(em.event_id[j]), captured=True))
-            self._send(StreamBlock(counts, self.sample_rate_hz, self.v_per_count, first_sample_index=dev_first,
-                                   saturation_mask=mask), self._device_ns_of_sample(dev_first), "stream")
+                self.truth.append(
+                    TruthEvent(
+                        device_time_ns=self.device_ns_of_scene(t_scene),
+                        scene_time_ns=t_scene,
+                        kind=KINDS[int(em.kind[j])],
+                        point_m=np.array(em.point_m[j]),
+                        amplitude_pa_m=float(em.strength_pa_m[j]),
+                        event_id=int(em.event_id[j]),
+                        captured=True,
+                    )
+                )
+            self._send(
+                StreamBlock(
+                    counts,
+                    self.sample_rate_hz,
+                    self.v_per_count,
+                    first_sample_index=dev_first,
+                    saturation_mask=mask,
+                ),
+                self._device_ns_of_sample(dev_first),
+                "stream",
+            )
 
     def set_normal_load(self, load_n: float, now_ns: int) -> int:
         """Change the scene's normal load P (closed-loop grip) from the earliest scene time
@@ -381,9 +455,15 @@ class VirtualFingertip:
 
     @staticmethod
     def _process_horizon_ns(proc) -> int:
-        if hasattr(proc, "parts"):           # composite: the part timelines, shifted back
-            return max([off + getattr(p, "horizon_ns", 0) for off, p, _ in proc.parts if hasattr(p, "horizon_ns")]
-                       or [0])
+        if hasattr(proc, "parts"):  # composite: the part timelines, shifted back
+            return max(
+                [
+                    off + getattr(p, "horizon_ns", 0)
+                    for off, p, _ in proc.parts
+                    if hasattr(p, "horizon_ns")
+                ]
+                or [0]
+            )
         return int(getattr(proc, "horizon_ns", 0))
 
     def finished(self, now_ns: int) -> bool:
@@ -448,7 +528,7 @@ class PtyTransport:
             return os.read(self.master, 65536)
         except BlockingIOError:
             return b""
-        except OSError as exc:   # EIO: no reader attached yet
+        except OSError as exc:  # EIO: no reader attached yet
             if exc.errno == errno.EIO:
                 return b""
             raise
@@ -488,9 +568,16 @@ class TcpTransport:
     nor make the device's memory grow.
     """
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 0, *, max_clients: int = 4,
-                 idle_timeout_s: float = 5.0, max_client_buffer: int = 4 << 20,
-                 client_sndbuf: int | None = None):
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        *,
+        max_clients: int = 4,
+        idle_timeout_s: float = 5.0,
+        max_client_buffer: int = 4 << 20,
+        client_sndbuf: int | None = None,
+    ):
         if int(max_clients) < 1 or not idle_timeout_s > 0 or int(max_client_buffer) < 1:
             raise ValueError("need max_clients >= 1, idle_timeout_s > 0, max_client_buffer >= 1")
         self.host = host
@@ -555,7 +642,7 @@ class TcpTransport:
             except OSError:
                 return
             if len(self.clients) >= self.max_clients:
-                self.refused += 1                # accepted and closed: a clean refusal
+                self.refused += 1  # accepted and closed: a clean refusal
                 sock.close()
                 continue
             sock.setblocking(False)
@@ -576,7 +663,7 @@ class TcpTransport:
                 continue
             except OSError:
                 got = b""
-            if not got:                          # the client closed
+            if not got:  # the client closed
                 self._drop(c, "closed by the client")
                 continue
             data.append(got)
@@ -629,8 +716,14 @@ class DeviceRunner:
     is bounded like a device's transmit queue (``max_out_bytes``; overflow = frames lost).
     """
 
-    def __init__(self, device: VirtualFingertip, transport, *, period_s: float = 0.0005,
-                 max_out_bytes: int = 8 << 20):
+    def __init__(
+        self,
+        device: VirtualFingertip,
+        transport,
+        *,
+        period_s: float = 0.0005,
+        max_out_bytes: int = 8 << 20,
+    ):
         self.device = device
         self.transport = transport
         self.period_s = period_s
@@ -640,7 +733,9 @@ class DeviceRunner:
         self._lock = threading.RLock()
         self._unplugged_until = None
         self.out_overflow_bytes = 0
-        self.thread = threading.Thread(target=self._run, name="ae_tactile_virtual_device", daemon=True)
+        self.thread = threading.Thread(
+            target=self._run, name="ae_tactile_virtual_device", daemon=True
+        )
 
     def start(self) -> None:
         self.thread.start()
@@ -698,8 +793,11 @@ class DeviceRunner:
                         self.transport.service()
                 fds = []
                 if self.transport.connected():
-                    fds = (self.transport.filenos() if hasattr(self.transport, "filenos")
-                           else [self.transport.fileno()])
+                    fds = (
+                        self.transport.filenos()
+                        if hasattr(self.transport, "filenos")
+                        else [self.transport.fileno()]
+                    )
                     fds = [fd for fd in fds if fd is not None]
             if fds and not self._out:
                 try:

@@ -22,6 +22,7 @@ the machine). Writes bench/results/protocol.json and prints a summary.
     python3 bench/bench_protocol.py [--packets 20000] [--samples 400] [--repeats 3]
     python3 bench/bench_protocol.py --faults [--trials 3]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -53,18 +54,33 @@ def make_frames(n_packets: int, n_samples: int, seed: int = 1) -> list[bytes]:
     rng = np.random.default_rng(seed)
     enc = FrameEncoder()
     noise = rng.integers(-2048, 2048, size=(16, 4, n_samples), dtype=np.int16)
-    status = Status(uptime_us=0, state=DeviceState.TRIGGERED, sample_rate_hz=10_000_000,
-                    v_per_count=1e-6, threshold_counts=200, packet_samples=n_samples,
-                    pre_trigger=n_samples // 4, error_bits=0, device_dropped=0,
-                    firmware_version=(1, 0, 0), serial_number="AE-BENCH-0001")
+    status = Status(
+        uptime_us=0,
+        state=DeviceState.TRIGGERED,
+        sample_rate_hz=10_000_000,
+        v_per_count=1e-6,
+        threshold_counts=200,
+        packet_samples=n_samples,
+        pre_trigger=n_samples // 4,
+        error_bits=0,
+        device_dropped=0,
+        firmware_version=(1, 0, 0),
+        serial_number="AE-BENCH-0001",
+    )
     frames = []
     t_us = 0
     for k in range(n_packets):
         t_us += 100
         if k % 1000 == 0:
             frames.append(enc.encode(status, t_us & 0xFFFFFFFF))
-        pkt = Packet(noise[k % 16], 10_000_000, 1e-6, first_sample_index=k * 1000,
-                     pre_trigger=n_samples // 4, onset_index=n_samples // 4)
+        pkt = Packet(
+            noise[k % 16],
+            10_000_000,
+            1e-6,
+            first_sample_index=k * 1000,
+            pre_trigger=n_samples // 4,
+            onset_index=n_samples // 4,
+        )
         frames.append(enc.encode(pkt, t_us & 0xFFFFFFFF))
     return frames
 
@@ -101,15 +117,21 @@ def run_decoder(stream: bytes, chunk: int, repeats: int) -> dict:
         n_frames = 0
         t0 = time.perf_counter()
         for i in range(0, len(stream), chunk):
-            n_frames += len(dec.feed(mv[i:i + chunk]))
+            n_frames += len(dec.feed(mv[i : i + chunk]))
         n_frames += len(dec.flush())
         dt = time.perf_counter() - t0
         if best is None or dt < best[0]:
             best = (dt, n_frames, dec.stats())
     dt, n_frames, stats = best
-    return {"chunk_bytes": chunk, "seconds": dt, "frames": n_frames,
-            "frames_per_s": n_frames / dt, "bytes_per_s": len(stream) / dt,
-            "mbytes_per_s": len(stream) / dt / 1e6, "stats": stats}
+    return {
+        "chunk_bytes": chunk,
+        "seconds": dt,
+        "frames": n_frames,
+        "frames_per_s": n_frames / dt,
+        "bytes_per_s": len(stream) / dt,
+        "mbytes_per_s": len(stream) / dt / 1e6,
+        "stats": stats,
+    }
 
 
 def main(argv=None) -> dict:
@@ -119,8 +141,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--faults", action="store_true", help="measure fault recovery instead")
     ap.add_argument("--trials", type=int, default=3, help="trials per fault (--faults)")
-    ap.add_argument("--out", type=Path,
-                    default=Path(__file__).resolve().parent / "results" / "protocol.json")
+    ap.add_argument(
+        "--out", type=Path, default=Path(__file__).resolve().parent / "results" / "protocol.json"
+    )
     args = ap.parse_args(argv)
     if args.faults:
         return bench_faults(args.trials, args.out.parent / "protocol_faults.json")
@@ -135,11 +158,18 @@ def main(argv=None) -> dict:
     stream = b"".join(frames)
     frame_bytes = len(frames[1])
     results = {
-        "workload": {"packets": args.packets, "samples_per_channel": args.samples,
-                     "packet_frame_bytes": frame_bytes, "total_frames": len(frames),
-                     "stream_bytes": len(stream)},
-        "encode": {"seconds": best_enc, "frames_per_s": len(frames) / best_enc,
-                   "note": "Packet construction (validation) + encode_frame, numpy samples"},
+        "workload": {
+            "packets": args.packets,
+            "samples_per_channel": args.samples,
+            "packet_frame_bytes": frame_bytes,
+            "total_frames": len(frames),
+            "stream_bytes": len(stream),
+        },
+        "encode": {
+            "seconds": best_enc,
+            "frames_per_s": len(frames) / best_enc,
+            "note": "Packet construction (validation) + encode_frame, numpy samples",
+        },
         "decode_clean": {},
     }
     for chunk in (4096, 65536):
@@ -175,31 +205,44 @@ def main(argv=None) -> dict:
 
     results["load_average"] = os.getloadavg()
     results["environment"] = {
-        "python": sys.version.split()[0], "numpy": np.__version__,
-        "machine": platform.machine(), "processor": platform.processor() or platform.machine(),
-        "cpu_count": os.cpu_count(), "note": "shared 2-core machine; best of repeats",
+        "python": sys.version.split()[0],
+        "numpy": np.__version__,
+        "machine": platform.machine(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "note": "shared 2-core machine; best of repeats",
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2) + "\n")
 
-    print(f"workload: {n_total} frames ({args.packets} PACKETs of 4 x {args.samples} int16,"
-          f" {frame_bytes} B each), {len(stream) / 1e6:.1f} MB")
+    print(
+        f"workload: {n_total} frames ({args.packets} PACKETs of 4 x {args.samples} int16,"
+        f" {frame_bytes} B each), {len(stream) / 1e6:.1f} MB"
+    )
     print(f"encode:           {results['encode']['frames_per_s']:9.0f} frames/s")
     for name, r in results["decode_clean"].items():
-        print(f"decode {name:10s} {r['frames_per_s']:9.0f} frames/s  {r['mbytes_per_s']:7.1f} MB/s")
+        print(
+            f"decode {name:10s} {r['frames_per_s']:9.0f} frames/s  {r['mbytes_per_s']:7.1f} MB/s"
+        )
     r = results["decode_corrupted"]
-    print(f"decode corrupted  {r['frames_per_s']:9.0f} frames/s  {r['mbytes_per_s']:7.1f} MB/s"
-          f"  ({r['frames']} of {r['frames_expected']} intact frames decoded;"
-          f" crc_errors {r['stats']['crc_errors']}, header_errors {r['stats']['header_errors']},"
-          f" dropped {r['stats']['dropped_frames']})")
+    print(
+        f"decode corrupted  {r['frames_per_s']:9.0f} frames/s  {r['mbytes_per_s']:7.1f} MB/s"
+        f"  ({r['frames']} of {r['frames_expected']} intact frames decoded;"
+        f" crc_errors {r['stats']['crc_errors']}, header_errors {r['stats']['header_errors']},"
+        f" dropped {r['stats']['dropped_frames']})"
+    )
     for name, r in results["decode_adversarial"].items():
-        print(f"decode fake-64k {name:10s} {r['frames_per_s']:9.0f} frames/s"
-              f"  {r['mbytes_per_s']:7.1f} MB/s  ({100 * r['ratio_to_clean_bytes_per_s']:.0f} %"
-              f" of clean; truncated {r['stats']['truncated_frames']},"
-              f" crc_errors {r['stats']['crc_errors']})")
+        print(
+            f"decode fake-64k {name:10s} {r['frames_per_s']:9.0f} frames/s"
+            f"  {r['mbytes_per_s']:7.1f} MB/s  ({100 * r['ratio_to_clean_bytes_per_s']:.0f} %"
+            f" of clean; truncated {r['stats']['truncated_frames']},"
+            f" crc_errors {r['stats']['crc_errors']})"
+        )
     r = results["decode_fake_header_flood"]
-    print(f"decode fake-header flood  {r['mbytes_per_s']:7.2f} MB/s (no valid frame;"
-          f" truncated {r['stats']['truncated_frames']}, crc_errors {r['stats']['crc_errors']})")
+    print(
+        f"decode fake-header flood  {r['mbytes_per_s']:7.2f} MB/s (no valid frame;"
+        f" truncated {r['stats']['truncated_frames']}, crc_errors {r['stats']['crc_errors']})"
+    )
     print(f"wrote {args.out}")
     return results
 
@@ -230,6 +273,7 @@ def bench_faults(trials: int, out: Path) -> dict:
         TcpTransport,
         VirtualFingertip,
     )
+
     root = Path(__file__).resolve().parents[1]
     with open(root / "config" / "scenes" / "random_touches.yaml") as fh:
         scene = dict(yaml.safe_load(fh), duration_s=12.0, name="long")
@@ -247,6 +291,7 @@ def bench_faults(trials: int, out: Path) -> dict:
         def poll():
             for b in link.poll():
                 records.extend(b.packets)
+
         # configured and acquiring: the first packet is in
         ready = _wait(lambda: link.stats()["state"] == "connected" and records, 30, poll)
         assert ready is not None
@@ -265,76 +310,108 @@ def bench_faults(trials: int, out: Path) -> dict:
         return None if dt is None else time.monotonic() - t0
 
     def one_trial() -> None:
-            with tempfile.TemporaryDirectory() as tmp:
-                dev, runner, link, records, poll = rig(tmp)
-                # 1. watchdog reset mid-frame (8192-sample PACKET cut in half), port open
-                n0 = len(records)
-                d0 = link.stats()["disconnects"]
-                t0 = time.monotonic()
-                runner.call(dev.reset_mid_frame, time.monotonic_ns())
-                add("reset_mid_frame", "boot_frame_delivered_s",
-                    since(t0, lambda: link.stats()["device_restarts_handled"] >= 1, 30, poll))
-                add("reset_mid_frame", "first_packet_s",
-                    since(t0, lambda: len(records) > n0, 30, poll))
-                s = link.stats()
-                add("reset_mid_frame", "disconnects", s["disconnects"] - d0)
-                add("reset_mid_frame", "truncated_frames", s["truncated_frames"])
-                # 2. repeated frames
-                runner.call(dev.repeat_next, 5)
-                _wait(lambda: link.stats()["duplicate_frames"] >= 5, 30, poll)
-                s = link.stats()
-                add("repeated_frames", "duplicates", s["duplicate_frames"])
-                add("repeated_frames", "restarts_handled_extra", s["device_restarts_handled"] - 1)
-                # 3. garbage only (wrong baud rate)
-                t0 = time.monotonic()
-                dev.garble(True)
-                add("garbage_only", "not_connected_after_s",
-                    since(t0, lambda: link.stats()["state"] != "connected", 30, poll))
-                _wait(lambda: False, 1.0, poll)
-                dev.garble(False)
-                n0 = len(records)
-                t0 = time.monotonic()
-                add("garbage_only", "connected_again_s",
-                    since(t0, lambda: link.stats()["state"] == "connected", 30, poll))
-                add("garbage_only", "first_packet_again_s",
-                    since(t0, lambda: len(records) > n0, 30, poll))
-                # 4. unplug for 1 s
-                c0 = link.stats()["connects"]
-                runner.unplug(1.0)
-                t0 = time.monotonic()
-                add("unplug_1s", "not_connected_after_s",
-                    since(t0, lambda: link.stats()["state"] != "connected", 30, poll))
-                add("unplug_1s", "connected_again_after_unplug_s",
-                    since(t0, lambda: link.stats()["connects"] > c0
-                          and link.stats()["state"] == "connected", 30, poll))
-                close(runner, link)
-            # 5. a stuck TCP client next to the driver
-            tr = TcpTransport(idle_timeout_s=5.0, client_sndbuf=4096)
-            import socket
-            stuck = socket.create_connection((tr.host, int(tr.port.rsplit(":", 1)[1])))
-            stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-            dev, runner, link, records, poll = rig(None, transport=tr)
-            runner.call(dev.inject_garbage, bytes(300_000))
+        with tempfile.TemporaryDirectory() as tmp:
+            dev, runner, link, records, poll = rig(tmp)
+            # 1. watchdog reset mid-frame (8192-sample PACKET cut in half), port open
+            n0 = len(records)
+            d0 = link.stats()["disconnects"]
             t0 = time.monotonic()
-            add("stuck_tcp_client", "dropped_after_s",
-                since(t0, lambda: tr.timed_out >= 1, 60, poll))
-            add("stuck_tcp_client", "driver_disconnects", link.stats()["disconnects"])
+            runner.call(dev.reset_mid_frame, time.monotonic_ns())
+            add(
+                "reset_mid_frame",
+                "boot_frame_delivered_s",
+                since(t0, lambda: link.stats()["device_restarts_handled"] >= 1, 30, poll),
+            )
+            add(
+                "reset_mid_frame", "first_packet_s", since(t0, lambda: len(records) > n0, 30, poll)
+            )
+            s = link.stats()
+            add("reset_mid_frame", "disconnects", s["disconnects"] - d0)
+            add("reset_mid_frame", "truncated_frames", s["truncated_frames"])
+            # 2. repeated frames
+            runner.call(dev.repeat_next, 5)
+            _wait(lambda: link.stats()["duplicate_frames"] >= 5, 30, poll)
+            s = link.stats()
+            add("repeated_frames", "duplicates", s["duplicate_frames"])
+            add("repeated_frames", "restarts_handled_extra", s["device_restarts_handled"] - 1)
+            # 3. garbage only (wrong baud rate)
+            t0 = time.monotonic()
+            dev.garble(True)
+            add(
+                "garbage_only",
+                "not_connected_after_s",
+                since(t0, lambda: link.stats()["state"] != "connected", 30, poll),
+            )
+            _wait(lambda: False, 1.0, poll)
+            dev.garble(False)
+            n0 = len(records)
+            t0 = time.monotonic()
+            add(
+                "garbage_only",
+                "connected_again_s",
+                since(t0, lambda: link.stats()["state"] == "connected", 30, poll),
+            )
+            add(
+                "garbage_only",
+                "first_packet_again_s",
+                since(t0, lambda: len(records) > n0, 30, poll),
+            )
+            # 4. unplug for 1 s
+            c0 = link.stats()["connects"]
+            runner.unplug(1.0)
+            t0 = time.monotonic()
+            add(
+                "unplug_1s",
+                "not_connected_after_s",
+                since(t0, lambda: link.stats()["state"] != "connected", 30, poll),
+            )
+            add(
+                "unplug_1s",
+                "connected_again_after_unplug_s",
+                since(
+                    t0,
+                    lambda: link.stats()["connects"] > c0 and link.stats()["state"] == "connected",
+                    30,
+                    poll,
+                ),
+            )
             close(runner, link)
-            stuck.close()
+        # 5. a stuck TCP client next to the driver
+        tr = TcpTransport(idle_timeout_s=5.0, client_sndbuf=4096)
+        import socket
+
+        stuck = socket.create_connection((tr.host, int(tr.port.rsplit(":", 1)[1])))
+        stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        dev, runner, link, records, poll = rig(None, transport=tr)
+        runner.call(dev.inject_garbage, bytes(300_000))
+        t0 = time.monotonic()
+        add("stuck_tcp_client", "dropped_after_s", since(t0, lambda: tr.timed_out >= 1, 60, poll))
+        add("stuck_tcp_client", "driver_disconnects", link.stats()["disconnects"])
+        close(runner, link)
+        stuck.close()
 
     for _ in range(trials):
         one_trial()
     summary = {}
     for name, d in res.items():
         if isinstance(d, dict):
-            summary[name] = {k: {"median": float(np.median([v for v in vals if v is not None]))
-                                 if any(v is not None for v in vals) else None,
-                                 "max": max((v for v in vals if v is not None), default=None),
-                                 "values": vals} for k, vals in d.items()}
+            summary[name] = {
+                k: {
+                    "median": float(np.median([v for v in vals if v is not None]))
+                    if any(v is not None for v in vals)
+                    else None,
+                    "max": max((v for v in vals if v is not None), default=None),
+                    "values": vals,
+                }
+                for k, vals in d.items()
+            }
     summary["trials"] = trials
     summary["load_average"] = os.getloadavg()
-    summary["link_defaults"] = {"link_timeout_s": 3.0, "idle_flush_s": 0.25,
-                                "reconnect_initial_s": 0.2}
+    summary["link_defaults"] = {
+        "link_timeout_s": 3.0,
+        "idle_flush_s": 0.25,
+        "reconnect_initial_s": 0.2,
+    }
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(summary, indent=2) + "\n")
     for name, d in summary.items():

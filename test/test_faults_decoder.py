@@ -1,6 +1,7 @@
 """Hostile input to the StreamDecoder: repeated frames, frames cut by a device reset,
 fake headers claiming 64 KiB, floods of them. Every valid frame comes out once, as soon
 as its own last byte is in; every other byte is accounted for; memory stays bounded."""
+
 from __future__ import annotations
 
 import struct
@@ -22,8 +23,11 @@ from ae_tactile.protocol import (
     StreamDecoder,
 )
 
-SETTINGS = settings(max_examples=40, deadline=None,
-                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+SETTINGS = settings(
+    max_examples=40,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
 
 
 def packet(k: int, n: int = 16) -> Packet:
@@ -32,8 +36,9 @@ def packet(k: int, n: int = 16) -> Packet:
 
 
 def status(uptime_us: int) -> Status:
-    return Status(uptime_us, DeviceState.IDLE, 10_000_000, 1e-6, 200, 400, 100, 0, 0,
-                  (1, 0, 0), "AE-0001")
+    return Status(
+        uptime_us, DeviceState.IDLE, 10_000_000, 1e-6, 200, 400, 100, 0, 0, (1, 0, 0), "AE-0001"
+    )
 
 
 def wire_of(n: int, first_seq: int = 0, boot: bool = False, t0: int = 0) -> list[bytes]:
@@ -53,7 +58,7 @@ def feed_in(dec: StreamDecoder, data: bytes, chunks: list[int]) -> list:
     while pos < len(data):
         c = max(1, chunks[k % len(chunks)]) if chunks else len(data)
         k += 1
-        for f in dec.feed(data[pos:pos + c]):
+        for f in dec.feed(data[pos : pos + c]):
             out.append((f, min(pos + c, len(data))))
         pos += c
     return out
@@ -65,7 +70,7 @@ def accounted(dec: StreamDecoder) -> bool:
 
 # ------------------------------------------------------------------ repeated frames
 @SETTINGS
-@given(st.data(), st.integers(0, 2 ** 32 - 1))
+@given(st.data(), st.integers(0, 2**32 - 1))
 def test_a_repeated_frame_is_a_duplicate_never_a_restart_nor_delivered_twice(data, first_seq):
     wire = wire_of(12, first_seq)
     # repeat some frames: right after themselves, or a few frames later (within the window)
@@ -78,7 +83,7 @@ def test_a_repeated_frame_is_a_duplicate_never_a_restart_nor_delivered_twice(dat
     dec = StreamDecoder()
     out = [f for f, _ in feed_in(dec, b"".join(stream), data.draw(st.lists(st.integers(1, 700))))]
     out += dec.flush()
-    assert [f.seq for f in out] == [(first_seq + k) % 2 ** 32 for k in range(12)]
+    assert [f.seq for f in out] == [(first_seq + k) % 2**32 for k in range(12)]
     assert dec.duplicate_frames == n_repeats
     assert dec.device_restarts == 0 and dec.dropped_frames == 0 and dec.sequence_gaps == 0
     assert not any(f.restart for f in out)
@@ -90,7 +95,7 @@ def test_same_sequence_number_with_other_content_is_not_a_duplicate():
     """A device that really restarted (BOOT lost) reuses sequence numbers with another
     clock: that is a restart, not a duplicate."""
     first = wire_of(5, 0, boot=True, t0=10_000_000)
-    again = wire_of(3, 0, boot=True, t0=50)[1:]          # seq 1, 2 again, new clock
+    again = wire_of(3, 0, boot=True, t0=50)[1:]  # seq 1, 2 again, new clock
     dec = StreamDecoder()
     out = dec.feed(b"".join(first + again))
     assert len(out) == 7 and dec.duplicate_frames == 0 and dec.device_restarts == 1
@@ -101,7 +106,7 @@ def test_same_sequence_number_with_other_content_is_not_a_duplicate():
 @given(st.data())
 def test_frame_cut_by_a_device_reset_does_not_hold_back_the_next_frames(data):
     big = FrameEncoder(77, False).encode(Packet(np.ones((4, 8192), np.int16), 10_000_000, 1e-6), 5)
-    cut = big[:data.draw(st.integers(24, len(big) - 1))]          # header complete: a candidate
+    cut = big[: data.draw(st.integers(24, len(big) - 1))]  # header complete: a candidate
     boot = FrameEncoder(0, True)
     after = [boot.encode(status(1500), 1500)]
     after += [boot.encode(packet(k), 2000 + k) for k in range(4)]
@@ -144,8 +149,10 @@ def test_fake_64k_headers_before_every_frame_cost_no_crc_and_no_delay(data):
 
 
 @SETTINGS
-@given(st.lists(st.tuples(st.integers(0, 3), st.integers(0, 200)), max_size=60),
-       st.lists(st.integers(1, 9000), min_size=1, max_size=10))
+@given(
+    st.lists(st.tuples(st.integers(0, 3), st.integers(0, 200)), max_size=60),
+    st.lists(st.integers(1, 9000), min_size=1, max_size=10),
+)
 def test_floods_of_fake_headers_never_crash_and_memory_stays_bounded(pieces, chunks):
     rng = np.random.default_rng(len(pieces))
     parts = []
@@ -165,7 +172,7 @@ def test_floods_of_fake_headers_never_crash_and_memory_stays_bounded(pieces, chu
     while pos < len(stream):
         c = chunks[k % len(chunks)]
         k += 1
-        out += dec.feed(stream[pos:pos + c])
+        out += dec.feed(stream[pos : pos + c])
         pos += c
         worst = max(worst, dec.pending_bytes)
         assert len(dec._items) <= dec.pending_bytes // 4 + 1
@@ -181,12 +188,24 @@ def test_every_rejection_kind_is_counted_once():
     bad_crc = bytearray(w[1])
     bad_crc[-1] ^= 0xFF
     junk_header = SYNC + bytes(20)
-    stream = (junk_header + w[0] + bytes(bad_crc) + fake_header(99) + w[2] + w[2] + w[3]
-              + fake_header(98, length=100))
+    stream = (
+        junk_header
+        + w[0]
+        + bytes(bad_crc)
+        + fake_header(99)
+        + w[2]
+        + w[2]
+        + w[3]
+        + fake_header(98, length=100)
+    )
     dec = StreamDecoder()
     out = dec.feed(stream) + dec.flush()
     assert [f.seq for f in out] == [10, 12, 13]
-    assert (dec.header_errors, dec.crc_errors, dec.truncated_frames, dec.duplicate_frames) == \
-        (1, 1, 2, 1)
-    assert dec.dropped_frames == 1                    # seq 11, whose CRC failed
+    assert (dec.header_errors, dec.crc_errors, dec.truncated_frames, dec.duplicate_frames) == (
+        1,
+        1,
+        2,
+        1,
+    )
+    assert dec.dropped_frames == 1  # seq 11, whose CRC failed
     assert accounted(dec) and dec.bytes_decoded == len(w[0]) + len(w[2]) + len(w[3])

@@ -5,6 +5,7 @@ frames, spurious wake-ups, overload, non-finite packets, stuck TCP clients.
 No wall-clock bounds: every wait is on a condition with a generous timeout, and the
 assertions are on counters and on what is delivered.
 """
+
 import os
 import socket
 import threading
@@ -27,8 +28,11 @@ def now_ns():
 
 
 def sent_after(rig, log_index):
-    return [p.first_sample_index for kind, _, p, f in rig.device.sent_log[log_index:]
-            if kind == "packet" and f == "sent"]
+    return [
+        p.first_sample_index
+        for kind, _, p, f in rig.device.sent_log[log_index:]
+        if kind == "packet" and f == "sent"
+    ]
 
 
 def test_device_reset_mid_frame_with_the_port_open_recovers_without_reconnecting(tmp_path):
@@ -37,49 +41,62 @@ def test_device_reset_mid_frame_with_the_port_open_recovers_without_reconnecting
         rig.run(0.5)
         before = len(rig.records)
         log_at_reset = len(rig.device.sent_log)
-        missing = rig.runner.call(rig.device.reset_mid_frame, now_ns())   # 8192-sample frame
-        assert missing > 30_000              # bytes the cut frame still claims
-        rig.run(20.0, until=lambda: rig.link.stats()["device_restarts_handled"] == 1
-                and len(rig.records) > before + 3)
+        missing = rig.runner.call(rig.device.reset_mid_frame, now_ns())  # 8192-sample frame
+        assert missing > 30_000  # bytes the cut frame still claims
+        rig.run(
+            20.0,
+            until=lambda: (
+                rig.link.stats()["device_restarts_handled"] == 1 and len(rig.records) > before + 3
+            ),
+        )
         resent = sent_after(rig, log_at_reset)
         rig.run(10.0, until=lambda: len(rig.records) - before >= len(resent))
         s = rig.link.stats()
         assert s["device_restarts_handled"] == 1 and rig.device.boots == 1
-        assert s["truncated_frames"] == 1 and s["crc_errors"] == 0     # the cut frame
+        assert s["truncated_frames"] == 1 and s["crc_errors"] == 0  # the cut frame
         assert s["disconnects"] == 0 and s["link_timeouts"] == 0 and s["idle_flushes"] == 0
         assert s["state"] == "connected"
         after = [r.device_sample_index for r in rig.records[before:]]
-        assert len(after) > 3 and after[:len(resent)] == resent        # all of them, once
+        assert len(after) > 3 and after[: len(resent)] == resent  # all of them, once
         assert s["pending_bytes"] < MAX_FRAME_LEN
 
 
 def test_device_sending_only_garbage_is_not_connected_and_recovers(tmp_path):
-    with Rig(PtyTransport(str(tmp_path / "fingertip")), scene=LONG, link_timeout_s=1.0,
-             reconnect_initial_s=0.1, reconnect_max_s=0.3) as rig:
+    with Rig(
+        PtyTransport(str(tmp_path / "fingertip")),
+        scene=LONG,
+        link_timeout_s=1.0,
+        reconnect_initial_s=0.1,
+        reconnect_max_s=0.3,
+    ) as rig:
         rig.wait_connected()
         rig.run(0.3)
-        rig.device.garble(True)                     # a wrong baud rate: bytes, no frames
+        rig.device.garble(True)  # a wrong baud rate: bytes, no frames
         rig.run(20.0, until=lambda: rig.link.stats()["link_timeouts"] >= 1)
         s0 = rig.link.stats()
         assert s0["state"] != "connected" and s0["link_timeouts"] >= 1
         assert "no valid frame" in s0["last_error"]
         states, worst_pending = set(), 0
-        t_end = time.monotonic() + 2.5              # sample the state for a while
+        t_end = time.monotonic() + 2.5  # sample the state for a while
         while time.monotonic() < t_end:
             s = rig.link.stats()
             states.add(s["state"])
             worst_pending = max(worst_pending, s["pending_bytes"])
             rig.run(0.02)
         s1 = rig.link.stats()
-        assert states <= {"connecting", "disconnected"}          # never "connected"
-        assert s1["frames_ok"] == s0["frames_ok"]                 # nothing decoded from noise
-        assert s1["bytes_received"] > s0["bytes_received"]        # although bytes arrive
-        assert s1["link_timeouts"] > s0["link_timeouts"]          # and it keeps retrying
+        assert states <= {"connecting", "disconnected"}  # never "connected"
+        assert s1["frames_ok"] == s0["frames_ok"]  # nothing decoded from noise
+        assert s1["bytes_received"] > s0["bytes_received"]  # although bytes arrive
+        assert s1["link_timeouts"] > s0["link_timeouts"]  # and it keeps retrying
         assert worst_pending < MAX_FRAME_LEN + rig.link.config.read_chunk_bytes
         n_records = len(rig.records)
         rig.device.garble(False)
-        rig.run(20.0, until=lambda: rig.link.stats()["state"] == "connected"
-                and len(rig.records) > n_records)
+        rig.run(
+            20.0,
+            until=lambda: (
+                rig.link.stats()["state"] == "connected" and len(rig.records) > n_records
+            ),
+        )
         assert rig.link.stats()["state"] == "connected" and len(rig.records) > n_records
 
 
@@ -111,6 +128,7 @@ def test_spurious_wakeups_and_eagain_are_not_disconnects(tmp_path):
 
         def steal():
             import select
+
             p = select.poll()
             p.register(fd, select.POLLIN)
             while not stop.is_set():
@@ -119,6 +137,7 @@ def test_spurious_wakeups_and_eagain_are_not_disconnects(tmp_path):
                         stolen[0] += len(os.read(fd, 1 << 16))
                     except BlockingIOError:
                         pass
+
         th = threading.Thread(target=steal, daemon=True)
         th.start()
         try:
@@ -132,7 +151,7 @@ def test_spurious_wakeups_and_eagain_are_not_disconnects(tmp_path):
         assert s["disconnects"] == 0 and s["read_errors"] == 0 and s["connects"] == 1
         assert s["hangups"] == 0
         n = len(rig.records)
-        rig.run(10.0, until=lambda: len(rig.records) > n + 2)    # still delivering
+        rig.run(10.0, until=lambda: len(rig.records) > n + 2)  # still delivering
         assert len(rig.records) > n + 2 and rig.link.stats()["disconnects"] == 0
 
 
@@ -147,7 +166,7 @@ def test_overload_is_bounded_and_every_packet_accounted_for(tmp_path):
             depth = max(depth, rig.link.stats()["queue_depth"])
             time.sleep(0.01)
         sent = rig.sent_packets()
-        rig.run(0.01)               # poll once: takes what the queue holds
+        rig.run(0.01)  # poll once: takes what the queue holds
         deadline = time.monotonic() + 10.0
         while time.monotonic() < deadline:
             s = rig.link.stats()
@@ -174,8 +193,9 @@ def test_packets_whose_volts_would_not_be_finite_are_rejected_and_counted(tmp_pa
         rig.run(0.3)
         s = rig.link.stats()
         assert s["packets_rejected_nonfinite"] == 1 and s["internal_errors"] == 0
-        assert all(np.isfinite(r.samples_v).all() and np.isfinite(r.noise_rms_v)
-                   for r in rig.records)
+        assert all(
+            np.isfinite(r.samples_v).all() and np.isfinite(r.noise_rms_v) for r in rig.records
+        )
         assert len(rig.records) == len(rig.sent_packets())
 
 
@@ -183,19 +203,19 @@ def test_tcp_server_serves_several_clients_refuses_extra_ones_and_drops_stuck_on
     transport = TcpTransport(max_clients=2, idle_timeout_s=3.0, client_sndbuf=4096)
     assert transport.listener.getsockname()[0] == "127.0.0.1"
     host, port = transport.host, int(transport.port.rsplit(":", 1)[1])
-    stuck = socket.create_connection((host, port))           # connects, never reads
+    stuck = socket.create_connection((host, port))  # connects, never reads
     stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     with Rig(transport) as rig:
         rig.wait_connected(timeout=20.0)
         assert rig.link.stats()["state"] == "connected"
-        extra = socket.create_connection((host, port))       # a third one: refused cleanly
+        extra = socket.create_connection((host, port))  # a third one: refused cleanly
         extra.settimeout(10.0)
-        assert extra.recv(10) == b""                          # closed by the server
+        assert extra.recv(10) == b""  # closed by the server
         extra.close()
-        rig.runner.call(rig.device.inject_garbage, bytes(300_000))   # fills the stuck one
+        rig.runner.call(rig.device.inject_garbage, bytes(300_000))  # fills the stuck one
         rig.run(30.0, until=lambda: transport.timed_out + transport.overflowed >= 1)
         assert transport.timed_out == 1 and transport.refused == 1
-        assert len(transport.clients) == 1                    # the link is still served
+        assert len(transport.clients) == 1  # the link is still served
         assert rig.link.stats()["disconnects"] == 0
         rig.run(20.0, until=lambda: rig.device.finished(time.monotonic_ns()))
         sent = rig.sent_packets()
@@ -224,9 +244,17 @@ def test_link_survives_a_consumer_and_a_device_that_never_answer(tmp_path):
     reconnects; never an exception, never 'connected'."""
     master, slave = os.openpty()
     path = os.ttyname(slave)
-    link = FingertipLink(LinkConfig(port=path, link_timeout_s=0.3, command_timeout_s=0.05,
-                                    command_retries=1, sync_max_pings=2,
-                                    reconnect_initial_s=0.05, reconnect_max_s=0.1))
+    link = FingertipLink(
+        LinkConfig(
+            port=path,
+            link_timeout_s=0.3,
+            command_timeout_s=0.05,
+            command_retries=1,
+            sync_max_pings=2,
+            reconnect_initial_s=0.05,
+            reconnect_max_s=0.1,
+        )
+    )
     link.start()
     try:
         deadline = time.monotonic() + 30.0
@@ -247,56 +275,79 @@ def test_hostile_but_crc_valid_frames_never_stop_the_link(tmp_path):
     1-sample packets, a STREAM block in triggered mode, ACKs nobody asked for, clock
     jumps): each is used or counted, the reader never stops, packets keep flowing."""
     from ae_tactile.protocol import Ack, AckResult, StreamBlock
+
     with Rig(PtyTransport(str(tmp_path / "fingertip")), scene=LONG) as rig:
         rig.wait_connected()
         rig.run(0.3)
         one = np.ones((4, 1), np.int16)
-        hostile = [Packet(one, 1, 1e-6), Packet(np.full((4, 8), 32767, np.int16), 4_294_967_295,
-                                                1e-30, pre_trigger=7, onset_index=7),
-                   StreamBlock(np.zeros((4, 16), np.int16), 1, 1e-6),
-                   Ack(65535, 200, AckResult.INTERNAL_ERROR, 7)]
+        hostile = [
+            Packet(one, 1, 1e-6),
+            Packet(
+                np.full((4, 8), 32767, np.int16),
+                4_294_967_295,
+                1e-30,
+                pre_trigger=7,
+                onset_index=7,
+            ),
+            StreamBlock(np.zeros((4, 16), np.int16), 1, 1e-6),
+            Ack(65535, 200, AckResult.INTERNAL_ERROR, 7),
+        ]
         for body in hostile:
             rig.runner.call(rig.device.inject_frame, body, now_ns())
         odd = (1.0, 4_294_967_295.0)
 
         def n_odd():
             return sum(r.sample_rate_hz in odd for r in rig.records)
+
         rig.run(30.0, until=lambda: n_odd() >= 2)
         n = len(rig.records)
-        rig.run(30.0, until=lambda: len(rig.records) > n + 3)    # still delivering after them
+        rig.run(30.0, until=lambda: len(rig.records) > n + 3)  # still delivering after them
         s = rig.link.stats()
         assert s["internal_errors"] == 0 and s["disconnects"] == 0 and s["state"] == "connected"
         assert s["frames_ok"] >= 4 and s["crc_errors"] == 0
-        assert s["frames_unusable"] <= 1                     # the 1 Hz STREAM block, if refused
+        assert s["frames_unusable"] <= 1  # the 1 Hz STREAM block, if refused
         got = [r for r in rig.records if r.sample_rate_hz in odd]
         assert len(got) == 2 and all(np.isfinite(r.samples_v).all() for r in got)
-        assert all(np.isfinite(r.noise_rms_v) and 0 <= r.onset_index < r.samples_v.shape[1]
-                   for r in rig.records)
-        assert len(rig.records) > n + 3                     # still delivering
+        assert all(
+            np.isfinite(r.noise_rms_v) and 0 <= r.onset_index < r.samples_v.shape[1]
+            for r in rig.records
+        )
+        assert len(rig.records) > n + 3  # still delivering
 
 
 def test_partial_frame_then_silence_is_flushed_after_the_idle_time():
     """A device that sends half a frame and then nothing: the partial frame is given up
     once no byte came for idle_flush_s (counted), and the next frame is delivered."""
     from ae_tactile.protocol import DeviceState, FrameEncoder, Status
+
     master, slave = os.openpty()
     import tty
+
     tty.setraw(slave)
     path = os.ttyname(slave)
     enc = FrameEncoder()
-    status = Status(1500, DeviceState.IDLE, 10_000_000, 1e-6, 200, 400, 100, 0, 0, (1, 0, 0),
-                    "AE-IDLE")
+    status = Status(
+        1500, DeviceState.IDLE, 10_000_000, 1e-6, 200, 400, 100, 0, 0, (1, 0, 0), "AE-IDLE"
+    )
     first = enc.encode(status, 1500)
     big = enc.encode(Packet(np.ones((4, 4000), np.int16), 10_000_000, 1e-6), 2000)
-    link = FingertipLink(LinkConfig(port=path, link_timeout_s=60.0, idle_flush_s=0.2,
-                                    command_timeout_s=0.05, command_retries=1, sync_max_pings=1))
+    link = FingertipLink(
+        LinkConfig(
+            port=path,
+            link_timeout_s=60.0,
+            idle_flush_s=0.2,
+            command_timeout_s=0.05,
+            command_retries=1,
+            sync_max_pings=1,
+        )
+    )
     link.start()
     try:
         deadline = time.monotonic() + 30.0
         while link.stats()["connects"] < 1 and time.monotonic() < deadline:
-            time.sleep(0.01)          # the port is open (opening it empties its input)
+            time.sleep(0.01)  # the port is open (opening it empties its input)
         os.write(master, first)
-        os.write(master, big[:5000])                         # then silence
+        os.write(master, big[:5000])  # then silence
         while time.monotonic() < deadline and link.stats()["idle_flushes"] < 1:
             time.sleep(0.01)
         s = link.stats()
@@ -307,7 +358,7 @@ def test_partial_frame_then_silence_is_flushed_after_the_idle_time():
             time.sleep(0.01)
         s = link.stats()
         assert s["frames_ok"] == 2 and s["state"] == "connected"
-        assert s["dropped_frames"] == 1                      # the cut frame's sequence number
+        assert s["dropped_frames"] == 1  # the cut frame's sequence number
         assert s["bytes_received"] == s["bytes_decoded"] + s["bytes_discarded"]
     finally:
         link.stop()
@@ -321,31 +372,49 @@ from hypothesis import strategies as st  # noqa: E402
 from test_protocol_stream import device_bodies  # noqa: E402
 
 
-@settings(max_examples=30, deadline=None,
-          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
-@given(st.lists(st.tuples(device_bodies, st.integers(0, 2 ** 32 - 1),
-                          st.sampled_from(["frame", "repeat", "cut", "garbage"])),
-                min_size=1, max_size=12),
-       st.sampled_from(["triggered", "stream"]))
+@settings(
+    max_examples=30,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+@given(
+    st.lists(
+        st.tuples(
+            device_bodies,
+            st.integers(0, 2**32 - 1),
+            st.sampled_from(["frame", "repeat", "cut", "garbage"]),
+        ),
+        min_size=1,
+        max_size=12,
+    ),
+    st.sampled_from(["triggered", "stream"]),
+)
 def test_any_sequence_of_valid_frames_and_damage_is_used_or_counted(items, mode):
     """The link's frame handling (the reader thread's code, without a port) on any
     sequence of CRC-valid frames with arbitrary field values, repeats, cut frames and
     garbage: no exception, no non-finite value delivered, every packet accounted for."""
     from ae_tactile.protocol import FrameEncoder, Packet
+
     out = []
-    link = FingertipLink(LinkConfig(port="loop://", mode=mode), clock_ns=time.monotonic_ns,
-                         sink=lambda b: out.extend(b.packets))
+    link = FingertipLink(
+        LinkConfig(port="loop://", mode=mode),
+        clock_ns=time.monotonic_ns,
+        sink=lambda b: out.extend(b.packets),
+    )
     enc = FrameEncoder()
     n_packets = 0
     rng = np.random.default_rng(len(items))
     for body, ts, kind in items:
         wire = enc.encode(body, ts)
-        n_packets += (isinstance(body, Packet) and kind != "cut"
-                      and float(body.v_per_count) * 32768.0 <= float(np.finfo(np.float32).max))
+        n_packets += (
+            isinstance(body, Packet)
+            and kind != "cut"
+            and float(body.v_per_count) * 32768.0 <= float(np.finfo(np.float32).max)
+        )
         if kind == "repeat":
             wire += wire
         elif kind == "cut":
-            wire = wire[:max(24, len(wire) // 2)]
+            wire = wire[: max(24, len(wire) // 2)]
         elif kind == "garbage":
             wire = rng.bytes(int(rng.integers(1, 100))) + wire
         link._handle_bytes(wire)
@@ -357,4 +426,4 @@ def test_any_sequence_of_valid_frames_and_damage_is_used_or_counted(items, mode)
         assert np.isfinite(r.samples_v).all() and np.isfinite(r.noise_rms_v)
         assert 0 <= r.onset_index < r.samples_v.shape[1]
     if mode == "triggered":
-        assert len(out) == n_packets          # once each; those that would overflow: counted
+        assert len(out) == n_packets  # once each; those that would overflow: counted

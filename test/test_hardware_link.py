@@ -3,6 +3,7 @@
 No ROS here: these exercise ae_tactile.link and ae_tactile.virtual_device directly;
 test_driver_node.py repeats the end-to-end check through the ROS nodes.
 """
+
 import os
 import time
 
@@ -25,7 +26,9 @@ class Rig:
         self.device = VirtualFingertip(scene, record=True)
         self.transport = transport
         self.runner = DeviceRunner(self.device, transport)
-        self.link = FingertipLink(LinkConfig(port=transport.port, **link_kw), clock_ns=time.monotonic_ns)
+        self.link = FingertipLink(
+            LinkConfig(port=transport.port, **link_kw), clock_ns=time.monotonic_ns
+        )
         self.records = []
         self.truth = []
 
@@ -43,11 +46,17 @@ class Rig:
             time.sleep(0.005)
 
     def wait_connected(self, timeout=30.0):
-        self.run(timeout, until=lambda: self.link.stats()["state"] == "connected"
-                 and self.device.scene_t0_ns is not None)
+        self.run(
+            timeout,
+            until=lambda: (
+                self.link.stats()["state"] == "connected" and self.device.scene_t0_ns is not None
+            ),
+        )
 
     def sent_packets(self, fate="sent"):
-        return [body for kind, _, body, f in self.device.sent_log if kind == "packet" and f == fate]
+        return [
+            body for kind, _, body, f in self.device.sent_log if kind == "packet" and f == fate
+        ]
 
     def __exit__(self, *exc):
         self.link.stop()
@@ -60,21 +69,23 @@ def test_every_packet_arrives_once_in_order_exact_and_well_stamped(tmp_path, kin
     with Rig(transport) as rig:
         rig.wait_connected()
         rig.run(60.0, until=lambda: rig.device.finished(time.monotonic_ns()))
-        rig.run(20.0, until=lambda: len(rig.records) >= len(rig.sent_packets()))   # in flight
+        rig.run(20.0, until=lambda: len(rig.records) >= len(rig.sent_packets()))  # in flight
         rig.run(0.3)
         sent = rig.sent_packets()
         captured = [t for t in rig.truth if t.captured]
         assert len(sent) >= 30 and len(captured) == len(sent)
-        assert len(rig.records) == len(sent)                       # exactly once
+        assert len(rig.records) == len(sent)  # exactly once
         idx = [r.device_sample_index for r in rig.records]
-        assert idx == [p.first_sample_index for p in sent]          # in order, none missing
+        assert idx == [p.first_sample_index for p in sent]  # in order, none missing
         assert [r.sequence_id for r in rig.records] == list(range(len(sent)))
-        for r, p in zip(rig.records, sent):                         # samples exact after scaling
+        for r, p in zip(rig.records, sent):  # samples exact after scaling
             expect = (p.samples.astype(np.float32) * np.float32(p.v_per_count)).astype(np.float32)
             assert np.array_equal(r.samples_v, expect)
         # Stamp of the first sample + onset vs the emission's ground-truth time: < 1 ms.
-        err_ms = [(r.stamp_ns + r.onset_index * 1e9 / r.sample_rate_hz - t.device_time_ns) / 1e6
-                  for r, t in zip(rig.records, captured)]
+        err_ms = [
+            (r.stamp_ns + r.onset_index * 1e9 / r.sample_rate_hz - t.device_time_ns) / 1e6
+            for r, t in zip(rig.records, captured)
+        ]
         assert max(abs(e) for e in err_ms) < 1.0, err_ms
         s = rig.link.stats()
         assert s["crc_errors"] == s["dropped_frames"] == s["bytes_discarded"] == 0
@@ -87,57 +98,72 @@ def test_garbage_and_crc_faults_are_counted_exactly_and_lose_nothing_valid(tmp_p
     with Rig(PtyTransport(str(tmp_path / "fingertip"))) as rig:
         rig.wait_connected()
         rig.run(0.2)
-        rig.device.inject_garbage(garbage)     # between two frames
-        rig.device.corrupt_next(3)             # three PACKET frames with one bad bit each
+        rig.device.inject_garbage(garbage)  # between two frames
+        rig.device.corrupt_next(3)  # three PACKET frames with one bad bit each
         rig.run(60.0, until=lambda: rig.device.finished(time.monotonic_ns()))
-        rig.run(20.0, until=lambda: len(rig.records) >= len(rig.sent_packets()))   # in flight
+        rig.run(20.0, until=lambda: len(rig.records) >= len(rig.sent_packets()))  # in flight
         rig.run(0.3)
         sent, corrupted = rig.sent_packets(), rig.sent_packets("corrupted")
         assert len(corrupted) == 3
         assert [r.device_sample_index for r in rig.records] == [p.first_sample_index for p in sent]
         s = rig.link.stats()
         assert s["crc_errors"] == 3
-        assert s["dropped_frames"] == 3 and s["packets_dropped"] == 3    # their sequence numbers are gone
-        corrupt_bytes = sum(FRAME_OVERHEAD + PACKET_PREFIX_LEN + 8 * p.n_samples for p in corrupted)
+        assert (
+            s["dropped_frames"] == 3 and s["packets_dropped"] == 3
+        )  # their sequence numbers are gone
+        corrupt_bytes = sum(
+            FRAME_OVERHEAD + PACKET_PREFIX_LEN + 8 * p.n_samples for p in corrupted
+        )
         assert s["bytes_discarded"] == len(garbage) + corrupt_bytes
-        assert s["bytes_received"] == s["bytes_decoded"] + s["bytes_discarded"] + s["pending_bytes"]
+        assert (
+            s["bytes_received"] == s["bytes_decoded"] + s["bytes_discarded"] + s["pending_bytes"]
+        )
 
 
 def test_unplug_for_one_second_reconnects_and_resumes(tmp_path):
     with open(SCENE) as fh:
         scene = dict(yaml.safe_load(fh), duration_s=6.0, name="long_random_touches")
-    with Rig(PtyTransport(str(tmp_path / "fingertip")), scene=scene, reconnect_initial_s=0.1,
-             reconnect_max_s=0.4) as rig:
+    with Rig(
+        PtyTransport(str(tmp_path / "fingertip")),
+        scene=scene,
+        reconnect_initial_s=0.1,
+        reconnect_max_s=0.4,
+    ) as rig:
         rig.wait_connected()
         rig.run(0.3)
         rig.run(20.0, until=lambda: len(rig.records) >= len(rig.sent_packets()) > 0)
 
-        def unplug():         # under the device loop's lock: nothing is sent in between
+        def unplug():  # under the device loop's lock: nothing is sent in between
             log_at_unplug = len(rig.device.sent_log)
             rig.runner.unplug(1.0)
             return log_at_unplug, len(rig.sent_packets())
+
         log_at_unplug, n_sent = rig.runner.call(unplug)
         rig.run(0.2)
         before = len(rig.records)
-        assert before <= n_sent          # those in flight at the unplug are lost with it
+        assert before <= n_sent  # those in flight at the unplug are lost with it
         rig.run(20.0, until=lambda: rig.link.stats()["state"] != "connected")
         assert rig.link.stats()["state"] != "connected"
-        rig.run(30.0, until=lambda: rig.link.stats()["connects"] == 2
-                and len(rig.records) > before + 3)
+        rig.run(
+            30.0, until=lambda: rig.link.stats()["connects"] == 2 and len(rig.records) > before + 3
+        )
         s = rig.link.stats()
         assert s["disconnects"] == 1 and s["connects"] == 2 and s["state"] == "connected"
-        assert rig.device.boots == 1                        # re-plug rebooted the device
-        assert s["clock_resyncs"] >= 2                       # time mapping rebuilt
+        assert rig.device.boots == 1  # re-plug rebooted the device
+        assert s["clock_resyncs"] >= 2  # time mapping rebuilt
         after = [r.device_sample_index for r in rig.records[before:]]
         stamps = [r.stamp_ns for r in rig.records]
-        assert all(b > a for a, b in zip(stamps, stamps[1:]))   # monotonic across the outage
+        assert all(b > a for a, b in zip(stamps, stamps[1:]))  # monotonic across the outage
         # Everything the rebooted device sent arrived once, in order (the newest one or two
         # may still be in flight when we look).
-        resent = [p.first_sample_index for kind, _, p, f in rig.device.sent_log[log_at_unplug:]
-                  if kind == "packet" and f == "sent"]
-        rig.run(30.0, until=lambda: len(rig.records) - before >= len(resent))   # in flight: arrive
+        resent = [
+            p.first_sample_index
+            for kind, _, p, f in rig.device.sent_log[log_at_unplug:]
+            if kind == "packet" and f == "sent"
+        ]
+        rig.run(30.0, until=lambda: len(rig.records) - before >= len(resent))  # in flight: arrive
         after = [r.device_sample_index for r in rig.records[before:]]
-        assert len(after) > 3 and after[:len(resent)] == resent
+        assert len(after) > 3 and after[: len(resent)] == resent
 
 
 def test_bad_link_parameters_are_rejected_with_the_reason():
@@ -152,8 +178,9 @@ def test_bad_link_parameters_are_rejected_with_the_reason():
 
 
 def test_missing_port_retries_without_crashing():
-    link = FingertipLink(LinkConfig(port="/nonexistent/ttyACM9", reconnect_initial_s=0.05,
-                                    reconnect_max_s=0.1))
+    link = FingertipLink(
+        LinkConfig(port="/nonexistent/ttyACM9", reconnect_initial_s=0.05, reconnect_max_s=0.1)
+    )
     link.start()
     time.sleep(0.5)
     s = link.stats()
@@ -165,6 +192,7 @@ def test_missing_port_retries_without_crashing():
 def test_stream_mode_cuts_each_emission_on_the_host(tmp_path):
     """STREAM blocks (played at 1/20 real time: 10 MS/s through Python) -> host detector."""
     from ae_tactile.geometry import FingertipGeometry
+
     with open(os.path.join(ROOT, "config", "scenes", "paper_positions.yaml")) as fh:
         spec = yaml.safe_load(fh)
     rig = Rig(PtyTransport(str(tmp_path / "fingertip")), mode="stream")

@@ -1,5 +1,6 @@
 """Property tests of the protocol: round trips and the StreamDecoder against garbage,
 bit flips, truncations, arbitrary read splits, concatenations and sequence events."""
+
 from __future__ import annotations
 
 import struct
@@ -12,47 +13,88 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from ae_tactile.protocol import (
-    FLAG_BOOT, HEADER_LEN, MAX_PAYLOAD_LEN, MAX_SAMPLES, NO_ONSET, SYNC, Ack, AckResult,
-    AcqMode, Command, DeviceState, Direction, Frame, FrameEncoder, Opcode, Packet, Reason,
-    Status, StreamBlock, StreamDecoder, decode_frame, encode_frame,
+    FLAG_BOOT,
+    HEADER_LEN,
+    MAX_PAYLOAD_LEN,
+    MAX_SAMPLES,
+    NO_ONSET,
+    SYNC,
+    Ack,
+    AckResult,
+    AcqMode,
+    Command,
+    DeviceState,
+    Direction,
+    Frame,
+    FrameEncoder,
+    Opcode,
+    Packet,
+    Reason,
+    Status,
+    StreamBlock,
+    StreamDecoder,
+    decode_frame,
+    encode_frame,
 )
 
-SETTINGS = settings(max_examples=60, deadline=None,
-                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
-U32 = 2 ** 32
+SETTINGS = settings(
+    max_examples=60,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+U32 = 2**32
 
 # ------------------------------------------------------------------ strategies
 sample_arrays = st.integers(1, 24).flatmap(lambda n: hnp.arrays(np.int16, (4, n)))
 u32 = st.integers(0, U32 - 1)
 rates = st.integers(1, U32 - 1)
-gains = st.floats(min_value=2.0 ** -149, max_value=float(np.finfo(np.float32).max), width=32)
+gains = st.floats(min_value=2.0**-149, max_value=float(np.finfo(np.float32).max), width=32)
 
 
 @st.composite
 def packets(draw):
     s = draw(sample_arrays)
     n = s.shape[1]
-    return Packet(s, draw(rates), draw(gains), draw(st.integers(0, 2 ** 64 - 1)),
-                  draw(st.integers(0, n - 1)),
-                  draw(st.one_of(st.just(NO_ONSET), st.integers(0, n - 1))),
-                  draw(st.integers(0, 15)))
+    return Packet(
+        s,
+        draw(rates),
+        draw(gains),
+        draw(st.integers(0, 2**64 - 1)),
+        draw(st.integers(0, n - 1)),
+        draw(st.one_of(st.just(NO_ONSET), st.integers(0, n - 1))),
+        draw(st.integers(0, 15)),
+    )
 
 
 @st.composite
 def stream_blocks(draw):
-    return StreamBlock(draw(sample_arrays), draw(rates), draw(gains),
-                       draw(st.integers(0, 2 ** 64 - 1)), draw(st.integers(0, 15)))
+    return StreamBlock(
+        draw(sample_arrays),
+        draw(rates),
+        draw(gains),
+        draw(st.integers(0, 2**64 - 1)),
+        draw(st.integers(0, 15)),
+    )
 
 
 @st.composite
 def statuses(draw):
     n = draw(st.integers(1, MAX_SAMPLES))
-    return Status(draw(st.integers(0, 2 ** 64 - 1)), draw(st.sampled_from(DeviceState)),
-                  draw(rates), draw(gains), draw(st.integers(1, 32767)), n,
-                  draw(st.integers(0, n - 1)), draw(u32), draw(u32),
-                  tuple(draw(st.lists(st.integers(0, 255), min_size=3, max_size=3))),
-                  draw(st.text(st.characters(min_codepoint=0x20, max_codepoint=0x7E),
-                               min_size=1, max_size=32)))
+    return Status(
+        draw(st.integers(0, 2**64 - 1)),
+        draw(st.sampled_from(DeviceState)),
+        draw(rates),
+        draw(gains),
+        draw(st.integers(1, 32767)),
+        n,
+        draw(st.integers(0, n - 1)),
+        draw(u32),
+        draw(u32),
+        tuple(draw(st.lists(st.integers(0, 255), min_size=3, max_size=3))),
+        draw(
+            st.text(st.characters(min_codepoint=0x20, max_codepoint=0x7E), min_size=1, max_size=32)
+        ),
+    )
 
 
 @st.composite
@@ -101,7 +143,7 @@ def decode_all(data: bytes, chunks=None, **kw):
     else:
         pos = 0
         for c in chunks:
-            out += dec.feed(data[pos:pos + c])
+            out += dec.feed(data[pos : pos + c])
             pos += c
         out += dec.feed(data[pos:])
     check_invariants(dec)
@@ -168,17 +210,17 @@ def garbage(draw, others):
     if kind == 0:
         return draw(st.binary(max_size=64))
     if kind == 1:
-        return SYNC[:draw(st.integers(1, 4))]
+        return SYNC[: draw(st.integers(1, 4))]
     if kind == 2:
         return SYNC + draw(st.binary(max_size=40))
     victim = others[draw(st.integers(0, len(others) - 1))]
     cut = draw(st.integers(1, len(victim) - 1))
     if kind == 3:
-        return victim[:cut]                        # truncated frame (valid header if cut >= 24)
+        return victim[:cut]  # truncated frame (valid header if cut >= 24)
     b = bytearray(victim)
     bit = draw(st.integers(0, 8 * len(b) - 1))
     b[bit // 8] ^= 1 << (bit % 8)
-    return bytes(b)                                # corrupted copy of a frame
+    return bytes(b)  # corrupted copy of a frame
 
 
 @SETTINGS
@@ -195,7 +237,7 @@ def test_garbage_never_loses_a_valid_frame(data, bodies):
     stream = b"".join(parts)
     out, before_flush, dec = decode_all(stream)
     assert out == frames
-    assert before_flush == frames[:len(before_flush)]
+    assert before_flush == frames[: len(before_flush)]
     assert dec.frames_ok == len(frames) and dec.dropped_frames == 0
     assert dec.bytes_decoded == sum(map(len, wire))
 
@@ -223,20 +265,20 @@ def test_garbage_full_of_sync_words(pieces):
 @given(st.data(), st.lists(device_bodies, min_size=3, max_size=6))
 def test_single_bit_flip_is_detected_and_counted(data, bodies):
     frames, wire = encode_all(bodies, first_seq=data.draw(u32), boot=False)
-    k = data.draw(st.integers(1, len(wire) - 2))      # first/last carry the sequence evidence
+    k = data.draw(st.integers(1, len(wire) - 2))  # first/last carry the sequence evidence
     bit = data.draw(st.integers(0, 8 * len(wire[k]) - 1))
     bad = bytearray(wire[k])
     bad[bit // 8] ^= 1 << (bit % 8)
-    out, _, dec = decode_all(b"".join(wire[:k]) + bytes(bad) + b"".join(wire[k + 1:]))
-    assert out == frames[:k] + frames[k + 1:]
+    out, _, dec = decode_all(b"".join(wire[:k]) + bytes(bad) + b"".join(wire[k + 1 :]))
+    assert out == frames[:k] + frames[k + 1 :]
     assert dec.dropped_frames == 1 and dec.sequence_gaps == 1
     assert out[k].dropped_before == 1
     assert dec.bytes_discarded == len(bad)
-    if bit // 8 >= len(SYNC):                          # sync intact: a rejection is counted
+    if bit // 8 >= len(SYNC):  # sync intact: a rejection is counted
         assert dec.header_errors + dec.crc_errors >= 1
         reasons = {e.reason for e in dec.events}
         assert reasons & {Reason.HEADER_CRC, Reason.FRAME_CRC}
-    if len(SYNC) <= bit // 8 < HEADER_LEN:            # header bit: caught by the header CRC
+    if len(SYNC) <= bit // 8 < HEADER_LEN:  # header bit: caught by the header CRC
         assert dec.header_errors >= 1
     assert any(e.reason is Reason.SEQUENCE_GAP for e in dec.events)
 
@@ -248,8 +290,8 @@ def test_truncated_frame_in_the_middle(data, bodies):
     frames, wire = encode_all(bodies, first_seq=data.draw(u32), boot=False)
     k = data.draw(st.integers(1, len(wire) - 2))
     cut = data.draw(st.integers(0, len(wire[k]) - 1))
-    out, _, dec = decode_all(b"".join(wire[:k]) + wire[k][:cut] + b"".join(wire[k + 1:]))
-    assert out == frames[:k] + frames[k + 1:]
+    out, _, dec = decode_all(b"".join(wire[:k]) + wire[k][:cut] + b"".join(wire[k + 1 :]))
+    assert out == frames[:k] + frames[k + 1 :]
     assert dec.dropped_frames == 1
     assert dec.bytes_discarded == cut
     if cut >= len(SYNC):
@@ -277,7 +319,7 @@ def test_truncated_frame_swallowing_valid_frames_is_recovered():
     frames, wire = encode_all([small_packet(k) for k in range(5)], first_seq=100, boot=False)
     cut = encode_frame(big, 99, 0)[:500]
     dec = StreamDecoder()
-    assert dec.feed(cut + b"".join(wire)) == frames       # 16 kB claimed, none waited for
+    assert dec.feed(cut + b"".join(wire)) == frames  # 16 kB claimed, none waited for
     assert dec.truncated_frames == 1 and dec.crc_errors == 0 and dec.dropped_frames == 0
     assert dec.pending_bytes == 0 and dec.bytes_discarded == len(cut)
     (ev,) = [e for e in dec.events if e.reason is Reason.TRUNCATED]
@@ -288,7 +330,7 @@ def test_truncated_frame_swallowing_valid_frames_is_recovered():
     ends = np.cumsum([len(cut)] + [len(w) for w in wire])[1:]
     got_at = []
     for k in range(len(stream)):
-        if dec.feed(stream[k:k + 1]):
+        if dec.feed(stream[k : k + 1]):
             got_at.append(k + 1)
     assert got_at == list(ends)
 
@@ -320,14 +362,17 @@ def test_byte_by_byte_feed():
     for b in stream:
         out += dec.feed(bytes([b]))
     assert out == frames
-    assert dec.pending_bytes == 2                        # a possible sync prefix is held back
+    assert dec.pending_bytes == 2  # a possible sync prefix is held back
     assert dec.flush() == [] and dec.bytes_discarded == 4
 
 
 # ------------------------------------------------------------------ sequence numbers
 @SETTINGS
-@given(u32, st.lists(st.integers(0, 3), min_size=1, max_size=30),
-       st.lists(st.integers(1, 2 ** 31 - 1), max_size=2))
+@given(
+    u32,
+    st.lists(st.integers(0, 3), min_size=1, max_size=30),
+    st.lists(st.integers(1, 2**31 - 1), max_size=2),
+)
 def test_sequence_gaps_counted_exactly_across_wrap(first_seq, skips, big_skips):
     enc = FrameEncoder(first_seq, boot=False)
     skips = skips + big_skips
@@ -351,13 +396,13 @@ def test_sequence_wrap_is_not_a_gap():
 
 
 def test_device_restart_with_boot_frame():
-    s1, w1 = encode_all([small_packet(k) for k in range(5)], first_seq=0, boot=True, t0=10 ** 9)
+    s1, w1 = encode_all([small_packet(k) for k in range(5)], first_seq=0, boot=True, t0=10**9)
     s2, w2 = encode_all([small_packet(k) for k in range(3)], first_seq=0, boot=True, t0=5)
     out, _, dec = decode_all(b"".join(w1 + w2))
     assert out == s1 + s2
-    assert dec.device_restarts == 1 and dec.dropped_frames == 0     # not 2^32 - 5 drops
+    assert dec.device_restarts == 1 and dec.dropped_frames == 0  # not 2^32 - 5 drops
     assert [f.restart for f in out] == [False] * 5 + [True, False, False]
-    assert out[5].device_time_us == 5 and out[4].device_time_us == 10 ** 9 + 400
+    assert out[5].device_time_us == 5 and out[4].device_time_us == 10**9 + 400
     assert any(e.reason is Reason.SENDER_RESTART for e in dec.events)
 
 
@@ -373,9 +418,9 @@ def test_device_restart_whose_boot_frame_was_lost():
 def test_frames_rejected_after_crc_still_count_in_the_sequence():
     enc = FrameEncoder(50, boot=False)
     w0 = enc.encode(small_packet(0), 0)
-    bad_payload = raw_frame(0x01, b"\x00" * 30, seq=enc.next_seq)   # PACKET too short
+    bad_payload = raw_frame(0x01, b"\x00" * 30, seq=enc.next_seq)  # PACKET too short
     enc.skip()
-    unknown = raw_frame(0x05, b"future frame", seq=enc.next_seq)    # type from a newer firmware
+    unknown = raw_frame(0x05, b"future frame", seq=enc.next_seq)  # type from a newer firmware
     enc.skip()
     w3 = enc.encode(small_packet(3), 0)
     out, _, dec = decode_all(w0 + bad_payload + unknown + w3)
@@ -387,15 +432,27 @@ def test_frames_rejected_after_crc_still_count_in_the_sequence():
     assert Reason.BAD_PAYLOAD in reasons and Reason.UNKNOWN_FRAME_TYPE in reasons
 
 
-@pytest.mark.parametrize("payload, words", [
-    (struct.pack("<IfQHHHBB", 10_000_000, 1e-6, 0, 10, 0, NO_ONSET, 4, 0) + b"\0" * 79, "80 sample bytes"),
-    (struct.pack("<IfQHHHBB", 10_000_000, 1e-6, 0, 2, 0, NO_ONSET, 3, 0) + b"\0" * 12, "n_channels"),
-    (struct.pack("<IfQHHHBB", 0, 1e-6, 0, 1, 0, NO_ONSET, 4, 0) + b"\0" * 8, "sample_rate_hz"),
-    (struct.pack("<IfQHHHBB", 10, float("nan"), 0, 1, 0, NO_ONSET, 4, 0) + b"\0" * 8, "v_per_count"),
-    (struct.pack("<IfQHHHBB", 10, 1.0, 0, 4, 4, NO_ONSET, 4, 0) + b"\0" * 32, "pre_trigger"),
-    (struct.pack("<IfQHHHBB", 10, 1.0, 0, 4, 0, 7, 4, 0) + b"\0" * 32, "onset_index"),
-    (struct.pack("<IfQHHHBB", 10, 1.0, 0, 0, 0, NO_ONSET, 4, 0), "n_samples"),
-])
+@pytest.mark.parametrize(
+    "payload, words",
+    [
+        (
+            struct.pack("<IfQHHHBB", 10_000_000, 1e-6, 0, 10, 0, NO_ONSET, 4, 0) + b"\0" * 79,
+            "80 sample bytes",
+        ),
+        (
+            struct.pack("<IfQHHHBB", 10_000_000, 1e-6, 0, 2, 0, NO_ONSET, 3, 0) + b"\0" * 12,
+            "n_channels",
+        ),
+        (struct.pack("<IfQHHHBB", 0, 1e-6, 0, 1, 0, NO_ONSET, 4, 0) + b"\0" * 8, "sample_rate_hz"),
+        (
+            struct.pack("<IfQHHHBB", 10, float("nan"), 0, 1, 0, NO_ONSET, 4, 0) + b"\0" * 8,
+            "v_per_count",
+        ),
+        (struct.pack("<IfQHHHBB", 10, 1.0, 0, 4, 4, NO_ONSET, 4, 0) + b"\0" * 32, "pre_trigger"),
+        (struct.pack("<IfQHHHBB", 10, 1.0, 0, 4, 0, 7, 4, 0) + b"\0" * 32, "onset_index"),
+        (struct.pack("<IfQHHHBB", 10, 1.0, 0, 0, 0, NO_ONSET, 4, 0), "n_samples"),
+    ],
+)
 def test_inconsistent_packet_payload_is_rejected_with_reason(payload, words):
     good = encode_frame(small_packet(), 1, 0)
     out, _, dec = decode_all(raw_frame(0x01, payload, seq=0) + good)
@@ -405,17 +462,20 @@ def test_inconsistent_packet_payload_is_rejected_with_reason(payload, words):
     assert words in ev.detail and ev.stream_offset == 0
 
 
-@pytest.mark.parametrize("kw, reason", [
-    (dict(version=2), Reason.BAD_VERSION),
-    (dict(flags=0x02), Reason.BAD_HEADER),
-    (dict(reserved=1), Reason.BAD_HEADER),
-    (dict(length=MAX_PAYLOAD_LEN + 1), Reason.LENGTH_TOO_LARGE),
-])
+@pytest.mark.parametrize(
+    "kw, reason",
+    [
+        (dict(version=2), Reason.BAD_VERSION),
+        (dict(flags=0x02), Reason.BAD_HEADER),
+        (dict(reserved=1), Reason.BAD_HEADER),
+        (dict(length=MAX_PAYLOAD_LEN + 1), Reason.LENGTH_TOO_LARGE),
+    ],
+)
 def test_bad_header_with_valid_crc_is_rejected_at_once(kw, reason):
     good = encode_frame(small_packet(), 1, 0)
     dec = StreamDecoder()
     out = dec.feed(raw_frame(0x01, b"", **kw) + good)
-    assert [f.seq for f in out] == [1]                 # no waiting for a bogus length
+    assert [f.seq for f in out] == [1]  # no waiting for a bogus length
     assert dec.header_errors == 1 and dec.events[0].reason is reason
 
 
@@ -432,25 +492,26 @@ def test_wrong_direction_frames_are_rejected_and_commands_decode_on_the_device_s
     host = FrameEncoder()
     wire = host.encode(cmd, 0) + host.encode(Command.start(AcqMode.STREAM, 10), 0)
     ack = encode_frame(Ack(9, Opcode.SET_SAMPLE_RATE, AckResult.OK, 2_000_000), 0, 0)
-    out, _, dec = decode_all(wire + ack)               # host side decoder
+    out, _, dec = decode_all(wire + ack)  # host side decoder
     assert [type(f.body) for f in out] == [Ack] and dec.wrong_direction == 2
-    out, _, dec = decode_all(wire + ack, direction=Direction.HOST_TO_DEVICE)   # simulator side
+    out, _, dec = decode_all(wire + ack, direction=Direction.HOST_TO_DEVICE)  # simulator side
     assert [f.body for f in out] == [cmd, Command.start(AcqMode.STREAM, 10)]
     assert dec.wrong_direction == 1 and out[0].boot
-    out, _, dec = decode_all(wire + ack, direction=None)                   # both, own sessions
+    out, _, dec = decode_all(wire + ack, direction=None)  # both, own sessions
     assert len(out) == 3 and dec.dropped_frames == 0 and dec.wrong_direction == 0
 
 
 def test_unknown_command_opcode_is_a_payload_error():
-    out, _, dec = decode_all(raw_frame(0x81, struct.pack("<HB", 3, 99)),
-                             direction=Direction.HOST_TO_DEVICE)
+    out, _, dec = decode_all(
+        raw_frame(0x81, struct.pack("<HB", 3, 99)), direction=Direction.HOST_TO_DEVICE
+    )
     assert out == [] and dec.payload_errors == 1
     assert "unknown opcode 99" in dec.events[0].detail
 
 
 # ------------------------------------------------------------------ clock
 @SETTINGS
-@given(u32, st.lists(st.integers(0, 2 ** 31 - 1), min_size=1, max_size=20))
+@given(u32, st.lists(st.integers(0, 2**31 - 1), min_size=1, max_size=20))
 def test_device_time_is_unwrapped(t0, steps):
     enc = FrameEncoder(boot=True)
     t = t0
@@ -467,7 +528,11 @@ def test_device_time_is_unwrapped(t0, steps):
 
 def test_timestamp_backstep_is_reported():
     enc = FrameEncoder()
-    wire = enc.encode(small_packet(), 1000) + enc.encode(small_packet(), 900) + enc.encode(small_packet(), 950)
+    wire = (
+        enc.encode(small_packet(), 1000)
+        + enc.encode(small_packet(), 900)
+        + enc.encode(small_packet(), 950)
+    )
     out, _, dec = decode_all(wire)
     assert [f.device_time_us for f in out] == [1000, 900, 950]
     assert dec.timestamp_backsteps == 1
@@ -491,9 +556,14 @@ def test_feed_rejects_non_bytes(bad):
         StreamDecoder().feed(bad)
 
 
-@pytest.mark.parametrize("kw, exc", [(dict(direction="device"), TypeError),
-                                     (dict(max_events=0), ValueError),
-                                     (dict(on_event=3), TypeError)])
+@pytest.mark.parametrize(
+    "kw, exc",
+    [
+        (dict(direction="device"), TypeError),
+        (dict(max_events=0), ValueError),
+        (dict(on_event=3), TypeError),
+    ],
+)
 def test_decoder_parameters_are_checked(kw, exc):
     with pytest.raises(exc):
         StreamDecoder(**kw)
@@ -515,7 +585,7 @@ def test_accepts_memoryview_and_bytearray_reads():
     dec = StreamDecoder()
     out = dec.feed(memoryview(data)[:100]) + dec.feed(bytearray(data[100:]))
     assert out == frames
-    assert not out[0].body.samples.flags.writeable      # read-only views of the frame bytes
+    assert not out[0].body.samples.flags.writeable  # read-only views of the frame bytes
 
 
 def test_memoryview_of_wider_items_counts_bytes():
@@ -531,7 +601,7 @@ def test_memoryview_of_wider_items_counts_bytes():
 def test_bodies_are_immutable():
     s = np.zeros((4, 8), np.int16)
     p = Packet(s, 10_000_000, 1e-6)
-    s[0, 0] = 99                                        # the caller's array is not aliased
+    s[0, 0] = 99  # the caller's array is not aliased
     assert p.samples[0, 0] == 0 and not p.samples.flags.writeable
     with pytest.raises(ValueError):
         p.samples[0, 0] = 1

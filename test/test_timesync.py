@@ -1,4 +1,5 @@
 """Device-clock mapping: drift, heavy-tailed latency, restarts, monotonic output."""
+
 import numpy as np
 import pytest
 
@@ -26,18 +27,18 @@ def link(rng, n, rate_hz=200.0):
 
 def test_drifting_clock_with_jitter_is_mapped_within_1ms_and_beats_arrival_time():
     rng = np.random.default_rng(0)
-    true_ns, latency = link(rng, 6000)                     # 30 s at 200 frames/s
-    skew = 80e-6                                           # 80 ppm fast device crystal
+    true_ns, latency = link(rng, 6000)  # 30 s at 200 frames/s
+    skew = 80e-6  # 80 ppm fast device crystal
     device_ns = ((true_ns - true_ns[0]) * (1 + skew)).astype(np.int64) + 123_456_789
     mapper = DeviceClockMapper()
     mapped = simulate(mapper, true_ns, device_ns, latency)
-    settled = slice(600, None)                             # after 3 s
+    settled = slice(600, None)  # after 3 s
     err = mapped[settled] - true_ns[settled]
-    naive = latency[settled]                               # stamping with the arrival time
+    naive = latency[settled]  # stamping with the arrival time
     assert np.percentile(np.abs(err), 99) < 1 * MS
-    assert np.percentile(naive, 99) > 3 * MS               # what the estimator removes
+    assert np.percentile(naive, 99) > 3 * MS  # what the estimator removes
     assert abs(mapper.device_rate_error - skew) < 20e-6
-    assert np.all(np.diff(mapped) > 0)                     # strictly monotonic
+    assert np.all(np.diff(mapped) > 0)  # strictly monotonic
 
 
 def test_device_restart_resyncs_and_stays_monotonic():
@@ -45,12 +46,12 @@ def test_device_restart_resyncs_and_stays_monotonic():
     true_ns, latency = link(rng, 4000)
     device_ns = (true_ns - true_ns[0]).astype(np.int64) + 5_000_000_000
     restart = 2000
-    device_ns[restart:] = true_ns[restart:] - true_ns[restart]   # device clock back to 0
+    device_ns[restart:] = true_ns[restart:] - true_ns[restart]  # device clock back to 0
     mapper = DeviceClockMapper()
     mapped = simulate(mapper, true_ns, device_ns, latency)
     assert mapper.resyncs == 1
     assert np.all(np.diff(mapped) > 0)
-    err = mapped[restart + 400:] - true_ns[restart + 400:]
+    err = mapped[restart + 400 :] - true_ns[restart + 400 :]
     assert np.percentile(np.abs(err), 99) < 1 * MS
 
 
@@ -58,7 +59,7 @@ def test_host_clock_jump_back_resyncs():
     rng = np.random.default_rng(2)
     true_ns, latency = link(rng, 2000)
     device_ns = true_ns - true_ns[0]
-    host_shift = np.where(np.arange(2000) >= 1000, -2_000 * MS, 0)   # host clock set back 2 s
+    host_shift = np.where(np.arange(2000) >= 1000, -2_000 * MS, 0)  # host clock set back 2 s
     mapper = DeviceClockMapper()
     mapped = simulate(mapper, true_ns + host_shift, device_ns, latency)
     assert mapper.resyncs == 1

@@ -6,6 +6,7 @@ check CRC("123456789") = 0xCBF43926. ``zlib.crc32`` computes exactly this, and
 its running form ``crc32(b, crc32(a)) == crc32(a + b)`` is what a firmware gets
 from the C reference in docs/protocol.md when it calls ``crc32_update`` in pieces.
 """
+
 from __future__ import annotations
 
 import zlib

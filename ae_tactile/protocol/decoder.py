@@ -34,18 +34,31 @@ one per 4 of those bytes. Cost: one ``bytearray.find`` pass over the input, one 
 check per sync word, one CRC per candidate that is checked (fake headers followed by
 valid frames are never CRC-checked); consumed bytes are deleted once per ``feed``.
 """
+
 from __future__ import annotations
 
 import struct
 import zlib
 from collections import deque
-from operator import itemgetter
 from dataclasses import dataclass
+from operator import itemgetter
 from typing import Callable
 
-from .frames import (CRC_LEN, FLAG_BOOT, FRAME_OVERHEAD, HEADER_LEN, SYNC, Direction, Frame,
-                     ProtocolError, Reason, direction_of, parse_body, parse_header,
-                     _BODY_BY_TYPE_INT)
+from .frames import (
+    _BODY_BY_TYPE_INT,
+    CRC_LEN,
+    FLAG_BOOT,
+    FRAME_OVERHEAD,
+    HEADER_LEN,
+    SYNC,
+    Direction,
+    Frame,
+    ProtocolError,
+    Reason,
+    direction_of,
+    parse_body,
+    parse_header,
+)
 from .unwrap import SequenceTracker, TimestampUnwrapper
 
 _U32LE = struct.Struct("<I")
@@ -53,9 +66,20 @@ _END = itemgetter(2)
 
 #: Names of the integer counters reported by ``StreamDecoder.stats()``.
 COUNTER_NAMES = (
-    "bytes_received", "bytes_decoded", "bytes_discarded", "frames_ok", "header_errors",
-    "crc_errors", "truncated_frames", "payload_errors", "unknown_frames", "wrong_direction",
-    "sequence_gaps", "dropped_frames", "device_restarts", "timestamp_backsteps",
+    "bytes_received",
+    "bytes_decoded",
+    "bytes_discarded",
+    "frames_ok",
+    "header_errors",
+    "crc_errors",
+    "truncated_frames",
+    "payload_errors",
+    "unknown_frames",
+    "wrong_direction",
+    "sequence_gaps",
+    "dropped_frames",
+    "device_restarts",
+    "timestamp_backsteps",
     "duplicate_frames",
 )
 
@@ -84,7 +108,7 @@ class DecoderEvent:
 def _sync_prefix_tail(buf: bytearray, start: int, end: int) -> int:
     """Length of the longest tail of buf[start:end] that is a proper prefix of SYNC."""
     for k in range(min(len(SYNC) - 1, end - start), 0, -1):
-        if buf[end - k:end] == SYNC[:k]:
+        if buf[end - k : end] == SYNC[:k]:
             return k
     return 0
 
@@ -117,9 +141,12 @@ class StreamDecoder:
       duplicate_frames frames received again (same seq and CRC as a recent one), dropped
     """
 
-    def __init__(self, direction: Direction | None = Direction.DEVICE_TO_HOST,
-                 max_events: int = 64,
-                 on_event: Callable[[DecoderEvent], None] | None = None) -> None:
+    def __init__(
+        self,
+        direction: Direction | None = Direction.DEVICE_TO_HOST,
+        max_events: int = 64,
+        on_event: Callable[[DecoderEvent], None] | None = None,
+    ) -> None:
         if direction is not None and not isinstance(direction, Direction):
             raise TypeError(f"direction must be a Direction or None, got {direction!r}")
         if isinstance(max_events, bool) or not isinstance(max_events, int) or max_events < 1:
@@ -130,14 +157,14 @@ class StreamDecoder:
         self.events: deque[DecoderEvent] = deque(maxlen=max_events)
         self.on_event = on_event
         self._buf = bytearray()
-        self._base = 0   # stream offset of _buf[0]
-        self._need = 0   # len(_buf) needed before processing can make progress
-        self._scan = 0   # stream offset of the first position not yet searched for SYNC
-        self._wait_end = 0   # earliest end (stream offset) of a pending candidate, 0: none
+        self._base = 0  # stream offset of _buf[0]
+        self._need = 0  # len(_buf) needed before processing can make progress
+        self._scan = 0  # stream offset of the first position not yet searched for SYNC
+        self._wait_end = 0  # earliest end (stream offset) of a pending candidate, 0: none
         # Examined sync words not yet resolved, in stream order: [offset, header or None,
         # end offset (or Reason if the header was rejected), CRC-failure detail or None].
         self._items: list[list] = []
-        self._cands: list[list] = []      # the items with a good header, CRC not failed
+        self._cands: list[list] = []  # the items with a good header, CRC not failed
         self._sessions: dict[Direction, tuple] = {}
         for name in COUNTER_NAMES:
             setattr(self, name, 0)
@@ -146,7 +173,9 @@ class StreamDecoder:
     def feed(self, data) -> list[Frame]:
         """Append ``data`` (bytes-like) to the stream; return the frames it completed, in order."""
         if isinstance(data, str) or not isinstance(data, (bytes, bytearray, memoryview)):
-            raise TypeError(f"feed() takes bytes, bytearray or memoryview, got {type(data).__name__}")
+            raise TypeError(
+                f"feed() takes bytes, bytearray or memoryview, got {type(data).__name__}"
+            )
         buf = self._buf
         buf += data
         self.bytes_received += data.nbytes if isinstance(data, memoryview) else len(data)
@@ -211,7 +240,7 @@ class StreamDecoder:
         base = self._base
         end_abs = base + n
         items, cands = self._items, self._cands
-        pos = base                      # stream offset: bytes before it are consumed
+        pos = base  # stream offset: bytes before it are consumed
         out: list[Frame] = []
         mv = memoryview(buf)
         try:
@@ -244,14 +273,22 @@ class StreamDecoder:
                     out.append(frame)
             if final:
                 j = buf.find(SYNC, self._scan - base)
-                while j >= 0:              # sync words whose header never came
-                    items.append([base + j, None, Reason.TRUNCATED,
-                                  f"input ended {n - j} bytes into a header"])
+                while j >= 0:  # sync words whose header never came
+                    items.append(
+                        [
+                            base + j,
+                            None,
+                            Reason.TRUNCATED,
+                            f"input ended {n - j} bytes into a header",
+                        ]
+                    )
                     j = buf.find(SYNC, j + 1)
                 for c in cands:
                     if c[3] is None:
-                        c[3] = (f"input ended {end_abs - c[0]} of {c[2] - c[0]} bytes into a frame"
-                                f" (seq {c[1].seq})")
+                        c[3] = (
+                            f"input ended {end_abs - c[0]} of {c[2] - c[0]} bytes into a frame"
+                            f" (seq {c[1].seq})"
+                        )
                 self._commit(end_abs, None)
                 cands.clear()
                 self.bytes_discarded += end_abs - pos
@@ -278,7 +315,7 @@ class StreamDecoder:
                 self._need = need - pos
         finally:
             mv.release()
-        del buf[:pos - base]
+        del buf[: pos - base]
         self._base = pos
         if self._scan < pos:
             self._scan = pos
@@ -316,14 +353,14 @@ class StreamDecoder:
             # the usual case: the earliest candidate is complete and no other can end first
             i, e = c[0] - base, c[2] - base
             (fcrc,) = _U32LE.unpack_from(mv, e - CRC_LEN)
-            if zlib.crc32(mv[i + HEADER_LEN:e - CRC_LEN], c[1].header_crc) == fcrc:
+            if zlib.crc32(mv[i + HEADER_LEN : e - CRC_LEN], c[1].header_crc) == fcrc:
                 return c
         while cands:
             bound = None
             complete = []
-            for c in cands:                   # stream order
+            for c in cands:  # stream order
                 if bound is not None and c[0] >= bound:
-                    break                     # starts after a complete one ends: cannot win
+                    break  # starts after a complete one ends: cannot win
                 e = c[2]
                 if e <= end_abs:
                     complete.append(c)
@@ -336,11 +373,13 @@ class StreamDecoder:
             for c in complete:
                 i, e = c[0] - base, c[2] - base
                 (fcrc,) = _U32LE.unpack_from(mv, e - CRC_LEN)
-                crc = zlib.crc32(mv[i + HEADER_LEN:e - CRC_LEN], c[1].header_crc)
+                crc = zlib.crc32(mv[i + HEADER_LEN : e - CRC_LEN], c[1].header_crc)
                 if crc == fcrc:
                     return c
-                c[3] = (f"frame CRC 0x{fcrc:08x} != computed 0x{crc:08x} ({e - i} bytes,"
-                        f" header seq {c[1].seq}); rescanning from the next byte")
+                c[3] = (
+                    f"frame CRC 0x{fcrc:08x} != computed 0x{crc:08x} ({e - i} bytes,"
+                    f" header seq {c[1].seq}); rescanning from the next byte"
+                )
                 cands.remove(c)
         return None
 
@@ -365,9 +404,13 @@ class StreamDecoder:
                 self._event(Reason.FRAME_CRC, off, detail)
             else:
                 self.truncated_frames += 1
-                self._event(Reason.TRUNCATED, off, detail or
-                            f"frame claiming {x - off} bytes (seq {h.seq}) cut short by the"
-                            f" valid frame at byte {cut_by}")
+                self._event(
+                    Reason.TRUNCATED,
+                    off,
+                    detail
+                    or f"frame claiming {x - off} bytes (seq {h.seq}) cut short by the"
+                    f" valid frame at byte {cut_by}",
+                )
         if k:
             del items[:k]
             cands = self._cands
@@ -381,9 +424,12 @@ class StreamDecoder:
         if self.direction is not None and d is not self.direction:
             self.wrong_direction += 1
             self.bytes_discarded += size
-            self._event(Reason.WRONG_DIRECTION, offset,
-                        f"frame type 0x{ftype:02x} travels {d.value}, this decoder accepts"
-                        f" {self.direction.value}")
+            self._event(
+                Reason.WRONG_DIRECTION,
+                offset,
+                f"frame type 0x{ftype:02x} travels {d.value}, this decoder accepts"
+                f" {self.direction.value}",
+            )
             return None
         session = self._sessions.get(d)
         if session is None:
@@ -393,8 +439,9 @@ class StreamDecoder:
         if key in recent:
             self.duplicate_frames += 1
             self.bytes_discarded += size
-            self._event(Reason.DUPLICATE, offset,
-                        f"frame seq {h.seq} received again (same CRC); dropped")
+            self._event(
+                Reason.DUPLICATE, offset, f"frame seq {h.seq} received again (same CRC); dropped"
+            )
             return None
         recent[key] = None
         if len(recent) > DUPLICATE_WINDOW:
@@ -407,21 +454,29 @@ class StreamDecoder:
         if su.restart:
             self.device_restarts += 1
         if su.note:
-            self._event(Reason.SENDER_RESTART if su.restart else Reason.SEQUENCE_GAP, offset, su.note)
+            self._event(
+                Reason.SENDER_RESTART if su.restart else Reason.SEQUENCE_GAP, offset, su.note
+            )
         backsteps = unwrapper.backsteps
         last_raw = unwrapper.last_raw
         t = unwrapper.update(h.timestamp_us, restart=su.restart or boot)
         if unwrapper.backsteps != backsteps:
             self.timestamp_backsteps += 1
-            self._event(Reason.TIMESTAMP_BACKSTEP, offset,
-                        f"device clock went back from {last_raw} to {h.timestamp_us} us"
-                        f" without a restart (seq {h.seq})")
+            self._event(
+                Reason.TIMESTAMP_BACKSTEP,
+                offset,
+                f"device clock went back from {last_raw} to {h.timestamp_us} us"
+                f" without a restart (seq {h.seq})",
+            )
         if ftype not in _BODY_BY_TYPE_INT:
             self.unknown_frames += 1
             self.bytes_discarded += size
-            self._event(Reason.UNKNOWN_FRAME_TYPE, offset,
-                        f"frame type 0x{ftype:02x} ({size} bytes, seq {h.seq}) is not defined in"
-                        " protocol v1; skipped whole")
+            self._event(
+                Reason.UNKNOWN_FRAME_TYPE,
+                offset,
+                f"frame type 0x{ftype:02x} ({size} bytes, seq {h.seq}) is not defined in"
+                " protocol v1; skipped whole",
+            )
             return None
         fb = bytes(mv[i:end])
         try:

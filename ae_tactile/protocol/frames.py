@@ -28,6 +28,7 @@ TypeError; wrong shapes, dtypes and out-of-range values raise ValueError with th
 field name and the allowed range. The decoder builds bodies through the same
 checks, so whatever ``encode_frame`` refuses, the decoder rejects (and counts).
 """
+
 from __future__ import annotations
 
 import enum
@@ -43,7 +44,7 @@ from ..geometry import N_CHANNELS
 
 # ---------------------------------------------------------------- constants
 PROTOCOL_VERSION = 1
-SYNC = b"\xAE\x7C\x5A\xC3"
+SYNC = b"\xae\x7c\x5a\xc3"
 HEADER_LEN = 24
 CRC_LEN = 4
 FRAME_OVERHEAD = HEADER_LEN + CRC_LEN
@@ -65,15 +66,15 @@ MAX_THRESHOLD_COUNTS = 32767
 
 _U8, _U16, _U32, _U64 = 0xFF, 0xFFFF, 0xFFFFFFFF, 0xFFFFFFFFFFFFFFFF
 
-_HEADER = struct.Struct("<4sBBBBIII")        # bytes 0..19
+_HEADER = struct.Struct("<4sBBBBIII")  # bytes 0..19
 _HEADER_FULL = struct.Struct("<4xBBBBIIII")  # bytes 0..23 (with header_crc)
 _U32LE = struct.Struct("<I")
 _F32 = struct.Struct("<f")
-_PACKET = struct.Struct("<IfQHHHBB")         # 24 bytes
-_STREAM = struct.Struct("<IfQHBB")           # 20 bytes
-_STATUS = struct.Struct("<QIfHHHBBIIBBBB")   # 36 bytes
-_COMMAND = struct.Struct("<HB")              # 3 bytes + arguments
-_ACK = struct.Struct("<HBBI")                # 8 bytes
+_PACKET = struct.Struct("<IfQHHHBB")  # 24 bytes
+_STREAM = struct.Struct("<IfQHBB")  # 20 bytes
+_STATUS = struct.Struct("<QIfHHHBBIIBBBB")  # 36 bytes
+_COMMAND = struct.Struct("<HB")  # 3 bytes + arguments
+_ACK = struct.Struct("<HBBI")  # 8 bytes
 _SAMPLE_DTYPE = np.dtype("<i2")
 
 assert _HEADER.size == HEADER_LEN - 4 and _HEADER_FULL.size == HEADER_LEN
@@ -85,11 +86,11 @@ assert _STATUS.size == STATUS_PREFIX_LEN
 class FrameType(enum.IntEnum):
     """Frame type byte. Bit 7 clear: device -> host; set: host -> device."""
 
-    PACKET = 0x01    #: triggered acoustic-emission packet
-    STREAM = 0x02    #: block of continuous samples
-    STATUS = 0x03    #: status / heartbeat (>= 1 Hz in every state, and after GET_STATUS)
-    ACK = 0x04       #: acknowledgement of one COMMAND
-    COMMAND = 0x81   #: host -> device command
+    PACKET = 0x01  #: triggered acoustic-emission packet
+    STREAM = 0x02  #: block of continuous samples
+    STATUS = 0x03  #: status / heartbeat (>= 1 Hz in every state, and after GET_STATUS)
+    ACK = 0x04  #: acknowledgement of one COMMAND
+    COMMAND = 0x81  #: host -> device command
 
 
 class Direction(enum.Enum):
@@ -106,33 +107,33 @@ class AcqMode(enum.IntEnum):
     """Acquisition mode requested by START."""
 
     TRIGGERED = 1  #: emit a PACKET per threshold crossing
-    STREAM = 2     #: emit continuous STREAM blocks
+    STREAM = 2  #: emit continuous STREAM blocks
 
 
 class DeviceState(enum.IntEnum):
     IDLE = 0
-    TRIGGERED = 1   #: running, triggered mode
-    STREAMING = 2   #: running, stream mode
-    ERROR = 3       #: stopped by a fault, see STATUS.error_bits
+    TRIGGERED = 1  #: running, triggered mode
+    STREAMING = 2  #: running, stream mode
+    ERROR = 3  #: stopped by a fault, see STATUS.error_bits
 
 
 class Opcode(enum.IntEnum):
     """COMMAND opcodes; arguments in docs/protocol.md, "COMMAND"."""
 
-    START = 1              #: args: mode u8 (AcqMode); resets the sample counter to 0
-    STOP = 2               #: no args
-    GET_STATUS = 3         #: no args; the device answers ACK then a STATUS frame
-    SET_THRESHOLD = 4      #: args: threshold_counts u16 (1..32767)
-    SET_SAMPLE_RATE = 5    #: args: sample_rate_hz u32 (>= 1); only while IDLE
+    START = 1  #: args: mode u8 (AcqMode); resets the sample counter to 0
+    STOP = 2  #: no args
+    GET_STATUS = 3  #: no args; the device answers ACK then a STATUS frame
+    SET_THRESHOLD = 4  #: args: threshold_counts u16 (1..32767)
+    SET_SAMPLE_RATE = 5  #: args: sample_rate_hz u32 (>= 1); only while IDLE
     SET_PACKET_LENGTH = 6  #: args: n_samples u16 (1..MAX_SAMPLES), pre_trigger u16 (< n)
 
 
 class AckResult(enum.IntEnum):
     OK = 0
     UNKNOWN_OPCODE = 1
-    BAD_ARGUMENT = 2    #: argument out of the device's range
-    BAD_STATE = 3       #: not allowed in the current state (e.g. SET_SAMPLE_RATE while running)
-    MALFORMED = 4       #: payload length does not match the opcode
+    BAD_ARGUMENT = 2  #: argument out of the device's range
+    BAD_STATE = 3  #: not allowed in the current state (e.g. SET_SAMPLE_RATE while running)
+    MALFORMED = 4  #: payload length does not match the opcode
     BUSY = 5
     INTERNAL_ERROR = 6
 
@@ -140,11 +141,11 @@ class AckResult(enum.IntEnum):
 class ErrorBits(enum.IntFlag):
     """STATUS.error_bits; bits 16..31 are firmware-specific."""
 
-    ADC_OVERRUN = 1 << 0       #: samples lost inside the device
-    TX_OVERFLOW = 1 << 1       #: frames dropped by the device (see device_dropped)
+    ADC_OVERRUN = 1 << 0  #: samples lost inside the device
+    TX_OVERFLOW = 1 << 1  #: frames dropped by the device (see device_dropped)
     CLOCK_FAULT = 1 << 2
     ANALOG_FAULT = 1 << 3
-    CONFIG_DEFAULTS = 1 << 4   #: stored configuration invalid, defaults in use
+    CONFIG_DEFAULTS = 1 << 4  #: stored configuration invalid, defaults in use
 
 
 _OPCODE_ARGS: dict[Opcode, tuple[str, ...]] = {
@@ -170,18 +171,18 @@ _ALL_COMMAND_ARGS = ("mode", "threshold_counts", "sample_rate_hz", "n_samples", 
 class Reason(str, enum.Enum):
     """Why the decoder rejected bytes, or what else it noticed (DecoderEvent.reason)."""
 
-    HEADER_CRC = "header_crc"                  #: sync found, header CRC wrong
-    BAD_VERSION = "bad_version"                #: header CRC ok, unsupported version
-    BAD_HEADER = "bad_header"                  #: unknown flag bits / reserved byte not 0
-    LENGTH_TOO_LARGE = "length_too_large"      #: payload_len > MAX_PAYLOAD_LEN
-    FRAME_CRC = "frame_crc"                    #: header ok, frame CRC wrong
-    TRUNCATED = "truncated"                    #: frame cut short (by a valid frame or the end)
-    BAD_PAYLOAD = "bad_payload"                #: CRC ok, payload violates its layout
+    HEADER_CRC = "header_crc"  #: sync found, header CRC wrong
+    BAD_VERSION = "bad_version"  #: header CRC ok, unsupported version
+    BAD_HEADER = "bad_header"  #: unknown flag bits / reserved byte not 0
+    LENGTH_TOO_LARGE = "length_too_large"  #: payload_len > MAX_PAYLOAD_LEN
+    FRAME_CRC = "frame_crc"  #: header ok, frame CRC wrong
+    TRUNCATED = "truncated"  #: frame cut short (by a valid frame or the end)
+    BAD_PAYLOAD = "bad_payload"  #: CRC ok, payload violates its layout
     UNKNOWN_FRAME_TYPE = "unknown_frame_type"  #: CRC ok, type not known to this version
-    WRONG_DIRECTION = "wrong_direction"        #: CRC ok, frame of the other direction
-    DUPLICATE = "duplicate"                    #: CRC ok, same frame received again (dropped)
-    SEQUENCE_GAP = "sequence_gap"              #: frames missing (not a rejection)
-    SENDER_RESTART = "sender_restart"          #: sender reset (not a rejection)
+    WRONG_DIRECTION = "wrong_direction"  #: CRC ok, frame of the other direction
+    DUPLICATE = "duplicate"  #: CRC ok, same frame received again (dropped)
+    SEQUENCE_GAP = "sequence_gap"  #: frames missing (not a rejection)
+    SENDER_RESTART = "sender_restart"  #: sender reset (not a rejection)
     TIMESTAMP_BACKSTEP = "timestamp_backstep"  #: device clock went back (not a rejection)
 
 
@@ -215,7 +216,9 @@ def _enum(name: str, cls, value):
 
 
 def _v_per_count(value) -> float:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+    if isinstance(value, (bool, np.bool_)) or not isinstance(
+        value, (int, float, np.integer, np.floating)
+    ):
         raise TypeError(f"v_per_count must be a real number, got {type(value).__name__} {value!r}")
     v = float(value)
     try:
@@ -223,7 +226,9 @@ def _v_per_count(value) -> float:
     except OverflowError:
         f32 = math.inf
     if not (math.isfinite(f32) and f32 > 0.0):
-        raise ValueError(f"v_per_count (volts per ADC count, float32) must be finite and > 0, got {v!r}")
+        raise ValueError(
+            f"v_per_count (volts per ADC count, float32) must be finite and > 0, got {v!r}"
+        )
     return f32
 
 
@@ -233,21 +238,25 @@ def _samples(value) -> np.ndarray:
     except (ValueError, TypeError) as exc:
         raise ValueError(f"samples must be a (4, N) integer array: {exc}") from None
     if a.ndim != 2 or a.shape[0] != N_CHANNELS:
-        raise ValueError(f"samples must have shape ({N_CHANNELS}, N), channel-major in the"
-                         f" channel order of ae_tactile.geometry; got shape {a.shape}")
+        raise ValueError(
+            f"samples must have shape ({N_CHANNELS}, N), channel-major in the"
+            f" channel order of ae_tactile.geometry; got shape {a.shape}"
+        )
     n = a.shape[1]
     if not 1 <= n <= MAX_SAMPLES:
         raise ValueError(f"samples per channel N must be in [1, {MAX_SAMPLES}], got {n}")
     if a.dtype == np.int16 and not a.flags.writeable:
-        return a                     # e.g. decoded: a read-only view of immutable frame bytes
+        return a  # e.g. decoded: a read-only view of immutable frame bytes
     if a.dtype.kind not in "iu":
-        raise ValueError(f"samples must have an integer dtype (int16 ADC counts), got {a.dtype};"
-                         " convert explicitly (e.g. np.rint(x).astype(np.int16))")
+        raise ValueError(
+            f"samples must have an integer dtype (int16 ADC counts), got {a.dtype};"
+            " convert explicitly (e.g. np.rint(x).astype(np.int16))"
+        )
     if a.dtype.itemsize > 2 or (a.dtype.kind == "u" and a.dtype.itemsize == 2):
         lo, hi = int(a.min()), int(a.max())
         if lo < -32768 or hi > 32767:
             raise ValueError(f"samples must fit in int16 [-32768, 32767], got range [{lo}, {hi}]")
-    a = a.astype(np.int16)           # always a private copy, so the frozen body stays frozen
+    a = a.astype(np.int16)  # always a private copy, so the frozen body stays frozen
     a.flags.writeable = False
     return a
 
@@ -288,8 +297,10 @@ class _SampleBlock(_Body):
     def __eq__(self, other) -> bool:
         if type(other) is not type(self):
             return NotImplemented
-        return all(_arrays_equal(a, b) if isinstance(a, np.ndarray) else a == b
-                   for a, b in ((getattr(self, f.name), getattr(other, f.name)) for f in fields(self)))
+        return all(
+            _arrays_equal(a, b) if isinstance(a, np.ndarray) else a == b
+            for a, b in ((getattr(self, f.name), getattr(other, f.name)) for f in fields(self))
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -322,42 +333,67 @@ class Packet(_SampleBlock):
         s = _samples(self.samples)
         object.__setattr__(self, "samples", s)
         n = s.shape[1]
-        object.__setattr__(self, "sample_rate_hz", _int("sample_rate_hz", self.sample_rate_hz, 1, _U32))
+        object.__setattr__(
+            self, "sample_rate_hz", _int("sample_rate_hz", self.sample_rate_hz, 1, _U32)
+        )
         object.__setattr__(self, "v_per_count", _v_per_count(self.v_per_count))
-        object.__setattr__(self, "first_sample_index",
-                           _int("first_sample_index", self.first_sample_index, 0, _U64))
+        object.__setattr__(
+            self,
+            "first_sample_index",
+            _int("first_sample_index", self.first_sample_index, 0, _U64),
+        )
         object.__setattr__(self, "pre_trigger", _int("pre_trigger", self.pre_trigger, 0, n - 1))
         onset = _int("onset_index", self.onset_index, 0, _U16)
         if onset != NO_ONSET and onset >= n:
             raise ValueError(f"onset_index must be < N = {n} or NO_ONSET (0xFFFF), got {onset}")
         object.__setattr__(self, "onset_index", onset)
-        object.__setattr__(self, "saturation_mask", _int("saturation_mask", self.saturation_mask, 0, 15))
+        object.__setattr__(
+            self, "saturation_mask", _int("saturation_mask", self.saturation_mask, 0, 15)
+        )
 
     def _pack(self) -> bytes:
         s = self.samples
-        return _PACKET.pack(self.sample_rate_hz, self.v_per_count, self.first_sample_index,
-                            s.shape[1], self.pre_trigger, self.onset_index, N_CHANNELS,
-                            self.saturation_mask) + s.astype(_SAMPLE_DTYPE, copy=False).tobytes()
+        return (
+            _PACKET.pack(
+                self.sample_rate_hz,
+                self.v_per_count,
+                self.first_sample_index,
+                s.shape[1],
+                self.pre_trigger,
+                self.onset_index,
+                N_CHANNELS,
+                self.saturation_mask,
+            )
+            + s.astype(_SAMPLE_DTYPE, copy=False).tobytes()
+        )
 
     @classmethod
     def _unpack(cls, buf, off: int, length: int) -> "Packet":
         if length < PACKET_PREFIX_LEN:
-            raise ValueError(f"PACKET payload of {length} bytes is shorter than its"
-                             f" {PACKET_PREFIX_LEN}-byte prefix")
+            raise ValueError(
+                f"PACKET payload of {length} bytes is shorter than its"
+                f" {PACKET_PREFIX_LEN}-byte prefix"
+            )
         sr, vpc, first, n, pre, onset, nch, sat = _PACKET.unpack_from(buf, off)
         samples = _unpack_samples("PACKET", buf, off, length, PACKET_PREFIX_LEN, n, nch)
         return cls(samples, sr, vpc, first, pre, onset, sat)
 
 
-def _unpack_samples(kind: str, buf, off: int, length: int, prefix: int, n: int, nch: int) -> np.ndarray:
+def _unpack_samples(
+    kind: str, buf, off: int, length: int, prefix: int, n: int, nch: int
+) -> np.ndarray:
     if nch != N_CHANNELS:
         raise ValueError(f"{kind} n_channels must be {N_CHANNELS}, got {nch}")
     if not 1 <= n <= MAX_SAMPLES:
         raise ValueError(f"{kind} n_samples must be in [1, {MAX_SAMPLES}], got {n}")
     if length != prefix + 2 * nch * n:
-        raise ValueError(f"{kind} n_samples={n} x {nch} channels x 2 bytes = {2 * nch * n} sample"
-                         f" bytes, but the payload holds {length - prefix} after its prefix")
-    return np.frombuffer(buf, dtype=_SAMPLE_DTYPE, count=nch * n, offset=off + prefix).reshape(nch, n)
+        raise ValueError(
+            f"{kind} n_samples={n} x {nch} channels x 2 bytes = {2 * nch * n} sample"
+            f" bytes, but the payload holds {length - prefix} after its prefix"
+        )
+    return np.frombuffer(buf, dtype=_SAMPLE_DTYPE, count=nch * n, offset=off + prefix).reshape(
+        nch, n
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -382,11 +418,18 @@ class StreamBlock(_SampleBlock):
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "samples", _samples(self.samples))
-        object.__setattr__(self, "sample_rate_hz", _int("sample_rate_hz", self.sample_rate_hz, 1, _U32))
+        object.__setattr__(
+            self, "sample_rate_hz", _int("sample_rate_hz", self.sample_rate_hz, 1, _U32)
+        )
         object.__setattr__(self, "v_per_count", _v_per_count(self.v_per_count))
-        object.__setattr__(self, "first_sample_index",
-                           _int("first_sample_index", self.first_sample_index, 0, _U64))
-        object.__setattr__(self, "saturation_mask", _int("saturation_mask", self.saturation_mask, 0, 15))
+        object.__setattr__(
+            self,
+            "first_sample_index",
+            _int("first_sample_index", self.first_sample_index, 0, _U64),
+        )
+        object.__setattr__(
+            self, "saturation_mask", _int("saturation_mask", self.saturation_mask, 0, 15)
+        )
 
     @property
     def next_sample_index(self) -> int:
@@ -395,15 +438,25 @@ class StreamBlock(_SampleBlock):
 
     def _pack(self) -> bytes:
         s = self.samples
-        return _STREAM.pack(self.sample_rate_hz, self.v_per_count, self.first_sample_index,
-                            s.shape[1], N_CHANNELS, self.saturation_mask) \
+        return (
+            _STREAM.pack(
+                self.sample_rate_hz,
+                self.v_per_count,
+                self.first_sample_index,
+                s.shape[1],
+                N_CHANNELS,
+                self.saturation_mask,
+            )
             + s.astype(_SAMPLE_DTYPE, copy=False).tobytes()
+        )
 
     @classmethod
     def _unpack(cls, buf, off: int, length: int) -> "StreamBlock":
         if length < STREAM_PREFIX_LEN:
-            raise ValueError(f"STREAM payload of {length} bytes is shorter than its"
-                             f" {STREAM_PREFIX_LEN}-byte prefix")
+            raise ValueError(
+                f"STREAM payload of {length} bytes is shorter than its"
+                f" {STREAM_PREFIX_LEN}-byte prefix"
+            )
         sr, vpc, first, n, nch, sat = _STREAM.unpack_from(buf, off)
         samples = _unpack_samples("STREAM", buf, off, length, STREAM_PREFIX_LEN, n, nch)
         return cls(samples, sr, vpc, first, sat)
@@ -447,8 +500,11 @@ class Status(_Body):
         set_(self, "state", _enum("state", DeviceState, self.state))
         set_(self, "sample_rate_hz", _int("sample_rate_hz", self.sample_rate_hz, 1, _U32))
         set_(self, "v_per_count", _v_per_count(self.v_per_count))
-        set_(self, "threshold_counts", _int("threshold_counts", self.threshold_counts, 1,
-                                            MAX_THRESHOLD_COUNTS))
+        set_(
+            self,
+            "threshold_counts",
+            _int("threshold_counts", self.threshold_counts, 1, MAX_THRESHOLD_COUNTS),
+        )
         n = _int("packet_samples", self.packet_samples, 1, MAX_SAMPLES)
         set_(self, "packet_samples", n)
         set_(self, "pre_trigger", _int("pre_trigger", self.pre_trigger, 0, n - 1))
@@ -457,41 +513,79 @@ class Status(_Body):
         fw = self.firmware_version
         if not isinstance(fw, (tuple, list)) or len(fw) != 3:
             raise TypeError(f"firmware_version must be a (major, minor, patch) tuple, got {fw!r}")
-        set_(self, "firmware_version", tuple(_int(f"firmware_version[{i}]", v, 0, _U8)
-                                             for i, v in enumerate(fw)))
+        set_(
+            self,
+            "firmware_version",
+            tuple(_int(f"firmware_version[{i}]", v, 0, _U8) for i, v in enumerate(fw)),
+        )
         sn = self.serial_number
         if not isinstance(sn, str):
             raise TypeError(f"serial_number must be a str, got {type(sn).__name__}")
         if not 1 <= len(sn) <= MAX_SERIAL_LEN or not all(" " <= ch <= "~" for ch in sn):
-            raise ValueError(f"serial_number must be 1..{MAX_SERIAL_LEN} printable ASCII characters"
-                             f" (0x20..0x7E), got {sn!r}")
+            raise ValueError(
+                f"serial_number must be 1..{MAX_SERIAL_LEN} printable ASCII characters"
+                f" (0x20..0x7E), got {sn!r}"
+            )
 
     def _pack(self) -> bytes:
         sn = self.serial_number.encode("ascii")
-        return _STATUS.pack(self.uptime_us, self.sample_rate_hz, self.v_per_count,
-                            self.threshold_counts, self.packet_samples, self.pre_trigger,
-                            self.state, N_CHANNELS, self.error_bits, self.device_dropped,
-                            *self.firmware_version, len(sn)) + sn
+        return (
+            _STATUS.pack(
+                self.uptime_us,
+                self.sample_rate_hz,
+                self.v_per_count,
+                self.threshold_counts,
+                self.packet_samples,
+                self.pre_trigger,
+                self.state,
+                N_CHANNELS,
+                self.error_bits,
+                self.device_dropped,
+                *self.firmware_version,
+                len(sn),
+            )
+            + sn
+        )
 
     @classmethod
     def _unpack(cls, buf, off: int, length: int) -> "Status":
         if length < STATUS_PREFIX_LEN:
-            raise ValueError(f"STATUS payload of {length} bytes is shorter than its"
-                             f" {STATUS_PREFIX_LEN}-byte prefix")
-        (up, sr, vpc, thr, n, pre, state, nch, err, dropped,
-         fw_major, fw_minor, fw_patch, sn_len) = _STATUS.unpack_from(buf, off)
+            raise ValueError(
+                f"STATUS payload of {length} bytes is shorter than its"
+                f" {STATUS_PREFIX_LEN}-byte prefix"
+            )
+        (
+            up,
+            sr,
+            vpc,
+            thr,
+            n,
+            pre,
+            state,
+            nch,
+            err,
+            dropped,
+            fw_major,
+            fw_minor,
+            fw_patch,
+            sn_len,
+        ) = _STATUS.unpack_from(buf, off)
         if nch != N_CHANNELS:
             raise ValueError(f"STATUS n_channels must be {N_CHANNELS}, got {nch}")
         if length != STATUS_PREFIX_LEN + sn_len:
-            raise ValueError(f"STATUS serial_len={sn_len} but the payload holds"
-                             f" {length - STATUS_PREFIX_LEN} bytes after its prefix")
+            raise ValueError(
+                f"STATUS serial_len={sn_len} but the payload holds"
+                f" {length - STATUS_PREFIX_LEN} bytes after its prefix"
+            )
         start = off + STATUS_PREFIX_LEN
-        raw = bytes(buf[start:start + sn_len])
+        raw = bytes(buf[start : start + sn_len])
         try:
             sn = raw.decode("ascii")
         except UnicodeDecodeError:
             raise ValueError(f"STATUS serial_number is not ASCII: {raw!r}") from None
-        return cls(up, state, sr, vpc, thr, n, pre, err, dropped, (fw_major, fw_minor, fw_patch), sn)
+        return cls(
+            up, state, sr, vpc, thr, n, pre, err, dropped, (fw_major, fw_minor, fw_patch), sn
+        )
 
 
 # ---------------------------------------------------------------- commands
@@ -526,15 +620,20 @@ class Command(_Body):
         for name in _ALL_COMMAND_ARGS:
             given = getattr(self, name) is not None
             if given and name not in needed:
-                raise ValueError(f"{op.name} takes no argument {name!r}"
-                                 f" (its arguments: {', '.join(needed) or 'none'})")
+                raise ValueError(
+                    f"{op.name} takes no argument {name!r}"
+                    f" (its arguments: {', '.join(needed) or 'none'})"
+                )
             if not given and name in needed:
                 raise ValueError(f"{op.name} requires argument {name!r}")
         if op is Opcode.START:
             set_(self, "mode", _enum("mode", AcqMode, self.mode))
         elif op is Opcode.SET_THRESHOLD:
-            set_(self, "threshold_counts", _int("threshold_counts", self.threshold_counts, 1,
-                                                MAX_THRESHOLD_COUNTS))
+            set_(
+                self,
+                "threshold_counts",
+                _int("threshold_counts", self.threshold_counts, 1, MAX_THRESHOLD_COUNTS),
+            )
         elif op is Opcode.SET_SAMPLE_RATE:
             set_(self, "sample_rate_hz", _int("sample_rate_hz", self.sample_rate_hz, 1, _U32))
         elif op is Opcode.SET_PACKET_LENGTH:
@@ -564,7 +663,9 @@ class Command(_Body):
 
     @classmethod
     def set_packet_length(cls, n_samples: int, pre_trigger: int, command_id: int = 0) -> "Command":
-        return cls(Opcode.SET_PACKET_LENGTH, command_id, n_samples=n_samples, pre_trigger=pre_trigger)
+        return cls(
+            Opcode.SET_PACKET_LENGTH, command_id, n_samples=n_samples, pre_trigger=pre_trigger
+        )
 
     @property
     def args(self) -> tuple[int, ...]:
@@ -572,7 +673,9 @@ class Command(_Body):
         return tuple(int(getattr(self, name)) for name in _OPCODE_ARGS[self.opcode])
 
     def _pack(self) -> bytes:
-        return _COMMAND.pack(self.command_id, self.opcode) + _OPCODE_ARG_STRUCT[self.opcode].pack(*self.args)
+        return _COMMAND.pack(self.command_id, self.opcode) + _OPCODE_ARG_STRUCT[self.opcode].pack(
+            *self.args
+        )
 
     @classmethod
     def _unpack(cls, buf, off: int, length: int) -> "Command":
@@ -585,8 +688,10 @@ class Command(_Body):
             raise ValueError(f"COMMAND {cid}: unknown opcode {op}") from None
         st = _OPCODE_ARG_STRUCT[opcode]
         if length != _COMMAND.size + st.size:
-            raise ValueError(f"COMMAND {cid} {opcode.name}: payload must be {_COMMAND.size + st.size}"
-                             f" bytes, got {length}")
+            raise ValueError(
+                f"COMMAND {cid} {opcode.name}: payload must be {_COMMAND.size + st.size}"
+                f" bytes, got {length}"
+            )
         values = st.unpack_from(buf, off + _COMMAND.size)
         return cls(opcode, cid, **dict(zip(_OPCODE_ARGS[opcode], values)))
 
@@ -634,7 +739,9 @@ class Ack(_Body):
 
 
 Body = Union[Packet, StreamBlock, Status, Command, Ack]
-BODY_TYPES: dict[FrameType, type] = {cls.frame_type: cls for cls in (Packet, StreamBlock, Status, Command, Ack)}
+BODY_TYPES: dict[FrameType, type] = {
+    cls.frame_type: cls for cls in (Packet, StreamBlock, Status, Command, Ack)
+}
 _BODY_BY_TYPE_INT: dict[int, type] = {int(k): v for k, v in BODY_TYPES.items()}
 
 
@@ -674,7 +781,9 @@ class Frame:
         return bool(self.flags & FLAG_BOOT)
 
     def encode(self) -> bytes:
-        return encode_frame(self.body, seq=self.seq, timestamp_us=self.timestamp_us, flags=self.flags)
+        return encode_frame(
+            self.body, seq=self.seq, timestamp_us=self.timestamp_us, flags=self.flags
+        )
 
 
 def encode_frame(body: Body, seq: int, timestamp_us: int, flags: int = 0) -> bytes:
@@ -686,16 +795,22 @@ def encode_frame(body: Body, seq: int, timestamp_us: int, flags: int = 0) -> byt
     flags:        0 or FLAG_BOOT.
     """
     if not isinstance(body, _Body) or type(body) not in BODY_TYPES.values():
-        raise TypeError(f"body must be one of Packet, StreamBlock, Status, Command, Ack;"
-                        f" got {type(body).__name__}")
+        raise TypeError(
+            f"body must be one of Packet, StreamBlock, Status, Command, Ack;"
+            f" got {type(body).__name__}"
+        )
     seq = _int("seq", seq, 0, _U32)
     timestamp_us = _int("timestamp_us", timestamp_us, 0, _U32)
     flags = _int("flags", flags, 0, _U8)
     if flags & ~KNOWN_FLAGS:
-        raise ValueError(f"flags may only contain FLAG_BOOT (0x01) in protocol v{PROTOCOL_VERSION},"
-                         f" got 0x{flags:02x}")
+        raise ValueError(
+            f"flags may only contain FLAG_BOOT (0x01) in protocol v{PROTOCOL_VERSION},"
+            f" got 0x{flags:02x}"
+        )
     payload = body._pack()
-    head = _HEADER.pack(SYNC, PROTOCOL_VERSION, body.frame_type, flags, 0, len(payload), seq, timestamp_us)
+    head = _HEADER.pack(
+        SYNC, PROTOCOL_VERSION, body.frame_type, flags, 0, len(payload), seq, timestamp_us
+    )
     hcrc = zlib.crc32(head)
     return b"".join((head, _U32LE.pack(hcrc), payload, _U32LE.pack(zlib.crc32(payload, hcrc))))
 
@@ -713,7 +828,9 @@ class FrameEncoder:
         self._boot_pending = bool(boot)
 
     def encode(self, body: Body, timestamp_us: int) -> bytes:
-        data = encode_frame(body, self.next_seq, timestamp_us, FLAG_BOOT if self._boot_pending else 0)
+        data = encode_frame(
+            body, self.next_seq, timestamp_us, FLAG_BOOT if self._boot_pending else 0
+        )
         self._boot_pending = False
         self.next_seq = (self.next_seq + 1) & _U32
         return data
@@ -729,8 +846,15 @@ class Header:
 
     __slots__ = ("frame_type", "flags", "payload_len", "seq", "timestamp_us", "header_crc")
 
-    def __init__(self, frame_type: int, flags: int, payload_len: int, seq: int, timestamp_us: int,
-                 header_crc: int):
+    def __init__(
+        self,
+        frame_type: int,
+        flags: int,
+        payload_len: int,
+        seq: int,
+        timestamp_us: int,
+        header_crc: int,
+    ):
         self.header_crc = header_crc
         self.frame_type = frame_type
         self.flags = flags
@@ -743,18 +867,23 @@ def parse_header(buf, pos: int = 0) -> Header:
     """Check the 24 header bytes at ``buf[pos:]`` (sync already located). Raises ProtocolError."""
     version, ftype, flags, reserved, length, seq, ts, hcrc = _HEADER_FULL.unpack_from(buf, pos)
     with memoryview(buf) as mv:
-        crc = zlib.crc32(mv[pos:pos + HEADER_LEN - 4])
+        crc = zlib.crc32(mv[pos : pos + HEADER_LEN - 4])
     if crc != hcrc:
         raise ProtocolError(Reason.HEADER_CRC, f"header CRC 0x{hcrc:08x} != computed 0x{crc:08x}")
     if version != PROTOCOL_VERSION:
-        raise ProtocolError(Reason.BAD_VERSION,
-                            f"protocol version {version}, this decoder speaks {PROTOCOL_VERSION}")
+        raise ProtocolError(
+            Reason.BAD_VERSION,
+            f"protocol version {version}, this decoder speaks {PROTOCOL_VERSION}",
+        )
     if flags & ~KNOWN_FLAGS or reserved:
-        raise ProtocolError(Reason.BAD_HEADER,
-                            f"unknown flag bits 0x{flags & ~KNOWN_FLAGS:02x} / reserved byte 0x{reserved:02x}")
+        raise ProtocolError(
+            Reason.BAD_HEADER,
+            f"unknown flag bits 0x{flags & ~KNOWN_FLAGS:02x} / reserved byte 0x{reserved:02x}",
+        )
     if length > MAX_PAYLOAD_LEN:
-        raise ProtocolError(Reason.LENGTH_TOO_LARGE,
-                            f"payload_len {length} > MAX_PAYLOAD_LEN {MAX_PAYLOAD_LEN}")
+        raise ProtocolError(
+            Reason.LENGTH_TOO_LARGE, f"payload_len {length} > MAX_PAYLOAD_LEN {MAX_PAYLOAD_LEN}"
+        )
     return Header(ftype, flags, length, seq, ts, hcrc)
 
 
@@ -779,16 +908,22 @@ def decode_frame(data) -> Frame:
     """
     data = bytes(data)
     if len(data) < FRAME_OVERHEAD:
-        raise ProtocolError(Reason.TRUNCATED, f"{len(data)} bytes, a frame has at least {FRAME_OVERHEAD}")
+        raise ProtocolError(
+            Reason.TRUNCATED, f"{len(data)} bytes, a frame has at least {FRAME_OVERHEAD}"
+        )
     if data[:4] != SYNC:
-        raise ProtocolError(Reason.BAD_HEADER, f"does not start with the sync word {SYNC.hex(' ')}")
+        raise ProtocolError(
+            Reason.BAD_HEADER, f"does not start with the sync word {SYNC.hex(' ')}"
+        )
     h = parse_header(data, 0)
     end = HEADER_LEN + h.payload_len + CRC_LEN
     if len(data) != end:
-        raise ProtocolError(Reason.TRUNCATED if len(data) < end else Reason.BAD_HEADER,
-                            f"header says the frame has {end} bytes, got {len(data)}")
+        raise ProtocolError(
+            Reason.TRUNCATED if len(data) < end else Reason.BAD_HEADER,
+            f"header says the frame has {end} bytes, got {len(data)}",
+        )
     (fcrc,) = _U32LE.unpack_from(data, end - CRC_LEN)
-    crc = zlib.crc32(memoryview(data)[HEADER_LEN:end - CRC_LEN], h.header_crc)
+    crc = zlib.crc32(memoryview(data)[HEADER_LEN : end - CRC_LEN], h.header_crc)
     if crc != fcrc:
         raise ProtocolError(Reason.FRAME_CRC, f"frame CRC 0x{fcrc:08x} != computed 0x{crc:08x}")
     body = parse_body(h.frame_type, data, HEADER_LEN, h.payload_len)

@@ -3,6 +3,7 @@
 Format: one line per 16 bytes, ``OOOO: hh hh ...`` with a 4-digit hex offset.
 ``parse_hex`` reads it back (offsets are checked, so a dump cannot silently lose a line).
 """
+
 from __future__ import annotations
 
 import re
@@ -15,8 +16,10 @@ def format_hex(data, width: int = 16) -> str:
     data = bytes(data)
     if isinstance(width, bool) or not isinstance(width, int) or width < 1:
         raise ValueError(f"width must be a positive integer, got {width!r}")
-    return "\n".join(f"{i:04x}: " + " ".join(f"{b:02x}" for b in data[i:i + width])
-                     for i in range(0, len(data), width))
+    return "\n".join(
+        f"{i:04x}: " + " ".join(f"{b:02x}" for b in data[i : i + width])
+        for i in range(0, len(data), width)
+    )
 
 
 def parse_hex(text: str) -> bytes:

@@ -3,6 +3,7 @@
 Both are plain state machines fed one frame at a time; ``StreamDecoder`` owns one
 of each per direction, and they are public so a driver or a test can use them alone.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -68,8 +69,9 @@ class SequenceTracker:
                 self.sequence_gaps += 1
             note = None
             if restart or seq:
-                note = (f"sender restart (BOOT flag), seq {seq}"
-                        + (f", {seq} frame(s) of the new session lost" if seq else ""))
+                note = f"sender restart (BOOT flag), seq {seq}" + (
+                    f", {seq} frame(s) of the new session lost" if seq else ""
+                )
             return SequenceUpdate(seq, restart, note)
         if expected is None or seq == expected:
             return SequenceUpdate()
@@ -77,15 +79,20 @@ class SequenceTracker:
         if gap < m // 2:
             self.dropped_frames += gap
             self.sequence_gaps += 1
-            return SequenceUpdate(gap, False, f"sequence gap: expected {expected}, got {seq}:"
-                                              f" {gap} frame(s) dropped")
+            return SequenceUpdate(
+                gap, False, f"sequence gap: expected {expected}, got {seq}: {gap} frame(s) dropped"
+            )
         self.restarts += 1
         if seq:
             self.dropped_frames += seq
             self.sequence_gaps += 1
-        return SequenceUpdate(seq, True, f"seq went back from {expected - 1 if expected else m - 1}"
-                                         f" to {seq} without BOOT flag: assuming a sender restart"
-                                         f" whose BOOT frame was lost ({seq} frame(s) dropped)")
+        return SequenceUpdate(
+            seq,
+            True,
+            f"seq went back from {expected - 1 if expected else m - 1}"
+            f" to {seq} without BOOT flag: assuming a sender restart"
+            f" whose BOOT frame was lost ({seq} frame(s) dropped)",
+        )
 
 
 class TimestampUnwrapper:
