@@ -234,6 +234,67 @@ def test_stream_rendered_pairs_independent_path():
     assert ok >= n - 1
 
 
+def test_detector_windows_end_to_end():
+    # A stream (the simulator's renderer) with single touches and pairs 2-9 us apart, cut
+    # by the packet detector (ae_tactile.dsp), then localize_with_overlaps: singles stay
+    # on the fast path, pairs are resolved.
+    from ae_tactile.dsp import PacketDetector
+    from ae_tactile.localization.overlap import localize_with_overlaps
+
+    geo = WATER.geometry
+    rng = np.random.default_rng(31)
+    times, pts, pol, spd, truth = [], [], [], [], []
+    t = 2_000_000  # ns: the detector's noise floor settles first
+    for i in range(16):
+        p = geo.surface_point_from_angles(
+            np.arccos(rng.uniform(0.5, 1, 2)), rng.uniform(0, 2 * np.pi, 2)
+        )
+        if np.linalg.norm(p[0] - p[1]) < 2e-3:
+            p[1] = geo.surface_point_from_xy([-p[0, 0]], [-p[0, 1]])[0]
+        k = 2 if i % 2 == 0 else 1
+        sep = int(rng.integers(2000, 9000))
+        times += [t, t + sep][:k]
+        pts += [p[0], p[1]][:k]
+        pol += [1, -1][:k]
+        spd += [0.3, 0.3 * np.sqrt(rng.uniform(0.25, 1))][:k]
+        truth.append((t, p[:k]))
+        t += 1_000_000
+    em = EmissionList.create(
+        np.array(times),
+        np.array(pts),
+        "touch",
+        polarity=pol,
+        speed_m_s=spd,
+        curvature_1_m=1000.0,
+        alpha_1_s=3000.0,
+        density_kg_m3=1000.0,
+        event_id=np.arange(len(times)),
+    )
+    x, _ = StreamRenderer(WATER, noise_rms_v=0.7e-3, seed=1).render(em, 0, int(t * 1e-2) + 1000)
+    det = PacketDetector()
+    batch = det.process(x, 0)
+    keep = ~batch.in_hit
+    single, overlap = localize_with_overlaps(
+        batch.samples[keep],
+        batch.sample_rate_hz,
+        batch.onset_index[keep],
+        saturated=batch.saturated[keep],
+    )
+    start_ns = batch.start_index[keep] * 100
+    hits = {"pair": 0, "single": 0}
+    for w in range(int(keep.sum())):
+        tp = truth[int(np.argmin([abs(tt - start_ns[w]) for tt, _ in truth]))][1]
+        srcs = overlap[w].sources if w in overlap and overlap[w].accepted else []
+        for s_ in srcs:
+            assert np.linalg.norm(tp - s_.point_m, axis=1).min() < 6 * s_.sigma_m + 50e-6
+        if len(tp) == 2:
+            assert not single.accepted[w]
+            hits["pair"] += len(srcs) == 2 and np.all(per_truth_errors(tp, srcs) <= 0.1e-3)
+        elif single.accepted[w] and w not in overlap:
+            hits["single"] += np.linalg.norm(tp[0] - single.point_m[w]) <= 0.1e-3
+    assert hits["pair"] >= 7 and hits["single"] >= 7, hits
+
+
 def test_model_reproduces_the_simulator_and_bound_is_below_single_packet_bound():
     # The known-pulse model (front end + Eq. 9 pulse, 1/l spreading, first wall echo)
     # describes the simulator's noise-free windows at the true parameters; the joint
