@@ -110,7 +110,10 @@ def common_mode_interference(windows, sample_rate_hz: float, onset_index, *, geo
     e_d = np.einsum("kw,kw->k", d, d) - (w - 1) * nv * 0.5
     high = np.maximum(e_d / np.maximum(e_s * band, tiny), 0.0)
     score = common * np.maximum(low * (1.0 / low_max), high * (1.0 / high_max))
-    if shape_min is not None:
+    # the shape and echo tests only for common-mode packets not yet flagged (most touches
+    # are off the apex: common mode < common_min, nothing more to compute)
+    cand = np.flatnonzero((common >= common_min) & ~(score >= 1.0))
+    if shape_min is not None and cand.size:
         # shape: share of the (noise-corrected) common-mode energy explained by the best
         # acoustic template (sub-sample offsets x integer lags -1..+2); judged only when
         # the packet stands well above the noise (weak touches are never rejected)
@@ -119,26 +122,29 @@ def common_mode_interference(windows, sample_rate_hz: float, onset_index, *, geo
         wt = max(4, min(w, m - 3, int(t_echo * fs) - 1))
         tpl = acoustic_templates(fs, wt, float(highpass_hz), int(highpass_order),
                                  None if lowpass_hz is None else float(lowpass_hz), int(lowpass_order))
-        st = np.clip(on - 2, 0, m - wt - 3)
+        kc = cand.size
+        nvc = nv if np.size(nv) == 1 else nv[cand]
+        st = np.clip(on[cand] - 2, 0, m - wt - 3)
         lags = st[:, None, None] + np.arange(4)[None, :, None] + np.arange(wt)[None, None, :]
-        seg = s_full[np.arange(k)[:, None, None], lags]                 # (K, 4 lags, wt)
+        seg = s_full[cand[:, None, None], lags]                          # (Kc, 4 lags, wt)
         c = np.einsum("klw,jw->klj", seg, tpl)
-        best = (c * c).reshape(k, -1).max(axis=1)
-        e_seg = np.einsum("kw,kw->k", seg[:, 1], seg[:, 1]) - wt * nv * 0.25
+        best = (c * c).reshape(kc, -1).max(axis=1)
+        e_seg = np.einsum("kw,kw->k", seg[:, 1], seg[:, 1]) - wt * nvc * 0.25
         explained = best / np.maximum(e_seg, tiny)
-        strong = e_seg > shape_snr_min * wt * np.maximum(nv, tiny) * 0.25
-        shape_score = np.where(strong, common * (1.0 - explained) / (1.0 - shape_min), 0.0)
-        score = np.maximum(score, shape_score)
-    if echo_min is not None and geometry is not None:
+        strong = e_seg > shape_snr_min * wt * np.maximum(nvc, tiny) * 0.25
+        shape_score = np.where(strong, common[cand] * (1.0 - explained) / (1.0 - shape_min), 0.0)
+        score[cand] = np.maximum(score[cand], shape_score)
+    if echo_min is not None and geometry is not None and cand.size:
         lag = int(round(2.0 * geometry.radius_m / geometry.sound_speed_m_s * fs))
         wd = max(2, min(lag, int(round(5e-6 * fs))))
-        a0 = np.clip(on - 1, 0, max(0, m - lag - wd))
-        i0 = a0[:, None] + np.arange(wd)[None, :]
-        direct, echo = s_full[rows, i0], s_full[rows, i0 + lag]
         if m >= lag + wd:
+            a0 = np.clip(on[cand] - 1, 0, max(0, m - lag - wd))
+            i0 = a0[:, None] + np.arange(wd)[None, :]
+            direct, echo = s_full[cand[:, None], i0], s_full[cand[:, None], i0 + lag]
             ed = np.einsum("kw,kw->k", direct, direct)
             beta = np.einsum("kw,kw->k", direct, echo) / np.maximum(ed, tiny)
-            score = np.maximum(score, common * (1.0 - np.minimum(np.abs(beta) / echo_min, 1.0)) * 2.0)
+            score[cand] = np.maximum(score[cand],
+                                     common[cand] * (1.0 - np.minimum(np.abs(beta) / echo_min, 1.0)) * 2.0)
     finite = np.isfinite(score) & np.isfinite(e_ch)
     score = np.where(finite, np.where(e_s > 0, score, 0.0), np.nan)
     mask = finite & (common >= common_min) & (score >= 1.0)
