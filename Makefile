@@ -5,7 +5,8 @@ BENCH_REQ = tools/run.sh python -m pip install -q --disable-pip-version-check -r
 SHELL := /bin/bash
 
 demo:
-	@tools/run.sh install/ae_tactile/lib/ae_tactile/bringup --monitor --sliding-speed 0.02
+	@tools/run.sh install/ae_tactile/lib/ae_tactile/bringup --monitor --sliding-speed 0.02 \
+		--summary-json log/demo_summary.json --report-png log/demo_summary.png
 
 test:
 	@AE_TACTILE_REQUIRE_ROS=1 tools/run.sh pytest -q -p no:cacheprovider test

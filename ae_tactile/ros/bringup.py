@@ -240,12 +240,20 @@ class Bringup:
 
     def write_report(self, path: str, summary: dict) -> None:
         """PNG summary of the run (ae_tactile.report; needs matplotlib)."""
+        from ae_tactile.report import ReportUnavailable, write_run_summary
+        data = self.monitor.report_data()
+        geo = self.driver.geometry
+        lat = summary.get("latency_ms", {})
+        title = (f"{self.scene_info.get('scene', '') if self.scene_info else ''}: "
+                 f"{summary['emissions']['matched']}/{summary['emissions']['truth']} emissions found, "
+                 f"RMS {summary['emissions']['rms_position_error_mm'] * 1e3:.0f} um"
+                 + (f", latency median {lat['median']:.2f} ms" if lat else ""))
         try:
-            from ae_tactile.report import write_run_report
-        except ImportError as exc:
-            print(f"[ae_tactile] no PNG report: {exc}", file=sys.stderr)
-            return
-        write_run_report(path, self.monitor.report_data(), summary)
+            write_run_summary(path, data["events"], truth=data["truth"], contact_state=data["contact_state"],
+                              radius_m=geo.radius_m, element_offset_m=geo.element_offset_m, title=title)
+            print(f"[ae_tactile] picture of the run: {path}", flush=True)
+        except ReportUnavailable as exc:
+            print(f"[ae_tactile] no PNG summary: {exc}", file=sys.stderr)
 
     def close(self) -> None:
         self.executor.shutdown()

@@ -116,6 +116,22 @@ class MonitorNode(Node):
             line += f"  latency {(s.received_ns - s.stamp_ns) * 1e-6:5.2f} ms"
             print(line, file=self.out, flush=True)
 
+    # ------------------------------------------------------------------ picture
+    def report_data(self) -> dict:
+        """The run as plain rows for `ae_tactile.report.write_run_summary`: events (time from
+        the first event, type, point, latency), the ground truth, the contact-state changes."""
+        t0 = self.t0_ns or 0
+        events = [{"time_s": (x.stamp_ns - t0) * 1e-9, "type": int(x.msg.event_type),
+                   "x_m": x.msg.position.x, "y_m": x.msg.position.y, "z_m": x.msg.position.z,
+                   "latency_s": (x.received_ns - x.stamp_ns) * 1e-9}
+                  for x in sorted(self.contacts + self.slip, key=lambda x: x.stamp_ns)]
+        truth = [{"x_m": t.position.x, "y_m": t.position.y, "z_m": t.position.z,
+                  "time_s": (time_msg_to_ns(t.header.stamp) - t0) * 1e-9}
+                 for t in self.truth if t.confidence > 0]
+        states = [{"time_s": (t - t0) * 1e-9, "state": STATE_NAMES.get(st, str(st))}
+                  for t, st in self.states]
+        return {"events": events, "truth": truth, "contact_state": states}
+
     # ------------------------------------------------------------------ summary
     def summary(self, gross_slip_times_ns=(), slip_windows_ns=()) -> dict:
         """Scores of the run so far (see the module docstring). ``slip_windows_ns``: per
