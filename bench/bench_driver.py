@@ -1,4 +1,6 @@
-"""Driver node throughput and CPU: PACKET frames pushed through a pty at fixed rates.
+"""Driver node throughput and CPU in raw-packet mode (pipeline:=false, the set-up for
+recording): PACKET frames pushed through a pty at fixed rates, published as PacketArray.
+(The in-process pipeline's latency and sustained rate: bench/bench_system.py.)
 
 A writer thread plays the device: it ACKs the driver's commands and writes PACKET
 frames (4 x 400 int16, the default window) at a target rate with proper sequence
@@ -115,6 +117,7 @@ def main() -> int:
     dev = FakeDevice(master)
     dev.start()
     driver = subprocess.Popen([exe, "--ros-args", "-p", f"port:={port}", "-p", "reliable_qos:=true",
+                               "-p", "pipeline:=false",
                                "-p", "queue_max_batches:=100000"],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     rclpy.init()
