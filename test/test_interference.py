@@ -100,3 +100,17 @@ def test_renderer_format_and_burst_times():
     assert 60 <= t.size <= 140 and np.all(np.diff(t) > 0)
     with pytest.raises(ValueError):
         render_interference(2, cfg, coupling="magic")
+
+
+@pytest.mark.parametrize("medium", ["water_skin", "silicone"])
+def test_noise_estimated_from_the_pretrigger(medium):
+    """Without noise_rms_v (the driver's call) the noise comes from the samples before the
+    onset: weak apex touches are still kept."""
+    cfg = SimConfig.for_medium(medium, sample_rate_hz=5e6)
+    rng = np.random.default_rng(17)
+    noise = reference_noise_rms(cfg, 20.0)
+    pk = apex_packets(cfg, 150, noise, rng)
+    m1, _ = common_mode_interference(pk.samples_v, cfg.sample_rate_hz, pk.onset_index, geometry=cfg.geometry)
+    ip = render_interference(150, cfg, coupling="adc", noise_rms_v=noise, rng=rng)
+    m2, _ = common_mode_interference(ip.samples_v, cfg.sample_rate_hz, ip.onset_index, geometry=cfg.geometry)
+    assert 1.0 - m1.mean() >= 0.97 and m2.mean() >= 0.8

@@ -70,7 +70,7 @@ def common_mode_interference(windows, sample_rate_hz: float, onset_index, *, geo
     volts at ``sample_rate_hz`` with onsets ``onset_index`` (K,) (window-relative samples).
 
     ``noise_rms_v``: per-channel noise sigma (scalar or (K,)), removed from the energies
-    (None: not removed). ``lowpass_hz``: the front end's anti-alias cut-off;
+    (None: estimated per packet from the samples before the onset, when there are >= 8). ``lowpass_hz``: the front end's anti-alias cut-off;
     ``window_s``: analysis length after the onset. ``echo_min`` (needs ``geometry``):
     on a device with wall echoes, a common-mode packet whose echo at 2R/c (regression
     coefficient beta of the common mode at that lag on the direct packet, -0.5 for the
@@ -98,7 +98,16 @@ def common_mode_interference(windows, sample_rate_hz: float, onset_index, *, geo
     rows = np.arange(k)[:, None]
     idx = start[:, None] + np.arange(w)[None, :]
     s = s_full[rows, idx]
-    nv = 0.0 if noise_rms_v is None else np.asarray(noise_rms_v, float).reshape(-1) ** 2
+    if noise_rms_v is not None:
+        nv = np.asarray(noise_rms_v, float).reshape(-1) ** 2
+    else:
+        # the noise from the samples before the onset (the trigger's pretrigger)
+        npre = int(on.min()) - 2
+        if npre >= 8:
+            pre = x[:, :, :npre]
+            nv = (pre * pre).mean(axis=(1, 2)) - pre.mean(axis=2).__pow__(2).mean(axis=1)
+        else:
+            nv = 0.0
     e_ch = q_full[rows, idx].sum(axis=1) - w * nv
     e_s = np.einsum("kw,kw->k", s, s) - w * nv * 0.25
     tiny = 1e-30
