@@ -49,6 +49,10 @@ class LaunchArgumentError(RuntimeError):
     """A launch argument that cannot work; the message names it and says why."""
 
 
+class RequiredProcessFailed(RuntimeError):
+    """A process of the launch failed; the launch stops (exit code 1)."""
+
+
 def _share() -> str:
     return get_package_share_directory(PACKAGE)
 
@@ -72,7 +76,8 @@ def arguments():
         ("split_pipeline", "false", "Run localizer and slip_detector as separate nodes on "
          "the driver's raw packets instead of in the driver (true/false/1/0)"),
         ("wait_for_subscribers", "0", "Driver starts acquiring only once this many "
-         "subscribers are matched (0: at once); a managed start loses no first event"),
+         "subscribers are matched on `contacts` (on `packets` with split_pipeline:=true; "
+         "0: at once): a managed start loses no first event"),
         ("rviz", "false", "Start RViz 2 with config/ae_tactile.rviz (true/false/1/0)"),
         ("record", "false", "Record the package's topics with `ros2 bag record` (MCAP) into "
          "the working directory; packets reliable (true/false/1/0)"),
@@ -168,7 +173,7 @@ def _required(name: str):
         if context.is_shutdown:
             return None
         if event.returncode != 0:
-            raise LaunchArgumentError(f"{name} exited with code {event.returncode}; "
+            raise RequiredProcessFailed(f"{name} exited with code {event.returncode}; "
                                       "stopping every process of this launch")
         return [Shutdown(reason=f"{name} exited")]
     return on_exit
