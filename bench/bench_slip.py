@@ -250,7 +250,7 @@ def tables(res: dict) -> str:
         L.append(f"| {fam} | {pl} | {d['n_trials']} | {d['hours']:.2f} | {d['alarm_onsets']} | "
                  f"{d['false_alarms_per_hour']:.1f} |")
     L.append("")
-    st = s["stylus"]
+    st = s.get("stylus") or {}
     L.append("**Moving contact: stylus over a texture** (TEXTURE from the tracked speed, no sliding speed "
              "given).\n")
     L.append("| pipeline | trials | TEXTURE found | one contact | period within 3 % (first event) | "
@@ -271,11 +271,12 @@ def tables(res: dict) -> str:
             L.append(f"| {1e3 * a['lo']:.1f}-{1e3 * min(a['hi'], 0.8e-3):.1f} | {a['n']} | {_rate(a['found'])} | "
                      f"{_rate(a['within_3pct'])} | | {right} |")
     L.append("")
-    dr = s["drift"]
-    L.append(f"**Slip direction** (plane slip drifting at 10-40 mm/s, {dr['n_trials']} trials, "
-             f"{dr['n_direction_reports']} SLIP reports with a direction): mean absolute error "
-             f"**{dr['direction_error_deg_mean_abs']:.1f} deg**, {_dist(dr['direction_error_deg'], 1)}; "
-             f"SLIP detected {_rate(dr['slip_detected_rate'])}, delay {_dist(dr['slip_delay_ms'], 1)} ms.\n")
+    dr = s.get("drift")
+    if dr:
+        L.append(f"**Slip direction** (plane slip drifting at 10-40 mm/s, {dr['n_trials']} trials, "
+                 f"{dr['n_direction_reports']} SLIP reports with a direction): mean absolute error "
+                 f"**{dr['direction_error_deg_mean_abs']:.1f} deg**, {_dist(dr['direction_error_deg'], 1)}; "
+                 f"SLIP detected {_rate(dr['slip_detected_rate'])}, delay {_dist(dr['slip_delay_ms'], 1)} ms.\n")
     it = s.get("interference")
     if it:
         L.append("**Interference** (a held touch under common-mode bursts, waveform pipeline).\n")
@@ -296,7 +297,7 @@ def tables(res: dict) -> str:
     L.append("")
     ds = res.get("detector_speed")
     isp = res.get("interference_speed")
-    if ds:
+    if ds and "meta" in res:
         L.append(f"**Cost** (one core, load average {res['meta']['load_before'][0]:.1f} before / "
                  f"{res['meta']['load_after'][0]:.1f} after the run on {os.cpu_count()} cores): "
                  f"SlipDetector.process {ds['us_p50']:.0f} us median, {ds['us_p99']:.0f} us p99, "
@@ -308,79 +309,110 @@ def tables(res: dict) -> str:
 
 
 # ---------------------------------------------------------------------- main
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true", help="reduced trial counts (smoke run)")
-    ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args(argv)
-    warnings.simplefilter("ignore", RuntimeWarning)
-    q = args.quick
-    n_inc, n_fa, n_sty, n_drift = (60, 60, 60, 30) if q else (1000, 1000, 1000, 1000)
-    n_if, n_if_off, n_val = (8, 4, 4) if q else (150, 40, 30)
-    load_before = os.getloadavg()
-    t0 = time.perf_counter()
-    s0 = args.seed
-    timing = {}
-
-    def run(name, fn, n):
-        a = time.perf_counter()
-        rows = []
-        for i in range(n):
-            rows.append(fn(s0 + i))
-        timing[name] = time.perf_counter() - a
-        print(f"  {name}: {n} trials ({timing[name]:.0f} s, total {time.perf_counter() - t0:.0f} s)", flush=True)
-        return rows
-
-    trials, summary = {}, {"incipient": {}, "alarms": {}, "stylus": {}}
-    for mode, kw in (("dense", {}), ("sparse", SPARSE)):
-        for pol in ("random", "compression", "rarefaction"):
-            key = f"{mode}:{pol}"
-            rows = run(f"incipient {key}", lambda s: ev.incipient_slip_trial(
-                s, post_s=0.15, polarity=pol, pipeline="events", **kw), n_inc)
-            trials[f"incipient:{key}"] = rows
-            summary["incipient"][key] = summarize_incipient(rows)
-    for mode, kw in (("dense", {}), ("sparse", SPARSE)):
-        key = f"{mode}:random, waveforms"
-        rows = run(f"incipient {key}", lambda s: ev.incipient_slip_trial(
-            s + 50_000, post_s=0.15, pipeline="triggered", **kw), n_val)
-        trials[f"incipient:{key}"] = rows
-        summary["incipient"][key] = summarize_incipient(rows)
-    fams = (("touch-hold-release", ev.touch_hold_release_trial), ("tapping another spot", ev.tapping_trial),
-            ("touch-release cycles", ev.cycles_trial))
-    for name, fn in fams:
-        for pl, n in (("events", n_fa), ("triggered", n_val)):
-            rows = run(f"{name} {pl}", lambda s: fn(s, pipeline=pl), n)
-            trials[f"alarms:{name}:{pl}"] = rows
-            summary["alarms"][f"{name}:{pl}"] = summarize_alarms(rows)
-    for pl, n in (("events", n_sty), ("triggered", n_val)):
-        rows = run(f"stylus {pl}", lambda s: ev.stylus_trial(s, pipeline=pl, period_m=(0.2e-3, 0.8e-3)), n)
-        trials[f"stylus:{pl}"] = rows
-        summary["stylus"][pl] = summarize_stylus(rows)
-    rows = run("drift", lambda s: ev.drift_slip_trial(s, pipeline="events"), n_drift)
-    trials["drift"] = rows
-    summary["drift"] = summarize_drift(rows)
-    rows = run("interference", lambda s: ev.interference_trial(s), n_if)
-    rows += run("interference, no discriminator", lambda s: ev.interference_trial(s, discriminate=False), n_if_off)
-    trials["interference"] = rows
-    summary["interference"] = summarize_interference(rows)
-    res = {"summary": summary, "timing_s": timing}
-    res["detector_speed"] = detector_speed()
-    res["interference_speed"] = interference_speed()
-    res["meta"] = {"quick": q, "seed": s0, "python": platform.python_version(), "numpy": np.__version__,
-                   "machine": platform.machine(), "cpu_count": os.cpu_count(), "wall_s": time.perf_counter() - t0,
-                   "load_before": list(load_before), "load_after": list(os.getloadavg())}
-    res["trials"] = trials
+def _save(res, q, final=False):
     RESULTS.mkdir(parents=True, exist_ok=True)
     out = RESULTS / ("slip_quick.json" if q else "slip.json")
     out.write_text(json.dumps(res, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
     tab = tables(res)
-    print(tab)
     if not q and DOC.exists():
         text = DOC.read_text()
         if BEGIN in text and END in text:
             head, rest = text.split(BEGIN, 1)
             _, tail = rest.split(END, 1)
             DOC.write_text(head + BEGIN + "\n" + tab + "\n" + END + tail)
+    return out, tab
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="reduced trial counts (smoke run)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--budget-s", type=float, default=None,
+                    help="start no new family after this many seconds (results so far are kept)")
+    args = ap.parse_args(argv)
+    warnings.simplefilter("ignore", RuntimeWarning)
+    q = args.quick
+    N = 60 if q else 1000
+    n_pol = 30 if q else 300
+    n_if, n_if_off, n_val = (8, 4, 4) if q else (40, 10, 10)
+    load_before = os.getloadavg()
+    t0 = time.perf_counter()
+    s0 = args.seed
+    timing = {}
+    trials, summary = {}, {"incipient": {}, "alarms": {}, "stylus": {}}
+    res = {"summary": summary, "timing_s": timing, "trials": trials}
+
+    def meta():
+        res["meta"] = {"quick": q, "seed": s0, "python": platform.python_version(), "numpy": np.__version__,
+                       "machine": platform.machine(), "cpu_count": os.cpu_count(),
+                       "wall_s": time.perf_counter() - t0, "load_before": list(load_before),
+                       "load_after": list(os.getloadavg()), "families_done": list(timing)}
+
+    def run(name, fn, n):
+        a = time.perf_counter()
+        rows = [fn(s0 + i) for i in range(n)]
+        timing[name] = time.perf_counter() - a
+        print(f"  {name}: {n} trials ({timing[name]:.0f} s, total {time.perf_counter() - t0:.0f} s)", flush=True)
+        return rows
+
+    def inc(mode, pol, n, pipeline="events", off=0):
+        kw = SPARSE if mode == "sparse" else {}
+        key = f"{mode}:{pol}" + (", waveforms" if pipeline != "events" else "")
+        rows = run(f"incipient {key}", lambda s: ev.incipient_slip_trial(
+            s + off, post_s=0.15, polarity=pol, pipeline=pipeline, **kw), n)
+        trials[f"incipient:{key}"] = rows
+        summary["incipient"][key] = summarize_incipient(rows)
+
+    def alarms(name, fn, pl, n):
+        rows = run(f"{name} {pl}", lambda s: fn(s, pipeline=pl), n)
+        trials[f"alarms:{name}:{pl}"] = rows
+        summary["alarms"][f"{name}:{pl}"] = summarize_alarms(rows)
+
+    def stylus(pl, n):
+        rows = run(f"stylus {pl}", lambda s: ev.stylus_trial(s, pipeline=pl, period_m=(0.2e-3, 0.8e-3)), n)
+        trials[f"stylus:{pl}"] = rows
+        summary["stylus"][pl] = summarize_stylus(rows)
+
+    def drift():
+        rows = run("drift", lambda s: ev.drift_slip_trial(s, pipeline="events"), N)
+        trials["drift"] = rows
+        summary["drift"] = summarize_drift(rows)
+
+    def interference():
+        rows = run("interference", lambda s: ev.interference_trial(s), n_if)
+        rows += run("interference, no discriminator", lambda s: ev.interference_trial(s, discriminate=False),
+                    n_if_off)
+        trials["interference"] = rows
+        summary["interference"] = summarize_interference(rows)
+
+    def cost():
+        res["detector_speed"] = detector_speed()
+        res["interference_speed"] = interference_speed()
+
+    tasks = [lambda: inc("sparse", "random", N),
+             lambda: alarms("touch-hold-release", ev.touch_hold_release_trial, "events", N),
+             lambda: alarms("tapping another spot", ev.tapping_trial, "events", N),
+             lambda: alarms("touch-release cycles", ev.cycles_trial, "events", N),
+             lambda: stylus("events", N), drift, cost,
+             lambda: inc("dense", "random", N),
+             interference,
+             lambda: inc("sparse", "compression", N), lambda: inc("sparse", "rarefaction", N),
+             lambda: inc("dense", "compression", n_pol), lambda: inc("dense", "rarefaction", n_pol),
+             lambda: inc("dense", "random", n_val, "triggered", 50_000),
+             lambda: inc("sparse", "random", n_val, "triggered", 50_000),
+             lambda: alarms("touch-hold-release", ev.touch_hold_release_trial, "triggered", n_val),
+             lambda: alarms("tapping another spot", ev.tapping_trial, "triggered", n_val),
+             lambda: alarms("touch-release cycles", ev.cycles_trial, "triggered", n_val),
+             lambda: stylus("triggered", n_val)]
+    out = None
+    for task in tasks:
+        if args.budget_s is not None and time.perf_counter() - t0 > args.budget_s:
+            print("budget reached: the remaining families were not run", flush=True)
+            break
+        task()
+        meta()
+        out, tab = _save(res, q)
+    print(tab)
     print(f"wrote {out} ({time.perf_counter() - t0:.0f} s)")
     return 0
 
