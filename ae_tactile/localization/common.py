@@ -243,8 +243,10 @@ def band_edge_hz(Xb, sigma2, count, plan: Plan):
 
 
 # --------------------------------------------------------------------------- input
-def validate_windows(windows, onset_index):
-    """(K, 4, M) float64 copy of the windows and (K,) int64 onsets; ValueError on bad shapes."""
+def validate_windows(windows, onset_index, copy=True):
+    """(K, 4, M) float64 copy of the windows and (K,) int64 onsets; ValueError on bad shapes.
+    ``copy=False``: float32 / float64 windows are passed through (C-contiguous, no copy
+    when they already are; the compiled kernel copies each packet itself)."""
     x = np.asarray(windows)
     if x.dtype == object or not (np.issubdtype(x.dtype, np.floating) or np.issubdtype(x.dtype, np.integer)):
         raise TypeError(f"windows must be a real numeric array, got dtype {x.dtype}")
@@ -254,7 +256,10 @@ def validate_windows(windows, onset_index):
         raise ValueError(f"windows must have shape (K, 4, M), got {np.shape(windows)}")
     if x.shape[2] < 4:
         raise ValueError(f"windows need at least 4 samples per channel, got {x.shape[2]}")
-    x = np.array(x, dtype=np.float64, copy=True)
+    if copy or x.dtype not in (np.float32, np.float64):
+        x = np.array(x, dtype=np.float64, copy=True)
+    else:
+        x = np.ascontiguousarray(x)
     on = np.asarray(onset_index)
     if on.ndim == 0:
         on = np.full(x.shape[0], on)

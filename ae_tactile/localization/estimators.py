@@ -249,7 +249,7 @@ def localize(windows, sample_rate_hz, onset_index, *, method="ml", geometry=None
     info = get_estimator(method)
     geo = FingertipGeometry() if geometry is None else geometry
     eng = resolve_engine(engine, method, options)
-    x, onset = validate_windows(windows, onset_index)
+    x, onset = validate_windows(windows, onset_index, copy=eng != "numba")
     plan = _plan(sample_rate_hz, geo, x.shape[2], band_hz, pre_onset_s, echo_guard_s, method)
     min_snr_db = float(min_snr_db)
     if not np.isfinite(min_snr_db):

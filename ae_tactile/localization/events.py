@@ -3,7 +3,9 @@
 Touch vs release: the paper's collision model (Eq. 10) starts with a compressive
 pressure jump for a touch and the opposite sign for a release (detouch); after the
 front end the first lobe of the packet keeps that sign (the simulator follows the same
-convention). The four channels are aligned by the fitted delays and averaged; the first
+convention). The four channels are aligned by the fitted delays and averaged (`ml`: the
+aligned segments interpolated at the fit's residual shifts, 4-point Lagrange, the same
+computation as the compiled kernel; the other methods: phase-shifted spectra); the first
 sample of that mean at or after the start of the segment whose magnitude reaches half
 the segment's peak magnitude marks the first significant lobe; its sign is the polarity
 (+1 touch, -1 release) and the extreme of the mean over the following 1.5 us is the

@@ -213,17 +213,28 @@ _FM = {"reassoc", "contract"}  # vectorisable sums; NaN / inf semantics kept
 
 @njit(cache=True, nogil=True, fastmath=_FM)
 def _dft(seg, cos_t, sin_t, out):
-    """out[k, f] = sum_n seg[k, n] e^{-j phase[f, n]} (band bins only)."""
+    """out[k, f] = sum_n seg[k, n] e^{-j phase[f, n]} (band bins only); the four channels
+    share each table row (one pass over the tables)."""
     nb, L = cos_t.shape
-    for k in range(4):
-        for f in range(nb):
-            re = 0.0
-            im = 0.0
-            for n in range(L):
-                v = seg[k, n]
-                re += v * cos_t[f, n]
-                im -= v * sin_t[f, n]
-            out[k, f] = complex(re, im)
+    for f in range(nb):
+        r0 = r1 = r2 = r3 = 0.0
+        i0 = i1 = i2 = i3 = 0.0
+        for n in range(L):
+            c = cos_t[f, n]
+            s = sin_t[f, n]
+            v0, v1, v2, v3 = seg[0, n], seg[1, n], seg[2, n], seg[3, n]
+            r0 += v0 * c
+            r1 += v1 * c
+            r2 += v2 * c
+            r3 += v3 * c
+            i0 -= v0 * s
+            i1 -= v1 * s
+            i2 -= v2 * s
+            i3 -= v3 * s
+        out[0, f] = complex(r0, i0)
+        out[1, f] = complex(r1, i1)
+        out[2, f] = complex(r2, i2)
+        out[3, f] = complex(r3, i3)
 
 
 @njit(cache=True, nogil=True)

@@ -17,6 +17,11 @@ d^2 t_k / d s^2 (`FingertipGeometry.arrival_time_derivatives`), a vectorised lin
 (step 1, 1/2, 1/4, 1/8 or none), and a projection onto the horizon circle
 rho <= R. If the fit drifts by more than 3/4 sample from the integer cut, the segments
 are re-cut once and the Newton steps repeated.
+
+Band: fixed (``plan.band``), or with a data-driven plan (``plan.auto_fallback_hz > 0``)
+each packet keeps the candidate bins up to its own edge (`common.band_edge_hz`): the
+others are zeroed in the spectra, which removes them from P, its derivatives, the misfit
+and the covariance. The compiled kernel (fast.py) does the same per packet.
 """
 from __future__ import annotations
 
