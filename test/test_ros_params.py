@@ -83,3 +83,38 @@ def test_event_types_agree_between_core_and_messages():
         assert getattr(ContactEvent, t.name) == int(t)
     for t in SlipEventType:
         assert EventType[t.name] == int(t)
+
+
+def test_a_fingertip_whose_body_disagrees_with_the_parameters_wins_with_one_warning(ros_context, tmp_path):
+    """A water-skin fingertip run with the silicone parameters: the driver warns once and
+    localizes with the fingertip's body (and says so on sensor_info)."""
+    require_ros()
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from ae_tactile.msg import SensorInfo
+    from ae_tactile.ros.driver_node import DriverNode
+    from ae_tactile.ros.node_utils import LATCHED
+    from ae_tactile.ros.sim_fingertip_node import SimFingertipNode, default_scene_path
+    link = str(tmp_path / "fingertip")
+    sim = SimFingertipNode(context=ros_context, parameter_overrides=[
+        Parameter("scene", value=default_scene_path("paper_positions.yaml")),
+        Parameter("link_path", value=link)])
+    drv = DriverNode(context=ros_context, parameter_overrides=[
+        Parameter("port", value=link), Parameter("medium", value="silicone"),
+        Parameter("sound_speed_m_s", value=1000.0)])
+    listener = __import__("rclpy").create_node("info_listener", context=ros_context)
+    infos = []
+    listener.create_subscription(SensorInfo, "sensor_info", infos.append, LATCHED)
+    ex = SingleThreadedExecutor(context=ros_context)
+    for n in (sim, drv, listener):
+        ex.add_node(n)
+    try:
+        assert spin_until(ex, lambda: drv._body_warned, 30.0)
+        assert drv.geometry.sound_speed_m_s == pytest.approx(1480.0)
+        assert drv.pipeline.localizer.geometry.sound_speed_m_s == pytest.approx(1480.0)
+        assert spin_until(ex, lambda: infos and infos[-1].medium == "water_skin", 20.0)
+        assert infos[-1].sound_speed_m_s == pytest.approx(1480.0)
+    finally:
+        ex.shutdown()
+        for n in (listener, drv, sim):
+            n.destroy_node()

@@ -35,7 +35,9 @@ def parse_args(argv):
     ap.add_argument("--no-sim", dest="use_sim", action="store_false", help="use real hardware on --port")
     ap.add_argument("--port", default="/dev/ttyACM0", help="serial port or pyserial URL (with --no-sim)")
     ap.add_argument("--namespace", default="", help="ROS namespace of all nodes (one per finger)")
-    ap.add_argument("--params-file", default="", help="ROS parameter YAML applied to every node")
+    ap.add_argument("--params-file", default="",
+                    help="ROS parameter file, one section per node (default: the installed "
+                         "config/water_skin.yaml, as the launch file; the scene's body wins)")
     ap.add_argument("--frame-id", default="ae_tactile_fingertip", help="fingertip TF frame")
     ap.add_argument("--method", default="", help="localization estimator (default: the localizer's)")
     ap.add_argument("--speed", type=float, default=1.0, help="simulation playback speed")
@@ -52,6 +54,16 @@ def parse_args(argv):
     ap.add_argument("--summary-json", default="", help="write the monitor's summary here")
     ap.add_argument("--report-png", default="", help="write a PNG summary of the run here (monitor)")
     return ap.parse_args(argv)
+
+
+def default_params_file() -> str:
+    """config/water_skin.yaml as installed (the launch file's default parameter file)."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        path = os.path.join(get_package_share_directory("ae_tactile"), "config", "water_skin.yaml")
+        return path if os.path.exists(path) else ""
+    except Exception:   # not in an ament environment
+        return ""
 
 
 def make_executor(context=None):
@@ -190,15 +202,16 @@ class Bringup:
     def events_published(self) -> int:
         """Contact events published so far (driver, or the separate localizer)."""
         if self.localizer is not None:
-            return self.localizer.counts["events"]
+            return self.localizer.counts["published_events"]
         return self.driver.published_events
 
     def drained(self) -> bool:
         """Nothing queued anywhere, and every event passed on."""
         if self.localizer is not None:
             return (self.driver.link.stats()["queue_depth"] == 0 and self.localizer.idle()
-                    and self.slip.received >= self.localizer.counts["events"])
-        return True
+                    and self.slip.received >= self.localizer.counts["published_events"])
+        ov = self.driver.pipeline.overlaps if self.driver.pipeline is not None else None
+        return ov is None or ov.pending() == 0
 
     def spin(self, duration_s: float, drain_timeout_s: float = 10.0) -> None:
         """Spin for duration_s (0: forever); negative: until the scene has played and the
@@ -276,6 +289,8 @@ def main(argv=None) -> int:
         i = argv.index("--ros-args")
         argv, ros_args = argv[:i], argv[i:]
     args = parse_args(argv)
+    if not args.params_file:          # the launch file's default too: one place for defaults
+        args.params_file = default_params_file()
     if args.params_file:
         if not os.path.exists(args.params_file):
             print(f"[ae_tactile] not starting: parameter file {args.params_file} not found", file=sys.stderr)

@@ -119,16 +119,26 @@ def contact_state_msg(st, frame_id: str, now_ns: int):
     return msg
 
 
-def packet_array_msg(batch, frame_id: str):
-    """PacketArray of a link PacketBatch."""
+#: Most packets in one PacketArray (~0.8 MB at 4 x 400 float32): a DDS message stays small
+#: enough to be delivered best effort; a larger batch goes out as several arrays.
+MAX_PACKETS_PER_ARRAY = 128
+
+
+def packet_array_msgs(batch, frame_id: str) -> list:
+    """PacketArrays of a link PacketBatch (several when it holds more than
+    MAX_PACKETS_PER_ARRAY packets)."""
     from ae_tactile.msg import PacketArray
-    msg = PacketArray()
-    msg.header.stamp = ns_to_time_msg(batch.receive_ns)
-    msg.header.frame_id = frame_id
-    msg.packets = [make_packet(r.samples_v, stamp_ns=r.stamp_ns, sample_rate_hz=r.sample_rate_hz,
-                               onset_index=r.onset_index, sequence_id=r.sequence_id,
-                               noise_rms_v=r.noise_rms_v, saturated=r.saturated)
-                   for r in batch.packets]
-    msg.packets_dropped = batch.packets_dropped
-    msg.frames_bad_crc = batch.frames_bad_crc
-    return msg
+    out = []
+    recs = batch.packets
+    for i in range(0, max(len(recs), 1), MAX_PACKETS_PER_ARRAY):
+        msg = PacketArray()
+        msg.header.stamp = ns_to_time_msg(batch.receive_ns)
+        msg.header.frame_id = frame_id
+        msg.packets = [make_packet(r.samples_v, stamp_ns=r.stamp_ns, sample_rate_hz=r.sample_rate_hz,
+                                   onset_index=r.onset_index, sequence_id=r.sequence_id,
+                                   noise_rms_v=r.noise_rms_v, saturated=r.saturated)
+                       for r in recs[i:i + MAX_PACKETS_PER_ARRAY]]
+        msg.packets_dropped = batch.packets_dropped
+        msg.frames_bad_crc = batch.frames_bad_crc
+        out.append(msg)
+    return out

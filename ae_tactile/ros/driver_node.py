@@ -46,7 +46,7 @@ from ae_tactile.link import MODES, FingertipLink, LinkConfig
 from ae_tactile.msg import ContactEvent, ContactState, PacketArray, SensorInfo
 from ae_tactile.pipeline import ContactPipeline, PacketLocalizer, SlipStage
 from ae_tactile.ros.conversions import (contact_event_msg, contact_state_msg, ns_to_time_msg,
-                                        packet_array_msg)
+                                        packet_array_msgs)
 from ae_tactile.ros.markers import EventMarkers, sensor_markers
 from ae_tactile.ros.node_utils import LATCHED, run_node
 from ae_tactile.ros.params import (LOCALIZATION_PARAMS, Param, ParameterError, ParamSet,
@@ -67,7 +67,8 @@ DRIVER_PARAMS = [
     Param("pre_trigger_samples", 0, "Samples before the trigger in a packet; 0 = packet_samples/4", 0, 8191),
     Param("reliable_qos", False, "Publish packets reliably (for recording) instead of sensor-data QoS"),
     Param("queue_max_batches", 256, "Bound of the reader-to-publisher queue (overflow is counted as drops)", 1, 100_000),
-    Param("link_timeout_s", 3.0, "Silence after which the link counts as lost (s); the device beats >= 1 Hz", 0.1, 60.0),
+    Param("link_timeout_s", 3.0, "Time without a valid frame after which the link counts as lost and "
+          "reconnects (s); the device beats >= 1 Hz", 0.1, 60.0),
     Param("reconnect_max_s", 5.0, "Longest wait between reconnection attempts (s)", 0.1, 300.0),
     Param("diagnostics_period_s", 1.0, "Period of /diagnostics messages (s)", 0.05, 60.0),
     Param("wait_for_subscribers", 0, "Start acquisition only once this many subscribers are matched "
@@ -198,7 +199,8 @@ class DriverNode(Node):
         localizer = PacketLocalizer(lp["method"], min_snr_db=lp["min_snr_db"],
                                     min_confidence=lp["min_confidence"], geometry=self.geometry,
                                     channel_gains=self.p["channel_gains"],
-                                    reject_interference=lp["reject_interference"])
+                                    reject_interference=lp["reject_interference"],
+                                    resolve_overlaps=lp["resolve_overlaps"])
         self.slip_stage = SlipStage(slip_config, lag_s=self.p["slip_lag_s"])
         self.pipeline = ContactPipeline(localizer, self.slip_stage)
         self.pub_contacts = self.create_publisher(ContactEvent, "contacts", EVENT_QOS)
@@ -219,7 +221,8 @@ class DriverNode(Node):
             self.pipeline.process(batch.packets, self._publish_contacts, self._publish_slip)
             self._publish_state()
         if self.pub_packets.get_subscription_count() > 0:
-            self.pub_packets.publish(packet_array_msg(batch, self.frame_id))
+            for msg in packet_array_msgs(batch, self.frame_id):
+                self.pub_packets.publish(msg)
             self.published_packets += len(batch.packets)
 
     def _publish_contacts(self, records) -> None:
@@ -389,7 +392,9 @@ class DriverNode(Node):
         link.name = f"{self.get_fully_qualified_name()}: fingertip link"
         link.hardware_id = self.hardware_id()
         problems = {k: s.get(k, 0) for k in ("crc_errors", "packets_dropped", "header_errors",
-                                             "duplicates", "sink_errors") if s.get(k, 0)}
+                                             "duplicate_frames", "truncated_frames", "sink_errors",
+                                             "internal_errors", "frames_unusable",
+                                             "packets_rejected_nonfinite") if s.get(k, 0)}
         if s["state"] != "connected":
             link.level, link.message = DiagnosticStatus.ERROR, f"link {s['state']}: {s['last_error']}"
         elif problems:
@@ -404,7 +409,8 @@ class DriverNode(Node):
         if self.pipeline is not None:
             statuses += pipeline_statuses(self.get_fully_qualified_name(), self.hardware_id(),
                                           self.pipeline.localizer, self.slip_stage,
-                                          self.published_events, self.published_slip)
+                                          self.published_events, self.published_slip,
+                                          self.pipeline.overlaps)
         msg = DiagnosticArray()
         msg.header.stamp = ns_to_time_msg(now)
         msg.status = statuses
@@ -413,21 +419,28 @@ class DriverNode(Node):
     def destroy_node(self):
         if hasattr(self, "link") and self.link._thread is not None:
             self.link.stop()
+        if getattr(self, "pipeline", None) is not None:
+            self.pipeline.close()
         return super().destroy_node()
 
 
 def changes_for_localizer(changes: dict) -> dict:
     """Localization parameter changes as PacketLocalizer.update() arguments."""
-    return {k: v for k, v in changes.items() if k in ("method", "min_snr_db", "min_confidence")}
+    return {k: v for k, v in changes.items()
+            if k in ("method", "min_snr_db", "min_confidence", "resolve_overlaps")}
 
 
 def pipeline_statuses(node_name: str, hardware_id: str, localizer, slip_stage, events: int,
-                      slip_events: int) -> list:
+                      slip_events: int, overlaps=None) -> list:
     """DiagnosticStatus of the localization and slip stages (counts by reason)."""
     loc = DiagnosticStatus()
     loc.name = f"{node_name}: localization"
     loc.hardware_id = hardware_id
-    c = localizer.counts
+    c = dict(localizer.counts)
+    if overlaps is not None:
+        c.update(overlaps.counts)
+    c.setdefault("events", 0)
+    c.setdefault("packets", 0)
     rejected = sum(v for k, v in c.items() if k.startswith("rejected_"))
     loc.level = DiagnosticStatus.OK
     loc.message = f"{c['events']} events from {c['packets']} packets, {rejected} rejected"

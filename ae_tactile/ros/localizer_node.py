@@ -25,7 +25,7 @@ from visualization_msgs.msg import MarkerArray
 
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.msg import ContactEvent, PacketArray, SensorInfo
-from ae_tactile.pipeline import PacketLocalizer, PacketView
+from ae_tactile.pipeline import OverlapResolver, PacketLocalizer, PacketView
 from ae_tactile.ros.conversions import contact_event_msg, packet_samples, time_msg_to_ns
 from ae_tactile.ros.driver_node import EVENT_QOS, changes_for_localizer, pipeline_statuses
 from ae_tactile.ros.markers import EventMarkers, sensor_markers
@@ -56,8 +56,10 @@ class LocalizerNode(Node):
         self.geometry = FingertipGeometry(p["radius_m"], p["element_offset_m"], p["sound_speed_m_s"])
         self.localizer = PacketLocalizer(lp["method"], min_snr_db=lp["min_snr_db"],
                                          min_confidence=lp["min_confidence"], geometry=self.geometry,
-                                         reject_interference=lp["reject_interference"])
+                                         reject_interference=lp["reject_interference"],
+                                         resolve_overlaps=lp["resolve_overlaps"])
         self.counts = self.localizer.counts
+        self.overlaps = None
         self.frame_id = ""
         self.pub_events = self.create_publisher(ContactEvent, "contacts", EVENT_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -92,8 +94,8 @@ class LocalizerNode(Node):
         self._wake.set()
 
     def idle(self) -> bool:
-        """Nothing queued or being localized."""
-        return not self._inbox and not self._busy
+        """Nothing queued or being localized (overlapping windows included)."""
+        return not self._inbox and not self._busy and (self.overlaps is None or self.overlaps.pending() == 0)
 
     def _work(self) -> None:
         while self._running:
@@ -117,6 +119,8 @@ class LocalizerNode(Node):
         self._running = False
         self._wake.set()
         self._worker.join(1.0)
+        if self.overlaps is not None:
+            self.overlaps.close()
         return super().destroy_node()
 
     def on_sensor_info(self, msg: SensorInfo) -> None:
@@ -133,6 +137,18 @@ class LocalizerNode(Node):
 
     # ------------------------------------------------------------------ packets
     hardware_id = "unknown fingertip"
+    _last_sequence_id = None
+
+    def _account_sequence(self, sid: int) -> None:
+        """Packets that never arrived (a sequence gap: a message lost on the way, e.g. too
+        large for best-effort delivery) are counted as ``packets_missing``; a restart of the
+        driver (ids going back) restarts the count."""
+        last = self._last_sequence_id
+        if last is not None and sid > last + 1:
+            self.counts["packets_missing"] += sid - last - 1
+            self.get_logger().warning(f"{sid - last - 1} packets never arrived (sequence ids "
+                                      f"{last + 1}..{sid - 1})", throttle_duration_sec=5.0)
+        self._last_sequence_id = sid
 
     def on_packets(self, msgs: list[PacketArray]) -> None:
         """Localize the packets of several PacketArrays (bad packets counted one by one)."""
@@ -141,6 +157,7 @@ class LocalizerNode(Node):
             self.frame_id = msg.header.frame_id
             self.last_upstream = (msg.packets_dropped, msg.frames_bad_crc)
             for p in msg.packets:
+                self._account_sequence(int(p.sequence_id))
                 try:
                     x = packet_samples(p)
                 except ValueError as exc:
@@ -150,9 +167,18 @@ class LocalizerNode(Node):
                     continue
                 views.append(PacketView(x, p.sample_rate_hz, p.onset_index, time_msg_to_ns(p.stamp),
                                         p.sequence_id, p.noise_rms_v, p.saturated))
-        for rec in self.localizer.process(views):
+        self._publish(self.localizer.process(views))
+        if self.localizer.overlap_windows:
+            if self.overlaps is None:
+                self.overlaps = OverlapResolver(self.geometry, self._publish)
+            self.overlaps.geometry = self.geometry
+            self.overlaps.submit(self.localizer.overlap_windows)
+
+    def _publish(self, records) -> None:
+        for rec in records:
             ev = contact_event_msg(rec, self.frame_id)
             self.pub_events.publish(ev)
+            self.counts["published_events"] += 1
             if self.p["markers"]:
                 self.events.add(ev, self.get_clock().now().nanoseconds)
 
@@ -169,7 +195,7 @@ class LocalizerNode(Node):
 
     def publish_diagnostics(self) -> None:
         st = pipeline_statuses(self.get_fully_qualified_name(), self.hardware_id, self.localizer,
-                               None, self.counts["events"], 0)
+                               None, self.counts["published_events"], 0, self.overlaps)
         st[0].values += [KeyValue(key="upstream_packets_dropped", value=str(self.last_upstream[0])),
                          KeyValue(key="upstream_frames_bad_crc", value=str(self.last_upstream[1]))]
         msg = DiagnosticArray()

@@ -186,7 +186,9 @@ LOCALIZATION_PARAMS = [
     tunable(Param("min_confidence", 0.0, "Do not publish contact events below this "
                   "localization confidence", 0.0, 1.0)),
     tunable(Param("reject_interference", True, "Reject common-mode electrical interference "
-                  "(identical waveforms on the four channels) before localization")),
+                  "(identical waveforms on the four channels)")),
+    tunable(Param("resolve_overlaps", True, "Localize each emission of a window that holds "
+                  "several (in a background thread); false: reject such windows")),
 ]
 
 
