@@ -183,8 +183,9 @@ def _timing(label, fs, cfg, geo, P, band, rng, quick):
         tm[key] = dict(batched_packets_per_s=n / best, batched_us_per_packet=best / n * 1e6,
                        batched_cpu_us_per_packet=cpu / n * 1e6, batched_cpu_packets_per_s=n / cpu,
                        single_packets_per_s=1.0 / single, single_us_per_packet=single * 1e6,
-                       batch_size=n, engine=eng or ("numba" if NUMBA_AVAILABLE and m.startswith("ml")
-                                                    else "numpy"))
+                       batch_size=n,
+                       engine=eng or ("numba" if NUMBA_AVAILABLE and m.startswith("ml")
+                                      else "numpy"))
     # the hot path: Localizer.localize_one on float32 windows (what the link delivers)
     for eng in (("numba", "numpy") if NUMBA_AVAILABLE else ("numpy",)):
         loc = Localizer("ml", engine=eng).warm_up(geo, fs, x.shape[2])
@@ -215,7 +216,8 @@ def run(quick=False):
     water = SimConfig(reflections=True)
     sil = SimConfig.for_medium("silicone").replace(reflections=True)
     rates = [("2", water.replace(sample_rate_hz=2e6), None),
-             ("2 (0.6 MHz anti-alias)", water.replace(sample_rate_hz=2e6, lowpass_hz=0.6e6, lowpass_order=8),
+             ("2 (0.6 MHz anti-alias)",
+              water.replace(sample_rate_hz=2e6, lowpass_hz=0.6e6, lowpass_order=8),
               (100e3, 0.7e6)),
              ("5", water.replace(sample_rate_hz=5e6), None), ("10", water, None),
              ("10 silicone", sil, None)]
@@ -243,7 +245,8 @@ def run(quick=False):
             bound = simulated_crlb(P, cfg, snr_db=snr, subsample_offset=u)
             bound_n = simulated_crlb(P, cfg, snr_db=snr, subsample_offset=u, include_quantization=False)
             cell = dict(label=label, sample_rate_hz=fs, lowpass_hz=cfg.lowpass_hz, lowpass_order=cfg.lowpass_order,
-                        sound_speed_m_s=geo.sound_speed_m_s, snr_db=snr, band_hz=list(band), n_packets=n,
+                        sound_speed_m_s=geo.sound_speed_m_s, snr_db=snr, band_hz=list(band),
+                        n_packets=n,
                         crlb_rms_mm=float(np.sqrt(np.mean(bound["rms_m"] ** 2)) * 1e3),
                         crlb_unknown_waveform_rms_mm=float(np.sqrt(np.mean(bound["rms_unknown_m"] ** 2)) * 1e3),
                         crlb_noise_only_rms_mm=float(np.sqrt(np.mean(bound_n["rms_m"] ** 2)) * 1e3),
@@ -292,13 +295,14 @@ def run(quick=False):
     load = os.getloadavg() if hasattr(os, "getloadavg") else None
     out = dict(
         description="ae_tactile localization benchmark (bench/bench_localization.py)",
-        setup=dict(geometry="per cell: the simulator's water-skin tip (R 10 mm, a 1.5 mm, c 1480 m/s) or its "
-                            "silicone preset (c 1000 m/s)",
-                   sim="SimConfig(reflections=True), default pulse (v0 0.3 m/s, a_c 1/mm), 1 MHz low-pass "
-                       "(order 4) unless stated, 12-bit ADC",
+        setup=dict(geometry="per cell: the simulator's water-skin tip (R 10 mm, a 1.5 mm, "
+                            "c 1480 m/s) or its silicone preset (c 1000 m/s)",
+                   sim="SimConfig(reflections=True), default pulse (v0 0.3 m/s, a_c 1/mm), "
+                       "1 MHz low-pass (order 4) unless stated, 12-bit ADC",
                    points=f"{n_points} points uniform over polar <= 60 deg x {n_real} noise realisations",
-                   ml="band_hz=None: each packet's upper band edge from its spectrum (data-driven); "
-                      "ml_fixed_band: the fixed default band (100 kHz, min(1 MHz, fs/4)) or the cell's band",
+                   ml="band_hz=None: each packet's upper band edge from its spectrum "
+                      "(data-driven); ml_fixed_band: the fixed default band "
+                      "(100 kHz, min(1 MHz, fs/4)) or the cell's band",
                    pyroomacoustics_packets_per_cell=n_pra if pra_ok else 0,
                    crlb="known pulse shape, unknown emission time and amplitude, echo-free samples, "
                         "noise sigma_n^2 + LSB^2/12 (crlb_noise_only_rms_mm: sigma_n^2 only)",
@@ -319,19 +323,22 @@ def _numba_version():
 
 TIMING_ROWS = [("localize_one_numba", "ML `localize_one`, compiled (float32 window)"),
                ("localize_one_numpy", "ML `localize_one`, numpy path"),
-               ("ml", "ML (data-driven band), `localize`"), ("ml_numpy", "ML, `localize`, numpy path"),
-               ("ml_fixed_band", "ML, fixed band, `localize`"), ("gradient", "gradient (iterated)"),
+               ("ml", "ML (data-driven band), `localize`"),
+               ("ml_numpy", "ML, `localize`, numpy path"),
+               ("ml_fixed_band", "ML, fixed band, `localize`"),
+               ("gradient", "gradient (iterated)"),
                ("gcc_phat", "GCC-PHAT (band)"), ("xcorr_farfield", "paper: xcorr + Eq. 2"),
-               ("pra_srp_phat", "pyroomacoustics SRP-PHAT"), ("pra_music", "pyroomacoustics MUSIC")]
+               ("pra_srp_phat", "pyroomacoustics SRP-PHAT"),
+               ("pra_music", "pyroomacoustics MUSIC")]
 
 
 def table_markdown(res):
     lines = []
     ms = [m for m in METHODS + BASELINES if any(m in c["methods"] for c in res["cells"])]
     head = "| fs (MS/s) | SNR (dB) | CRLB (um) | " + " | ".join(LABELS[m] for m in ms) + " |"
-    lines.append("RMS in-plane error / RMS bias in micrometres (polar angle <= 60 deg); for ML the "
-                 "ratio to the CRLB and the share of errors inside the reported 1.515-sigma ellipse "
-                 "(68 % when the covariance is right) in brackets.")
+    lines.append("RMS in-plane error / RMS bias in micrometres (polar angle <= 60 deg); for ML "
+                 "the ratio to the CRLB and the share of errors inside the reported 1.515-sigma "
+                 "ellipse (68 % when the covariance is right) in brackets.")
     lines.append("")
     lines.append(head)
     lines.append("|" + "---|" * (3 + len(ms)))
@@ -351,13 +358,14 @@ def table_markdown(res):
         lines.append("| " + " | ".join(row) + " |")
     lines.append("")
     load = res["setup"].get("load_average_at_end")
-    lines.append("Time per packet on one core (us, wall clock): batched (one call for all packets) / "
-                 "one packet per call; `localize_one`: mean (p50, p99) per call. Compiled: numba "
-                 f"{res['setup'].get('numba')}. Load average at the end of the run: "
-                 f"{', '.join(f'{x:.1f}' for x in load) if load else 'n/a'} on "
-                 f"{res['setup'].get('cpu_count')} cores: a shared, oversubscribed machine, so wall "
-                 "figures are upper bounds (p99 holds the scheduler's preemptions); the CPU-time "
-                 "table below is what the process itself spent.")
+    loads = ", ".join(f"{x:.1f}" for x in load) if load else "n/a"
+    lines.append("Time per packet on one core (us, wall clock): batched (one call for all "
+                 "packets) / one packet per call; `localize_one`: mean (p50, p99) per call. "
+                 f"Compiled: numba {res['setup'].get('numba')}. Load average at the end of the "
+                 f"run: {loads} on {res['setup'].get('cpu_count')} cores: a shared, "
+                 "oversubscribed machine, so wall figures are upper bounds (p99 holds the "
+                 "scheduler's preemptions); the CPU-time table below is what the process itself "
+                 "spent.")
     lines.append("")
     rates = list(res["timing"])
     lines.append("| method | " + " | ".join(rates) + " |")
@@ -371,7 +379,8 @@ def table_markdown(res):
             if v is None:
                 row.append("-")
             elif "p99_us" in v:
-                row.append(f"{v['single_us_per_packet']:.0f} ({v['p50_us']:.0f}, {v['p99_us']:.0f})")
+                row.append(f"{v['single_us_per_packet']:.0f} "
+                           f"({v['p50_us']:.0f}, {v['p99_us']:.0f})")
             elif "batched_us_per_packet" in v:
                 row.append(f"{v['batched_us_per_packet']:.0f} / {v['single_us_per_packet']:.0f} "
                            f"({v['batched_packets_per_s'] / 1e3:.1f} k/s batched)")
@@ -379,8 +388,8 @@ def table_markdown(res):
                 row.append(f"- / {v['single_us_per_packet']:.0f}")
         lines.append("| " + " | ".join(row) + " |")
     lines.append("")
-    lines.append("CPU time of the process per packet (us; `time.process_time`, insensitive to other "
-                 "processes): batched (packets/s), and `localize_one` mean (p50, p99).")
+    lines.append("CPU time of the process per packet (us; `time.process_time`, insensitive to "
+                 "other processes): batched (packets/s), and `localize_one` mean (p50, p99).")
     lines.append("")
     lines.append("| method | " + " | ".join(rates) + " |")
     lines.append("|---|" + "---|" * len(rates))
@@ -476,8 +485,8 @@ def plot(res, path):
         ax.plot(snr, [c["methods"]["ml"]["ratio_to_crlb"] for c in cs], color=f"C{i}", marker="o",
                 label=f"ML {label} MS/s")
         if "ml_fixed_band" in cs[0]["methods"]:
-            ax.plot(snr, [c["methods"]["ml_fixed_band"]["ratio_to_crlb"] for c in cs], color=f"C{i}",
-                    ls=":", marker=".", label="fixed band" if i == 0 else None)
+            ax.plot(snr, [c["methods"]["ml_fixed_band"]["ratio_to_crlb"] for c in cs],
+                    color=f"C{i}", ls=":", marker=".", label="fixed band" if i == 0 else None)
     ax.axhline(1.1, color="k", lw=0.8, ls="--", label="1.1x / 1.2x")
     ax.axhline(1.2, color="k", lw=0.8, ls="--")
     ax.set_yscale("log")

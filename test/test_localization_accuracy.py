@@ -248,7 +248,8 @@ def test_ml_at_the_bound_from_10_to_40_db(case):
     # covariance calibrated (68 +- 5 % inside 1.515 sigma). Margins for 300 packets: the
     # ratio's sampling spread is ~4 %, the fraction's ~2.7 %.
     cfg = {"water_10": CFG, "silicone_10": SimConfig.for_medium("silicone"),
-           "water_2_antialias": CFG.replace(sample_rate_hz=2e6, lowpass_hz=0.6e6, lowpass_order=8)}[case]
+           "water_2_antialias": CFG.replace(sample_rate_hz=2e6, lowpass_hz=0.6e6,
+                                            lowpass_order=8)}[case]
     cfg = cfg.replace(reflections=True)
     limit = 1.2 if case.endswith("antialias") else 1.1
     fs = cfg.sample_rate_hz
@@ -257,7 +258,8 @@ def test_ml_at_the_bound_from_10_to_40_db(case):
     for snr in (10.0, 20.0, 30.0, 40.0):
         u = rng.uniform(0.01, 0.99, len(pts))
         pk = render_triggered(pts, cfg, snr_db=snr, subsample_offset=u, rng=rng)
-        crlb = np.sqrt(np.mean(simulated_crlb(pts, cfg, snr_db=snr, subsample_offset=u)["rms_m"] ** 2))
+        bound = simulated_crlb(pts, cfg, snr_db=snr, subsample_offset=u)
+        crlb = np.sqrt(np.mean(bound["rms_m"] ** 2))
         r = localize(pk.samples_v, fs, pk.onset_index, geometry=cfg.geometry)
         ratio, in1515 = _ratio_and_calibration(r, pts, crlb)
         assert ratio < limit + 0.06, (case, snr, ratio)

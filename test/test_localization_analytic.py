@@ -82,7 +82,8 @@ def analytic_windows(shape, points, fs, snr_db, rng, *, geo=GEO, pre_s=8e-6, win
     x, dx = _pulse(shape, np.arange(m)[None, None, :] / fs - arr[..., None])
     onset = np.ceil(first * fs - 1e-9).astype(np.int64)
     idx = onset[:, None] + np.arange(int(round(30e-6 * fs)))
-    p = np.mean(np.take_along_axis(x, np.repeat(idx[:, None, :], 4, axis=1), axis=2) ** 2, axis=(1, 2))
+    seg = np.take_along_axis(x, np.repeat(idx[:, None, :], 4, axis=1), axis=2)
+    p = np.mean(seg ** 2, axis=(1, 2))
     var = p / 10 ** (snr_db / 10)
     y = x + np.sqrt(var)[:, None, None] * rng.standard_normal(x.shape)
     bound = position_crlb(x, dx, fs, var, pts, arr, geo)["rms_m"]

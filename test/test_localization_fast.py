@@ -141,7 +141,8 @@ def test_light_result_and_options_through_localize_one(engine):
         assert r.covariance_m2.shape == (3, 3) and r.point_m.shape == (3,)
         assert 0 < r.confidence <= 1 and 20 < r.snr_db < 40
         # the given noise is in input volts (divided by the rms gain), plus the ADC's q^2/12
-        nr = loc.localize_one(pk.samples_v[i], FS, pk.onset_index[i], noise_rms_v=pk.noise_rms_v[i])
+        nr = loc.localize_one(pk.samples_v[i], FS, pk.onset_index[i],
+                              noise_rms_v=pk.noise_rms_v[i])
         np.testing.assert_allclose(nr.noise_rms_v_est ** 2,
                                    pk.noise_rms_v[i] ** 2 + CFG.lsb_v ** 2 / 12, rtol=1e-6)
         np.testing.assert_allclose(r.noise_rms_v_est ** 2, (pk.noise_rms_v[i] ** 2 / np.mean(g * g)
@@ -183,7 +184,8 @@ def test_localize_one_argument_errors_and_bad_data(engine):
     b = loc.localize_one(w, FS, on)
     np.testing.assert_array_equal(a.point_m, b.point_m)
     # data damage is a rejection, never an exception
-    for x, reason in ((np.full_like(w, np.nan), Reason.NONFINITE), (np.zeros_like(w), Reason.NO_SIGNAL),
+    for x, reason in ((np.full_like(w, np.nan), Reason.NONFINITE),
+                      (np.zeros_like(w), Reason.NO_SIGNAL),
                       (np.clip(w, -0.01, 0.01), Reason.SATURATED)):
         r = loc.localize_one(x, FS, on, saturated=None)
         assert not r.accepted and r.reason == reason

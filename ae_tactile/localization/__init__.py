@@ -11,7 +11,7 @@ likelihood), ``gradient`` (the paper's gradient method, iterated), ``gcc_phat``,
 Per-packet hot path (compiled with numba when available, `fast.py`):
 
     loc = Localizer("ml").warm_up(geometry, fs, n_samples)
-    r = loc.localize_one(window (4, M), fs, onset)   # PacketLocation: accepted, reason, point_m, ...
+    r = loc.localize_one(window (4, M), fs, onset)   # PacketLocation: accepted, point_m, ...
 See docs/localization.md.
 """
 from ae_tactile.localization.common import REASON_DESCRIPTIONS, Reason

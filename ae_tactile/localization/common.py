@@ -141,7 +141,8 @@ ALIAS_GUARD_DB = -25.0
 
 
 @lru_cache(maxsize=64)
-def _make_plan(fs, geometry, n_samples, lo, hi, pre_onset_s, echo_guard_s, auto_fallback_hz=0.0) -> Plan:
+def _make_plan(fs, geometry, n_samples, lo, hi, pre_onset_s, echo_guard_s,
+               auto_fallback_hz=0.0) -> Plan:
     pre = max(2, int(math.ceil(pre_onset_s * fs)))
     n_ef = int(math.floor((geometry.echo_free_duration_s - echo_guard_s) * fs))
     n_ef = max(n_ef, 4)
@@ -487,8 +488,8 @@ def prepare(x, onset, plan: Plan, *, noise_rms_v=None, saturated=None, full_scal
 
     X = sfft.rfft(seg, n=plan.n_fft, axis=2)
     return Prepared(x=x, onset=on, flags=flags, sigma2=sigma2, pre_mean=pre_mean,
-                    seg_start=seg_start, X=X, seg_count=count, p_signal=p_total, quant2=q2, scale=scale,
-                    noise_given=given)
+                    seg_start=seg_start, X=X, seg_count=count, p_signal=p_total, quant2=q2,
+                    scale=scale, noise_given=given)
 
 
 # --------------------------------------------------------------------------- pairs

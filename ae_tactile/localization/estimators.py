@@ -27,8 +27,8 @@ import numpy as np
 
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import fast, gcc, gradient, ml
-from ae_tactile.localization.common import (REASON_DESCRIPTIONS, Reason, adc_noise, make_plan, misfit,
-                                            per_packet, prepare, primary_reason,
+from ae_tactile.localization.common import (REASON_DESCRIPTIONS, Reason, adc_noise, make_plan,
+                                            misfit, per_packet, prepare, primary_reason,
                                             validate_windows)
 from ae_tactile.localization.events import (confidence, polarity_amplitude,
                                             polarity_amplitude_aligned)
