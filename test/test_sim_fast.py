@@ -156,3 +156,18 @@ def test_window_before_sample_zero():
     r.add_noise_window(y, -500)
     assert np.array_equal(y, r.noise(-500, 500))
     assert abs(r.noise(-40_000, 0).std() / sc.noise_rms_v - 1) < 0.02
+
+
+def test_a_scene_source_ends_with_the_scene():
+    """The incipient-slip process runs on after the scene's duration (gross slip); the
+    scene's triggered source stops at duration_s without a horizon."""
+    path = os.path.join(ROOT, "config", "scenes", "incipient_slip.yaml")
+    sc = load_scene(path, overrides={"duration_s": 1.05})
+    src = sc.triggered_source()
+    got = [src.next_packets(256) for _ in range(10)]
+    n = sum(len(p) for p in got)
+    assert len(got[-1]) == 0 and n > 20
+    t = np.concatenate([p.emissions.time_ns for p in got])
+    assert t.max() < 1.05e9
+    ref = load_scene(path, overrides={"duration_s": 1.05}).process.advance(int(1.05e9))
+    assert n == len(ref) and np.array_equal(t, ref.time_ns)

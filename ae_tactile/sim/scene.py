@@ -355,6 +355,8 @@ class Scene:
                                seed=self.seed, **kw)
 
     def triggered_source(self, **kw) -> TriggeredSource:
+        """Packets of this scene's emissions before its end (``end_ns`` = duration_s)."""
+        kw.setdefault("end_ns", int(round(self.duration_s * 1e9)))
         return TriggeredSource(self.process, self.config, noise_rms_v=self.noise_rms_v,
                                seed=self.seed, **kw)
 

@@ -526,16 +526,19 @@ class TriggeredSource:
     """Windows around each emission, as an ideal hardware trigger would capture them: the
     window starts ``pretrigger_s`` before the emission's earliest direct arrival and holds
     ``window_s`` of the *stream* (overlapping emissions, echoes and the stream's noise
-    included). ``next_packets(n)`` returns up to n packets in emission order."""
+    included). ``next_packets(n)`` returns up to n packets in emission order, of emissions
+    before ``end_ns`` if given (a scene's source ends with the scene: `Scene.triggered_source`
+    sets it to the scene's duration)."""
 
     def __init__(self, source, config: SimConfig, *, noise_rms_v: float = 0.0, seed: int = 0,
                  pretrigger_s: float = 8e-6, window_s: float = 40e-6, keep_clean: bool = False,
-                 render_path: str = "fast", engine=None):
+                 render_path: str = "fast", engine=None, end_ns: int | None = None):
         if render_path not in ("fast", "reference"):
             raise ValueError(f"render_path must be 'fast' or 'reference', got {render_path!r}")
         self.process = _as_process(source)
         self.config = config
         self.render_path = render_path
+        self.end_ns = None if end_ns is None else int(end_ns)
         self.renderer = StreamRenderer(config, noise_rms_v=noise_rms_v, seed=seed, engine=engine)
         fs = config.sample_rate_hz
         self.pre = int(round(pretrigger_s * fs))
@@ -649,6 +652,8 @@ class TriggeredSource:
         geo = cfg.geometry
         step = self._lookahead_ns
         limit = horizon_ns if horizon_ns is not None else None
+        if self.end_ns is not None:                # the scene's end: no emission from then on
+            limit = self.end_ns if limit is None else min(int(limit), self.end_ns)
         while len(self._buffer) - self._next < n:
             target = self._horizon_ns + 100 * step
             if limit is not None:
