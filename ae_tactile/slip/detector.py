@@ -128,6 +128,7 @@ class _Contact:
         self.pending_release_ns = None
         self.pending_in_slip = False          # a release-like emission while slipping
         self.founder = None                   # (point, variance, polarity) of the founder
+        self.last_p = None                    # latest emission's point
         self.precursor_count = 0
         self.last_report = {}
         self.texture_on = False
@@ -155,8 +156,9 @@ class _Contact:
         self.pid[i] = pid
         self.flags[i] = flags
         self.n += 1
-        if t > self.last_ns:
+        if t >= self.last_ns:
             self.last_ns = t
+            self.last_p = (float(p[0]), float(p[1]), float(p[2]))
         return i
 
     def valid(self):
@@ -336,11 +338,18 @@ class SlipDetector:
 
     # ------------------------------------------------------------------ tracking
     def _associate(self, px, py, pz, t):
+        """The contact whose (predicted) centre, or whose latest emission of the last
+        track_window_s, is nearest within association_radius_m (the latest emission carries
+        a contact that moves before its track is established)."""
         best, best_d2 = None, self._assoc2
         for c in self.contacts:
             q = c.centre_at(t)
             dx, dy, dz = px - q[0], py - q[1], pz - q[2]
             d2 = dx * dx + dy * dy + dz * dz
+            lp = c.last_p
+            if lp is not None and t - c.last_ns <= self._w_track:
+                dx, dy, dz = px - lp[0], py - lp[1], pz - lp[2]
+                d2 = min(d2, dx * dx + dy * dy + dz * dz)
             if d2 <= best_d2:
                 best, best_d2 = c, d2
         return best
@@ -465,7 +474,17 @@ class SlipDetector:
         cfg = self.config
         k = c.valid()
         F = c.flags[:k]
-        m = ((F & (OVERLAP | EVID)) == EVID) & (c.t[:k] > t - self._w_track)
+        # the latest emissions within track_window_s, or the latest 12 within 4 x that
+        # (a slow stylus emits a few per window)
+        m = ((F & (OVERLAP | EVID)) == EVID) & (c.t[:k] > t - 4 * self._w_track)
+        recent = m & (c.t[:k] > t - self._w_track)
+        if int(recent.sum()) >= 12:
+            m = recent
+        elif int(m.sum()) > 12:
+            idx = np.flatnonzero(m)
+            keep = idx[np.argsort(c.t[:k][idx])[-12:]]
+            m = np.zeros(k, bool)
+            m[keep] = True
         n = int(m.sum())
         if n < max(cfg.track_min_events, 3):
             c.moving = False
