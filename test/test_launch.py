@@ -114,7 +114,13 @@ class LaunchRun:
         return self.processes()
 
     def kill(self):
-        """Last-resort clean-up of a failed test: nothing may outlive it."""
+        """Clean-up after a test (also a failed one): Ctrl-C first, so the launch removes
+        its private directory; then SIGKILL whatever is left. Nothing may outlive it."""
+        if self.proc.poll() is None:
+            try:
+                self.interrupt()
+            except subprocess.TimeoutExpired:
+                pass
         for _ in range(2):
             for pid in [p for p in os.listdir("/proc") if p.isdigit()]:
                 try:
