@@ -26,6 +26,7 @@ From four arrival times the package defines, exactly,
 and the far-field (a << R) limits are Eq. (2)-(3): tau_x = (a/c) sin(theta) cos(phi),
 tau_y = (a/c) sin(theta) sin(phi).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -66,7 +67,8 @@ class FingertipGeometry:
         if np.sqrt(2.0) * a >= r:
             raise ValueError(
                 f"element_offset_m={a} puts the elements outside the sphere of radius_m={r}"
-                " (need sqrt(2) a < R)")
+                " (need sqrt(2) a < R)"
+            )
 
     # ------------------------------------------------------------------ layout
     @property
@@ -85,7 +87,9 @@ class FingertipGeometry:
         default tip; ~2R/c = 13.5 us for a contact above the centre). Analysis windows
         that end within this time after each channel's arrival see only the direct wave.
         """
-        return (2.0 * self.radius_m - 2.0 * np.sqrt(2.0) * self.element_offset_m) / self.sound_speed_m_s
+        return (
+            2.0 * self.radius_m - 2.0 * np.sqrt(2.0) * self.element_offset_m
+        ) / self.sound_speed_m_s
 
     @property
     def max_delay_s(self) -> float:
@@ -101,11 +105,12 @@ class FingertipGeometry:
         x = np.asarray(x_m, dtype=float)
         y = np.asarray(y_m, dtype=float)
         rho2 = x * x + y * y
-        r2 = self.radius_m ** 2
+        r2 = self.radius_m**2
         if np.any(~np.isfinite(rho2)) or np.any(rho2 > r2 * (1.0 + 1e-12)):
             raise ValueError(
                 f"in-plane point(s) outside the sensing surface: need x^2 + y^2 <= R^2"
-                f" with R = {self.radius_m} m")
+                f" with R = {self.radius_m} m"
+            )
         z = np.sqrt(np.maximum(r2 - rho2, 0.0))
         return np.stack(np.broadcast_arrays(x, y, z), axis=-1)
 
@@ -115,7 +120,8 @@ class FingertipGeometry:
         ph = np.asarray(azimuth_rad, dtype=float)
         st = np.sin(th)
         return self.radius_m * np.stack(
-            np.broadcast_arrays(st * np.cos(ph), st * np.sin(ph), np.cos(th)), axis=-1)
+            np.broadcast_arrays(st * np.cos(ph), st * np.sin(ph), np.cos(th)), axis=-1
+        )
 
     @staticmethod
     def angles_from_points(points_m) -> tuple[np.ndarray, np.ndarray]:
@@ -148,14 +154,15 @@ class FingertipGeometry:
         return self.delays_from_arrival_times(self.arrival_times_s(points_m))[..., :2]
 
     def far_field_delays_s(self, points_m) -> np.ndarray:
-        """Paper's Eq. (2)-(3): tau = (a/c) (sin th cos ph, sin th sin ph) = (a/(cR)) (s_x, s_y)."""
+        """Paper's Eq. (2)-(3): tau = (a/c) (sin th cos ph, sin th sin ph)
+        = (a/(cR)) (s_x, s_y)."""
         p = np.asarray(points_m, dtype=float)
         return p[..., :2] * (self.element_offset_m / (self.sound_speed_m_s * self.radius_m))
 
     def _xy_distances(self, sx, sy) -> np.ndarray:
         """d_k(sx, sy) for points on the sphere (|s| = R): shape (..., 4)."""
         a = self.element_offset_m
-        base = self.radius_m ** 2 + 2.0 * a * a
+        base = self.radius_m**2 + 2.0 * a * a
         arg = base - 2.0 * a * (_XI * sx[..., None] + _ETA * sy[..., None])
         return np.sqrt(arg)
 
@@ -174,10 +181,10 @@ class FingertipGeometry:
         a = self.element_offset_m
         c = self.sound_speed_m_s
         d = self._xy_distances(sx, sy)
-        v = CHANNEL_XI_ETA.astype(float)                          # (4, 2)
+        v = CHANNEL_XI_ETA.astype(float)  # (4, 2)
         t = d / c
         dt = (-a / c) * v / d[..., None]
-        vv = v[:, :, None] * v[:, None, :]                        # (4, 2, 2)
+        vv = v[:, :, None] * v[:, None, :]  # (4, 2, 2)
         d2t = (-a * a / c) * vv / (d * d * d)[..., None, None]
         return t, dt, d2t
 
@@ -196,8 +203,9 @@ class FingertipGeometry:
         return np.stack([np.stack([diag, off], -1), np.stack([off, diag], -1)], -2)
 
     # ------------------------------------------------------------------ inverse
-    def point_from_delays(self, tau_x_s, tau_y_s, exact: bool = True,
-                          iterations: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    def point_from_delays(
+        self, tau_x_s, tau_y_s, exact: bool = True, iterations: int = 8
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Contact point on the upper hemisphere from (tau_x, tau_y).
 
         Far field: (s_x, s_y) = (c R / a) (tau_x, tau_y). With ``exact`` the far-field

@@ -11,6 +11,7 @@ bytes/s, and the driver process's CPU (user + system time from /proc) per second
 
 Run: make bench-driver   (results: bench/results/driver.json)
 """
+
 from __future__ import annotations
 
 import json
@@ -24,8 +25,17 @@ import tty
 
 import numpy as np
 
-from ae_tactile.protocol import (Ack, AckResult, Command, Direction, FrameEncoder, Packet, Status,
-                                 DeviceState, StreamDecoder)
+from ae_tactile.protocol import (
+    Ack,
+    AckResult,
+    Command,
+    DeviceState,
+    Direction,
+    FrameEncoder,
+    Packet,
+    Status,
+    StreamDecoder,
+)
 
 RATES = [int(r) for r in os.environ.get("AE_BENCH_RATES", "500,1000,2000,5000,10000").split(",")]
 SECONDS = 4.0
@@ -78,12 +88,31 @@ class FakeDevice(threading.Thread):
                 data = b""
             for f in self.decoder.feed(data):
                 if isinstance(f.body, Command):
-                    self.write(self.encoder.encode(Ack(f.body.command_id, f.body.opcode, AckResult.OK, 0),
-                                                   self.now_us()))
+                    self.write(
+                        self.encoder.encode(
+                            Ack(f.body.command_id, f.body.opcode, AckResult.OK, 0), self.now_us()
+                        )
+                    )
             now = time.monotonic()
             if now >= next_status:
-                self.write(self.encoder.encode(Status(self.now_us(), DeviceState.TRIGGERED, 10_000_000, 2**-11,
-                                                      10, N, 80, 0, 0, (0, 1, 0), "BENCH"), self.now_us()))
+                self.write(
+                    self.encoder.encode(
+                        Status(
+                            self.now_us(),
+                            DeviceState.TRIGGERED,
+                            10_000_000,
+                            2**-11,
+                            10,
+                            N,
+                            80,
+                            0,
+                            0,
+                            (0, 1, 0),
+                            "BENCH",
+                        ),
+                        self.now_us(),
+                    )
+                )
                 next_status = now + 1.0
             rate = self.rate
             if rate <= 0:
@@ -91,7 +120,9 @@ class FakeDevice(threading.Thread):
                 due = time.monotonic()
                 continue
             while due <= now:
-                body = Packet(self.samples, 10_000_000, 2**-11, first_sample_index=self.index, pre_trigger=80)
+                body = Packet(
+                    self.samples, 10_000_000, 2**-11, first_sample_index=self.index, pre_trigger=80
+                )
                 frame = self.encoder.encode(body, self.now_us())
                 self.write(frame)
                 self.index += 1000
@@ -105,9 +136,12 @@ def main() -> int:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
+
     from ae_tactile.msg import PacketArray
 
-    root = os.environ.get("AE_TACTILE_ROOT", os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    root = os.environ.get(
+        "AE_TACTILE_ROOT", os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    )
     exe = os.path.join(root, "install", "ae_tactile", "lib", "ae_tactile", "driver")
     os.environ.setdefault("ROS_DOMAIN_ID", "77")
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -116,10 +150,22 @@ def main() -> int:
     port = os.ttyname(slave)
     dev = FakeDevice(master)
     dev.start()
-    driver = subprocess.Popen([exe, "--ros-args", "-p", f"port:={port}", "-p", "reliable_qos:=true",
-                               "-p", "pipeline:=false",
-                               "-p", "queue_max_batches:=100000"],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    driver = subprocess.Popen(
+        [
+            exe,
+            "--ros-args",
+            "-p",
+            f"port:={port}",
+            "-p",
+            "reliable_qos:=true",
+            "-p",
+            "pipeline:=false",
+            "-p",
+            "queue_max_batches:=100000",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     rclpy.init()
     node = rclpy.create_node("bench_listener")
     received = {"packets": 0, "dropped": 0}
@@ -128,12 +174,16 @@ def main() -> int:
         received["packets"] += len(msg.packets)
         received["dropped"] = msg.packets_dropped
 
-    node.create_subscription(PacketArray, "packets", on_msg,
-                             QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE))
+    node.create_subscription(
+        PacketArray,
+        "packets",
+        on_msg,
+        QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE),
+    )
     ex = SingleThreadedExecutor()
     ex.add_node(node)
     t_end = time.monotonic() + 5.0
-    while time.monotonic() < t_end:        # discovery + driver start-up
+    while time.monotonic() < t_end:  # discovery + driver start-up
         ex.spin_once(timeout_sec=0.05)
     rows = []
     for rate in RATES:
@@ -149,22 +199,36 @@ def main() -> int:
         while time.monotonic() < drain and received["packets"] - recv0 < dev.sent - sent0:
             ex.spin_once(timeout_sec=0.01)
         sent, got = dev.sent - sent0, received["packets"] - recv0
-        row = {"target_packets_per_s": rate, "sent": sent, "received": got,
-               "lost": sent - got, "driver_reported_dropped_total": received["dropped"],
-               "sent_packets_per_s": sent / (t1 - t0), "bytes_per_s": (dev.bytes - bytes0) / (t1 - t0),
-               "driver_cpu_percent_of_one_core": 100.0 * (cpu1 - cpu0) / (t1 - t0)}
+        row = {
+            "target_packets_per_s": rate,
+            "sent": sent,
+            "received": got,
+            "lost": sent - got,
+            "driver_reported_dropped_total": received["dropped"],
+            "sent_packets_per_s": sent / (t1 - t0),
+            "bytes_per_s": (dev.bytes - bytes0) / (t1 - t0),
+            "driver_cpu_percent_of_one_core": 100.0 * (cpu1 - cpu0) / (t1 - t0),
+        }
         rows.append(row)
-        print(f"{rate:>6} pkt/s target: sent {sent} received {got} lost {sent - got} "
-              f"| {row['bytes_per_s'] / 1e6:6.1f} MB/s | driver CPU {row['driver_cpu_percent_of_one_core']:5.1f} %",
-              flush=True)
+        print(
+            f"{rate:>6} pkt/s target: sent {sent} received {got} lost {sent - got} "
+            f"| {row['bytes_per_s'] / 1e6:6.1f} MB/s "
+            f"| driver CPU {row['driver_cpu_percent_of_one_core']:5.1f} %",
+            flush=True,
+        )
     dev.stop = True
     driver.send_signal(2)
     driver.wait(10)
     ex.shutdown()
     node.destroy_node()
     rclpy.shutdown()
-    out = {"benchmark": "driver node over a pty, PACKET frames 4x400 int16, reliable QoS",
-           "machine": platform.platform(), "cpus": os.cpu_count(), "seconds_per_rate": SECONDS, "rows": rows}
+    out = {
+        "benchmark": "driver node over a pty, PACKET frames 4x400 int16, reliable QoS",
+        "machine": platform.platform(),
+        "cpus": os.cpu_count(),
+        "seconds_per_rate": SECONDS,
+        "rows": rows,
+    }
     os.makedirs(os.path.join(root, "bench", "results"), exist_ok=True)
     with open(os.path.join(root, "bench", "results", "driver.json"), "w") as fh:
         json.dump(out, fh, indent=2)

@@ -7,7 +7,8 @@ c = 1480 m/s, 1 MHz front end, 12-bit ADC, wall echoes on) at P fixed contact po
 spread uniformly over the usable surface (polar angle <= 60 deg), R noise realisations
 each, random sub-sample trigger offsets; SNR 10, 20, 30, 40 dB (docs/conventions.md);
 2, 5 and 10 MS/s with the default 1 MHz front end, and 2 MS/s behind a 0.6 MHz 8th-order
-anti-alias filter (band 0.1-0.7 MHz). For each estimator of ae_tactile.localization and each baseline:
+anti-alias filter (band 0.1-0.7 MHz). For each estimator of ae_tactile.localization and each
+baseline:
 
   * RMS in-plane position error (mm) over the accepted packets, and the RMS bias: the
     RMS over points of the mean error at each point (noise part removed: |mean|^2 -
@@ -29,12 +30,13 @@ Writes bench/results/localization.json, bench/results/localization_speed_error.p
 bench/results/localization_table.md, and the table into docs/localization.md (between
 the bench markers).
 """
+
 from __future__ import annotations
 
 import os
 
 for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
-    os.environ.setdefault(_v, "1")              # one core
+    os.environ.setdefault(_v, "1")  # one core
 
 import argparse  # noqa: E402
 import importlib.util  # noqa: E402
@@ -50,8 +52,13 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ae_tactile.localization import (NUMBA_AVAILABLE, Localizer, available_methods,  # noqa: E402
-                                     default_band_hz, localize)
+from ae_tactile.localization import (  # noqa: E402
+    NUMBA_AVAILABLE,
+    Localizer,
+    available_methods,
+    default_band_hz,
+    localize,
+)
 from ae_tactile.localization.common import make_plan  # noqa: E402
 from ae_tactile.localization.crlb import simulated_crlb  # noqa: E402
 from ae_tactile.sim import SimConfig, render_triggered  # noqa: E402
@@ -61,17 +68,22 @@ DOC = ROOT / "docs" / "localization.md"
 BEGIN, END = "<!-- bench:localization:begin -->", "<!-- bench:localization:end -->"
 METHODS = ["ml", "ml_fixed_band", "gradient", "gcc_phat", "xcorr_farfield"]
 BASELINES = ["pra_srp_phat", "pra_music"]
-LABELS = {"ml": "ML exact sphere", "ml_fixed_band": "ML, fixed band",
-          "gradient": "gradient (iterated)", "gcc_phat": "GCC-PHAT (band)",
-          "xcorr_farfield": "paper: xcorr + Eq. 2", "pra_srp_phat": "pyroomacoustics SRP-PHAT",
-          "pra_music": "pyroomacoustics MUSIC"}
+LABELS = {
+    "ml": "ML exact sphere",
+    "ml_fixed_band": "ML, fixed band",
+    "gradient": "gradient (iterated)",
+    "gcc_phat": "GCC-PHAT (band)",
+    "xcorr_farfield": "paper: xcorr + Eq. 2",
+    "pra_srp_phat": "pyroomacoustics SRP-PHAT",
+    "pra_music": "pyroomacoustics MUSIC",
+}
 
 
 def cap_points(geo, n, max_deg=60.0, seed=0):
     """n points spread uniformly (in area) over the cap polar <= max_deg (golden spiral)."""
     i = np.arange(n) + 0.5
     ct = 1.0 - (1.0 - np.cos(np.deg2rad(max_deg))) * i / n
-    az = np.pi * (1 + 5 ** 0.5) * i + seed
+    az = np.pi * (1 + 5**0.5) * i + seed
     return geo.surface_point_from_angles(np.arccos(ct), az)
 
 
@@ -79,14 +91,14 @@ def error_stats(err_xy, point_id, accepted, n_points):
     """RMS error and RMS bias (noise-corrected) of in-plane errors (m)."""
     e = err_xy[accepted]
     pid = point_id[accepted]
-    rms = float(np.sqrt(np.mean(np.sum(e ** 2, axis=1)))) if len(e) else float("nan")
+    rms = float(np.sqrt(np.mean(np.sum(e**2, axis=1)))) if len(e) else float("nan")
     b2 = []
     for p in range(n_points):
         ep = e[pid == p]
         if len(ep) >= 2:
             m = ep.mean(axis=0)
             v = ep.var(axis=0, ddof=1).sum()
-            b2.append(np.sum(m ** 2) - v / len(ep))
+            b2.append(np.sum(m**2) - v / len(ep))
     bias = float(np.sqrt(max(np.mean(b2), 0.0))) if b2 else float("nan")
     return rms, bias
 
@@ -106,6 +118,7 @@ class PraBaseline:
 
     def __init__(self, algo, geo, fs, n_samples, band):
         import pyroomacoustics as pra
+
         self.pra = pra
         self.algo = algo
         self.geo = geo
@@ -114,7 +127,7 @@ class PraBaseline:
         self.plan = make_plan(fs, geo, n_samples, band)
         self.nfft = int(2 ** np.ceil(np.log2(self.plan.seg_len)))
         self.hop = self.nfft
-        self.mics = geo.element_positions_m.T                     # (3, 4)
+        self.mics = geo.element_positions_m.T  # (3, 4)
         az = np.deg2rad(np.arange(0.0, 360.0, 2.0))
         col = np.deg2rad(np.arange(0.0, 90.0 + 1e-9, 2.0))
         self.coarse = self._doa(az, col)
@@ -123,14 +136,22 @@ class PraBaseline:
         name = {"pra_srp_phat": "SRP", "pra_music": "MUSIC"}[self.algo]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            return self.pra.doa.algorithms[name](self.mics, self.fs, self.nfft, c=self.geo.sound_speed_m_s,
-                                                 num_src=1, dim=3, azimuth=az, colatitude=col)
+            return self.pra.doa.algorithms[name](
+                self.mics,
+                self.fs,
+                self.nfft,
+                c=self.geo.sound_speed_m_s,
+                num_src=1,
+                dim=3,
+                azimuth=az,
+                colatitude=col,
+            )
 
     def locate(self, window, onset):
         start = onset - self.plan.pre
-        seg = window[:, start: start + self.plan.seg_len]
+        seg = window[:, start : start + self.plan.seg_len]
         seg = seg - window[:, : max(start, 1)].mean(axis=1, keepdims=True)
-        X = np.fft.rfft(seg, n=self.nfft, axis=1)[:, :, None]    # (M, F, 1 snapshot)
+        X = np.fft.rfft(seg, n=self.nfft, axis=1)[:, :, None]  # (M, F, 1 snapshot)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             self.coarse.locate_sources(X, num_src=1, freq_range=self.band)
@@ -168,7 +189,7 @@ def _timing(label, fs, cfg, geo, P, band, rng, quick):
         variants += [("ml", "numpy")]
     for m, eng in variants:
         key = m if eng is None else f"{m}_numpy"
-        _localize(m, x[:64], fs, on[:64], band, geo, eng)               # warm caches / compile
+        _localize(m, x[:64], fs, on[:64], band, geo, eng)  # warm caches / compile
         best = cpu = np.inf
         for _ in range(3):
             t0, c0 = time.perf_counter(), time.process_time()
@@ -178,16 +199,20 @@ def _timing(label, fs, cfg, geo, P, band, rng, quick):
         n1 = 60 if quick or eng == "numpy" or m != "ml" else 300
         t0 = time.perf_counter()
         for i in range(n1):
-            _localize(m, x[i: i + 1], fs, on[i: i + 1], band, geo, eng)
+            _localize(m, x[i : i + 1], fs, on[i : i + 1], band, geo, eng)
         single = (time.perf_counter() - t0) / n1
-        tm[key] = dict(batched_packets_per_s=n / best, batched_us_per_packet=best / n * 1e6,
-                       batched_cpu_us_per_packet=cpu / n * 1e6, batched_cpu_packets_per_s=n / cpu,
-                       single_packets_per_s=1.0 / single, single_us_per_packet=single * 1e6,
-                       batch_size=n,
-                       engine=eng or ("numba" if NUMBA_AVAILABLE and m.startswith("ml")
-                                      else "numpy"))
+        tm[key] = dict(
+            batched_packets_per_s=n / best,
+            batched_us_per_packet=best / n * 1e6,
+            batched_cpu_us_per_packet=cpu / n * 1e6,
+            batched_cpu_packets_per_s=n / cpu,
+            single_packets_per_s=1.0 / single,
+            single_us_per_packet=single * 1e6,
+            batch_size=n,
+            engine=eng or ("numba" if NUMBA_AVAILABLE and m.startswith("ml") else "numpy"),
+        )
     # the hot path: Localizer.localize_one on float32 windows (what the link delivers)
-    for eng in (("numba", "numpy") if NUMBA_AVAILABLE else ("numpy",)):
+    for eng in ("numba", "numpy") if NUMBA_AVAILABLE else ("numpy",):
         loc = Localizer("ml", engine=eng).warm_up(geo, fs, x.shape[2])
         x32 = x.astype(np.float32)
         n1 = min(n, 1000 if eng == "numba" and not quick else 100)
@@ -198,13 +223,16 @@ def _timing(label, fs, cfg, geo, P, band, rng, quick):
             loc.localize_one(x32[i], fs, int(on[i]))
             cps[i] = time.process_time() - c0
             dts[i] = time.perf_counter() - t0
-        tm[f"localize_one_{eng}"] = dict(single_us_per_packet=float(np.mean(dts) * 1e6),
-                                         p50_us=float(np.percentile(dts, 50) * 1e6),
-                                         p99_us=float(np.percentile(dts, 99) * 1e6),
-                                         cpu_us=float(np.mean(cps) * 1e6),
-                                         cpu_p50_us=float(np.percentile(cps, 50) * 1e6),
-                                         cpu_p99_us=float(np.percentile(cps, 99) * 1e6),
-                                         single_packets_per_s=float(1.0 / np.mean(dts)), n=int(n1))
+        tm[f"localize_one_{eng}"] = dict(
+            single_us_per_packet=float(np.mean(dts) * 1e6),
+            p50_us=float(np.percentile(dts, 50) * 1e6),
+            p99_us=float(np.percentile(dts, 99) * 1e6),
+            cpu_us=float(np.mean(cps) * 1e6),
+            cpu_p50_us=float(np.percentile(cps, 50) * 1e6),
+            cpu_p99_us=float(np.percentile(cps, 99) * 1e6),
+            single_packets_per_s=float(1.0 / np.mean(dts)),
+            n=int(n1),
+        )
     return tm
 
 
@@ -215,18 +243,29 @@ def run(quick=False):
     # and 10 MS/s, 2 MS/s behind an anti-alias filter (0.6 MHz, 8th order), the silicone tip.
     water = SimConfig(reflections=True)
     sil = SimConfig.for_medium("silicone").replace(reflections=True)
-    rates = [("2", water.replace(sample_rate_hz=2e6), None),
-             ("2 (0.6 MHz anti-alias)",
-              water.replace(sample_rate_hz=2e6, lowpass_hz=0.6e6, lowpass_order=8),
-              (100e3, 0.7e6)),
-             ("5", water.replace(sample_rate_hz=5e6), None), ("10", water, None),
-             ("10 silicone", sil, None)]
+    rates = [
+        ("2", water.replace(sample_rate_hz=2e6), None),
+        (
+            "2 (0.6 MHz anti-alias)",
+            water.replace(sample_rate_hz=2e6, lowpass_hz=0.6e6, lowpass_order=8),
+            (100e3, 0.7e6),
+        ),
+        ("5", water.replace(sample_rate_hz=5e6), None),
+        ("10", water, None),
+        ("10 silicone", sil, None),
+    ]
     n_points, n_real = (20, 10) if quick else (50, 20)
     pra_points, pra_real = (10, 1) if quick else (20, 2)
     n_pra = pra_points * pra_real
     rng = np.random.default_rng(2024)
     # pyroomacoustics: the first pra_real realisations of every (n_points / pra_points)-th point
-    pra_idx = np.array([p * n_real + r for p in range(0, n_points, n_points // pra_points) for r in range(pra_real)])
+    pra_idx = np.array(
+        [
+            p * n_real + r
+            for p in range(0, n_points, n_points // pra_points)
+            for r in range(pra_real)
+        ]
+    )
     cells = []
     pra_ok = importlib.util.find_spec("pyroomacoustics") is not None
     timing = {}
@@ -238,19 +277,34 @@ def run(quick=False):
         P = pts[point_id]
         n = len(P)
         band = default_band_hz(fs) if band is None else band
-        pras = {b: PraBaseline(b, geo, fs, int(round(40e-6 * fs)), band) for b in BASELINES} if pra_ok else {}
+        pras = (
+            {b: PraBaseline(b, geo, fs, int(round(40e-6 * fs)), band) for b in BASELINES}
+            if pra_ok
+            else {}
+        )
         for snr in snrs:
             u = rng.uniform(0.01, 0.99, n)
             pk = render_triggered(P, cfg, snr_db=snr, subsample_offset=u, rng=rng)
             bound = simulated_crlb(P, cfg, snr_db=snr, subsample_offset=u)
-            bound_n = simulated_crlb(P, cfg, snr_db=snr, subsample_offset=u, include_quantization=False)
-            cell = dict(label=label, sample_rate_hz=fs, lowpass_hz=cfg.lowpass_hz, lowpass_order=cfg.lowpass_order,
-                        sound_speed_m_s=geo.sound_speed_m_s, snr_db=snr, band_hz=list(band),
-                        n_packets=n,
-                        crlb_rms_mm=float(np.sqrt(np.mean(bound["rms_m"] ** 2)) * 1e3),
-                        crlb_unknown_waveform_rms_mm=float(np.sqrt(np.mean(bound["rms_unknown_m"] ** 2)) * 1e3),
-                        crlb_noise_only_rms_mm=float(np.sqrt(np.mean(bound_n["rms_m"] ** 2)) * 1e3),
-                        methods={})
+            bound_n = simulated_crlb(
+                P, cfg, snr_db=snr, subsample_offset=u, include_quantization=False
+            )
+            cell = dict(
+                label=label,
+                sample_rate_hz=fs,
+                lowpass_hz=cfg.lowpass_hz,
+                lowpass_order=cfg.lowpass_order,
+                sound_speed_m_s=geo.sound_speed_m_s,
+                snr_db=snr,
+                band_hz=list(band),
+                n_packets=n,
+                crlb_rms_mm=float(np.sqrt(np.mean(bound["rms_m"] ** 2)) * 1e3),
+                crlb_unknown_waveform_rms_mm=float(
+                    np.sqrt(np.mean(bound["rms_unknown_m"] ** 2)) * 1e3
+                ),
+                crlb_noise_only_rms_mm=float(np.sqrt(np.mean(bound_n["rms_m"] ** 2)) * 1e3),
+                methods={},
+            )
             for m in METHODS:
                 t0 = time.perf_counter()
                 r = _localize(m, pk.samples_v, fs, pk.onset_index, band, geo)
@@ -260,12 +314,16 @@ def run(quick=False):
                 cov = r.covariance_m2[r.accepted, :2, :2]
                 e = err[r.accepted]
                 d2 = np.einsum("ki,kij,kj->k", e, np.linalg.inv(cov), e) if len(e) else np.zeros(0)
-                cell["methods"][m] = dict(rms_mm=rms * 1e3, bias_mm=bias * 1e3, accepted=float(r.accepted.mean()),
-                                          ratio_to_crlb=rms * 1e3 / cell["crlb_rms_mm"],
-                                          in_1sigma_ellipse=float(np.mean(d2 < 1.0)) if len(d2) else None,
-                                          in_1515sigma_ellipse=float(np.mean(d2 < 1.515 ** 2)) if len(d2) else None,
-                                          batched_us_per_packet=dt / n * 1e6,
-                                          touch_correct=float(np.mean(r.polarity == 1)))
+                cell["methods"][m] = dict(
+                    rms_mm=rms * 1e3,
+                    bias_mm=bias * 1e3,
+                    accepted=float(r.accepted.mean()),
+                    ratio_to_crlb=rms * 1e3 / cell["crlb_rms_mm"],
+                    in_1sigma_ellipse=float(np.mean(d2 < 1.0)) if len(d2) else None,
+                    in_1515sigma_ellipse=float(np.mean(d2 < 1.515**2)) if len(d2) else None,
+                    batched_us_per_packet=dt / n * 1e6,
+                    touch_correct=float(np.mean(r.polarity == 1)),
+                )
             for b, obj in pras.items():
                 idx = pra_idx
                 t0 = time.perf_counter()
@@ -273,72 +331,107 @@ def run(quick=False):
                 dt = time.perf_counter() - t0
                 err = (est - P[idx])[:, :2]
                 rms, bias = error_stats(err, point_id[idx], np.ones(len(idx), bool), n_points)
-                cell["methods"][b] = dict(rms_mm=rms * 1e3, bias_mm=bias * 1e3, accepted=1.0,
-                                          ratio_to_crlb=rms * 1e3 / cell["crlb_rms_mm"], n_packets=len(idx),
-                                          single_us_per_packet=dt / len(idx) * 1e6,
-                                          nfft=obj.nfft, hop=obj.hop)
+                cell["methods"][b] = dict(
+                    rms_mm=rms * 1e3,
+                    bias_mm=bias * 1e3,
+                    accepted=1.0,
+                    ratio_to_crlb=rms * 1e3 / cell["crlb_rms_mm"],
+                    n_packets=len(idx),
+                    single_us_per_packet=dt / len(idx) * 1e6,
+                    nfft=obj.nfft,
+                    hop=obj.hop,
+                )
             cells.append(cell)
-            print(f"fs {label} MS/s  SNR {snr:4.1f} dB  CRLB {cell['crlb_rms_mm'] * 1e3:7.2f} um  " +
-                  "  ".join(f"{k} {v['rms_mm'] * 1e3:7.1f}" for k, v in cell["methods"].items()) +
-                  f"  ml {cell['methods']['ml']['ratio_to_crlb']:.2f}x "
-                  f"cal {cell['methods']['ml']['in_1515sigma_ellipse']:.2f}", flush=True)
+            print(
+                f"fs {label} MS/s  SNR {snr:4.1f} dB  CRLB {cell['crlb_rms_mm'] * 1e3:7.2f} um  "
+                + "  ".join(f"{k} {v['rms_mm'] * 1e3:7.1f}" for k, v in cell["methods"].items())
+                + f"  ml {cell['methods']['ml']['ratio_to_crlb']:.2f}x "
+                f"cal {cell['methods']['ml']['in_1515sigma_ellipse']:.2f}",
+                flush=True,
+            )
         tm = _timing(label, fs, cfg, geo, P, band, rng, quick)
         for b in BASELINES:
-            vals = [c["methods"][b]["single_us_per_packet"] for c in cells
-                    if c["label"] == label and b in c["methods"]]
+            vals = [
+                c["methods"][b]["single_us_per_packet"]
+                for c in cells
+                if c["label"] == label and b in c["methods"]
+            ]
             if vals:
                 t = float(np.median(vals))
                 tm[b] = dict(single_us_per_packet=t, single_packets_per_s=1e6 / t)
         timing[f"{label} MS/s"] = tm
-        print("timing", label, {k: round(v.get("batched_packets_per_s", v["single_packets_per_s"]))
-                                for k, v in tm.items()}, flush=True)
+        print(
+            "timing",
+            label,
+            {
+                k: round(v.get("batched_packets_per_s", v["single_packets_per_s"]))
+                for k, v in tm.items()
+            },
+            flush=True,
+        )
     load = os.getloadavg() if hasattr(os, "getloadavg") else None
     out = dict(
         description="ae_tactile localization benchmark (bench/bench_localization.py)",
-        setup=dict(geometry="per cell: the simulator's water-skin tip (R 10 mm, a 1.5 mm, "
-                            "c 1480 m/s) or its silicone preset (c 1000 m/s)",
-                   sim="SimConfig(reflections=True), default pulse (v0 0.3 m/s, a_c 1/mm), "
-                       "1 MHz low-pass (order 4) unless stated, 12-bit ADC",
-                   points=f"{n_points} points uniform over polar <= 60 deg x {n_real} noise realisations",
-                   ml="band_hz=None: each packet's upper band edge from its spectrum "
-                      "(data-driven); ml_fixed_band: the fixed default band "
-                      "(100 kHz, min(1 MHz, fs/4)) or the cell's band",
-                   pyroomacoustics_packets_per_cell=n_pra if pra_ok else 0,
-                   crlb="known pulse shape, unknown emission time and amplitude, echo-free samples, "
-                        "noise sigma_n^2 + LSB^2/12 (crlb_noise_only_rms_mm: sigma_n^2 only)",
-                   python=platform.python_version(), numpy=np.__version__, machine=platform.machine(),
-                   numba=_numba_version(), load_average_at_end=list(load) if load else None,
-                   cpu_count=os.cpu_count(), quick=quick, methods=available_methods()),
-        cells=cells, timing=timing, run_time_s=time.perf_counter() - t_start)
+        setup=dict(
+            geometry="per cell: the simulator's water-skin tip (R 10 mm, a 1.5 mm, "
+            "c 1480 m/s) or its silicone preset (c 1000 m/s)",
+            sim="SimConfig(reflections=True), default pulse (v0 0.3 m/s, a_c 1/mm), "
+            "1 MHz low-pass (order 4) unless stated, 12-bit ADC",
+            points=f"{n_points} points uniform over polar <= 60 deg x {n_real} noise realisations",
+            ml="band_hz=None: each packet's upper band edge from its spectrum "
+            "(data-driven); ml_fixed_band: the fixed default band "
+            "(100 kHz, min(1 MHz, fs/4)) or the cell's band",
+            pyroomacoustics_packets_per_cell=n_pra if pra_ok else 0,
+            crlb="known pulse shape, unknown emission time and amplitude, echo-free samples, "
+            "noise sigma_n^2 + LSB^2/12 (crlb_noise_only_rms_mm: sigma_n^2 only)",
+            python=platform.python_version(),
+            numpy=np.__version__,
+            machine=platform.machine(),
+            numba=_numba_version(),
+            load_average_at_end=list(load) if load else None,
+            cpu_count=os.cpu_count(),
+            quick=quick,
+            methods=available_methods(),
+        ),
+        cells=cells,
+        timing=timing,
+        run_time_s=time.perf_counter() - t_start,
+    )
     return out
 
 
 def _numba_version():
     try:
         import numba
+
         return numba.__version__ if NUMBA_AVAILABLE else f"{numba.__version__} (disabled)"
     except ImportError:
         return None
 
 
-TIMING_ROWS = [("localize_one_numba", "ML `localize_one`, compiled (float32 window)"),
-               ("localize_one_numpy", "ML `localize_one`, numpy path"),
-               ("ml", "ML (data-driven band), `localize`"),
-               ("ml_numpy", "ML, `localize`, numpy path"),
-               ("ml_fixed_band", "ML, fixed band, `localize`"),
-               ("gradient", "gradient (iterated)"),
-               ("gcc_phat", "GCC-PHAT (band)"), ("xcorr_farfield", "paper: xcorr + Eq. 2"),
-               ("pra_srp_phat", "pyroomacoustics SRP-PHAT"),
-               ("pra_music", "pyroomacoustics MUSIC")]
+TIMING_ROWS = [
+    ("localize_one_numba", "ML `localize_one`, compiled (float32 window)"),
+    ("localize_one_numpy", "ML `localize_one`, numpy path"),
+    ("ml", "ML (data-driven band), `localize`"),
+    ("ml_numpy", "ML, `localize`, numpy path"),
+    ("ml_fixed_band", "ML, fixed band, `localize`"),
+    ("gradient", "gradient (iterated)"),
+    ("gcc_phat", "GCC-PHAT (band)"),
+    ("xcorr_farfield", "paper: xcorr + Eq. 2"),
+    ("pra_srp_phat", "pyroomacoustics SRP-PHAT"),
+    ("pra_music", "pyroomacoustics MUSIC"),
+]
 
 
 def table_markdown(res):
     lines = []
     ms = [m for m in METHODS + BASELINES if any(m in c["methods"] for c in res["cells"])]
     head = "| fs (MS/s) | SNR (dB) | CRLB (um) | " + " | ".join(LABELS[m] for m in ms) + " |"
-    lines.append("RMS in-plane error / RMS bias in micrometres (polar angle <= 60 deg); for ML "
-                 "the ratio to the CRLB and the share of errors inside the reported 1.515-sigma "
-                 "ellipse (68 % when the covariance is right) in brackets.")
+    lines.append(
+        "RMS in-plane error / RMS bias in micrometres (polar angle <= 60 deg); for ML "
+        "the ratio to the CRLB and the share of errors inside the reported 1.515-sigma "
+        "ellipse (68 % when the covariance is right) in brackets."
+    )
     lines.append("")
     lines.append(head)
     lines.append("|" + "---|" * (3 + len(ms)))
@@ -359,13 +452,15 @@ def table_markdown(res):
     lines.append("")
     load = res["setup"].get("load_average_at_end")
     loads = ", ".join(f"{x:.1f}" for x in load) if load else "n/a"
-    lines.append("Time per packet on one core (us, wall clock): batched (one call for all "
-                 "packets) / one packet per call; `localize_one`: mean (p50, p99) per call. "
-                 f"Compiled: numba {res['setup'].get('numba')}. Load average at the end of the "
-                 f"run: {loads} on {res['setup'].get('cpu_count')} cores: a shared, "
-                 "oversubscribed machine, so wall figures are upper bounds (p99 holds the "
-                 "scheduler's preemptions); the CPU-time table below is what the process itself "
-                 "spent.")
+    lines.append(
+        "Time per packet on one core (us, wall clock): batched (one call for all "
+        "packets) / one packet per call; `localize_one`: mean (p50, p99) per call. "
+        f"Compiled: numba {res['setup'].get('numba')}. Load average at the end of the "
+        f"run: {loads} on {res['setup'].get('cpu_count')} cores: a shared, "
+        "oversubscribed machine, so wall figures are upper bounds (p99 holds the "
+        "scheduler's preemptions); the CPU-time table below is what the process itself "
+        "spent."
+    )
     lines.append("")
     rates = list(res["timing"])
     lines.append("| method | " + " | ".join(rates) + " |")
@@ -379,23 +474,31 @@ def table_markdown(res):
             if v is None:
                 row.append("-")
             elif "p99_us" in v:
-                row.append(f"{v['single_us_per_packet']:.0f} "
-                           f"({v['p50_us']:.0f}, {v['p99_us']:.0f})")
+                row.append(
+                    f"{v['single_us_per_packet']:.0f} ({v['p50_us']:.0f}, {v['p99_us']:.0f})"
+                )
             elif "batched_us_per_packet" in v:
-                row.append(f"{v['batched_us_per_packet']:.0f} / {v['single_us_per_packet']:.0f} "
-                           f"({v['batched_packets_per_s'] / 1e3:.1f} k/s batched)")
+                row.append(
+                    f"{v['batched_us_per_packet']:.0f} / {v['single_us_per_packet']:.0f} "
+                    f"({v['batched_packets_per_s'] / 1e3:.1f} k/s batched)"
+                )
             else:
                 row.append(f"- / {v['single_us_per_packet']:.0f}")
         lines.append("| " + " | ".join(row) + " |")
     lines.append("")
-    lines.append("CPU time of the process per packet (us; `time.process_time`, insensitive to "
-                 "other processes): batched (packets/s), and `localize_one` mean (p50, p99).")
+    lines.append(
+        "CPU time of the process per packet (us; `time.process_time`, insensitive to "
+        "other processes): batched (packets/s), and `localize_one` mean (p50, p99)."
+    )
     lines.append("")
     lines.append("| method | " + " | ".join(rates) + " |")
     lines.append("|---|" + "---|" * len(rates))
     for key, name in TIMING_ROWS:
-        if not any("batched_cpu_us_per_packet" in res["timing"][r].get(key, {})
-                   or "cpu_us" in res["timing"][r].get(key, {}) for r in rates):
+        if not any(
+            "batched_cpu_us_per_packet" in res["timing"][r].get(key, {})
+            or "cpu_us" in res["timing"][r].get(key, {})
+            for r in rates
+        ):
             continue
         row = [name]
         for r in rates:
@@ -403,8 +506,10 @@ def table_markdown(res):
             if "cpu_us" in v:
                 row.append(f"{v['cpu_us']:.0f} ({v['cpu_p50_us']:.0f}, {v['cpu_p99_us']:.0f})")
             elif "batched_cpu_us_per_packet" in v:
-                row.append(f"{v['batched_cpu_us_per_packet']:.1f} "
-                           f"({v['batched_cpu_packets_per_s'] / 1e3:.0f} k/s)")
+                row.append(
+                    f"{v['batched_cpu_us_per_packet']:.1f} "
+                    f"({v['batched_cpu_packets_per_s'] / 1e3:.0f} k/s)"
+                )
             else:
                 row.append("-")
         lines.append("| " + " | ".join(row) + " |")
@@ -413,6 +518,7 @@ def table_markdown(res):
 
 def plot(res, path):
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -431,22 +537,46 @@ def plot(res, path):
             us = t.get("batched_us_per_packet", t.get("single_us_per_packet"))
             if us is None:
                 continue
-            ax.scatter(us, v["rms_mm"] * 1e3, color=colors[m], marker=marker, s=60,
-                       label=f"{LABELS[m]}" if snr == 20.0 else None)
+            ax.scatter(
+                us,
+                v["rms_mm"] * 1e3,
+                color=colors[m],
+                marker=marker,
+                s=60,
+                label=f"{LABELS[m]}" if snr == 20.0 else None,
+            )
             if "single_us_per_packet" in t and "batched_us_per_packet" in t:
-                ax.plot([t["batched_us_per_packet"], t["single_us_per_packet"]], [v["rms_mm"] * 1e3] * 2,
-                        color=colors[m], lw=0.8, alpha=0.5)
+                ax.plot(
+                    [t["batched_us_per_packet"], t["single_us_per_packet"]],
+                    [v["rms_mm"] * 1e3] * 2,
+                    color=colors[m],
+                    lw=0.8,
+                    alpha=0.5,
+                )
         # the same ml estimates through the other paths (identical error)
         v = cell["methods"]["ml"]
-        extra = (("ml_numpy", "batched_us_per_packet", "x", "ML, numpy path (batched)"),
-                 ("localize_one_numba", "p99_us", "*", "ML localize_one, p99"),
-                 ("localize_one_numpy", "p99_us", "+", "ML localize_one numpy, p99"))
+        extra = (
+            ("ml_numpy", "batched_us_per_packet", "x", "ML, numpy path (batched)"),
+            ("localize_one_numba", "p99_us", "*", "ML localize_one, p99"),
+            ("localize_one_numpy", "p99_us", "+", "ML localize_one numpy, p99"),
+        )
         for key, field, mk, name in extra:
             if key in tmr:
-                ax.scatter(tmr[key][field], v["rms_mm"] * 1e3, color="k", marker=mk, s=60,
-                           label=name if snr == 20.0 else None)
-        ax.axhline(cell["crlb_rms_mm"] * 1e3, color="k", ls="--" if snr == 20 else ":", lw=1,
-                   label=f"CRLB {snr:g} dB")
+                ax.scatter(
+                    tmr[key][field],
+                    v["rms_mm"] * 1e3,
+                    color="k",
+                    marker=mk,
+                    s=60,
+                    label=name if snr == 20.0 else None,
+                )
+        ax.axhline(
+            cell["crlb_rms_mm"] * 1e3,
+            color="k",
+            ls="--" if snr == 20 else ":",
+            lw=1,
+            label=f"CRLB {snr:g} dB",
+        )
     ax.axvline(100.0, color="r", lw=0.8, ls="-.", label="0.1 ms per packet")
     ax.axvline(20.0, color="g", lw=0.8, ls="-.", label="50 k packets/s")
     ax.set_xscale("log")
@@ -456,20 +586,38 @@ def plot(res, path):
     ax.set_title("speed vs error, 10 MS/s (circles 20 dB, squares 40 dB)")
     ax.legend(fontsize=7, loc="upper right")
     ax.grid(True, which="both", alpha=0.3)
-    styles = (("10", "-"), ("10 silicone", (0, (5, 1))), ("5", "--"), ("2", ":"),
-              ("2 (0.6 MHz anti-alias)", "-."))
+    styles = (
+        ("10", "-"),
+        ("10 silicone", (0, (5, 1))),
+        ("5", "--"),
+        ("2", ":"),
+        ("2 (0.6 MHz anti-alias)", "-."),
+    )
     ax = axes[1]
     for label, ls in styles:
         cs = [c for c in res["cells"] if c["label"] == label]
         if not cs:
             continue
         snr = [c["snr_db"] for c in cs]
-        ax.plot(snr, [c["crlb_rms_mm"] * 1e3 for c in cs], color="k", ls=ls, lw=1.5,
-                label=f"CRLB {label} MS/s")
+        ax.plot(
+            snr,
+            [c["crlb_rms_mm"] * 1e3 for c in cs],
+            color="k",
+            ls=ls,
+            lw=1.5,
+            label=f"CRLB {label} MS/s",
+        )
         for m in ("ml", "gcc_phat", "xcorr_farfield", "pra_srp_phat"):
             if m in cs[0]["methods"]:
-                ax.plot(snr, [c["methods"][m]["rms_mm"] * 1e3 for c in cs], color=colors[m], ls=ls, marker="o",
-                        ms=3, label=f"{LABELS[m]}" if label == "10" else None)
+                ax.plot(
+                    snr,
+                    [c["methods"][m]["rms_mm"] * 1e3 for c in cs],
+                    color=colors[m],
+                    ls=ls,
+                    marker="o",
+                    ms=3,
+                    label=f"{LABELS[m]}" if label == "10" else None,
+                )
     ax.set_yscale("log")
     ax.set_xlabel("SNR (dB, docs/conventions.md)")
     ax.set_ylabel("RMS in-plane error (um)")
@@ -482,11 +630,22 @@ def plot(res, path):
         if not cs:
             continue
         snr = [c["snr_db"] for c in cs]
-        ax.plot(snr, [c["methods"]["ml"]["ratio_to_crlb"] for c in cs], color=f"C{i}", marker="o",
-                label=f"ML {label} MS/s")
+        ax.plot(
+            snr,
+            [c["methods"]["ml"]["ratio_to_crlb"] for c in cs],
+            color=f"C{i}",
+            marker="o",
+            label=f"ML {label} MS/s",
+        )
         if "ml_fixed_band" in cs[0]["methods"]:
-            ax.plot(snr, [c["methods"]["ml_fixed_band"]["ratio_to_crlb"] for c in cs],
-                    color=f"C{i}", ls=":", marker=".", label="fixed band" if i == 0 else None)
+            ax.plot(
+                snr,
+                [c["methods"]["ml_fixed_band"]["ratio_to_crlb"] for c in cs],
+                color=f"C{i}",
+                ls=":",
+                marker=".",
+                label="fixed band" if i == 0 else None,
+            )
     ax.axhline(1.1, color="k", lw=0.8, ls="--", label="1.1x / 1.2x")
     ax.axhline(1.2, color="k", lw=0.8, ls="--")
     ax.set_yscale("log")
@@ -516,8 +675,11 @@ def update_doc(table):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer packets (a smoke run)")
-    ap.add_argument("--report-only", action="store_true",
-                    help="redo the table, plot and docs from the last JSON without running")
+    ap.add_argument(
+        "--report-only",
+        action="store_true",
+        help="redo the table, plot and docs from the last JSON without running",
+    )
     args = ap.parse_args(argv)
     suffix = "_quick" if args.quick else ""
     if args.report_only:

@@ -18,6 +18,7 @@ Both are CLOCK_REALTIME readings on this machine.
 Run: make bench-system   (bench/results/system.json, system_table.md; README figures)
      AE_BENCH_QUICK=1 for a short run.
 """
+
 from __future__ import annotations
 
 import json
@@ -30,7 +31,9 @@ import time
 
 import numpy as np
 
-ROOT = os.environ.get("AE_TACTILE_ROOT", os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+ROOT = os.environ.get(
+    "AE_TACTILE_ROOT", os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+)
 RESULTS = os.path.join(ROOT, "bench", "results")
 QUICK = bool(os.environ.get("AE_BENCH_QUICK"))
 N_SAMPLES, PRE = 400, 80
@@ -41,6 +44,7 @@ def render_scene_packets(scene: str, overrides: dict | None = None, max_packets:
     """Packets of a scene as the virtual fingertip would send them: int16 counts, window
     first-sample index (at the scene's sample rate) and the scene's sensor body."""
     from ae_tactile.sim.scene import load_scene
+
     sc = load_scene(os.path.join(ROOT, "config", "scenes", scene + ".yaml"), overrides)
     cfg = sc.config
     fs = cfg.sample_rate_hz
@@ -55,9 +59,12 @@ def render_scene_packets(scene: str, overrides: dict | None = None, max_packets:
         counts.append(np.clip(np.rint(b.samples_v / vpc), -adc_max - 1, adc_max).astype(np.int16))
         first.append(np.asarray(b.start_index, dtype=np.int64))
     g = cfg.geometry
-    body = {"medium": cfg.medium.name if hasattr(cfg.medium, "name") else str(cfg.medium),
-            "radius_m": g.radius_m, "element_offset_m": g.element_offset_m,
-            "sound_speed_m_s": g.sound_speed_m_s}
+    body = {
+        "medium": cfg.medium.name if hasattr(cfg.medium, "name") else str(cfg.medium),
+        "radius_m": g.radius_m,
+        "element_offset_m": g.element_offset_m,
+        "sound_speed_m_s": g.sound_speed_m_s,
+    }
     return np.concatenate(counts), np.concatenate(first), float(fs), vpc, body
 
 
@@ -90,6 +97,7 @@ class Listener:
 
         from ae_tactile.msg import ContactEvent
         from ae_tactile.ros.driver_node import EVENT_QOS
+
         self.node = rclpy.create_node("bench_hand", namespace=namespace)
         self.rows: list[tuple[int, int, int]] = []
         cb = self._on
@@ -99,7 +107,9 @@ class Listener:
         self.ex.add_node(self.node)
 
     def _on(self, msg) -> None:
-        self.rows.append((time.time_ns(), msg.event_type, msg.packet_ids[-1] if len(msg.packet_ids) else -1))
+        self.rows.append(
+            (time.time_ns(), msg.event_type, msg.packet_ids[-1] if len(msg.packet_ids) else -1)
+        )
 
     def spin_for(self, seconds: float) -> None:
         t_end = time.monotonic() + seconds
@@ -117,21 +127,35 @@ def run_case(name: str, counts, first, fs, vpc, body, *, namespace: str) -> dict
     tmp = tempfile.mkdtemp(prefix="ae_bench_")
     pk = os.path.join(tmp, "packets.npz")
     due = (first + N_SAMPLES) / fs
-    np.savez(pk, counts=counts, due_s=due, first_sample_index=first, pre_trigger=PRE,
-             sample_rate_hz=int(fs), v_per_count=vpc)
+    np.savez(
+        pk,
+        counts=counts,
+        due_s=due,
+        first_sample_index=first,
+        pre_trigger=PRE,
+        sample_rate_hz=int(fs),
+        v_per_count=vpc,
+    )
     log = os.path.join(tmp, "log.npz")
     port_file = os.path.join(tmp, "port")
-    writer = subprocess.Popen([sys.executable, os.path.join(ROOT, "bench", "fingertip_writer.py"), pk, log,
-                               port_file])
+    writer = subprocess.Popen(
+        [sys.executable, os.path.join(ROOT, "bench", "fingertip_writer.py"), pk, log, port_file]
+    )
     t_end = time.monotonic() + 20
     while not os.path.exists(port_file) and time.monotonic() < t_end:
         time.sleep(0.01)
     port = open(port_file).read().strip()
     listener = Listener(namespace)
-    params = {"port": port, "wait_for_subscribers": 1, "medium": body["medium"],
-              "radius_m": body["radius_m"], "element_offset_m": body["element_offset_m"],
-              "sound_speed_m_s": body["sound_speed_m_s"], "packet_samples": N_SAMPLES,
-              "pre_trigger_samples": PRE}
+    params = {
+        "port": port,
+        "wait_for_subscribers": 1,
+        "medium": body["medium"],
+        "radius_m": body["radius_m"],
+        "element_offset_m": body["element_offset_m"],
+        "sound_speed_m_s": body["sound_speed_m_s"],
+        "packet_samples": N_SAMPLES,
+        "pre_trigger_samples": PRE,
+    }
     cmd = [exe, "--ros-args", "-r", f"__ns:=/{namespace}", "--log-level", "warn"]
     for k, v in params.items():
         cmd += ["-p", f"{k}:={v}"]
@@ -159,15 +183,27 @@ def run_case(name: str, counts, first, fs, vpc, body, *, namespace: str) -> dict
     w = np.load(log)
     written = w["written_ns"]
     rows = np.array(listener.rows, dtype=np.int64).reshape(-1, 3)
-    out = {"case": name, "packets": int(len(counts)), "packets_written": int((written >= 0).sum()),
-           "duration_s": float(due[-1] - due[0]) if len(due) > 1 else 0.0}
+    out = {
+        "case": name,
+        "packets": int(len(counts)),
+        "packets_written": int((written >= 0).sum()),
+        "duration_s": float(due[-1] - due[0]) if len(due) > 1 else 0.0,
+    }
     if cpu0 is not None and t_stop is not None:
-        out["driver_cpu_percent_of_one_core"] = 100.0 * (cpu1[0] - cpu0[0]) / max(cpu1[1] - cpu0[1], 1e-9)
+        out["driver_cpu_percent_of_one_core"] = (
+            100.0 * (cpu1[0] - cpu0[0]) / max(cpu1[1] - cpu0[1], 1e-9)
+        )
     sched = w["start_ns"] + np.rint(due * 1e9).astype(np.int64)
     ok = written >= 0
-    out["writer_lag_ms_p99"] = float(np.percentile((written[ok] - sched[ok]) * 1e-6, 99)) if ok.any() else None
-    for label, types in (("contact", (1, 2)), ("slip_precursor", (3,)), ("slip", (4,)),
-                         ("slip_any", (3, 4))):
+    out["writer_lag_ms_p99"] = (
+        float(np.percentile((written[ok] - sched[ok]) * 1e-6, 99)) if ok.any() else None
+    )
+    for label, types in (
+        ("contact", (1, 2)),
+        ("slip_precursor", (3,)),
+        ("slip", (4,)),
+        ("slip_any", (3, 4)),
+    ):
         sel = rows[np.isin(rows[:, 1], types)] if rows.size else rows
         ids = sel[:, 2] if sel.size else np.zeros(0, np.int64)
         good = (ids >= 0) & (ids < len(written))
@@ -175,8 +211,11 @@ def run_case(name: str, counts, first, fs, vpc, body, *, namespace: str) -> dict
         lat = lat[np.isfinite(lat)]
         entry = {"events": int(lat.size)}
         if lat.size:
-            entry.update(median_ms=float(np.median(lat)), p99_ms=float(np.percentile(lat, 99)),
-                         max_ms=float(lat.max()))
+            entry.update(
+                median_ms=float(np.median(lat)),
+                p99_ms=float(np.percentile(lat, 99)),
+                max_ms=float(lat.max()),
+            )
             q = max(lat.size // 4, 1)
             entry["first_quarter_median_ms"] = float(np.median(lat[:q]))
             entry["last_quarter_median_ms"] = float(np.median(lat[-q:]))
@@ -197,6 +236,7 @@ def backlog(r: dict) -> bool:
 
 def floor_ms() -> dict:
     from ae_tactile.ros.monitor_node import two_hop_floor_ms
+
     return two_hop_floor_ms(n=200 if QUICK else 1000)
 
 
@@ -208,51 +248,82 @@ def fmt(e: dict) -> str:
 
 def markdown(res: dict) -> str:
     fl = res["floor_two_hop_ms"]
-    lines = [f"Floor, two bare rclpy hops (same run): median {fl['median']:.3f} ms, p99 {fl['p99']:.3f} ms.",
-             "",
-             "| emissions/s | contact events | latency median / p99 / max (ms) | median / floor "
-             "| driver CPU (% of a core) |",
-             "|---|---|---|---|---|"]
+    lines = [
+        f"Floor, two bare rclpy hops (same run): median {fl['median']:.3f} ms, "
+        f"p99 {fl['p99']:.3f} ms.",
+        "",
+        "| emissions/s | contact events | latency median / p99 / max (ms) | median / floor "
+        "| driver CPU (% of a core) |",
+        "|---|---|---|---|---|",
+    ]
     for r in res["rates"]:
         c = r["contact"]
-        ratio = f"{c['median_ms'] / fl['median']:.0f}x" if c.get("events") and fl.get("median") else "n/a"
-        lines.append(f"| {r['rate_hz']:g} | {c['events']} of {r['packets_written']} | {fmt(c)} | {ratio} | "
-                     f"{r.get('driver_cpu_percent_of_one_core', float('nan')):.0f} |")
+        ratio = (
+            f"{c['median_ms'] / fl['median']:.0f}x"
+            if c.get("events") and fl.get("median")
+            else "n/a"
+        )
+        lines.append(
+            f"| {r['rate_hz']:g} | {c['events']} of {r['packets_written']} | {fmt(c)} | {ratio} | "
+            f"{r.get('driver_cpu_percent_of_one_core', float('nan')):.0f} |"
+        )
     s = res.get("slip")
     if s:
-        lines += ["", f"Slip (incipient-slip scene, {s['packets']} packets): SLIP_PRECURSOR "
-                      f"{fmt(s['slip_precursor'])} ms, SLIP {fmt(s['slip'])} ms (median / p99 / max, "
-                      f"{s['slip_precursor']['events']} and {s['slip']['events']} events); contact events "
-                      f"{fmt(s['contact'])} ms."]
+        lines += [
+            "",
+            f"Slip (incipient-slip scene, {s['packets']} packets): SLIP_PRECURSOR "
+            f"{fmt(s['slip_precursor'])} ms, SLIP {fmt(s['slip'])} ms (median / p99 / max, "
+            f"{s['slip_precursor']['events']} and {s['slip']['events']} events); contact events "
+            f"{fmt(s['contact'])} ms.",
+        ]
     k = res.get("knee")
     if k:
-        lines += ["", f"Sustained without backlog up to {k['sustained_hz']:g} emissions/s "
-                      f"(backlog from {k['backlog_from_hz']} emissions/s)" if k.get("backlog_from_hz") else
-                  f"Sustained without backlog up to {k['sustained_hz']:g} emissions/s (the highest rate tried)."]
+        lines += [
+            "",
+            f"Sustained without backlog up to {k['sustained_hz']:g} emissions/s "
+            f"(backlog from {k['backlog_from_hz']} emissions/s)"
+            if k.get("backlog_from_hz")
+            else f"Sustained without backlog up to {k['sustained_hz']:g} emissions/s "
+            "(the highest rate tried).",
+        ]
     return "\n".join(lines)
 
 
 def main() -> int:
     import rclpy
+
     os.environ.setdefault("ROS_DOMAIN_ID", str(60 + os.getpid() % 40))
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     rclpy.init()
     load_before = os.getloadavg()
-    pool_counts, _, fs, vpc, body = render_scene_packets("random_touches", {"duration_s": 20.0}, 400)
-    res = {"benchmark": __doc__.split("\n")[0], "machine": platform.platform(), "cpus": os.cpu_count(),
-           "load_average_before": load_before, "rates": []}
+    pool_counts, _, fs, vpc, body = render_scene_packets(
+        "random_touches", {"duration_s": 20.0}, 400
+    )
+    res = {
+        "benchmark": __doc__.split("\n")[0],
+        "machine": platform.platform(),
+        "cpus": os.cpu_count(),
+        "load_average_before": load_before,
+        "rates": [],
+    }
     res["floor_two_hop_ms"] = floor_ms()
     print("floor:", res["floor_two_hop_ms"], flush=True)
     rates = [int(r) for r in os.environ.get("AE_BENCH_RATES", "20,100,1000,5000").split(",")]
     for i, rate in enumerate(rates):
-        dur = max(3.0, min(10.0, 2000.0 / rate)) * (0.4 if QUICK else 1.0)   # >= 200 events for p99
+        dur = max(3.0, min(10.0, 2000.0 / rate)) * (0.4 if QUICK else 1.0)  # >= 200 events for p99
         first = poisson_schedule(rate, dur, fs, seed=i)
         counts = pool_counts[np.arange(len(first)) % len(pool_counts)]
-        r = run_case(f"random touches {rate}/s", counts, first, fs, vpc, body, namespace=f"bench{i}")
+        r = run_case(
+            f"random touches {rate}/s", counts, first, fs, vpc, body, namespace=f"bench{i}"
+        )
         r["rate_hz"] = rate
         res["rates"].append(r)
-        print(f"{rate:>6}/s: contact {fmt(r['contact'])} ms ({r['contact']['events']} of {r['packets_written']}),"
-              f" driver CPU {r.get('driver_cpu_percent_of_one_core', float('nan')):.0f} %", flush=True)
+        print(
+            f"{rate:>6}/s: contact {fmt(r['contact'])} ms "
+            f"({r['contact']['events']} of {r['packets_written']}),"
+            f" driver CPU {r.get('driver_cpu_percent_of_one_core', float('nan')):.0f} %",
+            flush=True,
+        )
     if os.environ.get("AE_BENCH_NO_SLIP_KNEE"):
         rclpy.shutdown()
         print(markdown(res))
@@ -269,9 +340,15 @@ def main() -> int:
         counts = pool_counts[np.arange(len(first)) % len(pool_counts)]
         r = run_case(f"knee {rate}/s", counts, first, fs, vpc, body, namespace=f"bench_knee{j}")
         bl = backlog(r)
-        knee["tried"].append({"rate_hz": rate, "backlog": bl, "contact": r["contact"],
-                              "writer_lag_ms_p99": r["writer_lag_ms_p99"],
-                              "driver_cpu_percent_of_one_core": r.get("driver_cpu_percent_of_one_core")})
+        knee["tried"].append(
+            {
+                "rate_hz": rate,
+                "backlog": bl,
+                "contact": r["contact"],
+                "writer_lag_ms_p99": r["writer_lag_ms_p99"],
+                "driver_cpu_percent_of_one_core": r.get("driver_cpu_percent_of_one_core"),
+            }
+        )
         print(f"knee {rate}/s: backlog {bl}, contact {fmt(r['contact'])} ms", flush=True)
         if bl:
             backlog_from = rate

@@ -11,8 +11,10 @@ STATUS) like the firmware, and after START writes packet k when due_s[k] has pas
 schedule is done (or on SIGINT/SIGTERM) it saves LOG.npz: written_ns (K,) int64 host
 time (time.time_ns, CLOCK_REALTIME, the clock rclpy stamps with) at which packet k's last
 byte was written (-1 if not written), and start_ns, the host time of START (so the
-schedule's own lag, a backed-up port, shows too). Latency is measured from there: device bytes -> event.
+schedule's own lag, a backed-up port, shows too). Latency is measured from there:
+device bytes -> event.
 """
+
 from __future__ import annotations
 
 import os
@@ -23,8 +25,17 @@ import tty
 
 import numpy as np
 
-from ae_tactile.protocol import (Ack, AckResult, Command, DeviceState, Direction, FrameEncoder,
-                                 Packet, Status, StreamDecoder)
+from ae_tactile.protocol import (
+    Ack,
+    AckResult,
+    Command,
+    DeviceState,
+    Direction,
+    FrameEncoder,
+    Packet,
+    Status,
+    StreamDecoder,
+)
 from ae_tactile.protocol.frames import Opcode
 
 
@@ -55,14 +66,16 @@ def main(argv) -> int:
         view = memoryview(data)
         while view:
             try:
-                view = view[os.write(master, view):]
+                view = view[os.write(master, view) :]
             except BlockingIOError:
                 time.sleep(0.0001)
 
     def status() -> bytes:
         st = DeviceState.TRIGGERED if state["acquiring"] else DeviceState.IDLE
-        return enc.encode(Status(now_us(), st, fs, vpc, 10, n_samples, pre, 0, 0, (0, 1, 0),
-                                 "AE-BENCH-0001"), now_us())
+        return enc.encode(
+            Status(now_us(), st, fs, vpc, 10, n_samples, pre, 0, 0, (0, 1, 0), "AE-BENCH-0001"),
+            now_us(),
+        )
 
     def on_signal(*_):
         state["stop"] = True
@@ -100,7 +113,9 @@ def main(argv) -> int:
         elapsed_s = (time.monotonic_ns() - state["t0"]) * 1e-9
         while k < k_total and due_s[k] <= elapsed_s:
             first_us = int((state["t0"] - t_boot) // 1000 + first_index[k] * 1e6 / fs) & 0xFFFFFFFF
-            body = Packet(counts[k], fs, vpc, first_sample_index=int(first_index[k]), pre_trigger=pre)
+            body = Packet(
+                counts[k], fs, vpc, first_sample_index=int(first_index[k]), pre_trigger=pre
+            )
             write(enc.encode(body, first_us))
             log[k] = time.time_ns()
             k += 1

@@ -6,6 +6,7 @@ AE_TACTILE_REQUIRE_ROS=1 turns a missing rclpy into a failure, so CI cannot skip
 Each test session gets its own ROS domain id and localhost-only discovery so parallel
 runs on one machine do not hear each other.
 """
+
 import os
 import random
 
@@ -19,6 +20,7 @@ def require_ros():
     """Import rclpy + ae_tactile.msg, or skip (fail under AE_TACTILE_REQUIRE_ROS=1)."""
     try:
         import rclpy  # noqa: F401
+
         import ae_tactile.msg  # noqa: F401
     except ImportError as exc:
         if os.environ.get("AE_TACTILE_REQUIRE_ROS") == "1":
@@ -31,6 +33,7 @@ def ros_context():
     """A fresh rclpy context for one test; shut down afterwards."""
     require_ros()
     import rclpy
+
     context = rclpy.Context()
     rclpy.init(context=context)
     yield context
@@ -40,7 +43,9 @@ def ros_context():
 def installed_executable(name):
     """Path of a node executable in the colcon install space, or skip (fail under make test)."""
     require_ros()
-    root = os.environ.get("AE_TACTILE_ROOT", os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    root = os.environ.get(
+        "AE_TACTILE_ROOT", os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    )
     exe = os.path.join(root, "install", "ae_tactile", "lib", "ae_tactile", name)
     if not os.path.exists(exe):
         if os.environ.get("AE_TACTILE_REQUIRE_ROS") == "1":

@@ -5,6 +5,7 @@ with exact samples and stamps within 1 ms of the ground truth; faults injected b
 them (garbage, CRC errors, a 1 s unplug) show up exactly in the counters and diagnostics;
 bad parameters stop the node with the reason; SIGINT stops the executable cleanly.
 """
+
 import os
 import signal
 import subprocess
@@ -33,21 +34,34 @@ class System:
     """sim_fingertip + driver + a listener node on one executor."""
 
     def __init__(self, ctx, tmp_path, scene=SCENE, driver_params=()):
+        from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.executors import MultiThreadedExecutor
         from rclpy.parameter import Parameter
-        from diagnostic_msgs.msg import DiagnosticArray
+
         from ae_tactile.msg import ContactEvent, PacketArray, SensorInfo
         from ae_tactile.ros.driver_node import DriverNode
         from ae_tactile.ros.node_utils import LATCHED
         from ae_tactile.ros.sim_fingertip_node import SimFingertipNode
+
         link = str(tmp_path / "fingertip0")
-        self.sim = SimFingertipNode(context=ctx, parameter_overrides=[
-            Parameter("scene", value=scene), Parameter("link_path", value=link)])
+        self.sim = SimFingertipNode(
+            context=ctx,
+            parameter_overrides=[
+                Parameter("scene", value=scene),
+                Parameter("link_path", value=link),
+            ],
+        )
         self.sim.device.record = True
-        self.driver = DriverNode(context=ctx, parameter_overrides=[
-            Parameter("port", value=link), Parameter("reliable_qos", value=True),
-            Parameter("diagnostics_period_s", value=0.2), Parameter("reconnect_max_s", value=0.4),
-            *driver_params])
+        self.driver = DriverNode(
+            context=ctx,
+            parameter_overrides=[
+                Parameter("port", value=link),
+                Parameter("reliable_qos", value=True),
+                Parameter("diagnostics_period_s", value=0.2),
+                Parameter("reconnect_max_s", value=0.4),
+                *driver_params,
+            ],
+        )
         self.listener = ctx_node = __import__("rclpy").create_node("listener", context=ctx)
         self.arrays, self.truth, self.diag, self.info = [], [], [], []
         ctx_node.create_subscription(PacketArray, "packets", self.arrays.append, 1000)
@@ -85,6 +99,7 @@ def system_factory(ros_context, tmp_path):
         s = System(ros_context, tmp_path, **kw)
         made.append(s)
         return s
+
     yield make
     for s in made:
         s.close()
@@ -92,22 +107,30 @@ def system_factory(ros_context, tmp_path):
 
 def test_end_to_end_every_packet_once_in_order_exact_and_stamped(system_factory):
     from ae_tactile.ros.conversions import packet_samples, time_msg_to_ns
+
     sys_ = system_factory()
     dev = sys_.sim.device
     sys_.spin(8.0, until=lambda: dev.finished(time.monotonic_ns()))
-    sys_.spin(5.0, until=lambda: len(sys_.packets()) >= len(sys_.sent()))   # in flight: arrive
+    sys_.spin(5.0, until=lambda: len(sys_.packets()) >= len(sys_.sent()))  # in flight: arrive
     sys_.spin(0.5)
     sent, pk = sys_.sent(), sys_.packets()
     assert len(sent) >= 30
-    assert len(pk) == len(sent)                                            # exactly once
-    assert [p.sequence_id for p in pk] == list(range(len(sent)))           # in order
+    assert len(pk) == len(sent)  # exactly once
+    assert [p.sequence_id for p in pk] == list(range(len(sent)))  # in order
     for p, s in zip(pk, sent):
         expect = (s.samples.astype(np.float32) * np.float32(s.v_per_count)).astype(np.float32)
-        assert np.array_equal(packet_samples(p), expect)                   # exact after int16 scaling
+        assert np.array_equal(packet_samples(p), expect)  # exact after int16 scaling
     truth = [t for t in sys_.truth if t.confidence > 0]
     assert len(truth) == len(pk)
-    err_ms = [(time_msg_to_ns(p.stamp) + p.onset_index * 1e9 / p.sample_rate_hz
-               - time_msg_to_ns(t.header.stamp)) / 1e6 for p, t in zip(pk, truth)]
+    err_ms = [
+        (
+            time_msg_to_ns(p.stamp)
+            + p.onset_index * 1e9 / p.sample_rate_hz
+            - time_msg_to_ns(t.header.stamp)
+        )
+        / 1e6
+        for p, t in zip(pk, truth)
+    ]
     assert max(map(abs, err_ms)) < 1.0, err_ms
     assert all(a.header.frame_id == "ae_tactile_fingertip" for a in sys_.arrays)
     assert sys_.arrays[-1].packets_dropped == 0 and sys_.arrays[-1].frames_bad_crc == 0
@@ -115,35 +138,45 @@ def test_end_to_end_every_packet_once_in_order_exact_and_stamped(system_factory)
     assert sys_.info and sys_.info[-1].serial_number == "AE-SIM-0001"
     assert sys_.info[-1].radius_m == 0.01 and sys_.info[-1].sample_rate_hz == 10e6
     d = sys_.diag_values()
-    assert d["state"] == "connected" and d["crc_errors"] == "0" and d["packets_out"] == str(len(pk))
+    assert (
+        d["state"] == "connected" and d["crc_errors"] == "0" and d["packets_out"] == str(len(pk))
+    )
 
 
 def test_injected_faults_match_counters_and_diagnostics(system_factory, tmp_path):
     from diagnostic_msgs.msg import DiagnosticStatus
+
     from ae_tactile.protocol import FRAME_OVERHEAD
+
     sys_ = system_factory(scene=long_scene(tmp_path, 8.0))
     dev, runner = sys_.sim.device, sys_.sim.runner
     assert sys_.spin(5.0, until=lambda: len(sys_.packets()) >= 3)
     garbage = bytes(np.random.default_rng(9).integers(0, 256, 3000, dtype=np.uint8))
     dev.inject_garbage(garbage)
     dev.corrupt_next(2)
-    assert sys_.spin(5.0, until=lambda: len(sys_.sent("corrupted")) == 2 and len(sys_.packets()) >= 8)
+    assert sys_.spin(
+        5.0, until=lambda: len(sys_.sent("corrupted")) == 2 and len(sys_.packets()) >= 8
+    )
     sys_.spin(0.5)
     n_before_unplug = len(sys_.packets())
     runner.unplug(1.0)
     sys_.spin(0.6)
-    assert sys_.diag[-1].status[0].level == DiagnosticStatus.ERROR        # link lost, reported
-    assert sys_.spin(5.0, until=lambda: sys_.diag_values().get("connects") == "2"
-                     and len(sys_.packets()) > n_before_unplug + 3)
+    assert sys_.diag[-1].status[0].level == DiagnosticStatus.ERROR  # link lost, reported
+    assert sys_.spin(
+        5.0,
+        until=lambda: (
+            sys_.diag_values().get("connects") == "2" and len(sys_.packets()) > n_before_unplug + 3
+        ),
+    )
     sys_.spin(0.5)
     d = sys_.diag_values()
     corrupt_bytes = sum(FRAME_OVERHEAD + 24 + 8 * s.n_samples for s in sys_.sent("corrupted"))
     assert d["crc_errors"] == "2" and d["dropped_frames"] == "2" and d["packets_dropped"] == "2"
     assert d["bytes_discarded"] == str(len(garbage) + corrupt_bytes)
     assert d["disconnects"] == "1" and d["connects"] == "2" and d["state"] == "connected"
-    assert sys_.diag[-1].status[0].level == DiagnosticStatus.WARN          # errors so far, link up
+    assert sys_.diag[-1].status[0].level == DiagnosticStatus.WARN  # errors so far, link up
     last = sys_.arrays[-1]
-    assert last.frames_bad_crc == 2 and last.packets_dropped == 2          # visible to subscribers
+    assert last.frames_bad_crc == 2 and last.packets_dropped == 2  # visible to subscribers
     # Nothing valid lost: every packet sent intact (before and after the outage) arrives, in
     # order (the scene keeps playing: wait for those sent up to now).
     n_sent = len(sys_.sent())
@@ -154,10 +187,16 @@ def test_injected_faults_match_counters_and_diagnostics(system_factory, tmp_path
 
 def test_invalid_parameters_stop_the_node_with_the_reason(ros_context):
     from rclpy.parameter import Parameter
+
     from ae_tactile.ros.driver_node import DriverNode
     from ae_tactile.ros.params import ParameterError
-    cases = [("mode", "burst", "mode"), ("baudrate", 10, "baudrate"), ("port", " ", "port"),
-             ("channel_gains", [1.0, 1.0, -1.0, 1.0], "channel_gains")]
+
+    cases = [
+        ("mode", "burst", "mode"),
+        ("baudrate", 10, "baudrate"),
+        ("port", " ", "port"),
+        ("channel_gains", [1.0, 1.0, -1.0, 1.0], "channel_gains"),
+    ]
     for name, value, needle in cases:
         with pytest.raises(ParameterError, match=needle):
             DriverNode(context=ros_context, parameter_overrides=[Parameter(name, value=value)])
@@ -168,9 +207,14 @@ def test_driver_executable_exits_cleanly_on_sigint(tmp_path):
     and Ctrl-C ends it with exit code 0 and no traceback. Waits for the message, not for
     a fixed time (start-up includes compiling the localizer)."""
     import threading
+
     exe = installed_executable("driver")
-    proc = subprocess.Popen([exe, "--ros-args", "-p", "port:=/nonexistent/ttyACM7"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(
+        [exe, "--ros-args", "-p", "port:=/nonexistent/ttyACM7"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     lines, seen = [], threading.Event()
 
     def read():
@@ -178,6 +222,7 @@ def test_driver_executable_exits_cleanly_on_sigint(tmp_path):
             lines.append(line)
             if "cannot open /nonexistent/ttyACM7" in line:
                 seen.set()
+
     reader = threading.Thread(target=read, daemon=True)
     reader.start()
     try:
@@ -193,6 +238,8 @@ def test_driver_executable_exits_cleanly_on_sigint(tmp_path):
 
 def test_driver_executable_refuses_bad_parameter():
     exe = installed_executable("driver")
-    out = subprocess.run([exe, "--ros-args", "-p", "mode:=burst"], capture_output=True, text=True, timeout=20)
+    out = subprocess.run(
+        [exe, "--ros-args", "-p", "mode:=burst"], capture_output=True, text=True, timeout=20
+    )
     assert out.returncode == 2
     assert "not starting" in out.stderr and "'mode'" in out.stderr

@@ -1,5 +1,6 @@
 """Packet detector against ground truth: analytic streams (ae_tactile.dsp.synth, exact
 onsets) and the simulator's streaming source (ae_tactile.sim). No ROS."""
+
 import math
 
 import numpy as np
@@ -13,7 +14,7 @@ SIGMA = 2e-3
 
 
 def run(det, x, chunk=8192, start=0):
-    out = [det.process(x[:, i:i + chunk], start + i) for i in range(0, x.shape[1], chunk)]
+    out = [det.process(x[:, i : i + chunk], start + i) for i in range(0, x.shape[1], chunk)]
     out.append(det.flush())
     return PacketBatch.concatenate(out, det.sample_rate_hz, det.window_samples)
 
@@ -36,7 +37,9 @@ def match(found, truth, tol):
 def random_events(rng, n, snr_db, t0=0.5e-3, gap=(150e-6, 400e-6), fs=FS):
     amp = snr_amplitude(snr_db, SIGMA, fs)
     times = t0 + np.cumsum(rng.uniform(*gap, n))
-    return [SynthEvent(float(t), amp * float(rng.choice([-1, 1])), random_delays(rng)) for t in times]
+    return [
+        SynthEvent(float(t), amp * float(rng.choice([-1, 1])), random_delays(rng)) for t in times
+    ]
 
 
 # ---------------------------------------------------------------- detection accuracy
@@ -57,7 +60,7 @@ def test_detects_every_emission_with_exact_onsets(snr_db):
     # windows: 10 us before and the whole first 30 us after the onset, original samples
     assert b.samples.shape == (40, 4, 400) and (b.onset_index == 100).all()
     for i, s in enumerate(b.start_index[:5]):
-        assert np.array_equal(b.samples[i], x[:, s:s + 400])
+        assert np.array_equal(b.samples[i], x[:, s : s + 400])
     assert np.array_equal(b.polarity[m], np.sign([e.amplitude_v for e in evs]).astype(np.int8))
     # pre-onset noise within 10 % of the truth (on average; each within 25 %)
     r = b.noise_rms_v / SIGMA
@@ -73,8 +76,13 @@ def test_detects_every_emission_with_exact_onsets(snr_db):
 def test_simulator_stream_ground_truth(snr_db):
     import ae_tactile.sim as sim
     from ae_tactile.sim.scene import reference_noise_rms
-    from ae_tactile.sim.stream import (EmissionList, StaticEmissions, StreamingSource,
-                                       sample_index_of_ns)
+    from ae_tactile.sim.stream import (
+        EmissionList,
+        StaticEmissions,
+        StreamingSource,
+        sample_index_of_ns,
+    )
+
     cfg = sim.SimConfig()
     rng = np.random.default_rng(11)
     n_em = 80
@@ -82,9 +90,17 @@ def test_simulator_stream_ground_truth(snr_db):
     th = np.arccos(rng.uniform(np.cos(np.radians(70)), 1.0, n_em))
     pts = cfg.geometry.surface_point_from_angles(th, rng.uniform(0, 2 * np.pi, n_em))
     pol = rng.choice([-1, 1], n_em)
-    em = EmissionList.create((times * 1e9).astype(np.int64), pts, "touch", polarity=pol,
-                             speed_m_s=0.3, curvature_1_m=1000.0, alpha_1_s=3000.0,
-                             density_kg_m3=1000.0, event_id=np.arange(n_em))
+    em = EmissionList.create(
+        (times * 1e9).astype(np.int64),
+        pts,
+        "touch",
+        polarity=pol,
+        speed_m_s=0.3,
+        curvature_1_m=1000.0,
+        alpha_1_s=3000.0,
+        density_kg_m3=1000.0,
+        event_id=np.arange(n_em),
+    )
     sigma = reference_noise_rms(cfg, snr_db)
     src = StreamingSource(StaticEmissions(em), cfg, noise_rms_v=sigma, seed=2)
     det = PacketDetector(DetectorConfig(full_scale_v=cfg.adc_full_scale_v, adc_bits=cfg.adc_bits))
@@ -106,14 +122,16 @@ def test_simulator_stream_ground_truth(snr_db):
     assert np.mean(np.abs(err - np.median(err)) <= 1) >= 0.95
     assert np.array_equal(b.polarity[m], pol.astype(np.int8))
     # noise: the simulator's white noise plus the ADC's quantization noise (LSB^2 / 12)
-    true_rms = math.sqrt(sigma ** 2 + cfg.lsb_v ** 2 / 12)
+    true_rms = math.sqrt(sigma**2 + cfg.lsb_v**2 / 12)
     assert abs(np.mean(b.noise_rms_v) / true_rms - 1) < 0.05
     assert abs(np.median(b.snr_db) - snr_db) < 1.5
 
 
 # ---------------------------------------------------------------- overlapping emissions
-@pytest.mark.parametrize("dt_us, ratio", [(5, 1.0), (8, 1.0), (15, 1.0), (30, 1.0),
-                                          (6, 0.5), (15, 0.5), (5, 2.0), (20, 2.0)])
+@pytest.mark.parametrize(
+    "dt_us, ratio",
+    [(5, 1.0), (8, 1.0), (15, 1.0), (30, 1.0), (6, 0.5), (15, 0.5), (5, 2.0), (20, 2.0)],
+)
 def test_overlapping_emissions_each_get_a_flagged_window(dt_us, ratio):
     rng = np.random.default_rng(dt_us * 10 + int(ratio * 4))
     amp = snr_amplitude(25.0, SIGMA, FS)
@@ -143,14 +161,19 @@ def test_overlapping_emissions_each_get_a_flagged_window(dt_us, ratio):
             assert b.in_hit[j]
         ok += 1
     assert ok >= 19, f"only {ok}/20 pairs resolved"
-    assert len(b) <= 41                          # no spurious extra windows
+    assert len(b) <= 41  # no spurious extra windows
 
 
 def test_overlapping_emissions_in_the_simulator():
     import ae_tactile.sim as sim
     from ae_tactile.sim.scene import reference_noise_rms
-    from ae_tactile.sim.stream import (EmissionList, StaticEmissions, StreamingSource,
-                                       sample_index_of_ns)
+    from ae_tactile.sim.stream import (
+        EmissionList,
+        StaticEmissions,
+        StreamingSource,
+        sample_index_of_ns,
+    )
+
     cfg = sim.SimConfig()
     rng = np.random.default_rng(5)
     n = 30
@@ -159,11 +182,20 @@ def test_overlapping_emissions_in_the_simulator():
     times = np.concatenate([t1, t1 + dts])
     th = np.arccos(rng.uniform(np.cos(np.radians(60)), 1.0, 2 * n))
     pts = cfg.geometry.surface_point_from_angles(th, rng.uniform(0, 2 * np.pi, 2 * n))
-    em = EmissionList.create((times * 1e9).astype(np.int64), pts, "touch",
-                             polarity=rng.choice([-1, 1], 2 * n), speed_m_s=0.3,
-                             curvature_1_m=1000.0, alpha_1_s=3000.0, density_kg_m3=1000.0,
-                             event_id=np.arange(2 * n))
-    src = StreamingSource(StaticEmissions(em), cfg, noise_rms_v=reference_noise_rms(cfg, 25.0), seed=4)
+    em = EmissionList.create(
+        (times * 1e9).astype(np.int64),
+        pts,
+        "touch",
+        polarity=rng.choice([-1, 1], 2 * n),
+        speed_m_s=0.3,
+        curvature_1_m=1000.0,
+        alpha_1_s=3000.0,
+        density_kg_m3=1000.0,
+        event_id=np.arange(2 * n),
+    )
+    src = StreamingSource(
+        StaticEmissions(em), cfg, noise_rms_v=reference_noise_rms(cfg, 25.0), seed=4
+    )
     det = PacketDetector()
     out = []
     while src.position < int((t1[-1] + 0.3e-3) * FS):
@@ -171,8 +203,9 @@ def test_overlapping_emissions_in_the_simulator():
         out.append(det.process(ch.samples_v, ch.start_index))
     b = PacketBatch.concatenate(out + [det.flush()])
     ne, frac = sample_index_of_ns(em.time_ns, FS)
-    truth = ne + np.ceil((frac + cfg.geometry.arrival_times_s(em.point_m).min(axis=1)) * FS
-                         - 1e-9).astype(np.int64)
+    truth = ne + np.ceil(
+        (frac + cfg.geometry.arrival_times_s(em.point_m).min(axis=1)) * FS - 1e-9
+    ).astype(np.int64)
     by_id = dict(zip(em.event_id.tolist(), truth.tolist()))
     on = onsets(b)
     resolved = 0
@@ -184,13 +217,17 @@ def test_overlapping_emissions_in_the_simulator():
 
 def test_only_windows_that_intersect_are_flagged():
     amp = snr_amplitude(25.0, SIGMA, FS)
-    evs = [SynthEvent(0.6e-3, amp), SynthEvent(0.6e-3 + 35e-6, amp),      # intersect
-           SynthEvent(1.0e-3, amp), SynthEvent(1.0e-3 + 45e-6, amp)]      # 45 us > 40 us
+    evs = [
+        SynthEvent(0.6e-3, amp),
+        SynthEvent(0.6e-3 + 35e-6, amp),  # intersect
+        SynthEvent(1.0e-3, amp),
+        SynthEvent(1.0e-3 + 45e-6, amp),
+    ]  # 45 us > 40 us
     x = synth_stream(int(1.3e-3 * FS), FS, evs, noise_rms_v=SIGMA, seed=3)
     b = run(PacketDetector(), x)
     assert len(b) == 4
     assert b.overlap.tolist() == [True, True, False, False]
-    assert b.clear_after.tolist() == [300, 300, 300, 300]       # 35 us > the 30 us post part
+    assert b.clear_after.tolist() == [300, 300, 300, 300]  # 35 us > the 30 us post part
 
 
 # ---------------------------------------------------------------- AE timing rules
@@ -226,14 +263,20 @@ def test_hysteresis_no_chatter_on_a_slowly_decaying_packet():
     for t0 in (0.5e-3, 1.2e-3):
         for k, dl in enumerate(random_delays(rng)):
             tt = t - t0 - dl
-            x[k] += np.where(tt >= 0, 0.05 * np.exp(-tt / 60e-6) * np.cos(2 * np.pi * 150e3 * tt), 0)
+            x[k] += np.where(
+                tt >= 0, 0.05 * np.exp(-tt / 60e-6) * np.cos(2 * np.pi * 150e3 * tt), 0
+            )
     det = PacketDetector()
     b = run(det, x)
     assert len(b) == 2 and det.stats.in_hit_emissions == 0
     # without hysteresis (hold of one sample, re-arm just below the threshold) the same
     # packets chatter
-    det = PacketDetector(envelope_hold_s=0.2e-6, rearm_sigma=4.9, hit_definition_time_s=0.2e-6,
-                         min_separation_s=0.2e-6)
+    det = PacketDetector(
+        envelope_hold_s=0.2e-6,
+        rearm_sigma=4.9,
+        hit_definition_time_s=0.2e-6,
+        min_separation_s=0.2e-6,
+    )
     assert len(run(det, x)) > 4
 
 
@@ -241,11 +284,18 @@ def test_hysteresis_no_chatter_on_a_slowly_decaying_packet():
 def test_wall_echo_rejection():
     rng = np.random.default_rng(2)
     evs = random_events(rng, 20, 25.0, gap=(200e-6, 300e-6))
-    x = synth_stream(int((evs[-1].time_s + 0.2e-3) * FS), FS, evs, noise_rms_v=SIGMA, seed=5,
-                     echo_ratio=-0.5, echo_delay_s=13.5e-6)
+    x = synth_stream(
+        int((evs[-1].time_s + 0.2e-3) * FS),
+        FS,
+        evs,
+        noise_rms_v=SIGMA,
+        seed=5,
+        echo_ratio=-0.5,
+        echo_delay_s=13.5e-6,
+    )
     truth = np.array([e.onset_index(FS) for e in evs])
     plain = run(PacketDetector(), x)
-    assert len(plain) >= 35 and plain.in_hit.sum() >= 15       # echoes windowed as in-hit
+    assert len(plain) >= 35 and plain.in_hit.sum() >= 15  # echoes windowed as in-hit
     det = PacketDetector(echo_delay_s=13.5e-6)
     b = run(det, x)
     assert len(b) == 20 and (match(onsets(b), truth, 1) >= 0).all()
@@ -255,8 +305,11 @@ def test_wall_echo_rejection():
 def test_saturated_packets_are_flagged():
     rng = np.random.default_rng(3)
     amp = snr_amplitude(25.0, SIGMA, FS)
-    evs = [SynthEvent(0.6e-3, amp, random_delays(rng)), SynthEvent(0.9e-3, 4.0, random_delays(rng)),
-           SynthEvent(1.2e-3, -4.0, random_delays(rng))]
+    evs = [
+        SynthEvent(0.6e-3, amp, random_delays(rng)),
+        SynthEvent(0.9e-3, 4.0, random_delays(rng)),
+        SynthEvent(1.2e-3, -4.0, random_delays(rng)),
+    ]
     x = synth_stream(int(1.5e-3 * FS), FS, evs, noise_rms_v=SIGMA, seed=6, full_scale_v=1.0)
     det = PacketDetector(full_scale_v=1.0, adc_bits=12)
     b = run(det, x)
@@ -283,14 +336,15 @@ def test_sample_rates_1_to_20_mhz(fs):
 def test_float32_input_gives_the_same_packets_as_its_float64_values():
     rng = np.random.default_rng(4)
     evs = random_events(rng, 10, 20.0)
-    x32 = synth_stream(int((evs[-1].time_s + 0.2e-3) * FS), FS, evs, noise_rms_v=SIGMA,
-                       seed=3, dtype=np.float32)
+    x32 = synth_stream(
+        int((evs[-1].time_s + 0.2e-3) * FS), FS, evs, noise_rms_v=SIGMA, seed=3, dtype=np.float32
+    )
     b32 = run(PacketDetector(), x32)
     b64 = run(PacketDetector(), x32.astype(np.float64))
     assert len(b32) == 10 and b32.equals(b64)
     assert b32.samples.dtype == np.float64
     s = b32.start_index[0]
-    assert np.array_equal(b32.samples[0], x32[:, s:s + 400].astype(np.float64))
+    assert np.array_equal(b32.samples[0], x32[:, s : s + 400].astype(np.float64))
     # int16 ADC counts are accepted too (no exception, same windows up to the scale)
     counts = np.round(x32 / 1e-4).astype(np.int16)
     bi = run(PacketDetector(full_scale_v=3.2767), counts)
@@ -320,6 +374,11 @@ def test_analyze_window_reproduces_the_stream_fields():
     assert r.valid.tolist() == [True, False]
     for f in ("noise_rms_v", "peak_amplitude_v", "snr_db"):
         assert np.all(np.isfinite(getattr(r, f)))
-    for w in (np.zeros((2, 3, 400)), np.zeros((4,)), np.zeros((1, 4, 8)), np.zeros((1, 4, 400), complex)):
+    for w in (
+        np.zeros((2, 3, 400)),
+        np.zeros((4,)),
+        np.zeros((1, 4, 8)),
+        np.zeros((1, 4, 400), complex),
+    ):
         with pytest.raises(ValueError):
             analyze_window(w, FS)

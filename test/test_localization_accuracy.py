@@ -1,5 +1,6 @@
 """Localization accuracy on simulated packets: the paper's Fig. 7(d) and Fig. 8(e) cases,
 accuracy against the Cramer-Rao bound, covariance calibration, touch vs release."""
+
 import numpy as np
 import pytest
 
@@ -8,7 +9,7 @@ from ae_tactile.localization.crlb import simulated_crlb
 from ae_tactile.sim import SimConfig, noise_rms_for_snr, render_triggered, signal_power_v2
 from ae_tactile.sim.stream import EmissionList, StreamRenderer
 
-CFG = SimConfig()                 # the paper's water-skin tip, 10 MS/s, 12-bit ADC
+CFG = SimConfig()  # the paper's water-skin tip, 10 MS/s, 12-bit ADC
 GEO = CFG.geometry
 FS = CFG.sample_rate_hz
 
@@ -33,19 +34,29 @@ def test_fig7d_touches_at_0_25_5_mm_within_50_um():
     # the paper's own processing (Eq. 2 from cross-correlation peaks) is near, not exact
     ff = localize(pk.samples_v, FS, pk.onset_index, method="xcorr_farfield")
     err_ff = np.linalg.norm(ff.point_m - pts, axis=1)
-    assert err_ff.max() < 0.3e-3 and np.sqrt(np.mean(err_ff ** 2)) > 2 * np.sqrt(np.mean(err ** 2))
+    assert err_ff.max() < 0.3e-3 and np.sqrt(np.mean(err_ff**2)) > 2 * np.sqrt(np.mean(err**2))
 
 
 def test_fig8e_three_pins_in_one_stream_within_50_um():
     # Fig. 8(e): a plate with three pins; three touches within 2 ms in one stream, with the
     # wall echoes on (the estimators must stop before them). SNR 30 dB for a touch at the apex.
     cfg = CFG.replace(reflections=True)
-    xy = np.array([[-3e-3, 2e-3], [3e-3, 2e-3], [0.0, -3e-3]])       # the simulator's three_pins scene
+    xy = np.array([[-3e-3, 2e-3], [3e-3, 2e-3], [0.0, -3e-3]])  # the simulator's three_pins scene
     pts = GEO.surface_point_from_xy(xy[:, 0], xy[:, 1])
-    t_ns = np.array([100_000, 800_000, 1_900_000])                  # 1.8 ms apart at most
-    em = EmissionList.create(t_ns, pts, "touch", speed_m_s=0.3, curvature_1_m=1000.0, alpha_1_s=3000.0,
-                             density_kg_m3=cfg.density, event_id=np.arange(3))
-    apex = render_triggered(np.array([[0, 0, GEO.radius_m]]), cfg.replace(quantization=False), subsample_offset=0.0)
+    t_ns = np.array([100_000, 800_000, 1_900_000])  # 1.8 ms apart at most
+    em = EmissionList.create(
+        t_ns,
+        pts,
+        "touch",
+        speed_m_s=0.3,
+        curvature_1_m=1000.0,
+        alpha_1_s=3000.0,
+        density_kg_m3=cfg.density,
+        event_id=np.arange(3),
+    )
+    apex = render_triggered(
+        np.array([[0, 0, GEO.radius_m]]), cfg.replace(quantization=False), subsample_offset=0.0
+    )
     sigma = float(noise_rms_for_snr(signal_power_v2(apex.clean_v, apex.onset_index, FS), 30.0)[0])
     n_total = int(2.1e-3 * FS)
     for seed in range(5):
@@ -55,7 +66,7 @@ def test_fig8e_three_pins_in_one_stream_within_50_um():
         first = t_ns * 1e-9 + GEO.arrival_times_s(pts).min(axis=1)
         onset_abs = np.ceil(first * FS).astype(int)
         starts = onset_abs - 80
-        win = np.stack([stream[:, s: s + 400] for s in starts])
+        win = np.stack([stream[:, s : s + 400] for s in starts])
         res = localize(win, FS, onset_abs - starts, method="ml")
         assert res.accepted.all(), res.reason_names
         assert np.linalg.norm(res.point_m - pts, axis=1).max() < 50e-6
@@ -73,9 +84,19 @@ def test_fig8e_three_pins_through_the_packet_detector():
     xy = np.array([[-3e-3, 2e-3], [3e-3, 2e-3], [0.0, -3e-3]])
     pts = GEO.surface_point_from_xy(xy[:, 0], xy[:, 1])
     t_ns = np.array([400_000, 1_100_000, 2_200_000])
-    em = EmissionList.create(t_ns, pts, "touch", speed_m_s=0.3, curvature_1_m=1000.0, alpha_1_s=3000.0,
-                             density_kg_m3=cfg.density, event_id=np.arange(3))
-    apex = render_triggered(np.array([[0, 0, GEO.radius_m]]), cfg.replace(quantization=False), subsample_offset=0.0)
+    em = EmissionList.create(
+        t_ns,
+        pts,
+        "touch",
+        speed_m_s=0.3,
+        curvature_1_m=1000.0,
+        alpha_1_s=3000.0,
+        density_kg_m3=cfg.density,
+        event_id=np.arange(3),
+    )
+    apex = render_triggered(
+        np.array([[0, 0, GEO.radius_m]]), cfg.replace(quantization=False), subsample_offset=0.0
+    )
     sigma = float(noise_rms_for_snr(signal_power_v2(apex.clean_v, apex.onset_index, FS), 30.0)[0])
     stream, _ = StreamRenderer(cfg, noise_rms_v=sigma, seed=3).render(em, 0, int(2.5e-3 * FS))
     det = PacketDetector(DetectorConfig(sample_rate_hz=FS))
@@ -104,13 +125,13 @@ def test_accuracy_against_crlb(snr_db):
     pk = render_triggered(pts, CFG, snr_db=snr_db, subsample_offset=u, rng=rng)
     bound = simulated_crlb(pts, CFG, snr_db=snr_db, subsample_offset=u)
     crlb = np.sqrt(np.mean(bound["rms_m"] ** 2))
-    assert 5e-6 < crlb < 30e-6          # tens of micrometres at 20 dB, a few at 30 dB
+    assert 5e-6 < crlb < 30e-6  # tens of micrometres at 20 dB, a few at 30 dB
     rms = {}
     for m in ("ml", "gradient", "gcc_phat", "xcorr_farfield"):
         r = localize(pk.samples_v, FS, pk.onset_index, method=m)
         assert r.accepted.mean() > 0.98
         e = (r.point_m - pts)[r.accepted, :2]
-        rms[m] = np.sqrt(np.mean(np.sum(e ** 2, axis=1)))
+        rms[m] = np.sqrt(np.mean(np.sum(e**2, axis=1)))
     assert rms["ml"] < 1.3 * crlb
     assert rms["gradient"] < 1.3 * crlb
     assert rms["gcc_phat"] < 2.0 * crlb
@@ -123,7 +144,7 @@ def _calibration(err, cov):
     d2 = np.einsum("ki,kij,kj->k", err, np.linalg.inv(cov), err)
     lam, vec = np.linalg.eigh(cov)
     proj = np.einsum("kij,ki->kj", vec, err) / np.sqrt(lam)
-    return np.mean(d2 < 1.0), np.mean(d2 < 1.515 ** 2), np.mean(np.abs(proj) < 1.0, axis=0)
+    return np.mean(d2 < 1.0), np.mean(d2 < 1.515**2), np.mean(np.abs(proj) < 1.0, axis=0)
 
 
 @pytest.mark.parametrize("method", ["ml", "gradient"])
@@ -194,7 +215,7 @@ def test_false_rejections_of_clean_single_packets_are_rare():
         pk = render_triggered(pts, cfg, snr_db=8.0, rng=rng)
         for m in ("ml", "gradient", "gcc_phat", "xcorr_farfield"):
             r = localize(pk.samples_v, fs, pk.onset_index, method=m)
-            assert np.mean(r.reason == 6) < 0.01, (fs, m)        # OVERLAP
+            assert np.mean(r.reason == 6) < 0.01, (fs, m)  # OVERLAP
             assert np.mean(~r.accepted) < 0.02, (fs, m, np.bincount(r.reason))
 
 
@@ -205,18 +226,18 @@ def test_overlapping_packets_are_rejected():
     cfg = CFG.replace(quantization=False)
     a = render_triggered(p1, cfg, subsample_offset=0.3, window_s=60e-6)
     b = render_triggered(p2, cfg, subsample_offset=0.3, window_s=60e-6)
-    sigma = np.sqrt(a.signal_power_v2 / 10 ** 2.0)                     # 20 dB
+    sigma = np.sqrt(a.signal_power_v2 / 10**2.0)  # 20 dB
     far = np.linalg.norm(p1 - p2, axis=1) > 3e-3
     for delay_us in (1.0, 3.0, 6.0):
         d = int(delay_us * 10)
         x = a.clean_v.copy()
-        x[:, :, d:] += rng.uniform(0.5, 2.0, (n, 1, 1)) * b.clean_v[:, :, :x.shape[2] - d]
+        x[:, :, d:] += rng.uniform(0.5, 2.0, (n, 1, 1)) * b.clean_v[:, :, : x.shape[2] - d]
         x += sigma[:, None, None] * rng.standard_normal(x.shape)
         r = localize(x, FS, a.onset_index, method="ml")
         assert np.mean(r.reason[far] == 6) > 0.9, delay_us
     # a second packet after the echo-free segment does not disturb the first
     x = a.clean_v.copy()
-    x[:, :, 150:] += b.clean_v[:, :, :x.shape[2] - 150]
+    x[:, :, 150:] += b.clean_v[:, :, : x.shape[2] - 150]
     x += sigma[:, None, None] * rng.standard_normal(x.shape)
     r = localize(x, FS, a.onset_index, method="ml")
     assert r.accepted.mean() > 0.97
@@ -229,7 +250,7 @@ def _ratio_and_calibration(r, pts, crlb_rms):
     1.515-sigma ellipse (68.3 % for a right covariance)."""
     assert r.accepted.mean() > 0.98
     e = (r.point_m - pts)[r.accepted, :2]
-    rms = np.sqrt(np.mean(np.sum(e ** 2, axis=1)))
+    rms = np.sqrt(np.mean(np.sum(e**2, axis=1)))
     _, in1515, _ = _calibration(e, r.covariance_m2[r.accepted, :2, :2])
     return rms / crlb_rms, in1515
 
@@ -237,7 +258,7 @@ def _ratio_and_calibration(r, pts, crlb_rms):
 def _grid_points(n, max_deg=60.0):
     i = np.arange(n) + 0.5
     ct = 1.0 - (1.0 - np.cos(np.deg2rad(max_deg))) * i / n
-    return GEO.surface_point_from_angles(np.arccos(ct), np.pi * (1 + 5 ** 0.5) * i)
+    return GEO.surface_point_from_angles(np.arccos(ct), np.pi * (1 + 5**0.5) * i)
 
 
 @pytest.mark.parametrize("case", ["water_10", "silicone_10", "water_2_antialias"])
@@ -247,9 +268,11 @@ def test_ml_at_the_bound_from_10_to_40_db(case):
     # anti-alias filter (0.6 MHz, 8th order, as the simulator models it), with the
     # covariance calibrated (68 +- 5 % inside 1.515 sigma). Margins for 300 packets: the
     # ratio's sampling spread is ~4 %, the fraction's ~2.7 %.
-    cfg = {"water_10": CFG, "silicone_10": SimConfig.for_medium("silicone"),
-           "water_2_antialias": CFG.replace(sample_rate_hz=2e6, lowpass_hz=0.6e6,
-                                            lowpass_order=8)}[case]
+    cfg = {
+        "water_10": CFG,
+        "silicone_10": SimConfig.for_medium("silicone"),
+        "water_2_antialias": CFG.replace(sample_rate_hz=2e6, lowpass_hz=0.6e6, lowpass_order=8),
+    }[case]
     cfg = cfg.replace(reflections=True)
     limit = 1.2 if case.endswith("antialias") else 1.1
     fs = cfg.sample_rate_hz
@@ -273,6 +296,7 @@ def test_ml_at_the_bound_on_analytic_pulses():
     # old fixed 100 kHz - 1 MHz band loses a third on the Ricker. 500 packets per cell: the
     # fraction inside 1.515 sigma has a sampling spread of ~2 %.
     from test_localization_analytic import analytic_windows
+
     rng = np.random.default_rng(41)
     pts = _grid_points(500)
     for shape in ("gabor", "ricker", "damped"):

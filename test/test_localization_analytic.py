@@ -1,5 +1,6 @@
 """Estimators on analytic pulses (independent of the simulator): exact delays from the
 geometry, a Gabor pulse evaluated at the sample instants, any sample rate and geometry."""
+
 import numpy as np
 import pytest
 
@@ -9,8 +10,9 @@ from ae_tactile.localization import available_methods, localize
 GEO = FingertipGeometry()
 
 
-def gabor_windows(geo, points, fs, *, snr_db=None, rng=None, pre_s=8e-6, window_s=40e-6, polarity=1,
-                  offset=None):
+def gabor_windows(
+    geo, points, fs, *, snr_db=None, rng=None, pre_s=8e-6, window_s=40e-6, polarity=1, offset=None
+):
     """(K, 4, M) windows of a Gabor pulse starting at each element's exact arrival time.
 
     Pulse: cos(2 pi f0 tau) exp(-tau^2 / (2 s^2)), tau = t - t_k - 3 s, f0 = min(400 kHz,
@@ -35,28 +37,30 @@ def gabor_windows(geo, points, fs, *, snr_db=None, rng=None, pre_s=8e-6, window_
     if snr_db is not None:
         w = int(round(30e-6 * fs))
         idx = onset[:, None] + np.arange(w)
-        p = np.mean(np.take_along_axis(x, np.clip(idx, 0, m - 1)[:, None, :].repeat(4, 1), axis=2) ** 2,
-                    axis=(1, 2))
+        p = np.mean(
+            np.take_along_axis(x, np.clip(idx, 0, m - 1)[:, None, :].repeat(4, 1), axis=2) ** 2,
+            axis=(1, 2),
+        )
         x = x + np.sqrt(p / 10 ** (snr_db / 10))[:, None, None] * rng.standard_normal(x.shape)
     return x, onset, arr
 
 
 def _pulse(shape, tau):
     """Value and time derivative (1/s) of a unit pulse at tau seconds after its arrival."""
-    if shape == "gabor":                    # 400 kHz Gabor, sigma 0.4 us
+    if shape == "gabor":  # 400 kHz Gabor, sigma 0.4 us
         f0 = 400e3
         s = 1 / (2 * np.pi * 0.5 * f0)
         u = tau - 3 * s
         g = np.exp(-0.5 * (u / s) ** 2)
         x = np.cos(2 * np.pi * f0 * u) * g
-        return x, -2 * np.pi * f0 * np.sin(2 * np.pi * f0 * u) * g - u / s ** 2 * x
-    if shape == "ricker":                   # Ricker (Mexican hat) peaking at 0.8 MHz
+        return x, -2 * np.pi * f0 * np.sin(2 * np.pi * f0 * u) * g - u / s**2 * x
+    if shape == "ricker":  # Ricker (Mexican hat) peaking at 0.8 MHz
         f = 800e3
         u = tau - 1.5 / f
         a = (np.pi * f * u) ** 2
         e = np.exp(-a)
-        return (1 - 2 * a) * e, -2 * np.pi ** 2 * f ** 2 * u * e * (3 - 2 * a)
-    if shape == "damped":                   # causal 0.6 MHz sine, 0.2 us rise, 1.5 us decay
+        return (1 - 2 * a) * e, -2 * np.pi**2 * f**2 * u * e * (3 - 2 * a)
+    if shape == "damped":  # causal 0.6 MHz sine, 0.2 us rise, 1.5 us decay
         f, rise, decay = 600e3, 0.2e-6, 1.5e-6
         t = np.maximum(tau, 0.0)
         r = 1 - np.exp(-t / rise)
@@ -83,11 +87,11 @@ def analytic_windows(shape, points, fs, snr_db, rng, *, geo=GEO, pre_s=8e-6, win
     onset = np.ceil(first * fs - 1e-9).astype(np.int64)
     idx = onset[:, None] + np.arange(int(round(30e-6 * fs)))
     seg = np.take_along_axis(x, np.repeat(idx[:, None, :], 4, axis=1), axis=2)
-    p = np.mean(seg ** 2, axis=(1, 2))
+    p = np.mean(seg**2, axis=(1, 2))
     var = p / 10 ** (snr_db / 10)
     y = x + np.sqrt(var)[:, None, None] * rng.standard_normal(x.shape)
     bound = position_crlb(x, dx, fs, var, pts, arr, geo)["rms_m"]
-    return y, onset, float(np.sqrt(np.mean(bound ** 2)))
+    return y, onset, float(np.sqrt(np.mean(bound**2)))
 
 
 def test_analytic_pulse_derivatives():
@@ -108,8 +112,12 @@ def cap_points(geo, rng, n, max_deg):
 @pytest.mark.parametrize("fs", [2e6, 5e6, 10e6, 20e6])
 def test_noise_free_exact_recovery(fs):
     rng = np.random.default_rng(int(fs))
-    pts = np.concatenate([cap_points(GEO, rng, 40, 85),
-                          GEO.surface_point_from_angles(np.array([0.0, np.deg2rad(89.0)]), np.array([0.0, 0.8]))])
+    pts = np.concatenate(
+        [
+            cap_points(GEO, rng, 40, 85),
+            GEO.surface_point_from_angles(np.array([0.0, np.deg2rad(89.0)]), np.array([0.0, 0.8])),
+        ]
+    )
     x, onset, _ = gabor_windows(GEO, pts, fs, rng=rng)
     # the far-field baseline is off by up to ~2 mm near the horizon (Eq. 2 + smeared sum pairs)
     tol = {"ml": 1e-6, "gradient": 1e-6, "gcc_phat": 10e-6, "xcorr_farfield": 2.5e-3}
@@ -136,17 +144,24 @@ def test_far_field_baseline_error_grows_with_polar_angle():
     for deg in (10.0, 30.0, 60.0):
         pts = GEO.surface_point_from_angles(np.full(12, np.deg2rad(deg)), az)
         x, onset, _ = gabor_windows(GEO, pts, fs, rng=1)
-        e_ff = np.linalg.norm(localize(x, fs, onset, method="xcorr_farfield").point_m - pts, axis=1)
+        e_ff = np.linalg.norm(
+            localize(x, fs, onset, method="xcorr_farfield").point_m - pts, axis=1
+        )
         e_ml = np.linalg.norm(localize(x, fs, onset, method="ml").point_m - pts, axis=1)
         assert e_ml.max() < 1e-6
-        errs.append(np.sqrt(np.mean(e_ff ** 2)))
+        errs.append(np.sqrt(np.mean(e_ff**2)))
     # tens of micrometres at 30 deg (Eq. 2 alone), more towards the horizon
     assert errs[0] < errs[1] < errs[2]
     assert 10e-6 < errs[1] < 200e-6
 
 
-@pytest.mark.parametrize("geo", [FingertipGeometry(radius_m=7e-3, element_offset_m=1.0e-3, sound_speed_m_s=1000.0),
-                                 FingertipGeometry(radius_m=15e-3, element_offset_m=2.5e-3, sound_speed_m_s=1550.0)])
+@pytest.mark.parametrize(
+    "geo",
+    [
+        FingertipGeometry(radius_m=7e-3, element_offset_m=1.0e-3, sound_speed_m_s=1000.0),
+        FingertipGeometry(radius_m=15e-3, element_offset_m=2.5e-3, sound_speed_m_s=1550.0),
+    ],
+)
 def test_other_geometries(geo):
     rng = np.random.default_rng(3)
     pts = cap_points(geo, rng, 30, 75)
@@ -159,9 +174,11 @@ def test_other_geometries(geo):
 
 def test_delays_of_many_samples_at_20_mss_grazing():
     fs = 20e6
-    pts = GEO.surface_point_from_angles(np.full(8, np.deg2rad(88.0)), np.linspace(0, 2 * np.pi, 8, endpoint=False))
+    pts = GEO.surface_point_from_angles(
+        np.full(8, np.deg2rad(88.0)), np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    )
     x, onset, arr = gabor_windows(GEO, pts, fs, rng=0)
-    assert (arr.max(axis=1) - arr.min(axis=1)).max() * fs > 40       # > 40 samples across the array
+    assert (arr.max(axis=1) - arr.min(axis=1)).max() * fs > 40  # > 40 samples across the array
     r = localize(x, fs, onset, method="ml")
     assert r.accepted.all()
     assert np.linalg.norm(r.point_m - pts, axis=1).max() < 1e-6
@@ -181,7 +198,10 @@ def test_one_shot_gradient_collapses_off_axis_iterated_does_not():
         x, onset, _ = gabor_windows(GEO, pts, fs, rng=2)
         one = localize(x, fs, onset, method="gradient", start="zero", iterations=1)
         it = localize(x, fs, onset, method="gradient")
-        err[deg] = (np.linalg.norm(one.point_m - pts, axis=1).max(), np.linalg.norm(it.point_m - pts, axis=1).max())
+        err[deg] = (
+            np.linalg.norm(one.point_m - pts, axis=1).max(),
+            np.linalg.norm(it.point_m - pts, axis=1).max(),
+        )
     assert err[3.0][0] < 50e-6
     assert err[45.0][0] > 1e-3
     assert err[3.0][1] < 1e-6 and err[45.0][1] < 1e-6

@@ -1,10 +1,20 @@
 """The localization interface: parameters, registry, rejection reasons, invariances."""
+
 import numpy as np
 import pytest
 
 from ae_tactile.geometry import FingertipGeometry
-from ae_tactile.localization import (ESTIMATORS, LocalizationResult, Localizer, Reason, available_methods,
-                                     default_band_hz, get_estimator, localize, register_estimator)
+from ae_tactile.localization import (
+    ESTIMATORS,
+    LocalizationResult,
+    Localizer,
+    Reason,
+    available_methods,
+    default_band_hz,
+    get_estimator,
+    localize,
+    register_estimator,
+)
 from ae_tactile.sim import SimConfig, render_triggered
 
 CFG = SimConfig()
@@ -22,9 +32,23 @@ def packets():
 
 
 def assert_finite(r: LocalizationResult):
-    for name in ("tau_x_s", "tau_y_s", "twist_s", "point_m", "covariance_m2", "delay_covariance_s2",
-                 "polar_rad", "azimuth_rad", "residual", "overlap_excess", "pair_residual_s", "snr_db_est",
-                 "noise_rms_v_est", "amplitude_v", "confidence"):
+    for name in (
+        "tau_x_s",
+        "tau_y_s",
+        "twist_s",
+        "point_m",
+        "covariance_m2",
+        "delay_covariance_s2",
+        "polar_rad",
+        "azimuth_rad",
+        "residual",
+        "overlap_excess",
+        "pair_residual_s",
+        "snr_db_est",
+        "noise_rms_v_est",
+        "amplitude_v",
+        "confidence",
+    ):
         assert np.all(np.isfinite(getattr(r, name))), name
     assert np.all((r.confidence >= 0) & (r.confidence <= 1))
     np.testing.assert_allclose(np.linalg.norm(r.point_m, axis=1), GEO.radius_m, rtol=1e-6)
@@ -44,12 +68,16 @@ def test_registry_and_result_fields(packets):
         assert r.method == m and len(r) == 24
         assert r.point_m.shape == (24, 3) and r.covariance_m2.shape == (24, 3, 3)
         assert r.delay_covariance_s2.shape == (24, 2, 2)
-        assert r.reason.dtype == np.uint8 and r.accepted.dtype == bool and r.polarity.dtype == np.int8
+        assert (
+            r.reason.dtype == np.uint8 and r.accepted.dtype == bool and r.polarity.dtype == np.int8
+        )
         assert_finite(r)
         assert r.accepted.all()
         assert r.packet(0)["reason_name"] == "OK"
         # covariance is symmetric positive semi-definite
-        np.testing.assert_allclose(r.covariance_m2, np.swapaxes(r.covariance_m2, 1, 2), rtol=1e-9, atol=1e-30)
+        np.testing.assert_allclose(
+            r.covariance_m2, np.swapaxes(r.covariance_m2, 1, 2), rtol=1e-9, atol=1e-30
+        )
         assert np.all(np.linalg.eigvalsh(r.covariance_m2[:, :2, :2]) > 0)
     loc = Localizer("gcc_phat", min_snr_db=3.0)
     r = loc(packets.samples_v, FS, packets.onset_index)
@@ -87,31 +115,37 @@ def test_single_window_empty_batch_and_dtypes(packets):
     np.testing.assert_allclose(rc.point_m, r64.point_m, atol=1e-9)
 
 
-@pytest.mark.parametrize("bad, exc", [
-    (dict(windows=np.zeros((3, 3, 100))), ValueError),
-    (dict(windows=np.zeros((3, 4))), ValueError),
-    (dict(windows=np.zeros((2, 4, 2))), ValueError),
-    (dict(windows=np.array([[["a"] * 10] * 4])), TypeError),
-    (dict(onset_index=np.zeros(5, int)), ValueError),
-    (dict(onset_index=np.full(2, 1.5)), ValueError),
-    (dict(sample_rate_hz=0.0), ValueError),
-    (dict(sample_rate_hz=np.nan), ValueError),
-    (dict(band_hz=(2e6, 1e6)), ValueError),
-    (dict(band_hz=(6e6, 7e6)), ValueError),
-    (dict(band_hz="wide"), ValueError),
-    (dict(method="nope"), ValueError),
-    (dict(geometry="default"), TypeError),
-    (dict(noise_rms_v=np.ones(3)), ValueError),
-    (dict(channel_gains=[1, 1, 0, 1]), ValueError),
-    (dict(full_scale_v=-1.0), ValueError),
-    (dict(overlap_threshold=0.0), ValueError),
-    (dict(min_snr_db=np.nan), ValueError),
-    (dict(iterations=0), ValueError),
-    (dict(echo_guard_s=1.0), ValueError),
-])
+@pytest.mark.parametrize(
+    "bad, exc",
+    [
+        (dict(windows=np.zeros((3, 3, 100))), ValueError),
+        (dict(windows=np.zeros((3, 4))), ValueError),
+        (dict(windows=np.zeros((2, 4, 2))), ValueError),
+        (dict(windows=np.array([[["a"] * 10] * 4])), TypeError),
+        (dict(onset_index=np.zeros(5, int)), ValueError),
+        (dict(onset_index=np.full(2, 1.5)), ValueError),
+        (dict(sample_rate_hz=0.0), ValueError),
+        (dict(sample_rate_hz=np.nan), ValueError),
+        (dict(band_hz=(2e6, 1e6)), ValueError),
+        (dict(band_hz=(6e6, 7e6)), ValueError),
+        (dict(band_hz="wide"), ValueError),
+        (dict(method="nope"), ValueError),
+        (dict(geometry="default"), TypeError),
+        (dict(noise_rms_v=np.ones(3)), ValueError),
+        (dict(channel_gains=[1, 1, 0, 1]), ValueError),
+        (dict(full_scale_v=-1.0), ValueError),
+        (dict(overlap_threshold=0.0), ValueError),
+        (dict(min_snr_db=np.nan), ValueError),
+        (dict(iterations=0), ValueError),
+        (dict(echo_guard_s=1.0), ValueError),
+    ],
+)
 def test_parameter_errors(bad, exc):
-    kw = dict(windows=np.random.default_rng(0).standard_normal((2, 4, 400)), sample_rate_hz=FS,
-              onset_index=np.array([80, 80]))
+    kw = dict(
+        windows=np.random.default_rng(0).standard_normal((2, 4, 400)),
+        sample_rate_hz=FS,
+        onset_index=np.array([80, 80]),
+    )
     kw.update(bad)
     w, fs, on = kw.pop("windows"), kw.pop("sample_rate_hz"), kw.pop("onset_index")
     with pytest.raises(exc):
@@ -128,15 +162,17 @@ def test_rejection_reasons(packets):
     on = packets.onset_index.copy()
     x[0, 1, 100] = np.nan
     x[1, 2, 5] = np.inf
-    x[2] = 0.0                                  # all-zero window
-    x[3] = 0.37                                 # constant window
-    x[4, 3] = 0.0                               # dead channel
-    on[5] = 500                                 # onset outside the window
-    on[6] = 395                                 # packet starts at the end of the window
+    x[2] = 0.0  # all-zero window
+    x[3] = 0.37  # constant window
+    x[4, 3] = 0.0  # dead channel
+    on[5] = 500  # onset outside the window
+    on[6] = 395  # packet starts at the end of the window
     x[7] *= 1e-4 * 0 + 1.0
-    x[7] += 30 * np.random.default_rng(1).standard_normal(x[7].shape) * packets.noise_rms_v[7]  # ~ -5 dB
+    x[7] += (
+        30 * np.random.default_rng(1).standard_normal(x[7].shape) * packets.noise_rms_v[7]
+    )  # ~ -5 dB
     big = np.abs(packets.clean_v[8]).max()
-    x[8] = np.clip(packets.clean_v[8], -0.5 * big, 0.5 * big)          # hard clip, no noise
+    x[8] = np.clip(packets.clean_v[8], -0.5 * big, 0.5 * big)  # hard clip, no noise
     for m in METHODS:
         r = localize(x, FS, on, method=m)
         assert_finite(r)
@@ -169,7 +205,7 @@ def test_out_of_range_delays(factor):
     fs = 10e6
     t = np.arange(400) / fs
     big = factor * GEO.max_delay_s
-    arr = 9e-6 + np.array([-big, -big, big, big])     # tau_x = factor a / c
+    arr = 9e-6 + np.array([-big, -big, big, big])  # tau_x = factor a / c
     tau = t[None, :] - arr[:, None] - 1e-6
     x = np.cos(2 * np.pi * 4e5 * tau) * np.exp(-0.5 * (tau / 0.5e-6) ** 2)
     x = x[None] + 1e-3 * np.random.default_rng(0).standard_normal((1, 4, 400))
@@ -212,9 +248,13 @@ def test_batched_equals_one_at_a_time(packets):
     for m in METHODS:
         batch = localize(packets.samples_v, FS, packets.onset_index, method=m)
         for i in (0, 7, 23):
-            one = localize(packets.samples_v[i:i + 1], FS, packets.onset_index[i:i + 1], method=m)
+            one = localize(
+                packets.samples_v[i : i + 1], FS, packets.onset_index[i : i + 1], method=m
+            )
             np.testing.assert_allclose(one.point_m[0], batch.point_m[i], atol=1e-12)
-            np.testing.assert_allclose(one.covariance_m2[0], batch.covariance_m2[i], rtol=1e-9, atol=1e-30)
+            np.testing.assert_allclose(
+                one.covariance_m2[0], batch.covariance_m2[i], rtol=1e-9, atol=1e-30
+            )
 
 
 def test_noise_from_residual_without_pre_onset_samples(packets):
@@ -226,8 +266,11 @@ def test_noise_from_residual_without_pre_onset_samples(packets):
     assert_finite(r)
     assert r.accepted.mean() > 0.9
     r2 = localize(x, FS, on, noise_rms_v=packets.noise_rms_v)
-    np.testing.assert_allclose(r2.noise_rms_v_est, np.sqrt(packets.noise_rms_v ** 2 + r2.noise_rms_v_est ** 2
-                                                            - packets.noise_rms_v ** 2), rtol=1e-9)
+    np.testing.assert_allclose(
+        r2.noise_rms_v_est,
+        np.sqrt(packets.noise_rms_v**2 + r2.noise_rms_v_est**2 - packets.noise_rms_v**2),
+        rtol=1e-9,
+    )
     assert np.abs(np.log(r2.noise_rms_v_est / packets.noise_rms_v)).max() < 0.2
 
 

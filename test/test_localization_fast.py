@@ -2,6 +2,7 @@
 path: same points (to a tiny fraction of the Cramer-Rao bound), same decisions and
 reasons, on clean and damaged packets; the light result; argument errors; the emission
 offset against the simulator's emission instant. No timing here (bench/)."""
+
 import os
 import subprocess
 import sys
@@ -9,8 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from ae_tactile.localization import (NUMBA_AVAILABLE, Localizer, PacketLocation, Reason,
-                                     localize)
+from ae_tactile.localization import NUMBA_AVAILABLE, Localizer, PacketLocation, Reason, localize
 from ae_tactile.localization.crlb import simulated_crlb
 from ae_tactile.sim import SimConfig, render_triggered
 
@@ -32,24 +32,24 @@ def damaged_batch(rng, fs, n=120, snr_db=20.0):
     pk = render_triggered(pts, cfg, snr_db=snr_db, rng=rng)
     x = pk.samples_v.astype(float).copy()
     on = pk.onset_index.copy()
-    x[0, 1, 50] = np.nan                         # NONFINITE
-    x[1] = 0.0                                   # NO_SIGNAL
-    x[2, 3] = 0.01                               # dead (constant) channel
-    on[3] = x.shape[2] + 5                       # WINDOW
+    x[0, 1, 50] = np.nan  # NONFINITE
+    x[1] = 0.0  # NO_SIGNAL
+    x[2, 3] = 0.01  # dead (constant) channel
+    on[3] = x.shape[2] + 5  # WINDOW
     on[4] = -3
     lim = 0.15 * np.abs(x[5]).max()
-    x[5] = np.clip(x[5], -lim, lim)              # clipped: flat top
-    x[6] *= 1e-3                                 # LOW_SNR after adding noise below
-    x[6] += 0.5 * np.std(pk.samples_v[6, :, :on[6] - 20]) * rng.standard_normal(x[6].shape)
+    x[5] = np.clip(x[5], -lim, lim)  # clipped: flat top
+    x[6] *= 1e-3  # LOW_SNR after adding noise below
+    x[6] += 0.5 * np.std(pk.samples_v[6, :, : on[6] - 20]) * rng.standard_normal(x[6].shape)
     far = GEO.surface_point_from_angles(np.deg2rad(50), np.arctan2(pts[7, 1], pts[7, 0]) + np.pi)
     other = render_triggered(far[None], cfg, snr_db=40, subsample_offset=0.3, rng=rng)
-    d = int(on[7] - other.onset_index[0] + round(2e-6 * fs))       # a second packet 2 us later
-    x[7, :, d:] += 2 * other.clean_v[0, :, : x.shape[2] - d]        # OVERLAP
-    x[8] = x[8, ::-1]                            # time-reversed: not a packet after its onset
-    x[9, 2] = np.roll(x[9, 2], 60)               # impossible delay on one channel
+    d = int(on[7] - other.onset_index[0] + round(2e-6 * fs))  # a second packet 2 us later
+    x[7, :, d:] += 2 * other.clean_v[0, :, : x.shape[2] - d]  # OVERLAP
+    x[8] = x[8, ::-1]  # time-reversed: not a packet after its onset
+    x[9, 2] = np.roll(x[9, 2], 60)  # impossible delay on one channel
     x[10, :, :] = np.inf
-    x[11] *= 1e6                                 # huge but finite
-    x[12] += 3.0                                 # DC offset
+    x[11] *= 1e6  # huge but finite
+    x[12] += 3.0  # DC offset
     return pts, x, on, pk
 
 
@@ -75,10 +75,15 @@ def test_numba_and_numpy_agree(fs):
         np.testing.assert_allclose(getattr(b, f), getattr(a, f), rtol=1e-5, atol=1e-8, err_msg=f)
     for f in ("noise_rms_v_est", "amplitude_v"):
         scale = np.abs(getattr(a, f)).max()
-        np.testing.assert_allclose(getattr(b, f), getattr(a, f), rtol=1e-5, atol=1e-8 * scale,
-                                   err_msg=f)
-    np.testing.assert_allclose(b.covariance_m2, a.covariance_m2, rtol=1e-5,
-                               atol=1e-6 * np.abs(a.covariance_m2[a.accepted]).max())
+        np.testing.assert_allclose(
+            getattr(b, f), getattr(a, f), rtol=1e-5, atol=1e-8 * scale, err_msg=f
+        )
+    np.testing.assert_allclose(
+        b.covariance_m2,
+        a.covariance_m2,
+        rtol=1e-5,
+        atol=1e-6 * np.abs(a.covariance_m2[a.accepted]).max(),
+    )
     # the damage is rejected for the documented reasons
     r = b.reason
     assert r[0] == Reason.NONFINITE and r[10] == Reason.NONFINITE
@@ -101,7 +106,7 @@ def test_localize_one_equals_the_batch_row():
     batch = localize(x, FS, on)
     loc = Localizer("ml").warm_up(GEO, FS, x.shape[2])
     for i in range(len(x)):
-        one = loc.localize_one(x[i], FS, int(on[i]), saturated=None)   # as the batch: unknown
+        one = loc.localize_one(x[i], FS, int(on[i]), saturated=None)  # as the batch: unknown
         assert isinstance(one, PacketLocation)
         assert one.reason == batch.reason[i] and one.accepted == batch.accepted[i]
         assert one.reason_flags == batch.reason_flags[i]
@@ -132,8 +137,13 @@ def test_light_result_and_options_through_localize_one(engine):
     g = np.array([1.2, 0.8, 1.0, 1.1])
     loc = Localizer("ml", engine=engine, min_snr_db=3.0)
     for i in range(6):
-        r = loc.localize_one(pk.samples_v[i] * g[:, None], FS, pk.onset_index[i],
-                             channel_gains=g, noise_rms_v=pk.noise_rms_v[i])
+        r = loc.localize_one(
+            pk.samples_v[i] * g[:, None],
+            FS,
+            pk.onset_index[i],
+            channel_gains=g,
+            noise_rms_v=pk.noise_rms_v[i],
+        )
         assert r.accepted and r.reason == Reason.OK
         assert np.linalg.norm(r.point_m - pts[i]) < 30e-6
         assert r.polarity == (1 if i % 2 == 0 else -1)
@@ -141,12 +151,17 @@ def test_light_result_and_options_through_localize_one(engine):
         assert r.covariance_m2.shape == (3, 3) and r.point_m.shape == (3,)
         assert 0 < r.confidence <= 1 and 20 < r.snr_db < 40
         # the given noise is in input volts (divided by the rms gain), plus the ADC's q^2/12
-        nr = loc.localize_one(pk.samples_v[i], FS, pk.onset_index[i],
-                              noise_rms_v=pk.noise_rms_v[i])
-        np.testing.assert_allclose(nr.noise_rms_v_est ** 2,
-                                   pk.noise_rms_v[i] ** 2 + CFG.lsb_v ** 2 / 12, rtol=1e-6)
-        np.testing.assert_allclose(r.noise_rms_v_est ** 2, (pk.noise_rms_v[i] ** 2 / np.mean(g * g)
-                                                            + CFG.lsb_v ** 2 / 12), rtol=0.02)
+        nr = loc.localize_one(
+            pk.samples_v[i], FS, pk.onset_index[i], noise_rms_v=pk.noise_rms_v[i]
+        )
+        np.testing.assert_allclose(
+            nr.noise_rms_v_est**2, pk.noise_rms_v[i] ** 2 + CFG.lsb_v**2 / 12, rtol=1e-6
+        )
+        np.testing.assert_allclose(
+            r.noise_rms_v_est**2,
+            (pk.noise_rms_v[i] ** 2 / np.mean(g * g) + CFG.lsb_v**2 / 12),
+            rtol=0.02,
+        )
         assert r.polar_rad == pytest.approx(np.arccos(r.point_m[2] / GEO.radius_m), abs=1e-9)
         assert "OK" in repr(r)
     # an upstream saturation flag rejects
@@ -158,8 +173,9 @@ def test_light_result_and_options_through_localize_one(engine):
 def test_localize_one_argument_errors_and_bad_data(engine):
     if engine is None and not NUMBA_AVAILABLE:
         pytest.skip("numba not importable here")
-    pk = render_triggered(GEO.surface_point_from_xy(np.array([1e-3]), np.array([2e-3])), CFG,
-                          snr_db=25, rng=1)
+    pk = render_triggered(
+        GEO.surface_point_from_xy(np.array([1e-3]), np.array([2e-3])), CFG, snr_db=25, rng=1
+    )
     w, on = pk.samples_v[0], int(pk.onset_index[0])
     loc = Localizer("ml", engine=engine)
     for bad in (w[:3], w[None], w[:, :2], np.zeros(4)):
@@ -184,9 +200,11 @@ def test_localize_one_argument_errors_and_bad_data(engine):
     b = loc.localize_one(w, FS, on)
     np.testing.assert_array_equal(a.point_m, b.point_m)
     # data damage is a rejection, never an exception
-    for x, reason in ((np.full_like(w, np.nan), Reason.NONFINITE),
-                      (np.zeros_like(w), Reason.NO_SIGNAL),
-                      (np.clip(w, -0.01, 0.01), Reason.SATURATED)):
+    for x, reason in (
+        (np.full_like(w, np.nan), Reason.NONFINITE),
+        (np.zeros_like(w), Reason.NO_SIGNAL),
+        (np.clip(w, -0.01, 0.01), Reason.SATURATED),
+    ):
         r = loc.localize_one(x, FS, on, saturated=None)
         assert not r.accepted and r.reason == reason
         assert np.all(np.isfinite(r.point_m)) and np.all(np.isfinite(r.covariance_m2))
@@ -210,32 +228,36 @@ def test_emission_offset_matches_the_simulated_emission_instant():
 
 def test_numpy_path_without_numba():
     # AE_TACTILE_NO_NUMBA=1: the import guard leaves numba out; everything still works.
-    code = ("import numpy as np\n"
-            "from ae_tactile.localization import NUMBA_AVAILABLE, Localizer, localize\n"
-            "from ae_tactile.sim import SimConfig, render_triggered\n"
-            "assert not NUMBA_AVAILABLE\n"
-            "cfg = SimConfig()\n"
-            "p = cfg.geometry.surface_point_from_xy(np.array([2e-3]), np.array([1e-3]))\n"
-            "pk = render_triggered(p, cfg, snr_db=30, rng=1)\n"
-            "r = Localizer().localize_one(pk.samples_v[0], 10e6, int(pk.onset_index[0]))\n"
-            "assert r.accepted and np.linalg.norm(r.point_m - p[0]) < 30e-6\n"
-            "b = localize(pk.samples_v, 10e6, pk.onset_index)\n"
-            "assert b.accepted.all()\n"
-            "print('ok')\n")
+    code = (
+        "import numpy as np\n"
+        "from ae_tactile.localization import NUMBA_AVAILABLE, Localizer, localize\n"
+        "from ae_tactile.sim import SimConfig, render_triggered\n"
+        "assert not NUMBA_AVAILABLE\n"
+        "cfg = SimConfig()\n"
+        "p = cfg.geometry.surface_point_from_xy(np.array([2e-3]), np.array([1e-3]))\n"
+        "pk = render_triggered(p, cfg, snr_db=30, rng=1)\n"
+        "r = Localizer().localize_one(pk.samples_v[0], 10e6, int(pk.onset_index[0]))\n"
+        "assert r.accepted and np.linalg.norm(r.point_m - p[0]) < 30e-6\n"
+        "b = localize(pk.samples_v, 10e6, pk.onset_index)\n"
+        "assert b.accepted.all()\n"
+        "print('ok')\n"
+    )
     env = dict(os.environ, AE_TACTILE_NO_NUMBA="1")
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                         timeout=300)
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300
+    )
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "ok"
 
 
 def test_engine_argument():
-    pk = render_triggered(GEO.surface_point_from_xy(np.array([1e-3]), np.array([2e-3])), CFG,
-                          snr_db=25, rng=1)
+    pk = render_triggered(
+        GEO.surface_point_from_xy(np.array([1e-3]), np.array([2e-3])), CFG, snr_db=25, rng=1
+    )
     with pytest.raises(ValueError, match="engine"):
         localize(pk.samples_v, FS, pk.onset_index, engine="gpu")
     if NUMBA_AVAILABLE:
         with pytest.raises(ValueError, match="engine"):
             localize(pk.samples_v, FS, pk.onset_index, method="gradient", engine="numba")
-    r = localize(pk.samples_v, FS, pk.onset_index, method="gradient")   # numpy, any engine
+    r = localize(pk.samples_v, FS, pk.onset_index, method="gradient")  # numpy, any engine
     assert r.accepted.all() and r.emission_offset_s.shape == (1,)

@@ -2,6 +2,7 @@
 DC offset, dtype and damage (NaN/inf, zero and constant windows, clipping, overlapping
 packets): never an exception, never a non-finite output, bad input rejected with its
 reason, estimates invariant to gain and DC offset."""
+
 import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -24,19 +25,37 @@ def scenarios(draw):
     polar = {"pole": 0.0, "grazing": np.pi / 2}.get(kind, draw(st.floats(0.0, np.pi / 2)))
     az = draw(st.floats(-np.pi, np.pi))
     snr = draw(st.one_of(st.none(), st.floats(0.0, 50.0)))
-    return dict(geo=FingertipGeometry(r, a, c), fs=fs, polar=polar, az=az, snr=snr,
-                gain=10 ** draw(st.floats(-3.0, 3.0)), dc=draw(st.floats(-10.0, 10.0)),
-                f32=draw(st.booleans()), pol=draw(st.sampled_from([-1, 1])),
-                damage=draw(st.sampled_from(DAMAGE)), overlap=draw(st.floats(0.0, 1.0)),
-                polar2=draw(st.floats(0.0, np.pi / 2)), az2=draw(st.floats(-np.pi, np.pi)),
-                method=draw(st.sampled_from(available_methods())), seed=draw(st.integers(0, 2 ** 16)))
+    return dict(
+        geo=FingertipGeometry(r, a, c),
+        fs=fs,
+        polar=polar,
+        az=az,
+        snr=snr,
+        gain=10 ** draw(st.floats(-3.0, 3.0)),
+        dc=draw(st.floats(-10.0, 10.0)),
+        f32=draw(st.booleans()),
+        pol=draw(st.sampled_from([-1, 1])),
+        damage=draw(st.sampled_from(DAMAGE)),
+        overlap=draw(st.floats(0.0, 1.0)),
+        polar2=draw(st.floats(0.0, np.pi / 2)),
+        az2=draw(st.floats(-np.pi, np.pi)),
+        method=draw(st.sampled_from(available_methods())),
+        seed=draw(st.integers(0, 2**16)),
+    )
 
 
 def render(sc):
     geo = sc["geo"]
     fs = sc["fs"]
-    cfg = SimConfig(geometry=geo, medium="custom", density_kg_m3=1000.0, attenuation_db_per_m_at_1mhz=0.0,
-                    sample_rate_hz=fs, lowpass_hz=min(1e6, 0.4 * fs), quantization=False)
+    cfg = SimConfig(
+        geometry=geo,
+        medium="custom",
+        density_kg_m3=1000.0,
+        attenuation_db_per_m_at_1mhz=0.0,
+        sample_rate_hz=fs,
+        lowpass_hz=min(1e6, 0.4 * fs),
+        quantization=False,
+    )
     p = geo.surface_point_from_angles(np.array([sc["polar"]]), np.array([sc["az"]]))
     rng = np.random.default_rng(sc["seed"])
     pk = render_triggered(p, cfg, polarity=sc["pol"], window_s=60e-6, rng=rng)
@@ -71,7 +90,7 @@ def damage(x, sc, rng, offset):
     elif kind == "clip":
         half = 0.5 * np.abs(x - offset).max()
         np.clip(x, offset - half, offset + half, out=x)
-        full_scale = abs(offset) + half          # the clip level the ADC would report
+        full_scale = abs(offset) + half  # the clip level the ADC would report
         if offset != 0:
             # an ADC clips at a fixed level: put the DC where the range is symmetric
             x -= offset
@@ -80,9 +99,23 @@ def damage(x, sc, rng, offset):
 
 
 def check_finite(r, geo):
-    for name in ("tau_x_s", "tau_y_s", "twist_s", "point_m", "covariance_m2", "delay_covariance_s2",
-                 "polar_rad", "azimuth_rad", "residual", "overlap_excess", "pair_residual_s", "snr_db_est",
-                 "noise_rms_v_est", "amplitude_v", "confidence"):
+    for name in (
+        "tau_x_s",
+        "tau_y_s",
+        "twist_s",
+        "point_m",
+        "covariance_m2",
+        "delay_covariance_s2",
+        "polar_rad",
+        "azimuth_rad",
+        "residual",
+        "overlap_excess",
+        "pair_residual_s",
+        "snr_db_est",
+        "noise_rms_v_est",
+        "amplitude_v",
+        "confidence",
+    ):
         assert np.all(np.isfinite(getattr(r, name))), name
     assert np.all((r.confidence >= 0) & (r.confidence <= 1))
     np.testing.assert_allclose(np.linalg.norm(r.point_m, axis=1), geo.radius_m, rtol=1e-6)
@@ -110,8 +143,14 @@ def test_never_raises_never_nan_and_rejects_bad_input(sc):
         assert r.reason[0] == Reason.NO_SIGNAL
     elif kind == "clip":
         assert r.reason[0] == Reason.SATURATED
-    elif kind == "none" and sc["snr"] is not None and sc["snr"] >= 25 and sc["fs"] >= 5e6 \
-            and sc["polar"] <= np.deg2rad(80) and sc["method"] != "xcorr_farfield":
+    elif (
+        kind == "none"
+        and sc["snr"] is not None
+        and sc["snr"] >= 25
+        and sc["fs"] >= 5e6
+        and sc["polar"] <= np.deg2rad(80)
+        and sc["method"] != "xcorr_farfield"
+    ):
         assert r.accepted[0], r.reason_names
         assert np.linalg.norm(r.point_m[0] - p[0]) < 0.2e-3
         assert r.polarity[0] == sc["pol"]
@@ -132,11 +171,13 @@ def test_invariant_to_gain_and_dc_offset(sc):
     # in-plane, since z = sqrt(R^2 - rho^2) amplifies rounding without bound at the horizon.
     assert np.linalg.norm(r.point_m[:, :2] - base.point_m[:, :2]) < 1e-7 * geo.radius_m
     assert np.linalg.norm(r.point_m - base.point_m) < 1e-5 * geo.radius_m
-    np.testing.assert_allclose(r.amplitude_v, sc["gain"] * base.amplitude_v, rtol=1e-5, atol=1e-12 * sc["gain"])
+    np.testing.assert_allclose(
+        r.amplitude_v, sc["gain"] * base.amplitude_v, rtol=1e-5, atol=1e-12 * sc["gain"]
+    )
 
 
 @settings(max_examples=40, **SETTINGS)
-@given(st.integers(1, 6), st.integers(0, 2 ** 16), st.sampled_from(available_methods()))
+@given(st.integers(1, 6), st.integers(0, 2**16), st.sampled_from(available_methods()))
 def test_batches_of_mixed_damage(k, seed, method):
     # Damaged packets do not disturb their neighbours in the same batch.
     rng = np.random.default_rng(seed)

@@ -1,4 +1,5 @@
 """README.md and the parameter files hold exactly what the nodes declare (one source)."""
+
 import os
 
 import yaml
@@ -11,6 +12,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 def test_readme_parameter_tables_match_the_code():
     require_ros()
     from ae_tactile.ros.param_docs import markdown
+
     readme = open(os.path.join(ROOT, "README.md"), encoding="utf-8").read()
     assert markdown() in readme, "README parameters are stale: run tools/update_param_docs.sh"
 
@@ -18,14 +20,20 @@ def test_readme_parameter_tables_match_the_code():
 def test_parameter_files_are_generated_from_the_tables_with_one_section_per_node():
     require_ros()
     from ae_tactile.ros.param_docs import BODY_VALUES, parameter_file
+
     for body in BODY_VALUES:
         path = os.path.join(ROOT, "config", f"{body}.yaml")
         text = open(path, encoding="utf-8").read()
         assert text == parameter_file(body), f"{path} is stale: run tools/update_param_docs.sh"
         data = yaml.safe_load(text)
-        assert "/**" not in data                       # no section that sets every node at once
-        assert set(data) == {"/**/driver", "/**/sim_fingertip", "/**/localizer", "/**/slip_detector",
-                             "/**/grip_reflex"}
+        assert "/**" not in data  # no section that sets every node at once
+        assert set(data) == {
+            "/**/driver",
+            "/**/sim_fingertip",
+            "/**/localizer",
+            "/**/slip_detector",
+            "/**/grip_reflex",
+        }
         drv = data["/**/driver"]["ros__parameters"]
         assert drv["medium"] == body and drv["localization"]["method"] == "ml"
         # the localizer's and the slip detector's min_confidence are separate parameters now
@@ -36,11 +44,18 @@ def test_every_parameter_is_described_with_unit_and_range():
     require_ros()
     from ae_tactile.ros.param_docs import SECTIONS, _table_of
     from ae_tactile.ros.params import describe
+
     for _, node, tables in SECTIONS:
         for prefix, t in tables:
             for p in _table_of(prefix, t):
-                assert len(p.description) > 10 and "SlipConfig." not in p.description, (node, p.name)
+                assert len(p.description) > 10 and "SlipConfig." not in p.description, (
+                    node,
+                    p.name,
+                )
                 text = describe(p)
-                if isinstance(p.default, (int, float)) and not isinstance(p.default, bool) \
-                        and p.choices is None:
+                if (
+                    isinstance(p.default, (int, float))
+                    and not isinstance(p.default, bool)
+                    and p.choices is None
+                ):
                     assert "range:" in text, (node, p.name, text)

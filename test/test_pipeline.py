@@ -1,14 +1,21 @@
 """The hot-path core (ae_tactile.pipeline), without ROS: simulated packets in, contact and
 slip events out, scored against the simulator's ground truth; bad packets rejected one by
 one and counted; the single-packet and batched paths agree."""
+
 import math
 
 import numpy as np
 import pytest
 
 from ae_tactile.geometry import FingertipGeometry
-from ae_tactile.pipeline import (ContactPipeline, EventType, PacketLocalizer, PacketView, SlipStage,
-                                 packet_problem)
+from ae_tactile.pipeline import (
+    ContactPipeline,
+    EventType,
+    PacketLocalizer,
+    PacketView,
+    SlipStage,
+    packet_problem,
+)
 from ae_tactile.sim import SimConfig
 from ae_tactile.sim.triggered import render_triggered
 from ae_tactile.slip import SlipConfig
@@ -24,8 +31,16 @@ def _packets(n=24, seed=3, snr_db=30.0, polarity=1):
     pts = geo.surface_point_from_xy(rho * np.cos(phi), rho * np.sin(phi))
     tp = render_triggered(pts, SimConfig(), snr_db=snr_db, polarity=polarity, rng=seed)
     t0 = 1_000_000_000
-    views = [PacketView(tp.samples_v[i].astype(np.float32), tp.sample_rate_hz, int(tp.onset_index[i]),
-                        t0 + i * 10_000_000, i) for i in range(n)]
+    views = [
+        PacketView(
+            tp.samples_v[i].astype(np.float32),
+            tp.sample_rate_hz,
+            int(tp.onset_index[i]),
+            t0 + i * 10_000_000,
+            i,
+        )
+        for i in range(n)
+    ]
     emission_ns = [t0 + i * 10_000_000 + int(round(tp.emission_time_s[i] * 1e9)) for i in range(n)]
     return views, tp.points_m, emission_ns
 
@@ -36,9 +51,9 @@ def test_contact_events_match_the_ground_truth_in_space_time_and_type():
     events = loc.process(views)
     assert len(events) == len(views) and loc.counts["events"] == len(views)
     err = np.array([math.dist(e.point_m, p) for e, p in zip(events, truth)])
-    assert np.sqrt(np.mean(err ** 2)) < 50e-6                 # 30 dB: tens of um (CRLB ~ 9 um)
+    assert np.sqrt(np.mean(err**2)) < 50e-6  # 30 dB: tens of um (CRLB ~ 9 um)
     dt_ns = np.array([e.time_ns - t for e, t in zip(events, emission_ns)])
-    assert np.all(np.abs(dt_ns) < 500)                        # emission instant within 0.5 us
+    assert np.all(np.abs(dt_ns) < 500)  # emission instant within 0.5 us
     assert all(e.event_type == EventType.TOUCH for e in events)
     assert [e.packet_ids for e in events] == [(v.sequence_id,) for v in views]
     released = PacketLocalizer("ml").process(_packets(8, seed=4, polarity=-1)[0])
@@ -47,8 +62,8 @@ def test_contact_events_match_the_ground_truth_in_space_time_and_type():
 
 def test_single_packet_and_batched_paths_agree():
     views, _, _ = _packets(12, seed=9)
-    one = PacketLocalizer("ml", batch_min=10_000)          # every packet alone
-    many = PacketLocalizer("ml", batch_min=1)              # one batch
+    one = PacketLocalizer("ml", batch_min=10_000)  # every packet alone
+    many = PacketLocalizer("ml", batch_min=1)  # one batch
     a, b = one.process(views), many.process(views)
     assert len(a) == len(b) == len(views)
     for x, y in zip(a, b):
@@ -57,15 +72,24 @@ def test_single_packet_and_batched_paths_agree():
         assert x.event_type == y.event_type
 
 
-@pytest.mark.parametrize("bad", ["fs0", "fs_nan", "fs_neg", "fs_inf", "short", "shape", "onset", "nan"])
+@pytest.mark.parametrize(
+    "bad", ["fs0", "fs_nan", "fs_neg", "fs_inf", "short", "shape", "onset", "nan"]
+)
 def test_a_bad_packet_is_counted_and_costs_no_neighbour(bad):
     views, _, _ = _packets(6, seed=11)
     v = views[2]
-    broken = {"fs0": dict(sample_rate_hz=0.0), "fs_nan": dict(sample_rate_hz=float("nan")),
-              "fs_neg": dict(sample_rate_hz=-FS), "fs_inf": dict(sample_rate_hz=float("inf")),
-              "short": dict(samples_v=v.samples_v[:, :3]), "shape": dict(samples_v=v.samples_v[:3]),
-              "onset": dict(onset_index=10_000),
-              "nan": dict(samples_v=np.where(np.arange(400) == 120, np.nan, v.samples_v).astype(np.float32))}[bad]
+    broken = {
+        "fs0": dict(sample_rate_hz=0.0),
+        "fs_nan": dict(sample_rate_hz=float("nan")),
+        "fs_neg": dict(sample_rate_hz=-FS),
+        "fs_inf": dict(sample_rate_hz=float("inf")),
+        "short": dict(samples_v=v.samples_v[:, :3]),
+        "shape": dict(samples_v=v.samples_v[:3]),
+        "onset": dict(onset_index=10_000),
+        "nan": dict(
+            samples_v=np.where(np.arange(400) == 120, np.nan, v.samples_v).astype(np.float32)
+        ),
+    }[bad]
     views[2] = PacketView(**{**v.__dict__, **broken})
     for batch_min in (1, 10_000):
         loc = PacketLocalizer("ml", batch_min=batch_min)
@@ -89,7 +113,7 @@ def test_run_time_settings_take_effect_at_once():
     views, _, _ = _packets(6, seed=12, snr_db=20.0)
     loc = PacketLocalizer("ml")
     assert len(loc.process(views)) == 6
-    loc.update(min_snr_db=60.0)                             # nothing is that clean
+    loc.update(min_snr_db=60.0)  # nothing is that clean
     assert loc.process(views) == [] and loc.counts["rejected_LOW_SNR"] == 6
     loc.update(min_snr_db=5.0, min_confidence=1.01)
     assert loc.process(views) == [] and loc.counts["below_min_confidence"] == 6
@@ -99,8 +123,10 @@ def test_run_time_settings_take_effect_at_once():
 
 def _slip_scene_packets():
     """The incipient-slip scene's packets (the virtual device's view), first 1.2 s."""
-    from ae_tactile.sim.scene import load_scene
     import os
+
+    from ae_tactile.sim.scene import load_scene
+
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     sc = load_scene(os.path.join(root, "config", "scenes", "incipient_slip.yaml"))
     src = sc.triggered_source(pretrigger_s=8e-6, window_s=40e-6)
@@ -111,7 +137,9 @@ def _slip_scene_packets():
             break
         for i in range(len(b)):
             start_ns = int(round(b.start_index[i] * 1e9 / b.sample_rate_hz))
-            views.append(PacketView(b.samples_v[i], b.sample_rate_hz, int(b.onset_index[i]), start_ns, k))
+            views.append(
+                PacketView(b.samples_v[i], b.sample_rate_hz, int(b.onset_index[i]), start_ns, k)
+            )
             k += 1
     gross = sc.truth.get("gross_slip_time_ns") if isinstance(sc.truth, dict) else None
     return views, sc, gross
@@ -130,12 +158,12 @@ def test_pipeline_reports_touches_before_slip_and_slip_events_name_the_deciding_
         order.append(("slip", len(ss)))
         slips.extend(ss)
 
-    for i in range(0, len(views), 4):                 # batches as a read cycle would give them
-        pipe.process(views[i:i + 4], on_contacts, on_slip)
+    for i in range(0, len(views), 4):  # batches as a read cycle would give them
+        pipe.process(views[i : i + 4], on_contacts, on_slip)
     kinds = {s.event_type for s in slips}
     assert EventType.SLIP_PRECURSOR in kinds and EventType.SLIP in kinds
     first_slip = next(i for i, o in enumerate(order) if o[0] == "slip")
-    assert order[first_slip - 1][0] == "contacts"     # the batch's contacts went out first
+    assert order[first_slip - 1][0] == "contacts"  # the batch's contacts went out first
     ids = {v.sequence_id for v in views}
     for s in slips:
         assert s.packet_ids and s.packet_ids[-1] in ids
@@ -151,7 +179,7 @@ def test_slip_stage_processes_late_events_within_the_tolerance_and_counts_older_
     stage = SlipStage(SlipConfig(reorder_tolerance_s=0.05), lag_s=0.0)
     stage.process(contacts[:30])
     newest = contacts[29].time_ns
-    stage.tick(newest)                                 # the clock reached the newest event
+    stage.tick(newest)  # the clock reached the newest event
     late = contacts[30:]
     late_ok = [c for c in late if c.time_ns >= newest - 50_000_000]
     before = stage.all_counts().get("slip_rejected_out_of_order", 0)
@@ -167,22 +195,33 @@ def test_slip_stage_processes_late_events_within_the_tolerance_and_counts_older_
 
 def test_common_mode_interference_is_rejected_and_counted_while_apex_touches_are_kept():
     from ae_tactile.sim.interference import render_interference
+
     geo = FingertipGeometry()
     cfg = SimConfig()
-    apex = render_triggered(geo.surface_point_from_xy(np.array([0.0, 0.2e-3, -0.3e-3]),
-                                                      np.array([0.0, 0.1e-3, 0.2e-3])),
-                            cfg, snr_db=30.0, rng=6)
-    bursts = render_interference(30, cfg, kind="mixed", coupling="adc",
-                                 noise_rms_v=float(apex.noise_rms_v[0]), rng=5)
-    views = [PacketView(bursts.samples_v[i], FS, int(bursts.onset_index[i]), i * 1_000_000, i)
-             for i in range(len(bursts))]
-    views += [PacketView(apex.samples_v[i], FS, int(apex.onset_index[i]), 10**9 + i, 100 + i)
-              for i in range(len(apex))]
+    apex = render_triggered(
+        geo.surface_point_from_xy(
+            np.array([0.0, 0.2e-3, -0.3e-3]), np.array([0.0, 0.1e-3, 0.2e-3])
+        ),
+        cfg,
+        snr_db=30.0,
+        rng=6,
+    )
+    bursts = render_interference(
+        30, cfg, kind="mixed", coupling="adc", noise_rms_v=float(apex.noise_rms_v[0]), rng=5
+    )
+    views = [
+        PacketView(bursts.samples_v[i], FS, int(bursts.onset_index[i]), i * 1_000_000, i)
+        for i in range(len(bursts))
+    ]
+    views += [
+        PacketView(apex.samples_v[i], FS, int(apex.onset_index[i]), 10**9 + i, 100 + i)
+        for i in range(len(apex))
+    ]
     loc = PacketLocalizer("ml")
     events = loc.process(views)
     kept = {e.packet_ids[0] for e in events}
-    assert {100, 101, 102} <= kept                         # the apex touches are kept
-    assert not kept & set(range(len(bursts)))              # no burst became a contact
+    assert {100, 101, 102} <= kept  # the apex touches are kept
+    assert not kept & set(range(len(bursts)))  # no burst became a contact
     rejected = sum(v for k, v in loc.counts.items() if k.startswith("rejected_"))
     assert rejected == len(bursts) and loc.counts["rejected_INTERFERENCE"] >= len(bursts) // 2
 
@@ -191,27 +230,40 @@ def test_overlapping_emissions_are_resolved_off_the_hot_path_and_name_the_shared
     """Two emissions 2-8 us apart in one window: the hot path publishes no wrong point; the
     overlap resolver later hands over both, each within 0.1 mm, naming the shared packet."""
     import threading
+
     from ae_tactile.localization.overlap import simulate_overlaps
+
     cfg = SimConfig(reflections=True)
-    d = simulate_overlaps(6, cfg, separation_s=np.array([2e-6, 3e-6, 4e-6, 5e-6, 6e-6, 8e-6]),
-                          amplitude_ratio=1.0, snr_db=30.0, rng=3)
-    views = [PacketView(d["samples_v"][i], d["sample_rate_hz"], int(d["onset_index"][i]), 10**9, 40 + i)
-             for i in range(6)]
+    d = simulate_overlaps(
+        6,
+        cfg,
+        separation_s=np.array([2e-6, 3e-6, 4e-6, 5e-6, 6e-6, 8e-6]),
+        amplitude_ratio=1.0,
+        snr_db=30.0,
+        rng=3,
+    )
+    views = [
+        PacketView(d["samples_v"][i], d["sample_rate_hz"], int(d["onset_index"][i]), 10**9, 40 + i)
+        for i in range(6)
+    ]
     got, done = [], threading.Event()
 
     def on_contacts(recs):
         got.extend(recs)
         if len(got) >= 12:
             done.set()
+
     pipe = ContactPipeline(PacketLocalizer("ml", geometry=cfg.geometry), None)
     pipe.process(views, on_contacts)
-    hot = list(got)                                   # what the hot path published at once
-    for e in hot:                                      # never a wrong point with a small sigma
-        err = np.min(np.linalg.norm(d["points_m"][e.packet_ids[0] - 40] - np.array(e.point_m), axis=1))
+    hot = list(got)  # what the hot path published at once
+    for e in hot:  # never a wrong point with a small sigma
+        err = np.min(
+            np.linalg.norm(d["points_m"][e.packet_ids[0] - 40] - np.array(e.point_m), axis=1)
+        )
         assert err < 0.5e-3 or np.sqrt(np.trace(e.covariance_m2)) > err / 3
     assert done.wait(300.0), (len(got), dict(pipe.all_counts()))
     pipe.close()
-    late = got[len(hot):]
+    late = got[len(hot) :]
     by_packet = {}
     for e in late:
         by_packet.setdefault(e.packet_ids, []).append(e)

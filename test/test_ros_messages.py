@@ -1,4 +1,5 @@
 """The three messages cross real DDS between two rclpy nodes, bit-exact."""
+
 import math
 
 import numpy as np
@@ -12,6 +13,7 @@ from ros_helpers import spin_until, wait_for_subscribers
 def two_nodes(ros_context):
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
+
     sender = Node("test_sender", context=ros_context)
     receiver = Node("test_receiver", context=ros_context)
     executor = SingleThreadedExecutor(context=ros_context)
@@ -36,25 +38,39 @@ def exchange(two_nodes, msg_type, topic, msg):
 
 def random_packet(rng, seq, n=400):
     from ae_tactile.ros.conversions import make_packet
+
     samples = rng.standard_normal((4, n)).astype(np.float32)
     samples[0, :3] = [np.float32(1e-38), np.float32(-3.4e38), np.float32(np.pi)]  # edge values
-    packet = make_packet(samples, stamp_ns=1_700_000_000_123_456_789 + seq, sample_rate_hz=10e6,
-                         onset_index=123, sequence_id=2**40 + seq, noise_rms_v=0.0125,
-                         saturated=bool(seq % 2))
+    packet = make_packet(
+        samples,
+        stamp_ns=1_700_000_000_123_456_789 + seq,
+        sample_rate_hz=10e6,
+        onset_index=123,
+        sequence_id=2**40 + seq,
+        noise_rms_v=0.0125,
+        saturated=bool(seq % 2),
+    )
     return packet, samples
 
 
 def test_event_type_constants_exist_and_differ():
     require_ros()
     from ae_tactile.msg import ContactEvent
-    values = [ContactEvent.TOUCH, ContactEvent.DETOUCH, ContactEvent.SLIP_PRECURSOR,
-              ContactEvent.SLIP, ContactEvent.TEXTURE]
+
+    values = [
+        ContactEvent.TOUCH,
+        ContactEvent.DETOUCH,
+        ContactEvent.SLIP_PRECURSOR,
+        ContactEvent.SLIP,
+        ContactEvent.TEXTURE,
+    ]
     assert len(set(values)) == 5 and all(v > 0 for v in values)
 
 
 def test_packet_round_trip_bit_exact(two_nodes):
     from ae_tactile.msg import Packet
     from ae_tactile.ros.conversions import packet_samples, time_msg_to_ns
+
     packet, samples = random_packet(np.random.default_rng(1), seq=7)
     got = exchange(two_nodes, Packet, "t_packet", packet)
     x = packet_samples(got)
@@ -69,6 +85,7 @@ def test_packet_round_trip_bit_exact(two_nodes):
 def test_packet_array_round_trip(two_nodes):
     from ae_tactile.msg import PacketArray
     from ae_tactile.ros.conversions import packet_samples
+
     rng = np.random.default_rng(2)
     pairs = [random_packet(rng, seq) for seq in range(5)]
     msg = PacketArray()
@@ -86,6 +103,7 @@ def test_packet_array_round_trip(two_nodes):
 
 def test_contact_event_round_trip(two_nodes):
     from ae_tactile.msg import ContactEvent
+
     msg = ContactEvent()
     msg.header.frame_id = "fingertip"
     msg.event_type = ContactEvent.SLIP_PRECURSOR
@@ -113,7 +131,12 @@ def test_contact_event_round_trip(two_nodes):
 def test_make_packet_rejects_bad_shapes():
     require_ros()
     from ae_tactile.ros.conversions import make_packet
+
     with pytest.raises(ValueError, match=r"shape \(4, N\)"):
-        make_packet(np.zeros((3, 10)), stamp_ns=0, sample_rate_hz=1e6, onset_index=0, sequence_id=0)
+        make_packet(
+            np.zeros((3, 10)), stamp_ns=0, sample_rate_hz=1e6, onset_index=0, sequence_id=0
+        )
     with pytest.raises(ValueError, match="onset_index"):
-        make_packet(np.zeros((4, 10)), stamp_ns=0, sample_rate_hz=1e6, onset_index=10, sequence_id=0)
+        make_packet(
+            np.zeros((4, 10)), stamp_ns=0, sample_rate_hz=1e6, onset_index=10, sequence_id=0
+        )

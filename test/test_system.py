@@ -6,6 +6,7 @@ Each run is the `bringup` composition the demo uses; the simulated fingertip run
 separate process, like hardware on a USB port. No test here bounds wall-clock time: speed
 is measured by bench/bench_system.py.
 """
+
 import argparse
 import json
 import os
@@ -21,11 +22,21 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENES = os.path.join(ROOT, "config", "scenes")
 
 
-def run_system(ros_context, scene, *, grip_reflex=False, namespace="", method="", sliding_speed=0.0,
-               split=False, speed=1.0):
+def run_system(
+    ros_context,
+    scene,
+    *,
+    grip_reflex=False,
+    namespace="",
+    method="",
+    sliding_speed=0.0,
+    split=False,
+    speed=1.0,
+):
     """Play a scene through the composed system; return (bringup, summary)."""
     require_ros()
     from ae_tactile.ros.bringup import Bringup, parse_args
+
     argv = ["--scene", scene, "--monitor"] + (["--grip-reflex"] if grip_reflex else [])
     argv += ["--split"] if split else []
     argv += ["--speed", str(speed)] if speed != 1.0 else []
@@ -36,7 +47,9 @@ def run_system(ros_context, scene, *, grip_reflex=False, namespace="", method=""
     system.monitor.print_live = False
     try:
         system.spin(-1.0, drain_timeout_s=15.0)
-        summary = system.monitor.summary(system.gross_slip_times_ns(), system.slip_part_starts_ns())
+        summary = system.monitor.summary(
+            system.gross_slip_times_ns(), system.slip_part_starts_ns()
+        )
     except BaseException:
         system.close()
         raise
@@ -57,8 +70,19 @@ def scene_file(tmp_path, name, **changes):
     return str(path)
 
 
-@pytest.mark.parametrize("scene", ["single_touch", "paper_positions", "three_pins", "touch_hold_release",
-                                   "random_touches", "plane_slip", "texture", "incipient_slip"])
+@pytest.mark.parametrize(
+    "scene",
+    [
+        "single_touch",
+        "paper_positions",
+        "three_pins",
+        "touch_hold_release",
+        "random_touches",
+        "plane_slip",
+        "texture",
+        "incipient_slip",
+    ],
+)
 def test_every_builtin_scene_is_found_and_localized(ros_context, scene):
     system, s = run_system(ros_context, os.path.join(SCENES, scene + ".yaml"))
     try:
@@ -71,11 +95,15 @@ def test_every_builtin_scene_is_found_and_localized(ros_context, scene):
             assert tr["found"] / tr["truth"] >= 0.98 and tr["typed_correctly"] == tr["found"], tr
         # every packet the driver decoded was localized or rejected for a counted reason
         c = system.driver.pipeline.localizer.counts
-        rejected = sum(v for k, v in c.items() if k.startswith("rejected_") or k == "below_min_confidence")
+        rejected = sum(
+            v for k, v in c.items() if k.startswith("rejected_") or k == "below_min_confidence"
+        )
         assert c["packets"] == c["events"] + rejected
         # ... and every event it found was published (overlapping windows: one per emission)
-        assert system.driver.published_events == c["events"] + \
-            system.driver.pipeline.all_counts()["overlap_sources"]
+        assert (
+            system.driver.published_events
+            == c["events"] + system.driver.pipeline.all_counts()["overlap_sources"]
+        )
     finally:
         system.close()
 
@@ -98,7 +126,7 @@ def test_touch_hold_release_raises_no_slip_alarm(ros_context, tmp_path):
     system, s = run_system(ros_context, path)
     try:
         assert s["touch_release"] == {"truth": 2, "found": 2, "typed_correctly": 2}
-        assert s["slip_events"] == {}, s["slip_events"]          # no false slip alarm
+        assert s["slip_events"] == {}, s["slip_events"]  # no false slip alarm
     finally:
         system.close()
 
@@ -108,11 +136,11 @@ def test_incipient_slip_precursor_comes_before_gross_slip(ros_context, tmp_path,
     system, s = run_system(ros_context, scene_file(tmp_path, "incipient_slip", seed=seed))
     try:
         gross = system.gross_slip_times_ns()
-        assert len(gross) == 1                                     # the scene does slip
+        assert len(gross) == 1  # the scene does slip
         lead = s["slip_precursor_lead_ms"][0]
         print(f"seed {seed}: precursor {lead} ms before gross slip")
-        assert lead is not None and lead > 74.0                    # earlier than a human reflex
-        assert s["slip_events"].get("SLIP", 0) >= 1                # and gross slip is reported
+        assert lead is not None and lead > 74.0  # earlier than a human reflex
+        assert s["slip_events"].get("SLIP", 0) >= 1  # and gross slip is reported
     finally:
         system.close()
 
@@ -123,19 +151,30 @@ def test_grip_reflex_averts_gross_slip(ros_context, tmp_path):
     # margin does not depend on how busy the test machine is (its speed: bench/).
     off, s_off = run_system(ros_context, path, speed=0.5)
     try:
-        assert len(off.gross_slip_times_ns()) == 1                 # without the reflex it slips
+        assert len(off.gross_slip_times_ns()) == 1  # without the reflex it slips
     finally:
         off.close()
     on, s_on = run_system(ros_context, path, grip_reflex=True, speed=0.5)
     try:
-        assert on.gross_slip_times_ns() == [], (on.scene_info, on.reflex.commands)  # the reflex averted it
+        assert on.gross_slip_times_ns() == [], (
+            on.scene_info,
+            on.reflex.commands,
+        )  # the reflex averted it
         assert on.reflex.commands and on.scene_info["load_changes"]
-        first_micro = min(t for t, k in [(int(m.header.stamp.sec) * 10**9 + m.header.stamp.nanosec, m.event_type)
-                                         for m in on.monitor.truth] if k == 3)
+        first_micro = min(
+            t
+            for t, k in [
+                (int(m.header.stamp.sec) * 10**9 + m.header.stamp.nanosec, m.event_type)
+                for m in on.monitor.truth
+            ]
+            if k == 3
+        )
         reaction_ms = (on.reflex.commands[0][0] - first_micro) * 1e-6
-        print(f"reaction: first micro-slip emission -> force command {reaction_ms:.1f} ms; "
-              f"precursor -> command {on.reflex.reactions_ms[0]:.1f} ms")
-        assert reaction_ms > 0                                     # the command followed the emission
+        print(
+            f"reaction: first micro-slip emission -> force command {reaction_ms:.1f} ms; "
+            f"precursor -> command {on.reflex.reactions_ms[0]:.1f} ms"
+        )
+        assert reaction_ms > 0  # the command followed the emission
     finally:
         on.close()
 
@@ -155,8 +194,12 @@ def test_texture_spatial_period_within_ten_percent(ros_context, tmp_path):
 
 
 def test_namespaced_bringup(ros_context):
-    system, s = run_system(ros_context, os.path.join(SCENES, "paper_positions.yaml"), namespace="hand/index",
-                           method="gradient")
+    system, s = run_system(
+        ros_context,
+        os.path.join(SCENES, "paper_positions.yaml"),
+        namespace="hand/index",
+        method="gradient",
+    )
     try:
         assert system.driver.get_namespace() == "/hand/index"
         assert system.driver.loc_params["method"] == "gradient"
@@ -172,23 +215,65 @@ def test_bringup_executable_with_parameter_file_and_namespace(tmp_path):
     """The demo's entry point as a user runs it: parameter file, namespace, summary file."""
     exe = installed_executable("bringup")
     out = tmp_path / "summary.json"
-    proc = subprocess.run([exe, "--scene", os.path.join(SCENES, "three_pins.yaml"), "--monitor",
-                           "--namespace", "finger1", "--params-file", os.path.join(ROOT, "config", "water_skin.yaml"),
-                           "--summary-json", str(out)], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [
+            exe,
+            "--scene",
+            os.path.join(SCENES, "three_pins.yaml"),
+            "--monitor",
+            "--namespace",
+            "finger1",
+            "--params-file",
+            os.path.join(ROOT, "config", "water_skin.yaml"),
+            "--summary-json",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "=== summary ===" in proc.stdout and "Traceback" not in proc.stderr
     s = json.loads(out.read_text())
     assert s["emissions"]["matched"] == 3 and s["touch_release"]["typed_correctly"] == 3
     assert s["emissions"]["rms_position_error_mm"] < 0.05
-    bad = subprocess.run([exe, "--params-file", str(tmp_path / "missing.yaml")], capture_output=True, text=True,
-                         timeout=60)
+    bad = subprocess.run(
+        [exe, "--params-file", str(tmp_path / "missing.yaml")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert bad.returncode == 2 and "not found" in bad.stderr
 
 
 def test_bringup_cli_parses_the_documented_arguments():
     from ae_tactile.ros.bringup import parse_args
-    a = parse_args(["--scene", "x.yaml", "--namespace", "f1", "--params-file", "p.yaml", "--no-sim",
-                    "--port", "socket://localhost:5000", "--method", "ml", "--grip-reflex", "--best-effort"])
+
+    a = parse_args(
+        [
+            "--scene",
+            "x.yaml",
+            "--namespace",
+            "f1",
+            "--params-file",
+            "p.yaml",
+            "--no-sim",
+            "--port",
+            "socket://localhost:5000",
+            "--method",
+            "ml",
+            "--grip-reflex",
+            "--best-effort",
+        ]
+    )
     assert isinstance(a, argparse.Namespace)
-    assert (a.scene, a.namespace, a.params_file, a.use_sim, a.port, a.method, a.grip_reflex, a.reliable) == \
-        ("x.yaml", "f1", "p.yaml", False, "socket://localhost:5000", "ml", True, False)
+    assert (
+        a.scene,
+        a.namespace,
+        a.params_file,
+        a.use_sim,
+        a.port,
+        a.method,
+        a.grip_reflex,
+        a.reliable,
+    ) == ("x.yaml", "f1", "p.yaml", False, "socket://localhost:5000", "ml", True, False)

@@ -6,6 +6,7 @@ CMake's generate step then fails with "Imported target ... includes non-existent
 This rewrites those paths in <prefix>/share/*/cmake/*.cmake to this interpreter's
 Python include directory and numpy's include directory.
 """
+
 import glob
 import os
 import re
@@ -15,7 +16,9 @@ import sysconfig
 import numpy
 
 PY_INC = re.compile(r"/opt/python/cp3\d+-cp3\d+/include/python3\.\d+t?")
-NP_INC = re.compile(r"/opt/python/cp3\d+-cp3\d+/lib/python3\.\d+t?/site-packages/numpy/_?core/include")
+NP_INC = re.compile(
+    r"/opt/python/cp3\d+-cp3\d+/lib/python3\.\d+t?/site-packages/numpy/_?core/include"
+)
 
 
 def main(prefix: str) -> int:

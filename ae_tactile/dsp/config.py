@@ -5,6 +5,7 @@ they are. All times are seconds; ``DetectorConfig.samples()`` converts them to i
 sample counts for the configured sample rate (rounded, with small minimums so that the
 detector still works at 1 MS/s).
 """
+
 from __future__ import annotations
 
 import math
@@ -196,31 +197,54 @@ class DetectorConfig:
         ft = fs / self.decimation
         hp = _num("highpass_hz", self.highpass_hz, lo=0.0, lo_open=True)
         if hp >= LOWPASS_MAX_FRACTION * ft:
-            raise ValueError(f"highpass_hz={self.highpass_hz!r} must be below "
-                             f"{LOWPASS_MAX_FRACTION} * trigger rate = {LOWPASS_MAX_FRACTION * ft:g} Hz"
-                             f" (sample_rate_hz={fs:g}, trigger_min_rate_hz={self.trigger_min_rate_hz:g})")
+            raise ValueError(
+                f"highpass_hz={self.highpass_hz!r} must be below "
+                f"{LOWPASS_MAX_FRACTION} * trigger rate = {LOWPASS_MAX_FRACTION * ft:g} Hz"
+                f" (sample_rate_hz={fs:g}, trigger_min_rate_hz={self.trigger_min_rate_hz:g})"
+            )
         lp = _num("lowpass_hz", self.lowpass_hz, lo=0.0, lo_open=True, allow_none=True)
         if lp is not None and lp <= hp:
-            raise ValueError(f"lowpass_hz={self.lowpass_hz!r} must be above highpass_hz={self.highpass_hz!r}")
+            raise ValueError(
+                f"lowpass_hz={self.lowpass_hz!r} must be above highpass_hz={self.highpass_hz!r}"
+            )
         _int("filter_order", self.filter_order, 1, 8)
         on = _num("threshold_sigma", self.threshold_sigma, lo=0.0, lo_open=True, hi=1e6)
         off = _num("rearm_sigma", self.rearm_sigma, lo=0.0, lo_open=True)
         if off >= on:
-            raise ValueError(f"rearm_sigma={self.rearm_sigma!r} must be below threshold_sigma="
-                             f"{self.threshold_sigma!r} (hysteresis)")
+            raise ValueError(
+                f"rearm_sigma={self.rearm_sigma!r} must be below threshold_sigma="
+                f"{self.threshold_sigma!r} (hysteresis)"
+            )
         _num("jump_ratio", self.jump_ratio, lo=1.0, lo_open=True)
         _num("channel_onset_sigma", self.channel_onset_sigma, lo=0.0, lo_open=True)
-        for name in ("envelope_hold_s", "onset_window_s", "onset_decay_s",
-                     "channel_refractory_s", "channel_spread_s", "min_separation_s",
-                     "reonset_aic_pre_s",
-                     "hit_definition_time_s", "posttrigger_s", "aic_pre_s", "aic_post_s",
-                     "noise_block_s", "peak_window_s", "polarity_window_s", "snr_window_s"):
+        for name in (
+            "envelope_hold_s",
+            "onset_window_s",
+            "onset_decay_s",
+            "channel_refractory_s",
+            "channel_spread_s",
+            "min_separation_s",
+            "reonset_aic_pre_s",
+            "hit_definition_time_s",
+            "posttrigger_s",
+            "aic_pre_s",
+            "aic_post_s",
+            "noise_block_s",
+            "peak_window_s",
+            "polarity_window_s",
+            "snr_window_s",
+        ):
             _num(name, getattr(self, name), lo=0.0, lo_open=True, hi=1.0)
         _num("echo_delay_s", self.echo_delay_s, lo=0.0, lo_open=True, hi=1.0, allow_none=True)
         _int("echo_orders", self.echo_orders, 1, 16)
-        for name in ("hit_lockout_time_s", "pretrigger_s", "settle_s", "noise_guard_s",
-                     "min_batch_s",
-                     "echo_tolerance_s"):
+        for name in (
+            "hit_lockout_time_s",
+            "pretrigger_s",
+            "settle_s",
+            "noise_guard_s",
+            "min_batch_s",
+            "echo_tolerance_s",
+        ):
             _num(name, getattr(self, name), lo=0.0, hi=1.0)
         m = _int("noise_history_blocks", self.noise_history_blocks, 1, 4096)
         _int("noise_min_blocks", self.noise_min_blocks, 1, m)
@@ -230,10 +254,14 @@ class DetectorConfig:
         _int("adc_bits", self.adc_bits, 2, 32)
         mx = _num("max_abs_v", self.max_abs_v, lo=0.0, lo_open=True, allow_none=True)
         if mx is not None and mx < self.full_scale_v:
-            raise ValueError(f"max_abs_v={self.max_abs_v!r} must be >= full_scale_v={self.full_scale_v!r}")
+            raise ValueError(
+                f"max_abs_v={self.max_abs_v!r} must be >= full_scale_v={self.full_scale_v!r}"
+            )
         sp = self.samples()
         if sp.window > 1 << 20:
-            raise ValueError(f"window of {sp.window} samples is too long (pretrigger_s + posttrigger_s)")
+            raise ValueError(
+                f"window of {sp.window} samples is too long (pretrigger_s + posttrigger_s)"
+            )
 
     # ---------------------------------------------------------------- derived
     @property
@@ -265,22 +293,35 @@ class DetectorConfig:
         block = nt(self.noise_block_s, 32)
         release_lag = pre + aic_pre + aic_post
         return SampleParams(
-            decim=d, trigger_rate_hz=ft,
-            pretrigger=pre, posttrigger=post, window=pre + post, hold=hold,
+            decim=d,
+            trigger_rate_hz=ft,
+            pretrigger=pre,
+            posttrigger=post,
+            window=pre + post,
+            hold=hold,
             onset_window=nt(self.onset_window_s, 1),
             onset_decay=math.exp(-2.0 / (float(self.onset_decay_s) * ft)),
             channel_refractory=nt(self.channel_refractory_s, 1),
             channel_spread=nt(self.channel_spread_s, 1),
             min_separation=nt(self.min_separation_s, 1),
-            hdt=nt(self.hit_definition_time_s, 1), hlt=nt(self.hit_lockout_time_s, 0),
+            hdt=nt(self.hit_definition_time_s, 1),
+            hlt=nt(self.hit_lockout_time_s, 0),
             echo_delay=0 if self.echo_delay_s is None else nt(self.echo_delay_s, 1),
             echo_tolerance=nt(self.echo_tolerance_s, 0),
-            aic_pre=aic_pre, aic_post=aic_post, reonset_aic_pre=n(self.reonset_aic_pre_s, 2) + d, block=block, block_full=block * d,
-            settle=nt(self.settle_s, 0), noise_guard=n(self.noise_guard_s, 0),
-            peak_window=n(self.peak_window_s, 1), polarity_window=n(self.polarity_window_s, 1),
-            snr_window=n(self.snr_window_s, 1), release_lag=release_lag,
+            aic_pre=aic_pre,
+            aic_post=aic_post,
+            reonset_aic_pre=n(self.reonset_aic_pre_s, 2) + d,
+            block=block,
+            block_full=block * d,
+            settle=nt(self.settle_s, 0),
+            noise_guard=n(self.noise_guard_s, 0),
+            peak_window=n(self.peak_window_s, 1),
+            polarity_window=n(self.polarity_window_s, 1),
+            snr_window=n(self.snr_window_s, 1),
+            release_lag=release_lag,
             min_batch=n(self.min_batch_s, 0),
-            history=2 * pre + post + 2 * (aic_pre + aic_post) + 8 * d + 8)
+            history=2 * pre + post + 2 * (aic_pre + aic_post) + 8 * d + 8,
+        )
 
     @property
     def lsb_v(self) -> float:
@@ -296,7 +337,11 @@ class DetectorConfig:
 
     @property
     def invalid_level_v(self) -> float:
-        return float(self.max_abs_v) if self.max_abs_v is not None else 1000.0 * float(self.full_scale_v)
+        return (
+            float(self.max_abs_v)
+            if self.max_abs_v is not None
+            else 1000.0 * float(self.full_scale_v)
+        )
 
     def replace(self, **changes) -> "DetectorConfig":
         return replace(self, **changes)

@@ -51,6 +51,7 @@ segment as ``flush()`` does (complete windows are released, windows cut by the g
 dropped and counted) and starts afresh; the detector is blind until the noise floor is
 known again (settle_s + noise_min_blocks blocks, ~0.2-0.3 ms by default).
 """
+
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
@@ -77,23 +78,23 @@ _MEDIAN_CHI2_1 = 0.454936
 class DetectorStats:
     """Counters of a `PacketDetector` (since construction or `reset_stats`)."""
 
-    chunks: int = 0                 #: process() calls with samples
-    samples: int = 0                #: samples per channel received
-    invalid_samples: int = 0        #: sample instants with a NaN/inf/absurd value (any channel)
-    chunks_with_invalid: int = 0    #: chunks that held invalid samples
-    gaps: int = 0                   #: forward jumps of first_sample_index (dropped blocks)
-    gap_samples: int = 0            #: samples missing in those gaps
-    discontinuities: int = 0        #: backward jumps / repeats of first_sample_index
-    blind_samples: int = 0          #: samples processed while the noise floor was unknown
-    hits: int = 0                   #: AE hits (first emission of each hit)
-    in_hit_emissions: int = 0       #: emissions detected inside a running hit
-    locked_out: int = 0             #: candidates suppressed by the hit lockout time
-    echoes: int = 0                 #: re-triggers taken for wall echoes (echo_delay_s)
-    packets: int = 0                #: windows published
-    overlapping_packets: int = 0    #: published windows flagged overlap
-    saturated_packets: int = 0      #: published windows flagged saturated
-    dropped_invalid: int = 0        #: windows dropped: they touched invalid samples
-    dropped_truncated: int = 0      #: windows dropped: cut by a gap, a flush or the stream start
+    chunks: int = 0  #: process() calls with samples
+    samples: int = 0  #: samples per channel received
+    invalid_samples: int = 0  #: sample instants with a NaN/inf/absurd value (any channel)
+    chunks_with_invalid: int = 0  #: chunks that held invalid samples
+    gaps: int = 0  #: forward jumps of first_sample_index (dropped blocks)
+    gap_samples: int = 0  #: samples missing in those gaps
+    discontinuities: int = 0  #: backward jumps / repeats of first_sample_index
+    blind_samples: int = 0  #: samples processed while the noise floor was unknown
+    hits: int = 0  #: AE hits (first emission of each hit)
+    in_hit_emissions: int = 0  #: emissions detected inside a running hit
+    locked_out: int = 0  #: candidates suppressed by the hit lockout time
+    echoes: int = 0  #: re-triggers taken for wall echoes (echo_delay_s)
+    packets: int = 0  #: windows published
+    overlapping_packets: int = 0  #: published windows flagged overlap
+    saturated_packets: int = 0  #: published windows flagged saturated
+    dropped_invalid: int = 0  #: windows dropped: they touched invalid samples
+    dropped_truncated: int = 0  #: windows dropped: cut by a gap, a flush or the stream start
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -104,12 +105,12 @@ class _Pending:
 
     def __init__(self, pid, crossing, hit_id, in_hit, weights, aic_lo, reonset):
         self.pid = pid
-        self.crossing = crossing        # input-sample index of the trigger
+        self.crossing = crossing  # input-sample index of the trigger
         self.hit_id = hit_id
         self.in_hit = in_hit
-        self.weights = weights          # 1 / sigma_k^2 for the AIC
-        self.aic_lo = aic_lo            # the AIC may not pick before this input index
-        self.reonset = reonset          # found by a channel re-onset inside a packet
+        self.weights = weights  # 1 / sigma_k^2 for the AIC
+        self.aic_lo = aic_lo  # the AIC may not pick before this input index
+        self.reonset = reonset  # found by a channel re-onset inside a packet
         self.onset = None
 
 
@@ -130,8 +131,9 @@ class PacketDetector:
             raise TypeError(f"config must be a DetectorConfig, got {type(config).__name__}")
         self.config = config
         self.sp = config.samples()
-        self.sos = design_bandpass_sos(self.sp.trigger_rate_hz, config.highpass_hz,
-                                       config.lowpass_hz, config.filter_order)
+        self.sos = design_bandpass_sos(
+            self.sp.trigger_rate_hz, config.highpass_hz, config.lowpass_hz, config.filter_order
+        )
         self._kon2 = float(config.threshold_sigma) ** 2
         self._koff2 = float(config.rearm_sigma) ** 2
         self._jump2 = float(config.jump_ratio) ** 2
@@ -148,9 +150,14 @@ class PacketDetector:
         # filtered energy no valid input can reach (|x| <= max_abs_v, sums of D, gain < 2)
         self._invalid_y2 = (2.0 * self.sp.decim * self._invalid_level) ** 2
         self._filter = StreamingSOS(self.sos, N_CHANNELS)
-        self._tracker = BlockNoiseTracker(N_CHANNELS, config.noise_history_blocks,
-                                          config.noise_min_blocks, config.burst_ratio,
-                                          self._floor_var, config.noise_epoch_blocks)
+        self._tracker = BlockNoiseTracker(
+            N_CHANNELS,
+            config.noise_history_blocks,
+            config.noise_min_blocks,
+            config.burst_ratio,
+            self._floor_var,
+            config.noise_epoch_blocks,
+        )
         self._empty_batch = PacketBatch.empty(self.sample_rate_hz, self.sp.window)
         self._next_id = 0
         self._hit_id = -1
@@ -224,7 +231,7 @@ class PacketDetector:
             n = x.shape[1]
             self._inbuf, self._inlen = [], 0
         for i in range(0, n, _MAX_PIECE):
-            self._run(x[:, i:i + _MAX_PIECE])
+            self._run(x[:, i : i + _MAX_PIECE])
             outs.append(self._release(final=False))
         outs = [o for o in outs if len(o)]
         if not outs:
@@ -256,9 +263,11 @@ class PacketDetector:
     @staticmethod
     def _check_index(first_sample_index) -> int:
         if isinstance(first_sample_index, (bool, np.bool_)) or not isinstance(
-                first_sample_index, (int, np.integer)):
-            raise ValueError(f"first_sample_index must be an integer sample index, got "
-                             f"{first_sample_index!r}")
+            first_sample_index, (int, np.integer)
+        ):
+            raise ValueError(
+                f"first_sample_index must be an integer sample index, got {first_sample_index!r}"
+            )
         idx = int(first_sample_index)
         if idx < 0 or idx >= 1 << 62:
             raise ValueError(f"first_sample_index must be in [0, 2^62), got {idx}")
@@ -268,7 +277,7 @@ class PacketDetector:
         """float64 copy with invalid samples counted, recorded (absolute ranges) and
         replaced by the channel's last valid value."""
         x = np.array(x, dtype=np.float64, order="C", copy=True)
-        bad = ~(np.abs(x) <= self._invalid_level)             # NaN, inf, absurd
+        bad = ~(np.abs(x) <= self._invalid_level)  # NaN, inf, absurd
         anybad = bad.any(axis=0)
         nbad = int(anybad.sum())
         if nbad == 0:
@@ -293,8 +302,8 @@ class PacketDetector:
         self._origin = 0
         self._origin_u = 0
         self._proc_end = 0
-        self._lead = np.zeros((N_CHANNELS, 0))        # raw samples of an incomplete group
-        self._inbuf: list[np.ndarray] = []            # short chunks waiting for min_batch
+        self._lead = np.zeros((N_CHANNELS, 0))  # raw samples of an incomplete group
+        self._inbuf: list[np.ndarray] = []  # short chunks waiting for min_batch
         self._inlen = 0
         self._skip = 0
         self._u_next = 0
@@ -303,8 +312,8 @@ class PacketDetector:
         self._raw_hist = np.zeros((N_CHANNELS, 0))
         self._raw_hist_prev = self._raw_hist
         self._raw_last = None
-        self._blk_y2 = np.zeros((N_CHANNELS, 0))      # y^2 of the current partial block
-        self._blk_var = np.full(N_CHANNELS, np.nan)   # variance in use for that block
+        self._blk_y2 = np.zeros((N_CHANNELS, 0))  # y^2 of the current partial block
+        self._blk_var = np.full(N_CHANNELS, np.nan)  # variance in use for that block
         self._y_hist = np.zeros((N_CHANNELS, sp.onset_window + 1))
         self._ch_last_event = [0] * N_CHANNELS
         self._ch_last_cluster = [None] * N_CHANNELS
@@ -318,7 +327,7 @@ class PacketDetector:
         self._assign_until = -1
         self._accepted_u: list[int] = []
         self._pending: list[_Pending] = []
-        self._recent: list[tuple[int, int]] = []      # (pid, onset) of released/dropped
+        self._recent: list[tuple[int, int]] = []  # (pid, onset) of released/dropped
 
     def _start_stream(self, idx: int) -> None:
         d = self.sp.decim
@@ -339,7 +348,7 @@ class PacketDetector:
             self._inbuf, self._inlen = [], 0
             outs = []
             for i in range(0, x.shape[1], _MAX_PIECE):
-                self._run(x[:, i:i + _MAX_PIECE])
+                self._run(x[:, i : i + _MAX_PIECE])
                 outs.append(self._release(final=False))
             outs.append(self._release(final=True))
             return PacketBatch.concatenate(outs, self.sample_rate_hz, self.sp.window)
@@ -363,7 +372,7 @@ class PacketDetector:
         skip0, lead0 = self._skip, self._lead
         xd, skip_used, lead = self._decimate(xf)
         ok = bool(np.all(np.abs(lead) <= self._invalid_level)) if lead.shape[1] else True
-        with np.errstate(all="ignore"):          # NaN/inf/absurd are caught just below
+        with np.errstate(all="ignore"):  # NaN/inf/absurd are caught just below
             phase = self._filter_phase(xd) if ok and xd.shape[1] else None
         if not ok or (phase is not None and not phase[-1]):
             self._filter.set_state(zi)
@@ -388,7 +397,7 @@ class PacketDetector:
         else:
             self._raw_last = None
         if n >= h:
-            self._raw_hist = np.array(xf[:, n - h:], dtype=np.float64, copy=True)
+            self._raw_hist = np.array(xf[:, n - h :], dtype=np.float64, copy=True)
         else:
             self._raw_hist = np.concatenate([self._raw_hist, xf], axis=1)[:, -h:]
         if self._invalid:
@@ -421,7 +430,7 @@ class PacketDetector:
             pos += d - r
         m = (n - pos) // d
         if m:
-            body = xf[:, pos:pos + m * d]
+            body = xf[:, pos : pos + m * d]
             s = body[:, 0::d] + body[:, 1::d]
             for j in range(2, d):
                 s += body[:, j::d]
@@ -440,7 +449,7 @@ class PacketDetector:
         b = self.sp.block
         m = xd.shape[1]
         y = self._filter.process(xd, inplace=True)
-        p = self._blk_y2.shape[1]               # samples of the current block seen before
+        p = self._blk_y2.shape[1]  # samples of the current block seen before
         total = p + m
         nbs = -(-total // b)
         ncomp = total // b
@@ -454,7 +463,7 @@ class PacketDetector:
         ms = r[:, :ncomp].mean(axis=-1)
         pk = r[:, :ncomp].max(axis=-1)
         lim = self._invalid_y2
-        finite = bool(pk.max() <= lim) if ncomp else True      # False for NaN, inf, absurd
+        finite = bool(pk.max() <= lim) if ncomp else True  # False for NaN, inf, absurd
         if finite and total > ncomp * b:
             finite = bool(r[:, ncomp].max() <= lim)
         return y, r, ms, pk, p, finite
@@ -466,7 +475,7 @@ class PacketDetector:
         b = sp.block
         y, r, ms, pk, p, _ = phase
         m = y.shape[1]
-        blk0 = u0 - p                           # first trigger index of the first block
+        blk0 = u0 - p  # first trigger index of the first block
         total = p + m
         nbs = r.shape[1]
         ncomp = ms.shape[1]
@@ -480,12 +489,13 @@ class PacketDetector:
             self._blk_var = var_all[:, -1].copy()
         else:
             var = self._blk_var[:, None]
-        self._blk_y2 = r.reshape(N_CHANNELS, -1)[:, ncomp * b:total].copy()
+        self._blk_y2 = r.reshape(N_CHANNELS, -1)[:, ncomp * b : total].copy()
         blind = np.isnan(var[0])
         if blind.any():
             nb_blind = int(blind.sum())
-            self.stats.blind_samples += sp.decim * (nb_blind * b - (p if blind[0] else 0)
-                                                    - ((nbs * b - total) if blind[-1] else 0))
+            self.stats.blind_samples += sp.decim * (
+                nb_blind * b - (p if blind[0] else 0) - ((nbs * b - total) if blind[-1] else 0)
+            )
             w = np.where(np.isnan(var), 0.0, 0.25 / np.where(np.isnan(var), 1.0, var))
         else:
             w = 0.25 / var
@@ -495,7 +505,7 @@ class PacketDetector:
         self._trigger(e2, y, u0, w, blk0)
         lh = sp.onset_window + 1
         if m >= lh:
-            self._y_hist = y[:, m - lh:].copy()
+            self._y_hist = y[:, m - lh :].copy()
         else:
             self._y_hist = np.concatenate([self._y_hist, y], axis=1)[:, -lh:]
 
@@ -526,8 +536,7 @@ class PacketDetector:
             keep_from = min(keep_from, lo)
         self._invalid = [(s, e) for s, e in self._invalid if e > keep_from]
 
-    def _trigger(self, e2: np.ndarray, y: np.ndarray, u0: int, w: np.ndarray,
-                 blk0: int) -> None:
+    def _trigger(self, e2: np.ndarray, y: np.ndarray, u0: int, w: np.ndarray, blk0: int) -> None:
         """Schmitt trigger, per-channel re-onsets and AE hit rules on e2 (trigger indices
         from u0); y (4, m) is the band-passed trigger-path signal."""
         sp = self.sp
@@ -543,7 +552,7 @@ class PacketDetector:
         seg_start = gaps > sp.hold
         clu_gid = np.cumsum(gaps > sp.hdt)
         clu_gid += self._cluster
-        events = []                    # (position in act, channel or -1 for a rising edge)
+        events = []  # (position in act, channel or -1 for a rising edge)
         if on_pos.size:
             seg_id = np.cumsum(seg_start)
             sid = seg_id[on_pos]
@@ -554,7 +563,9 @@ class PacketDetector:
             if self._seg_triggered and not seg_start[0] and sid[0] == 0:
                 rising = rising[1:]
             last_sid = int(seg_id[-1])
-            self._seg_triggered = bool(sid[-1] == last_sid or (last_sid == 0 and self._seg_triggered))
+            self._seg_triggered = bool(
+                sid[-1] == last_sid or (last_sid == 0 and self._seg_triggered)
+            )
             events.extend((p_, -1) for p_ in rising.tolist())
         elif seg_start.any():
             self._seg_triggered = False
@@ -580,17 +591,17 @@ class PacketDetector:
         sp = self.sp
         lh = sp.onset_window + 1
         # squared first differences over the span the active samples and their windows need
-        lo = int(act[0]) - lh                                # may reach into the history
+        lo = int(act[0]) - lh  # may reach into the history
         hi = int(act[-1]) + 1
         if lo >= 0:
             ys = y[:, lo:hi]
         else:
-            ys = np.concatenate([self._y_hist[:, lh + lo:], y[:, :hi]], axis=1)
-        d = ys[:, 1:] - ys[:, :-1]                          # d[j] = y[lo + j + 1] - y[lo + j]
+            ys = np.concatenate([self._y_hist[:, lh + lo :], y[:, :hi]], axis=1)
+        d = ys[:, 1:] - ys[:, :-1]  # d[j] = y[lo + j + 1] - y[lo + j]
         d *= d
-        q = act - (lo + 1)                                   # d[q] is (y[n] - y[n-1])^2
+        q = act - (lo + 1)  # d[q] is (y[n] - y[n-1])^2
         # absolute level first (cheap, prunes most samples), then the decayed reference
-        wd = w[:, (a_abs - blk0) // sp.block] * self._wd_scale   # 1 / sigma_dk^2, (4, na)
+        wd = w[:, (a_abs - blk0) // sp.block] * self._wd_scale  # 1 / sigma_dk^2, (4, na)
         cur = d[:, q]
         kk, pp = np.nonzero(cur * wd >= self._chk2)
         if kk.size == 0:
@@ -604,7 +615,7 @@ class PacketDetector:
         out = []
         tt = a_abs[pp].tolist()
         last = list(self._ch_last_cond)
-        for k, p_, t in zip(kk.tolist(), pp.tolist(), tt):    # channel-major, time order
+        for k, p_, t in zip(kk.tolist(), pp.tolist(), tt):  # channel-major, time order
             lc = last[k]
             if lc is None or t - lc != 1:
                 out.append((p_, k))
@@ -628,10 +639,12 @@ class PacketDetector:
             c = int(a_abs[p_])
             g = int(clu_gid[p_])
             if k >= 0:
-                is_re = (self._ch_last_cluster[k] == g
-                         and c - self._ch_last_event[k] >= sp.channel_refractory)
+                is_re = (
+                    self._ch_last_cluster[k] == g
+                    and c - self._ch_last_event[k] >= sp.channel_refractory
+                )
                 if self._ch_last_cluster[k] == g and not is_re:
-                    continue                               # same burst as before
+                    continue  # same burst as before
                 self._ch_last_event[k] = c
                 self._ch_last_cluster[k] = g
                 if not is_re or c <= self._assign_until:
@@ -644,7 +657,7 @@ class PacketDetector:
                 continue
             if sp.echo_delay and self._is_echo(c):
                 self.stats.echoes += 1
-                self._assign_until = c + sp.channel_spread      # its late channels too
+                self._assign_until = c + sp.channel_spread  # its late channels too
                 continue
             if g == self._hit_cluster:
                 in_hit = True
@@ -662,8 +675,11 @@ class PacketDetector:
                 self._hit_cluster = g
             # the previous emission's channels have all arrived by its crossing + spread:
             # the AIC must not pick them
-            aic_lo = -1 if self._last_cand is None else \
-                (self._last_cand + sp.channel_spread) * d + d - 1
+            aic_lo = (
+                -1
+                if self._last_cand is None
+                else (self._last_cand + sp.channel_spread) * d + d - 1
+            )
             if k >= 0:
                 # a re-onset is timed by the channel's own onset: search close to it (the
                 # decaying packet before it would pull the AIC early)
@@ -672,10 +688,19 @@ class PacketDetector:
             self._assign_until = c + sp.channel_spread
             if sp.echo_delay:
                 self._accepted_u.append(c)
-            wc = 4.0 * w[:, (c - blk0) // sp.block]          # 1 / sigma_k^2 (0 if blind)
+            wc = 4.0 * w[:, (c - blk0) // sp.block]  # 1 / sigma_k^2 (0 if blind)
             # crossing in input samples: the last sample of the trigger group
-            self._pending.append(_Pending(self._next_id, c * d + d - 1, self._hit_id, in_hit,
-                                          np.where(wc > 0, wc, 1.0), aic_lo, k >= 0))
+            self._pending.append(
+                _Pending(
+                    self._next_id,
+                    c * d + d - 1,
+                    self._hit_id,
+                    in_hit,
+                    np.where(wc > 0, wc, 1.0),
+                    aic_lo,
+                    k >= 0,
+                )
+            )
             self._next_id += 1
 
     def _is_echo(self, c: int) -> bool:
@@ -695,8 +720,11 @@ class PacketDetector:
 
     def _raw_span(self) -> int:
         """First absolute index of the raw samples held (history + last piece)."""
-        held = self._raw_hist_prev.shape[1] + self._raw_last.shape[1] \
-            if self._raw_last is not None else self._raw_hist.shape[1]
+        held = (
+            self._raw_hist_prev.shape[1] + self._raw_last.shape[1]
+            if self._raw_last is not None
+            else self._raw_hist.shape[1]
+        )
         return self._proc_end - held
 
     def _gather(self, idx: np.ndarray) -> np.ndarray:
@@ -713,15 +741,21 @@ class PacketDetector:
             else:
                 hist = self._raw_hist_prev
                 nl, nh = last.shape[1], hist.shape[1]
-                out = np.where(rel >= 0, last[:, np.clip(rel, 0, nl - 1)],
-                               hist[:, np.clip(rel + nh, 0, nh - 1)])
+                out = np.where(
+                    rel >= 0,
+                    last[:, np.clip(rel, 0, nl - 1)],
+                    hist[:, np.clip(rel + nh, 0, nh - 1)],
+                )
         return np.ascontiguousarray(out.transpose(1, 0, 2))
 
     def _refine(self) -> None:
         """AIC onsets for the pending candidates whose search segment is complete."""
         sp = self.sp
-        todo = [p for p in self._pending if p.onset is None
-                and p.crossing + 1 + sp.aic_post <= self._proc_end]
+        todo = [
+            p
+            for p in self._pending
+            if p.onset is None and p.crossing + 1 + sp.aic_post <= self._proc_end
+        ]
         if not todo:
             return
         ext_start = self._raw_span()
@@ -729,13 +763,13 @@ class PacketDetector:
         ok = starts >= max(ext_start, self._origin)
         if not ok.all():
             for p, good in zip(todo, ok.tolist()):
-                if not good:             # too close to the stream start: cannot refine
+                if not good:  # too close to the stream start: cannot refine
                     p.onset = -1
             todo = [p for p, good in zip(todo, ok.tolist()) if good]
             starts = starts[ok]
             if not todo:
                 return
-        seg = self._gather(starts[:, None] + self._aic_range)        # (K, 4, L)
+        seg = self._gather(starts[:, None] + self._aic_range)  # (K, 4, L)
         wts = np.stack([p.weights for p in todo])
         re = np.array([p.reonset for p in todo])
         if re.any():
@@ -754,8 +788,9 @@ class PacketDetector:
         if not self._pending:
             return self._empty_batch
         # earliest possible onset of each pending packet -> can anything be released?
-        lower = min(p.onset if p.onset is not None else p.crossing + 1 - sp.aic_pre
-                    for p in self._pending)
+        lower = min(
+            p.onset if p.onset is not None else p.crossing + 1 - sp.aic_pre for p in self._pending
+        )
         if not final and lower + sp.posttrigger + sp.release_lag > self._proc_end:
             return self._empty_batch
         self._refine()
@@ -764,8 +799,11 @@ class PacketDetector:
                 if p.onset is None:
                     p.onset = -1
         known = [p for p in self._pending if p.onset is not None]
-        ready = [p for p in known if p.onset < 0 or final
-                 or p.onset + sp.posttrigger + sp.release_lag <= self._proc_end]
+        ready = [
+            p
+            for p in known
+            if p.onset < 0 or final or p.onset + sp.posttrigger + sp.release_lag <= self._proc_end
+        ]
         if not ready:
             return self._empty_batch
         # neighbours for the overlap flags: recent released + all known pending
@@ -774,7 +812,11 @@ class PacketDetector:
         cand = []
         drop_trunc = 0
         for p in ready:
-            if p.onset < 0 or p.onset - sp.pretrigger < lo_ok or p.onset + sp.posttrigger > self._proc_end:
+            if (
+                p.onset < 0
+                or p.onset - sp.pretrigger < lo_ok
+                or p.onset + sp.posttrigger > self._proc_end
+            ):
                 drop_trunc += 1
             else:
                 cand.append(p)
@@ -788,7 +830,7 @@ class PacketDetector:
             return self._empty_batch
         onset = np.array([p.onset for p in cand], dtype=np.int64)
         start = onset - sp.pretrigger
-        win = self._gather(start[:, None] + self._win_range)          # (K, 4, M)
+        win = self._gather(start[:, None] + self._win_range)  # (K, 4, M)
         good = np.abs(win).max(axis=(1, 2)) <= self._invalid_level
         if self._invalid:
             end = start + sp.window
@@ -822,28 +864,46 @@ class PacketDetector:
         next_id = np.array(next_id, np.int64)
         overlap = (prev_id >= 0) | (next_id >= 0)
         feats = window_features_fixed(
-            win, sp.pretrigger, noise_guard=sp.noise_guard,
-            peak_window=sp.peak_window, polarity_window=sp.polarity_window,
-            snr_window=sp.snr_window, sat_lo=self._sat_lo, sat_hi=self._sat_hi,
-            var_floor=self._floor_var * 1e-2)
+            win,
+            sp.pretrigger,
+            noise_guard=sp.noise_guard,
+            peak_window=sp.peak_window,
+            polarity_window=sp.polarity_window,
+            snr_window=sp.snr_window,
+            sat_lo=self._sat_lo,
+            sat_hi=self._sat_hi,
+            var_floor=self._floor_var * 1e-2,
+        )
         self.stats.packets += k
         self.stats.overlapping_packets += int(overlap.sum())
         self.stats.saturated_packets += int(feats["saturated"].sum())
         return PacketBatch(
-            sample_rate_hz=self.sample_rate_hz, start_index=start, samples=win,
+            sample_rate_hz=self.sample_rate_hz,
+            start_index=start,
+            samples=win,
             onset_index=np.full(k, sp.pretrigger, np.int64),
             trigger_index=np.array([p.crossing for p in cand], np.int64) - start,
-            overlap=overlap, overlap_prev_id=prev_id, overlap_next_id=next_id,
+            overlap=overlap,
+            overlap_prev_id=prev_id,
+            overlap_next_id=next_id,
             clear_after=np.array(clear, np.int64),
             packet_id=np.array([p.pid for p in cand], np.int64),
             hit_id=np.array([p.hit_id for p in cand], np.int64),
-            in_hit=np.array([p.in_hit for p in cand], bool), valid=np.ones(k, bool), **feats)
+            in_hit=np.array([p.in_hit for p in cand], bool),
+            valid=np.ones(k, bool),
+            **feats,
+        )
 
 
 # ---------------------------------------------------------------------- triggered windows
-def analyze_window(windows, sample_rate_hz: float | None = None, *,
-                   config: DetectorConfig | None = None, onset_hint=None,
-                   start_index=None) -> PacketBatch:
+def analyze_window(
+    windows,
+    sample_rate_hz: float | None = None,
+    *,
+    config: DetectorConfig | None = None,
+    onset_hint=None,
+    start_index=None,
+) -> PacketBatch:
     """Onset, noise, saturation, peak, polarity and SNR of already-cut windows.
 
     For devices that send PACKET frames (windows cut by the device's own trigger), so the
@@ -891,17 +951,20 @@ def analyze_window(windows, sample_rate_hz: float | None = None, *,
     if onset_hint is not None:
         hint = np.asarray(onset_hint).reshape(-1)
         if hint.shape != (k,) or hint.dtype.kind not in "iu":
-            raise ValueError(f"onset_hint must be {k} integers (negative: none), got {onset_hint!r}")
+            raise ValueError(
+                f"onset_hint must be {k} integers (negative: none), got {onset_hint!r}"
+            )
         hint = hint.astype(np.int64)
     if k == 0:
         return PacketBatch.empty(config.sample_rate_hz, m)
 
-    sos = design_bandpass_sos(config.sample_rate_hz, config.highpass_hz, config.lowpass_hz,
-                              config.filter_order)
+    sos = design_bandpass_sos(
+        config.sample_rate_hz, config.highpass_hz, config.lowpass_hz, config.filter_order
+    )
     zi = signal.sosfilt_zi(sos)[:, None, None, :] * w[None, :, :, 0, None]
     y, _ = signal.sosfilt(sos, w, axis=-1, zi=zi)
     floor_var = (0.1 * config.lsb_v) ** 2
-    var = np.maximum(np.median(y * y, axis=-1) / _MEDIAN_CHI2_1, floor_var)   # (K, 4)
+    var = np.maximum(np.median(y * y, axis=-1) / _MEDIAN_CHI2_1, floor_var)  # (K, 4)
     e2 = y[:, 0] ** 2 * (0.25 / var[:, 0, None])
     for ch in range(1, N_CHANNELS):
         e2 = e2 + y[:, ch] ** 2 * (0.25 / var[:, ch, None])
@@ -915,18 +978,32 @@ def analyze_window(windows, sample_rate_hz: float | None = None, *,
     pick, _ = aic_pick(seg, 1.0 / var, margin=2)
     onset = (seg_start + pick).astype(np.int64)
     feats = window_features(
-        w, onset, noise_guard=sp.noise_guard, peak_window=sp.peak_window,
-        polarity_window=sp.polarity_window, snr_window=sp.snr_window,
-        sat_lo=config.saturation_levels_v[0], sat_hi=config.saturation_levels_v[1],
-        var_floor=floor_var * 1e-2)
+        w,
+        onset,
+        noise_guard=sp.noise_guard,
+        peak_window=sp.peak_window,
+        polarity_window=sp.polarity_window,
+        snr_window=sp.snr_window,
+        sat_lo=config.saturation_levels_v[0],
+        sat_hi=config.saturation_levels_v[1],
+        var_floor=floor_var * 1e-2,
+    )
     return PacketBatch(
-        sample_rate_hz=float(config.sample_rate_hz), start_index=start, samples=w,
-        onset_index=onset, trigger_index=crossing.astype(np.int64),
-        overlap=np.zeros(k, bool), overlap_prev_id=np.full(k, -1, np.int64),
+        sample_rate_hz=float(config.sample_rate_hz),
+        start_index=start,
+        samples=w,
+        onset_index=onset,
+        trigger_index=crossing.astype(np.int64),
+        overlap=np.zeros(k, bool),
+        overlap_prev_id=np.full(k, -1, np.int64),
         overlap_next_id=np.full(k, -1, np.int64),
         clear_after=np.maximum(m - onset, 0).astype(np.int64),
-        packet_id=np.full(k, -1, np.int64), hit_id=np.full(k, -1, np.int64),
-        in_hit=np.zeros(k, bool), valid=valid, **feats)
+        packet_id=np.full(k, -1, np.int64),
+        hit_id=np.full(k, -1, np.int64),
+        in_hit=np.zeros(k, bool),
+        valid=valid,
+        **feats,
+    )
 
 
 __all__ = ["PacketDetector", "DetectorStats", "analyze_window"]

@@ -17,6 +17,7 @@ the stream is cut into chunks: scipy's ``sosfilt`` runs the same recursion on th
 numbers. At a (re)start the state is set to the steady state for a constant input equal
 to the first sample, so a DC offset produces no start-up transient.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -35,8 +36,9 @@ LOWPASS_CLIP_FRACTION = 0.36
 LOWPASS_MIN_RATIO = 4.0
 
 
-def design_bandpass_sos(sample_rate_hz: float, highpass_hz: float, lowpass_hz: float | None,
-                        order: int = 2) -> np.ndarray:
+def design_bandpass_sos(
+    sample_rate_hz: float, highpass_hz: float, lowpass_hz: float | None, order: int = 2
+) -> np.ndarray:
     """SOS (n_sections, 6) of the trigger filter; see the module docstring.
 
     Raises ValueError when the high-pass corner is not below 0.4 fs, or when the
@@ -47,15 +49,19 @@ def design_bandpass_sos(sample_rate_hz: float, highpass_hz: float, lowpass_hz: f
     if not (np.isfinite(fs) and fs > 0):
         raise ValueError(f"sample_rate_hz must be positive and finite, got {sample_rate_hz!r}")
     if not (np.isfinite(hp) and 0 < hp < LOWPASS_MAX_FRACTION * fs):
-        raise ValueError(f"highpass_hz={highpass_hz!r} must be in (0, {LOWPASS_MAX_FRACTION} * "
-                         f"sample_rate_hz) = (0, {LOWPASS_MAX_FRACTION * fs:g}) Hz")
+        raise ValueError(
+            f"highpass_hz={highpass_hz!r} must be in (0, {LOWPASS_MAX_FRACTION} * "
+            f"sample_rate_hz) = (0, {LOWPASS_MAX_FRACTION * fs:g}) Hz"
+        )
     if isinstance(order, bool) or not isinstance(order, (int, np.integer)) or not 1 <= order <= 8:
         raise ValueError(f"filter order must be an integer in [1, 8], got {order!r}")
     sos = [signal.butter(int(order), hp, btype="highpass", fs=fs, output="sos")]
     if lowpass_hz is not None:
         lp = float(lowpass_hz)
         if not (np.isfinite(lp) and lp > hp):
-            raise ValueError(f"lowpass_hz={lowpass_hz!r} must be finite and above highpass_hz={hp:g}")
+            raise ValueError(
+                f"lowpass_hz={lowpass_hz!r} must be finite and above highpass_hz={hp:g}"
+            )
         lp = min(lp, LOWPASS_CLIP_FRACTION * fs)
         if lp >= LOWPASS_MIN_RATIO * hp:
             sos.append(signal.butter(int(order), lp, btype="lowpass", fs=fs, output="sos"))
@@ -118,7 +124,7 @@ class StreamingSOS:
         self.n_channels = int(n_channels)
         # Steady-state state for a unit step through the whole cascade: (n_sections, 2).
         self._zi_unit = signal.sosfilt_zi(self.sos)
-        self._zi: np.ndarray | None = None      # (n_channels, n_sections, 2)
+        self._zi: np.ndarray | None = None  # (n_channels, n_sections, 2)
 
     def reset(self) -> None:
         self._zi = None
@@ -135,11 +141,13 @@ class StreamingSOS:
         if x.shape[-1] == 0:
             return np.zeros(x.shape, dtype=np.float64)
         if self._zi is None:
-            self._zi = np.ascontiguousarray(self._zi_unit[None, :, :] * x[:, 0, None, None],
-                                            dtype=np.float64)
+            self._zi = np.ascontiguousarray(
+                self._zi_unit[None, :, :] * x[:, 0, None, None], dtype=np.float64
+            )
         if _KERNEL_OK:
-            if not (inplace and x.dtype == np.float64 and x.flags.c_contiguous
-                    and x.flags.writeable):
+            if not (
+                inplace and x.dtype == np.float64 and x.flags.c_contiguous and x.flags.writeable
+            ):
                 x = np.array(x, dtype=np.float64, order="C")
             _sosfilt_kernel(self.sos, x, self._zi)
             return x

@@ -14,15 +14,38 @@ Per-packet hot path (compiled with numba when available, `fast.py`):
     r = loc.localize_one(window (4, M), fs, onset)   # PacketLocation: accepted, point_m, ...
 See docs/localization.md.
 """
+
 from ae_tactile.localization.common import REASON_DESCRIPTIONS, Reason
-from ae_tactile.localization.estimators import (DEFAULT_BAND_HZ, ESTIMATORS, EstimatorInfo, default_band_hz,
-                                                LocalizationResult, Localizer, PacketLocation,
-                                                available_methods, get_estimator, localize,
-                                                localize_packets, register_estimator)
+from ae_tactile.localization.estimators import (
+    DEFAULT_BAND_HZ,
+    ESTIMATORS,
+    EstimatorInfo,
+    LocalizationResult,
+    Localizer,
+    PacketLocation,
+    available_methods,
+    default_band_hz,
+    get_estimator,
+    localize,
+    localize_packets,
+    register_estimator,
+)
 from ae_tactile.localization.fast import NUMBA_AVAILABLE
 
 __all__ = [
-    "localize", "localize_packets", "Localizer", "LocalizationResult", "Reason", "REASON_DESCRIPTIONS",
-    "ESTIMATORS", "EstimatorInfo", "available_methods", "get_estimator", "register_estimator",
-    "DEFAULT_BAND_HZ", "default_band_hz", "PacketLocation", "NUMBA_AVAILABLE",
+    "localize",
+    "localize_packets",
+    "Localizer",
+    "LocalizationResult",
+    "Reason",
+    "REASON_DESCRIPTIONS",
+    "ESTIMATORS",
+    "EstimatorInfo",
+    "available_methods",
+    "get_estimator",
+    "register_estimator",
+    "DEFAULT_BAND_HZ",
+    "default_band_hz",
+    "PacketLocation",
+    "NUMBA_AVAILABLE",
 ]

@@ -15,6 +15,7 @@ invariant to a DC offset (and, because every statistic is a ratio, to a common g
 Spectra are unnormalised DFTs of zero-padded segments: Y(f) = sum_n y[n] e^{-j w n/fs}.
 White noise of variance sigma^2 over L samples gives E|N(f)|^2 = L sigma^2 per bin.
 """
+
 from __future__ import annotations
 
 import math
@@ -30,7 +31,8 @@ from ae_tactile.geometry import CHANNEL_XI_ETA, FingertipGeometry
 
 XI = CHANNEL_XI_ETA[:, 0].astype(float)
 ETA = CHANNEL_XI_ETA[:, 1].astype(float)
-#: Rows of t_k = T0 + ROW_k . (tau_x, tau_y, twist): t_k = T0 - xi tau_x - eta tau_y + xi eta twist.
+#: Rows of t_k = T0 + ROW_k . (tau_x, tau_y, twist):
+#: t_k = T0 - xi tau_x - eta tau_y + xi eta twist.
 CHANNEL_ROWS = np.stack([-XI, -ETA, XI * ETA], axis=1)
 #: Contrasts giving (tau_x, tau_y, twist) from arrival times (geometry.delays_from_arrival_times).
 CONTRASTS = np.stack([-XI, -ETA, XI * ETA], axis=0) / 4.0
@@ -38,7 +40,7 @@ CONTRASTS = np.stack([-XI, -ETA, XI * ETA], axis=0) / 4.0
 PAIRS = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
 #: Pair design matrix: t_i - t_j = PAIR_DESIGN @ (tau_x, tau_y, twist).
 PAIR_DESIGN = CHANNEL_ROWS[PAIRS[:, 0]] - CHANNEL_ROWS[PAIRS[:, 1]]
-PAIR_PINV = np.linalg.pinv(PAIR_DESIGN)                       # (3, 6)
+PAIR_PINV = np.linalg.pinv(PAIR_DESIGN)  # (3, 6)
 #: Pair incidence (6, 4): +1 at i, -1 at j.
 PAIR_INCIDENCE = np.zeros((6, 4))
 PAIR_INCIDENCE[np.arange(6), PAIRS[:, 0]] = 1.0
@@ -56,23 +58,25 @@ class Reason(IntEnum):
     """
 
     OK = 0
-    NONFINITE = 1      # NaN or inf samples in the window
-    NO_SIGNAL = 2      # a channel is constant over the analysis segment (all-zero, constant, dead)
-    WINDOW = 3         # onset outside the window, or too little of the packet inside it
-    SATURATED = 4      # clipped samples (flag from upstream, full scale, or a flat top)
-    LOW_SNR = 5        # estimated SNR (conventions.md) below min_snr_db
-    OVERLAP = 6        # the four channels are not shifted copies of one waveform
-    OUT_OF_RANGE = 7   # delays beyond the sphere's horizon by more than the noise allows
+    NONFINITE = 1  # NaN or inf samples in the window
+    NO_SIGNAL = 2  # a channel is constant over the analysis segment (all-zero, constant, dead)
+    WINDOW = 3  # onset outside the window, or too little of the packet inside it
+    SATURATED = 4  # clipped samples (flag from upstream, full scale, or a flat top)
+    LOW_SNR = 5  # estimated SNR (conventions.md) below min_snr_db
+    OVERLAP = 6  # the four channels are not shifted copies of one waveform
+    OUT_OF_RANGE = 7  # delays beyond the sphere's horizon by more than the noise allows
 
 
 REASON_DESCRIPTIONS = {
     Reason.OK: "accepted",
     Reason.NONFINITE: "NaN or inf samples in the window",
-    Reason.NO_SIGNAL: "a channel is constant over the analysis segment (zero/constant window or dead channel)",
+    Reason.NO_SIGNAL: "a channel is constant over the analysis segment "
+    "(zero/constant window or dead channel)",
     Reason.WINDOW: "onset outside the window or too little of the packet inside it",
     Reason.SATURATED: "clipped (saturated) samples in the analysis segment",
     Reason.LOW_SNR: "estimated SNR below min_snr_db",
-    Reason.OVERLAP: "the four channels are not shifted copies of one waveform (overlapping packets)",
+    Reason.OVERLAP: "the four channels are not shifted copies of one waveform "
+    "(overlapping packets)",
     Reason.OUT_OF_RANGE: "delays imply a point beyond the horizon by more than the noise allows",
 }
 
@@ -141,8 +145,9 @@ ALIAS_GUARD_DB = -25.0
 
 
 @lru_cache(maxsize=64)
-def _make_plan(fs, geometry, n_samples, lo, hi, pre_onset_s, echo_guard_s,
-               auto_fallback_hz=0.0) -> Plan:
+def _make_plan(
+    fs, geometry, n_samples, lo, hi, pre_onset_s, echo_guard_s, auto_fallback_hz=0.0
+) -> Plan:
     pre = max(2, int(math.ceil(pre_onset_s * fs)))
     n_ef = int(math.floor((geometry.echo_free_duration_s - echo_guard_s) * fs))
     n_ef = max(n_ef, 4)
@@ -159,17 +164,42 @@ def _make_plan(fs, geometry, n_samples, lo, hi, pre_onset_s, echo_guard_s,
     if band_al.sum() < 2 or band.sum() < 2:
         # Too few bins in the band at this window length: widen to the nearest bins.
         band = (f > 0) & (f >= min(lo, f[1])) & (f <= max(hi, f[min(3, len(f) - 1)]))
-        band_al = (f_al > 0) & (f_al >= min(lo, f_al[1])) & (f_al <= max(hi, f_al[min(3, len(f_al) - 1)]))
+        band_al = (
+            (f_al > 0)
+            & (f_al >= min(lo, f_al[1]))
+            & (f_al <= max(hi, f_al[min(3, len(f_al) - 1)]))
+        )
     flat_run = max(4, int(math.ceil(0.3e-6 * fs)))
-    return Plan(fs=fs, geometry=geometry, n_samples=n_samples, band_hz=(lo, hi), pre=pre,
-                seg_len=seg_len, n_fft=n_fft, n_fft_al=n_fft_al, band=band, band_al=band_al,
-                w=2 * np.pi * f[band], w_al=2 * np.pi * f_al[band_al], w_full_al=2 * np.pi * f_al,
-                max_lag=max_lag, snr_len=int(round(SNR_WINDOW_S * fs)), flat_run=flat_run,
-                auto_fallback_hz=float(auto_fallback_hz))
+    return Plan(
+        fs=fs,
+        geometry=geometry,
+        n_samples=n_samples,
+        band_hz=(lo, hi),
+        pre=pre,
+        seg_len=seg_len,
+        n_fft=n_fft,
+        n_fft_al=n_fft_al,
+        band=band,
+        band_al=band_al,
+        w=2 * np.pi * f[band],
+        w_al=2 * np.pi * f_al[band_al],
+        w_full_al=2 * np.pi * f_al,
+        max_lag=max_lag,
+        snr_len=int(round(SNR_WINDOW_S * fs)),
+        flat_run=flat_run,
+        auto_fallback_hz=float(auto_fallback_hz),
+    )
 
 
-def make_plan(sample_rate_hz, geometry, n_samples, band_hz, pre_onset_s=1e-6, echo_guard_s=0.3e-6,
-              auto_fallback_hz=None) -> Plan:
+def make_plan(
+    sample_rate_hz,
+    geometry,
+    n_samples,
+    band_hz,
+    pre_onset_s=1e-6,
+    echo_guard_s=0.3e-6,
+    auto_fallback_hz=None,
+) -> Plan:
     """Validated, cached `Plan`. ValueError on bad parameters.
 
     ``auto_fallback_hz``: choose each packet's upper band edge from its spectrum
@@ -191,7 +221,9 @@ def make_plan(sample_rate_hz, geometry, n_samples, band_hz, pre_onset_s=1e-6, ec
     if not (math.isfinite(pre_s) and pre_s >= 0):
         raise ValueError(f"pre_onset_s must be >= 0, got {pre_onset_s!r}")
     if not (math.isfinite(guard) and 0 <= guard < geometry.echo_free_duration_s):
-        raise ValueError(f"echo_guard_s must lie in [0, {geometry.echo_free_duration_s}), got {echo_guard_s!r}")
+        raise ValueError(
+            f"echo_guard_s must lie in [0, {geometry.echo_free_duration_s}), got {echo_guard_s!r}"
+        )
     auto = 0.0 if auto_fallback_hz is None else _positive("auto_fallback_hz", auto_fallback_hz)
     return _make_plan(fs, geometry, int(n_samples), lo, hi, pre_s, guard, auto)
 
@@ -223,7 +255,7 @@ def band_edge_hz(Xb, sigma2, count, plan: Plan):
     fs/4.
     Unknown noise (NaN): ``plan.auto_fallback_hz``."""
     f = plan.w / (2 * np.pi)
-    p = (Xb.real ** 2 + Xb.imag ** 2).sum(axis=1)                  # (K, nb)
+    p = (Xb.real**2 + Xb.imag**2).sum(axis=1)  # (K, nb)
     nb = p.shape[1]
     sm = p.copy()
     sm[:, 1:] += p[:, :-1]
@@ -249,7 +281,9 @@ def validate_windows(windows, onset_index, copy=True):
     ``copy=False``: float32 / float64 windows are passed through (C-contiguous, no copy
     when they already are; the compiled kernel copies each packet itself)."""
     x = np.asarray(windows)
-    if x.dtype == object or not (np.issubdtype(x.dtype, np.floating) or np.issubdtype(x.dtype, np.integer)):
+    if x.dtype == object or not (
+        np.issubdtype(x.dtype, np.floating) or np.issubdtype(x.dtype, np.integer)
+    ):
         raise TypeError(f"windows must be a real numeric array, got dtype {x.dtype}")
     if x.ndim == 2 and x.shape[0] == 4:
         x = x[None]
@@ -266,7 +300,9 @@ def validate_windows(windows, onset_index, copy=True):
         on = np.full(x.shape[0], on)
     if on.shape != (x.shape[0],):
         raise ValueError(f"onset_index must have shape ({x.shape[0]},), got {on.shape}")
-    if on.dtype == bool or not (np.issubdtype(on.dtype, np.integer) or np.issubdtype(on.dtype, np.floating)):
+    if on.dtype == bool or not (
+        np.issubdtype(on.dtype, np.integer) or np.issubdtype(on.dtype, np.floating)
+    ):
         raise TypeError(f"onset_index must be integer sample indices, got dtype {on.dtype}")
     if np.issubdtype(on.dtype, np.floating):
         if not np.all(np.isfinite(on)) or np.any(on != np.round(on)):
@@ -293,7 +329,7 @@ def raw_gather(x, start, length):
     lo, hi = int(start.min(initial=0)), int(start.max(initial=0))
     full = np.full(start.shape, length)
     if lo == hi and 0 <= lo and lo + length <= m:
-        return x[:, :, lo: lo + length], full
+        return x[:, :, lo : lo + length], full
     if 0 <= lo and hi + length <= m:
         v = sliding_window_view(x, length, axis=2)
         return v[np.arange(k)[:, None], np.arange(4)[None, :], start], full
@@ -336,24 +372,28 @@ def gather(x, start, length, baseline=None):
 class Prepared:
     """Sanitised input and what every estimator shares."""
 
-    x: np.ndarray            # (K, 4, M) float64 (x - first sample) / scale; non-finite zeroed, gains divided
-    onset: np.ndarray        # (K,) int64 (clipped into the window)
-    flags: np.ndarray        # (K,) int64 reason bits so far
-    sigma2: np.ndarray       # (K,) noise variance (V^2), NaN where unknown yet
-    pre_mean: np.ndarray     # (K, 4) channel baselines (pre-onset mean or segment mean)
-    seg_start: np.ndarray    # (K,) first sample of the coarse segment
-    X: np.ndarray            # (K, 4, n_fft//2+1) coarse spectra (full rfft)
-    seg_count: np.ndarray    # (K, 4) samples of the coarse segment inside the window
-    p_signal: np.ndarray     # (K,) mean power over the SNR window (V^2), noise included
-    quant2: np.ndarray       # (K,) q^2 / 12 of the apparent ADC quantum q, 0 if none
-    scale: np.ndarray        # (K,) volts per unit of x (sigma2, p_signal, quant2 are in units^2)
-    noise_given: np.ndarray = None   # (K,) bool: sigma2 from the caller's noise_rms_v
+    x: np.ndarray  # (K, 4, M) float64 (x - first sample) / scale; non-finite zeroed, gains divided
+    onset: np.ndarray  # (K,) int64 (clipped into the window)
+    flags: np.ndarray  # (K,) int64 reason bits so far
+    sigma2: np.ndarray  # (K,) noise variance (V^2), NaN where unknown yet
+    pre_mean: np.ndarray  # (K, 4) channel baselines (pre-onset mean or segment mean)
+    seg_start: np.ndarray  # (K,) first sample of the coarse segment
+    X: np.ndarray  # (K, 4, n_fft//2+1) coarse spectra (full rfft)
+    seg_count: np.ndarray  # (K, 4) samples of the coarse segment inside the window
+    p_signal: np.ndarray  # (K,) mean power over the SNR window (V^2), noise included
+    quant2: np.ndarray  # (K,) q^2 / 12 of the apparent ADC quantum q, 0 if none
+    scale: np.ndarray  # (K,) volts per unit of x (sigma2, p_signal, quant2 are in units^2)
+    noise_given: np.ndarray = None  # (K,) bool: sigma2 from the caller's noise_rms_v
 
 
 def subset(prep: Prepared, ids) -> Prepared:
     """The packets ``ids`` of a prepared batch."""
-    return Prepared(**{f: (None if getattr(prep, f) is None else getattr(prep, f)[ids])
-                       for f in prep.__dataclass_fields__})
+    return Prepared(
+        **{
+            f: (None if getattr(prep, f) is None else getattr(prep, f)[ids])
+            for f in prep.__dataclass_fields__
+        }
+    )
 
 
 def flat_top(seg_raw, run):
@@ -372,12 +412,20 @@ def flat_top(seg_raw, run):
     eq = seg_raw == v[:, :, None]
     r = eq[..., : eq.shape[2] - run + 1].copy()
     for i in range(1, run):
-        r &= eq[..., i: eq.shape[2] - run + 1 + i]
+        r &= eq[..., i : eq.shape[2] - run + 1 + i]
     return (r.any(axis=2) & (vmax > vmin)).any(axis=1)
 
 
-def prepare(x, onset, plan: Plan, *, noise_rms_v=None, saturated=None, full_scale_v=None,
-            channel_gains=None) -> Prepared:
+def prepare(
+    x,
+    onset,
+    plan: Plan,
+    *,
+    noise_rms_v=None,
+    saturated=None,
+    full_scale_v=None,
+    channel_gains=None,
+) -> Prepared:
     """Sanitise, flag and transform a batch (see the module docstring)."""
     k, _, m = x.shape
     flags = np.zeros(k, np.int64)
@@ -402,13 +450,17 @@ def prepare(x, onset, plan: Plan, *, noise_rms_v=None, saturated=None, full_scal
     sat = np.zeros(k, bool)
     if full_scale_v is not None:
         fsv = _positive("full_scale_v", full_scale_v)
-        sat |= (np.abs(raw_gather(x, start4, plan.seg_len)[0]) >= fsv * (1.0 - 1e-3)).any(axis=(1, 2))
+        sat |= (np.abs(raw_gather(x, start4, plan.seg_len)[0]) >= fsv * (1.0 - 1e-3)).any(
+            axis=(1, 2)
+        )
     if saturated is not None:
         sat |= per_packet("saturated", saturated, k, dtype=bool)
     if channel_gains is not None:
         g = np.asarray(channel_gains, dtype=float)
         if g.shape != (4,) or not np.all(np.isfinite(g)) or np.any(g <= 0):
-            raise ValueError(f"channel_gains must be 4 positive finite numbers, got {channel_gains!r}")
+            raise ValueError(
+                f"channel_gains must be 4 positive finite numbers, got {channel_gains!r}"
+            )
         x /= g[None, :, None]
     # Per-packet scale: the estimators work on (x - x[:, :, :1]) / scale, scale the largest
     # deviation from the first samples, so that every statistic is gain- and DC-invariant
@@ -416,7 +468,7 @@ def prepare(x, onset, plan: Plan, *, noise_rms_v=None, saturated=None, full_scal
     x -= x[:, :, :1].copy()
     dev = np.abs(x).max(axis=(1, 2))
     huge = ~np.isfinite(dev)
-    if huge.any():                        # |x| ~ 1e308: as unusable as inf
+    if huge.any():  # |x| ~ 1e308: as unusable as inf
         x[huge] = 0.0
         flags[huge] |= 1 << Reason.NONFINITE
     scale = np.where(np.isfinite(dev) & (dev > 0), dev, 1.0)
@@ -470,10 +522,11 @@ def prepare(x, onset, plan: Plan, *, noise_rms_v=None, saturated=None, full_scal
     s0 = np.minimum(on, m - w_len)
     lo, hi = int(s0.min()), int(s0.max())
     if lo == hi:
-        sw = x[:, :, lo: lo + w_len]
+        sw = x[:, :, lo : lo + w_len]
     else:
-        sw = sliding_window_view(x, w_len, axis=2)[np.arange(k)[:, None], np.arange(4)[None, :],
-                                                   np.repeat(s0[:, None], 4, axis=1)]
+        sw = sliding_window_view(x, w_len, axis=2)[
+            np.arange(k)[:, None], np.arange(4)[None, :], np.repeat(s0[:, None], 4, axis=1)
+        ]
     sw = sw - pre_mean[..., None]
     p_total = np.einsum("kcm,kcm->k", sw, sw) / (4.0 * w_len)
 
@@ -487,9 +540,20 @@ def prepare(x, onset, plan: Plan, *, noise_rms_v=None, saturated=None, full_scal
     q2 = np.where(np.isfinite(dif), dif * dif / 12.0, 0.0)
 
     X = sfft.rfft(seg, n=plan.n_fft, axis=2)
-    return Prepared(x=x, onset=on, flags=flags, sigma2=sigma2, pre_mean=pre_mean,
-                    seg_start=seg_start, X=X, seg_count=count, p_signal=p_total, quant2=q2,
-                    scale=scale, noise_given=given)
+    return Prepared(
+        x=x,
+        onset=on,
+        flags=flags,
+        sigma2=sigma2,
+        pre_mean=pre_mean,
+        seg_start=seg_start,
+        X=X,
+        seg_count=count,
+        p_signal=p_total,
+        quant2=q2,
+        scale=scale,
+        noise_given=given,
+    )
 
 
 # --------------------------------------------------------------------------- pairs
@@ -511,7 +575,7 @@ def pair_delays(X, plan: Plan, *, phat=False, refine=0):
     band = plan.band
     Xi = X[:, PAIRS[:, 0]][..., band]
     Xj = X[:, PAIRS[:, 1]][..., band]
-    G = Xi * np.conj(Xj)                                       # (K, 6, nb)
+    G = Xi * np.conj(Xj)  # (K, 6, nb)
     ei = (np.abs(Xi) ** 2).sum(axis=2)
     ej = (np.abs(Xj) ** 2).sum(axis=2)
     if phat:
@@ -523,10 +587,10 @@ def pair_delays(X, plan: Plan, *, phat=False, refine=0):
     Gw = G * Wt if phat else G
     full = np.zeros(G.shape[:2] + (n // 2 + 1,), complex)
     full[..., band] = Gw
-    r = sfft.irfft(full, n=n, axis=2)                          # (K, 6, n)
+    r = sfft.irfft(full, n=n, axis=2)  # (K, 6, n)
     lags = np.arange(n)
     lags = np.where(lags > n // 2, lags - n, lags)
-    allowed = np.abs(lags)[None, :] <= plan.max_lag[:, None]   # (6, n)
+    allowed = np.abs(lags)[None, :] <= plan.max_lag[:, None]  # (6, n)
     rm = np.where(allowed[None], r, -np.inf)
     i0 = np.argmax(rm, axis=2)
     at_edge = (np.abs(lags[i0]) >= plan.max_lag[None, :]).any(axis=1)
@@ -543,8 +607,8 @@ def pair_delays(X, plan: Plan, *, phat=False, refine=0):
     for _ in range(refine):
         ph = np.exp(1j * w * d[..., None])
         z = Gw * ph
-        g1 = -(w * z.imag).sum(axis=2)                         # r'(d)
-        g2 = -(w * w * z.real).sum(axis=2)                     # r''(d) (< 0 at a peak)
+        g1 = -(w * z.imag).sum(axis=2)  # r'(d)
+        g2 = -(w * w * z.real).sum(axis=2)  # r''(d) (< 0 at a peak)
         step = np.where(g2 < 0, -g1 / np.where(g2 < 0, g2, -1.0), 0.0)
         step = np.clip(step, -0.5 / fs, 0.5 / fs)
         d = d + step
@@ -561,7 +625,8 @@ def delays_from_pairs(d):
 
 
 def relative_arrivals(theta):
-    """Arrival times t_k - T0 (K, 4) of the model t_k = T0 - xi tau_x - eta tau_y + xi eta twist."""
+    """Arrival times t_k - T0 (K, 4) of the model
+    t_k = T0 - xi tau_x - eta tau_y + xi eta twist."""
     return theta @ CHANNEL_ROWS.T
 
 
@@ -572,10 +637,10 @@ class Aligned:
 
     Y: np.ndarray
     Yb: np.ndarray
-    shift: np.ndarray        # (K, 4) integer sample shift of each channel's segment
-    ref: np.ndarray          # (K,) common time reference (s) subtracted from arrivals
-    count: np.ndarray        # (K, 4) samples inside the window
-    seg: np.ndarray = None   # (K, 4, L) the aligned segments themselves (time domain)
+    shift: np.ndarray  # (K, 4) integer sample shift of each channel's segment
+    ref: np.ndarray  # (K,) common time reference (s) subtracted from arrivals
+    count: np.ndarray  # (K, 4) samples inside the window
+    seg: np.ndarray = None  # (K, 4, L) the aligned segments themselves (time domain)
 
 
 def aligned_spectra(prep: Prepared, plan: Plan, arrivals_rel) -> Aligned:

@@ -22,12 +22,12 @@ per-channel errors of variance  v1 = (N sigma^2 / 2) sum W^2 w^2 |S|^2 / D^2  pl
 noise-by-noise term per pair  v2 = (N sigma^2 L sigma^2 / 2) sum W^2 w^2 / D^2,
 D = sum W w^2 |S|^2; the pair LS then gives C = P (v1 Inc Inc^T + v2 I) P^T.
 """
+
 from __future__ import annotations
 
 import numpy as np
 
-from ae_tactile.localization.common import (CONTRASTS, PAIR_INCIDENCE, PAIR_PINV)
-
+from ae_tactile.localization.common import CONTRASTS, PAIR_INCIDENCE, PAIR_PINV
 
 #: Weight of the noise-by-noise term of `arrival_fisher` (measured, see there).
 NOISE_BY_NOISE = 0.5
@@ -57,15 +57,20 @@ def arrival_fisher(Zb, w, sigma2, count, n_fft, n_bins=None, noise_by_noise=Fals
     correlator's first-order term; measured on simulated and analytic pulses, 1/2 calibrates
     the four-channel fit."""
     s2, g2 = signal_spectrum(Zb, sigma2, count, n_bins)
-    e_mean = (2.0 / n_fft) * (w * w * s2).sum(axis=1)          # (K,)
+    e_mean = (2.0 / n_fft) * (w * w * s2).sum(axis=1)  # (K,)
     if noise_by_noise:
         cw2 = np.cumsum(w * w)
         nb = np.full(len(s2), len(w)) if n_bins is None else np.asarray(n_bins, int)
         sw2 = cw2[np.clip(nb, 1, len(w)) - 1]
-        kappa = NOISE_BY_NOISE * count.mean(axis=1) * sigma2 * sw2 / np.maximum(
-            (w * w * s2).sum(axis=1), 1e-300)
+        kappa = (
+            NOISE_BY_NOISE
+            * count.mean(axis=1)
+            * sigma2
+            * sw2
+            / np.maximum((w * w * s2).sum(axis=1), 1e-300)
+        )
         e_mean = e_mean / (1.0 + kappa)
-    e = g2 * e_mean[:, None]                                   # (K, 4)
+    e = g2 * e_mean[:, None]  # (K, 4)
     f = np.zeros(e.shape + (4,))
     idx = np.arange(4)
     f[:, idx, idx] = e
@@ -87,7 +92,9 @@ def delay_covariance_from_fisher(F_eps):
     """C_tau (K, 2, 2) for (tau_x, tau_y) from F_eps (pseudo-inverse on the rank-3 space)."""
     # F_eps 1 = 0; F + (1 1^T)/4 is invertible and its inverse acts as F^+ on contrasts.
     ones = np.full((4, 4), 0.25)
-    inv = np.linalg.inv(F_eps + ones[None] * np.maximum(np.trace(F_eps, axis1=1, axis2=2), 1e-300)[:, None, None])
+    inv = np.linalg.inv(
+        F_eps + ones[None] * np.maximum(np.trace(F_eps, axis1=1, axis2=2), 1e-300)[:, None, None]
+    )
     A = CONTRASTS[:2]
     return A @ inv @ A.T
 
@@ -106,8 +113,8 @@ def weighted_pair_delay_covariance(Zb, w, sigma2, count, n_fft, weight):
     D = (weight * w2 * s2).sum(axis=1)
     D = np.maximum(D, 1e-300)
     nu = n_fft * sigma2
-    v1 = 0.5 * nu * (weight ** 2 * w2 * s2).sum(axis=1) / D ** 2
-    v2 = 0.5 * nu * L * sigma2 * (weight ** 2 * w2).sum(axis=1) / D ** 2
+    v1 = 0.5 * nu * (weight**2 * w2 * s2).sum(axis=1) / D**2
+    v2 = 0.5 * nu * L * sigma2 * (weight**2 * w2).sum(axis=1) / D**2
     inc = PAIR_INCIDENCE @ PAIR_INCIDENCE.T
     c_delta = v1[:, None, None] * inc[None] + v2[:, None, None] * np.eye(6)[None]
     c_theta = PAIR_PINV[None] @ c_delta @ PAIR_PINV.T[None]

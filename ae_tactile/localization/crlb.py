@@ -28,6 +28,7 @@ c_k' is needed at the sample instants: `simulated_crlb` gets it exactly from the
 simulator (which evaluates the continuous-time response at any sub-sample offset) by a
 central difference over +-1e-3 sample of the trigger offset.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -35,8 +36,18 @@ import numpy as np
 from ae_tactile.geometry import FingertipGeometry
 
 
-def position_crlb(clean_v, dclean_dt_v, sample_rate_hz, noise_var_v2, points_m, arrival_times_s,
-                  geometry: FingertipGeometry, *, window="echo_free", echo_guard_s=0.3e-6):
+def position_crlb(
+    clean_v,
+    dclean_dt_v,
+    sample_rate_hz,
+    noise_var_v2,
+    points_m,
+    arrival_times_s,
+    geometry: FingertipGeometry,
+    *,
+    window="echo_free",
+    echo_guard_s=0.3e-6,
+):
     """Bounds for K packets. Arrays: clean_v, dclean_dt_v (K, 4, M) (V, V/s), noise_var_v2
     (K,) or scalar, points_m (K, 3), arrival_times_s (K, 4) (relative to the first sample).
 
@@ -57,12 +68,12 @@ def position_crlb(clean_v, dclean_dt_v, sample_rate_hz, noise_var_v2, points_m, 
         mask = np.ones((k, 4, m), bool)
     else:
         raise ValueError("window must be 'echo_free' or 'full'")
-    _, dt, _ = geometry.arrival_time_derivatives(pts[:, 0], pts[:, 1])   # (K, 4, 2)
+    _, dt, _ = geometry.arrival_time_derivatives(pts[:, 0], pts[:, 1])  # (K, 4, 2)
     dcm = dc * mask
     cm = c * mask
     # Per-channel sums.
-    e_dd = np.einsum("kcn,kcn->kc", dcm, dcm)          # sum c'^2
-    e_dc = np.einsum("kcn,kcn->kc", dcm, cm)           # sum c' c
+    e_dd = np.einsum("kcn,kcn->kc", dcm, dcm)  # sum c'^2
+    e_dc = np.einsum("kcn,kcn->kc", dcm, cm)  # sum c' c
     e_cc = np.einsum("kcn,kcn->kc", cm, cm)
     f = np.zeros((k, 4, 4))
     # d mu/d s_i = -c' dt_i, d mu/d T0 = -c', d mu/d A = c
@@ -84,12 +95,25 @@ def position_crlb(clean_v, dclean_dt_v, sample_rate_hz, noise_var_v2, points_m, 
     ft /= var[:, None, None]
     fsph = np.einsum("kai,kab,kbj->kij", dt, ft, dt)
     crb_u = np.linalg.inv(fsph)
-    return dict(crb_xy_m2=crb, rms_m=np.sqrt(np.trace(crb, axis1=1, axis2=2)),
-                crb_xy_unknown_m2=crb_u, rms_unknown_m=np.sqrt(np.trace(crb_u, axis1=1, axis2=2)))
+    return dict(
+        crb_xy_m2=crb,
+        rms_m=np.sqrt(np.trace(crb, axis1=1, axis2=2)),
+        crb_xy_unknown_m2=crb_u,
+        rms_unknown_m=np.sqrt(np.trace(crb_u, axis1=1, axis2=2)),
+    )
 
 
-def simulated_crlb(points_m, config=None, *, snr_db, subsample_offset=0.5, include_quantization=True,
-                   window="echo_free", echo_guard_s=0.3e-6, **render_kwargs):
+def simulated_crlb(
+    points_m,
+    config=None,
+    *,
+    snr_db,
+    subsample_offset=0.5,
+    include_quantization=True,
+    window="echo_free",
+    echo_guard_s=0.3e-6,
+    **render_kwargs,
+):
     """CRLB for the simulator's pulse at ``points_m`` (N, 3) and ``snr_db`` (conventions.md).
 
     The noise variance is sigma_n^2 of the SNR definition, plus LSB^2/12 when the config
@@ -111,11 +135,20 @@ def simulated_crlb(points_m, config=None, *, snr_db, subsample_offset=0.5, inclu
     dcdt = -(plus.clean_v - minus.clean_v) / (2.0 * h / fs)
     p_sig = signal_power_v2(base.clean_v, base.onset_index, fs)
     sigma_n = noise_rms_for_snr(p_sig, snr_db)
-    var = sigma_n ** 2
+    var = sigma_n**2
     if include_quantization and cfg.quantization:
-        var = var + cfg.lsb_v ** 2 / 12.0
-    out = position_crlb(base.clean_v, dcdt, fs, var, base.points_m, base.arrival_times_s,
-                        cfg.geometry, window=window, echo_guard_s=echo_guard_s)
+        var = var + cfg.lsb_v**2 / 12.0
+    out = position_crlb(
+        base.clean_v,
+        dcdt,
+        fs,
+        var,
+        base.points_m,
+        base.arrival_times_s,
+        cfg.geometry,
+        window=window,
+        echo_guard_s=echo_guard_s,
+    )
     out["noise_var_v2"] = np.broadcast_to(var, (len(base),)).copy()
     out["sigma_n_v"] = np.broadcast_to(sigma_n, (len(base),)).copy()
     return out

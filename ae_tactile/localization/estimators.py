@@ -16,10 +16,10 @@ Every output array is finite. For a rejected packet the position is still the
 estimator's answer when it had one (e.g. overlap, low SNR: useful for diagnostics),
 else the pole (0, 0, R); only ``accepted`` packets should be published.
 """
+
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass, field, fields
 from typing import Callable
 
@@ -27,11 +27,22 @@ import numpy as np
 
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import fast, gcc, gradient, ml
-from ae_tactile.localization.common import (REASON_DESCRIPTIONS, Reason, adc_noise, make_plan,
-                                            misfit, per_packet, prepare, primary_reason,
-                                            validate_windows)
-from ae_tactile.localization.events import (confidence, polarity_amplitude,
-                                            polarity_amplitude_aligned)
+from ae_tactile.localization.common import (
+    REASON_DESCRIPTIONS,
+    Reason,
+    adc_noise,
+    make_plan,
+    misfit,
+    per_packet,
+    prepare,
+    primary_reason,
+    validate_windows,
+)
+from ae_tactile.localization.events import (
+    confidence,
+    polarity_amplitude,
+    polarity_amplitude_aligned,
+)
 
 #: Default signal band (Hz): the front end's 100 kHz high-pass to its 1 MHz low-pass,
 #: the upper edge lowered to fs/4 at low sample rates (see `default_band_hz`).
@@ -83,24 +94,39 @@ def get_estimator(name) -> EstimatorInfo:
     try:
         return ESTIMATORS[name]
     except (KeyError, TypeError):
-        raise ValueError(f"unknown localization method {name!r}; choose one of {available_methods()}") from None
+        raise ValueError(
+            f"unknown localization method {name!r}; choose one of {available_methods()}"
+        ) from None
 
 
 # Overlap thresholds: the excess misfit of single clean packets stays below ~0.055 (ML,
 # gradient, GCC) and ~0.1 (far-field baseline, whose biased delays leave some misfit) at
 # 5-10 dB SNR, 2-20 MS/s, polar angles up to 90 deg (docs/localization.md).
-register_estimator("ml", ml.estimate,
-                   "maximum likelihood on the exact sphere: steered response power over (s_x, s_y), "
-                   "Newton from a cross-correlation start", overlap_threshold=0.07)
-register_estimator("gradient", gradient.estimate,
-                   "the paper's gradient method (ref. [8]) iterated with re-alignment, band-limited derivative",
-                   overlap_threshold=0.07)
-register_estimator("gcc_phat", gcc.estimate_gcc_phat,
-                   "GCC-PHAT over the 6 pairs, PHAT in band only, Newton sub-sample peak, LS, exact inversion",
-                   overlap_threshold=0.07)
-register_estimator("xcorr_farfield", gcc.estimate_xcorr_farfield,
-                   "paper baseline: plain cross-correlation peaks of channel sums, far-field Eq. 2 inversion",
-                   overlap_threshold=0.12)
+register_estimator(
+    "ml",
+    ml.estimate,
+    "maximum likelihood on the exact sphere: steered response power over (s_x, s_y), "
+    "Newton from a cross-correlation start",
+    overlap_threshold=0.07,
+)
+register_estimator(
+    "gradient",
+    gradient.estimate,
+    "the paper's gradient method (ref. [8]) iterated with re-alignment, band-limited derivative",
+    overlap_threshold=0.07,
+)
+register_estimator(
+    "gcc_phat",
+    gcc.estimate_gcc_phat,
+    "GCC-PHAT over the 6 pairs, PHAT in band only, Newton sub-sample peak, LS, exact inversion",
+    overlap_threshold=0.07,
+)
+register_estimator(
+    "xcorr_farfield",
+    gcc.estimate_xcorr_farfield,
+    "paper baseline: plain cross-correlation peaks of channel sums, far-field Eq. 2 inversion",
+    overlap_threshold=0.12,
+)
 
 
 @dataclass
@@ -177,16 +203,39 @@ class LocalizationResult:
 
 def _empty(method, options):
     z = np.zeros(0)
-    return LocalizationResult(method, z, z, z, np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 2, 2)),
-                              z, z, z, z, z, z, z, np.zeros(0, np.int8), z, z, np.zeros(0, bool),
-                              np.zeros(0, bool), np.zeros(0, np.uint8), np.zeros(0, np.uint16),
-                              options, z)
+    return LocalizationResult(
+        method,
+        z,
+        z,
+        z,
+        np.zeros((0, 3)),
+        np.zeros((0, 3, 3)),
+        np.zeros((0, 2, 2)),
+        z,
+        z,
+        z,
+        z,
+        z,
+        z,
+        z,
+        np.zeros(0, np.int8),
+        z,
+        z,
+        np.zeros(0, bool),
+        np.zeros(0, bool),
+        np.zeros(0, np.uint8),
+        np.zeros(0, np.uint16),
+        options,
+        z,
+    )
 
 
 def _horizon_excess(geometry, tau):
     """|tau| beyond the exact horizon delay along the measured azimuth (s; <= 0 inside)."""
     phi = np.arctan2(tau[:, 1], tau[:, 0])
-    h = geometry.exact_delays_s(geometry.surface_point_from_angles(np.full_like(phi, np.pi / 2), phi))
+    h = geometry.exact_delays_s(
+        geometry.surface_point_from_angles(np.full_like(phi, np.pi / 2), phi)
+    )
     return np.hypot(tau[:, 0], tau[:, 1]) - np.hypot(h[:, 0], h[:, 1])
 
 
@@ -200,8 +249,9 @@ def _noise_arg(noise_rms_v, k):
         raise ValueError(f"noise_rms_v must be a positive number or (K,) array: {exc}") from None
     bad = ~np.isnan(nr) & ~(np.isfinite(nr) & (nr > 0))
     if bad.any():
-        raise ValueError("noise_rms_v must be positive and finite (NaN: unknown), "
-                         f"got {nr[bad][0]!r}")
+        raise ValueError(
+            f"noise_rms_v must be positive and finite (NaN: unknown), got {nr[bad][0]!r}"
+        )
     return nr
 
 
@@ -225,10 +275,25 @@ def _iterations(options):
     return int(it)
 
 
-def localize(windows, sample_rate_hz, onset_index, *, method="ml", geometry=None,
-             band_hz=None, noise_rms_v=None, saturated=None, full_scale_v=None,
-             channel_gains=None, min_snr_db=5.0, overlap_threshold=None, pre_onset_s=1e-6,
-             echo_guard_s=0.3e-6, engine=None, **options) -> LocalizationResult:
+def localize(
+    windows,
+    sample_rate_hz,
+    onset_index,
+    *,
+    method="ml",
+    geometry=None,
+    band_hz=None,
+    noise_rms_v=None,
+    saturated=None,
+    full_scale_v=None,
+    channel_gains=None,
+    min_snr_db=5.0,
+    overlap_threshold=None,
+    pre_onset_s=1e-6,
+    echo_guard_s=0.3e-6,
+    engine=None,
+    **options,
+) -> LocalizationResult:
     """Localize K packets (see the module docstring).
 
     windows (K, 4, M) volts (any real dtype; a single (4, M) window is accepted),
@@ -261,22 +326,40 @@ def localize(windows, sample_rate_hz, onset_index, *, method="ml", geometry=None
     noise = _noise_arg(noise_rms_v, k)
     if eng == "numba":
         iterations = _iterations(options)
-        sat = (np.full(k, -1, np.int8) if saturated is None
-               else per_packet("saturated", saturated, k, dtype=bool).astype(np.int8))
+        sat = (
+            np.full(k, -1, np.int8)
+            if saturated is None
+            else per_packet("saturated", saturated, k, dtype=bool).astype(np.int8)
+        )
         fsv = np.nan if full_scale_v is None else _positive_arg("full_scale_v", full_scale_v)
         gains = _gains_arg(channel_gains)
         if k == 0:
             return _empty(method, options)
-        out, pt, cov, ctau = fast.run_batch(x, onset, fast.tables_for(plan), noise_rms=noise,
-                                            sat=sat, full_scale=fsv, gains=gains,
-                                            iterations=iterations, min_snr_db=min_snr_db,
-                                            thr=thr)
+        out, pt, cov, ctau = fast.run_batch(
+            x,
+            onset,
+            fast.tables_for(plan),
+            noise_rms=noise,
+            sat=sat,
+            full_scale=fsv,
+            gains=gains,
+            iterations=iterations,
+            min_snr_db=min_snr_db,
+            thr=thr,
+        )
         return _result_from_kernel(method, options, out, pt, cov, ctau)
     if k == 0:
         return _empty(method, options)
     with np.errstate(all="ignore"):
-        prep = prepare(x, onset, plan, noise_rms_v=None if noise_rms_v is None else noise,
-                       saturated=saturated, full_scale_v=full_scale_v, channel_gains=channel_gains)
+        prep = prepare(
+            x,
+            onset,
+            plan,
+            noise_rms_v=None if noise_rms_v is None else noise,
+            saturated=saturated,
+            full_scale_v=full_scale_v,
+            channel_gains=channel_gains,
+        )
         core = info.function(prep, plan, **options)
         return _finish(core, prep, plan, geo, method, min_snr_db, thr, options)
 
@@ -293,7 +376,7 @@ def _plan(sample_rate_hz, geo, n, band_hz, pre_onset_s, echo_guard_s, method):
                 auto = band_hz[1]
                 band_hz = auto_band_hz(sample_rate_hz)
         except (TypeError, ValueError):
-            band_hz = DEFAULT_BAND_HZ          # make_plan reports the bad sample rate
+            band_hz = DEFAULT_BAND_HZ  # make_plan reports the bad sample rate
     return make_plan(sample_rate_hz, geo, n, band_hz, pre_onset_s, echo_guard_s, auto)
 
 
@@ -321,12 +404,30 @@ def _result_from_kernel(method, options, out, pt, cov, ctau):
     reason = primary_reason(flags)
     col = out.T.copy()
     return LocalizationResult(
-        method=method, tau_x_s=col[0], tau_y_s=col[1], twist_s=col[2], point_m=pt,
-        covariance_m2=cov, delay_covariance_s2=ctau, polar_rad=col[14], azimuth_rad=col[15],
-        residual=col[3], overlap_excess=col[4], pair_residual_s=col[5], snr_db_est=col[6],
-        noise_rms_v_est=col[7], polarity=col[8].astype(np.int8), amplitude_v=col[9],
-        confidence=col[10], clamped=col[11] > 0, accepted=reason == 0, reason=reason,
-        reason_flags=flags.astype(np.uint16), options=dict(options), emission_offset_s=col[13])
+        method=method,
+        tau_x_s=col[0],
+        tau_y_s=col[1],
+        twist_s=col[2],
+        point_m=pt,
+        covariance_m2=cov,
+        delay_covariance_s2=ctau,
+        polar_rad=col[14],
+        azimuth_rad=col[15],
+        residual=col[3],
+        overlap_excess=col[4],
+        pair_residual_s=col[5],
+        snr_db_est=col[6],
+        noise_rms_v_est=col[7],
+        polarity=col[8].astype(np.int8),
+        amplitude_v=col[9],
+        confidence=col[10],
+        clamped=col[11] > 0,
+        accepted=reason == 0,
+        reason=reason,
+        reason_flags=flags.astype(np.uint16),
+        options=dict(options),
+        emission_offset_s=col[13],
+    )
 
 
 def _finish(core, prep, plan, geo, method, min_snr_db, thr, options):
@@ -374,9 +475,9 @@ def _finish(core, prep, plan, geo, method, min_snr_db, thr, options):
     pole = np.array([0.0, 0.0, geo.radius_m])
     point = np.where(finite_pt[:, None], point, pole)
     theta = np.where(finite_pt[:, None], theta, 0.0)
-    big = geo.radius_m ** 2
+    big = geo.radius_m**2
     cov_fin = finite_pt & cov_ok & np.all(np.isfinite(c_tau), axis=(1, 2))
-    c_tau_safe = np.where(cov_fin[:, None, None], c_tau, np.eye(2) * geo.max_delay_s ** 2)
+    c_tau_safe = np.where(cov_fin[:, None, None], c_tau, np.eye(2) * geo.max_delay_s**2)
     cov = geo.point_covariance(point, c_tau_safe)
     cov_good = cov_fin & np.all(np.isfinite(cov), axis=(1, 2))
     cov = np.where(cov_good[:, None, None], cov, np.eye(3) * big)
@@ -403,23 +504,44 @@ def _finish(core, prep, plan, geo, method, min_snr_db, thr, options):
         return np.where(np.isfinite(a), a, fill)
 
     return LocalizationResult(
-        method=method, tau_x_s=fin(theta[:, 0]), tau_y_s=fin(theta[:, 1]), twist_s=fin(theta[:, 2]),
-        point_m=point, covariance_m2=cov, delay_covariance_s2=fin(c_tau_safe),
-        polar_rad=fin(polar), azimuth_rad=fin(azim), residual=fin(mis, 1.0), overlap_excess=excess,
-        pair_residual_s=fin(np.asarray(core["pair_residual_s"], float)), snr_db_est=snr,
-        noise_rms_v_est=fin(np.sqrt(sigma2) * prep.scale), polarity=pol, amplitude_v=fin(amp * prep.scale),
+        method=method,
+        tau_x_s=fin(theta[:, 0]),
+        tau_y_s=fin(theta[:, 1]),
+        twist_s=fin(theta[:, 2]),
+        point_m=point,
+        covariance_m2=cov,
+        delay_covariance_s2=fin(c_tau_safe),
+        polar_rad=fin(polar),
+        azimuth_rad=fin(azim),
+        residual=fin(mis, 1.0),
+        overlap_excess=excess,
+        pair_residual_s=fin(np.asarray(core["pair_residual_s"], float)),
+        snr_db_est=snr,
+        noise_rms_v_est=fin(np.sqrt(sigma2) * prep.scale),
+        polarity=pol,
+        amplitude_v=fin(amp * prep.scale),
         confidence=conf,
-        clamped=clamped, accepted=accepted, reason=reason, reason_flags=flags.astype(np.uint16),
+        clamped=clamped,
+        accepted=accepted,
+        reason=reason,
+        reason_flags=flags.astype(np.uint16),
         options=dict(options),
-        emission_offset_s=prep.onset / plan.fs - geo.arrival_times_s(point).min(axis=1))
+        emission_offset_s=prep.onset / plan.fs - geo.arrival_times_s(point).min(axis=1),
+    )
 
 
 def localize_packets(batch, *, method="ml", **kwargs) -> LocalizationResult:
     """`localize` the windows of a detector's `ae_tactile.dsp.PacketBatch` (or anything with
     ``samples``, ``sample_rate_hz``, ``onset_index`` and ``saturated``): its saturation
     flags are used; the noise is measured here on the same pre-onset samples."""
-    return localize(batch.samples, batch.sample_rate_hz, batch.onset_index, method=method,
-                    saturated=batch.saturated, **kwargs)
+    return localize(
+        batch.samples,
+        batch.sample_rate_hz,
+        batch.onset_index,
+        method=method,
+        saturated=batch.saturated,
+        **kwargs,
+    )
 
 
 _FLOATS = (np.dtype(np.float64), np.dtype(np.float32))
@@ -433,10 +555,28 @@ class PacketLocation:
     sample: the onset time minus the travel time from the fitted point to the nearest
     element)."""
 
-    __slots__ = ("accepted", "reason", "reason_flags", "point_m", "covariance_m2",
-                 "delay_covariance_s2", "polar_rad", "azimuth_rad", "tau_x_s", "tau_y_s",
-                 "twist_s", "amplitude_v", "confidence", "polarity", "snr_db", "noise_rms_v_est",
-                 "residual", "overlap_excess", "clamped", "emission_offset_s")
+    __slots__ = (
+        "accepted",
+        "reason",
+        "reason_flags",
+        "point_m",
+        "covariance_m2",
+        "delay_covariance_s2",
+        "polar_rad",
+        "azimuth_rad",
+        "tau_x_s",
+        "tau_y_s",
+        "twist_s",
+        "amplitude_v",
+        "confidence",
+        "polarity",
+        "snr_db",
+        "noise_rms_v_est",
+        "residual",
+        "overlap_excess",
+        "clamped",
+        "emission_offset_s",
+    )
 
     def __init__(self, out, point, cov, ctau):
         flags = int(out[12])
@@ -451,29 +591,65 @@ class PacketLocation:
         self.point_m = point
         self.covariance_m2 = cov
         self.delay_covariance_s2 = ctau
-        (self.tau_x_s, self.tau_y_s, self.twist_s, self.residual, self.overlap_excess, _,
-         self.snr_db, self.noise_rms_v_est, pol, self.amplitude_v, self.confidence, clamped, _,
-         self.emission_offset_s, self.polar_rad, self.azimuth_rad) = out.tolist()
+        (
+            self.tau_x_s,
+            self.tau_y_s,
+            self.twist_s,
+            self.residual,
+            self.overlap_excess,
+            _,
+            self.snr_db,
+            self.noise_rms_v_est,
+            pol,
+            self.amplitude_v,
+            self.confidence,
+            clamped,
+            _,
+            self.emission_offset_s,
+            self.polar_rad,
+            self.azimuth_rad,
+        ) = out.tolist()
         self.polarity = int(pol)
         self.clamped = bool(clamped)
 
     @classmethod
     def from_result(cls, res: LocalizationResult, i: int = 0):
         """Row i of a batched result."""
-        out = np.array([res.tau_x_s[i], res.tau_y_s[i], res.twist_s[i], res.residual[i],
-                        res.overlap_excess[i], res.pair_residual_s[i], res.snr_db_est[i],
-                        res.noise_rms_v_est[i], res.polarity[i], res.amplitude_v[i],
-                        res.confidence[i], res.clamped[i], res.reason_flags[i],
-                        res.emission_offset_s[i], res.polar_rad[i], res.azimuth_rad[i]],
-                       dtype=float)
-        return cls(out, res.point_m[i].copy(), res.covariance_m2[i].copy(),
-                   res.delay_covariance_s2[i].copy())
+        out = np.array(
+            [
+                res.tau_x_s[i],
+                res.tau_y_s[i],
+                res.twist_s[i],
+                res.residual[i],
+                res.overlap_excess[i],
+                res.pair_residual_s[i],
+                res.snr_db_est[i],
+                res.noise_rms_v_est[i],
+                res.polarity[i],
+                res.amplitude_v[i],
+                res.confidence[i],
+                res.clamped[i],
+                res.reason_flags[i],
+                res.emission_offset_s[i],
+                res.polar_rad[i],
+                res.azimuth_rad[i],
+            ],
+            dtype=float,
+        )
+        return cls(
+            out,
+            res.point_m[i].copy(),
+            res.covariance_m2[i].copy(),
+            res.delay_covariance_s2[i].copy(),
+        )
 
     def __repr__(self):
         p = self.point_m * 1e3
-        return (f"PacketLocation({self.reason.name}, "
-                f"point_mm=({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}), "
-                f"polarity={self.polarity:+d}, snr_db={self.snr_db:.1f})")
+        return (
+            f"PacketLocation({self.reason.name}, "
+            f"point_mm=({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}), "
+            f"polarity={self.polarity:+d}, snr_db={self.snr_db:.1f})"
+        )
 
 
 class Localizer:
@@ -485,15 +661,29 @@ class Localizer:
     ``warm_up(geometry, fs, n_samples)`` compiles and caches it before acquisition.
     """
 
-    _ONE_KEYS = frozenset({"band_hz", "min_snr_db", "overlap_threshold", "pre_onset_s",
-                           "echo_guard_s", "full_scale_v", "engine", "iterations", "geometry"})
+    _ONE_KEYS = frozenset(
+        {
+            "band_hz",
+            "min_snr_db",
+            "overlap_threshold",
+            "pre_onset_s",
+            "echo_guard_s",
+            "full_scale_v",
+            "engine",
+            "iterations",
+            "geometry",
+        }
+    )
 
     def __init__(self, method="ml", **kwargs):
         info = get_estimator(method)
         self.method = method
         self.kwargs = kwargs
-        opts = {k: v for k, v in kwargs.items() if k not in self._ONE_KEYS and k not in (
-            "noise_rms_v", "saturated", "channel_gains")}
+        opts = {
+            k: v
+            for k, v in kwargs.items()
+            if k not in self._ONE_KEYS and k not in ("noise_rms_v", "saturated", "channel_gains")
+        }
         if "iterations" in kwargs:
             opts["iterations"] = kwargs["iterations"]
         self._one_engine = resolve_engine(kwargs.get("engine"), method, opts)
@@ -518,17 +708,32 @@ class Localizer:
         key = (fs, m, geometry)
         hit = self._plans.get(key)
         if hit is None:
-            plan = _plan(fs, geometry, m, self.kwargs.get("band_hz"),
-                         self.kwargs.get("pre_onset_s", 1e-6),
-                         self.kwargs.get("echo_guard_s", 0.3e-6), self.method)
+            plan = _plan(
+                fs,
+                geometry,
+                m,
+                self.kwargs.get("band_hz"),
+                self.kwargs.get("pre_onset_s", 1e-6),
+                self.kwargs.get("echo_guard_s", 0.3e-6),
+                self.method,
+            )
             hit = fast.tables_for(plan)
             if len(self._plans) > 32:
                 self._plans.clear()
             self._plans[key] = hit
         return hit
 
-    def localize_one(self, samples_v, sample_rate_hz, onset_index, *, noise_rms_v=None,
-                     saturated=False, geometry=None, channel_gains=None) -> PacketLocation:
+    def localize_one(
+        self,
+        samples_v,
+        sample_rate_hz,
+        onset_index,
+        *,
+        noise_rms_v=None,
+        saturated=False,
+        geometry=None,
+        channel_gains=None,
+    ) -> PacketLocation:
         """Localize one (4, M) window (float32 / float64 volts). Never raises on the data
         (NaN, zeros, clipping: a rejection with its reason); ValueError / TypeError on bad
         arguments. noise_rms_v: known sigma (V, > 0) or None / NaN (measured);
@@ -536,8 +741,12 @@ class Localizer:
         geo = self._default_geometry if geometry is None else geometry
         if self._one_engine != "numba":
             kw = dict(self.kwargs)
-            kw.update(geometry=geo, noise_rms_v=noise_rms_v, channel_gains=channel_gains,
-                      saturated=None if saturated is None else [bool(saturated)])
+            kw.update(
+                geometry=geo,
+                noise_rms_v=noise_rms_v,
+                channel_gains=channel_gains,
+                saturated=None if saturated is None else [bool(saturated)],
+            )
             x = np.asarray(samples_v)
             if x.ndim != 2:
                 raise ValueError(f"samples_v must have shape (4, M), got {x.shape}")
@@ -546,8 +755,9 @@ class Localizer:
         x = samples_v
         if not (type(x) is np.ndarray and x.dtype in _FLOATS and x.flags.c_contiguous):
             x = np.asarray(x)
-            if x.dtype == object or not (np.issubdtype(x.dtype, np.floating)
-                                         or np.issubdtype(x.dtype, np.integer)):
+            if x.dtype == object or not (
+                np.issubdtype(x.dtype, np.floating) or np.issubdtype(x.dtype, np.integer)
+            ):
                 raise TypeError(f"samples_v must be a real numeric array, got dtype {x.dtype}")
             x = np.ascontiguousarray(x, dtype=np.float64)
         if x.ndim != 2 or x.shape[0] != 4 or x.shape[1] < 4:
@@ -556,8 +766,9 @@ class Localizer:
         if type(fs) is not float:
             fs = _positive_arg("sample_rate_hz", fs)
         elif not (fs > 0 and fs < np.inf):
-            raise ValueError("sample_rate_hz must be a positive finite number, "
-                             f"got {sample_rate_hz!r}")
+            raise ValueError(
+                f"sample_rate_hz must be a positive finite number, got {sample_rate_hz!r}"
+            )
         on = onset_index
         if type(on) is not int:
             if isinstance(on, (bool, np.bool_)) or not isinstance(on, _REALS):
@@ -570,8 +781,9 @@ class Localizer:
         else:
             nr = float(noise_rms_v)
             if not (nr > 0 and nr < np.inf) and not math.isnan(nr):
-                raise ValueError("noise_rms_v must be positive and finite (NaN: unknown), "
-                                 f"got {noise_rms_v!r}")
+                raise ValueError(
+                    f"noise_rms_v must be positive and finite (NaN: unknown), got {noise_rms_v!r}"
+                )
         sat = -1 if saturated is None else int(bool(saturated))
         if not isinstance(geo, FingertipGeometry):
             raise TypeError(f"geometry must be a FingertipGeometry, got {type(geo).__name__}")
@@ -581,8 +793,22 @@ class Localizer:
         pt = np.empty(3)
         cov = np.empty((3, 3))
         ctau = np.empty((2, 2))
-        fast.run_one(x, on, nr, sat, self._full_scale, gains, tb, self._iterations,
-                     self._min_snr_db, self._thr, out, pt, cov, ctau)
+        fast.run_one(
+            x,
+            on,
+            nr,
+            sat,
+            self._full_scale,
+            gains,
+            tb,
+            self._iterations,
+            self._min_snr_db,
+            self._thr,
+            out,
+            pt,
+            cov,
+            ctau,
+        )
         return PacketLocation(out, pt, cov, ctau)
 
     def warm_up(self, geometry=None, sample_rate_hz=10e6, n_samples=400):

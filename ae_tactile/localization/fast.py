@@ -29,8 +29,7 @@ import os
 
 import numpy as np
 
-from ae_tactile.localization.common import (ALIAS_GUARD_DB, BAND_EDGE_POWER_RATIO, PAIR_PINV,
-                                            PAIRS)
+from ae_tactile.localization.common import ALIAS_GUARD_DB, BAND_EDGE_POWER_RATIO, PAIR_PINV, PAIRS
 
 try:  # pragma: no cover - import guard
     if os.environ.get("AE_TACTILE_NO_NUMBA", "").strip() not in ("", "0"):
@@ -111,9 +110,22 @@ class Tables:
         self.fs = float(plan.fs)
         # One Newton step is worth about one sample of delay at most (ml.estimate).
         self.max_step = g.radius_m * g.sound_speed_m_s / (g.element_offset_m * plan.fs)
-        self.packed = (self.cc, self.sc, self.ca, self.sa, self.wa, self.lc, self.ls, self.max_lag,
-                       self.geo, self.ints, self.fc, self.fa, self.auto,
-                       np.array([self.fs, self.max_step, float(self.lag0)]))
+        self.packed = (
+            self.cc,
+            self.sc,
+            self.ca,
+            self.sa,
+            self.wa,
+            self.lc,
+            self.ls,
+            self.max_lag,
+            self.geo,
+            self.ints,
+            self.fc,
+            self.fa,
+            self.auto,
+            np.array([self.fs, self.max_step, float(self.lag0)]),
+        )
 
 
 _TABLES: dict = {}
@@ -451,8 +463,24 @@ def _peak_lag(gr, gi, lc, ls, lag0, ml_):
 
 # --------------------------------------------------------------------------- kernel
 @njit(cache=True, nogil=True)
-def _packet(xin, onset, noise_rms, sat_in, full_scale, gains, has_gains, gain_rms, tabs,
-            iterations, min_snr_db, thr, out, pt, cov, ctau):
+def _packet(
+    xin,
+    onset,
+    noise_rms,
+    sat_in,
+    full_scale,
+    gains,
+    has_gains,
+    gain_rms,
+    tabs,
+    iterations,
+    min_snr_db,
+    thr,
+    out,
+    pt,
+    cov,
+    ctau,
+):
     """One packet. out: 16 scalars (see estimators.PacketLocation); pt (3,), cov (3, 3),
     ctau (2, 2). tabs: `Tables.packed`."""
     cc, sc, ca, sa, wa, lc, ls, max_lag, geo, ints, fc, fa, auto, scal = tabs
@@ -757,7 +785,7 @@ def _packet(xin, onset, noise_rms, sat_in, full_scale, gains, has_gains, gain_rm
     for f in range(nba):
         e_mean += wa[f] * wa[f] * max(bb2[f] - Lm * sigma2 / 4.0, 0.0)
         sw2 += wa[f] * wa[f]
-    kappa = 0.5 * Lm * sigma2 * sw2 / max(e_mean, 1e-300)     # noise-by-noise share
+    kappa = 0.5 * Lm * sigma2 * sw2 / max(e_mean, 1e-300)  # noise-by-noise share
     e_mean *= 2.0 / n_al
     e_mean /= 1.0 + kappa
     ee = np.empty(4)
@@ -899,15 +927,48 @@ def _packet(xin, onset, noise_rms, sat_in, full_scale, gains, has_gains, gain_rm
 
 
 @njit(cache=True, nogil=True)
-def _batch(x, onset, noise_rms, sat, full_scale, gains, has_gains, gain_rms, tabs, iterations,
-           min_snr_db, thr, out, pt, cov, ctau):
+def _batch(
+    x,
+    onset,
+    noise_rms,
+    sat,
+    full_scale,
+    gains,
+    has_gains,
+    gain_rms,
+    tabs,
+    iterations,
+    min_snr_db,
+    thr,
+    out,
+    pt,
+    cov,
+    ctau,
+):
     for i in range(x.shape[0]):
-        _packet(x[i], onset[i], noise_rms[i], sat[i], full_scale, gains, has_gains, gain_rms, tabs,
-                iterations, min_snr_db, thr, out[i], pt[i], cov[i], ctau[i])
+        _packet(
+            x[i],
+            onset[i],
+            noise_rms[i],
+            sat[i],
+            full_scale,
+            gains,
+            has_gains,
+            gain_rms,
+            tabs,
+            iterations,
+            min_snr_db,
+            thr,
+            out[i],
+            pt[i],
+            cov[i],
+            ctau[i],
+        )
 
 
-def run_batch(x, onset, tables: Tables, *, noise_rms, sat, full_scale, gains, iterations,
-              min_snr_db, thr):
+def run_batch(
+    x, onset, tables: Tables, *, noise_rms, sat, full_scale, gains, iterations, min_snr_db, thr
+):
     """Localize K packets with the kernel. x (K, 4, M) float32/float64 C-contiguous,
     onset (K,) int64, noise_rms (K,) float (NaN: measure), sat (K,) int8 (-1 unknown),
     full_scale float (NaN: unknown), gains (4,) or None. Returns (out (K, 16), point (K, 3),
@@ -920,20 +981,66 @@ def run_batch(x, onset, tables: Tables, *, noise_rms, sat, full_scale, gains, it
     has_gains = gains is not None
     g = np.ones(4) if gains is None else np.asarray(gains, float)
     gain_rms = float(np.sqrt(np.mean(g * g)))
-    _batch(x, onset, noise_rms, sat, float(full_scale), g, has_gains, gain_rms, tables.packed,
-           int(iterations), float(min_snr_db), float(thr), out, pt, cov, ctau)
+    _batch(
+        x,
+        onset,
+        noise_rms,
+        sat,
+        float(full_scale),
+        g,
+        has_gains,
+        gain_rms,
+        tables.packed,
+        int(iterations),
+        float(min_snr_db),
+        float(thr),
+        out,
+        pt,
+        cov,
+        ctau,
+    )
     return out, pt, cov, ctau
 
 
 _ONES = np.ones(4)
 
 
-def run_one(x, onset, noise_rms, sat, full_scale, gains, tables: Tables, iterations, min_snr_db,
-            thr, out, pt, cov, ctau):
+def run_one(
+    x,
+    onset,
+    noise_rms,
+    sat,
+    full_scale,
+    gains,
+    tables: Tables,
+    iterations,
+    min_snr_db,
+    thr,
+    out,
+    pt,
+    cov,
+    ctau,
+):
     """One (4, M) window into out (16,), pt (3,), cov (3, 3), ctau (2, 2) (see `_packet`)."""
     if gains is None:
         g, has, grms = _ONES, False, 1.0
     else:
         g, has, grms = gains, True, float(np.sqrt(np.mean(gains * gains)))
-    _packet(x, onset, noise_rms, sat, full_scale, g, has, grms, tables.packed, iterations,
-            min_snr_db, thr, out, pt, cov, ctau)
+    _packet(
+        x,
+        onset,
+        noise_rms,
+        sat,
+        full_scale,
+        g,
+        has,
+        grms,
+        tables.packed,
+        iterations,
+        min_snr_db,
+        thr,
+        out,
+        pt,
+        cov,
+        ctau,
+    )

@@ -14,15 +14,25 @@ cross-correlation of the sums p11 + p1-1 against p-11 + p-1-1 (lag = -2 tau_x) a
 p11 + p-11 against p1-1 + p-1-1 (lag = -2 tau_y), parabolic peak, and the far-field
 inversion of Eq. 2-3, (s_x, s_y) = (c R / a)(tau_x, tau_y).
 """
+
 from __future__ import annotations
 
 import numpy as np
 import scipy.fft as sfft
 
-from ae_tactile.localization.common import (Plan, Prepared, aligned_spectra, delays_from_pairs,
-                                            pair_delays, relative_arrivals)
-from ae_tactile.localization.covariance import (arrival_fisher, delay_covariance_from_fisher,
-                                                weighted_pair_delay_covariance)
+from ae_tactile.localization.common import (
+    Plan,
+    Prepared,
+    aligned_spectra,
+    delays_from_pairs,
+    pair_delays,
+    relative_arrivals,
+)
+from ae_tactile.localization.covariance import (
+    arrival_fisher,
+    delay_covariance_from_fisher,
+    weighted_pair_delay_covariance,
+)
 
 
 def _finish(prep, plan, theta, point, clamped, cov_kind, pair_res, raw, edge):
@@ -36,17 +46,30 @@ def _finish(prep, plan, theta, point, clamped, cov_kind, pair_res, raw, edge):
     def covariance(sigma2):
         if cov_kind == "phat":
             from ae_tactile.localization.covariance import signal_spectrum
+
             s2, _ = signal_spectrum(zb, sigma2, al.count)
             L = al.count.mean(axis=1)
             weight = 1.0 / np.maximum(s2 + L[:, None] * sigma2[:, None], 1e-300)
-            c = weighted_pair_delay_covariance(zb, plan.w_al, sigma2, al.count, plan.n_fft_al, weight)
+            c = weighted_pair_delay_covariance(
+                zb, plan.w_al, sigma2, al.count, plan.n_fft_al, weight
+            )
         else:
             F = arrival_fisher(zb, plan.w_al, sigma2, al.count, plan.n_fft_al)
             c = delay_covariance_from_fisher(F)
         return c, np.ones(len(sigma2), bool)
 
-    return dict(theta=theta, point=point, clamped=clamped, zb=zb, z=z, count=al.count,
-                raw_delays=raw, covariance=covariance, pair_residual_s=pair_res, at_edge=edge)
+    return dict(
+        theta=theta,
+        point=point,
+        clamped=clamped,
+        zb=zb,
+        z=z,
+        count=al.count,
+        raw_delays=raw,
+        covariance=covariance,
+        pair_residual_s=pair_res,
+        at_edge=edge,
+    )
 
 
 def estimate_gcc_phat(prep: Prepared, plan: Plan, *, refine: int = 3):
@@ -77,11 +100,13 @@ def _sum_pair_lag(U, V, plan, max_lag):
 def estimate_xcorr_farfield(prep: Prepared, plan: Plan):
     X = prep.X
     fs = plan.fs
-    max_lag = int(plan.max_lag[0])          # elements 2a apart
+    max_lag = int(plan.max_lag[0])  # elements 2a apart
     lx, ex = _sum_pair_lag(X[:, 0] + X[:, 1], X[:, 2] + X[:, 3], plan, max_lag)
     ly, ey = _sum_pair_lag(X[:, 0] + X[:, 2], X[:, 1] + X[:, 3], plan, max_lag)
     tx = -lx / (2.0 * fs)
     ty = -ly / (2.0 * fs)
     theta = np.stack([tx, ty, np.zeros_like(tx)], axis=1)
     point, clamped = plan.geometry.point_from_delays(tx, ty, exact=False)
-    return _finish(prep, plan, theta, point, clamped, "plain", np.zeros_like(tx), theta[:, :2], ex | ey)
+    return _finish(
+        prep, plan, theta, point, clamped, "plain", np.zeros_like(tx), theta[:, :2], ex | ey
+    )

@@ -17,15 +17,24 @@ The fixed point is the stationary point of the steered response over (tau_x, tau
 twist), i.e. the "four delays against a common template" ML fit; the point then follows
 from the exact inversion `FingertipGeometry.point_from_delays`.
 """
+
 from __future__ import annotations
 
 import numpy as np
 
-from ae_tactile.localization.common import (CONTRASTS, Plan, Prepared, aligned_spectra,
-                                            delays_from_pairs, pair_delays, relative_arrivals, subset)
+from ae_tactile.localization.common import (
+    CONTRASTS,
+    Plan,
+    Prepared,
+    aligned_spectra,
+    delays_from_pairs,
+    pair_delays,
+    relative_arrivals,
+    subset,
+)
 from ae_tactile.localization.covariance import arrival_fisher, delay_covariance_from_fisher
 
-_SIGNS = CONTRASTS * 4.0      # rows: -xi, -eta, xi eta
+_SIGNS = CONTRASTS * 4.0  # rows: -xi, -eta, xi eta
 
 
 def _iterate(Yb, w, theta, c0, iterations, lim, fs):
@@ -37,9 +46,9 @@ def _iterate(Yb, w, theta, c0, iterations, lim, fs):
             break
         eps = relative_arrivals(theta[act]) - c0[act]
         z = Yb[act] * np.exp(1j * w * eps[..., None])
-        dm = 1j * w * z.mean(axis=1)                           # band-limited m'
+        dm = 1j * w * z.mean(axis=1)  # band-limited m'
         den = np.maximum((np.abs(dm) ** 2).sum(axis=1), 1e-300)
-        diffs = np.einsum("ck,kbf->bcf", _SIGNS, np.moveaxis(z, 0, 1)) / 4.0   # (K, 3, nb)
+        diffs = np.einsum("ck,kbf->bcf", _SIGNS, np.moveaxis(z, 0, 1)) / 4.0  # (K, 3, nb)
         num = (diffs * np.conj(dm)[:, None, :]).real.sum(axis=2) / den[:, None]
         # diffs ~ j w M (estimate - truth) projected on each contrast: step back by it.
         step = np.clip(-num, -lim, lim)
@@ -65,7 +74,11 @@ def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4, start: str = "x
         lim = np.inf
     else:
         raise ValueError(f"start must be 'xcorr' or 'zero', got {start!r}")
-    if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 1:
+    if (
+        isinstance(iterations, bool)
+        or not isinstance(iterations, (int, np.integer))
+        or iterations < 1
+    ):
         raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
     raw0 = theta[:, :2].copy()
     al = aligned_spectra(prep, plan, relative_arrivals(theta))
@@ -79,7 +92,13 @@ def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4, start: str = "x
         al2 = aligned_spectra(subset(prep, ids), plan, relative_arrivals(theta[ids]))
         c2 = al2.ref[:, None] + al2.shift / fs
         theta[ids] = _iterate(al2.Yb, w, theta[ids], c2, iterations, lim, fs)
-        al.Y[ids], al.Yb[ids], al.shift[ids], al.ref[ids], al.count[ids] = al2.Y, al2.Yb, al2.shift, al2.ref, al2.count
+        al.Y[ids], al.Yb[ids], al.shift[ids], al.ref[ids], al.count[ids] = (
+            al2.Y,
+            al2.Yb,
+            al2.shift,
+            al2.ref,
+            al2.count,
+        )
         c0[ids] = c2
     eps = relative_arrivals(theta) - c0
     zb = al.Yb * np.exp(1j * w * eps[..., None])
@@ -90,6 +109,16 @@ def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4, start: str = "x
         F = arrival_fisher(zb, w, sigma2, al.count, plan.n_fft_al)
         return delay_covariance_from_fisher(F), np.ones(len(sigma2), bool)
 
-    return dict(theta=theta, point=point, clamped=clamped, zb=zb, z=z, count=al.count,
-                raw_delays=theta[:, :2], covariance=covariance, pair_residual_s=pair_res,
-                start_delays=raw0, at_edge=edge)
+    return dict(
+        theta=theta,
+        point=point,
+        clamped=clamped,
+        zb=zb,
+        z=z,
+        count=al.count,
+        raw_delays=theta[:, :2],
+        covariance=covariance,
+        pair_residual_s=pair_res,
+        start_delays=raw0,
+        at_edge=edge,
+    )

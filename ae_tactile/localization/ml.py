@@ -23,12 +23,21 @@ each packet keeps the candidate bins up to its own edge (`common.band_edge_hz`):
 others are zeroed in the spectra, which removes them from P, its derivatives, the misfit
 and the covariance. The compiled kernel (fast.py) does the same per packet.
 """
+
 from __future__ import annotations
 
 import numpy as np
 
-from ae_tactile.localization.common import (Plan, Prepared, adc_noise, aligned_spectra,
-                                            band_edge_hz, delays_from_pairs, pair_delays, subset)
+from ae_tactile.localization.common import (
+    Plan,
+    Prepared,
+    adc_noise,
+    aligned_spectra,
+    band_edge_hz,
+    delays_from_pairs,
+    pair_delays,
+    subset,
+)
 from ae_tactile.localization.covariance import arrival_fisher, sphere_covariance
 
 _ALPHAS = np.array([1.0, 0.5, 0.25, 0.125, 0.0])
@@ -44,9 +53,11 @@ def _project(sx, sy, r):
 
 def srp(Yb, w, eps):
     """P (K, ...) for residual shifts eps (K, ..., 4)."""
-    z = Yb.reshape(Yb.shape[:1] + (1,) * (eps.ndim - 2) + Yb.shape[1:]) * np.exp(1j * w * eps[..., None])
+    z = Yb.reshape(Yb.shape[:1] + (1,) * (eps.ndim - 2) + Yb.shape[1:]) * np.exp(
+        1j * w * eps[..., None]
+    )
     b = z.sum(axis=-2)
-    return (b.real ** 2 + b.imag ** 2).sum(axis=-1)
+    return (b.real**2 + b.imag**2).sum(axis=-1)
 
 
 def newton(Yb, w, geometry, s, c0, iterations, max_step_m, tol_m):
@@ -65,8 +76,8 @@ def newton(Yb, w, geometry, s, c0, iterations, max_step_m, tol_m):
         t, dt, d2t = geometry.arrival_time_derivatives(ax, ay)
         z = yb * np.exp(1j * w * (t - c)[..., None])
         b = z.sum(axis=1)
-        cb = np.conj(b)[:, None, :] * z                        # (K, 4, nb)
-        g_e = -2.0 * (w * cb.imag).sum(axis=2)                 # dP/d eps_k
+        cb = np.conj(b)[:, None, :] * z  # (K, 4, nb)
+        g_e = -2.0 * (w * cb.imag).sum(axis=2)  # dP/d eps_k
         h_e = 2.0 * np.einsum("kaf,kbf,f->kab", z, np.conj(z), w2).real
         idx = np.arange(4)
         h_e[:, idx, idx] -= 2.0 * (w2 * cb.real).sum(axis=2)
@@ -92,7 +103,7 @@ def newton(Yb, w, geometry, s, c0, iterations, max_step_m, tol_m):
         # Full step; a line search (1/2, 1/4, 1/8 or no step) only where P fell.
         nx, ny, over = _project(ax + stx, ay + sty, r)
         p_new = srp(yb, w, _times(geometry, nx, ny) - c)
-        p_old = (b.real ** 2 + b.imag ** 2).sum(axis=1)
+        p_old = (b.real**2 + b.imag**2).sum(axis=1)
         worse = ~(p_new >= p_old)
         if worse.any():
             ids = np.nonzero(worse)[0]
@@ -116,7 +127,11 @@ def _times(geometry, sx, sy):
 
 def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4):
     """Exact-sphere ML fit. Returns the estimator core dict (see estimators.py)."""
-    if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 1:
+    if (
+        isinstance(iterations, bool)
+        or not isinstance(iterations, (int, np.integer))
+        or iterations < 1
+    ):
         raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
     geo = plan.geometry
     fs = plan.fs
@@ -157,27 +172,46 @@ def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4):
         c2 = al2.ref[:, None] + al2.shift / fs
         s2, cl2 = newton(al2.Yb, plan.w_al, geo, s[ids], c2, iterations, max_step, 1e-4 * max_step)
         s[ids], clamped[ids] = s2, cl2
-        al.Y[ids], al.Yb[ids], al.shift[ids], al.ref[ids], al.count[ids] = al2.Y, al2.Yb, al2.shift, al2.ref, al2.count
+        al.Y[ids], al.Yb[ids], al.shift[ids], al.ref[ids], al.count[ids] = (
+            al2.Y,
+            al2.Yb,
+            al2.shift,
+            al2.ref,
+            al2.count,
+        )
         al.seg[ids] = al2.seg
         c0[ids] = c2
     t, dt, _ = geo.arrival_time_derivatives(s[:, 0], s[:, 1])
     eps = t - c0
     zb = al.Yb * np.exp(1j * plan.w_al * eps[..., None])
     z = al.Y * np.exp(1j * plan.w_full_al * eps[..., None])
-    sz = np.sqrt(np.maximum(geo.radius_m ** 2 - s[:, 0] ** 2 - s[:, 1] ** 2, 0.0))
+    sz = np.sqrt(np.maximum(geo.radius_m**2 - s[:, 0] ** 2 - s[:, 1] ** 2, 0.0))
     point = np.stack([s[:, 0], s[:, 1], sz], axis=1)
     delays = geo.delays_from_arrival_times(t)
 
     n_bins = np.full(len(s), zb.shape[2]) if mask_al is None else mask_al[:, 0, :].sum(axis=1)
 
     def covariance(sigma2):
-        F = arrival_fisher(zb, plan.w_al, sigma2, al.count, plan.n_fft_al, n_bins,
-                           noise_by_noise=True)
+        F = arrival_fisher(
+            zb, plan.w_al, sigma2, al.count, plan.n_fft_al, n_bins, noise_by_noise=True
+        )
         c_xy, ok = sphere_covariance(F, dt)
         jac = geo.delay_jacobian(s[:, 0], s[:, 1])
         c_tau = jac @ c_xy @ np.swapaxes(jac, 1, 2)
         return c_tau, ok
 
-    return dict(theta=delays, point=point, clamped=clamped, zb=zb, z=z, count=al.count,
-                raw_delays=theta0[:, :2], covariance=covariance, pair_residual_s=pair_res,
-                at_edge=edge, aligned_seg=al.seg, eps_samples=eps * fs, n_bins=n_bins)
+    return dict(
+        theta=delays,
+        point=point,
+        clamped=clamped,
+        zb=zb,
+        z=z,
+        count=al.count,
+        raw_delays=theta0[:, :2],
+        covariance=covariance,
+        pair_residual_s=pair_res,
+        at_edge=edge,
+        aligned_seg=al.seg,
+        eps_samples=eps * fs,
+        n_bins=n_bins,
+    )

@@ -11,6 +11,7 @@ instead (driver publishing raw packets, separate localizer and slip_detector nod
 ``--params-file`` takes the same parameter file as the launch file (one section per node,
 config/water_skin.yaml or config/silicone.yaml; the parameters' defaults are in the code).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,28 +32,60 @@ from ae_tactile.ros.node_utils import ros_session
 
 def parse_args(argv):
     ap = argparse.ArgumentParser(prog="bringup", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scene", default="", help="scene YAML for the simulated fingertip (default: showcase)")
-    ap.add_argument("--no-sim", dest="use_sim", action="store_false", help="use real hardware on --port")
-    ap.add_argument("--port", default="/dev/ttyACM0", help="serial port or pyserial URL (with --no-sim)")
+    ap.add_argument(
+        "--scene", default="", help="scene YAML for the simulated fingertip (default: showcase)"
+    )
+    ap.add_argument(
+        "--no-sim", dest="use_sim", action="store_false", help="use real hardware on --port"
+    )
+    ap.add_argument(
+        "--port", default="/dev/ttyACM0", help="serial port or pyserial URL (with --no-sim)"
+    )
     ap.add_argument("--namespace", default="", help="ROS namespace of all nodes (one per finger)")
-    ap.add_argument("--params-file", default="",
-                    help="ROS parameter file, one section per node (default: the installed "
-                         "config/water_skin.yaml, as the launch file; the scene's body wins)")
+    ap.add_argument(
+        "--params-file",
+        default="",
+        help="ROS parameter file, one section per node (default: the installed "
+        "config/water_skin.yaml, as the launch file; the scene's body wins)",
+    )
     ap.add_argument("--frame-id", default="ae_tactile_fingertip", help="fingertip TF frame")
-    ap.add_argument("--method", default="", help="localization estimator (default: the localizer's)")
+    ap.add_argument(
+        "--method", default="", help="localization estimator (default: the localizer's)"
+    )
     ap.add_argument("--speed", type=float, default=1.0, help="simulation playback speed")
-    ap.add_argument("--duration", type=float, default=-1.0,
-                    help="seconds to run (default with --scene: until it has played; 0: until Ctrl-C)")
-    ap.add_argument("--monitor", action="store_true", help="print a live log and a summary vs ground truth")
-    ap.add_argument("--grip-reflex", action="store_true", help="run the example grip reflex (closes the loop)")
-    ap.add_argument("--best-effort", dest="reliable", action="store_false",
-                    help="sensor-data (best-effort) QoS on packets instead of reliable")
-    ap.add_argument("--sliding-speed", type=float, default=0.0,
-                    help="known sliding speed (m/s) for TEXTURE spatial periods (0: unknown)")
-    ap.add_argument("--split", action="store_true",
-                    help="separate localizer and slip_detector nodes on the packets topic")
+    ap.add_argument(
+        "--duration",
+        type=float,
+        default=-1.0,
+        help="seconds to run (default with --scene: until it has played; 0: until Ctrl-C)",
+    )
+    ap.add_argument(
+        "--monitor", action="store_true", help="print a live log and a summary vs ground truth"
+    )
+    ap.add_argument(
+        "--grip-reflex", action="store_true", help="run the example grip reflex (closes the loop)"
+    )
+    ap.add_argument(
+        "--best-effort",
+        dest="reliable",
+        action="store_false",
+        help="sensor-data (best-effort) QoS on packets instead of reliable",
+    )
+    ap.add_argument(
+        "--sliding-speed",
+        type=float,
+        default=0.0,
+        help="known sliding speed (m/s) for TEXTURE spatial periods (0: unknown)",
+    )
+    ap.add_argument(
+        "--split",
+        action="store_true",
+        help="separate localizer and slip_detector nodes on the packets topic",
+    )
     ap.add_argument("--summary-json", default="", help="write the monitor's summary here")
-    ap.add_argument("--report-png", default="", help="write a PNG summary of the run here (monitor)")
+    ap.add_argument(
+        "--report-png", default="", help="write a PNG summary of the run here (monitor)"
+    )
     return ap.parse_args(argv)
 
 
@@ -60,9 +93,10 @@ def default_params_file() -> str:
     """config/water_skin.yaml as installed (the launch file's default parameter file)."""
     try:
         from ament_index_python.packages import get_package_share_directory
+
         path = os.path.join(get_package_share_directory("ae_tactile"), "config", "water_skin.yaml")
         return path if os.path.exists(path) else ""
-    except Exception:   # not in an ament environment
+    except Exception:  # not in an ament environment
         return ""
 
 
@@ -73,6 +107,7 @@ def make_executor(context=None):
     worker), so one dispatching thread is enough."""
     try:
         from rclpy.experimental import EventsExecutor
+
         return EventsExecutor(context=context) if context is not None else EventsExecutor()
     except (ImportError, TypeError):
         return MultiThreadedExecutor(num_threads=3, context=context)
@@ -82,10 +117,11 @@ def _installed_executable(name: str) -> str:
     """Path of one of this package's node executables (colcon install, or next to us)."""
     try:
         from ament_index_python.packages import get_package_prefix
+
         path = os.path.join(get_package_prefix("ae_tactile"), "lib", "ae_tactile", name)
         if os.path.exists(path):
             return path
-    except Exception:   # not in an ament environment
+    except Exception:  # not in an ament environment
         pass
     return os.path.join(os.path.dirname(os.path.abspath(sys.argv[0])), name)
 
@@ -101,10 +137,12 @@ class Bringup:
 
     def __init__(self, args, context=None, sim_in_process: bool = False):
         from std_msgs.msg import String
+
         from ae_tactile.ros.driver_node import DriverNode
-        from ae_tactile.ros.node_utils import LATCHED
         from ae_tactile.ros.localizer_node import LocalizerNode
+        from ae_tactile.ros.node_utils import LATCHED
         from ae_tactile.ros.slip_node import SlipDetectorNode
+
         kw = {"namespace": args.namespace}
         if context is not None:
             kw["context"] = context
@@ -118,13 +156,23 @@ class Bringup:
         self._tmp = None
         if args.use_sim:
             from ae_tactile.ros.sim_fingertip_node import SimFingertipNode, default_scene_path
+
             self._tmp = tempfile.TemporaryDirectory(prefix="ae_tactile_")
-            scene = os.path.abspath(args.scene) if args.scene else default_scene_path("showcase.yaml")
+            scene = (
+                os.path.abspath(args.scene) if args.scene else default_scene_path("showcase.yaml")
+            )
             port = os.path.join(self._tmp.name, "fingertip")
-            sim_params = {"scene": scene, "speed": float(args.speed), "link_path": port, "frame_id": args.frame_id}
+            sim_params = {
+                "scene": scene,
+                "speed": float(args.speed),
+                "link_path": port,
+                "frame_id": args.frame_id,
+            }
             if sim_in_process:
-                self.sim = SimFingertipNode(parameter_overrides=[Parameter(k, value=v) for k, v in sim_params.items()],
-                                            **kw)
+                self.sim = SimFingertipNode(
+                    parameter_overrides=[Parameter(k, value=v) for k, v in sim_params.items()],
+                    **kw,
+                )
                 self.nodes.append(self.sim)
             else:
                 cmd = [_installed_executable("sim_fingertip"), "--ros-args"]
@@ -134,22 +182,34 @@ class Bringup:
                     cmd += ["-r", f"__ns:=/{args.namespace.strip('/')}"]
                 self.sim_process = subprocess.Popen(cmd, stdout=sys.stdout, stderr=sys.stderr)
                 t_end = time.monotonic() + 20.0
-                while not os.path.exists(port) and time.monotonic() < t_end and self.sim_process.poll() is None:
+                while (
+                    not os.path.exists(port)
+                    and time.monotonic() < t_end
+                    and self.sim_process.poll() is None
+                ):
                     time.sleep(0.02)
                 if not os.path.exists(port):
-                    raise RuntimeError(f"the simulated fingertip did not start (exit code {self.sim_process.poll()})")
+                    raise RuntimeError(
+                        "the simulated fingertip did not start "
+                        f"(exit code {self.sim_process.poll()})"
+                    )
         else:
             port = args.port
         sensor = self._scene_sensor_params(scene) if args.use_sim else []
-        driver_params = sensor + [Parameter("port", value=port), Parameter("frame_id", value=args.frame_id),
-                                  Parameter("pipeline", value=not args.split),
-                                  Parameter("wait_for_subscribers", value=1 if (args.monitor or args.split) else 0)]
+        driver_params = sensor + [
+            Parameter("port", value=port),
+            Parameter("frame_id", value=args.frame_id),
+            Parameter("pipeline", value=not args.split),
+            Parameter("wait_for_subscribers", value=1 if (args.monitor or args.split) else 0),
+        ]
         if args.split:
             driver_params.append(Parameter("reliable_qos", value=bool(args.reliable)))
         elif args.method:
             driver_params.append(Parameter("localization.method", value=args.method))
         if args.sliding_speed and not args.split:
-            driver_params.append(Parameter("slip.sliding_speed_m_s", value=float(args.sliding_speed)))
+            driver_params.append(
+                Parameter("slip.sliding_speed_m_s", value=float(args.sliding_speed))
+            )
         self.driver = DriverNode(parameter_overrides=driver_params, **kw)
         self.nodes.append(self.driver)
         self.localizer = self.slip = None
@@ -158,17 +218,22 @@ class Bringup:
             if args.method:
                 loc_params.append(Parameter("localization.method", value=args.method))
             self.localizer = LocalizerNode(parameter_overrides=loc_params, **kw)
-            slip_params = ([Parameter("slip.sliding_speed_m_s", value=float(args.sliding_speed))]
-                           if args.sliding_speed else [])
+            slip_params = (
+                [Parameter("slip.sliding_speed_m_s", value=float(args.sliding_speed))]
+                if args.sliding_speed
+                else []
+            )
             self.slip = SlipDetectorNode(parameter_overrides=slip_params, **kw)
             self.nodes += [self.localizer, self.slip]
         self.driver.create_subscription(String, "sim/scene_truth", self._on_scene_info, LATCHED)
         if args.grip_reflex:
             from ae_tactile.ros.grip_reflex_node import GripReflexNode
+
             self.reflex = GripReflexNode(**kw)
             self.nodes.append(self.reflex)
         if args.monitor:
             from ae_tactile.ros.monitor_node import MonitorNode
+
             self.monitor = MonitorNode(**kw)
             self.nodes.append(self.monitor)
         self.executor = make_executor(context)
@@ -181,13 +246,18 @@ class Bringup:
         latched sensor_info (and hence the localizer) matches the fingertip being played,
         as a user would pick config/water_skin.yaml or config/silicone.yaml for hardware."""
         from ae_tactile.sim.scene import load_scene
+
         cfg = load_scene(scene_path).config
         g = cfg.geometry
-        return [Parameter("medium", value=str(cfg.medium.name if hasattr(cfg.medium, "name") else cfg.medium)),
-                Parameter("radius_m", value=float(g.radius_m)),
-                Parameter("element_offset_m", value=float(g.element_offset_m)),
-                Parameter("sound_speed_m_s", value=float(g.sound_speed_m_s)),
-                Parameter("highpass_hz", value=float(cfg.highpass_hz))]
+        return [
+            Parameter(
+                "medium", value=str(cfg.medium.name if hasattr(cfg.medium, "name") else cfg.medium)
+            ),
+            Parameter("radius_m", value=float(g.radius_m)),
+            Parameter("element_offset_m", value=float(g.element_offset_m)),
+            Parameter("sound_speed_m_s", value=float(g.sound_speed_m_s)),
+            Parameter("highpass_hz", value=float(cfg.highpass_hz)),
+        ]
 
     def _on_scene_info(self, msg) -> None:
         try:
@@ -208,8 +278,11 @@ class Bringup:
     def drained(self) -> bool:
         """Nothing queued anywhere, and every event passed on."""
         if self.localizer is not None:
-            return (self.driver.link.stats()["queue_depth"] == 0 and self.localizer.idle()
-                    and self.slip.received >= self.localizer.counts["published_events"])
+            return (
+                self.driver.link.stats()["queue_depth"] == 0
+                and self.localizer.idle()
+                and self.slip.received >= self.localizer.counts["published_events"]
+            )
         ov = self.driver.pipeline.overlaps if self.driver.pipeline is not None else None
         return ov is None or ov.pending() == 0
 
@@ -232,7 +305,9 @@ class Bringup:
                     busy = count != last_count or not self.drained()
                     last_count = count
                     quiet_since = None if busy else (quiet_since or now)
-                    if (quiet_since and now - quiet_since > 0.3) or now - done_at > drain_timeout_s:
+                    if (
+                        quiet_since and now - quiet_since > 0.3
+                    ) or now - done_at > drain_timeout_s:
                         return
 
     def gross_slip_times_ns(self) -> list[int]:
@@ -241,7 +316,9 @@ class Bringup:
             return []
         truth = self.scene_info.get("truth", {})
         parts = truth.get("parts", [truth])
-        return [int(p["gross_slip_time_ns"]) for p in parts if p.get("gross_slip_time_ns") is not None]
+        return [
+            int(p["gross_slip_time_ns"]) for p in parts if p.get("gross_slip_time_ns") is not None
+        ]
 
     def slip_part_starts_ns(self) -> list[int]:
         """Start (ROS ns) of each scene part that has a gross slip (0 if not a composite)."""
@@ -249,21 +326,35 @@ class Bringup:
             return []
         truth = self.scene_info.get("truth", {})
         parts = truth.get("parts", [truth])
-        return [int(p.get("start_time_ns") or 0) for p in parts if p.get("gross_slip_time_ns") is not None]
+        return [
+            int(p.get("start_time_ns") or 0)
+            for p in parts
+            if p.get("gross_slip_time_ns") is not None
+        ]
 
     def write_report(self, path: str, summary: dict) -> None:
         """PNG summary of the run (ae_tactile.report; needs matplotlib)."""
         from ae_tactile.report import ReportUnavailable, write_run_summary
+
         data = self.monitor.report_data()
         geo = self.driver.geometry
         lat = summary.get("latency_ms", {})
-        title = (f"{self.scene_info.get('scene', '') if self.scene_info else ''}: "
-                 f"{summary['emissions']['matched']}/{summary['emissions']['truth']} emissions found, "
-                 f"RMS {summary['emissions']['rms_position_error_mm'] * 1e3:.0f} um"
-                 + (f", latency median {lat['median']:.2f} ms" if lat else ""))
+        title = (
+            f"{self.scene_info.get('scene', '') if self.scene_info else ''}: "
+            f"{summary['emissions']['matched']}/{summary['emissions']['truth']} emissions found, "
+            f"RMS {summary['emissions']['rms_position_error_mm'] * 1e3:.0f} um"
+            + (f", latency median {lat['median']:.2f} ms" if lat else "")
+        )
         try:
-            write_run_summary(path, data["events"], truth=data["truth"], contact_state=data["contact_state"],
-                              radius_m=geo.radius_m, element_offset_m=geo.element_offset_m, title=title)
+            write_run_summary(
+                path,
+                data["events"],
+                truth=data["truth"],
+                contact_state=data["contact_state"],
+                radius_m=geo.radius_m,
+                element_offset_m=geo.element_offset_m,
+                title=title,
+            )
             print(f"[ae_tactile] picture of the run: {path}", flush=True)
         except ReportUnavailable as exc:
             print(f"[ae_tactile] no PNG summary: {exc}", file=sys.stderr)
@@ -289,14 +380,17 @@ def main(argv=None) -> int:
         i = argv.index("--ros-args")
         argv, ros_args = argv[:i], argv[i:]
     args = parse_args(argv)
-    if not args.params_file:          # the launch file's default too: one place for defaults
+    if not args.params_file:  # the launch file's default too: one place for defaults
         args.params_file = default_params_file()
     if args.params_file:
         if not os.path.exists(args.params_file):
-            print(f"[ae_tactile] not starting: parameter file {args.params_file} not found", file=sys.stderr)
+            print(
+                f"[ae_tactile] not starting: parameter file {args.params_file} not found",
+                file=sys.stderr,
+            )
             return 2
         ros_args = (ros_args or ["--ros-args"]) + ["--params-file", args.params_file]
-    sys.setswitchinterval(0.0002)     # I/O threads (serial reader, publisher) get the GIL sooner
+    sys.setswitchinterval(0.0002)  # I/O threads (serial reader, publisher) get the GIL sooner
     system = None
     with ros_session(["bringup"] + ros_args) as state:
         try:
@@ -305,10 +399,14 @@ def main(argv=None) -> int:
             system.spin(duration)
             if system.monitor is not None:
                 from ae_tactile.ros.monitor_node import format_summary
+
                 system.executor.spin_once(timeout_sec=0.1)
                 system.monitor._flush()
-                summary = system.monitor.summary(system.gross_slip_times_ns(), system.slip_part_starts_ns())
+                summary = system.monitor.summary(
+                    system.gross_slip_times_ns(), system.slip_part_starts_ns()
+                )
                 from ae_tactile.ros.monitor_node import two_hop_floor_ms
+
                 summary["floor_two_hop_ms"] = two_hop_floor_ms()
                 print(format_summary(summary), flush=True)
                 if args.report_png:

@@ -4,6 +4,7 @@ Time stamps are integer nanoseconds (int64) on the core side, builtin_interfaces
 on the message side. Packet samples are channel-major float32 volts; a (4, N) view of
 a received Packet costs no copy (``np.frombuffer`` on the message's array.array).
 """
+
 from __future__ import annotations
 
 import array
@@ -39,8 +40,16 @@ def float32_array(x) -> array.array:
     return out
 
 
-def make_packet(samples_v, *, stamp_ns: int, sample_rate_hz: float, onset_index: int,
-                sequence_id: int, noise_rms_v: float = 0.0, saturated: bool = False) -> Packet:
+def make_packet(
+    samples_v,
+    *,
+    stamp_ns: int,
+    sample_rate_hz: float,
+    onset_index: int,
+    sequence_id: int,
+    noise_rms_v: float = 0.0,
+    saturated: bool = False,
+) -> Packet:
     """One Packet from a (4, N) array of volts (any real dtype; stored as float32)."""
     x = np.asarray(samples_v)
     if x.ndim != 2 or x.shape[0] != N_CHANNELS:
@@ -64,17 +73,23 @@ def packet_samples(msg: Packet) -> np.ndarray:
     """(4, N) float32 view of a Packet's samples (no copy); ValueError if inconsistent."""
     n = int(msg.samples_per_channel)
     count = int(msg.channel_count)
-    data = np.frombuffer(msg.samples, dtype=np.float32) if len(msg.samples) else np.zeros(0, np.float32)
+    data = (
+        np.frombuffer(msg.samples, dtype=np.float32)
+        if len(msg.samples)
+        else np.zeros(0, np.float32)
+    )
     if count != N_CHANNELS or data.size != count * n:
         raise ValueError(
             f"inconsistent Packet {msg.sequence_id}: channel_count={count}, "
-            f"samples_per_channel={n}, len(samples)={data.size}")
+            f"samples_per_channel={n}, len(samples)={data.size}"
+        )
     return data.reshape(count, n)
 
 
 def contact_event_msg(rec, frame_id: str):
     """ContactEvent message of a core `ae_tactile.pipeline.ContactRecord` (~8 us)."""
     from ae_tactile.msg import ContactEvent
+
     ev = ContactEvent()
     sec, nanosec = divmod(int(rec.time_ns), NS_PER_S)
     ev.header.stamp.sec, ev.header.stamp.nanosec = sec, nanosec
@@ -95,18 +110,26 @@ def contact_event_msg(rec, frame_id: str):
 def contact_record_of_msg(msg):
     """Core ContactRecord of a received ContactEvent (the slip_detector node's input)."""
     from ae_tactile.pipeline import ContactRecord
+
     return ContactRecord(
-        event_type=int(msg.event_type), time_ns=time_msg_to_ns(msg.header.stamp),
+        event_type=int(msg.event_type),
+        time_ns=time_msg_to_ns(msg.header.stamp),
         point_m=(float(msg.position.x), float(msg.position.y), float(msg.position.z)),
         covariance_m2=np.asarray(msg.position_covariance, dtype=float).reshape(3, 3),
-        packet_ids=tuple(int(i) for i in msg.packet_ids), polar_rad=msg.polar_angle_rad,
-        azimuth_rad=msg.azimuth_angle_rad, tau_x_s=msg.tau_x_s, tau_y_s=msg.tau_y_s,
-        amplitude_v=float(msg.amplitude_v), confidence=float(msg.confidence))
+        packet_ids=tuple(int(i) for i in msg.packet_ids),
+        polar_rad=msg.polar_angle_rad,
+        azimuth_rad=msg.azimuth_angle_rad,
+        tau_x_s=msg.tau_x_s,
+        tau_y_s=msg.tau_y_s,
+        amplitude_v=float(msg.amplitude_v),
+        confidence=float(msg.confidence),
+    )
 
 
 def contact_state_msg(st, frame_id: str, now_ns: int):
     """ContactState message of the slip detector's FingerState."""
     from ae_tactile.msg import ContactState
+
     msg = ContactState()
     msg.header.stamp = ns_to_time_msg(st.time_ns if st.time_ns > 0 else now_ns)
     msg.header.frame_id = frame_id
@@ -128,16 +151,25 @@ def packet_array_msgs(batch, frame_id: str) -> list:
     """PacketArrays of a link PacketBatch (several when it holds more than
     MAX_PACKETS_PER_ARRAY packets)."""
     from ae_tactile.msg import PacketArray
+
     out = []
     recs = batch.packets
     for i in range(0, max(len(recs), 1), MAX_PACKETS_PER_ARRAY):
         msg = PacketArray()
         msg.header.stamp = ns_to_time_msg(batch.receive_ns)
         msg.header.frame_id = frame_id
-        msg.packets = [make_packet(r.samples_v, stamp_ns=r.stamp_ns, sample_rate_hz=r.sample_rate_hz,
-                                   onset_index=r.onset_index, sequence_id=r.sequence_id,
-                                   noise_rms_v=r.noise_rms_v, saturated=r.saturated)
-                       for r in recs[i:i + MAX_PACKETS_PER_ARRAY]]
+        msg.packets = [
+            make_packet(
+                r.samples_v,
+                stamp_ns=r.stamp_ns,
+                sample_rate_hz=r.sample_rate_hz,
+                onset_index=r.onset_index,
+                sequence_id=r.sequence_id,
+                noise_rms_v=r.noise_rms_v,
+                saturated=r.saturated,
+            )
+            for r in recs[i : i + MAX_PACKETS_PER_ARRAY]
+        ]
         msg.packets_dropped = batch.packets_dropped
         msg.frames_bad_crc = batch.frames_bad_crc
         out.append(msg)

@@ -25,19 +25,24 @@ Subscribes: sliding_speed (std_msgs/Float64, m/s; TEXTURE spatial periods),
   sim/scene_truth (the simulated fingertip's body: a mismatch with the parameters is warned
   about once and the device's body is used).
 """
+
 from __future__ import annotations
 
 import json
 import logging
 import math
 import sys
-import threading
 from collections import deque
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
-                       qos_profile_sensor_data)
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
 from std_msgs.msg import Float64, String
 from visualization_msgs.msg import MarkerArray
 
@@ -45,58 +50,178 @@ from ae_tactile.geometry import MEDIA, FingertipGeometry
 from ae_tactile.link import MODES, FingertipLink, LinkConfig
 from ae_tactile.msg import ContactEvent, ContactState, PacketArray, SensorInfo
 from ae_tactile.pipeline import ContactPipeline, PacketLocalizer, SlipStage
-from ae_tactile.ros.conversions import (contact_event_msg, contact_state_msg, ns_to_time_msg,
-                                        packet_array_msgs)
+from ae_tactile.ros.conversions import (
+    contact_event_msg,
+    contact_state_msg,
+    ns_to_time_msg,
+    packet_array_msgs,
+)
 from ae_tactile.ros.markers import EventMarkers, sensor_markers
 from ae_tactile.ros.node_utils import LATCHED, run_node
-from ae_tactile.ros.params import (LOCALIZATION_PARAMS, Param, ParameterError, ParamSet,
-                                   slip_config_kwargs, slip_params, tunable)
+from ae_tactile.ros.params import (
+    LOCALIZATION_PARAMS,
+    Param,
+    ParameterError,
+    ParamSet,
+    slip_config_kwargs,
+    slip_params,
+    tunable,
+)
 from ae_tactile.slip import SlipConfig
 
 DRIVER_PARAMS = [
-    Param("port", "/dev/ttyACM0", "Serial device path or pyserial URL (socket://host:port, loop://, a pty path)",
-          check=lambda v: None if isinstance(v, str) and v.strip() else "must be a non-empty string"),
-    Param("baudrate", 3_000_000, "Serial baud rate (bit/s); ignored by USB CDC, ptys and sockets", 50, 100_000_000),
-    Param("frame_id", "ae_tactile_fingertip", "TF frame of the fingertip (origin at the sphere centre, +z to the apex)",
-          check=lambda v: None if isinstance(v, str) and v.strip() else "must be a non-empty frame name"),
-    Param("mode", "triggered", "Acquisition mode: 'triggered' (device cuts packets) or 'stream' (host cuts packets)",
-          choices=MODES),
-    Param("sample_rate_hz", 0, "ADC sample rate to set on the device (Hz); 0 keeps the device's", 0, 20_000_000),
-    Param("threshold_counts", 0, "Device trigger threshold (ADC counts); 0 keeps the device's", 0, 32767),
-    Param("packet_samples", 0, "Samples per channel of a triggered packet; 0 keeps the device's", 0, 8192),
-    Param("pre_trigger_samples", 0, "Samples before the trigger in a packet; 0 = packet_samples/4", 0, 8191),
-    Param("reliable_qos", False, "Publish packets reliably (for recording) instead of sensor-data QoS"),
-    Param("queue_max_batches", 256, "Bound of the reader-to-publisher queue (overflow is counted as drops)", 1, 100_000),
-    Param("link_timeout_s", 3.0, "Time without a valid frame after which the link counts as lost and "
-          "reconnects (s); the device beats >= 1 Hz", 0.1, 60.0),
+    Param(
+        "port",
+        "/dev/ttyACM0",
+        "Serial device path or pyserial URL (socket://host:port, loop://, a pty path)",
+        check=lambda v: None if isinstance(v, str) and v.strip() else "must be a non-empty string",
+    ),
+    Param(
+        "baudrate",
+        3_000_000,
+        "Serial baud rate (bit/s); ignored by USB CDC, ptys and sockets",
+        50,
+        100_000_000,
+    ),
+    Param(
+        "frame_id",
+        "ae_tactile_fingertip",
+        "TF frame of the fingertip (origin at the sphere centre, +z to the apex)",
+        check=lambda v: (
+            None if isinstance(v, str) and v.strip() else "must be a non-empty frame name"
+        ),
+    ),
+    Param(
+        "mode",
+        "triggered",
+        "Acquisition mode: 'triggered' (device cuts packets) or 'stream' (host cuts packets)",
+        choices=MODES,
+    ),
+    Param(
+        "sample_rate_hz",
+        0,
+        "ADC sample rate to set on the device (Hz); 0 keeps the device's",
+        0,
+        20_000_000,
+    ),
+    Param(
+        "threshold_counts",
+        0,
+        "Device trigger threshold (ADC counts); 0 keeps the device's",
+        0,
+        32767,
+    ),
+    Param(
+        "packet_samples",
+        0,
+        "Samples per channel of a triggered packet; 0 keeps the device's",
+        0,
+        8192,
+    ),
+    Param(
+        "pre_trigger_samples",
+        0,
+        "Samples before the trigger in a packet; 0 = packet_samples/4",
+        0,
+        8191,
+    ),
+    Param(
+        "reliable_qos",
+        False,
+        "Publish packets reliably (for recording) instead of sensor-data QoS",
+    ),
+    Param(
+        "queue_max_batches",
+        256,
+        "Bound of the reader-to-publisher queue (overflow is counted as drops)",
+        1,
+        100_000,
+    ),
+    Param(
+        "link_timeout_s",
+        3.0,
+        "Time without a valid frame after which the link counts as lost and "
+        "reconnects (s); the device beats >= 1 Hz",
+        0.1,
+        60.0,
+    ),
     Param("reconnect_max_s", 5.0, "Longest wait between reconnection attempts (s)", 0.1, 300.0),
     Param("diagnostics_period_s", 1.0, "Period of /diagnostics messages (s)", 0.05, 60.0),
-    Param("wait_for_subscribers", 0, "Start acquisition only once this many subscribers are matched "
-          "on 'contacts' ('packets' with pipeline:=false), so no event is published before its "
-          "consumers listen (0: at once)", 0, 100),
-    Param("pipeline", True, "Localize and detect slip inside the driver (lowest latency); false: "
-          "publish raw packets only, for the separate localizer and slip_detector nodes"),
+    Param(
+        "wait_for_subscribers",
+        0,
+        "Start acquisition only once this many subscribers are matched "
+        "on 'contacts' ('packets' with pipeline:=false), so no event is published before its "
+        "consumers listen (0: at once)",
+        0,
+        100,
+    ),
+    Param(
+        "pipeline",
+        True,
+        "Localize and detect slip inside the driver (lowest latency); false: "
+        "publish raw packets only, for the separate localizer and slip_detector nodes",
+    ),
     tunable(Param("markers", True, "Publish RViz markers on 'markers' (only while subscribed)")),
     Param("marker_period_s", 0.1, "Marker refresh period", 0.02, 5.0),
     Param("marker_lifetime_s", 2.0, "How long an event marker stays (fading)", 0.1, 60.0),
-    Param("slip_tick_period_s", 0.02, "Period of the slip detector's time-keeping tick (quiet "
-          "contacts fall back to STICK)", 0.001, 1.0),
-    Param("slip_lag_s", 0.02, "The tick never moves the slip detector's clock past now minus this, "
-          "so emissions still in flight are not overtaken", 0.0, 1.0),
-    Param("detector_threshold_sigma", 6.0, "Stream mode: trigger threshold in noise sigmas", 2.0, 100.0),
-    Param("medium", "water_skin", "Fingertip body for SensorInfo: 'water_skin', 'silicone' or a label"),
+    Param(
+        "slip_tick_period_s",
+        0.02,
+        "Period of the slip detector's time-keeping tick (quiet contacts fall back to STICK)",
+        0.001,
+        1.0,
+    ),
+    Param(
+        "slip_lag_s",
+        0.02,
+        "The tick never moves the slip detector's clock past now minus this, "
+        "so emissions still in flight are not overtaken",
+        0.0,
+        1.0,
+    ),
+    Param(
+        "detector_threshold_sigma",
+        6.0,
+        "Stream mode: trigger threshold in noise sigmas",
+        2.0,
+        100.0,
+    ),
+    Param(
+        "medium",
+        "water_skin",
+        "Fingertip body for SensorInfo: 'water_skin', 'silicone' or a label",
+    ),
     Param("radius_m", 10e-3, "Sphere radius R (m)", 1e-3, 0.1),
-    Param("element_offset_m", 1.5e-3, "PVDF element centre offset a (m): centres at (+-a, +-a, 0)", 1e-4, 0.02),
+    Param(
+        "element_offset_m",
+        1.5e-3,
+        "PVDF element centre offset a (m): centres at (+-a, +-a, 0)",
+        1e-4,
+        0.02,
+    ),
     Param("sound_speed_m_s", 0.0, "Sound speed c (m/s); 0 = the medium preset's", 0.0, 10_000.0),
-    Param("channel_gains", [1.0, 1.0, 1.0, 1.0], "Relative gain of channels 0..3 (calibration)",
-          check=lambda v: None if len(v) == 4 and all(g > 0 for g in v) else "needs 4 positive gains"),
-    Param("highpass_hz", 100e3, "Analog front-end high-pass corner (Hz), for SensorInfo", 0.0, 5e6),
+    Param(
+        "channel_gains",
+        [1.0, 1.0, 1.0, 1.0],
+        "Relative gain of channels 0..3 (calibration)",
+        check=lambda v: (
+            None if len(v) == 4 and all(g > 0 for g in v) else "needs 4 positive gains"
+        ),
+    ),
+    Param(
+        "highpass_hz", 100e3, "Analog front-end high-pass corner (Hz), for SensorInfo", 0.0, 5e6
+    ),
 ]
 
 
 #: Event topics: reliable, so a hand's controller never misses a touch or a slip.
-EVENT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
-                       reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+EVENT_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=100,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
 
 
 def geometry_from_params(p: dict) -> FingertipGeometry:
@@ -108,39 +233,54 @@ def geometry_from_params(p: dict) -> FingertipGeometry:
 def packet_qos(reliable: bool) -> QoSProfile:
     """Sensor-data QoS (best effort, depth 5) or reliable depth 100 for recording."""
     if reliable:
-        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
-                          reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+        return QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=100,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.VOLATILE,
+        )
     return qos_profile_sensor_data
-
-
 
 
 def detector_options(p: dict) -> dict:
     """Stream-mode detector settings: threshold, and the geometry's wall-echo delay 2R/c
     and largest arrival spread over the elements 2 sqrt(2) a / c."""
     c = p["sound_speed_m_s"] or MEDIA.get(p["medium"], MEDIA["water_skin"])["sound_speed_m_s"]
-    return {"threshold_sigma": p["detector_threshold_sigma"], "echo_delay_s": 2.0 * p["radius_m"] / c,
-            "channel_spread_s": max(3e-6, 2.0 * 2 ** 0.5 * p["element_offset_m"] / c)}
+    return {
+        "threshold_sigma": p["detector_threshold_sigma"],
+        "echo_delay_s": 2.0 * p["radius_m"] / c,
+        "channel_spread_s": max(3e-6, 2.0 * 2**0.5 * p["element_offset_m"] / c),
+    }
 
 
 def link_config_from_params(p: dict) -> LinkConfig:
     """LinkConfig from validated parameter values (0 = keep the device's setting)."""
-    none0 = lambda v: None if v == 0 else int(v)   # noqa: E731
+    none0 = lambda v: None if v == 0 else int(v)  # noqa: E731
     packet_samples = none0(p["packet_samples"])
     if p["pre_trigger_samples"] and not packet_samples:
-        raise ParameterError("parameter 'pre_trigger_samples' needs 'packet_samples' (the device "
-                             "takes both together); set packet_samples too")
+        raise ParameterError(
+            "parameter 'pre_trigger_samples' needs 'packet_samples' (the device "
+            "takes both together); set packet_samples too"
+        )
     pre = p["pre_trigger_samples"] if packet_samples else None
     if packet_samples and pre >= packet_samples:
-        raise ParameterError(f"parameter 'pre_trigger_samples' = {pre} must be < packet_samples = {packet_samples}")
+        raise ParameterError(
+            f"parameter 'pre_trigger_samples' = {pre} must be < packet_samples = {packet_samples}"
+        )
     try:
-        return LinkConfig(port=p["port"].strip(), baudrate=p["baudrate"], mode=p["mode"],
-                          sample_rate_hz=none0(p["sample_rate_hz"]),
-                          threshold_counts=none0(p["threshold_counts"]),
-                          packet_samples=packet_samples, pre_trigger_samples=pre or None,
-                          queue_max_batches=p["queue_max_batches"], link_timeout_s=p["link_timeout_s"],
-                          reconnect_max_s=max(p["reconnect_max_s"], 0.2),
-                          detector=detector_options(p))
+        return LinkConfig(
+            port=p["port"].strip(),
+            baudrate=p["baudrate"],
+            mode=p["mode"],
+            sample_rate_hz=none0(p["sample_rate_hz"]),
+            threshold_counts=none0(p["threshold_counts"]),
+            packet_samples=packet_samples,
+            pre_trigger_samples=pre or None,
+            queue_max_batches=p["queue_max_batches"],
+            link_timeout_s=p["link_timeout_s"],
+            reconnect_max_s=max(p["reconnect_max_s"], 0.2),
+            detector=detector_options(p),
+        )
     except ValueError as exc:
         raise ParameterError(str(exc)) from exc
 
@@ -152,7 +292,9 @@ class DriverNode(Node):
         p = self.p = self.params.values
         self.link_config = link_config_from_params(p)
         self.frame_id = p["frame_id"]
-        self.pub_packets = self.create_publisher(PacketArray, "packets", packet_qos(p["reliable_qos"]))
+        self.pub_packets = self.create_publisher(
+            PacketArray, "packets", packet_qos(p["reliable_qos"])
+        )
         self.pub_info = self.create_publisher(SensorInfo, "sensor_info", LATCHED)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._info_key = None
@@ -170,8 +312,12 @@ class DriverNode(Node):
         if p["pipeline"]:
             self._make_pipeline()
         self.create_subscription(String, "sim/scene_truth", self._on_scene_truth, LATCHED)
-        self.link = FingertipLink(self.link_config, clock_ns=lambda: self.get_clock().now().nanoseconds,
-                                  sink=self._on_batch, logger=logging.getLogger("ae_tactile.link"))
+        self.link = FingertipLink(
+            self.link_config,
+            clock_ns=lambda: self.get_clock().now().nanoseconds,
+            sink=self._on_batch,
+            logger=logging.getLogger("ae_tactile.link"),
+        )
         self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
         self._publish_sensor_info()
         if self.pipeline is not None:
@@ -182,25 +328,35 @@ class DriverNode(Node):
         else:
             self.link.start()
         self.get_logger().info(
-            f"driver on {self.link_config.port} ({self.link_config.mode} mode), frame '{self.frame_id}', "
-            + (f"in-process pipeline ({self.pipeline.localizer.method})" if self.pipeline else
-               "raw packets only"))
+            f"driver on {self.link_config.port} ({self.link_config.mode} mode), "
+            f"frame '{self.frame_id}', "
+            + (
+                f"in-process pipeline ({self.pipeline.localizer.method})"
+                if self.pipeline
+                else "raw packets only"
+            )
+        )
 
     # -------------------------------------------------------------- pipeline
     def _make_pipeline(self) -> None:
-        self.loc_params = ParamSet(self, LOCALIZATION_PARAMS, "localization.",
-                                   on_change=self._on_localization_change)
+        self.loc_params = ParamSet(
+            self, LOCALIZATION_PARAMS, "localization.", on_change=self._on_localization_change
+        )
         self.slip_params = ParamSet(self, slip_params(), "slip.", on_change=self._on_slip_change)
         lp = self.loc_params.values
         try:
             slip_config = SlipConfig(**slip_config_kwargs(self.slip_params.values))
         except (TypeError, ValueError) as exc:
             raise ParameterError(f"slip parameters: {exc}") from exc
-        localizer = PacketLocalizer(lp["method"], min_snr_db=lp["min_snr_db"],
-                                    min_confidence=lp["min_confidence"], geometry=self.geometry,
-                                    channel_gains=self.p["channel_gains"],
-                                    reject_interference=lp["reject_interference"],
-                                    resolve_overlaps=lp["resolve_overlaps"])
+        localizer = PacketLocalizer(
+            lp["method"],
+            min_snr_db=lp["min_snr_db"],
+            min_confidence=lp["min_confidence"],
+            geometry=self.geometry,
+            channel_gains=self.p["channel_gains"],
+            reject_interference=lp["reject_interference"],
+            resolve_overlaps=lp["resolve_overlaps"],
+        )
         self.slip_stage = SlipStage(slip_config, lag_s=self.p["slip_lag_s"])
         self.pipeline = ContactPipeline(localizer, self.slip_stage)
         self.pub_contacts = self.create_publisher(ContactEvent, "contacts", EVENT_QOS)
@@ -268,13 +424,17 @@ class DriverNode(Node):
         v = float(msg.data)
         try:
             with self.slip_stage.lock:
-                self.slip_stage.detector.set_sliding_speed(v if v > 0 and math.isfinite(v) else None)
+                self.slip_stage.detector.set_sliding_speed(
+                    v if v > 0 and math.isfinite(v) else None
+                )
         except ValueError as exc:
-            self.get_logger().warning(f"sliding_speed {v} ignored: {exc}", throttle_duration_sec=5.0)
+            self.get_logger().warning(
+                f"sliding_speed {v} ignored: {exc}", throttle_duration_sec=5.0
+            )
 
     # -------------------------------------------------------------- run-time parameters
     def _on_driver_change(self, changes: dict) -> None:
-        pass   # the tunable driver parameters (markers) are read where they are used
+        pass  # the tunable driver parameters (markers) are read where they are used
 
     def _on_localization_change(self, changes: dict) -> None:
         self.pipeline.localizer.update(**changes_for_localizer(changes))
@@ -284,7 +444,7 @@ class DriverNode(Node):
 
     def _on_slip_change(self, changes: dict) -> None:
         values = dict(self.slip_params.values, **changes)
-        config = SlipConfig(**slip_config_kwargs(values))      # ValueError rejects the change
+        config = SlipConfig(**slip_config_kwargs(values))  # ValueError rejects the change
         with self.slip_stage.lock:
             det = self.slip_stage.detector
             update = getattr(det, "update_config", None)
@@ -311,15 +471,20 @@ class DriverNode(Node):
             return
         self.scene_body = body
         try:
-            geo = FingertipGeometry(float(body["radius_m"]), float(body["element_offset_m"]),
-                                    float(body["sound_speed_m_s"]))
+            geo = FingertipGeometry(
+                float(body["radius_m"]),
+                float(body["element_offset_m"]),
+                float(body["sound_speed_m_s"]),
+            )
         except (KeyError, TypeError, ValueError):
             return
         mine = self.geometry
-        differs = (body.get("medium") != self.p["medium"]
-                   or not math.isclose(geo.radius_m, mine.radius_m, rel_tol=1e-3)
-                   or not math.isclose(geo.element_offset_m, mine.element_offset_m, rel_tol=1e-3)
-                   or not math.isclose(geo.sound_speed_m_s, mine.sound_speed_m_s, rel_tol=1e-3))
+        differs = (
+            body.get("medium") != self.p["medium"]
+            or not math.isclose(geo.radius_m, mine.radius_m, rel_tol=1e-3)
+            or not math.isclose(geo.element_offset_m, mine.element_offset_m, rel_tol=1e-3)
+            or not math.isclose(geo.sound_speed_m_s, mine.sound_speed_m_s, rel_tol=1e-3)
+        )
         if not differs:
             return
         if not self._body_warned:
@@ -330,7 +495,8 @@ class DriverNode(Node):
                 f"parameters say {self.p['medium']} (R={mine.radius_m * 1e3:.2f} mm, "
                 f"a={mine.element_offset_m * 1e3:.2f} mm, c={mine.sound_speed_m_s:.0f} m/s): "
                 "using the fingertip's; fix the parameter file (config/water_skin.yaml or "
-                "config/silicone.yaml)")
+                "config/silicone.yaml)"
+            )
         self.geometry = geo
         self.p["medium"] = str(body.get("medium", self.p["medium"]))
         self.p["radius_m"], self.p["element_offset_m"] = geo.radius_m, geo.element_offset_m
@@ -344,8 +510,17 @@ class DriverNode(Node):
     def _publish_sensor_info(self) -> None:
         """Latched SensorInfo, re-published only when the device's identity or settings change."""
         st = self.link.device_status
-        key = ("no device",) if st is None else (st.serial_number, st.firmware_version,
-                                                 st.sample_rate_hz, st.v_per_count, st.threshold_counts)
+        key = (
+            ("no device",)
+            if st is None
+            else (
+                st.serial_number,
+                st.firmware_version,
+                st.sample_rate_hz,
+                st.v_per_count,
+                st.threshold_counts,
+            )
+        )
         if key == self._info_key:
             return
         self._info_key = key
@@ -361,6 +536,7 @@ class DriverNode(Node):
         msg.highpass_hz = p["highpass_hz"]
         msg.adc_bits = 12
         from ae_tactile.protocol import PROTOCOL_VERSION
+
         msg.protocol_version = PROTOCOL_VERSION
         if st is not None:
             msg.serial_number = st.serial_number
@@ -385,21 +561,39 @@ class DriverNode(Node):
         if self._last_diag is not None:
             t0, s0 = self._last_diag
             dt = max((now - t0) * 1e-9, 1e-9)
-            rates = {"frame_rate_hz": (s.get("frames_ok", 0) - s0.get("frames_ok", 0)) / dt,
-                     "packet_rate_hz": (s.get("packets_out", 0) - s0.get("packets_out", 0)) / dt}
+            rates = {
+                "frame_rate_hz": (s.get("frames_ok", 0) - s0.get("frames_ok", 0)) / dt,
+                "packet_rate_hz": (s.get("packets_out", 0) - s0.get("packets_out", 0)) / dt,
+            }
         self._last_diag = (now, s)
         link = DiagnosticStatus()
         link.name = f"{self.get_fully_qualified_name()}: fingertip link"
         link.hardware_id = self.hardware_id()
-        problems = {k: s.get(k, 0) for k in ("crc_errors", "packets_dropped", "header_errors",
-                                             "duplicate_frames", "truncated_frames", "sink_errors",
-                                             "internal_errors", "frames_unusable",
-                                             "packets_rejected_nonfinite") if s.get(k, 0)}
+        problems = {
+            k: s.get(k, 0)
+            for k in (
+                "crc_errors",
+                "packets_dropped",
+                "header_errors",
+                "duplicate_frames",
+                "truncated_frames",
+                "sink_errors",
+                "internal_errors",
+                "frames_unusable",
+                "packets_rejected_nonfinite",
+            )
+            if s.get(k, 0)
+        }
         if s["state"] != "connected":
-            link.level, link.message = DiagnosticStatus.ERROR, f"link {s['state']}: {s['last_error']}"
+            link.level, link.message = (
+                DiagnosticStatus.ERROR,
+                f"link {s['state']}: {s['last_error']}",
+            )
         elif problems:
             link.level = DiagnosticStatus.WARN
-            link.message = "connected; " + ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in problems.items())
+            link.message = "connected; " + ", ".join(
+                f"{v} {k.replace('_', ' ')}" for k, v in problems.items()
+            )
         else:
             link.level, link.message = DiagnosticStatus.OK, "connected"
         link.values = [KeyValue(key=k, value=str(v)) for k, v in sorted(s.items())]
@@ -407,10 +601,15 @@ class DriverNode(Node):
         link.values += [KeyValue(key="published_packets", value=str(self.published_packets))]
         statuses = [link]
         if self.pipeline is not None:
-            statuses += pipeline_statuses(self.get_fully_qualified_name(), self.hardware_id(),
-                                          self.pipeline.localizer, self.slip_stage,
-                                          self.published_events, self.published_slip,
-                                          self.pipeline.overlaps)
+            statuses += pipeline_statuses(
+                self.get_fully_qualified_name(),
+                self.hardware_id(),
+                self.pipeline.localizer,
+                self.slip_stage,
+                self.published_events,
+                self.published_slip,
+                self.pipeline.overlaps,
+            )
         msg = DiagnosticArray()
         msg.header.stamp = ns_to_time_msg(now)
         msg.status = statuses
@@ -426,12 +625,22 @@ class DriverNode(Node):
 
 def changes_for_localizer(changes: dict) -> dict:
     """Localization parameter changes as PacketLocalizer.update() arguments."""
-    return {k: v for k, v in changes.items()
-            if k in ("method", "min_snr_db", "min_confidence", "resolve_overlaps")}
+    return {
+        k: v
+        for k, v in changes.items()
+        if k in ("method", "min_snr_db", "min_confidence", "resolve_overlaps")
+    }
 
 
-def pipeline_statuses(node_name: str, hardware_id: str, localizer, slip_stage, events: int,
-                      slip_events: int, overlaps=None) -> list:
+def pipeline_statuses(
+    node_name: str,
+    hardware_id: str,
+    localizer,
+    slip_stage,
+    events: int,
+    slip_events: int,
+    overlaps=None,
+) -> list:
     """DiagnosticStatus of the localization and slip stages (counts by reason)."""
     loc = DiagnosticStatus()
     loc.name = f"{node_name}: localization"
@@ -447,8 +656,10 @@ def pipeline_statuses(node_name: str, hardware_id: str, localizer, slip_stage, e
     if c["packets"] >= 20 and rejected > 0.5 * c["packets"]:
         loc.level = DiagnosticStatus.WARN
     loc.values = [KeyValue(key=k, value=str(v)) for k, v in sorted(c.items())]
-    loc.values += [KeyValue(key="method", value=localizer.method),
-                   KeyValue(key="published_events", value=str(events))]
+    loc.values += [
+        KeyValue(key="method", value=localizer.method),
+        KeyValue(key="published_events", value=str(events)),
+    ]
     out = [loc]
     if slip_stage is not None:
         slip = DiagnosticStatus()
@@ -468,7 +679,7 @@ def pipeline_statuses(node_name: str, hardware_id: str, localizer, slip_stage, e
 
 
 def main(args=None) -> int:
-    sys.setswitchinterval(0.0005)   # the reader thread gets the GIL back quickly
+    sys.setswitchinterval(0.0005)  # the reader thread gets the GIL back quickly
     return run_node(DriverNode, args)
 
 

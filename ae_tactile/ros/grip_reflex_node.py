@@ -7,6 +7,7 @@ precursor's emission stamp to the command is logged and kept (`reactions_ms`). I
 documented example of closing the loop, not a grasp controller: a real hand would feed
 the command to its force controller.
 """
+
 from __future__ import annotations
 
 import sys
@@ -36,7 +37,7 @@ class GripReflexNode(Node):
         self.force_n = self.p["initial_force_n"]
         self.last_ns = None
         self.reactions_ms: list[float] = []
-        self.commands: list[tuple[int, float]] = []       # (ROS ns, N)
+        self.commands: list[tuple[int, float]] = []  # (ROS ns, N)
         # Latched: the command is a state (the force to hold), so a hand controller or the
         # simulated fingertip that subscribes late still gets the latest one.
         self.pub = self.create_publisher(Float64, "grip_force_command", LATCHED)
@@ -45,11 +46,16 @@ class GripReflexNode(Node):
         self.create_timer(self.p["diagnostics_period_s"], self.publish_diagnostics)
 
     def publish_diagnostics(self) -> None:
-        st = DiagnosticStatus(level=DiagnosticStatus.OK, name=f"{self.get_fully_qualified_name()}: grip reflex",
-                              hardware_id="grip_force_command",
-                              message=f"commanding {self.force_n:.2f} N after {len(self.commands)} reflexes")
-        st.values = [KeyValue(key="force_n", value=f"{self.force_n:.3f}"),
-                     KeyValue(key="reflexes", value=str(len(self.commands)))]
+        st = DiagnosticStatus(
+            level=DiagnosticStatus.OK,
+            name=f"{self.get_fully_qualified_name()}: grip reflex",
+            hardware_id="grip_force_command",
+            message=f"commanding {self.force_n:.2f} N after {len(self.commands)} reflexes",
+        )
+        st.values = [
+            KeyValue(key="force_n", value=f"{self.force_n:.3f}"),
+            KeyValue(key="reflexes", value=str(len(self.commands))),
+        ]
         msg = DiagnosticArray(status=[st])
         msg.header.stamp = self.get_clock().now().to_msg()
         self.pub_diag.publish(msg)
@@ -68,7 +74,9 @@ class GripReflexNode(Node):
         reaction = (now - time_msg_to_ns(ev.header.stamp)) * 1e-6
         self.reactions_ms.append(reaction)
         self.commands.append((now, new))
-        self.get_logger().info(f"slip precursor -> grip force {new:.2f} N ({reaction:.1f} ms after the emission)")
+        self.get_logger().info(
+            f"slip precursor -> grip force {new:.2f} N ({reaction:.1f} ms after the emission)"
+        )
 
 
 def main(args=None) -> int:

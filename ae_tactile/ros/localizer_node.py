@@ -12,6 +12,7 @@ emission time (first-sample stamp + onset / fs - travel time from the fitted poi
 the nearest element). Rejected packets are counted by reason in `/diagnostics`.
 Markers (`markers`, MarkerArray): the fingertip, the PVDF matrix, recent events.
 """
+
 from __future__ import annotations
 
 import sys
@@ -33,12 +34,17 @@ from ae_tactile.ros.node_utils import LATCHED, run_node
 from ae_tactile.ros.params import LOCALIZATION_PARAMS, Param, ParamSet, declare, tunable
 
 LOCALIZER_PARAMS = [
-    Param("use_sensor_info", True, "Take geometry and gains from the driver's latched sensor_info"),
+    Param(
+        "use_sensor_info", True, "Take geometry and gains from the driver's latched sensor_info"
+    ),
     Param("radius_m", 10e-3, "Sphere radius R, until sensor_info arrives", 1e-3, 0.1),
     Param("element_offset_m", 1.5e-3, "Element offset a, until sensor_info arrives", 1e-4, 0.02),
     Param("sound_speed_m_s", 1480.0, "Sound speed c, until sensor_info arrives", 100.0, 10_000.0),
-    Param("reliable_qos", False, "Subscribe to packets reliably (needs a reliable driver; no loss "
-          "under load)"),
+    Param(
+        "reliable_qos",
+        False,
+        "Subscribe to packets reliably (needs a reliable driver; no loss under load)",
+    ),
     tunable(Param("markers", True, "Publish RViz markers on 'markers'")),
     Param("marker_lifetime_s", 2.0, "How long an event marker stays (fading)", 0.1, 60.0),
     Param("marker_period_s", 0.1, "Marker refresh period", 0.02, 5.0),
@@ -50,14 +56,21 @@ class LocalizerNode(Node):
     def __init__(self, **kwargs):
         super().__init__("localizer", **kwargs)
         p = self.p = declare(self, LOCALIZER_PARAMS)
-        self.loc_params = ParamSet(self, LOCALIZATION_PARAMS, "localization.",
-                                   on_change=self._on_localization_change)
+        self.loc_params = ParamSet(
+            self, LOCALIZATION_PARAMS, "localization.", on_change=self._on_localization_change
+        )
         lp = self.loc_params.values
-        self.geometry = FingertipGeometry(p["radius_m"], p["element_offset_m"], p["sound_speed_m_s"])
-        self.localizer = PacketLocalizer(lp["method"], min_snr_db=lp["min_snr_db"],
-                                         min_confidence=lp["min_confidence"], geometry=self.geometry,
-                                         reject_interference=lp["reject_interference"],
-                                         resolve_overlaps=lp["resolve_overlaps"])
+        self.geometry = FingertipGeometry(
+            p["radius_m"], p["element_offset_m"], p["sound_speed_m_s"]
+        )
+        self.localizer = PacketLocalizer(
+            lp["method"],
+            min_snr_db=lp["min_snr_db"],
+            min_confidence=lp["min_confidence"],
+            geometry=self.geometry,
+            reject_interference=lp["reject_interference"],
+            resolve_overlaps=lp["resolve_overlaps"],
+        )
         self.counts = self.localizer.counts
         self.overlaps = None
         self.frame_id = ""
@@ -70,18 +83,25 @@ class LocalizerNode(Node):
         self._busy = False
         # Best effort by default (matches best-effort and reliable drivers), with a deep
         # history so that a burst waiting for the executor is not overwritten.
-        reliability = ReliabilityPolicy.RELIABLE if p["reliable_qos"] else ReliabilityPolicy.BEST_EFFORT
-        self.create_subscription(PacketArray, "packets", self._enqueue,
-                                 QoSProfile(depth=1000, reliability=reliability))
+        reliability = (
+            ReliabilityPolicy.RELIABLE if p["reliable_qos"] else ReliabilityPolicy.BEST_EFFORT
+        )
+        self.create_subscription(
+            PacketArray, "packets", self._enqueue, QoSProfile(depth=1000, reliability=reliability)
+        )
         if p["use_sensor_info"]:
             self.create_subscription(SensorInfo, "sensor_info", self.on_sensor_info, LATCHED)
-        self.last_upstream = (0, 0)          # (packets_dropped, frames_bad_crc) seen upstream
+        self.last_upstream = (0, 0)  # (packets_dropped, frames_bad_crc) seen upstream
         self.events = EventMarkers("", p["marker_lifetime_s"])
         self.create_timer(p["marker_period_s"], self.publish_markers)
         self.create_timer(p["diagnostics_period_s"], self.publish_diagnostics)
-        self._worker = threading.Thread(target=self._work, name="ae_tactile_localizer", daemon=True)
+        self._worker = threading.Thread(
+            target=self._work, name="ae_tactile_localizer", daemon=True
+        )
         self._worker.start()
-        self.get_logger().info(f"localizer: method '{lp['method']}', min SNR {lp['min_snr_db']:g} dB")
+        self.get_logger().info(
+            f"localizer: method '{lp['method']}', min SNR {lp['min_snr_db']:g} dB"
+        )
 
     def _on_localization_change(self, changes: dict) -> None:
         self.localizer.update(**changes_for_localizer(changes))
@@ -95,7 +115,11 @@ class LocalizerNode(Node):
 
     def idle(self) -> bool:
         """Nothing queued or being localized (overlapping windows included)."""
-        return not self._inbox and not self._busy and (self.overlaps is None or self.overlaps.pending() == 0)
+        return (
+            not self._inbox
+            and not self._busy
+            and (self.overlaps is None or self.overlaps.pending() == 0)
+        )
 
     def _work(self) -> None:
         while self._running:
@@ -108,13 +132,15 @@ class LocalizerNode(Node):
                     msgs.append(self._inbox.popleft())
                 try:
                     self.on_packets(msgs)
-                except Exception as exc:   # keep localizing; say what went wrong
-                    self.get_logger().error(f"localization failed: {exc!r}", throttle_duration_sec=5.0)
+                except Exception as exc:  # keep localizing; say what went wrong
+                    self.get_logger().error(
+                        f"localization failed: {exc!r}", throttle_duration_sec=5.0
+                    )
                 finally:
                     self._busy = False
 
     def destroy_node(self):
-        if not hasattr(self, "_worker"):       # constructor stopped early (bad parameter)
+        if not hasattr(self, "_worker"):  # constructor stopped early (bad parameter)
             return super().destroy_node()
         self._running = False
         self._wake.set()
@@ -125,15 +151,19 @@ class LocalizerNode(Node):
 
     def on_sensor_info(self, msg: SensorInfo) -> None:
         try:
-            self.geometry = FingertipGeometry(msg.radius_m, msg.element_offset_m, msg.sound_speed_m_s)
+            self.geometry = FingertipGeometry(
+                msg.radius_m, msg.element_offset_m, msg.sound_speed_m_s
+            )
         except ValueError as exc:
             self.get_logger().error(f"ignoring invalid sensor_info: {exc}")
             return
         self.hardware_id = msg.serial_number or self.hardware_id
         self.localizer.update(geometry=self.geometry, channel_gains=list(msg.channel_gains))
-        self.get_logger().info(f"geometry from sensor_info ({msg.serial_number or 'no serial'}): "
-                               f"R={msg.radius_m * 1e3:.2f} mm, a={msg.element_offset_m * 1e3:.2f} mm, "
-                               f"c={msg.sound_speed_m_s:.0f} m/s")
+        self.get_logger().info(
+            f"geometry from sensor_info ({msg.serial_number or 'no serial'}): "
+            f"R={msg.radius_m * 1e3:.2f} mm, a={msg.element_offset_m * 1e3:.2f} mm, "
+            f"c={msg.sound_speed_m_s:.0f} m/s"
+        )
 
     # ------------------------------------------------------------------ packets
     hardware_id = "unknown fingertip"
@@ -146,8 +176,10 @@ class LocalizerNode(Node):
         last = self._last_sequence_id
         if last is not None and sid > last + 1:
             self.counts["packets_missing"] += sid - last - 1
-            self.get_logger().warning(f"{sid - last - 1} packets never arrived (sequence ids "
-                                      f"{last + 1}..{sid - 1})", throttle_duration_sec=5.0)
+            self.get_logger().warning(
+                f"{sid - last - 1} packets never arrived (sequence ids {last + 1}..{sid - 1})",
+                throttle_duration_sec=5.0,
+            )
         self._last_sequence_id = sid
 
     def on_packets(self, msgs: list[PacketArray]) -> None:
@@ -165,8 +197,17 @@ class LocalizerNode(Node):
                     self.counts["rejected_MALFORMED_inconsistent"] += 1
                     self.get_logger().warning(str(exc), throttle_duration_sec=5.0)
                     continue
-                views.append(PacketView(x, p.sample_rate_hz, p.onset_index, time_msg_to_ns(p.stamp),
-                                        p.sequence_id, p.noise_rms_v, p.saturated))
+                views.append(
+                    PacketView(
+                        x,
+                        p.sample_rate_hz,
+                        p.onset_index,
+                        time_msg_to_ns(p.stamp),
+                        p.sequence_id,
+                        p.noise_rms_v,
+                        p.saturated,
+                    )
+                )
         self._publish(self.localizer.process(views))
         if self.localizer.overlap_windows:
             if self.overlaps is None:
@@ -184,7 +225,11 @@ class LocalizerNode(Node):
 
     # ------------------------------------------------------------------ outputs
     def publish_markers(self) -> None:
-        if not self.frame_id or not self.p["markers"] or self.pub_markers.get_subscription_count() == 0:
+        if (
+            not self.frame_id
+            or not self.p["markers"]
+            or self.pub_markers.get_subscription_count() == 0
+        ):
             return
         now = self.get_clock().now()
         stamp = now.to_msg()
@@ -194,10 +239,19 @@ class LocalizerNode(Node):
         self.pub_markers.publish(arr)
 
     def publish_diagnostics(self) -> None:
-        st = pipeline_statuses(self.get_fully_qualified_name(), self.hardware_id, self.localizer,
-                               None, self.counts["published_events"], 0, self.overlaps)
-        st[0].values += [KeyValue(key="upstream_packets_dropped", value=str(self.last_upstream[0])),
-                         KeyValue(key="upstream_frames_bad_crc", value=str(self.last_upstream[1]))]
+        st = pipeline_statuses(
+            self.get_fully_qualified_name(),
+            self.hardware_id,
+            self.localizer,
+            None,
+            self.counts["published_events"],
+            0,
+            self.overlaps,
+        )
+        st[0].values += [
+            KeyValue(key="upstream_packets_dropped", value=str(self.last_upstream[0])),
+            KeyValue(key="upstream_frames_bad_crc", value=str(self.last_upstream[1])),
+        ]
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.status = st

@@ -5,6 +5,7 @@ its covariance, at least 0.3 mm), coloured by type, fading out over its lifetime
 carry a lifetime, so RViz removes them by itself; no TF is needed beyond the fingertip
 frame (use it as RViz's fixed frame, or publish a static transform to the hand).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -24,9 +25,13 @@ EVENT_COLORS = {
     ContactEvent.SLIP: (1.0, 0.1, 0.1),
     ContactEvent.TEXTURE: (0.7, 0.2, 0.9),
 }
-EVENT_NAMES = {ContactEvent.TOUCH: "TOUCH", ContactEvent.DETOUCH: "DETOUCH",
-               ContactEvent.SLIP_PRECURSOR: "SLIP_PRECURSOR", ContactEvent.SLIP: "SLIP",
-               ContactEvent.TEXTURE: "TEXTURE"}
+EVENT_NAMES = {
+    ContactEvent.TOUCH: "TOUCH",
+    ContactEvent.DETOUCH: "DETOUCH",
+    ContactEvent.SLIP_PRECURSOR: "SLIP_PRECURSOR",
+    ContactEvent.SLIP: "SLIP",
+    ContactEvent.TEXTURE: "TEXTURE",
+}
 
 
 def _duration(seconds: float) -> Duration:
@@ -39,7 +44,12 @@ def sensor_markers(geometry: FingertipGeometry, frame_id: str, stamp) -> MarkerA
     arr = MarkerArray()
     sphere = Marker()
     sphere.header.frame_id, sphere.header.stamp = frame_id, stamp
-    sphere.ns, sphere.id, sphere.type, sphere.action = "ae_tactile/fingertip", 0, Marker.SPHERE, Marker.ADD
+    sphere.ns, sphere.id, sphere.type, sphere.action = (
+        "ae_tactile/fingertip",
+        0,
+        Marker.SPHERE,
+        Marker.ADD,
+    )
     d = 2.0 * geometry.radius_m
     sphere.scale.x = sphere.scale.y = sphere.scale.z = d
     sphere.pose.orientation.w = 1.0
@@ -62,19 +72,24 @@ def sensor_markers(geometry: FingertipGeometry, frame_id: str, stamp) -> MarkerA
 class EventMarkers:
     """Keeps the recent events and renders them as fading spheres."""
 
-    def __init__(self, frame_id: str, lifetime_s: float = 2.0, max_events: int = 64,
-                 namespace: str = "ae_tactile/events"):
+    def __init__(
+        self,
+        frame_id: str,
+        lifetime_s: float = 2.0,
+        max_events: int = 64,
+        namespace: str = "ae_tactile/events",
+    ):
         self.frame_id = frame_id
         self.lifetime_s = float(lifetime_s)
         self.max_events = int(max_events)
         self.namespace = namespace
-        self.events: list[tuple[int, ContactEvent]] = []   # (received ns, event)
+        self.events: list[tuple[int, ContactEvent]] = []  # (received ns, event)
         self._next_id = 0
 
     def add(self, event: ContactEvent, now_ns: int) -> None:
         self.events.append((now_ns, event))
         if len(self.events) > self.max_events:
-            del self.events[:len(self.events) - self.max_events]
+            del self.events[: len(self.events) - self.max_events]
 
     def render(self, now_ns: int, stamp) -> MarkerArray:
         arr = MarkerArray()
@@ -85,9 +100,12 @@ class EventMarkers:
                 continue
             keep.append((t_ns, ev))
             cov = np.asarray(ev.position_covariance, dtype=float).reshape(3, 3)
-            sigma = float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (cov + cov.T)).max(), 0.0))) \
-                if np.all(np.isfinite(cov)) else 0.0
-            size = max(4.0 * sigma, 0.3e-3)             # 2 sigma radius -> diameter 4 sigma
+            sigma = (
+                float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (cov + cov.T)).max(), 0.0)))
+                if np.all(np.isfinite(cov))
+                else 0.0
+            )
+            size = max(4.0 * sigma, 0.3e-3)  # 2 sigma radius -> diameter 4 sigma
             m = Marker()
             m.header.frame_id, m.header.stamp = self.frame_id or ev.header.frame_id, stamp
             m.ns, m.id, m.type, m.action = self.namespace, i, Marker.SPHERE, Marker.ADD

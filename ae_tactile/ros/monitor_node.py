@@ -6,6 +6,7 @@ had time to arrive (``print_delay_s``), with its position error and end-to-end l
 (receive time - emission stamp). `summary()` scores the run: emissions found / missed /
 false, touch-release typing, RMS position error, slip precursor lead time, latency.
 """
+
 from __future__ import annotations
 
 import bisect
@@ -19,15 +20,23 @@ from rclpy.node import Node
 from ae_tactile.evaluation import match_by_time, score
 from ae_tactile.msg import ContactEvent, ContactState
 from ae_tactile.ros.conversions import time_msg_to_ns
-from ae_tactile.ros.node_utils import LATCHED
 from ae_tactile.ros.markers import EVENT_NAMES
+from ae_tactile.ros.node_utils import LATCHED
 from ae_tactile.ros.sim_fingertip_node import TRUTH_QOS
 
-STATE_NAMES = {ContactState.NO_CONTACT: "NO_CONTACT", ContactState.STICK: "STICK",
-               ContactState.INCIPIENT_SLIP: "INCIPIENT_SLIP", ContactState.GROSS_SLIP: "GROSS_SLIP"}
-TRUTH_KIND = {ContactEvent.TOUCH: "touch", ContactEvent.DETOUCH: "release",
-              ContactEvent.SLIP_PRECURSOR: "micro_slip", ContactEvent.SLIP: "slip",
-              ContactEvent.TEXTURE: "texture"}
+STATE_NAMES = {
+    ContactState.NO_CONTACT: "NO_CONTACT",
+    ContactState.STICK: "STICK",
+    ContactState.INCIPIENT_SLIP: "INCIPIENT_SLIP",
+    ContactState.GROSS_SLIP: "GROSS_SLIP",
+}
+TRUTH_KIND = {
+    ContactEvent.TOUCH: "touch",
+    ContactEvent.DETOUCH: "release",
+    ContactEvent.SLIP_PRECURSOR: "micro_slip",
+    ContactEvent.SLIP: "slip",
+    ContactEvent.TEXTURE: "texture",
+}
 
 
 @dataclass
@@ -38,7 +47,9 @@ class Seen:
 
 
 class MonitorNode(Node):
-    def __init__(self, print_live: bool = True, print_delay_s: float = 0.05, out=sys.stdout, **kwargs):
+    def __init__(
+        self, print_live: bool = True, print_delay_s: float = 0.05, out=sys.stdout, **kwargs
+    ):
         super().__init__("monitor", **kwargs)
         self.print_live = print_live
         self.print_delay_ns = int(print_delay_s * 1e9)
@@ -51,8 +62,12 @@ class MonitorNode(Node):
         self._queue: list[tuple[str, Seen]] = []
         self.t0_ns: int | None = None
         self.create_subscription(ContactEvent, "sim/ground_truth", self._on_truth, TRUTH_QOS)
-        self.create_subscription(ContactEvent, "contacts", lambda m: self._on(m, self.contacts, "contact"), 1000)
-        self.create_subscription(ContactEvent, "slip", lambda m: self._on(m, self.slip, "slip"), 1000)
+        self.create_subscription(
+            ContactEvent, "contacts", lambda m: self._on(m, self.contacts, "contact"), 1000
+        )
+        self.create_subscription(
+            ContactEvent, "slip", lambda m: self._on(m, self.slip, "slip"), 1000
+        )
         self.create_subscription(ContactState, "contact_state", self._on_state, LATCHED)
         self.create_timer(0.02, self._flush)
 
@@ -76,8 +91,14 @@ class MonitorNode(Node):
         changed = not self.states or self.states[-1][1] != msg.state
         self.states.append((time_msg_to_ns(msg.header.stamp), msg.state))
         if self.print_live and changed:
-            t = (time_msg_to_ns(msg.header.stamp) - (self.t0_ns or time_msg_to_ns(msg.header.stamp))) * 1e-9
-            print(f"{t:9.4f} s  state -> {STATE_NAMES.get(msg.state, msg.state)}", file=self.out, flush=True)
+            t = (
+                time_msg_to_ns(msg.header.stamp) - (self.t0_ns or time_msg_to_ns(msg.header.stamp))
+            ) * 1e-9
+            print(
+                f"{t:9.4f} s  state -> {STATE_NAMES.get(msg.state, msg.state)}",
+                file=self.out,
+                flush=True,
+            )
 
     def _nearest_truth(self, stamp_ns: int, point, tolerance_ns: int = 1_000_000):
         """The ground-truth emission within tolerance_ns of stamp_ns nearest to ``point``
@@ -86,7 +107,10 @@ class MonitorNode(Node):
         hi = bisect.bisect_right(self.truth_ns, stamp_ns + tolerance_ns)
         if lo >= hi:
             return None
-        return min(self.truth[lo:hi], key=lambda t: math.dist(point, (t.position.x, t.position.y, t.position.z)))
+        return min(
+            self.truth[lo:hi],
+            key=lambda t: math.dist(point, (t.position.x, t.position.y, t.position.z)),
+        )
 
     def _flush(self) -> None:
         now = self._now()
@@ -98,13 +122,18 @@ class MonitorNode(Node):
             m = s.msg
             t = (s.stamp_ns - self.t0_ns) * 1e-9
             p = m.position
-            line = (f"{t:9.4f} s  {EVENT_NAMES.get(m.event_type, m.event_type):<14s} "
-                    f"at ({p.x * 1e3:+6.2f}, {p.y * 1e3:+6.2f}, {p.z * 1e3:+6.2f}) mm")
+            line = (
+                f"{t:9.4f} s  {EVENT_NAMES.get(m.event_type, m.event_type):<14s} "
+                f"at ({p.x * 1e3:+6.2f}, {p.y * 1e3:+6.2f}, {p.z * 1e3:+6.2f}) mm"
+            )
             if kind == "contact":
                 truth = self._nearest_truth(s.stamp_ns, (p.x, p.y, p.z))
                 if truth is not None:
-                    err = math.dist((p.x, p.y, p.z), (truth.position.x, truth.position.y, truth.position.z))
-                    line += f"  err {err * 1e6:6.1f} um  [truth: {TRUTH_KIND.get(truth.event_type, '?')}]"
+                    err = math.dist(
+                        (p.x, p.y, p.z), (truth.position.x, truth.position.y, truth.position.z)
+                    )
+                    kind = TRUTH_KIND.get(truth.event_type, "?")
+                    line += f"  err {err * 1e6:6.1f} um  [truth: {kind}]"
                 line += f"  conf {m.confidence:.2f}"
             else:
                 if not math.isnan(m.emission_rate_hz):
@@ -112,7 +141,8 @@ class MonitorNode(Node):
                 if not math.isnan(m.spatial_period_m):
                     line += f"  period {m.spatial_period_m * 1e3:.3f} mm"
                 if not math.isnan(m.slip_direction.x):
-                    line += f"  dir ({m.slip_direction.x:+.2f}, {m.slip_direction.y:+.2f}, {m.slip_direction.z:+.2f})"
+                    d = m.slip_direction
+                    line += f"  dir ({d.x:+.2f}, {d.y:+.2f}, {d.z:+.2f})"
             line += f"  latency {(s.received_ns - s.stamp_ns) * 1e-6:5.2f} ms"
             print(line, file=self.out, flush=True)
 
@@ -121,15 +151,31 @@ class MonitorNode(Node):
         """The run as plain rows for `ae_tactile.report.write_run_summary`: events (time from
         the first event, type, point, latency), the ground truth, the contact-state changes."""
         t0 = self.t0_ns or 0
-        events = [{"time_s": (x.stamp_ns - t0) * 1e-9, "type": int(x.msg.event_type),
-                   "x_m": x.msg.position.x, "y_m": x.msg.position.y, "z_m": x.msg.position.z,
-                   "latency_s": (x.received_ns - x.stamp_ns) * 1e-9}
-                  for x in sorted(self.contacts + self.slip, key=lambda x: x.stamp_ns)]
-        truth = [{"x_m": t.position.x, "y_m": t.position.y, "z_m": t.position.z,
-                  "time_s": (time_msg_to_ns(t.header.stamp) - t0) * 1e-9}
-                 for t in self.truth if t.confidence > 0]
-        states = [{"time_s": (t - t0) * 1e-9, "state": STATE_NAMES.get(st, str(st))}
-                  for t, st in self.states]
+        events = [
+            {
+                "time_s": (x.stamp_ns - t0) * 1e-9,
+                "type": int(x.msg.event_type),
+                "x_m": x.msg.position.x,
+                "y_m": x.msg.position.y,
+                "z_m": x.msg.position.z,
+                "latency_s": (x.received_ns - x.stamp_ns) * 1e-9,
+            }
+            for x in sorted(self.contacts + self.slip, key=lambda x: x.stamp_ns)
+        ]
+        truth = [
+            {
+                "x_m": t.position.x,
+                "y_m": t.position.y,
+                "z_m": t.position.z,
+                "time_s": (time_msg_to_ns(t.header.stamp) - t0) * 1e-9,
+            }
+            for t in self.truth
+            if t.confidence > 0
+        ]
+        states = [
+            {"time_s": (t - t0) * 1e-9, "state": STATE_NAMES.get(st, str(st))}
+            for t, st in self.states
+        ]
         return {"events": events, "truth": truth, "contact_state": states}
 
     # ------------------------------------------------------------------ summary
@@ -145,17 +191,39 @@ class MonitorNode(Node):
         ev_pt = [(s.msg.position.x, s.msg.position.y, s.msg.position.z) for s in self.contacts]
         ev_pol = [1 if s.msg.event_type == ContactEvent.TOUCH else -1 for s in self.contacts]
         sc = score(tr_ns, tr_pt, tr_pol, ev_ns, ev_pt, ev_pol)
-        out = {"emissions": sc.as_dict(), "truth_total": len(self.truth),
-               "truth_not_captured_by_device": len(self.truth) - len(captured)}
+        out = {
+            "emissions": sc.as_dict(),
+            "truth_total": len(self.truth),
+            "truth_not_captured_by_device": len(self.truth) - len(captured),
+        }
         # touch / release only
-        tr_idx = [i for i, t in enumerate(captured) if t.event_type in (ContactEvent.TOUCH, ContactEvent.DETOUCH)]
+        tr_idx = [
+            i
+            for i, t in enumerate(captured)
+            if t.event_type in (ContactEvent.TOUCH, ContactEvent.DETOUCH)
+        ]
         pairs = dict(match_by_time(tr_ns, ev_ns, 1_000_000, tr_pt, ev_pt))
         found = [i for i in tr_idx if i in pairs]
-        typed = [i for i in found if (captured[i].event_type == ContactEvent.TOUCH) == (ev_pol[pairs[i]] > 0)]
-        out["touch_release"] = {"truth": len(tr_idx), "found": len(found), "typed_correctly": len(typed)}
+        typed = [
+            i
+            for i in found
+            if (captured[i].event_type == ContactEvent.TOUCH) == (ev_pol[pairs[i]] > 0)
+        ]
+        out["touch_release"] = {
+            "truth": len(tr_idx),
+            "found": len(found),
+            "typed_correctly": len(typed),
+        }
         lat = np.array([(s.received_ns - s.stamp_ns) * 1e-6 for s in self.contacts + self.slip])
-        out["latency_ms"] = ({"median": float(np.median(lat)), "p99": float(np.percentile(lat, 99)),
-                              "max": float(lat.max())} if lat.size else {})
+        out["latency_ms"] = (
+            {
+                "median": float(np.median(lat)),
+                "p99": float(np.percentile(lat, 99)),
+                "max": float(lat.max()),
+            }
+            if lat.size
+            else {}
+        )
         counts = {}
         for s in self.slip:
             name = EVENT_NAMES.get(s.msg.event_type, str(s.msg.event_type))
@@ -164,8 +232,11 @@ class MonitorNode(Node):
         leads = []
         starts = list(slip_windows_ns) + [0] * (len(gross_slip_times_ns) - len(slip_windows_ns))
         for g, start in zip(gross_slip_times_ns, starts):
-            pre = [s.stamp_ns for s in self.slip if s.msg.event_type == ContactEvent.SLIP_PRECURSOR
-                   and start <= s.stamp_ns < g]
+            pre = [
+                s.stamp_ns
+                for s in self.slip
+                if s.msg.event_type == ContactEvent.SLIP_PRECURSOR and start <= s.stamp_ns < g
+            ]
             leads.append((g - min(pre)) * 1e-6 if pre else None)
         out["slip_precursor_lead_ms"] = leads
         return out
@@ -181,6 +252,7 @@ def two_hop_floor_ms(context=None, n: int = 300, timeout_s: float = 10.0) -> dic
 
     from rclpy.executors import SingleThreadedExecutor
     from std_msgs.msg import Empty
+
     kw = {"context": context} if context is not None else {}
     a = Node("ae_tactile_floor_ping", **kw)
     b = Node("ae_tactile_floor_pong", **kw)
@@ -191,11 +263,14 @@ def two_hop_floor_ms(context=None, n: int = 300, timeout_s: float = 10.0) -> dic
         pong = b.create_publisher(Empty, "ae_tactile_floor/pong", 10)
         b.create_subscription(Empty, "ae_tactile_floor/ping", lambda m: pong.publish(Empty()), 10)
         got = []
-        a.create_subscription(Empty, "ae_tactile_floor/pong", lambda m: got.append(_time.perf_counter_ns()), 10)
+        a.create_subscription(
+            Empty, "ae_tactile_floor/pong", lambda m: got.append(_time.perf_counter_ns()), 10
+        )
         ping = a.create_publisher(Empty, "ae_tactile_floor/ping", 10)
         t_end = _time.monotonic() + timeout_s
-        while (ping.get_subscription_count() < 1 or pong.get_subscription_count() < 1) \
-                and _time.monotonic() < t_end:
+        while (
+            ping.get_subscription_count() < 1 or pong.get_subscription_count() < 1
+        ) and _time.monotonic() < t_end:
             ex.spin_once(timeout_sec=0.05)
         rtt = []
         for _ in range(n):
@@ -210,8 +285,13 @@ def two_hop_floor_ms(context=None, n: int = 300, timeout_s: float = 10.0) -> dic
         if not rtt:
             return {}
         r = np.asarray(rtt)
-        return {"median": float(np.median(r)), "p99": float(np.percentile(r, 99)), "max": float(r.max()),
-                "samples": int(r.size), "what": "two rclpy hops (ping -> pong -> back), same process"}
+        return {
+            "median": float(np.median(r)),
+            "p99": float(np.percentile(r, 99)),
+            "max": float(r.max()),
+            "samples": int(r.size),
+            "what": "two rclpy hops (ping -> pong -> back), same process",
+        }
     finally:
         ex.shutdown()
         a.destroy_node()
@@ -221,25 +301,39 @@ def two_hop_floor_ms(context=None, n: int = 300, timeout_s: float = 10.0) -> dic
 def format_summary(s: dict) -> str:
     e = s["emissions"]
     tr = s["touch_release"]
-    lines = ["", "=== summary ===",
-             f"emissions captured by the device: {e['truth']}  (not captured: {s['truth_not_captured_by_device']})",
-             f"localized: found {e['matched']}, missed {e['truth'] - e['matched']}, "
-             f"false {e['events'] - e['matched']}  (recall {e['recall']:.3f}, precision {e['precision']:.3f})",
-             f"touch/release: {tr['found']}/{tr['truth']} found, {tr['typed_correctly']} typed correctly",
-             f"RMS position error: {e['rms_position_error_mm'] * 1e3:.1f} um"]
+    lines = [
+        "",
+        "=== summary ===",
+        f"emissions captured by the device: {e['truth']}  "
+        f"(not captured: {s['truth_not_captured_by_device']})",
+        f"localized: found {e['matched']}, missed {e['truth'] - e['matched']}, "
+        f"false {e['events'] - e['matched']}  "
+        f"(recall {e['recall']:.3f}, precision {e['precision']:.3f})",
+        f"touch/release: {tr['found']}/{tr['truth']} found, "
+        f"{tr['typed_correctly']} typed correctly",
+        f"RMS position error: {e['rms_position_error_mm'] * 1e3:.1f} um",
+    ]
     if s["slip_events"]:
-        lines.append("slip detector: " + ", ".join(f"{k} x{v}" for k, v in sorted(s["slip_events"].items())))
+        lines.append(
+            "slip detector: " + ", ".join(f"{k} x{v}" for k, v in sorted(s["slip_events"].items()))
+        )
     for lead in s["slip_precursor_lead_ms"]:
-        lines.append("slip precursor lead time: " + ("none before gross slip" if lead is None
-                                                      else f"{lead:.0f} ms before gross slip"))
+        lines.append(
+            "slip precursor lead time: "
+            + ("none before gross slip" if lead is None else f"{lead:.0f} ms before gross slip")
+        )
     if s["latency_ms"]:
         la = s["latency_ms"]
-        lines.append(f"end-to-end latency (emission -> event received): median {la['median']:.2f} ms, "
-                     f"p99 {la['p99']:.2f} ms")
+        lines.append(
+            f"end-to-end latency (emission -> event received): median {la['median']:.2f} ms, "
+            f"p99 {la['p99']:.2f} ms"
+        )
     fl = s.get("floor_two_hop_ms")
     if fl:
-        line = f"rclpy floor, same run (two bare hops, empty message): median {fl['median']:.3f} ms, " \
-               f"p99 {fl['p99']:.3f} ms"
+        line = (
+            f"rclpy floor, same run (two bare hops, empty message): median {fl['median']:.3f} ms, "
+            f"p99 {fl['p99']:.3f} ms"
+        )
         if s["latency_ms"] and fl["median"] > 0:
             line += f"  (latency / floor: {s['latency_ms']['median'] / fl['median']:.0f}x median)"
         lines.append(line)

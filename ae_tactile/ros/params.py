@@ -8,6 +8,7 @@ the node refuses to start with a clear message), and installs a parameter callba
 to ``on_change({name: value})``, which applies it at once (a ValueError from it rejects
 the change with its message). Integers are accepted for floating-point parameters.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -15,8 +16,12 @@ import math
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                SetParametersResult)
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
 
 #: Why structural parameters cannot change while the node runs.
 RESTART = "read-only: takes effect at start-up (restart the node to change it)"
@@ -28,8 +33,16 @@ class ParameterError(ValueError):
 
 def unit_of(name: str) -> str:
     """SI unit from a parameter name's suffix ('' when dimensionless)."""
-    for suffix, unit in (("_hz", "Hz"), ("_m_s", "m/s"), ("_m2", "m^2"), ("_s", "s"), ("_m", "m"),
-                         ("_n", "N"), ("_db", "dB"), ("_v", "V")):
+    for suffix, unit in (
+        ("_hz", "Hz"),
+        ("_m_s", "m/s"),
+        ("_m2", "m^2"),
+        ("_s", "s"),
+        ("_m", "m"),
+        ("_n", "N"),
+        ("_db", "dB"),
+        ("_v", "V"),
+    ):
         if name.endswith(suffix):
             return unit
     return ""
@@ -40,13 +53,13 @@ class Param:
     name: str
     default: Any
     description: str
-    lo: float | None = None            # inclusive range for numbers
+    lo: float | None = None  # inclusive range for numbers
     hi: float | None = None
-    choices: tuple | None = None       # allowed values (strings)
-    check: Callable[[Any], str | None] | None = None   # returns an error text or None
-    read_only: bool = True             # False: tunable with `ros2 param set`
-    unit: str | None = None            # None: from the name's suffix
-    allow_zero_as_none: bool = False   # 0 means "unknown / device's own" (documented in text)
+    choices: tuple | None = None  # allowed values (strings)
+    check: Callable[[Any], str | None] | None = None  # returns an error text or None
+    read_only: bool = True  # False: tunable with `ros2 param set`
+    unit: str | None = None  # None: from the name's suffix
+    allow_zero_as_none: bool = False  # 0 means "unknown / device's own" (documented in text)
 
     @property
     def si_unit(self) -> str:
@@ -76,13 +89,14 @@ def descriptor(p: Param, full_name: str) -> ParameterDescriptor:
     if p.choices:
         d.additional_constraints = "one of: " + ", ".join(map(str, p.choices))
     if isinstance(p.default, float):
-        d.dynamic_typing = True       # so that an integer (`min_snr_db:=10`) is accepted
+        d.dynamic_typing = True  # so that an integer (`min_snr_db:=10`) is accepted
     if p.lo is not None and p.hi is not None and not isinstance(p.default, bool):
         if isinstance(p.default, int):
             d.integer_range = [IntegerRange(from_value=int(p.lo), to_value=int(p.hi), step=0)]
         elif isinstance(p.default, float):
-            d.floating_point_range = [FloatingPointRange(from_value=float(p.lo),
-                                                         to_value=float(p.hi), step=0.0)]
+            d.floating_point_range = [
+                FloatingPointRange(from_value=float(p.lo), to_value=float(p.hi), step=0.0)
+            ]
     return d
 
 
@@ -106,7 +120,9 @@ def validate(p: Param, value: Any, full_name: str | None = None) -> Any:
         try:
             value = [float(v) for v in value]
         except (TypeError, ValueError):
-            raise ParameterError(f"parameter '{name}' must be a list of numbers, got {value!r}") from None
+            raise ParameterError(
+                f"parameter '{name}' must be a list of numbers, got {value!r}"
+            ) from None
     if p.lo is not None and isinstance(value, (int, float)) and not isinstance(value, bool):
         if not p.lo <= value <= p.hi:
             raise ParameterError(f"parameter '{name}' = {value!r} is outside [{p.lo:g}, {p.hi:g}]")
@@ -126,8 +142,13 @@ class ParamSet:
     validated new values of tunable parameters set at run time.
     """
 
-    def __init__(self, node, table: list[Param], prefix: str = "",
-                 on_change: Callable[[dict], None] | None = None):
+    def __init__(
+        self,
+        node,
+        table: list[Param],
+        prefix: str = "",
+        on_change: Callable[[dict], None] | None = None,
+    ):
         self.node = node
         self.prefix = prefix
         self.table = {prefix + p.name: p for p in table}
@@ -136,7 +157,7 @@ class ParamSet:
         for full, p in self.table.items():
             try:
                 node.declare_parameter(full, p.default, descriptor(p, full))
-            except Exception as exc:   # rclpy's InvalidParameterValueException, type errors
+            except Exception as exc:  # rclpy's InvalidParameterValueException, type errors
                 raise ParameterError(f"parameter '{full}': {exc}") from exc
             self.values[p.name] = validate(p, node.get_parameter(full).value, full)
         node.add_on_set_parameters_callback(self._on_set)
@@ -165,8 +186,9 @@ class ParamSet:
         return SetParametersResult(successful=True)
 
 
-def declare(node, params: list[Param], prefix: str = "",
-            on_change: Callable[[dict], None] | None = None) -> dict[str, Any]:
+def declare(
+    node, params: list[Param], prefix: str = "", on_change: Callable[[dict], None] | None = None
+) -> dict[str, Any]:
     """Declare ``params`` on ``node``; returns the live dict of validated values."""
     return ParamSet(node, params, prefix, on_change).values
 
@@ -174,21 +196,50 @@ def declare(node, params: list[Param], prefix: str = "",
 # ---------------------------------------------------------------------- shared tables
 def _method_choices() -> tuple:
     from ae_tactile.localization import available_methods
+
     return tuple(available_methods())
 
 
 #: In-process localization (driver, prefix 'localization.') and the localizer node.
 LOCALIZATION_PARAMS = [
-    tunable(Param("method", "ml", "Delay estimator (ml: exact-sphere maximum likelihood)",
-                  choices=_method_choices())),
-    tunable(Param("min_snr_db", 5.0, "Reject packets below this SNR (docs/conventions.md)",
-                  -20.0, 80.0)),
-    tunable(Param("min_confidence", 0.0, "Do not publish contact events below this "
-                  "localization confidence", 0.0, 1.0)),
-    tunable(Param("reject_interference", True, "Reject common-mode electrical interference "
-                  "(identical waveforms on the four channels)")),
-    tunable(Param("resolve_overlaps", True, "Localize each emission of a window that holds "
-                  "several (in a background thread); false: reject such windows")),
+    tunable(
+        Param(
+            "method",
+            "ml",
+            "Delay estimator (ml: exact-sphere maximum likelihood)",
+            choices=_method_choices(),
+        )
+    ),
+    tunable(
+        Param(
+            "min_snr_db", 5.0, "Reject packets below this SNR (docs/conventions.md)", -20.0, 80.0
+        )
+    ),
+    tunable(
+        Param(
+            "min_confidence",
+            0.0,
+            "Do not publish contact events below this localization confidence",
+            0.0,
+            1.0,
+        )
+    ),
+    tunable(
+        Param(
+            "reject_interference",
+            True,
+            "Reject common-mode electrical interference "
+            "(identical waveforms on the four channels)",
+        )
+    ),
+    tunable(
+        Param(
+            "resolve_overlaps",
+            True,
+            "Localize each emission of a window that holds "
+            "several (in a background thread); false: reject such windows",
+        )
+    ),
 ]
 
 
@@ -196,6 +247,7 @@ def slip_params() -> list[Param]:
     """One parameter per SlipConfig field, with its description, unit and range from the
     field metadata (prefix 'slip.'); run-time fields are tunable."""
     from ae_tactile.slip import SlipConfig
+
     out = []
     for f in dataclasses.fields(SlipConfig):
         md = f.metadata or {}
@@ -213,8 +265,17 @@ def slip_params() -> list[Param]:
         lo, hi = md.get("lo"), md.get("hi")
         if md.get("allow_none") and lo is not None:
             lo = min(lo, 0.0)
-        out.append(Param(f.name, default, text, lo, hi, unit=md.get("unit"),
-                         read_only=not md.get("runtime", True)))
+        out.append(
+            Param(
+                f.name,
+                default,
+                text,
+                lo,
+                hi,
+                unit=md.get("unit"),
+                read_only=not md.get("runtime", True),
+            )
+        )
     return out
 
 

@@ -14,6 +14,7 @@ load P (incipient-slip scenes), as a hand's grip would. When the scene has been 
 ``sim/scene_truth`` (std_msgs/String, JSON, latched) carries its truth (e.g. gross-slip
 times as ROS time) and the load changes applied.
 """
+
 from __future__ import annotations
 
 import json
@@ -35,12 +36,20 @@ from ae_tactile.ros.params import Param, ParameterError, declare
 from ae_tactile.virtual_device import DeviceRunner, PtyTransport, TcpTransport, VirtualFingertip
 
 #: Ground truth is kept for late joiners (a monitor or recorder that starts after the scene).
-TRUTH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5000, reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
+TRUTH_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=5000,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
 
-KIND_TO_EVENT = {"touch": ContactEvent.TOUCH, "release": ContactEvent.DETOUCH,
-                 "micro_slip": ContactEvent.SLIP_PRECURSOR, "slip": ContactEvent.SLIP,
-                 "texture": ContactEvent.TEXTURE}
+KIND_TO_EVENT = {
+    "touch": ContactEvent.TOUCH,
+    "release": ContactEvent.DETOUCH,
+    "micro_slip": ContactEvent.SLIP_PRECURSOR,
+    "slip": ContactEvent.SLIP,
+    "texture": ContactEvent.TEXTURE,
+}
 
 
 def default_scene_path(name: str = "random_touches.yaml") -> str:
@@ -49,8 +58,11 @@ def default_scene_path(name: str = "random_touches.yaml") -> str:
     candidates = [os.path.join(here, "..", "..", "config", "scenes", name)]
     try:
         from ament_index_python.packages import get_package_share_directory
-        candidates.insert(0, os.path.join(get_package_share_directory("ae_tactile"), "config", "scenes", name))
-    except Exception:   # ament index not available (pip install): fall back to the source tree
+
+        candidates.insert(
+            0, os.path.join(get_package_share_directory("ae_tactile"), "config", "scenes", name)
+        )
+    except Exception:  # ament index not available (pip install): fall back to the source tree
         pass
     for c in candidates:
         if os.path.exists(c):
@@ -60,13 +72,25 @@ def default_scene_path(name: str = "random_touches.yaml") -> str:
 
 SIM_PARAMS = [
     Param("scene", "", "Scene YAML file (config/scenes/*.yaml); empty = random_touches.yaml"),
-    Param("transport", "pty", "Serve the protocol on a pseudo-terminal ('pty') or a TCP port ('tcp')",
-          choices=("pty", "tcp")),
+    Param(
+        "transport",
+        "pty",
+        "Serve the protocol on a pseudo-terminal ('pty') or a TCP port ('tcp')",
+        choices=("pty", "tcp"),
+    ),
     Param("link_path", "", "pty only: stable symlink to the pty (like a udev rule); empty = none"),
     Param("tcp_port", 0, "tcp only: port on 127.0.0.1 (0 = pick a free one)", 0, 65535),
     Param("speed", 1.0, "Playback speed (1 = real time)", 0.001, 1000.0),
-    Param("serial_number", "AE-SIM-0001", "Serial number the virtual device reports",
-          check=lambda v: None if 1 <= len(v) <= 32 and v.isprintable() and v.isascii() else "1..32 printable ASCII"),
+    Param(
+        "serial_number",
+        "AE-SIM-0001",
+        "Serial number the virtual device reports",
+        check=lambda v: (
+            None
+            if 1 <= len(v) <= 32 and v.isprintable() and v.isascii()
+            else "1..32 printable ASCII"
+        ),
+    ),
     Param("packet_samples", 400, "Samples per channel of a triggered packet", 16, 8192),
     Param("pre_trigger_samples", 80, "Samples before the earliest arrival in a packet", 0, 8191),
     Param("threshold_counts", 0, "Trigger threshold (ADC counts); 0 = 6 noise sigma", 0, 32767),
@@ -80,11 +104,17 @@ def scene_body(scene_path: str) -> dict:
     """The simulated fingertip's body (medium and geometry), as the driver compares it with
     its parameters."""
     from ae_tactile.sim.scene import load_scene
+
     cfg = load_scene(scene_path).config
     g = cfg.geometry
     medium = cfg.medium.name if hasattr(cfg.medium, "name") else str(cfg.medium)
-    return {"medium": medium, "radius_m": float(g.radius_m), "element_offset_m": float(g.element_offset_m),
-            "sound_speed_m_s": float(g.sound_speed_m_s), "highpass_hz": float(cfg.highpass_hz)}
+    return {
+        "medium": medium,
+        "radius_m": float(g.radius_m),
+        "element_offset_m": float(g.element_offset_m),
+        "sound_speed_m_s": float(g.sound_speed_m_s),
+        "highpass_hz": float(cfg.highpass_hz),
+    }
 
 
 class SimFingertipNode(Node):
@@ -94,10 +124,14 @@ class SimFingertipNode(Node):
         scene = p["scene"] or default_scene_path()
         try:
             self.device = VirtualFingertip(
-                scene, serial_number=p["serial_number"], speed=p["speed"],
-                packet_samples=p["packet_samples"], pre_trigger=p["pre_trigger_samples"],
+                scene,
+                serial_number=p["serial_number"],
+                speed=p["speed"],
+                packet_samples=p["packet_samples"],
+                pre_trigger=p["pre_trigger_samples"],
                 threshold_counts=p["threshold_counts"] or None,
-                stream_block_samples=p["stream_block_samples"])
+                stream_block_samples=p["stream_block_samples"],
+            )
         except (ValueError, OSError) as exc:
             raise ParameterError(f"parameter 'scene' = {scene!r}: {exc}") from exc
         if p["transport"] == "pty":
@@ -109,19 +143,23 @@ class SimFingertipNode(Node):
         self.pub_truth = self.create_publisher(ContactEvent, "sim/ground_truth", TRUTH_QOS)
         self.pub_port.publish(String(data=self.transport.port))
         self.truth_published = 0
-        self.load_changes: list[tuple[int, float]] = []     # (scene ns, P) applied
+        self.load_changes: list[tuple[int, float]] = []  # (scene ns, P) applied
         self.create_subscription(Float64, "grip_force_command", self._on_grip_force, LATCHED)
         self.pub_scene = self.create_publisher(String, "sim/scene_truth", LATCHED)
         self.sensor_body = scene_body(scene)
-        self.pub_scene.publish(String(data=json.dumps({"finished": False, "sensor": self.sensor_body})))
+        self.pub_scene.publish(
+            String(data=json.dumps({"finished": False, "sensor": self.sensor_body}))
+        )
         self.scene_finished = False
         self.create_timer(0.01, self._publish_truth)
         self.create_timer(0.1, self._check_finished)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(1.0, self._publish_diagnostics)
         self.runner.start()
-        self.get_logger().info(f"simulated fingertip '{self.device.spec.get('name', scene)}' serving on "
-                               f"{self.transport.port} (speed x{p['speed']:g})")
+        self.get_logger().info(
+            f"simulated fingertip '{self.device.spec.get('name', scene)}' serving on "
+            f"{self.transport.port} (speed x{p['speed']:g})"
+        )
 
     @property
     def port(self) -> str:
@@ -138,23 +176,34 @@ class SimFingertipNode(Node):
 
         def conv(obj):
             if isinstance(obj, dict):
-                return {k: (self.ros_ns_of_device_ns(self.device.device_ns_of_scene(int(v)))
-                            if k.endswith("_time_ns") and v is not None else conv(v)) for k, v in obj.items()}
+                return {
+                    k: (
+                        self.ros_ns_of_device_ns(self.device.device_ns_of_scene(int(v)))
+                        if k.endswith("_time_ns") and v is not None
+                        else conv(v)
+                    )
+                    for k, v in obj.items()
+                }
             if isinstance(obj, list):
                 return [conv(v) for v in obj]
             return obj
+
         return conv(truth)
 
     def _publish_diagnostics(self) -> None:
         dev = self.device
-        st = DiagnosticStatus(level=DiagnosticStatus.OK,
-                              name=f"{self.get_fully_qualified_name()}: simulated fingertip",
-                              hardware_id=self.p["serial_number"],
-                              message=("scene played" if self.scene_finished else f"serving on {self.port}"))
-        st.values = [KeyValue(key="port", value=self.port),
-                     KeyValue(key="scene", value=str(dev.spec.get("name", ""))),
-                     KeyValue(key="truth_events_published", value=str(self.truth_published)),
-                     KeyValue(key="medium", value=str(self.sensor_body.get("medium", "")))]
+        st = DiagnosticStatus(
+            level=DiagnosticStatus.OK,
+            name=f"{self.get_fully_qualified_name()}: simulated fingertip",
+            hardware_id=self.p["serial_number"],
+            message=("scene played" if self.scene_finished else f"serving on {self.port}"),
+        )
+        st.values = [
+            KeyValue(key="port", value=self.port),
+            KeyValue(key="scene", value=str(dev.spec.get("name", ""))),
+            KeyValue(key="truth_events_published", value=str(self.truth_published)),
+            KeyValue(key="medium", value=str(self.sensor_body.get("medium", ""))),
+        ]
         msg = DiagnosticArray(status=[st])
         msg.header.stamp = self.get_clock().now().to_msg()
         self.pub_diag.publish(msg)
@@ -164,9 +213,13 @@ class SimFingertipNode(Node):
             return
         self._publish_truth()
         self.scene_finished = True
-        info = {"finished": True, "scene": self.device.spec.get("name", ""), "sensor": self.sensor_body,
-                "truth": self.runner.call(self.scene_truth_ros),
-                "load_changes": [[int(t), float(p)] for t, p in self.load_changes]}
+        info = {
+            "finished": True,
+            "scene": self.device.spec.get("name", ""),
+            "sensor": self.sensor_body,
+            "truth": self.runner.call(self.scene_truth_ros),
+            "load_changes": [[int(t), float(p)] for t, p in self.load_changes],
+        }
         self.pub_scene.publish(String(data=json.dumps(info, default=float)))
         self.get_logger().info("scene played to the end")
         if self.p["exit_when_done"]:
@@ -175,13 +228,18 @@ class SimFingertipNode(Node):
     def _on_grip_force(self, msg: Float64) -> None:
         """Closed loop: the commanded grip force becomes the scene's normal load P (N)."""
         try:
-            at = self.runner.call(self.device.set_normal_load, float(msg.data), time.monotonic_ns())
+            at = self.runner.call(
+                self.device.set_normal_load, float(msg.data), time.monotonic_ns()
+            )
         except ValueError as exc:
-            self.get_logger().warning(f"grip_force_command {msg.data} N ignored: {exc}",
-                                      throttle_duration_sec=5.0)
+            self.get_logger().warning(
+                f"grip_force_command {msg.data} N ignored: {exc}", throttle_duration_sec=5.0
+            )
             return
         self.load_changes.append((at, float(msg.data)))
-        self.get_logger().info(f"normal load set to {msg.data:.2f} N at scene time {at * 1e-9:.4f} s")
+        self.get_logger().info(
+            f"normal load set to {msg.data:.2f} N at scene time {at * 1e-9:.4f} s"
+        )
 
     def _publish_truth(self) -> None:
         for t in self.device.pop_truth():
@@ -190,8 +248,10 @@ class SimFingertipNode(Node):
             ev.header.frame_id = self.p["frame_id"]
             ev.event_type = KIND_TO_EVENT[t.kind]
             ev.position.x, ev.position.y, ev.position.z = (float(v) for v in t.point_m)
-            polar, azimuth = np.arctan2(np.hypot(t.point_m[0], t.point_m[1]), t.point_m[2]), \
-                np.arctan2(t.point_m[1], t.point_m[0])
+            polar, azimuth = (
+                np.arctan2(np.hypot(t.point_m[0], t.point_m[1]), t.point_m[2]),
+                np.arctan2(t.point_m[1], t.point_m[0]),
+            )
             ev.polar_angle_rad, ev.azimuth_angle_rad = float(polar), float(azimuth)
             ev.tau_x_s = ev.tau_y_s = math.nan
             ev.amplitude_v = float(np.sign(t.amplitude_pa_m))
@@ -203,7 +263,7 @@ class SimFingertipNode(Node):
             self.truth_published += 1
 
     def destroy_node(self):
-        if not hasattr(self, "runner"):       # constructor stopped early (bad parameter)
+        if not hasattr(self, "runner"):  # constructor stopped early (bad parameter)
             return super().destroy_node()
         self.runner.stop()
         return super().destroy_node()

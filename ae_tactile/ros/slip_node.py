@@ -14,6 +14,7 @@ Late events: events arriving out of order are processed with their own stamps up
 detector's clock past now - `lag_s`; events dropped for being older are counted in
 /diagnostics.
 """
+
 from __future__ import annotations
 
 import math
@@ -30,13 +31,26 @@ from ae_tactile.ros.conversions import contact_event_msg, contact_record_of_msg,
 from ae_tactile.ros.driver_node import EVENT_QOS, pipeline_statuses
 from ae_tactile.ros.markers import EventMarkers
 from ae_tactile.ros.node_utils import LATCHED, run_node
-from ae_tactile.ros.params import (Param, ParameterError, ParamSet, declare, slip_config_kwargs,
-                                   slip_params, tunable)
+from ae_tactile.ros.params import (
+    Param,
+    ParameterError,
+    ParamSet,
+    declare,
+    slip_config_kwargs,
+    slip_params,
+    tunable,
+)
 from ae_tactile.slip import SlipConfig
 
 NODE_PARAMS = [
-    Param("lag_s", 0.02, "The time-keeping tick never moves the detector's clock past now minus "
-          "this, so events still in flight are not overtaken", 0.0, 1.0),
+    Param(
+        "lag_s",
+        0.02,
+        "The time-keeping tick never moves the detector's clock past now minus "
+        "this, so events still in flight are not overtaken",
+        0.0,
+        1.0,
+    ),
     Param("tick_period_s", 0.02, "Period of the time-keeping tick", 0.001, 1.0),
     Param("marker_period_s", 0.1, "Marker refresh period", 0.02, 5.0),
     Param("frame_id", "", "Frame of the outputs; empty = the incoming events' frame"),
@@ -75,7 +89,7 @@ class SlipDetectorNode(Node):
 
     def _on_slip_change(self, changes: dict) -> None:
         values = dict(self.slip_params.values, **changes)
-        config = SlipConfig(**slip_config_kwargs(values))      # ValueError rejects the change
+        config = SlipConfig(**slip_config_kwargs(values))  # ValueError rejects the change
         with self.stage.lock:
             update = getattr(self.stage.detector, "update_config", None)
             if update is not None:
@@ -89,7 +103,9 @@ class SlipDetectorNode(Node):
             with self.stage.lock:
                 self.detector.set_sliding_speed(v if v > 0 and math.isfinite(v) else None)
         except ValueError as exc:
-            self.get_logger().warning(f"sliding_speed {v} ignored: {exc}", throttle_duration_sec=5.0)
+            self.get_logger().warning(
+                f"sliding_speed {v} ignored: {exc}", throttle_duration_sec=5.0
+            )
 
     def on_contact(self, msg: ContactEvent) -> None:
         self.received += 1
@@ -125,14 +141,24 @@ class SlipDetectorNode(Node):
         st = self.stage.state
         key = (int(st.state), int(st.since_ns), int(st.contact_id))
         now = self.get_clock().now().nanoseconds
-        if not force and key == self.last_state_key and now - self.last_state_pub_ns < 1_000_000_000:
+        if (
+            not force
+            and key == self.last_state_key
+            and now - self.last_state_pub_ns < 1_000_000_000
+        ):
             return
         self.last_state_key, self.last_state_pub_ns = key, now
         self.pub_state.publish(contact_state_msg(st, self.frame_id, now))
 
     def publish_diagnostics(self) -> None:
-        statuses = pipeline_statuses(self.get_fully_qualified_name(), self.frame_id or "fingertip",
-                                     _NoLocalizer, self.stage, 0, self.published)
+        statuses = pipeline_statuses(
+            self.get_fully_qualified_name(),
+            self.frame_id or "fingertip",
+            _NoLocalizer,
+            self.stage,
+            0,
+            self.published,
+        )
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.status = statuses[1:]
