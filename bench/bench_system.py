@@ -103,12 +103,22 @@ class Listener:
         cb = self._on
         self.node.create_subscription(ContactEvent, "contacts", cb, EVENT_QOS)
         self.node.create_subscription(ContactEvent, "slip", cb, EVENT_QOS)
-        self.ex = SingleThreadedExecutor()
+        try:  # rclpy's events executor: the least dispatch overhead per message
+            from rclpy.experimental import EventsExecutor
+
+            self.ex = EventsExecutor()
+        except ImportError:
+            self.ex = SingleThreadedExecutor()
         self.ex.add_node(self.node)
 
     def _on(self, msg) -> None:
         self.rows.append(
-            (time.time_ns(), msg.event_type, msg.packet_ids[-1] if len(msg.packet_ids) else -1)
+            (
+                time.time_ns(),
+                msg.event_type,
+                msg.packet_ids[-1] if len(msg.packet_ids) else -1,
+                msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec,
+            )
         )
 
     def spin_for(self, seconds: float) -> None:
@@ -182,7 +192,7 @@ def run_case(name: str, counts, first, fs, vpc, body, *, namespace: str) -> dict
     listener.close()
     w = np.load(log)
     written = w["written_ns"]
-    rows = np.array(listener.rows, dtype=np.int64).reshape(-1, 3)
+    rows = np.array(listener.rows, dtype=np.int64).reshape(-1, 4)
     out = {
         "case": name,
         "packets": int(len(counts)),
@@ -219,6 +229,13 @@ def run_case(name: str, counts, first, fs, vpc, body, *, namespace: str) -> dict
             q = max(lat.size // 4, 1)
             entry["first_quarter_median_ms"] = float(np.median(lat[:q]))
             entry["last_quarter_median_ms"] = float(np.median(lat[-q:]))
+            # where it goes: emission stamp (device clock mapped to the host) -> bytes written,
+            # and -> received (the event's own stamp: what a subscriber can measure itself)
+            stamp = sel[good, 3]
+            entry["stamp_to_written_median_ms"] = float(
+                np.median((written[ids[good]] - stamp) * 1e-6)
+            )
+            entry["stamp_to_received_median_ms"] = float(np.median((sel[good, 0] - stamp) * 1e-6))
         out[label] = entry
     return out
 

@@ -82,6 +82,12 @@ def main(argv) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    # the frame bodies are built (validated) before START: at run time only the header
+    # (sequence number, time stamp) and the CRCs are computed
+    bodies = [
+        Packet(counts[i], fs, vpc, first_sample_index=int(first_index[i]), pre_trigger=pre)
+        for i in range(k_total)
+    ]
     k = 0
     next_status = time.monotonic() + 1.0
     write(status())
@@ -113,10 +119,7 @@ def main(argv) -> int:
         elapsed_s = (time.monotonic_ns() - state["t0"]) * 1e-9
         while k < k_total and due_s[k] <= elapsed_s:
             first_us = int((state["t0"] - t_boot) // 1000 + first_index[k] * 1e6 / fs) & 0xFFFFFFFF
-            body = Packet(
-                counts[k], fs, vpc, first_sample_index=int(first_index[k]), pre_trigger=pre
-            )
-            write(enc.encode(body, first_us))
+            write(enc.encode(bodies[k], first_us))
             log[k] = time.time_ns()
             k += 1
         if k >= k_total:
