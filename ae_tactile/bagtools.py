@@ -630,6 +630,9 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--sliding-speed", type=float, default=0.0, help="known sliding speed (m/s) for textures"
     )
+    ap.add_argument(
+        "--png", default="", help="also write a PNG summary of the replay (needs matplotlib)"
+    )
     args = ap.parse_args(argv)
     from ae_tactile.slip import SlipConfig
 
@@ -662,7 +665,37 @@ def main(argv=None) -> int:
         )
         return 2
     print(f"{res.summary()}\n{n} events written to {args.out}")
+    if args.png:
+        write_png(res, args.png, title=f"replay of {Path(args.bag).name}")
     return 3 if res.damaged else 0
+
+
+def write_png(res: ReplayResult, path: str, title: str = "") -> None:
+    """PNG summary of a replay (ae_tactile.report): the events on the fingertip from above and
+    on a timeline; a missing matplotlib is reported, not raised."""
+    from ae_tactile.report import ReportUnavailable, write_run_summary
+
+    events = res.contacts + res.slip
+    t0 = min((e["time_ns"] for e in events), default=0)
+    rows = [
+        {
+            "time_s": (e["time_ns"] - t0) * 1e-9,
+            "type": int(e["event_type"]),
+            "x_m": float(e["point_m"][0]),
+            "y_m": float(e["point_m"][1]),
+            "z_m": float(e["point_m"][2]),
+        }
+        for e in events
+        if "point_m" in e
+    ]
+    geo = res.geometry or FingertipGeometry()
+    try:
+        write_run_summary(
+            path, rows, radius_m=geo.radius_m, element_offset_m=geo.element_offset_m, title=title
+        )
+        print(f"picture of the replay: {path}")
+    except ReportUnavailable as exc:
+        print(f"ae-tactile-replay: no PNG summary: {exc}", file=sys.stderr)
 
 
 if __name__ == "__main__":

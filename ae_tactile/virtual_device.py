@@ -81,12 +81,24 @@ class TruthEvent:
 
 
 def load_scene_spec(scene) -> dict:
-    """A scene spec dict from a path, YAML text or dict (validated once by loading it)."""
+    """A scene spec dict from a path, YAML text or dict (validated once by loading it).
+    SceneError on anything that is not a valid scene (bad YAML, nesting too deep, ...)."""
+    try:
+        return _load_scene_spec(scene)
+    except (RecursionError, yaml.YAMLError) as exc:
+        raise SceneError(f"scene is not a valid scene file: {type(exc).__name__}") from None
+    except OSError as exc:
+        raise SceneError(f"scene cannot be read: {exc}") from None
+
+
+def _load_scene_spec(scene) -> dict:
     if isinstance(scene, dict):
         spec = copy.deepcopy(scene)
     elif isinstance(scene, (str, os.PathLike)) and os.path.exists(str(scene)):
         with open(scene, encoding="utf-8") as fh:
             spec = yaml.safe_load(fh)
+        if not isinstance(spec, dict):
+            raise SceneError(f"scene file is not a YAML mapping: {scene}")
         spec.setdefault("name", os.path.splitext(os.path.basename(str(scene)))[0])
     else:
         spec = yaml.safe_load(scene) if isinstance(scene, str) and "\n" in scene else None

@@ -47,6 +47,13 @@ def installed_executable(name):
         "AE_TACTILE_ROOT", os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     )
     exe = os.path.join(root, "install", "ae_tactile", "lib", "ae_tactile", name)
+    if not os.path.exists(exe):  # a workspace built by colcon (`colcon test`)
+        try:
+            from ament_index_python.packages import get_package_prefix
+
+            exe = os.path.join(get_package_prefix("ae_tactile"), "lib", "ae_tactile", name)
+        except Exception:  # noqa: BLE001 - not in an ament environment
+            pass
     if not os.path.exists(exe):
         if os.environ.get("AE_TACTILE_REQUIRE_ROS") == "1":
             raise FileNotFoundError(f"{exe} missing: colcon install incomplete")

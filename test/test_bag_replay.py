@@ -119,6 +119,17 @@ def test_replay_cli_writes_csv(tmp_path):
     assert replay_main([str(tmp_path / "missing"), str(tmp_path / "x.csv")]) == 2
 
 
+def test_replay_cli_draws_a_picture_of_the_replay(tmp_path):
+    pytest.importorskip("matplotlib", reason="the PNG summary needs matplotlib (optional)")
+    write_packet_bag(tmp_path / "in")
+    png = tmp_path / "replay.png"
+    assert (
+        replay_main([str(tmp_path / "in"), str(tmp_path / "events.csv"), "--png", str(png)]) == 0
+    )
+    data = png.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+
+
 def test_live_packets_record_and_replay(ros_context, tmp_path):
     """Record the live pipeline's packets (CDR bytes from rclpy, as ros2 bag record stores
     them), then re-localize offline and compare with the live localizer's events."""

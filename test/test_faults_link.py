@@ -427,3 +427,20 @@ def test_any_sequence_of_valid_frames_and_damage_is_used_or_counted(items, mode)
         assert 0 <= r.onset_index < r.samples_v.shape[1]
     if mode == "triggered":
         assert len(out) == n_packets  # once each; those that would overflow: counted
+
+
+def test_simulated_fingertip_refuses_a_hostile_scene_file_with_a_clear_error(tmp_path):
+    """Deeply nested YAML, a list instead of a mapping, bad YAML: SceneError, no traceback."""
+    from ae_tactile.sim.scene import SceneError
+    from ae_tactile.virtual_device import VirtualFingertip
+
+    cases = {
+        "nested.yaml": "a: " + "[" * 5000 + "]" * 5000,
+        "list.yaml": "- 1\n- 2\n",
+        "bad.yaml": "generator: [unclosed\n",
+    }
+    for name, text in cases.items():
+        path = tmp_path / name
+        path.write_text(text)
+        with pytest.raises(SceneError):
+            VirtualFingertip(str(path))
