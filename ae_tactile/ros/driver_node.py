@@ -678,9 +678,22 @@ def pipeline_statuses(
     return out
 
 
+def events_executor():
+    """rclpy's events executor where available (far less work per timer wake-up, which the
+    reader thread would otherwise wait for), else the single-threaded one."""
+    try:
+        from rclpy.experimental import EventsExecutor
+
+        return EventsExecutor()
+    except ImportError:
+        from rclpy.executors import SingleThreadedExecutor
+
+        return SingleThreadedExecutor()
+
+
 def main(args=None) -> int:
     sys.setswitchinterval(0.0005)  # the reader thread gets the GIL back quickly
-    return run_node(DriverNode, args)
+    return run_node(DriverNode, args, executor_factory=events_executor)
 
 
 if __name__ == "__main__":
