@@ -26,12 +26,13 @@ always render waveforms. Families:
 Writes bench/results/slip.json (``--quick``: slip_quick.json) and, for a full run, the
 tables in docs/slip.md between the bench markers. Records the machine's load.
 """
+
 from __future__ import annotations
 
 import os
 
 for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
-    os.environ.setdefault(_v, "1")              # one core
+    os.environ.setdefault(_v, "1")  # one core
 
 import argparse  # noqa: E402
 import json  # noqa: E402
@@ -84,15 +85,22 @@ def detector_speed(n_events: int = 20000, seed: int = 0) -> dict:
         dts[i] = clock() - a
     wall = time.perf_counter() - t0
     us = dts / 1e3
-    return {"n_events": n_events, "us_per_event_mean": float(us.mean()), "us_p50": float(np.median(us)),
-            "us_p99": float(np.percentile(us, 99)), "us_max": float(us.max()),
-            "events_per_s": n_events / wall, "n_outputs": n_out}
+    return {
+        "n_events": n_events,
+        "us_per_event_mean": float(us.mean()),
+        "us_p50": float(np.median(us)),
+        "us_p99": float(np.percentile(us, 99)),
+        "us_max": float(us.max()),
+        "events_per_s": n_events / wall,
+        "n_outputs": n_out,
+    }
 
 
 def interference_speed() -> dict:
     """common_mode_interference cost per packet (us): one packet per call and 256 per call."""
     from ae_tactile.dsp.interference import common_mode_interference
     from ae_tactile.geometry import FingertipGeometry
+
     g = FingertipGeometry()
     rng = np.random.default_rng(0)
     out = {}
@@ -112,28 +120,36 @@ def _pct(x, qs=(0, 5, 50, 95, 99, 100)):
     x = np.asarray([v for v in x if v is not None and np.isfinite(v)], float)
     if x.size == 0:
         return None
-    return {("min" if q == 0 else "max" if q == 100 else f"p{q}"): float(np.percentile(x, q)) for q in qs}
+    return {
+        ("min" if q == 0 else "max" if q == 100 else f"p{q}"): float(np.percentile(x, q))
+        for q in qs
+    }
 
 
 def summarize_incipient(rows) -> dict:
     out = {"n_trials": len(rows)}
     nm = np.array([r["n_micro_slip_events"] for r in rows])
-    for name, lo, hi in (("lt5", 0, 5), ("5to10", 5, 10), ("ge10", 10, 10 ** 9)):
+    for name, lo, hi in (("lt5", 0, 5), ("5to10", 5, 10), ("ge10", 10, 10**9)):
         sel = [r for r, n in zip(rows, nm) if lo <= n < hi]
         ok = [r for r in sel if r["precursor_before_gross"]]
         out[f"micro_{name}"] = {
-            "n_trials": len(sel), "precursor_before_gross_rate": len(ok) / len(sel) if sel else None,
+            "n_trials": len(sel),
+            "precursor_before_gross_rate": len(ok) / len(sel) if sel else None,
             "q_at_precursor": _pct([r["q_at_precursor"] for r in ok]),
             "lead_ms": _pct([r["lead_ms"] for r in ok]),
-            "failures": [r["seed"] for r in sel if not r["precursor_before_gross"]][:20]}
+            "failures": [r["seed"] for r in sel if not r["precursor_before_gross"]][:20],
+        }
     d = [r["slip_delay_ms"] if r["slip_delay_ms"] is not None else math.inf for r in rows]
     out["slip_detected_rate"] = float(np.mean([r["slip_time_ns"] is not None for r in rows]))
     out["slip_delay_ms"] = _pct([x for x in d if np.isfinite(x)])
     out["slip_delay_p95_ms_missing_as_inf"] = float(np.percentile(d, 95)) if rows else None
     out["slip_within_50ms_rate"] = float(np.mean([x <= 50.0 for x in d])) if rows else None
     out["q_at_slip"] = _pct([r["q_at_slip"] for r in rows])
-    out["slip_before_q090_rate"] = float(np.mean([r["q_at_slip"] is not None and r["q_at_slip"] < 0.9
-                                                  for r in rows])) if rows else None
+    out["slip_before_q090_rate"] = (
+        float(np.mean([r["q_at_slip"] is not None and r["q_at_slip"] < 0.9 for r in rows]))
+        if rows
+        else None
+    )
     out["texture_events_total"] = int(sum(r["n_texture_events"] for r in rows))
     return out
 
@@ -148,23 +164,46 @@ def summarize_alarms(rows) -> dict:
 
 def summarize_stylus(rows) -> dict:
     det = [r for r in rows if r["n_texture"]]
-    out = {"n_trials": len(rows), "found_rate": len(det) / len(rows) if rows else None,
-           "one_contact_rate": float(np.mean([r["n_contacts_reporting"] <= 1 for r in rows])) if rows else None,
-           "period_within_3pct_first": float(np.mean([abs(r["rel_error_first"]) <= 0.03 for r in det])) if det else None,
-           "period_within_3pct_median": float(np.mean([abs(r["rel_error_median"]) <= 0.03 for r in det]))
-           if det else None,
-           "abs_rel_error_first_pct": _pct([100 * abs(r["rel_error_first"]) for r in det]),
-           "time_to_first_texture_ms": _pct([r["texture_delay_ms"] for r in det]),
-           "direction_error_deg": _pct([r["direction_error_deg_median"] for r in rows])}
+    out = {
+        "n_trials": len(rows),
+        "found_rate": len(det) / len(rows) if rows else None,
+        "one_contact_rate": float(np.mean([r["n_contacts_reporting"] <= 1 for r in rows]))
+        if rows
+        else None,
+        "period_within_3pct_first": float(
+            np.mean([abs(r["rel_error_first"]) <= 0.03 for r in det])
+        )
+        if det
+        else None,
+        "period_within_3pct_median": float(
+            np.mean([abs(r["rel_error_median"]) <= 0.03 for r in det])
+        )
+        if det
+        else None,
+        "abs_rel_error_first_pct": _pct([100 * abs(r["rel_error_first"]) for r in det]),
+        "time_to_first_texture_ms": _pct([r["texture_delay_ms"] for r in det]),
+        "direction_error_deg": _pct([r["direction_error_deg_median"] for r in rows]),
+    }
     bins = {}
-    for name, key, edges in (("period_mm", "period_m", (0.2e-3, 0.3e-3, 0.5e-3, 0.81e-3)),
-                             ("jitter", "jitter_fraction", (0.0, 0.1, 0.15, 0.2001))):
+    for name, key, edges in (
+        ("period_mm", "period_m", (0.2e-3, 0.3e-3, 0.5e-3, 0.81e-3)),
+        ("jitter", "jitter_fraction", (0.0, 0.1, 0.15, 0.2001)),
+    ):
         rows_b = []
         for lo, hi in zip(edges, edges[1:]):
             sel = [r for r in rows if lo <= r[key] < hi]
             d = [r for r in sel if r["n_texture"]]
-            rows_b.append({"lo": lo, "hi": hi, "n": len(sel), "found": len(d) / len(sel) if sel else None,
-                           "within_3pct": float(np.mean([abs(r["rel_error_first"]) <= 0.03 for r in d])) if d else None})
+            rows_b.append(
+                {
+                    "lo": lo,
+                    "hi": hi,
+                    "n": len(sel),
+                    "found": len(d) / len(sel) if sel else None,
+                    "within_3pct": float(np.mean([abs(r["rel_error_first"]) <= 0.03 for r in d]))
+                    if d
+                    else None,
+                }
+            )
         bins[name] = rows_b
     out["bins"] = bins
     return out
@@ -172,11 +211,15 @@ def summarize_stylus(rows) -> dict:
 
 def summarize_drift(rows) -> dict:
     errs = [a for r in rows for a in r["direction_errors_deg"]]
-    return {"n_trials": len(rows), "slip_detected_rate": float(np.mean([r["slip_delay_ms"] is not None for r in rows])),
-            "slip_delay_ms": _pct([r["slip_delay_ms"] for r in rows]),
-            "direction_reported_rate": float(np.mean([r["n_with_direction"] > 0 for r in rows])),
-            "direction_error_deg_mean_abs": float(np.mean(errs)) if errs else None,
-            "direction_error_deg": _pct(errs), "n_direction_reports": len(errs)}
+    return {
+        "n_trials": len(rows),
+        "slip_detected_rate": float(np.mean([r["slip_delay_ms"] is not None for r in rows])),
+        "slip_delay_ms": _pct([r["slip_delay_ms"] for r in rows]),
+        "direction_reported_rate": float(np.mean([r["n_with_direction"] > 0 for r in rows])),
+        "direction_error_deg_mean_abs": float(np.mean(errs)) if errs else None,
+        "direction_error_deg": _pct(errs),
+        "n_direction_reports": len(errs),
+    }
 
 
 def summarize_interference(rows) -> dict:
@@ -187,19 +230,28 @@ def summarize_interference(rows) -> dict:
             continue
         n_if = sum(r["n_interference"] for r in sel)
         s = summarize_alarms(sel)
-        s.update({"n_interference_packets": n_if,
-                  "rejected_rate": sum(r["n_rejected"] for r in sel) / n_if if n_if else None,
-                  "phantom_events": sum(r["n_phantom_events"] for r in sel),
-                  "acoustic_kept_rate": (sum(r["n_acoustic_kept"] for r in sel)
-                                         / max(1, sum(r["n_acoustic_packets"] for r in sel))),
-                  "extra_contacts": sum(r["contacts_created"] - 1 for r in sel)})
+        s.update(
+            {
+                "n_interference_packets": n_if,
+                "rejected_rate": sum(r["n_rejected"] for r in sel) / n_if if n_if else None,
+                "phantom_events": sum(r["n_phantom_events"] for r in sel),
+                "acoustic_kept_rate": (
+                    sum(r["n_acoustic_kept"] for r in sel)
+                    / max(1, sum(r["n_acoustic_packets"] for r in sel))
+                ),
+                "extra_contacts": sum(r["contacts_created"] - 1 for r in sel),
+            }
+        )
         by = {}
         for key in ("coupling", "sample_rate_hz", "medium"):
             for v in sorted({r[key] for r in sel}):
                 ss = [r for r in sel if r[key] == v]
                 n = sum(r["n_interference"] for r in ss)
-                by[f"{key}={v}"] = {"packets": n, "rejected_rate": (sum(r["n_rejected"] for r in ss) / n) if n else None,
-                                    "alarm_onsets": sum(r["n_alarm_onsets"] for r in ss)}
+                by[f"{key}={v}"] = {
+                    "packets": n,
+                    "rejected_rate": (sum(r["n_rejected"] for r in ss) / n) if n else None,
+                    "alarm_onsets": sum(r["n_alarm_onsets"] for r in ss),
+                }
         s["by"] = by
         out["with_discriminator" if disc else "without_discriminator"] = s
     return out
@@ -215,8 +267,11 @@ def _f(d, k, nd=0, scale=1.0):
 def _dist(d, nd=0, scale=1.0):
     if d is None:
         return "-"
-    return (f"median {_f(d, 'p50', nd, scale)}, p5 {_f(d, 'p5', nd, scale)}, p95 {_f(d, 'p95', nd, scale)} "
-            f"(min {_f(d, 'min', nd, scale)}, max {_f(d, 'max', nd, scale)})")
+    return (
+        f"median {_f(d, 'p50', nd, scale)}, p5 {_f(d, 'p5', nd, scale)}, p95 "
+        f"{_f(d, 'p95', nd, scale)} "
+        f"(min {_f(d, 'min', nd, scale)}, max {_f(d, 'max', nd, scale)})"
+    )
 
 
 def _rate(x):
@@ -226,85 +281,132 @@ def _rate(x):
 def tables(res: dict) -> str:
     s = res["summary"]
     L = []
-    L.append("**Incipient slip** (precursor before gross slip; q = Q/(mu P) at the precursor; "
-             "pipeline 'events'). Micro-slip counts are the emissions the detector received "
-             "before gross slip.\n")
-    L.append("| emitters | polarity | trials | precursor, >= 10 micro-slips | precursor, 5-10 | "
-             "median q (>= 10 / 5-10) | median lead ms (>= 10 / 5-10) | SLIP <= 50 ms | SLIP delay p95 ms | "
-             "SLIP at q < 0.9 |")
+    L.append(
+        "**Incipient slip** (precursor before gross slip; q = Q/(mu P) at the precursor; "
+        "pipeline 'events'). Micro-slip counts are the emissions the detector received "
+        "before gross slip.\n"
+    )
+    L.append(
+        "| emitters | polarity | trials | precursor, >= 10 micro-slips | precursor, 5-10 | "
+        "median q (>= 10 / 5-10) | median lead ms (>= 10 / 5-10) | SLIP <= 50 ms | SLIP "
+        "delay p95 ms | "
+        "SLIP at q < 0.9 |"
+    )
     L.append("|---|---|---|---|---|---|---|---|---|---|")
     for key, d in s["incipient"].items():
         mode, pol = key.split(":")
         a, b = d["micro_ge10"], d["micro_5to10"]
-        L.append(f"| {mode} | {pol} | {d['n_trials']} | {_rate(a['precursor_before_gross_rate'])} ({a['n_trials']}) | "
-                 f"{_rate(b['precursor_before_gross_rate'])} ({b['n_trials']}) | "
-                 f"{_f(a['q_at_precursor'], 'p50', 2)} / {_f(b['q_at_precursor'], 'p50', 2)} | "
-                 f"{_f(a['lead_ms'], 'p50')} / {_f(b['lead_ms'], 'p50')} | {_rate(d['slip_within_50ms_rate'])} | "
-                 f"{d['slip_delay_p95_ms_missing_as_inf']:.0f} | {_rate(d['slip_before_q090_rate'])} |")
+        L.append(
+            f"| {mode} | {pol} | {d['n_trials']} | "
+            f"{_rate(a['precursor_before_gross_rate'])} ({a['n_trials']}) | "
+            f"{_rate(b['precursor_before_gross_rate'])} ({b['n_trials']}) | "
+            f"{_f(a['q_at_precursor'], 'p50', 2)} / {_f(b['q_at_precursor'], 'p50', 2)} | "
+            f"{_f(a['lead_ms'], 'p50')} / {_f(b['lead_ms'], 'p50')} | "
+            f"{_rate(d['slip_within_50ms_rate'])} | "
+            f"{d['slip_delay_p95_ms_missing_as_inf']:.0f} | {_rate(d['slip_before_q090_rate'])} |"
+        )
     L.append("")
     L.append("**False alarms** (SLIP_PRECURSOR / SLIP / TEXTURE onsets).\n")
     L.append("| family | pipeline | trials | hours | alarm onsets | per hour |")
     L.append("|---|---|---|---|---|---|")
     for key, d in s["alarms"].items():
         fam, pl = key.split(":")
-        L.append(f"| {fam} | {pl} | {d['n_trials']} | {d['hours']:.2f} | {d['alarm_onsets']} | "
-                 f"{d['false_alarms_per_hour']:.1f} |")
+        L.append(
+            f"| {fam} | {pl} | {d['n_trials']} | {d['hours']:.2f} | {d['alarm_onsets']} | "
+            f"{d['false_alarms_per_hour']:.1f} |"
+        )
     L.append("")
     st = s.get("stylus") or {}
-    L.append("**Moving contact: stylus over a texture** (TEXTURE from the tracked speed, no sliding speed "
-             "given).\n")
-    L.append("| pipeline | trials | TEXTURE found | one contact | period within 3 % (first event) | "
-             "time to first TEXTURE (ms) | direction error (deg) |")
+    L.append(
+        "**Moving contact: stylus over a texture** (TEXTURE from the tracked speed, no "
+        "sliding speed "
+        "given).\n"
+    )
+    L.append(
+        "| pipeline | trials | TEXTURE found | one contact | period within 3 % (first event) | "
+        "time to first TEXTURE (ms) | direction error (deg) |"
+    )
     L.append("|---|---|---|---|---|---|---|")
     for key, d in st.items():
-        L.append(f"| {key} | {d['n_trials']} | {_rate(d['found_rate'])} | {_rate(d['one_contact_rate'])} | "
-                 f"{_rate(d['period_within_3pct_first'])} | {_dist(d['time_to_first_texture_ms'])} | "
-                 f"{_dist(d['direction_error_deg'], 1)} |")
+        L.append(
+            f"| {key} | {d['n_trials']} | {_rate(d['found_rate'])} | "
+            f"{_rate(d['one_contact_rate'])} | "
+            f"{_rate(d['period_within_3pct_first'])} | {_dist(d['time_to_first_texture_ms'])} | "
+            f"{_dist(d['direction_error_deg'], 1)} |"
+        )
     d = st.get("events")
     if d:
         L.append("")
-        L.append("| period (mm) | trials | found | within 3 % | | jitter | trials | found | within 3 % |")
+        L.append(
+            "| period (mm) | trials | found | within 3 % | | jitter | trials | found | "
+            "within 3 % |"
+        )
         L.append("|---|---|---|---|---|---|---|---|---|")
         for a, b in zip(d["bins"]["period_mm"], d["bins"]["jitter"] + [None]):
-            right = (f"{b['lo']:.2f}-{min(b['hi'], 0.2):.2f} | {b['n']} | {_rate(b['found'])} | {_rate(b['within_3pct'])}"
-                     if b else " | | | ")
-            L.append(f"| {1e3 * a['lo']:.1f}-{1e3 * min(a['hi'], 0.8e-3):.1f} | {a['n']} | {_rate(a['found'])} | "
-                     f"{_rate(a['within_3pct'])} | | {right} |")
+            right = (
+                f"{b['lo']:.2f}-{min(b['hi'], 0.2):.2f} | {b['n']} | {_rate(b['found'])} | "
+                f"{_rate(b['within_3pct'])}"
+                if b
+                else " | | | "
+            )
+            L.append(
+                f"| {1e3 * a['lo']:.1f}-{1e3 * min(a['hi'], 0.8e-3):.1f} | {a['n']} | "
+                f"{_rate(a['found'])} | "
+                f"{_rate(a['within_3pct'])} | | {right} |"
+            )
     L.append("")
     dr = s.get("drift")
     if dr:
-        L.append(f"**Slip direction** (plane slip drifting at 10-40 mm/s, {dr['n_trials']} trials, "
-                 f"{dr['n_direction_reports']} SLIP reports with a direction): mean absolute error "
-                 f"**{dr['direction_error_deg_mean_abs']:.1f} deg**, {_dist(dr['direction_error_deg'], 1)}; "
-                 f"SLIP detected {_rate(dr['slip_detected_rate'])}, delay {_dist(dr['slip_delay_ms'], 1)} ms.\n")
+        L.append(
+            f"**Slip direction** (plane slip drifting at 10-40 mm/s, {dr['n_trials']} trials, "
+            f"{dr['n_direction_reports']} SLIP reports with a direction): mean absolute error "
+            f"**{dr['direction_error_deg_mean_abs']:.1f} deg**, "
+            f"{_dist(dr['direction_error_deg'], 1)}; "
+            f"SLIP detected {_rate(dr['slip_detected_rate'])}, delay "
+            f"{_dist(dr['slip_delay_ms'], 1)} ms.\n"
+        )
     it = s.get("interference")
     if it:
         L.append("**Interference** (a held touch under common-mode bursts, waveform pipeline).\n")
-        L.append("| | trials | bursts | rejected | phantom localized events | extra contacts | alarm onsets | "
-                 "acoustic packets kept |")
+        L.append(
+            "| | trials | bursts | rejected | phantom localized events | extra contacts | "
+            "alarm onsets | "
+            "acoustic packets kept |"
+        )
         L.append("|---|---|---|---|---|---|---|---|")
         for key, d in it.items():
-            L.append(f"| {key.replace('_', ' ')} | {d['n_trials']} | {d['n_interference_packets']} | "
-                     f"{_rate(d['rejected_rate'])} | {d['phantom_events']} | {d['extra_contacts']} | "
-                     f"{d['alarm_onsets']} | {_rate(d['acoustic_kept_rate'])} |")
+            L.append(
+                f"| {key.replace('_', ' ')} | {d['n_trials']} | {d['n_interference_packets']} | "
+                f"{_rate(d['rejected_rate'])} | {d['phantom_events']} | {d['extra_contacts']} | "
+                f"{d['alarm_onsets']} | {_rate(d['acoustic_kept_rate'])} |"
+            )
         w = it.get("with_discriminator")
         if w:
             L.append("")
             L.append("| with the discriminator, by | bursts | rejected | alarm onsets |")
             L.append("|---|---|---|---|")
             for k, v in w["by"].items():
-                L.append(f"| {k} | {v['packets']} | {_rate(v['rejected_rate'])} | {v['alarm_onsets']} |")
+                L.append(
+                    f"| {k} | {v['packets']} | {_rate(v['rejected_rate'])} | {v['alarm_onsets']} |"
+                )
     L.append("")
     ds = res.get("detector_speed")
     isp = res.get("interference_speed")
     if ds and "meta" in res:
-        L.append(f"**Cost** (one core, load average {res['meta']['load_before'][0]:.1f} before / "
-                 f"{res['meta']['load_after'][0]:.1f} after the run on {os.cpu_count()} cores): "
-                 f"SlipDetector.process {ds['us_p50']:.0f} us median, {ds['us_p99']:.0f} us p99, "
-                 f"{ds['us_max']:.0f} us max per event ({ds['events_per_s'] / 1e3:.1f} k events/s)"
-                 + (f"; common_mode_interference {isp['us_per_packet_batch1']:.0f} us per packet one at a "
-                    f"time, {isp['us_per_packet_batch256']:.1f} us per packet in batches of 256" if isp else "")
-                 + ".")
+        L.append(
+            f"**Cost** (one core, load average {res['meta']['load_before'][0]:.1f} before / "
+            f"{res['meta']['load_after'][0]:.1f} after the run on {os.cpu_count()} cores): "
+            f"SlipDetector.process {ds['us_p50']:.0f} us median, {ds['us_p99']:.0f} us p99, "
+            f"{ds['us_max']:.0f} us max per event ({ds['events_per_s'] / 1e3:.1f} k events/s)"
+            + (
+                f"; common_mode_interference {isp['us_per_packet_batch1']:.0f} us per "
+                f"packet one at a "
+                f"time, {isp['us_per_packet_batch256']:.1f} us per packet in batches of 256"
+                if isp
+                else ""
+            )
+            + "."
+        )
     return "\n".join(L)
 
 
@@ -312,7 +414,9 @@ def tables(res: dict) -> str:
 def _save(res, q, final=False):
     RESULTS.mkdir(parents=True, exist_ok=True)
     out = RESULTS / ("slip_quick.json" if q else "slip.json")
-    out.write_text(json.dumps(res, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+    out.write_text(
+        json.dumps(res, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+    )
     tab = tables(res)
     if not q and DOC.exists():
         text = DOC.read_text()
@@ -327,8 +431,12 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="reduced trial counts (smoke run)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--budget-s", type=float, default=None,
-                    help="start no new family after this many seconds (results so far are kept)")
+    ap.add_argument(
+        "--budget-s",
+        type=float,
+        default=None,
+        help="start no new family after this many seconds (results so far are kept)",
+    )
     args = ap.parse_args(argv)
     warnings.simplefilter("ignore", RuntimeWarning)
     q = args.quick
@@ -343,23 +451,39 @@ def main(argv=None) -> int:
     res = {"summary": summary, "timing_s": timing, "trials": trials}
 
     def meta():
-        res["meta"] = {"quick": q, "seed": s0, "python": platform.python_version(), "numpy": np.__version__,
-                       "machine": platform.machine(), "cpu_count": os.cpu_count(),
-                       "wall_s": time.perf_counter() - t0, "load_before": list(load_before),
-                       "load_after": list(os.getloadavg()), "families_done": list(timing)}
+        res["meta"] = {
+            "quick": q,
+            "seed": s0,
+            "python": platform.python_version(),
+            "numpy": np.__version__,
+            "machine": platform.machine(),
+            "cpu_count": os.cpu_count(),
+            "wall_s": time.perf_counter() - t0,
+            "load_before": list(load_before),
+            "load_after": list(os.getloadavg()),
+            "families_done": list(timing),
+        }
 
     def run(name, fn, n):
         a = time.perf_counter()
         rows = [fn(s0 + i) for i in range(n)]
         timing[name] = time.perf_counter() - a
-        print(f"  {name}: {n} trials ({timing[name]:.0f} s, total {time.perf_counter() - t0:.0f} s)", flush=True)
+        print(
+            f"  {name}: {n} trials ({timing[name]:.0f} s, total {time.perf_counter() - t0:.0f} s)",
+            flush=True,
+        )
         return rows
 
     def inc(mode, pol, n, pipeline="events", off=0):
         kw = SPARSE if mode == "sparse" else {}
         key = f"{mode}:{pol}" + (", waveforms" if pipeline != "events" else "")
-        rows = run(f"incipient {key}", lambda s: ev.incipient_slip_trial(
-            s + off, post_s=0.15, polarity=pol, pipeline=pipeline, **kw), n)
+        rows = run(
+            f"incipient {key}",
+            lambda s: ev.incipient_slip_trial(
+                s + off, post_s=0.15, polarity=pol, pipeline=pipeline, **kw
+            ),
+            n,
+        )
         trials[f"incipient:{key}"] = rows
         summary["incipient"][key] = summarize_incipient(rows)
 
@@ -369,7 +493,9 @@ def main(argv=None) -> int:
         summary["alarms"][f"{name}:{pl}"] = summarize_alarms(rows)
 
     def stylus(pl, n):
-        rows = run(f"stylus {pl}", lambda s: ev.stylus_trial(s, pipeline=pl, period_m=(0.2e-3, 0.8e-3)), n)
+        rows = run(
+            f"stylus {pl}", lambda s: ev.stylus_trial(s, pipeline=pl, period_m=(0.2e-3, 0.8e-3)), n
+        )
         trials[f"stylus:{pl}"] = rows
         summary["stylus"][pl] = summarize_stylus(rows)
 
@@ -380,8 +506,11 @@ def main(argv=None) -> int:
 
     def interference():
         rows = run("interference", lambda s: ev.interference_trial(s), n_if)
-        rows += run("interference, no discriminator", lambda s: ev.interference_trial(s, discriminate=False),
-                    n_if_off)
+        rows += run(
+            "interference, no discriminator",
+            lambda s: ev.interference_trial(s, discriminate=False),
+            n_if_off,
+        )
         trials["interference"] = rows
         summary["interference"] = summarize_interference(rows)
 
@@ -389,21 +518,27 @@ def main(argv=None) -> int:
         res["detector_speed"] = detector_speed()
         res["interference_speed"] = interference_speed()
 
-    tasks = [lambda: inc("sparse", "random", N),
-             lambda: alarms("touch-hold-release", ev.touch_hold_release_trial, "events", N),
-             lambda: alarms("tapping another spot", ev.tapping_trial, "events", N),
-             lambda: alarms("touch-release cycles", ev.cycles_trial, "events", N),
-             lambda: stylus("events", N), drift, cost,
-             lambda: inc("dense", "random", N),
-             interference,
-             lambda: inc("sparse", "compression", N), lambda: inc("sparse", "rarefaction", N),
-             lambda: inc("dense", "compression", n_pol), lambda: inc("dense", "rarefaction", n_pol),
-             lambda: inc("dense", "random", n_val, "triggered", 50_000),
-             lambda: inc("sparse", "random", n_val, "triggered", 50_000),
-             lambda: alarms("touch-hold-release", ev.touch_hold_release_trial, "triggered", n_val),
-             lambda: alarms("tapping another spot", ev.tapping_trial, "triggered", n_val),
-             lambda: alarms("touch-release cycles", ev.cycles_trial, "triggered", n_val),
-             lambda: stylus("triggered", n_val)]
+    tasks = [
+        lambda: inc("sparse", "random", N),
+        lambda: alarms("touch-hold-release", ev.touch_hold_release_trial, "events", N),
+        lambda: alarms("tapping another spot", ev.tapping_trial, "events", N),
+        lambda: alarms("touch-release cycles", ev.cycles_trial, "events", N),
+        lambda: stylus("events", N),
+        drift,
+        cost,
+        lambda: inc("dense", "random", N),
+        interference,
+        lambda: inc("sparse", "compression", N),
+        lambda: inc("sparse", "rarefaction", N),
+        lambda: inc("dense", "compression", n_pol),
+        lambda: inc("dense", "rarefaction", n_pol),
+        lambda: inc("dense", "random", n_val, "triggered", 50_000),
+        lambda: inc("sparse", "random", n_val, "triggered", 50_000),
+        lambda: alarms("touch-hold-release", ev.touch_hold_release_trial, "triggered", n_val),
+        lambda: alarms("tapping another spot", ev.tapping_trial, "triggered", n_val),
+        lambda: alarms("touch-release cycles", ev.cycles_trial, "triggered", n_val),
+        lambda: stylus("triggered", n_val),
+    ]
     out = None
     for task in tasks:
         if args.budget_s is not None and time.perf_counter() - t0 > args.budget_s:

@@ -2,6 +2,7 @@
 discriminator (ae_tactile.dsp.interference) against acoustic packets at and near the apex
 rendered by the acoustic simulator. Seeded; thresholds leave margins to the measured rates
 (bench/bench_slip.py, docs/slip.md)."""
+
 import numpy as np
 import pytest
 
@@ -17,8 +18,14 @@ def apex_packets(cfg, n, noise, rng, radius_m=1e-3):
     r = np.sqrt(rng.uniform(0, 1, n)) * radius_m
     th = rng.uniform(0, 2 * np.pi, n)
     pts = g.surface_point_from_xy(r * np.cos(th), r * np.sin(th))
-    return render_triggered(pts, cfg, noise_rms_v=noise, rng=rng, speed_m_s=rng.uniform(0.05, 0.5, n),
-                            polarity=rng.choice([-1, 1], n))
+    return render_triggered(
+        pts,
+        cfg,
+        noise_rms_v=noise,
+        rng=rng,
+        speed_m_s=rng.uniform(0.05, 0.5, n),
+        polarity=rng.choice([-1, 1], n),
+    )
 
 
 def rates(cfg, snr_db, coupling, seed, echo_min=None, n=120):
@@ -27,9 +34,16 @@ def rates(cfg, snr_db, coupling, seed, echo_min=None, n=120):
     noise = reference_noise_rms(cfg, snr_db)
     kw = dict(noise_rms_v=noise, geometry=g, lowpass_hz=cfg.lowpass_hz, echo_min=echo_min)
     pk = apex_packets(cfg, n, noise, rng)
-    kept = 1.0 - common_mode_interference(pk.samples_v, cfg.sample_rate_hz, pk.onset_index, **kw)[0].mean()
+    kept = (
+        1.0
+        - common_mode_interference(pk.samples_v, cfg.sample_rate_hz, pk.onset_index, **kw)[
+            0
+        ].mean()
+    )
     ip = render_interference(n, cfg, coupling=coupling, noise_rms_v=noise, rng=rng)
-    rej = common_mode_interference(ip.samples_v, cfg.sample_rate_hz, ip.onset_index, **kw)[0].mean()
+    rej = common_mode_interference(ip.samples_v, cfg.sample_rate_hz, ip.onset_index, **kw)[
+        0
+    ].mean()
     return kept, rej
 
 
@@ -62,14 +76,15 @@ def test_off_apex_touches_are_not_common_mode():
     th = np.radians(rng.uniform(10, 60, 100))
     ph = rng.uniform(0, 2 * np.pi, 100)
     pk = render_triggered(g.surface_point_from_angles(th, ph), cfg, snr_db=30.0, rng=rng)
-    mask, score = common_mode_interference(pk.samples_v, cfg.sample_rate_hz, pk.onset_index,
-                                           noise_rms_v=pk.noise_rms_v, geometry=g)
+    mask, score = common_mode_interference(
+        pk.samples_v, cfg.sample_rate_hz, pk.onset_index, noise_rms_v=pk.noise_rms_v, geometry=g
+    )
     assert not mask.any()
 
 
 def test_identical_channels_and_bad_input():
     x = np.zeros((3, 4, 400))
-    x[:, :, 100] = 1.0                     # one-sample spike, identical everywhere
+    x[:, :, 100] = 1.0  # one-sample spike, identical everywhere
     x[2] = np.nan
     mask, score = common_mode_interference(x, 10e6, np.array([99, 99, 99]))
     assert mask.tolist() == [True, True, False] and np.isnan(score[2])
@@ -110,7 +125,11 @@ def test_noise_estimated_from_the_pretrigger(medium):
     rng = np.random.default_rng(17)
     noise = reference_noise_rms(cfg, 20.0)
     pk = apex_packets(cfg, 150, noise, rng)
-    m1, _ = common_mode_interference(pk.samples_v, cfg.sample_rate_hz, pk.onset_index, geometry=cfg.geometry)
+    m1, _ = common_mode_interference(
+        pk.samples_v, cfg.sample_rate_hz, pk.onset_index, geometry=cfg.geometry
+    )
     ip = render_interference(150, cfg, coupling="adc", noise_rms_v=noise, rng=rng)
-    m2, _ = common_mode_interference(ip.samples_v, cfg.sample_rate_hz, ip.onset_index, geometry=cfg.geometry)
+    m2, _ = common_mode_interference(
+        ip.samples_v, cfg.sample_rate_hz, ip.onset_index, geometry=cfg.geometry
+    )
     assert 1.0 - m1.mean() >= 0.97 and m2.mean() >= 0.8

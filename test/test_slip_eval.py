@@ -2,6 +2,7 @@
 bench/bench_slip.py, >= 1,000 trials per family). Most families use the 'events' pipeline
 (true emissions + the localizer's error model), a few the rendered waveforms. Seeded;
 thresholds leave margins to the rates the benchmark measures (docs/slip.md)."""
+
 import numpy as np
 import pytest
 
@@ -13,23 +14,38 @@ SPARSE = dict(micro_slip_count=(4.0, 12.0), slip_rate_hz=(100.0, 200.0))
 
 @pytest.fixture(scope="module")
 def dense():
-    return {pol: [ev.incipient_slip_trial(s, post_s=0.15, polarity=pol, pipeline="events") for s in range(30)]
-            for pol in ("random", "compression", "rarefaction")}
+    return {
+        pol: [
+            ev.incipient_slip_trial(s, post_s=0.15, polarity=pol, pipeline="events")
+            for s in range(30)
+        ]
+        for pol in ("random", "compression", "rarefaction")
+    }
 
 
 @pytest.fixture(scope="module")
 def sparse():
-    return {pol: [ev.incipient_slip_trial(s, post_s=0.15, polarity=pol, pipeline="events", **SPARSE)
-                  for s in range(60)] for pol in ("random", "compression", "rarefaction")}
+    return {
+        pol: [
+            ev.incipient_slip_trial(s, post_s=0.15, polarity=pol, pipeline="events", **SPARSE)
+            for s in range(60)
+        ]
+        for pol in ("random", "compression", "rarefaction")
+    }
 
 
 @pytest.mark.parametrize("pol", ["random", "compression", "rarefaction"])
 def test_dense_emitters_precursor_any_polarity(dense, pol):
     rows = dense[pol]
-    assert all(r["precursor_before_gross"] for r in rows), [r["seed"] for r in rows if not r["precursor_before_gross"]]
+    assert all(r["precursor_before_gross"] for r in rows), [
+        r["seed"] for r in rows if not r["precursor_before_gross"]
+    ]
     assert np.median([r["q_at_precursor"] for r in rows]) <= 0.1
     # the precursor is a micro-slip emission on the Cattaneo-Mindlin annulus (r <= a_H)
-    assert max(r["precursor_error_to_ring_m"] for r in rows) < 0.5 * min(r["hertz_radius_m"] for r in rows) + 0.2e-3
+    assert (
+        max(r["precursor_error_to_ring_m"] for r in rows)
+        < 0.5 * min(r["hertz_radius_m"] for r in rows) + 0.2e-3
+    )
     assert all(r["slip_time_ns"] is not None for r in rows)
     assert np.percentile([r["slip_delay_ms"] for r in rows], 90) <= 50.0
     assert sum(r["n_texture_events"] for r in rows) == 0
@@ -48,7 +64,9 @@ def test_sparse_emitters_precursor_polarity_free(sparse):
         assert np.median(q) <= 0.6
         # gross slip is detected whether or not a precursor came first
         assert np.mean([r["slip_time_ns"] is not None for r in rows]) >= 0.9
-        assert np.median([r["slip_delay_ms"] for r in rows if r["slip_delay_ms"] is not None]) <= 50.0
+        assert (
+            np.median([r["slip_delay_ms"] for r in rows if r["slip_delay_ms"] is not None]) <= 50.0
+        )
     assert max(hit.values()) - min(hit.values()) <= 0.05
 
 
@@ -68,7 +86,10 @@ def test_no_false_alarms_touch_release_cycles_waveforms():
 
 
 def test_stylus_is_one_contact_with_its_texture():
-    rows = [ev.stylus_trial(s, pipeline="events", period_m=(0.25e-3, 0.5e-3), jitter=(0.0, 0.1)) for s in range(30)]
+    rows = [
+        ev.stylus_trial(s, pipeline="events", period_m=(0.25e-3, 0.5e-3), jitter=(0.0, 0.1))
+        for s in range(30)
+    ]
     found = [r for r in rows if r["n_texture"]]
     assert len(found) >= 24
     assert np.mean([abs(r["rel_error_first"]) <= 0.03 for r in found]) >= 0.85
@@ -79,7 +100,7 @@ def test_drifting_slip_direction_beats_the_reference():
     rows = [ev.drift_slip_trial(s, pipeline="events") for s in range(20)]
     assert all(r["slip_delay_ms"] is not None for r in rows)
     errs = [a for r in rows for a in r["direction_errors_deg"]]
-    assert len(errs) >= 10 and np.mean(errs) < 14.1      # a learned 4-microphone gripper: 14.1 deg
+    assert len(errs) >= 10 and np.mean(errs) < 14.1  # a learned 4-microphone gripper: 14.1 deg
 
 
 def test_interference_never_becomes_an_alarm():

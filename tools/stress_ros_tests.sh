@@ -10,7 +10,7 @@ TESTS=("$@")
 "$ROOT/tools/setup.sh"
 # shellcheck disable=SC1091
 source "$ROOT/tools/env.sh"
-cd "$ROOT"
+cd "$ROOT"; mkdir -p log
 python3 -c 'while True: pass' &          # the other core, kept busy
 BUSY=$!
 trap 'kill $BUSY 2>/dev/null || true' EXIT

@@ -23,6 +23,7 @@ front end itself (coupled into the amplifier's input) has an acoustic packet's s
 and is not separable from an apex touch by one packet: docs/slip.md gives the measured
 rates for both couplings.
 """
+
 from __future__ import annotations
 
 import math
@@ -37,17 +38,27 @@ SHAPE_MIN = 0.8
 
 
 @lru_cache(maxsize=32)
-def acoustic_templates(sample_rate_hz: float, n_samples: int, highpass_hz: float, highpass_order: int,
-                       lowpass_hz: float | None, lowpass_order: int, n_offsets: int = 4) -> np.ndarray:
+def acoustic_templates(
+    sample_rate_hz: float,
+    n_samples: int,
+    highpass_hz: float,
+    highpass_order: int,
+    lowpass_hz: float | None,
+    lowpass_order: int,
+    n_offsets: int = 4,
+) -> np.ndarray:
     """Unit-norm templates (n_offsets, n_samples) of an acoustic packet: the front end's
     response to a pressure step (a touch's Eq. 9 pulse is a step in the band, emission.py),
     the step at sub-sample offsets j / n_offsets before the first sample... + 1 sample."""
     from scipy import signal
-    z, p, k = signal.butter(highpass_order, 2 * math.pi * highpass_hz, "highpass", analog=True,
-                            output="zpk")
+
+    z, p, k = signal.butter(
+        highpass_order, 2 * math.pi * highpass_hz, "highpass", analog=True, output="zpk"
+    )
     if lowpass_hz is not None:
-        z2, p2, k2 = signal.butter(lowpass_order, 2 * math.pi * lowpass_hz, "lowpass", analog=True,
-                                   output="zpk")
+        z2, p2, k2 = signal.butter(
+            lowpass_order, 2 * math.pi * lowpass_hz, "lowpass", analog=True, output="zpk"
+        )
         z, p, k = np.concatenate([z, z2]), np.concatenate([p, p2]), k * k2
     sys_ = signal.lti(z, p, k)
     fine = np.arange((n_samples + 2) * 8 * n_offsets) / (8 * n_offsets * sample_rate_hz)
@@ -60,17 +71,31 @@ def acoustic_templates(sample_rate_hz: float, n_samples: int, highpass_hz: float
     return out
 
 
-def common_mode_interference(windows, sample_rate_hz: float, onset_index, *, geometry=None,
-                             noise_rms_v=None, lowpass_hz: float = 1e6, window_s: float = 20e-6,
-                             echo_min: float | None = None, common_min: float = COMMON_MIN,
-                             highpass_hz: float = 100e3, highpass_order: int = 2, lowpass_order: int = 4,
-                             shape_min: float | None = SHAPE_MIN, shape_snr_min: float = 30.0,
-                             low_max: float = LOW_MAX, high_max: float = HIGH_MAX):
+def common_mode_interference(
+    windows,
+    sample_rate_hz: float,
+    onset_index,
+    *,
+    geometry=None,
+    noise_rms_v=None,
+    lowpass_hz: float = 1e6,
+    window_s: float = 20e-6,
+    echo_min: float | None = None,
+    common_min: float = COMMON_MIN,
+    highpass_hz: float = 100e3,
+    highpass_order: int = 2,
+    lowpass_order: int = 4,
+    shape_min: float | None = SHAPE_MIN,
+    shape_snr_min: float = 30.0,
+    low_max: float = LOW_MAX,
+    high_max: float = HIGH_MAX,
+):
     """(mask (K,) bool: interference, score (K,) float) for packets ``windows`` (K, 4, M)
     volts at ``sample_rate_hz`` with onsets ``onset_index`` (K,) (window-relative samples).
 
     ``noise_rms_v``: per-channel noise sigma (scalar or (K,)), removed from the energies
-    (None: estimated per packet from the samples before the onset, when there are >= 8). ``lowpass_hz``: the front end's anti-alias cut-off;
+    (None: estimated per packet from the samples before the onset, when there are >= 8).
+    ``lowpass_hz``: the front end's anti-alias cut-off;
     ``window_s``: analysis length after the onset. ``echo_min`` (needs ``geometry``):
     on a device with wall echoes, a common-mode packet whose echo at 2R/c (regression
     coefficient beta of the common mode at that lag on the direct packet, -0.5 for the
@@ -93,8 +118,8 @@ def common_mode_interference(windows, sample_rate_hz: float, onset_index, *, geo
         return np.zeros(0, bool), np.zeros(0)
     w = max(4, min(m, int(round(window_s * fs))))
     start = np.clip(on - 1, 0, max(0, m - w))
-    s_full = x.mean(axis=1)                                       # (K, M) common mode
-    q_full = np.einsum("kcm,kcm->km", x, x) * 0.25                # (K, M) mean channel power
+    s_full = x.mean(axis=1)  # (K, M) common mode
+    q_full = np.einsum("kcm,kcm->km", x, x) * 0.25  # (K, M) mean channel power
     rows = np.arange(k)[:, None]
     idx = start[:, None] + np.arange(w)[None, :]
     s = s_full[rows, idx]
@@ -129,13 +154,19 @@ def common_mode_interference(windows, sample_rate_hz: float, onset_index, *, geo
         # (before the first wall echo, 2R/c after the onset, when the geometry is known)
         t_echo = 10e-6 if geometry is None else 2.0 * geometry.radius_m / geometry.sound_speed_m_s
         wt = max(4, min(w, m - 3, int(t_echo * fs) - 1))
-        tpl = acoustic_templates(fs, wt, float(highpass_hz), int(highpass_order),
-                                 None if lowpass_hz is None else float(lowpass_hz), int(lowpass_order))
+        tpl = acoustic_templates(
+            fs,
+            wt,
+            float(highpass_hz),
+            int(highpass_order),
+            None if lowpass_hz is None else float(lowpass_hz),
+            int(lowpass_order),
+        )
         kc = cand.size
         nvc = nv if np.size(nv) == 1 else nv[cand]
         st = np.clip(on[cand] - 2, 0, m - wt - 3)
         lags = st[:, None, None] + np.arange(4)[None, :, None] + np.arange(wt)[None, None, :]
-        seg = s_full[cand[:, None, None], lags]                          # (Kc, 4 lags, wt)
+        seg = s_full[cand[:, None, None], lags]  # (Kc, 4 lags, wt)
         c = np.einsum("klw,jw->klj", seg, tpl)
         best = (c * c).reshape(kc, -1).max(axis=1)
         e_seg = np.einsum("kw,kw->k", seg[:, 1], seg[:, 1]) - wt * nvc * 0.25
@@ -152,8 +183,9 @@ def common_mode_interference(windows, sample_rate_hz: float, onset_index, *, geo
             direct, echo = s_full[cand[:, None], i0], s_full[cand[:, None], i0 + lag]
             ed = np.einsum("kw,kw->k", direct, direct)
             beta = np.einsum("kw,kw->k", direct, echo) / np.maximum(ed, tiny)
-            score[cand] = np.maximum(score[cand],
-                                     common[cand] * (1.0 - np.minimum(np.abs(beta) / echo_min, 1.0)) * 2.0)
+            score[cand] = np.maximum(
+                score[cand], common[cand] * (1.0 - np.minimum(np.abs(beta) / echo_min, 1.0)) * 2.0
+            )
     finite = np.isfinite(score) & np.isfinite(e_ch)
     score = np.where(finite, np.where(e_s > 0, score, 0.0), np.nan)
     mask = finite & (common >= common_min) & (score >= 1.0)

@@ -21,6 +21,7 @@ independent white noise of ``noise_rms_v`` and the ADC's quantization and clippi
 The returned ``TriggeredPackets`` have the triggered renderer's format (onset after
 ``pretrigger_s``), NaN points and delays, polarity 0.
 """
+
 from __future__ import annotations
 
 import math
@@ -39,15 +40,26 @@ def _rng(rng):
     return rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
 
 
-def burst_times_s(duration_s: float, rate_hz: float, *, periodic: bool = True, jitter_s: float = 0.0,
-                  start_s: float = 0.0, rng=None) -> np.ndarray:
+def burst_times_s(
+    duration_s: float,
+    rate_hz: float,
+    *,
+    periodic: bool = True,
+    jitter_s: float = 0.0,
+    start_s: float = 0.0,
+    rng=None,
+) -> np.ndarray:
     """Burst times (s) in [start_s, duration_s): periodic at ``rate_hz`` (jitter: Gaussian
     std ``jitter_s``) or Poisson."""
     g = _rng(rng)
     if not (rate_hz > 0 and duration_s > start_s):
         return np.zeros(0)
     if periodic:
-        t = start_s + g.uniform(0, 1.0 / rate_hz) + np.arange(int((duration_s - start_s) * rate_hz) + 1) / rate_hz
+        t = (
+            start_s
+            + g.uniform(0, 1.0 / rate_hz)
+            + np.arange(int((duration_s - start_s) * rate_hz) + 1) / rate_hz
+        )
         t = t + g.normal(0.0, jitter_s, t.size) if jitter_s > 0 else t
     else:
         n = g.poisson(rate_hz * (duration_s - start_s))
@@ -83,19 +95,34 @@ def _waveforms(kind, n, t, g):
 
 def _front_end_filter(w, config: SimConfig):
     from scipy import signal
+
     fs = config.sample_rate_hz
-    sos = [signal.butter(config.highpass_order, config.highpass_hz, "highpass", fs=fs, output="sos")]
+    sos = [
+        signal.butter(config.highpass_order, config.highpass_hz, "highpass", fs=fs, output="sos")
+    ]
     if config.lowpass_hz is not None and config.lowpass_hz < 0.5 * fs:
-        sos.append(signal.butter(config.lowpass_order, config.lowpass_hz, "lowpass", fs=fs, output="sos"))
+        sos.append(
+            signal.butter(config.lowpass_order, config.lowpass_hz, "lowpass", fs=fs, output="sos")
+        )
     for s in sos:
         w = signal.sosfilt(s, w, axis=-1)
     peak = np.abs(w).max(axis=1, keepdims=True)
     return w / np.where(peak > 0, peak, 1.0)
 
 
-def render_interference(n: int, config: SimConfig | None = None, *, kind="mixed", coupling="adc",
-                        amplitude_v=None, noise_rms_v: float = 0.0, gain_mismatch: float = 0.01,
-                        pretrigger_s: float = 8e-6, window_s: float = 40e-6, rng=None) -> TriggeredPackets:
+def render_interference(
+    n: int,
+    config: SimConfig | None = None,
+    *,
+    kind="mixed",
+    coupling="adc",
+    amplitude_v=None,
+    noise_rms_v: float = 0.0,
+    gain_mismatch: float = 0.01,
+    pretrigger_s: float = 8e-6,
+    window_s: float = 40e-6,
+    rng=None,
+) -> TriggeredPackets:
     """``n`` common-mode interference packets (see the module docstring). ``kind``: one of
     KINDS or 'mixed' (uniform choice per packet); ``amplitude_v``: scalar, (n,), or None
     (log-uniform 10 .. 300 noise sigmas, or 0.01 .. 0.3 V without noise)."""
@@ -132,11 +159,21 @@ def render_interference(n: int, config: SimConfig | None = None, *, kind="mixed"
     samples, clipped = quantize(noisy, cfg)
     nanv = np.full((n, 3), np.nan)
     return TriggeredPackets(
-        samples_v=samples, clean_v=clean, sample_rate_hz=fs, onset_index=np.full(n, pre + 1, np.int64),
-        points_m=nanv, delays_s=np.zeros((n, 2)), twist_s=np.zeros(n), arrival_times_s=np.zeros((n, 4)),
-        emission_time_s=np.full(n, np.nan), noise_rms_v=np.full(n, float(noise_rms_v)),
-        snr_db=np.full(n, np.nan), signal_power_v2=np.full(n, np.nan),
-        saturated=clipped.any(axis=(1, 2)), polarity=np.zeros(n))
+        samples_v=samples,
+        clean_v=clean,
+        sample_rate_hz=fs,
+        onset_index=np.full(n, pre + 1, np.int64),
+        points_m=nanv,
+        delays_s=np.zeros((n, 2)),
+        twist_s=np.zeros(n),
+        arrival_times_s=np.zeros((n, 4)),
+        emission_time_s=np.full(n, np.nan),
+        noise_rms_v=np.full(n, float(noise_rms_v)),
+        snr_db=np.full(n, np.nan),
+        signal_power_v2=np.full(n, np.nan),
+        saturated=clipped.any(axis=(1, 2)),
+        polarity=np.zeros(n),
+    )
 
 
 def scene_bursts(truth: dict) -> list[dict]:
@@ -148,7 +185,12 @@ def scene_bursts(truth: dict) -> list[dict]:
     out = []
     for part in truth.get("parts", []):
         if part.get("generator") == "interference":
-            out.append(dict(part, times_ns=np.asarray(part["burst_times_ns"], np.int64) + int(part["offset_ns"])))
+            out.append(
+                dict(
+                    part,
+                    times_ns=np.asarray(part["burst_times_ns"], np.int64) + int(part["offset_ns"]),
+                )
+            )
     return out
 
 
@@ -178,17 +220,41 @@ class InterferenceSource:
             ref = self.noise_rms_v if self.noise_rms_v > 0 else 1e-3
             amp = ref * 10 ** (b["amplitude_snr_db"] / 20.0)
             rng = np.random.default_rng([self.seed, 91, i, int(sel[0])])
-            parts.append(render_interference(sel.size, self.config, kind=b["kind"], coupling=b["coupling"],
-                                              amplitude_v=amp, noise_rms_v=self.noise_rms_v,
-                                              pretrigger_s=self.pre, window_s=self.win, rng=rng))
+            parts.append(
+                render_interference(
+                    sel.size,
+                    self.config,
+                    kind=b["kind"],
+                    coupling=b["coupling"],
+                    amplitude_v=amp,
+                    noise_rms_v=self.noise_rms_v,
+                    pretrigger_s=self.pre,
+                    window_s=self.win,
+                    rng=rng,
+                )
+            )
             times.append(sel)
         self._h = max(self._h, int(horizon_ns))
         if not parts:
             return np.zeros(0, np.int64), None
         t = np.concatenate(times)
         order = np.argsort(t, kind="stable")
-        cat = {f: np.concatenate([getattr(p, f) for p in parts])[order]
-               for f in ("samples_v", "clean_v", "onset_index", "points_m", "delays_s", "twist_s",
-                         "arrival_times_s", "emission_time_s", "noise_rms_v", "snr_db", "signal_power_v2",
-                         "saturated", "polarity")}
+        cat = {
+            f: np.concatenate([getattr(p, f) for p in parts])[order]
+            for f in (
+                "samples_v",
+                "clean_v",
+                "onset_index",
+                "points_m",
+                "delays_s",
+                "twist_s",
+                "arrival_times_s",
+                "emission_time_s",
+                "noise_rms_v",
+                "snr_db",
+                "signal_power_v2",
+                "saturated",
+                "polarity",
+            )
+        }
         return t[order], TriggeredPackets(sample_rate_hz=parts[0].sample_rate_hz, **cat)

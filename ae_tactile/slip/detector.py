@@ -40,6 +40,7 @@ The evidence is *where* emissions come from, not their sign:
 Work per event is bounded: ring buffers of ``member_history`` emissions per contact,
 at most ``max_contacts`` contacts, small fits run only when their input changed.
 """
+
 from __future__ import annotations
 
 import math
@@ -49,7 +50,7 @@ import numpy as np
 from .config import SlipConfig
 from .types import ContactInfo, ContactState, FingerState, LocalizedEvent, SlipEvent, SlipEventType
 
-FOUNDER, EVID, PAIRED, REPEAT, OVERLAP = 1, 2, 4, 8, 16       # member flags
+FOUNDER, EVID, PAIRED, REPEAT, OVERLAP = 1, 2, 4, 8, 16  # member flags
 _SLIPPING = (ContactState.INCIPIENT_SLIP, ContactState.GROSS_SLIP)
 _NAN3 = np.full(3, np.nan)
 
@@ -115,7 +116,7 @@ class _Contact:
         self.H = H
         self.t = np.zeros(H, np.int64)
         self.p = np.zeros((H, 3))
-        self.var = np.zeros(H)                # per-axis position variance (m^2)
+        self.var = np.zeros(H)  # per-axis position variance (m^2)
         self.pol = np.zeros(H, np.int8)
         self.pid = np.zeros(H, np.int64)
         self.flags = np.zeros(H, np.uint8)
@@ -126,22 +127,22 @@ class _Contact:
         self.last_ns = t_ns
         self.confirmed = confirmed
         self.pending_release_ns = None
-        self.pending_in_slip = False          # a release-like emission while slipping
-        self.founder = None                   # (point, variance, polarity) of the founder
-        self.last_p = None                    # latest emission's point
+        self.pending_in_slip = False  # a release-like emission while slipping
+        self.founder = None  # (point, variance, polarity) of the founder
+        self.last_p = None  # latest emission's point
         self.precursor_count = 0
         self.last_report = {}
         self.texture_on = False
         self.texture_run = 0
         self.centre = None
-        self.fitted = False                   # centre from a circle fit to micro-slips
+        self.fitted = False  # centre from a circle fit to micro-slips
         self.radius = 0.0
-        self.n_evid_fit = -1                  # evidence count at the last circle fit
+        self.n_evid_fit = -1  # evidence count at the last circle fit
         self.moving = False
         self.vel = np.zeros(3)
-        self.track_t = 0.0                    # reference time (s) of the motion fit
-        self.track_c = None                   # centre at track_t
-        self.track_se = math.inf              # standard error of the speed (m/s)
+        self.track_t = 0.0  # reference time (s) of the motion fit
+        self.track_c = None  # centre at track_t
+        self.track_se = math.inf  # standard error of the speed (m/s)
         self.events_since_track = 0
         self.rate_key = None
         self.rate_val = 0.0
@@ -184,10 +185,21 @@ class SlipDetector:
         self.contacts: list[_Contact] = []
         self._next_id = 1
         self.now_ns = None
-        self.counts = {"events": 0, "rejected_low_confidence": 0, "rejected_out_of_order": 0,
-                       "rejected_non_finite": 0, "rejected_bad_type": 0, "releases": 0,
-                       "releases_cancelled": 0, "orphans_dropped": 0, "pairs": 0, "repeats": 0, "evidence": 0,
-                       "contacts_created": 0, "contacts_dropped": 0}
+        self.counts = {
+            "events": 0,
+            "rejected_low_confidence": 0,
+            "rejected_out_of_order": 0,
+            "rejected_non_finite": 0,
+            "rejected_bad_type": 0,
+            "releases": 0,
+            "releases_cancelled": 0,
+            "orphans_dropped": 0,
+            "pairs": 0,
+            "repeats": 0,
+            "evidence": 0,
+            "contacts_created": 0,
+            "contacts_dropped": 0,
+        }
         self._finger = FingerState(ContactState.NO_CONTACT, 0, _NAN3.copy(), 0.0, 0, -1, 0, 0)
         self._last_end_ns = 0
         self._last_t = None
@@ -195,21 +207,28 @@ class SlipDetector:
     def _apply(self, c: SlipConfig):
         def ns(s):
             return int(round(s * 1e9))
+
         self.config = c
-        self._w_ev, self._w_rate, self._w_track = ns(c.evidence_window_s), ns(c.rate_window_s), \
-            ns(c.track_window_s)
-        self._confirm, self._quiet, self._report = ns(c.release_confirm_s), ns(c.quiet_s), \
-            ns(c.report_interval_s)
+        self._w_ev, self._w_rate, self._w_track = (
+            ns(c.evidence_window_s),
+            ns(c.rate_window_s),
+            ns(c.track_window_s),
+        )
+        self._confirm, self._quiet, self._report = (
+            ns(c.release_confirm_s),
+            ns(c.quiet_s),
+            ns(c.report_interval_s),
+        )
         self._reorder, self._guard = ns(c.reorder_tolerance_s), ns(c.overlap_guard_s)
         self._w_gross, self._w_hist = ns(c.gross_window_s), ns(c.gross_history_s)
-        self._assoc2 = c.association_radius_m ** 2
+        self._assoc2 = c.association_radius_m**2
         # interval model of a texture: k periods (k = 1, 2, 3: missed packets), sd s sqrt(k)
         km = np.arange(1, c.texture_max_multiple + 1, dtype=float)[:, None]
         prior = np.where(km == 1, 0.9, 0.1 / max(1, c.texture_max_multiple - 1))
         self._tex_k, self._tex_s = km, c.texture_interval_sd * np.sqrt(km)
         self._tex_w = np.log(prior) - 0.5 * math.log(2 * math.pi)
-        self._g2 = c.release_gate_sigma ** 2
-        self._f2 = c.release_floor_m ** 2
+        self._g2 = c.release_gate_sigma**2
+        self._f2 = c.release_floor_m**2
 
     # ------------------------------------------------------------------ public API
     @property
@@ -222,8 +241,10 @@ class SlipDetector:
         whole new configuration is validated first (ValueError, nothing changed)."""
         bad = sorted(set(changes) - set(SlipConfig.runtime_fields()))
         if bad:
-            raise ValueError(f"SlipConfig fields {bad} cannot change at run time "
-                             f"(runtime fields: {', '.join(SlipConfig.runtime_fields())})")
+            raise ValueError(
+                f"SlipConfig fields {bad} cannot change at run time "
+                f"(runtime fields: {', '.join(SlipConfig.runtime_fields())})"
+            )
         new = self.config.replace(**changes)
         self._apply(new)
         if "sliding_speed_m_s" in changes:
@@ -235,7 +256,9 @@ class SlipDetector:
         if speed_m_s is not None:
             v = float(speed_m_s)
             if not math.isfinite(v) or v <= 0:
-                raise ValueError(f"sliding speed must be a positive number of m/s, got {speed_m_s!r}")
+                raise ValueError(
+                    f"sliding speed must be a positive number of m/s, got {speed_m_s!r}"
+                )
             speed_m_s = v
         self._speed = speed_m_s
 
@@ -244,10 +267,24 @@ class SlipDetector:
         now = self.now_ns if self.now_ns is not None else 0
         out = []
         for c in self.contacts:
-            out.append(ContactInfo(c.id, c.state, c.since_ns, c.centre_at(now).copy(), c.radius, True,
-                                   c.confirmed, c.pending_release_ns is not None,
-                                   self._rate(c, now), c.precursor_count, c.valid(), c.last_ns,
-                                   c.vel.copy() if c.moving else np.zeros(3), c.moving))
+            out.append(
+                ContactInfo(
+                    c.id,
+                    c.state,
+                    c.since_ns,
+                    c.centre_at(now).copy(),
+                    c.radius,
+                    True,
+                    c.confirmed,
+                    c.pending_release_ns is not None,
+                    self._rate(c, now),
+                    c.precursor_count,
+                    c.valid(),
+                    c.last_ns,
+                    c.vel.copy() if c.moving else np.zeros(3),
+                    c.moving,
+                )
+            )
         return out
 
     def reset(self) -> None:
@@ -303,8 +340,12 @@ class SlipDetector:
         px, py, pz = float(p[0]), float(p[1]), float(p[2])
         cov = ev.covariance_m2
         tr = float(cov[0, 0] + cov[1, 1] + cov[2, 2])
-        if not (math.isfinite(px + py + pz) and math.isfinite(tr) and bool(np.isfinite(cov).all())
-                and px * px + py * py + pz * pz > 0.0):
+        if not (
+            math.isfinite(px + py + pz)
+            and math.isfinite(tr)
+            and bool(np.isfinite(cov).all())
+            and px * px + py * py + pz * pz > 0.0
+        ):
             self.counts["rejected_non_finite"] += 1
             return []
         t = ev.time_ns
@@ -375,7 +416,7 @@ class SlipDetector:
         cfg = self.config
         k = c.valid()
         T, F = c.t[:k], c.flags[:k]
-        slipping = c.state in _SLIPPING or c.moving    # a moving contact has no fixed spots
+        slipping = c.state in _SLIPPING or c.moving  # a moving contact has no fixed spots
         flags = OVERLAP if overlap else 0
         if slipping:
             # every emission of a slipping contact is a slip emission; one on the founding
@@ -385,7 +426,7 @@ class SlipDetector:
             fp, fvar, fpol = c.founder
             fd = fp - p
             if ev.polarity * fpol < 0 and float(fd @ fd) <= self._g2 * (fvar + var + self._f2):
-                c.pending_release_ns, c.pending_in_slip = t, True      # confirmed by quiet_s
+                c.pending_release_ns, c.pending_in_slip = t, True  # confirmed by quiet_s
                 self.counts["releases"] += 1
             elif c.pending_release_ns is not None:
                 c.pending_release_ns = None
@@ -433,7 +474,9 @@ class SlipDetector:
         ev_mask = ((F & EVID) != 0) & (T > t - self._w_ev)
         n_ev = float(ev_mask.sum())
         if cfg.compression_evidence_weight < 1.0:
-            n_ev -= (1.0 - cfg.compression_evidence_weight) * float((ev_mask & (c.pol[:k] > 0)).sum())
+            n_ev -= (1.0 - cfg.compression_evidence_weight) * float(
+                (ev_mask & (c.pol[:k] > 0)).sum()
+            )
         if c.state == ContactState.STICK and flags & EVID and n_ev >= cfg.precursor_min_emissions:
             c.state, c.since_ns = ContactState.INCIPIENT_SLIP, t
             idx = np.flatnonzero(ev_mask)
@@ -508,8 +551,11 @@ class SlipDetector:
         was = c.moving
         # a moving contact: fast enough, significant, and its emissions stay close to the
         # track (a few fixed spots hit in turn are no motion)
-        c.moving = (speed >= cfg.min_speed_m_s and speed >= cfg.track_significance * se
-                    and s2 <= cfg.track_max_residual_m ** 2)
+        c.moving = (
+            speed >= cfg.min_speed_m_s
+            and speed >= cfg.track_significance * se
+            and s2 <= cfg.track_max_residual_m**2
+        )
         if c.moving:
             c.vel, c.track_t, c.track_c = v, tm, pm
         elif was:
@@ -534,7 +580,7 @@ class SlipDetector:
             return None
         u, w = vt[0], vt[1]
         pu = P @ u
-        if pu.sum() < 0:             # singular vectors have no sign: face the points
+        if pu.sum() < 0:  # singular vectors have no sign: face the points
             pu = -pu
         phi = np.arctan2(P @ w, pu)
         tc = ts - ts.mean()
@@ -564,7 +610,9 @@ class SlipDetector:
     def _rate_now(self, c, t):
         k = c.valid()
         F = c.flags[:k]
-        return float((((F & PAIRED) == 0) & (c.t[:k] > t - self._w_rate)).sum()) / (self._w_rate * 1e-9)
+        return float((((F & PAIRED) == 0) & (c.t[:k] > t - self._w_rate)).sum()) / (
+            self._w_rate * 1e-9
+        )
 
     def _gross_test(self, c, t):
         """0 or the reason for GROSS_SLIP (1 inner emission, 2 rate jump, 3 fast, 4 moving)."""
@@ -587,7 +635,7 @@ class SlipDetector:
         # prior rate lambda (over the part of gross_history_s before them that it has
         # lived) j - 1 of them in tau is a Poisson tail P(N >= j - 1 | lambda tau); SLIP
         # when that is below gross_rate_alpha / (number of spans tested)
-        ts = np.sort(T[use])[-cfg.gross_scan_events:]
+        ts = np.sort(T[use])[-cfg.gross_scan_events :]
         n = ts.size
         for j in range(cfg.gross_min_events, n + 1):
             t0 = int(ts[n - j])
@@ -615,20 +663,46 @@ class SlipDetector:
         c.precursor_count += 1
         c.last_report[3] = ev.time_ns
         conf = 1.0 - 2.0 ** (-n_ev / self.config.precursor_min_emissions)
-        return SlipEvent(SlipEventType.SLIP_PRECURSOR, ev.time_ns, ev.point_m.copy(),
-                         ev.covariance_m2.copy(), c.id, self._rate(c, ev.time_ns), math.nan,
-                         _NAN3.copy(), float(conf) * (0.5 + 0.5 * ev.confidence), ids, onset, float(n_ev))
+        return SlipEvent(
+            SlipEventType.SLIP_PRECURSOR,
+            ev.time_ns,
+            ev.point_m.copy(),
+            ev.covariance_m2.copy(),
+            c.id,
+            self._rate(c, ev.time_ns),
+            math.nan,
+            _NAN3.copy(),
+            float(conf) * (0.5 + 0.5 * ev.confidence),
+            ids,
+            onset,
+            float(n_ev),
+        )
 
     def _slip_event(self, c, ev, why, onset):
         t = ev.time_ns
         c.last_report[4] = t
         k = c.valid()
         w = ((c.flags[:k] & (PAIRED | REPEAT)) == 0) & (c.t[:k] > t - self._w_gross)
-        ids = tuple(int(x) for x in c.pid[:k][w] if x != ev.packet_id) + (ev.packet_id,) if onset \
+        ids = (
+            tuple(int(x) for x in c.pid[:k][w] if x != ev.packet_id) + (ev.packet_id,)
+            if onset
             else (ev.packet_id,)
+        )
         conf = 0.9 if why in (1, 4) or c.texture_on else 0.75
-        return SlipEvent(SlipEventType.SLIP, t, c.centre_at(t).copy(), self._centre_cov(c), c.id,
-                         self._rate(c, t), math.nan, self._direction(c, t), conf, ids, onset, float(why))
+        return SlipEvent(
+            SlipEventType.SLIP,
+            t,
+            c.centre_at(t).copy(),
+            self._centre_cov(c),
+            c.id,
+            self._rate(c, t),
+            math.nan,
+            self._direction(c, t),
+            conf,
+            ids,
+            onset,
+            float(why),
+        )
 
     def _texture(self, c, ev, out):
         """Periodicity of the contact's latest intervals: robust dispersion MAD/median of the
@@ -652,8 +726,11 @@ class SlipDetector:
             return
         # cheap screen: a texture's intervals mostly lie within 40 % of the median or 30 %
         # of its double or triple (20 % jitter: ~85 %), a Poisson process's do not (~44 %)
-        near = sum(1 for d in dtl if 0.6 * m <= d <= 1.4 * m or 1.7 * m <= d <= 2.3 * m
-                   or 2.7 * m <= d <= 3.3 * m)
+        near = sum(
+            1
+            for d in dtl
+            if 0.6 * m <= d <= 1.4 * m or 1.7 * m <= d <= 2.3 * m or 2.7 * m <= d <= 3.3 * m
+        )
         if near * 10 < 6 * len(dtl) or sum(1 for i in slots if c.flags[i] & EVID) * 2 < n:
             c.texture_on, c.texture_run = False, 0
             return
@@ -669,8 +746,18 @@ class SlipDetector:
             return
         period = float(dt.sum() / kk.sum())
         x = dt / period
-        llr = float((np.logaddexp.reduce(self._tex_w - np.log(self._tex_s) - 0.5 * (
-            (x - self._tex_k) / self._tex_s) ** 2, axis=0) + np.log(x.mean()) + x / x.mean()).sum())
+        llr = float(
+            (
+                np.logaddexp.reduce(
+                    self._tex_w
+                    - np.log(self._tex_s)
+                    - 0.5 * ((x - self._tex_k) / self._tex_s) ** 2,
+                    axis=0,
+                )
+                + np.log(x.mean())
+                + x / x.mean()
+            ).sum()
+        )
         if llr < cfg.texture_min_llr:
             c.texture_on, c.texture_run = False, 0
             return
@@ -695,7 +782,7 @@ class SlipDetector:
                 period, se_period = _period_fit(tr, kr)
             rel = math.hypot(fit[1] / fit[0], se_period / period) if fit[0] > 0 else math.inf
             if rel > cfg.texture_period_rel_se:
-                return               # periodic, but the spatial period is not known well yet
+                return  # periodic, but the spatial period is not known well yet
             lam = fit[0] * period
         elif self._speed is not None:
             lam = self._speed * period
@@ -706,10 +793,26 @@ class SlipDetector:
             out.append(self._slip_event(c, ev, 5.0, onset=True))
         if onset or self._due(c, 5, t):
             c.last_report[5] = t
-            ids = tuple(int(x) for x in c.pid[:k][sel] if x != ev.packet_id)[-n + 1:] + (ev.packet_id,)
+            ids = tuple(int(x) for x in c.pid[:k][sel] if x != ev.packet_id)[-n + 1 :] + (
+                ev.packet_id,
+            )
             frac = float((kk == 1).mean())
-            out.append(SlipEvent(SlipEventType.TEXTURE, t, c.centre_at(t).copy(), self._centre_cov(c), c.id,
-                                 1.0 / period, lam, self._direction(c), frac, ids, onset, llr))
+            out.append(
+                SlipEvent(
+                    SlipEventType.TEXTURE,
+                    t,
+                    c.centre_at(t).copy(),
+                    self._centre_cov(c),
+                    c.id,
+                    1.0 / period,
+                    lam,
+                    self._direction(c),
+                    frac,
+                    ids,
+                    onset,
+                    llr,
+                )
+            )
 
     def _centre_cov(self, c):
         k = c.valid()
@@ -760,9 +863,19 @@ class SlipDetector:
         confirmed = [c for c in self.contacts if c.confirmed]
         if not confirmed:
             since = prev.since_ns if prev.state == ContactState.NO_CONTACT else self._last_end_ns
-            self._finger = FingerState(ContactState.NO_CONTACT, since, _NAN3.copy(), 0.0, 0, -1, 0, t)
+            self._finger = FingerState(
+                ContactState.NO_CONTACT, since, _NAN3.copy(), 0.0, 0, -1, 0, t
+            )
             return
         top = max(confirmed, key=lambda c: (int(c.state), c.last_ns))
         since = top.since_ns if top.state != prev.state else prev.since_ns
-        self._finger = FingerState(top.state, int(since), top.centre_at(t).copy(), self._rate(top, t),
-                                   top.precursor_count, top.id, len(confirmed), t)
+        self._finger = FingerState(
+            top.state,
+            int(since),
+            top.centre_at(t).copy(),
+            self._rate(top, t),
+            top.precursor_count,
+            top.id,
+            len(confirmed),
+            t,
+        )
