@@ -1,5 +1,6 @@
 """Slip detector core on hand-built event sequences (no simulator): tracker, state
 machine, precursor / gross slip / texture / direction, bad input, bounded memory."""
+
 import math
 
 import numpy as np
@@ -7,11 +8,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ae_tactile.slip import (ContactState, LocalizedEvent, SlipConfig, SlipDetector, SlipEventType, periodicity)
+from ae_tactile.slip import (
+    ContactState,
+    LocalizedEvent,
+    SlipConfig,
+    SlipDetector,
+    SlipEventType,
+    periodicity,
+)
 
 R = 0.01
 MS = 1_000_000
-SIG = 20e-6          # localization 1-sigma used for the hand-built events
+SIG = 20e-6  # localization 1-sigma used for the hand-built events
 
 
 def surf(x, y):
@@ -27,11 +35,19 @@ def ring_events(rng, n, t0_ns, rate_hz, centre_xy, radius_m, width_m=0.0, pid0=0
     annulus radius - width .. radius around centre_xy (tangent-plane approximation)."""
     t = t0_ns + np.cumsum(rng.exponential(1e9 / rate_hz, n)).astype(np.int64)
     th = rng.uniform(0, 2 * np.pi, n)
-    r = np.sqrt(rng.uniform((radius_m - width_m) ** 2, radius_m ** 2, n))
+    r = np.sqrt(rng.uniform((radius_m - width_m) ** 2, radius_m**2, n))
     pol = rng.choice([-1, 1], n)
     noise = rng.normal(0, SIG, (n, 2))
-    return [ev(t[i], centre_xy[0] + r[i] * np.cos(th[i]) + noise[i, 0], centre_xy[1] + r[i] * np.sin(th[i])
-               + noise[i, 1], int(pol[i]), pid0 + i) for i in range(n)]
+    return [
+        ev(
+            t[i],
+            centre_xy[0] + r[i] * np.cos(th[i]) + noise[i, 0],
+            centre_xy[1] + r[i] * np.sin(th[i]) + noise[i, 1],
+            int(pol[i]),
+            pid0 + i,
+        )
+        for i in range(n)
+    ]
 
 
 def run(det, events):
@@ -54,11 +70,11 @@ def test_touch_hold_release_no_alarm_and_states():
     s = det.state
     assert s.state == ContactState.STICK and s.since_ns == 10 * MS and s.n_contacts == 1
     assert np.allclose(s.contact_point_m, surf(2e-3, -1e-3))
-    det.advance(500 * MS)                       # a held contact is silent: still STICK
+    det.advance(500 * MS)  # a held contact is silent: still STICK
     assert det.state.state == ContactState.STICK
     outs = det.process(ev(510 * MS, 2e-3 + 15e-6, -1e-3, -1, 2))
     assert outs == []
-    assert det.state.state == ContactState.STICK          # release pending confirmation
+    assert det.state.state == ContactState.STICK  # release pending confirmation
     det.advance(510 * MS + int(det.config.release_confirm_s * 1e9))
     s = det.state
     assert s.state == ContactState.NO_CONTACT and s.since_ns == 510 * MS
@@ -87,29 +103,32 @@ def test_touch_release_cycles_and_taps_near_a_held_touch_never_alarm():
     t = 10 * MS
     pid = 1
     x, y = 1e-3, 0.0
-    for k in range(150):                           # cycles wandering within 3 mm of the touch
+    for _k in range(150):  # cycles wandering within 3 mm of the touch
         hold = int(rng.uniform(20, 300) * MS)
         events.append(ev(t, x, y, 1, pid))
         events.append(ev(t + hold, x + rng.normal(0, SIG), y + rng.normal(0, SIG), -1, pid + 1))
         pid += 2
         t += hold + int(rng.uniform(10, 200) * MS)
         r, a = rng.uniform(0, 1e-3), rng.uniform(0, 2 * np.pi)
-        x, y = np.clip(x + r * math.cos(a), -2.5e-3, 2.5e-3), np.clip(y + r * math.sin(a), -2.5e-3, 2.5e-3)
+        x, y = (
+            np.clip(x + r * math.cos(a), -2.5e-3, 2.5e-3),
+            np.clip(y + r * math.sin(a), -2.5e-3, 2.5e-3),
+        )
         if math.hypot(x, y) < 0.8e-3:
             x += 1e-3
-    for k in range(100):                           # taps on one spot 2 mm away, 5 Hz
+    for k in range(100):  # taps on one spot 2 mm away, 5 Hz
         events.append(ev(t + k * 200 * MS, 0, 2e-3, 1, pid))
         events.append(ev(t + k * 200 * MS + 40 * MS, 10e-6, 2e-3, -1, pid + 1))
         pid += 2
     outs = run(det, sorted(events, key=lambda e: e.time_ns))
     assert outs == []
-    assert det.counts["evidence"] <= 1 + det.counts["pairs"]    # only transient, withdrawn
-    assert det.state.state == ContactState.STICK          # the first touch is still held
+    assert det.counts["evidence"] <= 1 + det.counts["pairs"]  # only transient, withdrawn
+    assert det.state.state == ContactState.STICK  # the first touch is still held
 
 
 def test_lone_orphan_release_is_not_a_contact_nor_a_precursor():
     det = SlipDetector()
-    outs = det.process(ev(0, 1e-3, 1e-3, -1, 1))        # its touch was missed
+    outs = det.process(ev(0, 1e-3, 1e-3, -1, 1))  # its touch was missed
     assert outs == [] and det.state.state == ContactState.NO_CONTACT
     det.advance(int(2 * det.config.evidence_window_s * 1e9))
     assert det.contact_infos() == []
@@ -117,8 +136,8 @@ def test_lone_orphan_release_is_not_a_contact_nor_a_precursor():
 
 def test_touch_next_to_a_lone_orphan_is_reported():
     det = SlipDetector()
-    det.process(ev(0, 1e-3, 1e-3, -1, 1))             # a release whose touch was missed
-    det.process(ev(20 * MS, 2e-3, 1e-3, 1, 2))        # a real touch 1 mm away
+    det.process(ev(0, 1e-3, 1e-3, -1, 1))  # a release whose touch was missed
+    det.process(ev(20 * MS, 2e-3, 1e-3, 1, 2))  # a real touch 1 mm away
     s = det.state
     assert s.state == ContactState.STICK and s.n_contacts == 1
     assert np.linalg.norm(s.contact_point_m - surf(2e-3, 1e-3)) < 1e-6
@@ -136,8 +155,8 @@ def test_micro_slip_ring_gives_precursor(announced):
     pre = [o for o in outs if o.kind == SlipEventType.SLIP_PRECURSOR]
     assert pre and pre[0].onset
     i_first = next(i for i, e in enumerate(events) if e.time_ns == pre[0].time_ns)
-    assert i_first <= (9 if announced else 8)         # a handful of emissions
-    assert SlipEventType.SLIP not in kinds(outs)       # the stick zone is still there
+    assert i_first <= (9 if announced else 8)  # a handful of emissions
+    assert SlipEventType.SLIP not in kinds(outs)  # the stick zone is still there
     s = det.state
     assert s.state == ContactState.INCIPIENT_SLIP and s.precursor_count == len(pre)
     # the contact centre comes from the ring even when it was never announced
@@ -175,7 +194,7 @@ def test_micro_slip_near_the_centre_cancels_a_false_release():
     run(det, [ev(0, 0, 0, 1, 999)] + ring_events(rng, 15, 10 * MS, 100.0, (0, 0), 1.5e-3))
     t = det.now_ns
     assert det.state.state == ContactState.INCIPIENT_SLIP
-    run(det, [ev(t + 2 * MS, 10e-6, 0, -1, 2000)])            # looks like the release
+    run(det, [ev(t + 2 * MS, 10e-6, 0, -1, 2000)])  # looks like the release
     run(det, ring_events(rng, 5, t + 4 * MS, 200.0, (0, 0), 1.5e-3, pid0=3000))
     det.advance(det.now_ns + 200 * MS)
     assert det.state.state != ContactState.NO_CONTACT
@@ -186,7 +205,7 @@ def test_real_release_after_micro_slip_ends_the_contact():
     rng = np.random.default_rng(9)
     det = SlipDetector()
     run(det, [ev(0, 0, 0, 1, 999)] + ring_events(rng, 15, 10 * MS, 100.0, (0, 0), 1.5e-3))
-    t = det.now_ns + int(0.4e9)                        # quiet, then the object is let go
+    t = det.now_ns + int(0.4e9)  # quiet, then the object is let go
     det.advance(t)
     assert det.state.state == ContactState.STICK
     assert det.process(ev(t + MS, 5e-6, -5e-6, -1, 5000)) == []
@@ -209,7 +228,7 @@ def test_gross_slip_when_emissions_reach_the_centre():
     assert slips[0].time_ns - t0 < 80 * MS
     assert det.state.state == ContactState.GROSS_SLIP
     assert np.linalg.norm(slips[0].position_m - surf(0, 0)) < 0.3e-3
-    assert all(np.all(np.isnan(o.slip_direction)) for o in slips)   # no drift
+    assert all(np.all(np.isnan(o.slip_direction)) for o in slips)  # no drift
     assert slips[0].emission_rate_hz > 100
 
 
@@ -220,11 +239,15 @@ def test_direction_of_a_drifting_contact():
     t = 0
     for i in range(150):
         t += int(rng.exponential(1e9 / 400))
-        cx = -2e-3 + 0.02 * t * 1e-9                    # 20 mm/s along +x
+        cx = -2e-3 + 0.02 * t * 1e-9  # 20 mm/s along +x
         r, th = 1.2e-3 * math.sqrt(rng.uniform()), rng.uniform(0, 2 * np.pi)
         events.append(ev(t, cx + r * math.cos(th), r * math.sin(th), int(rng.choice([-1, 1])), i))
     outs = run(det, events)
-    dirs = [o.slip_direction for o in outs if o.kind == SlipEventType.SLIP and np.all(np.isfinite(o.slip_direction))]
+    dirs = [
+        o.slip_direction
+        for o in outs
+        if o.kind == SlipEventType.SLIP and np.all(np.isfinite(o.slip_direction))
+    ]
     assert dirs
     for d in dirs:
         assert abs(np.linalg.norm(d) - 1) < 1e-9
@@ -232,21 +255,25 @@ def test_direction_of_a_drifting_contact():
 
 
 # ---------------------------------------------------------------------- texture
-def _texture_events(rng, rate_hz, n, jitter=0.05, patch=1e-3, centre=(1e-3, 0), drop=0.05, random_pol=True):
+def _texture_events(
+    rng, rate_hz, n, jitter=0.05, patch=1e-3, centre=(1e-3, 0), drop=0.05, random_pol=True
+):
     t = (np.arange(n) / rate_hz + rng.normal(0, jitter / rate_hz, n)) * 1e9 + 5 * MS
     keep = rng.uniform(size=n) > drop
     out = []
     for i in np.flatnonzero(keep):
         r, th = patch * math.sqrt(rng.uniform()), rng.uniform(0, 2 * np.pi)
         pol = int(rng.choice([-1, 1])) if random_pol else 1
-        out.append(ev(int(t[i]), centre[0] + r * math.cos(th), centre[1] + r * math.sin(th), pol, i))
+        out.append(
+            ev(int(t[i]), centre[0] + r * math.cos(th), centre[1] + r * math.sin(th), pol, i)
+        )
     return sorted(out, key=lambda e: e.time_ns)
 
 
 @pytest.mark.parametrize("random_pol", [True, False])
 def test_texture_period(random_pol):
     rng = np.random.default_rng(31)
-    v, lam = 0.02, 0.5e-3                      # 40 Hz
+    v, lam = 0.02, 0.5e-3  # 40 Hz
     det = SlipDetector(SlipConfig(sliding_speed_m_s=v))
     outs = run(det, _texture_events(rng, v / lam, 60, random_pol=random_pol))
     tex = [o for o in outs if o.kind == SlipEventType.TEXTURE]
@@ -254,7 +281,7 @@ def test_texture_period(random_pol):
     for o in tex:
         assert abs(o.spatial_period_m / lam - 1) < 0.02
         assert abs(o.emission_rate_hz - v / lam) < 0.02 * v / lam
-    assert det.state.state == ContactState.GROSS_SLIP      # sliding over the texture
+    assert det.state.state == ContactState.GROSS_SLIP  # sliding over the texture
     det.set_sliding_speed(None)
     outs = run(det, _texture_events(np.random.default_rng(32), v / lam, 30)[:0])
     det2 = SlipDetector()
@@ -270,7 +297,7 @@ def test_no_texture_from_poisson_or_tapping():
     assert SlipEventType.TEXTURE not in kinds(outs)
     det = SlipDetector()
     taps = []
-    for k in range(40):                              # regular tapping at one spot, 10 Hz
+    for k in range(40):  # regular tapping at one spot, 10 Hz
         taps.append(ev(k * 100 * MS, 0, 0, 1, 2 * k))
         taps.append(ev(k * 100 * MS + 30 * MS, 5e-6, 0, -1, 2 * k + 1))
     outs = run(det, taps)
@@ -279,8 +306,10 @@ def test_no_texture_from_poisson_or_tapping():
 
 def test_periodicity_function():
     rng = np.random.default_rng(51)
-    fp = sum(periodicity((np.cumsum(rng.exponential(2e-3, 17)) * 1e9).astype(np.int64)).periodic
-             for _ in range(3000))
+    fp = sum(
+        periodicity((np.cumsum(rng.exponential(2e-3, 17)) * 1e9).astype(np.int64)).periodic
+        for _ in range(3000)
+    )
     assert fp <= 3
     T = 1 / 40
     hits = 0
@@ -296,15 +325,31 @@ def test_periodicity_function():
 
 
 # ---------------------------------------------------------------------- bad input, bounds
-@pytest.mark.parametrize("kw", [
-    {"association_radius_m": 0}, {"association_radius_m": -1e-3}, {"association_radius_m": 5.0},
-    {"release_gate_sigma": 0}, {"release_confirm_s": -0.1}, {"evidence_window_s": float("nan")},
-    {"precursor_min_emissions": 0}, {"compression_evidence_weight": 1.5}, {"gross_inner_fraction": 0},
-    {"gross_rate_alpha": 0}, {"member_history": 4}, {"max_contacts": 0},
-    {"texture_interval_sd": 0}, {"texture_min_llr": -1}, {"sliding_speed_m_s": 0},
-    {"sliding_speed_m_s": "20 mm/s"}, {"quiet_s": True}, {"max_contacts": 2.5},
-    {"member_history": 16, "texture_min_intervals": 16}, {"report_interval_s": -1},
-])
+@pytest.mark.parametrize(
+    "kw",
+    [
+        {"association_radius_m": 0},
+        {"association_radius_m": -1e-3},
+        {"association_radius_m": 5.0},
+        {"release_gate_sigma": 0},
+        {"release_confirm_s": -0.1},
+        {"evidence_window_s": float("nan")},
+        {"precursor_min_emissions": 0},
+        {"compression_evidence_weight": 1.5},
+        {"gross_inner_fraction": 0},
+        {"gross_rate_alpha": 0},
+        {"member_history": 4},
+        {"max_contacts": 0},
+        {"texture_interval_sd": 0},
+        {"texture_min_llr": -1},
+        {"sliding_speed_m_s": 0},
+        {"sliding_speed_m_s": "20 mm/s"},
+        {"quiet_s": True},
+        {"max_contacts": 2.5},
+        {"member_history": 16, "texture_min_intervals": 16},
+        {"report_interval_s": -1},
+    ],
+)
 def test_bad_config_raises(kw):
     with pytest.raises(ValueError, match="SlipConfig"):
         SlipConfig(**kw)
@@ -355,7 +400,7 @@ def test_late_events_within_the_reorder_tolerance_are_processed_alike():
     rng = np.random.default_rng(71)
     evs = [ev(0, 0, 0, 1, 999)] + ring_events(rng, 12, 10 * MS, 2000.0, (0, 0), 1.5e-3)
     shuffled = list(evs)
-    for i in range(1, len(shuffled) - 1, 2):          # swap neighbours (< 1 ms apart)
+    for i in range(1, len(shuffled) - 1, 2):  # swap neighbours (< 1 ms apart)
         if shuffled[i + 1].time_ns - shuffled[i].time_ns < 0.9 * MS:
             shuffled[i], shuffled[i + 1] = shuffled[i + 1], shuffled[i]
     assert shuffled != evs
@@ -380,15 +425,29 @@ def test_memory_is_bounded():
 
 
 @settings(max_examples=25, deadline=None)
-@given(st.lists(st.tuples(st.integers(0, 2_000), st.floats(-6e-3, 6e-3), st.floats(-6e-3, 6e-3),
-                          st.sampled_from([-1, 0, 1])), min_size=1, max_size=120))
+@given(
+    st.lists(
+        st.tuples(
+            st.integers(0, 2_000),
+            st.floats(-6e-3, 6e-3),
+            st.floats(-6e-3, 6e-3),
+            st.sampled_from([-1, 0, 1]),
+        ),
+        min_size=1,
+        max_size=120,
+    )
+)
 def test_arbitrary_sequences_keep_valid_outputs(items):
     det = SlipDetector(SlipConfig(sliding_speed_m_s=0.01))
     t = 0
     for dt, x, y, pol in items:
         t += dt * 10_000
         for o in det.process(ev(t, x, y, pol, t)):
-            assert o.kind in (SlipEventType.SLIP_PRECURSOR, SlipEventType.SLIP, SlipEventType.TEXTURE)
+            assert o.kind in (
+                SlipEventType.SLIP_PRECURSOR,
+                SlipEventType.SLIP,
+                SlipEventType.TEXTURE,
+            )
             assert np.all(np.isfinite(o.position_m)) and 0 <= o.confidence <= 1
             assert np.all(np.isfinite(o.covariance_m2))
             d = o.slip_direction
@@ -396,7 +455,7 @@ def test_arbitrary_sequences_keep_valid_outputs(items):
         s = det.state
         assert s.state in tuple(ContactState)
         assert (s.state == ContactState.NO_CONTACT) == (s.n_contacts == 0)
-    det.advance(t + 10 ** 10)
+    det.advance(t + 10**10)
     assert det.state.state in (ContactState.NO_CONTACT, ContactState.STICK)
 
 
@@ -405,7 +464,7 @@ def test_update_config_at_run_time_and_metadata():
     cfg = det.update_config(quiet_s=0.5, precursor_min_emissions=3, sliding_speed_m_s=0.01)
     assert det.config is cfg and cfg.quiet_s == 0.5 and det._quiet == 500_000_000
     with pytest.raises(ValueError, match="quiet_s"):
-        det.update_config(quiet_s=-1.0)                 # validated: nothing changed
+        det.update_config(quiet_s=-1.0)  # validated: nothing changed
     assert det.config.quiet_s == 0.5
     with pytest.raises(ValueError, match="run time"):
         det.update_config(member_history=128)
@@ -450,7 +509,7 @@ def test_gross_slip_without_a_precursor_and_a_tracked_moving_contact():
     t = 0
     for i in range(120):
         t += int(rng.exponential(1e9 / 60))
-        cx = -5e-3 + 0.02 * t * 1e-9                     # 20 mm/s along +x
+        cx = -5e-3 + 0.02 * t * 1e-9  # 20 mm/s along +x
         if cx > 5e-3:
             break
         r, th = 0.3e-3 * math.sqrt(rng.uniform()), rng.uniform(0, 2 * np.pi)

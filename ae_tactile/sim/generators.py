@@ -10,6 +10,7 @@ normal load while it plays (`IncipientSlipProcess.set_normal_load`).
 Contact patches: a patch point at tangent-plane offset (u, v) from a contact centre c0 on
 the sphere is (c0 + u e1 + v e2) R / |c0 + u e1 + v e2| (e1, e2 orthonormal, tangent).
 """
+
 from __future__ import annotations
 
 import math
@@ -28,7 +29,9 @@ def _ns(t_s) -> np.ndarray:
 
 
 def _rng(seed, *keys) -> np.random.Generator:
-    return np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), *map(int, keys)])))
+    return np.random.Generator(
+        np.random.PCG64(np.random.SeedSequence([int(seed), *map(int, keys)]))
+    )
 
 
 def tangent_basis(center_m):
@@ -55,7 +58,7 @@ def patch_points(geometry: FingertipGeometry, center_m, u_m, v_m) -> np.ndarray:
 
 def uniform_disc(rng, n, r_in, r_out):
     """n points uniform (by area) in the annulus r_in <= r < r_out: (u, v)."""
-    r = np.sqrt(rng.uniform(r_in ** 2, r_out ** 2, n))
+    r = np.sqrt(rng.uniform(r_in**2, r_out**2, n))
     th = rng.uniform(0.0, 2.0 * np.pi, n)
     return r * np.cos(th), r * np.sin(th)
 
@@ -63,8 +66,10 @@ def uniform_disc(rng, n, r_in, r_out):
 def _check_patch(geometry, center, radius_m, what):
     pol = math.acos(min(1.0, center[2] / geometry.radius_m))
     if pol + radius_m / geometry.radius_m > math.pi / 2:
-        raise ValueError(f"{what}: the contact patch (radius {radius_m:.3g} m) around the contact centre"
-                         " reaches below the sensing hemisphere (z < 0); move it toward the apex")
+        raise ValueError(
+            f"{what}: the contact patch (radius {radius_m:.3g} m) around the contact centre"
+            " reaches below the sensing hemisphere (z < 0); move it toward the apex"
+        )
 
 
 @dataclass(frozen=True)
@@ -75,9 +80,17 @@ class EventParams:
 
 
 def _make(ctx, t_s, pts, kind, params: EventParams, polarity, ids):
-    return EmissionList.create(_ns(t_s), pts, kind, polarity=polarity, speed_m_s=params.speed_m_s,
-                               curvature_1_m=params.curvature_1_m, alpha_1_s=params.alpha_1_s,
-                               density_kg_m3=ctx.config.density, event_id=ids)
+    return EmissionList.create(
+        _ns(t_s),
+        pts,
+        kind,
+        polarity=polarity,
+        speed_m_s=params.speed_m_s,
+        curvature_1_m=params.curvature_1_m,
+        alpha_1_s=params.alpha_1_s,
+        density_kg_m3=ctx.config.density,
+        event_id=ids,
+    )
 
 
 # ---------------------------------------------------------------------- static scenes
@@ -96,8 +109,9 @@ def paper_positions(ctx, p):
     pts = geo.surface_point_from_xy(xs, np.zeros_like(xs))
     t = p["start_s"] + p["interval_s"] * np.arange(xs.size)
     ev = EventParams(p["speed_m_s"], p["curvature_1_m"], p["alpha_1_s"])
-    return StaticEmissions(_make(ctx, t, pts, "touch", ev, 1, np.arange(xs.size)),
-                           {"generator": "paper_positions"})
+    return StaticEmissions(
+        _make(ctx, t, pts, "touch", ev, 1, np.arange(xs.size)), {"generator": "paper_positions"}
+    )
 
 
 def three_pins(ctx, p):
@@ -106,11 +120,14 @@ def three_pins(ctx, p):
     xy = np.asarray(p["points_xy_m"], dtype=float)
     t = np.asarray(p["times_s"], dtype=float)
     if xy.shape != (t.size, 2):
-        raise ValueError("params.points_xy_m must be a list of [x, y] pairs, one per entry of times_s")
+        raise ValueError(
+            "params.points_xy_m must be a list of [x, y] pairs, one per entry of times_s"
+        )
     pts = geo.surface_point_from_xy(xy[:, 0], xy[:, 1])
     ev = EventParams(p["speed_m_s"], p["curvature_1_m"], p["alpha_1_s"])
-    return StaticEmissions(_make(ctx, t, pts, "touch", ev, 1, np.arange(t.size)),
-                           {"generator": "three_pins"})
+    return StaticEmissions(
+        _make(ctx, t, pts, "touch", ev, 1, np.arange(t.size)), {"generator": "three_pins"}
+    )
 
 
 def plane_slip(ctx, p):
@@ -132,7 +149,9 @@ def plane_slip(ctx, p):
         raise ValueError("plane_slip: the contact reaches below the sensing hemisphere")
     ev = EventParams(p["speed_m_s"], p["curvature_1_m"], p["alpha_1_s"])
     pol = rng.choice([-1.0, 1.0], n)
-    return StaticEmissions(_make(ctx, t, pts, "slip", ev, pol, np.arange(n)), {"generator": "plane_slip"})
+    return StaticEmissions(
+        _make(ctx, t, pts, "slip", ev, pol, np.arange(n)), {"generator": "plane_slip"}
+    )
 
 
 def random_touches(ctx, p):
@@ -148,18 +167,36 @@ def random_touches(ctx, p):
     ph = rng.uniform(0, 2 * np.pi, n)
     pts = geo.surface_point_from_angles(th, ph)
     v = rng.uniform(p["speed_min_m_s"], p["speed_max_m_s"], n)
-    lists = [EmissionList.create(_ns(t), pts, "touch", polarity=1, speed_m_s=v,
-                                 curvature_1_m=p["curvature_1_m"], alpha_1_s=p["alpha_1_s"],
-                                 density_kg_m3=ctx.config.density, event_id=2 * np.arange(n))]
+    lists = [
+        EmissionList.create(
+            _ns(t),
+            pts,
+            "touch",
+            polarity=1,
+            speed_m_s=v,
+            curvature_1_m=p["curvature_1_m"],
+            alpha_1_s=p["alpha_1_s"],
+            density_kg_m3=ctx.config.density,
+            event_id=2 * np.arange(n),
+        )
+    ]
     if ctx.effects["release_emissions"]:
         hold = rng.uniform(p["hold_min_s"], p["hold_max_s"], n)
         tr = t + hold
         ok = tr < ctx.duration_s
-        lists.append(EmissionList.create(_ns(tr[ok]), pts[ok], "release", polarity=-1,
-                                         speed_m_s=v[ok] * p["release_speed_ratio"],
-                                         curvature_1_m=p["curvature_1_m"], alpha_1_s=p["alpha_1_s"],
-                                         density_kg_m3=ctx.config.density,
-                                         event_id=2 * np.arange(n)[ok] + 1))
+        lists.append(
+            EmissionList.create(
+                _ns(tr[ok]),
+                pts[ok],
+                "release",
+                polarity=-1,
+                speed_m_s=v[ok] * p["release_speed_ratio"],
+                curvature_1_m=p["curvature_1_m"],
+                alpha_1_s=p["alpha_1_s"],
+                density_kg_m3=ctx.config.density,
+                event_id=2 * np.arange(n)[ok] + 1,
+            )
+        )
     return StaticEmissions(EmissionList.concat(lists), {"generator": "random_touches"})
 
 
@@ -174,8 +211,10 @@ def touch_hold_release(ctx, p):
     if ctx.effects["release_emissions"]:
         evr = EventParams(p["release_speed_m_s"], p["curvature_1_m"], p["alpha_1_s"])
         lists.append(_make(ctx, [t_rel], pt, "release", evr, -1, [1]))
-    return StaticEmissions(EmissionList.concat(lists),
-                           {"generator": "touch_hold_release", "release_time_ns": int(_ns(t_rel))})
+    return StaticEmissions(
+        EmissionList.concat(lists),
+        {"generator": "touch_hold_release", "release_time_ns": int(_ns(t_rel))},
+    )
 
 
 def texture(ctx, p):
@@ -213,7 +252,7 @@ def _polarity(drawn, mode):
 def hertz_contact_radius_m(load_n, radius_m, youngs_modulus_pa, poisson_ratio=0.5):
     """Hertz: a_H = (3 P R / (4 E*))^(1/3), rigid object on an elastic tip:
     E* = E / (1 - nu^2) (= 4E/3 for nu = 0.5). ``radius_m``: effective radius."""
-    e_star = youngs_modulus_pa / (1.0 - poisson_ratio ** 2)
+    e_star = youngs_modulus_pa / (1.0 - poisson_ratio**2)
     return (3.0 * np.asarray(load_n, float) * radius_m / (4.0 * e_star)) ** (1.0 / 3.0)
 
 
@@ -267,7 +306,9 @@ class IncipientSlipProcess:
         self.mu = p["friction_coefficient"]
         self.q0 = p["tangential_load_start_n"]
         self.qdot = p["tangential_load_rate_n_per_s"]
-        self.qmax = p["tangential_load_max_n"] if p["tangential_load_max_n"] is not None else np.inf
+        self.qmax = (
+            p["tangential_load_max_n"] if p["tangential_load_max_n"] is not None else np.inf
+        )
         r_obj = p["object_radius_m"]
         rf = self.geometry.radius_m
         self.r_eff = rf if r_obj is None else 1.0 / (1.0 / rf + 1.0 / r_obj)
@@ -280,16 +321,22 @@ class IncipientSlipProcess:
         # load history: list of (time_ns, P); index = load-change key
         self.loads = [(0, float(p["normal_load_n"]))]
         self.event_params = {
-            "micro_slip": EventParams(p["micro_slip_speed_m_s"], p["curvature_1_m"], p["alpha_1_s"]),
+            "micro_slip": EventParams(
+                p["micro_slip_speed_m_s"], p["curvature_1_m"], p["alpha_1_s"]
+            ),
             "slip": EventParams(p["slip_speed_m_s"], p["curvature_1_m"], p["alpha_1_s"]),
         }
-        self.horizon_ns = 0            # everything before has been returned
+        self.horizon_ns = 0  # everything before has been returned
         self._pending = EmissionList.empty()
-        self._gen_ns = 0               # events generated (pending or returned) up to here
-        self._fmax = 0.0               # running max of f at _gen_ns
+        self._gen_ns = 0  # events generated (pending or returned) up to here
+        self._fmax = 0.0  # running max of f at _gen_ns
         self._sliding = False
-        _check_patch(self.geometry, self.center, self.contact_radius(max(P for _, P in self.loads)),
-                     "incipient_slip")
+        _check_patch(
+            self.geometry,
+            self.center,
+            self.contact_radius(max(P for _, P in self.loads)),
+            "incipient_slip",
+        )
 
     # ------------------------------------------------------------------ mechanics
     def contact_radius(self, P):
@@ -312,9 +359,15 @@ class IncipientSlipProcess:
         Q = float(self.tangential_load(t_ns))
         a = self.contact_radius(P)
         q = Q / (self.mu * P)
-        return {"normal_load_n": P, "tangential_load_n": Q, "load_ratio": q, "hertz_radius_m": a,
-                "stick_radius_m": float(stick_radius_m(a, Q, self.mu, P)),
-                "slip_fraction": float(slip_fraction(q)), "gross_slip": q >= 1.0}
+        return {
+            "normal_load_n": P,
+            "tangential_load_n": Q,
+            "load_ratio": q,
+            "hertz_radius_m": a,
+            "stick_radius_m": float(stick_radius_m(a, Q, self.mu, P)),
+            "slip_fraction": float(slip_fraction(q)),
+            "gross_slip": q >= 1.0,
+        }
 
     def _time_of_q(self, q, P):
         """Time (ns, float) at which Q(t) = q mu P on the ramp (inf if never)."""
@@ -334,8 +387,10 @@ class IncipientSlipProcess:
             raise ValueError(f"normal load must be positive, got {load_n!r}")
         t = int(at_time_ns)
         if t < self.horizon_ns:
-            raise ValueError(f"cannot change the normal load at {t} ns: emissions up to "
-                             f"{self.horizon_ns} ns have already been produced")
+            raise ValueError(
+                f"cannot change the normal load at {t} ns: emissions up to "
+                f"{self.horizon_ns} ns have already been produced"
+            )
         _check_patch(self.geometry, self.center, self.contact_radius(P), "incipient_slip")
         # drop pending events from t on and roll the generator back to t
         self._pending = self._pending.between(np.iinfo(np.int64).min, t)
@@ -355,8 +410,14 @@ class IncipientSlipProcess:
 
     def _segments(self, t_a, t_b):
         """Constant-P pieces of [t_a, t_b) cut at steps and load changes: (a, b, P, key)."""
-        cuts = sorted({t_a, t_b, *[t for t, _ in self.loads if t_a < t < t_b],
-                       *range((t_a // self.step_ns + 1) * self.step_ns, t_b, self.step_ns)})
+        cuts = sorted(
+            {
+                t_a,
+                t_b,
+                *[t for t, _ in self.loads if t_a < t < t_b],
+                *range((t_a // self.step_ns + 1) * self.step_ns, t_b, self.step_ns),
+            }
+        )
         out = []
         for a, b in zip(cuts[:-1], cuts[1:]):
             key = max(i for i, (t, _) in enumerate(self.loads) if t <= a)
@@ -371,7 +432,7 @@ class IncipientSlipProcess:
         qa = float(self.tangential_load(a)) / (self.mu * P)
         qb = float(self.tangential_load(b)) / (self.mu * P)
         restuck = False
-        if sliding and qa < 1.0:        # re-stuck: the front memory restarts here
+        if sliding and qa < 1.0:  # re-stuck: the front memory restarts here
             sliding, fmax, restuck = False, float(slip_fraction(qa)), True
         if qb >= 1.0:
             onset = None
@@ -387,7 +448,10 @@ class IncipientSlipProcess:
         aH = self.contact_radius(P)
         fmax_new, sliding_new, onset, restuck = self._advance_state(a, b, P, fmax, sliding)
         if restuck:
-            sliding, fmax = False, float(slip_fraction(float(self.tangential_load(a)) / (self.mu * P)))
+            sliding, fmax = (
+                False,
+                float(slip_fraction(float(self.tangential_load(a)) / (self.mu * P))),
+            )
         times, kinds = [], []
         stick_end = b if onset is None else onset
         if not sliding and stick_end > a:
@@ -395,9 +459,13 @@ class IncipientSlipProcess:
             qe = float(self.tangential_load(stick_end)) / (self.mu * P)
             f_lo = max(fmax, float(slip_fraction(qa)))
             f_hi = float(slip_fraction(min(qe, 1.0)))
-            if f_hi > f_lo:            # front events, uniform in f
+            if f_hi > f_lo:  # front events, uniform in f
                 count = self.p.get("micro_slip_count")
-                n_full = count if count is not None else self.p["front_density_per_m2"] * math.pi * aH * aH
+                n_full = (
+                    count
+                    if count is not None
+                    else self.p["front_density_per_m2"] * math.pi * aH * aH
+                )
                 n = rng.poisson(n_full * (f_hi - f_lo))
                 u = rng.uniform(f_lo, f_hi, n)
                 q = 1.0 - (1.0 - u) ** 1.5
@@ -409,7 +477,7 @@ class IncipientSlipProcess:
                 kinds += ["micro_slip"] * n
             bg = self.p["background_rate_hz"]
             fseg = float(slip_fraction(min(qe, 1.0)))
-            if bg > 0 and fseg > 0:    # background events by thinning
+            if bg > 0 and fseg > 0:  # background events by thinning
                 n = rng.poisson(bg * fseg * (stick_end - a) / _NS)
                 t = rng.uniform(a, stick_end, n)
                 f_t = slip_fraction(self.tangential_load(t) / (self.mu * P))
@@ -429,11 +497,17 @@ class IncipientSlipProcess:
         Q = self.tangential_load(t)
         c = stick_radius_m(aH, Q, self.mu, P)
         r_in = np.where(code == 0, c, 0.0)
-        rr = np.sqrt(rng.uniform(0, 1, t.size) * (aH ** 2 - r_in ** 2) + r_in ** 2)
+        rr = np.sqrt(rng.uniform(0, 1, t.size) * (aH**2 - r_in**2) + r_in**2)
         th = rng.uniform(0, 2 * np.pi, t.size)
-        pts = (self.center + (rr * np.cos(th))[:, None] * self._e1 + (rr * np.sin(th))[:, None] * self._e2)
+        pts = (
+            self.center
+            + (rr * np.cos(th))[:, None] * self._e1
+            + (rr * np.sin(th))[:, None] * self._e2
+        )
         pts *= self.geometry.radius_m / np.linalg.norm(pts, axis=1, keepdims=True)
-        pol = _polarity(rng.choice([-1.0, 1.0], t.size), self.p.get("micro_slip_polarity", "random"))
+        pol = _polarity(
+            rng.choice([-1.0, 1.0], t.size), self.p.get("micro_slip_polarity", "random")
+        )
         ids = (step << 24) + (key << 16) + np.arange(t.size)
         return (t, code, pts, pol, ids), fmax_new, sliding_new
 
@@ -446,9 +520,19 @@ class IncipientSlipProcess:
             m = code == c
             if m.any():
                 ev = self.event_params[kind]
-                lists.append(EmissionList.create(t[m], pts[m], kind, polarity=pol[m], speed_m_s=ev.speed_m_s,
-                                                 curvature_1_m=ev.curvature_1_m, alpha_1_s=ev.alpha_1_s,
-                                                 density_kg_m3=self.density, event_id=ids[m]))
+                lists.append(
+                    EmissionList.create(
+                        t[m],
+                        pts[m],
+                        kind,
+                        polarity=pol[m],
+                        speed_m_s=ev.speed_m_s,
+                        curvature_1_m=ev.curvature_1_m,
+                        alpha_1_s=ev.alpha_1_s,
+                        density_kg_m3=self.density,
+                        event_id=ids[m],
+                    )
+                )
         return EmissionList.concat(lists)
 
     def advance(self, t_ns: int) -> EmissionList:
@@ -457,10 +541,12 @@ class IncipientSlipProcess:
         if t_ns <= self.horizon_ns:
             return EmissionList.empty()
         if t_ns > self._gen_ns:
-            end = (-(-t_ns // self.step_ns)) * self.step_ns         # whole steps
+            end = (-(-t_ns // self.step_ns)) * self.step_ns  # whole steps
             parts = []
             for a, b, P, key in self._segments(self._gen_ns, end):
-                raw, self._fmax, self._sliding = self._generate(a, b, P, key, self._fmax, self._sliding)
+                raw, self._fmax, self._sliding = self._generate(
+                    a, b, P, key, self._fmax, self._sliding
+                )
                 if raw is not None:
                     parts.append(raw)
             self._pending = EmissionList.concat([self._pending, self._to_list(parts)])
@@ -491,8 +577,11 @@ class IncipientSlipProcess:
             "generator": "incipient_slip",
             "gross_slip_time_ns": onset,
             "gross_slip_intervals_ns": iv,
-            "predicted_gross_slip_time_ns": (None if not np.isfinite(self._time_of_q(1.0, P0))
-                                             else int(math.ceil(self._time_of_q(1.0, P0)))),
+            "predicted_gross_slip_time_ns": (
+                None
+                if not np.isfinite(self._time_of_q(1.0, P0))
+                else int(math.ceil(self._time_of_q(1.0, P0)))
+            ),
             "normal_load_changes": [[int(t), float(P)] for t, P in self.loads],
             "hertz_radius_m": self.contact_radius(P0),
             "effective_radius_m": self.r_eff,
@@ -542,7 +631,11 @@ def stylus(ctx, p):
     n = int(math.floor(p["path_m"] / lam))
     k = np.arange(1, n + 1)
     t = t0 + k * lam / v + rng.normal(0.0, p["jitter_fraction"] * lam / v, n)
-    keep = (rng.uniform(0, 1, n) >= p["miss_fraction"]) & (t > t0) & (t < min(t0 + dur, ctx.duration_s))
+    keep = (
+        (rng.uniform(0, 1, n) >= p["miss_fraction"])
+        & (t > t0)
+        & (t < min(t0 + dur, ctx.duration_s))
+    )
     centres = rotate_on_sphere(p0, d, v * (t - t0) / R)
     u, w = uniform_disc(rng, n, 0.0, p["contact_radius_m"])
     f1, f2 = tangent_basis(centres) if n else (np.zeros((0, 3)), np.zeros((0, 3)))
@@ -552,16 +645,41 @@ def stylus(ctx, p):
     pol = _polarity(rng.choice([-1.0, 1.0], n), p["polarity"])
     lists = [_make(ctx, t[keep], pts[keep], "texture", ev, pol[keep], 2 + np.arange(n)[keep])]
     if t0 < ctx.duration_s:
-        lists.append(_make(ctx, [t0], p0[None, :], "touch", EventParams(p["touch_speed_m_s"], p["curvature_1_m"],
-                                                                        p["alpha_1_s"]), 1, [0]))
+        lists.append(
+            _make(
+                ctx,
+                [t0],
+                p0[None, :],
+                "touch",
+                EventParams(p["touch_speed_m_s"], p["curvature_1_m"], p["alpha_1_s"]),
+                1,
+                [0],
+            )
+        )
     t_end = t0 + dur
     if ctx.effects["release_emissions"] and t_end < ctx.duration_s:
-        lists.append(_make(ctx, [t_end], rotate_on_sphere(p0, d, [p["path_m"] / R]), "release",
-                           EventParams(p["touch_speed_m_s"] * 0.5, p["curvature_1_m"], p["alpha_1_s"]), -1, [1]))
-    truth = {"generator": "stylus", "start_time_ns": int(_ns(t0)), "end_time_ns": int(_ns(t_end)),
-             "slide_speed_m_s": v, "period_m": lam, "emission_rate_hz": v / lam,
-             "start_point_m": [float(x) for x in p0], "direction": [float(x) for x in d],
-             "n_texture_emissions": int(keep.sum())}
+        lists.append(
+            _make(
+                ctx,
+                [t_end],
+                rotate_on_sphere(p0, d, [p["path_m"] / R]),
+                "release",
+                EventParams(p["touch_speed_m_s"] * 0.5, p["curvature_1_m"], p["alpha_1_s"]),
+                -1,
+                [1],
+            )
+        )
+    truth = {
+        "generator": "stylus",
+        "start_time_ns": int(_ns(t0)),
+        "end_time_ns": int(_ns(t_end)),
+        "slide_speed_m_s": v,
+        "period_m": lam,
+        "emission_rate_hz": v / lam,
+        "start_point_m": [float(x) for x in p0],
+        "direction": [float(x) for x in d],
+        "n_texture_emissions": int(keep.sum()),
+    }
     return StaticEmissions(EmissionList.concat(lists), truth)
 
 
@@ -569,7 +687,11 @@ def stylus_track(truth: dict, radius_m: float, t_ns):
     """(centre (n, 3), velocity (n, 3)) of a stylus scene's contact at times t_ns (n,)."""
     t = (np.atleast_1d(np.asarray(t_ns, float)) - truth["start_time_ns"]) * 1e-9
     t = np.clip(t, 0.0, (truth["end_time_ns"] - truth["start_time_ns"]) * 1e-9)
-    p0, d, v = np.asarray(truth["start_point_m"]), np.asarray(truth["direction"]), truth["slide_speed_m_s"]
+    p0, d, v = (
+        np.asarray(truth["start_point_m"]),
+        np.asarray(truth["direction"]),
+        truth["slide_speed_m_s"],
+    )
     c = rotate_on_sphere(p0, d, v * t / radius_m)
     c2 = rotate_on_sphere(p0, d, v * (t + 1e-6) / radius_m)
     return c, (c2 - c) / 1e-6
@@ -584,20 +706,36 @@ def interference(ctx, p):
     periodic (jitter ``jitter_s``) or Poisson. With ``hold_s`` > 0 a touch at (x_m, y_m)
     at ``touch_time_s`` is held that long under the bursts and released."""
     from ae_tactile.sim.interference import burst_times_s
+
     rng = _rng(ctx.seed, 81)
     end = min(ctx.duration_s, p["start_s"] + p["burst_duration_s"])
-    t = burst_times_s(end, p["rate_hz"], periodic=p["periodic"], jitter_s=p["jitter_s"], start_s=p["start_s"],
-                      rng=rng)
-    truth = {"generator": "interference", "burst_times_ns": [int(x) for x in _ns(t)],
-             "kind": p["kind"], "coupling": p["coupling"], "amplitude_snr_db": p["amplitude_snr_db"],
-             "seed": int(ctx.seed)}
+    t = burst_times_s(
+        end,
+        p["rate_hz"],
+        periodic=p["periodic"],
+        jitter_s=p["jitter_s"],
+        start_s=p["start_s"],
+        rng=rng,
+    )
+    truth = {
+        "generator": "interference",
+        "burst_times_ns": [int(x) for x in _ns(t)],
+        "kind": p["kind"],
+        "coupling": p["coupling"],
+        "amplitude_snr_db": p["amplitude_snr_db"],
+        "seed": int(ctx.seed),
+    }
     em = EmissionList.empty()
     if p["hold_s"] > 0:
         # a held touch (touch_hold_release) under the interference: the false-alarm scene
         sub = touch_hold_release(ctx, {**p, "time_s": p["touch_time_s"]})
         em = sub.emissions
-        truth.update({"touch_time_ns": int(_ns(p["touch_time_s"])),
-                      "release_time_ns": sub.truth["release_time_ns"]})
+        truth.update(
+            {
+                "touch_time_ns": int(_ns(p["touch_time_s"])),
+                "release_time_ns": sub.truth["release_time_ns"],
+            }
+        )
     return StaticEmissions(em, truth)
 
 
@@ -623,8 +761,18 @@ class CompositeProcess:
                 continue
             em = proc.advance(int(t_ns) - off)
             if len(em):
-                out.append(EmissionList(em.time_ns + off, em.point_m, em.kind, em.strength_pa_m, em.speed_m_s,
-                                        em.curvature_1_m, em.alpha_1_s, em.event_id + (i << self.ID_SHIFT)))
+                out.append(
+                    EmissionList(
+                        em.time_ns + off,
+                        em.point_m,
+                        em.kind,
+                        em.strength_pa_m,
+                        em.speed_m_s,
+                        em.curvature_1_m,
+                        em.alpha_1_s,
+                        em.event_id + (i << self.ID_SHIFT),
+                    )
+                )
         return EmissionList.concat(out)
 
     def set_normal_load(self, load_n: float, at_time_ns: int) -> None:

@@ -158,8 +158,10 @@ GENERATORS = {
         "slip_speed_m_s": _f(0.2, "local speed of a gross-slip event (m/s)", 1e-4, 20.0),
         "curvature_1_m": _EV["curvature_1_m"], "alpha_1_s": _EV["alpha_1_s"],
         "step_s": _f(10e-3, "random-draw time step (s)", 1e-6, 1.0),
-        "micro_slip_count": Key("float_or_null", None, "mean micro-slips of the front over a whole ramp "
-                                "(replaces front_density_per_m2); null: from the density", 0.0, 1e6),
+        "micro_slip_count": Key("float_or_null", None,
+                                "mean micro-slips of the front over a whole ramp "
+                                "(replaces front_density_per_m2); null: from the density",
+                                0.0, 1e6),
         "micro_slip_polarity": Key("str", "random", "micro-slip / slip emission polarity",
                                    choices=("random", "compression", "rarefaction"))}),
     "stylus": (G.stylus, {
@@ -182,8 +184,9 @@ GENERATORS = {
         "start_s": _f(0.0, "first burst (s)", 0.0, 3600.0),
         "burst_duration_s": _f(3600.0, "bursts stop after this long (s)", 0.0, 1e6),
         "kind": Key("str", "mixed", "waveform", choices=("mixed", "spike", "edge", "ringing")),
-        "coupling": Key("str", "adc", "where it enters: after the filters (adc) or at the amplifier "
-                        "input", choices=("adc", "input")),
+        "coupling": Key("str", "adc",
+                        "where it enters: after the filters (adc) or at the amplifier input",
+                        choices=("adc", "input")),
         "amplitude_snr_db": _f(30.0, "burst peak over the noise sigma (dB)", -20.0, 120.0),
         **_XY, "touch_time_s": _f(1e-3, "held touch: touch time (s)", 0.0, 3600.0),
         "hold_s": _f(0.0, "held touch: hold time (s); 0: no touch", 0.0, 3600.0),

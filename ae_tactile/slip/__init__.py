@@ -1,18 +1,31 @@
-"""Slip / texture analysis (issue 6): localized emissions -> SLIP_PRECURSOR, SLIP and
-TEXTURE events and a latched per-finger contact state. Pure numpy, never imports rclpy.
+"""Slip / texture analysis: localized emissions -> SLIP_PRECURSOR, SLIP and TEXTURE
+events and a latched per-finger contact state. Pure numpy, never imports rclpy.
 
     from ae_tactile.slip import SlipDetector, SlipConfig, LocalizedEvent
     det = SlipDetector(SlipConfig(sliding_speed_m_s=0.02))
     outs = det.process(LocalizedEvent(time_ns, point_m, covariance_m2, polarity, amplitude_v,
                                       confidence, packet_id))
-    det.advance(now_ns); det.state       # FingerState (NO_CONTACT / STICK / INCIPIENT_SLIP / GROSS_SLIP)
+    det.advance(now_ns); det.state       # FingerState (NO_CONTACT / STICK / INCIPIENT_SLIP /
+                                         # GROSS_SLIP)
 
-Evaluation on the simulator: ``ae_tactile.slip.evaluate`` (bench/bench_slip.py). See docs/slip.md.
+Evaluation on the simulator: ``ae_tactile.slip.evaluate`` (bench/bench_slip.py).
+See docs/slip.md.
 """
+
 from .config import SlipConfig
 from .detector import SlipDetector
 from .periodicity import Periodicity, periodicity
 from .types import ContactInfo, ContactState, FingerState, LocalizedEvent, SlipEvent, SlipEventType
 
-__all__ = ["SlipConfig", "SlipDetector", "LocalizedEvent", "SlipEvent", "SlipEventType", "ContactState",
-           "ContactInfo", "FingerState", "Periodicity", "periodicity"]
+__all__ = [
+    "SlipConfig",
+    "SlipDetector",
+    "LocalizedEvent",
+    "SlipEvent",
+    "SlipEventType",
+    "ContactState",
+    "ContactInfo",
+    "FingerState",
+    "Periodicity",
+    "periodicity",
+]

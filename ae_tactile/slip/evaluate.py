@@ -19,6 +19,7 @@ Trials (each function takes a seed and returns a JSON-able dict):
   drift_slip_trial       plane slip drifting along x: SLIP delay and direction error
 ``run_evaluation`` runs them all and summarises (bench/bench_slip.py, test_slip_eval.py).
 """
+
 from __future__ import annotations
 
 import math
@@ -40,18 +41,22 @@ SLIP_KINDS = (SlipEventType.SLIP_PRECURSOR, SlipEventType.SLIP, SlipEventType.TE
 
 # Randomised parameter ranges (SI units); "log" = log-uniform.
 INCIPIENT_RANGES = {
-    "max_polar_deg": 50.0,                    # contact centre, uniform by area over this cap
+    "max_polar_deg": 50.0,  # contact centre, uniform by area over this cap
     "normal_load_n": (0.5, 2.0, "log"),
-    "youngs_modulus_pa": (0.7e6, 2.0e6, "log"),   # a_H = 1.1 .. 2.5 mm
+    "youngs_modulus_pa": (0.7e6, 2.0e6, "log"),  # a_H = 1.1 .. 2.5 mm
     "friction_coefficient": (0.5, 1.2, "uniform"),
-    "time_to_gross_slip_s": (0.25, 2.5, "log"),   # mu P / (dQ/dt): sets dQ/dt
+    "time_to_gross_slip_s": (0.25, 2.5, "log"),  # mu P / (dQ/dt): sets dQ/dt
     "snr_db": (25.0, 35.0, "uniform"),
 }
 
 
 def _draw(rng, spec):
     lo, hi, kind = spec
-    return float(math.exp(rng.uniform(math.log(lo), math.log(hi)))) if kind == "log" else float(rng.uniform(lo, hi))
+    return (
+        float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
+        if kind == "log"
+        else float(rng.uniform(lo, hi))
+    )
 
 
 def _cap_point_xy(rng, radius_m, max_polar_deg):
@@ -74,7 +79,9 @@ class _WithTouch:
         if self._h is not None and t_ns <= self._h:
             return EmissionList.empty()
         self._h = int(t_ns)
-        return EmissionList.concat([self.extra.between(lo, t_ns), self.process.advance(t_ns)]).sorted()
+        return EmissionList.concat(
+            [self.extra.between(lo, t_ns), self.process.advance(t_ns)]
+        ).sorted()
 
     def scene_truth(self):
         return self.process.scene_truth()
@@ -94,20 +101,31 @@ def localized_events(packets, geometry, *, id_offset: int = 0) -> list[Localized
     t = onset_ns - travel_ns
     out = []
     for i in np.flatnonzero(res.accepted):
-        out.append(LocalizedEvent(int(t[i]), res.point_m[i], res.covariance_m2[i], int(res.polarity[i]),
-                                  float(res.amplitude_v[i]), float(res.confidence[i]), id_offset + int(i)))
+        out.append(
+            LocalizedEvent(
+                int(t[i]),
+                res.point_m[i],
+                res.covariance_m2[i],
+                int(res.polarity[i]),
+                float(res.amplitude_v[i]),
+                float(res.confidence[i]),
+                id_offset + int(i),
+            )
+        )
     out.sort(key=lambda e: e.time_ns)
     return out
 
 
-def stream_localized_events(source, geometry, n_samples: int, *, chunk_samples: int = 1_000_000,
-                            detector_config=None) -> list[LocalizedEvent]:
+def stream_localized_events(
+    source, geometry, n_samples: int, *, chunk_samples: int = 1_000_000, detector_config=None
+) -> list[LocalizedEvent]:
     """The stream path instead of ideal triggers: a ``StreamingSource`` read in chunks ->
     ``ae_tactile.dsp.PacketDetector`` (default configuration at the stream's rate) ->
     ``localize_packets``; re-triggers inside a hit (``in_hit``, wall echoes) are dropped as
     the localizer node does; packet ids are the detector's."""
     from ae_tactile.dsp import DetectorConfig, PacketBatch, PacketDetector
     from ae_tactile.localization import localize_packets
+
     fs = source.config.sample_rate_hz
     det = PacketDetector(detector_config or DetectorConfig(sample_rate_hz=fs))
     parts, pos = [], 0
@@ -123,15 +141,30 @@ def stream_localized_events(source, geometry, n_samples: int, *, chunk_samples: 
     onset_ns = time_ns_of_sample(b.start_index + b.onset_index, fs)
     travel_ns = np.round(geometry.arrival_times_s(res.point_m).min(axis=1) * 1e9).astype(np.int64)
     t = onset_ns - travel_ns
-    out = [LocalizedEvent(int(t[i]), res.point_m[i], res.covariance_m2[i], int(res.polarity[i]),
-                          float(res.amplitude_v[i]), float(res.confidence[i]), int(b.packet_id[i]))
-           for i in np.flatnonzero(res.accepted & ~np.asarray(b.in_hit, bool))]
+    out = [
+        LocalizedEvent(
+            int(t[i]),
+            res.point_m[i],
+            res.covariance_m2[i],
+            int(res.polarity[i]),
+            float(res.amplitude_v[i]),
+            float(res.confidence[i]),
+            int(b.packet_id[i]),
+        )
+        for i in np.flatnonzero(res.accepted & ~np.asarray(b.in_hit, bool))
+    ]
     out.sort(key=lambda e: e.time_ns)
     return out
 
 
-def run_detector(events, config: SlipConfig | None = None, end_ns: int | None = None, *,
-                 sliding_speed_m_s=None, tick_ns: int | None = None):
+def run_detector(
+    events,
+    config: SlipConfig | None = None,
+    end_ns: int | None = None,
+    *,
+    sliding_speed_m_s=None,
+    tick_ns: int | None = None,
+):
     """Feed events (time order) to a fresh detector; ``advance`` every ``tick_ns`` between
     events (a node's timer) and up to ``end_ns``. Returns (detector, outputs, state trace
     [(time_ns, ContactState)])."""
@@ -180,9 +213,17 @@ def _first(outs, kind, onset=True):
 
 
 # ---------------------------------------------------------------------- incipient slip
-def incipient_slip_scene(seed: int, *, announce_touch: bool = False, post_s: float = 0.25,
-                         ranges: dict | None = None, overload: float | None = None,
-                         polarity: str = "random", micro_slip_count=None, slip_rate_hz=None):
+def incipient_slip_scene(
+    seed: int,
+    *,
+    announce_touch: bool = False,
+    post_s: float = 0.25,
+    ranges: dict | None = None,
+    overload: float | None = None,
+    polarity: str = "random",
+    micro_slip_count=None,
+    slip_rate_hz=None,
+):
     """(scene, process wrapper or None, drawn parameters) for one randomised trial.
 
     ``polarity``: 'random', 'compression', 'rarefaction' or 'mixed' (one of the three
@@ -212,38 +253,78 @@ def incipient_slip_scene(seed: int, *, announce_touch: bool = False, post_s: flo
     start_s = 0.1 if announce_touch else 0.0
     qdot = mu * P / T
     spec = {
-        "generator": "incipient_slip", "duration_s": start_s + T + post_s, "seed": int(seed) + 1000,
-        "sensor": {"medium": "silicone"}, "effects": {"attenuation": True}, "noise": {"snr_db": snr},
-        "params": {"x_m": x, "y_m": y, "normal_load_n": P, "youngs_modulus_pa": E, "friction_coefficient": mu,
-                   "start_s": start_s, "tangential_load_rate_n_per_s": qdot,
-                   "tangential_load_max_n": None if overload is None else overload * mu * P, **extra},
+        "generator": "incipient_slip",
+        "duration_s": start_s + T + post_s,
+        "seed": int(seed) + 1000,
+        "sensor": {"medium": "silicone"},
+        "effects": {"attenuation": True},
+        "noise": {"snr_db": snr},
+        "params": {
+            "x_m": x,
+            "y_m": y,
+            "normal_load_n": P,
+            "youngs_modulus_pa": E,
+            "friction_coefficient": mu,
+            "start_s": start_s,
+            "tangential_load_rate_n_per_s": qdot,
+            "tangential_load_max_n": None if overload is None else overload * mu * P,
+            **extra,
+        },
     }
     scene = load_scene(spec)
     a_h = float(hertz_contact_radius_m(P, R, E, 0.5))
-    params = {"seed": int(seed), "x_m": x, "y_m": y, "normal_load_n": P, "youngs_modulus_pa": E,
-              "friction_coefficient": mu, "tangential_load_rate_n_per_s": qdot, "time_to_gross_slip_s": T,
-              "snr_db": snr, "hertz_radius_m": a_h, "announce_touch": bool(announce_touch),
-              "polarity": polarity, "micro_slip_count": extra.get("micro_slip_count"),
-              "slip_rate_hz": extra.get("slip_rate_hz", 500.0)}
+    params = {
+        "seed": int(seed),
+        "x_m": x,
+        "y_m": y,
+        "normal_load_n": P,
+        "youngs_modulus_pa": E,
+        "friction_coefficient": mu,
+        "tangential_load_rate_n_per_s": qdot,
+        "time_to_gross_slip_s": T,
+        "snr_db": snr,
+        "hertz_radius_m": a_h,
+        "announce_touch": bool(announce_touch),
+        "polarity": polarity,
+        "micro_slip_count": extra.get("micro_slip_count"),
+        "slip_rate_hz": extra.get("slip_rate_hz", 500.0),
+    }
     source = None
     if announce_touch:
         c = scene.process.center
-        touch = EmissionList.create(np.array([int(0.02 * _NS)]), c[None, :], "touch", polarity=1, speed_m_s=0.3,
-                                    curvature_1_m=1000.0, alpha_1_s=3000.0, density_kg_m3=scene.config.density,
-                                    event_id=np.array([1 << 40]))
+        touch = EmissionList.create(
+            np.array([int(0.02 * _NS)]),
+            c[None, :],
+            "touch",
+            polarity=1,
+            speed_m_s=0.3,
+            curvature_1_m=1000.0,
+            alpha_1_s=3000.0,
+            density_kg_m3=scene.config.density,
+            event_id=np.array([1 << 40]),
+        )
         source = _WithTouch(scene.process, touch)
     return scene, source, params
 
 
 def _streaming(scene, source):
     from ae_tactile.sim.stream import StreamingSource
+
     if source is None:
         return scene.streaming_source()
     return StreamingSource(source, scene.config, noise_rms_v=scene.noise_rms_v, seed=scene.seed)
 
 
-def emission_events(em: EmissionList, geometry, rng, *, sigma_m: float = 30e-6, drop: float = 0.02,
-                    time_sigma_s: float = 100e-9, id_offset: int = 0) -> list[LocalizedEvent]:
+def emission_events(
+    em: EmissionList,
+    geometry,
+    rng,
+    *,
+    sigma_m: float = 30e-6,
+    drop: float = 0.02,
+    time_sigma_s: float = 100e-9,
+    id_offset: int = 0,
+) -> list[LocalizedEvent]:
     """The 'events' pipeline: true emissions -> LocalizedEvents with the localizer's error
     model instead of rendered waveforms (fast enough for thousands of trials): Gaussian
     position error of ``sigma_m`` per tangent axis (the covariance says so), Gaussian
@@ -254,19 +335,25 @@ def emission_events(em: EmissionList, geometry, rng, *, sigma_m: float = 30e-6, 
         return []
     P = np.asarray(em.point_m, float)
     nrm = P / np.linalg.norm(P, axis=1, keepdims=True)
-    ref = np.where(np.abs(nrm[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    ref = np.where(
+        np.abs(nrm[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]])
+    )
     e1 = ref - (ref * nrm).sum(1, keepdims=True) * nrm
     e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
     e2 = np.cross(nrm, e1)
     z = rng.normal(0.0, sigma_m, (n, 2))
     Q = P + z[:, :1] * e1 + z[:, 1:] * e2
     Q *= geometry.radius_m / np.linalg.norm(Q, axis=1, keepdims=True)
-    cov = sigma_m ** 2 * (e1[:, :, None] * e1[:, None, :] + e2[:, :, None] * e2[:, None, :])
-    t = np.asarray(em.time_ns, np.int64) + np.round(rng.normal(0.0, time_sigma_s * 1e9, n)).astype(np.int64)
+    cov = sigma_m**2 * (e1[:, :, None] * e1[:, None, :] + e2[:, :, None] * e2[:, None, :])
+    t = np.asarray(em.time_ns, np.int64) + np.round(rng.normal(0.0, time_sigma_s * 1e9, n)).astype(
+        np.int64
+    )
     pol = np.sign(np.asarray(em.strength_pa_m, float)).astype(int)
     keep = rng.uniform(0, 1, n) >= drop
-    out = [LocalizedEvent(int(t[i]), Q[i], cov[i], int(pol[i]), math.nan, 0.9, id_offset + int(i))
-           for i in np.flatnonzero(keep)]
+    out = [
+        LocalizedEvent(int(t[i]), Q[i], cov[i], int(pol[i]), math.nan, 0.9, id_offset + int(i))
+        for i in np.flatnonzero(keep)
+    ]
     out.sort(key=lambda e: e.time_ns)
     return out
 
@@ -290,20 +377,36 @@ def _events(scene, source, end_ns, pipeline):
 
 def _triggered(scene, source):
     from ae_tactile.sim.stream import TriggeredSource
+
     if source is None:
         return scene.triggered_source()
     return TriggeredSource(source, scene.config, noise_rms_v=scene.noise_rms_v, seed=scene.seed)
 
 
-def incipient_slip_trial(seed: int, config: SlipConfig | None = None, *, announce_touch: bool = False,
-                         post_s: float = 0.25, ranges: dict | None = None, pipeline: str = "triggered",
-                         polarity: str = "random", micro_slip_count=None, slip_rate_hz=None) -> dict:
+def incipient_slip_trial(
+    seed: int,
+    config: SlipConfig | None = None,
+    *,
+    announce_touch: bool = False,
+    post_s: float = 0.25,
+    ranges: dict | None = None,
+    pipeline: str = "triggered",
+    polarity: str = "random",
+    micro_slip_count=None,
+    slip_rate_hz=None,
+) -> dict:
     """One open-loop incipient-slip trial: precursor, lead time, q at detection, SLIP delay.
     ``pipeline``: 'triggered' (ideal trigger windows) or 'stream' (stream + dsp detector);
     scene options: `incipient_slip_scene`."""
-    scene, source, params = incipient_slip_scene(seed, announce_touch=announce_touch, post_s=post_s, ranges=ranges,
-                                                 polarity=polarity, micro_slip_count=micro_slip_count,
-                                                 slip_rate_hz=slip_rate_hz)
+    scene, source, params = incipient_slip_scene(
+        seed,
+        announce_touch=announce_touch,
+        post_s=post_s,
+        ranges=ranges,
+        polarity=polarity,
+        micro_slip_count=micro_slip_count,
+        slip_rate_hz=slip_rate_hz,
+    )
     end_ns = int(round(scene.duration_s * _NS))
     events, n_em = _events(scene, source, end_ns, pipeline)
     det, outs, trace = run_detector(events, config, end_ns)
@@ -312,41 +415,68 @@ def incipient_slip_trial(seed: int, config: SlipConfig | None = None, *, announc
     pre = _first(outs, SlipEventType.SLIP_PRECURSOR)
     slip = _first(outs, SlipEventType.SLIP)
     out = dict(params)
-    out.update({
-        "pipeline": pipeline, "n_emissions": n_em, "n_events": len(events),
-        "n_micro_slip_events": _n_before(events, t_gross),
-        "gross_slip_time_ns": t_gross,
-        "precursor_time_ns": None if pre is None else pre.time_ns,
-        "slip_time_ns": None if slip is None else slip.time_ns,
-        "precursor_before_gross": bool(pre is not None and t_gross is not None and pre.time_ns < t_gross),
-        "lead_ms": None if pre is None or t_gross is None else (t_gross - pre.time_ns) / 1e6,
-        "q_at_precursor": None if pre is None else float(proc.state_at(pre.time_ns)["load_ratio"]),
-        "slip_delay_ms": None if slip is None or t_gross is None else (slip.time_ns - t_gross) / 1e6,
-        "q_at_slip": None if slip is None else float(proc.state_at(slip.time_ns)["load_ratio"]),
-        "precursor_error_to_ring_m": None,
-        "n_precursor_events": sum(o.kind == SlipEventType.SLIP_PRECURSOR for o in outs),
-        "n_slip_events": sum(o.kind == SlipEventType.SLIP for o in outs),
-        "n_texture_events": sum(o.kind == SlipEventType.TEXTURE for o in outs),
-        "states": [[t, int(s)] for t, s in trace],
-    })
+    out.update(
+        {
+            "pipeline": pipeline,
+            "n_emissions": n_em,
+            "n_events": len(events),
+            "n_micro_slip_events": _n_before(events, t_gross),
+            "gross_slip_time_ns": t_gross,
+            "precursor_time_ns": None if pre is None else pre.time_ns,
+            "slip_time_ns": None if slip is None else slip.time_ns,
+            "precursor_before_gross": bool(
+                pre is not None and t_gross is not None and pre.time_ns < t_gross
+            ),
+            "lead_ms": None if pre is None or t_gross is None else (t_gross - pre.time_ns) / 1e6,
+            "q_at_precursor": None
+            if pre is None
+            else float(proc.state_at(pre.time_ns)["load_ratio"]),
+            "slip_delay_ms": None
+            if slip is None or t_gross is None
+            else (slip.time_ns - t_gross) / 1e6,
+            "q_at_slip": None
+            if slip is None
+            else float(proc.state_at(slip.time_ns)["load_ratio"]),
+            "precursor_error_to_ring_m": None,
+            "n_precursor_events": sum(o.kind == SlipEventType.SLIP_PRECURSOR for o in outs),
+            "n_slip_events": sum(o.kind == SlipEventType.SLIP for o in outs),
+            "n_texture_events": sum(o.kind == SlipEventType.TEXTURE for o in outs),
+            "states": [[t, int(s)] for t, s in trace],
+        }
+    )
     if pre is not None:
         c = np.asarray(proc.center)
-        out["precursor_error_to_ring_m"] = float(abs(np.linalg.norm(pre.position_m - c) - params["hertz_radius_m"]))
+        out["precursor_error_to_ring_m"] = float(
+            abs(np.linalg.norm(pre.position_m - c) - params["hertz_radius_m"])
+        )
     return out
 
 
-def closed_loop_trial(seed: int, config: SlipConfig | None = None, *, latency_s: float = 0.05,
-                      load_factor: float = 1.5, overload: float = 1.2, chunk_s: float = 0.005,
-                      margin_s: float = 0.2, announce_touch: bool = False, ranges: dict | None = None) -> dict:
+def closed_loop_trial(
+    seed: int,
+    config: SlipConfig | None = None,
+    *,
+    latency_s: float = 0.05,
+    load_factor: float = 1.5,
+    overload: float = 1.2,
+    chunk_s: float = 0.005,
+    margin_s: float = 0.2,
+    announce_touch: bool = False,
+    ranges: dict | None = None,
+) -> dict:
     """Grip reflex: the tangential load ramps to ``overload`` x mu P (open loop: gross slip
     at mu P / Qdot) and stays there; when the first SLIP_PRECURSOR arrives, P is raised by
     ``load_factor`` at ``latency_s`` after its emission time (or as soon as the stream
     allows), so that q stays below overload / load_factor < 1 if the reflex comes before
     q reaches 1. The scene runs ``margin_s`` past the end of the ramp. Averted = no gross
     slip in the whole scene."""
-    scene, source, params = incipient_slip_scene(seed, announce_touch=announce_touch,
-                                                 post_s=(overload - 1.0) * INCIPIENT_RANGES["time_to_gross_slip_s"][1]
-                                                 + margin_s, ranges=ranges, overload=overload)
+    scene, source, params = incipient_slip_scene(
+        seed,
+        announce_touch=announce_touch,
+        post_s=(overload - 1.0) * INCIPIENT_RANGES["time_to_gross_slip_s"][1] + margin_s,
+        ranges=ranges,
+        overload=overload,
+    )
     proc = scene.process
     src = _triggered(scene, source)
     geo = scene.config.geometry
@@ -372,19 +502,31 @@ def closed_loop_trial(seed: int, config: SlipConfig | None = None, *, latency_s:
             proc.set_normal_load(params["normal_load_n"] * load_factor, t_reflex)
     truth = proc.scene_truth(end_ns)
     out = dict(params)
-    out.update({"latency_s": latency_s, "load_factor": load_factor, "overload": overload, "precursor_time_ns": t_pre,
-                "reflex_time_ns": t_reflex, "gross_slip_intervals_ns": truth["gross_slip_intervals_ns"],
-                "averted": not truth["gross_slip_intervals_ns"],
-                "q_at_reflex": None if t_reflex is None else float(proc.state_at(t_reflex - 1)["load_ratio"])})
+    out.update(
+        {
+            "latency_s": latency_s,
+            "load_factor": load_factor,
+            "overload": overload,
+            "precursor_time_ns": t_pre,
+            "reflex_time_ns": t_reflex,
+            "gross_slip_intervals_ns": truth["gross_slip_intervals_ns"],
+            "averted": not truth["gross_slip_intervals_ns"],
+            "q_at_reflex": None
+            if t_reflex is None
+            else float(proc.state_at(t_reflex - 1)["load_ratio"]),
+        }
+    )
     return out
 
 
 # ---------------------------------------------------------------------- false alarms
 def _alarm_summary(outs):
-    return {"n_precursor": sum(o.kind == SlipEventType.SLIP_PRECURSOR for o in outs),
-            "n_slip": sum(o.kind == SlipEventType.SLIP for o in outs),
-            "n_texture": sum(o.kind == SlipEventType.TEXTURE for o in outs),
-            "n_alarm_onsets": sum(o.onset for o in outs if o.kind in SLIP_KINDS)}
+    return {
+        "n_precursor": sum(o.kind == SlipEventType.SLIP_PRECURSOR for o in outs),
+        "n_slip": sum(o.kind == SlipEventType.SLIP for o in outs),
+        "n_texture": sum(o.kind == SlipEventType.TEXTURE for o in outs),
+        "n_alarm_onsets": sum(o.onset for o in outs if o.kind in SLIP_KINDS),
+    }
 
 
 def _state_at(trace, t):
@@ -395,7 +537,9 @@ def _state_at(trace, t):
     return s
 
 
-def touch_hold_release_trial(seed: int, config: SlipConfig | None = None, *, pipeline: str = "triggered") -> dict:
+def touch_hold_release_trial(
+    seed: int, config: SlipConfig | None = None, *, pipeline: str = "triggered"
+) -> dict:
     """Touch anywhere on the cap (polar <= 60 deg), hold 20 ms .. 2 s, release; random
     speeds, medium and SNR. False alarms and the latched state during the hold / after."""
     rng = np.random.default_rng([7002, int(seed)])
@@ -403,49 +547,97 @@ def touch_hold_release_trial(seed: int, config: SlipConfig | None = None, *, pip
     x, y = _cap_point_xy(rng, 0.01, 60.0)
     hold = float(math.exp(rng.uniform(math.log(0.02), math.log(2.0))))
     t0 = 0.005
-    spec = {"generator": "touch_hold_release", "duration_s": t0 + hold + 0.1, "seed": int(seed) + 2000,
-            "sensor": {"medium": medium}, "effects": {"attenuation": medium == "silicone"},
-            "noise": {"snr_db": float(rng.uniform(25, 35))},
-            "params": {"x_m": x, "y_m": y, "time_s": t0, "hold_s": hold,
-                       "speed_m_s": float(rng.uniform(0.15, 0.5)), "release_speed_m_s": float(rng.uniform(0.1, 0.3))}}
+    spec = {
+        "generator": "touch_hold_release",
+        "duration_s": t0 + hold + 0.1,
+        "seed": int(seed) + 2000,
+        "sensor": {"medium": medium},
+        "effects": {"attenuation": medium == "silicone"},
+        "noise": {"snr_db": float(rng.uniform(25, 35))},
+        "params": {
+            "x_m": x,
+            "y_m": y,
+            "time_s": t0,
+            "hold_s": hold,
+            "speed_m_s": float(rng.uniform(0.15, 0.5)),
+            "release_speed_m_s": float(rng.uniform(0.1, 0.3)),
+        },
+    }
     scene = load_scene(spec)
     end_ns = int(round(scene.duration_s * _NS))
     events, n_em = _events(scene, None, end_ns, pipeline)
     det, outs, trace = run_detector(events, config, end_ns, tick_ns=int(0.01 * _NS))
-    out = {"seed": int(seed), "duration_s": scene.duration_s, "hold_s": hold, "medium": medium,
-           "pipeline": pipeline, "n_emissions": n_em, "n_events": len(events),
-           "state_mid_hold": int(_state_at(trace, int((t0 + hold / 2) * _NS))),
-           "state_end": int(det.state.state)}
+    out = {
+        "seed": int(seed),
+        "duration_s": scene.duration_s,
+        "hold_s": hold,
+        "medium": medium,
+        "pipeline": pipeline,
+        "n_emissions": n_em,
+        "n_events": len(events),
+        "state_mid_hold": int(_state_at(trace, int((t0 + hold / 2) * _NS))),
+        "state_end": int(det.state.state),
+    }
     out.update(_alarm_summary(outs))
     return out
 
 
-def random_touches_trial(seed: int, config: SlipConfig | None = None, *, duration_s: float = 10.0,
-                         rate_hz: float = 20.0, hold_max_s: float = 0.05) -> dict:
+def random_touches_trial(
+    seed: int,
+    config: SlipConfig | None = None,
+    *,
+    duration_s: float = 10.0,
+    rate_hz: float = 20.0,
+    hold_max_s: float = 0.05,
+) -> dict:
     """The random_touches scene (Poisson touches over the cap with releases): false alarms."""
     rng = np.random.default_rng([7003, int(seed)])
     medium = "silicone" if rng.uniform() < 0.5 else "water_skin"
-    spec = {"generator": "random_touches", "duration_s": duration_s, "seed": int(seed) + 3000,
-            "sensor": {"medium": medium}, "effects": {"attenuation": medium == "silicone", "release_emissions": True},
-            "noise": {"snr_db": 30.0},
-            "params": {"rate_hz": rate_hz, "max_polar_deg": 60.0, "hold_min_s": 0.005, "hold_max_s": hold_max_s}}
+    spec = {
+        "generator": "random_touches",
+        "duration_s": duration_s,
+        "seed": int(seed) + 3000,
+        "sensor": {"medium": medium},
+        "effects": {"attenuation": medium == "silicone", "release_emissions": True},
+        "noise": {"snr_db": 30.0},
+        "params": {
+            "rate_hz": rate_hz,
+            "max_polar_deg": 60.0,
+            "hold_min_s": 0.005,
+            "hold_max_s": hold_max_s,
+        },
+    }
     scene = load_scene(spec)
     end_ns = int(round(duration_s * _NS))
     pk = scene.triggered_source().next_packets(1 << 30, horizon_ns=end_ns)
     events = localized_events(pk, scene.config.geometry)
     det, outs, trace = run_detector(events, config, end_ns, tick_ns=int(0.01 * _NS))
-    out = {"seed": int(seed), "duration_s": duration_s, "rate_hz": rate_hz, "hold_max_s": hold_max_s,
-           "medium": medium, "n_emissions": int(len(pk.emissions)), "n_events": len(events),
-           "counts": dict(det.counts)}
+    out = {
+        "seed": int(seed),
+        "duration_s": duration_s,
+        "rate_hz": rate_hz,
+        "hold_max_s": hold_max_s,
+        "medium": medium,
+        "n_emissions": int(len(pk.emissions)),
+        "n_events": len(events),
+        "counts": dict(det.counts),
+    }
     out.update(_alarm_summary(outs))
     return out
 
 
 def _touch_list(scene, t_s, pts, pol, speed, ids):
-    return EmissionList.create(np.round(np.asarray(t_s) * _NS).astype(np.int64), pts,
-                               np.where(np.asarray(pol) > 0, "touch", "release") if np.ndim(pol) else "touch",
-                               polarity=pol, speed_m_s=speed, curvature_1_m=1000.0, alpha_1_s=3000.0,
-                               density_kg_m3=scene.config.density, event_id=ids)
+    return EmissionList.create(
+        np.round(np.asarray(t_s) * _NS).astype(np.int64),
+        pts,
+        np.where(np.asarray(pol) > 0, "touch", "release") if np.ndim(pol) else "touch",
+        polarity=pol,
+        speed_m_s=speed,
+        curvature_1_m=1000.0,
+        alpha_1_s=3000.0,
+        density_kg_m3=scene.config.density,
+        event_id=ids,
+    )
 
 
 def _custom_trial(seed, spec, build, config, pipeline, tick=True):
@@ -457,7 +649,9 @@ def _custom_trial(seed, spec, build, config, pipeline, tick=True):
     end_ns = int(round(scene.duration_s * _NS))
     source = _WithTouch(_Empty(), em)
     events, n_em = _events(scene, source, end_ns, pipeline)
-    det, outs, trace = run_detector(events, config, end_ns, tick_ns=int(0.01 * _NS) if tick else None)
+    det, outs, trace = run_detector(
+        events, config, end_ns, tick_ns=int(0.01 * _NS) if tick else None
+    )
     return scene, det, outs, trace, events, n_em
 
 
@@ -475,16 +669,26 @@ def _cap_xy(rng, r_max=6e-3):
     return r * math.cos(th), r * math.sin(th)
 
 
-def tapping_trial(seed: int, config: SlipConfig | None = None, *, pipeline: str = "triggered",
-                  duration_s: float = 3.0) -> dict:
+def tapping_trial(
+    seed: int,
+    config: SlipConfig | None = None,
+    *,
+    pipeline: str = "triggered",
+    duration_s: float = 3.0,
+) -> dict:
     """A touch held for the whole trial while another spot 1.5 .. 8 mm away is tapped at
     1 .. 10 Hz (each tap: a touch, held 10 .. 100 ms, and its release at the same spot):
     false alarms."""
     rng = np.random.default_rng([7021, int(seed)])
     medium = "silicone" if rng.uniform() < 0.5 else "water_skin"
-    spec = {"generator": "single_touch", "duration_s": duration_s, "seed": int(seed) + 6000,
-            "sensor": {"medium": medium}, "effects": {"attenuation": medium == "silicone"},
-            "noise": {"snr_db": float(rng.uniform(25, 35))}}
+    spec = {
+        "generator": "single_touch",
+        "duration_s": duration_s,
+        "seed": int(seed) + 6000,
+        "sensor": {"medium": medium},
+        "effects": {"attenuation": medium == "silicone"},
+        "noise": {"snr_db": float(rng.uniform(25, 35))},
+    }
     x0, y0 = _cap_xy(rng)
     d = float(rng.uniform(1.5e-3, 8e-3))
     ang = rng.uniform(0, 2 * math.pi)
@@ -507,26 +711,47 @@ def tapping_trial(seed: int, config: SlipConfig | None = None, *, pipeline: str 
         times = np.concatenate([[0.01], t, t + hold, [duration_s - 0.02]])
         pts = np.vstack([p0[None], np.repeat(p1[None], 2 * t.size, 0), p0[None]])
         pol = np.concatenate([[1], np.ones(t.size), -np.ones(t.size), [-1]])
-        spd = np.concatenate([[0.3], g.uniform(0.1, 0.5, t.size), g.uniform(0.05, 0.2, t.size), [0.15]])
+        spd = np.concatenate(
+            [[0.3], g.uniform(0.1, 0.5, t.size), g.uniform(0.05, 0.2, t.size), [0.15]]
+        )
         return _touch_list(scene, times, pts, pol, spd, np.arange(times.size))
 
     scene, det, outs, trace, events, n_em = _custom_trial(seed, spec, build, config, pipeline)
-    out = {"seed": int(seed), "duration_s": duration_s, "distance_m": d, "tap_rate_hz": rate,
-           "medium": medium, "pipeline": pipeline, "n_emissions": n_em, "n_events": len(events),
-           "state_mid": int(_state_at(trace, int(duration_s / 2 * _NS))), "state_end": int(det.state.state)}
+    out = {
+        "seed": int(seed),
+        "duration_s": duration_s,
+        "distance_m": d,
+        "tap_rate_hz": rate,
+        "medium": medium,
+        "pipeline": pipeline,
+        "n_emissions": n_em,
+        "n_events": len(events),
+        "state_mid": int(_state_at(trace, int(duration_s / 2 * _NS))),
+        "state_end": int(det.state.state),
+    }
     out.update(_alarm_summary(outs))
     return out
 
 
-def cycles_trial(seed: int, config: SlipConfig | None = None, *, pipeline: str = "triggered",
-                 duration_s: float = 3.0) -> dict:
+def cycles_trial(
+    seed: int,
+    config: SlipConfig | None = None,
+    *,
+    pipeline: str = "triggered",
+    duration_s: float = 3.0,
+) -> dict:
     """Touch-release cycles: touches held 20 .. 500 ms, 10 .. 300 ms apart, each within
     3 mm of the previous one (a finger pressing and lifting over one area): false alarms."""
     rng = np.random.default_rng([7022, int(seed)])
     medium = "silicone" if rng.uniform() < 0.5 else "water_skin"
-    spec = {"generator": "single_touch", "duration_s": duration_s, "seed": int(seed) + 7000,
-            "sensor": {"medium": medium}, "effects": {"attenuation": medium == "silicone"},
-            "noise": {"snr_db": float(rng.uniform(25, 35))}}
+    spec = {
+        "generator": "single_touch",
+        "duration_s": duration_s,
+        "seed": int(seed) + 7000,
+        "sensor": {"medium": medium},
+        "effects": {"attenuation": medium == "silicone"},
+        "noise": {"snr_db": float(rng.uniform(25, 35))},
+    }
 
     def build(scene, g):
         geo = scene.config.geometry
@@ -547,17 +772,32 @@ def cycles_trial(seed: int, config: SlipConfig | None = None, *, pipeline: str =
             x, y = x + r * math.cos(a), y + r * math.sin(a)
             if math.hypot(x, y) > 7e-3:
                 x, y = 0.5 * x, 0.5 * y
-        return _touch_list(scene, times, np.array(pts), np.array(pol), np.array(spd), np.arange(len(times)))
+        return _touch_list(
+            scene, times, np.array(pts), np.array(pol), np.array(spd), np.arange(len(times))
+        )
 
     scene, det, outs, trace, events, n_em = _custom_trial(seed, spec, build, config, pipeline)
-    out = {"seed": int(seed), "duration_s": duration_s, "medium": medium, "pipeline": pipeline,
-           "n_emissions": n_em, "n_events": len(events), "state_end": int(det.state.state)}
+    out = {
+        "seed": int(seed),
+        "duration_s": duration_s,
+        "medium": medium,
+        "pipeline": pipeline,
+        "n_emissions": n_em,
+        "n_events": len(events),
+        "state_end": int(det.state.state),
+    }
     out.update(_alarm_summary(outs))
     return out
 
 
-def stylus_trial(seed: int, config: SlipConfig | None = None, *, pipeline: str = "triggered",
-                 jitter: tuple = (0.0, 0.2), period_m: tuple = (0.2e-3, 0.6e-3)) -> dict:
+def stylus_trial(
+    seed: int,
+    config: SlipConfig | None = None,
+    *,
+    pipeline: str = "triggered",
+    jitter: tuple = (0.0, 0.2),
+    period_m: tuple = (0.2e-3, 0.6e-3),
+) -> dict:
     """A stylus dragged over the tip (the stylus scene): one tracked contact, TEXTURE with
     the spatial period from the tracked speed (no sliding speed given), its error, the
     time to the first TEXTURE, the number of contacts the emissions were split into."""
@@ -571,13 +811,25 @@ def stylus_trial(seed: int, config: SlipConfig | None = None, *, pipeline: str =
     x0, y0 = -0.5 * path * math.cos(h), -0.5 * path * math.sin(h)
     medium = "silicone" if rng.uniform() < 0.5 else "water_skin"
     dur = 0.01 + path / v + 0.1
-    spec = {"generator": "stylus", "duration_s": dur, "seed": int(seed) + 8000,
-            "sensor": {"medium": medium}, "effects": {"attenuation": medium == "silicone"},
-            "noise": {"snr_db": float(rng.uniform(25, 35))},
-            "params": {"x_m": x0, "y_m": y0, "heading_deg": heading, "slide_speed_m_s": v, "period_m": lam,
-                       "path_m": path, "jitter_fraction": jit,
-                       "contact_radius_m": float(rng.uniform(0.1e-3, 0.4e-3)),
-                       "polarity": str(rng.choice(["random", "compression", "rarefaction"]))}}
+    spec = {
+        "generator": "stylus",
+        "duration_s": dur,
+        "seed": int(seed) + 8000,
+        "sensor": {"medium": medium},
+        "effects": {"attenuation": medium == "silicone"},
+        "noise": {"snr_db": float(rng.uniform(25, 35))},
+        "params": {
+            "x_m": x0,
+            "y_m": y0,
+            "heading_deg": heading,
+            "slide_speed_m_s": v,
+            "period_m": lam,
+            "path_m": path,
+            "jitter_fraction": jit,
+            "contact_radius_m": float(rng.uniform(0.1e-3, 0.4e-3)),
+            "polarity": str(rng.choice(["random", "compression", "rarefaction"])),
+        },
+    }
     scene = load_scene(spec)
     end_ns = int(round(dur * _NS))
     events, n_em = _events(scene, None, end_ns, pipeline)
@@ -588,25 +840,44 @@ def stylus_trial(seed: int, config: SlipConfig | None = None, *, pipeline: str =
     first = tex[0] if tex else None
     ids = {o.contact_id for o in outs}
     from ae_tactile.sim.generators import stylus_track
+
     dir_err = []
     for o in outs:
-        if o.kind in (SlipEventType.SLIP, SlipEventType.TEXTURE) and np.all(np.isfinite(o.slip_direction)):
+        if o.kind in (SlipEventType.SLIP, SlipEventType.TEXTURE) and np.all(
+            np.isfinite(o.slip_direction)
+        ):
             _, vel = stylus_track(truth, scene.config.geometry.radius_m, [o.time_ns])
             u = vel[0] / np.linalg.norm(vel[0])
             dir_err.append(math.degrees(math.acos(float(np.clip(o.slip_direction @ u, -1, 1)))))
-    return {"seed": int(seed), "slide_speed_m_s": v, "period_m": lam, "jitter_fraction": jit, "path_m": path,
-            "polarity": spec["params"]["polarity"], "n_emissions": n_em, "n_events": len(events),
-            "n_contacts_reporting": len(ids), "n_texture": len(tex),
-            "texture_delay_ms": None if first is None else (first.time_ns - truth["start_time_ns"]) / 1e6,
-            "rel_error_first": None if first is None else float(first.spatial_period_m / lam - 1.0),
-            "rel_error_median": None if not tex else float(np.nanmedian(lam_est) / lam - 1.0),
-            "rel_error_max": None if not tex else float(np.nanmax(np.abs(lam_est / lam - 1.0))),
-            "direction_error_deg_median": None if not dir_err else float(np.median(dir_err)),
-            "n_precursor": sum(o.kind == SlipEventType.SLIP_PRECURSOR for o in outs)}
+    return {
+        "seed": int(seed),
+        "slide_speed_m_s": v,
+        "period_m": lam,
+        "jitter_fraction": jit,
+        "path_m": path,
+        "polarity": spec["params"]["polarity"],
+        "n_emissions": n_em,
+        "n_events": len(events),
+        "n_contacts_reporting": len(ids),
+        "n_texture": len(tex),
+        "texture_delay_ms": None
+        if first is None
+        else (first.time_ns - truth["start_time_ns"]) / 1e6,
+        "rel_error_first": None if first is None else float(first.spatial_period_m / lam - 1.0),
+        "rel_error_median": None if not tex else float(np.nanmedian(lam_est) / lam - 1.0),
+        "rel_error_max": None if not tex else float(np.nanmax(np.abs(lam_est / lam - 1.0))),
+        "direction_error_deg_median": None if not dir_err else float(np.median(dir_err)),
+        "n_precursor": sum(o.kind == SlipEventType.SLIP_PRECURSOR for o in outs),
+    }
 
 
-def interference_trial(seed: int, config: SlipConfig | None = None, *, discriminate: bool = True,
-                       duration_s: float = 1.0) -> dict:
+def interference_trial(
+    seed: int,
+    config: SlipConfig | None = None,
+    *,
+    discriminate: bool = True,
+    duration_s: float = 1.0,
+) -> dict:
     """A held touch under common-mode interference bursts (1 Hz .. 10 kHz, every waveform,
     ADC coupling; 'input' coupling with wall echoes) through the waveform pipeline:
     acoustic packets + `InterferenceSource` packets -> (``discriminate``:
@@ -614,6 +885,7 @@ def interference_trial(seed: int, config: SlipConfig | None = None, *, discrimin
     rejected, localized (phantom events), contacts and false alarms; the held touch kept."""
     from ae_tactile.dsp.interference import common_mode_interference
     from ae_tactile.sim.interference import InterferenceSource
+
     rng = np.random.default_rng([7024, int(seed)])
     medium = "silicone" if rng.uniform() < 0.5 else "water_skin"
     fs = float(rng.choice([2e6, 5e6, 10e6]))
@@ -621,21 +893,38 @@ def interference_trial(seed: int, config: SlipConfig | None = None, *, discrimin
     coupling = "input" if rng.uniform() < 0.25 else "adc"
     reflections = coupling == "input"
     x, y = _cap_xy(rng)
-    spec = {"generator": "interference", "duration_s": duration_s, "seed": int(seed) + 9000,
-            "sensor": {"medium": medium, "sample_rate_hz": fs},
-            "effects": {"attenuation": medium == "silicone", "reflections": reflections},
-            "noise": {"snr_db": float(rng.uniform(20, 40))},
-            "params": {"rate_hz": rate, "periodic": bool(rng.uniform() < 0.7), "jitter_s": 0.0,
-                       "kind": "mixed", "coupling": coupling, "amplitude_snr_db": float(rng.uniform(25, 45)),
-                       "x_m": x, "y_m": y, "touch_time_s": 0.005, "hold_s": duration_s - 0.05}}
+    spec = {
+        "generator": "interference",
+        "duration_s": duration_s,
+        "seed": int(seed) + 9000,
+        "sensor": {"medium": medium, "sample_rate_hz": fs},
+        "effects": {"attenuation": medium == "silicone", "reflections": reflections},
+        "noise": {"snr_db": float(rng.uniform(20, 40))},
+        "params": {
+            "rate_hz": rate,
+            "periodic": bool(rng.uniform() < 0.7),
+            "jitter_s": 0.0,
+            "kind": "mixed",
+            "coupling": coupling,
+            "amplitude_snr_db": float(rng.uniform(25, 45)),
+            "x_m": x,
+            "y_m": y,
+            "touch_time_s": 0.005,
+            "hold_s": duration_s - 0.05,
+        },
+    }
     scene = load_scene(spec)
     geo = scene.config.geometry
     end_ns = int(round(duration_s * _NS))
     pk = scene.triggered_source().next_packets(1 << 30, horizon_ns=end_ns)
     t_if, ip = InterferenceSource(scene).next_packets(end_ns)
     n_if = int(t_if.size)
-    kw = dict(noise_rms_v=scene.noise_rms_v, geometry=geo, lowpass_hz=scene.config.lowpass_hz,
-              echo_min=0.25 if reflections else None)
+    kw = dict(
+        noise_rms_v=scene.noise_rms_v,
+        geometry=geo,
+        lowpass_hz=scene.config.lowpass_hz,
+        echo_min=0.25 if reflections else None,
+    )
     events = localized_events(pk, geo)
     kept_acoustic = len(events)
     n_rej = 0
@@ -657,22 +946,43 @@ def interference_trial(seed: int, config: SlipConfig | None = None, *, discrimin
             for j in np.flatnonzero(res.accepted):
                 i = keep[j]
                 onset_ns = int(t_if[i]) + int(round(1e9 / fs))
-                phantom.append(LocalizedEvent(onset_ns - int(travel[j]), res.point_m[j], res.covariance_m2[j],
-                                              int(res.polarity[j]), float(res.amplitude_v[j]),
-                                              float(res.confidence[j]), 1_000_000 + int(i)))
+                phantom.append(
+                    LocalizedEvent(
+                        onset_ns - int(travel[j]),
+                        res.point_m[j],
+                        res.covariance_m2[j],
+                        int(res.polarity[j]),
+                        float(res.amplitude_v[j]),
+                        float(res.confidence[j]),
+                        1_000_000 + int(i),
+                    )
+                )
     allev = sorted(events + phantom, key=lambda e: e.time_ns)
     det, outs, trace = run_detector(allev, config, end_ns, tick_ns=int(0.01 * _NS))
-    out = {"seed": int(seed), "duration_s": duration_s, "medium": medium, "sample_rate_hz": fs, "rate_hz": rate,
-           "coupling": coupling, "discriminate": discriminate, "n_interference": n_if, "n_rejected": n_rej,
-           "n_phantom_events": len(phantom), "n_acoustic_packets": int(len(pk.emissions)),
-           "n_acoustic_kept": kept_acoustic, "contacts_created": int(det.counts["contacts_created"]),
-           "state_mid": int(_state_at(trace, end_ns // 2))}
+    out = {
+        "seed": int(seed),
+        "duration_s": duration_s,
+        "medium": medium,
+        "sample_rate_hz": fs,
+        "rate_hz": rate,
+        "coupling": coupling,
+        "discriminate": discriminate,
+        "n_interference": n_if,
+        "n_rejected": n_rej,
+        "n_phantom_events": len(phantom),
+        "n_acoustic_packets": int(len(pk.emissions)),
+        "n_acoustic_kept": kept_acoustic,
+        "contacts_created": int(det.counts["contacts_created"]),
+        "state_mid": int(_state_at(trace, end_ns // 2)),
+    }
     out.update(_alarm_summary(outs))
     return out
 
 
 # ---------------------------------------------------------------------- texture, drift
-def texture_trial(seed: int, config: SlipConfig | None = None, *, speed_known: bool = True) -> dict:
+def texture_trial(
+    seed: int, config: SlipConfig | None = None, *, speed_known: bool = True
+) -> dict:
     """Sliding at v (5-50 mm/s) over a texture with emission rate v/lambda in 10-150 Hz."""
     rng = np.random.default_rng([7004, int(seed)])
     v = float(math.exp(rng.uniform(math.log(0.005), math.log(0.05))))
@@ -680,37 +990,62 @@ def texture_trial(seed: int, config: SlipConfig | None = None, *, speed_known: b
     lam = v / rate
     x, y = _cap_point_xy(rng, 0.01, 50.0)
     dur = max(1.0, 40.0 / rate)
-    spec = {"generator": "texture", "duration_s": dur, "seed": int(seed) + 4000,
-            "sensor": {"medium": "silicone"}, "effects": {"attenuation": True},
-            "noise": {"snr_db": float(rng.uniform(25, 35))},
-            "params": {"x_m": x, "y_m": y, "slide_speed_m_s": v, "period_m": lam,
-                       "jitter_fraction": float(rng.uniform(0.02, 0.08)),
-                       "contact_radius_m": float(rng.uniform(0.5e-3, 1.5e-3))}}
+    spec = {
+        "generator": "texture",
+        "duration_s": dur,
+        "seed": int(seed) + 4000,
+        "sensor": {"medium": "silicone"},
+        "effects": {"attenuation": True},
+        "noise": {"snr_db": float(rng.uniform(25, 35))},
+        "params": {
+            "x_m": x,
+            "y_m": y,
+            "slide_speed_m_s": v,
+            "period_m": lam,
+            "jitter_fraction": float(rng.uniform(0.02, 0.08)),
+            "contact_radius_m": float(rng.uniform(0.5e-3, 1.5e-3)),
+        },
+    }
     scene = load_scene(spec)
     end_ns = int(round(dur * _NS))
     pk = scene.triggered_source().next_packets(1 << 30, horizon_ns=end_ns)
     events = localized_events(pk, scene.config.geometry)
-    det, outs, trace = run_detector(events, config, end_ns, sliding_speed_m_s=v if speed_known else None)
+    det, outs, trace = run_detector(
+        events, config, end_ns, sliding_speed_m_s=v if speed_known else None
+    )
     tex = [o for o in outs if o.kind == SlipEventType.TEXTURE]
     first = tex[0] if tex else None
     lam_est = np.array([o.spatial_period_m for o in tex])
-    out = {"seed": int(seed), "slide_speed_m_s": v, "period_m": lam, "rate_hz": rate,
-           "jitter_fraction": spec["params"]["jitter_fraction"], "n_emissions": int(len(pk.emissions)),
-           "n_events": len(events), "n_texture": len(tex),
-           "texture_time_ms": None if first is None else first.time_ns / 1e6,
-           "period_first_m": None if first is None else float(first.spatial_period_m),
-           "period_median_m": None if not tex else float(np.median(lam_est)),
-           "rate_first_hz": None if first is None else float(first.emission_rate_hz),
-           "rel_error_first": None if first is None else float(first.spatial_period_m / lam - 1.0),
-           "rel_error_median": None if not tex else float(np.median(lam_est) / lam - 1.0),
-           "rel_error_max": None if not tex else float(np.max(np.abs(lam_est / lam - 1.0))),
-           "final_state": int(det.state.state)}
-    out.update({"n_precursor": sum(o.kind == SlipEventType.SLIP_PRECURSOR for o in outs),
-                "n_slip": sum(o.kind == SlipEventType.SLIP for o in outs)})
+    out = {
+        "seed": int(seed),
+        "slide_speed_m_s": v,
+        "period_m": lam,
+        "rate_hz": rate,
+        "jitter_fraction": spec["params"]["jitter_fraction"],
+        "n_emissions": int(len(pk.emissions)),
+        "n_events": len(events),
+        "n_texture": len(tex),
+        "texture_time_ms": None if first is None else first.time_ns / 1e6,
+        "period_first_m": None if first is None else float(first.spatial_period_m),
+        "period_median_m": None if not tex else float(np.median(lam_est)),
+        "rate_first_hz": None if first is None else float(first.emission_rate_hz),
+        "rel_error_first": None if first is None else float(first.spatial_period_m / lam - 1.0),
+        "rel_error_median": None if not tex else float(np.median(lam_est) / lam - 1.0),
+        "rel_error_max": None if not tex else float(np.max(np.abs(lam_est / lam - 1.0))),
+        "final_state": int(det.state.state),
+    }
+    out.update(
+        {
+            "n_precursor": sum(o.kind == SlipEventType.SLIP_PRECURSOR for o in outs),
+            "n_slip": sum(o.kind == SlipEventType.SLIP for o in outs),
+        }
+    )
     return out
 
 
-def drift_slip_trial(seed: int, config: SlipConfig | None = None, *, pipeline: str = "triggered") -> dict:
+def drift_slip_trial(
+    seed: int, config: SlipConfig | None = None, *, pipeline: str = "triggered"
+) -> dict:
     """plane_slip with the contact drifting along +x: SLIP delay after the slip start and
     the angle between the reported direction and +x (projected on the tangent plane)."""
     rng = np.random.default_rng([7005, int(seed)])
@@ -719,10 +1054,23 @@ def drift_slip_trial(seed: int, config: SlipConfig | None = None, *, pipeline: s
     x0 = float(rng.uniform(-3e-3, 0.0))
     y0 = float(rng.uniform(-2e-3, 2e-3))
     dur_slip = 0.15
-    spec = {"generator": "plane_slip", "duration_s": 0.2, "seed": int(seed) + 5000,
-            "sensor": {"medium": "silicone"}, "effects": {"attenuation": True}, "noise": {"snr_db": 30.0},
-            "params": {"x_m": x0, "y_m": y0, "start_s": 0.01, "slip_duration_s": dur_slip,
-                       "rate_hz": float(rng.uniform(150, 500)), "contact_radius_m": rad, "drift_m_s": drift}}
+    spec = {
+        "generator": "plane_slip",
+        "duration_s": 0.2,
+        "seed": int(seed) + 5000,
+        "sensor": {"medium": "silicone"},
+        "effects": {"attenuation": True},
+        "noise": {"snr_db": 30.0},
+        "params": {
+            "x_m": x0,
+            "y_m": y0,
+            "start_s": 0.01,
+            "slip_duration_s": dur_slip,
+            "rate_hz": float(rng.uniform(150, 500)),
+            "contact_radius_m": rad,
+            "drift_m_s": drift,
+        },
+    }
     scene = load_scene(spec)
     end_ns = int(0.2 * _NS)
     events, _ = _events(scene, None, end_ns, pipeline)
@@ -736,14 +1084,20 @@ def drift_slip_trial(seed: int, config: SlipConfig | None = None, *, pipeline: s
             ex = np.array([1.0, 0.0, 0.0]) - n[0] * n
             ex /= np.linalg.norm(ex)
             angles.append(math.degrees(math.acos(float(np.clip(o.slip_direction @ ex, -1, 1)))))
-    return {"seed": int(seed), "drift_m_s": drift, "contact_radius_m": rad,
-            "rate_hz": spec["params"]["rate_hz"], "n_events": len(events),
-            "slip_delay_ms": None if first is None else (first.time_ns - int(0.01 * _NS)) / 1e6,
-            "n_slip": len(slips), "n_with_direction": len(angles),
-            "direction_error_deg_median": None if not angles else float(np.median(angles)),
-            "direction_error_deg_mean": None if not angles else float(np.mean(angles)),
-            "direction_errors_deg": [float(a) for a in angles],
-            "direction_error_deg_max": None if not angles else float(np.max(angles))}
+    return {
+        "seed": int(seed),
+        "drift_m_s": drift,
+        "contact_radius_m": rad,
+        "rate_hz": spec["params"]["rate_hz"],
+        "n_events": len(events),
+        "slip_delay_ms": None if first is None else (first.time_ns - int(0.01 * _NS)) / 1e6,
+        "n_slip": len(slips),
+        "n_with_direction": len(angles),
+        "direction_error_deg_median": None if not angles else float(np.median(angles)),
+        "direction_error_deg_mean": None if not angles else float(np.mean(angles)),
+        "direction_errors_deg": [float(a) for a in angles],
+        "direction_error_deg_max": None if not angles else float(np.max(angles)),
+    }
 
 
 # ---------------------------------------------------------------------- summary
@@ -751,7 +1105,10 @@ def _pct(x, qs=(0, 5, 50, 95, 100)):
     x = np.asarray([v for v in x if v is not None], dtype=float)
     if x.size == 0:
         return None
-    return {("min" if q == 0 else "max" if q == 100 else f"p{q}"): float(np.percentile(x, q)) for q in qs}
+    return {
+        ("min" if q == 0 else "max" if q == 100 else f"p{q}"): float(np.percentile(x, q))
+        for q in qs
+    }
 
 
 def summarize_incipient(trials: list[dict]) -> dict:
@@ -762,15 +1119,22 @@ def summarize_incipient(trials: list[dict]) -> dict:
         "precursor_before_gross_rate": len(ok) / n if n else None,
         "n_precursor_before_gross": len(ok),
         "lead_ms": _pct([t["lead_ms"] for t in ok]),
-        "lead_fraction_of_ramp": _pct([t["lead_ms"] / (1e3 * t["time_to_gross_slip_s"]) for t in ok]),
+        "lead_fraction_of_ramp": _pct(
+            [t["lead_ms"] / (1e3 * t["time_to_gross_slip_s"]) for t in ok]
+        ),
         "q_at_precursor": _pct([t["q_at_precursor"] for t in ok]),
         "lead_ge_100ms_rate": (sum(t["lead_ms"] >= 100 for t in ok) / n) if n else None,
         "lead_ge_74ms_rate": (sum(t["lead_ms"] >= 74 for t in ok) / n) if n else None,
-        "slip_detected_rate": sum(t["slip_time_ns"] is not None for t in trials) / n if n else None,
+        "slip_detected_rate": sum(t["slip_time_ns"] is not None for t in trials) / n
+        if n
+        else None,
         "slip_delay_ms": _pct([t["slip_delay_ms"] for t in trials]),
         "q_at_slip": _pct([t["q_at_slip"] for t in trials]),
-        "slip_before_gross_rate": (sum(t["slip_delay_ms"] is not None and t["slip_delay_ms"] < 0 for t in trials) / n
-                                   if n else None),
+        "slip_before_gross_rate": (
+            sum(t["slip_delay_ms"] is not None and t["slip_delay_ms"] < 0 for t in trials) / n
+            if n
+            else None
+        ),
         "precursor_error_to_ring_m": _pct([t["precursor_error_to_ring_m"] for t in trials]),
         "texture_events_total": int(sum(t["n_texture_events"] for t in trials)),
         "failures": [t["seed"] for t in trials if not t["precursor_before_gross"]],
@@ -780,36 +1144,57 @@ def summarize_incipient(trials: list[dict]) -> dict:
 def summarize_alarms(trials: list[dict]) -> dict:
     minutes = sum(t["duration_s"] for t in trials) / 60.0
     onsets = sum(t["n_alarm_onsets"] for t in trials)
-    return {"n_trials": len(trials), "minutes": minutes, "alarm_onsets": onsets,
-            "false_alarms_per_minute": onsets / minutes if minutes else None,
-            "precursor_events": sum(t["n_precursor"] for t in trials),
-            "slip_events": sum(t["n_slip"] for t in trials),
-            "texture_events": sum(t["n_texture"] for t in trials),
-            "trials_with_alarm": [t["seed"] for t in trials if t["n_alarm_onsets"]]}
+    return {
+        "n_trials": len(trials),
+        "minutes": minutes,
+        "alarm_onsets": onsets,
+        "false_alarms_per_minute": onsets / minutes if minutes else None,
+        "precursor_events": sum(t["n_precursor"] for t in trials),
+        "slip_events": sum(t["n_slip"] for t in trials),
+        "texture_events": sum(t["n_texture"] for t in trials),
+        "trials_with_alarm": [t["seed"] for t in trials if t["n_alarm_onsets"]],
+    }
 
 
 def summarize_texture(trials: list[dict]) -> dict:
     det = [t for t in trials if t["n_texture"]]
     n = len(trials)
-    return {"n_trials": n, "detected_rate": len(det) / n if n else None,
-            "abs_rel_error_first": _pct([abs(t["rel_error_first"]) for t in det]),
-            "abs_rel_error_median": _pct([abs(t["rel_error_median"]) for t in det]),
-            "abs_rel_error_max_over_events": _pct([t["rel_error_max"] for t in det]),
-            "within_10pct_rate": (sum(t["rel_error_max"] <= 0.10 for t in det) / n) if n else None,
-            "detection_time_ms": _pct([t["texture_time_ms"] for t in det]),
-            "failures": [t["seed"] for t in trials if not t["n_texture"]]}
+    return {
+        "n_trials": n,
+        "detected_rate": len(det) / n if n else None,
+        "abs_rel_error_first": _pct([abs(t["rel_error_first"]) for t in det]),
+        "abs_rel_error_median": _pct([abs(t["rel_error_median"]) for t in det]),
+        "abs_rel_error_max_over_events": _pct([t["rel_error_max"] for t in det]),
+        "within_10pct_rate": (sum(t["rel_error_max"] <= 0.10 for t in det) / n) if n else None,
+        "detection_time_ms": _pct([t["texture_time_ms"] for t in det]),
+        "failures": [t["seed"] for t in trials if not t["n_texture"]],
+    }
 
 
-def run_evaluation(*, n_incipient: int = 100, n_incipient_touch: int = 30, n_closed_loop: int = 30,
-                   n_thr: int = 100, n_random: int = 12, random_duration_s: float = 10.0,
-                   n_texture: int = 50, n_drift: int = 20, n_incipient_stream: int = 0,
-                   n_thr_stream: int = 0, seed: int = 0,
-                   config: SlipConfig | None = None, post_s: float = 0.25, progress=None) -> dict:
+def run_evaluation(
+    *,
+    n_incipient: int = 100,
+    n_incipient_touch: int = 30,
+    n_closed_loop: int = 30,
+    n_thr: int = 100,
+    n_random: int = 12,
+    random_duration_s: float = 10.0,
+    n_texture: int = 50,
+    n_drift: int = 20,
+    n_incipient_stream: int = 0,
+    n_thr_stream: int = 0,
+    seed: int = 0,
+    config: SlipConfig | None = None,
+    post_s: float = 0.25,
+    progress=None,
+) -> dict:
     """Every trial family with consecutive seeds from ``seed``; returns the summaries and
     the per-trial records (JSON-able)."""
     cfg = config or SlipConfig()
-    out = {"config": cfg.as_dict(), "ranges": {k: list(v) if isinstance(v, tuple) else v
-                                               for k, v in INCIPIENT_RANGES.items()}}
+    out = {
+        "config": cfg.as_dict(),
+        "ranges": {k: list(v) if isinstance(v, tuple) else v for k, v in INCIPIENT_RANGES.items()},
+    }
     timing = {}
 
     def run(name, fn, n):
@@ -823,47 +1208,92 @@ def run_evaluation(*, n_incipient: int = 100, n_incipient_touch: int = 30, n_clo
         return rows
 
     inc = run("incipient", lambda s: incipient_slip_trial(s, cfg, post_s=post_s), n_incipient)
-    inc_t = run("incipient_touch", lambda s: incipient_slip_trial(s, cfg, announce_touch=True, post_s=post_s),
-                n_incipient_touch)
+    inc_t = run(
+        "incipient_touch",
+        lambda s: incipient_slip_trial(s, cfg, announce_touch=True, post_s=post_s),
+        n_incipient_touch,
+    )
     cl = run("closed_loop", lambda s: closed_loop_trial(s, cfg), n_closed_loop)
     thr = run("touch_hold_release", lambda s: touch_hold_release_trial(s, cfg), n_thr)
-    rnd = run("random_touches", lambda s: random_touches_trial(s, cfg, duration_s=random_duration_s), n_random)
-    rnd_dense = run("random_touches_dense", lambda s: random_touches_trial(
-        s + 10_000, cfg, duration_s=random_duration_s, rate_hz=50.0, hold_max_s=0.5), n_random)
+    rnd = run(
+        "random_touches",
+        lambda s: random_touches_trial(s, cfg, duration_s=random_duration_s),
+        n_random,
+    )
+    rnd_dense = run(
+        "random_touches_dense",
+        lambda s: random_touches_trial(
+            s + 10_000, cfg, duration_s=random_duration_s, rate_hz=50.0, hold_max_s=0.5
+        ),
+        n_random,
+    )
     tex = run("texture", lambda s: texture_trial(s, cfg), n_texture)
     drift = run("drift", lambda s: drift_slip_trial(s, cfg), n_drift)
-    inc_s = run("incipient_stream", lambda s: incipient_slip_trial(s, cfg, post_s=post_s, pipeline="stream"),
-                n_incipient_stream)
-    thr_s = run("touch_hold_release_stream", lambda s: touch_hold_release_trial(s, cfg, pipeline="stream"),
-                n_thr_stream)
+    inc_s = run(
+        "incipient_stream",
+        lambda s: incipient_slip_trial(s, cfg, post_s=post_s, pipeline="stream"),
+        n_incipient_stream,
+    )
+    thr_s = run(
+        "touch_hold_release_stream",
+        lambda s: touch_hold_release_trial(s, cfg, pipeline="stream"),
+        n_thr_stream,
+    )
     out["summary"] = {
         "incipient_slip": summarize_incipient(inc),
         "incipient_slip_announced": summarize_incipient(inc_t) if inc_t else None,
-        "closed_loop": None if not cl else {
-            "n_trials": len(cl), "averted_rate": sum(t["averted"] for t in cl) / len(cl),
-            "latency_s": cl[0]["latency_s"], "load_factor": cl[0]["load_factor"],
+        "closed_loop": None
+        if not cl
+        else {
+            "n_trials": len(cl),
+            "averted_rate": sum(t["averted"] for t in cl) / len(cl),
+            "latency_s": cl[0]["latency_s"],
+            "load_factor": cl[0]["load_factor"],
             "q_at_reflex": _pct([t["q_at_reflex"] for t in cl]),
-            "failures": [t["seed"] for t in cl if not t["averted"]]},
-        "touch_hold_release": dict(summarize_alarms(thr), **{
-            "state_mid_hold_stick_rate": (sum(t["state_mid_hold"] == ContactState.STICK for t in thr) / len(thr)
-                                          if thr else None),
-            "state_end_no_contact_rate": (sum(t["state_end"] == ContactState.NO_CONTACT for t in thr) / len(thr)
-                                          if thr else None)}),
+            "failures": [t["seed"] for t in cl if not t["averted"]],
+        },
+        "touch_hold_release": dict(
+            summarize_alarms(thr),
+            **{
+                "state_mid_hold_stick_rate": (
+                    sum(t["state_mid_hold"] == ContactState.STICK for t in thr) / len(thr)
+                    if thr
+                    else None
+                ),
+                "state_end_no_contact_rate": (
+                    sum(t["state_end"] == ContactState.NO_CONTACT for t in thr) / len(thr)
+                    if thr
+                    else None
+                ),
+            },
+        ),
         "incipient_slip_stream": summarize_incipient(inc_s) if inc_s else None,
         "touch_hold_release_stream": summarize_alarms(thr_s) if thr_s else None,
         "random_touches": summarize_alarms(rnd) if rnd else None,
         "random_touches_dense": summarize_alarms(rnd_dense) if rnd_dense else None,
         "texture": summarize_texture(tex) if tex else None,
-        "drift": None if not drift else {
-            "n_trials": len(drift), "slip_detected_rate": sum(t["slip_delay_ms"] is not None for t in drift) / len(drift),
+        "drift": None
+        if not drift
+        else {
+            "n_trials": len(drift),
+            "slip_detected_rate": sum(t["slip_delay_ms"] is not None for t in drift) / len(drift),
             "slip_delay_ms": _pct([t["slip_delay_ms"] for t in drift]),
             "direction_reported_rate": sum(t["n_with_direction"] > 0 for t in drift) / len(drift),
             "direction_error_deg_median": _pct([t["direction_error_deg_median"] for t in drift]),
-            "direction_error_deg_max": _pct([t["direction_error_deg_max"] for t in drift])},
+            "direction_error_deg_max": _pct([t["direction_error_deg_max"] for t in drift]),
+        },
     }
     out["timing_s"] = timing
-    out["trials"] = {"incipient_slip": inc, "incipient_slip_announced": inc_t, "closed_loop": cl,
-                     "touch_hold_release": thr, "random_touches": rnd, "random_touches_dense": rnd_dense,
-                     "texture": tex, "drift": drift, "incipient_slip_stream": inc_s,
-                     "touch_hold_release_stream": thr_s}
+    out["trials"] = {
+        "incipient_slip": inc,
+        "incipient_slip_announced": inc_t,
+        "closed_loop": cl,
+        "touch_hold_release": thr,
+        "random_touches": rnd,
+        "random_touches_dense": rnd_dense,
+        "texture": tex,
+        "drift": drift,
+        "incipient_slip_stream": inc_s,
+        "touch_hold_release_stream": thr_s,
+    }
     return out

@@ -17,6 +17,7 @@ For a Poisson process the residuals of step 2 spread over +-T/2 (RMS ~ 0.29 T), 
 test fails; for a texture with timing jitter sigma (fraction of T) the residual RMS is
 ~sigma. False-positive and detection rates are measured in test_slip_core.py.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -31,11 +32,12 @@ class Periodicity:
     rate_hz: float
     regular_fraction: float
     single_fraction: float
-    residual_rms: float          # of the regular emissions, as a fraction of the period
+    residual_rms: float  # of the regular emissions, as a fraction of the period
 
 
-def periodicity(times_ns, *, tolerance: float = 0.2, min_fraction: float = 0.75,
-                max_multiple: int = 3) -> Periodicity:
+def periodicity(
+    times_ns, *, tolerance: float = 0.2, min_fraction: float = 0.75, max_multiple: int = 3
+) -> Periodicity:
     """Test emission times (int ns, increasing) for a common period; see the module doc."""
     t = (np.asarray(times_ns, dtype=np.int64) - int(np.asarray(times_ns)[0])).astype(float) * 1e-9
     nan = Periodicity(False, np.nan, np.nan, 0.0, 0.0, np.nan)
@@ -58,6 +60,10 @@ def periodicity(times_ns, *, tolerance: float = 0.2, min_fraction: float = 0.75,
     reg_frac = float(reg.mean())
     single = float((k == 1).mean())
     rms = float(np.sqrt(np.mean((e[reg] / T) ** 2))) if reg.any() else np.inf
-    ok = (reg_frac >= min_fraction and single >= min_fraction - 0.15 and k.max() <= max_multiple
-          and rms <= 0.5 * tolerance)
+    ok = (
+        reg_frac >= min_fraction
+        and single >= min_fraction - 0.15
+        and k.max() <= max_multiple
+        and rms <= 0.5 * tolerance
+    )
     return Periodicity(bool(ok), T, 1.0 / T, reg_frac, single, rms)

@@ -1,4 +1,5 @@
 """Input and output records of the slip detector (plain dataclasses, SI units, int ns)."""
+
 from __future__ import annotations
 
 import math
@@ -54,7 +55,9 @@ class LocalizedEvent:
 
     def __post_init__(self):
         if isinstance(self.time_ns, bool) or not hasattr(self.time_ns, "__index__"):
-            raise TypeError(f"LocalizedEvent.time_ns must be an integer (ns), got {self.time_ns!r}")
+            raise TypeError(
+                f"LocalizedEvent.time_ns must be an integer (ns), got {self.time_ns!r}"
+            )
         object.__setattr__(self, "time_ns", int(self.time_ns.__index__()))
         p = np.asarray(self.point_m, dtype=float)
         if p.shape != (3,):
@@ -76,7 +79,9 @@ class LocalizedEvent:
         object.__setattr__(self, "polarity", int(pol))
         conf = float(self.confidence)
         if not 0.0 <= conf <= 1.0:
-            raise ValueError(f"LocalizedEvent.confidence must be in [0, 1], got {self.confidence!r}")
+            raise ValueError(
+                f"LocalizedEvent.confidence must be in [0, 1], got {self.confidence!r}"
+            )
         object.__setattr__(self, "confidence", conf)
         object.__setattr__(self, "amplitude_v", float(self.amplitude_v))
         object.__setattr__(self, "packet_id", int(self.packet_id))
@@ -136,7 +141,7 @@ class ContactInfo:
     precursor_count: int
     n_members: int
     last_time_ns: int
-    velocity_m_s: np.ndarray = field(default_factory=_nan3)   # along the surface (0 if held)
+    velocity_m_s: np.ndarray = field(default_factory=_nan3)  # along the surface (0 if held)
     moving: bool = False
 
 
