@@ -442,11 +442,9 @@ def _finish(core, prep, plan, geo, method, min_snr_db, thr, options):
     sigma2 = prep.sigma2.copy()
     fallback = ~np.isfinite(sigma2)
     sigma2[fallback] = res_e[fallback] / np.maximum(3.0 * nb[fallback] * L[fallback], 1.0)
-    # ADC rounding (q = apparent quantum): a given (analog) sigma gets + q^2/12. A measured
-    # variance V of quantized samples already holds q^2/12 when sigma >~ q/2 (Sheppard),
-    # while below that the quiet pre-onset samples under-read it (all on one level when
-    # the offset sits mid-level): V + q^2/12 for V <= 0.1 q^2, V for V >= q^2/3, linear
-    # in between (`adc_noise`).
+    # ADC rounding (q = apparent quantum): the signal samples carry sigma^2 + q^2/12. A
+    # given (analog) sigma gets + q^2/12; a variance V measured on the quiet, quantized
+    # pre-onset samples is inverted through the mid-tread relation V(sigma) (`adc_noise`).
     given = np.zeros(len(sigma2), bool) if prep.noise_given is None else prep.noise_given
     sigma2 = np.where(fallback, sigma2, adc_noise(sigma2, prep.quant2, given))
     p_total = prep.p_signal

@@ -29,7 +29,14 @@ import os
 
 import numpy as np
 
-from ae_tactile.localization.common import ALIAS_GUARD_DB, BAND_EDGE_POWER_RATIO, PAIR_PINV, PAIRS
+from ae_tactile.localization.common import (
+    ALIAS_GUARD_DB,
+    BAND_EDGE_POWER_RATIO,
+    PAIR_PINV,
+    PAIRS,
+    QUANT_SIGMA2_Q2,
+    QUANT_V_Q2,
+)
 
 try:  # pragma: no cover - import guard
     if os.environ.get("AE_TACTILE_NO_NUMBA", "").strip() not in ("", "0"):
@@ -206,6 +213,25 @@ def _point_from_delays(geo, tx, ty):
 
 
 # --------------------------------------------------------------------------- spectra
+
+
+@njit(cache=True, nogil=True)
+def _adc_noise(var, quant2, given):
+    """common.adc_noise for one packet: sigma^2 + q^2/12 (quant2 = q^2/12), a measured
+    quantized variance inverted through the mid-tread table."""
+    if given:
+        return var + quant2
+    if quant2 <= 0.0:
+        return var
+    q2 = 12.0 * quant2
+    v = var / q2
+    if v <= QUANT_V_Q2[-1]:
+        s2 = np.interp(v, QUANT_V_Q2, QUANT_SIGMA2_Q2)
+    else:
+        s2 = v - 1.0 / 12.0
+    return (s2 + 1.0 / 12.0) * q2
+
+
 @njit(cache=True, nogil=True)
 def _gather(x, m, start, L, base, seg, count, k):
     """seg[k] = x[k, start:start+L] - base, zero outside the window; returns inside count."""
@@ -640,11 +666,7 @@ def _packet(
         edge = auto[0]
         s2e = sigma2
         if math.isfinite(s2e):
-            if not given and quant2 > 0:
-                wq = min(max((1.0 / 3.0 - s2e / (12.0 * quant2)) / (1.0 / 3.0 - 0.1), 0.0), 1.0)
-                s2e = s2e + wq * quant2
-            elif given:
-                s2e = s2e + quant2
+            s2e = _adc_noise(s2e, quant2, given)
             n0 = (count[0] + count[1] + count[2] + count[3]) * s2e
             last = 0
             sm_max = 0.0
@@ -750,11 +772,7 @@ def _packet(
     if not math.isfinite(sigma2):
         sigma2 = res_e / max(3.0 * nba * Lm, 1.0)
     else:
-        # ADC rounding (estimators.adc_noise)
-        wq = 1.0
-        if not given and quant2 > 0:
-            wq = min(max((1.0 / 3.0 - sigma2 / (12.0 * quant2)) / (1.0 / 3.0 - 0.1), 0.0), 1.0)
-        sigma2 = sigma2 + wq * quant2
+        sigma2 = _adc_noise(sigma2, quant2, given)  # ADC rounding (common.adc_noise)
     sigma2 = max(sigma2, 1e-12 * max(p_total, 0.0) + 1e-300)
     p_sig = max(p_total - sigma2, 1e-300)
     snr = min(max(10.0 * math.log10(p_sig / sigma2), -100.0), 120.0)
