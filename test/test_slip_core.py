@@ -387,11 +387,14 @@ def test_bad_events_and_calls():
 def test_out_of_order_and_low_confidence_are_counted():
     det = SlipDetector(SlipConfig(min_confidence=0.3))
     det.process(ev(100 * MS, 0, 0, 1, 1))
-    assert det.process(ev(50 * MS, 1e-3, 0, -1, 2)) == []
+    det.process(ev(50 * MS, 1e-3, 0, -1, 2))  # 50 ms late, within the tolerance: processed
+    assert det.counts["rejected_out_of_order"] == 0
+    det.process(ev(1000 * MS, 0, 0, 1, 3))
+    assert det.process(ev(400 * MS, 1e-3, 0, -1, 5)) == []  # 0.6 s late: beyond 0.5 s
     assert det.counts["rejected_out_of_order"] == 1
-    det.process(ev(101 * MS, 5e-3, 0, -1, 4, conf=0.1))
+    det.process(ev(1001 * MS, 5e-3, 0, -1, 4, conf=0.1))
     assert det.counts["rejected_low_confidence"] == 1
-    assert det.counts["events"] == 1
+    assert det.counts["events"] == 3
 
 
 def test_late_events_within_the_reorder_tolerance_are_processed_alike():

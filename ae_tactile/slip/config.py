@@ -329,9 +329,10 @@ class SlipConfig:
         0.0, "events below this localization confidence are rejected", "", 0.0, 1.0
     )
     reorder_tolerance_s: float = _p(
-        1e-3,
+        0.5,
         "events may arrive this much older than the newest one seen (processed normally); "
-        "older ones are rejected and counted",
+        "older ones are rejected and counted (the emissions of an overlapping window are "
+        "resolved in the background and arrive tens of ms after newer ones)",
         "s",
         0.0,
         60.0,
