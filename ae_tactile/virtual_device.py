@@ -328,6 +328,15 @@ class VirtualFingertip:
                 pretrigger_s=self.pre_trigger / fs, window_s=self.packet_samples / fs
             )
             self._skip_before_ns = self.scene_at_start_ns
+            self._interf = None
+            self._interf_pending = []
+            from ae_tactile.sim.interference import InterferenceSource, scene_bursts
+
+            if scene_bursts(scene.process.scene_truth()):
+                # electrical bursts of the scene: common-mode packets on the same stream
+                self._interf = InterferenceSource(
+                    scene, pretrigger_s=self.pre_trigger / fs, window_s=self.packet_samples / fs
+                )
 
     # ------------------------------------------------------------------ time
     def scene_ns(self, now_ns: int) -> int:
@@ -358,8 +367,39 @@ class VirtualFingertip:
             out = self._garble_rng.integers(0, 256, len(out), dtype=np.uint8).tobytes()
         return out
 
+    def _poll_interference(self, now_ns: int, horizon: int) -> None:
+        """Serve the scene's interference packets whose window has closed by now_ns."""
+        t_if, pk = self._interf.next_packets(horizon)
+        for i in range(len(t_if)):
+            self._interf_pending.append((int(t_if[i]), pk.samples_v[i]))
+        keep = []
+        fs = self.sample_rate_hz
+        for t_scene, samples in self._interf_pending:
+            start_dev = int(round(t_scene * fs / 1e9)) - self.pre_trigger - self.index_offset
+            if self._device_ns_of_sample(start_dev + self.packet_samples - 1) > now_ns:
+                keep.append((t_scene, samples))
+                continue
+            if t_scene < self._skip_before_ns or start_dev < 0:
+                continue
+            counts = np.clip(np.rint(samples / self.v_per_count), -self.adc_max - 1, self.adc_max)
+            body = Packet(
+                counts.astype(np.int16),
+                fs,
+                self.v_per_count,
+                first_sample_index=start_dev,
+                pre_trigger=self.pre_trigger,
+            )
+            self._send(body, self._device_ns_of_sample(start_dev), "packet")
+            self.interference_packets_sent += 1
+        self._interf_pending = keep
+
+    interference_packets_sent = 0
+    _interf = None
+
     def _poll_triggered(self, now_ns: int) -> None:
         horizon = min(self.scene_ns(now_ns), self.duration_ns)  # the scene ends: silence
+        if self._interf is not None:
+            self._poll_interference(now_ns, horizon)
         while True:
             if self._pending is None:
                 batch = self._source.next_packets(16, horizon_ns=horizon)

@@ -277,3 +277,21 @@ def test_bringup_cli_parses_the_documented_arguments():
         a.grip_reflex,
         a.reliable,
     ) == ("x.yaml", "f1", "p.yaml", False, "socket://localhost:5000", "ml", True, False)
+
+
+def test_interference_bursts_never_become_contacts_and_are_counted(ros_context):
+    """A touch held while a motor driver switches at 1 kHz (common-mode bursts on the four
+    channels, served by the simulated fingertip on the same stream): the touch and its
+    release are found, the bursts are rejected and counted, and no slip event comes of them."""
+    system, s = run_system(ros_context, os.path.join(SCENES, "interference.yaml"))
+    try:
+        c = system.driver.pipeline.all_counts()
+        tr = s["touch_release"]
+        assert tr["found"] == tr["truth"] == 2 and tr["typed_correctly"] == 2
+        false_events = s["emissions"]["events"] - s["emissions"]["matched"]
+        rejected = c["rejected_INTERFERENCE"]
+        assert rejected >= 250  # ~300 bursts, nearly all caught
+        assert false_events <= 0.02 * rejected  # a phantom touch is rare
+        assert not {"SLIP", "TEXTURE"} & set(s["slip_events"]), s["slip_events"]
+    finally:
+        system.close()
