@@ -26,9 +26,12 @@ same echo-free segment as one rectangular snapshot (short STFT frames bias them,
 grid then a local 0.1 deg grid around its maximum. They are slow, so they run on fewer
 packets per cell (the first realisations of a subset of the points; stated in the JSON).
 
+Then the overlap sweep (bench/bench_overlap.py: two and three emissions in one window,
+`resolve_overlaps` against the joint CRLB; `--no-overlap` skips it).
+
 Writes bench/results/localization.json, bench/results/localization_speed_error.png,
-bench/results/localization_table.md, and the table into docs/localization.md (between
-the bench markers).
+bench/results/localization_table.md, bench/results/overlap.json, overlap_table.md,
+overlap_success.png, and both tables into docs/localization.md (between the bench markers).
 """
 
 from __future__ import annotations
@@ -66,6 +69,7 @@ from ae_tactile.sim import SimConfig, render_triggered  # noqa: E402
 RESULTS = ROOT / "bench" / "results"
 DOC = ROOT / "docs" / "localization.md"
 BEGIN, END = "<!-- bench:localization:begin -->", "<!-- bench:localization:end -->"
+OV_BEGIN, OV_END = "<!-- bench:overlap:begin -->", "<!-- bench:overlap:end -->"
 METHODS = ["ml", "ml_fixed_band", "gradient", "gcc_phat", "xcorr_farfield"]
 BASELINES = ["pra_srp_phat", "pra_music"]
 LABELS = {
@@ -660,14 +664,15 @@ def plot(res, path):
     plt.close(fig)
 
 
-def update_doc(table):
+def update_doc(table, begin=BEGIN, end=END):
+    """Replace the text between the ``begin`` and ``end`` markers of docs/localization.md."""
     if not DOC.exists():
         return False
     text = DOC.read_text()
-    if BEGIN not in text or END not in text:
+    if begin not in text or end not in text:
         return False
-    a = text.index(BEGIN) + len(BEGIN)
-    b = text.index(END)
+    a = text.index(begin) + len(begin)
+    b = text.index(end)
     DOC.write_text(text[:a] + "\n" + table + text[b:])
     return True
 
@@ -675,6 +680,7 @@ def update_doc(table):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer packets (a smoke run)")
+    ap.add_argument("--no-overlap", action="store_true", help="skip the overlap sweep")
     ap.add_argument(
         "--report-only",
         action="store_true",
@@ -695,6 +701,18 @@ def main(argv=None):
         update_doc(table)
     print(table)
     print(f"run time {res['run_time_s']:.0f} s; results in {RESULTS}")
+    if args.no_overlap:
+        return
+    sys.path.insert(0, str(ROOT / "bench"))
+    import bench_overlap  # noqa: PLC0415 - the overlap sweep, same directory
+
+    if args.report_only:
+        ov = json.loads((RESULTS / f"overlap{suffix}.json").read_text())
+        ov_table = bench_overlap.make_table(ov)
+    else:
+        _, ov_table = bench_overlap.main(["--quick"] if args.quick else [])
+    if not args.quick:
+        update_doc(ov_table, OV_BEGIN, OV_END)
 
 
 if __name__ == "__main__":

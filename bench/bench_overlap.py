@@ -2,6 +2,9 @@
 
     python3 bench/bench_overlap.py [--quick]        (or: make bench-overlap)
 
+`make bench-localization` (bench/bench_localization.py) runs this sweep too, after the
+single-source figures, and puts its tables into docs/localization.md.
+
 Windows from the simulator (ae_tactile.sim; 10 MS/s, 1 MHz front end, 12-bit ADC, two
 wall echoes) holding two emissions (`ae_tactile.localization.overlap.simulate_overlaps`:
 each rendered alone and summed with an exact sub-sample delay, then noise and the ADC):
@@ -165,11 +168,12 @@ def timed_resolve(d, cfg, **kw):
     return res, time.perf_counter() - t0
 
 
-def main():
+def main(argv=None):
+    """Run the sweep, write the results files; returns (results dict, markdown table)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="few pairs per cell (smoke run)")
     ap.add_argument("--seed", type=int, default=2026)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     n_key, n_other = (30, 10) if args.quick else (200, 40)
     rng = np.random.default_rng(args.seed)
     t_start = time.perf_counter()
@@ -377,6 +381,7 @@ def main():
     plot(out, RESULTS / f"{name}_success.png")
     print(table)
     print(f"total {out['timing']['total_s']:.1f} s")
+    return out, table
 
 
 def make_table(out):
