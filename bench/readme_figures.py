@@ -7,6 +7,7 @@
 Every number the README shows comes from a file in bench/results/ that a `make bench-*`
 target writes; test_readme_figures checks that README.md holds exactly this block.
 """
+
 from __future__ import annotations
 
 import json
@@ -49,7 +50,8 @@ def system_rows(d) -> list[str]:
         c = r["contact"]
         rows.append(
             f"| live path, {r['rate_hz']:g} emissions/s (random touches): device bytes -> "
-            f"ContactEvent in another process, median / p99 | {_lat(c)} (max {c.get('max_ms', 0):.1f} ms;"
+            f"ContactEvent in another process, median / p99 | {_lat(c)} "
+            f"(max {c.get('max_ms', 0):.1f} ms;"
             f" {c['median_ms'] / fl['median']:.0f}x the two-hop floor of {fl['median']:.3f} ms) "
             f"| bench_system, {_load_str(d.get('load_average_before'))} |"
         )
@@ -61,10 +63,15 @@ def system_rows(d) -> list[str]:
         )
     k = d.get("knee")
     if k:
-        tail = (f"backlog from {k['backlog_from_hz']:g}/s" if k.get("backlog_from_hz")
-                else "highest rate tried")
-        rows.append(f"| sustained rate without backlog (knee) | {k['sustained_hz']:g} emissions/s "
-                    f"({tail}) | bench_system |")
+        tail = (
+            f"backlog from {k['backlog_from_hz']:g}/s"
+            if k.get("backlog_from_hz")
+            else "highest rate tried"
+        )
+        rows.append(
+            f"| sustained rate without backlog (knee) | {k['sustained_hz']:g} emissions/s "
+            f"({tail}) | bench_system |"
+        )
     return rows
 
 
@@ -82,7 +89,8 @@ def localization_rows(d) -> list[str]:
         rows.append(
             f"| localization `ml`, {label} MS/s, {min(snrs):g}-{max(snrs):g} dB "
             f"| {min(ratios):.2f}-{max(ratios):.2f}x the Cramer-Rao bound; "
-            f"{min(cal) * 100:.0f}-{max(cal) * 100:.0f} % inside the 68 % ellipse | bench_localization |"
+            f"{min(cal) * 100:.0f}-{max(cal) * 100:.0f} % inside the 68 % ellipse "
+            "| bench_localization |"
         )
     t = d.get("timing", {}).get("10 MS/s", {})
     one, batch = t.get("localize_one_numba"), t.get("ml")
@@ -104,9 +112,11 @@ def overlap_rows(d) -> list[str]:
     ok = sum(c["success"] * c["n"] for c in cells)
     wrong = sum(c.get("wrong_accepts", 0) for c in d["cells"])
     total = sum(c.get("n", 0) for c in d["cells"])
-    return [f"| overlapping emissions 2-10 us apart, ratios 1:1-1:4, 20-30 dB | both points within "
-            f"0.1 mm in {100 * ok / max(n, 1):.1f} % of {n} pairs; {wrong} points > 0.5 mm off in "
-            f"{total} | bench_overlap |"]
+    return [
+        f"| overlapping emissions 2-10 us apart, ratios 1:1-1:4, 20-30 dB | both points within "
+        f"0.1 mm in {100 * ok / max(n, 1):.1f} % of {n} pairs; {wrong} points > 0.5 mm off in "
+        f"{total} | bench_overlap |"
+    ]
 
 
 def sim_rows(d) -> list[str]:
@@ -114,11 +124,14 @@ def sim_rows(d) -> list[str]:
         return []
     dp = d["device_packets"]
     dense = max(dp["scenes"], key=lambda s: s.get("scene_emissions_per_s", 0))
-    return [f"| simulated fingertip, triggered packets as the device serves them | densest scene "
-            f"({dense['scene']}) {dense['one_per_call_emissions_per_s']:.0f} emissions/s per core, "
-            f"{dense['one_per_call_emissions_per_s'] / dense['scene_emissions_per_s']:.1f}x real time; "
-            f"bit-identical to the full render | bench_sim, "
-            f"{_load_str(d.get('machine', {}).get('loadavg_start'))} |"]
+    return [
+        f"| simulated fingertip, triggered packets as the device serves them | densest scene "
+        f"({dense['scene']}) {dense['one_per_call_emissions_per_s']:.0f} emissions/s per core, "
+        f"{dense['one_per_call_emissions_per_s'] / dense['scene_emissions_per_s']:.1f}x "
+        "real time; "
+        f"bit-identical to the full render | bench_sim, "
+        f"{_load_str(d.get('machine', {}).get('loadavg_start'))} |"
+    ]
 
 
 def protocol_rows(d, faults) -> list[str]:
@@ -127,15 +140,19 @@ def protocol_rows(d, faults) -> list[str]:
         clean = d["decode_clean"]["chunk_65536"]["mbytes_per_s"]
         adv = d["decode_adversarial"]["chunk_4096"]["mbytes_per_s"]
         clean4 = d["decode_clean"]["chunk_4096"]["mbytes_per_s"]
-        rows.append(f"| protocol decoder | {clean:.0f} MB/s; behind fake 64 KiB headers "
-                    f"{100 * adv / clean4:.0f} % of clean | bench_protocol |")
+        rows.append(
+            f"| protocol decoder | {clean:.0f} MB/s; behind fake 64 KiB headers "
+            f"{100 * adv / clean4:.0f} % of clean | bench_protocol |"
+        )
     if faults:
         r = faults["reset_mid_frame"]["boot_frame_delivered_s"]
         g = faults["garbage_only"]
-        rows.append(f"| device reset mid-frame / garbage only | first valid frame after the reset "
-                    f"delivered in {r['median'] * 1e3:.1f} ms (worst {r['max'] * 1e3:.0f} ms); "
-                    f"garbage: ERROR and reconnect after {g['not_connected_after_s']['median']:.1f} s "
-                    f"| bench_protocol --faults |")
+        rows.append(
+            f"| device reset mid-frame / garbage only | first valid frame after the reset "
+            f"delivered in {r['median'] * 1e3:.1f} ms (worst {r['max'] * 1e3:.0f} ms); "
+            f"garbage: ERROR and reconnect after {g['not_connected_after_s']['median']:.1f} s "
+            f"| bench_protocol --faults |"
+        )
     return rows
 
 
@@ -146,18 +163,31 @@ def slip_rows(d) -> list[str]:
 
 
 def markdown() -> str:
-    rows = (system_rows(_load("system.json")) + localization_rows(_load("localization.json"))
-            + overlap_rows(_load("overlap.json")) + slip_rows(_load("slip.json"))
-            + sim_rows(_load("sim.json"))
-            + protocol_rows(_load("protocol.json"), _load("protocol_faults.json")))
-    lines = [BEGIN, "", "| what | figure | benchmark (`make bench-<name>`), machine load |",
-             "|---|---|---|", *rows, "", END]
+    rows = (
+        system_rows(_load("system.json"))
+        + localization_rows(_load("localization.json"))
+        + overlap_rows(_load("overlap.json"))
+        + slip_rows(_load("slip.json"))
+        + sim_rows(_load("sim.json"))
+        + protocol_rows(_load("protocol.json"), _load("protocol_faults.json"))
+    )
+    lines = [
+        BEGIN,
+        "",
+        "| what | figure | benchmark (`make bench-<name>`), machine load |",
+        "|---|---|---|",
+        *rows,
+        "",
+        END,
+    ]
     return "\n".join(lines)
 
 
 def write(path: str = os.path.join(ROOT, "README.md")) -> None:
     text = open(path, encoding="utf-8").read()
-    text = re.sub(re.escape(BEGIN) + ".*?" + re.escape(END), lambda m: markdown(), text, flags=re.S)
+    text = re.sub(
+        re.escape(BEGIN) + ".*?" + re.escape(END), lambda m: markdown(), text, flags=re.S
+    )
     open(path, "w", encoding="utf-8").write(text)
 
 
