@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 # make demo : set up (as needed) and run the main job on the simulated fingertip
 # make test : set up (as needed) and run the test suite (what CI runs)
 .PHONY: demo test setup bench bench-% clean

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """pip-installable pure-Python core of ae_tactile (no ROS needed).
 
 `pip install .` installs the physics simulator, DSP/localization, slip analysis and

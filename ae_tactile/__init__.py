@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """ae_tactile: ultrasonic acoustic-emission tactile fingertip (core + ROS 2 nodes).
 
 Keep this file empty of code: in a colcon build, rosidl's Python generator

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Offline replay of recorded raw packets: rosbag2 (sqlite3 or MCAP) -> events, without ROS.
 
 Like velodyne's raw-packet bags, a bag of `PacketArray` can be re-interpreted later with

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Scoring detected events against the simulator's ground truth (pure Python).
 
 Matching is one-to-one in time: each detected event is paired with the nearest unpaired

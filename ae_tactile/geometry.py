@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Fingertip geometry: element layout, exact and far-field delays, and their inverse.
 
 Frame (the fingertip frame, ``frame_id`` of every message): origin at the sphere

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Host side of the fingertip serial link (pure Python, no rclpy).
 
 `FingertipLink` owns the port (any pyserial URL: a device path, a pty, ``socket://``,

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The fingertip's hot path: decoded packets -> contact events -> slip events (no rclpy).
 
 One `ContactPipeline` per fingertip does, for each batch of packets the link decodes and

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Device clock -> host (ROS) clock mapping, drift-robust, monotonic, re-syncing.
 
 Each received frame gives a pair (d, h): d = device time of the frame (ns, from the

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A virtual fingertip: firmware model speaking protocol v1 for a simulated scene.
 
 `VirtualFingertip` is the device side of the serial link, transport-agnostic and

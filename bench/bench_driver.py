@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Driver node throughput and CPU in raw-packet mode (pipeline:=false, the set-up for
 recording): PACKET frames pushed through a pty at fixed rates, published as PacketArray.
 (The in-process pipeline's latency and sustained rate: bench/bench_system.py.)

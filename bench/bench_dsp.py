@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Benchmark of the stream packet detector (issue 4, ae_tactile.dsp).
 
 Throughput on one core of `PacketDetector.process` on simulated streams (ae_tactile.sim:

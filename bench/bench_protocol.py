@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: Apache-2.0
 """Throughput of the protocol core: frames/s and bytes/s through StreamDecoder (and the encoder).
 
 Workload: PACKET frames of 4 x N int16 samples (default N = 400, i.e. 3228 bytes per

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Benchmark of the simulated fingertip.
 
 Triggered packets as the virtual device serves them (every built-in scene of

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Slip detector benchmark: precursor, gross slip, texture of a moving contact, direction,
 false alarms and interference, over randomized trials; the detector's and the
 interference discriminator's cost.

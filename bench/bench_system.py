@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Reflex latency of the live path: device bytes -> ContactEvent received by another process.
 
 Three processes, as on a robot: a light fingertip (bench/fingertip_writer.py) writes

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A light fingertip for latency benchmarks: pre-rendered PACKET frames written on a pty at
 real time, by a process that does nothing else.
 

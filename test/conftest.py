@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Shared test set-up.
 
 ROS tests need rclpy and the built messages. Outside `make test` (e.g. running the core

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Helpers for tests that run real rclpy nodes over DDS in the test process."""
 import time
 

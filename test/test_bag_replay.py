@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Recorded raw packets replay offline: rosbag2 (sqlite3 / MCAP) -> re-localized events.
 
 The bags hold real CDR-serialized PacketArray messages: written here from simulated

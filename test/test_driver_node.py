@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """driver <-> sim_fingertip through real rclpy nodes and a real pty.
 
 End to end: every packet the simulated fingertip sends arrives exactly once, in order,

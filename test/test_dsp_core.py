@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Building blocks of ae_tactile.dsp: streaming filter, noise tracker, AIC picker,
 window features, configuration. Pure numpy/scipy, no ROS."""
 

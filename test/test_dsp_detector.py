@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Packet detector against ground truth: analytic streams (ae_tactile.dsp.synth, exact
 onsets) and the simulator's streaming source (ae_tactile.sim). No ROS."""
 

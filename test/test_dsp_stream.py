@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Streaming behaviour of the packet detector: identical output however the stream is
 cut, gaps, bad samples, bad calls. No ROS."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Bag replay on damaged and hostile bags: truncated and corrupted files (sqlite3, MCAP),
 foreign message types, bad packets. What is readable is recovered, the rest is counted,
 the command ends with a summary and a documented exit code, never a traceback."""

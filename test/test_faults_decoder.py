@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Hostile input to the StreamDecoder: repeated frames, frames cut by a device reset,
 fake headers claiming 64 KiB, floods of them. Every valid frame comes out once, as soon
 as its own last byte is in; every other byte is accounted for; memory stays bounded."""

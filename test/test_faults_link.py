@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Fault injection on a real pty (and TCP) with a real FingertipLink and VirtualFingertip:
 a device reset mid-frame with the port open, a device that only sends garbage, repeated
 frames, spurious wake-ups, overload, non-finite packets, stuck TCP clients.

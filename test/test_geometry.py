@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Fingertip geometry: exact forward model, its inverse, derivatives, clamping, covariance."""
 
 import numpy as np

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Driver link <-> virtual fingertip over a real pty (and TCP): exactness and faults.
 
 No ROS here: these exercise ae_tactile.link and ae_tactile.virtual_device directly;

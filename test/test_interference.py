@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Common-mode interference: the renderer (ae_tactile.sim.interference) and the packet
 discriminator (ae_tactile.dsp.interference) against acoustic packets at and near the apex
 rendered by the acoustic simulator. Seeded; thresholds leave margins to the measured rates

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """README.md and the parameter files hold exactly what the nodes declare (one source)."""
 
 import os

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """`pip install .` into a fresh venv gives an importable core that never imports rclpy."""
 import os
 import pkgutil

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The hot-path core (ae_tactile.pipeline), without ROS: simulated packets in, contact and
 slip events out, scored against the simulator's ground truth; bad packets rejected one by
 one and counted; the single-packet and batched paths agree."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Protocol v1: the document's byte-exact examples, the CRC, encode-side validation,
 single-frame parsing and the sequence / clock state machines."""
 

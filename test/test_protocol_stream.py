@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Property tests of the protocol: round trips and the StreamDecoder against garbage,
 bit flips, truncations, arbitrary read splits, concatenations and sequence events."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Every figure the README shows comes from a benchmark's result file (bench/results/)."""
 import importlib.util
 import os

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The three messages cross real DDS between two rclpy nodes, bit-exact."""
 
 import math

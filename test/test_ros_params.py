@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Run-time parameters through the real parameter services: tuning parameters change at
 once (validated by the same table), structural ones are read-only with the reason,
 integers are accepted for floats; event types agree between the core and the messages."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Scene validation checks what a scene will cost (memory, output size, emissions) before
 anything is allocated, rejects bad seeds and over-deep YAML with SceneErrors, and a
 failed render leaves no output file."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Simulator core: emission (Eqs. 10-11), front end, exact delays, polarity, SNR, validation."""
 import math
 

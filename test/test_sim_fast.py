@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The fast triggered-packet path (compiled kernels, windowed noise) against the reference
 path (each window rendered by the stream renderer, numpy engine): bit for bit on every
 built-in scene, noise and ADC quantization included."""

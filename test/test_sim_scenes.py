@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Scenes: YAML validation errors, generators (Cattaneo-Mindlin slip, texture rate,
 touch/release), the example scenes, and the command-line tool."""
 import glob

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Streaming renderer: chunk invariance (bit-exact), noise statistics, truth per chunk,
 triggered windows cut from the stream, agreement with the batch triggered renderer."""
 import numpy as np

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Slip detector core on hand-built event sequences (no simulator): tracker, state
 machine, precursor / gross slip / texture / direction, bad input, bounded memory."""
 

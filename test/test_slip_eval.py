@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Reduced statistical evaluation of the slip detector on the simulator (the full one is
 bench/bench_slip.py, >= 1,000 trials per family). Most families use the 'events' pipeline
 (true emissions + the localizer's error model), a few the rendered waveforms. Seeded;

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """End to end with real rclpy: simulated fingertip (own process, pty) -> driver (in-process
 localization and slip detection; or the split: driver -> localizer -> slip detector)
 (-> grip reflex), scored against the scene's ground truth.

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Device-clock mapping: drift, heavy-tailed latency, restarts, monotonic output."""
 
 import numpy as np

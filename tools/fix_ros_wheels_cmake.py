@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Work around a packaging bug of the ROS 2 PyPI wheels (idempotent).
 
 Their exported CMake targets carry include directories of the machine that built them

@@ -1,4 +1,5 @@
 #!/usr/bin/env bash
+# SPDX-License-Identifier: Apache-2.0
 # Flakiness check: run the ROS tests N times in a row (default 20) while another process
 # keeps one core busy; stop at the first failure. Usage: tools/stress_ros_tests.sh [N] [TESTS...]
 set -euo pipefail

@@ -1,4 +1,5 @@
 #!/usr/bin/env bash
+# SPDX-License-Identifier: Apache-2.0
 # Regenerate README.md's parameter tables and config/{water_skin,silicone}.yaml from the
 # nodes' parameter tables (the one place they are defined).
 set -euo pipefail

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Packet detection on the 4-channel stream (pure Python: numpy/scipy, never rclpy).
 
 - `PacketDetector` / `DetectorConfig`: streaming band-pass, noise-floor tracking,

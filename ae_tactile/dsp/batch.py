@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """`PacketBatch`: the windows the detector cuts (or the triggered windows it analyses)."""
 from __future__ import annotations
 

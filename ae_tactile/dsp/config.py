@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Parameters of the packet detector, in SI units, validated; converted to samples once.
 
 See docs/detection.md for the meaning of every parameter and why the defaults are what

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Packet detection on a continuous 4-channel stream, and analysis of triggered windows.
 
 `PacketDetector.process(samples (4, n), first_sample_index)` returns a `PacketBatch` with

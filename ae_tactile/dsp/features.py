@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Per-window features (vectorized over windows): noise, saturation, peak, polarity, SNR.
 
 Given windows w (K, 4, M) of original samples and an onset index per window:

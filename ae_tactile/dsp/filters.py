@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Streaming band-pass filter for the trigger path.
 
 The detector band-passes the raw stream before it looks for packets:

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Common-mode electrical interference on packets (a motor driver's switching edges,
 ground bounce, ESD spikes): reject it before the localizer, keep real touches.
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Noise-floor tracking on the band-passed stream, per channel, in fixed blocks.
 
 The stream is cut into blocks of B samples on the absolute sample-index grid

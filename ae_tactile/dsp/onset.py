@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Onset refinement: multichannel Akaike-information-criterion (AIC) picker.
 
 Maeda's AIC picker splits a segment x[0:L] at every m and scores

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Analytic test streams with known packets (independent of ae_tactile.sim).
 
 A packet is the paper's collision pulse after the 100 kHz high-pass (Eq. 10-11 with

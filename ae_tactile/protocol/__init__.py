@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Serial protocol between the fingertip and the host (protocol version 1), pure Python.
 
 Normative description: docs/protocol.md. This package never imports rclpy.

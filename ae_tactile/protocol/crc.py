@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """CRC-32 of the protocol: the IEEE 802.3 / zlib / PNG CRC.
 
 Parameters (Rocksoft notation): width 32, poly 0x04C11DB7 (reflected form

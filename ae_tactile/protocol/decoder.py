@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Incremental stream decoder: bytes in arbitrary chunks -> validated frames + counters.
 
 Algorithm (decisions depend only on the byte stream, never on how it was split into

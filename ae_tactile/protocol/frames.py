@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Frame layout, frame dataclasses, encoder and single-frame parser (protocol version 1).
 
 Every frame, little-endian (docs/protocol.md is the normative description)::

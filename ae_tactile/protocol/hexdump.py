@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Hex dumps of frames, in the format docs/protocol.md uses for its example frames.
 
 Format: one line per 16 bytes, ``OOOO: hh hh ...`` with a 4-digit hex offset.

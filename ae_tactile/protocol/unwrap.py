@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Sequence-number gap tracking and u32 microsecond-clock unwrapping.
 
 Both are plain state machines fed one frame at a time; ``StreamDecoder`` owns one

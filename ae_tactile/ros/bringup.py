@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """`bringup`: one fingertip's nodes in one process (the demo and the end-to-end tests).
 
     bringup [--scene FILE] [--no-sim --port URL] [--namespace NS] [--params-file FILE]

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """numpy <-> ae_tactile message conversions (the only place that knows the field layout).
 
 Time stamps are integer nanoseconds (int64) on the core side, builtin_interfaces/Time

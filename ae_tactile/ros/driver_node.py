@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """`driver` node: the fingertip from serial bytes to contact and slip events, in one process.
 
 The hot path runs in the serial reader thread, with no message hop between stages: the

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """`grip_reflex` (example hand-side node): squeeze harder when the fingertip feels slip coming.
 
 On every SLIP_PRECURSOR (or SLIP) event on `slip`, the commanded grip force on

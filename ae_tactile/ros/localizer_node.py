@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """`localizer` node: PacketArray -> ContactEvent (TOUCH / DETOUCH), markers, diagnostics.
 
 The replay half of the velodyne-style split: the driver localizes in-process by default;

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """RViz markers: the fingertip sphere, the PVDF matrix, and recent events as fading spheres.
 
 Each event is drawn as a sphere at its position, 2 sigma across (largest principal axis of

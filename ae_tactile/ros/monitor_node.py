@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """`monitor`: a readable live log of events, scored against the simulator's ground truth.
 
 Subscribes to `contacts` (localizer), `slip` (slip detector), `contact_state` and, when a

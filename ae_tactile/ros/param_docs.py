@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Every node parameter, generated from the code: README tables and the parameter files.
 
     python -m ae_tactile.ros.param_docs            # prints the README tables

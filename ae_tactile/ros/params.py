@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Node parameters from one table: descriptors, validation, run-time changes.
 
 Each node lists its parameters as `Param`s. `ParamSet(node, table, prefix, on_change)`

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """`sim_fingertip` node: a simulated fingertip serving the serial protocol on a pty or TCP port.
 
 Plays a scene (config/scenes/*.yaml) in real time, or at ``speed`` x real time, through

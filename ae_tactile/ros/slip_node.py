@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """`slip_detector` node: localized TOUCH / DETOUCH events -> slip precursors, slip, texture.
 
 The replay half of the velodyne-style split (the driver runs the same stage in-process by

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Simulated fingertip: what the four PVDF channels of the real sensor would output.
 
 Pure Python (numpy/scipy/pyyaml), never imports rclpy. Physics in one line per stage:

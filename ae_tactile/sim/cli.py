@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Render a scene to a file with its ground truth and print a summary.
 
     python -m ae_tactile.sim.cli config/scenes/single_touch.yaml -o out.npz [--duration S]

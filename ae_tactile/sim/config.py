@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Simulator configuration: sensor, medium, front end and effect switches (SI units).
 
 `SimConfig` is a frozen, validated dataclass. Everything the renderers derive from it

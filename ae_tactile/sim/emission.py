@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Acoustic emission at a contact: the paper's collision model (Eqs. 6-11).
 
 A rigid convex surface z = a_c (x^2 + y^2)/2 meets the flat skin at speed v0; the

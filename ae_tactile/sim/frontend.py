@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Front end: PVDF + amplifier gain, Butterworth high-pass and anti-alias low-pass, noise, ADC.
 
 The analog chain is the rational transfer function (volts per pascal)

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Built-in scene generators: emission processes with ground truth.
 
 Each generator turns validated parameters (SI units, see `scene.py` for the schema and

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Common-mode electrical interference packets (not acoustic: rendered here, not by the
 acoustic renderer): one waveform on all four channels, the front end's noise and ADC.
 

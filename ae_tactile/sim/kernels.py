@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Compiled accumulation of arrival responses into sample windows (the renderers' hot path).
 
 Every sample value is defined elementwise, in one fixed order of IEEE operations, so the

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Propagation from a contact point on the sphere to the four PVDF elements.
 
 Direct path (exact geometry, `ae_tactile.geometry`): straight ray from the contact point

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Exact sampled response of the front end to each wave arrival (the simulator's core).
 
 Each arrival a (emission e, element k, path m) is a pressure R_a(s) = A_a P1(s) W_a(s)

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """YAML scene format, validation and loading.
 
 A scene file (all values SI, the unit is in the key name)::

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Streaming renderer: emissions with integer-nanosecond times -> 4-channel samples.
 
 Any window [n0, n1) of absolute sample indices is rendered by summing only the

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Batch triggered renderer: one short 4-channel window per emission, as a hardware
 trigger would capture it. Vectorized over packets.
 """

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Slip / texture analysis: localized emissions -> SLIP_PRECURSOR, SLIP and TEXTURE
 events and a latched per-finger contact state. Pure numpy, never imports rclpy.
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Parameters of the slip / texture detector, SI units, validated (clear ValueErrors).
 
 Every field carries its description, unit, valid range and whether it may change at run

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Slip / texture detector core: localized emissions in, SLIP_PRECURSOR / SLIP / TEXTURE
 events and a latched per-finger contact state out. Pure Python + numpy, no rclpy.
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Evaluation of the slip detector on the simulator's scenes (issue 6).
 
 The real pipeline at core level, per trial: a scene with its own seed and randomised

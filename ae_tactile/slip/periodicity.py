@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Periodicity test for texture emissions (pure numpy, no state).
 
 Sliding at speed v over a texture of spatial period lambda gives emissions at the rate

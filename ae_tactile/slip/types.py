@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Input and output records of the slip detector (plain dataclasses, SI units, int ns)."""
 
 from __future__ import annotations
