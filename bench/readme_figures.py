@@ -157,9 +157,65 @@ def protocol_rows(d, faults) -> list[str]:
 
 
 def slip_rows(d) -> list[str]:
-    if not d or "readme" not in d:
+    if not d or "summary" not in d:
         return []
-    return [f"| {r['what']} | {r['figure']} | bench_slip |" for r in d["readme"]]
+    s = d["summary"]
+    inc = s["incipient"]
+    rows = []
+    for fam in ("dense:random", "sparse:random", "sparse:compression"):
+        f = inc.get(fam)
+        if not f:
+            continue
+        parts = []
+        for key, what in (("micro_ge10", ">= 10"), ("micro_5to10", "5-10")):
+            m = f.get(key)
+            if m and m.get("n_trials"):
+                parts.append(
+                    f"{100 * m['precursor_before_gross_rate']:.1f} % with {what} "
+                    f"micro-slips (median q {m['q_at_precursor']['p50']:.2f})"
+                )
+        if parts:
+            rows.append(
+                f"| slip precursor before gross slip, {fam.replace(':', ', ')} polarity "
+                f"| {'; '.join(parts)} | bench_slip |"
+            )
+    al = s.get("alarms", {})
+    if al:
+        txt = "; ".join(
+            f"{k.split(':')[0]} {v['false_alarms_per_hour']:.0f}/h"
+            for k, v in al.items()
+            if k.endswith(":events")
+        )
+        rows.append(f"| false precursor / SLIP / TEXTURE alarms | {txt} | bench_slip |")
+    dr = s.get("drift")
+    if dr:
+        rows.append(
+            f"| slip direction | mean absolute error {dr['direction_error_deg_mean_abs']:.1f} deg "
+            f"over {dr['n_direction_reports']} reports | bench_slip |"
+        )
+    st = s.get("stylus", {}).get("events")
+    if st:
+        rows.append(
+            f"| moving textured stylus | one contact in {100 * st['one_contact_rate']:.0f} %, "
+            f"TEXTURE in {100 * st['found_rate']:.1f} %, first period within 3 % in "
+            f"{100 * st['period_within_3pct_first']:.1f} % | bench_slip |"
+        )
+    itf = s.get("interference", {}).get("with_discriminator")
+    if itf:
+        rows.append(
+            f"| common-mode interference | {100 * itf['rejected_rate']:.1f} % of "
+            f"{itf['n_interference_packets']} bursts rejected, "
+            f"{100 * itf['acoustic_kept_rate']:.1f} % of touches kept, "
+            f"{itf['alarm_onsets']} slip alarms | bench_slip |"
+        )
+    sp = d.get("detector_speed")
+    if sp:
+        meta = d.get("meta", {})
+        rows.append(
+            f"| slip detector step | {sp['us_p50']:.0f} us median, {sp['us_p99']:.0f} us p99 "
+            f"per emission | bench_slip, {_load_str(meta.get('load_before'))} |"
+        )
+    return rows
 
 
 def markdown() -> str:
