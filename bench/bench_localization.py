@@ -258,7 +258,7 @@ def run(quick=False):
         ("10", water, None),
         ("10 silicone", sil, None),
     ]
-    n_points, n_real = (20, 10) if quick else (50, 20)
+    n_points, n_real = (20, 10) if quick else (100, 20)
     pra_points, pra_real = (10, 1) if quick else (20, 2)
     n_pra = pra_points * pra_real
     rng = np.random.default_rng(2024)

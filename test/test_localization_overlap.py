@@ -6,7 +6,7 @@ Packets come from the simulator: `simulate_overlaps` (single emissions rendered 
 `render_triggered` and summed with exact sub-sample delays: linear acoustics) and, for
 an independent path, the simulator's stream renderer, which places several emissions on
 one timeline. Every random draw is seeded; thresholds leave margins over the measured
-rates (docs/overlap.md) so that the tests do not flake.
+rates (docs/localization.md) so that the tests do not flake.
 """
 
 import numpy as np
@@ -74,7 +74,7 @@ def pairs():
 @pytest.mark.parametrize("medium", ["water", "silicone"])
 def test_both_points_within_0p1_mm_in_most_pairs(pairs, medium):
     # Target: both points within 0.1 mm in >= 90 % of pairs at separations >= 2 us
-    # (measured ~99 %, docs/overlap.md); asserted with margin at 85 %.
+    # (measured ~99 %, docs/localization.md); asserted with margin at 85 %.
     ds, res, truth = pairs[medium]
     ok = [
         r.accepted and len(r.sources) == 2 and np.all(per_truth_errors(t, r.sources) <= 0.1e-3)

@@ -35,7 +35,7 @@ emission are part of the model. Search (RELAX, cyclic superimposed-signal estima
      and with the points swapped; the best residual wins. A third emission likewise;
   3. model order: J + 1 emissions only if the residual energy falls by more than
      ``add_threshold`` sigma^2 (a generalised likelihood-ratio test; single-source packets
-     stay single, measured in docs/overlap.md);
+     stay single, measured in docs/localization.md);
   4. the final residual must be consistent with noise (chi^2 per degree of freedom below
      ``max_chi2_ratio``) and no two emissions closer than ``min_separation_s``, else the
      packet is rejected (a wrong or missing emission leaves its energy in the residual);
@@ -1263,7 +1263,7 @@ def calibrate_pulse(
     single-emission packets, e.g. a few dozen single touches recorded at start-up.
 
     The known-pulse model needs the pulse shape: a front end whose corners are off by 10 %
-    makes every overlap fit fail the residual test (rejected, not wrong; docs/overlap.md).
+    makes every overlap fit fail the residual test (rejected, not wrong; docs/localization.md).
     Each packet is localized by `localize` (ml); the objective is the summed residual of
     the one-emission model (3 LM steps from that point) over the accepted packets,
     minimised over (log f_hp, log f_lp) by Nelder-Mead from ``initial``.
