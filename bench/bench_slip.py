@@ -116,6 +116,95 @@ def interference_speed() -> dict:
     return out
 
 
+def random_touch_events(duration_s: float = 4.0, rate_hz: float = 1000.0, seed: int = 0,
+                        sigma_m: float = 20e-6, max_polar_deg: float = 60.0):
+    """Localized events of random touches: Poisson touches at ``rate_hz`` uniform over the
+    cap (polar <= ``max_polar_deg``), each held 5 .. 50 ms then released on the same spot;
+    Gaussian position error ``sigma_m`` per tangent axis (covariance sigma^2 (I - n n^T)).
+    Returns the raw fields (time_ns, point, covariance, polarity, packet_id), time order."""
+    rng = np.random.default_rng([8100, seed])
+    R = 0.01
+    n = int(rng.poisson(rate_hz * duration_s))
+    t_touch = np.sort(rng.uniform(0.0, duration_s, n))
+    hold = rng.uniform(5e-3, 50e-3, n)
+    cos_lo = math.cos(math.radians(max_polar_deg))
+    cz = rng.uniform(cos_lo, 1.0, n)  # uniform over the cap's area
+    az = rng.uniform(0.0, 2 * math.pi, n)
+    sz = np.sqrt(1.0 - cz * cz)
+    N = np.stack([sz * np.cos(az), sz * np.sin(az), cz], axis=1)
+    rows = []
+    for i in range(n):
+        nrm = N[i]
+        cov = sigma_m**2 * (np.eye(3) - np.outer(nrm, nrm))
+        for t_s, pol in ((t_touch[i], 1), (t_touch[i] + hold[i], -1)):
+            q = R * nrm + rng.normal(0.0, sigma_m, 3)
+            q -= (q @ nrm - R) * nrm
+            rows.append((int(round(t_s * 1e9)), q, cov, pol))
+    rows.sort(key=lambda r: r[0])
+    return [(t, q, cov, pol, i) for i, (t, q, cov, pol) in enumerate(rows)]
+
+
+def _time_stream(rows_list, construct: bool) -> np.ndarray:
+    """CPU time (us, time.thread_time_ns) per event of SlipDetector.process, a fresh
+    detector per stream; ``construct``: the LocalizedEvent is built inside the timed
+    region (as the driver's SlipStage does), else before it."""
+    clock = time.thread_time_ns
+    out = []
+    for rows in rows_list:
+        det = SlipDetector()
+        if construct:
+            for t, q, cov, pol, pid in rows:
+                a = clock()
+                det.process(LocalizedEvent(t, np.asarray(q), cov, pol, math.nan, 0.9, pid))
+                out.append(clock() - a)
+        else:
+            evs = [LocalizedEvent(t, q, cov, pol, math.nan, 0.9, pid) for t, q, cov, pol, pid in rows]
+            for e in evs:
+                a = clock()
+                det.process(e)
+                out.append(clock() - a)
+    return np.asarray(out, dtype=float) / 1e3
+
+
+def _stats(us: np.ndarray) -> dict:
+    return {
+        "n_events": int(us.size),
+        "us_mean": float(us.mean()),
+        "us_p50": float(np.median(us)),
+        "us_p99": float(np.percentile(us, 99)),
+        "us_max": float(us.max()),
+    }
+
+
+def incipient_event_rows(n_trials: int = 20, seed: int = 0) -> list:
+    """Localized events of dense incipient-slip trials ('events' pipeline), one list per
+    trial, as raw fields."""
+    out = []
+    for s in range(seed, seed + n_trials):
+        scene, source, _ = ev.incipient_slip_scene(s, post_s=0.15)
+        end_ns = int(round(scene.duration_s * 1e9))
+        events, _ = ev._events(scene, source, end_ns, "events")
+        out.append([(e.time_ns, e.point_m, e.covariance_m2, e.polarity, e.packet_id)
+                    for e in events])
+    return out
+
+
+def slip_step_speed(duration_s: float = 4.0, seed: int = 0, reps: int = 1) -> dict:
+    """CPU cost of the slip step per emission (us) on (a) random touches at 1000/s and
+    (b) dense incipient-slip trials: LocalizedEvent construction + SlipDetector.process
+    (the driver's per-emission work), and process alone."""
+    touch = [random_touch_events(duration_s, seed=seed + r) for r in range(reps)]
+    inc = incipient_event_rows(20, seed)
+    res = {"load_before": list(os.getloadavg())}
+    for name, rows in (("random_touches_1000_per_s", touch), ("incipient_dense", inc)):
+        res[name] = {
+            "construct_and_process": _stats(_time_stream(rows, True)),
+            "process_only": _stats(_time_stream(rows, False)),
+        }
+    res["load_after"] = list(os.getloadavg())
+    return res
+
+
 # ---------------------------------------------------------------------- summaries
 def _pct(x, qs=(0, 5, 50, 95, 99, 100)):
     x = np.asarray([v for v in x if v is not None and np.isfinite(v)], float)
@@ -428,10 +517,34 @@ def _save(res, q, final=False):
     return out, tab
 
 
+def speed_main(seed: int = 0) -> int:
+    """Measure the slip step and store it in bench/results/slip.json (detector_speed only)."""
+    sp = slip_step_speed(seed=seed)
+    for name in ("random_touches_1000_per_s", "incipient_dense"):
+        for mode, st in sp[name].items():
+            print(
+                f"{name:26s} {mode:22s} n={st['n_events']:6d} mean {st['us_mean']:6.1f} us"
+                f"  p50 {st['us_p50']:6.1f}  p99 {st['us_p99']:6.1f}  max {st['us_max']:7.1f}"
+            )
+    print(f"load before {sp['load_before']}, after {sp['load_after']}")
+    path = RESULTS / "slip.json"
+    data = json.loads(path.read_text()) if path.exists() else {}
+    data.setdefault("detector_speed", {})["slip_step"] = sp
+    path.write_text(json.dumps(data, indent=1) + "\n")
+    print(f"wrote {path} (detector_speed.slip_step)")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="reduced trial counts (smoke run)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--speed",
+        action="store_true",
+        help="only the slip step's CPU cost per emission (random touches, incipient slip); "
+        "stored under detector_speed.slip_step in bench/results/slip.json",
+    )
     ap.add_argument(
         "--budget-s",
         type=float,
@@ -440,6 +553,8 @@ def main(argv=None) -> int:
     )
     args = ap.parse_args(argv)
     warnings.simplefilter("ignore", RuntimeWarning)
+    if args.speed:
+        return speed_main(args.seed)
     q = args.quick
     N = 60 if q else 1000
     n_pol = 30 if q else 300
@@ -517,6 +632,7 @@ def main(argv=None) -> int:
 
     def cost():
         res["detector_speed"] = detector_speed()
+        res["detector_speed"]["slip_step"] = slip_step_speed(seed=s0)
         res["interference_speed"] = interference_speed()
 
     tasks = [
