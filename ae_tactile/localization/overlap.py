@@ -63,7 +63,14 @@ import scipy.fft as sfft
 from scipy import signal
 
 from ae_tactile.geometry import FingertipGeometry
-from ae_tactile.localization.common import Reason, make_plan, prepare, subset, validate_windows
+from ae_tactile.localization.common import (
+    Reason,
+    adc_noise,
+    make_plan,
+    prepare,
+    subset,
+    validate_windows,
+)
 
 __all__ = [
     "PulseModel",
@@ -200,6 +207,13 @@ class _Tables:
     res: np.ndarray
     table: np.ndarray
     h_samples: np.ndarray  # h(m dt), m = 0..L-1 (matched filter)
+
+
+def _given(prep):
+    """(K,) bool: the noise sigma was given (analog: + q^2/12), not measured."""
+    if prep.noise_given is None:
+        return np.zeros(len(prep.sigma2), bool)
+    return np.asarray(prep.noise_given, bool)
 
 
 def _tables(pulse: PulseModel, fs: float, n: int) -> _Tables:
@@ -728,8 +742,8 @@ def resolve_overlaps(
     the first sample at/after the earliest arrival (detector or trigger). geometry:
     FingertipGeometry (default tip); pulse: `PulseModel` of the front end (default: 100 kHz
     2nd-order high-pass, 1 MHz 4th-order low-pass). noise_rms_v: known sigma (scalar or
-    (K,)), default measured before the onset (plus the ADC's q^2/12). saturated,
-    full_scale_v: as `localize`. max_sources: 1-3. add_threshold: residual-energy drop
+    (K,)), default measured before the onset (the ADC's rounding by `common.adc_noise`).
+    saturated, full_scale_v: as `localize`. max_sources: 1-3. add_threshold: residual-energy drop
     (in sigma^2) needed to add an emission. max_chi2_ratio: largest accepted residual /
     (sigma^2 dof) (default 1 + 5 sqrt(2/n_noise + 2/dof)). max_sigma_m: emissions with a
     larger in-plane 1-sigma are dropped. echo: model the first wall echo.
@@ -774,7 +788,7 @@ def resolve_overlaps(
         prep = prepare(
             x, on, plan, noise_rms_v=noise_rms_v, saturated=saturated, full_scale_v=full_scale_v
         )
-        sigma2 = prep.sigma2 + prep.quant2
+        sigma2 = adc_noise(prep.sigma2, prep.quant2, _given(prep))
         n_noise = np.maximum(4 * (prep.onset - plan.pre), 4).astype(float)
         if noise_rms_v is not None:
             n_noise[:] = np.inf
@@ -1000,7 +1014,7 @@ def suspect_overlap(
             else np.broadcast_to(np.asarray(noise_rms_v, float), (K,))[ids],
         )
         seg, start, length, inside = _segments(prep, plan, geo, plan.fs, analysis_s)
-        sigma2 = prep.sigma2 + prep.quant2
+        sigma2 = adc_noise(prep.sigma2, prep.quant2, _given(prep))
         model = _Model(geo, plan.fs, start, length, pulse, echo, inside)
         # emission time: matched filter along the accepted point's travel times
         th0 = _time_search(model, seg, pts[ids, :2])
