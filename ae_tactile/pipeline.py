@@ -30,6 +30,7 @@ emission_offset_s being the fitted arrival at the nearest element minus the trav
 from the fitted point to it (or onset_index / fs minus that travel time when the
 estimator gives no fitted arrival).
 """
+
 from __future__ import annotations
 
 import math
@@ -60,15 +61,18 @@ class EventType(IntEnum):
 _NAN3 = (math.nan, math.nan, math.nan)
 
 #: Packets localized closer to the apex than this polar angle (rad) are checked for
-#: common-mode interference (whose zero delays put it at the apex; 15 deg leaves room for
-#: channel gain mismatch and noise).
-APEX_POLAR_RAD = math.radians(15.0)
-#: ... and so are poorly fitting packets (interference can also end as a bad fit elsewhere).
-SUSPECT_CONFIDENCE = 0.5
-#: Accepted packets below this confidence are checked for a second emission in the window
-#: (measured: overlaps that `ml` accepted 0.1-8 mm off had confidence <= 0.53; single
-#: emissions at 20 dB have >= 0.67, at 10 dB ~0.35-0.45 and are checked too).
+#: common-mode interference (whose zero delays put it at the apex: measured within 0.1 deg
+#: for bursts with 1 % channel gain mismatch; 3 deg leaves a wide margin) ...
+APEX_POLAR_RAD = math.radians(3.0)
+#: ... and so are very poorly fitting packets (a burst can also end as a bad fit elsewhere:
+#: seen at confidence 0.13; real touches at 10 dB have 0.35-0.45).
+SUSPECT_CONFIDENCE = 0.3
+#: Accepted packets below this confidence whose fit leaves more than OVERLAP_SUSPECT_EXCESS
+#: of unexplained in-band energy are checked for a second emission in the window (measured
+#: on the simulator: overlaps that `ml` accepted 0.1-8 mm off had confidence <= 0.53 and
+#: excess 0.033-0.063; single emissions at 10-40 dB excess <= 0.025).
 OVERLAP_SUSPECT_CONFIDENCE = 0.6
+OVERLAP_SUSPECT_EXCESS = 0.028
 
 
 @dataclass(slots=True)
@@ -93,16 +97,17 @@ class ContactRecord:
     emission_rate_hz: float = math.nan
     spatial_period_m: float = math.nan
     slip_direction: tuple = _NAN3
+    overlap_excess: float = 0.0  # single-emission misfit beyond noise (localization only)
 
 
 @dataclass
 class PacketView:
     """What the pipeline needs of one packet (a link PacketRecord or a received message)."""
 
-    samples_v: np.ndarray        # (4, N) volts
+    samples_v: np.ndarray  # (4, N) volts
     sample_rate_hz: float
     onset_index: int
-    stamp_ns: int                # host time of samples_v[:, 0]
+    stamp_ns: int  # host time of samples_v[:, 0]
     sequence_id: int
     noise_rms_v: float = 0.0
     saturated: bool = False
@@ -143,10 +148,18 @@ class PacketLocalizer:
     packet under load); fewer take the single-packet path (lowest latency).
     """
 
-    def __init__(self, method: str = "ml", *, min_snr_db: float = 5.0, min_confidence: float = 0.0,
-                 geometry: FingertipGeometry | None = None, channel_gains=None,
-                 reject_interference: bool = True, batch_min: int = 4,
-                 resolve_overlaps: bool = True):
+    def __init__(
+        self,
+        method: str = "ml",
+        *,
+        min_snr_db: float = 5.0,
+        min_confidence: float = 0.0,
+        geometry: FingertipGeometry | None = None,
+        channel_gains=None,
+        reject_interference: bool = True,
+        batch_min: int = 4,
+        resolve_overlaps: bool = True,
+    ):
         self.localizer = Localizer(method, min_snr_db=min_snr_db)
         self.resolve_overlaps = bool(resolve_overlaps)
         #: windows of the last `process` call that hold overlapping emissions (for the
@@ -163,9 +176,16 @@ class PacketLocalizer:
         self._one = getattr(self.localizer, "localize_one", None)
 
     # ---------------------------------------------------------------- settings
-    def update(self, *, method: str | None = None, min_snr_db: float | None = None,
-               min_confidence: float | None = None, geometry: FingertipGeometry | None = None,
-               channel_gains=None, resolve_overlaps: bool | None = None) -> None:
+    def update(
+        self,
+        *,
+        method: str | None = None,
+        min_snr_db: float | None = None,
+        min_confidence: float | None = None,
+        geometry: FingertipGeometry | None = None,
+        channel_gains=None,
+        resolve_overlaps: bool | None = None,
+    ) -> None:
         """Change settings at run time (validated by the caller); takes effect at once."""
         if resolve_overlaps is not None:
             self.resolve_overlaps = bool(resolve_overlaps)
@@ -194,7 +214,25 @@ class PacketLocalizer:
             warm(self.geometry, sample_rate_hz, n_samples)
         rng = np.random.default_rng(0)
         x = rng.normal(0.0, 1e-3, (4, int(n_samples))).astype(np.float32)
-        self.process([PacketView(x, sample_rate_hz, int(n_samples) // 4, 0, -1)], count=False)
+        view = PacketView(x, sample_rate_hz, int(n_samples) // 4, 0, -1)
+        self.process([view], count=False)
+        self.process([view] * self.batch_min, count=False)
+        # the paths a first odd packet would take: imports, tables, compiled code
+        from types import SimpleNamespace
+
+        from ae_tactile.localization.overlap import resolve_overlaps, suspect_overlap
+
+        w = x[None].astype(np.float64)
+        on = [int(n_samples) // 4]
+        with np.errstate(all="ignore"):
+            if self.interference is not None:
+                self.interference(w, sample_rate_hz, on, geometry=self.geometry)
+            single = SimpleNamespace(
+                accepted=np.ones(1, bool), point_m=np.array([[0.0, 0.0, self.geometry.radius_m]])
+            )
+            suspect_overlap(w, sample_rate_hz, on, single, geometry=self.geometry)
+            resolve_overlaps(w, sample_rate_hz, on, geometry=self.geometry)
+        self.overlap_windows = []
 
     # ---------------------------------------------------------------- packets
     def process(self, packets: Sequence, *, count: bool = True) -> list[ContactRecord]:
@@ -230,8 +268,11 @@ class PacketLocalizer:
 
     def _drop_interference(self, found, counts):
         """Drop the apex events whose packets the discriminator calls interference."""
-        near = [i for i, (_, ev) in enumerate(found)
-                if ev.polar_rad < APEX_POLAR_RAD or ev.confidence < SUSPECT_CONFIDENCE]
+        near = [
+            i
+            for i, (_, ev) in enumerate(found)
+            if ev.polar_rad < APEX_POLAR_RAD or ev.confidence < SUSPECT_CONFIDENCE
+        ]
         if not near:
             return found
         drop = set()
@@ -259,12 +300,18 @@ class PacketLocalizer:
     def _withdraw_suspects(self, found, counts):
         """Accepted packets with a poor fit whose one-emission model leaves a residual the
         noise cannot explain hold two emissions: withdrawn, for the overlap resolver."""
-        low = [i for i, (_, ev) in enumerate(found) if ev.confidence < OVERLAP_SUSPECT_CONFIDENCE]
+        low = [
+            i
+            for i, (_, ev) in enumerate(found)
+            if ev.confidence < OVERLAP_SUSPECT_CONFIDENCE
+            and ev.overlap_excess > OVERLAP_SUSPECT_EXCESS
+        ]
         if not low:
             return found
         from types import SimpleNamespace
 
         from ae_tactile.localization.overlap import suspect_overlap
+
         drop = set()
         groups: dict[tuple, list[int]] = {}
         for i in low:
@@ -273,8 +320,10 @@ class PacketLocalizer:
         for (_, fs), ids in groups.items():
             w = np.stack([np.asarray(found[i][0].samples_v, dtype=np.float64) for i in ids])
             onset = np.array([int(found[i][0].onset_index) for i in ids])
-            single = SimpleNamespace(accepted=np.ones(len(ids), bool),
-                                     point_m=np.array([found[i][1].point_m for i in ids]))
+            single = SimpleNamespace(
+                accepted=np.ones(len(ids), bool),
+                point_m=np.array([found[i][1].point_m for i in ids]),
+            )
             try:
                 with np.errstate(all="ignore"):
                     mask = suspect_overlap(w, fs, onset, single, geometry=self.geometry)
@@ -287,9 +336,14 @@ class PacketLocalizer:
         return [f for i, f in enumerate(found) if i not in drop]
 
     def _single(self, p, counts) -> ContactRecord | None:
-        r = self._one(p.samples_v, p.sample_rate_hz, int(p.onset_index),
-                      saturated=bool(p.saturated), geometry=self.geometry,
-                      channel_gains=self.channel_gains)
+        r = self._one(
+            p.samples_v,
+            p.sample_rate_hz,
+            int(p.onset_index),
+            saturated=bool(p.saturated),
+            geometry=self.geometry,
+            channel_gains=self.channel_gains,
+        )
         if not r.accepted:
             if int(r.reason) == Reason.OVERLAP:
                 self._overlap(p, counts)
@@ -299,9 +353,20 @@ class PacketLocalizer:
         if r.confidence < self.min_confidence:
             counts["below_min_confidence"] += 1
             return None
-        return self._record(p, r.point_m, r.covariance_m2, r.polar_rad, r.azimuth_rad, r.tau_x_s,
-                            r.tau_y_s, r.amplitude_v, r.confidence, r.polarity,
-                            r.emission_offset_s)
+        return self._record(
+            p,
+            r.point_m,
+            r.covariance_m2,
+            r.polar_rad,
+            r.azimuth_rad,
+            r.tau_x_s,
+            r.tau_y_s,
+            r.amplitude_v,
+            r.confidence,
+            r.polarity,
+            r.emission_offset_s,
+            r.overlap_excess,
+        )
 
     def _batched(self, packets, counts) -> list[tuple]:
         groups: dict[tuple, list[int]] = {}
@@ -313,8 +378,17 @@ class PacketLocalizer:
             windows = np.stack([np.asarray(p.samples_v) for p in items])
             onset = np.array([int(p.onset_index) for p in items], dtype=np.int64)
             sat = np.array([bool(p.saturated) for p in items])
-            res = self.localizer(windows, fs, onset, geometry=self.geometry, saturated=sat,
-                                 channel_gains=self.channel_gains)
+            res = self.localizer(
+                windows,
+                fs,
+                onset,
+                geometry=self.geometry,
+                saturated=sat,
+                channel_gains=self.channel_gains,
+            )
+            excess = getattr(res, "overlap_excess", None)
+            if excess is None:
+                excess = np.zeros(len(items))
             offsets = getattr(res, "emission_offset_s", None)
             if offsets is None:
                 travel = self.geometry.arrival_times_s(np.nan_to_num(res.point_m)).min(axis=-1)
@@ -329,24 +403,49 @@ class PacketLocalizer:
                 if res.confidence[j] < self.min_confidence:
                     counts["below_min_confidence"] += 1
                     continue
-                found.append((ids[j], p, self._record(
-                    p, res.point_m[j], res.covariance_m2[j], res.polar_rad[j], res.azimuth_rad[j],
-                    res.tau_x_s[j], res.tau_y_s[j], res.amplitude_v[j], res.confidence[j],
-                    res.polarity[j], offsets[j])))
+                found.append(
+                    (
+                        ids[j],
+                        p,
+                        self._record(
+                            p,
+                            res.point_m[j],
+                            res.covariance_m2[j],
+                            res.polar_rad[j],
+                            res.azimuth_rad[j],
+                            res.tau_x_s[j],
+                            res.tau_y_s[j],
+                            res.amplitude_v[j],
+                            res.confidence[j],
+                            res.polarity[j],
+                            offsets[j],
+                            excess[j],
+                        ),
+                    )
+                )
         found.sort(key=lambda t: t[0])
         return [(p, ev) for _, p, ev in found]
 
     @staticmethod
-    def _record(p, point, cov, polar, azimuth, tau_x, tau_y, amp, conf, polarity,
-                offset_s) -> ContactRecord:
+    def _record(
+        p, point, cov, polar, azimuth, tau_x, tau_y, amp, conf, polarity, offset_s, excess=0.0
+    ) -> ContactRecord:
         kind = EventType.DETOUCH if polarity < 0 else EventType.TOUCH
         x, y, z = (float(v) for v in point)
         return ContactRecord(
-            event_type=int(kind), time_ns=int(p.stamp_ns) + int(round(float(offset_s) * 1e9)),
-            point_m=(x, y, z), covariance_m2=np.asarray(cov, dtype=float).reshape(3, 3),
-            packet_ids=(int(p.sequence_id),), polar_rad=float(polar), azimuth_rad=float(azimuth),
-            tau_x_s=float(tau_x), tau_y_s=float(tau_y), amplitude_v=float(amp),
-            confidence=float(conf))
+            event_type=int(kind),
+            time_ns=int(p.stamp_ns) + int(round(float(offset_s) * 1e9)),
+            point_m=(x, y, z),
+            covariance_m2=np.asarray(cov, dtype=float).reshape(3, 3),
+            packet_ids=(int(p.sequence_id),),
+            polar_rad=float(polar),
+            azimuth_rad=float(azimuth),
+            tau_x_s=float(tau_x),
+            tau_y_s=float(tau_y),
+            amplitude_v=float(amp),
+            confidence=float(conf),
+            overlap_excess=float(excess),
+        )
 
 
 class OverlapResolver:
@@ -357,8 +456,14 @@ class OverlapResolver:
     (``overlap_dropped_backlog``) and lost rather than delaying anything else.
     """
 
-    def __init__(self, geometry: FingertipGeometry, on_records: Callable[[list], None], *,
-                 max_pending: int = 64, pulse=None):
+    def __init__(
+        self,
+        geometry: FingertipGeometry,
+        on_records: Callable[[list], None],
+        *,
+        max_pending: int = 64,
+        pulse=None,
+    ):
         self.geometry = geometry
         self.on_records = on_records
         self.pulse = pulse
@@ -381,6 +486,7 @@ class OverlapResolver:
 
     def _run(self) -> None:
         from ae_tactile.localization.overlap import resolve_overlaps
+
         while True:
             p = self._queue.get()
             if p is None:
@@ -388,9 +494,13 @@ class OverlapResolver:
             self._busy = 1
             try:
                 with np.errstate(all="ignore"):
-                    res = resolve_overlaps(np.asarray(p.samples_v, dtype=np.float64)[None],
-                                           float(p.sample_rate_hz), [int(p.onset_index)],
-                                           geometry=self.geometry, pulse=self.pulse)[0]
+                    res = resolve_overlaps(
+                        np.asarray(p.samples_v, dtype=np.float64)[None],
+                        float(p.sample_rate_hz),
+                        [int(p.onset_index)],
+                        geometry=self.geometry,
+                        pulse=self.pulse,
+                    )[0]
                 if not res.accepted:
                     self.counts["overlap_rejected_" + res.reason_name] += 1
                     continue
@@ -398,7 +508,7 @@ class OverlapResolver:
                 self.counts["overlap_sources"] += len(res.sources)
                 records = [source_record(p, src) for src in res.sources]
                 self.on_records(records)
-            except Exception:            # never let one window stop the resolver
+            except Exception:  # never let one window stop the resolver
                 self.counts["overlap_errors"] += 1
             finally:
                 self._busy = 0
@@ -416,11 +526,17 @@ def source_record(p, src) -> ContactRecord:
     tau = FingertipGeometry.delays_from_arrival_times(np.asarray(src.arrival_times_s, dtype=float))
     return ContactRecord(
         event_type=int(EventType.DETOUCH if src.polarity < 0 else EventType.TOUCH),
-        time_ns=int(p.stamp_ns) + int(round(float(src.emission_time_s) * 1e9)), point_m=(x, y, z),
+        time_ns=int(p.stamp_ns) + int(round(float(src.emission_time_s) * 1e9)),
+        point_m=(x, y, z),
         covariance_m2=np.asarray(src.covariance_m2, dtype=float).reshape(3, 3),
-        packet_ids=(int(p.sequence_id),), polar_rad=math.atan2(math.hypot(x, y), z),
-        azimuth_rad=math.atan2(y, x), tau_x_s=float(tau[0]), tau_y_s=float(tau[1]),
-        amplitude_v=float(src.amplitude_v), confidence=float(src.confidence))
+        packet_ids=(int(p.sequence_id),),
+        polar_rad=math.atan2(math.hypot(x, y), z),
+        azimuth_rad=math.atan2(y, x),
+        tau_x_s=float(tau[0]),
+        tau_y_s=float(tau[1]),
+        amplitude_v=float(src.amplitude_v),
+        confidence=float(src.confidence),
+    )
 
 
 class SlipStage:
@@ -447,12 +563,15 @@ class SlipStage:
             for c in contacts:
                 self.counts["contacts_in"] += 1
                 try:
-                    ev = LocalizedEvent(time_ns=c.time_ns, point_m=np.asarray(c.point_m),
-                                        covariance_m2=c.covariance_m2,
-                                        polarity=-1 if c.event_type == EventType.DETOUCH else 1,
-                                        amplitude_v=c.amplitude_v,
-                                        confidence=min(max(c.confidence, 0.0), 1.0),
-                                        packet_id=c.packet_ids[0] if c.packet_ids else -1)
+                    ev = LocalizedEvent(
+                        time_ns=c.time_ns,
+                        point_m=np.asarray(c.point_m),
+                        covariance_m2=c.covariance_m2,
+                        polarity=-1 if c.event_type == EventType.DETOUCH else 1,
+                        amplitude_v=c.amplitude_v,
+                        confidence=min(max(c.confidence, 0.0), 1.0),
+                        packet_id=c.packet_ids[0] if c.packet_ids else -1,
+                    )
                 except (TypeError, ValueError):
                     self.counts["rejected_invalid_contact"] += 1
                     continue
@@ -483,13 +602,18 @@ def slip_record(s) -> ContactRecord:
     x, y, z = (float(v) for v in s.position_m)
     rho = math.hypot(x, y)
     return ContactRecord(
-        event_type=int(s.kind), time_ns=int(s.time_ns), point_m=(x, y, z),
+        event_type=int(s.kind),
+        time_ns=int(s.time_ns),
+        point_m=(x, y, z),
         covariance_m2=np.asarray(s.covariance_m2, dtype=float).reshape(3, 3),
         packet_ids=tuple(int(i) for i in s.packet_ids),
-        polar_rad=math.atan2(rho, z), azimuth_rad=math.atan2(y, x),
-        confidence=float(s.confidence), emission_rate_hz=float(s.emission_rate_hz),
+        polar_rad=math.atan2(rho, z),
+        azimuth_rad=math.atan2(y, x),
+        confidence=float(s.confidence),
+        emission_rate_hz=float(s.emission_rate_hz),
         spatial_period_m=float(s.spatial_period_m),
-        slip_direction=tuple(float(v) for v in np.asarray(s.slip_direction, dtype=float)))
+        slip_direction=tuple(float(v) for v in np.asarray(s.slip_direction, dtype=float)),
+    )
 
 
 @dataclass
@@ -506,19 +630,28 @@ class ContactPipeline:
     counts: Counter = field(default_factory=Counter)
     overlaps: OverlapResolver | None = None
 
-    def process(self, packets: Sequence, on_contacts: Callable[[list], None],
-                on_slip: Callable[[list], None] | None = None) -> None:
+    def process(
+        self,
+        packets: Sequence,
+        on_contacts: Callable[[list], None],
+        on_slip: Callable[[list], None] | None = None,
+    ) -> None:
         contacts = self.localizer.process(packets)
         if self.localizer.overlap_windows:
             if self.overlaps is None:
-                self.overlaps = OverlapResolver(self.localizer.geometry,
-                                                lambda recs: self.late(recs, on_contacts, on_slip))
+                self.overlaps = OverlapResolver(
+                    self.localizer.geometry, lambda recs: self.late(recs, on_contacts, on_slip)
+                )
             self.overlaps.geometry = self.localizer.geometry
             self.overlaps.submit(self.localizer.overlap_windows)
         self.late(contacts, on_contacts, on_slip)
 
-    def late(self, contacts: list, on_contacts: Callable[[list], None],
-             on_slip: Callable[[list], None] | None = None) -> None:
+    def late(
+        self,
+        contacts: list,
+        on_contacts: Callable[[list], None],
+        on_slip: Callable[[list], None] | None = None,
+    ) -> None:
         """Contact events (from the hot path, or later from the overlap resolver): handed
         out, then through the slip stage."""
         if contacts:

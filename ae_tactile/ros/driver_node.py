@@ -29,10 +29,13 @@ Subscribes: sliding_speed (std_msgs/Float64, m/s; TEXTURE spatial periods),
 
 from __future__ import annotations
 
+import gc
 import json
 import logging
 import math
+import os
 import sys
+import time
 from collections import deque
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -315,7 +318,7 @@ class DriverNode(Node):
         self.create_subscription(String, "sim/scene_truth", self._on_scene_truth, LATCHED)
         self.link = FingertipLink(
             self.link_config,
-            clock_ns=lambda: self.get_clock().now().nanoseconds,
+            clock_ns=self._clock_ns(),
             sink=self._on_batch,
             logger=logging.getLogger("ae_tactile.link"),
         )
@@ -324,6 +327,10 @@ class DriverNode(Node):
         if self.pipeline is not None:
             fs = float(p["sample_rate_hz"] or 10e6)
             self.pipeline.localizer.warm_up(fs, int(p["packet_samples"] or 400))
+        # Everything built so far lives for the whole run: keep it out of the garbage
+        # collector's scans, so that a collection in the reader thread stays short.
+        gc.collect()
+        gc.freeze()
         if p["wait_for_subscribers"] > 0:
             self._start_timer = self.create_timer(0.01, self._start_when_subscribed)
         else:
@@ -337,6 +344,14 @@ class DriverNode(Node):
                 else "raw packets only"
             )
         )
+
+    def _clock_ns(self):
+        """Host clock for stamps: ROS time; without simulated time that is the system clock,
+        read directly (time.time_ns, ~0.1 us instead of ~20 us through rclpy)."""
+        use_sim = self.has_parameter("use_sim_time") and self.get_parameter("use_sim_time").value
+        if not use_sim:
+            return time.time_ns
+        return lambda: self.get_clock().now().nanoseconds
 
     # -------------------------------------------------------------- pipeline
     def _make_pipeline(self) -> None:
@@ -694,7 +709,9 @@ def events_executor():
 
 def main(args=None) -> int:
     sys.setswitchinterval(0.0005)  # the reader thread gets the GIL back quickly
-    return run_node(DriverNode, args, executor_factory=events_executor)
+    try:
+        return run_node(DriverNode, args, executor_factory=events_executor)
+    finally:
 
 
 if __name__ == "__main__":
