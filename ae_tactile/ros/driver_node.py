@@ -33,7 +33,6 @@ import gc
 import json
 import logging
 import math
-import os
 import sys
 import time
 from collections import deque
@@ -709,9 +708,7 @@ def events_executor():
 
 def main(args=None) -> int:
     sys.setswitchinterval(0.0005)  # the reader thread gets the GIL back quickly
-    try:
-        return run_node(DriverNode, args, executor_factory=events_executor)
-    finally:
+    return run_node(DriverNode, args, executor_factory=events_executor)
 
 
 if __name__ == "__main__":
