@@ -121,6 +121,8 @@ class _Contact:
         self.pol = np.zeros(H, np.int8)
         self.pid = np.zeros(H, np.int64)
         self.flags = np.zeros(H, np.uint8)
+        self.tlist = [0] * H  # self.t as Python ints (cheap per-element reads)
+        self.n_fit_members = 0  # valid members with EVID set and OVERLAP clear
         self.n = 0
         self.state = ContactState.STICK
         self.since_ns = t_ns
@@ -135,7 +137,8 @@ class _Contact:
         self.last_report = {}
         self.texture_on = False
         self.texture_run = 0
-        self.centre = None
+        self._centre = None
+        self.centre_xyz = None  # self.centre as a tuple of floats (association)
         self.fitted = False  # centre from a circle fit to micro-slips
         self.radius = 0.0
         self.n_evid_fit = -1  # evidence count at the last circle fit
@@ -148,9 +151,25 @@ class _Contact:
         self.rate_key = None
         self.rate_val = 0.0
 
+    @property
+    def centre(self):
+        """Centre (3,) of a fixed contact (m); ``centre_xyz`` holds the same as floats."""
+        return self._centre
+
+    @centre.setter
+    def centre(self, value):
+        self._centre = value
+        self.centre_xyz = None if value is None else (
+            float(value[0]), float(value[1]), float(value[2]))
+
     # -------------------------------------------------------------- buffers
     def add(self, t, p, var, pol, pid, flags):
         i = self.n % self.H
+        if self.n >= self.H and (int(self.flags[i]) & (EVID | OVERLAP)) == EVID:
+            self.n_fit_members -= 1  # the overwritten slot leaves the fit set
+        if (flags & (EVID | OVERLAP)) == EVID:
+            self.n_fit_members += 1
+        self.tlist[i] = int(t)
         self.t[i] = t
         self.p[i] = p
         self.var[i] = var
@@ -202,6 +221,7 @@ class SlipDetector:
             "contacts_dropped": 0,
         }
         self._finger = FingerState(ContactState.NO_CONTACT, 0, _NAN3.copy(), 0.0, 0, -1, 0, 0)
+        self._fs_state, self._fs_since, self._fs_pending = ContactState.NO_CONTACT, 0, None
         self._last_end_ns = 0
         self._last_t = None
 
@@ -235,7 +255,7 @@ class SlipDetector:
     @property
     def state(self) -> FingerState:
         """Latched finger state (as of the last ``process`` / ``advance``)."""
-        return self._finger
+        return self._finger_state()
 
     def update_config(self, **changes) -> SlipConfig:
         """Change run-time-safe parameters (``SlipConfig.runtime_fields()``) at once; the
@@ -247,6 +267,7 @@ class SlipDetector:
                 f"(runtime fields: {', '.join(SlipConfig.runtime_fields())})"
             )
         new = self.config.replace(**changes)
+        self._finger_state()  # the state as of now, under the old rate window
         self._apply(new)
         if "sliding_speed_m_s" in changes:
             self._speed = new.sliding_speed_m_s
@@ -294,6 +315,7 @@ class SlipDetector:
         self.now_ns = None
         self._last_t = None
         self._finger = FingerState(ContactState.NO_CONTACT, 0, _NAN3.copy(), 0.0, 0, -1, 0, 0)
+        self._fs_state, self._fs_since, self._fs_pending = ContactState.NO_CONTACT, 0, None
 
     def process_batch(self, events) -> list[SlipEvent]:
         """``process`` for each event in order; the outputs concatenated."""
@@ -309,10 +331,10 @@ class SlipDetector:
             raise TypeError(f"now_ns must be an integer (ns), got {now_ns!r}")
         now = int(now_ns.__index__())
         if self.now_ns is not None and now < self.now_ns:
-            return self._finger
+            return self._finger_state()
         self._expire(now)
         self._update_finger(now)
-        return self._finger
+        return self._finger_state()
 
     def _expire(self, now):
         self.now_ns = now
@@ -385,7 +407,7 @@ class SlipDetector:
         a contact that moves before its track is established)."""
         best, best_d2 = None, self._assoc2
         for c in self.contacts:
-            q = c.centre_at(t)
+            q = c.centre_xyz if not c.moving or c.track_c is None else c.centre_at(t)
             dx, dy, dz = px - q[0], py - q[1], pz - q[2]
             d2 = dx * dx + dy * dy + dz * dz
             lp = c.last_p
@@ -443,6 +465,8 @@ class SlipDetector:
                     cand &= c.pol[:k] != ev.polarity
                 if cand.any():
                     j = int(np.flatnonzero(cand)[np.argmin(d2[cand])])
+                    if (int(F[j]) & (EVID | OVERLAP)) == EVID:
+                        c.n_fit_members -= 1
                     F[j] = (F[j] | PAIRED) & (0xFF ^ EVID)
                     flags |= PAIRED
                     self.counts["pairs"] += 1
@@ -498,12 +522,12 @@ class SlipDetector:
     def _geometry(self, c):
         """Centre (circle fit to the evidence emissions, refitted when their number changed:
         every one up to 16, then every 4th) and radius (90th percentile of their distances)."""
+        n = c.n_fit_members
+        if n < 3 or n == c.n_evid_fit or (n > 16 and abs(n - c.n_evid_fit) < 4):
+            return
         k = c.valid()
         F = c.flags[:k]
         m = ((F & EVID) != 0) & ((F & OVERLAP) == 0)
-        n = int(m.sum())
-        if n < 3 or n == c.n_evid_fit or (n > 16 and abs(n - c.n_evid_fit) < 4):
-            return
         c.n_evid_fit = n
         P = c.p[:k][m]
         centre = _circle_centre(P) if n >= self.config.fit_min_events else None
@@ -719,7 +743,8 @@ class SlipDetector:
         # The latest n slots of the ring (events come nearly in time order), sorted.
         H = c.H
         slots = [(c.n - n + i) % H for i in range(n)] if c.n >= n else list(range(n))
-        tl = sorted(int(c.t[i]) for i in slots)
+        tlist = c.tlist
+        tl = sorted([tlist[i] for i in slots])
         dtl = [b - a for a, b in zip(tl, tl[1:])]
         m = sorted(dtl)[len(dtl) // 2]
         if not m > 0:
@@ -858,25 +883,45 @@ class SlipDetector:
         return c.vel / s if s > 0 else _NAN3.copy()
 
     def _update_finger(self, t):
+        """The finger's state and its start time now; the FingerState record itself is built
+        when read (``state``): nothing it depends on changes before the next update."""
         if t is None:
             return
-        prev = self._finger
-        confirmed = [c for c in self.contacts if c.confirmed]
-        if not confirmed:
-            since = prev.since_ns if prev.state == ContactState.NO_CONTACT else self._last_end_ns
-            self._finger = FingerState(
-                ContactState.NO_CONTACT, since, _NAN3.copy(), 0.0, 0, -1, 0, t
-            )
-            return
-        top = max(confirmed, key=lambda c: (int(c.state), c.last_ns))
-        since = top.since_ns if top.state != prev.state else prev.since_ns
-        self._finger = FingerState(
-            top.state,
-            int(since),
-            top.centre_at(t).copy(),
-            self._rate(top, t),
-            top.precursor_count,
-            top.id,
-            len(confirmed),
-            t,
-        )
+        top, top_key, n_conf = None, None, 0
+        for c in self.contacts:
+            if c.confirmed:
+                n_conf += 1
+                key = (int(c.state), c.last_ns)
+                if top is None or key > top_key:  # the first of equals, as max() picks
+                    top, top_key = c, key
+        if top is None:
+            if self._fs_state != ContactState.NO_CONTACT:
+                self._fs_since = self._last_end_ns
+            self._fs_state = ContactState.NO_CONTACT
+        else:
+            if top.state != self._fs_state:
+                self._fs_since = top.since_ns
+            self._fs_state = top.state
+        self._fs_pending = (top, n_conf, t)
+        self._finger = None
+
+    def _finger_state(self) -> FingerState:
+        """The FingerState record of the last update (built once)."""
+        if self._finger is None:
+            top, n_conf, t = self._fs_pending
+            if top is None:
+                self._finger = FingerState(
+                    ContactState.NO_CONTACT, self._fs_since, _NAN3.copy(), 0.0, 0, -1, 0, t
+                )
+            else:
+                self._finger = FingerState(
+                    top.state,
+                    int(self._fs_since),
+                    top.centre_at(t).copy(),
+                    self._rate(top, t),
+                    top.precursor_count,
+                    top.id,
+                    n_conf,
+                    t,
+                )
+        return self._finger

@@ -55,6 +55,50 @@ class LocalizedEvent:
     packet_id: int = -1
 
     def __post_init__(self):
+        p, c, pol, conf = self.point_m, self.covariance_m2, self.polarity, self.confidence
+        if (
+            type(self.time_ns) is int
+            and type(p) is np.ndarray
+            and p.dtype == np.float64
+            and p.shape == (3,)
+            and type(c) is np.ndarray
+            and c.dtype == np.float64
+            and c.shape == (3, 3)
+            and type(pol) is int
+            and -1 <= pol <= 1
+            and type(conf) is float
+            and 0.0 <= conf <= 1.0
+            and type(self.amplitude_v) is float
+            and type(self.packet_id) is int
+        ):
+            # already the stored types: only the covariance is symmetrized (a new array)
+            object.__setattr__(self, "covariance_m2", 0.5 * (c + c.T))
+            return
+        self._validate()
+
+    @classmethod
+    def trusted(
+        cls,
+        time_ns: int,
+        point_m: np.ndarray,
+        covariance_m2: np.ndarray,
+        polarity: int,
+        amplitude_v: float,
+        confidence: float,
+        packet_id: int,
+    ) -> LocalizedEvent:
+        """An event from fields already of the stored types and checked by the caller
+        (int ns, float64 (3,) point, symmetric float64 (3, 3) covariance, polarity in
+        {-1, 0, 1}, confidence in [0, 1]): no validation, no copies. Non-finite values are
+        still rejected and counted by the detector."""
+        ev = object.__new__(cls)
+        d = ev.__dict__
+        d["time_ns"], d["point_m"], d["covariance_m2"] = time_ns, point_m, covariance_m2
+        d["polarity"], d["amplitude_v"], d["confidence"] = polarity, amplitude_v, confidence
+        d["packet_id"] = packet_id
+        return ev
+
+    def _validate(self):
         if isinstance(self.time_ns, bool) or not hasattr(self.time_ns, "__index__"):
             raise TypeError(
                 f"LocalizedEvent.time_ns must be an integer (ns), got {self.time_ns!r}"
