@@ -315,9 +315,10 @@ class DriverNode(Node):
         if p["pipeline"]:
             self._make_pipeline()
         self.create_subscription(String, "sim/scene_truth", self._on_scene_truth, LATCHED)
+        self.now_ns = self._clock_ns()
         self.link = FingertipLink(
             self.link_config,
-            clock_ns=self._clock_ns(),
+            clock_ns=self.now_ns,
             sink=self._on_batch,
             logger=logging.getLogger("ae_tactile.link"),
         )
@@ -413,14 +414,14 @@ class DriverNode(Node):
     def _publish_state(self, force: bool = False) -> None:
         st = self.slip_stage.state
         key = (int(st.state), int(st.since_ns), int(st.contact_id))
-        now = self.get_clock().now().nanoseconds
+        now = self.now_ns()
         if not force and key == self._state_key and now - self._state_pub_ns < 1_000_000_000:
             return
         self._state_key, self._state_pub_ns = key, now
         self.pub_state.publish(contact_state_msg(st, self.frame_id, now))
 
     def _tick(self) -> None:
-        self.slip_stage.tick(self.get_clock().now().nanoseconds)
+        self.slip_stage.tick(self.now_ns())
         self._publish_state()
 
     def _publish_markers(self) -> None:
