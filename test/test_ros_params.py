@@ -150,3 +150,83 @@ def test_a_fingertip_whose_body_disagrees_with_the_parameters_wins_with_one_warn
         ex.shutdown()
         for n in (listener, drv, sim):
             n.destroy_node()
+
+
+def _packet_array(ids, *, bad=(), n_samples=400):
+    """A PacketArray of simulated touches; packets in ``bad`` get a broken sample rate or
+    too few samples."""
+    from ae_tactile.msg import PacketArray
+    from ae_tactile.ros.conversions import make_packet
+    from ae_tactile.sim import SimConfig
+    from ae_tactile.sim.triggered import render_triggered
+    import numpy as np
+    from ae_tactile.geometry import FingertipGeometry
+
+    geo = FingertipGeometry()
+    k = min(len(ids), 64)
+    tp = render_triggered(
+        geo.surface_point_from_xy(np.linspace(-3e-3, 3e-3, k), np.zeros(k)),
+        SimConfig(),
+        snr_db=30.0,
+        rng=4,
+    )
+    msg = PacketArray()
+    msg.header.frame_id = "tip"
+    packets = []
+    for j, sid in enumerate(ids):
+        x = tp.samples_v[j % k]
+        fs = tp.sample_rate_hz
+        if sid in bad:
+            if sid % 2:
+                fs = 0.0
+            else:
+                x = x[:, :3]
+        packets.append(
+            make_packet(
+                x,
+                stamp_ns=10**9 + sid * 10**6,
+                sample_rate_hz=fs or 1.0,
+                onset_index=min(int(tp.onset_index[j % k]), x.shape[1] - 1),
+                sequence_id=sid,
+            )
+        )
+        if sid in bad and sid % 2:
+            packets[-1].sample_rate_hz = 0.0
+    msg.packets = packets
+    return msg
+
+
+def test_localizer_node_rejects_bad_packets_one_by_one_and_counts_missing_ones(ros_context):
+    """A PacketArray with a packet at sample rate 0 and one of 3 samples: the good packets
+    of the same array are localized, the two bad ones counted by reason; a sequence gap
+    (an array that never arrived) is counted as missing packets."""
+    require_ros()
+    from rclpy.executors import SingleThreadedExecutor
+    from ae_tactile.msg import ContactEvent, PacketArray
+    from ae_tactile.ros.localizer_node import LocalizerNode
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    loc = LocalizerNode(context=ros_context)
+    node = __import__("rclpy").create_node("packet_source", context=ros_context)
+    pub = node.create_publisher(
+        PacketArray, "packets", QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    )
+    got = []
+    node.create_subscription(ContactEvent, "contacts", got.append, 100)
+    ex = SingleThreadedExecutor(context=ros_context)
+    ex.add_node(loc)
+    ex.add_node(node)
+    try:
+        assert spin_until(ex, lambda: pub.get_subscription_count() >= 1, 20.0)
+        pub.publish(_packet_array(list(range(8)), bad=(3, 6)))
+        assert spin_until(ex, lambda: len(got) >= 6 and loc.idle(), 30.0)
+        assert sorted(e.packet_ids[0] for e in got) == [0, 1, 2, 4, 5, 7]
+        assert loc.counts["rejected_MALFORMED_sample_rate"] == 1
+        assert loc.counts["rejected_MALFORMED_too_short"] == 1
+        pub.publish(_packet_array([5000]))  # 4992 packets never arrived
+        assert spin_until(ex, lambda: len(got) >= 7 and loc.idle(), 30.0)
+        assert loc.counts["packets_missing"] == 5000 - 8
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        loc.destroy_node()
