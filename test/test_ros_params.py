@@ -155,12 +155,13 @@ def test_a_fingertip_whose_body_disagrees_with_the_parameters_wins_with_one_warn
 def _packet_array(ids, *, bad=(), n_samples=400):
     """A PacketArray of simulated touches; packets in ``bad`` get a broken sample rate or
     too few samples."""
+    import numpy as np
+
+    from ae_tactile.geometry import FingertipGeometry
     from ae_tactile.msg import PacketArray
     from ae_tactile.ros.conversions import make_packet
     from ae_tactile.sim import SimConfig
     from ae_tactile.sim.triggered import render_triggered
-    import numpy as np
-    from ae_tactile.geometry import FingertipGeometry
 
     geo = FingertipGeometry()
     k = min(len(ids), 64)
@@ -202,9 +203,10 @@ def test_localizer_node_rejects_bad_packets_one_by_one_and_counts_missing_ones(r
     (an array that never arrived) is counted as missing packets."""
     require_ros()
     from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
     from ae_tactile.msg import ContactEvent, PacketArray
     from ae_tactile.ros.localizer_node import LocalizerNode
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
 
     loc = LocalizerNode(context=ros_context)
     node = __import__("rclpy").create_node("packet_source", context=ros_context)
