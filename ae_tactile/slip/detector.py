@@ -45,6 +45,7 @@ at most ``max_contacts`` contacts, small fits run only when their input changed.
 from __future__ import annotations
 
 import math
+from bisect import bisect_left, bisect_right
 
 import numpy as np
 
@@ -660,15 +661,16 @@ class SlipDetector:
         """0 or the reason for GROSS_SLIP (1 inner emission, 2 rate jump, 3 fast, 4 moving)."""
         cfg = self.config
         k = c.valid()
-        T, F = c.t[:k], c.flags[:k]
-        use = (F & (PAIRED | REPEAT)) == 0
-        w = use & (T > t - self._w_gross)
-        n_w = int(w.sum())
         if c.moving:
             return 4
+        T, F = c.t[:k], c.flags[:k]
+        use = (F & (PAIRED | REPEAT)) == 0
+        tu = sorted(T[use].tolist())  # the times used, sorted: counts in ranges by bisection
+        n_w = len(tu) - bisect_right(tu, t - self._w_gross)  # T > t - gross_window
         if n_w < cfg.gross_min_events:
             return 0
         if c.fitted and c.radius > 0:
+            w = use & (T > t - self._w_gross)
             D = c.p[:k][w] - c.centre
             r2 = np.einsum("ij,ij->i", D, D)
             if float(r2.min()) < (cfg.gross_inner_fraction * c.radius) ** 2:
@@ -677,16 +679,16 @@ class SlipDetector:
         # prior rate lambda (over the part of gross_history_s before them that it has
         # lived) j - 1 of them in tau is a Poisson tail P(N >= j - 1 | lambda tau); SLIP
         # when that is below gross_rate_alpha / (number of spans tested)
-        ts = np.sort(T[use])[-cfg.gross_scan_events :]
-        n = ts.size
+        ts = tu[-cfg.gross_scan_events :]
+        n = len(ts)
         for j in range(cfg.gross_min_events, n + 1):
-            t0 = int(ts[n - j])
+            t0 = ts[n - j]
             # local prior: the 4 spans before this one (2 .. gross_history_s long), so a
             # rate that grows smoothly (Cattaneo-Mindlin) is no jump
             covered = min(self._w_hist, max(4 * (t - t0), 2 * self._w_gross), t0 - c.created_ns)
             if covered < 2 * self._w_gross:
                 continue
-            n_p = int((use & (T < t0) & (T >= t0 - covered)).sum())
+            n_p = bisect_left(tu, t0) - bisect_left(tu, t0 - covered)  # t0 - covered <= T < t0
             mu = max(n_p, 1) / covered * (t - t0)
             # P(N >= j - 1) for N ~ Poisson(mu)
             term, cdf = math.exp(-mu), 0.0
