@@ -62,8 +62,9 @@ def _circle_centre(P):
     fit u^2 + v^2 = 2 cu u + 2 cv v + k in the tangent plane at their centroid, projected
     back on the sphere); None when the points are nearly collinear or the centre lands
     more than 3 spreads from the centroid."""
-    m = P.mean(axis=0)
-    rn = float(np.sqrt((P * P).sum(axis=1)).mean())
+    k = len(P)
+    m = P.sum(axis=0) / k  # P.mean(axis=0), bit for bit, without its Python wrapper
+    rn = float(np.sqrt((P * P).sum(axis=1)).sum() / k)
     n = m / math.sqrt(float(m @ m))
     ref = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     e1 = ref - (ref @ n) * n
@@ -72,7 +73,6 @@ def _circle_centre(P):
     D = P - m
     u, v = D @ e1, D @ e2
     suu, svv, suv = float(u @ u), float(v @ v), float(u @ v)
-    k = len(u)
     tr, det = (suu + svv) / k, (suu * svv - suv * suv) / (k * k)
     disc = math.sqrt(max(tr * tr / 4 - det, 0.0))
     lo, hi = tr / 2 - disc, tr / 2 + disc
@@ -577,16 +577,16 @@ class SlipDetector:
             return
         ts = c.t[:k][m] * 1e-9
         P = c.p[:k][m]
-        tm = float(ts.mean())
+        tm = float(ts.sum() / n)
         tc = ts - tm
         stt = float(tc @ tc)
         if stt <= 0:
             return
-        pm = P.mean(axis=0)
+        pm = P.sum(axis=0) / n
         v = (tc @ (P - pm)) / stt
         nrm = pm / math.sqrt(float(pm @ pm))
         v = v - (v @ nrm) * nrm
-        res = (P - pm) - np.outer(tc, v)
+        res = (P - pm) - tc[:, None] * v
         s2 = float(np.einsum("ij,ij->", res, res)) / max(1, 2 * (n - 2))
         se = math.sqrt(s2 / stt)
         speed = math.sqrt(float(v @ v))
@@ -725,13 +725,11 @@ class SlipDetector:
     def _slip_event(self, c, ev, why, onset):
         t = ev.time_ns
         c.last_report[4] = t
-        k = c.valid()
-        w = ((c.flags[:k] & (PAIRED | REPEAT)) == 0) & (c.t[:k] > t - self._w_gross)
-        ids = (
-            tuple(int(x) for x in c.pid[:k][w] if x != ev.packet_id) + (ev.packet_id,)
-            if onset
-            else (ev.packet_id,)
-        )
+        ids = (ev.packet_id,)
+        if onset:
+            k = c.valid()
+            w = ((c.flags[:k] & (PAIRED | REPEAT)) == 0) & (c.t[:k] > t - self._w_gross)
+            ids = tuple(int(x) for x in c.pid[:k][w] if x != ev.packet_id) + ids
         conf = 0.9 if why in (1, 4) or c.texture_on else 0.75
         return SlipEvent(
             SlipEventType.SLIP,
@@ -761,9 +759,12 @@ class SlipDetector:
         # on spots hit before), but a run of pairs and repeats is tapping, not texture.
         # The latest n slots of the ring (events come nearly in time order), sorted.
         H = c.H
-        slots = [(c.n - n + i) % H for i in range(n)] if c.n >= n else list(range(n))
-        tlist = c.tlist
-        tl = sorted([tlist[i] for i in slots])
+        if c.n >= n:
+            s0 = (c.n - n) % H
+            tl = c.tlist[s0 : s0 + n] if s0 + n <= H else c.tlist[s0:] + c.tlist[: s0 + n - H]
+        else:
+            tl = c.tlist[:n]
+        tl.sort()
         dtl = [b - a for a, b in zip(tl, tl[1:])]
         m = sorted(dtl)[len(dtl) // 2]
         if not m > 0:
@@ -781,7 +782,11 @@ class SlipDetector:
                 far += 1
                 if far > far_max:
                     break
-        if near * 10 < 6 * len(dtl) or sum(1 for i in slots if c.flags[i] & EVID) * 2 < n:
+        if near * 10 < 6 * len(dtl):
+            c.texture_on, c.texture_run = False, 0
+            return
+        slots = [(c.n - n + i) % H for i in range(n)] if c.n >= n else list(range(n))
+        if sum(1 for i in slots if c.flags[i] & EVID) * 2 < n:
             c.texture_on, c.texture_run = False, 0
             return
         order = np.asarray(slots)
@@ -871,7 +876,7 @@ class SlipDetector:
         if len(P) < 3 or c.moving:
             v = max(float(c.var[(c.n - 1) % c.H]), 1e-12)
             return np.eye(3) * v
-        D = P - P.mean(axis=0)
+        D = P - P.sum(axis=0) / len(P)
         return (D.T @ D) / (len(P) * (len(P) - 1))
 
     def _direction(self, c, t=None):
@@ -889,15 +894,15 @@ class SlipDetector:
                 return _NAN3.copy()
             ts = c.t[:k][m] * 1e-9
             P = c.p[:k][m]
-            tc = ts - ts.mean()
+            tc = ts - ts.sum() / n
             stt = float(tc @ tc)
             if stt <= 0:
                 return _NAN3.copy()
-            pm = P.mean(axis=0)
+            pm = P.sum(axis=0) / n
             v = (tc @ (P - pm)) / stt
             nrm = pm / math.sqrt(float(pm @ pm))
             v = v - (v @ nrm) * nrm
-            res = (P - pm) - np.outer(tc, v)
+            res = (P - pm) - tc[:, None] * v
             se = math.sqrt(float(np.einsum("ij,ij->", res, res)) / max(1, 2 * (n - 2)) / stt)
             sp = math.sqrt(float(v @ v))
             if sp < cfg.min_speed_m_s or sp < cfg.direction_significance * se:
