@@ -799,9 +799,20 @@ class DeviceRunner:
         self.transport.close()
 
     def call(self, fn, *args):
-        """Run fn(*args) while the device loop is held (for changes from other threads)."""
-        with self._lock:
-            return fn(*args)
+        """Run fn(*args) while the device loop is held (for changes from other threads).
+
+        The device loop takes its lock again right after each short wait, so a caller that
+        merely waited for the lock could starve on a busy machine (a grip command applied
+        seconds late): the caller raises a flag that the loop honours by staying out of the
+        lock until the call is done."""
+        self._callers += 1
+        try:
+            with self._lock:
+                return fn(*args)
+        finally:
+            self._callers -= 1
+
+    _callers = 0
 
     def unplug(self, duration_s: float) -> None:
         """Pull the cable for duration_s: transport closed, device unpowered; then re-plug,
@@ -814,6 +825,8 @@ class DeviceRunner:
     def _run(self) -> None:
         dev = self.device
         while not self._stop.is_set():
+            while self._callers and not self._stop.is_set():
+                time.sleep(0.0001)  # another thread is waiting for the lock: let it in
             with self._lock:
                 if self._unplugged_until is not None:
                     if time.monotonic() < self._unplugged_until:
