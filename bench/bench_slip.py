@@ -158,7 +158,9 @@ def _time_stream(rows_list, construct: bool) -> np.ndarray:
                 det.process(LocalizedEvent(t, np.asarray(q), cov, pol, math.nan, 0.9, pid))
                 out.append(clock() - a)
         else:
-            evs = [LocalizedEvent(t, q, cov, pol, math.nan, 0.9, pid) for t, q, cov, pol, pid in rows]
+            evs = [
+                LocalizedEvent(t, q, cov, pol, math.nan, 0.9, pid) for t, q, cov, pol, pid in rows
+            ]
             for e in evs:
                 a = clock()
                 det.process(e)

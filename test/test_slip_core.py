@@ -523,3 +523,81 @@ def test_gross_slip_without_a_precursor_and_a_tracked_moving_contact():
     info = det.contact_infos()[0]
     assert info.moving and abs(np.linalg.norm(info.velocity_m_s) / 0.02 - 1) < 0.25
     assert info.velocity_m_s[0] > 0.9 * np.linalg.norm(info.velocity_m_s)
+
+
+def _mixed_stream(seed=3, n_touch=300):
+    """Touches held 5 .. 50 ms and released on their spot, over the cap, plus a micro-slip
+    ring round one held contact: every decision path of the detector is exercised."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for _ in range(n_touch):
+        t = int(rng.uniform(0, 300 * MS))
+        x, y = rng.uniform(-6e-3, 6e-3, 2)
+        hold = int(rng.uniform(5, 50) * MS)
+        rows += [(t, x, y, 1), (t + hold, x + rng.normal(0, SIG), y + rng.normal(0, SIG), -1)]
+    rows.append((0, 0.0, 0.0, 1))
+    rows += [(int(e.time_ns), e.point_m[0], e.point_m[1], e.polarity)
+             for e in ring_events(rng, 120, 50 * MS, 800.0, (0.0, 0.0), 1.5e-3, 0.5e-3)]
+    rows.sort(key=lambda r: r[0])
+    return [ev(t, x, y, pol, pid=i) for i, (t, x, y, pol) in enumerate(rows)]
+
+
+def test_finger_state_is_the_same_read_every_event_or_only_at_the_end():
+    """The latched state (its start time included) does not depend on when it is read."""
+    evs = _mixed_stream()
+    a, b = SlipDetector(), SlipDetector()
+    seen = set()
+    for e in evs:
+        a.process(e)
+        seen.add(a.state.state)
+        b.process(e)
+    assert {ContactState.STICK, ContactState.INCIPIENT_SLIP} <= seen
+    for det in (a, b):
+        det.advance(evs[-1].time_ns + 5 * MS)
+    sa, sb = a.state, b.state
+    assert (sa.state, sa.since_ns, sa.contact_id, sa.n_contacts, sa.precursor_count) == (
+        sb.state, sb.since_ns, sb.contact_id, sb.n_contacts, sb.precursor_count)
+    assert sa.slip_emission_rate_hz == sb.slip_emission_rate_hz
+    np.testing.assert_array_equal(sa.contact_point_m, sb.contact_point_m)
+
+
+def test_trusted_events_decide_as_validated_ones():
+    """LocalizedEvent.trusted (no validation) gives the detector the same events; the
+    validating constructor still symmetrizes covariances and rejects bad fields."""
+    evs = _mixed_stream(seed=5)
+    a, b = SlipDetector(), SlipDetector()
+    out_a, out_b = [], []
+    for e in evs:
+        out_a += a.process(e)
+        t = LocalizedEvent.trusted(e.time_ns, e.point_m, e.covariance_m2, e.polarity,
+                                   e.amplitude_v, e.confidence, e.packet_id)
+        out_b += b.process(t)
+    assert out_a and len(out_a) == len(out_b)
+    for x, y in zip(out_a, out_b):
+        assert (x.kind, x.time_ns, x.contact_id, x.packet_ids) == (
+            y.kind, y.time_ns, y.contact_id, y.packet_ids)
+    assert a.counts == b.counts
+    skew = np.array([[1.0, 2.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]) * 1e-10
+    e = LocalizedEvent(5, surf(0.0, 0.0), skew, 1, 0.0, 0.5, 1)
+    np.testing.assert_array_equal(e.covariance_m2, e.covariance_m2.T)
+    assert e.covariance_m2[0, 1] == 1e-10
+    for bad in ({"polarity": 2}, {"confidence": 1.5}, {"confidence": math.nan},
+                {"time_ns": 1.5}, {"point_m": np.zeros(2)}):
+        kw = {"time_ns": 5, "point_m": surf(0.0, 0.0), "covariance_m2": np.eye(3) * 1e-10}
+        kw.update(bad)
+        with pytest.raises((TypeError, ValueError)):
+            LocalizedEvent(**kw)
+    # non-finite data reaches the detector through the trusted path: rejected, counted
+    d = SlipDetector()
+    nan_pt = np.array([math.nan, 0.0, R])
+    assert d.process(LocalizedEvent.trusted(1, nan_pt, np.eye(3), 1, 0.0, 1.0, 0)) == []
+    assert d.counts["rejected_non_finite"] == 1
+
+
+def test_radius_percentile_matches_numpy():
+    from ae_tactile.slip.detector import _percentile90
+
+    rng = np.random.default_rng(11)
+    for n in range(1, 70):
+        d = np.abs(rng.normal(0.0, 1e-3, n))
+        assert _percentile90(d.tolist()) == float(np.percentile(d, 90))

@@ -69,7 +69,9 @@ def _circle_centre(P):
     ref = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     e1 = ref - (ref @ n) * n
     e1 /= math.sqrt(float(e1 @ e1))
-    e2 = np.cross(n, e1)
+    n0, n1, n2 = n.tolist()
+    a0, a1, a2 = e1.tolist()
+    e2 = np.array([n1 * a2 - n2 * a1, n2 * a0 - n0 * a2, n0 * a1 - n1 * a0])  # n x e1
     D = P - m
     u, v = D @ e1, D @ e2
     suu, svv, suv = float(u @ u), float(v @ v), float(u @ v)
