@@ -531,7 +531,13 @@ def speed_main(seed: int = 0) -> int:
     print(f"load before {sp['load_before']}, after {sp['load_after']}")
     path = RESULTS / "slip.json"
     data = json.loads(path.read_text()) if path.exists() else {}
-    data.setdefault("detector_speed", {})["slip_step"] = sp
+    ds = data.setdefault("detector_speed", {})
+    ds.update(detector_speed())
+    ds["slip_step"] = sp
+    print(
+        f"mixed stream (detector_speed): mean {ds['us_per_event_mean']:.1f} us, "
+        f"p99 {ds['us_p99']:.1f}, max {ds['us_max']:.1f}"
+    )
     path.write_text(json.dumps(data, indent=1) + "\n")
     print(f"wrote {path} (detector_speed.slip_step)")
     return 0

@@ -139,6 +139,7 @@ class _Contact:
         self.pid = np.zeros(H, np.int64)
         self.flags = np.zeros(H, np.uint8)
         self.tlist = [0] * H  # self.t as Python ints (cheap per-element reads)
+        self.flist = [0] * H  # self.flags as Python ints
         self.n_fit_members = 0  # valid members with EVID set and OVERLAP clear
         self.n = 0
         self.state = ContactState.STICK
@@ -187,6 +188,7 @@ class _Contact:
         if (flags & (EVID | OVERLAP)) == EVID:
             self.n_fit_members += 1
         self.tlist[i] = int(t)
+        self.flist[i] = flags
         self.t[i] = t
         self.p[i] = p
         self.var[i] = var
@@ -486,6 +488,7 @@ class SlipDetector:
                     if (int(F[j]) & (EVID | OVERLAP)) == EVID:
                         c.n_fit_members -= 1
                     F[j] = (F[j] | PAIRED) & (0xFF ^ EVID)
+                    c.flist[j] = int(F[j])
                     flags |= PAIRED
                     self.counts["pairs"] += 1
                     if F[j] & FOUNDER:
@@ -683,12 +686,14 @@ class SlipDetector:
         # when that is below gross_rate_alpha / (number of spans tested)
         ts = tu[-cfg.gross_scan_events :]
         n = len(ts)
+        alpha = cfg.gross_rate_alpha / (n - cfg.gross_min_events + 1)
+        w_hist, w_min, created = self._w_hist, 2 * self._w_gross, c.created_ns
         for j in range(cfg.gross_min_events, n + 1):
             t0 = ts[n - j]
             # local prior: the 4 spans before this one (2 .. gross_history_s long), so a
             # rate that grows smoothly (Cattaneo-Mindlin) is no jump
-            covered = min(self._w_hist, max(4 * (t - t0), 2 * self._w_gross), t0 - c.created_ns)
-            if covered < 2 * self._w_gross:
+            covered = min(w_hist, max(4 * (t - t0), w_min), t0 - created)
+            if covered < w_min:
                 continue
             n_p = bisect_left(tu, t0) - bisect_left(tu, t0 - covered)  # t0 - covered <= T < t0
             mu = max(n_p, 1) / covered * (t - t0)
@@ -697,7 +702,7 @@ class SlipDetector:
             for i in range(j - 1):
                 cdf += term
                 term *= mu / (i + 1)
-            if 1.0 - cdf < cfg.gross_rate_alpha / (n - cfg.gross_min_events + 1):
+            if 1.0 - cdf < alpha:
                 return 2
         return 0
 
@@ -763,9 +768,16 @@ class SlipDetector:
         H = c.H
         if c.n >= n:
             s0 = (c.n - n) % H
-            tl = c.tlist[s0 : s0 + n] if s0 + n <= H else c.tlist[s0:] + c.tlist[: s0 + n - H]
+            if s0 + n <= H:
+                tl, fl = c.tlist[s0 : s0 + n], c.flist[s0 : s0 + n]
+            else:
+                tl = c.tlist[s0:] + c.tlist[: s0 + n - H]
+                fl = c.flist[s0:] + c.flist[: s0 + n - H]
         else:
-            tl = c.tlist[:n]
+            tl, fl = c.tlist[:n], c.flist[:n]
+        if sum(1 for f in fl if f & EVID) * 2 < n:
+            c.texture_on, c.texture_run = False, 0
+            return
         tl.sort()
         dtl = [b - a for a, b in zip(tl, tl[1:])]
         m = sorted(dtl)[len(dtl) // 2]
@@ -788,9 +800,6 @@ class SlipDetector:
             c.texture_on, c.texture_run = False, 0
             return
         slots = [(c.n - n + i) % H for i in range(n)] if c.n >= n else list(range(n))
-        if sum(1 for i in slots if c.flags[i] & EVID) * 2 < n:
-            c.texture_on, c.texture_run = False, 0
-            return
         order = np.asarray(slots)
         sel = np.zeros(k, bool)
         sel[order] = True
