@@ -4,6 +4,7 @@ false alarms and interference, over randomized trials; the detector's and the
 interference discriminator's cost.
 
     python3 bench/bench_slip.py [--quick]
+    python3 bench/bench_slip.py --speed   # only the slip step's CPU cost per emission
 
 Pipelines (ae_tactile.slip.evaluate): 'events' = the simulator's true emissions ->
 LocalizedEvents with the localizer's error model (Gaussian, 5 .. 40 um per axis, 2 %

@@ -588,10 +588,11 @@ class SlipDetector:
         if stt <= 0:
             return
         pm = P.sum(axis=0) / n
-        v = (tc @ (P - pm)) / stt
+        Pc = P - pm
+        v = (tc @ Pc) / stt
         nrm = pm / math.sqrt(float(pm @ pm))
         v = v - (v @ nrm) * nrm
-        res = (P - pm) - tc[:, None] * v
+        res = Pc - tc[:, None] * v
         s2 = float(np.einsum("ij,ij->", res, res)) / max(1, 2 * (n - 2))
         se = math.sqrt(s2 / stt)
         speed = math.sqrt(float(v @ v))
@@ -910,10 +911,11 @@ class SlipDetector:
             if stt <= 0:
                 return _NAN3.copy()
             pm = P.sum(axis=0) / n
-            v = (tc @ (P - pm)) / stt
+            Pc = P - pm
+            v = (tc @ Pc) / stt
             nrm = pm / math.sqrt(float(pm @ pm))
             v = v - (v @ nrm) * nrm
-            res = (P - pm) - tc[:, None] * v
+            res = Pc - tc[:, None] * v
             se = math.sqrt(float(np.einsum("ij,ij->", res, res)) / max(1, 2 * (n - 2)) / stt)
             sp = math.sqrt(float(v @ v))
             if sp < cfg.min_speed_m_s or sp < cfg.direction_significance * se:
