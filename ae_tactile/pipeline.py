@@ -562,19 +562,21 @@ class SlipStage:
         with self.lock:
             for c in contacts:
                 self.counts["contacts_in"] += 1
-                try:
-                    ev = LocalizedEvent(
-                        time_ns=c.time_ns,
-                        point_m=np.asarray(c.point_m),
-                        covariance_m2=c.covariance_m2,
-                        polarity=-1 if c.event_type == EventType.DETOUCH else 1,
-                        amplitude_v=c.amplitude_v,
-                        confidence=min(max(c.confidence, 0.0), 1.0),
-                        packet_id=c.packet_ids[0] if c.packet_ids else -1,
-                    )
-                except (TypeError, ValueError):
-                    self.counts["rejected_invalid_contact"] += 1
-                    continue
+                pol = -1 if c.event_type == EventType.DETOUCH else 1
+                cov = c.covariance_m2
+                # the localizer's records have the stored types: the detector's cheap path
+                # (it still rejects and counts non-finite values)
+                ev = LocalizedEvent.trusted(
+                    int(c.time_ns),
+                    np.asarray(c.point_m, dtype=np.float64),
+                    0.5 * (cov + cov.T),
+                    pol,
+                    float(c.amplitude_v),
+                    min(max(float(c.confidence), 0.0), 1.0)
+                    if c.confidence == c.confidence
+                    else 0.0,
+                    int(c.packet_ids[0]) if c.packet_ids else -1,
+                )
                 for s in self.detector.process(ev):
                     out.append(slip_record(s))
         self.counts["slip_events"] += len(out)
