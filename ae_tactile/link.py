@@ -250,6 +250,7 @@ class FingertipLink:
             "internal_errors": 0,
             "packets_rejected_nonfinite": 0,
             "frames_unusable": 0,
+            "bytes_cut_at_disconnect": 0,
         }
         self.last_error = ""
         self._last_frame_mono = 0.0  # last valid frame (liveness)
@@ -474,6 +475,16 @@ class FingertipLink:
         return True
 
     def _close(self, reason: str) -> None:
+        # What was read before the port went away is still the device's data: valid
+        # frames in the buffer are delivered; a frame cut short by the disconnect is
+        # counted (its bytes are also in bytes_discarded).
+        discarded_before = self.decoder.bytes_discarded
+        frames = self.decoder.flush()
+        if reason != "stopped":  # stopping: nobody is listening any more
+            self._handle_frames(frames)
+        self.counters["bytes_cut_at_disconnect"] += (
+            self.decoder.bytes_discarded - discarded_before
+        )
         self._reset_detector()
         self._stream_ref = None
         with self._lock:
@@ -493,7 +504,6 @@ class FingertipLink:
             ser.close()
         except (serial.SerialException, OSError, TypeError, AttributeError):
             pass
-        self.decoder.flush()
         if was in ("connected", "connecting") and reason != "stopped":
             self.counters["disconnects"] += 1
             self.last_error = reason

@@ -521,7 +521,10 @@ class VirtualFingertip:
 
     def finished(self, now_ns: int) -> bool:
         """True once the scene's duration has been played and, in triggered mode, every
-        packet of it has been served (the device may lag real time on a loaded host)."""
+        packet of it has been served (the device may lag real time on a loaded host).
+
+        Safe without the runner's lock: `_exhausted` turns true only after the last packet
+        was served, and `_pending` is cleared first when a scene starts."""
         if self.scene_t0_ns is None or self.scene_ns(now_ns) <= self.duration_ns + 50_000_000:
             return False
         if self.state == DeviceState.TRIGGERED:
@@ -784,6 +787,8 @@ class DeviceRunner:
         self._out = bytearray()
         self._stop = threading.Event()
         self._lock = threading.RLock()
+        self._callers = 0  # threads waiting in call(): the loop stays out of the lock
+        self._callers_lock = threading.Lock()
         self._unplugged_until = None
         self.out_overflow_bytes = 0
         self.thread = threading.Thread(
@@ -805,14 +810,14 @@ class DeviceRunner:
         merely waited for the lock could starve on a busy machine (a grip command applied
         seconds late): the caller raises a flag that the loop honours by staying out of the
         lock until the call is done."""
-        self._callers += 1
+        with self._callers_lock:  # "+= 1" is not atomic between threads
+            self._callers += 1
         try:
             with self._lock:
                 return fn(*args)
         finally:
-            self._callers -= 1
-
-    _callers = 0
+            with self._callers_lock:
+                self._callers -= 1
 
     def unplug(self, duration_s: float) -> None:
         """Pull the cable for duration_s: transport closed, device unpowered; then re-plug,

@@ -76,7 +76,8 @@ def arguments():
         ("split_pipeline", "false", "Run localizer and slip_detector as separate nodes on "
          "the driver's raw packets instead of in the driver (true/false/1/0)"),
         ("wait_for_subscribers", "0", "Driver starts acquiring only once this many "
-         "subscribers are matched on `contacts` (on `packets` with split_pipeline:=true; "
+         "subscribers are matched on `contacts` or `packets` (`packets` only with "
+         "split_pipeline:=true; "
          "0: at once): a managed start loses no first event"),
         ("rviz", "false", "Start RViz 2 with config/ae_tactile.rviz (true/false/1/0)"),
         ("record", "false", "Record the package's topics with `ros2 bag record` (MCAP) into "

@@ -134,7 +134,7 @@ def test_replay_cli_draws_a_picture_of_the_replay(tmp_path):
 def test_live_packets_record_and_replay(ros_context, tmp_path):
     """Record the live pipeline's packets (CDR bytes from rclpy, as ros2 bag record stores
     them), then re-localize offline and compare with the live localizer's events."""
-    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rosbags.rosbag2 import Writer
@@ -182,7 +182,7 @@ def test_live_packets_record_and_replay(ros_context, tmp_path):
         raw=True,
     )
     rec.create_subscription(ContactEvent, "contacts", live.append, 1000)
-    ex = MultiThreadedExecutor(context=ros_context)
+    ex = SingleThreadedExecutor(context=ros_context)
     for n in (sim, drv, loc, rec):
         ex.add_node(n)
     try:

@@ -25,7 +25,7 @@ import tempfile
 import time
 
 import rclpy
-from rclpy.executors import MultiThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
 from ae_tactile.ros.node_utils import ros_session
@@ -103,15 +103,16 @@ def default_params_file() -> str:
 
 def make_executor(context=None):
     """rclpy's EventsExecutor where available (Jazzy+; far less per-callback overhead, which
-    is what limits a Python node at hundreds of messages per second), else multi-threaded.
-    The heavy work runs in the nodes' own threads (link reader, publisher, localizer
-    worker), so one dispatching thread is enough."""
+    is what limits a Python node at hundreds of messages per second), else single-threaded.
+    The heavy work runs in the nodes' own threads (link reader, localizer worker), so one
+    dispatching thread is enough; rclpy's MultiThreadedExecutor would hurt:
+    it spins while a callback group is busy and starves those threads of the GIL."""
     try:
         from rclpy.experimental import EventsExecutor
 
         return EventsExecutor(context=context) if context is not None else EventsExecutor()
     except (ImportError, TypeError):
-        return MultiThreadedExecutor(num_threads=3, context=context)
+        return SingleThreadedExecutor(context=context)
 
 
 def _installed_executable(name: str) -> str:

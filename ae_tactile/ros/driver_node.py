@@ -10,8 +10,8 @@ raw packets. With ``pipeline:=false`` it publishes raw packets only, for the sep
 `localizer` and `slip_detector` nodes (replaying bags, velodyne-style: same core code).
 
 Acquisition starts once the pipeline is ready (compiled, geometry known) and, with
-``wait_for_subscribers:=N``, once N subscribers are matched on ``contacts`` (``packets``
-without the pipeline): no first event is lost.
+``wait_for_subscribers:=N``, once N subscribers are matched on ``contacts`` or on
+``packets`` (``packets`` only without the pipeline): no first event is lost.
 
 Topics (relative, so a namespace per finger works):
   contacts      ae_tactile/ContactEvent  TOUCH / DETOUCH, reliable, depth 100
@@ -153,9 +153,9 @@ DRIVER_PARAMS = [
     Param(
         "wait_for_subscribers",
         0,
-        "Start acquisition only once this many subscribers are matched "
-        "on 'contacts' ('packets' with pipeline:=false), so no event is published before its "
-        "consumers listen (0: at once)",
+        "Start acquisition only once this many subscribers are matched on 'contacts' "
+        "or on 'packets' (a recorder; 'packets' only with pipeline:=false), so nothing is "
+        "published before its consumers listen (0: at once)",
         0,
         100,
     ),
@@ -472,8 +472,10 @@ class DriverNode(Node):
 
     # -------------------------------------------------------------- start
     def _start_when_subscribed(self) -> None:
-        pub = self.pub_contacts if self.pipeline is not None else self.pub_packets
-        if pub.get_subscription_count() >= self.p["wait_for_subscribers"]:
+        matched = self.pub_packets.get_subscription_count()
+        if self.pipeline is not None:
+            matched = max(matched, self.pub_contacts.get_subscription_count())
+        if matched >= self.p["wait_for_subscribers"]:
             self._start_timer.cancel()
             self.link.start()
 

@@ -229,7 +229,10 @@ class SimFingertipNode(Node):
         self.pub_diag.publish(msg)
 
     def _check_finished(self) -> None:
-        if self.scene_finished or not self.runner.call(self.device.finished, time.monotonic_ns()):
+        # finished() reads a few fields the device loop sets atomically: no lock, so this
+        # timer never waits for a render (a callback blocked in an executor makes rclpy's
+        # MultiThreadedExecutor spin and starve every other thread of the GIL).
+        if self.scene_finished or not self.device.finished(time.monotonic_ns()):
             return
         self._publish_truth()
         self.scene_finished = True
