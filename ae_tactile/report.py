@@ -22,6 +22,8 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 
+from .slip.types import ContactState
+
 #: Event type names in ContactEvent order (1..5), with their plot style.
 EVENT_TYPES = ("TOUCH", "DETOUCH", "SLIP_PRECURSOR", "SLIP", "TEXTURE")
 STYLE = {
@@ -31,8 +33,9 @@ STYLE = {
     "SLIP": ("#d62728", "D"),
     "TEXTURE": ("#9467bd", "P"),
 }
-STATE_COLOURS = {"NO_CONTACT": "#dddddd", "STICK": "#9ecae1", "INCIPIENT_SLIP": "#fdd0a2",
-                 "SLIP": "#fc9272", "TEXTURE": "#dadaeb"}
+STATE_COLOURS = {ContactState.NO_CONTACT.name: "#dddddd", ContactState.STICK.name: "#9ecae1",
+                 ContactState.INCIPIENT_SLIP.name: "#fdd0a2",
+                 ContactState.GROSS_SLIP.name: "#fc9272"}
 TRUTH_COLOUR = "#000000"
 
 
@@ -214,10 +217,12 @@ def write_run_summary(path: str | os.PathLike, events=None, *, truth=None, conta
     spans = _state_spans(contact_state, t_end) if contact_state is not None else []
     if spans:
         t_end = max(t_end, max(s0 + d for _, s0, d in spans))
+    t0_plot = min([0.0] + [s0 for _, s0, _ in spans])
     for name, start, duration in spans:
         ax_time.broken_barh([(start, duration)], (-0.4, 0.8),
                             facecolors=STATE_COLOURS.get(name, "#eeeeee"))
-        ax_time.text(start, 0, f" {name}", va="center", fontsize="x-small", clip_on=True)
+        if duration >= 0.12 * max(t_end - t0_plot, 1e-9):  # narrow spans: colour only
+            ax_time.text(start, 0, f" {name}", va="center", fontsize="x-small", clip_on=True)
     for row, name in enumerate(EVENT_TYPES, start=1):
         colour, marker = STYLE[name]
         sel = has_t & (types == name)

@@ -353,7 +353,7 @@ def main() -> int:
     print(f"slip: precursor {fmt(r['slip_precursor'])} ms, SLIP {fmt(r['slip'])} ms", flush=True)
     knee = {"tried": []}
     sustained, backlog_from = 0, None
-    for j, rate in enumerate([2000, 5000, 8000, 12000, 16000, 24000]):
+    for j, rate in enumerate([1000, 1500, 2000, 3000, 5000, 8000, 12000]):
         first = poisson_schedule(rate, 1.5 if QUICK else 2.5, fs, seed=100 + j)
         counts = pool_counts[np.arange(len(first)) % len(pool_counts)]
         r = run_case(f"knee {rate}/s", counts, first, fs, vpc, body, namespace=f"bench_knee{j}")
