@@ -460,10 +460,14 @@ def table_markdown(res):
         "Time per packet on one core (us, wall clock): batched (one call for all "
         "packets) / one packet per call; `localize_one`: mean (p50, p99) per call. "
         f"Compiled: numba {res['setup'].get('numba')}. Load average at the end of the "
-        f"run: {loads} on {res['setup'].get('cpu_count')} cores: a shared, "
-        "oversubscribed machine, so wall figures are upper bounds (p99 holds the "
-        "scheduler's preemptions); the CPU-time table below is what the process itself "
-        "spent."
+        f"run: {loads} on {res['setup'].get('cpu_count')} cores"
+        + (
+            ": a busy machine, so wall figures are upper bounds (p99 holds the "
+            "scheduler's preemptions)"
+            if load and load[0] > 0.5 * (res["setup"].get("cpu_count") or 1)
+            else " (otherwise idle)"
+        )
+        + "; the CPU-time table below is what the process itself spent."
     )
     lines.append("")
     rates = list(res["timing"])
