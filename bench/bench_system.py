@@ -17,7 +17,9 @@ Both are CLOCK_REALTIME readings on this machine.
    writer cannot hand its bytes over on time).
 
 Run: make bench-system   (bench/results/system.json, system_table.md; README figures)
-     AE_BENCH_QUICK=1 for a short run.
+     AE_BENCH_QUICK=1 for a short run; AE_BENCH_RATES=20,1000 for chosen rates;
+     AE_BENCH_NO_SLIP_KNEE=1 without the slip scene and the knee; AE_BENCH_DUMP=DIR also
+     writes each case's raw series (DIR/<case>.npz: events received, bytes written).
 """
 
 from __future__ import annotations
@@ -205,6 +207,13 @@ def run_case(name: str, counts, first, fs, vpc, body, *, namespace: str) -> dict
             100.0 * (cpu1[0] - cpu0[0]) / max(cpu1[1] - cpu0[1], 1e-9)
         )
     sched = w["start_ns"] + np.rint(due * 1e9).astype(np.int64)
+    if os.environ.get("AE_BENCH_DUMP"):  # raw series for a closer look (not in the results)
+        np.savez(
+            os.path.join(os.environ["AE_BENCH_DUMP"], f"{namespace}.npz"),
+            rows=rows,
+            written_ns=written,
+            scheduled_ns=sched,
+        )
     ok = written >= 0
     out["writer_lag_ms_p99"] = (
         float(np.percentile((written[ok] - sched[ok]) * 1e-6, 99)) if ok.any() else None
