@@ -34,7 +34,10 @@ estimator gives no fitted arrival).
 from __future__ import annotations
 
 import math
+import pickle
 import queue
+import subprocess
+import sys
 import threading
 from collections import Counter
 from dataclasses import dataclass, field
@@ -226,6 +229,9 @@ class PacketLocalizer:
         on = [int(n_samples) // 4]
         with np.errstate(all="ignore"):
             if self.interference is not None:
+                from ae_tactile.dsp.interference import warm_up as warm_interference
+
+                warm_interference(sample_rate_hz)  # its shape templates (~15 ms)
                 self.interference(w, sample_rate_hz, on, geometry=self.geometry)
             single = SimpleNamespace(
                 accepted=np.ones(1, bool), point_m=np.array([[0.0, 0.0, self.geometry.radius_m]])
@@ -449,11 +455,18 @@ class PacketLocalizer:
 
 
 class OverlapResolver:
-    """Localizes every emission of windows that hold several (`resolve_overlaps`), in a
-    background thread, and hands the sources to ``on_records(list[ContactRecord])`` from
-    that thread. Each source is one contact event naming the shared packet id, stamped
-    at its own emission instant. At most ``max_pending`` windows wait; more are counted
-    (``overlap_dropped_backlog``) and lost rather than delaying anything else.
+    """Localizes every emission of windows that hold several (`resolve_overlaps`) and hands
+    the sources to ``on_records(list[ContactRecord])`` from its own thread. Each source is
+    one contact event naming the shared packet id, stamped at its own emission instant. At
+    most ``max_pending`` windows wait; more are counted (``overlap_dropped_backlog``) and
+    lost rather than delaying anything else.
+
+    The fit runs in a worker process (`ae_tactile.localization.overlap_worker`, started
+    here, warmed up before the first window): its tens of milliseconds of Python per
+    window would otherwise hold the interpreter lock against the thread that localizes
+    every other packet. The thread here only passes windows and answers over pipes. Where
+    the process cannot run (``use_process=False``, or it failed), the thread resolves
+    the windows itself (``overlap_worker_unavailable``).
     """
 
     def __init__(
@@ -463,14 +476,30 @@ class OverlapResolver:
         *,
         max_pending: int = 64,
         pulse=None,
+        use_process: bool = True,
     ):
         self.geometry = geometry
         self.on_records = on_records
         self.pulse = pulse
         self.counts: Counter = Counter()
         self._queue: queue.Queue = queue.Queue(maxsize=int(max_pending))
+        self.ready = threading.Event()  # the worker has warmed up (or is not used)
+        self._proc = self._start_worker() if use_process else None
+        if not use_process:
+            self.counts["overlap_worker_unavailable"] += 1
         self._thread = threading.Thread(target=self._run, name="ae_tactile_overlaps", daemon=True)
         self._thread.start()
+
+    def _start_worker(self):
+        try:
+            return subprocess.Popen(
+                [sys.executable, "-m", "ae_tactile.localization.overlap_worker"],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+            )
+        except OSError:
+            self.counts["overlap_worker_unavailable"] += 1
+            return None
 
     def submit(self, packets: Sequence) -> None:
         for p in packets:
@@ -484,23 +513,51 @@ class OverlapResolver:
 
     _busy = 0
 
-    def _run(self) -> None:
+    def _resolve(self, p):
+        """OverlapPacket of one window: from the worker process, else computed here."""
+        samples = np.asarray(p.samples_v, dtype=np.float64)
+        fs, onset = float(p.sample_rate_hz), int(p.onset_index)
+        proc = self._proc
+        if proc is not None:
+            try:
+                pickle.dump(
+                    (samples, fs, onset, self.geometry, self.pulse),
+                    proc.stdin,
+                    protocol=pickle.HIGHEST_PROTOCOL,
+                )
+                proc.stdin.flush()
+                res = pickle.load(proc.stdout)
+            except (OSError, EOFError, pickle.UnpicklingError):
+                self.counts["overlap_worker_unavailable"] += 1
+                self._stop_worker()
+            else:
+                if isinstance(res, str):
+                    raise RuntimeError(res)
+                return res
         from ae_tactile.localization.overlap import resolve_overlaps
 
+        with np.errstate(all="ignore"):
+            return resolve_overlaps(
+                samples[None], fs, [onset], geometry=self.geometry, pulse=self.pulse
+            )[0]
+
+    def _run(self) -> None:
+        if self._proc is not None:
+            try:
+                if pickle.load(self._proc.stdout) != "ready":
+                    raise pickle.UnpicklingError("no ready message")
+            except (OSError, EOFError, pickle.UnpicklingError):
+                self.counts["overlap_worker_unavailable"] += 1
+                self._stop_worker()
+        self.ready.set()
         while True:
             p = self._queue.get()
             if p is None:
+                self._stop_worker()
                 return
             self._busy = 1
             try:
-                with np.errstate(all="ignore"):
-                    res = resolve_overlaps(
-                        np.asarray(p.samples_v, dtype=np.float64)[None],
-                        float(p.sample_rate_hz),
-                        [int(p.onset_index)],
-                        geometry=self.geometry,
-                        pulse=self.pulse,
-                    )[0]
+                res = self._resolve(p)
                 if not res.accepted:
                     self.counts["overlap_rejected_" + res.reason_name] += 1
                     continue
@@ -513,11 +570,29 @@ class OverlapResolver:
             finally:
                 self._busy = 0
 
+    def _stop_worker(self) -> None:
+        proc, self._proc = self._proc, None
+        if proc is None:
+            return
+        try:
+            proc.stdin.close()  # EOF: the worker exits
+            proc.wait(2.0)
+        except (OSError, subprocess.TimeoutExpired):
+            proc.kill()
+            proc.wait()
+
     def close(self) -> None:
+        """Stop the thread and the worker process (pending windows are given up)."""
+        while True:
+            try:
+                self._queue.get_nowait()
+            except queue.Empty:
+                break
         try:
             self._queue.put_nowait(None)
         except queue.Full:
             pass
+        self._thread.join(3.0)
 
 
 def source_record(p, src) -> ContactRecord:
@@ -631,6 +706,21 @@ class ContactPipeline:
     slip: SlipStage | None
     counts: Counter = field(default_factory=Counter)
     overlaps: OverlapResolver | None = None
+    _outputs: tuple = (None, None)  # (on_contacts, on_slip) of the latest process() call
+
+    def start_overlaps(self, wait_s: float = 0.0) -> None:
+        """Start the overlap resolver (and its worker process) now, not at the first
+        overlapping window, and wait up to wait_s for the worker to be warm; the driver
+        calls this while warming up, before acquisition."""
+        if self.overlaps is None:
+            self.overlaps = OverlapResolver(self.localizer.geometry, self._late_from_resolver)
+        if wait_s > 0:
+            self.overlaps.ready.wait(wait_s)
+
+    def _late_from_resolver(self, records: list) -> None:
+        on_contacts, on_slip = self._outputs
+        if on_contacts is not None:
+            self.late(records, on_contacts, on_slip)
 
     def process(
         self,
@@ -638,12 +728,10 @@ class ContactPipeline:
         on_contacts: Callable[[list], None],
         on_slip: Callable[[list], None] | None = None,
     ) -> None:
+        self._outputs = (on_contacts, on_slip)
         contacts = self.localizer.process(packets)
         if self.localizer.overlap_windows:
-            if self.overlaps is None:
-                self.overlaps = OverlapResolver(
-                    self.localizer.geometry, lambda recs: self.late(recs, on_contacts, on_slip)
-                )
+            self.start_overlaps()
             self.overlaps.geometry = self.localizer.geometry
             self.overlaps.submit(self.localizer.overlap_windows)
         self.late(contacts, on_contacts, on_slip)

@@ -263,7 +263,10 @@ def test_overlapping_emissions_are_resolved_off_the_hot_path_and_name_the_shared
         )
         assert err < 0.5e-3 or np.sqrt(np.trace(e.covariance_m2)) > err / 3
     assert done.wait(300.0), (len(got), dict(pipe.all_counts()))
+    worker = pipe.overlaps._proc
+    assert worker is not None and "overlap_worker_unavailable" not in pipe.all_counts()
     pipe.close()
+    assert worker.poll() is not None  # the worker process ended with the pipeline
     late = got[len(hot) :]
     by_packet = {}
     for e in late:
@@ -276,3 +279,33 @@ def test_overlapping_emissions_are_resolved_off_the_hot_path_and_name_the_shared
             solved += all(x < 0.1e-3 for x in errs)
     assert solved >= 5, (solved, dict(pipe.all_counts()))
     assert pipe.all_counts()["overlap_windows_resolved"] >= 5
+
+
+def test_overlap_worker_process_and_in_process_fallback_give_the_same_sources():
+    """The worker process runs the same fit as the fallback thread: identical sources."""
+    import threading
+
+    from ae_tactile.localization.overlap import simulate_overlaps
+    from ae_tactile.pipeline import OverlapResolver
+
+    cfg = SimConfig(reflections=True)
+    d = simulate_overlaps(1, cfg, separation_s=np.array([4e-6]), amplitude_ratio=2.0,
+                          snr_db=30.0, rng=5)
+    view = PacketView(d["samples_v"][0], d["sample_rate_hz"], int(d["onset_index"][0]), 0, 7)
+    results = {}
+    for use_process in (True, False):
+        got, done = [], threading.Event()
+        def hand_over(recs, got=got, done=done):
+            got.extend(recs)
+            done.set()
+
+        r = OverlapResolver(cfg.geometry, hand_over, use_process=use_process)
+        r.submit([view])
+        assert done.wait(300.0), dict(r.counts)
+        assert ("overlap_worker_unavailable" in r.counts) is (not use_process)
+        r.close()
+        results[use_process] = got
+    assert len(results[True]) == len(results[False]) == 2
+    for a, b in zip(results[True], results[False]):
+        assert a.packet_ids == b.packet_ids == (7,)
+        assert np.array_equal(a.point_m, b.point_m) and a.time_ns == b.time_ns

@@ -38,7 +38,6 @@ HIGH_MAX = 1.5
 SHAPE_MIN = 0.8
 
 
-@lru_cache(maxsize=32)
 def acoustic_templates(
     sample_rate_hz: float,
     n_samples: int,
@@ -50,7 +49,32 @@ def acoustic_templates(
 ) -> np.ndarray:
     """Unit-norm templates (n_offsets, n_samples) of an acoustic packet: the front end's
     response to a pressure step (a touch's Eq. 9 pulse is a step in the band, emission.py),
-    the step at sub-sample offsets j / n_offsets before the first sample... + 1 sample."""
+    the step at sub-sample offsets j / n_offsets before the first sample... + 1 sample.
+
+    The analysis length changes from packet to packet (it stops at the window's end), so
+    the responses are computed once for a length rounded up to a power of two (>= 256)
+    and cut: a new length costs a slice, not a new simulation (~15 ms)."""
+    n_cap = max(256, 1 << (int(n_samples) - 1).bit_length())
+    y = _step_responses(
+        float(sample_rate_hz), n_cap, highpass_hz, highpass_order, lowpass_hz, lowpass_order,
+        n_offsets,
+    )[:, : int(n_samples)]
+    return y / np.linalg.norm(y, axis=1, keepdims=True)
+
+
+def warm_up(sample_rate_hz: float, highpass_hz=100e3, highpass_order=2, lowpass_hz=1e6,
+            lowpass_order=4) -> None:
+    """Compute the templates a first common-mode packet at this rate would need (the
+    defaults of `common_mode_interference`; analysis lengths up to 256 samples)."""
+    acoustic_templates(float(sample_rate_hz), 128, float(highpass_hz), int(highpass_order),
+                       lowpass_hz, int(lowpass_order))
+
+
+@lru_cache(maxsize=16)
+def _step_responses(
+    sample_rate_hz, n_samples, highpass_hz, highpass_order, lowpass_hz, lowpass_order, n_offsets
+) -> np.ndarray:
+    """Front-end step responses (n_offsets, n_samples), not normalized (see above)."""
     from scipy import signal
 
     z, p, k = signal.butter(
@@ -67,8 +91,8 @@ def acoustic_templates(
     out = np.zeros((n_offsets, n_samples))
     for j in range(n_offsets):
         t = (np.arange(n_samples) + 1.0 - j / n_offsets) / sample_rate_hz
-        y = np.interp(t, fine, yf)
-        out[j] = y / np.linalg.norm(y)
+        out[j] = np.interp(t, fine, yf)
+    out.setflags(write=False)
     return out
 
 

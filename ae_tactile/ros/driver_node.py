@@ -327,6 +327,8 @@ class DriverNode(Node):
         if self.pipeline is not None:
             fs = float(p["sample_rate_hz"] or 10e6)
             self.pipeline.localizer.warm_up(fs, int(p["packet_samples"] or 400))
+            if self.pipeline.localizer.resolve_overlaps:
+                self.pipeline.start_overlaps(wait_s=30.0)
         # Everything built so far lives for the whole run: keep it out of the garbage
         # collector's scans, so that a collection in the reader thread stays short.
         gc.collect()

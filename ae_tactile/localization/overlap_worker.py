@@ -1,0 +1,62 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Worker process of the overlap resolver: ``python -m ae_tactile.localization.overlap_worker``.
+
+Resolving a window that holds several emissions costs tens of milliseconds of Python and
+NumPy (`resolve_overlaps`). In the driver's process that time would hold the interpreter
+lock against the reader thread, which localizes every other packet in microseconds; in
+its own process it runs beside it on another core.
+
+Protocol (pickle, both ways, one message per window): stdin gets
+``(samples (4, M) float64 volts, sample_rate_hz, onset_index, geometry, pulse)``; stdout
+answers with the `OverlapPacket`, or with a ``str`` describing the exception. EOF on stdin
+ends the process (the parent closed it or exited); SIGINT is left to the parent, which
+owns the shutdown. The worker warms up (imports, tables, compiled code) and says
+``"ready"`` before it reads.
+"""
+
+from __future__ import annotations
+
+import pickle
+import signal
+import sys
+
+import numpy as np
+
+
+def main() -> int:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    inp, out = sys.stdin.buffer, sys.stdout.buffer
+    sys.stdout = sys.stderr  # stdout carries the answers only
+    from ae_tactile.geometry import FingertipGeometry
+    from ae_tactile.localization.overlap import resolve_overlaps
+
+    x = np.random.default_rng(0).normal(0.0, 1e-3, (1, 4, 400))
+    with np.errstate(all="ignore"):
+        resolve_overlaps(x, 10e6, [100], geometry=FingertipGeometry())
+    pickle.dump("ready", out)
+    out.flush()
+    while True:
+        try:
+            samples, fs, onset, geometry, pulse = pickle.load(inp)
+        except (EOFError, OSError):
+            return 0
+        try:
+            with np.errstate(all="ignore"):
+                res = resolve_overlaps(
+                    np.asarray(samples, dtype=np.float64)[None],
+                    float(fs),
+                    [int(onset)],
+                    geometry=geometry,
+                    pulse=pulse,
+                )[0]
+        except Exception as exc:  # the parent counts it; the worker goes on
+            res = repr(exc)
+        try:
+            pickle.dump(res, out, protocol=pickle.HIGHEST_PROTOCOL)
+            out.flush()
+        except (BrokenPipeError, OSError):
+            return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
