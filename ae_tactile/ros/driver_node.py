@@ -458,6 +458,8 @@ class DriverNode(Node):
         self.pipeline.localizer.update(**changes_for_localizer(changes))
         if "reject_interference" in changes:
             self.pipeline.localizer.set_interference(changes["reject_interference"])
+        if changes.get("resolve_overlaps"):
+            self.pipeline.start_overlaps()  # its worker starts now, not on the hot path
         self.get_logger().info(f"localization parameters changed: {changes}")
 
     def _on_slip_change(self, changes: dict) -> None:

@@ -238,7 +238,7 @@ LOCALIZATION_PARAMS = [
             "resolve_overlaps",
             True,
             "Localize each emission of a window that holds "
-            "several (in a background thread); false: reject such windows",
+            "several (in a worker process, off the hot path); false: reject such windows",
         )
     ),
 ]
