@@ -52,8 +52,14 @@ def system_rows(d) -> list[str]:
             f"| live path, {r['rate_hz']:g} emissions/s (random touches): device bytes -> "
             f"ContactEvent in another process, median / p99 | {_lat(c)} "
             f"(max {c.get('max_ms', 0):.1f} ms;"
-            f" {c['median_ms'] / fl['median']:.0f}x the two-hop floor of {fl['median']:.3f} ms) "
-            f"| bench_system, {_load_str(d.get('load_average_before'))} |"
+            f" {c['median_ms'] / fl['median']:.0f}x the two-hop floor of {fl['median']:.3f} ms"
+            + (
+                f"; above the knee: the device's writes were held back up to "
+                f"{r['writer_lag_ms_p99']:.0f} ms (p99)"
+                if (r.get("writer_lag_ms_p99") or 0.0) > 20.0
+                else ""
+            )
+            + f") | bench_system, {_load_str(d.get('load_average_before'))} |"
         )
     s = d.get("slip")
     if s:
