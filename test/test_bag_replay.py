@@ -188,7 +188,7 @@ def test_live_packets_record_and_replay(ros_context, tmp_path):
     try:
         spin_until(ex, lambda: sim.device.finished(time.monotonic_ns()), 10.0)
         # until every published packet is recorded, localized and its event received
-        spin_until(
+        assert spin_until(
             ex,
             lambda: (
                 loc.counts["packets"] == drv.published_packets
@@ -196,7 +196,7 @@ def test_live_packets_record_and_replay(ros_context, tmp_path):
                 and len(live) == loc.counts["events"]
             ),
             10.0,
-        )
+        ), f"localized {loc.counts['packets']} of {drv.published_packets}, idle {loc.idle()}"
         spin_until(ex, lambda: False, 0.3)
     finally:
         ex.shutdown()

@@ -115,3 +115,20 @@ if [ ! -f "$build_stamp" ]; then
         | sed -n 's|.*/_\([a-z_]*\)\.py$|\1|p' | grep -v '_s$\|^_' | tr '\n' ' ')"
   touch "$build_stamp"
 fi
+
+# ---- numba kernels into numba's cache (a minute on a new machine, then loaded in ~1 s) ----
+# numba keys its cache on each kernel source's path, modification time and size: so does
+# this stamp. Without it the driver's warm-up (or the first test) would pay the compilation.
+kernel_hash="$( { echo "$env_hash"; cd "$ROOT/install/ae_tactile" && \
+                  grep -Rl --include='*.py' '@njit' . | LC_ALL=C sort | xargs -r stat -L -c '%n %Y %s'; \
+                } | hash_of)"
+kernel_stamp="$ROOT/install/.ae_tactile_kernels_$kernel_hash"
+if [ ! -f "$kernel_stamp" ]; then
+  log "compiling the numba kernels into numba's cache (about a minute on a new machine)"
+  rm -f "$ROOT"/install/.ae_tactile_kernels_*
+  # shellcheck disable=SC1091
+  # from / : the installed package (what the nodes and tests import), not the source tree
+  ( cd "$ROOT" && source tools/env.sh && cd / && python -m ae_tactile.compile_kernels ) >&2 \
+    || { log "compiling the numba kernels failed"; exit 1; }
+  touch "$kernel_stamp"
+fi

@@ -81,7 +81,7 @@ class LocalizerNode(Node):
         self._inbox: deque[PacketArray] = deque()
         self._wake = threading.Event()
         self._running = True
-        self._busy = False
+        self._busy = True  # until the worker has warmed up the localizer (see _work)
         # Best effort by default (matches best-effort and reliable drivers), with a deep
         # history so that a burst waiting for the executor is not overwritten.
         reliability = (
@@ -123,6 +123,13 @@ class LocalizerNode(Node):
         )
 
     def _work(self) -> None:
+        # Compile / load the kernels before the first packet (1-2 s from numba's cache;
+        # packets arriving meanwhile wait in the inbox, none is lost).
+        try:
+            self.localizer.warm_up()
+        except Exception as exc:  # the first packets then pay for it; say why
+            self.get_logger().warning(f"localizer warm-up failed: {exc!r}")
+        self._busy = False
         while self._running:
             self._wake.wait(0.1)
             self._wake.clear()
