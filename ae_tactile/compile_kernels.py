@@ -46,8 +46,8 @@ def main(argv=None) -> int:
     import ae_tactile
 
     print(
-        f"numba kernels of {os.path.dirname(ae_tactile.__file__)} ready: simulator {res['simulator_s']:.1f} s, "
-        f"localization {res['localization_s']:.1f} s"
+        f"numba kernels of {os.path.dirname(ae_tactile.__file__)} ready: "
+        f"simulator {res['simulator_s']:.1f} s, localization {res['localization_s']:.1f} s"
     )
     return 0
 

@@ -80,6 +80,8 @@ class LinkConfig:
     queue_max_batches: bound of the hand-over queue (overflow is counted as drops).
     command_timeout_s / command_retries: ACK wait per command and retries.
     sync_good_pings / sync_max_pings / sync_rtt_s: clock sync before START (see _sync_clock).
+    sync_period_s: one more round trip every sync_period_s while acquiring (0: none), so
+    that the clock mapping's window (30 s) always holds round-trip samples.
     adc_bits: ADC resolution (full scale = v_per_count * 2^(adc_bits-1), for saturation).
     detector: keyword arguments of the stream-mode `ae_tactile.dsp.DetectorConfig`.
     """
@@ -103,6 +105,7 @@ class LinkConfig:
     sync_good_pings: int = 3
     sync_max_pings: int = 100
     sync_rtt_s: float = 0.0015
+    sync_period_s: float = 5.0
     adc_bits: int = 12
     detector: dict = field(default_factory=dict)
 
@@ -124,6 +127,12 @@ class LinkConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a positive number of seconds, got {v!r}")
+        if not (
+            isinstance(self.sync_period_s, (int, float))
+            and np.isfinite(self.sync_period_s)
+            and self.sync_period_s >= 0
+        ):
+            raise ValueError(f"sync_period_s must be >= 0 s, got {self.sync_period_s!r}")
         if self.reconnect_max_s < self.reconnect_initial_s:
             raise ValueError("reconnect_max_s must be >= reconnect_initial_s")
         if int(self.queue_max_batches) < 1 or int(self.read_chunk_bytes) < 1:
@@ -243,6 +252,8 @@ class FingertipLink:
             "commands_failed": 0,
             "frames_ignored": 0,
             "sync_good_pings": 0,
+            "clock_pings": 0,
+            "clock_pings_used": 0,
             "sink_errors": 0,
             "idle_flushes": 0,
             "spurious_wakeups": 0,
@@ -258,6 +269,7 @@ class FingertipLink:
         self._empty_hup_reads = 0
         self._reconfigure_pending = False
         self._last_ack_receive_ns = 0
+        self._last_ack_device_ns = 0
         self._open_failure_logged = False
         self._detector_key = None
         self._stream_ref = None
@@ -339,6 +351,13 @@ class FingertipLink:
                     self._configure_device()
                     continue
                 self._cycle()
+                if (
+                    self.config.sync_period_s > 0
+                    and self._serial is not None
+                    and self.state == "connected"
+                    and time.monotonic() - self._last_sync_mono > self.config.sync_period_s
+                ):
+                    self._ping_for_clock()
                 if self._reconfigure_pending and self._serial is not None:
                     self._reconfigure_pending = False
                     self._configure_device()
@@ -547,9 +566,10 @@ class FingertipLink:
         """Status round trips before acquisition starts, until ``sync_good_pings`` of them
         took less than ``sync_rtt_s`` (or ``sync_max_pings`` were sent).
 
-        Each ACK is a (device time, host arrival) sample of the clock mapping whose latency
-        is at most its round-trip time, so fast round trips pin the mapping down before the
-        first packet. Without them the first packets would be stamped with whatever latency
+        Each ACK, created by the device between the host's send (t_s) and its arrival (t_r),
+        gives the clock mapping the sample (device time, (t_s + t_r) / 2), off by at most
+        half the round trip (by (reply delay - request delay) / 2: ~0 when the two ways
+        are alike), so fast round trips pin the mapping down before the first packet. Without them the first packets would be stamped with whatever latency
         the first frames after a (re)connect had (port buffers, a process still starting).
         """
         cfg = self.config
@@ -557,12 +577,26 @@ class FingertipLink:
         for _ in range(cfg.sync_max_pings):
             if good >= cfg.sync_good_pings or self._stop.is_set() or self._serial is None:
                 break
-            t_send = int(self.clock_ns())
-            ack = self.send_command(Command.get_status)
-            if ack is not None and self._last_ack_receive_ns - t_send <= cfg.sync_rtt_s * 1e9:
-                good += 1
+            good += self._ping_for_clock()
             self._stop.wait(0.003)
         self.counters["sync_good_pings"] = good
+
+    _last_sync_mono = 0.0
+
+    def _ping_for_clock(self) -> bool:
+        """One status round trip; if it took at most ``sync_rtt_s``, its midpoint goes to the
+        clock mapping (the ACK was created between send and arrival: the midpoint halves
+        the error that arrival alone carries, the reply's delay). Frames arriving
+        meanwhile are handled as usual."""
+        self._last_sync_mono = time.monotonic()
+        t_send = int(self.clock_ns())
+        ack = self.send_command(Command.get_status)
+        self.counters["clock_pings"] += 1
+        if ack is None or self._last_ack_receive_ns - t_send > self.config.sync_rtt_s * 1e9:
+            return False
+        self.counters["clock_pings_used"] += 1
+        self.mapper.update(self._last_ack_device_ns, (t_send + self._last_ack_receive_ns) // 2)
+        return True
 
     def send_command(self, make: Callable[[int], Command]) -> Ack | None:
         """Send a command built by ``make(command_id)`` and wait for its ACK (reader thread)."""
@@ -586,7 +620,7 @@ class FingertipLink:
                 self._cycle()
                 ack = self._pending_acks.pop(cid, None)
                 if ack is not None:
-                    ack, self._last_ack_receive_ns = ack
+                    ack, self._last_ack_receive_ns, self._last_ack_device_ns = ack
                     if ack.result != AckResult.OK:
                         self.counters["commands_failed"] += 1
                         self.log.warning("device refused %s: %s", cmd.opcode.name, ack.result.name)
@@ -651,7 +685,7 @@ class FingertipLink:
         elif isinstance(body, Status):
             self.device_status = body
         elif isinstance(body, Ack):
-            self._pending_acks[body.command_id] = (body, receive_ns)
+            self._pending_acks[body.command_id] = (body, receive_ns, device_ns)
             if len(self._pending_acks) > 64:
                 self._pending_acks.pop(next(iter(self._pending_acks)))
         else:
