@@ -569,8 +569,9 @@ class FingertipLink:
         Each ACK, created by the device between the host's send (t_s) and its arrival (t_r),
         gives the clock mapping the sample (device time, (t_s + t_r) / 2), off by at most
         half the round trip (by (reply delay - request delay) / 2: ~0 when the two ways
-        are alike), so fast round trips pin the mapping down before the first packet. Without them the first packets would be stamped with whatever latency
-        the first frames after a (re)connect had (port buffers, a process still starting).
+        are alike), so fast round trips pin the mapping down before the first packet.
+        Without them the first packets would be stamped with whatever latency the first
+        frames after a (re)connect had (port buffers, a process still starting).
         """
         cfg = self.config
         good = 0
