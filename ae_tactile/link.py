@@ -392,11 +392,11 @@ class FingertipLink:
             self._serial is not None
             and time.monotonic() - self._last_frame_mono > self.config.link_timeout_s
         ):
-            self.counters["link_timeouts"] += 1
             self._close(
                 f"no valid frame for {self.config.link_timeout_s:g} s"
                 f" ({self.decoder.bytes_received} bytes received in all)"
             )
+            self.counters["link_timeouts"] += 1  # after the reason is readable in stats()
 
     def _read(self, ser) -> bytes:
         """Everything waiting, or block (<= read_timeout_s) for the first byte when idle.
@@ -506,11 +506,14 @@ class FingertipLink:
         )
         self._reset_detector()
         self._stream_ref = None
-        with self._lock:
+        with self._lock:  # state and reason change together for stats() readers
             ser, self._serial = self._serial, None
             self._fd = None
             was = self.state
             self.state = "disconnected"
+            lost = ser is not None and was in ("connected", "connecting") and reason != "stopped"
+            if lost:
+                self.last_error = reason
         if ser is None:
             return
         if reason == "stopped":
@@ -523,9 +526,8 @@ class FingertipLink:
             ser.close()
         except (serial.SerialException, OSError, TypeError, AttributeError):
             pass
-        if was in ("connected", "connecting") and reason != "stopped":
+        if lost:
             self.counters["disconnects"] += 1
-            self.last_error = reason
             self.log.warning("link to %s lost: %s; reconnecting", self.config.port, reason)
 
     # ---------------------------------------------------------------- commands
