@@ -326,6 +326,10 @@ class DriverNode(Node):
         self._publish_sensor_info()
         if self.pipeline is not None:
             fs = float(p["sample_rate_hz"] or 10e6)
+            self.get_logger().info(
+                "warming up the pipeline before START (1-2 s; about a minute on the first "
+                "start after an install that did not run `python -m ae_tactile.compile_kernels`)"
+            )
             self.pipeline.localizer.warm_up(fs, int(p["packet_samples"] or 400))
             if self.pipeline.localizer.resolve_overlaps:
                 self.pipeline.start_overlaps(wait_s=30.0)
