@@ -7,9 +7,13 @@ No wall-clock bounds: every wait is on a condition with a generous timeout, and 
 assertions are on counters and on what is delivered.
 """
 
+import ctypes
+import mmap
 import os
 import socket
-import threading
+import struct
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -118,42 +122,87 @@ def test_repeated_frames_are_delivered_once_and_are_not_a_reboot(tmp_path):
         assert s["dropped_frames"] == 0 and s["packets_dropped"] == 0
 
 
+STEALER = r"""
+import mmap, os, select, struct, sys, time
+slave = os.open(sys.argv[1], os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+shared = mmap.mmap(os.open(sys.argv[2], os.O_RDWR), 24)
+readable = select.poll()
+readable.register(slave, select.POLLIN)
+done = 0
+while True:
+    armed = struct.unpack_from("<q", shared)[0]
+    if armed < 0:
+        break
+    if armed == done:
+        time.sleep(0.0005)
+        continue
+    stolen = 0
+    if readable.poll(5000):
+        time.sleep(0.2)  # the link is woken by now, waiting for the GIL the test holds
+        while True:
+            try:
+                data = os.read(slave, 1 << 16)  # b"" when empty: the port has VMIN = 0
+            except BlockingIOError:
+                break
+            if not data:
+                break
+            stolen += len(data)
+    done = armed
+    struct.pack_into("<qq", shared, 8, done, stolen)
+"""
+
+
 def test_spurious_wakeups_and_eagain_are_not_disconnects(tmp_path):
-    """A second reader on the same pty takes some bytes between the link's poll() and its
-    read(): the link then finds nothing to read (EAGAIN). That is no lost device."""
-    with Rig(PtyTransport(str(tmp_path / "fingertip")), scene=LONG, link_timeout_s=60.0) as rig:
+    """Readable, then nothing to read (EAGAIN), made to happen: the test writes bytes to the
+    device end and keeps the GIL while a second reader, in its own process, takes them from
+    the port between the link's poll() and its read(). That is no lost device."""
+    libc = ctypes.PyDLL(None)  # PyDLL: write() without releasing the GIL
+    with Rig(PtyTransport(str(tmp_path / "fingertip")), link_timeout_s=60.0) as rig:
         rig.wait_connected()
-        fd = os.open(rig.transport.path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
-        stop = threading.Event()
-        stolen = [0]
-
-        def steal():
-            import select
-
-            p = select.poll()
-            p.register(fd, select.POLLIN)
-            while not stop.is_set():
-                if p.poll(5):
-                    try:
-                        stolen[0] += len(os.read(fd, 1 << 16))
-                    except BlockingIOError:
-                        pass
-
-        th = threading.Thread(target=steal, daemon=True)
-        th.start()
+        rig.run(60.0, until=lambda: rig.device.finished(time.monotonic_ns()))
+        sent = rig.sent_packets()
+        rig.run(20.0, until=lambda: len(rig.records) >= len(sent))
+        shared_path = tmp_path / "stealer.shm"
+        shared_path.write_bytes(bytes(24))
+        with open(shared_path, "r+b") as f:
+            shared = mmap.mmap(f.fileno(), 24)
+        stealer = subprocess.Popen(
+            [sys.executable, "-c", STEALER, rig.transport.path, str(shared_path)]
+        )
+        stolen, attempts, interval = 0, 0, sys.getswitchinterval()
         try:
-            rig.run(30.0, until=lambda: rig.link.stats()["spurious_wakeups"] >= 3)
+            while rig.link.stats()["spurious_wakeups"] < 3 and attempts < 30:
+                attempts += 1
+                rig.run(0.02)
+                sys.setswitchinterval(30.0)  # this thread keeps the GIL while it spins
+                try:
+                    struct.pack_into("<q", shared, 0, attempts)
+                    libc.write(rig.transport.master, b"\xaa" * 16, 16)  # the link wakes up
+                    t_end = time.monotonic() + 10.0
+                    while struct.unpack_from("<q", shared, 8)[0] != attempts:
+                        if time.monotonic() > t_end:
+                            break
+                finally:
+                    sys.setswitchinterval(interval)
+                stolen += struct.unpack_from("<q", shared, 16)[0]
+                rig.run(0.02)  # the link gets the GIL: os.read() -> EAGAIN
         finally:
-            stop.set()
-            th.join(2.0)
-            os.close(fd)
+            struct.pack_into("<q", shared, 0, -1)
+            try:
+                stealer.wait(10.0)
+            finally:
+                stealer.kill()
+                shared.close()
         s = rig.link.stats()
-        assert s["spurious_wakeups"] >= 3 and stolen[0] > 0
+        assert s["spurious_wakeups"] >= 3 and stolen > 0
         assert s["disconnects"] == 0 and s["read_errors"] == 0 and s["connects"] == 1
-        assert s["hangups"] == 0
-        n = len(rig.records)
-        rig.run(10.0, until=lambda: len(rig.records) > n + 2)  # still delivering
-        assert len(rig.records) > n + 2 and rig.link.stats()["disconnects"] == 0
+        assert s["hangups"] == 0 and s["state"] == "connected"
+        assert len(rig.records) == len(sent)
+        body = Packet(np.full((4, 64), 100, np.int16), 10_000_000, 1e-4, 10_000_000, pre_trigger=8)
+        rig.runner.call(rig.device.inject_frame, body, now_ns())
+        rig.run(10.0, until=lambda: len(rig.records) > len(sent))  # still delivering
+        assert [r.device_sample_index for r in rig.records[len(sent) :]] == [10_000_000]
+        assert rig.link.stats()["disconnects"] == 0
 
 
 def test_overload_is_bounded_and_every_packet_accounted_for(tmp_path):
