@@ -283,3 +283,16 @@ MEDIA = {
     "water_skin": {"sound_speed_m_s": 1480.0, "density_kg_m3": 1000.0},
     "silicone": {"sound_speed_m_s": 1000.0, "density_kg_m3": 1030.0},
 }
+
+#: Band limit of the PVDF elements and their amplifier (Hz).
+PVDF_BAND_HZ = 1e6
+
+
+def front_end_lowpass(sample_rate_hz: float) -> tuple[float, int]:
+    """The front end's Butterworth low-pass (cut-off Hz, order) at an ADC rate f_s:
+    (1 MHz, 4), the PVDF band, where that is also a good anti-alias filter; below
+    f_s = 3.33 MS/s the ADC's anti-alias filter sets it: (0.3 f_s, 8), which is
+    10 log10(1 + (0.5 / 0.3)^16) = 36 dB down at f_s / 2 (a 1 MHz filter before a 2 MS/s ADC
+    lets the pulse alias: up to 8x the Cramer-Rao bound at 40 dB)."""
+    fc = min(PVDF_BAND_HZ, 0.3 * float(sample_rate_hz))
+    return fc, (4 if fc >= PVDF_BAND_HZ else 8)

@@ -33,7 +33,13 @@ def rates(cfg, snr_db, coupling, seed, echo_min=None, n=120):
     rng = np.random.default_rng(seed)
     g = cfg.geometry
     noise = reference_noise_rms(cfg, snr_db)
-    kw = dict(noise_rms_v=noise, geometry=g, lowpass_hz=cfg.lowpass_hz, echo_min=echo_min)
+    kw = dict(
+        noise_rms_v=noise,
+        geometry=g,
+        lowpass_hz=cfg.lowpass_hz,
+        lowpass_order=cfg.lowpass_order,
+        echo_min=echo_min,
+    )
     pk = apex_packets(cfg, n, noise, rng)
     kept = (
         1.0

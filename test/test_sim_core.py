@@ -264,6 +264,8 @@ def test_silicone_attenuation_lowers_and_delays_pulse():
     ({"sample_rate_hz": 10.5e6 + 0.5}, "integer number of Hz"),
     ({"highpass_hz": 6e6}, "Nyquist"),
     ({"lowpass_hz": 50e3}, "above highpass_hz"),
+    ({"lowpass_hz": "1 MHz"}, 'a number or "auto"'),
+    ({"lowpass_order": "steep"}, 'a number or "auto"'),
     ({"adc_bits": 0}, "adc_bits"),
     ({"adc_bits": 12.0}, "adc_bits"),
     ({"medium": "honey"}, "unknown medium"),
@@ -276,6 +278,28 @@ def test_silicone_attenuation_lowers_and_delays_pulse():
 def test_config_validation_messages(kw, msg):
     with pytest.raises(ValueError, match=msg.replace("|", r"\|")):
         SimConfig(**kw)
+
+
+def test_front_end_low_pass_follows_the_sample_rate():
+    # "auto": the 1 MHz PVDF band (order 4) where the ADC is fast enough; below 3.33 MS/s an
+    # anti-alias filter at 0.3 fs (order 8); a Butterworth is 10 log10(1 + (f/fc)^2n) dB
+    # down: >= 30 dB at fs/2 wherever "auto" is used (36 dB at 2 MS/s, 32 dB at 5 MS/s).
+    for fs, lp, order in [(10e6, 1e6, 4), (5e6, 1e6, 4), (2e6, 0.6e6, 8), (1e6, 0.3e6, 8)]:
+        cfg = SimConfig(sample_rate_hz=fs)
+        assert (cfg.lowpass_hz, cfg.lowpass_order) == (pytest.approx(lp), order)
+        assert 10 * np.log10(1 + (0.5 * fs / cfg.lowpass_hz) ** (2 * order)) > 30.0
+        assert cfg.replace(sample_rate_hz=10e6).lowpass_hz == 1e6  # re-resolved
+        assert SimConfig().replace(sample_rate_hz=fs).lowpass_hz == pytest.approx(lp)
+    fixed = SimConfig(lowpass_hz=0.8e6, lowpass_order=6).replace(sample_rate_hz=2e6)
+    assert (fixed.lowpass_hz, fixed.lowpass_order) == (0.8e6, 6)  # numbers stay
+    assert SimConfig(lowpass_hz=None).replace(sample_rate_hz=2e6).lowpass_hz is None
+    assert SimConfig(sample_rate_hz=2e6, lowpass_order=4).lowpass_order == 4
+    # the frequency response the renderer uses: 0.5 fs is where aliasing starts
+    h = SimConfig(sample_rate_hz=2e6).frontend
+    f = np.array([0.2e6, 1e6])
+    mag = np.abs(h.gain * np.prod(2j * np.pi * f[:, None] - h.zeros, 1)
+                 / np.prod(2j * np.pi * f[:, None] - h.poles, 1))
+    assert 20 * np.log10(mag[1] / mag[0]) < -35.0
 
 
 def test_render_triggered_validation_messages():

@@ -61,6 +61,8 @@ BASE = {"generator": "single_touch", "duration_s": 0.002}
     ({"sensor": {"medium": "honey"}}, "not one of"),
     ({"sensor": {"adc_bits": 12.5}}, "expected an integer"),
     ({"sensor": {"highpass_hz": 6.0e6}}, "Nyquist"),
+    ({"sensor": {"lowpass_hz": "automatic"}}, "expected a number in SI units"),
+    ({"sensor": {"lowpass_order": "auto8"}}, "lowpass_order: expected a number"),
     ({"effects": {"reflections": "yes"}}, "expected true or false"),
     ({"noise": {"snr_db": 20, "rms_v": 0.001}}, "exactly one of"),
     ({"params": {"x_m": 0.02}}, "outside the sensing surface"),
@@ -71,6 +73,17 @@ def test_scene_validation_errors(change, msg):
     spec = {**BASE, **change}
     with pytest.raises(SceneError, match=msg):
         load_scene(spec)
+
+
+def test_scene_low_pass_auto_number_or_null():
+    fast = load_scene({**BASE, "sensor": {"lowpass_hz": "auto"}}).config
+    slow = load_scene({**BASE, "sensor": {"sample_rate_hz": 2e6}}).config
+    fixed = load_scene({**BASE, "sensor": {"lowpass_hz": 0.7e6, "lowpass_order": 6}}).config
+    off = load_scene({**BASE, "sensor": {"lowpass_hz": None}}).config
+    assert (fast.lowpass_hz, fast.lowpass_order) == (1e6, 4)
+    assert (slow.lowpass_hz, slow.lowpass_order) == (pytest.approx(0.6e6), 8)
+    assert (fixed.lowpass_hz, fixed.lowpass_order) == (0.7e6, 6)
+    assert off.lowpass_hz is None
 
 
 def test_missing_keys_and_bad_yaml():

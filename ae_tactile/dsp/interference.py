@@ -32,6 +32,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from ae_tactile.geometry import front_end_lowpass
+
 COMMON_MIN = 0.9
 LOW_MAX = 0.25
 HIGH_MAX = 1.5
@@ -62,12 +64,23 @@ def acoustic_templates(
     return y / np.linalg.norm(y, axis=1, keepdims=True)
 
 
-def warm_up(sample_rate_hz: float, highpass_hz=100e3, highpass_order=2, lowpass_hz=1e6,
-            lowpass_order=4) -> None:
+def _front_end_lowpass(sample_rate_hz, lowpass_hz, lowpass_order):
+    """("auto" resolved) low-pass of the front end: `geometry.front_end_lowpass`."""
+    auto_hz, auto_order = front_end_lowpass(sample_rate_hz)
+    hz = auto_hz if isinstance(lowpass_hz, str) and lowpass_hz == "auto" else lowpass_hz
+    order = lowpass_order
+    if isinstance(order, str) and order == "auto":
+        order = auto_order
+    return (None if hz is None else float(hz)), int(order)
+
+
+def warm_up(sample_rate_hz: float, highpass_hz=100e3, highpass_order=2, lowpass_hz="auto",
+            lowpass_order="auto") -> None:
     """Compute the templates a first common-mode packet at this rate would need (the
     defaults of `common_mode_interference`; analysis lengths up to 256 samples)."""
+    lp, order = _front_end_lowpass(sample_rate_hz, lowpass_hz, lowpass_order)
     acoustic_templates(float(sample_rate_hz), 128, float(highpass_hz), int(highpass_order),
-                       lowpass_hz, int(lowpass_order))
+                       lp, order)
 
 
 @lru_cache(maxsize=16)
@@ -103,13 +116,13 @@ def common_mode_interference(
     *,
     geometry=None,
     noise_rms_v=None,
-    lowpass_hz: float = 1e6,
+    lowpass_hz: float | str = "auto",
     window_s: float = 20e-6,
     echo_min: float | None = None,
     common_min: float = COMMON_MIN,
     highpass_hz: float = 100e3,
     highpass_order: int = 2,
-    lowpass_order: int = 4,
+    lowpass_order: int | str = "auto",
     shape_min: float | None = SHAPE_MIN,
     shape_snr_min: float = 30.0,
     low_max: float = LOW_MAX,
@@ -120,7 +133,8 @@ def common_mode_interference(
 
     ``noise_rms_v``: per-channel noise sigma (scalar or (K,)), removed from the energies
     (None: estimated per packet from the samples before the onset, when there are >= 8).
-    ``lowpass_hz``: the front end's anti-alias cut-off;
+    ``lowpass_hz``, ``lowpass_order``: the front end's anti-alias low-pass ("auto": the
+    default front end at this rate, `ae_tactile.geometry.front_end_lowpass`);
     ``window_s``: analysis length after the onset. ``echo_min`` (needs ``geometry``):
     on a device with wall echoes, a common-mode packet whose echo at 2R/c (regression
     coefficient beta of the common mode at that lag on the direct packet, -0.5 for the
@@ -141,6 +155,7 @@ def common_mode_interference(
         raise ValueError(f"onset_index must have one entry per packet ({k}), got {on.shape}")
     if k == 0:
         return np.zeros(0, bool), np.zeros(0)
+    lowpass_hz, lowpass_order = _front_end_lowpass(fs, lowpass_hz, lowpass_order)
     w = max(4, min(m, int(round(window_s * fs))))
     start = np.clip(on - 1, 0, max(0, m - w))
     s_full = x.mean(axis=1)  # (K, M) common mode
@@ -165,7 +180,8 @@ def common_mode_interference(
     mean = s.sum(axis=1) / w
     low = np.maximum((mean * mean * w - nv * 0.25) / np.maximum(e_s, tiny), 0.0)
     d = s[:, 1:] - s[:, :-1]
-    band = 2.0 * (1.0 - math.cos(2.0 * math.pi * min(lowpass_hz, 0.5 * fs) / fs))
+    f_top = 0.5 * fs if lowpass_hz is None else min(lowpass_hz, 0.5 * fs)
+    band = 2.0 * (1.0 - math.cos(2.0 * math.pi * f_top / fs))
     e_d = np.einsum("kw,kw->k", d, d) - (w - 1) * nv * 0.5
     high = np.maximum(e_d / np.maximum(e_s * band, tiny), 0.0)
     score = common * np.maximum(low * (1.0 / low_max), high * (1.0 / high_max))

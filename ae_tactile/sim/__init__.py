@@ -10,7 +10,8 @@ Pure Python (numpy/scipy/pyyaml), never imports rclpy. Physics in one line per s
   point to each element (geometry.py), 1/l spreading, optional wall echoes and
   frequency-dependent attenuation (medium presets 'water_skin', 'silicone').
 * front end (frontend.py): PVDF + amplifier gain (V/Pa), Butterworth high-pass
-  (100 kHz, order 2) and anti-alias low-pass (1 MHz, order 4), white Gaussian noise at
+  (100 kHz, order 2) and anti-alias low-pass (1 MHz, order 4; below 3.33 MS/s 0.3 fs,
+  order 8), white Gaussian noise at
   a given SNR or rms, 12-bit ADC at 10 MS/s with clipping.
 * response.py: the filtered response of every arrival is evaluated in closed form
   (partial fractions of a rational transfer function) at the sample instants: exact
@@ -38,9 +39,10 @@ window after it. SNR follows docs/conventions.md; the conversion lives in
 
 `SimConfig` fields (SI units, validated with clear ValueErrors): geometry, medium,
 density_kg_m3, attenuation_db_per_m_at_1mhz, sensitivity_v_per_pa (0.01),
-highpass_hz (100e3), highpass_order (2), lowpass_hz (1e6 or None), lowpass_order (4),
-sample_rate_hz (10e6), adc_bits (12), adc_full_scale_v (1.0), attenuation (False),
-reflections (False), reflection_coefficient (-0.5), n_reflections (2),
+highpass_hz (100e3), highpass_order (2), lowpass_hz ("auto": min(1e6, 0.3 fs); a number;
+None), lowpass_order ("auto": 4, or 8 below 1 MHz), sample_rate_hz (10e6), adc_bits (12),
+adc_full_scale_v (1.0),
+attenuation (False), reflections (False), reflection_coefficient (-0.5), n_reflections (2),
 quantization (True), support_rel_tol (1e-6), max_support_s (200e-6).
 
 Streaming (`stream.py`): `EmissionList` (ground truth: time_ns, point_m, kind, signed

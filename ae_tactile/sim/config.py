@@ -13,7 +13,7 @@ from functools import cached_property
 
 import numpy as np
 
-from ae_tactile.geometry import MEDIA, FingertipGeometry
+from ae_tactile.geometry import MEDIA, FingertipGeometry, front_end_lowpass
 
 
 @dataclass(frozen=True)
@@ -80,8 +80,13 @@ class SimConfig:
       sensitivity_v_per_pa   PVDF + amplifier gain, flat in band (default 0.01 V/Pa:
                           ~10 uV/Pa of a 28 um PVDF film times a 60 dB amplifier).
       highpass_hz, highpass_order   Butterworth high-pass (paper: 100 kHz; order 2).
-      lowpass_hz, lowpass_order     Butterworth anti-alias / PVDF band limit (1 MHz,
-                          order 4); ``lowpass_hz=None`` disables it.
+      lowpass_hz, lowpass_order     Butterworth anti-alias / PVDF band limit. "auto"
+                          (default): ``geometry.front_end_lowpass(f_s)``: (1 MHz, order 4),
+                          the PVDF/amplifier band, and below 3.33 MS/s the ADC's anti-alias
+                          filter (0.3 f_s, order 8). Numbers set them, ``lowpass_hz=None``
+                          disables the low-pass (an "auto" order is then 4). "auto" is
+                          resolved on construction; ``replace`` re-resolves it for a new
+                          sample rate.
       sample_rate_hz      ADC rate, an integer number of Hz (10 MS/s).
       adc_bits, adc_full_scale_v    codes in [-2^(b-1), 2^(b-1)-1], LSB = 2 FS / 2^b,
                           clipping at full scale (12 bit, +-1 V).
@@ -103,8 +108,8 @@ class SimConfig:
     sensitivity_v_per_pa: float = 0.01
     highpass_hz: float = 100e3
     highpass_order: int = 2
-    lowpass_hz: float | None = 1e6
-    lowpass_order: int = 4
+    lowpass_hz: float | str | None = "auto"
+    lowpass_order: int | str = "auto"
     sample_rate_hz: float = 10e6
     adc_bits: int = 12
     adc_full_scale_v: float = 1.0
@@ -148,6 +153,20 @@ class SimConfig:
             raise ValueError(f"sample_rate_hz must be an integer number of Hz, got {fs!r}")
         hp = _pos("highpass_hz", self.highpass_hz)
         _int_in("highpass_order", self.highpass_order, 1, 8)
+        auto = {}
+        for name in ("lowpass_hz", "lowpass_order"):
+            v = getattr(self, name)
+            if isinstance(v, str):
+                if v != "auto":
+                    raise ValueError(f'{name} must be a number or "auto", got {v!r}')
+                auto[name] = True
+        lp_auto, order_auto = auto.get("lowpass_hz", False), auto.get("lowpass_order", False)
+        object.__setattr__(self, "_auto_fields", tuple(auto))
+        auto_hz, auto_order = front_end_lowpass(fs)
+        if lp_auto:
+            object.__setattr__(self, "lowpass_hz", auto_hz)
+        if order_auto:
+            object.__setattr__(self, "lowpass_order", auto_order if lp_auto else 4)
         lp = _pos("lowpass_hz", self.lowpass_hz, allow_none=True)
         _int_in("lowpass_order", self.lowpass_order, 1, 8)
         if hp >= fs / 2:
@@ -183,7 +202,10 @@ class SimConfig:
         return cls(geometry=geo, medium=medium, **kwargs)
 
     def replace(self, **changes) -> "SimConfig":
-        """A validated copy with some fields changed."""
+        """A validated copy with some fields changed (an "auto" low-pass follows a new
+        sample rate)."""
+        for name in getattr(self, "_auto_fields", ()):
+            changes.setdefault(name, "auto")
         return replace(self, **changes)
 
     # ---------------------------------------------------------------- derived

@@ -44,7 +44,8 @@ REQUIRED = object()
 @dataclass(frozen=True)
 class Key:
     """One schema entry: kind in {'float', 'int', 'bool', 'str', 'xy_list', 'float_list',
-    'float_or_null'}, default (REQUIRED if none), and plausibility bounds [lo, hi]."""
+    'float_or_null'}, default (REQUIRED if none), plausibility bounds [lo, hi], and
+    whether the string "auto" is accepted (resolved by SimConfig)."""
 
     kind: str
     default: object
@@ -52,6 +53,7 @@ class Key:
     lo: float | None = None
     hi: float | None = None
     choices: tuple | None = None
+    auto: bool = False
 
 
 def _f(default, doc, lo=None, hi=None):
@@ -84,8 +86,18 @@ SENSOR_KEYS = {
     "sensitivity_v_per_pa": _f(0.01, "PVDF + amplifier gain (V/Pa)", 1e-9, 1e3),
     "highpass_hz": _f(100e3, "high-pass cut-off (Hz)", 1.0, 1e8),
     "highpass_order": Key("int", 2, "high-pass order", 1, 8),
-    "lowpass_hz": _f(1e6, "anti-alias low-pass cut-off (Hz); null disables", 1.0, 1e9),
-    "lowpass_order": Key("int", 4, "low-pass order", 1, 8),
+    "lowpass_hz": Key(
+        "float_or_null",
+        "auto",
+        "anti-alias low-pass cut-off (Hz); auto: min(1 MHz, 0.3 sample rate); null disables",
+        1.0,
+        1e9,
+        auto=True,
+    ),
+    "lowpass_order": Key(
+        "int", "auto", "low-pass order; auto: 4, or 8 for an auto cut-off below 1 MHz", 1, 8,
+        auto=True,
+    ),
     "sample_rate_hz": _f(10e6, "ADC sample rate (Hz, integer)", 1e3, 1e9),
     "adc_bits": Key("int", 12, "ADC resolution (bits)", 2, 24),
     "adc_full_scale_v": _f(1.0, "ADC full scale (V)", 1e-6, 1e3),
@@ -338,6 +350,8 @@ GENERATORS["composite"] = (
 
 
 def _check_value(where, key, spec: Key, v):
+    if spec.auto and v == "auto":
+        return v
     if v is None:
         if spec.kind == "float_or_null" or spec.default is None:
             return None

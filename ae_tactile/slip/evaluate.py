@@ -924,6 +924,7 @@ def interference_trial(
         noise_rms_v=scene.noise_rms_v,
         geometry=geo,
         lowpass_hz=scene.config.lowpass_hz,
+        lowpass_order=scene.config.lowpass_order,
         echo_min=0.25 if reflections else None,
     )
     events = localized_events(pk, geo)
