@@ -67,6 +67,13 @@ def system_rows(d) -> list[str]:
             f"| SLIP_PRECURSOR / SLIP after the emission that decides it, median / p99 "
             f"| {_lat(s['slip_precursor'])} / {_lat(s['slip'])} | bench_system |"
         )
+        if s.get("overlapped_windows") and s.get("slip_single", {}).get("events"):
+            rows.append(
+                "| the same, without the events decided by a window holding two emissions "
+                f"({s['overlapped_windows']} of {s['packets']} windows: they wait for the "
+                f"overlap resolver) | {_lat(s['slip_precursor_single'])} / "
+                f"{_lat(s['slip_single'])} | bench_system |"
+            )
     k = d.get("knee")
     if k:
         tail = (
