@@ -54,6 +54,12 @@ def _pulse(shape, tau):
         g = np.exp(-0.5 * (u / s) ** 2)
         x = np.cos(2 * np.pi * f0 * u) * g
         return x, -2 * np.pi * f0 * np.sin(2 * np.pi * f0 * u) * g - u / s**2 * x
+    if shape == "gabor_narrow":  # 250 kHz Gabor, sigma 1 us: band-limited for 2 MS/s
+        f0, s = 250e3, 1e-6  # sigma_f = 1 / (2 pi s) = 0.16 MHz: 1 MHz is 4.7 sigma_f away
+        u = tau - 3 * s
+        g = np.exp(-0.5 * (u / s) ** 2)
+        x = np.cos(2 * np.pi * f0 * u) * g
+        return x, -2 * np.pi * f0 * np.sin(2 * np.pi * f0 * u) * g - u / s**2 * x
     if shape == "ricker":  # Ricker (Mexican hat) peaking at 0.8 MHz
         f = 800e3
         u = tau - 1.5 / f
@@ -97,7 +103,7 @@ def analytic_windows(shape, points, fs, snr_db, rng, *, geo=GEO, pre_s=8e-6, win
 def test_analytic_pulse_derivatives():
     # the CRLB of the accuracy tests needs d pulse / dt: check it against a central difference
     tau = np.linspace(-1e-6, 8e-6, 2001)
-    for shape in ("gabor", "ricker", "damped"):
+    for shape in ("gabor", "gabor_narrow", "ricker", "damped"):
         x, dx = _pulse(shape, tau)
         h = 1e-11
         num = (_pulse(shape, tau + h)[0] - _pulse(shape, tau - h)[0]) / (2 * h)
