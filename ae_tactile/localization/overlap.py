@@ -62,7 +62,7 @@ import numpy as np
 import scipy.fft as sfft
 from scipy import signal
 
-from ae_tactile.geometry import FingertipGeometry
+from ae_tactile.geometry import FingertipGeometry, front_end_lowpass
 from ae_tactile.localization.common import (
     Reason,
     adc_noise,
@@ -136,6 +136,14 @@ class PulseModel:
             int(config.lowpass_order),
             attenuation_db_per_m_at_1mhz=att,
         )
+
+    @classmethod
+    def for_sample_rate(cls, sample_rate_hz: float) -> "PulseModel":
+        """The product's default front end at this ADC rate: its low-pass is
+        `ae_tactile.geometry.front_end_lowpass` (1 MHz, order 4; below 3.33 MS/s the
+        anti-alias filter, 0.3 fs, order 8). The default wherever ``pulse`` is None."""
+        lp_hz, lp_order = front_end_lowpass(float(sample_rate_hz))
+        return cls(lowpass_hz=lp_hz, lowpass_order=lp_order)
 
     def attenuation_pole_rad_s(self, path_m):
         """w_a (rad/s) of paths of length ``path_m`` (inf when lossless)."""
@@ -740,8 +748,9 @@ def resolve_overlaps(
 
     windows (K, 4, M) volts (a (4, M) window is accepted), sample_rate_hz, onset_index (K,)
     the first sample at/after the earliest arrival (detector or trigger). geometry:
-    FingertipGeometry (default tip); pulse: `PulseModel` of the front end (default: 100 kHz
-    2nd-order high-pass, 1 MHz 4th-order low-pass). noise_rms_v: known sigma (scalar or
+    FingertipGeometry (default tip); pulse: `PulseModel` of the front end (default:
+    `PulseModel.for_sample_rate`: 100 kHz 2nd-order high-pass, 1 MHz 4th-order low-pass,
+    below 3.33 MS/s the 0.3 fs 8th-order anti-alias low-pass). noise_rms_v: known sigma (scalar or
     (K,)), default measured before the onset (the ADC's rounding by `common.adc_noise`).
     saturated, full_scale_v: as `localize`. max_sources: 1-3. add_threshold: residual-energy drop
     (in sigma^2) needed to add an emission. max_chi2_ratio: largest accepted residual /
@@ -757,7 +766,7 @@ def resolve_overlaps(
     geo = FingertipGeometry() if geometry is None else geometry
     if not isinstance(geo, FingertipGeometry):
         raise TypeError(f"geometry must be a FingertipGeometry, got {type(geo).__name__}")
-    pulse = PulseModel() if pulse is None else pulse
+    pulse = PulseModel.for_sample_rate(sample_rate_hz) if pulse is None else pulse
     if not isinstance(pulse, PulseModel):
         raise TypeError(f"pulse must be a PulseModel, got {type(pulse).__name__}")
     if (
@@ -992,7 +1001,7 @@ def suspect_overlap(
     answers to withdraw). Cost: a 1-D matched-filter search of the emission time and
     ``iterations`` LM steps per accepted packet."""
     geo = FingertipGeometry() if geometry is None else geometry
-    pulse = PulseModel() if pulse is None else pulse
+    pulse = PulseModel.for_sample_rate(sample_rate_hz) if pulse is None else pulse
     x, on = validate_windows(windows, onset_index)
     K = x.shape[0]
     acc = np.asarray(single_source_result.accepted, bool)
@@ -1224,7 +1233,7 @@ def joint_crlb(
     amplitudes (K, 2J) (V), model_mismatch (K,) = ||clean - model|| / ||clean|| at the truth.
     """
     geo = FingertipGeometry() if geometry is None else geometry
-    pulse = PulseModel() if pulse is None else pulse
+    pulse = PulseModel.for_sample_rate(sample_rate_hz) if pulse is None else pulse
     fs = float(sample_rate_hz)
     c = np.asarray(clean_v, float)
     pts = np.asarray(points_m, float)
@@ -1287,7 +1296,7 @@ def calibrate_pulse(
     from ae_tactile.localization import localize
 
     geo = FingertipGeometry() if geometry is None else geometry
-    init = PulseModel() if initial is None else initial
+    init = PulseModel.for_sample_rate(sample_rate_hz) if initial is None else initial
     x, on = validate_windows(windows, onset_index)
     ml = localize(x, sample_rate_hz, on, geometry=geo, noise_rms_v=noise_rms_v)
     ids = np.nonzero(ml.accepted)[0][: int(max_packets)]
