@@ -218,8 +218,8 @@ def run_case(name: str, counts, first, fs, vpc, body, *, namespace: str) -> dict
     out["writer_lag_ms_p99"] = (
         float(np.percentile((written[ok] - sched[ok]) * 1e-6, 99)) if ok.any() else None
     )
-    # A window holding two emissions gives two contact events with its packet id; they come
-    # from the overlap resolver (a worker process, milliseconds per window), not the hot path.
+    # A window the overlap resolver handles (a worker process, tens of milliseconds per
+    # window, not the hot path) gives two contact events with its packet id.
     contact_ids = rows[np.isin(rows[:, 1], (1, 2)), 2] if rows.size else np.zeros(0, np.int64)
     ids_seen, n_seen = np.unique(contact_ids, return_counts=True)
     overlapped = ids_seen[n_seen >= 2]
@@ -317,8 +317,8 @@ def markdown(res: dict) -> str:
         if s.get("overlapped_windows"):
             lines += [
                 "",
-                f"Of these, {s['overlapped_windows']} packet windows held two emissions: their "
-                "contact events come from the overlap resolver (a worker process), and so do "
+                f"Of these, {s['overlapped_windows']} packet windows went to the overlap resolver "
+                "(a worker process; two contact events share their packet id), and so did the "
                 "slip events they decide. Without them: SLIP_PRECURSOR "
                 f"{fmt(s['slip_precursor_single'])} ms, SLIP {fmt(s['slip_single'])} ms "
                 f"({s['slip_precursor_single']['events']} and {s['slip_single']['events']} "

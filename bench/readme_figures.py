@@ -69,9 +69,9 @@ def system_rows(d) -> list[str]:
         )
         if s.get("overlapped_windows") and s.get("slip_single", {}).get("events"):
             rows.append(
-                "| the same, without the events decided by a window holding two emissions "
-                f"({s['overlapped_windows']} of {s['packets']} windows: they wait for the "
-                f"overlap resolver) | {_lat(s['slip_precursor_single'])} / "
+                "| the same, without the events decided by a window the overlap resolver handled "
+                f"({s['overlapped_windows']} of {s['packets']} windows, 20-30 ms later) | "
+                f"{_lat(s['slip_precursor_single'])} / "
                 f"{_lat(s['slip_single'])} | bench_system |"
             )
     k = d.get("knee")
