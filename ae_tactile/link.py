@@ -45,6 +45,11 @@ from typing import Callable
 import numpy as np
 import serial
 
+try:
+    from termios import error as _TermiosError  # tcdrain / tcflush on a vanished pty: EIO
+except ImportError:  # not a POSIX system
+    _TermiosError = OSError
+
 from ae_tactile.protocol import (
     NO_ONSET,
     Ack,
@@ -58,6 +63,11 @@ from ae_tactile.protocol import (
     StreamDecoder,
 )
 from ae_tactile.timesync import DeviceClockMapper
+
+#: What a port that vanished or was closed under us raises (pyserial, the OS, termios'
+#: own error class, which is no OSError; TypeError/AttributeError: pyserial internals after
+#: its fd is gone): a lost link, never a crash.
+PORT_ERRORS = (serial.SerialException, OSError, TypeError, AttributeError, _TermiosError)
 
 LOG = logging.getLogger("ae_tactile.link")
 
@@ -373,7 +383,7 @@ class FingertipLink:
             if ser is None:
                 return
             data = self._read(ser)
-        except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+        except PORT_ERRORS as exc:
             # TypeError/AttributeError: pyserial internals after the fd vanished.
             self.counters["read_errors"] += 1
             self._close(f"read failed: {exc}")
@@ -457,7 +467,7 @@ class FingertipLink:
                 timeout=self.config.read_timeout_s,
                 write_timeout=1.0,
             )
-        except (serial.SerialException, OSError, ValueError) as exc:
+        except (serial.SerialException, OSError, ValueError, _TermiosError) as exc:
             self.counters["connect_failures"] += 1
             if not self._open_failure_logged:  # once per outage, not every retry
                 self.log.warning(
@@ -520,11 +530,11 @@ class FingertipLink:
             try:
                 ser.write(self.encoder.encode(Command.stop(self._new_command_id()), 0))
                 ser.flush()
-            except (serial.SerialException, OSError, TypeError, AttributeError):
+            except PORT_ERRORS:
                 pass
         try:
             ser.close()
-        except (serial.SerialException, OSError, TypeError, AttributeError):
+        except PORT_ERRORS:
             pass
         if lost:
             self.counters["disconnects"] += 1
@@ -610,7 +620,7 @@ class FingertipLink:
                 self._serial.write(
                     self.encoder.encode(cmd, int(time.monotonic() * 1e6) & 0xFFFFFFFF)
                 )
-            except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+            except PORT_ERRORS as exc:
                 self._close(f"write failed: {exc}")
                 return None
             self.counters["commands_sent"] += 1
