@@ -296,3 +296,15 @@ def front_end_lowpass(sample_rate_hz: float) -> tuple[float, int]:
     lets the pulse alias: up to 8x the Cramer-Rao bound at 40 dB)."""
     fc = min(PVDF_BAND_HZ, 0.3 * float(sample_rate_hz))
     return fc, (4 if fc >= PVDF_BAND_HZ else 8)
+
+
+def resolve_front_end_lowpass(sample_rate_hz: float, lowpass_hz, lowpass_order):
+    """(cut-off Hz or None, order) with "auto" resolved: an "auto" cut-off is
+    `front_end_lowpass`'s (with its order when the order is "auto" too); an "auto" order
+    with a given cut-off (or None) is 4. Other values are returned as given."""
+    auto_hz, auto_order = front_end_lowpass(sample_rate_hz)
+    hz_auto = isinstance(lowpass_hz, str) and lowpass_hz == "auto"
+    order_auto = isinstance(lowpass_order, str) and lowpass_order == "auto"
+    hz = auto_hz if hz_auto else lowpass_hz
+    order = (auto_order if hz_auto else 4) if order_auto else lowpass_order
+    return hz, order

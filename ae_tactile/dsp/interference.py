@@ -32,7 +32,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from ae_tactile.geometry import front_end_lowpass
+from ae_tactile.geometry import resolve_front_end_lowpass
 
 COMMON_MIN = 0.9
 LOW_MAX = 0.25
@@ -65,15 +65,8 @@ def acoustic_templates(
 
 
 def _front_end_lowpass(sample_rate_hz, lowpass_hz, lowpass_order):
-    """("auto" resolved as `ae_tactile.sim.SimConfig` does) low-pass of the front end:
-    `geometry.front_end_lowpass` for an "auto" cut-off; an "auto" order with a given
-    cut-off is 4."""
-    auto_hz, auto_order = front_end_lowpass(sample_rate_hz)
-    hz_auto = isinstance(lowpass_hz, str) and lowpass_hz == "auto"
-    hz = auto_hz if hz_auto else lowpass_hz
-    order = lowpass_order
-    if isinstance(order, str) and order == "auto":
-        order = auto_order if hz_auto else 4
+    """("auto" resolved as `ae_tactile.sim.SimConfig` does) low-pass of the front end."""
+    hz, order = resolve_front_end_lowpass(sample_rate_hz, lowpass_hz, lowpass_order)
     return (None if hz is None else float(hz)), int(order)
 
 

@@ -13,7 +13,7 @@ from functools import cached_property
 
 import numpy as np
 
-from ae_tactile.geometry import MEDIA, FingertipGeometry, front_end_lowpass
+from ae_tactile.geometry import MEDIA, FingertipGeometry, resolve_front_end_lowpass
 
 
 @dataclass(frozen=True)
@@ -81,7 +81,7 @@ class SimConfig:
                           ~10 uV/Pa of a 28 um PVDF film times a 60 dB amplifier).
       highpass_hz, highpass_order   Butterworth high-pass (paper: 100 kHz; order 2).
       lowpass_hz, lowpass_order     Butterworth anti-alias / PVDF band limit. "auto"
-                          (default): ``geometry.front_end_lowpass(f_s)``: (1 MHz, order 4),
+                          (default): ``geometry.resolve_front_end_lowpass``: (1 MHz, order 4),
                           the PVDF/amplifier band, and below 3.33 MS/s the ADC's anti-alias
                           filter (0.3 f_s, order 8). Numbers set them, ``lowpass_hz=None``
                           disables the low-pass (an "auto" order is then 4). "auto" is
@@ -160,13 +160,10 @@ class SimConfig:
                 if v != "auto":
                     raise ValueError(f'{name} must be a number or "auto", got {v!r}')
                 auto[name] = True
-        lp_auto, order_auto = auto.get("lowpass_hz", False), auto.get("lowpass_order", False)
         object.__setattr__(self, "_auto_fields", tuple(auto))
-        auto_hz, auto_order = front_end_lowpass(fs)
-        if lp_auto:
-            object.__setattr__(self, "lowpass_hz", auto_hz)
-        if order_auto:
-            object.__setattr__(self, "lowpass_order", auto_order if lp_auto else 4)
+        hz, order = resolve_front_end_lowpass(fs, self.lowpass_hz, self.lowpass_order)
+        object.__setattr__(self, "lowpass_hz", hz)
+        object.__setattr__(self, "lowpass_order", order)
         lp = _pos("lowpass_hz", self.lowpass_hz, allow_none=True)
         _int_in("lowpass_order", self.lowpass_order, 1, 8)
         if hp >= fs / 2:
