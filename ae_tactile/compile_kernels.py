@@ -3,7 +3,7 @@
 
 numba compiles a kernel the first time a process calls it and keeps the machine code in
 ``__pycache__`` next to the source (keyed by the source file's modification time and the
-CPU). On a new machine that first compilation of the localization and simulator kernels
+CPU). On a new machine that first compilation of the localization, link and simulator kernels
 takes about a minute of CPU; loading them from the cache afterwards takes ~1-2 s.
 `tools/setup.sh` runs this once after a build (and again when a kernel source changes), so
 that neither the driver's warm-up nor a test pays the compilation. Without numba it does
@@ -25,6 +25,7 @@ def compile_kernels() -> dict:
     out = {"numba": bool(NUMBA_AVAILABLE or HAVE_NUMBA)}
     if not out["numba"]:
         return out
+    from ae_tactile.link import warm_up as warm_link
     from ae_tactile.pipeline import PacketLocalizer
     from ae_tactile.sim.kernels import warm_up as warm_sim
 
@@ -33,6 +34,7 @@ def compile_kernels() -> dict:
     t1 = time.perf_counter()
     for fs in (10e6, 2e6):  # the built-in parameter files' sample rates
         PacketLocalizer("ml", reject_interference=True).warm_up(fs, 400)
+    warm_link()
     t2 = time.perf_counter()
     out.update(simulator_s=round(t1 - t0, 2), localization_s=round(t2 - t1, 2))
     return out

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import errno
 import logging
+import math
 import os
 import queue
 import select
@@ -62,6 +63,7 @@ from ae_tactile.protocol import (
     StreamBlock,
     StreamDecoder,
 )
+from ae_tactile.jit import NUMBA_AVAILABLE, njit
 from ae_tactile.timesync import DeviceClockMapper
 
 #: What a port that vanished or was closed under us raises (pyserial, the OS, termios'
@@ -184,7 +186,12 @@ def window_noise_and_onset(volts: np.ndarray, pre_trigger: int) -> tuple[float, 
 
     The device triggered at sample ``pre_trigger``; the onset is the first sample at or
     after ``pre_trigger // 2`` whose largest |x - DC| over the 4 channels exceeds 4 noise
-    sigma (``pre_trigger`` if none does or the pre-trigger part is too short).
+    sigma (``pre_trigger`` if none does or the pre-trigger part is too short):
+
+        DC_c = mean(x_c[:P]),  sigma^2 = mean_c,n (x_c[n] - DC_c)^2 over n < P,
+        onset = min { n >= P // 2 : max_c |x_c[n] - DC_c| > 4 sigma }.
+
+    The numpy reference; `packet_volts_noise_onset` is the compiled form of the link.
     """
     x = np.asarray(volts, dtype=np.float64)
     n = x.shape[1]
@@ -199,6 +206,66 @@ def window_noise_and_onset(volts: np.ndarray, pre_trigger: int) -> tuple[float, 
     above = np.flatnonzero(env[start:] > 4.0 * noise)
     onset = int(start + above[0]) if above.size and noise > 0 else pre_trigger
     return noise, onset
+
+
+@njit(cache=True, nogil=True)
+def _volts_noise_onset_kernel(counts, v_per_count, pre_trigger, volts):  # pragma: no cover
+    """Compiled `window_noise_and_onset` of counts * v_per_count (float32), in one pass
+    over the window; writes the volts into ``volts``; returns (noise, onset)."""
+    nch, n = counts.shape
+    for c in range(nch):
+        for i in range(n):
+            volts[c, i] = np.float32(counts[c, i]) * v_per_count
+    p = min(max(pre_trigger, 0), n - 1)
+    if p < 4:
+        return 0.0, p
+    dc = np.empty(nch)
+    ss = 0.0
+    for c in range(nch):
+        s = 0.0
+        for i in range(p):
+            s += np.float64(volts[c, i])
+        dc[c] = s / p
+        for i in range(p):
+            d = np.float64(volts[c, i]) - dc[c]
+            ss += d * d
+    noise = math.sqrt(ss / (nch * p))
+    if not noise > 0.0:
+        return noise, p
+    thr = 4.0 * noise
+    for i in range(p // 2, n):
+        for c in range(nch):
+            if abs(np.float64(volts[c, i]) - dc[c]) > thr:
+                return noise, i
+    return noise, p
+
+
+def packet_volts_noise_onset(
+    counts: np.ndarray, v_per_count: float, pre_trigger: int
+) -> tuple[np.ndarray, float, int]:
+    """One PACKET's (4, N) int16 counts -> (float32 volts, noise RMS (V), onset index).
+
+    volts = counts * float32(v_per_count); noise and onset as `window_noise_and_onset`.
+    One compiled pass where numba is available (~1 us instead of ~18 us per packet), the
+    numpy reference otherwise; the two agree (tests), up to the order of a sum.
+    """
+    vpc = np.float32(v_per_count)
+    if NUMBA_AVAILABLE and counts.ndim == 2 and counts.dtype == np.int16:
+        volts = np.empty(counts.shape, dtype=np.float32)
+        noise, onset = _volts_noise_onset_kernel(counts, vpc, int(pre_trigger), volts)
+        return volts, float(noise), int(onset)
+    volts = (counts * vpc).astype(np.float32)
+    noise, onset = window_noise_and_onset(volts, pre_trigger)
+    return volts, noise, onset
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the link's kernel for the arrays it meets:
+    read-only counts (decoded from the wire) and writable ones."""
+    counts = np.zeros((4, 16), dtype=np.int16)
+    packet_volts_noise_onset(counts, 1e-3, 8)
+    counts.flags.writeable = False
+    packet_volts_noise_onset(counts, 1e-3, 8)
 
 
 class FingertipLink:
@@ -221,6 +288,7 @@ class FingertipLink:
         logger: logging.Logger | None = None,
         sink: Callable[[PacketBatch], None] | None = None,
     ):
+        warm_up()  # the per-packet kernel is ready before the first packet
         self.config = config
         self.sink = sink
         self.clock_ns = clock_ns
@@ -710,8 +778,9 @@ class FingertipLink:
         return sid
 
     def _packet_record(self, body: Packet, device_ns: int) -> PacketRecord:
-        volts = (body.samples * np.float32(body.v_per_count)).astype(np.float32)
-        noise, onset = window_noise_and_onset(volts, body.pre_trigger)
+        volts, noise, onset = packet_volts_noise_onset(
+            body.samples, body.v_per_count, body.pre_trigger
+        )
         if body.onset_index != NO_ONSET:
             onset = int(body.onset_index)
         return PacketRecord(

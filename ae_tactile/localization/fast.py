@@ -25,7 +25,6 @@ environment, or ``engine="numpy"``) the numpy path runs; the two agree to roundi
 from __future__ import annotations
 
 import math
-import os
 
 import numpy as np
 
@@ -38,21 +37,7 @@ from ae_tactile.localization.common import (
     QUANT_V_Q2,
 )
 
-try:  # pragma: no cover - import guard
-    if os.environ.get("AE_TACTILE_NO_NUMBA", "").strip() not in ("", "0"):
-        raise ImportError("disabled by AE_TACTILE_NO_NUMBA")
-    from numba import njit
-
-    NUMBA_AVAILABLE = True
-except ImportError:  # pragma: no cover
-    NUMBA_AVAILABLE = False
-
-    def njit(*args, **kwargs):
-        def wrap(f):
-            return f
-
-        return wrap(args[0]) if args and callable(args[0]) else wrap
-
+from ae_tactile.jit import NUMBA_AVAILABLE, njit
 
 _XI = np.array([1.0, 1.0, -1.0, -1.0])
 _ETA = np.array([1.0, -1.0, 1.0, -1.0])

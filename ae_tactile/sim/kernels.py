@@ -20,22 +20,11 @@ the callers use the numpy path (same bits, slower).
 from __future__ import annotations
 
 import math
-import os
 
 import numpy as np
 
-try:  # pragma: no cover - import guard
-    if os.environ.get("AE_TACTILE_NO_NUMBA", "").strip() not in ("", "0"):
-        raise ImportError("disabled by AE_TACTILE_NO_NUMBA")
-    from numba import njit
-    HAVE_NUMBA = True
-except ImportError:  # pragma: no cover - exercised only without numba
-    HAVE_NUMBA = False
-
-    def njit(*args, **kwargs):
-        def wrap(fn):
-            return fn
-        return wrap if not (len(args) == 1 and callable(args[0])) else args[0]
+from ae_tactile.jit import NUMBA_AVAILABLE as HAVE_NUMBA
+from ae_tactile.jit import njit
 
 
 @njit(cache=True, nogil=True)
