@@ -503,7 +503,7 @@ class FingertipLink:
                     raise  # EIO of a vanished pty, ENXIO, ...
             if data:
                 self._empty_hup_reads = 0
-                return data
+                return self._drain(fd, data, chunk) if len(data) < chunk else data
             if flags & (select.POLLHUP | select.POLLERR):
                 # Hang-up: a few empty reads in a row mean the other end is gone.
                 self._empty_hup_reads += 1
@@ -525,6 +525,28 @@ class FingertipLink:
                 ser.timeout = self.config.read_timeout_s
         n = ser.in_waiting
         return data + ser.read(min(n, chunk - 1)) if n else data
+
+    @staticmethod
+    def _drain(fd: int, data: bytes, chunk: int) -> bytes:
+        """The first read's bytes plus whatever else is already waiting (up to ``chunk``).
+
+        A tty hands over at most its line buffer (4 KB) per read, about one PACKET frame:
+        when the reader fell behind, the rest waits in the kernel. Taking it now makes the
+        backlog one batch (localized together, cheaper per packet); when nothing waits,
+        this costs one non-blocking read that finds nothing (EAGAIN). A real error is left
+        for the next cycle's read, which reports it.
+        """
+        parts, total = [data], len(data)
+        while total < chunk:
+            try:
+                more = os.read(fd, chunk - total)
+            except OSError:  # EAGAIN: drained (EINTR / EIO: the next read decides)
+                break
+            if not more:
+                break
+            parts.append(more)
+            total += len(more)
+        return data if len(parts) == 1 else b"".join(parts)
 
     def _open(self) -> bool:
         self.state = "connecting"

@@ -144,6 +144,17 @@ def _interference_check():
     return common_mode_interference
 
 
+def _gains_or_none(channel_gains):
+    """Relative channel gains as a validated (4,) array, or None when all are 1 (nothing
+    to apply: the per-packet path skips them). ValueError unless 4 positive finite numbers."""
+    if channel_gains is None:
+        return None
+    g = np.asarray(channel_gains, dtype=float)
+    if g.shape != (4,) or not np.all(np.isfinite(g) & (g > 0)):
+        raise ValueError(f"channel_gains must be 4 positive finite numbers, got {channel_gains!r}")
+    return None if np.all(g == 1.0) else g
+
+
 class PacketLocalizer:
     """Packets -> contact events (TOUCH / DETOUCH), counting every rejection by reason.
 
@@ -172,7 +183,7 @@ class PacketLocalizer:
         self.min_snr_db = float(min_snr_db)
         self.min_confidence = float(min_confidence)
         self.geometry = geometry or FingertipGeometry()
-        self.channel_gains = channel_gains
+        self.channel_gains = _gains_or_none(channel_gains)
         self.batch_min = int(batch_min)
         self.interference = _interference_check() if reject_interference else None
         self.counts: Counter = Counter()
@@ -189,7 +200,9 @@ class PacketLocalizer:
         channel_gains=None,
         resolve_overlaps: bool | None = None,
     ) -> None:
-        """Change settings at run time (validated by the caller); takes effect at once."""
+        """Change settings at run time; takes effect at once. ValueError on bad channel
+        gains (nothing changed then)."""
+        gains = _gains_or_none(channel_gains) if channel_gains is not None else None
         if resolve_overlaps is not None:
             self.resolve_overlaps = bool(resolve_overlaps)
         if method is not None or min_snr_db is not None:
@@ -203,8 +216,7 @@ class PacketLocalizer:
         if geometry is not None:
             self.geometry = geometry
         if channel_gains is not None:
-            g = np.asarray(channel_gains, dtype=float)
-            self.channel_gains = g if g.shape == (4,) and np.all(g > 0) else None
+            self.channel_gains = gains
 
     def set_interference(self, enabled: bool) -> None:
         """Switch the common-mode interference rejection on or off."""

@@ -19,6 +19,7 @@ device bytes -> event.
 from __future__ import annotations
 
 import os
+import select
 import signal
 import sys
 import time
@@ -63,13 +64,16 @@ def main(argv) -> int:
     def now_us() -> int:
         return ((time.monotonic_ns() - t_boot) // 1000) & 0xFFFFFFFF
 
+    out_ready = select.poll()
+    out_ready.register(master, select.POLLOUT)
+
     def write(data: bytes) -> None:
         view = memoryview(data)
         while view:
             try:
                 view = view[os.write(master, view) :]
-            except BlockingIOError:
-                time.sleep(0.0001)
+            except BlockingIOError:  # the port is full: wait until the driver reads
+                out_ready.poll(1.0)
 
     def status() -> bytes:
         st = DeviceState.TRIGGERED if state["acquiring"] else DeviceState.IDLE

@@ -34,6 +34,7 @@ import json
 import logging
 import math
 import sys
+import threading
 import time
 from collections import deque
 
@@ -386,7 +387,8 @@ class DriverNode(Node):
         self.pub_state = self.create_publisher(ContactState, "contact_state", LATCHED)
         self.pub_markers = self.create_publisher(MarkerArray, "markers", 10)
         self.markers = EventMarkers(self.frame_id, self.p["marker_lifetime_s"])
-        self._marker_inbox: deque = deque(maxlen=64)
+        self._marker_inbox: deque = deque(maxlen=64)  # ContactRecords not drawn yet
+        self._msgs = threading.local()  # per publishing thread: its reusable ContactEvent
         self._state_key = None
         self._state_pub_ns = 0
         self.create_subscription(Float64, "sliding_speed", self._on_sliding_speed, 10)
@@ -403,18 +405,26 @@ class DriverNode(Node):
                 self.pub_packets.publish(msg)
             self.published_packets += len(batch.packets)
 
+    def _event_msg(self) -> ContactEvent:
+        """This thread's reusable ContactEvent (publish() serializes it at once; the reader
+        thread and the overlap resolver's thread publish, each with its own)."""
+        msg = getattr(self._msgs, "event", None)
+        if msg is None:
+            msg = self._msgs.event = ContactEvent()
+        return msg
+
     def _publish_contacts(self, records) -> None:
+        msg, frame_id, publish = self._event_msg(), self.frame_id, self.pub_contacts.publish
         for r in records:
-            msg = contact_event_msg(r, self.frame_id)
-            self.pub_contacts.publish(msg)
-            self._marker_inbox.append(msg)
+            publish(contact_event_msg(r, frame_id, msg))
+        self._marker_inbox.extend(records)  # markers are drawn from the records, later
         self.published_events += len(records)
 
     def _publish_slip(self, records) -> None:
+        msg, frame_id, publish = self._event_msg(), self.frame_id, self.pub_slip.publish
         for r in records:
-            msg = contact_event_msg(r, self.frame_id)
-            self.pub_slip.publish(msg)
-            self._marker_inbox.append(msg)
+            publish(contact_event_msg(r, frame_id, msg))
+        self._marker_inbox.extend(records)
         self.published_slip += len(records)
 
     def _publish_state(self, force: bool = False) -> None:
@@ -436,7 +446,8 @@ class DriverNode(Node):
             return
         now = self.get_clock().now()
         while self._marker_inbox:
-            self.markers.add(self._marker_inbox.popleft(), now.nanoseconds)
+            rec = self._marker_inbox.popleft()
+            self.markers.add(contact_event_msg(rec, self.frame_id), now.nanoseconds)
         stamp = now.to_msg()
         arr = sensor_markers(self.geometry, self.frame_id, stamp)
         arr.markers.extend(self.markers.render(now.nanoseconds, stamp).markers)

@@ -159,14 +159,13 @@ class LocalizerNode(Node):
 
     def on_sensor_info(self, msg: SensorInfo) -> None:
         try:
-            self.geometry = FingertipGeometry(
-                msg.radius_m, msg.element_offset_m, msg.sound_speed_m_s
-            )
+            geometry = FingertipGeometry(msg.radius_m, msg.element_offset_m, msg.sound_speed_m_s)
+            self.localizer.update(geometry=geometry, channel_gains=list(msg.channel_gains))
         except ValueError as exc:
             self.get_logger().error(f"ignoring invalid sensor_info: {exc}")
             return
+        self.geometry = geometry
         self.hardware_id = msg.serial_number or self.hardware_id
-        self.localizer.update(geometry=self.geometry, channel_gains=list(msg.channel_gains))
         self.get_logger().info(
             f"geometry from sensor_info ({msg.serial_number or 'no serial'}): "
             f"R={msg.radius_m * 1e3:.2f} mm, a={msg.element_offset_m * 1e3:.2f} mm, "
