@@ -412,7 +412,7 @@ class FingertipLink:
         """Frames lost on the link (sequence gaps; a lost frame's type is unknown, so each
         counts as one packet) + packets dropped by a full hand-over queue."""
         return int(
-            self.decoder.stats()["dropped_frames"] + self.counters["queue_overflow_packets"]
+            self.decoder.dropped_frames + self.counters["queue_overflow_packets"]
         )
 
     # ---------------------------------------------------------------- thread
@@ -882,7 +882,7 @@ class FingertipLink:
         if self.sink is not None:
             with self._lock:
                 batch.packets_dropped = self.packets_dropped()
-                batch.frames_bad_crc = int(self.decoder.stats()["crc_errors"])
+                batch.frames_bad_crc = int(self.decoder.crc_errors)
             self.counters["packets_out"] += len(records)
             self.counters["batches_out"] += 1
             try:
@@ -894,7 +894,7 @@ class FingertipLink:
         try:
             with self._lock:
                 batch.packets_dropped = self.packets_dropped()
-                batch.frames_bad_crc = int(self.decoder.stats()["crc_errors"])
+                batch.frames_bad_crc = int(self.decoder.crc_errors)
             self._queue.put_nowait(batch)
         except queue.Full:
             self.counters["queue_overflow_packets"] += len(records)
