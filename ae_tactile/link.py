@@ -51,6 +51,7 @@ try:
 except ImportError:  # not a POSIX system
     _TermiosError = OSError
 
+from ae_tactile.jit import NUMBA_AVAILABLE, njit
 from ae_tactile.protocol import (
     NO_ONSET,
     Ack,
@@ -63,7 +64,6 @@ from ae_tactile.protocol import (
     StreamBlock,
     StreamDecoder,
 )
-from ae_tactile.jit import NUMBA_AVAILABLE, njit
 from ae_tactile.timesync import DeviceClockMapper
 
 #: What a port that vanished or was closed under us raises (pyserial, the OS, termios'

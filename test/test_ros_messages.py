@@ -129,6 +129,101 @@ def test_contact_event_round_trip(two_nodes):
     assert got.slip_direction.x == 1.0
 
 
+def contact_event_fields(m):
+    """Every field of a ContactEvent, in order (NaN-aware comparison below)."""
+    return [
+        m.header.stamp.sec,
+        m.header.stamp.nanosec,
+        m.header.frame_id,
+        m.event_type,
+        m.position.x,
+        m.position.y,
+        m.position.z,
+        *(float(v) for v in m.position_covariance),
+        m.polar_angle_rad,
+        m.azimuth_angle_rad,
+        m.tau_x_s,
+        m.tau_y_s,
+        m.amplitude_v,
+        m.confidence,
+        len(m.packet_ids),
+        *(int(v) for v in m.packet_ids),
+        m.emission_rate_hz,
+        m.spatial_period_m,
+        m.slip_direction.x,
+        m.slip_direction.y,
+        m.slip_direction.z,
+    ]
+
+
+def same_fields(a, b):
+    fa, fb = contact_event_fields(a), contact_event_fields(b)
+    return len(fa) == len(fb) and all(
+        x == y or (isinstance(x, float) and math.isnan(x) and math.isnan(y))
+        for x, y in zip(fa, fb)
+    )
+
+
+def random_contact_records(rng, n):
+    from ae_tactile.pipeline import ContactRecord
+
+    for _ in range(n):
+        k = int(rng.integers(0, 6))
+        nan_or = lambda v: math.nan if rng.uniform() < 0.3 else v  # noqa: E731
+        yield ContactRecord(
+            event_type=int(rng.integers(1, 6)),
+            time_ns=int(rng.integers(0, 2**31 * 10**9)),
+            point_m=tuple(float(v) for v in rng.normal(0, 0.01, 3)),
+            covariance_m2=rng.normal(size=(3, 3)) * 1e-9,
+            packet_ids=tuple(int(v) for v in rng.integers(0, 2**63, k)),
+            polar_rad=nan_or(float(rng.uniform(0, 1.5))),
+            azimuth_rad=float(rng.uniform(-3.1, 3.1)),
+            tau_x_s=nan_or(float(rng.normal(0, 1e-6))),
+            tau_y_s=float(rng.normal(0, 1e-6)),
+            amplitude_v=float(rng.normal(0, 0.1)),
+            confidence=float(rng.uniform()),
+            emission_rate_hz=nan_or(float(rng.uniform(0, 1e3))),
+            spatial_period_m=nan_or(float(rng.uniform(0, 1e-3))),
+            slip_direction=(nan_or(1.0), 0.0, -0.5),
+        )
+
+
+def test_contact_event_wire_bytes_are_what_rclpy_serializes():
+    """The driver's hand-written CDR of a ContactEvent against rclpy's own serializer:
+    same length, and every field the same once deserialized (the padding bytes rclpy
+    leaves uninitialised are the only bytes that may differ)."""
+    require_ros()
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from ae_tactile.msg import ContactEvent
+    from ae_tactile.ros.conversions import ContactEventWire, contact_event_msg
+
+    rng = np.random.default_rng(11)
+    for frame_id in ("", "f", "fingertip", "hand/index_distal_link", "doigt_é"):
+        wire = ContactEventWire(frame_id)
+        for rec in random_contact_records(rng, 200):
+            ours = wire.encode(rec)
+            theirs = serialize_message(contact_event_msg(rec, frame_id))
+            assert len(ours) == len(theirs)
+            a = deserialize_message(ours, ContactEvent)
+            assert same_fields(a, deserialize_message(theirs, ContactEvent))
+            assert a.header.frame_id == frame_id and len(a.packet_ids) == len(rec.packet_ids)
+
+
+def test_contact_event_wire_bytes_cross_dds(two_nodes):
+    """Published as bytes, received as a ContactEvent by a normal subscription: the same
+    fields as the message rclpy would have sent (float32 fields rounded on the wire)."""
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from ae_tactile.msg import ContactEvent
+    from ae_tactile.ros.conversions import ContactEventWire, contact_event_msg
+
+    for rec in random_contact_records(np.random.default_rng(3), 3):
+        got = exchange(two_nodes, ContactEvent, "t_wire", ContactEventWire("tip").encode(rec))
+        sent = deserialize_message(serialize_message(contact_event_msg(rec, "tip")), ContactEvent)
+        assert same_fields(got, sent)
+
+
 def test_make_packet_rejects_bad_shapes():
     require_ros()
     from ae_tactile.ros.conversions import make_packet

@@ -28,6 +28,7 @@ import math
 
 import numpy as np
 
+from ae_tactile.jit import NUMBA_AVAILABLE, njit  # noqa: F401 (NUMBA_AVAILABLE: re-exported)
 from ae_tactile.localization.common import (
     ALIAS_GUARD_DB,
     BAND_EDGE_POWER_RATIO,
@@ -36,8 +37,6 @@ from ae_tactile.localization.common import (
     QUANT_SIGMA2_Q2,
     QUANT_V_Q2,
 )
-
-from ae_tactile.jit import NUMBA_AVAILABLE, njit
 
 _XI = np.array([1.0, 1.0, -1.0, -1.0])
 _ETA = np.array([1.0, -1.0, 1.0, -1.0])

@@ -9,6 +9,7 @@ a received Packet costs no copy (``np.frombuffer`` on the message's array.array)
 from __future__ import annotations
 
 import array
+import struct
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -87,18 +88,13 @@ def packet_samples(msg: Packet) -> np.ndarray:
     return data.reshape(count, n)
 
 
-def contact_event_msg(rec, frame_id: str, msg=None):
-    """ContactEvent message of a core `ae_tactile.pipeline.ContactRecord` (~4 us).
+def contact_event_msg(rec, frame_id: str):
+    """ContactEvent message of a core `ae_tactile.pipeline.ContactRecord` (~7 us; the
+    driver publishes `ContactEventWire` bytes instead). The covariance is handed over as
+    a float64 array, the packet ids as array('Q'): the setters take both at once."""
+    from ae_tactile.msg import ContactEvent
 
-    msg: a ContactEvent to fill in place (every field is set; a publisher may reuse one
-    message, since publish() serializes it at once), or None for a new one. The
-    covariance is handed over as a float64 array, the packet ids as array('Q'): the
-    message setters take both without checking element by element.
-    """
-    if msg is None:
-        from ae_tactile.msg import ContactEvent
-
-        msg = ContactEvent()
+    msg = ContactEvent()
     stamp = msg.header.stamp
     stamp.sec, stamp.nanosec = divmod(int(rec.time_ns), NS_PER_S)
     msg.header.frame_id = frame_id
@@ -115,6 +111,68 @@ def contact_event_msg(rec, frame_id: str, msg=None):
     d = msg.slip_direction
     d.x, d.y, d.z = rec.slip_direction
     return msg
+
+
+class ContactEventWire:
+    """ContactEvent records -> the serialized message (CDR, little endian), ready for
+    ``Publisher.publish(bytes)``: what rclpy would send for `contact_event_msg`, without
+    building a Python message and converting it field by field (~1.3 us instead of ~15 us).
+
+    Layout (XCDR1: encapsulation 00 01 00 00, then each field aligned to its size,
+    counted from the byte after the encapsulation; a string is a uint32 length that
+    counts its NUL, then the bytes and the NUL):
+
+        int32 sec, uint32 nanosec, string frame_id, uint8 event_type, <pad to 8>,
+        float64 x3 position, x9 covariance, polar, azimuth, tau_x, tau_y,
+        float32 amplitude_v, confidence, uint32 n, <pad to 8>, uint64 x n packet_ids,
+        float64 emission_rate_hz, spatial_period_m, x3 slip_direction.
+
+    A test checks it byte for byte against ``rclpy.serialization.serialize_message``.
+    """
+
+    ENCAPSULATION = b"\x00\x01\x00\x00"
+
+    def __init__(self, frame_id: str):
+        fid = frame_id.encode("utf-8") + b"\0"
+        end = 12 + len(fid) + 1  # after sec, nanosec, the string and event_type
+        self._head = f"<4siII{len(fid)}sB{-end % 8}x"
+        self._frame_id = fid
+        self._structs: dict[int, struct.Struct] = {}
+
+    def encode(self, rec) -> bytes:
+        ids = rec.packet_ids
+        n = len(ids)
+        st = self._structs.get(n)
+        if st is None:
+            st = self._structs[n] = struct.Struct(self._head + f"16dffI4x{n}Q5d")
+        sec, nanosec = divmod(int(rec.time_ns), NS_PER_S)
+        x, y, z = rec.point_m
+        dx, dy, dz = rec.slip_direction
+        return st.pack(
+            self.ENCAPSULATION,
+            sec,
+            nanosec,
+            len(self._frame_id),
+            self._frame_id,
+            int(rec.event_type),
+            x,
+            y,
+            z,
+            *np.asarray(rec.covariance_m2, dtype=np.float64).reshape(9).tolist(),
+            rec.polar_rad,
+            rec.azimuth_rad,
+            rec.tau_x_s,
+            rec.tau_y_s,
+            rec.amplitude_v,
+            rec.confidence,
+            n,
+            *ids,
+            rec.emission_rate_hz,
+            rec.spatial_period_m,
+            dx,
+            dy,
+            dz,
+        )
 
 
 def contact_record_of_msg(msg):

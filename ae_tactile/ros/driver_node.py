@@ -34,7 +34,6 @@ import json
 import logging
 import math
 import sys
-import threading
 import time
 from collections import deque
 
@@ -55,6 +54,7 @@ from ae_tactile.link import MODES, FingertipLink, LinkConfig
 from ae_tactile.msg import ContactEvent, ContactState, PacketArray, SensorInfo
 from ae_tactile.pipeline import ContactPipeline, PacketLocalizer, SlipStage
 from ae_tactile.ros.conversions import (
+    ContactEventWire,
     contact_event_msg,
     contact_state_msg,
     ns_to_time_msg,
@@ -388,7 +388,7 @@ class DriverNode(Node):
         self.pub_markers = self.create_publisher(MarkerArray, "markers", 10)
         self.markers = EventMarkers(self.frame_id, self.p["marker_lifetime_s"])
         self._marker_inbox: deque = deque(maxlen=64)  # ContactRecords not drawn yet
-        self._msgs = threading.local()  # per publishing thread: its reusable ContactEvent
+        self._wire = ContactEventWire(self.frame_id)
         self._state_key = None
         self._state_pub_ns = 0
         self.create_subscription(Float64, "sliding_speed", self._on_sliding_speed, 10)
@@ -405,25 +405,17 @@ class DriverNode(Node):
                 self.pub_packets.publish(msg)
             self.published_packets += len(batch.packets)
 
-    def _event_msg(self) -> ContactEvent:
-        """This thread's reusable ContactEvent (publish() serializes it at once; the reader
-        thread and the overlap resolver's thread publish, each with its own)."""
-        msg = getattr(self._msgs, "event", None)
-        if msg is None:
-            msg = self._msgs.event = ContactEvent()
-        return msg
-
     def _publish_contacts(self, records) -> None:
-        msg, frame_id, publish = self._event_msg(), self.frame_id, self.pub_contacts.publish
+        encode, publish = self._wire.encode, self.pub_contacts.publish
         for r in records:
-            publish(contact_event_msg(r, frame_id, msg))
+            publish(encode(r))  # the serialized message: no Python message on the hot path
         self._marker_inbox.extend(records)  # markers are drawn from the records, later
         self.published_events += len(records)
 
     def _publish_slip(self, records) -> None:
-        msg, frame_id, publish = self._event_msg(), self.frame_id, self.pub_slip.publish
+        encode, publish = self._wire.encode, self.pub_slip.publish
         for r in records:
-            publish(contact_event_msg(r, frame_id, msg))
+            publish(encode(r))
         self._marker_inbox.extend(records)
         self.published_slip += len(records)
 
