@@ -278,6 +278,10 @@ class FingertipLink:
     as it is decoded, instead of being queued for `poll()` (the lowest-latency path: the
     caller localizes and publishes right there). An exception in the sink is counted
     (``sink_errors``) and logged, never allowed to stop the reader.
+    on_idle: called from the reader thread after a read cycle that completed no frame
+    (nothing arrived within ``read_timeout_s``, or only part of a frame): the moment for
+    work the sink put off while more bytes were waiting (`bytes_waiting`). Same rules
+    as the sink.
     """
 
     def __init__(
@@ -287,10 +291,12 @@ class FingertipLink:
         on_batch: Callable[[], None] | None = None,
         logger: logging.Logger | None = None,
         sink: Callable[[PacketBatch], None] | None = None,
+        on_idle: Callable[[], None] | None = None,
     ):
         warm_up()  # the per-packet kernel is ready before the first packet
         self.config = config
         self.sink = sink
+        self.on_idle = on_idle
         self.clock_ns = clock_ns
         self.on_batch = on_batch
         self.log = logger or LOG
@@ -459,13 +465,18 @@ class FingertipLink:
         now_mono = time.monotonic()
         if data:
             self._last_byte_mono = now_mono
-            self._handle_frames(self.decoder.feed(data))
+            frames = self.decoder.feed(data)
+            self._handle_frames(frames)
+            if not frames:
+                self._idle()
         elif (
             self.decoder.pending_bytes
             and now_mono - self._last_byte_mono > self.config.idle_flush_s
         ):
             self.counters["idle_flushes"] += 1  # a frame cut short, then silence
             self._handle_frames(self.decoder.flush())
+        else:
+            self._idle()
         if (
             self._serial is not None
             and time.monotonic() - self._last_frame_mono > self.config.link_timeout_s
@@ -475,6 +486,25 @@ class FingertipLink:
                 f" ({self.decoder.bytes_received} bytes received in all)"
             )
             self.counters["link_timeouts"] += 1  # after the reason is readable in stats()
+
+    def _idle(self) -> None:
+        if self.on_idle is not None:
+            try:
+                self.on_idle()
+            except Exception as exc:  # the reader must survive any consumer bug
+                self.counters["sink_errors"] += 1
+                self.log.error("idle work of the packet consumer failed: %r", exc)
+
+    def bytes_waiting(self) -> bool:
+        """Whether bytes are waiting on the port now (one poll(0); False where the port
+        has no file descriptor to poll). For the sink: more packets are coming at once."""
+        fd = self._fd
+        if fd is None:
+            return False
+        try:
+            return bool(self._poller.poll(0))
+        except (OSError, ValueError, AttributeError):
+            return False
 
     def _read(self, ser) -> bytes:
         """Everything waiting, or block (<= read_timeout_s) for the first byte when idle.

@@ -39,6 +39,7 @@ import queue
 import subprocess
 import sys
 import threading
+import time
 from collections import Counter
 from dataclasses import dataclass, field
 from enum import IntEnum
@@ -76,6 +77,10 @@ SUSPECT_CONFIDENCE = 0.3
 #: excess 0.033-0.063; single emissions at 10-40 dB excess <= 0.025).
 OVERLAP_SUSPECT_CONFIDENCE = 0.6
 OVERLAP_SUSPECT_EXCESS = 0.028
+#: Longest time (s) the slip step of contact events already handed out may wait while
+#: more packets are waiting on the port (their contact events go out first; a slip
+#: event comes at most this much later than it would alone).
+SLIP_MAX_DEFER_S = 1e-3
 
 
 @dataclass(slots=True)
@@ -719,6 +724,8 @@ class ContactPipeline:
     counts: Counter = field(default_factory=Counter)
     overlaps: OverlapResolver | None = None
     _outputs: tuple = (None, None)  # (on_contacts, on_slip) of the latest process() call
+    _slip_pending: list = field(default_factory=list)  # contacts handed out, slip step due
+    _slip_pending_since: float = 0.0  # time.monotonic() of the oldest of them
 
     def start_overlaps(self, wait_s: float = 0.0) -> None:
         """Start the overlap resolver (and its worker process) now, not at the first
@@ -739,14 +746,47 @@ class ContactPipeline:
         packets: Sequence,
         on_contacts: Callable[[list], None],
         on_slip: Callable[[list], None] | None = None,
+        more_waiting: Callable[[], bool] | None = None,
     ) -> None:
+        """Localize, hand out the contact events, then run the slip step on them.
+
+        more_waiting: asked after the contact events are out (e.g. the link's
+        `bytes_waiting`); while it says more packets are already waiting, the slip step
+        is put off, at most ``SLIP_MAX_DEFER_S``, so that their contact events go out
+        first; `run_pending_slip` (the link's idle call) or a later `process` runs it.
+        """
         self._outputs = (on_contacts, on_slip)
         contacts = self.localizer.process(packets)
         if self.localizer.overlap_windows:
             self.start_overlaps()
             self.overlaps.geometry = self.localizer.geometry
             self.overlaps.submit(self.localizer.overlap_windows)
-        self.late(contacts, on_contacts, on_slip)
+        if more_waiting is None or self.slip is None:
+            self.late(contacts, on_contacts, on_slip)
+            return
+        if contacts:
+            on_contacts(contacts)
+            if not self._slip_pending:
+                self._slip_pending_since = time.monotonic()
+            self._slip_pending.extend(contacts)
+        if self._slip_pending and (
+            time.monotonic() - self._slip_pending_since >= SLIP_MAX_DEFER_S or not more_waiting()
+        ):
+            self.run_pending_slip()
+
+    @property
+    def slip_pending(self) -> bool:
+        """Contact events handed out whose slip step is still due."""
+        return bool(self._slip_pending)
+
+    def run_pending_slip(self) -> None:
+        """The slip step of contact events handed out while more packets were waiting."""
+        pending, self._slip_pending = self._slip_pending, []
+        if pending and self.slip is not None:
+            slips = self.slip.process(pending)
+            on_slip = self._outputs[1]
+            if slips and on_slip is not None:
+                on_slip(slips)
 
     def late(
         self,

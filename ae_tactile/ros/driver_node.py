@@ -321,6 +321,7 @@ class DriverNode(Node):
             self.link_config,
             clock_ns=self.now_ns,
             sink=self._on_batch,
+            on_idle=self._on_link_idle,
             logger=logging.getLogger("ae_tactile.link"),
         )
         self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
@@ -398,12 +399,23 @@ class DriverNode(Node):
     def _on_batch(self, batch) -> None:
         """Reader thread: one decoded batch -> events, published at once."""
         if self.pipeline is not None:
-            self.pipeline.process(batch.packets, self._publish_contacts, self._publish_slip)
+            self.pipeline.process(
+                batch.packets,
+                self._publish_contacts,
+                self._publish_slip,
+                more_waiting=self.link.bytes_waiting,
+            )
             self._publish_state()
         if self.pub_packets.get_subscription_count() > 0:
             for msg in packet_array_msgs(batch, self.frame_id):
                 self.pub_packets.publish(msg)
             self.published_packets += len(batch.packets)
+
+    def _on_link_idle(self) -> None:
+        """Reader thread, nothing more to read: the slip step put off under load."""
+        if self.pipeline is not None and self.pipeline.slip_pending:
+            self.pipeline.run_pending_slip()
+            self._publish_state()
 
     def _publish_contacts(self, records) -> None:
         encode, publish = self._wire.encode, self.pub_contacts.publish
