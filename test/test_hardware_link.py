@@ -93,6 +93,51 @@ def test_every_packet_arrives_once_in_order_exact_and_well_stamped(tmp_path, kin
         assert s["device_serial"] == "AE-SIM-0001"
 
 
+def test_the_sink_sees_waiting_bytes_and_gets_an_idle_call_after_the_last_packet(tmp_path):
+    """What the in-process pipeline relies on to put its slip step off under load:
+    `bytes_waiting` is true while the next frame sits on the port (the reader is held
+    in the sink, so it cannot have taken it), and the link calls `on_idle` once the
+    packets stop. Every packet still arrives once."""
+    transport = PtyTransport(str(tmp_path / "fingertip"))
+    device = VirtualFingertip(SCENE, record=True)
+    runner = DeviceRunner(device, transport)
+    calls, seen = [], {}
+
+    def sink(batch):
+        calls.append(("batch", len(batch.packets)))
+        if "waiting" not in seen:  # hold the reader until the device sent more
+            t_end = time.monotonic() + 30.0
+            while not link.bytes_waiting() and time.monotonic() < t_end:
+                time.sleep(0.001)
+            seen["waiting"] = link.bytes_waiting()
+
+    link = FingertipLink(
+        LinkConfig(port=transport.port),
+        clock_ns=time.monotonic_ns,
+        sink=sink,
+        on_idle=lambda: calls.append(("idle", 0)),
+    )
+    assert not link.bytes_waiting()  # no port open yet
+    runner.start()
+    link.start()
+    try:
+        t_end = time.monotonic() + 90.0
+        while time.monotonic() < t_end and not device.finished(time.monotonic_ns()):
+            time.sleep(0.01)
+        sent = [b for kind, _, b, f in device.sent_log if kind == "packet" and f == "sent"]
+        while time.monotonic() < t_end and sum(n for k, n in calls if k == "batch") < len(sent):
+            time.sleep(0.01)
+        time.sleep(0.1)  # > read_timeout_s: the cycles after the last packet
+    finally:
+        link.stop()
+        runner.stop()
+    assert seen["waiting"] is True
+    assert len(sent) >= 30 and sum(n for k, n in calls if k == "batch") == len(sent)
+    last_batch = max(i for i, c in enumerate(calls) if c[0] == "batch")
+    assert ("idle", 0) in calls[last_batch + 1 :]
+    assert link.stats()["sink_errors"] == 0
+
+
 def test_garbage_and_crc_faults_are_counted_exactly_and_lose_nothing_valid(tmp_path):
     rng = np.random.default_rng(3)
     garbage = bytes(rng.integers(0, 256, 5000, dtype=np.uint8))

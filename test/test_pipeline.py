@@ -173,6 +173,41 @@ def test_pipeline_reports_touches_before_slip_and_slip_events_name_the_deciding_
     assert all(s.packet_ids[-1] == max(s.packet_ids) for s in slips)
 
 
+def test_slip_step_put_off_while_packets_wait_gives_the_same_slip_events_after_the_contacts():
+    """With more packets waiting (the link's bytes_waiting), the slip step waits for them:
+    every contact event of a batch goes out before any slip event it decides, and the
+    slip events are exactly those of the immediate pipeline, in the same order."""
+    views, sc, _ = _slip_scene_packets()
+    geo = sc.config.geometry
+
+    def run(more_waiting, flush_every=None):
+        pipe = ContactPipeline(
+            PacketLocalizer("ml", geometry=geo, resolve_overlaps=False), SlipStage(SlipConfig())
+        )
+        handed, slips, late = set(), [], []
+
+        def on_contacts(cs):
+            handed.update(c.packet_ids[0] for c in cs)
+
+        def on_slip(ss):
+            late.extend(s for s in ss if s.packet_ids[-1] not in handed)
+            slips.extend(ss)
+
+        for k, i in enumerate(range(0, len(views), 4)):
+            pipe.process(views[i : i + 4], on_contacts, on_slip, more_waiting=more_waiting)
+            if flush_every and k % flush_every == flush_every - 1:
+                pipe.run_pending_slip()  # the link's idle call
+        pipe.run_pending_slip()
+        assert not pipe.slip_pending and not late
+        return [(s.event_type, s.time_ns, s.packet_ids) for s in slips]
+
+    immediate = run(None)
+    assert len(immediate) >= 10
+    assert run(lambda: False) == immediate
+    assert run(lambda: True, flush_every=7) == immediate  # bursts of 7 batches
+    assert run(lambda: True) == immediate  # up to SLIP_MAX_DEFER_S, then all at the end
+
+
 def test_slip_stage_processes_late_events_within_the_tolerance_and_counts_older_ones():
     views, sc, _ = _slip_scene_packets()
     loc = PacketLocalizer("ml", geometry=sc.config.geometry)
