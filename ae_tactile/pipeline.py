@@ -80,7 +80,7 @@ OVERLAP_SUSPECT_EXCESS = 0.028
 #: Longest time (s) the slip step of contact events already handed out may wait while
 #: more packets are waiting on the port (their contact events go out first; a slip
 #: event comes at most this much later than it would alone).
-SLIP_MAX_DEFER_S = 1e-3
+SLIP_MAX_DEFER_S = 0.5e-3
 
 
 @dataclass(slots=True)
