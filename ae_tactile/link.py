@@ -74,6 +74,9 @@ PORT_ERRORS = (serial.SerialException, OSError, TypeError, AttributeError, _Term
 LOG = logging.getLogger("ae_tactile.link")
 
 MODES = ("triggered", "stream")
+#: Bytes a Linux tty (serial port, USB CDC, pty) hands over per read at most: its line
+#: discipline's buffer (N_TTY_BUF_SIZE); a read that (nearly) fills it leaves more behind.
+TTY_LINE_BUFFER_BYTES = 4096
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
@@ -533,7 +536,9 @@ class FingertipLink:
                     raise  # EIO of a vanished pty, ENXIO, ...
             if data:
                 self._empty_hup_reads = 0
-                return self._drain(fd, data, chunk) if len(data) < chunk else data
+                if TTY_LINE_BUFFER_BYTES - 96 <= len(data) < chunk:
+                    return self._drain(fd, data, chunk)  # the line buffer was full: more waits
+                return data
             if flags & (select.POLLHUP | select.POLLERR):
                 # Hang-up: a few empty reads in a row mean the other end is gone.
                 self._empty_hup_reads += 1
@@ -560,11 +565,11 @@ class FingertipLink:
     def _drain(fd: int, data: bytes, chunk: int) -> bytes:
         """The first read's bytes plus whatever else is already waiting (up to ``chunk``).
 
-        A tty hands over at most its line buffer (4 KB) per read, about one PACKET frame:
+        A tty hands over at most its line buffer (4 KiB) per read, about one PACKET frame:
         when the reader fell behind, the rest waits in the kernel. Taking it now makes the
-        backlog one batch (localized together, cheaper per packet); when nothing waits,
-        this costs one non-blocking read that finds nothing (EAGAIN). A real error is left
-        for the next cycle's read, which reports it.
+        backlog one batch (localized together, cheaper per packet). Called only when the
+        first read (nearly) filled the line buffer, so a reader that keeps up pays no extra
+        read. A real error is left for the next cycle's read, which reports it.
         """
         parts, total = [data], len(data)
         while total < chunk:

@@ -94,21 +94,26 @@ def test_every_packet_arrives_once_in_order_exact_and_well_stamped(tmp_path, kin
 
 
 def test_the_sink_sees_waiting_bytes_and_gets_an_idle_call_after_the_last_packet(tmp_path):
-    """What the in-process pipeline relies on to put its slip step off under load:
-    `bytes_waiting` is true while the next frame sits on the port (the reader is held
-    in the sink, so it cannot have taken it), and the link calls `on_idle` once the
-    packets stop. Every packet still arrives once."""
+    """What the in-process pipeline relies on: `bytes_waiting` is true while frames sit on
+    the port (the reader is held in the sink, so it cannot have taken them), the frames
+    that waited come as one batch (more than the tty's 4 KiB per read), and the link
+    calls `on_idle` once the packets stop. Every packet still arrives once."""
     transport = PtyTransport(str(tmp_path / "fingertip"))
     device = VirtualFingertip(SCENE, record=True)
     runner = DeviceRunner(device, transport)
     calls, seen = [], {}
 
+    def packets_sent():
+        return [b for kind, _, b, f in device.sent_log if kind == "packet" and f == "sent"]
+
     def sink(batch):
         calls.append(("batch", len(batch.packets)))
-        if "waiting" not in seen:  # hold the reader until the device sent more
+        if "waiting" not in seen:  # hold the reader until the device sent 3 more packets
+            n0 = len(packets_sent())
             t_end = time.monotonic() + 30.0
-            while not link.bytes_waiting() and time.monotonic() < t_end:
+            while len(packets_sent()) < n0 + 3 and time.monotonic() < t_end:
                 time.sleep(0.001)
+            time.sleep(0.05)  # the last one's bytes are on the port
             seen["waiting"] = link.bytes_waiting()
 
     link = FingertipLink(
@@ -124,7 +129,7 @@ def test_the_sink_sees_waiting_bytes_and_gets_an_idle_call_after_the_last_packet
         t_end = time.monotonic() + 90.0
         while time.monotonic() < t_end and not device.finished(time.monotonic_ns()):
             time.sleep(0.01)
-        sent = [b for kind, _, b, f in device.sent_log if kind == "packet" and f == "sent"]
+        sent = packets_sent()
         while time.monotonic() < t_end and sum(n for k, n in calls if k == "batch") < len(sent):
             time.sleep(0.01)
         time.sleep(0.1)  # > read_timeout_s: the cycles after the last packet
@@ -132,6 +137,8 @@ def test_the_sink_sees_waiting_bytes_and_gets_an_idle_call_after_the_last_packet
         link.stop()
         runner.stop()
     assert seen["waiting"] is True
+    # what waited while the reader was held comes as one batch (a backlog is batched)
+    assert max(n for k, n in calls if k == "batch") >= 3
     assert len(sent) >= 30 and sum(n for k, n in calls if k == "batch") == len(sent)
     last_batch = max(i for i, c in enumerate(calls) if c[0] == "batch")
     assert ("idle", 0) in calls[last_batch + 1 :]
