@@ -18,6 +18,7 @@ import random
 import shutil
 import signal
 import subprocess
+import sys
 import tempfile
 import time
 import uuid
@@ -601,3 +602,47 @@ def test_ctrl_c_at_any_stage_of_start_up_exits_0_quietly(tmp_path, delay_s):
                                 ready_library="_rclpy_pybind11")
     assert code == 0, out
     assert "Traceback" not in out, out
+
+
+_CALLBACK_SCRIPT = """
+import ctypes, os, signal, sys, time
+from ae_tactile.ros.node_utils import ros_session
+
+def body():
+    def cb():  # C calls back into Python (as llvmlite does while numba loads kernels)
+        os.kill(os.getpid(), signal.SIGINT)
+        t_end = time.monotonic() + 10.0
+        while time.monotonic() < t_end:  # the handler runs here and raises
+            pass
+    ctypes.CFUNCTYPE(None)(cb)()
+
+if sys.argv[1] == "session":
+    with ros_session() as state:
+        body()
+        print("stop recorded:", state["stop"].is_set(), flush=True)
+else:  # the same interrupt without the session: Python reports it as ignored
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+    signal.signal(signal.SIGINT, handler)
+    body()
+    print("went on", flush=True)
+"""
+
+
+def test_ctrl_c_inside_a_c_callback_during_start_up_is_recorded_not_printed():
+    """A stop signal that lands while C code calls back into Python (llvmlite's callbacks
+    while numba loads or compiles the kernels at start-up): the KeyboardInterrupt cannot
+    be raised there; the node records the stop and prints no traceback. Without the
+    session's handling, Python prints 'Exception ignored ... Traceback'."""
+    require_ros()
+    runs = {}
+    for mode in ("session", "bare"):
+        runs[mode] = subprocess.run(
+            [sys.executable, "-c", _CALLBACK_SCRIPT, mode],
+            capture_output=True, text=True, timeout=60, cwd=tempfile.gettempdir(),
+        )
+    bare, session = runs["bare"], runs["session"]
+    assert "Exception ignored" in bare.stderr and "KeyboardInterrupt" in bare.stderr
+    assert session.returncode == 0, session.stderr
+    assert "stop recorded: True" in session.stdout
+    assert "Traceback" not in session.stderr and "Exception ignored" not in session.stderr

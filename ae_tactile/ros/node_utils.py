@@ -69,10 +69,24 @@ def _stop_on_signals(state: dict):
         if first and state["interrupt"]:
             raise KeyboardInterrupt
 
+    previous_hook = sys.unraisablehook
+
+    def unraisable(info):
+        # That KeyboardInterrupt, when the signal lands while C code calls back into Python
+        # (a ctypes callback, e.g. llvmlite's while numba loads or compiles kernels at
+        # start-up): Python cannot raise it there and would print it as "Exception ignored"
+        # with a traceback. The stop is already recorded in state['stop'] (the start-up
+        # goes on and the node exits without spinning): nothing to report.
+        if info.exc_type is KeyboardInterrupt and stop.is_set():
+            return
+        previous_hook(info)
+
     previous = {sig: signal.signal(sig, handler) for sig in _STOP_SIGNALS}
+    sys.unraisablehook = unraisable
     try:
         yield
     finally:
+        sys.unraisablehook = previous_hook
         for sig, old in previous.items():
             signal.signal(sig, old)
 
