@@ -15,6 +15,7 @@ generous timeouts, never on speed.
 import importlib.util
 import os
 import random
+import re
 import shutil
 import signal
 import subprocess
@@ -137,6 +138,16 @@ class LaunchRun:
         self._log.close()
 
 
+def launch_lost_exit_status(out: str) -> set:
+    """Pids whose exit status the launcher itself lost: asyncio's child watcher (Python
+    3.11) found the process already reaped, because launch signalled it (Popen.send_signal
+    polls, and so reaps, a process that has just exited) before the watcher's waitpid ran;
+    it then logs 'Unknown child process pid N, will report returncode 255' and launch
+    reports 'process has died [pid N, exit code 255'. The process did exit (the test checks
+    that none is left); only its status is unknown."""
+    return set(re.findall(r"Unknown child process pid (\d+), will report returncode 255", out))
+
+
 def assert_clean_stop(run: LaunchRun, expected_exit=0):
     """Ctrl-C ends everything: exit code, no traceback, no process left."""
     code = run.interrupt()
@@ -145,9 +156,13 @@ def assert_clean_stop(run: LaunchRun, expected_exit=0):
     assert code == expected_exit, f"ros2 launch exit code {code}\n{out[-4000:]}"
     assert not left, f"processes left after Ctrl-C: {left}"
     assert "Traceback" not in out, out[-6000:]
-    for bad in ("RCLError", "context is not valid", "escalating to 'SIGTERM'",
-                "process has died"):
+    for bad in ("RCLError", "context is not valid", "escalating to 'SIGTERM'"):
         assert bad not in out, f"{bad!r} in the launch output:\n{out[-6000:]}"
+    lost = launch_lost_exit_status(out)
+    died = re.findall(r"process has died \[pid (\d+), exit code (-?\d+)", out)
+    assert all(pid in lost and code == "255" for pid, code in died), (
+        f"a process died:\n{out[-6000:]}"
+    )
 
 
 # ------------------------------------------------------------------ probe node
