@@ -63,6 +63,7 @@ import scipy.fft as sfft
 from scipy import signal
 
 from ae_tactile.geometry import FingertipGeometry, front_end_lowpass
+from ae_tactile.localization import overlap_kernels as _kernels
 from ae_tactile.localization.common import (
     Reason,
     adc_noise,
@@ -215,6 +216,11 @@ class _Tables:
     res: np.ndarray
     table: np.ndarray
     h_samples: np.ndarray  # h(m dt), m = 0..L-1 (matched filter)
+    #: one pole of each conjugate pair (residue doubled: Re(c e^{pt}) + Re(c* e^{p* t}) =
+    #: 2 Re(c e^{pt})) and the real poles; their tables [Re; Im]: the compiled kernels'
+    half_poles: np.ndarray
+    half_res: np.ndarray
+    half_table: np.ndarray
 
 
 def _given(prep):
@@ -232,7 +238,15 @@ def _tables(pulse: PulseModel, fs: float, n: int) -> _Tables:
         e = np.exp(p[:, None] * (np.arange(n) / fs)[None, :])
         tab = np.ascontiguousarray(np.vstack([e.real, e.imag]))
         h = (r[:, None] * e).sum(axis=0).real
-        t = _TAB_CACHE[key] = _Tables(p, r, tab, h)
+        tiny = 1e-9 * np.abs(p)
+        upper, real = p.imag > tiny, np.abs(p.imag) <= tiny
+        if upper.sum() == (p.imag < -tiny).sum():  # every complex pole has its conjugate
+            keep = upper | real
+        else:
+            keep = np.ones(p.size, bool)
+        hp, hr, eh = p[keep], (np.where(upper, 2.0, 1.0) * r)[keep], e[keep]
+        htab = np.ascontiguousarray(np.vstack([eh.real, eh.imag]))
+        t = _TAB_CACHE[key] = _Tables(p, r, tab, h, hp.copy(), hr.copy(), htab)
     return t
 
 
@@ -304,6 +318,7 @@ class _Model:
         pulse: PulseModel,
         echo: bool,
         inside=None,
+        engine: str = "auto",
     ):
         #: (K, 4L) 1 where the segment's sample lies inside the window, else 0
         self.mask = (
@@ -321,6 +336,8 @@ class _Model:
         self.e = geo.element_positions_m  # (4, 3)
         self.c = geo.sound_speed_m_s
         self.R = geo.radius_m
+        #: "auto": the compiled kernels where they apply (`_compiled`); "numpy": never
+        self.engine = engine
 
     def _paths(self, s):
         """Path lengths and their (s_x, s_y) gradients. s (K, J, 2).
@@ -451,6 +468,8 @@ def _lm(model: "_Model", y, theta, iterations=12, max_rho=None):
     K, J, _ = theta.shape
     geo = model.geo
     max_rho = geo.radius_m * math.sin(math.radians(85.0)) if max_rho is None else max_rho
+    if _compiled(model):
+        return _lm_compiled(model, y, theta, iterations, max_rho)
     theta = _clip_theta(theta, geo, max_rho)
     phi, parts = model.evaluate(theta)
     amp = _lstsq_amplitudes(phi, y)
@@ -500,6 +519,50 @@ def _lm(model: "_Model", y, theta, iterations=12, max_rho=None):
     return theta, amp, rss, jac @ jac.transpose(0, 2, 1)
 
 
+def _compiled(model: "_Model") -> bool:
+    """The compiled kernels apply: numba present, not refused, a lossless medium."""
+    return (
+        model.engine != "numpy"
+        and _kernels.NUMBA_AVAILABLE
+        and not model.pulse.attenuation_db_per_m_at_1mhz > 0
+    )
+
+
+def _lm_compiled(model: "_Model", y, theta, iterations, max_rho):
+    """`_lm` by `overlap_kernels.lm_fit`, one window at a time (same outputs)."""
+    K, J, _ = theta.shape
+    P = model.tab.half_poles.size
+    tab = model.tab.half_table
+    mask = np.ones(y.shape[1]) if model.mask is None else model.mask
+    th = np.empty((K, J, 3))
+    amp = np.empty((K, 2 * J))
+    rss = np.empty(K)
+    gram = np.empty((K, 5 * J, 5 * J))
+    elem = np.ascontiguousarray(model.e, dtype=np.float64)
+    for k in range(K):
+        rss[k] = _kernels.lm_fit(
+            np.ascontiguousarray(y[k], dtype=np.float64),
+            np.ascontiguousarray(mask if mask.ndim == 1 else mask[k], dtype=np.float64),
+            float(model.start[k]) / model.fs,
+            np.ascontiguousarray(theta[k], dtype=np.float64),
+            elem,
+            float(model.c),
+            float(model.R),
+            bool(model.echo),
+            float(model.fs),
+            model.tab.half_poles,
+            model.tab.half_res,
+            tab[:P],
+            tab[P:],
+            int(iterations),
+            float(max_rho),
+            th[k],
+            amp[k],
+            gram[k],
+        )
+    return th, amp, rss, gram
+
+
 # --------------------------------------------------------------------------- grid search
 def _surface_grid(geo: FingertipGeometry, spacing_m, max_polar_deg=80.0):
     """(G, 2) square grid of (s_x, s_y) over the cap polar <= max_polar_deg."""
@@ -539,10 +602,17 @@ def _grid_search(model: _Model, r, grid, chunk=64, n_peaks=1, min_sep_s=0.8e-6):
     # band ends at 1 MHz <= fs/5), then the best point's neighbours
     mm = np.arange(0, L, 2 if fs >= 5e6 else 1)
     min_sep = max(1, int(round(min_sep_s * fs)))
-    idx = rel[:, :, None] + mm[None, None, :]  # (G, 4, L/2)
     prof = np.zeros((K, mm.size))
     prof_g = np.zeros((K, mm.size), np.int64)
-    for k0 in range(0, K, chunk):
+    if _compiled(model):
+        norm32 = norm.astype(np.float32)
+        p32 = np.empty(mm.size, np.float32)
+        for k in range(K):
+            _kernels.grid_profile(cp[k], gain32, rel, norm32, mm, p32, prof_g[k])
+            prof[k] = p32
+    else:
+        idx = rel[:, :, None] + mm[None, None, :]  # (G, 4, L/2)
+    for k0 in range(0, K if not _compiled(model) else 0, chunk):
         sl = slice(k0, min(K, k0 + chunk))
         c = np.zeros((sl.stop - sl.start, grid.shape[0], mm.size), np.float32)
         for ch in range(4):
@@ -743,6 +813,7 @@ def resolve_overlaps(
     echo=True,
     grid_spacing_m=1.0e-3,
     min_separation_s=1.5e-6,
+    engine="auto",
 ) -> list:
     """Localize every emission in each of K windows (two or three overlapping emissions).
 
@@ -758,7 +829,8 @@ def resolve_overlaps(
     larger in-plane 1-sigma are dropped. echo: model the first wall echo.
     min_separation_s: emissions fitted closer than this in time are not separated reliably
     (the joint likelihood has several nearly equal optima): such packets are rejected
-    (UNRESOLVED).
+    (UNRESOLVED). engine: "auto" fits with the compiled kernels (`overlap_kernels`) when
+    numba is present and the medium lossless, "numpy" always with the numpy path.
 
     Returns a list of K `OverlapPacket` (``sources`` earliest first, or a rejection reason).
     Parameter and shape errors raise ValueError / TypeError; data problems are rejections.
@@ -788,6 +860,8 @@ def resolve_overlaps(
     min_separation_s = float(min_separation_s)
     if not (math.isfinite(min_separation_s) and min_separation_s >= 0):
         raise ValueError(f"min_separation_s must be >= 0, got {min_separation_s!r}")
+    if engine not in ("auto", "numpy"):
+        raise ValueError(f"engine must be 'auto' or 'numpy', got {engine!r}")
     x, on = validate_windows(windows, onset_index)
     plan = make_plan(sample_rate_hz, geo, x.shape[2], band_hz)
     K = x.shape[0]
@@ -811,7 +885,7 @@ def resolve_overlaps(
             seg, start, length, inside = _segments(
                 subset(prep, ids), plan, geo, plan.fs, analysis_s
             )
-            model = _Model(geo, plan.fs, start, length, pulse, echo, inside)
+            model = _Model(geo, plan.fs, start, length, pulse, echo, inside, engine)
             res = _decide(
                 model,
                 seg,
