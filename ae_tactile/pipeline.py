@@ -479,11 +479,11 @@ class OverlapResolver:
     lost rather than delaying anything else.
 
     The fit runs in a worker process (`ae_tactile.localization.overlap_worker`, started
-    here, warmed up before the first window): its tens of milliseconds of Python per
-    window would otherwise hold the interpreter lock against the thread that localizes
-    every other packet. The thread here only passes windows and answers over pipes. Where
-    the process cannot run (``use_process=False``, or it failed), the thread resolves
-    the windows itself (``overlap_worker_unavailable``).
+    here, warmed up before the first window): its milliseconds per window (compiled fits
+    plus numpy and Python around them) would otherwise hold the interpreter lock against
+    the thread that localizes every other packet. The thread here only passes windows
+    and answers over pipes. Where the process cannot run (``use_process=False``, or it
+    failed), the thread resolves the windows itself (``overlap_worker_unavailable``).
     """
 
     def __init__(

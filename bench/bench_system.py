@@ -218,8 +218,8 @@ def run_case(name: str, counts, first, fs, vpc, body, *, namespace: str) -> dict
     out["writer_lag_ms_p99"] = (
         float(np.percentile((written[ok] - sched[ok]) * 1e-6, 99)) if ok.any() else None
     )
-    # A window the overlap resolver handles (a worker process, tens of milliseconds per
-    # window, not the hot path) gives two contact events with its packet id.
+    # A window the overlap resolver handles (a worker process, ~2 ms per window, not the
+    # hot path) gives two contact events with its packet id.
     contact_ids = rows[np.isin(rows[:, 1], (1, 2)), 2] if rows.size else np.zeros(0, np.int64)
     ids_seen, n_seen = np.unique(contact_ids, return_counts=True)
     overlapped = ids_seen[n_seen >= 2]

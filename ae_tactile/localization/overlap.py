@@ -30,9 +30,10 @@ emission are part of the model. Search (RELAX, cyclic superimposed-signal estima
      travel times of a 1 mm grid of surface points; the three best points at distinct
      times are kept, the best starts the Levenberg-Marquardt fit of one emission;
   2. emission 2 is searched only when the one-emission residual is not noise: joint LM
-     from (emission 1, best grid point of the residual), from each pair of the three time
-     peaks of step 1, from emission 1 re-searched on the data minus emission 2 (RELAX),
-     and with the points swapped; the best residual wins. A third emission likewise;
+     from (emission 1, best grid point of the residual); where that still leaves more
+     than noise, also from each pair of the three time peaks of step 1, from emission 1
+     re-searched on the data minus emission 2 (RELAX), and with the points swapped; the
+     best residual wins. A third emission likewise;
   3. model order: J + 1 emissions only if the residual energy falls by more than
      ``add_threshold`` sigma^2 (a generalised likelihood-ratio test; single-source packets
      stay single, measured in docs/localization.md);
@@ -49,7 +50,8 @@ emission time by the matched filter along the accepted point's travel times, one
 LS on [h, h'] (direct wave and echo), chi^2 per degree of freedom against the same limit.
 `localize_with_overlaps` chains the fast path, the test and the overlap fit.
 `calibrate_pulse` fits the front-end corners of `PulseModel` to single touches;
-`simulate_overlaps` and `joint_crlb` make test windows and the Cramer-Rao bound.
+`simulate_overlaps` and `joint_crlb` make test windows and the Cramer-Rao bound. The LM
+fits and the grid run as compiled kernels where numba is present (`overlap_kernels`).
 """
 
 from __future__ import annotations
@@ -729,35 +731,17 @@ def _search(
             thn, _ = _grid_search(sub, res.reshape(len(ids), 4, -1), grid)
             start = np.concatenate([prev.theta[ids], thn[:, None, :]], axis=1)
             t1, a1, r1, j1 = _lm(sub, ys, start)
-            if j == 2:
-                # pairs of the first search's peaks in time (two similar emissions a few
-                # us apart make a spurious single-emission optimum between them)
-                cs = cands[ids]
-                for q, p in ((0, 1), (0, 2), (1, 2)):
-                    t2, a2, r2, j2 = _lm(sub, ys, cs[:, [q, p]].copy())
-                    b = r2 < r1
-                    t1[b], a1[b], r1[b], j1[b] = t2[b], a2[b], r2[b], j2[b]
-            # RELAX: re-start each earlier emission from the data minus the others.
-            for i in range(j - 1):
-                keep = [q for q in range(j) if q != i]
-                phi, _ = sub.evaluate(t1[:, keep])
-                cols = np.concatenate([[2 * q, 2 * q + 1] for q in keep])
-                res = ys - _model_values(phi, a1[:, cols])
-                thi, _ = _grid_search(sub, res.reshape(len(ids), 4, -1), grid)
-                st = t1.copy()
-                st[:, i] = thi
-                t2, a2, r2, j2 = _lm(sub, ys, st)
-                b = r2 < r1
-                t1[b], a1[b], r1[b], j1[b] = t2[b], a2[b], r2[b], j2[b]
-            # Swapped points (same emission times): the local optimum of nearly
-            # simultaneous emissions of similar strength.
-            for q in range(j):
-                for p in range(q + 1, j):
-                    st = t1.copy()
-                    st[:, q, :2], st[:, p, :2] = t1[:, p, :2], t1[:, q, :2]
-                    t2, a2, r2, j2 = _lm(sub, ys, st)
-                    b = r2 < r1
-                    t1[b], a1[b], r1[b], j1[b] = t2[b], a2[b], r2[b], j2[b]
+            # Other starting points, only where this fit leaves more than noise (a fit at
+            # the noise level explains the data; the others guard against local optima).
+            alt = np.arange(len(ids))
+            if sigma2 is not None:
+                n_in = y.shape[1] if sub.mask is None else sub.mask.sum(axis=1)
+                dof = np.maximum(n_in - 5 * j, 1)
+                alt = np.nonzero(r1 > search_limit[ids] * sigma2[ids] * dof)[0]
+            if alt.size:
+                _alternatives(
+                    _sub(sub, alt), ys[alt], j, cands[ids[alt]], grid, alt, t1, a1, r1, j1
+                )
             # order emissions by emission time
             order = np.argsort(t1[..., 2], axis=1)
             t1 = np.take_along_axis(t1, order[..., None], axis=1)
@@ -772,6 +756,41 @@ def _search(
             theta[ids], amp[ids], rss[ids], jac[ids] = t1, a1, r1, j1
         fits.append(_Fit(theta, amp, rss, jac))
     return fits
+
+
+def _alternatives(sub, ys, j, cs, grid, rows, t1, a1, r1, j1) -> None:
+    """Joint fits of j emissions from other starting points; where one ends with a smaller
+    residual it replaces rows ``rows`` of (t1, a1, r1, j1) in place."""
+    t1_, a1_, r1_, j1_ = t1[rows], a1[rows], r1[rows], j1[rows]
+
+    def take(fit):
+        t2, a2, r2, j2 = fit
+        b = r2 < r1_
+        t1_[b], a1_[b], r1_[b], j1_[b] = t2[b], a2[b], r2[b], j2[b]
+
+    if j == 2:
+        # pairs of the first search's peaks in time (two similar emissions a few us apart
+        # make a spurious single-emission optimum between them)
+        for q, p in ((0, 1), (0, 2), (1, 2)):
+            take(_lm(sub, ys, cs[:, [q, p]].copy()))
+    # RELAX: re-start each earlier emission from the data minus the others.
+    for i in range(j - 1):
+        keep = [q for q in range(j) if q != i]
+        phi, _ = sub.evaluate(t1_[:, keep])
+        cols = np.concatenate([[2 * q, 2 * q + 1] for q in keep])
+        res = ys - _model_values(phi, a1_[:, cols])
+        thi, _ = _grid_search(sub, res.reshape(len(rows), 4, -1), grid)
+        st = t1_.copy()
+        st[:, i] = thi
+        take(_lm(sub, ys, st))
+    # Swapped points (same emission times): the local optimum of nearly simultaneous
+    # emissions of similar strength.
+    for q in range(j):
+        for p in range(q + 1, j):
+            st = t1_.copy()
+            st[:, q, :2], st[:, p, :2] = t1_[:, p, :2], t1_[:, q, :2]
+            take(_lm(sub, ys, st))
+    t1[rows], a1[rows], r1[rows], j1[rows] = t1_, a1_, r1_, j1_
 
 
 def _sub(model: _Model, ids) -> _Model:

@@ -1,10 +1,10 @@
 # SPDX-License-Identifier: Apache-2.0
 """Worker process of the overlap resolver: ``python -m ae_tactile.localization.overlap_worker``.
 
-Resolving a window that holds several emissions costs tens of milliseconds of Python and
-NumPy (`resolve_overlaps`). In the driver's process that time would hold the interpreter
-lock against the reader thread, which localizes every other packet in microseconds; in
-its own process it runs beside it on another core.
+Resolving a window that holds several emissions costs milliseconds (`resolve_overlaps`:
+compiled fits, plus numpy and Python around them). In the driver's process that time
+would hold the interpreter lock against the reader thread, which localizes every other
+packet in microseconds; in its own process it runs beside it on another core.
 
 Protocol (pickle, both ways, one message per window): stdin gets
 ``(samples (4, M) float64 volts, sample_rate_hz, onset_index, geometry, pulse)``; stdout
