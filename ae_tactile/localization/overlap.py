@@ -567,13 +567,69 @@ def _lm_compiled(model: "_Model", y, theta, iterations, max_rho):
 
 # --------------------------------------------------------------------------- grid search
 def _surface_grid(geo: FingertipGeometry, spacing_m, max_polar_deg=80.0):
-    """(G, 2) square grid of (s_x, s_y) over the cap polar <= max_polar_deg."""
-    rmax = geo.radius_m * math.sin(math.radians(max_polar_deg))
-    n = int(math.ceil(rmax / spacing_m))
-    g = np.arange(-n, n + 1) * spacing_m
-    gx, gy = np.meshgrid(g, g, indexing="ij")
-    keep = np.hypot(gx, gy) <= rmax
-    return np.stack([gx[keep], gy[keep]], axis=1)
+    """(G, 2) square grid of (s_x, s_y) over the cap polar <= max_polar_deg (cached; do
+    not modify the array)."""
+    key = (geo, float(spacing_m), float(max_polar_deg))
+    grid = _GRID_CACHE.get(key)
+    if grid is None:
+        rmax = geo.radius_m * math.sin(math.radians(max_polar_deg))
+        n = int(math.ceil(rmax / spacing_m))
+        g = np.arange(-n, n + 1) * spacing_m
+        gx, gy = np.meshgrid(g, g, indexing="ij")
+        keep = np.hypot(gx, gy) <= rmax
+        grid = np.stack([gx[keep], gy[keep]], axis=1)
+        grid.setflags(write=False)
+        if len(_GRID_CACHE) > 16:
+            _GRID_CACHE.clear()
+        _GRID_CACHE[key] = grid
+    return grid
+
+
+_GRID_CACHE: dict = {}
+
+
+@dataclass(frozen=True)
+class _GridTables:
+    """What the grid search needs of a grid, a geometry and a pulse (cached per segment
+    length): distances d (G, 4), direct gains R / d, travel times tt, integer relative
+    delays rel (G, 4), ||phi||^2 per point, float32 copies, the conjugate spectrum of h."""
+
+    d: np.ndarray
+    gain: np.ndarray
+    tt: np.ndarray
+    rel: np.ndarray
+    pad: int
+    norm: np.ndarray
+    gain32: np.ndarray
+    norm32: np.ndarray
+    nfft: int
+    h_conj_spectrum: np.ndarray
+
+
+def _grid_tables(model: _Model, grid, L) -> _GridTables:
+    key = (model.geo, model.fs, model.pulse, L, grid.shape, grid.tobytes())
+    t = _GRID_TAB_CACHE.get(key)
+    if t is None:
+        fs = model.fs
+        h = model.tab.h_samples
+        nfft = sfft.next_fast_len(2 * L, real=True)
+        d = model.geo._xy_distances(grid[:, 0], grid[:, 1])  # (G, 4)
+        gain = model.R / d
+        tt = d / model.c
+        rel = np.rint((tt - tt.min(axis=1, keepdims=True)) * fs).astype(np.int64)  # (G, 4)
+        # ||phi||^2 for an arrival inside the segment: sum_k gain^2 sum h^2
+        norm = (gain**2).sum(axis=1) * float((h * h).sum())
+        t = _GridTables(
+            d, gain, tt, rel, int(rel.max()) + 1, norm, gain.astype(np.float32),
+            norm.astype(np.float32), nfft, np.conj(sfft.rfft(h, n=nfft)),
+        )
+        if len(_GRID_TAB_CACHE) > 64:
+            _GRID_TAB_CACHE.clear()
+        _GRID_TAB_CACHE[key] = t
+    return t
+
+
+_GRID_TAB_CACHE: dict = {}
 
 
 def _grid_search(model: _Model, r, grid, chunk=64, n_peaks=1, min_sep_s=0.8e-6):
@@ -584,22 +640,12 @@ def _grid_search(model: _Model, r, grid, chunk=64, n_peaks=1, min_sep_s=0.8e-6):
     profile max_g |C|^2 / ||phi||^2 (>= ``min_sep_s`` from earlier ones)."""
     K, _, L = r.shape
     fs = model.fs
-    h = model.tab.h_samples
-    nfft = sfft.next_fast_len(2 * L, real=True)
-    H = np.conj(sfft.rfft(h, n=nfft))
+    gt = _grid_tables(model, grid, L)
+    nfft, H = gt.nfft, gt.h_conj_spectrum
     corr = sfft.irfft(sfft.rfft(r, n=nfft, axis=2) * H, n=nfft, axis=2)[..., :L]  # arrival at n
-    d = model.geo._xy_distances(grid[:, 0], grid[:, 1])  # (G, 4)
-    gain = model.R / d
-    tt = d / model.c
-    rel = np.rint((tt - tt.min(axis=1, keepdims=True)) * fs).astype(np.int64)  # (G, 4)
-    pad = int(rel.max()) + 1
-    # ||phi||^2 for an arrival inside the segment: sum_k gain^2 sum h^2
-    norm = (gain**2).sum(axis=1) * float((h * h).sum())
-    best_val = np.full(K, -np.inf)
-    best_g = np.zeros(K, np.int64)
-    best_m = np.zeros(K, np.int64)
-    cp = np.concatenate([corr, np.zeros((K, 4, pad + 2))], axis=2).astype(np.float32)
-    gain32 = gain.astype(np.float32)
+    gain, tt, rel, pad, norm, gain32 = gt.gain, gt.tt, gt.rel, gt.pad, gt.norm, gt.gain32
+    cp = np.zeros((K, 4, L + pad + 2), np.float32)
+    cp[:, :, :L] = corr
     # every second arrival sample first at >= 5 MS/s (the matched filter is smooth: the
     # band ends at 1 MHz <= fs/5), then the best point's neighbours
     mm = np.arange(0, L, 2 if fs >= 5e6 else 1)
@@ -607,10 +653,9 @@ def _grid_search(model: _Model, r, grid, chunk=64, n_peaks=1, min_sep_s=0.8e-6):
     prof = np.zeros((K, mm.size))
     prof_g = np.zeros((K, mm.size), np.int64)
     if _compiled(model):
-        norm32 = norm.astype(np.float32)
         p32 = np.empty(mm.size, np.float32)
         for k in range(K):
-            _kernels.grid_profile(cp[k], gain32, rel, norm32, mm, p32, prof_g[k])
+            _kernels.grid_profile(cp[k], gain32, rel, gt.norm32, mm, p32, prof_g[k])
             prof[k] = p32
     else:
         idx = rel[:, :, None] + mm[None, None, :]  # (G, 4, L/2)
