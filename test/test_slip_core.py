@@ -127,6 +127,51 @@ def test_touch_release_cycles_and_taps_near_a_held_touch_never_alarm():
     assert det.state.state == ContactState.STICK  # the first touch is still held
 
 
+def _lost_release_cycles(release_lost):
+    """A touch (its release lost), then touches 1.5 .. 2.5 mm round it, each released on
+    its spot unless ``release_lost[k]``: (events, packet ids of the unpaired touches)."""
+    events, lost = [ev(0, 0, 0, 1, 0)], []
+    t, pid = 300 * MS, 1
+    for k, is_lost in enumerate(release_lost):
+        a = 2.4 * k
+        x, y = 2e-3 * math.cos(a), 2e-3 * math.sin(a)
+        events.append(ev(t, x, y, 1, pid))
+        if is_lost:
+            lost.append(pid)
+        else:
+            events.append(ev(t + 150 * MS, x + 5e-6, y, -1, pid + 1))
+        t += 400 * MS
+        pid += 2
+    return events, lost
+
+
+def test_touches_round_a_held_touch_whose_release_was_lost_are_no_precursor():
+    """Touch-release cycles round a touch whose release the localizer lost: once a touch and
+    its release were seen on one spot, unpaired compressions of that contact are touches
+    whose release is still to come or was lost, not micro-slips: no precursor, even when
+    two releases in a row are lost."""
+    events, lost = _lost_release_cycles([False, True, True, False, True])
+    det = SlipDetector()
+    assert run(det, events) == []
+    assert len(lost) == 3 and det.counts["pairs"] >= 2
+    # without the touch-release rule the same sequence is a (false) precursor
+    det = SlipDetector(SlipConfig(touched_compression_weight=1.0))
+    assert SlipEventType.SLIP_PRECURSOR in kinds(run(det, events))
+
+
+def test_micro_slip_rarefactions_still_count_next_to_touch_release_activity():
+    """After a touch-release pair in a contact, rarefactions off every spot (micro-slips;
+    a release is on its touch's spot) are still evidence: precursor."""
+    events, _ = _lost_release_cycles([False])
+    t0 = events[-1].time_ns + 50 * MS
+    rng = np.random.default_rng(4)
+    ring = ring_events(rng, 6, t0, 40.0, (0, 0), 1.2e-3, width_m=0.2e-3, pid0=100)
+    ring = [ev(e.time_ns, *(e.point_m[:2]), -1, e.packet_id) for e in ring]
+    outs = run(SlipDetector(), events + ring)
+    pre = [o for o in outs if o.kind == SlipEventType.SLIP_PRECURSOR and o.onset]
+    assert pre and pre[0].packet_ids[-1] in {e.packet_id for e in ring[1:4]}
+
+
 def test_lone_orphan_release_is_not_a_contact_nor_a_precursor():
     det = SlipDetector()
     outs = det.process(ev(0, 1e-3, 1e-3, -1, 1))  # its touch was missed

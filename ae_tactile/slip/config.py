@@ -186,6 +186,17 @@ class SlipConfig:
         0.0,
         1.0,
     )
+    touched_compression_weight: float = _p(
+        0.0,
+        "weight of a compression as micro-slip evidence in a contact where a touch and its "
+        "release (a compression, then a rarefaction on its spot) came within "
+        "evidence_window_s: objects touch and leave there, and an unpaired compression is a "
+        "touch whose release is still to come or was lost rather than a micro-slip "
+        "(rarefactions still count)",
+        "",
+        0.0,
+        1.0,
+    )
     rate_window_s: float = _p(
         0.1, "slip emission rate = count in this window / its length", "s", 0.0, 60.0, lo_open=True
     )

@@ -149,6 +149,7 @@ class _Contact:
         self.confirmed = confirmed
         self.pending_release_ns = None
         self.pending_in_slip = False  # a release-like emission while slipping
+        self.touch_release_ns = None  # latest touch-release pair (not the founder's)
         self.founder = None  # (point, variance, polarity) of the founder
         self.last_p = None  # latest emission's point
         self.precursor_count = 0
@@ -494,6 +495,12 @@ class SlipDetector:
                     if F[j] & FOUNDER:
                         c.pending_release_ns, c.pending_in_slip = t, False
                         self.counts["releases"] += 1
+                    elif ev.polarity < 0 < int(c.pol[j]) and float(d2[j]) <= 9.0 * (
+                        float(c.var[j]) + var
+                    ):
+                        # a touch and its release on one spot (3 sigma, no model floor: a
+                        # micro-slip landing near an earlier one rarely comes that close)
+                        c.touch_release_ns = t
                 else:
                     flags |= REPEAT
                     self.counts["repeats"] += 1
@@ -521,10 +528,11 @@ class SlipDetector:
             T, F = c.t[:k], c.flags[:k]
             ev_mask = ((F & EVID) != 0) & (T > t - self._w_ev)
             n_ev = float(ev_mask.sum())
-            if cfg.compression_evidence_weight < 1.0:
-                n_ev -= (1.0 - cfg.compression_evidence_weight) * float(
-                    (ev_mask & (c.pol[:k] > 0)).sum()
-                )
+            w = cfg.compression_evidence_weight
+            if c.touch_release_ns is not None and t - c.touch_release_ns <= self._w_ev:
+                w = min(w, cfg.touched_compression_weight)
+            if w < 1.0:
+                n_ev -= (1.0 - w) * float((ev_mask & (c.pol[:k] > 0)).sum())
             if c.state == ContactState.STICK and n_ev >= cfg.precursor_min_emissions:
                 c.state, c.since_ns = ContactState.INCIPIENT_SLIP, t
                 idx = np.flatnonzero(ev_mask)
