@@ -453,6 +453,27 @@ def _model_values(phi, amp):
     return (amp[:, None, :] @ phi)[:, 0]
 
 
+def _residual(model: "_Model", y, theta, amp):
+    """y - model(theta, amp): (K, 4L) for theta (K, J, 3), amp (K, 2J)."""
+    if not _compiled(model):
+        phi, _ = model.evaluate(theta)
+        return y - _model_values(phi, amp)
+    out = np.empty(y.shape)
+    args = _kernel_args(model)
+    mask = np.ones(y.shape[1]) if model.mask is None else model.mask
+    for k in range(y.shape[0]):
+        _kernels.model_residual(
+            np.ascontiguousarray(y[k], dtype=np.float64),
+            np.ascontiguousarray(mask if mask.ndim == 1 else mask[k], dtype=np.float64),
+            float(model.start[k]) / model.fs,
+            np.ascontiguousarray(theta[k], dtype=np.float64),
+            np.ascontiguousarray(amp[k], dtype=np.float64),
+            *args,
+            out[k],
+        )
+    return out
+
+
 def _clip_theta(theta, geo, max_rho):
     s = theta[..., :2]
     rho = np.hypot(s[..., 0], s[..., 1])
@@ -530,32 +551,39 @@ def _compiled(model: "_Model") -> bool:
     )
 
 
+def _kernel_args(model: "_Model") -> tuple:
+    """The model's constants in the order of the kernels' arguments (elem .. tab_im)."""
+    P = model.tab.half_poles.size
+    tab = model.tab.half_table
+    return (
+        np.ascontiguousarray(model.e, dtype=np.float64),
+        float(model.c),
+        float(model.R),
+        bool(model.echo),
+        float(model.fs),
+        model.tab.half_poles,
+        model.tab.half_res,
+        tab[:P],
+        tab[P:],
+    )
+
+
 def _lm_compiled(model: "_Model", y, theta, iterations, max_rho):
     """`_lm` by `overlap_kernels.lm_fit`, one window at a time (same outputs)."""
     K, J, _ = theta.shape
-    P = model.tab.half_poles.size
-    tab = model.tab.half_table
     mask = np.ones(y.shape[1]) if model.mask is None else model.mask
     th = np.empty((K, J, 3))
     amp = np.empty((K, 2 * J))
     rss = np.empty(K)
     gram = np.empty((K, 5 * J, 5 * J))
-    elem = np.ascontiguousarray(model.e, dtype=np.float64)
+    args = _kernel_args(model)
     for k in range(K):
         rss[k] = _kernels.lm_fit(
             np.ascontiguousarray(y[k], dtype=np.float64),
             np.ascontiguousarray(mask if mask.ndim == 1 else mask[k], dtype=np.float64),
             float(model.start[k]) / model.fs,
             np.ascontiguousarray(theta[k], dtype=np.float64),
-            elem,
-            float(model.c),
-            float(model.R),
-            bool(model.echo),
-            float(model.fs),
-            model.tab.half_poles,
-            model.tab.half_res,
-            tab[:P],
-            tab[P:],
+            *args,
             int(iterations),
             float(max_rho),
             th[k],
@@ -771,8 +799,7 @@ def _search(
         if ids.size:
             sub = _sub(model, ids)
             ys = y[ids]
-            phi, _ = sub.evaluate(prev.theta[ids])
-            res = ys - _model_values(phi, prev.amp[ids])
+            res = _residual(sub, ys, prev.theta[ids], prev.amp[ids])
             thn, _ = _grid_search(sub, res.reshape(len(ids), 4, -1), grid)
             start = np.concatenate([prev.theta[ids], thn[:, None, :]], axis=1)
             t1, a1, r1, j1 = _lm(sub, ys, start)
@@ -821,9 +848,8 @@ def _alternatives(sub, ys, j, cs, grid, rows, t1, a1, r1, j1) -> None:
     # RELAX: re-start each earlier emission from the data minus the others.
     for i in range(j - 1):
         keep = [q for q in range(j) if q != i]
-        phi, _ = sub.evaluate(t1_[:, keep])
         cols = np.concatenate([[2 * q, 2 * q + 1] for q in keep])
-        res = ys - _model_values(phi, a1_[:, cols])
+        res = _residual(sub, ys, np.ascontiguousarray(t1_[:, keep]), a1_[:, cols])
         thi, _ = _grid_search(sub, res.reshape(len(rows), 4, -1), grid)
         st = t1_.copy()
         st[:, i] = thi

@@ -23,7 +23,7 @@ import numpy as np
 
 from ae_tactile.jit import NUMBA_AVAILABLE, njit
 
-__all__ = ["NUMBA_AVAILABLE", "lm_fit", "grid_profile"]
+__all__ = ["NUMBA_AVAILABLE", "lm_fit", "model_residual", "grid_profile"]
 
 #: reassociation lets the dot products vectorise; NaN / inf semantics are kept (the
 #: kernels test for them)
@@ -330,6 +330,24 @@ def lm_fit(y, mask, t0_s, theta0, elem, c, R, echo, fs, poles, res, tab_re, tab_
     theta_out[:, :] = theta
     amp_out[:] = amp
     return rss
+
+
+@njit(cache=True, nogil=True, fastmath=_FAST)
+def model_residual(y, mask, t0_s, theta, amp, elem, c, R, echo, fs, poles, res, tab_re, tab_im,
+                   r_out):
+    """r_out = y - model(theta (J, 3), amp (2J,)) of one window (4L,)."""
+    J = theta.shape[0]
+    N = y.shape[0]
+    L = N // 4
+    phi = np.empty((2 * J, N))
+    h = np.empty((J, 2, 4, L))
+    dh = np.empty((J, 2, 4, L))
+    gain = np.empty((J, 2, 4))
+    dgain = np.empty((J, 2, 4, 2))
+    dtds = np.empty((J, 2, 4, 2))
+    _evaluate(theta, J, elem, c, R, echo, t0_s, fs, L, poles, res, tab_re, tab_im, mask,
+              phi, h, dh, gain, dgain, dtds)
+    _residual(phi, 2 * J, y, amp, r_out)
 
 
 @njit(cache=True, nogil=True, fastmath=False)
