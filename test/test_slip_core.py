@@ -570,6 +570,31 @@ def test_gross_slip_without_a_precursor_and_a_tracked_moving_contact():
     assert info.velocity_m_s[0] > 0.9 * np.linalg.norm(info.velocity_m_s)
 
 
+
+@pytest.mark.parametrize("pol", [1, -1])
+def test_stylus_closer_than_the_same_spot_gate_is_tracked_with_its_texture(pol):
+    """A stylus over a 0.2 mm texture at 10 mm/s: each emission lands within the same-spot
+    gate of the one before (a repeat, never evidence), yet the drift of the repeats is a
+    motion: one tracked contact, TEXTURE with lambda = v T within 3 %."""
+    rng = np.random.default_rng(21)
+    lam, v = 0.2e-3, 0.01
+    T = lam / v
+    evs = []
+    for i in range(45):
+        t = (i + rng.normal(0, 0.05)) * T
+        x = -4e-3 + v * t
+        evs.append(ev(int(10 * MS + t * 1e9), x + rng.normal(0, SIG), rng.normal(0, SIG), pol, i))
+    det = SlipDetector()
+    outs = run(det, evs)
+    tex = [o for o in outs if o.kind == SlipEventType.TEXTURE]
+    assert tex and det.counts["contacts_created"] == 1
+    assert det.counts["repeats"] >= 5  # the emissions are on each other's spots
+    # along the surface: x = R sin(theta), so one period of x is lam / cos(theta) of arc
+    xs = [e.point_m[0] for e in evs if e.time_ns <= tex[0].time_ns]
+    lam_arc = float(np.mean([lam / math.sqrt(1 - (x / R) ** 2) for x in xs]))
+    assert abs(tex[0].spatial_period_m / lam_arc - 1) < 0.03
+    assert abs(tex[0].emission_rate_hz * T - 1) < 0.03
+
 def _mixed_stream(seed=3, n_touch=300):
     """Touches held 5 .. 50 ms and released on their spot, over the cap, plus a micro-slip
     ring round one held contact: every decision path of the detector is exercised."""

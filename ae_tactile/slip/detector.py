@@ -53,6 +53,7 @@ from .config import SlipConfig
 from .types import ContactInfo, ContactState, FingerState, LocalizedEvent, SlipEvent, SlipEventType
 
 FOUNDER, EVID, PAIRED, REPEAT, OVERLAP = 1, 2, 4, 8, 16  # member flags
+TRACKED = EVID | REPEAT
 _SLIPPING = (ContactState.INCIPIENT_SLIP, ContactState.GROSS_SLIP)
 _NAN3 = np.full(3, np.nan)
 
@@ -575,7 +576,7 @@ class SlipDetector:
         F = c.flags[:k]
         # the latest emissions within track_window_s, or the latest 12 within 4 x that
         # (a slow stylus emits a few per window)
-        m = ((F & (OVERLAP | EVID)) == EVID) & (c.t[:k] > t - 4 * self._w_track)
+        m = ((F & OVERLAP) == 0) & ((F & TRACKED) != 0) & (c.t[:k] > t - 4 * self._w_track)
         recent = m & (c.t[:k] > t - self._w_track)
         if int(recent.sum()) >= 12:
             m = recent
@@ -784,7 +785,7 @@ class SlipDetector:
                 fl = c.flist[s0:] + c.flist[: s0 + n - H]
         else:
             tl, fl = c.tlist[:n], c.flist[:n]
-        if sum(1 for f in fl if f & EVID) * 2 < n:
+        if not c.moving and sum(1 for f in fl if f & EVID) * 2 < n:
             c.texture_on, c.texture_run = False, 0
             return
         tl.sort()
