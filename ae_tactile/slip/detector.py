@@ -482,7 +482,7 @@ class SlipDetector:
             near = (d2 <= self._g2 * (c.var[:k] + var + self._f2)) & (T >= t - self._w_ev)
             if near.any():
                 # on the spot of an earlier emission: a release / tap pair, or a repeat
-                cand = near & ((F & (PAIRED | REPEAT)) == 0)
+                cand = near & ((F & PAIRED) == 0)  # a repeat pairs with its release
                 if ev.polarity != 0:
                     cand &= c.pol[:k] != ev.polarity
                 if cand.any():
@@ -576,7 +576,11 @@ class SlipDetector:
         F = c.flags[:k]
         # the latest emissions within track_window_s, or the latest 12 within 4 x that
         # (a slow stylus emits a few per window)
-        m = ((F & OVERLAP) == 0) & ((F & TRACKED) != 0) & (c.t[:k] > t - 4 * self._w_track)
+        m = (
+            ((F & (OVERLAP | PAIRED)) == 0)
+            & ((F & TRACKED) != 0)
+            & (c.t[:k] > t - 4 * self._w_track)
+        )
         recent = m & (c.t[:k] > t - self._w_track)
         if int(recent.sum()) >= 12:
             m = recent
