@@ -240,7 +240,8 @@ class PacketLocalizer:
         # the paths a first odd packet would take: imports, tables, compiled code
         from types import SimpleNamespace
 
-        from ae_tactile.localization.overlap import resolve_overlaps, suspect_overlap
+        from ae_tactile.localization.overlap import suspect_overlap
+        from ae_tactile.localization.overlap import warm_up as warm_overlaps
 
         w = x[None].astype(np.float64)
         on = [int(n_samples) // 4]
@@ -254,7 +255,7 @@ class PacketLocalizer:
                 accepted=np.ones(1, bool), point_m=np.array([[0.0, 0.0, self.geometry.radius_m]])
             )
             suspect_overlap(w, sample_rate_hz, on, single, geometry=self.geometry)
-            resolve_overlaps(w, sample_rate_hz, on, geometry=self.geometry)
+            warm_overlaps(self.geometry, sample_rate_hz, n_samples)
         self.overlap_windows = []
 
     # ---------------------------------------------------------------- packets

@@ -569,3 +569,16 @@ def test_compiled_grid_search_is_the_numpy_grid_search():
     best = out["auto"][0][:, 0, :2]
     dist = np.linalg.norm(d["points_m"][:, :, :2] - best[:, None, :], axis=2).min(axis=1)
     assert np.median(dist) < 1.5e-3
+
+
+def test_warm_up_resolves_its_two_emissions():
+    """The driver's warm-up window (two emissions 4 us apart) takes the two-emission path
+    the first real overlap takes, and its points come out where they were put."""
+    from ae_tactile.geometry import FingertipGeometry
+
+    geo = FingertipGeometry()
+    res = overlap_mod.warm_up(geo, FS, 400)
+    truth = geo.surface_point_from_angles(np.array([0.35, 0.3]), np.array([0.4, 3.5]))
+    assert res.accepted and res.n_fitted == 2
+    assert per_truth_errors(truth, res.sources).max() < 0.05e-3
+    assert [s.polarity for s in res.sources] == [1, -1]
