@@ -14,7 +14,9 @@ valid frame (a dead device, a reset device that stays silent, a wrong baud rate 
 only yields garbage) closes the port; it is reopened with exponential back-off, the
 device re-configured, acquisition restarted and the clock mapping re-synced. A
 spurious wake-up (readable but nothing to read, EAGAIN) is counted, never a disconnect.
-A partial frame left waiting ``idle_flush_s`` with no byte arriving is flushed.
+A partial frame left waiting ``stall_report_s`` with no byte arriving is reported
+(``stalled_frames``, a warning) and kept: the device may still finish it, and a new
+frame cuts it short at once (the decoder's rule 3), so no valid frame is lost to a pause.
 
 Nothing is silently lost: every byte (decoded or discarded), every rejected frame by
 reason, duplicates, sequence gaps, queue overflows, stream gaps and packets refused by
@@ -89,8 +91,9 @@ class LinkConfig:
     sample_rate_hz, threshold_counts, packet_samples, pre_trigger_samples: device settings.
     read_timeout_s: longest idle block of one read (s). link_timeout_s: time without a valid
     frame that means the link is dead (the device sends a heartbeat >= 1 Hz).
-    idle_flush_s: a partial frame is given up after this long without any byte (the
-    default exceeds the 0.22 s a MAX_FRAME_LEN frame takes at 3 Mbit/s).
+    stall_report_s: a partial frame waiting this long without any byte is reported once
+    (``stalled_frames``) and kept (the default exceeds the 0.22 s a MAX_FRAME_LEN frame
+    takes at 3 Mbit/s).
     reconnect_*: back-off (s).
     queue_max_batches: bound of the hand-over queue (overflow is counted as drops).
     command_timeout_s / command_retries: ACK wait per command and retries.
@@ -111,7 +114,7 @@ class LinkConfig:
     read_timeout_s: float = 0.002
     read_chunk_bytes: int = 1 << 16
     link_timeout_s: float = 3.0
-    idle_flush_s: float = 0.25
+    stall_report_s: float = 0.25
     reconnect_initial_s: float = 0.2
     reconnect_max_s: float = 5.0
     queue_max_batches: int = 256
@@ -134,7 +137,7 @@ class LinkConfig:
         for name in (
             "read_timeout_s",
             "link_timeout_s",
-            "idle_flush_s",
+            "stall_report_s",
             "reconnect_initial_s",
             "reconnect_max_s",
             "command_timeout_s",
@@ -342,7 +345,7 @@ class FingertipLink:
             "clock_pings": 0,
             "clock_pings_used": 0,
             "sink_errors": 0,
-            "idle_flushes": 0,
+            "stalled_frames": 0,
             "spurious_wakeups": 0,
             "hangups": 0,
             "internal_errors": 0,
@@ -352,7 +355,8 @@ class FingertipLink:
         }
         self.last_error = ""
         self._last_frame_mono = 0.0  # last valid frame (liveness)
-        self._last_byte_mono = 0.0  # last byte of any kind (idle flush)
+        self._last_byte_mono = 0.0  # last byte of any kind (stall report)
+        self._stall_reported = False  # this stall of a partial frame is reported
         self._empty_hup_reads = 0
         self._reconfigure_pending = False
         self._last_ack_receive_ns = 0
@@ -468,17 +472,26 @@ class FingertipLink:
         now_mono = time.monotonic()
         if data:
             self._last_byte_mono = now_mono
+            self._stall_reported = False
             frames = self.decoder.feed(data)
             self._handle_frames(frames)
             if not frames:
                 self._idle()
-        elif (
-            self.decoder.pending_bytes
-            and now_mono - self._last_byte_mono > self.config.idle_flush_s
-        ):
-            self.counters["idle_flushes"] += 1  # a frame cut short, then silence
-            self._handle_frames(self.decoder.flush())
         else:
+            if (
+                not self._stall_reported
+                and self.decoder.pending_bytes
+                and now_mono - self._last_byte_mono > self.config.stall_report_s
+            ):
+                # kept, not flushed: the rest of the frame may still come, and a new
+                # frame would cut it short anyway (counted then as truncated_frames)
+                self._stall_reported = True
+                self.counters["stalled_frames"] += 1
+                self.log.warning(
+                    "%d bytes of a frame waiting, no byte for %.2f s (kept)",
+                    self.decoder.pending_bytes,
+                    now_mono - self._last_byte_mono,
+                )
             self._idle()
         if (
             self._serial is not None

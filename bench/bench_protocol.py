@@ -410,7 +410,7 @@ def bench_faults(trials: int, out: Path) -> dict:
     summary["load_average"] = os.getloadavg()
     summary["link_defaults"] = {
         "link_timeout_s": 3.0,
-        "idle_flush_s": 0.25,
+        "stall_report_s": 0.25,
         "reconnect_initial_s": 0.2,
     }
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -59,7 +59,7 @@ def test_device_reset_mid_frame_with_the_port_open_recovers_without_reconnecting
         s = rig.link.stats()
         assert s["device_restarts_handled"] == 1 and rig.device.boots == 1
         assert s["truncated_frames"] == 1 and s["crc_errors"] == 0  # the cut frame
-        assert s["disconnects"] == 0 and s["link_timeouts"] == 0 and s["idle_flushes"] == 0
+        assert s["disconnects"] == 0 and s["link_timeouts"] == 0 and s["stalled_frames"] == 0
         assert s["state"] == "connected"
         after = [r.device_sample_index for r in rig.records[before:]]
         assert len(after) > 3 and after[: len(resent)] == resent  # all of them, once
@@ -282,11 +282,11 @@ def test_tcp_transport_parameters_are_checked():
         TcpTransport(idle_timeout_s=0)
 
 
-def test_link_idle_flush_parameter_is_checked():
-    with pytest.raises(ValueError, match="idle_flush_s"):
-        LinkConfig(port="loop://", idle_flush_s=0)
-    with pytest.raises(ValueError, match="idle_flush_s"):
-        LinkConfig(port="loop://", idle_flush_s=float("nan"))
+def test_link_stall_report_parameter_is_checked():
+    with pytest.raises(ValueError, match="stall_report_s"):
+        LinkConfig(port="loop://", stall_report_s=0)
+    with pytest.raises(ValueError, match="stall_report_s"):
+        LinkConfig(port="loop://", stall_report_s=float("nan"))
 
 
 def test_link_survives_a_consumer_and_a_device_that_never_answer(tmp_path):
@@ -365,9 +365,13 @@ def test_hostile_but_crc_valid_frames_never_stop_the_link(tmp_path):
         assert len(rig.records) > n + 3  # still delivering
 
 
-def test_partial_frame_then_silence_is_flushed_after_the_idle_time():
-    """A device that sends half a frame and then nothing: the partial frame is given up
-    once no byte came for idle_flush_s (counted), and the next frame is delivered."""
+@pytest.mark.parametrize("then", ["rest_of_the_frame", "a_new_frame"])
+def test_partial_frame_then_silence_is_reported_and_kept(then):
+    """A device that sends part of a frame and then pauses: the stall is reported once
+    (``stalled_frames``) after stall_report_s without a byte, and the partial frame is kept.
+    If the device then finishes it, the frame is delivered whole (a pause loses no valid
+    frame); if it sends a new frame instead (it was reset), the new one is delivered and
+    the cut one is counted (truncated, its sequence number dropped)."""
     from ae_tactile.protocol import DeviceState, FrameEncoder, Status
 
     master, slave = os.openpty()
@@ -385,7 +389,7 @@ def test_partial_frame_then_silence_is_flushed_after_the_idle_time():
         LinkConfig(
             port=path,
             link_timeout_s=60.0,
-            idle_flush_s=0.2,
+            stall_report_s=0.2,
             command_timeout_s=0.05,
             command_retries=1,
             sync_max_pings=1,
@@ -398,17 +402,27 @@ def test_partial_frame_then_silence_is_flushed_after_the_idle_time():
             time.sleep(0.01)  # the port is open (opening it empties its input)
         os.write(master, first)
         os.write(master, big[:5000])  # then silence
-        while time.monotonic() < deadline and link.stats()["idle_flushes"] < 1:
+        while time.monotonic() < deadline and link.stats()["stalled_frames"] < 1:
             time.sleep(0.01)
+        time.sleep(0.3)  # silence goes on: reported once, nothing given up
         s = link.stats()
-        assert s["idle_flushes"] == 1 and s["truncated_frames"] == 1
-        assert s["pending_bytes"] == 0 and s["frames_ok"] == 1
-        os.write(master, enc.encode(status, 2500))
+        assert s["stalled_frames"] == 1 and s["truncated_frames"] == 0
+        assert s["pending_bytes"] == 5000 and s["frames_ok"] == 1
+        if then == "rest_of_the_frame":
+            os.write(master, big[5000:])
+        else:
+            os.write(master, enc.encode(status, 2500))
         while time.monotonic() < deadline and link.stats()["frames_ok"] < 2:
             time.sleep(0.01)
         s = link.stats()
         assert s["frames_ok"] == 2 and s["state"] == "connected"
-        assert s["dropped_frames"] == 1  # the cut frame's sequence number
+        assert s["pending_bytes"] == 0 and s["stalled_frames"] == 1
+        if then == "rest_of_the_frame":
+            assert s["truncated_frames"] == 0 and s["dropped_frames"] == 0
+            assert s["bytes_decoded"] == len(first) + len(big)
+        else:
+            assert s["truncated_frames"] == 1
+            assert s["dropped_frames"] == 1  # the cut frame's sequence number
         assert s["bytes_received"] == s["bytes_decoded"] + s["bytes_discarded"]
     finally:
         link.stop()
