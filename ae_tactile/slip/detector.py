@@ -113,17 +113,48 @@ def _multiples(dt, unit):
     return np.where(r < 1.7, 1.0, np.round(r))
 
 
-def _period_fit(ts_ns, kk):
-    """(T, its standard error) (s): least squares t_j = t_0 + K_j T on the cumulative
-    period counts K_j of sorted times ``ts_ns``."""
+_MISS_PENALTY = 2.0 * math.log(9.0)
+
+
+def _period_fit_best(ts_ns, kk, dt, unit):
+    """``_period_fit`` with the period counts of ambiguous intervals (the up to 3 of
+    1.25 .. 2.75 ``unit`` farthest from a whole number: a jittered double interval or a
+    long single one) chosen by the whole fit: a wrong count shifts every later time by a
+    period, a jitter of sd s T only one time by s T. Score n ln(RSS) (Gaussian jitter,
+    its variance fitted) + 2 ln 9 per missed packet (one interval in ten spans two
+    periods a priori), the least wins. Returns (T, se, kk)."""
+    r = dt / unit
+    dev = np.abs(r - np.round(r))
+    amb = np.flatnonzero((dev > 0.25) & (r > 1.25) & (r < 2.75))
+    if amb.size == 0:
+        return (*_period_fit(ts_ns, kk), kk)
+    amb = amb[np.argsort(-dev[amb])[:3]]
+    best = None
+    n = float(ts_ns.size)
+    for code in range(1 << amb.size):
+        k2 = kk.copy()
+        for b, i in enumerate(amb):
+            k2[i] = math.floor(r[i]) + ((code >> b) & 1)
+        T, se, rss = _period_fit(ts_ns, k2, True)
+        score = n * math.log(max(rss, 1e-30)) + _MISS_PENALTY * float(k2.sum() - k2.size)
+        if best is None or score < best[2]:
+            best = (T, se, score, k2)
+    return best[0], best[1], best[3]
+
+
+def _period_fit(ts_ns, kk, with_rss=False):
+    """(T, its standard error) (s), and with ``with_rss`` the residual sum of squares
+    (s^2): least squares t_j = t_0 + K_j T on the cumulative period counts K_j of sorted
+    times ``ts_ns``."""
     K = np.concatenate(([0.0], np.cumsum(kk)))
     tt = (ts_ns - ts_ns[0]) * 1e-9
     Kc = K - K.mean()
     skk = float(Kc @ Kc)
     T = float(Kc @ (tt - tt.mean()) / skk)
     res = tt - tt.mean() - Kc * T
-    se = math.sqrt(float(res @ res) / max(1, K.size - 2) / skk)
-    return T, se
+    rss = float(res @ res)
+    se = math.sqrt(rss / max(1, K.size - 2) / skk)
+    return (T, se, rss) if with_rss else (T, se)
 
 
 class _Contact:
@@ -179,8 +210,9 @@ class _Contact:
     @centre.setter
     def centre(self, value):
         self._centre = value
-        self.centre_xyz = None if value is None else (
-            float(value[0]), float(value[1]), float(value[2]))
+        self.centre_xyz = (
+            None if value is None else (float(value[0]), float(value[1]), float(value[2]))
+        )
 
     # -------------------------------------------------------------- buffers
     def add(self, t, p, var, pol, pid, flags):
@@ -841,7 +873,7 @@ class SlipDetector:
         if llr < cfg.texture_min_llr:
             c.texture_on, c.texture_run = False, 0
             return
-        period, se_period = _period_fit(ts, kk)
+        period, se_period, kk = _period_fit_best(ts, kk, dt, m)
         c.texture_run += 1
         if c.texture_run < cfg.texture_confirm_events or not period > 0:
             return
@@ -859,7 +891,7 @@ class SlipDetector:
             dtr = np.diff(tr).astype(float)
             kr = _multiples(dtr, period * 1e9)
             if kr.max() <= cfg.texture_max_multiple:
-                period, se_period = _period_fit(tr, kr)
+                period, se_period, _ = _period_fit_best(tr, kr, dtr, period * 1e9)
             rel = math.hypot(fit[1] / fit[0], se_period / period) if fit[0] > 0 else math.inf
             if rel > cfg.texture_period_rel_se:
                 return  # periodic, but the spatial period is not known well yet
