@@ -289,15 +289,17 @@ def test_direction_of_a_drifting_contact():
         r, th = 1.2e-3 * math.sqrt(rng.uniform()), rng.uniform(0, 2 * np.pi)
         events.append(ev(t, cx + r * math.cos(th), r * math.sin(th), int(rng.choice([-1, 1])), i))
     outs = run(det, events)
-    dirs = [
-        o.slip_direction
-        for o in outs
-        if o.kind == SlipEventType.SLIP and np.all(np.isfinite(o.slip_direction))
+    slips = [
+        o for o in outs if o.kind == SlipEventType.SLIP and np.all(np.isfinite(o.slip_direction))
     ]
-    assert dirs
-    for d in dirs:
+    assert slips
+    for o in slips:
+        d = o.slip_direction
         assert abs(np.linalg.norm(d) - 1) < 1e-9
-        assert d[0] > math.cos(math.radians(25))
+        # the surface's tangent along +x where the contact is at the event's time
+        x = -2e-3 + 0.02 * o.time_ns * 1e-9
+        u = np.array([1.0, 0.0, -x / math.sqrt(R * R - x * x)])
+        assert d @ u / np.linalg.norm(u) > math.cos(math.radians(25))
 
 
 # ---------------------------------------------------------------------- texture
@@ -593,6 +595,13 @@ def test_stylus_closer_than_the_same_spot_gate_is_tracked_with_its_texture(pol):
     lam_arc = float(np.mean([lam / math.sqrt(1 - (x / R) ** 2) for x in xs]))
     assert abs(tex[0].spatial_period_m / lam_arc - 1) < 0.03
     assert abs(tex[0].emission_rate_hz * T - 1) < 0.03
+    # direction of travel now: the tangent of the stroke (y = 0, a great circle) where the
+    # stylus is at the event's time, not where the track's emissions were on average
+    for o in tex:
+        x = -4e-3 + v * (o.time_ns * 1e-9 - 10e-3)
+        u = np.array([1.0, 0.0, -x / math.sqrt(R * R - x * x)])
+        u /= np.linalg.norm(u)
+        assert math.degrees(math.acos(min(1.0, float(o.slip_direction @ u)))) < 3.0
 
 
 def _mixed_stream(seed=3, n_touch=300):

@@ -918,7 +918,7 @@ class SlipDetector:
                     c.id,
                     1.0 / period,
                     lam,
-                    self._direction(c),
+                    self._direction(c, tt=t),
                     frac,
                     ids,
                     onset,
@@ -936,10 +936,11 @@ class SlipDetector:
         D = P - P.sum(axis=0) / len(P)
         return (D.T @ D) / (len(P) * (len(P) - 1))
 
-    def _direction(self, c, t=None):
-        """Unit tangent direction of travel: the tracked motion of a moving contact, else a
-        fresh regression of the slip emissions over track_window_s when its drift exceeds
-        ``direction_significance`` standard errors (and min_speed_m_s); else NaN."""
+    def _direction(self, c, t=None, tt=None):
+        """Unit tangent direction of travel at time ``t`` or ``tt`` (ns): the tracked motion
+        of a moving contact (carried along its great circle to that time), else, given
+        ``t``, a fresh regression of the slip emissions over track_window_s when its drift
+        exceeds ``direction_significance`` standard errors (and min_speed_m_s); else NaN."""
         if not c.moving:
             if t is None:
                 return _NAN3.copy()
@@ -967,7 +968,17 @@ class SlipDetector:
                 return _NAN3.copy()
             return v / sp
         s = math.sqrt(float(c.vel @ c.vel))
-        return c.vel / s if s > 0 else _NAN3.copy()
+        if not s > 0:
+            return _NAN3.copy()
+        u = c.vel / s
+        at = t if t is not None else tt
+        if at is None or c.track_c is None:
+            return u
+        # the track's velocity belongs to its mean time; along the great circle the
+        # direction turns by omega dt (omega = v / |p|) toward -p: the direction at ``at``
+        rn = math.sqrt(float(c.track_c @ c.track_c))
+        a = s / rn * (at * 1e-9 - c.track_t)
+        return u * math.cos(a) - (c.track_c / rn) * math.sin(a)
 
     def _update_finger(self, t):
         """The finger's state and its start time now; the FingerState record itself is built
