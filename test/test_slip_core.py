@@ -727,3 +727,22 @@ def test_texture_period_with_a_missed_packet_jittered_short():
     assert late
     assert all(abs(o.emission_rate_hz * T - 1) < 0.03 for o in late)
     assert all(abs(o.spatial_period_m / (v * T) - 1) < 0.03 for o in late)
+
+
+def test_a_spot_hit_again_and_again_is_not_a_moving_contact():
+    """Periodic emissions (2 kHz, e.g. electrical bursts the discriminator let through) all
+    on one spot, their localization error wandering slowly (a random walk of 5 um steps):
+    their drift stays within the same-spot gate, so no motion, no moving contact."""
+    rng = np.random.default_rng(9)
+    walk = np.cumsum(rng.normal(0, 5e-6, (400, 2)), axis=0)
+    evs = [
+        ev(int(10 * MS + i * 0.5 * MS), walk[i, 0], walk[i, 1], 1, i, sig=10e-6)
+        for i in range(400)
+    ]
+    det = SlipDetector()
+    moving = []
+    for e in evs:
+        det.process(e)
+        moving += [c.moving for c in det.contact_infos()]
+    assert not any(moving)
+    assert float(np.ptp(walk[:, 0]) + np.ptp(walk[:, 1])) > 0.05e-3  # it does wander

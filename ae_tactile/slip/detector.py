@@ -643,12 +643,16 @@ class SlipDetector:
         speed = math.sqrt(float(v @ v))
         c.track_se = se
         was = c.moving
-        # a moving contact: fast enough, significant, and its emissions stay close to the
-        # track (a few fixed spots hit in turn are no motion)
+        # a moving contact: fast enough, significant, its emissions close to the track (a
+        # few fixed spots hit in turn are no motion), and it left its spot: the track spans
+        # more than the same-spot gate (a spot hit again and again, e.g. apex phantoms of
+        # electrical interference, drifts within it)
+        span = speed * float(ts.max() - ts.min())
         c.moving = (
             speed >= cfg.min_speed_m_s
             and speed >= cfg.track_significance * se
             and s2 <= cfg.track_max_residual_m**2
+            and span * span > self._g2 * (2.0 * float(c.var[:k][m].sum()) / n + self._f2)
         )
         if c.moving:
             c.vel, c.track_t, c.track_c = v, tm, pm
