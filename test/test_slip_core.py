@@ -746,3 +746,22 @@ def test_a_spot_hit_again_and_again_is_not_a_moving_contact():
         moving += [c.moving for c in det.contact_infos()]
     assert not any(moving)
     assert float(np.ptp(walk[:, 0]) + np.ptp(walk[:, 1])) > 0.05e-3  # it does wander
+
+
+def test_stick_zone_judged_against_the_ring_drawn_before_the_window():
+    """Micro-slips draw a ring (r = 1.5 mm); then gross slip: emissions from the disc, the
+    first ones all on one side (a circle fit that took them in would move 0.16 mm away
+    from them), and one 0.45 mm from the centre on that side, inside the stick zone left
+    at q < 0.96 (0.35 of the ring): SLIP (reason 1: an emission inside the stick zone) at
+    that emission."""
+    evs = []
+    for i in range(8):  # the ring, 20 Hz, round the contact
+        a = 2 * np.pi * i / 8 + 0.3
+        evs.append(ev(i * 50 * MS, 1.5e-3 * math.cos(a), 1.5e-3 * math.sin(a), 1 - 2 * (i % 2), i))
+    side = [(1.1e-3, 0.3e-3), (1.2e-3, -0.2e-3), (1.0e-3, 0.0), (1.15e-3, 0.1e-3)]
+    for i, (x, y) in enumerate(side):
+        evs.append(ev((415 + 8 * i) * MS, x, y, 1, 100 + i))
+    evs.append(ev(450 * MS, 0.45e-3, 0.0, -1, 200))
+    outs = run(SlipDetector(), evs)
+    slip = [o for o in outs if o.kind == SlipEventType.SLIP and o.onset]
+    assert slip and slip[0].packet_ids[-1] == 200 and slip[0].evidence == 1.0

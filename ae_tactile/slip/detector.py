@@ -193,6 +193,7 @@ class _Contact:
         self.fitted = False  # centre from a circle fit to micro-slips
         self.radius = 0.0
         self.n_evid_fit = -1  # evidence count at the last circle fit
+        self.rings = []  # (time ns, centre, radius) of the latest circle fits
         self.moving = False
         self.vel = np.zeros(3)
         self.track_t = 0.0  # reference time (s) of the motion fit
@@ -599,6 +600,10 @@ class SlipDetector:
             c.centre, c.fitted = centre, True
         d = np.sqrt(np.einsum("ij,ij->i", P - c.centre, P - c.centre))
         c.radius = _percentile90(d.tolist())
+        if c.fitted:
+            c.rings.append((c.last_ns, c.centre, c.radius))
+            if len(c.rings) > 8:
+                del c.rings[0]
 
     def _track(self, c, t):
         """Motion regression p(t) = c0 + v (t - t_mean) over the track window."""
@@ -725,10 +730,17 @@ class SlipDetector:
         if n_w < cfg.gross_min_events:
             return 0
         if c.fitted and c.radius > 0:
+            # the stick zone of the ring the emissions drew before this window (the
+            # window's own emissions, gross slip's among them, would pull the fit)
+            ctr, rad = c.centre, c.radius
+            for tr, cr, rr in reversed(c.rings):
+                if tr <= t - self._w_gross:
+                    ctr, rad = cr, rr
+                    break
             w = use & (T > t - self._w_gross)
-            D = c.p[:k][w] - c.centre
+            D = c.p[:k][w] - ctr
             r2 = np.einsum("ij,ij->i", D, D)
-            if float(r2.min()) < (cfg.gross_inner_fraction * c.radius) ** 2:
+            if float(r2.min()) < (cfg.gross_inner_fraction * rad) ** 2:
                 return 1
         # rate jump (scan statistic): the latest j emissions span tau; under the contact's
         # prior rate lambda (over the part of gross_history_s before them that it has
