@@ -510,10 +510,14 @@ class OverlapResolver:
 
     def _start_worker(self):
         try:
+            # its own session: a Ctrl-C at the terminal (sent to the foreground process
+            # group) reaches the node, which ends the worker by closing its stdin, and
+            # never interrupts the worker's imports with a traceback
             return subprocess.Popen(
                 [sys.executable, "-m", "ae_tactile.localization.overlap_worker"],
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,
+                start_new_session=True,
             )
         except OSError:
             self.counts["overlap_worker_unavailable"] += 1

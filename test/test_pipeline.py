@@ -4,6 +4,7 @@ slip events out, scored against the simulator's ground truth; bad packets reject
 one and counted; the single-packet and batched paths agree."""
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -335,6 +336,9 @@ def test_overlap_worker_process_and_in_process_fallback_give_the_same_sources():
             done.set()
 
         r = OverlapResolver(cfg.geometry, hand_over, use_process=use_process)
+        if use_process:
+            # in a session of its own: a Ctrl-C at the terminal goes to the node only
+            assert os.getsid(r._proc.pid) == r._proc.pid != os.getsid(0)
         r.submit([view])
         assert done.wait(300.0), dict(r.counts)
         assert ("overlap_worker_unavailable" in r.counts) is (not use_process)

@@ -9,8 +9,9 @@ packet in microseconds; in its own process it runs beside it on another core.
 Protocol (pickle, both ways, one message per window): stdin gets
 ``(samples (4, M) float64 volts, sample_rate_hz, onset_index, geometry, pulse)``; stdout
 answers with the `OverlapPacket`, or with a ``str`` describing the exception. EOF on stdin
-ends the process (the parent closed it or exited); SIGINT is left to the parent, which
-owns the shutdown. The worker warms up (imports, tables, compiled code) and says
+ends the process (the parent closed it or exited); the parent starts it in a session of
+its own, so a Ctrl-C at the terminal reaches only the parent, which owns the shutdown
+(and SIGINT is ignored here too). The worker warms up (imports, tables, compiled code) and says
 ``"ready"`` before it reads.
 """
 
