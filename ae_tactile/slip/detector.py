@@ -730,22 +730,22 @@ class SlipDetector:
         if n_w < cfg.gross_min_events:
             return 0
         if c.fitted and c.radius > 0:
+            inner = cfg.gross_inner_fraction
             # the stick zone of the ring as fitted now and as fitted before this window
             # (the window's own emissions, gross slip's among them, pull the fit; a
             # drifting contact's older ring lags behind it): inside either
-            w = use & (T > t - self._w_gross)
-            Pw = c.p[:k][w]
-            rings = [(c.centre, c.radius)]
+            Pw = c.p[:k][use & (T > t - self._w_gross)]
+            D = Pw - c.centre
+            if float(np.einsum("ij,ij->i", D, D).min()) < (inner * c.radius) ** 2:
+                return 1
+            t_old = t - self._w_gross
             for tr, cr, rr in reversed(c.rings):
-                if tr <= t - self._w_gross:
+                if tr <= t_old:
                     if tr != c.rings[-1][0]:
-                        rings.append((cr, rr))
+                        D = Pw - cr
+                        if float(np.einsum("ij,ij->i", D, D).min()) < (inner * rr) ** 2:
+                            return 1
                     break
-            for ctr, rad in rings:
-                D = Pw - ctr
-                r2 = np.einsum("ij,ij->i", D, D)
-                if float(r2.min()) < (cfg.gross_inner_fraction * rad) ** 2:
-                    return 1
         # rate jump (scan statistic): the latest j emissions span tau; under the contact's
         # prior rate lambda (over the part of gross_history_s before them that it has
         # lived) j - 1 of them in tau is a Poisson tail P(N >= j - 1 | lambda tau); SLIP
