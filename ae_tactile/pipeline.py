@@ -19,6 +19,10 @@ in the thread that decoded them:
    (`ae_tactile.localization.overlap`) and hands them over later, with their own stamps,
    so the hot path never waits for the costlier joint fit;
 5. the slip detector: SLIP_PRECURSOR / SLIP / TEXTURE events and the finger's contact state.
+   It sees the emissions in time order: while a window is with the overlap resolver, the
+   slip step of later contact events waits for its answer (at most ``OVERLAP_HOLD_MAX_S``;
+   their contact events are out already), so the slip events do not depend on how fast
+   the resolver was (a late emission processed after later ones can tip the detector).
 
 The ROS driver calls it from its serial reader thread and publishes what it returns; the
 separate `localizer` and `slip_detector` nodes (replaying recorded packets) use the same
@@ -81,6 +85,11 @@ OVERLAP_SUSPECT_EXCESS = 0.028
 #: more packets are waiting on the port (their contact events go out first; a slip
 #: event comes at most this much later than it would alone).
 SLIP_MAX_DEFER_S = 0.5e-3
+#: Longest time (s) the slip step waits for the overlap resolver's answer to a window (so
+#: that the slip detector sees every emission in time order, as it would offline); after
+#: that the events go on without it (``slip_hold_expired``) and its emissions, when they
+#: come, are processed late with their own stamps.
+OVERLAP_HOLD_MAX_S = 0.1
 
 
 @dataclass(slots=True)
@@ -495,9 +504,13 @@ class OverlapResolver:
         max_pending: int = 64,
         pulse=None,
         use_process: bool = True,
+        on_done: Callable[[object], None] | None = None,
     ):
         self.geometry = geometry
         self.on_records = on_records
+        #: called with each window once it is answered (sources handed over, rejected or
+        #: failed), after ``on_records``
+        self.on_done = on_done
         self.pulse = pulse
         self.counts: Counter = Counter()
         self._queue: queue.Queue = queue.Queue(maxsize=int(max_pending))
@@ -523,12 +536,16 @@ class OverlapResolver:
             self.counts["overlap_worker_unavailable"] += 1
             return None
 
-    def submit(self, packets: Sequence) -> None:
+    def submit(self, packets: Sequence) -> list:
+        """Queue windows for the resolver; returns those queued (the rest are counted)."""
+        queued = []
         for p in packets:
             try:
                 self._queue.put_nowait(p)
+                queued.append(p)
             except queue.Full:
                 self.counts["overlap_dropped_backlog"] += 1
+        return queued
 
     def pending(self) -> int:
         return self._queue.qsize() + self._busy
@@ -591,6 +608,11 @@ class OverlapResolver:
                 self.counts["overlap_errors"] += 1
             finally:
                 self._busy = 0
+                if self.on_done is not None:
+                    try:
+                        self.on_done(p)
+                    except Exception:
+                        self.counts["overlap_errors"] += 1
 
     def _stop_worker(self) -> None:
         proc, self._proc = self._proc, None
@@ -615,6 +637,10 @@ class OverlapResolver:
         except queue.Full:
             pass
         self._thread.join(3.0)
+
+
+def _TIME_NS(r) -> int:
+    return r.time_ns
 
 
 def source_record(p, src) -> ContactRecord:
@@ -731,13 +757,21 @@ class ContactPipeline:
     _outputs: tuple = (None, None)  # (on_contacts, on_slip) of the latest process() call
     _slip_pending: list = field(default_factory=list)  # contacts handed out, slip step due
     _slip_pending_since: float = 0.0  # time.monotonic() of the oldest of them
+    #: windows with the overlap resolver: id -> time.monotonic() handed over
+    _windows_out: dict = field(default_factory=dict)
+    _held: list = field(default_factory=list)  # contacts whose slip step waits for them
+    #: longest wait of the slip step for the overlap resolver (s)
+    overlap_hold_max_s: float = OVERLAP_HOLD_MAX_S
+    _step_lock: threading.RLock = field(default_factory=threading.RLock)
 
     def start_overlaps(self, wait_s: float = 0.0) -> None:
         """Start the overlap resolver (and its worker process) now, not at the first
         overlapping window, and wait up to wait_s for the worker to be warm; the driver
         calls this while warming up, before acquisition."""
         if self.overlaps is None:
-            self.overlaps = OverlapResolver(self.localizer.geometry, self._late_from_resolver)
+            self.overlaps = OverlapResolver(
+                self.localizer.geometry, self._late_from_resolver, on_done=self._window_done
+            )
         if wait_s > 0:
             self.overlaps.ready.wait(wait_s)
 
@@ -745,6 +779,60 @@ class ContactPipeline:
         on_contacts, on_slip = self._outputs
         if on_contacts is not None:
             self.late(records, on_contacts, on_slip)
+
+    def _window_done(self, p) -> None:
+        """The resolver answered a window: the slip step of what waited for it runs."""
+        with self._step_lock:
+            self._windows_out.pop(id(p), None)
+            self._slip_step([])
+
+    def _slip_step(self, contacts: list) -> None:
+        """The slip step of these contact events, in time order with those held back: held
+        while a window is with the overlap resolver (at most ``OVERLAP_HOLD_MAX_S``)."""
+        if self.slip is None:
+            return
+        with self._step_lock:
+            self._held.extend(contacts)
+            if self._windows_out:
+                if time.monotonic() - min(self._windows_out.values()) < self.overlap_hold_max_s:
+                    return
+                self.counts["slip_hold_expired"] += len(self._windows_out)
+                self._windows_out.clear()
+            batch, self._held = self._held, []
+            if not batch:
+                return
+            if len(batch) > 1:
+                batch.sort(key=_TIME_NS)  # stable: packet order where stamps tie
+            slips = self.slip.process(batch)
+            on_slip = self._outputs[1]
+            if slips and on_slip is not None:
+                on_slip(slips)
+
+    def wait_idle(self, timeout_s: float) -> bool:
+        """Wait (up to timeout_s) until no window is with the overlap resolver and no slip
+        step waits for one; True if so (offline replay and tests; never on the hot path)."""
+        deadline = time.monotonic() + float(timeout_s)
+        while True:
+            with self._step_lock:
+                idle = not self._windows_out and not self._held
+            if idle and (self.overlaps is None or not self.overlaps.pending()):
+                return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.001)
+
+    def release_held(self) -> None:
+        """Run the slip step of held events whose wait has expired (a timer calls this)."""
+        if self._held:
+            self._slip_step([])
+
+    def tick(self, now_ns: int):
+        """Let time pass in the slip stage (`SlipStage.tick`), never past a held event;
+        returns the finger state."""
+        with self._step_lock:
+            if self._held:
+                now_ns = min(int(now_ns), min(r.time_ns for r in self._held) + self.slip.lag_ns)
+            return self.slip.tick(now_ns)
 
     def process(
         self,
@@ -765,7 +853,18 @@ class ContactPipeline:
         if self.localizer.overlap_windows:
             self.start_overlaps()
             self.overlaps.geometry = self.localizer.geometry
-            self.overlaps.submit(self.localizer.overlap_windows)
+            windows = self.localizer.overlap_windows
+            if self.slip is not None:
+                with self._step_lock:  # registered before the resolver can answer
+                    now = time.monotonic()
+                    self._windows_out.update((id(p), now) for p in windows)
+            queued = self.overlaps.submit(windows)
+            if len(queued) < len(windows) and self.slip is not None:
+                with self._step_lock:
+                    kept = {id(p) for p in queued}
+                    for p in windows:
+                        if id(p) not in kept:
+                            self._windows_out.pop(id(p), None)
         if more_waiting is None or self.slip is None:
             self.late(contacts, on_contacts, on_slip)
             return
@@ -787,11 +886,8 @@ class ContactPipeline:
     def run_pending_slip(self) -> None:
         """The slip step of contact events handed out while more packets were waiting."""
         pending, self._slip_pending = self._slip_pending, []
-        if pending and self.slip is not None:
-            slips = self.slip.process(pending)
-            on_slip = self._outputs[1]
-            if slips and on_slip is not None:
-                on_slip(slips)
+        if pending:
+            self._slip_step(pending)
 
     def late(
         self,
@@ -803,13 +899,11 @@ class ContactPipeline:
         out, then through the slip stage."""
         if contacts:
             on_contacts(contacts)
-            if self.slip is not None:
-                slips = self.slip.process(contacts)
-                if slips and on_slip is not None:
-                    on_slip(slips)
+            self._slip_step(contacts)
 
     def all_counts(self) -> Counter:
         c = Counter(self.localizer.counts)
+        c.update(self.counts)
         if self.overlaps is not None:
             c.update(self.overlaps.counts)
         return c

@@ -162,6 +162,8 @@ def test_pipeline_reports_touches_before_slip_and_slip_events_name_the_deciding_
 
     for i in range(0, len(views), 4):  # batches as a read cycle would give them
         pipe.process(views[i : i + 4], on_contacts, on_slip)
+    assert pipe.wait_idle(120.0)  # what waited for the overlap resolver's answers
+    pipe.close()
     kinds = {s.event_type for s in slips}
     assert EventType.SLIP_PRECURSOR in kinds and EventType.SLIP in kinds
     first_slip = next(i for i, o in enumerate(order) if o[0] == "slip")
@@ -348,3 +350,50 @@ def test_overlap_worker_process_and_in_process_fallback_give_the_same_sources():
     for a, b in zip(results[True], results[False]):
         assert a.packet_ids == b.packet_ids == (7,)
         assert np.array_equal(a.point_m, b.point_m) and a.time_ns == b.time_ns
+
+
+def test_slip_events_do_not_depend_on_when_the_overlap_resolver_answers():
+    """The slip detector sees every emission in time order: the windows the overlap
+    resolver handles (its worker process answers milliseconds later, while the following
+    packets are already localized) give the same slip events as resolving them on the
+    spot, in the same order with the same stamps. (Processed late, after newer ones, the
+    emissions of the scene's overlapping windows made a SLIP ~0.35 s before gross slip.)"""
+    from ae_tactile.localization.overlap import resolve_overlaps
+    from ae_tactile.pipeline import source_record
+
+    views, sc, _ = _slip_scene_packets()
+    geo = sc.config.geometry
+
+    # reference: each overlapping window resolved at once, events in time order
+    loc = PacketLocalizer("ml", geometry=geo)
+    stage = SlipStage(SlipConfig())
+    expected = []
+    for v in views:
+        recs = loc.process([v])
+        for p in loc.overlap_windows:
+            res = resolve_overlaps(
+                np.asarray(p.samples_v, float)[None], p.sample_rate_hz, [p.onset_index],
+                geometry=geo,
+            )[0]
+            if res.accepted:
+                recs += [source_record(p, src) for src in res.sources]
+        loc.overlap_windows = []
+        expected += stage.process(sorted(recs, key=lambda r: r.time_ns))
+    assert any(s.event_type == EventType.SLIP for s in expected)
+
+    # live: the resolver's worker answers while later packets keep coming
+    pipe = ContactPipeline(PacketLocalizer("ml", geometry=geo), SlipStage(SlipConfig()))
+    pipe.overlap_hold_max_s = 600.0  # however slow the machine, wait for every answer
+    pipe.start_overlaps(wait_s=120.0)
+    got = []
+    try:
+        for v in views:
+            pipe.process([v], lambda cs: None, got.extend)
+        assert pipe.wait_idle(120.0)
+        counts = pipe.all_counts()
+        assert counts["overlap_windows_resolved"] >= 2  # the scene's overlaps went there
+        assert "slip_hold_expired" not in counts
+    finally:
+        pipe.close()
+    key = [(int(s.event_type), s.packet_ids, s.time_ns) for s in expected]
+    assert [(int(s.event_type), s.packet_ids, s.time_ns) for s in got] == key

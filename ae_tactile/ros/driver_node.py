@@ -441,7 +441,11 @@ class DriverNode(Node):
         self.pub_state.publish(contact_state_msg(st, self.frame_id, now))
 
     def _tick(self) -> None:
-        self.slip_stage.tick(self.now_ns())
+        if self.pipeline is not None:
+            self.pipeline.release_held()  # slip steps whose wait for the resolver expired
+            self.pipeline.tick(self.now_ns())
+        else:
+            self.slip_stage.tick(self.now_ns())
         self._publish_state()
 
     def _publish_markers(self) -> None:
