@@ -95,6 +95,9 @@ def test_stylus_is_one_contact_with_its_texture():
     assert len(found) >= 24
     assert np.mean([abs(r["rel_error_first"]) <= 0.03 for r in found]) >= 0.85
     assert np.mean([r["n_contacts_reporting"] == 1 for r in rows]) >= 0.85
+    # direction of travel against the stroke's true tangent at each event's time
+    d = [r["direction_error_deg_median"] for r in found if r["direction_error_deg_median"]]
+    assert len(d) >= 20 and np.median(d) < 3.0 and max(d) < 10.0
 
 
 def test_drifting_slip_direction_beats_the_reference():
