@@ -20,9 +20,10 @@ in the thread that decoded them:
    so the hot path never waits for the costlier joint fit;
 5. the slip detector: SLIP_PRECURSOR / SLIP / TEXTURE events and the finger's contact state.
    It sees the emissions in time order: while a window is with the overlap resolver, the
-   slip step of later contact events waits for its answer (at most ``OVERLAP_HOLD_MAX_S``;
-   their contact events are out already), so the slip events do not depend on how fast
-   the resolver was (a late emission processed after later ones can tip the detector).
+   slip step of contact events later than the window's earliest possible emission waits
+   for its answer (at most ``OVERLAP_HOLD_MAX_S``; their contact events are out already),
+   so the slip events do not depend on how fast the resolver was (a late emission
+   processed after later ones can tip the detector).
 
 The ROS driver calls it from its serial reader thread and publishes what it returns; the
 separate `localizer` and `slip_detector` nodes (replaying recorded packets) use the same
@@ -757,7 +758,8 @@ class ContactPipeline:
     _outputs: tuple = (None, None)  # (on_contacts, on_slip) of the latest process() call
     _slip_pending: list = field(default_factory=list)  # contacts handed out, slip step due
     _slip_pending_since: float = 0.0  # time.monotonic() of the oldest of them
-    #: windows with the overlap resolver: id -> time.monotonic() handed over
+    #: windows with the overlap resolver: id -> (time.monotonic() handed over, earliest
+    #: possible emission stamp of theirs, ns)
     _windows_out: dict = field(default_factory=dict)
     _held: list = field(default_factory=list)  # contacts whose slip step waits for them
     #: longest wait of the slip step for the overlap resolver (s)
@@ -793,12 +795,21 @@ class ContactPipeline:
             return
         with self._step_lock:
             self._held.extend(contacts)
+            horizon = None
             if self._windows_out:
-                if time.monotonic() - min(self._windows_out.values()) < self.overlap_hold_max_s:
+                out = self._windows_out.values()
+                if time.monotonic() - min(t for t, _ in out) < self.overlap_hold_max_s:
+                    horizon = min(e for _, e in out)  # nothing the windows hold is older
+                else:
+                    self.counts["slip_hold_expired"] += len(self._windows_out)
+                    self._windows_out.clear()
+            if horizon is None:
+                batch, self._held = self._held, []
+            else:
+                batch = [c for c in self._held if c.time_ns < horizon]
+                if not batch:
                     return
-                self.counts["slip_hold_expired"] += len(self._windows_out)
-                self._windows_out.clear()
-            batch, self._held = self._held, []
+                self._held = [c for c in self._held if c.time_ns >= horizon]
             if not batch:
                 return
             if len(batch) > 1:
@@ -855,9 +866,15 @@ class ContactPipeline:
             self.overlaps.geometry = self.localizer.geometry
             windows = self.localizer.overlap_windows
             if self.slip is not None:
+                # a window's emissions are at most one sphere diameter's travel time
+                # older than its first sample
+                g = self.localizer.geometry
+                margin_ns = int(math.ceil(2.0 * g.radius_m / g.sound_speed_m_s * 1e9))
                 with self._step_lock:  # registered before the resolver can answer
                     now = time.monotonic()
-                    self._windows_out.update((id(p), now) for p in windows)
+                    self._windows_out.update(
+                        (id(p), (now, int(p.stamp_ns) - margin_ns)) for p in windows
+                    )
             queued = self.overlaps.submit(windows)
             if len(queued) < len(windows) and self.slip is not None:
                 with self._step_lock:
