@@ -75,6 +75,20 @@ def _gram(rows, m, g):
             g[j, i] = s
 
 
+@njit(cache=True, nogil=True)
+def _model_buffers(J, N, L):
+    """Work arrays of `_evaluate` for J emissions on N = 4L samples: phi (2J, N); h, dh
+    (J, 2, 4, L); gain (J, 2, 4); dgain, dtds (J, 2, 4, 2)."""
+    return (
+        np.empty((2 * J, N)),
+        np.empty((J, 2, 4, L)),
+        np.empty((J, 2, 4, L)),
+        np.empty((J, 2, 4)),
+        np.empty((J, 2, 4, 2)),
+        np.empty((J, 2, 4, 2)),
+    )
+
+
 @njit(cache=True, nogil=True, fastmath=_FAST)
 def _evaluate(theta, J, elem, c, R, echo, t0_s, fs, L, poles, res, tab_re, tab_im, mask,
               phi, h, dh, gain, dgain, dtds):
@@ -238,18 +252,8 @@ def lm_fit(y, mask, t0_s, theta0, elem, c, R, echo, fs, poles, res, tab_re, tab_
     M = 5 * J
     theta = theta0.copy()
     _clip(theta, J, max_rho)
-    phi = np.empty((2 * J, N))
-    h = np.empty((J, 2, 4, L))
-    dh = np.empty((J, 2, 4, L))
-    gain = np.empty((J, 2, 4))
-    dgain = np.empty((J, 2, 4, 2))
-    dtds = np.empty((J, 2, 4, 2))
-    phi2 = np.empty((2 * J, N))
-    h2 = np.empty((J, 2, 4, L))
-    dh2 = np.empty((J, 2, 4, L))
-    gain2 = np.empty((J, 2, 4))
-    dgain2 = np.empty((J, 2, 4, 2))
-    dtds2 = np.empty((J, 2, 4, 2))
+    phi, h, dh, gain, dgain, dtds = _model_buffers(J, N, L)
+    phi2, h2, dh2, gain2, dgain2, dtds2 = _model_buffers(J, N, L)
     g2 = np.empty((2 * J, 2 * J))
     b2 = np.empty(2 * J)
     w2 = np.empty(2 * J)
@@ -339,12 +343,7 @@ def model_residual(y, mask, t0_s, theta, amp, elem, c, R, echo, fs, poles, res, 
     J = theta.shape[0]
     N = y.shape[0]
     L = N // 4
-    phi = np.empty((2 * J, N))
-    h = np.empty((J, 2, 4, L))
-    dh = np.empty((J, 2, 4, L))
-    gain = np.empty((J, 2, 4))
-    dgain = np.empty((J, 2, 4, 2))
-    dtds = np.empty((J, 2, 4, 2))
+    phi, h, dh, gain, dgain, dtds = _model_buffers(J, N, L)
     _evaluate(theta, J, elem, c, R, echo, t0_s, fs, L, poles, res, tab_re, tab_im, mask,
               phi, h, dh, gain, dgain, dtds)
     _residual(phi, 2 * J, y, amp, r_out)
