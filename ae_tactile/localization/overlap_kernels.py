@@ -25,9 +25,9 @@ from ae_tactile.jit import NUMBA_AVAILABLE, njit
 
 __all__ = ["NUMBA_AVAILABLE", "lm_fit", "model_residual", "grid_profile"]
 
-#: reassociation lets the dot products vectorise; NaN / inf semantics are kept (the
-#: kernels test for them)
-_FAST = {"reassoc", "contract"}
+#: no fast-math: the same input gives the same bits in every process (the dot products
+#: keep four fixed partial sums for speed instead of letting the compiler reorder them)
+_FAST = False
 
 
 @njit(cache=True, nogil=True, fastmath=_FAST)
@@ -63,14 +63,27 @@ def _solve(a, b, out):
 
 
 @njit(cache=True, nogil=True, fastmath=_FAST)
+def _dot(a, b):
+    """sum a * b with four partial sums in a fixed order (fast and reproducible)."""
+    n = a.shape[0]
+    m = n - n % 4
+    s0 = s1 = s2 = s3 = 0.0
+    for q in range(0, m, 4):
+        s0 += a[q] * b[q]
+        s1 += a[q + 1] * b[q + 1]
+        s2 += a[q + 2] * b[q + 2]
+        s3 += a[q + 3] * b[q + 3]
+    for q in range(m, n):
+        s0 += a[q] * b[q]
+    return (s0 + s1) + (s2 + s3)
+
+
+@njit(cache=True, nogil=True, fastmath=_FAST)
 def _gram(rows, m, g):
     """g = rows[:m] rows[:m]^T (symmetric)."""
-    n = rows.shape[1]
     for i in range(m):
         for j in range(i + 1):
-            s = 0.0
-            for q in range(n):
-                s += rows[i, q] * rows[j, q]
+            s = _dot(rows[i], rows[j])
             g[i, j] = s
             g[j, i] = s
 
@@ -156,13 +169,9 @@ def _evaluate(theta, J, elem, c, R, echo, t0_s, fs, L, poles, res, tab_re, tab_i
 def _amplitudes(phi, m, y, amp, g, b, work, ridge):
     """LS amplitudes of y on the first m rows of phi (Jacobi scaled, relative ridge)."""
     _gram(phi, m, g)
-    n = phi.shape[1]
     gmax = 0.0
     for i in range(m):
-        s = 0.0
-        for q in range(n):
-            s += phi[i, q] * y[q]
-        b[i] = s
+        b[i] = _dot(phi[i], y)
         gmax = max(gmax, g[i, i])
     sc = np.empty(m)
     for i in range(m):
@@ -193,10 +202,7 @@ def _residual(phi, m, y, amp, r):
         row = phi[i]
         for q in range(n):
             r[q] -= a * row[q]
-    s = 0.0
-    for q in range(n):
-        s += r[q] * r[q]
-    return s
+    return _dot(r, r)
 
 
 @njit(cache=True, nogil=True, fastmath=_FAST)
@@ -281,10 +287,7 @@ def lm_fit(y, mask, t0_s, theta0, elem, c, R, echo, fs, poles, res, tab_re, tab_
                 jac[3 * J + i, :] = phi[i]
             _gram(jac, M, jtj)
             for i in range(M):
-                s = 0.0
-                for q in range(N):
-                    s += jac[i, q] * r[q]
-                jtr[i] = s
+                jtr[i] = _dot(jac[i], r)
             stale = False
         dmax = 0.0
         for i in range(M):
