@@ -553,8 +553,9 @@ class OverlapResolver:
 
     _busy = 0
 
-    def _resolve(self, p):
-        """OverlapPacket of one window: from the worker process, else computed here."""
+    def _answers(self, p):
+        """The OverlapPackets of one window, from the worker process (else computed here):
+        the quick answer and, when it is DEFERRED, the exhaustive search's."""
         samples = np.asarray(p.samples_v, dtype=np.float64)
         fs, onset = float(p.sample_rate_hz), int(p.onset_index)
         proc = self._proc
@@ -567,19 +568,37 @@ class OverlapResolver:
                 )
                 proc.stdin.flush()
                 res = pickle.load(proc.stdout)
+                if isinstance(res, str):
+                    raise RuntimeError(res)
+                if res.reason == _DEFERRED:
+                    yield res
+                    res = pickle.load(proc.stdout)
+                    if isinstance(res, str):
+                        raise RuntimeError(res)
             except (OSError, EOFError, pickle.UnpicklingError):
                 self.counts["overlap_worker_unavailable"] += 1
                 self._stop_worker()
             else:
-                if isinstance(res, str):
-                    raise RuntimeError(res)
-                return res
+                yield res
+                return
         from ae_tactile.localization.overlap import resolve_overlaps
 
-        with np.errstate(all="ignore"):
-            return resolve_overlaps(
-                samples[None], fs, [onset], geometry=self.geometry, pulse=self.pulse
-            )[0]
+        for exhaustive in (False, True):
+            with np.errstate(all="ignore"):
+                res = resolve_overlaps(
+                    samples[None], fs, [onset], geometry=self.geometry, pulse=self.pulse,
+                    exhaustive=exhaustive,
+                )[0]
+            yield res
+            if res.reason != _DEFERRED:
+                return
+
+    def _done(self, p) -> None:
+        if self.on_done is not None:
+            try:
+                self.on_done(p)
+            except Exception:
+                self.counts["overlap_errors"] += 1
 
     def _run(self) -> None:
         if self._proc is not None:
@@ -596,24 +615,29 @@ class OverlapResolver:
                 self._stop_worker()
                 return
             self._busy = 1
+            told = False  # on_done called (the quick answer said DEFERRED)
             try:
-                res = self._resolve(p)
-                if not res.accepted:
-                    self.counts["overlap_rejected_" + res.reason_name] += 1
-                    continue
-                self.counts["overlap_windows_resolved"] += 1
-                self.counts["overlap_sources"] += len(res.sources)
-                records = [source_record(p, src) for src in res.sources]
-                self.on_records(records)
+                for res in self._answers(p):
+                    if res.reason == _DEFERRED:
+                        # a hard window: what waits for it goes on; its emissions, if
+                        # any, come from the exhaustive search, late, with their stamps
+                        self.counts["overlap_deferred"] += 1
+                        self._done(p)
+                        told = True
+                        continue
+                    if not res.accepted:
+                        self.counts["overlap_rejected_" + res.reason_name] += 1
+                        continue
+                    self.counts["overlap_windows_resolved"] += 1
+                    self.counts["overlap_sources"] += len(res.sources)
+                    records = [source_record(p, src) for src in res.sources]
+                    self.on_records(records)
             except Exception:  # never let one window stop the resolver
                 self.counts["overlap_errors"] += 1
             finally:
                 self._busy = 0
-                if self.on_done is not None:
-                    try:
-                        self.on_done(p)
-                    except Exception:
-                        self.counts["overlap_errors"] += 1
+                if not told:
+                    self._done(p)
 
     def _stop_worker(self) -> None:
         proc, self._proc = self._proc, None
@@ -638,6 +662,9 @@ class OverlapResolver:
         except queue.Full:
             pass
         self._thread.join(3.0)
+
+
+_DEFERRED = 10  # OverlapReason.DEFERRED (overlap is imported lazily)
 
 
 def _TIME_NS(r) -> int:

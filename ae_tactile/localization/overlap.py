@@ -102,6 +102,7 @@ class OverlapReason(IntEnum):
     LOW_SNR = int(Reason.LOW_SNR)
     UNRESOLVED = 8  # residual inconsistent with noise even with max_sources emissions
     UNCERTAIN = 9  # no emission could be localized with in-plane sigma <= max_sigma_m
+    DEFERRED = 10  # exhaustive=False: the first joint fit left more than noise (not an answer)
 
 
 # --------------------------------------------------------------------------- pulse model
@@ -769,7 +770,14 @@ def _segments(prep, plan, geo, fs, analysis_s):
 
 
 def _search(
-    model: _Model, seg, max_sources, grid, sigma2=None, add_threshold=None, search_limit=None
+    model: _Model,
+    seg,
+    max_sources,
+    grid,
+    sigma2=None,
+    add_threshold=None,
+    search_limit=None,
+    deferred=None,
 ):
     """RELAX search for 1..max_sources emissions. Returns the list of _Fit, one per J
     (packets that stop adding emissions keep their previous fit in later entries).
@@ -777,7 +785,9 @@ def _search(
     With ``sigma2`` (K,), emission j + 1 is searched only where the j-emission residual is
     above ``search_limit`` (K,) x sigma^2 x dof (the data are not yet explained: a
     single-source packet costs one fit) and, for j >= 2, the j-th emission was significant
-    (residual drop > ``add_threshold`` sigma^2)."""
+    (residual drop > ``add_threshold`` sigma^2). ``deferred`` (K,) bool: where given, a
+    packet whose first joint fit still leaves more than noise is marked there and searched
+    no further (the caller answers it later with the exhaustive search)."""
     K = seg.shape[0]
     y = seg.reshape(K, -1)
     cands, _ = _grid_search(model, seg, grid, n_peaks=3)
@@ -792,6 +802,8 @@ def _search(
             go = prev.rss > search_limit * sigma2 * dof
             if j > 2:
                 go &= (fits[-2].rss - prev.rss) > add_threshold * sigma2
+        if deferred is not None:
+            go &= ~deferred
         ids = np.nonzero(go)[0]
         theta = np.concatenate([prev.theta, np.zeros((K, 1, 3))], axis=1)
         amp = np.concatenate([prev.amp, np.zeros((K, 2))], axis=1)
@@ -811,6 +823,9 @@ def _search(
                 n_in = y.shape[1] if sub.mask is None else sub.mask.sum(axis=1)
                 dof = np.maximum(n_in - 5 * j, 1)
                 alt = np.nonzero(r1 > search_limit[ids] * sigma2[ids] * dof)[0]
+            if alt.size and deferred is not None:
+                deferred[ids[alt]] = True
+                alt = alt[:0]
             if alt.size:
                 _alternatives(
                     _sub(sub, alt), ys[alt], j, cands[ids[alt]], grid, alt, t1, a1, r1, j1
@@ -905,6 +920,7 @@ def resolve_overlaps(
     grid_spacing_m=1.0e-3,
     min_separation_s=1.5e-6,
     engine="auto",
+    exhaustive=True,
 ) -> list:
     """Localize every emission in each of K windows (two or three overlapping emissions).
 
@@ -922,6 +938,9 @@ def resolve_overlaps(
     (the joint likelihood has several nearly equal optima): such packets are rejected
     (UNRESOLVED). engine: "auto" fits with the compiled kernels (`overlap_kernels`) when
     numba is present and the medium lossless, "numpy" always with the numpy path.
+    exhaustive=False: a window whose first joint fit still leaves more than noise is not
+    searched further but answered DEFERRED (the quick answer of the driver's resolver,
+    which then runs the exhaustive search on it).
 
     Returns a list of K `OverlapPacket` (``sources`` earliest first, or a rejection reason).
     Parameter and shape errors raise ValueError / TypeError; data problems are rejections.
@@ -991,6 +1010,7 @@ def resolve_overlaps(
                 geo,
                 _surface_grid(geo, grid_spacing_m),
                 min_separation_s,
+                exhaustive,
             )
             for i, r in zip(ids, res):
                 out[i] = r
@@ -1050,15 +1070,19 @@ def _decide(
     geo,
     grid,
     min_separation_s,
+    exhaustive=True,
 ):
     K = seg.shape[0]
+    deferred = None if exhaustive else np.zeros(K, bool)
     N = (
         model.mask.sum(axis=1)
         if model.mask is not None
         else np.full(K, seg.shape[1] * seg.shape[2])
     )
     search_limit = 1.0 + 2.0 * np.sqrt(2.0 / n_noise + 2.0 / N)
-    fits = _search(model, seg, max_sources, grid, sigma2, add_threshold, search_limit)
+    fits = _search(
+        model, seg, max_sources, grid, sigma2, add_threshold, search_limit, deferred
+    )
     # Model order: add emission j+1 while the residual energy drops by > add_threshold sigma^2.
     J = np.ones(K, np.int64)
     going = np.ones(K, bool)
@@ -1070,6 +1094,15 @@ def _decide(
     out = []
     snr_len = int(round(30e-6 * model.fs))
     for i in range(K):
+        if deferred is not None and deferred[i]:
+            out.append(
+                OverlapPacket(
+                    False,
+                    int(OverlapReason.DEFERRED),
+                    noise_rms_v=float(np.sqrt(sigma2[i]) * scale[i]),
+                )
+            )
+            continue
         f = fits[J[i] - 1]
         j = int(J[i])
         theta, amp, rss, gram = f.theta[i, :j], f.amp[i, : 2 * j], f.rss[i], f.gram[i]

@@ -6,12 +6,14 @@ compiled fits, plus numpy and Python around them). In the driver's process that 
 would hold the interpreter lock against the reader thread, which localizes every other
 packet in microseconds; in its own process it runs beside it on another core.
 
-Protocol (pickle, both ways, one message per window): stdin gets
-``(samples (4, M) float64 volts, sample_rate_hz, onset_index, geometry, pulse)``; stdout
-answers with the `OverlapPacket`, or with a ``str`` describing the exception. EOF on stdin
-ends the process (the parent closed it or exited); the parent starts it in a session of
-its own, so a Ctrl-C at the terminal reaches only the parent, which owns the shutdown
-(and SIGINT is ignored here too). The worker warms up (imports, tables, compiled code) and says
+Protocol (pickle, both ways): stdin gets one message per window, ``(samples (4, M) float64
+volts, sample_rate_hz, onset_index, geometry, pulse)``; stdout answers with the
+`OverlapPacket` of the quick search (``exhaustive=False``) and, when that one is DEFERRED
+(the first joint fit left more than noise), with the exhaustive search's; or with a
+``str`` describing an exception. EOF on stdin ends the process (the parent closed it or
+exited); the parent starts it in a session of its own, so a Ctrl-C at the terminal
+reaches only the parent, which owns the shutdown (and SIGINT is ignored here too).
+The worker warms up (imports, tables, compiled code) and says
 ``"ready"`` before it reads.
 """
 
@@ -28,7 +30,7 @@ def main() -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     inp, out = sys.stdin.buffer, sys.stdout.buffer
     sys.stdout = sys.stderr  # stdout carries the answers only
-    from ae_tactile.localization.overlap import resolve_overlaps, warm_up
+    from ae_tactile.localization.overlap import OverlapReason, resolve_overlaps, warm_up
 
     warm_up()  # a two-emission window: every kernel and table of the first real one
     pickle.dump("ready", out)
@@ -38,22 +40,26 @@ def main() -> int:
             samples, fs, onset, geometry, pulse = pickle.load(inp)
         except (EOFError, OSError):
             return 0
-        try:
-            with np.errstate(all="ignore"):
-                res = resolve_overlaps(
-                    np.asarray(samples, dtype=np.float64)[None],
-                    float(fs),
-                    [int(onset)],
-                    geometry=geometry,
-                    pulse=pulse,
-                )[0]
-        except Exception as exc:  # the parent counts it; the worker goes on
-            res = repr(exc)
-        try:
-            pickle.dump(res, out, protocol=pickle.HIGHEST_PROTOCOL)
-            out.flush()
-        except (BrokenPipeError, OSError):
-            return 0
+        for exhaustive in (False, True):  # the quick answer, then (if DEFERRED) the full one
+            try:
+                with np.errstate(all="ignore"):
+                    res = resolve_overlaps(
+                        np.asarray(samples, dtype=np.float64)[None],
+                        float(fs),
+                        [int(onset)],
+                        geometry=geometry,
+                        pulse=pulse,
+                        exhaustive=exhaustive,
+                    )[0]
+            except Exception as exc:  # the parent counts it; the worker goes on
+                res = repr(exc)
+            try:
+                pickle.dump(res, out, protocol=pickle.HIGHEST_PROTOCOL)
+                out.flush()
+            except (BrokenPipeError, OSError):
+                return 0
+            if isinstance(res, str) or res.reason != OverlapReason.DEFERRED:
+                break
 
 
 if __name__ == "__main__":
