@@ -846,18 +846,22 @@ class ContactPipeline:
             if slips and on_slip is not None:
                 on_slip(slips)
 
+    def idle(self) -> bool:
+        """No window with the overlap resolver and no slip step waiting for one."""
+        with self._step_lock:
+            if self._windows_out or self._held or self._slip_pending:
+                return False
+        return self.overlaps is None or not self.overlaps.pending()
+
     def wait_idle(self, timeout_s: float) -> bool:
-        """Wait (up to timeout_s) until no window is with the overlap resolver and no slip
-        step waits for one; True if so (offline replay and tests; never on the hot path)."""
+        """Wait (up to timeout_s) until `idle`; True if so (offline replay and tests; never
+        on the hot path)."""
         deadline = time.monotonic() + float(timeout_s)
-        while True:
-            with self._step_lock:
-                idle = not self._windows_out and not self._held
-            if idle and (self.overlaps is None or not self.overlaps.pending()):
-                return True
+        while not self.idle():
             if time.monotonic() >= deadline:
                 return False
             time.sleep(0.001)
+        return True
 
     def release_held(self) -> None:
         """Run the slip step of held events whose wait has expired (a timer calls this)."""

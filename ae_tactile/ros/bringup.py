@@ -285,8 +285,7 @@ class Bringup:
                 and self.localizer.idle()
                 and self.slip.received >= self.localizer.counts["published_events"]
             )
-        ov = self.driver.pipeline.overlaps if self.driver.pipeline is not None else None
-        return ov is None or ov.pending() == 0
+        return self.driver.pipeline is None or self.driver.pipeline.idle()
 
     def spin(self, duration_s: float, drain_timeout_s: float = 10.0) -> None:
         """Spin for duration_s (0: forever); negative: until the scene has played and the
