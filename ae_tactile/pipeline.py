@@ -45,7 +45,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Callable, Sequence
@@ -91,6 +91,19 @@ SLIP_MAX_DEFER_S = 0.5e-3
 #: that the events go on without it (``slip_hold_expired``) and its emissions, when they
 #: come, are processed late with their own stamps.
 OVERLAP_HOLD_MAX_S = 0.1
+#: An emission the overlap resolver finds that was already handed out (it fell into the
+#: windows of two triggers, or its own window was localized on the hot path) is the same
+#: emission when its stamp is within DUPLICATE_TIME_S and its point within
+#: DUPLICATE_DISTANCE_M of the earlier event's: it is dropped and counted
+#: (``overlap_duplicates``). Two windows' fits of one emission agree to nanoseconds and
+#: micrometres, a hot-path stamp is within 0.1 us (p99; simulator), and two emissions at
+#: one spot within 1 us cannot be told apart anyway.
+DUPLICATE_TIME_S = 1e-6
+DUPLICATE_DISTANCE_M = 1e-3
+#: Contact events are remembered for that check from the earliest possible emission of
+#: the oldest window still with the resolver (or of the newest event, when none is) minus
+#: this margin (ns): more than a window's pre-trigger plus its span.
+RECENT_MARGIN_NS = 1_000_000
 
 
 @dataclass(slots=True)
@@ -792,6 +805,13 @@ class ContactPipeline:
     #: longest wait of the slip step for the overlap resolver (s)
     overlap_hold_max_s: float = OVERLAP_HOLD_MAX_S
     _step_lock: threading.RLock = field(default_factory=threading.RLock)
+    #: (stamp ns, x, y, z) of the contact events handed out that a window still with the
+    #: overlap resolver could hold again (duplicate check), oldest first
+    _recent: deque = field(default_factory=deque)
+    #: windows with the overlap resolver: id -> earliest possible emission stamp (ns)
+    _pending_ns: dict = field(default_factory=dict)
+    _recent_lock: threading.Lock = field(default_factory=threading.Lock)
+    _resolved_newest_ns: int = -(1 << 62)  # newest stamp the overlap resolver handed out
 
     def start_overlaps(self, wait_s: float = 0.0) -> None:
         """Start the overlap resolver (and its worker process) now, not at the first
@@ -806,11 +826,49 @@ class ContactPipeline:
 
     def _late_from_resolver(self, records: list) -> None:
         on_contacts, on_slip = self._outputs
-        if on_contacts is not None:
-            self.late(records, on_contacts, on_slip)
+        if on_contacts is None:
+            return
+        fresh = self._not_handed_out(records)
+        if len(fresh) < len(records):
+            self.counts["overlap_duplicates"] += len(records) - len(fresh)
+        if fresh:
+            self._remember(fresh)
+            self._resolved_newest_ns = max(self._resolved_newest_ns, *(r.time_ns for r in fresh))
+        self.late(fresh, on_contacts, on_slip)
+
+    def _remember(self, records) -> None:
+        """Keep the stamps and points of these events for as long as a window with the
+        resolver could hold their emissions (`_not_handed_out`)."""
+        rec = self._recent
+        with self._recent_lock:
+            rec.extend((r.time_ns, *r.point_m) for r in records)
+            pending = self._pending_ns
+            keep_from = (min(pending.values()) if pending else rec[-1][0]) - RECENT_MARGIN_NS
+            while rec[0][0] < keep_from:
+                rec.popleft()
+
+    def _not_handed_out(self, records: list) -> list:
+        """The records whose emission was not handed out already: none earlier within
+        DUPLICATE_TIME_S and DUPLICATE_DISTANCE_M (|dt| <= T and |dp| <= D)."""
+        with self._recent_lock:
+            if not self._recent:
+                return records
+            recent = np.array(self._recent, dtype=float)  # (N, 4): t ns, x, y, z
+        d2_max = DUPLICATE_DISTANCE_M**2
+        keep = []
+        for r in records:
+            near = np.abs(recent[:, 0] - r.time_ns) <= DUPLICATE_TIME_S * 1e9
+            if near.any():
+                dp = recent[near, 1:] - np.asarray(r.point_m, dtype=float)
+                if (np.einsum("ij,ij->i", dp, dp) <= d2_max).any():
+                    continue
+            keep.append(r)
+        return keep
 
     def _window_done(self, p) -> None:
         """The resolver answered a window: the slip step of what waited for it runs."""
+        with self._recent_lock:
+            self._pending_ns.pop(id(p), None)
         with self._step_lock:
             self._windows_out.pop(id(p), None)
             self._slip_step([])
@@ -892,27 +950,40 @@ class ContactPipeline:
         """
         self._outputs = (on_contacts, on_slip)
         contacts = self.localizer.process(packets)
+        if contacts:
+            if min(r.time_ns for r in contacts) <= self._resolved_newest_ns + DUPLICATE_TIME_S * 1e9:
+                # the resolver already handed out emissions this recent (the reader fell
+                # behind): the ones it found in a neighbouring window are not repeated
+                n = len(contacts)
+                contacts = self._not_handed_out(contacts)
+                self.counts["overlap_duplicates"] += n - len(contacts)
+            # remembered before any window goes to the resolver, whose answer is checked
+            self._remember(contacts)
         if self.localizer.overlap_windows:
             self.start_overlaps()
             self.overlaps.geometry = self.localizer.geometry
             windows = self.localizer.overlap_windows
+            # a window's emissions are at most one sphere diameter's travel time older
+            # than its first sample
+            g = self.localizer.geometry
+            margin_ns = int(math.ceil(2.0 * g.radius_m / g.sound_speed_m_s * 1e9))
+            with self._recent_lock:  # registered before the resolver can answer
+                self._pending_ns.update((id(p), int(p.stamp_ns) - margin_ns) for p in windows)
             if self.slip is not None:
-                # a window's emissions are at most one sphere diameter's travel time
-                # older than its first sample
-                g = self.localizer.geometry
-                margin_ns = int(math.ceil(2.0 * g.radius_m / g.sound_speed_m_s * 1e9))
                 with self._step_lock:  # registered before the resolver can answer
                     now = time.monotonic()
                     self._windows_out.update(
                         (id(p), (now, int(p.stamp_ns) - margin_ns)) for p in windows
                     )
             queued = self.overlaps.submit(windows)
-            if len(queued) < len(windows) and self.slip is not None:
+            if len(queued) < len(windows):
+                lost = {id(p) for p in windows} - {id(p) for p in queued}
+                with self._recent_lock:
+                    for k in lost:
+                        self._pending_ns.pop(k, None)
                 with self._step_lock:
-                    kept = {id(p) for p in queued}
-                    for p in windows:
-                        if id(p) not in kept:
-                            self._windows_out.pop(id(p), None)
+                    for k in lost:
+                        self._windows_out.pop(k, None)
         if more_waiting is None or self.slip is None:
             self.late(contacts, on_contacts, on_slip)
             return
