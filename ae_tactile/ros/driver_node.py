@@ -649,11 +649,10 @@ class DriverNode(Node):
             statuses += pipeline_statuses(
                 self.get_fully_qualified_name(),
                 self.hardware_id(),
-                self.pipeline.localizer,
+                self.pipeline,
                 self.slip_stage,
                 self.published_events,
                 self.published_slip,
-                self.pipeline.overlaps,
             )
         msg = DiagnosticArray()
         msg.header.stamp = ns_to_time_msg(now)
@@ -680,32 +679,16 @@ def changes_for_localizer(changes: dict) -> dict:
 def pipeline_statuses(
     node_name: str,
     hardware_id: str,
-    localizer,
+    pipeline,
     slip_stage,
     events: int,
     slip_events: int,
-    overlaps=None,
 ) -> list:
-    """DiagnosticStatus of the localization and slip stages (counts by reason)."""
-    loc = DiagnosticStatus()
-    loc.name = f"{node_name}: localization"
-    loc.hardware_id = hardware_id
-    c = dict(localizer.counts)
-    if overlaps is not None:
-        c.update(overlaps.counts)
-    c.setdefault("events", 0)
-    c.setdefault("packets", 0)
-    rejected = sum(v for k, v in c.items() if k.startswith("rejected_"))
-    loc.level = DiagnosticStatus.OK
-    loc.message = f"{c['events']} events from {c['packets']} packets, {rejected} rejected"
-    if c["packets"] >= 20 and rejected > 0.5 * c["packets"]:
-        loc.level = DiagnosticStatus.WARN
-    loc.values = [KeyValue(key=k, value=str(v)) for k, v in sorted(c.items())]
-    loc.values += [
-        KeyValue(key="method", value=localizer.method),
-        KeyValue(key="published_events", value=str(events)),
-    ]
-    out = [loc]
+    """DiagnosticStatus of the localization (``pipeline``: a ContactPipeline, its counts by
+    reason) and slip stages; ``pipeline`` None: the slip stage's only."""
+    out = []
+    if pipeline is not None:
+        out.append(_localization_status(node_name, hardware_id, pipeline, events))
     if slip_stage is not None:
         slip = DiagnosticStatus()
         slip.name = f"{node_name}: slip detection"
@@ -721,6 +704,26 @@ def pipeline_statuses(
         slip.values += [KeyValue(key="published_slip_events", value=str(slip_events))]
         out.append(slip)
     return out
+
+
+def _localization_status(node_name, hardware_id, pipeline, events) -> DiagnosticStatus:
+    loc = DiagnosticStatus()
+    loc.name = f"{node_name}: localization"
+    loc.hardware_id = hardware_id
+    c = dict(pipeline.all_counts())
+    c.setdefault("events", 0)
+    c.setdefault("packets", 0)
+    rejected = sum(v for k, v in c.items() if k.startswith("rejected_"))
+    loc.level = DiagnosticStatus.OK
+    loc.message = f"{c['events']} events from {c['packets']} packets, {rejected} rejected"
+    if c["packets"] >= 20 and rejected > 0.5 * c["packets"]:
+        loc.level = DiagnosticStatus.WARN
+    loc.values = [KeyValue(key=k, value=str(v)) for k, v in sorted(c.items())]
+    loc.values += [
+        KeyValue(key="method", value=pipeline.localizer.method),
+        KeyValue(key="published_events", value=str(events)),
+    ]
+    return loc
 
 
 def events_executor():

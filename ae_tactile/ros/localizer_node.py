@@ -27,7 +27,7 @@ from visualization_msgs.msg import MarkerArray
 
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.msg import ContactEvent, PacketArray, SensorInfo
-from ae_tactile.pipeline import OverlapResolver, PacketLocalizer, PacketView
+from ae_tactile.pipeline import ContactPipeline, PacketLocalizer, PacketView
 from ae_tactile.ros.conversions import contact_event_msg, packet_samples, time_msg_to_ns
 from ae_tactile.ros.driver_node import EVENT_QOS, changes_for_localizer, pipeline_statuses
 from ae_tactile.ros.markers import EventMarkers, sensor_markers
@@ -73,7 +73,9 @@ class LocalizerNode(Node):
             resolve_overlaps=lp["resolve_overlaps"],
         )
         self.counts = self.localizer.counts
-        self.overlaps = None
+        # the driver's pipeline without its slip stage: the same localization, overlap
+        # hand-off and duplicate check as the live path
+        self.pipeline = ContactPipeline(self.localizer, None)
         self.frame_id = ""
         self.pub_events = self.create_publisher(ContactEvent, "contacts", EVENT_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -119,7 +121,7 @@ class LocalizerNode(Node):
         return (
             not self._inbox
             and not self._busy
-            and (self.overlaps is None or self.overlaps.pending() == 0)
+            and self.pipeline.idle()
         )
 
     def _work(self) -> None:
@@ -153,8 +155,7 @@ class LocalizerNode(Node):
         self._running = False
         self._wake.set()
         self._worker.join(1.0)
-        if self.overlaps is not None:
-            self.overlaps.close()
+        self.pipeline.close()
         return super().destroy_node()
 
     def on_sensor_info(self, msg: SensorInfo) -> None:
@@ -215,12 +216,7 @@ class LocalizerNode(Node):
                         p.saturated,
                     )
                 )
-        self._publish(self.localizer.process(views))
-        if self.localizer.overlap_windows:
-            if self.overlaps is None:
-                self.overlaps = OverlapResolver(self.geometry, self._publish)
-            self.overlaps.geometry = self.geometry
-            self.overlaps.submit(self.localizer.overlap_windows)
+        self.pipeline.process(views, self._publish)
 
     def _publish(self, records) -> None:
         for rec in records:
@@ -249,11 +245,10 @@ class LocalizerNode(Node):
         st = pipeline_statuses(
             self.get_fully_qualified_name(),
             self.hardware_id,
-            self.localizer,
+            self.pipeline,
             None,
             self.counts["published_events"],
             0,
-            self.overlaps,
         )
         st[0].values += [
             KeyValue(key="upstream_packets_dropped", value=str(self.last_upstream[0])),

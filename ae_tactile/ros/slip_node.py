@@ -155,22 +155,15 @@ class SlipDetectorNode(Node):
         statuses = pipeline_statuses(
             self.get_fully_qualified_name(),
             self.frame_id or "fingertip",
-            _NoLocalizer,
+            None,
             self.stage,
             0,
             self.published,
         )
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()
-        msg.status = statuses[1:]
+        msg.status = statuses
         self.pub_diag.publish(msg)
-
-
-class _NoLocalizer:
-    """pipeline_statuses' localizer slot for a node without one."""
-
-    counts = {"events": 0, "packets": 0}
-    method = ""
 
 
 def main(args=None) -> int:
