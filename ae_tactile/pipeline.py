@@ -951,7 +951,8 @@ class ContactPipeline:
         self._outputs = (on_contacts, on_slip)
         contacts = self.localizer.process(packets)
         if contacts:
-            if min(r.time_ns for r in contacts) <= self._resolved_newest_ns + DUPLICATE_TIME_S * 1e9:
+            newest_resolved_ns = self._resolved_newest_ns + DUPLICATE_TIME_S * 1e9
+            if min(r.time_ns for r in contacts) <= newest_resolved_ns:
                 # the resolver already handed out emissions this recent (the reader fell
                 # behind): the ones it found in a neighbouring window are not repeated
                 n = len(contacts)
