@@ -753,7 +753,9 @@ def test_stick_zone_judged_against_the_ring_drawn_before_the_window():
     first ones all on one side (a circle fit that took them in would move 0.16 mm away
     from them), and one 0.45 mm from the centre on that side, inside the stick zone left
     at q < 0.96 (0.35 of the ring): SLIP (reason 1: an emission inside the stick zone) at
-    that emission."""
+    that emission; with the sequential likelihood ratio on (it is tested first) it decides
+    at the same emission (reason 6: the fast emissions, and this one inside the stick
+    zone)."""
     evs = []
     for i in range(8):  # the ring, 20 Hz, round the contact
         a = 2 * np.pi * i / 8 + 0.3
@@ -762,6 +764,91 @@ def test_stick_zone_judged_against_the_ring_drawn_before_the_window():
     for i, (x, y) in enumerate(side):
         evs.append(ev((415 + 8 * i) * MS, x, y, 1, 100 + i))
     evs.append(ev(450 * MS, 0.45e-3, 0.0, -1, 200))
-    outs = run(SlipDetector(), evs)
+    outs = run(SlipDetector(SlipConfig(gross_llr_threshold=0.0)), evs)
     slip = [o for o in outs if o.kind == SlipEventType.SLIP and o.onset]
     assert slip and slip[0].packet_ids[-1] == 200 and slip[0].evidence == 1.0
+    outs = run(SlipDetector(), evs)
+    slip = [o for o in outs if o.kind == SlipEventType.SLIP and o.onset]
+    assert slip and slip[0].evidence == 6.0 and slip[0].packet_ids[-1] == 200
+
+
+# ---------------------------------------------------------------------- sparse gross slip
+def _sparse_contact(pol):
+    """A sparse contact: 6 micro-slips round a ring of r = 1.5 mm over 1.5 s (4 Hz), the
+    polarity given (+1, -1, or 0: alternating)."""
+    evs = []
+    for i in range(6):
+        a = 2 * np.pi * i / 6 + 0.4
+        p = pol if pol else 1 - 2 * (i % 2)
+        evs.append(ev(i * 300 * MS, 1.5e-3 * math.cos(a), 1.5e-3 * math.sin(a), p, i))
+    return evs
+
+
+_DISC = [(0.6e-3, 0.2e-3), (-0.5e-3, 0.55e-3), (0.2e-3, -0.75e-3)]  # 0.4 .. 0.53 of the ring
+
+
+@pytest.mark.parametrize("pol", [1, -1, 0])
+def test_sparse_contact_three_fast_emissions_in_the_disc_give_slip(pol):
+    """Gross slip of a sparse emitter: after micro-slips at 4 Hz round the ring, three
+    emissions 8 ms apart (125 Hz) from the disc (outside 0.35 of the ring: the single
+    inner-emission rule does not apply, and 3 are too few for the Poisson scan) give SLIP
+    on the third, by the sequential likelihood ratio (reason 6), any polarity."""
+    evs = _sparse_contact(pol)
+    t0 = evs[-1].time_ns + 400 * MS
+    for i, (x, y) in enumerate(_DISC):
+        p = pol if pol else 1 - 2 * (i % 2)
+        evs.append(ev(t0 + 8 * MS * i, x, y, p, 100 + i))
+    outs = run(SlipDetector(), evs)
+    slip = [o for o in outs if o.kind == SlipEventType.SLIP and o.onset]
+    assert slip and slip[0].packet_ids[-1] == 102 and slip[0].evidence == 6.0
+    # without the likelihood ratio the older rules need more emissions
+    outs = run(SlipDetector(SlipConfig(gross_llr_threshold=0.0)), evs)
+    assert SlipEventType.SLIP not in kinds(outs)
+
+
+def test_sparse_contact_the_same_emissions_spread_over_a_second_are_no_slip():
+    """The same three emissions 0.5 s apart: the contact's own micro-slip rate (a few Hz)
+    explains them; no SLIP (a precursor, they are micro-slip evidence)."""
+    evs = _sparse_contact(0)
+    t0 = evs[-1].time_ns + 400 * MS
+    for i, (x, y) in enumerate(_DISC):
+        evs.append(ev(t0 + 500 * MS * i, x, y, 1 - 2 * (i % 2), 100 + i))
+    outs = run(SlipDetector(), evs)
+    assert SlipEventType.SLIP not in kinds(outs)
+    assert SlipEventType.SLIP_PRECURSOR in kinds(outs)
+
+
+def test_sparse_contact_fast_emissions_on_its_ring_weigh_less_than_in_the_disc():
+    """Three fast emissions on the ring the micro-slips drew (the annulus: micro-slip
+    continuation is as likely as gross slip there) give a smaller likelihood ratio than
+    the same times from inside the stick zone; at a threshold between them only the
+    latter is SLIP."""
+    det = SlipDetector(SlipConfig(gross_llr_threshold=1000.0))
+    run(det, _sparse_contact(0))
+    c = det.contacts[0]
+
+    def llr(points):
+        t0 = c.last_ns + 400 * MS
+        saved = (c.n, c.t.copy(), c.p.copy(), c.flags.copy(), c.var.copy(), c.pol.copy())
+        for i, (x, y) in enumerate(points):
+            c.add(t0 + 8 * MS * i, surf(x, y), SIG**2, 1, 100 + i, 2)
+        k = c.valid()
+        T, F = c.t[:k], c.flags[:k]
+        use = (F & (4 | 8)) == 0
+        v = det._gross_llr(c, int(T.max()), T, use, sorted(T[use].tolist()))
+        c.n, c.t, c.p, c.flags, c.var, c.pol = saved
+        return v
+
+    on_ring = [(1.5e-3 * math.cos(a), 1.5e-3 * math.sin(a)) for a in (0.1, 2.2, 4.3)]
+    inside = [(0.4e-3, 0.1e-3), (-0.3e-3, 0.45e-3), (0.1e-3, -0.5e-3)]  # 0.3 of the ring
+    assert llr(inside) > llr(on_ring) + 2 * math.log(1 / SlipConfig().gross_position_outlier)
+
+
+def test_a_steady_poisson_stream_on_its_ring_is_no_gross_slip():
+    """A contact emitting from its ring at a steady 300 Hz (a dense emitter's micro-slips)
+    for 1 s: the rate is its own (no jump) and no emission reaches the stick zone: no
+    SLIP, whatever the clusters a Poisson process has."""
+    rng = np.random.default_rng(5)
+    evs = ring_events(rng, 300, 0, 300.0, (0, 0), 1.5e-3, width_m=0.1e-3)
+    outs = run(SlipDetector(), evs)
+    assert SlipEventType.SLIP not in kinds(outs)

@@ -113,3 +113,17 @@ def test_interference_never_becomes_an_alarm():
     n = sum(r["n_interference"] for r in rows)
     assert n > 0 and sum(r["n_rejected"] for r in rows) >= 0.9 * n
     assert all(r["n_acoustic_kept"] == r["n_acoustic_packets"] for r in rows)
+
+
+def test_sparse_emitters_slip_latency_and_no_slip_with_a_stick_zone_left(sparse):
+    """Gross slip of sparse emitters (100 .. 200 Hz from the whole disc) is decided on a
+    few gross-slip emissions: the median delay is below the median arrival of the 4th
+    emission at the slowest rate (Gamma(4, 100 Hz): 36.7 ms), never while the stick zone
+    is still wider than 0.46 a_H (q < 0.9), and the same for any polarity mix."""
+    within = {}
+    for pol, rows in sparse.items():
+        d = np.array([np.inf if r["slip_delay_ms"] is None else r["slip_delay_ms"] for r in rows])
+        assert np.median(d) <= 36.7, pol
+        assert all(r["q_at_slip"] is None or r["q_at_slip"] >= 0.9 for r in rows), pol
+        within[pol] = np.mean(d <= 50.0)
+    assert max(within.values()) - min(within.values()) <= 0.05

@@ -258,6 +258,70 @@ class SlipConfig:
     )
     gross_scan_events: int = _p(8, "see gross_rate_alpha", "", 2, 64, kind="int")
     gross_history_s: float = _p(0.5, "see gross_rate_alpha", "s", 0.0, 60.0, lo_open=True)
+    gross_llr_threshold: float = _p(
+        7.0,
+        "gross slip (tested first) when the log likelihood ratio of the latest "
+        "gross_min_events .. gross_scan_events emissions, gross slip (Poisson at a rate in "
+        "gross_rate_min_hz .. gross_rate_max_hz, uniform over the contact disc) against "
+        "micro-slip continuation (Poisson at the contact's own prior rate x "
+        "gross_rate_growth, in the slip annulus), reaches this; 0 disables it",
+        "",
+        0.0,
+        1000.0,
+    )
+    gross_rate_min_hz: float = _p(
+        100.0,
+        "lowest gross-slip emission rate of that test's gross-slip hypothesis (the fitted "
+        "rate is clipped into gross_rate_min_hz .. gross_rate_max_hz)",
+        "1/s",
+        0.0,
+        1e6,
+        lo_open=True,
+    )
+    gross_rate_max_hz: float = _p(
+        1000.0,
+        "highest gross-slip emission rate of that hypothesis",
+        "1/s",
+        0.0,
+        1e6,
+        lo_open=True,
+    )
+    gross_prior_s: float = _p(
+        1.0,
+        "the micro-slip hypothesis' rate is learnt from the contact's emissions over this "
+        "much of its life before the tested ones (Gamma(n + 1, time covered))",
+        "s",
+        0.0,
+        60.0,
+        lo_open=True,
+    )
+    gross_rate_growth: float = _p(
+        1.5,
+        "... times this: the Cattaneo-Mindlin micro-slip rate grows as (1 - q)^(-1/3) "
+        "toward gross slip (at q = 0.9 about 1.6 times its average since q = 0)",
+        "",
+        1.0,
+        1000.0,
+    )
+    gross_stick_fraction: float = _p(
+        0.45,
+        "the micro-slip hypothesis' emissions lie outside this fraction of the radius of the "
+        "ring fitted before the tested ones (the stick zone c = a_H (1 - q)^(1/3) left at "
+        "q = 1 - fraction^3: 0.45 at q = 0.91), half of them outside the innermost "
+        "micro-slip seen; gross slip's anywhere in the disc (uniform by area)",
+        "",
+        0.0,
+        1.0,
+    )
+    gross_position_outlier: float = _p(
+        0.03,
+        "share of the micro-slip hypothesis' emissions anywhere in the disc (fit and "
+        "localization errors): an emission inside the stick zone weighs ln(1/this)",
+        "",
+        0.0,
+        1.0,
+        lo_open=True,
+    )
     # ------------------------------------------------------------------ texture
     texture_min_intervals: int = _p(
         16,
@@ -353,6 +417,11 @@ class SlipConfig:
     def __post_init__(self):
         for f in fields(self):
             object.__setattr__(self, f.name, _check(f.name, f.metadata, getattr(self, f.name)))
+        if self.gross_rate_min_hz > self.gross_rate_max_hz:
+            raise ValueError(
+                f"SlipConfig.gross_rate_min_hz ({self.gross_rate_min_hz:g}) must not exceed "
+                f"gross_rate_max_hz ({self.gross_rate_max_hz:g})"
+            )
         if self.texture_min_intervals + 1 > self.member_history:
             raise ValueError(
                 f"SlipConfig.member_history ({self.member_history}) must hold "

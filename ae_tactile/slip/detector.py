@@ -25,12 +25,15 @@ The evidence is *where* emissions come from, not their sign:
   SLIP_PRECURSOR (STICK -> INCIPIENT_SLIP) when ``precursor_min_emissions`` of them fall
   within ``evidence_window_s``. Micro-slips come from random places round the annulus;
   touches, releases and taps come from a few fixed spots. Any polarity mix is the same;
-* SLIP (-> GROSS_SLIP), whether or not a precursor came first, when in the latest
-  ``gross_window_s`` at least ``gross_min_events`` emissions came and either one lies
-  inside the stick zone (closer than ``gross_inner_fraction`` of the contact radius to the
-  centre fitted to its emissions), or their rate jumped ``gross_rate_ratio`` times above
-  the preceding ``gross_history_s`` (the part of it the contact has lived); or the
-  contact moves;
+* SLIP (-> GROSS_SLIP), whether or not a precursor came first, when the latest
+  emissions are more likely gross slip (a rate jump to gross_rate_min_hz ..
+  gross_rate_max_hz, from the whole contact disc) than the contact's micro-slips going on
+  (its own prior rate, from the slip annulus): a sequential likelihood ratio of at least
+  ``gross_llr_threshold`` (``_gross_llr``); or when in the latest ``gross_window_s`` at
+  least ``gross_min_events`` emissions came and either one lies inside the stick zone
+  (closer than ``gross_inner_fraction`` of the contact radius to the centre fitted to its
+  emissions), or their rate is a Poisson tail below ``gross_rate_alpha`` of the rate
+  before them; or the contact moves;
 * a contact's motion (centre and velocity along the surface) is regressed on its
   emissions over ``track_window_s``; a contact that moves significantly is predicted
   forward for association, so a dragged stylus stays one contact;
@@ -718,7 +721,8 @@ class SlipDetector:
         )
 
     def _gross_test(self, c, t):
-        """0 or the reason for GROSS_SLIP (1 inner emission, 2 rate jump, 3 fast, 4 moving)."""
+        """0 or the reason for GROSS_SLIP (1 inner emission, 2 rate jump, 4 moving, 6 the
+        sequential likelihood ratio; 5, TEXTURE, is set by ``_texture``)."""
         cfg = self.config
         k = c.valid()
         if c.moving:
@@ -726,6 +730,11 @@ class SlipDetector:
         T, F = c.t[:k], c.flags[:k]
         use = (F & (PAIRED | REPEAT)) == 0
         tu = sorted(T[use].tolist())  # the times used, sorted: counts in ranges by bisection
+        if (
+            cfg.gross_llr_threshold > 0
+            and self._gross_llr(c, t, T, use, tu) >= cfg.gross_llr_threshold
+        ):
+            return 6
         n_w = len(tu) - bisect_right(tu, t - self._w_gross)  # T > t - gross_window
         if n_w < cfg.gross_min_events:
             return 0
@@ -771,6 +780,90 @@ class SlipDetector:
             if 1.0 - cdf < alpha:
                 return 2
         return 0
+
+    def _gross_llr(self, c, t, T, use, tu):
+        """Largest log likelihood ratio ln L over the latest j = gross_min_events ..
+        gross_scan_events used emissions (times t_0 < ... < t_(j-1) = t, m = j - 1 arrivals
+        in tau = t - t_0), gross slip (H1) against micro-slip continuation (H0):
+
+        timing: H1 Poisson at lambda_1 = clip(m / tau, gross_rate_min_hz,
+        gross_rate_max_hz); H0 Poisson at g lambda, g = gross_rate_growth, lambda ~
+        Gamma(n_p + 1, h) (flat prior, n_p of the contact's emissions in the h =
+        min(gross_prior_s, t_0 - born) before t_0; born: its first emission, or the oldest
+        one the ring buffer holds), marginalised (a = n_p + 1, b = h / g):
+          ln L_t = m ln lambda_1 - lambda_1 tau
+                   - [a ln b + lnG(a + m) - lnG(a) - (a + m) ln(b + tau)],
+        0 unless m / tau > a / b (a jump), floored at 0;
+        positions, rho = |p - centre| / radius of the ring fitted before t_0 (no ring:
+        nothing): H1 uniform over the disc, p1 = 2 rho; H0 the slip annulus, p0 = 2 rho
+        [eps + (1 - eps) (1[rho > kappa] / (2 (1 - kappa^2)) + 1[rho > k_o] /
+        (2 (1 - k_o^2)))], kappa = gross_stick_fraction, eps = gross_position_outlier, k_o
+        = max(kappa, the innermost micro-slip before t_0): half the annulus the contact
+        drew, half the widest one allowed (its stick zone may have shrunk);
+          ln L = ln L_t + sum_i ln(p1 / p0)(rho_i)."""
+        cfg = self.config
+        k = len(T)
+        J = min(cfg.gross_scan_events, len(tu))
+        if J < 2:
+            return -math.inf
+        ts = tu[-J:]
+        idx = np.flatnonzero(use)
+        idx = idx[np.argsort(T[idx], kind="stable")][-J:]
+        lo, hi = cfg.gross_rate_min_hz, cfg.gross_rate_max_hz
+        w_prior, created = int(round(cfg.gross_prior_s * 1e9)), c.created_ns
+        kap, eps = cfg.gross_stick_fraction, cfg.gross_position_outlier
+        s_in = -math.log(eps)
+        rings = c.rings if c.fitted else ()
+        # the prior starts at the contact's birth, or at the oldest emission the ring
+        # buffer still holds once it has wrapped
+        born = created if c.n <= c.H else max(created, int(T.min()))
+        best = -math.inf
+        ring_t, rho2 = None, None
+        for j in range(cfg.gross_min_events, J + 1):
+            t0 = ts[J - j]
+            cov = min(w_prior, t0 - born)
+            if cov <= 0:
+                break
+            n_p = bisect_left(tu, t0) - bisect_left(tu, t0 - cov)
+            a, b = n_p + 1.0, cov * 1e-9 / cfg.gross_rate_growth
+            m, tau = j - 1, (t - t0) * 1e-9
+            llr = 0.0
+            if m > tau * a / b:  # faster than the prior rate
+                lam1 = min(hi, max(lo, m / tau if tau > 0 else hi))
+                llr = max(
+                    0.0,
+                    m * math.log(lam1)
+                    - lam1 * tau
+                    - a * math.log(b)
+                    - math.lgamma(a + m)
+                    + math.lgamma(a)
+                    + (a + m) * math.log(b + tau),
+                )
+            # positions against the latest ring fitted before t0 (without the tested ones)
+            for tr, cr, rr in reversed(rings):
+                if tr < t0:
+                    if rr > 0:
+                        if tr != ring_t:
+                            ring_t = tr
+                            Dp = c.p[:k] - cr
+                            rho2 = np.einsum("ij,ij->i", Dp, Dp) / (rr * rr)
+                        # the annulus the contact's micro-slips drew before t0
+                        prior = ((c.flags[:k] & EVID) != 0) & (T < t0)
+                        k_obs = (
+                            max(kap, math.sqrt(float(rho2[prior].min()))) if prior.any() else kap
+                        )
+                        r2 = rho2[idx[J - j :]]
+                        n_in = int((r2 < kap * kap).sum())
+                        n_obs = int((r2 >= k_obs * k_obs).sum())
+                        d_obs = 0.5 / (1.0 - k_obs * k_obs) if k_obs < 1 else 0.0
+                        d_all = 0.5 / (1.0 - kap * kap) if kap < 1 else 0.0
+                        llr += n_in * s_in
+                        llr -= (j - n_in - n_obs) * math.log(eps + (1.0 - eps) * d_all)
+                        llr -= n_obs * math.log(eps + (1.0 - eps) * (d_all + d_obs))
+                    break
+            if llr > best:
+                best = llr
+        return best
 
     def _due(self, c, kind, t):
         last = c.last_report.get(kind)
