@@ -91,12 +91,16 @@ class _WithTouch:
 # ---------------------------------------------------------------------- pipeline
 def localized_events(packets, geometry, *, id_offset: int = 0) -> list[LocalizedEvent]:
     """Localize triggered packets (``StreamPackets``) and turn the accepted ones into
-    LocalizedEvents stamped at onset time - travel time (the localizer node's stamp)."""
+    LocalizedEvents stamped at onset time - travel time (the localizer node's stamp). The
+    packets' saturation flags go with them, as the device's do in the driver (without
+    them the localizer falls back to a flat-top test, which a weak slow pulse quantized
+    to a few LSB can pass)."""
     k = len(packets.emissions)
     if k == 0:
         return []
     fs = packets.sample_rate_hz
-    res = localize(packets.samples_v, fs, packets.onset_index, geometry=geometry)
+    sat = getattr(packets, "saturated", None)
+    res = localize(packets.samples_v, fs, packets.onset_index, geometry=geometry, saturated=sat)
     onset_ns = time_ns_of_sample(packets.start_index + packets.onset_index, fs)
     travel_ns = np.round(geometry.arrival_times_s(res.point_m).min(axis=1) * 1e9).astype(np.int64)
     t = onset_ns - travel_ns
