@@ -320,7 +320,8 @@ def test_overlapping_emissions_are_resolved_off_the_hot_path_and_name_the_shared
 
 
 def test_overlap_worker_process_and_in_process_fallback_give_the_same_sources():
-    """The worker process runs the same fit as the fallback thread: identical sources."""
+    """The worker process runs the same fit as the fallback thread: identical sources; it
+    runs in a session of its own and niced (the reader thread comes first)."""
     import threading
 
     from ae_tactile.localization.overlap import simulate_overlaps
@@ -344,6 +345,9 @@ def test_overlap_worker_process_and_in_process_fallback_give_the_same_sources():
         r.submit([view])
         assert done.wait(300.0), dict(r.counts)
         assert ("overlap_worker_unavailable" in r.counts) is (not use_process)
+        if use_process:  # it answered: it runs niced, behind the reader thread
+            own = os.getpriority(os.PRIO_PROCESS, 0)
+            assert os.getpriority(os.PRIO_PROCESS, r._proc.pid) == min(own + 10, 19)
         r.close()
         results[use_process] = got
     assert len(results[True]) == len(results[False]) == 2

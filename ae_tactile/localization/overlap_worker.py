@@ -19,15 +19,24 @@ The worker warms up (imports, tables, compiled code) and says
 
 from __future__ import annotations
 
+import os
 import pickle
 import signal
 import sys
 
 import numpy as np
 
+#: Niceness added to the worker process: its milliseconds per window yield to the
+#: driver's reader thread, which localizes every other packet, when both want a core.
+WORKER_NICENESS = 10
+
 
 def main() -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:  # the driver's reader (every other packet) comes first when the cores are busy
+        os.nice(WORKER_NICENESS)
+    except OSError:
+        pass
     inp, out = sys.stdin.buffer, sys.stdout.buffer
     sys.stdout = sys.stderr  # stdout carries the answers only
     from ae_tactile.localization.overlap import OverlapReason, resolve_overlaps, warm_up
