@@ -326,6 +326,17 @@ def markdown(res: dict) -> str:
                 f"({s['slip_precursor_single']['events']} and {s['slip_single']['events']} "
                 f"events), contact events {fmt(s['contact_single'])} ms.",
             ]
+    n = res.get("natural")
+    if n:
+        lines += [
+            "",
+            f"Random touches and releases at {n['rate_hz']:g} emissions/s as the fingertip "
+            f"renders them ({n['packets']} packets; windows are not spaced apart): contact "
+            f"events {fmt(n['contact'])} ms; {n['overlapped_windows']} windows held two "
+            f"emissions and went to the overlap resolver, their contact events "
+            f"{fmt(n.get('contact_overlapped', {}))} ms; the others "
+            f"{fmt(n.get('contact_single', {}))} ms.",
+        ]
     k = res.get("knee")
     if k:
         lines += [
@@ -337,6 +348,28 @@ def markdown(res: dict) -> str:
             "(the highest rate tried).",
         ]
     return "\n".join(lines)
+
+
+def natural_case(rate: str) -> dict | None:
+    """Random touches and their releases at ``rate`` emissions/s as the fingertip renders
+    them: each window holds whatever else falls into it, so some need the overlap resolver
+    (the rate cases above space their windows apart)."""
+    rate_hz = float(rate or 0)
+    if rate_hz <= 0:
+        return None
+    dur = 1.2 if QUICK else 3.0
+    counts, first, fs, vpc, body = render_scene_packets(
+        "random_touches", {"duration_s": dur, "params": {"rate_hz": rate_hz / 2}}
+    )
+    first = first - first[0] + int(0.05 * fs)
+    r = run_case(f"natural {rate_hz:g}/s", counts, first, fs, vpc, body, namespace="bench_nat")
+    r["rate_hz"] = rate_hz
+    print(
+        f"natural {rate_hz:g}/s: contact {fmt(r['contact'])} ms, {r['overlapped_windows']} "
+        f"windows resolved as overlaps ({fmt(r['contact_overlapped'])} ms)",
+        flush=True,
+    )
+    return r
 
 
 def main() -> int:
@@ -374,6 +407,7 @@ def main() -> int:
             f" driver CPU {r.get('driver_cpu_percent_of_one_core', float('nan')):.0f} %",
             flush=True,
         )
+    res["natural"] = natural_case(os.environ.get("AE_BENCH_NATURAL_RATE", "1000"))
     if os.environ.get("AE_BENCH_NO_SLIP_KNEE"):
         rclpy.shutdown()
         print(markdown(res))

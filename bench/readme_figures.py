@@ -49,7 +49,8 @@ def system_rows(d) -> list[str]:
     for r in d["rates"]:
         c = r["contact"]
         rows.append(
-            f"| live path, {r['rate_hz']:g} emissions/s (random touches): device bytes -> "
+            f"| live path, {r['rate_hz']:g} emissions/s (random touches, one emission per "
+            "window): device bytes -> "
             f"ContactEvent in another process, median / p99 | {_lat(c)} "
             f"(max {c.get('max_ms', 0):.1f} ms;"
             f" {c['median_ms'] / fl['median']:.0f}x the two-hop floor of {fl['median']:.3f} ms"
@@ -60,6 +61,16 @@ def system_rows(d) -> list[str]:
                 else ""
             )
             + f") | bench_system, {_load_str(d.get('load_average_before'))} |"
+        )
+    n = d.get("natural")
+    if n and n.get("contact", {}).get("events"):
+        rows.append(
+            f"| the same at {n['rate_hz']:g} emissions/s as the fingertip renders them "
+            f"(windows not spaced apart: {n['overlapped_windows']} of {n['packets']} held two "
+            "emissions and went to the overlap resolver) | "
+            f"{_lat(n['contact'])}; the resolver's {n['contact_overlapped']['events']} events "
+            f"{_lat(n['contact_overlapped'])}, the others {_lat(n['contact_single'])} "
+            f"| bench_system |"
         )
     s = d.get("slip")
     if s:
