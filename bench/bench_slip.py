@@ -235,6 +235,7 @@ def summarize_incipient(rows) -> dict:
             "n_trials": len(sel),
             "precursor_before_gross_rate": len(ok) / len(sel) if sel else None,
             "q_at_precursor": _pct([r["q_at_precursor"] for r in ok]),
+            "q_at_micro_slip_3": _pct([r.get("q_at_micro_slip_3") for r in sel]),
             "lead_ms": _pct([r["lead_ms"] for r in ok]),
             "failures": [r["seed"] for r in sel if not r["precursor_before_gross"]][:20],
         }
@@ -385,15 +386,15 @@ def tables(res: dict) -> str:
     L.append(
         "**Incipient slip** (precursor before gross slip; q = Q/(mu P) at the precursor; "
         "pipeline 'events'). Micro-slip counts are the emissions the detector received "
-        "before gross slip.\n"
+        "before gross slip; 'q at the 3rd' is the load ratio when the third of them came "
+        "(from the simulator's truth: where a precursor on three emissions would come).\n"
     )
     L.append(
         "| emitters | polarity | trials | precursor, >= 10 micro-slips | precursor, 5-10 | "
-        "median q (>= 10 / 5-10) | median lead ms (>= 10 / 5-10) | SLIP <= 50 ms | SLIP "
-        "delay p95 ms | "
-        "SLIP at q < 0.9 |"
+        "median q (>= 10 / 5-10) | median q at the 3rd, 5-10 | median lead ms (>= 10 / 5-10) "
+        "| SLIP <= 50 ms | SLIP delay p95 ms | SLIP at q < 0.9 |"
     )
-    L.append("|---|---|---|---|---|---|---|---|---|---|")
+    L.append("|---|---|---|---|---|---|---|---|---|---|---|")
     for key, d in s["incipient"].items():
         mode, pol = key.split(":")
         a, b = d["micro_ge10"], d["micro_5to10"]
@@ -402,6 +403,7 @@ def tables(res: dict) -> str:
             f"{_rate(a['precursor_before_gross_rate'])} ({a['n_trials']}) | "
             f"{_rate(b['precursor_before_gross_rate'])} ({b['n_trials']}) | "
             f"{_f(a['q_at_precursor'], 'p50', 2)} / {_f(b['q_at_precursor'], 'p50', 2)} | "
+            f"{_f(b.get('q_at_micro_slip_3'), 'p50', 2)} | "
             f"{_f(a['lead_ms'], 'p50')} / {_f(b['lead_ms'], 'p50')} | "
             f"{_rate(d['slip_within_50ms_rate'])} | "
             f"{d['slip_delay_p95_ms_missing_as_inf']:.0f} | {_rate(d['slip_before_q090_rate'])} |"

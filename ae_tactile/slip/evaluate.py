@@ -419,10 +419,19 @@ def incipient_slip_trial(
     t_gross = proc.scene_truth(end_ns)["gross_slip_time_ns"]
     pre = _first(outs, SlipEventType.SLIP_PRECURSOR)
     slip = _first(outs, SlipEventType.SLIP)
+    micro = [e.time_ns for e in events if t_gross is not None and e.time_ns < t_gross]
     out = dict(params)
     out.update(
         {
             "pipeline": pipeline,
+            # load ratio when the 2nd / 3rd micro-slip reached the detector: where a
+            # precursor on two / three emissions would come (the bound of sparse emitters)
+            "q_at_micro_slip_2": float(proc.state_at(micro[1])["load_ratio"])
+            if len(micro) >= 2
+            else None,
+            "q_at_micro_slip_3": float(proc.state_at(micro[2])["load_ratio"])
+            if len(micro) >= 3
+            else None,
             "n_emissions": n_em,
             "n_events": len(events),
             "n_micro_slip_events": _n_before(events, t_gross),
