@@ -18,10 +18,13 @@ trap 'kill $BUSY 2>/dev/null || true' EXIT
 echo "busy loop pid $BUSY; load: $(cut -d' ' -f1-3 /proc/loadavg)"
 for i in $(seq 1 "$N"); do
   start=$(date +%s)
-  if AE_TACTILE_REQUIRE_ROS=1 pytest -q -p no:cacheprovider "${TESTS[@]}" >"log/stress_run_$i.txt" 2>&1; then
+  # a failed run's temporary files (launch logs, ROS logs) stay in log/stress_tmp
+  if AE_TACTILE_REQUIRE_ROS=1 pytest -q -p no:cacheprovider --basetemp="$ROOT/log/stress_tmp" \
+      "${TESTS[@]}" >"log/stress_run_$i.txt" 2>&1; then
     echo "run $i/$N passed ($(( $(date +%s) - start )) s): $(tail -1 "log/stress_run_$i.txt")"
   else
-    echo "run $i/$N FAILED: see log/stress_run_$i.txt"; tail -5 "log/stress_run_$i.txt"; exit 1
+    echo "run $i/$N FAILED: see log/stress_run_$i.txt and log/stress_tmp"
+    tail -5 "log/stress_run_$i.txt"; exit 1
   fi
 done
 echo "$N runs in a row passed with one core kept busy"
