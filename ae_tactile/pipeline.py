@@ -842,9 +842,12 @@ class ContactPipeline:
         rec = self._recent
         with self._recent_lock:
             rec.extend((r.time_ns, *r.point_m) for r in records)
+            if not rec:
+                return
             pending = self._pending_ns
             keep_from = (min(pending.values()) if pending else rec[-1][0]) - RECENT_MARGIN_NS
-            while rec[0][0] < keep_from:
+            # (stamps may go back, e.g. after a device reset: never more than all of them)
+            while rec and rec[0][0] < keep_from:
                 rec.popleft()
 
     def _not_handed_out(self, records: list) -> list:

@@ -448,3 +448,42 @@ def test_an_emission_in_the_windows_of_two_triggers_is_handed_out_once():
     assert pair.size >= 3 and counts["overlap_duplicates"] >= 1, dict(counts)
     # both of such a pair reach the hand where the resolver accepted their window
     assert counts["overlap_windows_resolved"] >= 2
+
+
+def test_duplicate_check_survives_stamps_that_go_back_while_windows_are_pending():
+    """A device reset moves the stamps back while overlapping windows are still with the
+    resolver: the events of the new stamps are handed out (none lost, no error), and the
+    windows' answers still come."""
+    import threading
+
+    from ae_tactile.localization.overlap import simulate_overlaps
+
+    cfg = SimConfig(reflections=True)
+    d = simulate_overlaps(1, cfg, separation_s=np.array([4e-6]), amplitude_ratio=1.0,
+                          snr_db=30.0, rng=3)
+    n_win = 20  # the resolver's work for a while (milliseconds each), at 50 s + k ms
+    windows = [
+        PacketView(d["samples_v"][0], d["sample_rate_hz"], int(d["onset_index"][0]),
+                   50 * 10**9 + k * 10**6, 900 + k)
+        for k in range(n_win)
+    ]
+    views, truth, _ = _packets(n=6, seed=8)  # stamped from 1 s: 49 s before the windows
+    got, done = [], threading.Event()
+
+    def on_contacts(recs):
+        got.extend(recs)
+        if sum(r.packet_ids[0] >= 900 for r in got) >= 2 * n_win:
+            done.set()
+
+    pipe = ContactPipeline(PacketLocalizer("ml", geometry=cfg.geometry), None)
+    pipe.localizer.warm_up()
+    pipe.start_overlaps(wait_s=120.0)
+    try:
+        pipe.process(windows, on_contacts)
+        pipe.process(views, on_contacts)  # at once, while the windows are with the resolver
+        assert done.wait(300.0), dict(pipe.all_counts())
+    finally:
+        pipe.close()
+    assert sorted(r.packet_ids[0] for r in got if r.packet_ids[0] < 900) == list(range(6))
+    assert sum(r.packet_ids[0] >= 900 for r in got) == 2 * n_win
+    assert "overlap_errors" not in pipe.all_counts()
