@@ -446,6 +446,17 @@ def flat_top(seg_raw, run):
     return (r.any(axis=2) & (vmax > vmin)).any(axis=1)
 
 
+def _quantum2(raw):
+    """(K,) q^2 / 12 of the ADC quantum q: the smallest non-zero step between successive raw
+    samples (exact for quantized data, negligible otherwise). Below ~1 LSB of noise the
+    pre-onset samples under-read the noise while the signal dithers the quantizer: the
+    estimators use sigma^2 + q^2 / 12."""
+    dif = np.abs(np.diff(raw, axis=2))
+    dif[dif == 0] = np.inf
+    dif = dif.min(axis=(1, 2))
+    return np.where(np.isfinite(dif), dif * dif / 12.0, 0.0)
+
+
 def prepare(
     x,
     onset,
@@ -455,8 +466,10 @@ def prepare(
     saturated=None,
     full_scale_v=None,
     channel_gains=None,
+    spectra: bool = True,
 ) -> Prepared:
-    """Sanitise, flag and transform a batch (see the module docstring)."""
+    """Sanitise, flag and transform a batch (see the module docstring). ``spectra=False``
+    leaves out what only the single-emission estimators use (``X``, ``p_signal``: None)."""
     k, _, m = x.shape
     flags = np.zeros(k, np.int64)
     total = x.sum(axis=(1, 2))
@@ -545,6 +558,12 @@ def prepare(
     no_pre = n_pre < 4
     if no_pre.any():
         pre_mean = np.where(no_pre[:, None], raw.mean(axis=2), pre_mean)
+    if not spectra:
+        return Prepared(
+            x=x, onset=on, flags=flags, sigma2=sigma2, pre_mean=pre_mean, seg_start=seg_start,
+            X=None, seg_count=count, p_signal=None, quant2=_quantum2(raw), scale=scale,
+            noise_given=given,
+        )
     seg = demean(raw, start4, count, m, pre_mean)
 
     # Mean power over the SNR window after the onset (what the window holds of it).
@@ -560,15 +579,6 @@ def prepare(
     sw = sw - pre_mean[..., None]
     p_total = np.einsum("kcm,kcm->k", sw, sw) / (4.0 * w_len)
 
-    # ADC quantum q: the smallest non-zero step between successive raw samples (exact for
-    # quantized data, negligible otherwise). Below ~1 LSB of noise the pre-onset samples
-    # under-read the noise while the signal dithers the quantizer: the estimators use
-    # sigma^2 + q^2 / 12.
-    dif = np.abs(np.diff(raw, axis=2))
-    dif[dif == 0] = np.inf
-    dif = dif.min(axis=(1, 2))
-    q2 = np.where(np.isfinite(dif), dif * dif / 12.0, 0.0)
-
     X = sfft.rfft(seg, n=plan.n_fft, axis=2)
     return Prepared(
         x=x,
@@ -580,7 +590,7 @@ def prepare(
         X=X,
         seg_count=count,
         p_signal=p_total,
-        quant2=q2,
+        quant2=_quantum2(raw),
         scale=scale,
         noise_given=given,
     )

@@ -979,7 +979,13 @@ def resolve_overlaps(
         return []
     with np.errstate(all="ignore"):
         prep = prepare(
-            x, on, plan, noise_rms_v=noise_rms_v, saturated=saturated, full_scale_v=full_scale_v
+            x,
+            on,
+            plan,
+            noise_rms_v=noise_rms_v,
+            saturated=saturated,
+            full_scale_v=full_scale_v,
+            spectra=False,
         )
         sigma2 = adc_noise(prep.sigma2, prep.quant2, _given(prep))
         n_noise = np.maximum(4 * (prep.onset - plan.pre), 4).astype(float)
@@ -1240,6 +1246,7 @@ def suspect_overlap(
             noise_rms_v=None
             if noise_rms_v is None
             else np.broadcast_to(np.asarray(noise_rms_v, float), (K,))[ids],
+            spectra=False,
         )
         seg, start, length, inside = _segments(prep, plan, geo, plan.fs, analysis_s)
         sigma2 = adc_noise(prep.sigma2, prep.quant2, _given(prep))
