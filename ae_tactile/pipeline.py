@@ -91,6 +91,18 @@ SLIP_MAX_DEFER_S = 0.5e-3
 #: that the events go on without it (``slip_hold_expired``) and its emissions, when they
 #: come, are processed late with their own stamps.
 OVERLAP_HOLD_MAX_S = 0.1
+#: Overlapping windows per batch of packets whose quick answer (`resolve_overlaps` with
+#: ``exhaustive=False``: compiled fits, ~1 ms) comes in the reader's thread, so that their
+#: emissions reach the hand within milliseconds; more (a backlog) go to the resolver's
+#: worker process on another core, as do windows whose quick answer is DEFERRED.
+OVERLAP_INLINE_MAX = 2
+#: A window whose trigger (its onset sample) lies within COVERED_TOL_S of the first
+#: arrival of an emission resolved in the reader, or of the trigger of a window answered
+#: there, holds what that window held: the second window of a pair (the same two
+#: emissions; two emissions closer than 1.5 us are not resolved anyway, and a trigger
+#: lags the arrival by well under 1 us). It goes to the worker, which adds, late, what the
+#: first window did not hold.
+COVERED_TOL_S = 2e-6
 #: An emission the overlap resolver finds that was already handed out (it fell into the
 #: windows of two triggers, or its own window was localized on the hot path) is the same
 #: emission when its stamp is within DUPLICATE_TIME_S and its point within
@@ -550,32 +562,79 @@ class OverlapResolver:
             self.counts["overlap_worker_unavailable"] += 1
             return None
 
-    def submit(self, packets: Sequence) -> list:
-        """Queue windows for the resolver; returns those queued (the rest are counted)."""
+    def submit(self, packets: Sequence, *, quick_first: bool = True) -> list:
+        """Queue windows for the resolver (``quick_first=False``: windows whose quick
+        answer was DEFERRED, for the exhaustive search only); returns those queued (the
+        rest are counted)."""
         queued = []
         for p in packets:
             try:
-                self._queue.put_nowait(p)
+                self._queue.put_nowait((p, bool(quick_first)))
                 queued.append(p)
             except queue.Full:
                 self.counts["overlap_dropped_backlog"] += 1
         return queued
+
+    #: first arrivals (host ns) of the emissions of the latest `resolve_now` answer
+    arrivals_ns: list = []
+
+    def resolve_now(self, p) -> list | None:
+        """The quick answer to one window in the calling thread (the reader's; compiled
+        fits, about a millisecond): its emissions' contact events ([] when it is rejected),
+        or None when it is DEFERRED (then `submit` it with ``quick_first=False``)."""
+        from ae_tactile.localization.overlap import resolve_overlaps
+
+        self.arrivals_ns = []
+        try:
+            with np.errstate(all="ignore"):
+                res = resolve_overlaps(
+                    np.asarray(p.samples_v, dtype=np.float64)[None],
+                    float(p.sample_rate_hz),
+                    [int(p.onset_index)],
+                    geometry=self.geometry,
+                    pulse=self.pulse,
+                    saturated=[bool(getattr(p, "saturated", False))],
+                    exhaustive=False,
+                )[0]
+        except Exception:  # never let one window stop the reader
+            self.counts["overlap_errors"] += 1
+            return []
+        self.counts["overlap_answered_in_reader"] += 1
+        stamp = int(p.stamp_ns)
+        self.arrivals_ns = [
+            stamp + float(np.min(src.arrival_times_s)) * 1e9 for src in (res.sources or ())
+        ]
+        return self._records(p, res)
+
+    def _records(self, p, res) -> list | None:
+        """Contact events of one answer (counted), None when it is DEFERRED."""
+        if res.reason == _DEFERRED:
+            self.counts["overlap_deferred"] += 1
+            return None
+        if not res.accepted:
+            self.counts["overlap_rejected_" + res.reason_name] += 1
+            return []
+        self.counts["overlap_windows_resolved"] += 1
+        self.counts["overlap_sources"] += len(res.sources)
+        return [source_record(p, src) for src in res.sources]
 
     def pending(self) -> int:
         return self._queue.qsize() + self._busy
 
     _busy = 0
 
-    def _answers(self, p):
+    def _answers(self, p, quick_first: bool = True):
         """The OverlapPackets of one window, from the worker process (else computed here):
-        the quick answer and, when it is DEFERRED, the exhaustive search's."""
+        the quick answer and, when it is DEFERRED, the exhaustive search's (only the
+        latter when not ``quick_first``)."""
         samples = np.asarray(p.samples_v, dtype=np.float64)
         fs, onset = float(p.sample_rate_hz), int(p.onset_index)
+        sat = bool(getattr(p, "saturated", False))
         proc = self._proc
         if proc is not None:
             try:
                 pickle.dump(
-                    (samples, fs, onset, self.geometry, self.pulse),
+                    (samples, fs, onset, sat, self.geometry, self.pulse, quick_first),
                     proc.stdin,
                     protocol=pickle.HIGHEST_PROTOCOL,
                 )
@@ -583,7 +642,7 @@ class OverlapResolver:
                 res = pickle.load(proc.stdout)
                 if isinstance(res, str):
                     raise RuntimeError(res)
-                if res.reason == _DEFERRED:
+                if quick_first and res.reason == _DEFERRED:
                     yield res
                     res = pickle.load(proc.stdout)
                     if isinstance(res, str):
@@ -596,11 +655,11 @@ class OverlapResolver:
                 return
         from ae_tactile.localization.overlap import resolve_overlaps
 
-        for exhaustive in (False, True):
+        for exhaustive in (False, True) if quick_first else (True,):
             with np.errstate(all="ignore"):
                 res = resolve_overlaps(
                     samples[None], fs, [onset], geometry=self.geometry, pulse=self.pulse,
-                    exhaustive=exhaustive,
+                    saturated=[sat], exhaustive=exhaustive,
                 )[0]
             yield res
             if res.reason != _DEFERRED:
@@ -623,28 +682,24 @@ class OverlapResolver:
                 self._stop_worker()
         self.ready.set()
         while True:
-            p = self._queue.get()
-            if p is None:
+            item = self._queue.get()
+            if item is None:
                 self._stop_worker()
                 return
+            p, quick_first = item
             self._busy = 1
             told = False  # on_done called (the quick answer said DEFERRED)
             try:
-                for res in self._answers(p):
-                    if res.reason == _DEFERRED:
+                for res in self._answers(p, quick_first):
+                    records = self._records(p, res)
+                    if records is None:
                         # a hard window: what waits for it goes on; its emissions, if
                         # any, come from the exhaustive search, late, with their stamps
-                        self.counts["overlap_deferred"] += 1
                         self._done(p)
                         told = True
                         continue
-                    if not res.accepted:
-                        self.counts["overlap_rejected_" + res.reason_name] += 1
-                        continue
-                    self.counts["overlap_windows_resolved"] += 1
-                    self.counts["overlap_sources"] += len(res.sources)
-                    records = [source_record(p, src) for src in res.sources]
-                    self.on_records(records)
+                    if records:
+                        self.on_records(records)
             except Exception:  # never let one window stop the resolver
                 self.counts["overlap_errors"] += 1
             finally:
@@ -678,6 +733,14 @@ class OverlapResolver:
 
 
 _DEFERRED = 10  # OverlapReason.DEFERRED (overlap is imported lazily)
+
+
+def _onset_ns(p) -> float:
+    """Host time (ns) of a window's onset sample (its trigger); NaN if it cannot be told."""
+    try:
+        return int(p.stamp_ns) + int(p.onset_index) * 1e9 / float(p.sample_rate_hz)
+    except (TypeError, ValueError, ZeroDivisionError, OverflowError):
+        return math.nan
 
 
 def _TIME_NS(r) -> int:
@@ -804,6 +867,11 @@ class ContactPipeline:
     _held: list = field(default_factory=list)  # contacts whose slip step waits for them
     #: longest wait of the slip step for the overlap resolver (s)
     overlap_hold_max_s: float = OVERLAP_HOLD_MAX_S
+    #: overlapping windows per `process` call answered in the caller's thread (the rest
+    #: go to the resolver's worker)
+    overlap_inline_max: int = OVERLAP_INLINE_MAX
+    #: `_covered` tolerance (s); 0 answers every window on its own
+    overlap_covered_tol_s: float = COVERED_TOL_S
     _step_lock: threading.RLock = field(default_factory=threading.RLock)
     #: (stamp ns, x, y, z) of the contact events handed out that a window still with the
     #: overlap resolver could hold again (duplicate check), oldest first
@@ -812,6 +880,8 @@ class ContactPipeline:
     _pending_ns: dict = field(default_factory=dict)
     _recent_lock: threading.Lock = field(default_factory=threading.Lock)
     _resolved_newest_ns: int = -(1 << 62)  # newest stamp the overlap resolver handed out
+    #: first arrivals (host ns) of the emissions resolved in the reader lately (`_covered`)
+    _arrivals_ns: deque = field(default_factory=lambda: deque(maxlen=16))
 
     def start_overlaps(self, wait_s: float = 0.0) -> None:
         """Start the overlap resolver (and its worker process) now, not at the first
@@ -963,36 +1033,17 @@ class ContactPipeline:
                 self.counts["overlap_duplicates"] += n - len(contacts)
             # remembered before any window goes to the resolver, whose answer is checked
             self._remember(contacts)
-        if self.localizer.overlap_windows:
-            self.start_overlaps()
-            self.overlaps.geometry = self.localizer.geometry
-            windows = self.localizer.overlap_windows
-            # a window's emissions are at most one sphere diameter's travel time older
-            # than its first sample
-            g = self.localizer.geometry
-            margin_ns = int(math.ceil(2.0 * g.radius_m / g.sound_speed_m_s * 1e9))
-            with self._recent_lock:  # registered before the resolver can answer
-                self._pending_ns.update((id(p), int(p.stamp_ns) - margin_ns) for p in windows)
-            if self.slip is not None:
-                with self._step_lock:  # registered before the resolver can answer
-                    now = time.monotonic()
-                    self._windows_out.update(
-                        (id(p), (now, int(p.stamp_ns) - margin_ns)) for p in windows
-                    )
-            queued = self.overlaps.submit(windows)
-            if len(queued) < len(windows):
-                lost = {id(p) for p in windows} - {id(p) for p in queued}
-                with self._recent_lock:
-                    for k in lost:
-                        self._pending_ns.pop(k, None)
-                with self._step_lock:
-                    for k in lost:
-                        self._windows_out.pop(k, None)
+        windows = self.localizer.overlap_windows
+        if windows:
+            if contacts:  # out before the overlapping windows are resolved
+                on_contacts(contacts)
+            contacts = contacts + self._overlapping(windows, on_contacts)
+        elif contacts:
+            on_contacts(contacts)
         if more_waiting is None or self.slip is None:
-            self.late(contacts, on_contacts, on_slip)
+            self._slip_step(contacts)
             return
         if contacts:
-            on_contacts(contacts)
             if not self._slip_pending:
                 self._slip_pending_since = time.monotonic()
             self._slip_pending.extend(contacts)
@@ -1000,6 +1051,84 @@ class ContactPipeline:
             time.monotonic() - self._slip_pending_since >= SLIP_MAX_DEFER_S or not more_waiting()
         ):
             self.run_pending_slip()
+
+    def _overlapping(self, windows: list, on_contacts) -> list:
+        """Windows holding several emissions: the first ``overlap_inline_max`` get the
+        resolver's quick answer here, in the reader's thread (about a millisecond: their
+        emissions reach the hand at once, in time for the slip step); the others, and those
+        whose quick answer is DEFERRED, go to the resolver's worker. So does a window
+        triggered by an emission just resolved here (the second window of a pair holds the
+        same two emissions): its answer, late, adds only what the first window did not
+        hold. Returns the contact events handed out here."""
+        self.start_overlaps()
+        self.overlaps.geometry = self.localizer.geometry
+        found: list = []
+        later: list = []  # (window, quick_first, slip step waits for it)
+        inline = 0
+        for p in windows:
+            if self._covered(p):
+                self.counts["overlap_covered"] += 1
+                later.append((p, True, False))
+                continue
+            if inline >= self.overlap_inline_max:
+                later.append((p, True, True))
+                continue
+            inline += 1
+            records = self.overlaps.resolve_now(p)
+            self._arrivals_ns.append(_onset_ns(p))
+            if records is None:
+                later.append((p, False, False))
+                continue
+            self._arrivals_ns.extend(self.overlaps.arrivals_ns)
+            fresh = self._not_handed_out(records)
+            if len(fresh) < len(records):
+                self.counts["overlap_duplicates"] += len(records) - len(fresh)
+            if fresh:
+                self._remember(fresh)
+                on_contacts(fresh)
+                found.extend(fresh)
+        if later:
+            self._to_worker(later)
+        return found
+
+    def _covered(self, p) -> bool:
+        """The window's trigger (within COVERED_TOL_S) is the first arrival of an emission
+        resolved in the reader, or the trigger of a window answered there."""
+        if not self._arrivals_ns or self.overlap_covered_tol_s <= 0:
+            return False
+        onset_ns = _onset_ns(p)
+        tol = self.overlap_covered_tol_s * 1e9
+        return any(abs(onset_ns - t) <= tol for t in self._arrivals_ns)
+
+    def _to_worker(self, later: list) -> None:
+        """Hand (window, quick_first, hold) to the resolver's worker, registered first
+        (duplicate check; the slip step's wait where ``hold``) so that its answer cannot
+        come before."""
+        windows = [p for p, _, _ in later]
+        # a window's emissions are at most one sphere diameter's travel time older than
+        # its first sample
+        g = self.localizer.geometry
+        margin_ns = int(math.ceil(2.0 * g.radius_m / g.sound_speed_m_s * 1e9))
+        with self._recent_lock:
+            self._pending_ns.update((id(p), int(p.stamp_ns) - margin_ns) for p in windows)
+        held = [p for p, _, hold in later if hold]
+        if self.slip is not None and held:
+            with self._step_lock:
+                now = time.monotonic()
+                self._windows_out.update((id(p), (now, int(p.stamp_ns) - margin_ns)) for p in held)
+        queued = []
+        for quick_first in (True, False):
+            ws = [p for p, q, _ in later if q is quick_first]
+            if ws:
+                queued += self.overlaps.submit(ws, quick_first=quick_first)
+        if len(queued) < len(windows):
+            lost = {id(p) for p in windows} - {id(p) for p in queued}
+            with self._recent_lock:
+                for k in lost:
+                    self._pending_ns.pop(k, None)
+            with self._step_lock:
+                for k in lost:
+                    self._windows_out.pop(k, None)
 
     @property
     def slip_pending(self) -> bool:

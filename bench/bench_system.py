@@ -19,7 +19,9 @@ Both are CLOCK_REALTIME readings on this machine.
 Run: make bench-system   (bench/results/system.json, system_table.md; README figures)
      AE_BENCH_QUICK=1 for a short run; AE_BENCH_RATES=20,1000 for chosen rates;
      AE_BENCH_NO_SLIP_KNEE=1 without the slip scene and the knee; AE_BENCH_DUMP=DIR also
-     writes each case's raw series (DIR/<case>.npz: events received, bytes written).
+     writes each case's raw series (DIR/<case>.npz: events received, bytes written);
+     AE_BENCH_EXTRA_PARAMS="name=value ..." adds driver parameters (e.g.
+     localization.resolve_overlaps=false).
 """
 
 from __future__ import annotations
@@ -169,6 +171,9 @@ def run_case(name: str, counts, first, fs, vpc, body, *, namespace: str) -> dict
         "packet_samples": N_SAMPLES,
         "pre_trigger_samples": PRE,
     }
+    for kv in os.environ.get("AE_BENCH_EXTRA_PARAMS", "").split():
+        k, v = kv.split("=", 1)
+        params[k] = v
     cmd = [exe, "--ros-args", "-r", f"__ns:=/{namespace}", "--log-level", "warn"]
     for k, v in params.items():
         cmd += ["-p", f"{k}:={v}"]

@@ -265,12 +265,15 @@ def test_common_mode_interference_is_rejected_and_counted_while_apex_touches_are
     assert rejected == len(bursts) and loc.counts["rejected_INTERFERENCE"] >= len(bursts) // 2
 
 
-def test_overlapping_emissions_are_resolved_off_the_hot_path_and_name_the_shared_packet():
-    """Two emissions 2-8 us apart in one window: the hot path publishes no wrong point; the
-    overlap resolver later hands over both, each within 0.1 mm, naming the shared packet."""
+def test_overlapping_emissions_are_resolved_in_the_reader_or_by_the_worker_and_name_the_shared_packet():
+    """Two emissions 2-8 us apart in each of six windows of one batch: the first
+    OVERLAP_INLINE_MAX windows are answered in the caller's thread, the others by the
+    resolver's worker process; no wrong point is published, and both emissions of each
+    window come, each within 0.1 mm, naming the shared packet."""
     import threading
 
     from ae_tactile.localization.overlap import simulate_overlaps
+    from ae_tactile.pipeline import OVERLAP_INLINE_MAX
 
     cfg = SimConfig(reflections=True)
     d = simulate_overlaps(
@@ -282,7 +285,9 @@ def test_overlapping_emissions_are_resolved_off_the_hot_path_and_name_the_shared
         rng=3,
     )
     views = [
-        PacketView(d["samples_v"][i], d["sample_rate_hz"], int(d["onset_index"][i]), 10**9, 40 + i)
+        PacketView(
+            d["samples_v"][i], d["sample_rate_hz"], int(d["onset_index"][i]), (1 + i) * 10**9, 40 + i
+        )
         for i in range(6)
     ]
     got, done = [], threading.Event()
@@ -294,20 +299,20 @@ def test_overlapping_emissions_are_resolved_off_the_hot_path_and_name_the_shared
 
     pipe = ContactPipeline(PacketLocalizer("ml", geometry=cfg.geometry), None)
     pipe.process(views, on_contacts)
-    hot = list(got)  # what the hot path published at once
-    for e in hot:  # never a wrong point with a small sigma
-        err = np.min(
-            np.linalg.norm(d["points_m"][e.packet_ids[0] - 40] - np.array(e.point_m), axis=1)
-        )
-        assert err < 0.5e-3 or np.sqrt(np.trace(e.covariance_m2)) > err / 3
+    in_reader = {e.packet_ids for e in got}  # handed out before process() returned
     assert done.wait(300.0), (len(got), dict(pipe.all_counts()))
+    counts = pipe.all_counts()
+    assert counts["overlap_answered_in_reader"] == OVERLAP_INLINE_MAX
+    assert in_reader == {(40 + i,) for i in range(OVERLAP_INLINE_MAX)}
     worker = pipe.overlaps._proc
-    assert worker is not None and "overlap_worker_unavailable" not in pipe.all_counts()
+    assert worker is not None and "overlap_worker_unavailable" not in counts
     pipe.close()
     assert worker.poll() is not None  # the worker process ended with the pipeline
-    late = got[len(hot) :]
     by_packet = {}
-    for e in late:
+    for e in got:  # never a wrong point with a small sigma
+        truth = d["points_m"][e.packet_ids[0] - 40]
+        err = np.min(np.linalg.norm(truth - np.array(e.point_m), axis=1))
+        assert err < 0.5e-3 or np.sqrt(np.trace(e.covariance_m2)) > err / 3
         by_packet.setdefault(e.packet_ids, []).append(e)
     solved = 0
     for (sid,), evs in by_packet.items():
@@ -315,8 +320,8 @@ def test_overlapping_emissions_are_resolved_off_the_hot_path_and_name_the_shared
         if len(evs) == 2:
             errs = [np.min(np.linalg.norm(truth - np.array(e.point_m), axis=1)) for e in evs]
             solved += all(x < 0.1e-3 for x in errs)
-    assert solved >= 5, (solved, dict(pipe.all_counts()))
-    assert pipe.all_counts()["overlap_windows_resolved"] >= 5
+    assert solved >= 5, (solved, dict(counts))
+    assert counts["overlap_windows_resolved"] >= 5
 
 
 def test_overlap_worker_process_and_in_process_fallback_give_the_same_sources():
@@ -407,7 +412,9 @@ def test_an_emission_in_the_windows_of_two_triggers_is_handed_out_once():
     """Random touches and releases at 1,000 emissions/s as the fingertip renders them: every
     emission triggers a window of its own, so two emissions microseconds apart lie in both
     windows and the overlap resolver finds both in each. Each true emission must reach the
-    hand at most once (the second find is dropped and counted), and none is lost for it."""
+    hand at most once (the second find is dropped and counted), and none is lost for it,
+    nor for sending the second window of a pair to the worker instead of the reader."""
+    from ae_tactile.pipeline import COVERED_TOL_S
     from ae_tactile.sim.scene import load_scene
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -424,30 +431,42 @@ def test_an_emission_in_the_windows_of_two_triggers_is_handed_out_once():
         for i in range(len(b))
     ]
     truth_ns = np.asarray(b.emissions.time_ns, dtype=np.int64)
-    got = []
-    pipe = ContactPipeline(PacketLocalizer("ml", geometry=sc.config.geometry), None)
-    pipe.start_overlaps(wait_s=120.0)
-    try:
-        for i in range(0, len(views), 8):
-            pipe.process(views[i : i + 8], got.extend)
-        assert pipe.wait_idle(300.0)
-        counts = pipe.all_counts()
-    finally:
-        pipe.close()
-    # which true emission each event is (nearest emission instant; all within 1 us)
-    t = np.array([e.time_ns for e in got], dtype=np.int64)
-    j = np.clip(np.searchsorted(truth_ns, t), 1, len(truth_ns) - 1)
-    j = np.where(np.abs(truth_ns[j - 1] - t) < np.abs(truth_ns[j] - t), j - 1, j)
-    assert np.abs(truth_ns[j] - t).max() < 1000
-    err = np.linalg.norm(np.array([e.point_m for e in got]) - b.emissions.point_m[j], axis=1)
-    assert np.percentile(err, 99) < 0.5e-3
-    ids, n = np.unique(j, return_counts=True)
-    assert n.max() == 1, [(int(i), int(k)) for i, k in zip(ids, n) if k > 1]
+
+    def run(covered_tol_s):
+        got = []
+        pipe = ContactPipeline(PacketLocalizer("ml", geometry=sc.config.geometry), None)
+        pipe.overlap_covered_tol_s = covered_tol_s
+        pipe.start_overlaps(wait_s=120.0)
+        try:
+            for i in range(0, len(views), 8):
+                pipe.process(views[i : i + 8], got.extend)
+            assert pipe.wait_idle(300.0)
+            counts = pipe.all_counts()
+        finally:
+            pipe.close()
+        # which true emission each event is (nearest emission instant; all within 1 us)
+        t = np.array([e.time_ns for e in got], dtype=np.int64)
+        j = np.clip(np.searchsorted(truth_ns, t), 1, len(truth_ns) - 1)
+        j = np.where(np.abs(truth_ns[j - 1] - t) < np.abs(truth_ns[j] - t), j - 1, j)
+        assert np.abs(truth_ns[j] - t).max() < 1000
+        err = np.linalg.norm(np.array([e.point_m for e in got]) - b.emissions.point_m[j], axis=1)
+        assert np.percentile(err, 99) < 0.5e-3
+        ids, n = np.unique(j, return_counts=True)
+        assert n.max() == 1, [(int(i), int(k)) for i, k in zip(ids, n) if k > 1]
+        return set(ids.tolist()), counts
+
+    found, counts = run(COVERED_TOL_S)
     # the scene has such emissions, and the resolver found them in both windows
     pair = np.flatnonzero(np.diff(truth_ns) < 3000)  # < 3 us apart: in each other's window
     assert pair.size >= 3 and counts["overlap_duplicates"] >= 1, dict(counts)
     # both of such a pair reach the hand where the resolver accepted their window
     assert counts["overlap_windows_resolved"] >= 2
+    # the second window of a pair goes to the worker, not the reader, and loses nothing:
+    # every window answered on its own finds the same emissions
+    assert counts["overlap_covered"] >= 1 and counts["overlap_answered_in_reader"] >= 1
+    found_alone, counts_alone = run(0.0)
+    assert "overlap_covered" not in counts_alone
+    assert found == found_alone, (found ^ found_alone, dict(counts), dict(counts_alone))
 
 
 def test_duplicate_check_survives_stamps_that_go_back_while_windows_are_pending():

@@ -7,9 +7,10 @@ would hold the interpreter lock against the reader thread, which localizes every
 packet in microseconds; in its own process it runs beside it on another core.
 
 Protocol (pickle, both ways): stdin gets one message per window, ``(samples (4, M) float64
-volts, sample_rate_hz, onset_index, geometry, pulse)``; stdout answers with the
-`OverlapPacket` of the quick search (``exhaustive=False``) and, when that one is DEFERRED
-(the first joint fit left more than noise), with the exhaustive search's; or with a
+volts, sample_rate_hz, onset_index, saturated, geometry, pulse, quick_first)``; stdout answers with
+the `OverlapPacket` of the quick search (``exhaustive=False``) and, when that one is
+DEFERRED (the first joint fit left more than noise), with the exhaustive search's (only
+the latter when ``quick_first`` is False); or with a
 ``str`` describing an exception. EOF on stdin ends the process (the parent closed it or
 exited); the parent starts it in a session of its own, so a Ctrl-C at the terminal
 reaches only the parent, which owns the shutdown (and SIGINT is ignored here too).
@@ -46,16 +47,19 @@ def main() -> int:
     out.flush()
     while True:
         try:
-            samples, fs, onset, geometry, pulse = pickle.load(inp)
+            samples, fs, onset, saturated, geometry, pulse, quick_first = pickle.load(inp)
         except (EOFError, OSError):
             return 0
-        for exhaustive in (False, True):  # the quick answer, then (if DEFERRED) the full one
+        # the quick answer, then (if DEFERRED) the full one; only the full one for a window
+        # whose quick answer (in the driver's reader) was DEFERRED
+        for exhaustive in (False, True) if quick_first else (True,):
             try:
                 with np.errstate(all="ignore"):
                     res = resolve_overlaps(
                         np.asarray(samples, dtype=np.float64)[None],
                         float(fs),
                         [int(onset)],
+                        saturated=[bool(saturated)],
                         geometry=geometry,
                         pulse=pulse,
                         exhaustive=exhaustive,
