@@ -15,9 +15,12 @@ in the thread that decoded them:
 4. contact events (TOUCH for compressions, DETOUCH for rarefactions) handed to the caller
    at once, *before* the slip step; windows that hold overlapping emissions (rejected as
    OVERLAP, or accepted with a poor fit that `suspect_overlap` finds inconsistent with one
-   emission) go to `OverlapResolver`, a background thread that localizes each emission
-   (`ae_tactile.localization.overlap`) and hands them over later, with their own stamps,
-   so the hot path never waits for the costlier joint fit;
+   emission) go to `OverlapResolver` (`ae_tactile.localization.overlap`), whose worker
+   process localizes each emission and hands them over later, with their own stamps, so
+   the hot path never waits for the costlier joint fit; with ``overlap_inline_max`` > 0
+   the first windows of a batch get its quick answer right here instead, after the
+   batch's other contact events are out (about 2 ms each), and hard windows (quick answer
+   DEFERRED) and the second window of a pair (`COVERED_TOL_S`) still go to the worker;
 5. the slip detector: SLIP_PRECURSOR / SLIP / TEXTURE events and the finger's contact state.
    It sees the emissions in time order: while a window is with the overlap resolver, the
    slip step of contact events later than the window's earliest possible emission waits
@@ -92,10 +95,12 @@ SLIP_MAX_DEFER_S = 0.5e-3
 #: come, are processed late with their own stamps.
 OVERLAP_HOLD_MAX_S = 0.1
 #: Overlapping windows per batch of packets whose quick answer (`resolve_overlaps` with
-#: ``exhaustive=False``: compiled fits, ~1 ms) comes in the reader's thread, so that their
-#: emissions reach the hand within milliseconds; more (a backlog) go to the resolver's
-#: worker process on another core, as do windows whose quick answer is DEFERRED.
-OVERLAP_INLINE_MAX = 2
+#: ``exhaustive=False``: compiled fits, 1.45 ms in a tight loop, ~2 ms live) comes in the
+#: reader's thread: their emissions reach the hand sooner (no trip to the worker process),
+#: but the packets that arrive meanwhile wait. Default 0: every such window goes to the
+#: worker process on another core (the driver's `localization.overlap_inline_max`; the
+#: trade-off is measured by bench_system's natural case).
+OVERLAP_INLINE_MAX = 0
 #: A window whose trigger (its onset sample) lies within COVERED_TOL_S of the first
 #: arrival of an emission resolved in the reader, or of the trigger of a window answered
 #: there, holds what that window held: the second window of a pair (the same two

@@ -136,7 +136,9 @@ class Listener:
         self.node.destroy_node()
 
 
-def run_case(name: str, counts, first, fs, vpc, body, *, namespace: str) -> dict:
+def run_case(
+    name: str, counts, first, fs, vpc, body, *, namespace: str, extra_params: dict | None = None
+) -> dict:
     """Play packets through writer -> driver -> this process; latencies by event type."""
     exe = os.path.join(ROOT, "install", "ae_tactile", "lib", "ae_tactile", "driver")
     tmp = tempfile.mkdtemp(prefix="ae_bench_")
@@ -174,6 +176,7 @@ def run_case(name: str, counts, first, fs, vpc, body, *, namespace: str) -> dict
     for kv in os.environ.get("AE_BENCH_EXTRA_PARAMS", "").split():
         k, v = kv.split("=", 1)
         params[k] = v
+    params.update(extra_params or {})
     cmd = [exe, "--ros-args", "-r", f"__ns:=/{namespace}", "--log-level", "warn"]
     for k, v in params.items():
         cmd += ["-p", f"{k}:={v}"]
@@ -342,6 +345,17 @@ def markdown(res: dict) -> str:
             f"{fmt(n.get('contact_overlapped', {}))} ms; the others "
             f"{fmt(n.get('contact_single', {}))} ms.",
         ]
+    n, s = res.get("natural_inline"), res.get("slip_inline")
+    if n and s:
+        lines += [
+            "",
+            "With the quick fit of overlapping windows in the reader "
+            f"({', '.join(f'{k}:={v}' for k, v in INLINE.items())}): the same random touches "
+            f"{fmt(n['contact'])} ms, the resolver's events "
+            f"{fmt(n.get('contact_overlapped', {}))} ms, the others "
+            f"{fmt(n.get('contact_single', {}))} ms; the incipient-slip scene SLIP_PRECURSOR "
+            f"{fmt(s['slip_precursor'])} ms, SLIP {fmt(s['slip'])} ms.",
+        ]
     k = res.get("knee")
     if k:
         lines += [
@@ -355,7 +369,12 @@ def markdown(res: dict) -> str:
     return "\n".join(lines)
 
 
-def natural_case(rate: str) -> dict | None:
+#: The driver setting of the "inline" variants: the quick fit of up to two overlapping
+#: windows per batch in the reader instead of the worker process.
+INLINE = {"localization.overlap_inline_max": 2}
+
+
+def natural_case(rate: str, extra_params: dict | None = None) -> dict | None:
     """Random touches and their releases at ``rate`` emissions/s as the fingertip renders
     them: each window holds whatever else falls into it, so some need the overlap resolver
     (the rate cases above space their windows apart)."""
@@ -367,13 +386,35 @@ def natural_case(rate: str) -> dict | None:
         "random_touches", {"duration_s": dur, "params": {"rate_hz": rate_hz / 2}}
     )
     first = first - first[0] + int(0.05 * fs)
-    r = run_case(f"natural {rate_hz:g}/s", counts, first, fs, vpc, body, namespace="bench_nat")
+    tag = " (quick fits in the reader)" if extra_params else ""
+    r = run_case(
+        f"natural {rate_hz:g}/s{tag}", counts, first, fs, vpc, body, namespace="bench_nat",
+        extra_params=extra_params,
+    )
     r["rate_hz"] = rate_hz
+    r["driver_params"] = dict(extra_params or {})
     print(
-        f"natural {rate_hz:g}/s: contact {fmt(r['contact'])} ms, {r['overlapped_windows']} "
-        f"windows resolved as overlaps ({fmt(r['contact_overlapped'])} ms)",
+        f"natural {rate_hz:g}/s{tag}: contact {fmt(r['contact'])} ms, "
+        f"{r['overlapped_windows']} windows resolved as overlaps "
+        f"({fmt(r['contact_overlapped'])} ms), the others {fmt(r['contact_single'])} ms",
         flush=True,
     )
+    return r
+
+
+def slip_case(extra_params: dict | None = None) -> dict:
+    """The incipient-slip scene as rendered: latency of SLIP_PRECURSOR / SLIP after the
+    emission that decides them."""
+    counts, first, fs_s, vpc_s, body_s = render_scene_packets("incipient_slip")
+    first = first - first[0] + int(0.05 * fs_s)
+    tag = " (quick fits in the reader)" if extra_params else ""
+    r = run_case(
+        f"incipient slip{tag}", counts, first, fs_s, vpc_s, body_s, namespace="bench_slip",
+        extra_params=extra_params,
+    )
+    r["driver_params"] = dict(extra_params or {})
+    print(f"slip{tag}: precursor {fmt(r['slip_precursor'])} ms, SLIP {fmt(r['slip'])} ms",
+          flush=True)
     return r
 
 
@@ -412,16 +453,15 @@ def main() -> int:
             f" driver CPU {r.get('driver_cpu_percent_of_one_core', float('nan')):.0f} %",
             flush=True,
         )
-    res["natural"] = natural_case(os.environ.get("AE_BENCH_NATURAL_RATE", "1000"))
+    natural_rate = os.environ.get("AE_BENCH_NATURAL_RATE", "1000")
+    res["natural"] = natural_case(natural_rate)
+    res["natural_inline"] = natural_case(natural_rate, INLINE)
     if os.environ.get("AE_BENCH_NO_SLIP_KNEE"):
         rclpy.shutdown()
         print(markdown(res))
         return 0
-    counts, first, fs_s, vpc_s, body_s = render_scene_packets("incipient_slip")
-    first = first - first[0] + int(0.05 * fs_s)
-    r = run_case("incipient slip", counts, first, fs_s, vpc_s, body_s, namespace="bench_slip")
-    res["slip"] = r
-    print(f"slip: precursor {fmt(r['slip_precursor'])} ms, SLIP {fmt(r['slip'])} ms", flush=True)
+    res["slip"] = slip_case()
+    res["slip_inline"] = slip_case(INLINE)
     knee = {"tried": []}
     sustained, backlog_from = 0, None
     for j, rate in enumerate([1000, 1500, 2000, 3000, 5000, 8000, 12000]):

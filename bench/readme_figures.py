@@ -72,6 +72,15 @@ def system_rows(d) -> list[str]:
             f"{_lat(n['contact_overlapped'])}, the others {_lat(n['contact_single'])} "
             f"| bench_system |"
         )
+    n = d.get("natural_inline")
+    if n and n.get("contact", {}).get("events"):
+        rows.append(
+            "| the same with `localization.overlap_inline_max:=2` (quick fits in the reader, "
+            "not the worker process) | "
+            f"{_lat(n['contact'])}; the resolver's {n['contact_overlapped']['events']} events "
+            f"{_lat(n['contact_overlapped'])}, the others {_lat(n['contact_single'])} "
+            f"| bench_system |"
+        )
     s = d.get("slip")
     if s:
         rows.append(
@@ -85,6 +94,13 @@ def system_rows(d) -> list[str]:
                 f"{_lat(s['slip_precursor_single'])} / "
                 f"{_lat(s['slip_single'])} | bench_system |"
             )
+    s = d.get("slip_inline")
+    if s and s.get("slip_precursor", {}).get("events"):
+        rows.append(
+            "| SLIP_PRECURSOR / SLIP with `localization.overlap_inline_max:=2` (the scene's "
+            "overlapping windows fitted in the reader) "
+            f"| {_lat(s['slip_precursor'])} / {_lat(s['slip'])} | bench_system |"
+        )
     k = d.get("knee")
     if k:
         tail = (

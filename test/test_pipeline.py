@@ -11,6 +11,7 @@ import pytest
 
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.pipeline import (
+    OVERLAP_INLINE_MAX,
     ContactPipeline,
     EventType,
     PacketLocalizer,
@@ -265,15 +266,17 @@ def test_common_mode_interference_is_rejected_and_counted_while_apex_touches_are
     assert rejected == len(bursts) and loc.counts["rejected_INTERFERENCE"] >= len(bursts) // 2
 
 
-def test_overlapping_emissions_are_resolved_in_the_reader_or_by_the_worker_and_name_the_shared_packet():
+@pytest.mark.parametrize("inline_max", [OVERLAP_INLINE_MAX, 2])
+def test_overlapping_emissions_are_resolved_in_the_reader_or_worker_naming_the_shared_packet(
+    inline_max,
+):
     """Two emissions 2-8 us apart in each of six windows of one batch: the first
-    OVERLAP_INLINE_MAX windows are answered in the caller's thread, the others by the
+    ``overlap_inline_max`` windows are answered in the caller's thread, the others by the
     resolver's worker process; no wrong point is published, and both emissions of each
     window come, each within 0.1 mm, naming the shared packet."""
     import threading
 
     from ae_tactile.localization.overlap import simulate_overlaps
-    from ae_tactile.pipeline import OVERLAP_INLINE_MAX
 
     cfg = SimConfig(reflections=True)
     d = simulate_overlaps(
@@ -286,7 +289,8 @@ def test_overlapping_emissions_are_resolved_in_the_reader_or_by_the_worker_and_n
     )
     views = [
         PacketView(
-            d["samples_v"][i], d["sample_rate_hz"], int(d["onset_index"][i]), (1 + i) * 10**9, 40 + i
+            d["samples_v"][i], d["sample_rate_hz"], int(d["onset_index"][i]),
+            (1 + i) * 10**9, 40 + i,
         )
         for i in range(6)
     ]
@@ -298,12 +302,13 @@ def test_overlapping_emissions_are_resolved_in_the_reader_or_by_the_worker_and_n
             done.set()
 
     pipe = ContactPipeline(PacketLocalizer("ml", geometry=cfg.geometry), None)
+    pipe.overlap_inline_max = inline_max
     pipe.process(views, on_contacts)
     in_reader = {e.packet_ids for e in got}  # handed out before process() returned
     assert done.wait(300.0), (len(got), dict(pipe.all_counts()))
     counts = pipe.all_counts()
-    assert counts["overlap_answered_in_reader"] == OVERLAP_INLINE_MAX
-    assert in_reader == {(40 + i,) for i in range(OVERLAP_INLINE_MAX)}
+    assert counts["overlap_answered_in_reader"] == inline_max
+    assert in_reader == {(40 + i,) for i in range(inline_max)}
     worker = pipe.overlaps._proc
     assert worker is not None and "overlap_worker_unavailable" not in counts
     pipe.close()
@@ -432,9 +437,10 @@ def test_an_emission_in_the_windows_of_two_triggers_is_handed_out_once():
     ]
     truth_ns = np.asarray(b.emissions.time_ns, dtype=np.int64)
 
-    def run(covered_tol_s):
+    def run(inline_max, covered_tol_s=COVERED_TOL_S):
         got = []
         pipe = ContactPipeline(PacketLocalizer("ml", geometry=sc.config.geometry), None)
+        pipe.overlap_inline_max = inline_max
         pipe.overlap_covered_tol_s = covered_tol_s
         pipe.start_overlaps(wait_s=120.0)
         try:
@@ -455,18 +461,22 @@ def test_an_emission_in_the_windows_of_two_triggers_is_handed_out_once():
         assert n.max() == 1, [(int(i), int(k)) for i, k in zip(ids, n) if k > 1]
         return set(ids.tolist()), counts
 
-    found, counts = run(COVERED_TOL_S)
+    found, counts = run(0)  # every window with the worker (the default)
     # the scene has such emissions, and the resolver found them in both windows
     pair = np.flatnonzero(np.diff(truth_ns) < 3000)  # < 3 us apart: in each other's window
     assert pair.size >= 3 and counts["overlap_duplicates"] >= 1, dict(counts)
     # both of such a pair reach the hand where the resolver accepted their window
     assert counts["overlap_windows_resolved"] >= 2
-    # the second window of a pair goes to the worker, not the reader, and loses nothing:
-    # every window answered on its own finds the same emissions
-    assert counts["overlap_covered"] >= 1 and counts["overlap_answered_in_reader"] >= 1
-    found_alone, counts_alone = run(0.0)
+    # quick answers in the reader: the second window of a pair goes to the worker, and
+    # that loses nothing (answering every window on its own finds the same emissions)
+    found_inline, counts_inline = run(2)
+    assert counts_inline["overlap_covered"] >= 1
+    assert counts_inline["overlap_answered_in_reader"] >= 1
+    found_alone, counts_alone = run(2, 0.0)
     assert "overlap_covered" not in counts_alone
-    assert found == found_alone, (found ^ found_alone, dict(counts), dict(counts_alone))
+    assert found == found_inline == found_alone, (
+        found ^ found_inline, found ^ found_alone, dict(counts_inline), dict(counts_alone)
+    )
 
 
 def test_duplicate_check_survives_stamps_that_go_back_while_windows_are_pending():

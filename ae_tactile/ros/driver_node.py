@@ -383,6 +383,7 @@ class DriverNode(Node):
         )
         self.slip_stage = SlipStage(slip_config, lag_s=self.p["slip_lag_s"])
         self.pipeline = ContactPipeline(localizer, self.slip_stage)
+        self.pipeline.overlap_inline_max = int(lp["overlap_inline_max"])
         self.pub_contacts = self.create_publisher(ContactEvent, "contacts", EVENT_QOS)
         self.pub_slip = self.create_publisher(ContactEvent, "slip", EVENT_QOS)
         self.pub_state = self.create_publisher(ContactState, "contact_state", LATCHED)
@@ -481,6 +482,8 @@ class DriverNode(Node):
         self.pipeline.localizer.update(**changes_for_localizer(changes))
         if "reject_interference" in changes:
             self.pipeline.localizer.set_interference(changes["reject_interference"])
+        if "overlap_inline_max" in changes:
+            self.pipeline.overlap_inline_max = int(changes["overlap_inline_max"])
         if changes.get("resolve_overlaps"):
             self.pipeline.start_overlaps()  # its worker starts now, not on the hot path
         self.get_logger().info(f"localization parameters changed: {changes}")

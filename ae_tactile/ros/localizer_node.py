@@ -76,6 +76,7 @@ class LocalizerNode(Node):
         # the driver's pipeline without its slip stage: the same localization, overlap
         # hand-off and duplicate check as the live path
         self.pipeline = ContactPipeline(self.localizer, None)
+        self.pipeline.overlap_inline_max = int(lp["overlap_inline_max"])
         self.frame_id = ""
         self.pub_events = self.create_publisher(ContactEvent, "contacts", EVENT_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -110,6 +111,8 @@ class LocalizerNode(Node):
         self.localizer.update(**changes_for_localizer(changes))
         if "reject_interference" in changes:
             self.localizer.set_interference(changes["reject_interference"])
+        if "overlap_inline_max" in changes:
+            self.pipeline.overlap_inline_max = int(changes["overlap_inline_max"])
 
     # ------------------------------------------------------------------ batching
     def _enqueue(self, msg: PacketArray) -> None:

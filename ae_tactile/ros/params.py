@@ -201,6 +201,12 @@ def _method_choices() -> tuple:
     return tuple(available_methods())
 
 
+def _overlap_inline_default() -> int:
+    from ae_tactile.pipeline import OVERLAP_INLINE_MAX
+
+    return OVERLAP_INLINE_MAX
+
+
 #: In-process localization (driver, prefix 'localization.') and the localizer node.
 LOCALIZATION_PARAMS = [
     tunable(
@@ -238,7 +244,19 @@ LOCALIZATION_PARAMS = [
             "resolve_overlaps",
             True,
             "Localize each emission of a window that holds "
-            "several (in a worker process, off the hot path); false: reject such windows",
+            "several (in a worker process, off the hot path; see overlap_inline_max); "
+            "false: reject such windows",
+        )
+    ),
+    tunable(
+        Param(
+            "overlap_inline_max",
+            _overlap_inline_default(),
+            "Overlapping windows per batch whose quick fit runs in the reader (~2 ms each: "
+            "their emissions reach the hand sooner, the packets behind them later); "
+            "the others go to the worker process",
+            0,
+            8,
         )
     ),
 ]
