@@ -62,24 +62,21 @@ def system_rows(d) -> list[str]:
             )
             + f") | bench_system, {_load_str(d.get('load_average_before'))} |"
         )
-    n = d.get("natural")
-    if n and n.get("contact", {}).get("events"):
-        rows.append(
-            f"| the same at {n['rate_hz']:g} emissions/s as the fingertip renders them "
+    for key in ("natural", "natural_inline"):
+        n = d.get(key)
+        if not (n and n.get("contact", {}).get("events")):
+            continue
+        what = (
+            f"the same with {_setting(n)} (quick fits in the reader, not the worker process)"
+            if n.get("driver_params")
+            else f"the same at {n['rate_hz']:g} emissions/s as the fingertip renders them "
             f"(windows not spaced apart: {n['overlapped_windows']} of {n['packets']} held two "
-            "emissions and went to the overlap resolver) | "
-            f"{_lat(n['contact'])}; the resolver's {n['contact_overlapped']['events']} events "
-            f"{_lat(n['contact_overlapped'])}, the others {_lat(n['contact_single'])} "
-            f"| bench_system |"
+            "emissions and went to the overlap resolver)"
         )
-    n = d.get("natural_inline")
-    if n and n.get("contact", {}).get("events"):
         rows.append(
-            "| the same with `localization.overlap_inline_max:=2` (quick fits in the reader, "
-            "not the worker process) | "
-            f"{_lat(n['contact'])}; the resolver's {n['contact_overlapped']['events']} events "
-            f"{_lat(n['contact_overlapped'])}, the others {_lat(n['contact_single'])} "
-            f"| bench_system |"
+            f"| {what} | {_lat(n['contact'])}; the resolver's "
+            f"{n['contact_overlapped']['events']} events {_lat(n['contact_overlapped'])}, "
+            f"the others {_lat(n['contact_single'])} | bench_system |"
         )
     s = d.get("slip")
     if s:
@@ -97,9 +94,9 @@ def system_rows(d) -> list[str]:
     s = d.get("slip_inline")
     if s and s.get("slip_precursor", {}).get("events"):
         rows.append(
-            "| SLIP_PRECURSOR / SLIP with `localization.overlap_inline_max:=2` (the scene's "
-            "overlapping windows fitted in the reader) "
-            f"| {_lat(s['slip_precursor'])} / {_lat(s['slip'])} | bench_system |"
+            f"| SLIP_PRECURSOR / SLIP with {_setting(s)} (the scene's overlapping windows "
+            f"fitted in the reader) | {_lat(s['slip_precursor'])} / {_lat(s['slip'])} "
+            "| bench_system |"
         )
     k = d.get("knee")
     if k:
@@ -194,6 +191,11 @@ def protocol_rows(d, faults) -> list[str]:
             f"| bench_protocol --faults |"
         )
     return rows
+
+
+def _setting(r) -> str:
+    """The driver parameters a bench_system case ran with, as `name:=value`."""
+    return ", ".join(f"`{k}:={v}`" for k, v in (r.get("driver_params") or {}).items())
 
 
 def _overlap_delay(s) -> str:
