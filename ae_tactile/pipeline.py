@@ -543,12 +543,13 @@ class OverlapResolver:
         #: failed), after ``on_records``
         self.on_done = on_done
         self.pulse = pulse
-        self.counts: Counter = Counter()
+        self.counts: Counter = Counter()  # written under _count_lock (two threads count)
+        self._count_lock = threading.Lock()
         self._queue: queue.Queue = queue.Queue(maxsize=int(max_pending))
         self.ready = threading.Event()  # the worker has warmed up (or is not used)
         self._proc = self._start_worker() if use_process else None
         if not use_process:
-            self.counts["overlap_worker_unavailable"] += 1
+            self._count("overlap_worker_unavailable")
         self._thread = threading.Thread(target=self._run, name="ae_tactile_overlaps", daemon=True)
         self._thread.start()
 
@@ -564,8 +565,17 @@ class OverlapResolver:
                 start_new_session=True,
             )
         except OSError:
-            self.counts["overlap_worker_unavailable"] += 1
+            self._count("overlap_worker_unavailable")
             return None
+
+    def _count(self, key: str, n: int = 1) -> None:
+        with self._count_lock:
+            self.counts[key] += n
+
+    def snapshot_counts(self) -> dict:
+        """A consistent copy of the counts (the reader and the resolver's thread write them)."""
+        with self._count_lock:
+            return dict(self.counts)
 
     def submit(self, packets: Sequence, *, quick_first: bool = True) -> list:
         """Queue windows for the resolver (``quick_first=False``: windows whose quick
@@ -577,7 +587,7 @@ class OverlapResolver:
                 self._queue.put_nowait((p, bool(quick_first)))
                 queued.append(p)
             except queue.Full:
-                self.counts["overlap_dropped_backlog"] += 1
+                self._count("overlap_dropped_backlog")
         return queued
 
     #: first arrivals (host ns) of the emissions of the latest `resolve_now` answer
@@ -585,8 +595,9 @@ class OverlapResolver:
 
     def resolve_now(self, p) -> list | None:
         """The quick answer to one window in the calling thread (the reader's; compiled
-        fits, about a millisecond): its emissions' contact events ([] when it is rejected),
-        or None when it is DEFERRED (then `submit` it with ``quick_first=False``)."""
+        fits, about 1.5 ms): its emissions' contact events ([] when it is rejected), or None
+        when the worker has to answer it (DEFERRED, or the fit failed here: then `submit`
+        it with ``quick_first=False``). Never raises."""
         from ae_tactile.localization.overlap import resolve_overlaps
 
         self.arrivals_ns = []
@@ -601,27 +612,31 @@ class OverlapResolver:
                     saturated=[bool(getattr(p, "saturated", False))],
                     exhaustive=False,
                 )[0]
-        except Exception:  # never let one window stop the reader
-            self.counts["overlap_errors"] += 1
-            return []
-        self.counts["overlap_answered_in_reader"] += 1
-        stamp = int(p.stamp_ns)
-        self.arrivals_ns = [
-            stamp + float(np.min(src.arrival_times_s)) * 1e9 for src in (res.sources or ())
-        ]
-        return self._records(p, res)
+            records = self._records(p, res)
+            if records is not None:
+                stamp = int(p.stamp_ns)
+                self.arrivals_ns = [
+                    stamp + float(np.min(src.arrival_times_s)) * 1e9 for src in res.sources
+                ]
+        except Exception:  # never let one window stop the reader: the worker tries it
+            self._count("overlap_errors")
+            return None
+        if records is not None:
+            self._count("overlap_answered_in_reader")
+        return records
 
     def _records(self, p, res) -> list | None:
         """Contact events of one answer (counted), None when it is DEFERRED."""
         if res.reason == _DEFERRED:
-            self.counts["overlap_deferred"] += 1
+            self._count("overlap_deferred")
             return None
         if not res.accepted:
-            self.counts["overlap_rejected_" + res.reason_name] += 1
+            self._count("overlap_rejected_" + res.reason_name)
             return []
-        self.counts["overlap_windows_resolved"] += 1
-        self.counts["overlap_sources"] += len(res.sources)
-        return [source_record(p, src) for src in res.sources]
+        records = [source_record(p, src) for src in res.sources]  # may raise: count after
+        self._count("overlap_windows_resolved")
+        self._count("overlap_sources", len(records))
+        return records
 
     def pending(self) -> int:
         return self._queue.qsize() + self._busy
@@ -653,7 +668,7 @@ class OverlapResolver:
                     if isinstance(res, str):
                         raise RuntimeError(res)
             except (OSError, EOFError, pickle.UnpicklingError):
-                self.counts["overlap_worker_unavailable"] += 1
+                self._count("overlap_worker_unavailable")
                 self._stop_worker()
             else:
                 yield res
@@ -675,7 +690,7 @@ class OverlapResolver:
             try:
                 self.on_done(p)
             except Exception:
-                self.counts["overlap_errors"] += 1
+                self._count("overlap_errors")
 
     def _run(self) -> None:
         if self._proc is not None:
@@ -683,7 +698,7 @@ class OverlapResolver:
                 if pickle.load(self._proc.stdout) != "ready":
                     raise pickle.UnpicklingError("no ready message")
             except (OSError, EOFError, pickle.UnpicklingError):
-                self.counts["overlap_worker_unavailable"] += 1
+                self._count("overlap_worker_unavailable")
                 self._stop_worker()
         self.ready.set()
         while True:
@@ -706,7 +721,7 @@ class OverlapResolver:
                     if records:
                         self.on_records(records)
             except Exception:  # never let one window stop the resolver
-                self.counts["overlap_errors"] += 1
+                self._count("overlap_errors")
             finally:
                 self._busy = 0
                 if not told:
@@ -738,6 +753,21 @@ class OverlapResolver:
 
 
 _DEFERRED = 10  # OverlapReason.DEFERRED (overlap is imported lazily)
+
+
+def _not_in(records: list, recent) -> list:
+    """The records with no row of recent (N, 4: t ns, x, y, z) within DUPLICATE_TIME_S and
+    DUPLICATE_DISTANCE_M."""
+    d2_max = DUPLICATE_DISTANCE_M**2
+    keep = []
+    for r in records:
+        near = np.abs(recent[:, 0] - r.time_ns) <= DUPLICATE_TIME_S * 1e9
+        if near.any():
+            dp = recent[near, 1:] - np.asarray(r.point_m, dtype=float)
+            if (np.einsum("ij,ij->i", dp, dp) <= d2_max).any():
+                continue
+        keep.append(r)
+    return keep
 
 
 def _onset_ns(p) -> float:
@@ -885,7 +915,8 @@ class ContactPipeline:
     _pending_ns: dict = field(default_factory=dict)
     _recent_lock: threading.Lock = field(default_factory=threading.Lock)
     _resolved_newest_ns: int = -(1 << 62)  # newest stamp the overlap resolver handed out
-    #: first arrivals (host ns) of the emissions resolved in the reader lately (`_covered`)
+    #: (host ns, gave events) of the first arrivals of emissions resolved in the reader
+    #: lately, and of the triggers of windows answered there (`_covered`)
     _arrivals_ns: deque = field(default_factory=lambda: deque(maxlen=16))
 
     def start_overlaps(self, wait_s: float = 0.0) -> None:
@@ -903,45 +934,41 @@ class ContactPipeline:
         on_contacts, on_slip = self._outputs
         if on_contacts is None:
             return
-        fresh = self._not_handed_out(records)
-        if len(fresh) < len(records):
-            self.counts["overlap_duplicates"] += len(records) - len(fresh)
-        if fresh:
-            self._remember(fresh)
-            self._resolved_newest_ns = max(self._resolved_newest_ns, *(r.time_ns for r in fresh))
-        self.late(fresh, on_contacts, on_slip)
+        self.late(self._claim(records, resolved=True), on_contacts, on_slip)
 
-    def _remember(self, records) -> None:
-        """Keep the stamps and points of these events for as long as a window with the
-        resolver could hold their emissions (`_not_handed_out`)."""
-        rec = self._recent
+    def _claim(self, records: list, *, resolved: bool) -> list:
+        """The records whose emission was not handed out already (none earlier within
+        DUPLICATE_TIME_S and DUPLICATE_DISTANCE_M: |dt| <= T and |dp| <= D), remembered
+        for as long as a window with the resolver could hold their emissions; the others
+        are counted (``overlap_duplicates``). One step under the lock: the reader and the
+        resolver's thread can never both hand out one emission. ``resolved``: the
+        resolver's answers (checked always; the hot path's events only when the resolver
+        already handed out emissions that recent, i.e. the reader fell behind)."""
+        if not records:
+            return records
         with self._recent_lock:
-            rec.extend((r.time_ns, *r.point_m) for r in records)
-            if not rec:
-                return
+            rec = self._recent
+            fresh = records
+            if rec and (
+                resolved
+                or min(r.time_ns for r in records)
+                <= self._resolved_newest_ns + DUPLICATE_TIME_S * 1e9
+            ):
+                fresh = _not_in(records, np.array(rec, dtype=float))
+                if len(fresh) < len(records):
+                    self.counts["overlap_duplicates"] += len(records) - len(fresh)
+            if not fresh:
+                return fresh
+            if resolved:
+                newest = max(r.time_ns for r in fresh)
+                self._resolved_newest_ns = max(self._resolved_newest_ns, newest)
+            rec.extend((r.time_ns, *r.point_m) for r in fresh)
             pending = self._pending_ns
             keep_from = (min(pending.values()) if pending else rec[-1][0]) - RECENT_MARGIN_NS
             # (stamps may go back, e.g. after a device reset: never more than all of them)
             while rec and rec[0][0] < keep_from:
                 rec.popleft()
-
-    def _not_handed_out(self, records: list) -> list:
-        """The records whose emission was not handed out already: none earlier within
-        DUPLICATE_TIME_S and DUPLICATE_DISTANCE_M (|dt| <= T and |dp| <= D)."""
-        with self._recent_lock:
-            if not self._recent:
-                return records
-            recent = np.array(self._recent, dtype=float)  # (N, 4): t ns, x, y, z
-        d2_max = DUPLICATE_DISTANCE_M**2
-        keep = []
-        for r in records:
-            near = np.abs(recent[:, 0] - r.time_ns) <= DUPLICATE_TIME_S * 1e9
-            if near.any():
-                dp = recent[near, 1:] - np.asarray(r.point_m, dtype=float)
-                if (np.einsum("ij,ij->i", dp, dp) <= d2_max).any():
-                    continue
-            keep.append(r)
-        return keep
+        return fresh
 
     def _window_done(self, p) -> None:
         """The resolver answered a window: the slip step of what waited for it runs."""
@@ -1028,17 +1055,12 @@ class ContactPipeline:
         """
         self._outputs = (on_contacts, on_slip)
         contacts = self.localizer.process(packets)
-        if contacts:
-            newest_resolved_ns = self._resolved_newest_ns + DUPLICATE_TIME_S * 1e9
-            if min(r.time_ns for r in contacts) <= newest_resolved_ns:
-                # the resolver already handed out emissions this recent (the reader fell
-                # behind): the ones it found in a neighbouring window are not repeated
-                n = len(contacts)
-                contacts = self._not_handed_out(contacts)
-                self.counts["overlap_duplicates"] += n - len(contacts)
-            # remembered before any window goes to the resolver, whose answer is checked
-            self._remember(contacts)
         windows = self.localizer.overlap_windows
+        if windows:
+            # registered before anything of this batch is remembered: the duplicate check
+            # keeps every event a window could hold until the window is answered
+            self._register(windows)
+        contacts = self._claim(contacts, resolved=False)
         if windows:
             if contacts:  # out before the overlapping windows are resolved
                 on_contacts(contacts)
@@ -1057,67 +1079,75 @@ class ContactPipeline:
         ):
             self.run_pending_slip()
 
+    def _register(self, windows: list) -> None:
+        """Windows for the resolver: their earliest possible emission stamps (a window's
+        emissions are at most one sphere diameter's travel time older than its first
+        sample) keep the duplicate check's memory until they are answered."""
+        g = self.localizer.geometry
+        margin_ns = int(math.ceil(2.0 * g.radius_m / g.sound_speed_m_s * 1e9))
+        with self._recent_lock:
+            self._pending_ns.update((id(p), int(p.stamp_ns) - margin_ns) for p in windows)
+
     def _overlapping(self, windows: list, on_contacts) -> list:
-        """Windows holding several emissions: the first ``overlap_inline_max`` get the
-        resolver's quick answer here, in the reader's thread (about a millisecond: their
-        emissions reach the hand at once, in time for the slip step); the others, and those
-        whose quick answer is DEFERRED, go to the resolver's worker. So does a window
-        triggered by an emission just resolved here (the second window of a pair holds the
-        same two emissions): its answer, late, adds only what the first window did not
-        hold. Returns the contact events handed out here."""
+        """Windows holding several emissions (registered): by default all go to the
+        resolver's worker. With ``overlap_inline_max`` = N > 0 the first N of the batch get
+        its quick answer here, in the reader's thread (their emissions reach the hand
+        sooner, in time for the slip step); the others, those whose quick answer is
+        DEFERRED, and a window triggered by an emission (or whose trigger matches a
+        window) just answered here, the second window of a pair, go to the worker. Returns
+        the contact events handed out here."""
         self.start_overlaps()
         self.overlaps.geometry = self.localizer.geometry
         found: list = []
         later: list = []  # (window, quick_first, slip step waits for it)
         inline = 0
         for p in windows:
-            if self._covered(p):
+            covered = self._covered(p)
+            if covered is not None:
                 self.counts["overlap_covered"] += 1
-                later.append((p, True, False))
+                later.append((p, True, covered))
                 continue
             if inline >= self.overlap_inline_max:
                 later.append((p, True, True))
                 continue
             inline += 1
             records = self.overlaps.resolve_now(p)
-            self._arrivals_ns.append(_onset_ns(p))
-            if records is None:
+            produced = bool(records)
+            self._arrivals_ns.append((_onset_ns(p), produced))
+            if records is None:  # DEFERRED (or failed here): the worker's exhaustive search
                 later.append((p, False, False))
                 continue
-            self._arrivals_ns.extend(self.overlaps.arrivals_ns)
-            fresh = self._not_handed_out(records)
-            if len(fresh) < len(records):
-                self.counts["overlap_duplicates"] += len(records) - len(fresh)
+            self._arrivals_ns.extend((t, True) for t in self.overlaps.arrivals_ns)
+            fresh = self._claim(records, resolved=True)
+            with self._recent_lock:
+                self._pending_ns.pop(id(p), None)
             if fresh:
-                self._remember(fresh)
                 on_contacts(fresh)
                 found.extend(fresh)
         if later:
             self._to_worker(later)
         return found
 
-    def _covered(self, p) -> bool:
-        """The window's trigger (within COVERED_TOL_S) is the first arrival of an emission
-        resolved in the reader, or the trigger of a window answered there."""
+    def _covered(self, p) -> bool | None:
+        """None, unless the window's trigger (within ``overlap_covered_tol_s``) is the first
+        arrival of an emission resolved in the reader or the trigger of a window answered
+        there; then whether the slip step must wait for it (that window gave no events)."""
         if not self._arrivals_ns or self.overlap_covered_tol_s <= 0:
-            return False
+            return None
         onset_ns = _onset_ns(p)
         tol = self.overlap_covered_tol_s * 1e9
-        return any(abs(onset_ns - t) <= tol for t in self._arrivals_ns)
+        match = [produced for t, produced in self._arrivals_ns if abs(onset_ns - t) <= tol]
+        return None if not match else not any(match)
 
     def _to_worker(self, later: list) -> None:
-        """Hand (window, quick_first, hold) to the resolver's worker, registered first
-        (duplicate check; the slip step's wait where ``hold``) so that its answer cannot
-        come before."""
+        """Hand (window, quick_first, hold) to the resolver's worker (registered already
+        for the duplicate check); the slip step waits for the ``hold`` ones, registered
+        before the worker can answer."""
         windows = [p for p, _, _ in later]
-        # a window's emissions are at most one sphere diameter's travel time older than
-        # its first sample
-        g = self.localizer.geometry
-        margin_ns = int(math.ceil(2.0 * g.radius_m / g.sound_speed_m_s * 1e9))
-        with self._recent_lock:
-            self._pending_ns.update((id(p), int(p.stamp_ns) - margin_ns) for p in windows)
         held = [p for p, _, hold in later if hold]
         if self.slip is not None and held:
+            g = self.localizer.geometry
+            margin_ns = int(math.ceil(2.0 * g.radius_m / g.sound_speed_m_s * 1e9))
             with self._step_lock:
                 now = time.monotonic()
                 self._windows_out.update((id(p), (now, int(p.stamp_ns) - margin_ns)) for p in held)
@@ -1159,10 +1189,12 @@ class ContactPipeline:
             self._slip_step(contacts)
 
     def all_counts(self) -> Counter:
-        c = Counter(self.localizer.counts)
-        c.update(self.counts)
+        """Every count of the pipeline (a copy; safe beside the reader and resolver)."""
+        # dict.copy is one C call: a consistent copy while other threads count
+        c = Counter(dict.copy(self.localizer.counts))
+        c.update(dict.copy(self.counts))
         if self.overlaps is not None:
-            c.update(self.overlaps.counts)
+            c.update(self.overlaps.snapshot_counts())
         return c
 
     def close(self) -> None:

@@ -294,17 +294,19 @@ def test_overlapping_emissions_are_resolved_in_the_reader_or_worker_naming_the_s
         )
         for i in range(6)
     ]
-    got, done = [], threading.Event()
+    got, in_reader, done = [], set(), threading.Event()
+    caller = threading.get_ident()
 
     def on_contacts(recs):
         got.extend(recs)
+        if threading.get_ident() == caller:  # handed out by process() itself
+            in_reader.update(e.packet_ids for e in recs)
         if len(got) >= 12:
             done.set()
 
     pipe = ContactPipeline(PacketLocalizer("ml", geometry=cfg.geometry), None)
     pipe.overlap_inline_max = inline_max
     pipe.process(views, on_contacts)
-    in_reader = {e.packet_ids for e in got}  # handed out before process() returned
     assert done.wait(300.0), (len(got), dict(pipe.all_counts()))
     counts = pipe.all_counts()
     assert counts["overlap_answered_in_reader"] == inline_max
@@ -366,12 +368,14 @@ def test_overlap_worker_process_and_in_process_fallback_give_the_same_sources():
         assert np.array_equal(a.point_m, b.point_m) and a.time_ns == b.time_ns
 
 
-def test_slip_events_do_not_depend_on_when_the_overlap_resolver_answers():
+@pytest.mark.parametrize("inline_max", [0, 2])
+def test_slip_events_do_not_depend_on_when_the_overlap_resolver_answers(inline_max):
     """The slip detector sees every emission in time order: the windows the overlap
     resolver handles (its worker process answers milliseconds later, while the following
-    packets are already localized) give the same slip events as resolving them on the
-    spot, in the same order with the same stamps. (Processed late, after newer ones, the
-    emissions of the scene's overlapping windows made a SLIP ~0.35 s before gross slip.)"""
+    packets are already localized; or, with ``overlap_inline_max``, the reader at once) give
+    the same slip events as resolving them on the spot, in the same order with the same
+    stamps. (Processed late, after newer ones, the emissions of the scene's overlapping
+    windows made a SLIP ~0.35 s before gross slip.)"""
     from ae_tactile.localization.overlap import resolve_overlaps
     from ae_tactile.pipeline import source_record
 
@@ -398,6 +402,7 @@ def test_slip_events_do_not_depend_on_when_the_overlap_resolver_answers():
     # live: the resolver's worker answers while later packets keep coming
     pipe = ContactPipeline(PacketLocalizer("ml", geometry=geo), SlipStage(SlipConfig()))
     pipe.overlap_hold_max_s = 600.0  # however slow the machine, wait for every answer
+    pipe.overlap_inline_max = inline_max
     pipe.start_overlaps(wait_s=120.0)
     got = []
     try:
@@ -406,6 +411,8 @@ def test_slip_events_do_not_depend_on_when_the_overlap_resolver_answers():
         assert pipe.wait_idle(120.0)
         counts = pipe.all_counts()
         assert counts["overlap_windows_resolved"] >= 2  # the scene's overlaps went there
+        assert counts["overlap_answered_in_reader"] == (counts["overlap_windows_resolved"]
+                                                        if inline_max else 0)
         assert "slip_hold_expired" not in counts
     finally:
         pipe.close()
@@ -473,10 +480,93 @@ def test_an_emission_in_the_windows_of_two_triggers_is_handed_out_once():
     assert counts_inline["overlap_covered"] >= 1
     assert counts_inline["overlap_answered_in_reader"] >= 1
     found_alone, counts_alone = run(2, 0.0)
-    assert "overlap_covered" not in counts_alone
     assert found == found_inline == found_alone, (
         found ^ found_inline, found ^ found_alone, dict(counts_inline), dict(counts_alone)
     )
+
+
+def test_a_pair_window_sent_to_the_worker_repeats_nothing_the_reader_handed_out():
+    """With quick answers in the reader: a window triggered where a window just answered
+    there was (the second window of a pair holds the same emissions) goes to the worker,
+    whose answer repeats those emissions: they are dropped, also when a later window of
+    the same batch, milliseconds newer, was answered in the reader meanwhile."""
+    from ae_tactile.localization.overlap import simulate_overlaps
+
+    cfg = SimConfig(reflections=True)
+    d = simulate_overlaps(2, cfg, separation_s=np.array([4e-6, 5e-6]), amplitude_ratio=1.0,
+                          snr_db=30.0, rng=4)
+
+    def view(i, stamp_ns, seq):
+        return PacketView(d["samples_v"][i], d["sample_rate_hz"], int(d["onset_index"][i]),
+                          stamp_ns, seq)
+
+    a, c = view(0, 10**9, 1), view(1, 10**9 + 5 * 10**6, 3)  # 5 ms apart
+    a2 = view(0, 10**9, 2)  # the pair's second window: the same trigger and emissions
+    got = []
+    pipe = ContactPipeline(PacketLocalizer("ml", geometry=cfg.geometry), None)
+    pipe.overlap_inline_max = 2
+    try:
+        pipe.process([a, a2, c], got.extend)
+        assert pipe.wait_idle(300.0)
+        counts = pipe.all_counts()
+    finally:
+        pipe.close()
+    assert counts["overlap_answered_in_reader"] == 2 and counts["overlap_covered"] == 1
+    assert counts["overlap_windows_resolved"] == 3, dict(counts)  # a2 answered as well
+    assert len(got) == 4, [(e.packet_ids, e.time_ns) for e in got]
+    assert counts["overlap_duplicates"] == 2
+    for i, seq in ((0, 1), (1, 3)):  # each true emission once, from its own window
+        pts = np.array([e.point_m for e in got if e.packet_ids == (seq,)])
+        err = np.linalg.norm(pts[:, None, :] - d["points_m"][i][None], axis=2).min(axis=0)
+        assert len(pts) == 2 and err.max() < 0.1e-3
+
+
+def test_a_window_deferred_in_the_reader_gets_the_exhaustive_answer_of_the_worker():
+    """With quick answers in the reader, a hard window (the quick search's first joint fit
+    leaves more than noise: DEFERRED) goes to the worker for the exhaustive search alone;
+    its events are those of the exhaustive search run directly."""
+    from ae_tactile.localization.overlap import resolve_overlaps
+    from ae_tactile.pipeline import source_record
+    from ae_tactile.sim.scene import load_scene
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    sc = load_scene(
+        os.path.join(root, "config", "scenes", "random_touches.yaml"),
+        {"duration_s": 3.0, "params": {"rate_hz": 500.0}},
+    )
+    geo = sc.config.geometry
+    b = sc.triggered_source(pretrigger_s=8e-6, window_s=40e-6).next_packets(1 << 20)
+    fs = b.sample_rate_hz
+    loc = PacketLocalizer("ml", geometry=geo)
+    view = None
+    for i in range(len(b)):
+        v = PacketView(b.samples_v[i], fs, int(b.onset_index[i]), 10**9, i)
+        loc.process([v])  # a window the pipeline hands to the overlap resolver ...
+        x = b.samples_v[i].astype(np.float64)[None]
+        if loc.overlap_windows and resolve_overlaps(
+            x, fs, [v.onset_index], geometry=geo, exhaustive=False
+        )[0].reason == 10:  # ... whose quick answer is DEFERRED
+            view, hard = v, i
+            break
+    assert view is not None, "the scene has a hard overlapping window"
+    full = resolve_overlaps(b.samples_v[hard].astype(np.float64)[None], fs,
+                            [int(b.onset_index[hard])], geometry=geo)[0]
+    expected = [source_record(view, s) for s in full.sources] if full.accepted else []
+    got = []
+    pipe = ContactPipeline(PacketLocalizer("ml", geometry=geo), SlipStage(SlipConfig()))
+    pipe.overlap_inline_max = 2
+    try:
+        pipe.process([view], got.extend)
+        assert pipe.wait_idle(300.0)
+        counts = pipe.all_counts()
+    finally:
+        pipe.close()
+    assert counts["overlap_deferred"] == 1 and "overlap_answered_in_reader" not in counts
+    assert [(e.time_ns, e.point_m) for e in got] == [(e.time_ns, e.point_m) for e in expected]
+    answered = counts["overlap_windows_resolved"] + sum(
+        v for k, v in counts.items() if k.startswith("overlap_rejected_")
+    )
+    assert answered == 1  # the worker answered it once, with the exhaustive search only
 
 
 def test_duplicate_check_survives_stamps_that_go_back_while_windows_are_pending():
