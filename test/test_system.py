@@ -12,6 +12,7 @@ import argparse
 import json
 import os
 import subprocess
+import time
 
 import numpy as np
 import pytest
@@ -245,6 +246,77 @@ def test_bringup_executable_with_parameter_file_and_namespace(tmp_path):
         timeout=60,
     )
     assert bad.returncode == 2 and "not found" in bad.stderr
+
+
+def _children(pid: int) -> list[int]:
+    """Processes whose parent is pid (from /proc)."""
+    out = []
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as fh:
+                    ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
+                continue
+            if ppid == pid:
+                out.append(int(d))
+    return out
+
+
+def _running(pid: int) -> bool:
+    """pid exists and is not a zombie."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_a_bringup_killed_outright_leaves_no_process_behind():
+    """SIGKILL gives bringup no chance to stop its children: the simulated fingertip (which
+    would otherwise play into a pty nobody reads, using CPU, for ever) and the overlap
+    resolver's worker end by themselves."""
+    import signal
+
+    kids: list[int] = []
+    exe = installed_executable("bringup")
+    proc = subprocess.Popen(
+        [exe, "--scene", os.path.join(SCENES, "touch_hold_release.yaml"), "--duration", "0"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        deadline = time.monotonic() + 300.0  # a liveness guard, not a speed bound
+        while time.monotonic() < deadline and proc.poll() is None:
+            kids = _children(proc.pid)
+            names = []
+            for k in kids:
+                try:
+                    with open(f"/proc/{k}/cmdline", "rb") as fh:
+                        names.append(fh.read())
+                except OSError:
+                    pass
+            if any(b"sim_fingertip" in n for n in names) and any(
+                b"overlap_worker" in n for n in names
+            ):
+                break
+            time.sleep(0.1)
+        assert proc.poll() is None, "bringup ended early"
+        assert len(kids) >= 2, kids
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        deadline = time.monotonic() + 120.0
+        while time.monotonic() < deadline and any(_running(k) for k in kids):
+            time.sleep(0.1)
+        left = [k for k in kids if _running(k)]
+        assert not left, "children left running"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        for k in kids:  # a failing run leaves nothing behind either
+            if _running(k):
+                os.kill(k, signal.SIGKILL)
 
 
 def test_bringup_cli_parses_the_documented_arguments():

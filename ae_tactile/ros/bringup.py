@@ -178,7 +178,7 @@ class Bringup:
                 self.nodes.append(self.sim)
             else:
                 cmd = [_installed_executable("sim_fingertip"), "--ros-args"]
-                for k, v in sim_params.items():
+                for k, v in dict(sim_params, exit_with_parent=True).items():
                     cmd += ["-p", f"{k}:={v}"]
                 if args.namespace:
                     cmd += ["-r", f"__ns:=/{args.namespace.strip('/')}"]

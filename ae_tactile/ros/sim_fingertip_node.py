@@ -98,6 +98,12 @@ SIM_PARAMS = [
     Param("stream_block_samples", 2000, "Samples per channel of a STREAM block", 1, 8192),
     Param("frame_id", "ae_tactile_fingertip", "Frame of the ground-truth ContactEvents"),
     Param("exit_when_done", False, "Shut down once the scene has been played"),
+    Param(
+        "exit_with_parent",
+        False,
+        "Shut down when the process that started this one ends (bringup sets it: a "
+        "bringup killed outright leaves no simulator running)",
+    ),
 ]
 
 
@@ -156,6 +162,9 @@ class SimFingertipNode(Node):
         self.create_timer(0.1, self._check_finished)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(1.0, self._publish_diagnostics)
+        self._parent_pid = os.getppid()
+        if p["exit_with_parent"]:
+            self.create_timer(0.5, self._check_parent)
         self.runner.start()
         self.get_logger().info(
             f"simulated fingertip '{self.device.spec.get('name', scene)}' serving on "
@@ -246,6 +255,15 @@ class SimFingertipNode(Node):
         self.pub_scene.publish(String(data=json.dumps(info, default=float)))
         self.get_logger().info("scene played to the end")
         if self.p["exit_when_done"]:
+            raise SystemExit(0)
+
+    def _check_parent(self) -> None:
+        """The starting process is gone (this one was re-parented): shut down."""
+        if os.getppid() != self._parent_pid:
+            self.get_logger().warning(
+                f"the process that started the simulated fingertip ({self._parent_pid}) "
+                "ended: shutting down"
+            )
             raise SystemExit(0)
 
     def _on_grip_force(self, msg: Float64) -> None:
