@@ -1079,14 +1079,17 @@ class ContactPipeline:
         ):
             self.run_pending_slip()
 
-    def _register(self, windows: list) -> None:
-        """Windows for the resolver: their earliest possible emission stamps (a window's
-        emissions are at most one sphere diameter's travel time older than its first
-        sample) keep the duplicate check's memory until they are answered."""
+    def _earliest_ns(self, p) -> int:
+        """Earliest possible emission stamp of a window (ns): its emissions are at most one
+        sphere diameter's travel time older than its first sample."""
         g = self.localizer.geometry
-        margin_ns = int(math.ceil(2.0 * g.radius_m / g.sound_speed_m_s * 1e9))
+        return int(p.stamp_ns) - int(math.ceil(2.0 * g.radius_m / g.sound_speed_m_s * 1e9))
+
+    def _register(self, windows: list) -> None:
+        """Windows for the resolver: their earliest possible emission stamps keep the
+        duplicate check's memory until they are answered."""
         with self._recent_lock:
-            self._pending_ns.update((id(p), int(p.stamp_ns) - margin_ns) for p in windows)
+            self._pending_ns.update((id(p), self._earliest_ns(p)) for p in windows)
 
     def _overlapping(self, windows: list, on_contacts) -> list:
         """Windows holding several emissions (registered): by default all go to the
@@ -1146,11 +1149,9 @@ class ContactPipeline:
         windows = [p for p, _, _ in later]
         held = [p for p, _, hold in later if hold]
         if self.slip is not None and held:
-            g = self.localizer.geometry
-            margin_ns = int(math.ceil(2.0 * g.radius_m / g.sound_speed_m_s * 1e9))
             with self._step_lock:
                 now = time.monotonic()
-                self._windows_out.update((id(p), (now, int(p.stamp_ns) - margin_ns)) for p in held)
+                self._windows_out.update((id(p), (now, self._earliest_ns(p))) for p in held)
         queued = []
         for quick_first in (True, False):
             ws = [p for p, q, _ in later if q is quick_first]
