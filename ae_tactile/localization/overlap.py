@@ -485,14 +485,24 @@ def _clip_theta(theta, geo, max_rho):
     return out
 
 
-def _lm(model: "_Model", y, theta, iterations=12, max_rho=None):
+#: Levenberg-Marquardt steps per fit, and the fit's bound on the polar angle of a point
+LM_ITERATIONS = 12
+MAX_FIT_POLAR_DEG = 85.0
+
+
+def _max_rho(geo) -> float:
+    """Largest in-plane radius of a fitted point (m): R sin(MAX_FIT_POLAR_DEG)."""
+    return geo.radius_m * math.sin(math.radians(MAX_FIT_POLAR_DEG))
+
+
+def _lm(model: "_Model", y, theta, iterations=LM_ITERATIONS, max_rho=None):
     """Levenberg-Marquardt over all 5J parameters (K packets in parallel); after each step
     the linear amplitudes are re-solved by LS (variable projection). Returns theta,
     amplitudes (K, 2J), rss (K,), and the Gram matrix of the final Jacobian (K, 5J, 5J)
     (parameter order: (s_x, s_y, T) per emission, then (direct, echo) amplitudes)."""
     K, J, _ = theta.shape
     geo = model.geo
-    max_rho = geo.radius_m * math.sin(math.radians(85.0)) if max_rho is None else max_rho
+    max_rho = _max_rho(geo) if max_rho is None else max_rho
     if _compiled(model):
         return _lm_compiled(model, y, theta, iterations, max_rho)
     theta = _clip_theta(theta, geo, max_rho)
@@ -634,6 +644,9 @@ class _GridTables:
     norm32: np.ndarray
     nfft: int
     h_conj_spectrum: np.ndarray
+    #: the compiled matched filter's poles z_p = e^{p / f_s} and residues (h = Re sum r z^m)
+    mf_z: np.ndarray
+    mf_r: np.ndarray
 
 
 def _grid_tables(model: _Model, grid, L) -> _GridTables:
@@ -652,6 +665,7 @@ def _grid_tables(model: _Model, grid, L) -> _GridTables:
         t = _GridTables(
             d, gain, tt, rel, int(rel.max()) + 1, norm, gain.astype(np.float32),
             norm.astype(np.float32), nfft, np.conj(sfft.rfft(h, n=nfft)),
+            np.exp(model.tab.half_poles / fs), model.tab.half_res.copy(),
         )
         if len(_GRID_TAB_CACHE) > 64:
             _GRID_TAB_CACHE.clear()
@@ -660,6 +674,12 @@ def _grid_tables(model: _Model, grid, L) -> _GridTables:
 
 
 _GRID_TAB_CACHE: dict = {}
+
+
+def _grid_step(fs: float) -> int:
+    """Arrival samples the grid tries first: every second one at >= 5 MS/s (the matched
+    filter is smooth: the band ends at 1 MHz <= fs / 5), else every one."""
+    return 2 if fs >= 5e6 else 1
 
 
 def _grid_search(model: _Model, r, grid, chunk=64, n_peaks=1, min_sep_s=0.8e-6):
@@ -671,21 +691,26 @@ def _grid_search(model: _Model, r, grid, chunk=64, n_peaks=1, min_sep_s=0.8e-6):
     K, _, L = r.shape
     fs = model.fs
     gt = _grid_tables(model, grid, L)
-    nfft, H = gt.nfft, gt.h_conj_spectrum
-    corr = sfft.irfft(sfft.rfft(r, n=nfft, axis=2) * H, n=nfft, axis=2)[..., :L]  # arrival at n
     gain, tt, rel, pad, norm, gain32 = gt.gain, gt.tt, gt.rel, gt.pad, gt.norm, gt.gain32
     cp = np.zeros((K, 4, L + pad + 2), np.float32)
-    cp[:, :, :L] = corr
-    # every second arrival sample first at >= 5 MS/s (the matched filter is smooth: the
-    # band ends at 1 MHz <= fs/5), then the best point's neighbours
-    mm = np.arange(0, L, 2 if fs >= 5e6 else 1)
+    if _compiled(model):  # the same correlation by the pulse's poles (no FFT)
+        rf = np.ascontiguousarray(r, dtype=np.float64).reshape(K, 4 * L)
+        for k in range(K):
+            _kernels.matched_filter(rf[k], L, gt.mf_z, gt.mf_r, cp[k])
+    else:
+        nfft, H = gt.nfft, gt.h_conj_spectrum
+        corr = sfft.irfft(sfft.rfft(r, n=nfft, axis=2) * H, n=nfft, axis=2)
+        cp[:, :, :L] = corr[..., :L]  # arrival at n
+    # every second arrival sample first (`_grid_step`), then the best point's neighbours
+    step = _grid_step(fs)
+    mm = np.arange(0, L, step)
     min_sep = max(1, int(round(min_sep_s * fs)))
     prof = np.zeros((K, mm.size))
     prof_g = np.zeros((K, mm.size), np.int64)
     if _compiled(model):
         p32 = np.empty(mm.size, np.float32)
         for k in range(K):
-            _kernels.grid_profile(cp[k], gain32, rel, gt.norm32, mm, p32, prof_g[k])
+            _kernels.grid_profile(cp[k], gain32, rel, gt.norm32, step, p32, prof_g[k])
             prof[k] = p32
     else:
         idx = rel[:, :, None] + mm[None, None, :]  # (G, 4, L/2)
@@ -790,6 +815,10 @@ def _search(
     no further (the caller answers it later with the exhaustive search)."""
     K = seg.shape[0]
     y = seg.reshape(K, -1)
+    if deferred is not None and sigma2 is not None and _compiled(model):
+        return _quick_search_compiled(
+            model, y, max_sources, grid, sigma2, add_threshold, search_limit, deferred
+        )
     cands, _ = _grid_search(model, seg, grid, n_peaks=3)
     theta, amp, rss, jac = _lm(model, y, cands[:, :1].copy())
     fits = [_Fit(theta, amp, rss, jac)]
@@ -844,6 +873,61 @@ def _search(
             theta[ids], amp[ids], rss[ids], jac[ids] = t1, a1, r1, j1
         fits.append(_Fit(theta, amp, rss, jac))
     return fits
+
+
+def _quick_search_compiled(model, y, max_sources, grid, sigma2, add_threshold, search_limit,
+                           deferred):
+    """`_search` with ``deferred`` by `overlap_kernels.quick_search`, one call per window
+    (the same fits; the grid's further time peaks, which only the exhaustive search uses,
+    are not computed)."""
+    K, N = y.shape
+    L = N // 4
+    gt = _grid_tables(model, grid, L)
+    mm = np.arange(0, L, _grid_step(model.fs))
+    mask = np.ones(N) if model.mask is None else model.mask
+    J = max_sources
+    theta = np.empty((K, J, J, 3))
+    amp = np.empty((K, J, 2 * J))
+    rss = np.empty((K, J))
+    gram = np.empty((K, J, 5 * J, 5 * J))
+    args = _kernel_args(model)
+    for k in range(K):
+        deferred[k] = _kernels.quick_search(
+            np.ascontiguousarray(y[k], dtype=np.float64),
+            np.ascontiguousarray(mask if mask.ndim == 1 else mask[k], dtype=np.float64),
+            float(model.start[k]),
+            float(sigma2[k]),
+            float(search_limit[k]),
+            float(add_threshold),
+            int(max_sources),
+            *args,
+            LM_ITERATIONS,
+            _max_rho(model.geo),
+            gt.mf_z,
+            gt.mf_r,
+            gt.gain32,
+            gt.rel,
+            gt.norm32,
+            mm,
+            gt.gain,
+            gt.norm,
+            gt.tt,
+            grid,
+            int(gt.pad),
+            theta[k],
+            amp[k],
+            rss[k],
+            gram[k],
+        )
+    return [
+        _Fit(
+            theta[:, j - 1, :j].copy(),
+            amp[:, j - 1, : 2 * j].copy(),
+            rss[:, j - 1].copy(),
+            gram[:, j - 1, : 5 * j, : 5 * j].copy(),
+        )
+        for j in range(1, J + 1)
+    ]
 
 
 def _alternatives(sub, ys, j, cs, grid, rows, t1, a1, r1, j1) -> None:
@@ -1030,8 +1114,9 @@ def resolve_overlaps(
 
 def warm_up(geometry=None, sample_rate_hz=10e6, n_samples=400, pulse=None) -> OverlapPacket:
     """Resolve one synthetic two-emission window (4 us apart, opposite polarities, light
-    noise): loads every table and compiled kernel the first real overlap would otherwise
-    wait for (the driver's overlap worker does this before it says it is ready)."""
+    noise) by the quick and by the exhaustive search: loads every table and compiled
+    kernel the first real overlap would otherwise wait for (the driver's overlap worker
+    does this before it says it is ready). Returns the exhaustive search's answer."""
     geo = FingertipGeometry() if geometry is None else geometry
     fs = float(sample_rate_hz)
     pulse = PulseModel.for_sample_rate(fs) if pulse is None else pulse
@@ -1046,6 +1131,7 @@ def warm_up(geometry=None, sample_rate_hz=10e6, n_samples=400, pulse=None) -> Ov
     for j, (amp, delay) in enumerate(((1e-2, 0.0), (-0.7e-2, 4e-6))):
         x += amp * gain[j][:, None] * pulse.waveform(t[None, :] - t0 - delay - tt[j][:, None])
     with np.errstate(all="ignore"):
+        resolve_overlaps(x[None], fs, [on], geometry=geo, pulse=pulse, exhaustive=False)
         return resolve_overlaps(x[None], fs, [on], geometry=geo, pulse=pulse)[0]
 
 

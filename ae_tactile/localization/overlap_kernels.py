@@ -23,11 +23,22 @@ import numpy as np
 
 from ae_tactile.jit import NUMBA_AVAILABLE, njit
 
-__all__ = ["NUMBA_AVAILABLE", "lm_fit", "model_residual", "grid_profile"]
+__all__ = [
+    "NUMBA_AVAILABLE",
+    "lm_fit",
+    "model_residual",
+    "grid_profile",
+    "matched_filter",
+    "quick_search",
+]
 
 #: no fast-math: the same input gives the same bits in every process (the dot products
 #: keep four fixed partial sums for speed instead of letting the compiler reorder them)
 _FAST = False
+#: reassociation only in sums of products (`_dot`): the compiler keeps the sum in vector
+#: lanes (a fixed split for a given machine code, so still the same bits in every process
+#: on one machine), several times faster than one scalar chain
+_SUM = {"reassoc"}
 
 
 @njit(cache=True, nogil=True, fastmath=_FAST)
@@ -62,20 +73,13 @@ def _solve(a, b, out):
     return True
 
 
-@njit(cache=True, nogil=True, fastmath=_FAST)
+@njit(cache=True, nogil=True, fastmath=_SUM)
 def _dot(a, b):
-    """sum a * b with four partial sums in a fixed order (fast and reproducible)."""
-    n = a.shape[0]
-    m = n - n % 4
-    s0 = s1 = s2 = s3 = 0.0
-    for q in range(0, m, 4):
-        s0 += a[q] * b[q]
-        s1 += a[q + 1] * b[q + 1]
-        s2 += a[q + 2] * b[q + 2]
-        s3 += a[q + 3] * b[q + 3]
-    for q in range(m, n):
-        s0 += a[q] * b[q]
-    return (s0 + s1) + (s2 + s3)
+    """sum a * b (the compiler may split the sum into vector lanes: `_SUM`)."""
+    s = 0.0
+    for q in range(a.shape[0]):
+        s += a[q] * b[q]
+    return s
 
 
 @njit(cache=True, nogil=True, fastmath=_FAST)
@@ -353,28 +357,188 @@ def model_residual(y, mask, t0_s, theta, amp, elem, c, R, echo, fs, poles, res, 
 
 
 @njit(cache=True, nogil=True, fastmath=False)
-def grid_profile(cp, gain, rel, norm, mm, prof, prof_g):
-    """Matched-filter grid of one window: for each arrival sample mm[i] the best grid point
-    g of stat = (sum_k gain[g, k] cp[k, rel[g, k] + mm[i]])^2 / ||phi_g||^2, in float32
-    and in the numpy path's order of operations (the same values, the same ties).
-    cp (4, L + pad), gain (G, 4), norm (G,) float32; writes prof (M,) float32, prof_g (M,)."""
+def grid_profile(cp, gain, rel, norm, step, prof, prof_g):
+    """Matched-filter grid of one window: for each arrival sample m_i = step i (i < M =
+    prof.size) the best grid point g of stat = (sum_k gain[g, k] cp[k, rel[g, k] + m_i])^2 /
+    ||phi_g||^2, in float32 and in the numpy path's order of operations (the same values,
+    the same ties: the first g of the largest stat). cp (4, L + pad), gain (G, 4), norm (G,)
+    float32; writes prof (M,) float32, prof_g (M,). Each channel is first split into its
+    ``step`` phases (cp[k, q + step j]), so that the loop over i reads contiguous memory."""
     G = gain.shape[0]
-    M = mm.shape[0]
-    for i in range(M):
-        prof[i] = -np.inf
-        prof_g[i] = 0
+    M = prof.shape[0]
+    W = cp.shape[1]
+    n_ph = (W + step - 1) // step
+    dec = np.zeros((4, step, n_ph), np.float32)
+    for k in range(4):
+        for n in range(W):
+            dec[k, n % step, n // step] = cp[k, n]
+    best = np.full(M, -np.inf, np.float32)
+    best_g = np.zeros(M, np.int32)
     zero = np.float32(0.0)
     for g in range(G):
         g0, g1, g2, g3 = gain[g, 0], gain[g, 1], gain[g, 2], gain[g, 3]
         r0, r1, r2, r3 = rel[g, 0], rel[g, 1], rel[g, 2], rel[g, 3]
+        c0 = dec[0, r0 % step, r0 // step:]
+        c1 = dec[1, r1 % step, r1 // step:]
+        c2 = dec[2, r2 % step, r2 // step:]
+        c3 = dec[3, r3 % step, r3 // step:]
         w = norm[g]
+        gg = np.int32(g)
         for i in range(M):
-            m = mm[i]
-            v = zero + g0 * cp[0, r0 + m]
-            v = v + g1 * cp[1, r1 + m]
-            v = v + g2 * cp[2, r2 + m]
-            v = v + g3 * cp[3, r3 + m]
-            s = (v * v) / w
-            if s > prof[i]:
-                prof[i] = s
-                prof_g[i] = g
+            v = zero + g0 * c0[i]
+            v = v + g1 * c1[i]
+            v = v + g2 * c2[i]
+            v = v + g3 * c3[i]
+            st = (v * v) / w
+            up = st > best[i]
+            best[i] = st if up else best[i]
+            best_g[i] = gg if up else best_g[i]
+    for i in range(M):
+        prof[i] = best[i]
+        prof_g[i] = best_g[i]
+
+
+@njit(cache=True, nogil=True, fastmath=_FAST)
+def matched_filter(r, L, z, hr, cp):
+    """Matched filter of a window's four channels r (4L,) with the pulse h, as float32:
+
+        cp[k, n] = sum_{m=0}^{L-1-n} r_k[n + m] h[m],  h[m] = Re sum_p hr_p z_p^m,
+
+    by the backward recursion u_p[n] = r_k[n] + z_p u_p[n + 1] (z_p = e^{p / f_s}: one
+    complex multiply-add per pole and sample instead of an FFT pair). cp (4, >= L): the
+    rest of each row is set to 0."""
+    P = z.shape[0]
+    acc = np.empty(L)
+    for k in range(4):
+        for n in range(L):
+            acc[n] = 0.0
+        for p in range(P):
+            zp = z[p]
+            hp = hr[p]
+            u = 0j
+            for n in range(L - 1, -1, -1):
+                u = r[k * L + n] + zp * u
+                acc[n] += (hp * u).real
+        for n in range(L):
+            cp[k, n] = acc[n]
+        for n in range(L, cp.shape[1]):
+            cp[k, n] = 0.0
+
+
+@njit(cache=True, nogil=True, fastmath=_FAST)
+def _grid_best(cp, L, gain32, rel, norm32, mm, gain, norm, tt, grid, start, fs, prof, prof_g,
+               out):
+    """The best grid point of one emission (``overlap._grid_search`` with n_peaks = 1):
+    the profile's first maximum, refined to the best of its arrival sample +- 1 in float64;
+    out (3,) = (s_x, s_y, T)."""
+    grid_profile(cp, gain32, rel, norm32, mm[1] - mm[0] if mm.shape[0] > 1 else 1, prof,
+                 prof_g)
+    i = 0
+    for q in range(1, mm.shape[0]):
+        if prof[q] > prof[i]:
+            i = q
+    g = prof_g[i]
+    m0 = mm[i]
+    best_m = m0
+    best = -np.inf
+    for dm in range(-1, 2):
+        m = min(max(m0 + dm, 0), L - 1)
+        v = 0.0
+        for k in range(4):
+            v = v + gain[g, k] * np.float64(cp[k, rel[g, k] + m])
+        st = v * v / norm[g]
+        if st > best:
+            best = st
+            best_m = m
+    t_min = tt[g, 0]
+    for k in range(1, 4):
+        t_min = min(t_min, tt[g, k])
+    out[0] = grid[g, 0]
+    out[1] = grid[g, 1]
+    out[2] = (start + best_m) / fs - t_min
+
+
+@njit(cache=True, nogil=True, fastmath=_FAST)
+def quick_search(y, mask, start, sigma2, search_limit, add_threshold, max_sources,
+                 elem, c, R, echo, fs, poles, res, tab_re, tab_im, iterations, max_rho,
+                 z, hr, gain32, rel, norm32, mm, gain, norm, tt, grid, pad,
+                 theta_out, amp_out, rss_out, gram_out):
+    """The quick search of one window in one call (``overlap._search`` with ``deferred``):
+    grid + LM of one emission; emission j = 2.. only while the (j-1)-emission residual
+    is above search_limit sigma^2 dof (and, for j >= 3, emission j-1 lowered it by more
+    than add_threshold sigma^2): grid point of the residual, joint LM from there. A joint
+    fit that still leaves more than noise marks the window deferred (no further search).
+    Emissions of each fit ordered by emission time. y, mask (4L,), start: first sample of
+    the segment. Writes fit j into theta_out[j-1, :j], amp_out[j-1, :2j], rss_out[j-1],
+    gram_out[j-1, :5j, :5j] (a fit not searched repeats fit j-1 with zeros); returns
+    True when deferred."""
+    N = y.shape[0]
+    L = N // 4
+    t0_s = start / fs
+    n_in = 0.0
+    for q in range(N):
+        n_in += mask[q]
+    cp = np.empty((4, L + pad + 2), np.float32)
+    prof = np.empty(mm.shape[0], np.float32)
+    prof_g = np.empty(mm.shape[0], np.int64)
+    r = np.empty(N)
+    best = np.empty(3)
+    theta_out[:, :, :] = 0.0
+    amp_out[:, :] = 0.0
+    gram_out[:, :, :] = 0.0
+    matched_filter(y, L, z, hr, cp)
+    _grid_best(cp, L, gain32, rel, norm32, mm, gain, norm, tt, grid, start, fs, prof, prof_g,
+               best)
+    th = np.empty((1, 3))
+    th[0, :] = best
+    t1 = np.empty((1, 3))
+    a1 = np.empty(2)
+    g1 = np.empty((5, 5))
+    rss_out[0] = lm_fit(y, mask, t0_s, th, elem, c, R, echo, fs, poles, res, tab_re, tab_im,
+                        iterations, max_rho, t1, a1, g1)
+    theta_out[0, :1] = t1
+    amp_out[0, :2] = a1
+    gram_out[0, :5, :5] = g1
+    deferred = False
+    for j in range(2, max_sources + 1):
+        pj = j - 2  # the previous fit
+        dof = max(n_in - 5 * (j - 1), 1.0)
+        go = rss_out[pj] > search_limit * sigma2 * dof
+        if j > 2:
+            go = go and (rss_out[pj - 1] - rss_out[pj]) > add_threshold * sigma2
+        if not go or deferred:
+            theta_out[j - 1, : j - 1] = theta_out[pj, : j - 1]
+            amp_out[j - 1, : 2 * (j - 1)] = amp_out[pj, : 2 * (j - 1)]
+            rss_out[j - 1] = rss_out[pj]
+            continue
+        model_residual(y, mask, t0_s, theta_out[pj, : j - 1], amp_out[pj, : 2 * (j - 1)],
+                       elem, c, R, echo, fs, poles, res, tab_re, tab_im, r)
+        matched_filter(r, L, z, hr, cp)
+        _grid_best(cp, L, gain32, rel, norm32, mm, gain, norm, tt, grid, start, fs, prof,
+                   prof_g, best)
+        th = np.empty((j, 3))
+        th[: j - 1] = theta_out[pj, : j - 1]
+        th[j - 1] = best
+        t1 = np.empty((j, 3))
+        a1 = np.empty(2 * j)
+        g1 = np.empty((5 * j, 5 * j))
+        rss_out[j - 1] = lm_fit(y, mask, t0_s, th, elem, c, R, echo, fs, poles, res, tab_re,
+                                tab_im, iterations, max_rho, t1, a1, g1)
+        if rss_out[j - 1] > search_limit * sigma2 * max(n_in - 5 * j, 1.0):
+            deferred = True
+        # order the emissions by emission time (parameters and Gram matrix alike)
+        order = np.argsort(t1[:, 2])
+        perm = np.empty(5 * j, np.int64)
+        for q in range(j):
+            o = order[q]
+            theta_out[j - 1, q] = t1[o]
+            amp_out[j - 1, 2 * q] = a1[2 * o]
+            amp_out[j - 1, 2 * q + 1] = a1[2 * o + 1]
+            for d in range(3):
+                perm[3 * q + d] = 3 * o + d
+            perm[3 * j + 2 * q] = 3 * j + 2 * o
+            perm[3 * j + 2 * q + 1] = 3 * j + 2 * o + 1
+        for a in range(5 * j):
+            for b in range(5 * j):
+                gram_out[j - 1, a, b] = g1[perm[a], perm[b]]
+    return deferred
