@@ -473,39 +473,14 @@ def _peak_lag(gr, gi, lc, ls, lag0, ml_):
 
 # --------------------------------------------------------------------------- kernel
 @njit(cache=True, nogil=True)
-def _packet(
-    xin,
-    onset,
-    noise_rms,
-    sat_in,
-    full_scale,
-    gains,
-    has_gains,
-    gain_rms,
-    tabs,
-    iterations,
-    min_snr_db,
-    thr,
-    out,
-    pt,
-    cov,
-    ctau,
-):
-    """One packet. out: 16 scalars (see estimators.PacketLocation); pt (3,), cov (3, 3),
-    ctau (2, 2). tabs: `Tables.packed`."""
-    cc, sc, ca, sa, wa, lc, ls, max_lag, geo, ints, fc, fa, auto, scal = tabs
-    fs, max_step, lag0 = scal[0], scal[1], int(scal[2])
-    pre, L, snr_len, flat_run, max_shift, stop_s, span, n_al = (
-        ints[0],
-        ints[1],
-        ints[2],
-        ints[3],
-        ints[4],
-        ints[5],
-        ints[6],
-        ints[7],
-    )
-    r_sph, a_el, c_snd = geo[0], geo[1], geo[2]
+def prepare_packet(xin, onset, noise_rms, sat_in, full_scale, gains, has_gains, gain_rms, pre,
+                   L, flat_run):
+    """`common.prepare` of one packet (xin (4, m), any float dtype): non-finite samples,
+    window, saturation (sat_in > 0 / == 0 flagged by the caller, < 0 unknown: full scale,
+    else flat top), channel gains, per-packet scale, pre-onset noise and baselines, ADC
+    quantum. noise_rms: the known sigma (V), NaN if measured. Returns (x (4, m) scaled,
+    raw (4, L) coarse segment, pre_mean (4,), flags, onset, seg_start, scale, sigma2
+    (units^2, before `_adc_noise`), given, quant2)."""
     m = xin.shape[1]
     x = np.empty((4, m))
     flags = 0
@@ -624,6 +599,48 @@ def _packet(
             for n in range(L):
                 s += raw[k, n]
             pre_mean[k] = s / L
+    quant2 = q * q / 12.0 if math.isfinite(q) else 0.0
+    return x, raw, pre_mean, flags, on, seg_start, scale, sigma2, given, quant2
+
+
+@njit(cache=True, nogil=True)
+def _packet(
+    xin,
+    onset,
+    noise_rms,
+    sat_in,
+    full_scale,
+    gains,
+    has_gains,
+    gain_rms,
+    tabs,
+    iterations,
+    min_snr_db,
+    thr,
+    out,
+    pt,
+    cov,
+    ctau,
+):
+    """One packet. out: 16 scalars (see estimators.PacketLocation); pt (3,), cov (3, 3),
+    ctau (2, 2). tabs: `Tables.packed`."""
+    cc, sc, ca, sa, wa, lc, ls, max_lag, geo, ints, fc, fa, auto, scal = tabs
+    fs, max_step, lag0 = scal[0], scal[1], int(scal[2])
+    pre, L, snr_len, flat_run, max_shift, stop_s, span, n_al = (
+        ints[0],
+        ints[1],
+        ints[2],
+        ints[3],
+        ints[4],
+        ints[5],
+        ints[6],
+        ints[7],
+    )
+    r_sph, a_el, c_snd = geo[0], geo[1], geo[2]
+    m = xin.shape[1]
+    x, raw, pre_mean, flags, on, seg_start, scale, sigma2, given, quant2 = prepare_packet(
+        xin, onset, noise_rms, sat_in, full_scale, gains, has_gains, gain_rms, pre, L, flat_run
+    )
     seg = np.empty((4, L))
     count = np.empty(4, np.int64)
     for k in range(4):
@@ -637,7 +654,6 @@ def _packet(
             v = x[k, i] - pre_mean[k]
             p_total += v * v
     p_total /= 4.0 * w_len
-    quant2 = q * q / 12.0 if math.isfinite(q) else 0.0
 
     # ---- start: pair cross-correlations over the possible lags
     nbc = cc.shape[0]
