@@ -70,6 +70,7 @@ from ae_tactile.localization.common import (
     Reason,
     adc_noise,
     make_plan,
+    per_packet,
     prepare,
     subset,
     validate_windows,
@@ -225,6 +226,9 @@ class _Tables:
     half_poles: np.ndarray
     half_res: np.ndarray
     half_table: np.ndarray
+    #: z_p = e^{p / f_s} of the half poles: h[m] = Re sum_p half_res_p z_p^m (the compiled
+    #: matched filter's recursion)
+    half_z: np.ndarray
 
 
 def _given(prep):
@@ -250,7 +254,9 @@ def _tables(pulse: PulseModel, fs: float, n: int) -> _Tables:
             keep = np.ones(p.size, bool)
         hp, hr, eh = p[keep], (np.where(upper, 2.0, 1.0) * r)[keep], e[keep]
         htab = np.ascontiguousarray(np.vstack([eh.real, eh.imag]))
-        t = _TAB_CACHE[key] = _Tables(p, r, tab, h, hp.copy(), hr.copy(), htab)
+        t = _TAB_CACHE[key] = _Tables(
+            p, r, tab, h, hp.copy(), hr.copy(), htab, np.exp(hp / fs)
+        )
     return t
 
 
@@ -554,13 +560,14 @@ def _lm(model: "_Model", y, theta, iterations=LM_ITERATIONS, max_rho=None):
     return theta, amp, rss, jac @ jac.transpose(0, 2, 1)
 
 
+def _compiled_medium(pulse: PulseModel) -> bool:
+    """The compiled kernels can fit this pulse: numba present, a lossless medium."""
+    return _kernels.NUMBA_AVAILABLE and not pulse.attenuation_db_per_m_at_1mhz > 0
+
+
 def _compiled(model: "_Model") -> bool:
-    """The compiled kernels apply: numba present, not refused, a lossless medium."""
-    return (
-        model.engine != "numpy"
-        and _kernels.NUMBA_AVAILABLE
-        and not model.pulse.attenuation_db_per_m_at_1mhz > 0
-    )
+    """The compiled kernels apply: not refused (engine "numpy"), `_compiled_medium`."""
+    return model.engine != "numpy" and _compiled_medium(model.pulse)
 
 
 def _kernel_args(model: "_Model") -> tuple:
@@ -644,9 +651,6 @@ class _GridTables:
     norm32: np.ndarray
     nfft: int
     h_conj_spectrum: np.ndarray
-    #: the compiled matched filter's poles z_p = e^{p / f_s} and residues (h = Re sum r z^m)
-    mf_z: np.ndarray
-    mf_r: np.ndarray
 
 
 def _grid_tables(model: _Model, grid, L) -> _GridTables:
@@ -665,7 +669,6 @@ def _grid_tables(model: _Model, grid, L) -> _GridTables:
         t = _GridTables(
             d, gain, tt, rel, int(rel.max()) + 1, norm, gain.astype(np.float32),
             norm.astype(np.float32), nfft, np.conj(sfft.rfft(h, n=nfft)),
-            np.exp(model.tab.half_poles / fs), model.tab.half_res.copy(),
         )
         if len(_GRID_TAB_CACHE) > 64:
             _GRID_TAB_CACHE.clear()
@@ -696,7 +699,7 @@ def _grid_search(model: _Model, r, grid, chunk=64, n_peaks=1, min_sep_s=0.8e-6):
     if _compiled(model):  # the same correlation by the pulse's poles (no FFT)
         rf = np.ascontiguousarray(r, dtype=np.float64).reshape(K, 4 * L)
         for k in range(K):
-            _kernels.matched_filter(rf[k], L, gt.mf_z, gt.mf_r, cp[k])
+            _kernels.matched_filter(rf[k], L, model.tab.half_z, model.tab.half_res, cp[k])
     else:
         nfft, H = gt.nfft, gt.h_conj_spectrum
         corr = sfft.irfft(sfft.rfft(r, n=nfft, axis=2) * H, n=nfft, axis=2)
@@ -779,13 +782,19 @@ class _Fit:
     gram: np.ndarray  # (K, 5J, 5J) Gram matrix of the Jacobian (Fisher x sigma^2)
 
 
+def _analysis_s(geo, analysis_s) -> float:
+    """Span of the fit after the onset (s): up to before the earliest emission's second
+    wall echo, 4R/c - 2 sqrt(2) a / c - 0.3 us, unless given."""
+    if analysis_s is not None:
+        return analysis_s
+    a = geo.element_offset_m
+    return (4.0 * geo.radius_m - 2.0 * math.sqrt(2.0) * a) / geo.sound_speed_m_s - 0.3e-6
+
+
 def _segments(prep, plan, geo, fs, analysis_s):
     m = prep.x.shape[2]
-    if analysis_s is None:
-        a = geo.element_offset_m
-        analysis_s = (4.0 * geo.radius_m - 2.0 * math.sqrt(2.0) * a) / geo.sound_speed_m_s - 0.3e-6
     start = np.clip(prep.onset - plan.pre, 0, m - 1)
-    nominal = plan.pre + int(math.floor(analysis_s * fs))
+    nominal = plan.pre + int(math.floor(_analysis_s(geo, analysis_s) * fs))
     length = max(int(np.max(np.minimum(m - start, nominal), initial=8)), 8)
     idx = start[:, None] + np.arange(length)[None, :]
     inside = idx < m  # samples past the window end are masked out of the fit
@@ -815,10 +824,6 @@ def _search(
     no further (the caller answers it later with the exhaustive search)."""
     K = seg.shape[0]
     y = seg.reshape(K, -1)
-    if deferred is not None and sigma2 is not None and _compiled(model):
-        return _quick_search_compiled(
-            model, y, max_sources, grid, sigma2, add_threshold, search_limit, deferred
-        )
     cands, _ = _grid_search(model, seg, grid, n_peaks=3)
     theta, amp, rss, jac = _lm(model, y, cands[:, :1].copy())
     fits = [_Fit(theta, amp, rss, jac)]
@@ -875,16 +880,15 @@ def _search(
     return fits
 
 
-def _quick_search_compiled(model, y, max_sources, grid, sigma2, add_threshold, search_limit,
-                           deferred):
+def _quick_search_compiled(model, ys, masks, max_sources, grid, sigma2, add_threshold,
+                           search_limit, deferred):
     """`_search` with ``deferred`` by `overlap_kernels.quick_search`, one call per window
     (the same fits; the grid's further time peaks, which only the exhaustive search uses,
-    are not computed)."""
-    K, N = y.shape
+    are not computed). ys, masks (K, 4L)."""
+    K, N = ys.shape
     L = N // 4
     gt = _grid_tables(model, grid, L)
     mm = np.arange(0, L, _grid_step(model.fs))
-    mask = np.ones(N) if model.mask is None else model.mask
     J = max_sources
     theta = np.empty((K, J, J, 3))
     amp = np.empty((K, J, 2 * J))
@@ -893,8 +897,8 @@ def _quick_search_compiled(model, y, max_sources, grid, sigma2, add_threshold, s
     args = _kernel_args(model)
     for k in range(K):
         deferred[k] = _kernels.quick_search(
-            np.ascontiguousarray(y[k], dtype=np.float64),
-            np.ascontiguousarray(mask if mask.ndim == 1 else mask[k], dtype=np.float64),
+            ys[k],
+            masks[k],
             float(model.start[k]),
             float(sigma2[k]),
             float(search_limit[k]),
@@ -903,8 +907,8 @@ def _quick_search_compiled(model, y, max_sources, grid, sigma2, add_threshold, s
             *args,
             LM_ITERATIONS,
             _max_rho(model.geo),
-            gt.mf_z,
-            gt.mf_r,
+            model.tab.half_z,
+            model.tab.half_res,
             gt.gain32,
             gt.rel,
             gt.norm32,
@@ -928,6 +932,88 @@ def _quick_search_compiled(model, y, max_sources, grid, sigma2, add_threshold, s
         )
         for j in range(1, J + 1)
     ]
+
+
+def _noise_sat_fs(noise_rms_v, saturated, full_scale_v, K):
+    """The compiled preparation's per-window arguments: known noise sigma (NaN: measured,
+    as for non-positive values in `common.prepare`), saturation flag (-1: unknown), full
+    scale (NaN: unknown)."""
+    if noise_rms_v is None:
+        noise = np.full(K, np.nan)
+    else:
+        nr = per_packet("noise_rms_v", noise_rms_v, K)
+        noise = np.where(np.isfinite(nr) & (nr > 0), nr, np.nan)
+    sat = (
+        np.full(K, -1, np.int64)
+        if saturated is None
+        else per_packet("saturated", saturated, K, dtype=bool).astype(np.int64)
+    )
+    fsv = np.nan if full_scale_v is None else _positive("full_scale_v", full_scale_v)
+    return noise, sat, fsv
+
+
+def _segments_compiled(preps, m, plan, geo, analysis_s):
+    """`_segments` of windows prepared by `overlap_kernels.prepare_window` (list of its
+    outputs): ys, masks (n, 4L), start (n,), L."""
+    nominal = plan.pre + int(math.floor(_analysis_s(geo, analysis_s) * plan.fs))
+    start = np.array([min(max(int(pr[3]) - plan.pre, 0), m - 1) for pr in preps], np.int64)
+    L = max(int(np.max(np.minimum(m - start, nominal), initial=8)), 8)
+    ys = np.empty((len(preps), 4 * L))
+    masks = np.empty((len(preps), 4 * L))
+    for i, pr in enumerate(preps):
+        _kernels.segment(pr[0], int(start[i]), L, pr[1], ys[i], masks[i])
+    return ys, masks, start, L
+
+
+def _resolve_quick(x, on, plan, geo, pulse, noise_rms_v, saturated, full_scale_v, echo,
+                   analysis_s, grid, decide_args) -> list:
+    """`resolve_overlaps` with ``exhaustive=False`` by the compiled kernels: per window one
+    call to prepare it (`overlap_kernels.prepare_window`, the equations of
+    `common.prepare` and `common.adc_noise`), one to cut its segment and one for the whole
+    quick search; then the same decisions (`_answers`)."""
+    K, _, m = x.shape
+    noise, sat, fsv = _noise_sat_fs(noise_rms_v, saturated, full_scale_v, K)
+    out: list = [None] * K
+    ok, preps = [], []
+    for k in range(K):
+        pr = _kernels.prepare_window(
+            x[k], int(on[k]), float(noise[k]), int(sat[k]), fsv, plan.pre, plan.seg_len,
+            plan.flat_run,
+        )
+        flags, scale, s2 = int(pr[2]), pr[4], pr[5]
+        if not (math.isfinite(s2) and s2 > 0):
+            flags |= 1 << Reason.WINDOW
+        if flags:
+            noise_v = math.sqrt(float(np.nan_to_num(s2))) * scale
+            out[k] = OverlapPacket(False, _first_reason(flags), noise_rms_v=noise_v)
+        else:
+            ok.append(k)
+            preps.append(pr)
+    if not ok:
+        return out
+    fs = plan.fs
+    ys, masks, start, L = _segments_compiled(preps, m, plan, geo, analysis_s)
+    sigma2 = np.array([pr[5] for pr in preps])
+    if noise_rms_v is None:
+        n_noise = np.maximum(4 * (np.array([pr[3] for pr in preps]) - plan.pre), 4)
+        n_noise = n_noise.astype(float)
+    else:
+        n_noise = np.full(len(ok), np.inf)
+    N = masks.sum(axis=1)
+    search_limit = 1.0 + 2.0 * np.sqrt(2.0 / n_noise + 2.0 / N)
+    model = _Model(geo, fs, start, L, pulse, echo)
+    max_sources, add_threshold = decide_args[0], decide_args[1]
+    deferred = np.zeros(len(ok), bool)
+    fits = _quick_search_compiled(
+        model, ys, masks, max_sources, grid, sigma2, add_threshold, search_limit, deferred
+    )
+    res = _answers(
+        fits, deferred, N, sigma2, n_noise, *decide_args,
+        np.array([pr[4] for pr in preps]), geo, model.tab.h_samples, fs,
+    )
+    for k, r in zip(ok, res):
+        out[k] = r
+    return out
 
 
 def _alternatives(sub, ys, j, cs, grid, rows, t1, a1, r1, j1) -> None:
@@ -1061,6 +1147,17 @@ def resolve_overlaps(
     K = x.shape[0]
     if K == 0:
         return []
+    grid = _surface_grid(geo, grid_spacing_m)
+    if not exhaustive and engine == "auto" and _compiled_medium(pulse):
+        decide_args = (
+            max_sources, add_threshold, max_chi2_ratio, max_sigma_m, min_snr_db,
+            min_separation_s,
+        )
+        with np.errstate(all="ignore"):
+            return _resolve_quick(
+                x, on, plan, geo, pulse, noise_rms_v, saturated, full_scale_v, echo,
+                analysis_s, grid, decide_args,
+            )
     with np.errstate(all="ignore"):
         prep = prepare(
             x,
@@ -1098,7 +1195,7 @@ def resolve_overlaps(
                 min_snr_db,
                 prep.scale[ids],
                 geo,
-                _surface_grid(geo, grid_spacing_m),
+                grid,
                 min_separation_s,
                 exhaustive,
             )
@@ -1175,6 +1272,33 @@ def _decide(
     fits = _search(
         model, seg, max_sources, grid, sigma2, add_threshold, search_limit, deferred
     )
+    return _answers(
+        fits, deferred, N, sigma2, n_noise, max_sources, add_threshold, max_chi2_ratio,
+        max_sigma_m, min_snr_db, min_separation_s, scale, geo, model.tab.h_samples, model.fs,
+    )
+
+
+def _answers(
+    fits,
+    deferred,
+    N,
+    sigma2,
+    n_noise,
+    max_sources,
+    add_threshold,
+    max_chi2_ratio,
+    max_sigma_m,
+    min_snr_db,
+    min_separation_s,
+    scale,
+    geo,
+    h_samples,
+    fs,
+):
+    """The `OverlapPacket` of each window from its fits (one per number of emissions):
+    model order, residual test, separation, covariances, per-emission SNR and confidence.
+    N (K,): samples in each window's fit."""
+    K = len(sigma2)
     # Model order: add emission j+1 while the residual energy drops by > add_threshold sigma^2.
     J = np.ones(K, np.int64)
     going = np.ones(K, bool)
@@ -1184,7 +1308,9 @@ def _decide(
         J[step] = j
         going &= step
     out = []
-    snr_len = int(round(30e-6 * model.fs))
+    snr_len = int(round(30e-6 * fs))
+    e_pulse = float((h_samples[:snr_len] ** 2).sum())  # the direct wave's energy in 30 us
+    R = geo.radius_m
     for i in range(K):
         if deferred is not None and deferred[i]:
             out.append(
@@ -1202,8 +1328,9 @@ def _decide(
         ratio = rss / (sigma2[i] * dof)
         noise_v = float(np.sqrt(sigma2[i]) * scale[i])
         limit = float(_chi2_limit(n_noise[i], dof, max_chi2_ratio))
-        too_close = j > 1 and np.min(np.diff(theta[:, 2])) < min_separation_s
-        if not np.isfinite(ratio) or ratio > limit or too_close:
+        times = theta[:, 2].tolist()
+        too_close = j > 1 and min(b - a for a, b in zip(times, times[1:])) < min_separation_s
+        if not math.isfinite(ratio) or ratio > limit or too_close:
             out.append(
                 OverlapPacket(
                     False,
@@ -1220,48 +1347,46 @@ def _decide(
             cov = np.linalg.pinv(fis, rcond=1e-13, hermitian=True)
         except np.linalg.LinAlgError:
             cov = np.full(fis.shape, np.nan)
+        d_all = geo._xy_distances(theta[:, 0], theta[:, 1])  # (j, 4)
+        gain2 = ((R / d_all) ** 2).sum(axis=1)
         sources = []
         dropped = 0
         for q in range(j):
             c_xy = cov[3 * q : 3 * q + 2, 3 * q : 3 * q + 2]
-            sx, sy, T = theta[q]
-            sig = (
-                float(np.sqrt(max(c_xy[0, 0] + c_xy[1, 1], 0.0)))
-                if np.all(np.isfinite(c_xy))
-                else np.inf
-            )
+            sx, sy, T = (float(v) for v in theta[q])
+            vxx, vxy, vyx, vyy = c_xy.ravel().tolist()
+            finite = all(math.isfinite(v) for v in (vxx, vxy, vyx, vyy))
+            sig = math.sqrt(max(vxx + vyy, 0.0)) if finite else math.inf
             a_dir = float(amp[2 * q])
-            d = geo._xy_distances(np.array(sx), np.array(sy))
             # SNR of this emission alone: power of its direct wave over the 30 us window
-            e_pulse = float((model.tab.h_samples[:snr_len] ** 2).sum())
-            p_sig = a_dir**2 * float(((geo.radius_m / d) ** 2).sum()) * e_pulse / (4.0 * snr_len)
+            p_sig = a_dir**2 * float(gain2[q]) * e_pulse / (4.0 * snr_len)
             snr = 10.0 * math.log10(max(p_sig, 1e-300) / sigma2[i])
             if not (sig <= max_sigma_m) or snr < min_snr_db:
                 dropped += 1
                 continue
-            sz = math.sqrt(max(geo.radius_m**2 - sx * sx - sy * sy, 0.0))
+            sz = math.sqrt(max(R**2 - sx * sx - sy * sy, 0.0))
             g = np.array(
                 [
                     [1.0, 0.0],
                     [0.0, 1.0],
-                    [-sx / max(sz, 1e-6 * geo.radius_m), -sy / max(sz, 1e-6 * geo.radius_m)],
+                    [-sx / max(sz, 1e-6 * R), -sy / max(sz, 1e-6 * R)],
                 ]
             )
             c3 = g @ c_xy @ g.T
             c_snr = math.sqrt(min(max((snr - min_snr_db) / 20.0, 0.0), 1.0))
             c_pos = 1.0 / (1.0 + (sig / 0.5e-3) ** 2)
             c_fit = min(max(1.0 - max(ratio - 1.0, 0.0) / max(limit - 1.0, 1e-9), 0.0), 1.0)
-            conf = float(np.clip(c_snr * c_pos * c_fit, 0.0, 1.0))
+            conf = min(max(c_snr * c_pos * c_fit, 0.0), 1.0)
             sources.append(
                 OverlapSource(
                     point_m=np.array([sx, sy, sz]),
                     covariance_m2=c3,
                     sigma_m=sig,
                     confidence=conf,
-                    polarity=int(np.sign(a_dir)) if a_dir != 0 else 0,
+                    polarity=(a_dir > 0) - (a_dir < 0),
                     amplitude_v=a_dir * float(scale[i]),
-                    emission_time_s=float(T),
-                    arrival_times_s=T + d / geo.sound_speed_m_s,
+                    emission_time_s=T,
+                    arrival_times_s=T + d_all[q] / geo.sound_speed_m_s,
                     snr_db=float(snr),
                 )
             )
@@ -1304,13 +1429,16 @@ def suspect_overlap(
     analysis_s=None,
     echo=True,
     max_chi2_ratio=None,
+    engine="auto",
 ):
     """(K,) bool: packets that `localize` ACCEPTED as single-source but whose one-emission fit
     (known pulse, first echo, started at the accepted point) leaves a residual inconsistent
     with noise (chi^2 per degree of freedom above the limit of `resolve_overlaps`): hand
     those to `resolve_overlaps`. Rejected packets give False (they are not single-source
     answers to withdraw). Cost: a 1-D matched-filter search of the emission time and
-    ``iterations`` LM steps per accepted packet."""
+    ``iterations`` LM steps per accepted packet. engine: "auto" one compiled call per
+    packet (`overlap_kernels.suspect_rss`) where numba is present and the medium lossless,
+    "numpy" always numpy."""
     geo = FingertipGeometry() if geometry is None else geometry
     pulse = PulseModel.for_sample_rate(sample_rate_hz) if pulse is None else pulse
     x, on = validate_windows(windows, onset_index)
@@ -1319,10 +1447,19 @@ def suspect_overlap(
     pts = np.asarray(single_source_result.point_m, float)
     if acc.shape != (K,) or pts.shape != (K, 3):
         raise ValueError(f"single_source_result must hold {K} packets, got {acc.shape[0]}")
+    if engine not in ("auto", "numpy"):
+        raise ValueError(f"engine must be 'auto' or 'numpy', got {engine!r}")
     plan = make_plan(sample_rate_hz, geo, x.shape[2], band_hz)
     out = np.zeros(K, bool)
     ids = np.nonzero(acc)[0]
     if ids.size == 0:
+        return out
+    if engine == "auto" and _compiled_medium(pulse):
+        with np.errstate(all="ignore"):
+            out[ids] = _suspects_compiled(
+                x[ids], on[ids], pts[ids, :2], plan, geo, pulse, noise_rms_v, K, ids,
+                analysis_s, echo, max_chi2_ratio,
+            )
         return out
     with np.errstate(all="ignore"):
         prep = prepare(
@@ -1360,6 +1497,43 @@ def suspect_overlap(
         ratio = rss / (sigma2 * dof)
         out[ids] = ~(ratio <= limit)
     return out
+
+
+def _suspects_compiled(x, on, s_xy, plan, geo, pulse, noise_rms_v, K, ids, analysis_s, echo,
+                       max_chi2_ratio):
+    """`suspect_overlap` of accepted windows x (n, 4, M) at their points s_xy (n, 2) by the
+    compiled kernels (`overlap_kernels.prepare_window`, `segment`, `suspect_rss`)."""
+    m = x.shape[2]
+    noise = None if noise_rms_v is None else np.broadcast_to(
+        np.asarray(noise_rms_v, float), (K,)
+    )[ids]
+    noise, _, _ = _noise_sat_fs(noise, None, None, len(x))
+    preps = [
+        _kernels.prepare_window(
+            x[i], int(on[i]), float(noise[i]), -1, np.nan, plan.pre, plan.seg_len,
+            plan.flat_run,
+        )
+        for i in range(len(x))
+    ]
+    ys, masks, start, L = _segments_compiled(preps, m, plan, geo, analysis_s)
+    model = _Model(geo, plan.fs, start, L, pulse, echo)
+    args = _kernel_args(model)
+    rss = np.array(
+        [
+            _kernels.suspect_rss(
+                ys[i], masks[i], float(start[i]), float(s_xy[i, 0]), float(s_xy[i, 1]),
+                *args, model.tab.half_z, model.tab.half_res,
+            )
+            for i in range(len(x))
+        ]
+    )
+    sigma2 = np.array([pr[5] for pr in preps])
+    dof = np.maximum(masks.sum(axis=1) - 5, 1)
+    n_noise = np.maximum(4 * start, 4).astype(float)
+    if noise_rms_v is not None:
+        n_noise[:] = np.inf
+    limit = _chi2_limit(n_noise, dof, max_chi2_ratio)
+    return ~(rss / (sigma2 * dof) <= limit)
 
 
 def _time_search(model: _Model, seg, s_xy):

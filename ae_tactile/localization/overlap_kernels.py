@@ -22,6 +22,7 @@ import math
 import numpy as np
 
 from ae_tactile.jit import NUMBA_AVAILABLE, njit
+from ae_tactile.localization.fast import _adc_noise, prepare_packet
 
 __all__ = [
     "NUMBA_AVAILABLE",
@@ -30,6 +31,9 @@ __all__ = [
     "grid_profile",
     "matched_filter",
     "quick_search",
+    "prepare_window",
+    "segment",
+    "suspect_rss",
 ]
 
 #: no fast-math: the same input gives the same bits in every process (the dot products
@@ -400,7 +404,7 @@ def grid_profile(cp, gain, rel, norm, step, prof, prof_g):
 
 @njit(cache=True, nogil=True, fastmath=_FAST)
 def matched_filter(r, L, z, hr, cp):
-    """Matched filter of a window's four channels r (4L,) with the pulse h, as float32:
+    """Matched filter of a window's four channels r (4L,) with the pulse h, in cp's type:
 
         cp[k, n] = sum_{m=0}^{L-1-n} r_k[n + m] h[m],  h[m] = Re sum_p hr_p z_p^m,
 
@@ -542,3 +546,79 @@ def quick_search(y, mask, start, sigma2, search_limit, add_threshold, max_source
             for b in range(5 * j):
                 gram_out[j - 1, a, b] = g1[perm[a], perm[b]]
     return deferred
+
+
+@njit(cache=True, nogil=True)
+def prepare_window(xin, onset, noise_rms, sat_in, full_scale, pre, seg_len, flat_run):
+    """`common.prepare` and `common.adc_noise` of one window (`fast.prepare_packet`, no
+    channel gains). Returns (x (4, m) scaled, pre_mean (4,), flags, onset, scale, sigma2:
+    the noise variance on the signal samples, units^2)."""
+    x, raw, pre_mean, flags, on, seg_start, scale, sigma2, given, quant2 = prepare_packet(
+        xin, onset, noise_rms, sat_in, full_scale, np.ones(4), False, 1.0, pre, seg_len,
+        flat_run,
+    )
+    return x, pre_mean, flags, on, scale, _adc_noise(sigma2, quant2, given)
+
+
+@njit(cache=True, nogil=True)
+def segment(x, start, L, pre_mean, y, mask):
+    """The analysis segment of one window (``overlap._segments``): y[kL + n] = x[k, start + n]
+    - pre_mean[k] and mask[kL + n] = 1 inside the window, both 0 past its end."""
+    m = x.shape[1]
+    for k in range(4):
+        for n in range(L):
+            i = start + n
+            inside = 1.0 if i < m else 0.0
+            y[k * L + n] = (x[k, min(i, m - 1)] - pre_mean[k]) * inside
+            mask[k * L + n] = inside
+
+
+@njit(cache=True, nogil=True, fastmath=_FAST)
+def suspect_rss(y, mask, start, sx, sy, elem, c, R, echo, fs, poles, res, tab_re, tab_im, z,
+                hr):
+    """Residual sum of squares of one emission at the surface point (sx, sy) in one window
+    (``overlap.suspect_overlap``): emission time T by the channel-summed matched filter
+    along the point's travel times, then LS on [h, h'] of the direct wave and the echo
+    at (sx, sy, T) (linearised in T). y, mask (4L,); start: the segment's first sample."""
+    N = y.shape[0]
+    L = N // 4
+    corr = np.empty((4, L))
+    matched_filter(y, L, z, hr, corr)
+    sz = math.sqrt(max(R * R - sx * sx - sy * sy, 0.0))
+    d = np.empty(4)
+    t_min = np.inf
+    for k in range(4):
+        vx = sx - elem[k, 0]
+        vy = sy - elem[k, 1]
+        vz = sz - elem[k, 2]
+        d[k] = math.sqrt(vx * vx + vy * vy + vz * vz)
+        t_min = min(t_min, d[k] / c)
+    rel = np.empty(4, np.int64)
+    for k in range(4):
+        rel[k] = int(np.rint((d[k] / c - t_min) * fs))
+    best = -1.0
+    best_n = 0
+    for n in range(L):
+        v = 0.0
+        for k in range(4):
+            v = v + corr[k, min(rel[k] + n, L - 1)] * (R / d[k])
+        if v * v > best:
+            best = v * v
+            best_n = n
+    theta = np.empty((1, 3))
+    theta[0, 0] = sx
+    theta[0, 1] = sy
+    theta[0, 2] = (start + best_n) / fs - t_min
+    phi, h, dh, gain, dgain, dtds = _model_buffers(1, N, L)
+    _evaluate(theta, 1, elem, c, R, echo, start / fs, fs, L, poles, res, tab_re, tab_im, mask,
+              phi, h, dh, gain, dgain, dtds)
+    cols = np.empty((4, N))
+    for path in range(2):
+        cols[path] = phi[path]
+        for k in range(4):
+            g = gain[0, path, k]
+            for n in range(L):
+                cols[2 + path, k * L + n] = g * dh[0, path, k, n] * mask[k * L + n]
+    amp = np.empty(4)
+    _amplitudes(cols, 4, y, amp, np.empty((4, 4)), np.empty(4), np.empty(4), 1e-9)
+    return _residual(cols, 4, y, amp, np.empty(N))
