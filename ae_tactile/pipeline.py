@@ -15,12 +15,12 @@ in the thread that decoded them:
 4. contact events (TOUCH for compressions, DETOUCH for rarefactions) handed to the caller
    at once, *before* the slip step; windows that hold overlapping emissions (rejected as
    OVERLAP, or accepted with a poor fit that `suspect_overlap` finds inconsistent with one
-   emission) go to `OverlapResolver` (`ae_tactile.localization.overlap`), whose worker
-   process localizes each emission and hands them over later, with their own stamps, so
-   the hot path never waits for the costlier joint fit; with ``overlap_inline_max`` > 0
-   the first windows of a batch get its quick answer right here instead, after the
-   batch's other contact events are out (about 2 ms each), and hard windows (quick answer
-   DEFERRED) and the second window of a pair (`COVERED_TOL_S`) still go to the worker;
+   emission) are localized emission by emission (`ae_tactile.localization.overlap`): the
+   first ``overlap_inline_max`` of a batch get the quick answer right here, after the
+   batch's other contact events are out (one compiled call, about 1 ms live); the others,
+   hard windows (quick answer DEFERRED: the exhaustive search, in a worker process) and
+   the second window of a pair (`COVERED_TOL_S`) go to `OverlapResolver`, which hands
+   their emissions over later, from its own thread, with their own stamps;
 5. the slip detector: SLIP_PRECURSOR / SLIP / TEXTURE events and the finger's contact state.
    It sees the emissions in time order: while a window is with the overlap resolver, the
    slip step of contact events later than the window's earliest possible emission waits
@@ -95,12 +95,13 @@ SLIP_MAX_DEFER_S = 0.5e-3
 #: come, are processed late with their own stamps.
 OVERLAP_HOLD_MAX_S = 0.1
 #: Overlapping windows per batch of packets whose quick answer (`resolve_overlaps` with
-#: ``exhaustive=False``: compiled fits, 1.45 ms in a tight loop, ~2 ms live) comes in the
-#: reader's thread: their emissions reach the hand sooner (no trip to the worker process),
-#: but the packets that arrive meanwhile wait. Default 0: every such window goes to the
-#: worker process on another core (the driver's `localization.overlap_inline_max`; the
-#: trade-off is measured by bench_system's natural case).
-OVERLAP_INLINE_MAX = 0
+#: ``exhaustive=False``: one compiled call, ~0.55 ms in a tight loop, ~0.9 ms live) comes
+#: in the reader's thread, right after the batch's other contact events: their emissions
+#: reach the hand soonest, while the packets that arrive meanwhile wait that long. The
+#: others (0: all) get their quick answer in the resolver's thread, beside the reader;
+#: DEFERRED ones the exhaustive search in the worker process. The driver's
+#: `localization.overlap_inline_max`; bench_system's natural and slip cases measure both.
+OVERLAP_INLINE_MAX = 2
 #: A window whose trigger (its onset sample) lies within COVERED_TOL_S of the first
 #: arrival of an emission resolved in the reader, or of the trigger of a window answered
 #: there, holds what that window held: the second window of a pair (the same two
@@ -519,12 +520,14 @@ class OverlapResolver:
     most ``max_pending`` windows wait; more are counted (``overlap_dropped_backlog``) and
     lost rather than delaying anything else.
 
-    The fit runs in a worker process (`ae_tactile.localization.overlap_worker`, started
-    here, warmed up before the first window): its milliseconds per window (compiled fits
-    plus numpy and Python around them) would otherwise hold the interpreter lock against
-    the thread that localizes every other packet. The thread here only passes windows
-    and answers over pipes. Where the process cannot run (``use_process=False``, or it
-    failed), the thread resolves the windows itself (``overlap_worker_unavailable``).
+    The quick search (one compiled call, most of it without the interpreter lock) runs in
+    this object's thread, beside the reader. The exhaustive search of a window whose
+    quick answer is DEFERRED (tens of milliseconds of numpy and Python, which would hold
+    the lock against the thread that localizes every other packet) runs in a worker
+    process (`ae_tactile.localization.overlap_worker`, started here, warmed up before the
+    first window); so does the quick search where it is not compiled (no numba, a lossy
+    medium). Where the process cannot run (``use_process=False``, or it failed), the
+    thread does that too (``overlap_worker_unavailable``).
     """
 
     def __init__(
@@ -594,8 +597,8 @@ class OverlapResolver:
     arrivals_ns: list = []
 
     def resolve_now(self, p) -> list | None:
-        """The quick answer to one window in the calling thread (the reader's; compiled
-        fits, about 1.5 ms): its emissions' contact events ([] when it is rejected), or None
+        """The quick answer to one window in the calling thread (the reader's; one compiled
+        call, about 0.5-1 ms): its emissions' contact events ([] when it is rejected), or None
         when the worker has to answer it (DEFERRED, or the fit failed here: then `submit`
         it with ``quick_first=False``). Never raises."""
         from ae_tactile.localization.overlap import resolve_overlaps
@@ -643,13 +646,36 @@ class OverlapResolver:
 
     _busy = 0
 
+    def _quick_here(self) -> bool:
+        """The quick search runs in this thread: compiled (numba, a lossless medium), it
+        spends most of its ~0.5 ms without the interpreter lock, so the reader goes on
+        beside it, and the answer needs no trip to the worker process."""
+        from ae_tactile.localization import overlap
+
+        pulse = self.pulse
+        lossless = pulse is None or not pulse.attenuation_db_per_m_at_1mhz > 0
+        return overlap._kernels.NUMBA_AVAILABLE and lossless
+
     def _answers(self, p, quick_first: bool = True):
-        """The OverlapPackets of one window, from the worker process (else computed here):
-        the quick answer and, when it is DEFERRED, the exhaustive search's (only the
-        latter when not ``quick_first``)."""
+        """The OverlapPackets of one window: the quick answer (computed here when compiled,
+        `_quick_here`, else by the worker process) and, when it is DEFERRED, the exhaustive
+        search's from the worker process (only the latter when not ``quick_first``; computed
+        here when the process is not available)."""
         samples = np.asarray(p.samples_v, dtype=np.float64)
         fs, onset = float(p.sample_rate_hz), int(p.onset_index)
         sat = bool(getattr(p, "saturated", False))
+        if quick_first and self._quick_here():
+            from ae_tactile.localization.overlap import resolve_overlaps
+
+            with np.errstate(all="ignore"):
+                res = resolve_overlaps(
+                    samples[None], fs, [onset], geometry=self.geometry, pulse=self.pulse,
+                    saturated=[sat], exhaustive=False,
+                )[0]
+            yield res
+            if res.reason != _DEFERRED:
+                return
+            quick_first = False
         proc = self._proc
         if proc is not None:
             try:
@@ -1092,13 +1118,12 @@ class ContactPipeline:
             self._pending_ns.update((id(p), self._earliest_ns(p)) for p in windows)
 
     def _overlapping(self, windows: list, on_contacts) -> list:
-        """Windows holding several emissions (registered): by default all go to the
-        resolver's worker. With ``overlap_inline_max`` = N > 0 the first N of the batch get
-        its quick answer here, in the reader's thread (their emissions reach the hand
-        sooner, in time for the slip step); the others, those whose quick answer is
-        DEFERRED, and a window triggered by an emission (or whose trigger matches a
-        window) just answered here, the second window of a pair, go to the worker. Returns
-        the contact events handed out here."""
+        """Windows holding several emissions (registered): the first
+        ``overlap_inline_max`` of the batch get the quick answer here, in the reader's
+        thread (their emissions reach the hand soonest, in time for the slip step); the
+        others, those whose quick answer is DEFERRED, and a window triggered by an emission
+        (or whose trigger matches a window) just answered here, the second window of a
+        pair, go to the resolver. Returns the contact events handed out here."""
         self.start_overlaps()
         self.overlaps.geometry = self.localizer.geometry
         found: list = []

@@ -244,7 +244,8 @@ LOCALIZATION_PARAMS = [
             "resolve_overlaps",
             True,
             "Localize each emission of a window that holds "
-            "several (in a worker process, off the hot path; see overlap_inline_max); "
+            "several (the first overlap_inline_max of a batch in the reader, the others "
+            "beside it); "
             "false: reject such windows",
         )
     ),
@@ -252,9 +253,9 @@ LOCALIZATION_PARAMS = [
         Param(
             "overlap_inline_max",
             _overlap_inline_default(),
-            "Overlapping windows per batch whose quick fit runs in the reader (~2 ms each: "
-            "their emissions reach the hand sooner, the packets behind them later); "
-            "the others go to the worker process",
+            "Overlapping windows per batch whose quick fit runs in the reader (~1 ms each: "
+            "their emissions reach the hand soonest, the packets behind them that much "
+            "later); the others are fitted in the resolver's thread beside it",
             0,
             8,
         )
