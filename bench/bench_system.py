@@ -41,6 +41,9 @@ ROOT = os.environ.get(
 )
 RESULTS = os.path.join(ROOT, "bench", "results")
 QUICK = bool(os.environ.get("AE_BENCH_QUICK"))
+#: how the light fingertip hands its bytes to the driver: "tcp" (a loopback connection, the
+#: bytes arrive as written) or "pty" (the kernel's tty layer, as for a USB serial device)
+TRANSPORT = os.environ.get("AE_BENCH_TRANSPORT", "pty")
 N_SAMPLES, PRE = 400, 80
 
 
@@ -137,7 +140,8 @@ class Listener:
 
 
 def run_case(
-    name: str, counts, first, fs, vpc, body, *, namespace: str, extra_params: dict | None = None
+    name: str, counts, first, fs, vpc, body, *, namespace: str, extra_params: dict | None = None,
+    transport: str | None = None,
 ) -> dict:
     """Play packets through writer -> driver -> this process; latencies by event type."""
     exe = os.path.join(ROOT, "install", "ae_tactile", "lib", "ae_tactile", "driver")
@@ -156,7 +160,8 @@ def run_case(
     log = os.path.join(tmp, "log.npz")
     port_file = os.path.join(tmp, "port")
     writer = subprocess.Popen(
-        [sys.executable, os.path.join(ROOT, "bench", "fingertip_writer.py"), pk, log, port_file]
+        [sys.executable, os.path.join(ROOT, "bench", "fingertip_writer.py"), pk, log, port_file,
+         transport or TRANSPORT]
     )
     t_end = time.monotonic() + 20
     while not os.path.exists(port_file) and time.monotonic() < t_end:

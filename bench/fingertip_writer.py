@@ -1,12 +1,16 @@
 # SPDX-License-Identifier: Apache-2.0
-"""A light fingertip for latency benchmarks: pre-rendered PACKET frames written on a pty at
-real time, by a process that does nothing else.
+"""A light fingertip for latency benchmarks: pre-rendered PACKET frames written on a pty (or a
+TCP connection) at real time, by a process that does nothing else.
 
-    python bench/fingertip_writer.py PACKETS.npz LOG.npz PORT_FILE
+    python bench/fingertip_writer.py PACKETS.npz LOG.npz PORT_FILE [pty|tcp]
+
+pty: the driver opens the pty's slave path (as a USB serial device: the kernel's tty layer
+hands the bytes over). tcp: the writer listens on 127.0.0.1 and PORT_FILE holds the
+``socket://`` URL the driver connects to (no tty layer: the bytes arrive as written).
 
 PACKETS.npz: counts (K, 4, N) int16, due_s (K,) when each packet's window closes (s from
 START), first_sample_index (K,), pre_trigger, sample_rate_hz, v_per_count. The writer
-opens a pty, writes its slave path to PORT_FILE, answers the driver's commands (ACK,
+opens the port, writes its path (URL) to PORT_FILE, answers the driver's commands (ACK,
 STATUS) like the firmware, and after START writes packet k when due_s[k] has passed
 (the frame carries the device time of its first sample), STATUS once a second. When the
 schedule is done (or on SIGINT/SIGTERM) it saves LOG.npz: written_ns (K,) int64 host
@@ -21,6 +25,7 @@ from __future__ import annotations
 import os
 import select
 import signal
+import socket
 import sys
 import time
 import tty
@@ -50,12 +55,27 @@ def main(argv) -> int:
     n_samples = counts.shape[2]
     k_total = counts.shape[0]
     log = np.full(k_total, -1, dtype=np.int64)
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    os.set_blocking(master, False)
+    transport = argv[4] if len(argv) > 4 else "pty"
+    if transport == "tcp":
+        server = socket.create_server(("127.0.0.1", 0))
+        path = f"socket://127.0.0.1:{server.getsockname()[1]}"
+    elif transport == "pty":
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        path = os.ttyname(slave)
+    else:
+        print(f"transport must be pty or tcp, got {transport!r}", file=sys.stderr)
+        return 2
     with open(port_file + ".tmp", "w") as fh:
-        fh.write(os.ttyname(slave))
+        fh.write(path)
     os.replace(port_file + ".tmp", port_file)
+    if transport == "tcp":
+        server.settimeout(60.0)
+        conn, _ = server.accept()  # the driver connects
+        server.close()
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # each frame at once
+        master = conn.fileno()
+    os.set_blocking(master, False)
     enc = FrameEncoder(boot=True)
     dec = StreamDecoder(direction=Direction.HOST_TO_DEVICE)
     t_boot = time.monotonic_ns()
