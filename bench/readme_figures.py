@@ -62,12 +62,12 @@ def system_rows(d) -> list[str]:
             )
             + f") | bench_system, {_load_str(d.get('load_average_before'))} |"
         )
-    for key in ("natural", "natural_inline"):
+    for key in ("natural", "natural_variant"):
         n = d.get(key)
         if not (n and n.get("contact", {}).get("events")):
             continue
         what = (
-            f"the same with {_setting(n)} (quick fits in the reader, not the worker process)"
+            f"the same with {_setting(n)} (every overlapping window fitted beside the reader)"
             if n.get("driver_params")
             else f"the same at {n['rate_hz']:g} emissions/s as the fingertip renders them "
             f"(windows not spaced apart: {n['overlapped_windows']} of {n['packets']} held two "
@@ -91,11 +91,11 @@ def system_rows(d) -> list[str]:
                 f"{_lat(s['slip_precursor_single'])} / "
                 f"{_lat(s['slip_single'])} | bench_system |"
             )
-    s = d.get("slip_inline")
+    s = d.get("slip_variant")
     if s and s.get("slip_precursor", {}).get("events"):
         rows.append(
             f"| SLIP_PRECURSOR / SLIP with {_setting(s)} (the scene's overlapping windows "
-            f"fitted in the reader) | {_lat(s['slip_precursor'])} / {_lat(s['slip'])} "
+            f"fitted beside the reader) | {_lat(s['slip_precursor'])} / {_lat(s['slip'])} "
             "| bench_system |"
         )
     k = d.get("knee")
