@@ -672,6 +672,7 @@ class OverlapResolver:
                     samples[None], fs, [onset], geometry=self.geometry, pulse=self.pulse,
                     saturated=[sat], exhaustive=False,
                 )[0]
+            self._count("overlap_quick_in_thread")
             yield res
             if res.reason != _DEFERRED:
                 return
@@ -688,11 +689,13 @@ class OverlapResolver:
                 res = pickle.load(proc.stdout)
                 if isinstance(res, str):
                     raise RuntimeError(res)
+                self._count("overlap_worker_answers")
                 if quick_first and res.reason == _DEFERRED:
                     yield res
                     res = pickle.load(proc.stdout)
                     if isinstance(res, str):
                         raise RuntimeError(res)
+                    self._count("overlap_worker_answers")
             except (OSError, EOFError, pickle.UnpicklingError):
                 self._count("overlap_worker_unavailable")
                 self._stop_worker()

@@ -567,6 +567,45 @@ def test_a_window_deferred_in_the_reader_gets_the_exhaustive_answer_of_the_worke
         v for k, v in counts.items() if k.startswith("overlap_rejected_")
     )
     assert answered == 1  # the worker answered it once, with the exhaustive search only
+    assert counts["overlap_worker_answers"] == 1 and "overlap_quick_in_thread" not in counts
+
+
+def test_overlapping_windows_beside_the_reader_get_the_quick_answer_in_the_resolver_thread():
+    """overlap_inline_max 0: every overlapping window goes to the resolver; with numba its
+    thread computes the quick answer itself (no worker process round trip) and hands out
+    exactly the quick answer's emissions; only DEFERRED windows reach the worker."""
+    from ae_tactile.localization import overlap
+    from ae_tactile.localization.overlap import resolve_overlaps, simulate_overlaps
+    from ae_tactile.pipeline import source_record
+
+    cfg = SimConfig(reflections=True)
+    d = simulate_overlaps(4, cfg, separation_s=4e-6, amplitude_ratio=1.5, snr_db=30.0, rng=3)
+    fs = d["sample_rate_hz"]
+    views = [PacketView(d["samples_v"][i], fs, int(d["onset_index"][i]), 10**9 * (i + 1), i)
+             for i in range(4)]
+    quick = [resolve_overlaps(d["samples_v"][i][None], fs, [v.onset_index],
+                              geometry=cfg.geometry, exhaustive=False)[0]
+             for i, v in enumerate(views)]
+    assert all(q.accepted and len(q.sources) == 2 for q in quick)  # no DEFERRED here
+    expected = sorted((r.time_ns, tuple(r.point_m)) for v, q in zip(views, quick)
+                      for r in (source_record(v, s) for s in q.sources))
+    got = []
+    pipe = ContactPipeline(PacketLocalizer("ml", geometry=cfg.geometry), SlipStage(SlipConfig()))
+    pipe.overlap_inline_max = 0
+    try:
+        for v in views:
+            pipe.process([v], got.extend)
+        assert pipe.wait_idle(300.0)
+        counts = pipe.all_counts()
+    finally:
+        pipe.close()
+    assert sorted((e.time_ns, tuple(e.point_m)) for e in got) == expected
+    assert "overlap_answered_in_reader" not in counts
+    if overlap._kernels.NUMBA_AVAILABLE:
+        assert counts["overlap_quick_in_thread"] == 4
+        assert "overlap_worker_answers" not in counts
+    else:  # the worker process computes the quick answers
+        assert counts["overlap_worker_answers"] == 4
 
 
 def test_duplicate_check_survives_stamps_that_go_back_while_windows_are_pending():
