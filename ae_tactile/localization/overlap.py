@@ -1000,7 +1000,7 @@ def _resolve_quick(x, on, plan, geo, pulse, noise_rms_v, saturated, full_scale_v
     else:
         n_noise = np.full(len(ok), np.inf)
     N = masks.sum(axis=1)
-    search_limit = 1.0 + 2.0 * np.sqrt(2.0 / n_noise + 2.0 / N)
+    search_limit = _search_limit(n_noise, N)
     model = _Model(geo, fs, start, L, pulse, echo)
     max_sources, add_threshold = decide_args[0], decide_args[1]
     deferred = np.zeros(len(ok), bool)
@@ -1239,6 +1239,12 @@ def _first_reason(flags: int) -> int:
     return int(OverlapReason.UNRESOLVED)
 
 
+def _search_limit(n_noise, n_fit):
+    """Residual per sample and sigma^2 above which another emission is searched: 1 + 2
+    sqrt(2 / n_noise + 2 / n_fit) (two standard deviations of both variance estimates)."""
+    return 1.0 + 2.0 * np.sqrt(2.0 / n_noise + 2.0 / n_fit)
+
+
 def _chi2_limit(n_noise, dof, max_chi2_ratio):
     if max_chi2_ratio is not None:
         return np.full(np.shape(dof), max_chi2_ratio)
@@ -1268,7 +1274,7 @@ def _decide(
         if model.mask is not None
         else np.full(K, seg.shape[1] * seg.shape[2])
     )
-    search_limit = 1.0 + 2.0 * np.sqrt(2.0 / n_noise + 2.0 / N)
+    search_limit = _search_limit(n_noise, N)
     fits = _search(
         model, seg, max_sources, grid, sigma2, add_threshold, search_limit, deferred
     )
