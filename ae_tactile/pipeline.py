@@ -667,16 +667,20 @@ class OverlapResolver:
         if quick_first and self._quick_here():
             from ae_tactile.localization.overlap import resolve_overlaps
 
-            with np.errstate(all="ignore"):
-                res = resolve_overlaps(
-                    samples[None], fs, [onset], geometry=self.geometry, pulse=self.pulse,
-                    saturated=[sat], exhaustive=False,
-                )[0]
-            self._count("overlap_quick_in_thread")
-            yield res
-            if res.reason != _DEFERRED:
-                return
-            quick_first = False
+            try:
+                with np.errstate(all="ignore"):
+                    res = resolve_overlaps(
+                        samples[None], fs, [onset], geometry=self.geometry, pulse=self.pulse,
+                        saturated=[sat], exhaustive=False,
+                    )[0]
+            except Exception:  # counted; the worker process answers the window instead
+                self._count("overlap_errors")
+            else:
+                self._count("overlap_quick_in_thread")
+                yield res
+                if res.reason != _DEFERRED:
+                    return
+                quick_first = False
         proc = self._proc
         if proc is not None:
             try:

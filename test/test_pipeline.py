@@ -608,6 +608,48 @@ def test_overlapping_windows_beside_the_reader_get_the_quick_answer_in_the_resol
         assert counts["overlap_worker_answers"] == 4
 
 
+def test_a_quick_fit_that_fails_in_the_resolver_thread_is_answered_by_the_worker(monkeypatch):
+    """A failure of the quick fit in the resolver's thread (injected here: this process's
+    resolve_overlaps raises; the worker process runs the real one) loses no window: it is
+    counted and the worker process answers it, with the same emissions."""
+    from ae_tactile.localization import overlap
+    from ae_tactile.localization.overlap import resolve_overlaps, simulate_overlaps
+    from ae_tactile.pipeline import source_record
+
+    if not overlap._kernels.NUMBA_AVAILABLE:
+        pytest.skip("numba absent: the quick fit runs in the worker process anyway")
+    cfg = SimConfig(reflections=True)
+    d = simulate_overlaps(2, cfg, separation_s=4e-6, amplitude_ratio=1.5, snr_db=30.0, rng=5)
+    fs = d["sample_rate_hz"]
+    views = [PacketView(d["samples_v"][i], fs, int(d["onset_index"][i]), 10**9 * (i + 1), i)
+             for i in range(2)]
+    quick = [resolve_overlaps(d["samples_v"][i][None], fs, [v.onset_index],
+                              geometry=cfg.geometry, exhaustive=False)[0]
+             for i, v in enumerate(views)]
+    assert all(q.accepted and len(q.sources) == 2 for q in quick)
+    expected = sorted((r.time_ns, tuple(r.point_m)) for v, q in zip(views, quick)
+                      for r in (source_record(v, s) for s in q.sources))
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("injected failure of the in-process fit")
+
+    got = []
+    pipe = ContactPipeline(PacketLocalizer("ml", geometry=cfg.geometry), SlipStage(SlipConfig()))
+    pipe.overlap_inline_max = 0
+    try:
+        pipe.start_overlaps(wait_s=120.0)
+        monkeypatch.setattr(overlap, "resolve_overlaps", broken)
+        for v in views:
+            pipe.process([v], got.extend)
+        assert pipe.wait_idle(300.0)
+        counts = pipe.all_counts()
+    finally:
+        pipe.close()
+    assert counts["overlap_errors"] == 2 and counts["overlap_worker_answers"] == 2
+    assert "overlap_quick_in_thread" not in counts
+    assert sorted((e.time_ns, tuple(e.point_m)) for e in got) == expected
+
+
 def test_duplicate_check_survives_stamps_that_go_back_while_windows_are_pending():
     """A device reset moves the stamps back while overlapping windows are still with the
     resolver: the events of the new stamps are handed out (none lost, no error), and the
