@@ -570,25 +570,33 @@ def test_a_window_deferred_in_the_reader_gets_the_exhaustive_answer_of_the_worke
     assert counts["overlap_worker_answers"] == 1 and "overlap_quick_in_thread" not in counts
 
 
+def _pairs_and_their_quick_events(n, rng):
+    """n two-emission windows (4 us apart, 30 dB) as packets 1 s apart, and the sorted
+    (stamp, point) of the emissions their quick answers hold (all accepted: none DEFERRED)."""
+    from ae_tactile.localization.overlap import resolve_overlaps, simulate_overlaps
+    from ae_tactile.pipeline import source_record
+
+    cfg = SimConfig(reflections=True)
+    d = simulate_overlaps(n, cfg, separation_s=4e-6, amplitude_ratio=1.5, snr_db=30.0, rng=rng)
+    fs = d["sample_rate_hz"]
+    views = [PacketView(d["samples_v"][i], fs, int(d["onset_index"][i]), 10**9 * (i + 1), i)
+             for i in range(n)]
+    quick = [resolve_overlaps(d["samples_v"][i][None], fs, [v.onset_index],
+                              geometry=cfg.geometry, exhaustive=False)[0]
+             for i, v in enumerate(views)]
+    assert all(q.accepted and len(q.sources) == 2 for q in quick)
+    expected = sorted((r.time_ns, tuple(r.point_m)) for v, q in zip(views, quick)
+                      for r in (source_record(v, s) for s in q.sources))
+    return cfg, views, expected
+
+
 def test_overlapping_windows_beside_the_reader_get_the_quick_answer_in_the_resolver_thread():
     """overlap_inline_max 0: every overlapping window goes to the resolver; with numba its
     thread computes the quick answer itself (no worker process round trip) and hands out
     exactly the quick answer's emissions; only DEFERRED windows reach the worker."""
     from ae_tactile.localization import overlap
-    from ae_tactile.localization.overlap import resolve_overlaps, simulate_overlaps
-    from ae_tactile.pipeline import source_record
 
-    cfg = SimConfig(reflections=True)
-    d = simulate_overlaps(4, cfg, separation_s=4e-6, amplitude_ratio=1.5, snr_db=30.0, rng=3)
-    fs = d["sample_rate_hz"]
-    views = [PacketView(d["samples_v"][i], fs, int(d["onset_index"][i]), 10**9 * (i + 1), i)
-             for i in range(4)]
-    quick = [resolve_overlaps(d["samples_v"][i][None], fs, [v.onset_index],
-                              geometry=cfg.geometry, exhaustive=False)[0]
-             for i, v in enumerate(views)]
-    assert all(q.accepted and len(q.sources) == 2 for q in quick)  # no DEFERRED here
-    expected = sorted((r.time_ns, tuple(r.point_m)) for v, q in zip(views, quick)
-                      for r in (source_record(v, s) for s in q.sources))
+    cfg, views, expected = _pairs_and_their_quick_events(4, rng=3)
     got = []
     pipe = ContactPipeline(PacketLocalizer("ml", geometry=cfg.geometry), SlipStage(SlipConfig()))
     pipe.overlap_inline_max = 0
@@ -613,22 +621,10 @@ def test_a_quick_fit_that_fails_in_the_resolver_thread_is_answered_by_the_worker
     resolve_overlaps raises; the worker process runs the real one) loses no window: it is
     counted and the worker process answers it, with the same emissions."""
     from ae_tactile.localization import overlap
-    from ae_tactile.localization.overlap import resolve_overlaps, simulate_overlaps
-    from ae_tactile.pipeline import source_record
 
     if not overlap._kernels.NUMBA_AVAILABLE:
         pytest.skip("numba absent: the quick fit runs in the worker process anyway")
-    cfg = SimConfig(reflections=True)
-    d = simulate_overlaps(2, cfg, separation_s=4e-6, amplitude_ratio=1.5, snr_db=30.0, rng=5)
-    fs = d["sample_rate_hz"]
-    views = [PacketView(d["samples_v"][i], fs, int(d["onset_index"][i]), 10**9 * (i + 1), i)
-             for i in range(2)]
-    quick = [resolve_overlaps(d["samples_v"][i][None], fs, [v.onset_index],
-                              geometry=cfg.geometry, exhaustive=False)[0]
-             for i, v in enumerate(views)]
-    assert all(q.accepted and len(q.sources) == 2 for q in quick)
-    expected = sorted((r.time_ns, tuple(r.point_m)) for v, q in zip(views, quick)
-                      for r in (source_record(v, s) for s in q.sources))
+    cfg, views, expected = _pairs_and_their_quick_events(2, rng=5)
 
     def broken(*args, **kwargs):
         raise RuntimeError("injected failure of the in-process fit")
