@@ -590,6 +590,24 @@ def _pairs_and_their_quick_events(n, rng):
     return cfg, views, expected
 
 
+def _beside_the_reader(cfg, views, before=None):
+    """Play the packets one by one through a pipeline with overlap_inline_max 0 (its
+    resolver started first; then ``before()``), wait until it is idle: (events, counts)."""
+    got = []
+    pipe = ContactPipeline(PacketLocalizer("ml", geometry=cfg.geometry), SlipStage(SlipConfig()))
+    pipe.overlap_inline_max = 0
+    try:
+        pipe.start_overlaps(wait_s=120.0)
+        if before is not None:
+            before()
+        for v in views:
+            pipe.process([v], got.extend)
+        assert pipe.wait_idle(300.0)
+        return got, pipe.all_counts()
+    finally:
+        pipe.close()
+
+
 def test_overlapping_windows_beside_the_reader_get_the_quick_answer_in_the_resolver_thread():
     """overlap_inline_max 0: every overlapping window goes to the resolver; with numba its
     thread computes the quick answer itself (no worker process round trip) and hands out
@@ -597,16 +615,7 @@ def test_overlapping_windows_beside_the_reader_get_the_quick_answer_in_the_resol
     from ae_tactile.localization import overlap
 
     cfg, views, expected = _pairs_and_their_quick_events(4, rng=3)
-    got = []
-    pipe = ContactPipeline(PacketLocalizer("ml", geometry=cfg.geometry), SlipStage(SlipConfig()))
-    pipe.overlap_inline_max = 0
-    try:
-        for v in views:
-            pipe.process([v], got.extend)
-        assert pipe.wait_idle(300.0)
-        counts = pipe.all_counts()
-    finally:
-        pipe.close()
+    got, counts = _beside_the_reader(cfg, views)
     assert sorted((e.time_ns, tuple(e.point_m)) for e in got) == expected
     assert "overlap_answered_in_reader" not in counts
     if overlap._kernels.NUMBA_AVAILABLE:
@@ -629,18 +638,9 @@ def test_a_quick_fit_that_fails_in_the_resolver_thread_is_answered_by_the_worker
     def broken(*args, **kwargs):
         raise RuntimeError("injected failure of the in-process fit")
 
-    got = []
-    pipe = ContactPipeline(PacketLocalizer("ml", geometry=cfg.geometry), SlipStage(SlipConfig()))
-    pipe.overlap_inline_max = 0
-    try:
-        pipe.start_overlaps(wait_s=120.0)
-        monkeypatch.setattr(overlap, "resolve_overlaps", broken)
-        for v in views:
-            pipe.process([v], got.extend)
-        assert pipe.wait_idle(300.0)
-        counts = pipe.all_counts()
-    finally:
-        pipe.close()
+    got, counts = _beside_the_reader(
+        cfg, views, before=lambda: monkeypatch.setattr(overlap, "resolve_overlaps", broken)
+    )
     assert counts["overlap_errors"] == 2 and counts["overlap_worker_answers"] == 2
     assert "overlap_quick_in_thread" not in counts
     assert sorted((e.time_ns, tuple(e.point_m)) for e in got) == expected
