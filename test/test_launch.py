@@ -548,6 +548,37 @@ def test_core_python_logging_reaches_the_node_logger_on_rosout(ros_context):
         node.destroy_node()
 
 
+def test_core_python_logging_hands_records_to_rclpy_in_a_thread_of_its_own(ros_context):
+    """The thread that logs only queues a record: rclpy's logger (which looks up its
+    caller's source file on every call) runs in the forwarding thread, so a warning in
+    the link's reader does not stall it. Records queued when the context ends are all
+    handed over, in order."""
+    import logging
+    import threading
+
+    import rclpy
+
+    from ae_tactile.ros.node_utils import forward_python_logging
+    node = rclpy.create_node("log_thread_probe", context=ros_context)
+    seen = []  # (thread ident, message) as the rclpy handler receives them
+
+    class Where(logging.Filter):
+        def filter(self, record):
+            seen.append((threading.get_ident(), record.getMessage()))
+            return True
+
+    try:
+        with forward_python_logging(lambda: node) as handler:
+            handler.addFilter(Where())
+            for i in range(20):
+                logging.getLogger("ae_tactile.link").warning("frame %d unusable", i)
+        assert [m for _, m in seen] == [f"frame {i} unusable" for i in range(20)]
+        assert threading.get_ident() not in {t for t, _ in seen}
+        assert len({t for t, _ in seen}) == 1
+    finally:
+        node.destroy_node()
+
+
 def _loaded(pid: int, library: str) -> bool:
     try:
         with open(f"/proc/{pid}/maps") as fh:

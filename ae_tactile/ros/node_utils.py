@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import importlib
 import logging
+import logging.handlers
 import os
+import queue
 import signal
 import sys
 import threading
@@ -204,23 +206,34 @@ class RosLogHandler(logging.Handler):
 @contextmanager
 def forward_python_logging(get_node, logger_name: str = "ae_tactile", level=logging.INFO):
     """While active, records of ``logger_name`` and its children go to the rclpy logger
-    of ``get_node()`` (None while the node does not exist yet) instead of stderr."""
+    of ``get_node()`` (None while the node does not exist yet) instead of stderr.
+
+    The thread that logs only queues the record; a thread of its own hands it to rclpy
+    (`logging.handlers.QueueListener`). rclpy's logger looks up its caller's source file
+    on every call (~0.2 ms, and tens of ms on the first call after many imports): that
+    must not stall the link's reader when a device sends garbage. Records still queued
+    when the context ends are handed over before it returns. Yields the `RosLogHandler`."""
     def ros_logger():
         node = get_node()
         return node.get_logger() if node is not None else None
 
     handler = RosLogHandler(ros_logger)
+    records: queue.SimpleQueue = queue.SimpleQueue()
+    listener = logging.handlers.QueueListener(records, handler, respect_handler_level=True)
+    queued = logging.handlers.QueueHandler(records)
     py_logger = logging.getLogger(logger_name)
     saved = (py_logger.level, py_logger.propagate)
-    py_logger.addHandler(handler)
+    listener.start()
+    py_logger.addHandler(queued)
     py_logger.setLevel(level)
     py_logger.propagate = False
     try:
         yield handler
     finally:
-        py_logger.removeHandler(handler)
+        py_logger.removeHandler(queued)
         py_logger.setLevel(saved[0])
         py_logger.propagate = saved[1]
+        listener.stop()  # hands over what is still queued
 
 
 # ------------------------------------------------------------------ --help
