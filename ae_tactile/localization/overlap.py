@@ -553,7 +553,7 @@ def _lm(model: "_Model", y, theta, iterations=LM_ITERATIONS, max_rho=None):
         bi = ids[~better]
         lam[bi] = lam[bi] * 8.0
         done = np.zeros(K, bool)
-        done[gi[rel < 1e-9]] = True
+        done[gi[rel < _kernels.LM_REL_TOL]] = True
         done[bi[lam[bi] > 1e6]] = True
         active &= ~done
     jac = np.concatenate([model.jacobian(tuple(parts), amp), phi], axis=1)

@@ -43,6 +43,10 @@ _FAST = False
 #: lanes (a fixed split for a given machine code, so still the same bits in every process
 #: on one machine), several times faster than one scalar chain
 _SUM = {"reassoc"}
+#: Levenberg-Marquardt stops once an accepted step lowers the residual sum of squares by
+#: less than this fraction of it. With rss ~ N sigma^2 (N ~ 1000 samples) that is ~1e-3
+#: sigma^2: what is left moves the point by well under 1 % of its standard deviation.
+LM_REL_TOL = 1e-6
 
 
 @njit(cache=True, nogil=True, fastmath=_FAST)
@@ -332,7 +336,7 @@ def lm_fit(y, mask, t0_s, theta0, elem, c, R, echo, fs, poles, res, tab_re, tab_
             rss = rss2
             lam = max(lam / 4.0, 1e-7)
             stale = True
-            if rel < 1e-9:
+            if rel < LM_REL_TOL:
                 break
         else:
             lam *= 8.0
