@@ -580,14 +580,15 @@ class OverlapResolver:
         with self._count_lock:
             return dict(self.counts)
 
-    def submit(self, packets: Sequence, *, quick_first: bool = True) -> list:
+    def submit(self, packets: Sequence, *, quick_first: bool = True, hard: bool = False) -> list:
         """Queue windows for the resolver (``quick_first=False``: windows whose quick
-        answer was DEFERRED, for the exhaustive search only); returns those queued (the
-        rest are counted)."""
+        answer was DEFERRED, for the exhaustive search only; ``hard``: the worker process
+        gives the quick answer too, as for a window likely DEFERRED, so that this thread
+        does no fitting beside the reader); returns those queued (the rest are counted)."""
         queued = []
         for p in packets:
             try:
-                self._queue.put_nowait((p, bool(quick_first)))
+                self._queue.put_nowait((p, bool(quick_first), bool(hard)))
                 queued.append(p)
             except queue.Full:
                 self._count("overlap_dropped_backlog")
@@ -656,15 +657,15 @@ class OverlapResolver:
         lossless = pulse is None or not pulse.attenuation_db_per_m_at_1mhz > 0
         return overlap._kernels.NUMBA_AVAILABLE and lossless
 
-    def _answers(self, p, quick_first: bool = True):
+    def _answers(self, p, quick_first: bool = True, hard: bool = False):
         """The OverlapPackets of one window: the quick answer (computed here when compiled,
-        `_quick_here`, else by the worker process) and, when it is DEFERRED, the exhaustive
+        `_quick_here`, and the window not ``hard``; else by the worker process) and, when it is DEFERRED, the exhaustive
         search's from the worker process (only the latter when not ``quick_first``; computed
         here when the process is not available)."""
         samples = np.asarray(p.samples_v, dtype=np.float64)
         fs, onset = float(p.sample_rate_hz), int(p.onset_index)
         sat = bool(getattr(p, "saturated", False))
-        if quick_first and self._quick_here():
+        if quick_first and not hard and self._quick_here():
             from ae_tactile.localization.overlap import resolve_overlaps
 
             try:
@@ -726,6 +727,9 @@ class OverlapResolver:
                 self._count("overlap_errors")
 
     def _run(self) -> None:
+        from ae_tactile.localization.overlap_worker import background_priority
+
+        self.priority = background_priority()  # this thread only: the reader comes first
         if self._proc is not None:
             try:
                 if pickle.load(self._proc.stdout) != "ready":
@@ -739,11 +743,11 @@ class OverlapResolver:
             if item is None:
                 self._stop_worker()
                 return
-            p, quick_first = item
+            p, quick_first, hard = item
             self._busy = 1
             told = False  # on_done called (the quick answer said DEFERRED)
             try:
-                for res in self._answers(p, quick_first):
+                for res in self._answers(p, quick_first, hard):
                     records = self._records(p, res)
                     if records is None:
                         # a hard window: what waits for it goes on; its emissions, if
@@ -1134,23 +1138,25 @@ class ContactPipeline:
         self.start_overlaps()
         self.overlaps.geometry = self.localizer.geometry
         found: list = []
-        later: list = []  # (window, quick_first, slip step waits for it)
+        later: list = []  # (window, quick_first, slip step waits for it, hard)
         inline = 0
         for p in windows:
             covered = self._covered(p)
             if covered is not None:
+                # the second window of a pair; hard when the first one gave no events here
+                # (DEFERRED): the worker process gives both its answers
                 self.counts["overlap_covered"] += 1
-                later.append((p, True, covered))
+                later.append((p, True, covered, covered))
                 continue
             if inline >= self.overlap_inline_max:
-                later.append((p, True, True))
+                later.append((p, True, True, False))
                 continue
             inline += 1
             records = self.overlaps.resolve_now(p)
             produced = bool(records)
             self._arrivals_ns.append((_onset_ns(p), produced))
             if records is None:  # DEFERRED (or failed here): the worker's exhaustive search
-                later.append((p, False, False))
+                later.append((p, False, False, True))
                 continue
             self._arrivals_ns.extend((t, True) for t in self.overlaps.arrivals_ns)
             fresh = self._claim(records, resolved=True)
@@ -1175,20 +1181,20 @@ class ContactPipeline:
         return None if not match else not any(match)
 
     def _to_worker(self, later: list) -> None:
-        """Hand (window, quick_first, hold) to the resolver's worker (registered already
-        for the duplicate check); the slip step waits for the ``hold`` ones, registered
-        before the worker can answer."""
-        windows = [p for p, _, _ in later]
-        held = [p for p, _, hold in later if hold]
+        """Hand (window, quick_first, hold, hard) to the resolver (registered already for
+        the duplicate check); the slip step waits for the ``hold`` ones, registered before
+        the worker can answer."""
+        windows = [p for p, _, _, _ in later]
+        held = [p for p, _, hold, _ in later if hold]
         if self.slip is not None and held:
             with self._step_lock:
                 now = time.monotonic()
                 self._windows_out.update((id(p), (now, self._earliest_ns(p))) for p in held)
         queued = []
-        for quick_first in (True, False):
-            ws = [p for p, q, _ in later if q is quick_first]
+        for quick_first, hard in ((True, False), (True, True), (False, True)):
+            ws = [p for p, q, _, h in later if q is quick_first and h is hard]
             if ws:
-                queued += self.overlaps.submit(ws, quick_first=quick_first)
+                queued += self.overlaps.submit(ws, quick_first=quick_first, hard=hard)
         if len(queued) < len(windows):
             lost = {id(p) for p in windows} - {id(p) for p in queued}
             with self._recent_lock:

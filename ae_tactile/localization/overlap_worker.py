@@ -27,17 +27,31 @@ import sys
 
 import numpy as np
 
-#: Niceness added to the worker process: its milliseconds per window yield to the
-#: driver's reader thread, which localizes every other packet, when both want a core.
+#: Niceness of background work where the SCHED_IDLE policy is not available.
 WORKER_NICENESS = 10
+
+
+def background_priority() -> str:
+    """Make the calling thread background work (Linux schedules threads, so in the worker's
+    main thread that is the whole process): SCHED_IDLE, else niceness +WORKER_NICENESS.
+    Its milliseconds per window then never hold off the driver's reader, which localizes
+    every other packet, when both share a core (a driver pinned to one core): the reader
+    takes the core the moment it wakes. Returns what was set ("idle", "nice" or "")."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+        return "idle"
+    except (AttributeError, OSError):
+        pass
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, os.getpriority(os.PRIO_PROCESS, 0) + WORKER_NICENESS)
+        return "nice"
+    except (AttributeError, OSError):
+        return ""
 
 
 def main() -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:  # the driver's reader (every other packet) comes first when the cores are busy
-        os.nice(WORKER_NICENESS)
-    except OSError:
-        pass
+    background_priority()  # the driver's reader (every other packet) comes first
     inp, out = sys.stdin.buffer, sys.stdout.buffer
     sys.stdout = sys.stderr  # stdout carries the answers only
     from ae_tactile.localization.overlap import OverlapReason, resolve_overlaps, warm_up
