@@ -21,7 +21,12 @@ Run: make bench-system   (bench/results/system.json, system_table.md; README fig
      AE_BENCH_NO_SLIP_KNEE=1 without the slip scene and the knee; AE_BENCH_DUMP=DIR also
      writes each case's raw series (DIR/<case>.npz: events received, bytes written);
      AE_BENCH_EXTRA_PARAMS="name=value ..." adds driver parameters (e.g.
-     localization.resolve_overlaps=false).
+     localization.resolve_overlaps=false); AE_BENCH_DRIVER_CPU=N runs the driver on CPU N
+     (default: the last CPU this process may use), =none leaves it to the scheduler.
+
+The driver runs on one core of its own, as on a robot whose driver is pinned (taskset, or a
+launch prefix): the writer and this process (the hand) share the other cores. The natural
+case is also run unpinned, so both are on record.
 """
 
 from __future__ import annotations
@@ -45,6 +50,23 @@ QUICK = bool(os.environ.get("AE_BENCH_QUICK"))
 #: bytes arrive as written) or "pty" (the kernel's tty layer, as for a USB serial device)
 TRANSPORT = os.environ.get("AE_BENCH_TRANSPORT", "pty")
 N_SAMPLES, PRE = 400, 80
+
+
+def driver_cpu() -> int | None:
+    """The CPU the driver runs on (AE_BENCH_DRIVER_CPU; default the last one this process
+    may use), or None: no pinning (asked for, or fewer than two CPUs to share out)."""
+    allowed = sorted(os.sched_getaffinity(0))
+    want = os.environ.get("AE_BENCH_DRIVER_CPU", "last").strip().lower()
+    if want in ("none", "") or len(allowed) < 2:
+        return None
+    cpu = allowed[-1] if want == "last" else int(want)
+    if cpu not in allowed:
+        raise SystemExit(f"AE_BENCH_DRIVER_CPU={cpu}: not one of this process's CPUs {allowed}")
+    return cpu
+
+
+#: CPUs this process could use when it started (the harness's, less the driver's one)
+ALL_CPUS = frozenset(os.sched_getaffinity(0))
 
 
 # ---------------------------------------------------------------------------- packets
@@ -139,11 +161,23 @@ class Listener:
         self.node.destroy_node()
 
 
+def _affinity(cpus):
+    """preexec_fn for a child process: run on these CPUs (None: leave as inherited)."""
+    if cpus is None:
+        return None
+    return lambda: os.sched_setaffinity(0, cpus)
+
+
 def run_case(
     name: str, counts, first, fs, vpc, body, *, namespace: str, extra_params: dict | None = None,
-    transport: str | None = None,
+    transport: str | None = None, pinned: bool = True,
 ) -> dict:
-    """Play packets through writer -> driver -> this process; latencies by event type."""
+    """Play packets through writer -> driver -> this process; latencies by event type.
+    pinned: the driver on its own core (`driver_cpu`), the writer and this process on the
+    others; otherwise all three on all CPUs."""
+    cpu = driver_cpu() if pinned else None
+    harness = None if cpu is None else ALL_CPUS - {cpu}
+    os.sched_setaffinity(0, harness or ALL_CPUS)
     exe = os.path.join(ROOT, "install", "ae_tactile", "lib", "ae_tactile", "driver")
     tmp = tempfile.mkdtemp(prefix="ae_bench_")
     pk = os.path.join(tmp, "packets.npz")
@@ -161,7 +195,8 @@ def run_case(
     port_file = os.path.join(tmp, "port")
     writer = subprocess.Popen(
         [sys.executable, os.path.join(ROOT, "bench", "fingertip_writer.py"), pk, log, port_file,
-         transport or TRANSPORT]
+         transport or TRANSPORT],
+        preexec_fn=_affinity(harness),
     )
     t_end = time.monotonic() + 20
     while not os.path.exists(port_file) and time.monotonic() < t_end:
@@ -185,7 +220,7 @@ def run_case(
     cmd = [exe, "--ros-args", "-r", f"__ns:=/{namespace}", "--log-level", "warn"]
     for k, v in params.items():
         cmd += ["-p", f"{k}:={v}"]
-    driver = subprocess.Popen(cmd)
+    driver = subprocess.Popen(cmd, preexec_fn=_affinity(None if cpu is None else {cpu}))
     cpu0 = None
     t_start = time.monotonic()
     t_stop = None
@@ -214,6 +249,8 @@ def run_case(
         "packets": int(len(counts)),
         "packets_written": int((written >= 0).sum()),
         "duration_s": float(due[-1] - due[0]) if len(due) > 1 else 0.0,
+        "driver_cpu": cpu,
+        "harness_cpus": sorted(harness) if harness else None,
     }
     if cpu0 is not None and t_stop is not None:
         out["driver_cpu_percent_of_one_core"] = (
@@ -300,9 +337,15 @@ def fmt(e: dict) -> str:
 
 def markdown(res: dict) -> str:
     fl = res["floor_two_hop_ms"]
+    cpu = res.get("driver_cpu")
+    where = (
+        f"The driver ran on CPU {cpu} alone; the writer and the hand on the other CPUs."
+        if cpu is not None
+        else "The driver was not pinned to a core."
+    )
     lines = [
         f"Floor, two bare rclpy hops (same run): median {fl['median']:.3f} ms, "
-        f"p99 {fl['p99']:.3f} ms.",
+        f"p99 {fl['p99']:.3f} ms. {where}",
         "",
         "| emissions/s | contact events | latency median / p99 / max (ms) | median / floor "
         "| driver CPU (% of a core) |",
@@ -350,6 +393,15 @@ def markdown(res: dict) -> str:
             f"{fmt(n.get('contact_overlapped', {}))} ms; the others "
             f"{fmt(n.get('contact_single', {}))} ms.",
         ]
+    u = res.get("natural_unpinned")
+    if u:
+        lines += [
+            "",
+            f"The same random touches with the driver not pinned to a core (it shares both "
+            f"with the writer and the hand): contact events {fmt(u['contact'])} ms; the "
+            f"overlap resolver's {fmt(u.get('contact_overlapped', {}))} ms, the others "
+            f"{fmt(u.get('contact_single', {}))} ms.",
+        ]
     n, s = res.get("natural_variant"), res.get("slip_variant")
     if n and s:
         lines += [
@@ -378,9 +430,10 @@ def markdown(res: dict) -> str:
 #: resolver's thread, beside the reader (the default fits the first two of a batch in it).
 VARIANT = {"localization.overlap_inline_max": 0}
 VARIANT_TAG = " (every overlapping window fitted beside the reader)"
+UNPINNED_TAG = " (driver not pinned to a core)"
 
 
-def natural_case(rate: str, extra_params: dict | None = None) -> dict | None:
+def natural_case(rate: str, extra_params: dict | None = None, pinned: bool = True) -> dict | None:
     """Random touches and their releases at ``rate`` emissions/s as the fingertip renders
     them: each window holds whatever else falls into it, so some need the overlap resolver
     (the rate cases above space their windows apart)."""
@@ -392,10 +445,10 @@ def natural_case(rate: str, extra_params: dict | None = None) -> dict | None:
         "random_touches", {"duration_s": dur, "params": {"rate_hz": rate_hz / 2}}
     )
     first = first - first[0] + int(0.05 * fs)
-    tag = VARIANT_TAG if extra_params else ""
+    tag = (VARIANT_TAG if extra_params else "") + ("" if pinned else UNPINNED_TAG)
     r = run_case(
         f"natural {rate_hz:g}/s{tag}", counts, first, fs, vpc, body, namespace="bench_nat",
-        extra_params=extra_params,
+        extra_params=extra_params, pinned=pinned,
     )
     r["rate_hz"] = rate_hz
     r["driver_params"] = dict(extra_params or {})
@@ -441,6 +494,10 @@ def main() -> int:
         "load_average_before": load_before,
         "rates": [],
     }
+    cpu = driver_cpu()
+    res["driver_cpu"] = cpu
+    if cpu is not None:  # the floor where the hand runs
+        os.sched_setaffinity(0, ALL_CPUS - {cpu})
     res["floor_two_hop_ms"] = floor_ms()
     print("floor:", res["floor_two_hop_ms"], flush=True)
     rates = [int(r) for r in os.environ.get("AE_BENCH_RATES", "20,100,1000,5000").split(",")]
@@ -462,6 +519,7 @@ def main() -> int:
     natural_rate = os.environ.get("AE_BENCH_NATURAL_RATE", "1000")
     res["natural"] = natural_case(natural_rate)
     res["natural_variant"] = natural_case(natural_rate, VARIANT)
+    res["natural_unpinned"] = natural_case(natural_rate, pinned=False)
     if os.environ.get("AE_BENCH_NO_SLIP_KNEE"):
         rclpy.shutdown()
         print(markdown(res))

@@ -50,7 +50,7 @@ def system_rows(d) -> list[str]:
         c = r["contact"]
         rows.append(
             f"| live path, {r['rate_hz']:g} emissions/s (random touches, one emission per "
-            "window): device bytes -> "
+            f"window{_pinned(d)}): device bytes -> "
             f"ContactEvent in another process, median / p99 | {_lat(c)} "
             f"(max {c.get('max_ms', 0):.1f} ms;"
             f" {c['median_ms'] / fl['median']:.0f}x the two-hop floor of {fl['median']:.3f} ms"
@@ -62,17 +62,24 @@ def system_rows(d) -> list[str]:
             )
             + f") | bench_system, {_load_str(d.get('load_average_before'))} |"
         )
-    for key in ("natural", "natural_variant"):
+    for key in ("natural", "natural_variant", "natural_unpinned"):
         n = d.get(key)
         if not (n and n.get("contact", {}).get("events")):
             continue
-        what = (
-            f"the same with {_setting(n)} (every overlapping window fitted beside the reader)"
-            if n.get("driver_params")
-            else f"the same at {n['rate_hz']:g} emissions/s as the fingertip renders them "
-            f"(windows not spaced apart: {n['overlapped_windows']} of {n['packets']} held two "
-            "emissions and went to the overlap resolver)"
-        )
+        if n.get("driver_params"):
+            what = (
+                f"the same with {_setting(n)} (every overlapping window fitted beside the "
+                "reader)"
+            )
+        elif key == "natural_unpinned":
+            what = "the same with the driver not pinned to a core (it shares both with the "
+            what += "writer and the hand)"
+        else:
+            what = (
+                f"the same at {n['rate_hz']:g} emissions/s as the fingertip renders them "
+                f"(windows not spaced apart: {n['overlapped_windows']} of {n['packets']} held "
+                "two emissions and went to the overlap resolver)"
+            )
         rows.append(
             f"| {what} | {_lat(n['contact'])}; the resolver's "
             f"{n['contact_overlapped']['events']} events {_lat(n['contact_overlapped'])}, "
@@ -191,6 +198,11 @@ def protocol_rows(d, faults) -> list[str]:
             f"| bench_protocol --faults |"
         )
     return rows
+
+
+def _pinned(d) -> str:
+    """', driver on one CPU of its own' when bench_system pinned it."""
+    return "" if d.get("driver_cpu") is None else "; the driver on one CPU of its own"
 
 
 def _setting(r) -> str:
