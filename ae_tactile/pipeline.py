@@ -659,9 +659,9 @@ class OverlapResolver:
 
     def _answers(self, p, quick_first: bool = True, hard: bool = False):
         """The OverlapPackets of one window: the quick answer (computed here when compiled,
-        `_quick_here`, and the window not ``hard``; else by the worker process) and, when it is DEFERRED, the exhaustive
-        search's from the worker process (only the latter when not ``quick_first``; computed
-        here when the process is not available)."""
+        `_quick_here`, and the window not ``hard``; else by the worker process) and, when
+        it is DEFERRED, the exhaustive search's from the worker process (only the latter
+        when not ``quick_first``; computed here when the process is not available)."""
         samples = np.asarray(p.samples_v, dtype=np.float64)
         fs, onset = float(p.sample_rate_hz), int(p.onset_index)
         sat = bool(getattr(p, "saturated", False))
