@@ -22,7 +22,8 @@ Run: make bench-system   (bench/results/system.json, system_table.md; README fig
      writes each case's raw series (DIR/<case>.npz: events received, bytes written);
      AE_BENCH_EXTRA_PARAMS="name=value ..." adds driver parameters (e.g.
      localization.resolve_overlaps=false); AE_BENCH_DRIVER_CPU=N runs the driver on CPU N
-     (default: the last CPU this process may use), =none leaves it to the scheduler.
+     (default: the last CPU this process may use; the driver's cpu_affinity parameter),
+     =none leaves it to the scheduler.
 
 The driver runs on one core of its own, as on a robot whose driver is pinned (taskset, or a
 launch prefix): the writer and this process (the hand) share the other cores. The natural
@@ -216,11 +217,13 @@ def run_case(
     for kv in os.environ.get("AE_BENCH_EXTRA_PARAMS", "").split():
         k, v = kv.split("=", 1)
         params[k] = v
+    if cpu is not None:  # the driver pins itself (and its overlap worker)
+        params["cpu_affinity"] = str(cpu)
     params.update(extra_params or {})
     cmd = [exe, "--ros-args", "-r", f"__ns:=/{namespace}", "--log-level", "warn"]
     for k, v in params.items():
         cmd += ["-p", f"{k}:={v}"]
-    driver = subprocess.Popen(cmd, preexec_fn=_affinity(None if cpu is None else {cpu}))
+    driver = subprocess.Popen(cmd)
     cpu0 = None
     t_start = time.monotonic()
     t_stop = None

@@ -79,6 +79,9 @@ def arguments():
          "subscribers are matched on `contacts` or `packets` (`packets` only with "
          "split_pipeline:=true; "
          "0: at once): a managed start loses no first event"),
+        ("driver_cpus", "", "CPUs the driver runs on, as for taskset -c ('3', '2-3'; "
+         "empty: any): a core of its own per finger keeps the reflex path's latency tail "
+         "short (the driver's cpu_affinity parameter)"),
         ("rviz", "false", "Start RViz 2 with config/ae_tactile.rviz (true/false/1/0)"),
         ("record", "false", "Record the package's topics with `ros2 bag record` (MCAP) into "
          "the working directory; packets reliable (true/false/1/0)"),
@@ -226,7 +229,8 @@ def _setup(context):
         package=PACKAGE, executable="driver", namespace=ns, output="screen",
         parameters=[params_file, overrides("driver", {
             "port": port, "frame_id": frame, "pipeline": not split,
-            "wait_for_subscribers": wait, "reliable_qos": record})],
+            "wait_for_subscribers": wait, "reliable_qos": record,
+            "cpu_affinity": arg("driver_cpus").strip()})],
         on_exit=_required("driver")))
     if split:
         for exe in ("localizer", "slip_detector"):

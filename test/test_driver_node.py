@@ -248,6 +248,70 @@ def test_driver_executable_exits_cleanly_on_sigint(tmp_path):
     assert "Traceback" not in out
 
 
+def _cpus_allowed(pid: int, tid: int) -> str:
+    with open(f"/proc/{pid}/task/{tid}/status") as fh:
+        return next(ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("Cpus_allowed_list"))
+
+
+def _children(pid: int) -> list[int]:
+    kids = []
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        with open(f"/proc/{pid}/task/{tid}/children") as fh:
+            kids += [int(k) for k in fh.read().split()]
+    return kids
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs to pin one")
+def test_cpu_affinity_pins_every_thread_of_the_driver_and_its_overlap_worker(tmp_path):
+    """cpu_affinity:=N: once the driver runs (it reports the missing port), every thread of
+    its process (the reader's, DDS's, the overlap resolver's) and its overlap worker
+    process may run on CPU N only; the process that started it keeps its CPUs."""
+    import threading
+
+    cpu = max(os.sched_getaffinity(0))
+    before = os.sched_getaffinity(0)
+    exe = installed_executable("driver")
+    proc = subprocess.Popen(
+        [exe, "--ros-args", "-p", "port:=/nonexistent/ttyACM7", "-p", f"cpu_affinity:={cpu}"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    lines, seen = [], threading.Event()
+
+    def read():
+        for line in proc.stdout:
+            lines.append(line)
+            if "cannot open /nonexistent/ttyACM7" in line:
+                seen.set()
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        assert seen.wait(120.0), "".join(lines)
+        tasks = os.listdir(f"/proc/{proc.pid}/task")
+        workers = _children(proc.pid)
+        allowed = {_cpus_allowed(proc.pid, int(t)) for t in tasks}
+        allowed |= {_cpus_allowed(w, w) for w in workers}
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(30)
+        reader.join(10)
+    assert len(tasks) >= 4 and len(workers) == 1, (tasks, workers)  # reader, DDS, resolver
+    assert allowed == {str(cpu)}, allowed
+    assert os.sched_getaffinity(0) == before
+    assert proc.returncode == 0, "".join(lines)
+
+
+def test_driver_executable_refuses_a_cpu_it_cannot_run_on():
+    exe = installed_executable("driver")
+    cpu = max(os.sched_getaffinity(0)) + 1
+    out = subprocess.run(
+        [exe, "--ros-args", "-p", f"cpu_affinity:={cpu}"], capture_output=True, text=True,
+        timeout=20,
+    )
+    assert out.returncode == 2
+    assert "'cpu_affinity'" in out.stderr and "not available here" in out.stderr, out.stderr
+
+
 def test_driver_executable_refuses_bad_parameter():
     exe = installed_executable("driver")
     out = subprocess.run(

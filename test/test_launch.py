@@ -79,6 +79,13 @@ class LaunchRun:
 
     def processes(self) -> list[str]:
         """Command lines of live processes carrying this launch's marker."""
+        return [cmd for _, cmd in self._processes()]
+
+    def pids_of(self, word: str) -> list[int]:
+        """Live processes of this launch whose command line holds ``word``."""
+        return [pid for pid, cmd in self._processes() if word in cmd]
+
+    def _processes(self) -> list[tuple[int, str]]:
         found = []
         needle = f"AE_TACTILE_TEST_MARKER={self.marker}".encode()
         for pid in os.listdir("/proc"):
@@ -92,7 +99,9 @@ class LaunchRun:
                     if fh.read().rsplit(")", 1)[1].split()[0] == "Z":
                         continue            # exited, waiting to be reaped
                 with open(f"/proc/{pid}/cmdline", "rb") as fh:
-                    found.append(fh.read().replace(b"\0", b" ").decode(errors="replace"))
+                    found.append(
+                        (int(pid), fh.read().replace(b"\0", b" ").decode(errors="replace"))
+                    )
             except OSError:
                 continue
         return found
@@ -341,6 +350,39 @@ def test_namespace_frame_id_and_managed_start_lose_no_first_event(launch, run_in
         assert d < 1.5e-3, (m.position, pins)
     names = {"/hand/index/driver", "/hand/index/sim_fingertip"}
     assert s.probe.spin_until(lambda: names <= s.probe.node_names(), run=run)
+    assert_clean_stop(run)
+
+
+def _cpus_allowed(pid: int) -> set[str]:
+    """Cpus_allowed_list of every thread of a process."""
+    lists = set()
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/status") as fh:
+                lists |= {ln.split(":", 1)[1].strip() for ln in fh
+                          if ln.startswith("Cpus_allowed_list")}
+        except OSError:  # a thread that just ended
+            continue
+    return lists
+
+
+@needs_launch
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs to pin one")
+def test_driver_cpus_gives_the_driver_a_core_of_its_own(launch):
+    """driver_cpus:=N: every thread of the driver runs on CPU N (one include per finger can
+    give each finger's driver its own core); the simulated fingertip keeps every CPU."""
+    from ae_tactile.msg import SensorInfo
+    latched, _, _ = _qos()
+    cpu = max(os.sched_getaffinity(0))
+    s = launch()
+    info = s.probe.listen(SensorInfo, "/sensor_info", latched)
+    run = s.start([f"driver_cpus:={cpu}"])
+    assert s.probe.spin_until(lambda: info, run=run), run.output()[-4000:]
+    drivers = run.pids_of("lib/ae_tactile/driver ")
+    sims = run.pids_of("lib/ae_tactile/sim_fingertip ")
+    assert len(drivers) == 1 and len(sims) == 1, run.processes()
+    assert _cpus_allowed(drivers[0]) == {str(cpu)}
+    assert _cpus_allowed(sims[0]) == {_cpus_allowed(os.getpid()).pop()} != {str(cpu)}
     assert_clean_stop(run)
 
 

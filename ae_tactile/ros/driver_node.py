@@ -61,7 +61,7 @@ from ae_tactile.ros.conversions import (
     packet_array_msgs,
 )
 from ae_tactile.ros.markers import EventMarkers, sensor_markers
-from ae_tactile.ros.node_utils import LATCHED, run_node
+from ae_tactile.ros.node_utils import LATCHED, cpu_list, cpu_list_problem, pin_process, run_node
 from ae_tactile.ros.params import (
     LOCALIZATION_PARAMS,
     Param,
@@ -159,6 +159,15 @@ DRIVER_PARAMS = [
         "published before its consumers listen (0: at once)",
         0,
         100,
+    ),
+    Param(
+        "cpu_affinity",
+        "",
+        "CPUs the driver process runs on, written as for taskset -c ('3', '2-3', '0,2'; "
+        "empty: as started), its threads and its overlap worker included: a core of its "
+        "own keeps the tail of the reflex path's latency short",
+        check=cpu_list_problem,
+        numbers_as_text=True,
     ),
     Param(
         "pipeline",
@@ -294,6 +303,8 @@ class DriverNode(Node):
         super().__init__("driver", **kwargs)
         self.params = ParamSet(self, DRIVER_PARAMS, on_change=self._on_driver_change)
         p = self.p = self.params.values
+        if p["cpu_affinity"].strip():
+            pin_process(cpu_list(p["cpu_affinity"]))
         self.link_config = link_config_from_params(p)
         self.frame_id = p["frame_id"]
         self.pub_packets = self.create_publisher(

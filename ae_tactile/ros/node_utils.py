@@ -171,6 +171,57 @@ def exit_process(code: int) -> None:
     os._exit(code)
 
 
+# ------------------------------------------------------------------ CPU affinity
+def cpu_list(text: str) -> set[int]:
+    """The CPUs of a list written as for ``taskset -c``: '3', '2-3', '0,2-3' (spaces
+    ignored); the empty list is empty. Raises ValueError for anything else."""
+    cpus: set[int] = set()
+    for part in text.replace(" ", "").split(","):
+        if not part and text.strip() == "":
+            continue
+        lo, sep, hi = part.partition("-")
+        if not lo.isdigit() or (sep and not hi.isdigit()):
+            raise ValueError(f"{text!r} is not a CPU list such as '3', '2-3' or '0,2-3'")
+        first, last = int(lo), int(hi) if sep else int(lo)
+        if last < first:
+            raise ValueError(f"{part!r}: a range runs upwards")
+        cpus.update(range(first, last + 1))
+    return cpus
+
+
+def cpu_list_problem(text) -> str | None:
+    """Why ``text`` is no usable CPU list here (None if it is): not a string, not a list,
+    or CPUs this process may not run on."""
+    if not isinstance(text, str):
+        return "must be a string such as '3' or '2-3'"
+    try:
+        cpus = cpu_list(text)
+    except ValueError as exc:
+        return str(exc)
+    allowed = os.sched_getaffinity(0)
+    if cpus - allowed:
+        return (f"CPUs {sorted(cpus - allowed)} are not available here "
+                f"(allowed: {sorted(allowed)})")
+    return None
+
+
+def pin_process(cpus: set[int]) -> int:
+    """Run every thread of this process on ``cpus`` (threads and processes it starts later
+    inherit it). Linux sets affinity thread by thread, so each one in /proc/self/task is
+    set, twice over (a thread started meanwhile inherits its creator's); returns how many
+    threads were set the second time."""
+    n = 0
+    for _ in range(2):
+        n = 0
+        for tid in os.listdir("/proc/self/task"):
+            try:
+                os.sched_setaffinity(int(tid), cpus)
+                n += 1
+            except OSError:  # it ended meanwhile
+                pass
+    return n
+
+
 # ------------------------------------------------------------------ Python logging
 class RosLogHandler(logging.Handler):
     """logging.Handler that re-emits records through an rclpy logger.

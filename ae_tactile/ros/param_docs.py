@@ -69,7 +69,9 @@ def _fmt(v) -> str:
         return f"{v:g}"
     if isinstance(v, list):
         return "[" + ", ".join(_fmt(x) for x in v) + "]"
-    return f"`{v}`" if isinstance(v, str) else str(v)
+    if isinstance(v, str):
+        return f"`{v}`" if v else '`""` (empty)'
+    return str(v)
 
 
 def _table_of(prefix, table):

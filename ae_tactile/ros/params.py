@@ -61,6 +61,7 @@ class Param:
     read_only: bool = True  # False: tunable with `ros2 param set`
     unit: str | None = None  # None: from the name's suffix
     allow_zero_as_none: bool = False  # 0 means "unknown / device's own" (documented in text)
+    numbers_as_text: bool = False  # a text parameter that may be a number (`cpus:=3`)
 
     @property
     def si_unit(self) -> str:
@@ -89,8 +90,8 @@ def descriptor(p: Param, full_name: str) -> ParameterDescriptor:
     d = ParameterDescriptor(name=full_name, description=describe(p), read_only=p.read_only)
     if p.choices:
         d.additional_constraints = "one of: " + ", ".join(map(str, p.choices))
-    if isinstance(p.default, float):
-        d.dynamic_typing = True  # so that an integer (`min_snr_db:=10`) is accepted
+    if isinstance(p.default, float) or p.numbers_as_text:
+        d.dynamic_typing = True  # so that an integer (`min_snr_db:=10`, `cpus:=3`) is accepted
     if p.lo is not None and p.hi is not None and not isinstance(p.default, bool):
         if isinstance(p.default, int):
             d.integer_range = [IntegerRange(from_value=int(p.lo), to_value=int(p.hi), step=0)]
@@ -106,6 +107,8 @@ def validate(p: Param, value: Any, full_name: str | None = None) -> Any:
     name = full_name or p.name
     if isinstance(p.default, float) and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
+    if p.numbers_as_text and isinstance(value, int) and not isinstance(value, bool):
+        value = str(value)
     if isinstance(p.default, float):
         if not isinstance(value, float) or not math.isfinite(value):
             raise ParameterError(f"parameter '{name}' must be a finite number, got {value!r}")
