@@ -304,7 +304,13 @@ class DriverNode(Node):
         self.params = ParamSet(self, DRIVER_PARAMS, on_change=self._on_driver_change)
         p = self.p = self.params.values
         if p["cpu_affinity"].strip():
-            pin_process(cpu_list(p["cpu_affinity"]))
+            try:
+                pin_process(cpu_list(p["cpu_affinity"]))
+            except OSError as exc:
+                raise ParameterError(
+                    f"parameter 'cpu_affinity' = {p['cpu_affinity']!r}: this process may not "
+                    f"run there ({exc.strerror})"
+                ) from exc
         self.link_config = link_config_from_params(p)
         self.frame_id = p["frame_id"]
         self.pub_packets = self.create_publisher(

@@ -191,17 +191,17 @@ def cpu_list(text: str) -> set[int]:
 
 def cpu_list_problem(text) -> str | None:
     """Why ``text`` is no usable CPU list here (None if it is): not a string, not a list,
-    or CPUs this process may not run on."""
+    or CPUs this machine does not have. (A CPU the machine has but a cpuset forbids is
+    refused by `pin_process`.)"""
     if not isinstance(text, str):
         return "must be a string such as '3' or '2-3'"
     try:
         cpus = cpu_list(text)
     except ValueError as exc:
         return str(exc)
-    allowed = os.sched_getaffinity(0)
-    if cpus - allowed:
-        return (f"CPUs {sorted(cpus - allowed)} are not available here "
-                f"(allowed: {sorted(allowed)})")
+    n = os.cpu_count() or 1
+    if any(c >= n for c in cpus):
+        return f"CPUs {sorted(c for c in cpus if c >= n)} are not on this machine (0-{n - 1})"
     return None
 
 
@@ -209,7 +209,9 @@ def pin_process(cpus: set[int]) -> int:
     """Run every thread of this process on ``cpus`` (threads and processes it starts later
     inherit it). Linux sets affinity thread by thread, so each one in /proc/self/task is
     set, twice over (a thread started meanwhile inherits its creator's); returns how many
-    threads were set the second time."""
+    threads were set the second time. Raises OSError when this process may not run there
+    (a cpuset without those CPUs)."""
+    os.sched_setaffinity(0, cpus)  # this thread first: what it may not do, none may
     n = 0
     for _ in range(2):
         n = 0
@@ -217,7 +219,7 @@ def pin_process(cpus: set[int]) -> int:
             try:
                 os.sched_setaffinity(int(tid), cpus)
                 n += 1
-            except OSError:  # it ended meanwhile
+            except ProcessLookupError:  # it ended meanwhile
                 pass
     return n
 
