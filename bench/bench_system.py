@@ -55,8 +55,9 @@ N_SAMPLES, PRE = 400, 80
 
 def driver_cpu() -> int | None:
     """The CPU the driver runs on (AE_BENCH_DRIVER_CPU; default the last one this process
-    may use), or None: no pinning (asked for, or fewer than two CPUs to share out)."""
-    allowed = sorted(os.sched_getaffinity(0))
+    could use when it started), or None: no pinning (asked for, or fewer than two CPUs to
+    share out)."""
+    allowed = sorted(ALL_CPUS)
     want = os.environ.get("AE_BENCH_DRIVER_CPU", "last").strip().lower()
     if want in ("none", "") or len(allowed) < 2:
         return None
