@@ -548,12 +548,13 @@ def _lm(model: "_Model", y, theta, iterations=LM_ITERATIONS, max_rho=None):
         for q, q2 in zip(parts, pa2):
             q[gi] = q2[better]
         rel = (rss[gi] - rss2[better]) / np.maximum(rss[gi], 1e-300)
+        converged = (rel < _kernels.LM_REL_TOL) & (lam[gi] <= _kernels.LM_STOP_LAMBDA)
         rss[gi] = rss2[better]
         lam[gi] = np.maximum(lam[gi] / 4.0, 1e-7)
         bi = ids[~better]
         lam[bi] = lam[bi] * 8.0
         done = np.zeros(K, bool)
-        done[gi[rel < _kernels.LM_REL_TOL]] = True
+        done[gi[converged]] = True
         done[bi[lam[bi] > 1e6]] = True
         active &= ~done
     jac = np.concatenate([model.jacobian(tuple(parts), amp), phi], axis=1)

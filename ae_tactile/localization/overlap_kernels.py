@@ -47,6 +47,9 @@ _SUM = {"reassoc"}
 #: less than this fraction of it. With rss ~ N sigma^2 (N ~ 1000 samples) that is ~1e-3
 #: sigma^2: what is left moves the point by well under 1 % of its standard deviation.
 LM_REL_TOL = 1e-6
+#: ... when that step was damped by at most this lambda (the start is 1e-3): a short step
+#: after rejected ones is no sign of convergence
+LM_STOP_LAMBDA = 1e-2
 
 
 @njit(cache=True, nogil=True, fastmath=_FAST)
@@ -334,9 +337,10 @@ def lm_fit(y, mask, t0_s, theta0, elem, c, R, echo, fs, poles, res, tab_re, tab_
             dtds, dtds2 = dtds2, dtds
             rel = (rss - rss2) / max(rss, 1e-300)
             rss = rss2
+            converged = rel < LM_REL_TOL and lam <= LM_STOP_LAMBDA
             lam = max(lam / 4.0, 1e-7)
             stale = True
-            if rel < LM_REL_TOL:
+            if converged:
                 break
         else:
             lam *= 8.0
