@@ -528,6 +528,12 @@ class OverlapResolver:
     first window); so does the quick search where it is not compiled (no numba, a lossy
     medium). Where the process cannot run (``use_process=False``, or it failed), the
     thread does that too (``overlap_worker_unavailable``).
+
+    ``idle`` (a driver on cores of its own): this thread and the worker run as SCHED_IDLE,
+    so the reader, which shares their core, takes it the moment it wakes. Otherwise the
+    worker is niced and this thread keeps the normal priority: on cores shared with other
+    busy processes, an idle-class thread could wait indefinitely while it holds the
+    interpreter lock or one of the pipeline's locks, and the reader with it.
     """
 
     def __init__(
@@ -539,8 +545,12 @@ class OverlapResolver:
         pulse=None,
         use_process: bool = True,
         on_done: Callable[[object], None] | None = None,
+        idle: bool = False,
     ):
         self.geometry = geometry
+        self.idle = bool(idle)
+        #: what the thread's priority became ("idle", "nice" or "": as created)
+        self.priority = ""
         self.on_records = on_records
         #: called with each window once it is answered (sources handed over, rejected or
         #: failed), after ``on_records``
@@ -561,8 +571,11 @@ class OverlapResolver:
             # its own session: a Ctrl-C at the terminal (sent to the foreground process
             # group) reaches the node, which ends the worker by closing its stdin, and
             # never interrupts the worker's imports with a traceback
+            from ae_tactile.localization.overlap_worker import IDLE_FLAG
+
             return subprocess.Popen(
-                [sys.executable, "-m", "ae_tactile.localization.overlap_worker"],
+                [sys.executable, "-m", "ae_tactile.localization.overlap_worker"]
+                + ([IDLE_FLAG] if self.idle else []),
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,
                 start_new_session=True,
@@ -727,9 +740,10 @@ class OverlapResolver:
                 self._count("overlap_errors")
 
     def _run(self) -> None:
-        from ae_tactile.localization.overlap_worker import background_priority
+        if self.idle:  # this thread only: the reader, on the same core, comes first
+            from ae_tactile.localization.overlap_worker import background_priority
 
-        self.priority = background_priority()  # this thread only: the reader comes first
+            self.priority = background_priority(idle=True)
         if self._proc is not None:
             try:
                 if pickle.load(self._proc.stdout) != "ready":
@@ -944,6 +958,9 @@ class ContactPipeline:
     overlap_inline_max: int = OVERLAP_INLINE_MAX
     #: `_covered` tolerance (s); 0 answers every window on its own
     overlap_covered_tol_s: float = COVERED_TOL_S
+    #: the overlap resolver's thread and worker as SCHED_IDLE (`OverlapResolver` ``idle``:
+    #: the driver has cores of its own)
+    overlap_idle: bool = False
     _step_lock: threading.RLock = field(default_factory=threading.RLock)
     #: (stamp ns, x, y, z) of the contact events handed out that a window still with the
     #: overlap resolver could hold again (duplicate check), oldest first
@@ -962,7 +979,8 @@ class ContactPipeline:
         calls this while warming up, before acquisition."""
         if self.overlaps is None:
             self.overlaps = OverlapResolver(
-                self.localizer.geometry, self._late_from_resolver, on_done=self._window_done
+                self.localizer.geometry, self._late_from_resolver, on_done=self._window_done,
+                idle=self.overlap_idle,
             )
         if wait_s > 0:
             self.overlaps.ready.wait(wait_s)
@@ -1191,10 +1209,8 @@ class ContactPipeline:
                 now = time.monotonic()
                 self._windows_out.update((id(p), (now, self._earliest_ns(p))) for p in held)
         queued = []
-        for quick_first, hard in ((True, False), (True, True), (False, True)):
-            ws = [p for p, q, _, h in later if q is quick_first and h is hard]
-            if ws:
-                queued += self.overlaps.submit(ws, quick_first=quick_first, hard=hard)
+        for p, quick_first, _, hard in later:  # in the batch's order
+            queued += self.overlaps.submit([p], quick_first=quick_first, hard=hard)
         if len(queued) < len(windows):
             lost = {id(p) for p in windows} - {id(p) for p in queued}
             with self._recent_lock:

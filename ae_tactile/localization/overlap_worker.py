@@ -6,6 +6,8 @@ compiled fits, plus numpy and Python around them). In the driver's process that 
 would hold the interpreter lock against the reader thread, which localizes every other
 packet in microseconds; in its own process it runs beside it on another core.
 
+Argument ``--idle``: run as SCHED_IDLE (the driver has cores of its own); else niced.
+
 Protocol (pickle, both ways): stdin gets one message per window, ``(samples (4, M) float64
 volts, sample_rate_hz, onset_index, saturated, geometry, pulse, quick_first)``; stdout answers with
 the `OverlapPacket` of the quick search (``exhaustive=False``) and, when that one is
@@ -27,21 +29,26 @@ import sys
 
 import numpy as np
 
-#: Niceness of background work where the SCHED_IDLE policy is not available.
+#: Niceness added to background work (the worker; the resolver's thread on a core of its
+#: own where SCHED_IDLE is refused)
 WORKER_NICENESS = 10
+#: worker argument: run as SCHED_IDLE (the driver has cores of its own, `cpu_affinity`)
+IDLE_FLAG = "--idle"
 
 
-def background_priority() -> str:
+def background_priority(idle: bool) -> str:
     """Make the calling thread background work (Linux schedules threads, so in the worker's
-    main thread that is the whole process): SCHED_IDLE, else niceness +WORKER_NICENESS.
-    Its milliseconds per window then never hold off the driver's reader, which localizes
-    every other packet, when both share a core (a driver pinned to one core): the reader
-    takes the core the moment it wakes. Returns what was set ("idle", "nice" or "")."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-        return "idle"
-    except (AttributeError, OSError):
-        pass
+    main thread that is the whole process). ``idle``: SCHED_IDLE, so that on the driver's
+    own core the reader takes the core the moment it wakes (else a thread in the middle
+    of a fit keeps it for up to its time slice, milliseconds); where that is refused, and
+    without ``idle``, niceness +WORKER_NICENESS. Returns what was set ("idle", "nice"
+    or "")."""
+    if idle:
+        try:
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+            return "idle"
+        except (AttributeError, OSError):
+            pass
     try:
         os.setpriority(os.PRIO_PROCESS, 0, os.getpriority(os.PRIO_PROCESS, 0) + WORKER_NICENESS)
         return "nice"
@@ -51,7 +58,7 @@ def background_priority() -> str:
 
 def main() -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    background_priority()  # the driver's reader (every other packet) comes first
+    background_priority(IDLE_FLAG in sys.argv[1:])  # the driver's reader comes first
     inp, out = sys.stdin.buffer, sys.stdout.buffer
     sys.stdout = sys.stderr  # stdout carries the answers only
     from ae_tactile.localization.overlap import OverlapReason, resolve_overlaps, warm_up

@@ -401,6 +401,8 @@ class DriverNode(Node):
         self.slip_stage = SlipStage(slip_config, lag_s=self.p["slip_lag_s"])
         self.pipeline = ContactPipeline(localizer, self.slip_stage)
         self.pipeline.overlap_inline_max = int(lp["overlap_inline_max"])
+        # on cores of its own, the overlap resolver yields to the reader at once
+        self.pipeline.overlap_idle = bool(self.p["cpu_affinity"].strip())
         self.pub_contacts = self.create_publisher(ContactEvent, "contacts", EVENT_QOS)
         self.pub_slip = self.create_publisher(ContactEvent, "slip", EVENT_QOS)
         self.pub_state = self.create_publisher(ContactState, "contact_state", LATCHED)
