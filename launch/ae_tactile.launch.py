@@ -138,6 +138,18 @@ def _count(value: str, name: str) -> int:
     return n
 
 
+def _cpus(value: str) -> str:
+    """driver_cpus, checked by the driver's own rule (`node_utils.cpu_list_problem`) before
+    anything starts; '' when not given."""
+    from ae_tactile.ros.node_utils import cpu_list_problem
+
+    value = value.strip()
+    why = cpu_list_problem(value) if value else None
+    if why:
+        raise LaunchArgumentError(f"launch argument 'driver_cpus' = {value!r}: {why}")
+    return value
+
+
 def _namespace(value: str) -> str:
     ns = value.strip().strip("/")
     parts = ns.split("/") if ns else []
@@ -197,6 +209,7 @@ def _setup(context):
         raise LaunchArgumentError("launch argument 'frame_id' must not be empty")
     params_file = _existing_file(arg("params_file"), "params_file")
     wait = _count(arg("wait_for_subscribers"), "wait_for_subscribers")
+    cpus = _cpus(arg("driver_cpus"))
     scene = _scene_path(arg("scene")) if use_sim else None
     if rviz:
         _require_rviz()
@@ -230,7 +243,8 @@ def _setup(context):
         parameters=[params_file, overrides("driver", {
             "port": port, "frame_id": frame, "pipeline": not split,
             "wait_for_subscribers": wait, "reliable_qos": record,
-            "cpu_affinity": arg("driver_cpus").strip()})],
+            # only when given: a cpu_affinity of the parameter file stays otherwise
+            **({"cpu_affinity": cpus} if cpus else {})})],
         on_exit=_required("driver")))
     if split:
         for exe in ("localizer", "slip_detector"):

@@ -465,6 +465,8 @@ def test_use_sim_truthiness_is_one_rule(launch, value, sim, tmp_path):
     (["scene:=no_such_scene"], ["scene", "three_pins"]),       # lists the built-in scenes
     (["use_sim:=yes"], ["use_sim", "boolean"]),
     (["wait_for_subscribers:=-1"], ["wait_for_subscribers"]),
+    ([f"driver_cpus:={os.cpu_count()}"], ["driver_cpus", "not on this machine"]),
+    (["driver_cpus:=1-0"], ["driver_cpus", "runs upwards"]),
 ])
 def test_bad_argument_is_a_clear_error_and_starts_nothing(launch, args, words):
     s = launch()

@@ -20,6 +20,7 @@ import logging
 import logging.handlers
 import os
 import queue
+import re
 import signal
 import sys
 import threading
@@ -172,36 +173,53 @@ def exit_process(code: int) -> None:
 
 
 # ------------------------------------------------------------------ CPU affinity
+#: one item of a CPU list: N or N-M, ASCII digits
+_CPU_ITEM = re.compile(r"([0-9]{1,6})(?:-([0-9]{1,6}))?")
+
+
+def _cpus_possible() -> int:
+    """Number of CPU ids this kernel knows (/sys/devices/system/cpu/possible, e.g. '0-7';
+    offline ones included), else os.cpu_count()."""
+    try:
+        with open("/sys/devices/system/cpu/possible") as fh:
+            return max(int(v) for v in re.split(r"[-,]", fh.read().strip())) + 1
+    except (OSError, ValueError):
+        return os.cpu_count() or 1
+
+
 def cpu_list(text: str) -> set[int]:
     """The CPUs of a list written as for ``taskset -c``: '3', '2-3', '0,2-3' (spaces
-    ignored); the empty list is empty. Raises ValueError for anything else."""
+    ignored); the empty list is empty. Raises ValueError for anything else, and for CPU
+    ids this kernel does not know (before expanding a range)."""
     cpus: set[int] = set()
-    for part in text.replace(" ", "").split(","):
-        if not part and text.strip() == "":
-            continue
-        lo, sep, hi = part.partition("-")
-        if not lo.isdigit() or (sep and not hi.isdigit()):
-            raise ValueError(f"{text!r} is not a CPU list such as '3', '2-3' or '0,2-3'")
-        first, last = int(lo), int(hi) if sep else int(lo)
+    text = text.replace(" ", "")
+    if not text:
+        return cpus
+    n = _cpus_possible()
+    for part in text.split(","):
+        m = _CPU_ITEM.fullmatch(part)
+        if m is None:
+            raise ValueError(f"{part!r} is not a CPU list item such as '3' or '2-3'")
+        first = int(m.group(1))
+        last = int(m.group(2)) if m.group(2) else first
         if last < first:
             raise ValueError(f"{part!r}: a range runs upwards")
+        if last >= n:
+            raise ValueError(f"CPU {last} is not on this machine (CPUs 0-{n - 1})")
         cpus.update(range(first, last + 1))
     return cpus
 
 
 def cpu_list_problem(text) -> str | None:
     """Why ``text`` is no usable CPU list here (None if it is): not a string, not a list,
-    or CPUs this machine does not have. (A CPU the machine has but a cpuset forbids is
+    or CPUs this machine does not have. (A CPU that is offline or that a cpuset forbids is
     refused by `pin_process`.)"""
     if not isinstance(text, str):
         return "must be a string such as '3' or '2-3'"
     try:
-        cpus = cpu_list(text)
+        cpu_list(text)
     except ValueError as exc:
         return str(exc)
-    n = os.cpu_count() or 1
-    if any(c >= n for c in cpus):
-        return f"CPUs {sorted(c for c in cpus if c >= n)} are not on this machine (0-{n - 1})"
     return None
 
 
