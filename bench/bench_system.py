@@ -71,6 +71,14 @@ def driver_cpu() -> int | None:
 ALL_CPUS = frozenset(os.sched_getaffinity(0))
 
 
+def _pin_harness(cpus) -> None:
+    """This process, every thread of it (DDS's too), and what it starts later (the
+    writer), on ``cpus``."""
+    from ae_tactile.ros.node_utils import pin_process
+
+    pin_process(set(cpus))
+
+
 # ---------------------------------------------------------------------------- packets
 def render_scene_packets(scene: str, overrides: dict | None = None, max_packets: int = 100_000):
     """Packets of a scene as the virtual fingertip would send them: int16 counts, window
@@ -163,13 +171,6 @@ class Listener:
         self.node.destroy_node()
 
 
-def _affinity(cpus):
-    """preexec_fn for a child process: run on these CPUs (None: leave as inherited)."""
-    if cpus is None:
-        return None
-    return lambda: os.sched_setaffinity(0, cpus)
-
-
 def run_case(
     name: str, counts, first, fs, vpc, body, *, namespace: str, extra_params: dict | None = None,
     transport: str | None = None, pinned: bool = True,
@@ -179,7 +180,7 @@ def run_case(
     others; otherwise all three on all CPUs."""
     cpu = driver_cpu() if pinned else None
     harness = None if cpu is None else ALL_CPUS - {cpu}
-    os.sched_setaffinity(0, harness or ALL_CPUS)
+    _pin_harness(harness or ALL_CPUS)
     exe = os.path.join(ROOT, "install", "ae_tactile", "lib", "ae_tactile", "driver")
     tmp = tempfile.mkdtemp(prefix="ae_bench_")
     pk = os.path.join(tmp, "packets.npz")
@@ -198,7 +199,6 @@ def run_case(
     writer = subprocess.Popen(
         [sys.executable, os.path.join(ROOT, "bench", "fingertip_writer.py"), pk, log, port_file,
          transport or TRANSPORT],
-        preexec_fn=_affinity(harness),
     )
     t_end = time.monotonic() + 20
     while not os.path.exists(port_file) and time.monotonic() < t_end:
@@ -501,7 +501,7 @@ def main() -> int:
     cpu = driver_cpu()
     res["driver_cpu"] = cpu
     if cpu is not None:  # the floor where the hand runs
-        os.sched_setaffinity(0, ALL_CPUS - {cpu})
+        _pin_harness(ALL_CPUS - {cpu})
     res["floor_two_hop_ms"] = floor_ms()
     print("floor:", res["floor_two_hop_ms"], flush=True)
     rates = [int(r) for r in os.environ.get("AE_BENCH_RATES", "20,100,1000,5000").split(",")]
