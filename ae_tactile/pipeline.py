@@ -1209,8 +1209,12 @@ class ContactPipeline:
                 now = time.monotonic()
                 self._windows_out.update((id(p), (now, self._earliest_ns(p))) for p in held)
         queued = []
-        for p, quick_first, _, hard in later:  # in the batch's order
-            queued += self.overlaps.submit([p], quick_first=quick_first, hard=hard)
+        # quick answers first: the slip step may wait for them (a pair's hard second
+        # window too); exhaustive searches of windows DEFERRED here (nothing waits) last
+        for quick_first, hard in ((True, False), (True, True), (False, True)):
+            ws = [p for p, q, _, h in later if q == quick_first and h == hard]
+            if ws:
+                queued += self.overlaps.submit(ws, quick_first=quick_first, hard=hard)
         if len(queued) < len(windows):
             lost = {id(p) for p in windows} - {id(p) for p in queued}
             with self._recent_lock:
