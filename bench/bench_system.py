@@ -138,8 +138,14 @@ class Listener:
         from ae_tactile.msg import ContactEvent
         from ae_tactile.ros.driver_node import EVENT_QOS
 
+        from diagnostic_msgs.msg import DiagnosticArray
+
         self.node = rclpy.create_node("bench_hand", namespace=namespace)
         self.rows: list[tuple[int, int, int]] = []
+        #: the driver's latest diagnostics values (its counts), key -> text
+        self.driver_values: dict[str, str] = {}
+        self._diag_prefix = f"/{namespace}/driver: "
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
         cb = self._on
         self.node.create_subscription(ContactEvent, "contacts", cb, EVENT_QOS)
         self.node.create_subscription(ContactEvent, "slip", cb, EVENT_QOS)
@@ -160,6 +166,11 @@ class Listener:
                 msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec,
             )
         )
+
+    def _on_diag(self, msg) -> None:
+        for st in msg.status:
+            if st.name.startswith(self._diag_prefix):
+                self.driver_values.update((kv.key, kv.value) for kv in st.values)
 
     def spin_for(self, seconds: float) -> None:
         t_end = time.monotonic() + seconds
@@ -255,6 +266,14 @@ def run_case(
         "duration_s": float(due[-1] - due[0]) if len(due) > 1 else 0.0,
         "driver_cpu": cpu,
         "harness_cpus": sorted(harness) if harness else None,
+        # what the driver counted (its /diagnostics): the overlap resolver's work, the slip
+        # step's waits for it, rejections by reason
+        "driver_counts": {
+            k: int(v)
+            for k, v in sorted(listener.driver_values.items())
+            if k.startswith(("overlap_", "slip_hold", "rejected_", "slip_rejected"))
+            and v.isdigit()
+        },
     }
     if cpu0 is not None and t_stop is not None:
         out["driver_cpu_percent_of_one_core"] = (

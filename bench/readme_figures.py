@@ -62,7 +62,7 @@ def system_rows(d) -> list[str]:
             )
             + f") | bench_system, {_load_str(d.get('load_average_before'))} |"
         )
-    for key in ("natural", "natural_variant", "natural_unpinned"):
+    for key in ("natural", "natural_unpinned", "natural_variant"):
         n = d.get(key)
         if not (n and n.get("contact", {}).get("events")):
             continue
