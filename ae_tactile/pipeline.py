@@ -972,6 +972,9 @@ class ContactPipeline:
     #: (host ns, gave events) of the first arrivals of emissions resolved in the reader
     #: lately, and of the triggers of windows answered there (`_covered`)
     _arrivals_ns: deque = field(default_factory=lambda: deque(maxlen=16))
+    #: earliest possible emission (ns) of the windows about to be fitted in the reader:
+    #: `_slip_before` goes on with what is older
+    _inline_horizon_ns: int | None = None
 
     def start_overlaps(self, wait_s: float = 0.0) -> None:
         """Start the overlap resolver (and its worker process) now, not at the first
@@ -1040,11 +1043,12 @@ class ContactPipeline:
             return
         with self._step_lock:
             self._held.extend(contacts)
-            horizon = None
+            horizon = self._inline_horizon_ns
             if self._windows_out:
                 out = self._windows_out.values()
                 if time.monotonic() - min(t for t, _ in out) < self.overlap_hold_max_s:
-                    horizon = min(e for _, e in out)  # nothing the windows hold is older
+                    oldest = min(e for _, e in out)  # nothing the windows hold is older
+                    horizon = oldest if horizon is None else min(horizon, oldest)
                 else:
                     self.counts["slip_hold_expired"] += len(self._windows_out)
                     self._windows_out.clear()
@@ -1119,6 +1123,8 @@ class ContactPipeline:
         if windows:
             if contacts:  # out before the overlapping windows are resolved
                 on_contacts(contacts)
+            if self._slip_pending:
+                self._slip_before(windows)
             contacts = contacts + self._overlapping(windows, on_contacts)
         elif contacts:
             on_contacts(contacts)
@@ -1133,6 +1139,21 @@ class ContactPipeline:
             time.monotonic() - self._slip_pending_since >= SLIP_MAX_DEFER_S or not more_waiting()
         ):
             self.run_pending_slip()
+
+    def _slip_before(self, windows: list) -> None:
+        """Before the overlapping ``windows`` are fitted in this thread (about a millisecond
+        each): the slip step put off while they arrived (earlier packets' contact events),
+        so that a slip precursor those decide does not wait for the fits. What is not older
+        than the windows' earliest possible emission is held until a later slip step (time
+        order, as offline). This batch's own contact events wait as before: running their
+        slip step here would delay the windows' events."""
+        pending, self._slip_pending = self._slip_pending, []
+        with self._step_lock:
+            self._inline_horizon_ns = min(self._earliest_ns(p) for p in windows)
+            try:
+                self._slip_step(pending)
+            finally:
+                self._inline_horizon_ns = None
 
     def _earliest_ns(self, p) -> int:
         """Earliest possible emission stamp of a window (ns): its emissions are at most one

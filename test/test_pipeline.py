@@ -625,6 +625,41 @@ def test_the_pair_window_of_a_deferred_window_is_answered_by_the_worker_alone():
     assert [(e.time_ns, e.point_m) for e in got] == [(e.time_ns, e.point_m) for e in expected]
 
 
+def test_a_slip_step_put_off_runs_before_a_later_window_is_fitted_in_the_reader():
+    """A packet's slip step, put off while more bytes were waiting, runs before an
+    overlapping window that arrived meanwhile is fitted in the reader: a precursor it
+    decides does not wait ~1 ms for the fit. The slip stage then takes the window's two
+    emissions too, none out of order."""
+    from ae_tactile.localization.overlap import simulate_overlaps
+
+    views, _, _ = _packets(n=1)
+    first = views[0]  # stamp 1 s
+    cfg = SimConfig(reflections=True)
+    d = simulate_overlaps(1, cfg, separation_s=np.array([4e-6]), amplitude_ratio=1.0,
+                          snr_db=30.0, rng=4)
+    window = PacketView(d["samples_v"][0], d["sample_rate_hz"], int(d["onset_index"][0]),
+                        first.stamp_ns + 5_000_000, 7)  # 5 ms later
+    pipe = ContactPipeline(PacketLocalizer("ml", geometry=cfg.geometry), SlipStage(SlipConfig()))
+    pipe.overlap_inline_max = 2
+    seen_by_slip = []  # slip stage's contacts_in when the contact events are handed out
+
+    def contacts_out(recs):
+        seen_by_slip.append((recs[0].packet_ids, pipe.slip.counts["contacts_in"]))
+
+    try:
+        pipe.process([first], contacts_out, more_waiting=lambda: True)  # slip step put off
+        assert pipe.slip.counts["contacts_in"] == 0 and pipe.slip_pending
+        pipe.process([window], contacts_out, more_waiting=lambda: True)
+        pipe.run_pending_slip()
+        assert pipe.wait_idle(300.0)
+        counts, slip_counts = pipe.all_counts(), pipe.slip.all_counts()
+    finally:
+        pipe.close()
+    assert counts["overlap_answered_in_reader"] == 1
+    assert seen_by_slip == [((0,), 0), ((7,), 1)], seen_by_slip  # first's step before the fit
+    assert slip_counts["contacts_in"] == 3 and slip_counts["slip_rejected_out_of_order"] == 0
+
+
 def _pairs_and_their_quick_events(n, rng):
     """n two-emission windows (4 us apart, 30 dB) as packets 1 s apart, and the sorted
     (stamp, point) of the emissions their quick answers hold (all accepted: none DEFERRED)."""
