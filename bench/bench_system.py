@@ -133,12 +133,11 @@ class Listener:
 
     def __init__(self, namespace: str):
         import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.executors import SingleThreadedExecutor
 
         from ae_tactile.msg import ContactEvent
         from ae_tactile.ros.driver_node import EVENT_QOS
-
-        from diagnostic_msgs.msg import DiagnosticArray
 
         self.node = rclpy.create_node("bench_hand", namespace=namespace)
         self.rows: list[tuple[int, int, int]] = []
