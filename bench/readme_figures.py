@@ -68,8 +68,8 @@ def system_rows(d) -> list[str]:
             continue
         if n.get("driver_params"):
             what = (
-                f"the same with {_setting(n)} (every overlapping window fitted beside the "
-                "reader)"
+                f"the same as rendered, the driver on its own CPU, with {_setting(n)} (every "
+                "overlapping window fitted beside the reader)"
             )
         elif key == "natural_unpinned":
             what = "the same with the driver not pinned to a core (it shares both with the "
