@@ -1,5 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Helpers for tests that run real rclpy nodes over DDS in the test process."""
+"""Helpers for tests that run real rclpy nodes over DDS in the test process, and for
+reading what /proc says of the processes they start."""
+import os
 import time
 
 
@@ -14,3 +16,32 @@ def spin_until(executor, predicate, timeout_s=10.0):
 def wait_for_subscribers(executor, publisher, count=1, timeout_s=10.0):
     """Wait until DDS discovery matched `count` subscriptions to `publisher`."""
     return spin_until(executor, lambda: publisher.get_subscription_count() >= count, timeout_s)
+
+
+def cpus_allowed(pid: int) -> set[str]:
+    """Cpus_allowed_list of every thread of a process (a thread that ends meanwhile is
+    skipped)."""
+    lists = set()
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/status") as fh:
+                lists |= {ln.split(":", 1)[1].strip() for ln in fh
+                          if ln.startswith("Cpus_allowed_list")}
+        except OSError:
+            continue
+    return lists
+
+
+def children(pid: int) -> list[int]:
+    """Processes whose parent is pid (from /proc)."""
+    out = []
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as fh:
+                    ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
+                continue
+            if ppid == pid:
+                out.append(int(d))
+    return out

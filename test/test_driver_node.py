@@ -17,7 +17,7 @@ import pytest
 import yaml
 
 from conftest import installed_executable
-from ros_helpers import spin_until
+from ros_helpers import children, cpus_allowed, spin_until
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENE = os.path.join(ROOT, "config", "scenes", "random_touches.yaml")
@@ -214,19 +214,19 @@ def test_invalid_parameters_stop_the_node_with_the_reason(ros_context):
             DriverNode(context=ros_context, parameter_overrides=[Parameter(name, value=value)])
 
 
-def test_driver_executable_exits_cleanly_on_sigint(tmp_path):
-    """Started on a missing port, the driver says so (through its logger), keeps retrying,
-    and Ctrl-C ends it with exit code 0 and no traceback. Waits for the message, not for
-    a fixed time (start-up includes compiling the localizer)."""
+def _driver_on_a_missing_port(*args, preexec_fn=None, while_running=None):
+    """Run the installed driver on a missing port (with ``args``, more -p options) until
+    it says so through its logger, call ``while_running(pid)``, then Ctrl-C it. Waits for
+    the message, not for a fixed time (start-up includes compiling the localizer).
+    Returns (exit code, output, what while_running returned)."""
     import threading
 
     exe = installed_executable("driver")
-    proc = subprocess.Popen(
-        [exe, "--ros-args", "-p", "port:=/nonexistent/ttyACM7"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
+    cmd = [exe, "--ros-args", "-p", "port:=/nonexistent/ttyACM7"]
+    for a in args:
+        cmd += ["-p", a]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            preexec_fn=preexec_fn)
     lines, seen = [], threading.Event()
 
     def read():
@@ -237,40 +237,24 @@ def test_driver_executable_exits_cleanly_on_sigint(tmp_path):
 
     reader = threading.Thread(target=read, daemon=True)
     reader.start()
+    got = None
     try:
         assert seen.wait(120.0), "".join(lines)
+        if while_running is not None:
+            got = while_running(proc.pid)
     finally:
         proc.send_signal(signal.SIGINT)
         proc.wait(30)
         reader.join(10)
-    out = "".join(lines)
-    assert proc.returncode == 0, out
+    return proc.returncode, "".join(lines), got
+
+
+def test_driver_executable_exits_cleanly_on_sigint(tmp_path):
+    """Started on a missing port, the driver says so (through its logger), keeps retrying,
+    and Ctrl-C ends it with exit code 0 and no traceback."""
+    code, out, _ = _driver_on_a_missing_port()
+    assert code == 0, out
     assert "Traceback" not in out
-
-
-def _cpus_allowed(pid: int) -> set[str]:
-    """Cpus_allowed_list of every thread of a process (a thread that ends meanwhile is
-    skipped)."""
-    lists = set()
-    for tid in os.listdir(f"/proc/{pid}/task"):
-        try:
-            with open(f"/proc/{pid}/task/{tid}/status") as fh:
-                lists |= {ln.split(":", 1)[1].strip() for ln in fh
-                          if ln.startswith("Cpus_allowed_list")}
-        except OSError:
-            continue
-    return lists
-
-
-def _children(pid: int) -> list[int]:
-    kids = []
-    for tid in os.listdir(f"/proc/{pid}/task"):
-        try:
-            with open(f"/proc/{pid}/task/{tid}/children") as fh:
-                kids += [int(k) for k in fh.read().split()]
-        except OSError:
-            continue
-    return kids
 
 
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs to pin one")
@@ -279,43 +263,26 @@ def test_cpu_affinity_pins_every_thread_of_the_driver_and_its_overlap_worker(tmp
     its process (the reader's, DDS's, the overlap resolver's) and its overlap worker
     process may run on CPU N only, also when it was started on another CPU (as a launch
     or benchmark that runs elsewhere starts it); the worker runs as SCHED_IDLE."""
-    import threading
-
     before = os.sched_getaffinity(0)
     cpu, elsewhere = max(before), min(before)
-    exe = installed_executable("driver")
-    proc = subprocess.Popen(
-        [exe, "--ros-args", "-p", "port:=/nonexistent/ttyACM7", "-p", f"cpu_affinity:={cpu}"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        preexec_fn=lambda: os.sched_setaffinity(0, {elsewhere}),
-    )
-    lines, seen = [], threading.Event()
 
-    def read():
-        for line in proc.stdout:
-            lines.append(line)
-            if "cannot open /nonexistent/ttyACM7" in line:
-                seen.set()
-
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
-    try:
-        assert seen.wait(120.0), "".join(lines)
-        tasks = os.listdir(f"/proc/{proc.pid}/task")
-        workers = _children(proc.pid)
-        allowed = _cpus_allowed(proc.pid)
+    def look(pid):
+        workers = children(pid)
+        allowed = cpus_allowed(pid)
         for w in workers:
-            allowed |= _cpus_allowed(w)
+            allowed |= cpus_allowed(w)
         # on a core of its own, the overlap worker yields to the reader at once
         idle = [os.sched_getscheduler(w) == os.SCHED_IDLE for w in workers]
-    finally:
-        proc.send_signal(signal.SIGINT)
-        proc.wait(30)
-        reader.join(10)
-    assert len(tasks) >= 4 and len(workers) == 1, (tasks, workers)  # reader, DDS, resolver
+        return len(os.listdir(f"/proc/{pid}/task")), workers, allowed, idle
+
+    code, out, (threads, workers, allowed, idle) = _driver_on_a_missing_port(
+        f"cpu_affinity:={cpu}", preexec_fn=lambda: os.sched_setaffinity(0, {elsewhere}),
+        while_running=look,
+    )
+    assert threads >= 4 and len(workers) == 1, (threads, workers)  # reader, DDS, resolver
     assert allowed == {str(cpu)}, allowed
     assert idle == [True]
-    assert proc.returncode == 0, "".join(lines)
+    assert code == 0, out
 
 
 def test_driver_executable_refuses_a_cpu_it_cannot_run_on():

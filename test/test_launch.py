@@ -27,6 +27,7 @@ import uuid
 import pytest
 
 from conftest import installed_executable, require_ros
+from ros_helpers import cpus_allowed
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 PARENT_LAUNCH = os.path.join(HERE, "launch", "two_fingers.launch.py")
@@ -353,19 +354,6 @@ def test_namespace_frame_id_and_managed_start_lose_no_first_event(launch, run_in
     assert_clean_stop(run)
 
 
-def _cpus_allowed(pid: int) -> set[str]:
-    """Cpus_allowed_list of every thread of a process."""
-    lists = set()
-    for tid in os.listdir(f"/proc/{pid}/task"):
-        try:
-            with open(f"/proc/{pid}/task/{tid}/status") as fh:
-                lists |= {ln.split(":", 1)[1].strip() for ln in fh
-                          if ln.startswith("Cpus_allowed_list")}
-        except OSError:  # a thread that just ended
-            continue
-    return lists
-
-
 @needs_launch
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs to pin one")
 def test_driver_cpus_gives_the_driver_a_core_of_its_own(launch):
@@ -381,8 +369,8 @@ def test_driver_cpus_gives_the_driver_a_core_of_its_own(launch):
     drivers = run.pids_of("lib/ae_tactile/driver ")
     sims = run.pids_of("lib/ae_tactile/sim_fingertip ")
     assert len(drivers) == 1 and len(sims) == 1, run.processes()
-    assert _cpus_allowed(drivers[0]) == {str(cpu)}
-    assert _cpus_allowed(sims[0]) == {_cpus_allowed(os.getpid()).pop()} != {str(cpu)}
+    assert cpus_allowed(drivers[0]) == {str(cpu)}
+    assert cpus_allowed(sims[0]) == {cpus_allowed(os.getpid()).pop()} != {str(cpu)}
     assert_clean_stop(run)
 
 

@@ -19,6 +19,7 @@ import pytest
 import yaml
 
 from conftest import installed_executable, require_ros
+from ros_helpers import children
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENES = os.path.join(ROOT, "config", "scenes")
@@ -248,21 +249,6 @@ def test_bringup_executable_with_parameter_file_and_namespace(tmp_path):
     assert bad.returncode == 2 and "not found" in bad.stderr
 
 
-def _children(pid: int) -> list[int]:
-    """Processes whose parent is pid (from /proc)."""
-    out = []
-    for d in os.listdir("/proc"):
-        if d.isdigit():
-            try:
-                with open(f"/proc/{d}/stat") as fh:
-                    ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
-            except (OSError, ValueError, IndexError):
-                continue
-            if ppid == pid:
-                out.append(int(d))
-    return out
-
-
 def _running(pid: int) -> bool:
     """pid exists and is not a zombie."""
     try:
@@ -288,7 +274,7 @@ def test_a_bringup_killed_outright_leaves_no_process_behind():
     try:
         deadline = time.monotonic() + 300.0  # a liveness guard, not a speed bound
         while time.monotonic() < deadline and proc.poll() is None:
-            kids = _children(proc.pid)
+            kids = children(proc.pid)
             names = []
             for k in kids:
                 try:
