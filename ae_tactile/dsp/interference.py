@@ -18,6 +18,12 @@ filter allows). Per packet (all vectorized over K packets, M samples after the o
   high     = sum (s_{n+1} - s_n)^2 / (2 sum s_n^2 (1 - cos(2 pi f_lp / fs))):
              1 for a tone at f_lp, > 1 only with energy above the front end's band
   score    = common * max(low / low_max, high / high_max)
+  shape    = (E - max_j <s, t_j>^2 - N sigma_s^2) / max((1 - shape_min) E_sig,
+             shape_z sqrt(2 N) sigma_s^2): what the best acoustic template t_j (the front
+             end's step response, sub-sample offsets and lags) leaves of the common mode's
+             energy E over N samples, beyond its noise (sigma_s^2 = sigma^2 / 4), against an
+             acoustic packet's template mismatch or the noise's chi^2 spread, whichever is
+             larger (common-mode candidates only; score = max(score, common * shape))
 
 Interference when common >= ``common_min`` and score >= 1. Interference shaped by the
 front end itself (coupled into the amplifier's input) has an acoustic packet's spectrum
@@ -37,7 +43,8 @@ from ae_tactile.geometry import resolve_front_end_lowpass
 COMMON_MIN = 0.9
 LOW_MAX = 0.25
 HIGH_MAX = 1.5
-SHAPE_MIN = 0.8
+SHAPE_MIN = 0.9
+SHAPE_LAGS = 4
 
 
 def acoustic_templates(
@@ -120,7 +127,7 @@ def common_mode_interference(
     highpass_order: int = 2,
     lowpass_order: int | str = "auto",
     shape_min: float | None = SHAPE_MIN,
-    shape_snr_min: float = 30.0,
+    shape_z: float = 5.0,
     low_max: float = LOW_MAX,
     high_max: float = HIGH_MAX,
 ):
@@ -136,6 +143,9 @@ def common_mode_interference(
     coefficient beta of the common mode at that lag on the direct packet, -0.5 for the
     simulator's wall) is weaker than ``|beta| >= echo_min`` is interference too (catches
     interference shaped by the front end); None: no echo test (a device without echoes).
+    ``shape_min``: the share of an acoustic packet's energy the acoustic templates
+    explain at least (None: no shape test); ``shape_z``: how many standard deviations of
+    the noise the unexplained energy must exceed before the shape test can reject.
     Non-finite windows give mask False and score NaN (the localizer rejects them)."""
     x = np.asarray(windows, dtype=float)
     if x.ndim != 3 or x.shape[1] != 4:
@@ -185,12 +195,15 @@ def common_mode_interference(
     # are off the apex: common mode < common_min, nothing more to compute)
     cand = np.flatnonzero((common >= common_min) & ~(score >= 1.0))
     if shape_min is not None and cand.size:
-        # shape: share of the (noise-corrected) common-mode energy explained by the best
-        # acoustic template (sub-sample offsets x integer lags -1..+2); judged only when
-        # the packet stands well above the noise (weak touches are never rejected)
-        # (before the first wall echo, 2R/c after the onset, when the geometry is known)
+        # shape: what the best acoustic template (sub-sample offsets x integer lags
+        # -1 .. SHAPE_LAGS - 2) leaves unexplained of the common mode, less the noise, against
+        # the larger of an acoustic packet's template mismatch (1 - shape_min of its energy)
+        # and shape_z standard deviations of the noise's chi^2 (a weak touch is never
+        # rejected for noise) (before the first wall echo, 2R/c after the onset, when the
+        # geometry is known)
         t_echo = 10e-6 if geometry is None else 2.0 * geometry.radius_m / geometry.sound_speed_m_s
-        wt = max(4, min(w, m - 3, int(t_echo * fs) - 1))
+        nl = SHAPE_LAGS
+        wt = max(4, min(w, m - nl + 1, int(t_echo * fs) - 1))
         tpl = acoustic_templates(
             fs,
             wt,
@@ -201,15 +214,25 @@ def common_mode_interference(
         )
         kc = cand.size
         nvc = nv if np.size(nv) == 1 else nv[cand]
-        st = np.clip(on[cand] - 2, 0, m - wt - 3)
-        lags = st[:, None, None] + np.arange(4)[None, :, None] + np.arange(wt)[None, None, :]
+        st = np.clip(on[cand] - 2, 0, m - wt - nl + 1)
+        lags = st[:, None, None] + np.arange(nl)[None, :, None] + np.arange(wt)[None, None, :]
         seg = s_full[cand[:, None, None], lags]  # (Kc, 4 lags, wt)
         c = np.einsum("klw,jw->klj", seg, tpl)
-        best = (c * c).reshape(kc, -1).max(axis=1)
-        e_seg = np.einsum("kw,kw->k", seg[:, 1], seg[:, 1]) - wt * nvc * 0.25
-        explained = best / np.maximum(e_seg, tiny)
-        strong = e_seg > shape_snr_min * wt * np.maximum(nvc, tiny) * 0.25
-        shape_score = np.where(strong, common[cand] * (1.0 - explained) / (1.0 - shape_min), 0.0)
+        # residual after the best template over the span all lags cover (wt + nl - 1 samples),
+        # less the noise it holds (wt + 2 dof of the common mode's noise, sigma^2 / 4): what
+        # no acoustic packet leaves
+        span = s_full[cand[:, None], st[:, None] + np.arange(wt + nl - 1)[None, :]]
+        e_span = np.einsum("kw,kw->k", span, span)
+        resid = e_span - (c * c).reshape(kc, -1).max(axis=1)
+        nv4 = np.maximum(nvc, tiny) * 0.25
+        excess = resid - (wt + nl - 2) * nv4
+        e_sig = np.maximum(e_span - (wt + nl - 1) * nv4, tiny)
+        # judged against the larger of the template mismatch an acoustic packet may have
+        # ((1 - shape_min) of its energy) and the noise's spread (shape_z sigma of chi^2)
+        den = np.maximum(
+            (1.0 - shape_min) * e_sig, shape_z * math.sqrt(2.0 * (wt + nl - 2)) * nv4
+        )
+        shape_score = common[cand] * excess / den
         score[cand] = np.maximum(score[cand], shape_score)
     if echo_min is not None and geometry is not None and cand.size:
         lag = int(round(2.0 * geometry.radius_m / geometry.sound_speed_m_s * fs))
