@@ -43,8 +43,9 @@ from ae_tactile.geometry import resolve_front_end_lowpass
 COMMON_MIN = 0.9
 LOW_MAX = 0.25
 HIGH_MAX = 1.5
-SHAPE_MIN = 0.9
-SHAPE_LAGS = 4
+SHAPE_MIN = 0.94
+SHAPE_LAGS = 10
+SHAPE_LEAD = 2
 
 
 def acoustic_templates(
@@ -169,6 +170,7 @@ def common_mode_interference(
     rows = np.arange(k)[:, None]
     idx = start[:, None] + np.arange(w)[None, :]
     s = s_full[rows, idx]
+    nv_rel_var = 0.0  # relative variance of the noise power used (0: given)
     if noise_rms_v is not None:
         nv = np.asarray(noise_rms_v, float).reshape(-1) ** 2
     else:
@@ -177,6 +179,7 @@ def common_mode_interference(
         if npre >= 8:
             pre = x[:, :, :npre]
             nv = (pre * pre).mean(axis=(1, 2)) - pre.mean(axis=2).__pow__(2).mean(axis=1)
+            nv_rel_var = 2.0 / (4 * (npre - 1))  # chi^2 over 4 (npre - 1) dof
         else:
             nv = 0.0
     e_ch = q_full[rows, idx].sum(axis=1) - w * nv
@@ -203,7 +206,8 @@ def common_mode_interference(
         # geometry is known)
         t_echo = 10e-6 if geometry is None else 2.0 * geometry.radius_m / geometry.sound_speed_m_s
         nl = SHAPE_LAGS
-        wt = max(4, min(w, m - nl + 1, int(t_echo * fs) - 1))
+        # (the span of every lag ends before the echo)
+        wt = max(4, min(w, m - nl + 1, int(t_echo * fs) - nl + SHAPE_LEAD))
         tpl = acoustic_templates(
             fs,
             wt,
@@ -214,24 +218,38 @@ def common_mode_interference(
         )
         kc = cand.size
         nvc = nv if np.size(nv) == 1 else nv[cand]
-        st = np.clip(on[cand] - 2, 0, m - wt - nl + 1)
+        # per channel (each its own lag and offset: near the apex the four arrivals differ
+        # by up to a few samples, and their mean is no longer one step response)
+        st = np.clip(on[cand] - SHAPE_LEAD, 0, m - wt - nl + 1)
+        xs = x[cand]  # (Kc, 4, M)
         lags = st[:, None, None] + np.arange(nl)[None, :, None] + np.arange(wt)[None, None, :]
-        seg = s_full[cand[:, None, None], lags]  # (Kc, 4 lags, wt)
-        c = np.einsum("klw,jw->klj", seg, tpl)
-        # residual after the best template over the span all lags cover (wt + nl - 1 samples),
-        # less the noise it holds (wt + 2 dof of the common mode's noise, sigma^2 / 4): what
-        # no acoustic packet leaves
-        span = s_full[cand[:, None], st[:, None] + np.arange(wt + nl - 1)[None, :]]
-        e_span = np.einsum("kw,kw->k", span, span)
-        resid = e_span - (c * c).reshape(kc, -1).max(axis=1)
-        nv4 = np.maximum(nvc, tiny) * 0.25
-        excess = resid - (wt + nl - 2) * nv4
-        e_sig = np.maximum(e_span - (wt + nl - 1) * nv4, tiny)
+        seg = xs[np.arange(kc)[:, None, None, None], np.arange(4)[None, :, None, None],
+                 lags[:, None, :, :]]  # (Kc, 4 channels, nl lags, wt)
+        c = np.einsum("kclw,jw->kclj", seg, tpl)
+        # residual after each channel's best template over the span all lags cover
+        # (wt + nl - 1 samples), less the noise it holds (wt + nl - 2 dof per channel):
+        # what no acoustic packet leaves
+        span = xs[np.arange(kc)[:, None, None], np.arange(4)[None, :, None],
+                  (st[:, None] + np.arange(wt + nl - 1)[None, :])[:, None, :]]
+        e_span = np.einsum("kcw,kcw->k", span, span)
+        resid = e_span - (c * c).reshape(kc, 4, -1).max(axis=2).sum(axis=1)
+        # the ADC's quantization noise, LSB^2 / 12 (the LSB: the smallest step between the
+        # span's sample values), is part of every packet's residual: added to a given
+        # (analog) noise power; the floor of an estimated one (below one LSB of analog
+        # noise a pretrigger reads nearly constant)
+        steps = np.diff(np.unique(span))
+        steps = steps[steps > 0]
+        q_v2 = float(steps.min()) ** 2 / 12.0 if steps.size else 0.0
+        nv1 = np.maximum(nvc, q_v2) if nv_rel_var > 0.0 else nvc + q_v2
+        nv1 = np.maximum(nv1, tiny)
+        excess = resid - 4 * (wt + nl - 2) * nv1
+        e_sig = np.maximum(e_span - 4 * (wt + nl - 1) * nv1, tiny)
         # judged against the larger of the template mismatch an acoustic packet may have
         # ((1 - shape_min) of its energy) and the noise's spread (shape_z sigma of chi^2)
-        den = np.maximum(
-            (1.0 - shape_min) * e_sig, shape_z * math.sqrt(2.0 * (wt + nl - 2)) * nv4
-        )
+        # (an estimated noise power adds its own error, times the dof it is removed from)
+        n_dof = 4.0 * (wt + nl - 2)
+        spread = math.sqrt(2.0 * n_dof + n_dof * n_dof * nv_rel_var)
+        den = np.maximum((1.0 - shape_min) * e_sig, shape_z * spread * nv1)
         shape_score = common[cand] * excess / den
         score[cand] = np.maximum(score[cand], shape_score)
     if echo_min is not None and geometry is not None and cand.size:
