@@ -201,6 +201,15 @@ def _gains_or_none(channel_gains):
     return None if np.all(g == 1.0) else g
 
 
+def _echo_min_or_none(echo_min) -> float | None:
+    """The echo test's threshold (0 < echo_min <= 1), or None for 0 (no echo test).
+    ValueError otherwise."""
+    v = float(echo_min)
+    if not (math.isfinite(v) and 0.0 <= v <= 1.0):
+        raise ValueError(f"interference_echo_min must be in [0, 1], got {echo_min!r}")
+    return v if v > 0.0 else None
+
+
 class PacketLocalizer:
     """Packets -> contact events (TOUCH / DETOUCH), counting every rejection by reason.
 
@@ -219,8 +228,12 @@ class PacketLocalizer:
         reject_interference: bool = True,
         batch_min: int = 4,
         resolve_overlaps: bool = True,
+        interference_echo_min: float = 0.0,
     ):
         self.localizer = Localizer(method, min_snr_db=min_snr_db)
+        #: the interference discriminator's echo test (a device with wall echoes: an apex
+        #: packet without its echo at 2R/c is interference); 0: no echo test
+        self.interference_echo_min = _echo_min_or_none(interference_echo_min)
         self.resolve_overlaps = bool(resolve_overlaps)
         #: windows of the last `process` call that hold overlapping emissions (for the
         #: OverlapResolver; rejected as OVERLAP or withdrawn as suspects)
@@ -245,10 +258,13 @@ class PacketLocalizer:
         geometry: FingertipGeometry | None = None,
         channel_gains=None,
         resolve_overlaps: bool | None = None,
+        interference_echo_min: float | None = None,
     ) -> None:
         """Change settings at run time; takes effect at once. ValueError on bad channel
-        gains (nothing changed then)."""
+        gains or echo threshold (nothing changed then)."""
         gains = _gains_or_none(channel_gains) if channel_gains is not None else None
+        if interference_echo_min is not None:
+            self.interference_echo_min = _echo_min_or_none(interference_echo_min)
         if resolve_overlaps is not None:
             self.resolve_overlaps = bool(resolve_overlaps)
         if method is not None or min_snr_db is not None:
@@ -349,7 +365,9 @@ class PacketLocalizer:
             w = np.stack([np.asarray(found[i][0].samples_v, dtype=np.float64) for i in ids])
             onset = np.array([int(found[i][0].onset_index) for i in ids])
             try:
-                mask, _ = self.interference(w, fs, onset, geometry=self.geometry)
+                mask, _ = self.interference(
+                    w, fs, onset, geometry=self.geometry, echo_min=self.interference_echo_min
+                )
             except ValueError:
                 continue
             drop.update(i for i, m in zip(ids, np.asarray(mask, bool)) if m)

@@ -267,6 +267,50 @@ def test_common_mode_interference_is_rejected_and_counted_while_apex_touches_are
     assert rejected == len(bursts) and loc.counts["rejected_INTERFERENCE"] >= len(bursts) // 2
 
 
+def test_interference_through_the_front_end_needs_the_echo_test_of_a_device_with_echoes():
+    """Switching edges entering the amplifier's input are shaped like an apex touch's
+    packet; on a fingertip with wall echoes the missing echo at 2R/c gives them away once
+    interference_echo_min is set (at run time), and apex touches, which have their echo,
+    are still kept. Bad thresholds are refused, nothing changed."""
+    from ae_tactile.sim.interference import render_interference
+    from ae_tactile.sim.scene import reference_noise_rms
+    from ae_tactile.slip.evaluate import apex_touch_packets
+
+    cfg = SimConfig(reflections=True)
+    rng = np.random.default_rng(11)
+    noise = reference_noise_rms(cfg, 30.0)
+    apex = apex_touch_packets(cfg, 20, noise, rng, radius_m=1e-3)
+    edges = render_interference(40, cfg, kind="edge", coupling="input", noise_rms_v=noise, rng=rng)
+
+    def views():
+        out = [
+            PacketView(edges.samples_v[i], cfg.sample_rate_hz, int(edges.onset_index[i]),
+                       i * 1_000_000, i)
+            for i in range(len(edges))
+        ]
+        out += [
+            PacketView(apex.samples_v[i], cfg.sample_rate_hz, int(apex.onset_index[i]), 10**9 + i,
+                       100 + i)
+            for i in range(len(apex))
+        ]
+        return out
+
+    loc = PacketLocalizer("ml", geometry=cfg.geometry)
+    touches = set(range(100, 100 + len(apex)))
+    kept = {e.packet_ids[0] for e in loc.process(views())}
+    assert len(kept & set(range(len(edges)))) >= len(edges) // 2  # without it: touches
+    apex_kept = kept & touches
+    assert len(apex_kept) >= 15  # (weak releases below the SNR threshold aside)
+    loc.update(interference_echo_min=0.25)
+    kept = {e.packet_ids[0] for e in loc.process(views())}
+    assert not kept & set(range(len(edges)))
+    assert kept & touches == apex_kept
+    for bad in (1.5, -0.1, float("nan")):
+        with pytest.raises(ValueError):
+            loc.update(interference_echo_min=bad)
+        assert loc.interference_echo_min == 0.25
+
+
 @pytest.mark.parametrize("inline_max", [OVERLAP_INLINE_MAX, 2])
 def test_overlapping_emissions_are_resolved_in_the_reader_or_worker_naming_the_shared_packet(
     inline_max,

@@ -397,6 +397,7 @@ class DriverNode(Node):
             channel_gains=self.p["channel_gains"],
             reject_interference=lp["reject_interference"],
             resolve_overlaps=lp["resolve_overlaps"],
+            interference_echo_min=lp["interference_echo_min"],
         )
         self.slip_stage = SlipStage(slip_config, lag_s=self.p["slip_lag_s"])
         self.pipeline = ContactPipeline(localizer, self.slip_stage)
@@ -694,7 +695,8 @@ def changes_for_localizer(changes: dict) -> dict:
     return {
         k: v
         for k, v in changes.items()
-        if k in ("method", "min_snr_db", "min_confidence", "resolve_overlaps")
+        if k
+        in ("method", "min_snr_db", "min_confidence", "resolve_overlaps", "interference_echo_min")
     }
 
 

@@ -71,6 +71,7 @@ class LocalizerNode(Node):
             geometry=self.geometry,
             reject_interference=lp["reject_interference"],
             resolve_overlaps=lp["resolve_overlaps"],
+            interference_echo_min=lp["interference_echo_min"],
         )
         self.counts = self.localizer.counts
         # the driver's pipeline without its slip stage: the same localization, overlap

@@ -244,6 +244,18 @@ LOCALIZATION_PARAMS = [
     ),
     tunable(
         Param(
+            "interference_echo_min",
+            0.0,
+            "A fingertip with wall echoes: an apex packet whose echo at 2R/c is weaker "
+            "than this share of the direct packet (regression coefficient) is interference "
+            "(catches interference entering the amplifier's input, shaped like a touch); "
+            "0: no echo test (a device without echoes); 0.25 for a wall returning half",
+            0.0,
+            1.0,
+        )
+    ),
+    tunable(
+        Param(
             "resolve_overlaps",
             True,
             "Localize each emission of a window that holds "
