@@ -23,7 +23,9 @@ always render waveforms. Families:
                 jitter 0 .. 20 %): TEXTURE from the tracked speed, no sliding speed given
   drift         plane slip drifting along x: SLIP direction error
   interference  a held touch under common-mode bursts (1 Hz .. 10 kHz, every waveform,
-                2 / 5 / 10 MS/s), with and without the discriminator
+                2 / 5 / 10 MS/s), with and without the discriminator; per packet: apex
+                touches kept and bursts rejected by rate, noise (given / estimated),
+                coupling and waveform
 
 Writes bench/results/slip.json (``--quick``: slip_quick.json) and, for a full run, the
 tables in docs/slip.md between the bench markers. Records the machine's load.
@@ -359,6 +361,35 @@ def summarize_interference(rows) -> dict:
     return out
 
 
+def summarize_interference_packets(rows) -> dict:
+    """Per-packet rates by sample rate and noise (given / estimated): apex touches kept
+    (lowest over media and SNRs, and overall), interference rejected per coupling and
+    waveform (input coupling with and without the echo test), phantom events."""
+    out = {}
+    for fs in sorted({r["sample_rate_hz"] for r in rows}):
+        for noise in ("given", "estimated"):
+            sel = [r for r in rows if r["sample_rate_hz"] == fs and r["noise"] == noise]
+            if not sel:
+                continue
+            apex = {}
+            for r in sel:  # one apex set per (medium, snr, echoes)
+                apex[(r["medium"], r["snr_db"], r["echoes"])] = r["apex_kept_rate"]
+            d = {"apex_kept_min": min(apex.values()),
+                 "apex_kept_mean": float(np.mean(list(apex.values())))}
+            for coupling, echoes in (("adc", False), ("input", False), ("input", True)):
+                ss = [r for r in sel if r["coupling"] == coupling
+                      and r["echoes"] == echoes]
+                for kind in sorted({r["kind"] for r in ss}):
+                    k = [r for r in ss if r["kind"] == kind]
+                    n = sum(r["n"] for r in k)
+                    d[f"{coupling}{'+echo' if echoes else ''}:{kind}"] = {
+                        "rejected_rate": sum(r["rejected_rate"] * r["n"] for r in k) / n,
+                        "phantom_per_1000": 1000.0 * sum(r["phantom_events"] for r in k) / n,
+                    }
+            out[f"{fs / 1e6:g} MS/s, noise {noise}"] = d
+    return out
+
+
 # ---------------------------------------------------------------------- tables
 def _f(d, k, nd=0, scale=1.0):
     if d is None or d.get(k) is None:
@@ -492,6 +523,27 @@ def tables(res: dict) -> str:
                 L.append(
                     f"| {k} | {v['packets']} | {_rate(v['rejected_rate'])} | {v['alarm_onsets']} |"
                 )
+    ip = s.get("interference_packets")
+    if ip:
+        L.append("")
+        L.append(
+            "**Interference per packet** (apex touches within 1.5 mm of the apex, water and "
+            "silicone, SNR 20 / 30 / 40 dB; interference 10 .. 300 noise sigmas; "
+            "rejected % / phantom events per 1,000 bursts; 'input' coupling passes the front "
+            "end's filters: its edges are an apex touch's packet, told apart only by the "
+            "wall echo, on a device with echoes).\n"
+        )
+        cols = [k for k in next(iter(ip.values())) if ":" in k]
+        L.append("| rate, noise | apex kept (lowest / mean) | " + " | ".join(cols) + " |")
+        L.append("|---|---|" + "---|" * len(cols))
+        for key, d in ip.items():
+            cells = [
+                f"{_rate(d[c]['rejected_rate'])} / {d[c]['phantom_per_1000']:.1f}" for c in cols
+            ]
+            L.append(
+                f"| {key} | {_rate(d['apex_kept_min'])} / {_rate(d['apex_kept_mean'])} | "
+                + " | ".join(cells) + " |"
+            )
     L.append("")
     ds = res.get("detector_speed")
     isp = res.get("interference_speed")
@@ -578,6 +630,7 @@ def main(argv=None) -> int:
     N = 60 if q else 1000
     n_pol = 30 if q else 300
     n_if, n_if_off, n_val = (8, 4, 4) if q else (150, 40, 200)
+    n_pk = 30 if q else 300  # packets per waveform, coupling and case
     load_before = os.getloadavg()
     t0 = time.perf_counter()
     s0 = args.seed
@@ -649,6 +702,24 @@ def main(argv=None) -> int:
         trials["interference"] = rows
         summary["interference"] = summarize_interference(rows)
 
+    def interference_packets():
+        a = time.perf_counter()
+        rows = [
+            r
+            for medium in ("water_skin", "silicone")
+            for fs in (2e6, 5e6, 10e6)
+            for snr in (20.0, 30.0, 40.0)
+            for echoes in (False, True)
+            for r in ev.interference_packet_rates(
+                medium, fs, snr, echoes=echoes, n=n_pk, seed=s0
+            )
+        ]
+        timing["interference packets"] = time.perf_counter() - a
+        print(f"  interference packets: {len(rows)} rows ({timing['interference packets']:.0f} s)",
+              flush=True)
+        trials["interference_packets"] = rows
+        summary["interference_packets"] = summarize_interference_packets(rows)
+
     def cost():
         res["detector_speed"] = detector_speed()
         res["detector_speed"]["slip_step"] = slip_step_speed(seed=s0)
@@ -664,6 +735,7 @@ def main(argv=None) -> int:
         cost,
         lambda: inc("dense", "random", N),
         interference,
+        interference_packets,
         lambda: inc("sparse", "compression", N),
         lambda: inc("sparse", "rarefaction", N),
         lambda: inc("dense", "compression", n_pol),

@@ -12,21 +12,11 @@ from ae_tactile.sim.config import SimConfig
 from ae_tactile.sim.interference import burst_times_s, render_interference
 from ae_tactile.sim.scene import reference_noise_rms
 from ae_tactile.sim.triggered import render_triggered
+from ae_tactile.slip.evaluate import apex_touch_packets
 
 
 def apex_packets(cfg, n, noise, rng, radius_m=1e-3):
-    g = cfg.geometry
-    r = np.sqrt(rng.uniform(0, 1, n)) * radius_m
-    th = rng.uniform(0, 2 * np.pi, n)
-    pts = g.surface_point_from_xy(r * np.cos(th), r * np.sin(th))
-    return render_triggered(
-        pts,
-        cfg,
-        noise_rms_v=noise,
-        rng=rng,
-        speed_m_s=rng.uniform(0.05, 0.5, n),
-        polarity=rng.choice([-1, 1], n),
-    )
+    return apex_touch_packets(cfg, n, noise, rng, radius_m=radius_m)
 
 
 def rates(cfg, snr_db, coupling, seed, echo_min=None, n=120):

@@ -994,6 +994,87 @@ def interference_trial(
     return out
 
 
+def apex_touch_packets(config, n: int, noise_rms_v: float, rng, radius_m: float = 1.5e-3):
+    """``n`` rendered trigger windows of touches and releases (random polarity, 0.05 ..
+    0.5 m/s) uniform over the disc of ``radius_m`` round the apex: near-zero delays and
+    nearly equal waveforms, what common-mode interference also gives."""
+    from ae_tactile.sim.triggered import render_triggered
+
+    g = config.geometry
+    r = np.sqrt(rng.uniform(0, 1, n)) * radius_m
+    th = rng.uniform(0, 2 * np.pi, n)
+    pts = g.surface_point_from_xy(r * np.cos(th), r * np.sin(th))
+    return render_triggered(
+        pts,
+        config,
+        noise_rms_v=noise_rms_v,
+        rng=rng,
+        speed_m_s=rng.uniform(0.05, 0.5, n),
+        polarity=rng.choice([-1, 1], n),
+    )
+
+
+def interference_packet_rates(
+    medium: str, sample_rate_hz: float, snr_db: float, *, echoes: bool = False, n: int = 300,
+    seed: int = 0,
+) -> list[dict]:
+    """Per packet, with the noise given and estimated from the pretrigger (the driver's
+    call): apex touches (<= 1.5 mm) kept, and common-mode interference (each waveform,
+    'adc' and 'input' coupling, amplitude 10 .. 300 noise sigmas) rejected, and of those
+    passed how many the localizer accepts (phantom events). ``echoes``: a device with wall
+    echoes (the echo test on). One row per (noise, coupling, kind)."""
+    from ae_tactile.dsp.interference import common_mode_interference
+    from ae_tactile.sim.config import SimConfig
+    from ae_tactile.sim.interference import KINDS, render_interference
+    from ae_tactile.sim.scene import reference_noise_rms
+
+    cfg = SimConfig.for_medium(medium, sample_rate_hz=sample_rate_hz, reflections=echoes)
+    rng = np.random.default_rng([int(seed), int(sample_rate_hz), int(snr_db), int(echoes),
+                                 len(medium)])
+    noise = reference_noise_rms(cfg, snr_db)
+    fs = cfg.sample_rate_hz
+    apex = apex_touch_packets(cfg, n, noise, rng)
+    bursts = {
+        (c, k): render_interference(n, cfg, kind=k, coupling=c, noise_rms_v=noise, rng=rng)
+        for c in ("adc", "input")
+        for k in KINDS
+    }
+    rows = []
+    for given in (True, False):
+        kw = dict(
+            noise_rms_v=noise if given else None,
+            geometry=cfg.geometry,
+            lowpass_hz=cfg.lowpass_hz,
+            lowpass_order=cfg.lowpass_order,
+            echo_min=0.25 if echoes else None,
+        )
+        m_apex, _ = common_mode_interference(apex.samples_v, fs, apex.onset_index, **kw)
+        kept = 1.0 - float(m_apex.mean())
+        for (coupling, kind), pk in bursts.items():
+            mask, _ = common_mode_interference(pk.samples_v, fs, pk.onset_index, **kw)
+            keep = np.flatnonzero(~mask)
+            phantoms = 0
+            if keep.size:
+                res = localize(pk.samples_v[keep], fs, pk.onset_index[keep], geometry=cfg.geometry)
+                phantoms = int(np.count_nonzero(res.accepted))
+            rows.append(
+                {
+                    "medium": medium,
+                    "sample_rate_hz": float(fs),
+                    "snr_db": float(snr_db),
+                    "echoes": bool(echoes),
+                    "noise": "given" if given else "estimated",
+                    "coupling": coupling,
+                    "kind": kind,
+                    "n": int(n),
+                    "apex_kept_rate": kept,
+                    "rejected_rate": float(mask.mean()),
+                    "phantom_events": phantoms,
+                }
+            )
+    return rows
+
+
 # ---------------------------------------------------------------------- texture, drift
 def texture_trial(
     seed: int, config: SlipConfig | None = None, *, speed_known: bool = True
