@@ -271,6 +271,7 @@ def slip_rows(d) -> list[str]:
             f"| common-mode interference | {100 * itf['rejected_rate']:.1f} % of "
             f"{itf['n_interference_packets']} bursts rejected, "
             f"{100 * itf['acoustic_kept_rate']:.1f} % of touches kept, "
+            f"{itf['phantom_events']} phantom touches, {itf['extra_contacts']} extra contacts, "
             f"{itf['alarm_onsets']} slip alarms | bench_slip |"
         )
     sp = d.get("detector_speed")
