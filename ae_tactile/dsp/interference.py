@@ -18,12 +18,14 @@ filter allows). Per packet (all vectorized over K packets, M samples after the o
   high     = sum (s_{n+1} - s_n)^2 / (2 sum s_n^2 (1 - cos(2 pi f_lp / fs))):
              1 for a tone at f_lp, > 1 only with energy above the front end's band
   score    = common * max(low / low_max, high / high_max)
-  shape    = (E - max_j <s, t_j>^2 - N sigma_s^2) / max((1 - shape_min) E_sig,
-             shape_z sqrt(2 N) sigma_s^2): what the best acoustic template t_j (the front
-             end's step response, sub-sample offsets and lags) leaves of the common mode's
-             energy E over N samples, beyond its noise (sigma_s^2 = sigma^2 / 4), against an
-             acoustic packet's template mismatch or the noise's chi^2 spread, whichever is
-             larger (common-mode candidates only; score = max(score, common * shape))
+  shape    = (E - sum_c max_j <x_c, t_j>^2 - N sigma^2) / max((1 - shape_min) E_sig,
+             shape_z sqrt(2 N) sigma^2): what the best acoustic template t_j (the front
+             end's step response at sub-sample offsets and lags, per channel: near the
+             apex the four arrivals differ by a few samples) leaves of the channels' energy
+             E over N samples (all four), beyond the noise and the ADC's quantization
+             (sigma^2 + LSB^2 / 12), against an acoustic packet's template mismatch or the
+             noise's chi^2 spread, whichever is larger (common-mode candidates only;
+             score = max(score, common * shape))
 
 Interference when common >= ``common_min`` and score >= 1. Interference shaped by the
 front end itself (coupled into the amplifier's input) has an acoustic packet's spectrum
@@ -198,12 +200,12 @@ def common_mode_interference(
     # are off the apex: common mode < common_min, nothing more to compute)
     cand = np.flatnonzero((common >= common_min) & ~(score >= 1.0))
     if shape_min is not None and cand.size:
-        # shape: what the best acoustic template (sub-sample offsets x integer lags
-        # -1 .. SHAPE_LAGS - 2) leaves unexplained of the common mode, less the noise, against
-        # the larger of an acoustic packet's template mismatch (1 - shape_min of its energy)
-        # and shape_z standard deviations of the noise's chi^2 (a weak touch is never
-        # rejected for noise) (before the first wall echo, 2R/c after the onset, when the
-        # geometry is known)
+        # shape: what the best acoustic template per channel (sub-sample offsets x lags
+        # -SHAPE_LEAD .. SHAPE_LAGS - SHAPE_LEAD - 1 round the onset) leaves unexplained,
+        # less the noise, against the larger of an acoustic packet's template mismatch
+        # (1 - shape_min of its energy) and shape_z standard deviations of the noise's
+        # chi^2 (a weak touch is never rejected for noise) (before the first wall echo,
+        # 2R/c after the onset, when the geometry is known)
         t_echo = 10e-6 if geometry is None else 2.0 * geometry.radius_m / geometry.sound_speed_m_s
         nl = SHAPE_LAGS
         # (the span of every lag ends before the echo)
