@@ -48,6 +48,7 @@ HIGH_MAX = 1.5
 SHAPE_MIN = 0.94
 SHAPE_LAGS = 10
 SHAPE_LEAD = 2
+SHAPE_CHUNK = 256  # candidates per shape-test step (memory: 256 x 4 x 10 x wt floats)
 
 
 def acoustic_templates(
@@ -113,6 +114,45 @@ def _step_responses(
         out[j] = np.interp(t, fine, yf)
     out.setflags(write=False)
     return out
+
+
+def _unexplained_share(xs, st, tpl, nl, nv, nv_rel_var, shape_min, shape_z):
+    """Shape test of packets ``xs`` (K, 4, M): what the best template of ``tpl`` (J, wt) per
+    channel, at lags st + 0 .. nl - 1, leaves unexplained beyond the noise ``nv`` (V^2 per
+    sample, scalar or (K,)), over the larger of the template mismatch an acoustic packet may
+    have and shape_z sigma of the noise's chi^2: >= 1 is not an acoustic packet."""
+    k = xs.shape[0]
+    wt = tpl.shape[1]
+    tiny = 1e-30
+    # per channel (each its own lag and offset: near the apex the four arrivals differ by
+    # up to a few samples, and their mean is no longer one step response)
+    lags = st[:, None, None] + np.arange(nl)[None, :, None] + np.arange(wt)[None, None, :]
+    seg = xs[np.arange(k)[:, None, None, None], np.arange(4)[None, :, None, None],
+             lags[:, None, :, :]]  # (K, 4 channels, nl lags, wt)
+    c = np.einsum("kclw,jw->kclj", seg, tpl)
+    # residual after each channel's best template over the span all lags cover
+    # (wt + nl - 1 samples), less the noise it holds (wt + nl - 2 dof per channel)
+    span = xs[np.arange(k)[:, None, None], np.arange(4)[None, :, None],
+              (st[:, None] + np.arange(wt + nl - 1)[None, :])[:, None, :]]
+    e_span = np.einsum("kcw,kcw->k", span, span)
+    resid = e_span - (c * c).reshape(k, 4, -1).max(axis=2).sum(axis=1)
+    # the ADC's quantization noise, LSB^2 / 12 (the LSB: the smallest step between the
+    # span's sample values), is part of every packet's residual: added to a given (analog)
+    # noise power; the floor of an estimated one (below one LSB of analog noise a
+    # pretrigger reads nearly constant)
+    steps = np.diff(np.unique(span))
+    steps = steps[steps > 0]
+    q_v2 = float(steps.min()) ** 2 / 12.0 if steps.size else 0.0
+    nv1 = np.maximum(nv, q_v2) if nv_rel_var > 0.0 else nv + q_v2
+    nv1 = np.maximum(nv1, tiny)
+    n_dof = 4.0 * (wt + nl - 2)
+    excess = resid - n_dof * nv1
+    e_sig = np.maximum(e_span - 4.0 * (wt + nl - 1) * nv1, tiny)
+    # judged against the larger of the template mismatch an acoustic packet may have
+    # ((1 - shape_min) of its energy) and the noise's spread (shape_z sigma of chi^2; an
+    # estimated noise power adds its own error, times the dof it is removed from)
+    spread = math.sqrt(2.0 * n_dof + n_dof * n_dof * nv_rel_var)
+    return excess / np.maximum((1.0 - shape_min) * e_sig, shape_z * spread * nv1)
 
 
 def common_mode_interference(
@@ -218,41 +258,16 @@ def common_mode_interference(
             None if lowpass_hz is None else float(lowpass_hz),
             int(lowpass_order),
         )
-        kc = cand.size
         nvc = nv if np.size(nv) == 1 else nv[cand]
-        # per channel (each its own lag and offset: near the apex the four arrivals differ
-        # by up to a few samples, and their mean is no longer one step response)
         st = np.clip(on[cand] - SHAPE_LEAD, 0, m - wt - nl + 1)
-        xs = x[cand]  # (Kc, 4, M)
-        lags = st[:, None, None] + np.arange(nl)[None, :, None] + np.arange(wt)[None, None, :]
-        seg = xs[np.arange(kc)[:, None, None, None], np.arange(4)[None, :, None, None],
-                 lags[:, None, :, :]]  # (Kc, 4 channels, nl lags, wt)
-        c = np.einsum("kclw,jw->kclj", seg, tpl)
-        # residual after each channel's best template over the span all lags cover
-        # (wt + nl - 1 samples), less the noise it holds (wt + nl - 2 dof per channel):
-        # what no acoustic packet leaves
-        span = xs[np.arange(kc)[:, None, None], np.arange(4)[None, :, None],
-                  (st[:, None] + np.arange(wt + nl - 1)[None, :])[:, None, :]]
-        e_span = np.einsum("kcw,kcw->k", span, span)
-        resid = e_span - (c * c).reshape(kc, 4, -1).max(axis=2).sum(axis=1)
-        # the ADC's quantization noise, LSB^2 / 12 (the LSB: the smallest step between the
-        # span's sample values), is part of every packet's residual: added to a given
-        # (analog) noise power; the floor of an estimated one (below one LSB of analog
-        # noise a pretrigger reads nearly constant)
-        steps = np.diff(np.unique(span))
-        steps = steps[steps > 0]
-        q_v2 = float(steps.min()) ** 2 / 12.0 if steps.size else 0.0
-        nv1 = np.maximum(nvc, q_v2) if nv_rel_var > 0.0 else nvc + q_v2
-        nv1 = np.maximum(nv1, tiny)
-        excess = resid - 4 * (wt + nl - 2) * nv1
-        e_sig = np.maximum(e_span - 4 * (wt + nl - 1) * nv1, tiny)
-        # judged against the larger of the template mismatch an acoustic packet may have
-        # ((1 - shape_min) of its energy) and the noise's spread (shape_z sigma of chi^2)
-        # (an estimated noise power adds its own error, times the dof it is removed from)
-        n_dof = 4.0 * (wt + nl - 2)
-        spread = math.sqrt(2.0 * n_dof + n_dof * n_dof * nv_rel_var)
-        den = np.maximum((1.0 - shape_min) * e_sig, shape_z * spread * nv1)
-        shape_score = common[cand] * excess / den
+        unexplained = np.empty(cand.size)
+        for i in range(0, cand.size, SHAPE_CHUNK):  # bounded memory: (chunk, 4, nl, wt)
+            part = slice(i, i + SHAPE_CHUNK)
+            unexplained[part] = _unexplained_share(
+                x[cand[part]], st[part], tpl, nl,
+                nvc if np.size(nvc) == 1 else nvc[part], nv_rel_var, shape_min, shape_z,
+            )
+        shape_score = common[cand] * unexplained
         score[cand] = np.maximum(score[cand], shape_score)
     if echo_min is not None and geometry is not None and cand.size:
         lag = int(round(2.0 * geometry.radius_m / geometry.sound_speed_m_s * fs))
