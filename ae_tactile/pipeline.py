@@ -260,21 +260,29 @@ class PacketLocalizer:
         resolve_overlaps: bool | None = None,
         interference_echo_min: float | None = None,
     ) -> None:
-        """Change settings at run time; takes effect at once. ValueError on bad channel
-        gains or echo threshold (nothing changed then)."""
+        """Change settings at run time; takes effect at once. ValueError on a bad value
+        (channel gains, echo threshold, method, SNR, confidence): nothing changed then."""
         gains = _gains_or_none(channel_gains) if channel_gains is not None else None
-        if interference_echo_min is not None:
-            self.interference_echo_min = _echo_min_or_none(interference_echo_min)
-        if resolve_overlaps is not None:
-            self.resolve_overlaps = bool(resolve_overlaps)
+        echo = (
+            _echo_min_or_none(interference_echo_min)
+            if interference_echo_min is not None
+            else self.interference_echo_min
+        )
+        conf = float(min_confidence) if min_confidence is not None else self.min_confidence
+        localizer = None
         if method is not None or min_snr_db is not None:
             m = method if method is not None else self.method
-            s = min_snr_db if min_snr_db is not None else self.min_snr_db
-            self.localizer = Localizer(m, min_snr_db=s)
-            self._one = getattr(self.localizer, "localize_one", None)
-            self.method, self.min_snr_db = m, float(s)
-        if min_confidence is not None:
-            self.min_confidence = float(min_confidence)
+            snr = float(min_snr_db if min_snr_db is not None else self.min_snr_db)
+            localizer = Localizer(m, min_snr_db=snr)
+        # everything checked: apply
+        if localizer is not None:
+            self.localizer = localizer
+            self._one = getattr(localizer, "localize_one", None)
+            self.method, self.min_snr_db = m, snr
+        self.interference_echo_min = echo
+        self.min_confidence = conf
+        if resolve_overlaps is not None:
+            self.resolve_overlaps = bool(resolve_overlaps)
         if geometry is not None:
             self.geometry = geometry
         if channel_gains is not None:

@@ -81,6 +81,56 @@ def test_every_adc_coupled_waveform_rejected_by_its_shape(fs, kind):
             assert np.nanmax(score) < 0.5
 
 
+@pytest.mark.parametrize(
+    "medium, fs, radius_m",
+    [("water_skin", 1e6, None), ("water_skin", 3e6, 5e-3), ("water_skin", 5e6, 3e-3)],
+)
+def test_apex_touches_kept_when_the_echo_comes_a_few_samples_after_the_onset(
+    medium, fs, radius_m
+):
+    """A slow ADC or a small sphere leaves only 10 .. 20 samples before the wall echo: the
+    shape test's templates run to the end of that span (the packet's own tail is explained,
+    not counted), and without a noise level (a pretrigger too short to estimate it) there
+    is no shape test: apex touches are kept; 'adc' spikes with a given noise still go."""
+    kw = {} if radius_m is None else {"radius_m": radius_m}
+    cfg = SimConfig.for_medium(medium, sample_rate_hz=fs, **kw)
+    rng = np.random.default_rng(4)
+    noise = reference_noise_rms(cfg, 25.0)
+    pk = apex_packets(cfg, 200, noise, rng, radius_m=1.5e-3)
+    common = dict(
+        geometry=cfg.geometry, lowpass_hz=cfg.lowpass_hz, lowpass_order=cfg.lowpass_order
+    )
+    for given in (noise, None):
+        m, _ = common_mode_interference(pk.samples_v, fs, pk.onset_index, noise_rms_v=given,
+                                        **common)
+        assert 1.0 - m.mean() >= 0.99
+    ip = render_interference(200, cfg, kind="spike", coupling="adc", noise_rms_v=noise, rng=rng)
+    m, _ = common_mode_interference(ip.samples_v, fs, ip.onset_index, noise_rms_v=noise, **common)
+    assert m.mean() >= 0.97
+
+
+def test_a_packet_is_judged_alone_whatever_its_batch():
+    """Scores do not depend on the other packets of a call (the ADC step is read per
+    packet), nor on where the onset lies in a longer window."""
+    cfg = SimConfig.for_medium("silicone", sample_rate_hz=10e6)
+    rng = np.random.default_rng(8)
+    noise = reference_noise_rms(cfg, 30.0)
+    pk = apex_packets(cfg, 40, noise, rng)
+    ip = render_interference(40, cfg, coupling="adc", noise_rms_v=noise, rng=rng)
+    x = np.concatenate([pk.samples_v, ip.samples_v])
+    on = np.concatenate([pk.onset_index, ip.onset_index])
+    kw = dict(geometry=cfg.geometry, noise_rms_v=noise)
+    _, alone = common_mode_interference(x, cfg.sample_rate_hz, on, **kw)
+    _, mixed = common_mode_interference(
+        np.concatenate([x, 1.37 * x[:1]]), cfg.sample_rate_hz, np.append(on, on[0]), **kw
+    )
+    np.testing.assert_allclose(mixed[:-1], alone, rtol=1e-9, atol=1e-12)
+    pad = rng.normal(0.0, noise, (x.shape[0], 4, 220))  # the onset 220 samples later
+    m, _ = common_mode_interference(np.concatenate([pad, x], axis=2)[:, :, :400],
+                                    cfg.sample_rate_hz, on + 220, **kw)
+    assert 1.0 - m[:40].mean() >= 0.97 and m[40:].mean() >= 0.9
+
+
 def test_front_end_shaped_interference_needs_the_wall_echo():
     """Interference entering at the amplifier's input has an acoustic packet's band; its
     spikes and ringing differ in shape (rejected), its edges do not (a step through the

@@ -309,6 +309,9 @@ def test_interference_through_the_front_end_needs_the_echo_test_of_a_device_with
         with pytest.raises(ValueError):
             loc.update(interference_echo_min=bad)
         assert loc.interference_echo_min == 0.25
+    with pytest.raises(ValueError):  # a bad value beside a good one: nothing changes
+        loc.update(interference_echo_min=0.5, method="no_such_method")
+    assert loc.interference_echo_min == 0.25 and loc.method == "ml"
 
 
 @pytest.mark.parametrize("inline_max", [OVERLAP_INLINE_MAX, 2])

@@ -48,7 +48,7 @@ HIGH_MAX = 1.5
 SHAPE_MIN = 0.94
 SHAPE_LAGS = 10
 SHAPE_LEAD = 2
-SHAPE_CHUNK = 256  # candidates per shape-test step (memory: 256 x 4 x 10 x wt floats)
+SHAPE_CHUNK = 256  # candidates per shape-test step (memory: 256 x 4 x span floats)
 
 
 def acoustic_templates(
@@ -116,38 +116,36 @@ def _step_responses(
     return out
 
 
-def _unexplained_share(xs, st, tpl, nl, nv, nv_rel_var, shape_min, shape_z):
-    """Shape test of packets ``xs`` (K, 4, M): what the best template of ``tpl`` (J, wt) per
-    channel, at lags st + 0 .. nl - 1, leaves unexplained beyond the noise ``nv`` (V^2 per
-    sample, scalar or (K,)), over the larger of the template mismatch an acoustic packet may
-    have and shape_z sigma of the noise's chi^2: >= 1 is not an acoustic packet."""
-    k = xs.shape[0]
-    wt = tpl.shape[1]
+def _unexplained_share(span, tpls, nv, nv_rel_var, shape_min, shape_z):
+    """Shape test of packets ``span`` (K, 4, S): from SHAPE_LEAD samples before the onset to
+    the first wall echo. What the best template per channel (``tpls[l]``: unit-norm
+    templates (J, S - l) starting l samples into the span) leaves unexplained beyond the
+    noise ``nv`` (V^2 per sample, scalar or (K,)), over the larger of the template mismatch
+    an acoustic packet may have and shape_z sigma of the noise's chi^2: >= 1 is not an
+    acoustic packet."""
+    k, _, n = span.shape
     tiny = 1e-30
     # per channel (each its own lag and offset: near the apex the four arrivals differ by
-    # up to a few samples, and their mean is no longer one step response)
-    lags = st[:, None, None] + np.arange(nl)[None, :, None] + np.arange(wt)[None, None, :]
-    seg = xs[np.arange(k)[:, None, None, None], np.arange(4)[None, :, None, None],
-             lags[:, None, :, :]]  # (K, 4 channels, nl lags, wt)
-    c = np.einsum("kclw,jw->kclj", seg, tpl)
-    # residual after each channel's best template over the span all lags cover
-    # (wt + nl - 1 samples), less the noise it holds (wt + nl - 2 dof per channel)
-    span = xs[np.arange(k)[:, None, None], np.arange(4)[None, :, None],
-              (st[:, None] + np.arange(wt + nl - 1)[None, :])[:, None, :]]
+    # up to a few samples, and their mean is no longer one step response); every template
+    # runs to the span's end, so a packet's own tail is explained, not counted
+    best = np.zeros((k, 4))
+    for lag, t in enumerate(tpls):
+        c = np.einsum("kcw,jw->kcj", span[:, :, lag:], t)
+        np.maximum(best, (c * c).max(axis=2), out=best)
     e_span = np.einsum("kcw,kcw->k", span, span)
-    resid = e_span - (c * c).reshape(k, 4, -1).max(axis=2).sum(axis=1)
+    resid = e_span - best.sum(axis=1)
     # the ADC's quantization noise, LSB^2 / 12 (the LSB: the smallest step between the
-    # span's sample values), is part of every packet's residual: added to a given (analog)
-    # noise power; the floor of an estimated one (below one LSB of analog noise a
+    # packet's sample values), is part of every packet's residual: added to a given
+    # (analog) noise power; the floor of an estimated one (below one LSB of analog noise a
     # pretrigger reads nearly constant)
-    steps = np.diff(np.unique(span))
-    steps = steps[steps > 0]
-    q_v2 = float(steps.min()) ** 2 / 12.0 if steps.size else 0.0
+    steps = np.diff(np.sort(span.reshape(k, -1), axis=1), axis=1)
+    lsb = np.where(steps > 0, steps, np.inf).min(axis=1)
+    q_v2 = np.where(np.isfinite(lsb), lsb * lsb / 12.0, 0.0)
     nv1 = np.maximum(nv, q_v2) if nv_rel_var > 0.0 else nv + q_v2
     nv1 = np.maximum(nv1, tiny)
-    n_dof = 4.0 * (wt + nl - 2)
+    n_dof = 4.0 * (n - 1)  # one amplitude fitted per channel
     excess = resid - n_dof * nv1
-    e_sig = np.maximum(e_span - 4.0 * (wt + nl - 1) * nv1, tiny)
+    e_sig = np.maximum(e_span - 4.0 * n * nv1, tiny)
     # judged against the larger of the template mismatch an acoustic packet may have
     # ((1 - shape_min) of its energy) and the noise's spread (shape_z sigma of chi^2; an
     # estimated noise power adds its own error, times the dof it is removed from)
@@ -188,7 +186,8 @@ def common_mode_interference(
     interference shaped by the front end); None: no echo test (a device without echoes).
     ``shape_min``: the share of an acoustic packet's energy the acoustic templates
     explain at least (None: no shape test); ``shape_z``: how many standard deviations of
-    the noise the unexplained energy must exceed before the shape test can reject.
+    the noise the unexplained energy must exceed before the shape test can reject (no shape
+    test without a noise level: neither given nor >= 8 pretrigger samples).
     Non-finite windows give mask False and score NaN (the localizer rejects them)."""
     x = np.asarray(windows, dtype=float)
     if x.ndim != 3 or x.shape[1] != 4:
@@ -213,6 +212,7 @@ def common_mode_interference(
     idx = start[:, None] + np.arange(w)[None, :]
     s = s_full[rows, idx]
     nv_rel_var = 0.0  # relative variance of the noise power used (0: given)
+    noise_known = noise_rms_v is not None
     if noise_rms_v is not None:
         nv = np.asarray(noise_rms_v, float).reshape(-1) ** 2
     else:
@@ -222,6 +222,7 @@ def common_mode_interference(
             pre = x[:, :, :npre]
             nv = (pre * pre).mean(axis=(1, 2)) - pre.mean(axis=2).__pow__(2).mean(axis=1)
             nv_rel_var = 2.0 / (4 * (npre - 1))  # chi^2 over 4 (npre - 1) dof
+            noise_known = True
         else:
             nv = 0.0
     e_ch = q_full[rows, idx].sum(axis=1) - w * nv
@@ -239,35 +240,48 @@ def common_mode_interference(
     # the shape and echo tests only for common-mode packets not yet flagged (most touches
     # are off the apex: common mode < common_min, nothing more to compute)
     cand = np.flatnonzero((common >= common_min) & ~(score >= 1.0))
-    if shape_min is not None and cand.size:
+    if shape_min is not None and cand.size and noise_known:
         # shape: what the best acoustic template per channel (sub-sample offsets x lags
         # -SHAPE_LEAD .. SHAPE_LAGS - SHAPE_LEAD - 1 round the onset) leaves unexplained,
         # less the noise, against the larger of an acoustic packet's template mismatch
         # (1 - shape_min of its energy) and shape_z standard deviations of the noise's
         # chi^2 (a weak touch is never rejected for noise) (before the first wall echo,
-        # 2R/c after the onset, when the geometry is known)
+        # 2R/c after the onset, when the geometry is known); not without a noise level
+        # (given, or estimated from >= 8 pretrigger samples): weak touches could not be told
+        # from a mismatch
         t_echo = 10e-6 if geometry is None else 2.0 * geometry.radius_m / geometry.sound_speed_m_s
         nl = SHAPE_LAGS
-        # (the span of every lag ends before the echo)
-        wt = max(4, min(w, m - nl + 1, int(t_echo * fs) - nl + SHAPE_LEAD))
-        tpl = acoustic_templates(
-            fs,
-            wt,
-            float(highpass_hz),
-            int(highpass_order),
-            None if lowpass_hz is None else float(lowpass_hz),
-            int(lowpass_order),
-        )
         nvc = nv if np.size(nv) == 1 else nv[cand]
-        st = np.clip(on[cand] - SHAPE_LEAD, 0, m - wt - nl + 1)
-        unexplained = np.empty(cand.size)
-        for i in range(0, cand.size, SHAPE_CHUNK):  # bounded memory: (chunk, 4, nl, wt)
-            part = slice(i, i + SHAPE_CHUNK)
-            unexplained[part] = _unexplained_share(
-                x[cand[part]], st[part], tpl, nl,
-                nvc if np.size(nvc) == 1 else nvc[part], nv_rel_var, shape_min, shape_z,
-            )
-        shape_score = common[cand] * unexplained
+        st = np.clip(on[cand] - SHAPE_LEAD, 0, None)
+        # each packet's span ends before the echo, the analysis length and its window's end
+        end = np.minimum(on[cand] + min(int(t_echo * fs) - 1, w), m)
+        n_span = end - st
+        shape_score = np.zeros(cand.size)
+        for n in np.unique(n_span[n_span >= nl + 4]):  # shorter: no shape test
+            n = int(n)
+            tpls = [
+                acoustic_templates(
+                    fs,
+                    n - lag,
+                    float(highpass_hz),
+                    int(highpass_order),
+                    None if lowpass_hz is None else float(lowpass_hz),
+                    int(lowpass_order),
+                )
+                for lag in range(nl)
+            ]
+            group = np.flatnonzero(n_span == n)
+            for i in range(0, group.size, SHAPE_CHUNK):  # bounded memory: (chunk, 4, n)
+                part = group[i : i + SHAPE_CHUNK]
+                span = x[
+                    cand[part][:, None, None],
+                    np.arange(4)[None, :, None],
+                    (st[part][:, None] + np.arange(n))[:, None, :],
+                ]
+                shape_score[part] = common[cand[part]] * _unexplained_share(
+                    span, tpls, nvc if np.size(nvc) == 1 else nvc[part], nv_rel_var,
+                    shape_min, shape_z,
+                )
         score[cand] = np.maximum(score[cand], shape_score)
     if echo_min is not None and geometry is not None and cand.size:
         lag = int(round(2.0 * geometry.radius_m / geometry.sound_speed_m_s * fs))
