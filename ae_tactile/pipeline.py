@@ -314,7 +314,7 @@ class PacketLocalizer:
             if self.interference is not None:
                 from ae_tactile.dsp.interference import warm_up as warm_interference
 
-                warm_interference(sample_rate_hz)  # its shape templates (~15 ms)
+                warm_interference(sample_rate_hz, geometry=self.geometry)  # templates
                 self.interference(w, sample_rate_hz, on, geometry=self.geometry)
             single = SimpleNamespace(
                 accepted=np.ones(1, bool), point_m=np.array([[0.0, 0.0, self.geometry.radius_m]])

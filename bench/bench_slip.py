@@ -116,6 +116,20 @@ def interference_speed() -> dict:
         for _ in range(reps):
             common_mode_interference(x, 10e6, on, geometry=g, noise_rms_v=1e-3)
         out[f"us_per_packet_batch{k}"] = (time.perf_counter() - t0) / reps / k * 1e6
+    # an apex touch, one per call: a common-mode candidate, so the shape test runs too
+    from ae_tactile.sim.config import SimConfig
+    from ae_tactile.sim.scene import reference_noise_rms
+
+    cfg = SimConfig(sample_rate_hz=10e6)
+    pk = ev.apex_touch_packets(cfg, 50, reference_noise_rms(cfg, 30.0), rng)
+    common_mode_interference(pk.samples_v[:1], 10e6, pk.onset_index[:1], geometry=cfg.geometry)
+    t0 = time.perf_counter()
+    for _ in range(20):
+        for i in range(50):
+            common_mode_interference(
+                pk.samples_v[i : i + 1], 10e6, pk.onset_index[i : i + 1], geometry=cfg.geometry
+            )
+    out["us_per_apex_packet_batch1"] = (time.perf_counter() - t0) / 1000 * 1e6
     return out
 
 
@@ -557,6 +571,12 @@ def tables(res: dict) -> str:
                 f"; common_mode_interference {isp['us_per_packet_batch1']:.0f} us per "
                 f"packet one at a "
                 f"time, {isp['us_per_packet_batch256']:.1f} us per packet in batches of 256"
+                + (
+                    f", {isp['us_per_apex_packet_batch1']:.0f} us for an apex touch (the shape "
+                    "test runs)"
+                    if "us_per_apex_packet_batch1" in isp
+                    else ""
+                )
                 if isp
                 else ""
             )

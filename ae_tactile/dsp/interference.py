@@ -75,6 +75,22 @@ def acoustic_templates(
     return y / np.linalg.norm(y, axis=1, keepdims=True)
 
 
+@lru_cache(maxsize=32)
+def _lag_templates(sample_rate_hz, n_samples, n_lags, highpass_hz, highpass_order, lowpass_hz,
+                   lowpass_order) -> np.ndarray:
+    """The shape test's templates for a span of ``n_samples``, (n_lags * J, n_samples): for
+    each lag l < n_lags the unit-norm `acoustic_templates` of length n_samples - l behind
+    l zeros (computed once per span; one product correlates a packet with all of them)."""
+    rows = []
+    for lag in range(n_lags):
+        t = acoustic_templates(sample_rate_hz, n_samples - lag, highpass_hz, highpass_order,
+                               lowpass_hz, lowpass_order)
+        rows.append(np.pad(t, ((0, 0), (lag, 0))))
+    out = np.concatenate(rows)
+    out.setflags(write=False)
+    return out
+
+
 def _front_end_lowpass(sample_rate_hz, lowpass_hz, lowpass_order):
     """("auto" resolved as `ae_tactile.sim.SimConfig` does) low-pass of the front end."""
     hz, order = resolve_front_end_lowpass(sample_rate_hz, lowpass_hz, lowpass_order)
@@ -82,12 +98,18 @@ def _front_end_lowpass(sample_rate_hz, lowpass_hz, lowpass_order):
 
 
 def warm_up(sample_rate_hz: float, highpass_hz=100e3, highpass_order=2, lowpass_hz="auto",
-            lowpass_order="auto") -> None:
+            lowpass_order="auto", *, geometry=None, window_s: float = 20e-6) -> None:
     """Compute the templates a first common-mode packet at this rate would need (the
-    defaults of `common_mode_interference`; analysis lengths up to 256 samples)."""
+    defaults of `common_mode_interference`: step responses up to 256 samples, and the shape
+    test's templates for the span of a packet whose onset is well inside its window)."""
     lp, order = _front_end_lowpass(sample_rate_hz, lowpass_hz, lowpass_order)
-    acoustic_templates(float(sample_rate_hz), 128, float(highpass_hz), int(highpass_order),
-                       lp, order)
+    fs = float(sample_rate_hz)
+    acoustic_templates(fs, 128, float(highpass_hz), int(highpass_order), lp, order)
+    t_echo = 10e-6 if geometry is None else 2.0 * geometry.radius_m / geometry.sound_speed_m_s
+    n = SHAPE_LEAD + min(int(t_echo * fs) - 1, max(4, int(round(window_s * fs))))
+    if n >= SHAPE_LAGS + 4:
+        _lag_templates(fs, n, SHAPE_LAGS, float(highpass_hz), int(highpass_order),
+                       None if lp is None else float(lp), int(order))
 
 
 @lru_cache(maxsize=16)
@@ -118,8 +140,8 @@ def _step_responses(
 
 def _unexplained_share(span, tpls, nv, nv_rel_var, shape_min, shape_z):
     """Shape test of packets ``span`` (K, 4, S): from SHAPE_LEAD samples before the onset to
-    the first wall echo. What the best template per channel (``tpls[l]``: unit-norm
-    templates (J, S - l) starting l samples into the span) leaves unexplained beyond the
+    the first wall echo. What the best template per channel (rows of ``tpls``: unit-norm
+    templates starting 0 .. SHAPE_LAGS - 1 samples into the span) leaves unexplained beyond the
     noise ``nv`` (V^2 per sample, scalar or (K,)), over the larger of the template mismatch
     an acoustic packet may have and shape_z sigma of the noise's chi^2: >= 1 is not an
     acoustic packet."""
@@ -128,12 +150,9 @@ def _unexplained_share(span, tpls, nv, nv_rel_var, shape_min, shape_z):
     # per channel (each its own lag and offset: near the apex the four arrivals differ by
     # up to a few samples, and their mean is no longer one step response); every template
     # runs to the span's end, so a packet's own tail is explained, not counted
-    best = np.zeros((k, 4))
-    for lag, t in enumerate(tpls):
-        c = np.einsum("kcw,jw->kcj", span[:, :, lag:], t)
-        np.maximum(best, (c * c).max(axis=2), out=best)
+    c = span @ tpls.T  # (K, 4, lags x offsets)
     e_span = np.einsum("kcw,kcw->k", span, span)
-    resid = e_span - best.sum(axis=1)
+    resid = e_span - (c * c).max(axis=2).sum(axis=1)
     # the ADC's quantization noise, LSB^2 / 12 (the LSB: the smallest step between the
     # packet's sample values), is part of every packet's residual: added to a given
     # (analog) noise power; the floor of an estimated one (below one LSB of analog noise a
@@ -259,17 +278,15 @@ def common_mode_interference(
         shape_score = np.zeros(cand.size)
         for n in np.unique(n_span[n_span >= nl + 4]):  # shorter: no shape test
             n = int(n)
-            tpls = [
-                acoustic_templates(
-                    fs,
-                    n - lag,
-                    float(highpass_hz),
-                    int(highpass_order),
-                    None if lowpass_hz is None else float(lowpass_hz),
-                    int(lowpass_order),
-                )
-                for lag in range(nl)
-            ]
+            tpls = _lag_templates(
+                fs,
+                n,
+                nl,
+                float(highpass_hz),
+                int(highpass_order),
+                None if lowpass_hz is None else float(lowpass_hz),
+                int(lowpass_order),
+            )
             group = np.flatnonzero(n_span == n)
             for i in range(0, group.size, SHAPE_CHUNK):  # bounded memory: (chunk, 4, n)
                 part = group[i : i + SHAPE_CHUNK]
