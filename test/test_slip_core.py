@@ -172,6 +172,29 @@ def test_micro_slip_rarefactions_still_count_next_to_touch_release_activity():
     assert pre and pre[0].packet_ids[-1] in {e.packet_id for e in ring[1:4]}
 
 
+def test_a_compression_on_an_earlier_rarefactions_spot_is_no_touch_release_pair():
+    """A release comes after its touch. Micro-slips round a held contact, the second one
+    (a compression) landing on the first one's spot (a rarefaction): not a touch and its
+    release (both would stop counting), a repeat; the rarefaction stays evidence and the
+    third micro-slip gives the precursor. The other order, a compression then a
+    rarefaction on its spot, is a touch and its release: no precursor from the third."""
+    def seq(first_pol):
+        return [
+            ev(0, 0.0, 0.0, 1, 1),  # the held contact
+            ev(100 * MS, 1.5e-3, 0.0, first_pol, 2),  # a micro-slip at its edge
+            ev(200 * MS, 1.5e-3 + 30e-6, 20e-6, -first_pol, 3),  # on the same spot
+            ev(300 * MS, 0.0, 1.5e-3, 1, 4),  # another micro-slip, elsewhere on the edge
+        ]
+
+    det = SlipDetector()
+    pre = [o for o in run(det, seq(-1)) if o.kind == SlipEventType.SLIP_PRECURSOR]
+    assert pre and pre[0].packet_ids[-1] == 4
+    assert det.counts["pairs"] == 0 and det.counts["repeats"] == 1
+    det = SlipDetector()
+    assert not [o for o in run(det, seq(1)) if o.kind == SlipEventType.SLIP_PRECURSOR]
+    assert det.counts["pairs"] == 1
+
+
 def test_lone_orphan_release_is_not_a_contact_nor_a_precursor():
     det = SlipDetector()
     outs = det.process(ev(0, 1e-3, 1e-3, -1, 1))  # its touch was missed

@@ -18,8 +18,10 @@ The evidence is *where* emissions come from, not their sign:
   or the first micro-slip of a contact nobody announced);
 * two emissions of a contact on one spot (within the gate of their position
   uncertainties) are a touch and its release, or repeated taps: a pair. Polarity helps
-  where it is informative: only opposite polarities pair (a release is a rarefaction,
-  a touch a compression); a later emission on a paired spot is a repeat (no evidence);
+  where it is informative: a release (a rarefaction) pairs with an earlier touch (a
+  compression) on its spot, never the other way round (a release comes after its touch);
+  a later emission on a paired spot, or a compression on a rarefaction's, is a repeat
+  (no evidence);
   the founding emission paired ends the contact after ``release_confirm_s``;
 * an emission of a contact on no other emission's spot is micro-slip evidence:
   SLIP_PRECURSOR (STICK -> INCIPIENT_SLIP) when ``precursor_min_emissions`` of them fall
@@ -519,8 +521,12 @@ class SlipDetector:
             if near.any():
                 # on the spot of an earlier emission: a release / tap pair, or a repeat
                 cand = near & ((F & PAIRED) == 0)  # a repeat pairs with its release
-                if ev.polarity != 0:
-                    cand &= c.pol[:k] != ev.polarity
+                if ev.polarity > 0:
+                    # a release comes after its touch: a compression on an earlier
+                    # rarefaction's spot is a repeat (a re-touch), never its pair
+                    cand[:] = False
+                elif ev.polarity < 0:
+                    cand &= c.pol[:k] > 0
                 if cand.any():
                     j = int(np.flatnonzero(cand)[np.argmin(d2[cand])])
                     if (int(F[j]) & (EVID | OVERLAP)) == EVID:
