@@ -15,6 +15,7 @@
 """
 from __future__ import annotations
 
+import faulthandler
 import importlib
 import logging
 import logging.handlers
@@ -37,6 +38,10 @@ from ae_tactile.ros.params import Param, ParameterError
 LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                      reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+#: A clean-up taking longer than this after the first SIGINT/SIGTERM (s) prints the stack
+#: of every thread to stderr (the launch log): where it hangs, before launch escalates.
+CLEANUP_TRACEBACK_S = 15.0
 
 #: Longest time the spin loop blocks before it looks at the stop request (s). A Python
 #: signal handler only runs between bytecodes, never inside rcl_wait.
@@ -69,6 +74,10 @@ def _stop_on_signals(state: dict):
             os._exit(1)
         first = not stop.is_set()
         stop.set()
+        if first:
+            # a clean-up that hangs prints where every thread is (a C thread of
+            # faulthandler's: it works while the main thread is stuck in a call)
+            faulthandler.dump_traceback_later(CLEANUP_TRACEBACK_S, exit=False)
         if first and state["interrupt"]:
             raise KeyboardInterrupt
 
@@ -89,6 +98,7 @@ def _stop_on_signals(state: dict):
     try:
         yield
     finally:
+        faulthandler.cancel_dump_traceback_later()
         sys.unraisablehook = previous_hook
         for sig, old in previous.items():
             signal.signal(sig, old)
