@@ -799,8 +799,11 @@ class DeviceRunner:
         self.thread.start()
 
     def stop(self) -> None:
+        """Stop the loop (if it was started: a node stopped while it was being built
+        never started it) and close the transport."""
         self._stop.set()
-        self.thread.join(2.0)
+        if self.thread.ident is not None:
+            self.thread.join(2.0)
         self.transport.close()
 
     def call(self, fn, *args):

@@ -93,6 +93,16 @@ def test_every_packet_arrives_once_in_order_exact_and_well_stamped(tmp_path, kin
         assert s["device_serial"] == "AE-SIM-0001"
 
 
+def test_a_device_stopped_before_it_started_closes_its_port(tmp_path):
+    """A simulated fingertip stopped while its node was still being built (Ctrl-C during
+    the start-up) never started its loop: stopping it closes the port, raises nothing."""
+    transport = PtyTransport(str(tmp_path / "fingertip"))
+    runner = DeviceRunner(VirtualFingertip(SCENE), transport)
+    assert os.path.islink(tmp_path / "fingertip")
+    runner.stop()
+    assert not transport.connected() and not os.path.lexists(tmp_path / "fingertip")
+
+
 def test_the_sink_sees_waiting_bytes_and_gets_an_idle_call_after_the_last_packet(tmp_path):
     """What the in-process pipeline relies on: `bytes_waiting` is true while frames sit on
     the port (the reader is held in the sink, so it cannot have taken them), the frames

@@ -158,7 +158,8 @@ class LocalizerNode(Node):
             return super().destroy_node()
         self._running = False
         self._wake.set()
-        self._worker.join(1.0)
+        if self._worker.ident is not None:  # not started when stopped while being built
+            self._worker.join(1.0)
         self.pipeline.close()
         return super().destroy_node()
 
