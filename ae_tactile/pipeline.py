@@ -55,6 +55,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from ae_tactile.dsp.interference import ECHO_LEARN_KEEP, EchoLearner, echo_ratio
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import Localizer, Reason
 from ae_tactile.slip import LocalizedEvent, SlipConfig, SlipDetector
@@ -79,6 +80,13 @@ APEX_POLAR_RAD = math.radians(3.0)
 #: ... and so are very poorly fitting packets (a burst can also end as a bad fit elsewhere:
 #: seen at confidence 0.13; real touches at 10 dB have 0.35-0.45).
 SUSPECT_CONFIDENCE = 0.3
+#: The learnt echo test (`PacketLocalizer`, `interference_echo_min` < 0) measures the echo
+#: of accepted packets away from the apex with at least this confidence, at most
+#: ECHO_LEARN_PER_CALL per call, and once it holds ECHO_LEARN_KEEP, in one call in
+#: ECHO_LEARN_EVERY (it follows a device whose echo changes; ~40 us per measuring call).
+ECHO_LEARN_CONFIDENCE = 0.5
+ECHO_LEARN_PER_CALL = 4
+ECHO_LEARN_EVERY = 16
 #: Accepted packets below this confidence whose fit leaves more than OVERLAP_SUSPECT_EXCESS
 #: of unexplained in-band energy are checked for a second emission in the window (measured
 #: on the simulator: overlaps that `ml` accepted 0.1-8 mm off had confidence <= 0.53 and
@@ -201,13 +209,17 @@ def _gains_or_none(channel_gains):
     return None if np.all(g == 1.0) else g
 
 
-def _echo_min_or_none(echo_min) -> float | None:
-    """The echo test's threshold (0 < echo_min <= 1), or None for 0 (no echo test).
+#: `interference_echo_min` of a learnt echo test (`ae_tactile.dsp.interference.EchoLearner`)
+ECHO_MIN_LEARN = -1.0
+
+
+def _echo_min_setting(echo_min) -> float:
+    """The echo test's setting: < 0 learnt (ECHO_MIN_LEARN), 0 off, 0 < v <= 1 fixed.
     ValueError otherwise."""
     v = float(echo_min)
-    if not (math.isfinite(v) and 0.0 <= v <= 1.0):
-        raise ValueError(f"interference_echo_min must be in [0, 1], got {echo_min!r}")
-    return v if v > 0.0 else None
+    if not (math.isfinite(v) and -1.0 <= v <= 1.0):
+        raise ValueError(f"interference_echo_min must be in [-1, 1], got {echo_min!r}")
+    return ECHO_MIN_LEARN if v < 0.0 else v
 
 
 class PacketLocalizer:
@@ -228,12 +240,19 @@ class PacketLocalizer:
         reject_interference: bool = True,
         batch_min: int = 4,
         resolve_overlaps: bool = True,
-        interference_echo_min: float = 0.0,
+        interference_echo_min: float = ECHO_MIN_LEARN,
     ):
         self.localizer = Localizer(method, min_snr_db=min_snr_db)
         #: the interference discriminator's echo test (a device with wall echoes: an apex
-        #: packet without its echo at 2R/c is interference); 0: no echo test
-        self.interference_echo_min = _echo_min_or_none(interference_echo_min)
+        #: packet without its echo at 2R/c is interference): ECHO_MIN_LEARN (< 0) learnt
+        #: from the device's own touches away from the apex, 0 off, > 0 this threshold
+        self.interference_echo_min = _echo_min_setting(interference_echo_min)
+        self.echo_learner = EchoLearner()
+        self._echo_calls = 0
+        self._echo_pending: list = []
+        #: learn the echo inside `process` (False: the caller runs `learn_echo` once the
+        #: contact events are out, as `ContactPipeline` does)
+        self.learn_inline = True
         self.resolve_overlaps = bool(resolve_overlaps)
         #: windows of the last `process` call that hold overlapping emissions (for the
         #: OverlapResolver; rejected as OVERLAP or withdrawn as suspects)
@@ -264,7 +283,7 @@ class PacketLocalizer:
         (channel gains, echo threshold, method, SNR, confidence): nothing changed then."""
         gains = _gains_or_none(channel_gains) if channel_gains is not None else None
         echo = (
-            _echo_min_or_none(interference_echo_min)
+            _echo_min_setting(interference_echo_min)
             if interference_echo_min is not None
             else self.interference_echo_min
         )
@@ -284,6 +303,9 @@ class PacketLocalizer:
         if resolve_overlaps is not None:
             self.resolve_overlaps = bool(resolve_overlaps)
         if geometry is not None:
+            if geometry != self.geometry:
+                self.echo_learner.reset()  # another body: another echo
+                self._echo_pending = []
             self.geometry = geometry
         if channel_gains is not None:
             self.channel_gains = gains
@@ -348,6 +370,10 @@ class PacketLocalizer:
                     out.append((p, ev))
         if self.interference is not None:
             out = self._drop_interference(out, counts)
+            if self.interference_echo_min < 0.0 and count:
+                self._stash_echo(out)
+                if self.learn_inline:
+                    self.learn_echo()
         if self.resolve_overlaps:
             out = self._withdraw_suspects(out, counts)
         for _, ev in out:
@@ -374,7 +400,7 @@ class PacketLocalizer:
             onset = np.array([int(found[i][0].onset_index) for i in ids])
             try:
                 mask, _ = self.interference(
-                    w, fs, onset, geometry=self.geometry, echo_min=self.interference_echo_min
+                    w, fs, onset, geometry=self.geometry, echo_min=self.echo_min_in_use
                 )
             except ValueError:
                 continue
@@ -382,6 +408,70 @@ class PacketLocalizer:
         if drop:
             counts["rejected_INTERFERENCE"] += len(drop)
         return [f for i, f in enumerate(found) if i not in drop]
+
+    @property
+    def echo_min_in_use(self) -> float | None:
+        """The echo test's threshold now (None: no echo test): the fixed setting, or the
+        learnt one (None until the device's touches have shown an echo)."""
+        v = self.interference_echo_min
+        if v < 0.0:
+            return self.echo_learner.echo_min
+        return v if v > 0.0 else None
+
+    def echo_test_status(self) -> str:
+        """The echo test in words (diagnostics): off, fixed, learning, or what was learnt."""
+        v = self.interference_echo_min
+        if self.interference is None or v == 0.0:
+            return "off"
+        if v > 0.0:
+            return f"fixed, echo >= {v:.3f}"
+        r = self.echo_learner.ratio
+        if r is None:
+            return f"learning ({self.echo_learner.n_measured} touches measured)"
+        if self.echo_learner.echo_min is None:
+            return f"off: the touches' echo is {r:.3f} (no wall echo)"
+        need = self.echo_learner.echo_min
+        return f"learnt: touches' echo {r:.3f}, apex packets need >= {need:.3f}"
+
+    def _stash_echo(self, found) -> None:
+        """Keep (copies of) up to ECHO_LEARN_PER_CALL accepted, well-fitting packets away
+        from the apex (never interference: its zero delays put it at the apex) for
+        `learn_echo`, while the learner fills, then from one call in ECHO_LEARN_EVERY."""
+        self._echo_calls += 1
+        if self.echo_learner.n_measured >= ECHO_LEARN_KEEP and self._echo_calls % ECHO_LEARN_EVERY:
+            return
+        room = ECHO_LEARN_PER_CALL - len(self._echo_pending)
+        for p, ev in found:
+            if room <= 0:
+                break
+            if ev.polar_rad >= APEX_POLAR_RAD and ev.confidence >= ECHO_LEARN_CONFIDENCE:
+                self._echo_pending.append(
+                    (np.array(p.samples_v, dtype=np.float64), float(p.sample_rate_hz),
+                     int(p.onset_index), ev.point_m)
+                )
+                room -= 1
+
+    @property
+    def echo_pending(self) -> bool:
+        """Packets kept for `learn_echo`."""
+        return bool(self._echo_pending)
+
+    def learn_echo(self) -> None:
+        """Measure the wall echo of the packets kept (`echo_ratio`, ~70 us a call) and
+        teach it to the learner: run after the contact events are out (`ContactPipeline`),
+        or at the end of `process` when ``learn_inline``."""
+        pending, self._echo_pending = self._echo_pending, []
+        groups: dict[tuple, list] = {}
+        for item in pending:
+            groups.setdefault((item[0].shape, item[1]), []).append(item)
+        for (_, fs), grp in groups.items():
+            with np.errstate(all="ignore"):
+                self.echo_learner.add(
+                    echo_ratio(
+                        np.stack([g[0] for g in grp]), fs, np.array([g[2] for g in grp]),
+                        np.array([g[3] for g in grp]), self.geometry,
+                    )
+                )
 
     def _overlap(self, p, counts) -> None:
         counts["rejected_OVERLAP"] += 1
@@ -1002,6 +1092,9 @@ class ContactPipeline:
     #: `_slip_before` goes on with what is older
     _inline_horizon_ns: int | None = None
 
+    def __post_init__(self) -> None:
+        self.localizer.learn_inline = False  # `process` learns once the events are out
+
     def start_overlaps(self, wait_s: float = 0.0) -> None:
         """Start the overlap resolver (and its worker process) now, not at the first
         overlapping window, and wait up to wait_s for the worker to be warm; the driver
@@ -1156,6 +1249,8 @@ class ContactPipeline:
             on_contacts(contacts)
         if more_waiting is None or self.slip is None:
             self._slip_step(contacts)
+            if self.localizer.echo_pending:
+                self.localizer.learn_echo()
             return
         if contacts:
             if not self._slip_pending:
@@ -1165,6 +1260,8 @@ class ContactPipeline:
             time.monotonic() - self._slip_pending_since >= SLIP_MAX_DEFER_S or not more_waiting()
         ):
             self.run_pending_slip()
+        if self.localizer.echo_pending and not more_waiting():
+            self.localizer.learn_echo()  # else when the link is idle (`run_idle_work`)
 
     def _slip_before(self, windows: list) -> None:
         """Before the overlapping ``windows`` are fitted in this thread (about a millisecond
@@ -1281,6 +1378,16 @@ class ContactPipeline:
         pending, self._slip_pending = self._slip_pending, []
         if pending:
             self._slip_step(pending)
+
+    def run_idle_work(self) -> bool:
+        """What waits for a moment without packets: the slip step put off, then the echo
+        test's learning. True when it published slip or state changes may have come."""
+        slip = self.slip_pending
+        if slip:
+            self.run_pending_slip()
+        if self.localizer.echo_pending:
+            self.localizer.learn_echo()
+        return slip
 
     def late(
         self,

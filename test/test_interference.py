@@ -143,6 +143,41 @@ def test_front_end_shaped_interference_needs_the_wall_echo():
     assert kept >= 0.97 and rej >= 0.97
 
 
+@pytest.mark.parametrize("medium", ["water_skin", "silicone"])
+@pytest.mark.parametrize("fs", [1e6, 2e6, 10e6])
+def test_echo_ratio_of_touches_is_the_walls_reflection_coefficient(medium, fs):
+    """The echo a touch anywhere on the cap brings back (the concave wall refocuses it on
+    the array: its ratio to the direct wave is the wall's reflection coefficient), measured
+    at the localized point; about 0 without echoes, NaN for a window too short to hold
+    the echo, and the learner's threshold follows."""
+    from ae_tactile.dsp.interference import EchoLearner, echo_ratio
+    from ae_tactile.localization import localize
+
+    for r_wall in (-0.5, 0.3, None):
+        cfg = SimConfig.for_medium(medium, sample_rate_hz=fs, reflections=r_wall is not None,
+                                   reflection_coefficient=r_wall or -0.5)
+        rng = np.random.default_rng(int(fs) + 7)
+        g = cfg.geometry
+        th = np.radians(rng.uniform(5, 50, 60))
+        ph = rng.uniform(0, 2 * np.pi, 60)
+        pk = render_triggered(g.surface_point_from_angles(th, ph), cfg, snr_db=30.0, rng=rng)
+        res = localize(pk.samples_v, fs, pk.onset_index, geometry=g)
+        ok = np.flatnonzero(res.accepted)
+        beta = echo_ratio(pk.samples_v[ok], fs, pk.onset_index[ok], res.point_m[ok], g)
+        assert np.isfinite(beta).mean() >= 0.5  # the rest too weak for a clean ratio
+        learner = EchoLearner()
+        learner.add(beta)
+        if r_wall is None:
+            assert np.nanmax(np.abs(beta)) < 0.05 and learner.echo_min is None
+        else:
+            assert np.nanmedian(beta) == pytest.approx(r_wall, abs=0.03)
+            assert learner.echo_min == pytest.approx(0.5 * abs(r_wall), abs=0.02)
+        short = echo_ratio(pk.samples_v[ok, :, :20], fs, pk.onset_index[ok], res.point_m[ok], g)
+        assert np.isnan(short).all()
+    with pytest.raises(ValueError):
+        echo_ratio(np.zeros((2, 4, 50)), fs, [0, 0], np.zeros((3, 3)), g)
+
+
 def test_off_apex_touches_are_not_common_mode():
     cfg = SimConfig.for_medium("water_skin")
     rng = np.random.default_rng(3)

@@ -267,51 +267,135 @@ def test_common_mode_interference_is_rejected_and_counted_while_apex_touches_are
     assert rejected == len(bursts) and loc.counts["rejected_INTERFERENCE"] >= len(bursts) // 2
 
 
+def _edge_and_apex_views(cfg, seed):
+    """Switching edges entering the amplifier's input (packet ids 0..39) and touches within
+    1 mm of the apex (ids 100..119), as packet views."""
+    from ae_tactile.sim.interference import render_interference
+    from ae_tactile.sim.scene import reference_noise_rms
+    from ae_tactile.slip.evaluate import apex_touch_packets
+
+    rng = np.random.default_rng(seed)
+    noise = reference_noise_rms(cfg, 30.0)
+    apex = apex_touch_packets(cfg, 20, noise, rng, radius_m=1e-3)
+    edges = render_interference(40, cfg, kind="edge", coupling="input", noise_rms_v=noise, rng=rng)
+    out = [
+        PacketView(edges.samples_v[i], cfg.sample_rate_hz, int(edges.onset_index[i]),
+                   i * 1_000_000, i)
+        for i in range(len(edges))
+    ]
+    out += [
+        PacketView(apex.samples_v[i], cfg.sample_rate_hz, int(apex.onset_index[i]), 10**9 + i,
+                   100 + i)
+        for i in range(len(apex))
+    ]
+    return out, set(range(len(edges))), set(range(100, 100 + len(apex)))
+
+
+def _off_apex_touch_views(cfg, n, seed):
+    """``n`` touches 15 .. 40 deg from the apex at 30 dB (the device's everyday touches)."""
+    from ae_tactile.sim.scene import reference_noise_rms
+
+    rng = np.random.default_rng(seed)
+    g = cfg.geometry
+    pol = np.radians(rng.uniform(15, 40, n))
+    az = rng.uniform(0, 2 * np.pi, n)
+    pts = g.surface_point_from_xy(g.radius_m * np.sin(pol) * np.cos(az),
+                                  g.radius_m * np.sin(pol) * np.sin(az))
+    pk = render_triggered(pts, cfg, noise_rms_v=reference_noise_rms(cfg, 30.0), rng=rng,
+                          speed_m_s=np.full(n, 0.3), polarity=np.ones(n, int))
+    return [
+        PacketView(pk.samples_v[i], cfg.sample_rate_hz, int(pk.onset_index[i]), i, 500 + i)
+        for i in range(n)
+    ]
+
+
 def test_interference_through_the_front_end_needs_the_echo_test_of_a_device_with_echoes():
     """Switching edges entering the amplifier's input are shaped like an apex touch's
     packet; on a fingertip with wall echoes the missing echo at 2R/c gives them away once
     interference_echo_min is set (at run time), and apex touches, which have their echo,
     are still kept. Bad thresholds are refused, nothing changed."""
-    from ae_tactile.sim.interference import render_interference
-    from ae_tactile.sim.scene import reference_noise_rms
-    from ae_tactile.slip.evaluate import apex_touch_packets
-
     cfg = SimConfig(reflections=True)
-    rng = np.random.default_rng(11)
-    noise = reference_noise_rms(cfg, 30.0)
-    apex = apex_touch_packets(cfg, 20, noise, rng, radius_m=1e-3)
-    edges = render_interference(40, cfg, kind="edge", coupling="input", noise_rms_v=noise, rng=rng)
-
-    def views():
-        out = [
-            PacketView(edges.samples_v[i], cfg.sample_rate_hz, int(edges.onset_index[i]),
-                       i * 1_000_000, i)
-            for i in range(len(edges))
-        ]
-        out += [
-            PacketView(apex.samples_v[i], cfg.sample_rate_hz, int(apex.onset_index[i]), 10**9 + i,
-                       100 + i)
-            for i in range(len(apex))
-        ]
-        return out
-
-    loc = PacketLocalizer("ml", geometry=cfg.geometry)
-    touches = set(range(100, 100 + len(apex)))
-    kept = {e.packet_ids[0] for e in loc.process(views())}
-    assert len(kept & set(range(len(edges)))) >= len(edges) // 2  # without it: touches
+    views, edges, touches = _edge_and_apex_views(cfg, 11)
+    loc = PacketLocalizer("ml", geometry=cfg.geometry, interference_echo_min=0.0)
+    assert loc.echo_min_in_use is None and loc.echo_test_status() == "off"
+    kept = {e.packet_ids[0] for e in loc.process(views)}
+    assert len(kept & edges) >= len(edges) // 2  # without it: touches
     apex_kept = kept & touches
     assert len(apex_kept) >= 15  # (weak releases below the SNR threshold aside)
     loc.update(interference_echo_min=0.25)
-    kept = {e.packet_ids[0] for e in loc.process(views())}
-    assert not kept & set(range(len(edges)))
+    kept = {e.packet_ids[0] for e in loc.process(views)}
+    assert not kept & edges
     assert kept & touches == apex_kept
-    for bad in (1.5, -0.1, float("nan")):
+    for bad in (1.5, -1.5, float("nan")):
         with pytest.raises(ValueError):
             loc.update(interference_echo_min=bad)
         assert loc.interference_echo_min == 0.25
     with pytest.raises(ValueError):  # a bad value beside a good one: nothing changes
         loc.update(interference_echo_min=0.5, method="no_such_method")
     assert loc.interference_echo_min == 0.25 and loc.method == "ml"
+
+
+@pytest.mark.parametrize("medium", ["water_skin", "silicone"])
+def test_the_echo_test_is_learnt_from_the_devices_own_touches(medium):
+    """By default the echo test learns the wall's echo from touches away from the apex:
+    after three, on a fingertip with echoes (the simulator's wall returns -0.5 of the
+    direct wave), the learnt echo is that ratio and input-coupled edges are rejected while
+    apex touches are kept; on a fingertip without echoes the test stays off and keeps
+    everything (the edges are then apex touches: no single packet tells them apart)."""
+    from ae_tactile.pipeline import ECHO_MIN_LEARN
+
+    for echoes in (True, False):
+        cfg = SimConfig.for_medium(medium, reflections=echoes)
+        views, edges, touches = _edge_and_apex_views(cfg, 12)
+        loc = PacketLocalizer("ml", geometry=cfg.geometry)
+        assert loc.interference_echo_min == ECHO_MIN_LEARN and loc.echo_min_in_use is None
+        assert loc.echo_test_status().startswith("learning")
+        before = {e.packet_ids[0] for e in loc.process(views)}
+        assert len(before & edges) >= len(edges) // 2  # not yet learnt: edges pass
+        apex_kept = before & touches
+        assert len(apex_kept) >= 15
+        learnt = loc.process(_off_apex_touch_views(cfg, 3, 5))
+        assert len(learnt) == 3
+        kept = {e.packet_ids[0] for e in loc.process(views)}
+        assert kept & touches == apex_kept
+        if echoes:
+            ratio = loc.echo_learner.ratio
+            assert ratio == pytest.approx(abs(cfg.reflection_coefficient), abs=0.05)
+            assert loc.echo_min_in_use == pytest.approx(0.5 * ratio)
+            assert loc.echo_test_status().startswith("learnt")
+            assert not kept & edges
+        else:
+            assert loc.echo_learner.ratio < 0.05 and loc.echo_min_in_use is None
+            assert "no wall echo" in loc.echo_test_status()
+            assert kept & edges == before & edges
+        loc.update(geometry=FingertipGeometry(radius_m=0.012))  # another body: learn again
+        assert loc.echo_learner.ratio is None
+
+
+def test_the_pipeline_learns_the_echo_after_handing_out_the_contact_events():
+    """In the live pipeline the echo is measured after the contact events are out (or, with
+    packets waiting, when the link is idle), and then guards the apex the same way."""
+    cfg = SimConfig(reflections=True)
+    loc = PacketLocalizer("ml", geometry=cfg.geometry)
+    pipe = ContactPipeline(loc, SlipStage(SlipConfig()))
+    seen = []
+
+    def out(contacts):
+        seen.append((len(contacts), loc.echo_learner.n_measured))
+
+    touches = _off_apex_touch_views(cfg, 3, 8)
+    pipe.process(touches[:1], out)
+    assert seen == [(1, 0)] and loc.echo_learner.n_measured == 1  # learnt after the event
+    pipe.process(touches[1:], out, more_waiting=lambda: True)
+    assert loc.echo_pending and loc.echo_learner.n_measured == 1  # packets waiting: later
+    pipe.run_idle_work()
+    assert not loc.echo_pending and loc.echo_learner.echo_min is not None
+    views, edges, touches_apex = _edge_and_apex_views(cfg, 13)
+    got = []
+    pipe.process(views, got.extend)
+    kept = {e.packet_ids[0] for e in got}
+    assert not kept & edges and len(kept & touches_apex) >= 15
+    pipe.close()
 
 
 @pytest.mark.parametrize("inline_max", [OVERLAP_INLINE_MAX, 2])

@@ -57,11 +57,13 @@ def test_tuning_parameters_change_at_once_and_are_validated(driver_and_client):
     assert r.successful and loc.method == "gradient"
     (r,) = set_params(localization__method="magic")
     assert not r.successful and loc.method == "gradient"
-    assert loc.interference_echo_min is None  # no echo test by default
+    assert loc.interference_echo_min < 0 and loc.echo_min_in_use is None  # learnt, not yet
     (r,) = set_params(localization__interference_echo_min=0.25)
-    assert r.successful and loc.interference_echo_min == 0.25
+    assert r.successful and loc.echo_min_in_use == 0.25
     (r,) = set_params(localization__interference_echo_min=2.0)
-    assert not r.successful and loc.interference_echo_min == 0.25
+    assert not r.successful and loc.echo_min_in_use == 0.25
+    (r,) = set_params(localization__interference_echo_min=0.0)
+    assert r.successful and loc.echo_min_in_use is None
     (r,) = set_params(slip__sliding_speed_m_s=0.02)
     assert r.successful
     assert drv.slip_stage.detector.config.sliding_speed_m_s == pytest.approx(0.02)

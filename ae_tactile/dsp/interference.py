@@ -316,3 +316,113 @@ def common_mode_interference(
     score = np.where(finite, np.where(e_s > 0, score, 0.0), np.nan)
     mask = finite & (common >= common_min) & (score >= 1.0)
     return mask, score
+
+
+#: The learned echo test (`EchoLearner`): it engages once ECHO_LEARN_N touches away from the
+#: apex have been measured and the median of their echo ratios |beta| is at least
+#: ECHO_LEARN_MIN (a device whose echoes are weaker has no usable echo: no test); its
+#: threshold is ECHO_LEARN_MARGIN of that median (an apex touch's |beta| scatters round the
+#: device's ratio by its noise: 0.05 at 20 dB in the window); the median of the last
+#: ECHO_LEARN_KEEP measurements.
+ECHO_LEARN_N = 3
+ECHO_LEARN_MIN = 0.15
+ECHO_LEARN_MARGIN = 0.5
+ECHO_LEARN_KEEP = 64
+#: a measurement needs the direct wave's energy in the window above this multiple of the
+#: noise's (20 dB: the ratio's noise is then <= 0.1 / sqrt(channels))
+ECHO_LEARN_SNR = 100.0
+
+
+def echo_ratio(windows, sample_rate_hz: float, onset_index, points_m, geometry,
+               noise_rms_v=None) -> np.ndarray:
+    """The first wall echo's amplitude over the direct wave's, beta (K,), of packets
+    ``windows`` (K, 4, M) volts whose emissions were localized at ``points_m`` (K, 3).
+
+    The echo reaches element k over 2R + |s + e_k| against |s - e_k| for the direct wave
+    (`ae_tactile.sim.propagation`); per channel the window of w = min(2R/c, 5 us) samples
+    from its direct arrival (onset - 1 + the localized delay) is regressed on the same
+    window at its echo's lag: beta = sum_k <d_k, e_k> / sum_k <d_k, d_k> (the concave wall
+    refocuses the echo: its amplitude over the direct wave's is the wall's reflection
+    coefficient, about the same for every contact point). NaN where the window does not
+    hold the echo, or the direct wave's energy is below ECHO_LEARN_SNR times the noise's
+    (``noise_rms_v``, else estimated from >= 8 samples before the onset, else no test)."""
+    x = np.asarray(windows, dtype=float)
+    pts = np.asarray(points_m, dtype=float).reshape(-1, 3)
+    if x.ndim != 3 or x.shape[1] != 4 or pts.shape[0] != x.shape[0]:
+        raise ValueError(f"windows must be (K, 4, M) with K points, got {x.shape}, {pts.shape}")
+    k, _, m = x.shape
+    fs = float(sample_rate_hz)
+    on = np.broadcast_to(np.asarray(onset_index, dtype=np.int64).reshape(-1), (k,))
+    out = np.full(k, np.nan)
+    if k == 0:
+        return out
+    c = geometry.sound_speed_m_s
+    e = geometry.element_positions_m  # (4, 3)
+    direct = np.linalg.norm(pts[:, None, :] - e[None], axis=2)  # (K, 4)
+    echo = 2.0 * geometry.radius_m + np.linalg.norm(pts[:, None, :] + e[None], axis=2)
+    first = direct.min(axis=1, keepdims=True)
+    lag = int(round(2.0 * geometry.radius_m / c * fs))
+    wd = max(2, min(lag, int(round(5e-6 * fs))))
+    with np.errstate(invalid="ignore"):
+        i_d = on[:, None] - 1 + np.rint((direct - first) / c * fs)
+        i_e = on[:, None] - 1 + np.rint((echo - first) / c * fs)
+    ok = np.isfinite(i_d).all(axis=1) & np.isfinite(i_e).all(axis=1)
+    ok &= (np.where(np.isfinite(i_d), i_d, -1).min(axis=1) >= 0)
+    ok &= (np.where(np.isfinite(i_e), i_e, m).max(axis=1) + wd <= m)
+    rows = np.flatnonzero(ok)
+    if rows.size == 0:
+        return out
+    ar = np.arange(wd)
+    ch = np.arange(4)[None, :, None]
+    d = x[rows[:, None, None], ch, i_d[rows].astype(np.int64)[:, :, None] + ar]  # (R, 4, wd)
+    ec = x[rows[:, None, None], ch, i_e[rows].astype(np.int64)[:, :, None] + ar]
+    ed = np.einsum("rcw,rcw->r", d, d)
+    beta = np.einsum("rcw,rcw->r", d, ec) / np.maximum(ed, 1e-30)
+    if noise_rms_v is not None:
+        nv = np.broadcast_to(np.asarray(noise_rms_v, float).reshape(-1) ** 2, (k,))[rows]
+    elif int(on.min()) - 2 >= 8:
+        pre = x[rows, :, : int(on.min()) - 2]
+        nv = pre.var(axis=2).mean(axis=1)
+    else:
+        nv = np.zeros(rows.size)
+    good = np.isfinite(beta) & (ed > ECHO_LEARN_SNR * 4 * wd * nv) & (ed > 0)
+    out[rows[good]] = beta[good]
+    return out
+
+
+class EchoLearner:
+    """The echo test's threshold learnt from the device's own touches: on a fingertip with
+    wall echoes every acoustic packet carries its echo at 2R/c, interference shaped by the
+    front end none. `add` the `echo_ratio` of touches away from the apex (never
+    interference); `echo_min` is ECHO_LEARN_MARGIN x median |beta| of the last
+    ECHO_LEARN_KEEP once ECHO_LEARN_N were seen and that median is >= ECHO_LEARN_MIN, else
+    None (no echo test: a device without echoes, or not yet learnt)."""
+
+    def __init__(self):
+        self._betas: list[float] = []
+        #: echo ratios measured so far (all, not only the kept ones)
+        self.n_measured = 0
+
+    def add(self, betas) -> None:
+        b = np.asarray(betas, dtype=float).reshape(-1)
+        b = b[np.isfinite(b)]
+        if b.size:
+            self._betas.extend(b.tolist())
+            del self._betas[:-ECHO_LEARN_KEEP]
+            self.n_measured += int(b.size)
+
+    def reset(self) -> None:
+        self._betas.clear()
+        self.n_measured = 0
+
+    @property
+    def ratio(self) -> float | None:
+        """The device's echo ratio |median beta| (None before ECHO_LEARN_N touches)."""
+        if len(self._betas) < ECHO_LEARN_N:
+            return None
+        return abs(float(np.median(self._betas)))
+
+    @property
+    def echo_min(self) -> float | None:
+        r = self.ratio
+        return None if r is None or r < ECHO_LEARN_MIN else ECHO_LEARN_MARGIN * r

@@ -433,9 +433,9 @@ class DriverNode(Node):
             self.published_packets += len(batch.packets)
 
     def _on_link_idle(self) -> None:
-        """Reader thread, nothing more to read: the slip step put off under load."""
-        if self.pipeline is not None and self.pipeline.slip_pending:
-            self.pipeline.run_pending_slip()
+        """Reader thread, nothing more to read: the slip step put off under load (and the
+        echo test's learning)."""
+        if self.pipeline is not None and self.pipeline.run_idle_work():
             self._publish_state()
 
     def _publish_contacts(self, records) -> None:
@@ -746,6 +746,7 @@ def _localization_status(node_name, hardware_id, pipeline, events) -> Diagnostic
     loc.values += [
         KeyValue(key="method", value=pipeline.localizer.method),
         KeyValue(key="published_events", value=str(events)),
+        KeyValue(key="interference_echo_test", value=pipeline.localizer.echo_test_status()),
     ]
     return loc
 

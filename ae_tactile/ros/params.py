@@ -245,12 +245,14 @@ LOCALIZATION_PARAMS = [
     tunable(
         Param(
             "interference_echo_min",
-            0.0,
-            "A fingertip with wall echoes: an apex packet whose echo at 2R/c is weaker "
-            "than this share of the direct packet (regression coefficient) is interference "
-            "(catches interference entering the amplifier's input, shaped like a touch); "
-            "0: no echo test (a device without echoes); 0.25 for a wall returning half",
-            0.0,
+            -1.0,
+            "Echo test of a fingertip with wall echoes: an apex packet whose echo at 2R/c "
+            "is weaker than this share of the direct packet (regression coefficient) is "
+            "interference (catches interference entering the amplifier's input, shaped "
+            "like a touch). -1: learnt, half the echo of the device's own touches away "
+            "from the apex, once 3 have shown one of >= 0.15 (none on a device without "
+            "echoes); 0: no echo test; 0.25 for a wall returning half",
+            -1.0,
             1.0,
         )
     ),

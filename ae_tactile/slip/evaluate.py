@@ -895,8 +895,10 @@ def interference_trial(
     """A held touch under common-mode interference bursts (1 Hz .. 10 kHz, every waveform,
     ADC coupling; 'input' coupling with wall echoes) through the waveform pipeline:
     acoustic packets + `InterferenceSource` packets -> (``discriminate``:
-    `common_mode_interference`) -> localize -> detector. Counts: interference packets,
-    rejected, localized (phantom events), contacts and false alarms; the held touch kept."""
+    `common_mode_interference`, its echo test learnt as the driver does by default from
+    the device's first three touches, `learnt_echo_min`) -> localize -> detector. Counts:
+    interference packets, rejected, localized (phantom events), contacts and false alarms;
+    the held touch kept."""
     from ae_tactile.dsp.interference import common_mode_interference
     from ae_tactile.sim.interference import InterferenceSource
 
@@ -938,7 +940,8 @@ def interference_trial(
         geometry=geo,
         lowpass_hz=scene.config.lowpass_hz,
         lowpass_order=scene.config.lowpass_order,
-        echo_min=0.25 if reflections else None,
+        # the driver's default: the echo test learnt from the device's first touches
+        echo_min=learnt_echo_min(scene.config, scene.noise_rms_v, rng),
     )
     events = localized_events(pk, geo)
     kept_acoustic = len(events)
@@ -994,6 +997,33 @@ def interference_trial(
     return out
 
 
+def learnt_echo_min(config, noise_rms_v: float, rng, n: int = 3) -> float | None:
+    """The echo test's threshold the driver learns by default (`EchoLearner`,
+    ``interference_echo_min`` -1) from the device's first ``n`` touches away from the apex
+    (polar 10 .. 45 deg, 0.1 .. 0.5 m/s, localized): None on a device without wall echoes."""
+    from ae_tactile.dsp.interference import EchoLearner, echo_ratio
+    from ae_tactile.sim.triggered import render_triggered
+
+    g = config.geometry
+    pol = np.radians(rng.uniform(10.0, 45.0, n))
+    az = rng.uniform(0, 2 * np.pi, n)
+    r = g.radius_m * np.sin(pol)
+    pk = render_triggered(
+        g.surface_point_from_xy(r * np.cos(az), r * np.sin(az)),
+        config,
+        noise_rms_v=noise_rms_v,
+        rng=rng,
+        speed_m_s=rng.uniform(0.1, 0.5, n),
+        polarity=rng.choice([-1, 1], n),
+    )
+    fs = config.sample_rate_hz
+    res = localize(pk.samples_v, fs, pk.onset_index, geometry=g)
+    learner = EchoLearner()
+    ok = np.flatnonzero(res.accepted)
+    learner.add(echo_ratio(pk.samples_v[ok], fs, pk.onset_index[ok], res.point_m[ok], g))
+    return learner.echo_min
+
+
 def apex_touch_packets(config, n: int, noise_rms_v: float, rng, radius_m: float = 1.5e-3):
     """``n`` rendered trigger windows of touches and releases (random polarity, 0.05 ..
     0.5 m/s) uniform over the disc of ``radius_m`` round the apex: near-zero delays and
@@ -1022,7 +1052,8 @@ def interference_packet_rates(
     call): apex touches (<= 1.5 mm) kept, and common-mode interference (each waveform,
     'adc' and 'input' coupling, amplitude 10 .. 300 noise sigmas) rejected, and of those
     passed how many the localizer accepts (phantom events). ``echoes``: a device with wall
-    echoes (the echo test on). One row per (noise, coupling, kind)."""
+    echoes (the echo test on, learnt as the driver does by default from three touches
+    away from the apex, `learnt_echo_min`). One row per (noise, coupling, kind)."""
     from ae_tactile.dsp.interference import common_mode_interference
     from ae_tactile.sim.config import SimConfig
     from ae_tactile.sim.interference import KINDS, render_interference
@@ -1034,6 +1065,7 @@ def interference_packet_rates(
     noise = reference_noise_rms(cfg, snr_db)
     fs = cfg.sample_rate_hz
     apex = apex_touch_packets(cfg, n, noise, rng)
+    echo_min = learnt_echo_min(cfg, noise, rng) if echoes else None
     bursts = {
         (c, k): render_interference(n, cfg, kind=k, coupling=c, noise_rms_v=noise, rng=rng)
         for c in ("adc", "input")
@@ -1046,7 +1078,7 @@ def interference_packet_rates(
             geometry=cfg.geometry,
             lowpass_hz=cfg.lowpass_hz,
             lowpass_order=cfg.lowpass_order,
-            echo_min=0.25 if echoes else None,
+            echo_min=echo_min,
         )
         m_apex, _ = common_mode_interference(apex.samples_v, fs, apex.onset_index, **kw)
         kept = 1.0 - float(m_apex.mean())
