@@ -545,7 +545,9 @@ def tables(res: dict) -> str:
             "silicone, SNR 20 / 30 / 40 dB; interference 10 .. 300 noise sigmas; "
             "rejected % / phantom events per 1,000 bursts; 'input' coupling passes the front "
             "end's filters: its edges are an apex touch's packet, told apart only by the "
-            "wall echo, on a device with echoes).\n"
+            "wall echo, on a device with echoes; 'input+echo': such a device, the echo test "
+            "learnt as the driver does by default, from its first three touches away from "
+            "the apex).\n"
         )
         cols = [k for k in next(iter(ip.values())) if ":" in k]
         L.append("| rate, noise | apex kept (lowest / mean) | " + " | ".join(cols) + " |")

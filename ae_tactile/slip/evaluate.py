@@ -997,30 +997,33 @@ def interference_trial(
     return out
 
 
-def learnt_echo_min(config, noise_rms_v: float, rng, n: int = 3) -> float | None:
+def learnt_echo_min(config, noise_rms_v: float, rng, n: int = 3, n_touches: int = 24):
     """The echo test's threshold the driver learns by default (`EchoLearner`,
     ``interference_echo_min`` -1) from the device's first ``n`` touches away from the apex
-    (polar 10 .. 45 deg, 0.1 .. 0.5 m/s, localized): None on a device without wall echoes."""
+    whose echo it could measure (of ``n_touches``: polar 10 .. 45 deg, 0.1 .. 0.5 m/s,
+    localized; a weak one is not measured): None on a device without wall echoes (or when
+    fewer than ``n`` were measured)."""
     from ae_tactile.dsp.interference import EchoLearner, echo_ratio
     from ae_tactile.sim.triggered import render_triggered
 
     g = config.geometry
-    pol = np.radians(rng.uniform(10.0, 45.0, n))
-    az = rng.uniform(0, 2 * np.pi, n)
+    pol = np.radians(rng.uniform(10.0, 45.0, n_touches))
+    az = rng.uniform(0, 2 * np.pi, n_touches)
     r = g.radius_m * np.sin(pol)
     pk = render_triggered(
         g.surface_point_from_xy(r * np.cos(az), r * np.sin(az)),
         config,
         noise_rms_v=noise_rms_v,
         rng=rng,
-        speed_m_s=rng.uniform(0.1, 0.5, n),
-        polarity=rng.choice([-1, 1], n),
+        speed_m_s=rng.uniform(0.1, 0.5, n_touches),
+        polarity=rng.choice([-1, 1], n_touches),
     )
     fs = config.sample_rate_hz
     res = localize(pk.samples_v, fs, pk.onset_index, geometry=g)
-    learner = EchoLearner()
     ok = np.flatnonzero(res.accepted)
-    learner.add(echo_ratio(pk.samples_v[ok], fs, pk.onset_index[ok], res.point_m[ok], g))
+    beta = echo_ratio(pk.samples_v[ok], fs, pk.onset_index[ok], res.point_m[ok], g)
+    learner = EchoLearner()
+    learner.add(beta[np.isfinite(beta)][:n])
     return learner.echo_min
 
 
