@@ -354,3 +354,27 @@ def test_interference_bursts_never_become_contacts_and_are_counted(ros_context):
         assert not {"SLIP", "TEXTURE"} & set(s["slip_events"]), s["slip_events"]
     finally:
         system.close()
+
+
+def test_input_coupled_interference_rejected_once_the_wall_echo_is_learnt(ros_context, tmp_path):
+    """A fingertip with wall echoes: three taps away from the apex, then switching edges
+    entering the amplifier's input (shaped like an apex touch by the front end) at 1 kHz
+    over a held touch. The driver learns the echo from the taps (default settings) and
+    rejects every edge: the taps, the touch and its release are found, nothing else."""
+    scene = scene_file(
+        tmp_path, "interference", effects={"reflections": True}, coupling="input", kind="edge",
+        taps_before=3, start_s=0.1, touch_time_s=0.105, hold_s=0.2, duration_s=0.35,
+    )
+    system, s = run_system(ros_context, scene)
+    try:
+        loc = system.driver.pipeline.localizer
+        assert loc.echo_test_status().startswith("learnt"), loc.echo_test_status()
+        assert loc.echo_learner.ratio == pytest.approx(0.5, abs=0.05)  # the wall's -0.5
+        tr = s["touch_release"]
+        assert tr["found"] == tr["truth"] == 8 and tr["typed_correctly"] == 8
+        rejected = loc.counts["rejected_INTERFERENCE"]
+        assert rejected >= 200  # ~250 edges
+        assert s["emissions"]["events"] == s["emissions"]["matched"]  # no phantom touch
+        assert not {"SLIP", "TEXTURE", "SLIP_PRECURSOR"} & set(s["slip_events"])
+    finally:
+        system.close()

@@ -705,7 +705,10 @@ def interference(ctx, p):
     `ae_tactile.sim.interference.InterferenceSource` to render as packets (the acoustic
     renderer cannot). Bursts at ``rate_hz`` from ``start_s`` for ``burst_duration_s``,
     periodic (jitter ``jitter_s``) or Poisson. With ``hold_s`` > 0 a touch at (x_m, y_m)
-    at ``touch_time_s`` is held that long under the bursts and released."""
+    at ``touch_time_s`` is held that long under the bursts and released. ``taps_before``
+    taps (touch, release 10 ms later, every 30 ms from 5 ms) at random points 10 .. 45 deg
+    from the apex come first: the everyday touches from which the driver learns the wall
+    echo (end them before ``start_s``)."""
     from ae_tactile.sim.interference import burst_times_s
 
     rng = _rng(ctx.seed, 81)
@@ -726,17 +729,33 @@ def interference(ctx, p):
         "amplitude_snr_db": p["amplitude_snr_db"],
         "seed": int(ctx.seed),
     }
-    em = EmissionList.empty()
+    lists = []
+    n_taps = int(p["taps_before"])
+    if n_taps:
+        geo = ctx.config.geometry
+        rng_t = _rng(ctx.seed, 82)
+        pol = np.radians(rng_t.uniform(10.0, 45.0, n_taps))
+        az = rng_t.uniform(0.0, 2.0 * math.pi, n_taps)
+        pts = geo.surface_point_from_xy(geo.radius_m * np.sin(pol) * np.cos(az),
+                                        geo.radius_m * np.sin(pol) * np.sin(az))
+        t_tap = 0.005 + 0.03 * np.arange(n_taps)
+        ev = EventParams(p["speed_m_s"], p["curvature_1_m"], p["alpha_1_s"])
+        ids = 100 + 2 * np.arange(n_taps)
+        lists.append(_make(ctx, t_tap, pts, "touch", ev, 1, ids))
+        if ctx.effects["release_emissions"]:
+            evr = EventParams(p["release_speed_m_s"], p["curvature_1_m"], p["alpha_1_s"])
+            lists.append(_make(ctx, t_tap + 0.01, pts, "release", evr, -1, ids + 1))
     if p["hold_s"] > 0:
         # a held touch (touch_hold_release) under the interference: the false-alarm scene
         sub = touch_hold_release(ctx, {**p, "time_s": p["touch_time_s"]})
-        em = sub.emissions
+        lists.append(sub.emissions)
         truth.update(
             {
                 "touch_time_ns": int(_ns(p["touch_time_s"])),
                 "release_time_ns": sub.truth["release_time_ns"],
             }
         )
+    em = EmissionList.concat(lists) if lists else EmissionList.empty()
     return StaticEmissions(em, truth)
 
 

@@ -278,6 +278,8 @@ GENERATORS = {
             "touch_time_s": _f(1e-3, "held touch: touch time (s)", 0.0, 3600.0),
             "hold_s": _f(0.0, "held touch: hold time (s); 0: no touch", 0.0, 3600.0),
             "release_speed_m_s": _f(0.15, "held touch: separation speed (m/s)", 1e-4, 20.0),
+            "taps_before": Key("int", 0, "taps away from the apex before it all (every 30 ms)",
+                               0, 1000),
             **_EV,
         },
     ),
