@@ -263,7 +263,8 @@ def slip_rows(d) -> list[str]:
         rows.append(
             f"| moving textured stylus | one contact in {100 * st['one_contact_rate']:.0f} %, "
             f"TEXTURE in {100 * st['found_rate']:.1f} %, first period within 3 % in "
-            f"{100 * st['period_within_3pct_first']:.1f} % | bench_slip |"
+            f"{100 * st['period_within_3pct_first']:.1f} % (the median of a slide's reports: "
+            f"{100 * st['period_within_3pct_median']:.1f} %) | bench_slip |"
         )
     itf = s.get("interference", {}).get("with_discriminator")
     if itf:
