@@ -11,7 +11,8 @@ in the thread that decoded them:
 3. common-mode interference rejection (identical waveforms on the four channels, e.g. a
    motor driver's switching): such a packet has zero delays, so the localizer puts it at
    the apex; the discriminator (`ae_tactile.dsp.interference`) runs on the packets
-   localized within ``APEX_POLAR_RAD`` of the apex, or with a poor fit, only;
+   localized within ``APEX_POLAR_RAD`` of the apex, or with a poor fit, only (packet
+   tests, the wall echo learnt from the device's touches, the timing of periodic trains);
 4. contact events (TOUCH for compressions, DETOUCH for rarefactions) handed to the caller
    at once, *before* the slip step; windows that hold overlapping emissions (rejected as
    OVERLAP, or accepted with a poor fit that `suspect_overlap` finds inconsistent with one
@@ -55,7 +56,15 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ae_tactile.dsp.interference import ECHO_LEARN_KEEP, EchoLearner, echo_ratio
+from ae_tactile.dsp.interference import (
+    ECHO_LEARN_KEEP,
+    TRAIN_TOL_S,
+    TRAIN_TOL_SAMPLES,
+    BurstTrain,
+    EchoLearner,
+    common_mode_share,
+    echo_ratio,
+)
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import Localizer, Reason
 from ae_tactile.slip import LocalizedEvent, SlipConfig, SlipDetector
@@ -78,8 +87,13 @@ _NAN3 = (math.nan, math.nan, math.nan)
 #: for bursts with 1 % channel gain mismatch; 3 deg leaves a wide margin) ...
 APEX_POLAR_RAD = math.radians(3.0)
 #: ... and so are very poorly fitting packets (a burst can also end as a bad fit elsewhere:
-#: seen at confidence 0.13; real touches at 10 dB have 0.35-0.45).
+#: seen at confidence 0.13; real touches at 10 dB have 0.35-0.45) ...
 SUSPECT_CONFIDENCE = 0.3
+#: ... and every packet whose four channels are nearly one waveform: common-mode share of
+#: the window's energy (noise removed) at least COMMON_SUSPECT (bursts with a middling fit
+#: were seen localized 3 .. 25 deg off the apex at confidence 0.3 .. 0.66; their share is
+#: >= 0.9, the discriminator's own bar; touches beyond a few degrees have far less).
+COMMON_SUSPECT = 0.8
 #: The learnt echo test (`PacketLocalizer`, `interference_echo_min` < 0) measures the echo
 #: of accepted packets away from the apex with at least this confidence, at most
 #: ECHO_LEARN_PER_CALL per call, and once it holds ECHO_LEARN_KEEP, in one call in
@@ -222,6 +236,31 @@ def _echo_min_setting(echo_min) -> float:
     return ECHO_MIN_LEARN if v < 0.0 else v
 
 
+def _common_share(packets) -> list[float]:
+    """`common_mode_share` of each packet (the packet's own noise_rms_v removed), one
+    vectorized step per window shape."""
+    out = [0.0] * len(packets)
+    groups: dict[tuple, list[int]] = {}
+    for i, p in enumerate(packets):
+        groups.setdefault(np.shape(p.samples_v), []).append(i)
+    for ids in groups.values():
+        x = np.stack([np.asarray(packets[i].samples_v, dtype=np.float64) for i in ids])
+        nv = [float(getattr(packets[i], "noise_rms_v", 0.0) or 0.0) for i in ids]
+        for i, v in zip(ids, common_mode_share(x, nv)):
+            out[i] = float(v)
+    return out
+
+
+def _packet_time_s(p) -> float:
+    """A packet's onset (s) on the device's sample clock where the packet has it (exact to a
+    sample), else on its host stamp."""
+    fs = float(p.sample_rate_hz)
+    dsi = getattr(p, "device_sample_index", None)
+    if dsi is not None:
+        return (int(dsi) + int(p.onset_index)) / fs
+    return int(p.stamp_ns) * 1e-9 + int(p.onset_index) / fs
+
+
 class PacketLocalizer:
     """Packets -> contact events (TOUCH / DETOUCH), counting every rejection by reason.
 
@@ -248,6 +287,8 @@ class PacketLocalizer:
         #: from the device's own touches away from the apex, 0 off, > 0 this threshold
         self.interference_echo_min = _echo_min_setting(interference_echo_min)
         self.echo_learner = EchoLearner()
+        #: the timing of the apex packets (periodic interference, `BurstTrain`)
+        self.burst_train = BurstTrain()
         self._echo_calls = 0
         self._echo_pending: list = []
         #: learn the echo inside `process` (False: the caller runs `learn_echo` once the
@@ -382,12 +423,17 @@ class PacketLocalizer:
         return [ev for _, ev in out]
 
     def _drop_interference(self, found, counts):
-        """Drop the apex events whose packets the discriminator calls interference."""
-        near = [
-            i
-            for i, (_, ev) in enumerate(found)
-            if ev.polar_rad < APEX_POLAR_RAD or ev.confidence < SUSPECT_CONFIDENCE
-        ]
+        """Drop the events whose packets the discriminator calls interference: those at the
+        apex, fitting poorly, or with one waveform on the four channels."""
+        near, rest = [], []
+        for i, (_, ev) in enumerate(found):
+            if ev.polar_rad < APEX_POLAR_RAD or ev.confidence < SUSPECT_CONFIDENCE:
+                near.append(i)
+            else:
+                rest.append(i)
+        if rest:
+            near += [i for i, c in zip(rest, _common_share([found[i][0] for i in rest]))
+                     if c >= COMMON_SUSPECT]
         if not near:
             return found
         drop = set()
@@ -407,6 +453,21 @@ class PacketLocalizer:
             drop.update(i for i, m in zip(ids, np.asarray(mask, bool)) if m)
         if drop:
             counts["rejected_INTERFERENCE"] += len(drop)
+        # timing: every apex packet (kept or not) joins the train's history; one kept by
+        # the per-packet tests whose intervals repeat the history's is a periodic burst
+        train = set()
+        apex = [i for i in near if found[i][1].polar_rad < APEX_POLAR_RAD]
+        for i in sorted(apex, key=lambda j: _packet_time_s(found[j][0])):
+            p = found[i][0]
+            t = _packet_time_s(p)
+            if i not in drop and self.burst_train.is_member(
+                t, max(TRAIN_TOL_S, TRAIN_TOL_SAMPLES / float(p.sample_rate_hz))
+            ):
+                train.add(i)
+            self.burst_train.add(t)
+        if train:
+            counts["rejected_INTERFERENCE_TRAIN"] += len(train)
+            drop |= train
         return [f for i, f in enumerate(found) if i not in drop]
 
     @property

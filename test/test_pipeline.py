@@ -278,9 +278,10 @@ def _edge_and_apex_views(cfg, seed):
     noise = reference_noise_rms(cfg, 30.0)
     apex = apex_touch_packets(cfg, 20, noise, rng, radius_m=1e-3)
     edges = render_interference(40, cfg, kind="edge", coupling="input", noise_rms_v=noise, rng=rng)
+    t_ns = np.sort(rng.integers(0, 10**9, len(edges)))  # at random times: no periodic train
     out = [
         PacketView(edges.samples_v[i], cfg.sample_rate_hz, int(edges.onset_index[i]),
-                   i * 1_000_000, i)
+                   int(t_ns[i]), i)
         for i in range(len(edges))
     ]
     out += [
@@ -370,6 +371,41 @@ def test_the_echo_test_is_learnt_from_the_devices_own_touches(medium):
             assert kept & edges == before & edges
         loc.update(geometry=FingertipGeometry(radius_m=0.012))  # another body: learn again
         assert loc.echo_learner.ratio is None
+
+
+@pytest.mark.parametrize("fs", [2e6, 10e6])
+def test_a_periodic_burst_train_is_rejected_by_its_timing_on_a_device_without_echoes(fs):
+    """No wall echo, edges entering the amplifier's input at 1 kHz (an apex touch's packet,
+    each one): from the 4th burst on, their timing gives them away (counted apart); apex
+    touches at random times among them are all kept (those above the SNR threshold)."""
+    from ae_tactile.sim.interference import render_interference
+    from ae_tactile.sim.scene import reference_noise_rms
+    from ae_tactile.slip.evaluate import apex_touch_packets
+
+    cfg = SimConfig(sample_rate_hz=fs)
+    rng = np.random.default_rng(21)
+    noise = reference_noise_rms(cfg, 30.0)
+    n = 50
+    edges = render_interference(n, cfg, kind="edge", coupling="input", noise_rms_v=noise, rng=rng)
+    apex = apex_touch_packets(cfg, 30, noise, rng, radius_m=1.5e-3)
+    t_edge = 0.0123 + 1e-3 * np.arange(n)
+    t_apex = rng.uniform(0.0, 0.05, 30)
+    order = sorted(
+        [(t, 0, i) for i, t in enumerate(t_edge)] + [(t, 1, i) for i, t in enumerate(t_apex)]
+    )
+    loc = PacketLocalizer("ml", geometry=cfg.geometry)
+    kept_edges, kept_apex = [], []
+    for t, is_touch, i in order:
+        pk = apex if is_touch else edges
+        on = int(pk.onset_index[i])
+        view = PacketView(pk.samples_v[i], fs, on, int(round((t - on / fs) * 1e9)), i)
+        if loc.process([view]):
+            (kept_apex if is_touch else kept_edges).append(i)
+    assert set(kept_edges) <= {0, 1, 2}
+    c = loc.counts  # the packet tests catch some (2 MS/s: most), the timing the others
+    assert c["rejected_INTERFERENCE_TRAIN"] > 0
+    assert c["rejected_INTERFERENCE_TRAIN"] + c["rejected_INTERFERENCE"] >= 0.9 * (n - 3)
+    assert len(kept_apex) + loc.counts["rejected_LOW_SNR"] >= 30  # every other one kept
 
 
 def test_the_pipeline_learns_the_echo_after_handing_out_the_contact_events():

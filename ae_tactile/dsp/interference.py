@@ -29,8 +29,10 @@ filter allows). Per packet (all vectorized over K packets, M samples after the o
 
 Interference when common >= ``common_min`` and score >= 1. Interference shaped by the
 front end itself (coupled into the amplifier's input) has an acoustic packet's spectrum
-and is not separable from an apex touch by one packet: docs/slip.md gives the measured
-rates for both couplings.
+and is not separable from an apex touch by one packet without the wall echo an acoustic
+packet brings back at 2R/c (``echo_min``; `echo_ratio` and `EchoLearner` learn it from the
+device's own touches), or by the timing of a periodic train (`BurstTrain`): docs/slip.md
+gives the measured rates for both couplings.
 """
 
 from __future__ import annotations
@@ -170,6 +172,25 @@ def _unexplained_share(span, tpls, nv, nv_rel_var, shape_min, shape_z):
     # estimated noise power adds its own error, times the dof it is removed from)
     spread = math.sqrt(2.0 * n_dof + n_dof * n_dof * nv_rel_var)
     return excess / np.maximum((1.0 - shape_min) * e_sig, shape_z * spread * nv1)
+
+
+def common_mode_share(windows, noise_rms_v=None) -> np.ndarray:
+    """Common-mode share of each packet's energy (K,): |s|^2 / mean_c |x_c|^2 over the
+    window (s the mean of the four channels of ``windows`` (K, 4, M) volts; the noise
+    sigma ``noise_rms_v`` (scalar or (K,); None: 0) removed): 1 for one waveform on the
+    four channels, 0 where it cannot be told (no energy beyond the noise, non-finite). The
+    cheap screen that sends a packet to `common_mode_interference`."""
+    x = np.asarray(windows, dtype=np.float64)
+    if x.ndim != 3 or x.shape[1] != 4:
+        raise ValueError(f"windows must be (K, 4, M), got shape {x.shape}")
+    m = x.shape[2]
+    nv = 0.0 if noise_rms_v is None else np.asarray(noise_rms_v, float).reshape(-1) ** 2
+    s = x.mean(axis=1)
+    e_s = np.einsum("km,km->k", s, s) - 0.25 * m * nv
+    e_ch = np.einsum("kcm,kcm->k", x, x) * 0.25 - m * nv
+    with np.errstate(all="ignore"):
+        c = np.where(e_ch > 0, e_s / e_ch, 0.0)
+    return np.where(np.isfinite(c), c, 0.0)
 
 
 def common_mode_interference(
@@ -426,3 +447,57 @@ class EchoLearner:
     def echo_min(self) -> float | None:
         r = self.ratio
         return None if r is None or r < ECHO_LEARN_MIN else ECHO_LEARN_MARGIN * r
+
+
+#: Periodic interference (`BurstTrain`): the apex packets remembered, and how closely (s; at
+#: least TRAIN_TOL_SAMPLES sample periods) a new interval must equal an earlier one.
+TRAIN_KEEP = 8
+TRAIN_TOL_S = 1e-6
+TRAIN_TOL_SAMPLES = 3
+#: pairs (new interval, earlier interval) that must agree: 2 lets a train's 3rd burst pass
+#: and catches the 4th, where one would let chance matches among dense Poisson bursts drop
+#: ~5 % of the apex packets at 10 kHz
+TRAIN_MIN_MATCHES = 2
+#: intervals shorter than this (s) are no period (packets closer than a packet's length;
+#: stamps that do not advance)
+TRAIN_MIN_PERIOD_S = 20e-6
+
+
+class BurstTrain:
+    """Timing of a crystal-timed interference source (a switching regulator, a motor
+    driver's PWM): its bursts come at multiples of one period, to a fraction of a
+    microsecond, where touches never do (a hand's or a robot's timing jitters by
+    milliseconds). Remember the times of the last TRAIN_KEEP packets localized at the apex;
+    a new one whose intervals to them equal intervals between two of them (within
+    ``tol_s``, TRAIN_MIN_MATCHES pairs) belongs to a train. A touch at the apex during a
+    train is taken for one when it falls within tol of the train's phase: probability
+    ~ 2 tol / T (T the train's period: 2 % at 10 kHz, 0.2 % at 1 kHz); the first three
+    bursts of a train are not caught."""
+
+    def __init__(self, keep: int = TRAIN_KEEP):
+        self._t: list[float] = []
+        self.keep = int(keep)
+
+    def is_member(self, t_s: float, tol_s: float) -> bool:
+        n = len(self._t)
+        if n < 2:
+            return False  # (one earlier interval: one pair at most)
+        # t - h_j = h_k - h_i (i < k, j != i: with j = i it only says t is near h_k), all
+        # three intervals at least TRAIN_MIN_PERIOD_S (no near-duplicates, no still stamps)
+        h = np.sort(np.asarray(self._t))
+        i, k = np.triu_indices(n, 1)
+        d_old = h[k] - h[i]
+        d_new = t_s - h
+        ok_old = (d_old >= TRAIN_MIN_PERIOD_S) & (t_s - h[k] >= TRAIN_MIN_PERIOD_S)
+        ok_new = d_new >= TRAIN_MIN_PERIOD_S
+        hit = np.abs(d_new[:, None] - d_old[None, :]) <= tol_s
+        hit &= ok_new[:, None] & ok_old[None, :]
+        hit &= np.arange(n)[:, None] != i[None, :]
+        return int(np.count_nonzero(hit)) >= TRAIN_MIN_MATCHES
+
+    def add(self, t_s: float) -> None:
+        self._t.append(float(t_s))
+        del self._t[: -self.keep]
+
+    def reset(self) -> None:
+        self._t.clear()
