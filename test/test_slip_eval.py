@@ -121,6 +121,21 @@ def test_interference_never_becomes_an_alarm():
     assert all(r["n_acoustic_kept"] == r["n_acoustic_packets"] for r in rows)
 
 
+def test_periodic_interference_without_wall_echoes_is_caught_by_its_timing():
+    """Edges entering the amplifier's input of a fingertip without echoes are apex touches
+    to every packet test; periodic ones (seeds 1, 3, 5, 6: 1.8 .. 5.6 kHz) are caught by
+    their timing after the first three: at most 3 phantom events and one extra contact a
+    trial, no alarm, the held touch kept."""
+    rows = [ev.interference_trial(s, duration_s=0.3, input_without_echoes=True)
+            for s in (1, 3, 5, 6)]
+    assert all(r["periodic"] and not r["echoes"] for r in rows)
+    assert all(r["n_phantom_events"] <= 3 and r["contacts_created"] <= 2 for r in rows)
+    n = sum(r["n_interference"] for r in rows)
+    assert sum(r["n_rejected_timing"] for r in rows) >= 0.1 * n
+    assert sum(r["n_alarm_onsets"] for r in rows) == 0
+    assert all(r["n_acoustic_kept"] == r["n_acoustic_packets"] for r in rows)
+
+
 def test_sparse_emitters_slip_latency_and_no_slip_with_a_stick_zone_left(sparse):
     """Gross slip of sparse emitters (100 .. 200 Hz from the whole disc) is decided on a
     few gross-slip emissions: the median delay is below the median arrival of the 4th

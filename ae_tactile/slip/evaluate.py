@@ -891,15 +891,27 @@ def interference_trial(
     *,
     discriminate: bool = True,
     duration_s: float = 1.0,
+    input_without_echoes: bool = False,
 ) -> dict:
     """A held touch under common-mode interference bursts (1 Hz .. 10 kHz, every waveform,
     ADC coupling; 'input' coupling with wall echoes) through the waveform pipeline:
-    acoustic packets + `InterferenceSource` packets -> (``discriminate``:
-    `common_mode_interference`, its echo test learnt as the driver does by default from
-    the device's first three touches, `learnt_echo_min`) -> localize -> detector. Counts:
-    interference packets, rejected, localized (phantom events), contacts and false alarms;
-    the held touch kept."""
-    from ae_tactile.dsp.interference import common_mode_interference
+    acoustic packets + `InterferenceSource` packets -> localize -> (``discriminate``: as
+    the driver's `PacketLocalizer`: `common_mode_interference` on the packets localized at
+    the apex, fitting poorly or with one waveform on the four channels, its echo test
+    learnt as by default from the device's first three touches, `learnt_echo_min`; then
+    the apex packets' timing, `BurstTrain`) -> detector. ``input_without_echoes``: every
+    burst enters the amplifier's input of a fingertip without wall echoes (no echo test:
+    only the timing can tell). Counts:
+    interference packets, rejected (by the packet tests, by the timing), localized
+    (phantom events), contacts and false alarms; the held touch kept."""
+    from ae_tactile.dsp.interference import (
+        TRAIN_TOL_S,
+        TRAIN_TOL_SAMPLES,
+        BurstTrain,
+        common_mode_interference,
+        common_mode_share,
+    )
+    from ae_tactile.pipeline import APEX_POLAR_RAD, COMMON_SUSPECT, SUSPECT_CONFIDENCE
     from ae_tactile.sim.interference import InterferenceSource
 
     rng = np.random.default_rng([7024, int(seed)])
@@ -907,7 +919,9 @@ def interference_trial(
     fs = float(rng.choice([2e6, 5e6, 10e6]))
     rate = float(math.exp(rng.uniform(math.log(1.0), math.log(1e4))))
     coupling = "input" if rng.uniform() < 0.25 else "adc"
-    reflections = coupling == "input"
+    if input_without_echoes:
+        coupling = "input"
+    reflections = coupling == "input" and not input_without_echoes
     x, y = _cap_xy(rng)
     spec = {
         "generator": "interference",
@@ -944,38 +958,66 @@ def interference_trial(
         echo_min=learnt_echo_min(scene.config, scene.noise_rms_v, rng),
     )
     events = localized_events(pk, geo)
-    kept_acoustic = len(events)
-    n_rej = 0
+    n_acoustic = len(events)
+    # every packet the localizer accepted at the apex or with a poor fit goes through the
+    # discriminator; the apex ones (masked or not) make the timing's history, in time order
+    cand = []  # (onset ns, acoustic?, index, masked)
+    m_ac = np.zeros(len(pk.emissions), bool)
     if discriminate and len(pk.emissions):
         m_ac, _ = common_mode_interference(pk.samples_v, fs, pk.onset_index, **kw)
-        drop = set(np.flatnonzero(m_ac).tolist())
-        events = [e for e in events if e.packet_id not in drop]
-        kept_acoustic = len(events)
+    ev_keep = []
+    share_ac = common_mode_share(pk.samples_v, scene.noise_rms_v) if len(pk.emissions) else []
+    for e in events:
+        pol = math.acos(min(1.0, e.point_m[2] / float(np.linalg.norm(e.point_m))))
+        near = (pol < APEX_POLAR_RAD or e.confidence < SUSPECT_CONFIDENCE
+                or share_ac[e.packet_id] >= COMMON_SUSPECT)
+        if near and m_ac[e.packet_id]:
+            continue
+        ev_keep.append(e)
+        if pol < APEX_POLAR_RAD:
+            travel = float(geo.arrival_times_s(e.point_m[None])[0].min())
+            cand.append((e.time_ns + int(round(travel * 1e9)), True, e, False))
+    n_train = 0
     phantom = []
     if n_if:
+        res = localize(ip.samples_v, fs, ip.onset_index, geometry=geo)
         mask = np.zeros(n_if, bool)
         if discriminate:
             mask, _ = common_mode_interference(ip.samples_v, fs, ip.onset_index, **kw)
-            n_rej = int(mask.sum())
-        keep = np.flatnonzero(~mask)
-        if keep.size:
-            res = localize(ip.samples_v[keep], fs, ip.onset_index[keep], geometry=geo)
-            travel = np.round(geo.arrival_times_s(res.point_m).min(axis=1) * 1e9).astype(np.int64)
-            for j in np.flatnonzero(res.accepted):
-                i = keep[j]
-                onset_ns = int(t_if[i]) + int(round(1e9 / fs))
-                phantom.append(
-                    LocalizedEvent(
-                        onset_ns - int(travel[j]),
-                        res.point_m[j],
-                        res.covariance_m2[j],
-                        int(res.polarity[j]),
-                        float(res.amplitude_v[j]),
-                        float(res.confidence[j]),
-                        1_000_000 + int(i),
-                    )
+        pol = np.arccos(np.clip(res.point_m[:, 2] / np.linalg.norm(res.point_m, axis=1), -1, 1))
+        near = (pol < APEX_POLAR_RAD) | (res.confidence < SUSPECT_CONFIDENCE)
+        near |= common_mode_share(ip.samples_v, scene.noise_rms_v) >= COMMON_SUSPECT
+        mask &= near & res.accepted  # the driver tests only these
+        onset_ns = t_if + int(round(1e9 / fs))
+        for i in np.flatnonzero(res.accepted & (pol < APEX_POLAR_RAD)):
+            cand.append((int(onset_ns[i]), False, int(i), bool(mask[i])))
+        train = set()
+        if discriminate:
+            hist = BurstTrain()
+            tol = max(TRAIN_TOL_S, TRAIN_TOL_SAMPLES / fs)
+            for t_ns, acoustic, ref, masked in sorted(cand, key=lambda c: c[0]):
+                if not masked and hist.is_member(t_ns * 1e-9, tol):
+                    train.add((acoustic, id(ref) if acoustic else ref))
+                hist.add(t_ns * 1e-9)
+        n_train = sum(1 for a, _ in train if not a)
+        ev_keep = [e for e in ev_keep if (True, id(e)) not in train]
+        travel = np.round(geo.arrival_times_s(res.point_m).min(axis=1) * 1e9).astype(np.int64)
+        for i in np.flatnonzero(res.accepted & ~mask):
+            if (False, int(i)) in train:
+                continue
+            phantom.append(
+                LocalizedEvent(
+                    int(onset_ns[i]) - int(travel[i]),
+                    res.point_m[i],
+                    res.covariance_m2[i],
+                    int(res.polarity[i]),
+                    float(res.amplitude_v[i]),
+                    float(res.confidence[i]),
+                    1_000_000 + int(i),
                 )
-    allev = sorted(events + phantom, key=lambda e: e.time_ns)
+            )
+    n_rej = n_if - len(phantom)  # rejected by the localizer, the packet tests or the timing
+    allev = sorted(ev_keep + phantom, key=lambda e: e.time_ns)
     det, outs, trace = run_detector(allev, config, end_ns, tick_ns=int(0.01 * _NS))
     out = {
         "seed": int(seed),
@@ -983,13 +1025,18 @@ def interference_trial(
         "medium": medium,
         "sample_rate_hz": fs,
         "rate_hz": rate,
+        "periodic": bool(spec["params"]["periodic"]),
         "coupling": coupling,
+        "echoes": bool(reflections),
         "discriminate": discriminate,
+        "input_without_echoes": bool(input_without_echoes),
         "n_interference": n_if,
         "n_rejected": n_rej,
+        "n_rejected_timing": n_train,
         "n_phantom_events": len(phantom),
         "n_acoustic_packets": int(len(pk.emissions)),
-        "n_acoustic_kept": kept_acoustic,
+        "n_acoustic_kept": len(ev_keep),
+        "n_acoustic_localized": n_acoustic,
         "contacts_created": int(det.counts["contacts_created"]),
         "state_mid": int(_state_at(trace, end_ns // 2)),
     }
