@@ -62,8 +62,8 @@ from ae_tactile.dsp.interference import (
     TRAIN_TOL_SAMPLES,
     BurstTrain,
     EchoLearner,
-    common_mode_share,
     echo_ratio,
+    packet_common_share,
 )
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import Localizer, Reason
@@ -90,10 +90,11 @@ APEX_POLAR_RAD = math.radians(3.0)
 #: seen at confidence 0.13; real touches at 10 dB have 0.35-0.45) ...
 SUSPECT_CONFIDENCE = 0.3
 #: ... and every packet whose four channels are nearly one waveform: common-mode share of
-#: the window's energy (noise removed) at least COMMON_SUSPECT (bursts with a middling fit
-#: were seen localized 3 .. 25 deg off the apex at confidence 0.3 .. 0.66; their share is
-#: >= 0.9, the discriminator's own bar; touches beyond a few degrees have far less).
-COMMON_SUSPECT = 0.8
+#: the window's energy (noise removed) at least COMMON_SUSPECT, the discriminator's own bar
+#: (bursts with a middling fit were seen localized 3 .. 25 deg off the apex at confidence
+#: 0.3 .. 0.66; touches reach it only within ~11 deg of the apex: 9-14 % of touches
+#: uniform over 3 .. 50 deg, which then pay the discriminator, ~40 us).
+COMMON_SUSPECT = 0.9
 #: The learnt echo test (`PacketLocalizer`, `interference_echo_min` < 0) measures the echo
 #: of accepted packets away from the apex with at least this confidence, at most
 #: ECHO_LEARN_PER_CALL per call, and once it holds ECHO_LEARN_KEEP, in one call in
@@ -237,18 +238,12 @@ def _echo_min_setting(echo_min) -> float:
 
 
 def _common_share(packets) -> list[float]:
-    """`common_mode_share` of each packet (the packet's own noise_rms_v removed), one
-    vectorized step per window shape."""
-    out = [0.0] * len(packets)
-    groups: dict[tuple, list[int]] = {}
-    for i, p in enumerate(packets):
-        groups.setdefault(np.shape(p.samples_v), []).append(i)
-    for ids in groups.values():
-        x = np.stack([np.asarray(packets[i].samples_v, dtype=np.float64) for i in ids])
-        nv = [float(getattr(packets[i], "noise_rms_v", 0.0) or 0.0) for i in ids]
-        for i, v in zip(ids, common_mode_share(x, nv)):
-            out[i] = float(v)
-    return out
+    """`common_mode_share` of each packet (the packet's own noise_rms_v removed; compiled,
+    ~1 us a packet)."""
+    return [
+        packet_common_share(p.samples_v, float(getattr(p, "noise_rms_v", 0.0) or 0.0))
+        for p in packets
+    ]
 
 
 def _packet_time_s(p) -> float:
