@@ -275,6 +275,20 @@ def slip_rows(d) -> list[str]:
             f"{itf['phantom_events']} phantom touches, {itf['extra_contacts']} extra contacts, "
             f"{itf['alarm_onsets']} slip alarms | bench_slip |"
         )
+    ne = s.get("interference", {}).get("input_without_echoes")
+    if ne:
+        by = ne["by"]
+        per, poi = by.get("periodic=True"), by.get("periodic=False")
+        rows.append(
+            "| the same, bursts entering the amplifier's input of a fingertip without wall "
+            "echoes (shaped like an apex touch) | "
+            + (f"periodic: {per['phantom_events']} phantom touches in {per['trials']} trials "
+               f"(caught by their timing from the 4th burst)" if per else "")
+            + ("; " if per and poi else "")
+            + (f"at random times: {poi['phantom_events']} in {poi['trials']} trials "
+               f"({100 * poi['rejected_rate']:.1f} % rejected)" if poi else "")
+            + f"; {ne['alarm_onsets']} slip alarms | bench_slip |"
+        )
     sp = d.get("detector_speed")
     if sp:
         meta = d.get("meta", {})
