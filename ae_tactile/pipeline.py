@@ -238,12 +238,16 @@ def _echo_min_setting(echo_min) -> float:
 
 
 def _common_share(packets) -> list[float]:
-    """`common_mode_share` of each packet (the packet's own noise_rms_v removed; compiled,
-    ~1 us a packet)."""
-    return [
-        packet_common_share(p.samples_v, float(getattr(p, "noise_rms_v", 0.0) or 0.0))
-        for p in packets
-    ]
+    """`common_mode_share` of each packet (its pretrigger mean and its own noise_rms_v
+    removed; compiled, ~1 us a packet)."""
+    out = []
+    for p in packets:
+        nv = float(getattr(p, "noise_rms_v", 0.0) or 0.0)
+        out.append(
+            packet_common_share(p.samples_v, nv if math.isfinite(nv) else 0.0,
+                                int(p.onset_index))
+        )
+    return out
 
 
 def _packet_time_s(p) -> float:
@@ -340,7 +344,9 @@ class PacketLocalizer:
             self.resolve_overlaps = bool(resolve_overlaps)
         if geometry is not None:
             if geometry != self.geometry:
-                self.echo_learner.reset()  # another body: another echo
+                # another body, another echo: a new learner (a measurement of the old body
+                # still under way in the reader's thread goes to the old one)
+                self.echo_learner = EchoLearner()
                 self._echo_pending = []
             self.geometry = geometry
         if channel_gains is not None:
@@ -386,6 +392,9 @@ class PacketLocalizer:
         """Contact events of the accepted packets, in packet order."""
         counts = self.counts if count else Counter()
         self.overlap_windows = []
+        # the body this call localizes on, and its echo learner (`update` may switch both
+        # from another thread meanwhile: the echo of these packets belongs to this one)
+        body = (self.geometry, self.echo_learner)
         good = []
         for p in packets:
             counts["packets"] += 1
@@ -406,12 +415,12 @@ class PacketLocalizer:
                     out.append((p, ev))
         if self.interference is not None:
             out = self._drop_interference(out, counts)
-            if self.interference_echo_min < 0.0 and count:
-                self._stash_echo(out)
-                if self.learn_inline:
-                    self.learn_echo()
         if self.resolve_overlaps:
             out = self._withdraw_suspects(out, counts)
+        if self.interference is not None and self.interference_echo_min < 0.0 and count:
+            self._stash_echo(out, body)  # single emissions only (suspects withdrawn)
+            if self.learn_inline:
+                self.learn_echo()
         for _, ev in out:
             counts["events"] += 1
             counts["detouch" if ev.event_type == EventType.DETOUCH else "touch"] += 1
@@ -426,23 +435,33 @@ class PacketLocalizer:
                 near.append(i)
             else:
                 rest.append(i)
+        # well-fitting packets off the apex with one waveform on the four channels: the
+        # spectrum tests only (a window holding two emissions of a slip near the apex is
+        # common-mode too, and no single template explains it: the shape and echo tests
+        # would reject it; the overlap resolver is its place)
+        screened = set()
         if rest:
-            near += [i for i, c in zip(rest, _common_share([found[i][0] for i in rest]))
-                     if c >= COMMON_SUSPECT]
-        if not near:
+            screened = {i for i, c in zip(rest, _common_share([found[i][0] for i in rest]))
+                        if c >= COMMON_SUSPECT}
+        if not near and not screened:
             return found
         drop = set()
         groups: dict[tuple, list[int]] = {}
-        for i in near:
+        for i in near + sorted(screened):
             p = found[i][0]
-            groups.setdefault((p.samples_v.shape[1], float(p.sample_rate_hz)), []).append(i)
-        for (_, fs), ids in groups.items():
+            groups.setdefault(
+                (p.samples_v.shape[1], float(p.sample_rate_hz), i in screened), []
+            ).append(i)
+        for (_, fs, spectrum_only), ids in groups.items():
             w = np.stack([np.asarray(found[i][0].samples_v, dtype=np.float64) for i in ids])
             onset = np.array([int(found[i][0].onset_index) for i in ids])
+            kw = (
+                {"shape_min": None, "echo_min": None}
+                if spectrum_only
+                else {"echo_min": self.echo_min_in_use}
+            )
             try:
-                mask, _ = self.interference(
-                    w, fs, onset, geometry=self.geometry, echo_min=self.echo_min_in_use
-                )
+                mask, _ = self.interference(w, fs, onset, geometry=self.geometry, **kw)
             except ValueError:
                 continue
             drop.update(i for i, m in zip(ids, np.asarray(mask, bool)) if m)
@@ -489,7 +508,7 @@ class PacketLocalizer:
         need = self.echo_learner.echo_min
         return f"learnt: touches' echo {r:.3f}, apex packets need >= {need:.3f}"
 
-    def _stash_echo(self, found) -> None:
+    def _stash_echo(self, found, body) -> None:
         """Keep (copies of) up to ECHO_LEARN_PER_CALL accepted, well-fitting packets away
         from the apex (never interference: its zero delays put it at the apex) for
         `learn_echo`, while the learner fills, then from one call in ECHO_LEARN_EVERY."""
@@ -503,7 +522,7 @@ class PacketLocalizer:
             if ev.polar_rad >= APEX_POLAR_RAD and ev.confidence >= ECHO_LEARN_CONFIDENCE:
                 self._echo_pending.append(
                     (np.array(p.samples_v, dtype=np.float64), float(p.sample_rate_hz),
-                     int(p.onset_index), ev.point_m)
+                     int(p.onset_index), ev.point_m, *body)
                 )
                 room -= 1
 
@@ -518,16 +537,18 @@ class PacketLocalizer:
         or at the end of `process` when ``learn_inline``."""
         pending, self._echo_pending = self._echo_pending, []
         groups: dict[tuple, list] = {}
-        for item in pending:
-            groups.setdefault((item[0].shape, item[1]), []).append(item)
+        for item in pending:  # (each measured with the body it was localized on, and
+            # taught to that body's learner: after a geometry change, to none)
+            if item[5] is self.echo_learner:
+                groups.setdefault((item[0].shape, item[1]), []).append(item)
         for (_, fs), grp in groups.items():
+            geometry, learner = grp[0][4], grp[0][5]
             with np.errstate(all="ignore"):
-                self.echo_learner.add(
-                    echo_ratio(
-                        np.stack([g[0] for g in grp]), fs, np.array([g[2] for g in grp]),
-                        np.array([g[3] for g in grp]), self.geometry,
-                    )
+                beta = echo_ratio(
+                    np.stack([g[0] for g in grp]), fs, np.array([g[2] for g in grp]),
+                    np.array([g[3] for g in grp]), geometry,
                 )
+            learner.add(beta)
 
     def _overlap(self, p, counts) -> None:
         counts["rejected_OVERLAP"] += 1

@@ -408,6 +408,38 @@ def test_a_periodic_burst_train_is_rejected_by_its_timing_on_a_device_without_ec
     assert len(kept_apex) + loc.counts["rejected_LOW_SNR"] >= 30  # every other one kept
 
 
+def test_the_common_mode_screen_costs_no_touch_of_a_slip_near_the_apex(monkeypatch):
+    """A contact slipping at the apex (gross slip at 1 kHz, many windows holding two
+    emissions: common-mode to the screen, but a single template cannot explain them): the
+    screen's spectrum tests reject none of them; what is rejected as interference is what
+    the apex tests rejected without the screen."""
+    import ae_tactile.pipeline as pl
+    from ae_tactile.sim.scene import load_scene
+
+    spec = {"generator": "incipient_slip", "duration_s": 1.2, "seed": 3,
+            "sensor": {"medium": "water_skin"}, "effects": {"reflections": True},
+            "noise": {"snr_db": 30.0},
+            "params": {"x_m": 0.0, "y_m": 0.0, "tangential_load_rate_n_per_s": 2.0,
+                       "slip_rate_hz": 1000.0, "start_s": 0.05}}
+    scene = load_scene(spec)
+    pk = scene.triggered_source().next_packets(1 << 30, horizon_ns=int(1.2e9))
+    fs = scene.config.sample_rate_hz
+    views = [PacketView(pk.samples_v[i].astype(np.float32), fs, int(pk.onset_index[i]),
+                        int(rng_t), i, noise_rms_v=float(scene.noise_rms_v))
+             for i, rng_t in enumerate(np.sort(np.random.default_rng(1).integers(0, 10**12,
+                                                                                 len(pk.emissions))))]
+
+    def rejected(screen):
+        monkeypatch.setattr(pl, "COMMON_SUSPECT", pl.COMMON_SUSPECT if screen else 2.0)
+        loc = PacketLocalizer("ml", geometry=scene.config.geometry)
+        for v in views:
+            loc.process([v])
+        return loc.counts["rejected_INTERFERENCE"], loc.counts["events"]
+
+    with_screen, without = rejected(True), rejected(False)
+    assert len(views) > 500 and with_screen == without
+
+
 def test_the_pipeline_learns_the_echo_after_handing_out_the_contact_events():
     """In the live pipeline the echo is measured after the contact events are out (or, with
     packets waiting, when the link is idle), and then guards the apex the same way."""

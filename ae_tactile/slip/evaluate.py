@@ -962,32 +962,41 @@ def interference_trial(
     # every packet the localizer accepted at the apex or with a poor fit goes through the
     # discriminator; the apex ones (masked or not) make the timing's history, in time order
     cand = []  # (onset ns, acoustic?, index, masked)
-    m_ac = np.zeros(len(pk.emissions), bool)
-    if discriminate and len(pk.emissions):
-        m_ac, _ = common_mode_interference(pk.samples_v, fs, pk.onset_index, **kw)
+
+    def masks(x, onset):
+        """(the full tests' mask, the spectrum tests' mask, common-mode share), as the
+        driver applies them: the full tests at the apex or a poor fit, the spectrum tests
+        on the other packets with one waveform on the four channels."""
+        z = np.zeros(x.shape[0], bool)
+        if not discriminate or x.shape[0] == 0:
+            return z, z, np.zeros(x.shape[0])
+        full, _ = common_mode_interference(x, fs, onset, **kw)
+        spec_kw = {**kw, "echo_min": None, "shape_min": None}
+        spectrum, _ = common_mode_interference(x, fs, onset, **spec_kw)
+        return full, spectrum, common_mode_share(x, scene.noise_rms_v, onset)
+
+    m_full, m_spec, share_ac = masks(pk.samples_v, pk.onset_index)
     ev_keep = []
-    share_ac = common_mode_share(pk.samples_v, scene.noise_rms_v) if len(pk.emissions) else []
     for e in events:
         pol = math.acos(min(1.0, e.point_m[2] / float(np.linalg.norm(e.point_m))))
-        near = (pol < APEX_POLAR_RAD or e.confidence < SUSPECT_CONFIDENCE
-                or share_ac[e.packet_id] >= COMMON_SUSPECT)
-        if near and m_ac[e.packet_id]:
-            continue
-        ev_keep.append(e)
+        j = e.packet_id
+        if pol < APEX_POLAR_RAD or e.confidence < SUSPECT_CONFIDENCE:
+            masked = bool(m_full[j])
+        else:
+            masked = bool(share_ac[j] >= COMMON_SUSPECT and m_spec[j])
         if pol < APEX_POLAR_RAD:
             travel = float(geo.arrival_times_s(e.point_m[None])[0].min())
-            cand.append((e.time_ns + int(round(travel * 1e9)), True, e, False))
+            cand.append((e.time_ns + int(round(travel * 1e9)), True, e, masked))
+        if not masked:
+            ev_keep.append(e)
     n_train = 0
     phantom = []
     if n_if:
         res = localize(ip.samples_v, fs, ip.onset_index, geometry=geo)
-        mask = np.zeros(n_if, bool)
-        if discriminate:
-            mask, _ = common_mode_interference(ip.samples_v, fs, ip.onset_index, **kw)
+        f_if, s_if, share_if = masks(ip.samples_v, ip.onset_index)
         pol = np.arccos(np.clip(res.point_m[:, 2] / np.linalg.norm(res.point_m, axis=1), -1, 1))
         near = (pol < APEX_POLAR_RAD) | (res.confidence < SUSPECT_CONFIDENCE)
-        near |= common_mode_share(ip.samples_v, scene.noise_rms_v) >= COMMON_SUSPECT
-        mask &= near & res.accepted  # the driver tests only these
+        mask = np.where(near, f_if, (share_if >= COMMON_SUSPECT) & s_if) & res.accepted
         onset_ns = t_if + int(round(1e9 / fs))
         for i in np.flatnonzero(res.accepted & (pol < APEX_POLAR_RAD)):
             cand.append((int(onset_ns[i]), False, int(i), bool(mask[i])))
