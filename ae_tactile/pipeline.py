@@ -95,6 +95,11 @@ SUSPECT_CONFIDENCE = 0.3
 #: 0.3 .. 0.66; touches reach it only within ~11 deg of the apex: 9-14 % of touches
 #: uniform over 3 .. 50 deg, which then pay the discriminator, ~40 us).
 COMMON_SUSPECT = 0.9
+#: Screened packets whose share is at least COMMON_IDENTICAL (the four channels one
+#: waveform within the noise: bursts localized just past 3 deg scored 0.998 .. 1.000) get
+#: every test, the others only the spectrum tests (a slip's window holding two emissions
+#: near the apex scored 0.93 .. 0.98, and no single template explains it).
+COMMON_IDENTICAL = 0.99
 #: The learnt echo test (`PacketLocalizer`, `interference_echo_min` < 0) measures the echo
 #: of accepted packets away from the apex with at least this confidence, at most
 #: ECHO_LEARN_PER_CALL per call, and once it holds ECHO_LEARN_KEEP, in one call in
@@ -435,14 +440,18 @@ class PacketLocalizer:
                 near.append(i)
             else:
                 rest.append(i)
-        # well-fitting packets off the apex with one waveform on the four channels: the
-        # spectrum tests only (a window holding two emissions of a slip near the apex is
+        # well-fitting packets off the apex with nearly one waveform on the four channels:
+        # the spectrum tests only (a window holding two emissions of a slip near the apex is
         # common-mode too, and no single template explains it: the shape and echo tests
-        # would reject it; the overlap resolver is its place)
+        # would reject it; the overlap resolver is its place); one waveform within the
+        # noise: every test
         screened = set()
         if rest:
-            screened = {i for i, c in zip(rest, _common_share([found[i][0] for i in rest]))
-                        if c >= COMMON_SUSPECT}
+            for i, c in zip(rest, _common_share([found[i][0] for i in rest])):
+                if c >= COMMON_IDENTICAL:
+                    near.append(i)
+                elif c >= COMMON_SUSPECT:
+                    screened.add(i)
         if not near and not screened:
             return found
         drop = set()

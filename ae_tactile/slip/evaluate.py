@@ -911,7 +911,12 @@ def interference_trial(
         common_mode_interference,
         common_mode_share,
     )
-    from ae_tactile.pipeline import APEX_POLAR_RAD, COMMON_SUSPECT, SUSPECT_CONFIDENCE
+    from ae_tactile.pipeline import (
+        APEX_POLAR_RAD,
+        COMMON_IDENTICAL,
+        COMMON_SUSPECT,
+        SUSPECT_CONFIDENCE,
+    )
     from ae_tactile.sim.interference import InterferenceSource
 
     rng = np.random.default_rng([7024, int(seed)])
@@ -980,7 +985,8 @@ def interference_trial(
     for e in events:
         pol = math.acos(min(1.0, e.point_m[2] / float(np.linalg.norm(e.point_m))))
         j = e.packet_id
-        if pol < APEX_POLAR_RAD or e.confidence < SUSPECT_CONFIDENCE:
+        if (pol < APEX_POLAR_RAD or e.confidence < SUSPECT_CONFIDENCE
+                or share_ac[j] >= COMMON_IDENTICAL):
             masked = bool(m_full[j])
         else:
             masked = bool(share_ac[j] >= COMMON_SUSPECT and m_spec[j])
@@ -996,6 +1002,7 @@ def interference_trial(
         f_if, s_if, share_if = masks(ip.samples_v, ip.onset_index)
         pol = np.arccos(np.clip(res.point_m[:, 2] / np.linalg.norm(res.point_m, axis=1), -1, 1))
         near = (pol < APEX_POLAR_RAD) | (res.confidence < SUSPECT_CONFIDENCE)
+        near |= share_if >= COMMON_IDENTICAL
         mask = np.where(near, f_if, (share_if >= COMMON_SUSPECT) & s_if) & res.accepted
         onset_ns = t_if + int(round(1e9 / fs))
         for i in np.flatnonzero(res.accepted & (pol < APEX_POLAR_RAD)):
