@@ -304,6 +304,16 @@ def test_a_crystal_timed_burst_train_is_recognized_and_touches_are_not():
         assert not any(member)
 
 
+def _water_touches_off_apex(seed, n, lo_deg, hi_deg, snr_db):
+    """(config, packets, rng): ``n`` touches lo_deg .. hi_deg from the apex, water, snr_db."""
+    cfg = SimConfig.for_medium("water_skin")
+    rng = np.random.default_rng(seed)
+    th = np.radians(rng.uniform(lo_deg, hi_deg, n))
+    pk = render_triggered(cfg.geometry.surface_point_from_angles(th, rng.uniform(0, 6.3, n)),
+                          cfg, snr_db=snr_db, rng=rng)
+    return cfg, pk, rng
+
+
 def test_common_mode_share_screen_compiled_and_numpy_agree():
     """The driver's cheap screen: one waveform on the four channels scores ~1, touches
     beyond ~12 deg from the apex less than its bar of 0.9; the compiled and the numpy paths
@@ -311,12 +321,7 @@ def test_common_mode_share_screen_compiled_and_numpy_agree():
     from ae_tactile.dsp.interference import common_mode_share, packet_common_share
     from ae_tactile.pipeline import COMMON_SUSPECT
 
-    cfg = SimConfig.for_medium("water_skin")
-    rng = np.random.default_rng(8)
-    g = cfg.geometry
-    th = np.radians(rng.uniform(12, 50, 50))
-    pk = render_triggered(g.surface_point_from_angles(th, rng.uniform(0, 6.3, 50)), cfg,
-                          snr_db=30.0, rng=rng)
+    cfg, pk, rng = _water_touches_off_apex(8, 50, 12.0, 50.0, 30.0)
     noise = float(pk.noise_rms_v[0])
     bursts = render_interference(50, cfg, kind="mixed", coupling="adc", noise_rms_v=noise,
                                  rng=rng, amplitude_v=30 * noise)
@@ -339,12 +344,7 @@ def test_an_adc_offset_does_not_make_a_touch_common_mode():
     low share, the same as without the offset."""
     from ae_tactile.dsp.interference import common_mode_share, packet_common_share
 
-    cfg = SimConfig.for_medium("water_skin")
-    rng = np.random.default_rng(9)
-    g = cfg.geometry
-    th = np.radians(rng.uniform(15, 45, 40))
-    pk = render_triggered(g.surface_point_from_angles(th, rng.uniform(0, 6.3, 40)), cfg,
-                          snr_db=10.0, rng=rng)
+    _, pk, _ = _water_touches_off_apex(9, 40, 15.0, 45.0, 10.0)
     x = pk.samples_v
     offset = 0.25 * np.abs(x).max(axis=(1, 2))[:, None, None]
     clean = common_mode_share(x, pk.noise_rms_v, pk.onset_index)
