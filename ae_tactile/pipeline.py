@@ -242,6 +242,25 @@ def _echo_min_setting(echo_min) -> float:
     return ECHO_MIN_LEARN if v < 0.0 else v
 
 
+#: `interference_route`: which of the discriminator's tests a packet gets
+ROUTE_NONE, ROUTE_SPECTRUM, ROUTE_ALL = 0, 1, 2
+
+
+def interference_route(polar_rad: float, confidence: float, share: float | None = None):
+    """Which of the discriminator's tests the driver gives a localized packet: ROUTE_ALL
+    at the apex (< APEX_POLAR_RAD), for a very poor fit (< SUSPECT_CONFIDENCE) or one
+    waveform within the noise (common-mode ``share`` >= COMMON_IDENTICAL); ROUTE_SPECTRUM
+    for nearly one waveform (>= COMMON_SUSPECT); else ROUTE_NONE. None when the first two
+    do not decide and ``share`` is not given (the caller measures it only then)."""
+    if polar_rad < APEX_POLAR_RAD or confidence < SUSPECT_CONFIDENCE:
+        return ROUTE_ALL
+    if share is None:
+        return None
+    if share >= COMMON_IDENTICAL:
+        return ROUTE_ALL
+    return ROUTE_SPECTRUM if share >= COMMON_SUSPECT else ROUTE_NONE
+
+
 def _common_share(packets) -> list[float]:
     """`common_mode_share` of each packet (its pretrigger mean and its own noise_rms_v
     removed; compiled, ~1 us a packet)."""
@@ -436,7 +455,7 @@ class PacketLocalizer:
         apex, fitting poorly, or with one waveform on the four channels."""
         near, rest = [], []
         for i, (_, ev) in enumerate(found):
-            if ev.polar_rad < APEX_POLAR_RAD or ev.confidence < SUSPECT_CONFIDENCE:
+            if interference_route(ev.polar_rad, ev.confidence) == ROUTE_ALL:
                 near.append(i)
             else:
                 rest.append(i)
@@ -448,9 +467,10 @@ class PacketLocalizer:
         screened = set()
         if rest:
             for i, c in zip(rest, _common_share([found[i][0] for i in rest])):
-                if c >= COMMON_IDENTICAL:
+                route = interference_route(found[i][1].polar_rad, found[i][1].confidence, c)
+                if route == ROUTE_ALL:
                     near.append(i)
-                elif c >= COMMON_SUSPECT:
+                elif route == ROUTE_SPECTRUM:
                     screened.add(i)
         if not near and not screened:
             return found

@@ -913,9 +913,9 @@ def interference_trial(
     )
     from ae_tactile.pipeline import (
         APEX_POLAR_RAD,
-        COMMON_IDENTICAL,
-        COMMON_SUSPECT,
-        SUSPECT_CONFIDENCE,
+        ROUTE_ALL,
+        ROUTE_SPECTRUM,
+        interference_route,
     )
     from ae_tactile.sim.interference import InterferenceSource
 
@@ -985,11 +985,8 @@ def interference_trial(
     for e in events:
         pol = math.acos(min(1.0, e.point_m[2] / float(np.linalg.norm(e.point_m))))
         j = e.packet_id
-        if (pol < APEX_POLAR_RAD or e.confidence < SUSPECT_CONFIDENCE
-                or share_ac[j] >= COMMON_IDENTICAL):
-            masked = bool(m_full[j])
-        else:
-            masked = bool(share_ac[j] >= COMMON_SUSPECT and m_spec[j])
+        route = interference_route(pol, e.confidence, float(share_ac[j]))
+        masked = bool(m_full[j] if route == ROUTE_ALL else route == ROUTE_SPECTRUM and m_spec[j])
         if pol < APEX_POLAR_RAD:
             travel = float(geo.arrival_times_s(e.point_m[None])[0].min())
             cand.append((e.time_ns + int(round(travel * 1e9)), True, e, masked))
@@ -1001,9 +998,10 @@ def interference_trial(
         res = localize(ip.samples_v, fs, ip.onset_index, geometry=geo)
         f_if, s_if, share_if = masks(ip.samples_v, ip.onset_index)
         pol = np.arccos(np.clip(res.point_m[:, 2] / np.linalg.norm(res.point_m, axis=1), -1, 1))
-        near = (pol < APEX_POLAR_RAD) | (res.confidence < SUSPECT_CONFIDENCE)
-        near |= share_if >= COMMON_IDENTICAL
-        mask = np.where(near, f_if, (share_if >= COMMON_SUSPECT) & s_if) & res.accepted
+        route = np.array([interference_route(pol[i], res.confidence[i], share_if[i])
+                          for i in range(n_if)])
+        mask = np.where(route == ROUTE_ALL, f_if, (route == ROUTE_SPECTRUM) & s_if)
+        mask &= res.accepted
         onset_ns = t_if + int(round(1e9 / fs))
         for i in np.flatnonzero(res.accepted & (pol < APEX_POLAR_RAD)):
             cand.append((int(onset_ns[i]), False, int(i), bool(mask[i])))
