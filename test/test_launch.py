@@ -158,12 +158,25 @@ def launch_lost_exit_status(out: str) -> set:
     return set(re.findall(r"Unknown child process pid (\d+), will report returncode 255", out))
 
 
-def assert_clean_stop(run: LaunchRun, expected_exit=0):
-    """Ctrl-C ends everything: exit code, no traceback, no process left."""
+def launch_lost_ctrl_c_race(out: str) -> bool:
+    """launch's own Ctrl-C race decided the exit code: LaunchService.run_async answers
+    the KeyboardInterrupt a Ctrl-C raises with `continue`; landing while it schedules its
+    `_process_one_event` task, it leaves that task unscheduled, asyncio reports the
+    destroyed pending task to run_async's exception handler, and launch returns 1. The
+    processes still stop (the test checks how). tools/launch_ctrl_c_race.py reproduces it
+    with launch alone; about once in several hundred Ctrl-Cs here."""
+    return bool(re.search(
+        r"Task was destroyed but it is pending!\ntask: <Task pending name='[^']*' "
+        r"coro=<LaunchService\._process_one_event\(\)", out))
+
+
+def assert_clean_stop(run: LaunchRun):
+    """Ctrl-C ends everything: exit code 0, no traceback, no process left."""
     code = run.interrupt()
     left = run.wait_gone()
     out = run.output()
-    assert code == expected_exit, f"ros2 launch exit code {code}\n{out[-4000:]}"
+    expected = {0, 1} if launch_lost_ctrl_c_race(out) else {0}
+    assert code in expected, f"ros2 launch exit code {code}\n{out[-4000:]}"
     assert not left, f"processes left after Ctrl-C: {left}"
     assert "Traceback" not in out, out[-6000:]
     for bad in ("RCLError", "context is not valid", "escalating to 'SIGTERM'"):
