@@ -262,6 +262,22 @@ def summarize_incipient(rows) -> dict:
         float(np.percentile(d, 95, method="higher")) if rows else None
     )
     out["slip_within_50ms_rate"] = float(np.mean([x <= 50.0 for x in d])) if rows else None
+    # what a SLIP within 50 ms can rest on (simulator's truth; see the trial's fields)
+    ng = np.array([r.get("n_gross_events_50ms", 0) for r in rows])
+    hit = np.array([bool(r.get("gross_event_in_stick_zone_50ms")) for r in rows])
+    out["gross_50ms"] = {
+        "at_least_1": float(np.mean(ng >= 1)) if rows else None,
+        "at_least_2": float(np.mean(ng >= 2)) if rows else None,
+        "at_least_3": float(np.mean(ng >= 3)) if rows else None,
+        "in_stick_zone": float(np.mean(hit)) if rows else None,
+        "three_or_in_stick_zone": float(np.mean((ng >= 3) | hit)) if rows else None,
+        "ring_fitted": float(np.mean([bool(r.get("ring_fitted_at_gross")) for r in rows]))
+        if rows
+        else None,
+        "centre_error_over_a": _pct([r.get("centre_error_at_gross_over_a") for r in rows]),
+    }
+    out["q_at_precursor_all"] = _pct([r["q_at_precursor"] for r in rows
+                                      if r["precursor_before_gross"]])
     out["q_at_slip"] = _pct([r["q_at_slip"] for r in rows])
     out["slip_before_q090_rate"] = (
         float(np.mean([r["q_at_slip"] is not None and r["q_at_slip"] < 0.9 for r in rows]))
@@ -475,6 +491,33 @@ def tables(res: dict) -> str:
             f"{_f(a['lead_ms'], 'p50')} / {_f(b['lead_ms'], 'p50')} | "
             f"{_rate(d['slip_within_50ms_rate'])} | "
             f"{d['slip_delay_p95_ms_missing_as_inf']:.0f} | {_rate(d['slip_before_q090_rate'])} |"
+        )
+    L.append("")
+    L.append(
+        "**What a SLIP within 50 ms can rest on** (from the simulator's truth: the emissions "
+        "the detector received in the 50 ms after gross slip; 'in the stick zone': one of "
+        "them within 0.46 a_H of the contact centre, the stick zone at q = 0.9, where no "
+        "micro-slip before q = 0.9 comes from; the detector's view of that zone at gross "
+        "slip: a ring fitted to the micro-slips, and its centre's error in units of a_H; "
+        "median q over every trial with a precursor).\n"
+    )
+    L.append(
+        "| emitters | polarity | trials | >= 1 emission | >= 2 | >= 3 | one in the stick zone "
+        "| >= 3 or one in the stick zone | SLIP <= 50 ms | ring fitted | centre error / a_H "
+        "(median / p95) | median q, all |"
+    )
+    L.append("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for key, d in s["incipient"].items():
+        mode, pol = key.split(":")
+        g = d.get("gross_50ms") or {}
+        L.append(
+            f"| {mode} | {pol} | {d['n_trials']} | {_rate(g.get('at_least_1'))} | "
+            f"{_rate(g.get('at_least_2'))} | {_rate(g.get('at_least_3'))} | "
+            f"{_rate(g.get('in_stick_zone'))} | {_rate(g.get('three_or_in_stick_zone'))} | "
+            f"{_rate(d['slip_within_50ms_rate'])} | {_rate(g.get('ring_fitted'))} | "
+            f"{_f(g.get('centre_error_over_a'), 'p50', 2)} / "
+            f"{_f(g.get('centre_error_over_a'), 'p95', 2)} | "
+            f"{_f(d.get('q_at_precursor_all'), 'p50', 2)} |"
         )
     L.append("")
     L.append("**False alarms** (SLIP_PRECURSOR / SLIP / TEXTURE onsets).\n")

@@ -148,3 +148,25 @@ def test_sparse_emitters_slip_latency_and_no_slip_with_a_stick_zone_left(sparse)
         assert all(r["q_at_slip"] is None or r["q_at_slip"] >= 0.9 for r in rows), pol
         within[pol] = np.mean(d <= 50.0)
     assert max(within.values()) - min(within.values()) <= 0.05
+
+
+
+def test_what_a_slip_decision_can_rest_on_matches_the_uniform_disc():
+    """The benchmark's bound on SLIP latency (the emissions received in the 50 ms after
+    gross slip, and whether one lies in the stick zone at q = 0.9, radius 0.46 a_H):
+    gross-slip emissions are uniform over the contact disc, so each lands there with
+    probability 0.46^2 = 0.2116, and a trial with N of them has one there with
+    probability 1 - 0.7884^N (binomial standard error over 400 trials: 0.021)."""
+    rows = [
+        ev.incipient_slip_trial(s, post_s=0.1, pipeline="events", **SPARSE)
+        for s in range(1000, 1400)
+    ]
+    n = np.array([r["n_gross_events_50ms"] for r in rows])
+    hit = np.array([r["gross_event_in_stick_zone_50ms"] for r in rows])
+    p_in = (1.0 - 0.9) ** (2.0 / 3.0)
+    expected = np.mean(1.0 - (1.0 - p_in) ** n)
+    assert abs(hit.mean() - expected) <= 0.065, (hit.mean(), expected)
+    # 100 .. 200 Hz for 50 ms: Poisson(5 .. 10), >= 3 in 88 .. 99.7 % of trials
+    assert np.mean(n >= 3) >= 0.8, np.mean(n >= 3)
+    err = [r["centre_error_at_gross_over_a"] for r in rows if r["ring_fitted_at_gross"]]
+    assert len(err) >= 200 and np.median(err) <= 0.3  # a fitted ring's centre is close

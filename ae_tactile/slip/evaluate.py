@@ -416,8 +416,27 @@ def incipient_slip_trial(
     events, n_em = _events(scene, source, end_ns, pipeline)
     det, outs, trace = run_detector(events, config, end_ns)
     proc = scene.process
-    t_gross = proc.scene_truth(end_ns)["gross_slip_time_ns"]
+    truth = proc.scene_truth(end_ns)
+    t_gross = truth["gross_slip_time_ns"]
     pre = _first(outs, SlipEventType.SLIP_PRECURSOR)
+    # what a SLIP within 50 ms can rest on: the emissions received in the 50 ms after
+    # gross slip, and whether one lies inside the stick zone at q = 0.9 (c = (1 - q)^(1/3)
+    # a_H = 0.46 a_H round the centre), where no micro-slip at q < 0.9 can come from
+    gross = []
+    if t_gross is not None:
+        gross = [e for e in events if t_gross <= e.time_ns <= t_gross + 50 * 10**6]
+    centre = np.asarray(truth["contact_center_m"], dtype=float)
+    a_h = float(truth["hertz_radius_m"])
+    stick_r = (1.0 - 0.9) ** (1.0 / 3.0) * a_h
+    # the detector's own view of that zone at gross slip: its contact's centre (a ring
+    # fitted to the micro-slips, or none yet) against the true centre
+    ring_fitted, centre_error = None, None
+    if t_gross is not None:
+        det_g, _, _ = run_detector([e for e in events if e.time_ns < t_gross], config, t_gross)
+        if det_g.contacts:
+            cg = max(det_g.contacts, key=lambda c: c.valid())
+            ring_fitted = bool(cg.fitted)
+            centre_error = float(np.linalg.norm(cg.centre - centre)) / a_h
     slip = _first(outs, SlipEventType.SLIP)
     micro = [e.time_ns for e in events if t_gross is not None and e.time_ns < t_gross]
     out = dict(params)
@@ -435,6 +454,12 @@ def incipient_slip_trial(
             "n_emissions": n_em,
             "n_events": len(events),
             "n_micro_slip_events": _n_before(events, t_gross),
+            "n_gross_events_50ms": len(gross),
+            "gross_event_in_stick_zone_50ms": any(
+                float(np.linalg.norm(np.asarray(e.point_m) - centre)) <= stick_r for e in gross
+            ),
+            "ring_fitted_at_gross": ring_fitted,
+            "centre_error_at_gross_over_a": centre_error,
             "gross_slip_time_ns": t_gross,
             "precursor_time_ns": None if pre is None else pre.time_ns,
             "slip_time_ns": None if slip is None else slip.time_ns,
