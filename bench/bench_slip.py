@@ -487,9 +487,12 @@ def tables(res: dict) -> str:
         "| SLIP <= 50 ms | SLIP delay p95 ms | SLIP at q < 0.9 |"
     )
     L.append("|---|---|---|---|---|---|---|---|---|---|---|")
+    rest = []  # the rows of the next table, from the same summaries
     for key, d in s["incipient"].items():
         mode, pol = key.split(":")
         a, b = d["micro_ge10"], d["micro_5to10"]
+        g = d.get("gross_50ms") or {}
+        by_rate = d.get("slip_within_50ms_by_rate") or {}
         L.append(
             f"| {mode} | {pol} | {d['n_trials']} | "
             f"{_rate(a['precursor_before_gross_rate'])} ({a['n_trials']}) | "
@@ -499,6 +502,17 @@ def tables(res: dict) -> str:
             f"{_f(a['lead_ms'], 'p50')} / {_f(b['lead_ms'], 'p50')} | "
             f"{_rate(d['slip_within_50ms_rate'])} | "
             f"{d['slip_delay_p95_ms_missing_as_inf']:.0f} | {_rate(d['slip_before_q090_rate'])} |"
+        )
+        rest.append(
+            f"| {mode} | {pol} | {d['n_trials']} | {_rate(g.get('at_least_1'))} | "
+            f"{_rate(g.get('at_least_2'))} | {_rate(g.get('at_least_3'))} | "
+            f"{_rate(g.get('in_stick_zone'))} | {_rate(g.get('three_or_in_stick_zone'))} | "
+            f"{_rate(d['slip_within_50ms_rate'])} | "
+            + (" / ".join(_rate(v) for v in by_rate.values()) if len(by_rate) > 1 else "-")
+            + f" | {_rate(g.get('ring_fitted'))} | "
+            f"{_f(g.get('centre_error_over_a'), 'p50', 2)} / "
+            f"{_f(g.get('centre_error_over_a'), 'p95', 2)} | "
+            f"{_f(d.get('q_at_precursor_all'), 'p50', 2)} |"
         )
     L.append("")
     L.append(
@@ -515,24 +529,7 @@ def tables(res: dict) -> str:
         "| ring fitted | centre error / a_H (median / p95) | median q, all |"
     )
     L.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for key, d in s["incipient"].items():
-        mode, pol = key.split(":")
-        g = d.get("gross_50ms") or {}
-        L.append(
-            f"| {mode} | {pol} | {d['n_trials']} | {_rate(g.get('at_least_1'))} | "
-            f"{_rate(g.get('at_least_2'))} | {_rate(g.get('at_least_3'))} | "
-            f"{_rate(g.get('in_stick_zone'))} | {_rate(g.get('three_or_in_stick_zone'))} | "
-            f"{_rate(d['slip_within_50ms_rate'])} | "
-            + (
-                " / ".join(_rate(v) for v in d["slip_within_50ms_by_rate"].values())
-                if len(d.get("slip_within_50ms_by_rate") or {}) > 1
-                else "-"
-            )
-            + f" | {_rate(g.get('ring_fitted'))} | "
-            f"{_f(g.get('centre_error_over_a'), 'p50', 2)} / "
-            f"{_f(g.get('centre_error_over_a'), 'p95', 2)} | "
-            f"{_f(d.get('q_at_precursor_all'), 'p50', 2)} |"
-        )
+    L.extend(rest)
     L.append("")
     L.append("**False alarms** (SLIP_PRECURSOR / SLIP / TEXTURE onsets).\n")
     L.append("| family | pipeline | trials | hours | alarm onsets | per hour |")
