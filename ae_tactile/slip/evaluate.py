@@ -169,11 +169,14 @@ def run_detector(
     *,
     sliding_speed_m_s=None,
     tick_ns: int | None = None,
+    snapshot=None,
 ):
     """Feed events (time order) to a fresh detector; ``advance`` every ``tick_ns`` between
-    events (a node's timer) and up to ``end_ns``. Returns (detector, outputs, state trace
-    [(time_ns, ContactState)])."""
+    events (a node's timer) and up to ``end_ns``. ``snapshot``: (t_ns, fn), fn(detector)
+    called once, before the first event at or after t_ns (or at the end). Returns
+    (detector, outputs, state trace [(time_ns, ContactState)])."""
     det = SlipDetector(config)
+    snap_ns, snap_fn = snapshot if snapshot is not None else (None, None)
     if sliding_speed_m_s is not None:
         det.set_sliding_speed(sliding_speed_m_s)
     outs, trace = [], []
@@ -188,6 +191,9 @@ def run_detector(
 
     t_prev = None
     for ev in events:
+        if snap_fn is not None and ev.time_ns >= snap_ns:
+            snap_fn(det)
+            snap_fn = None
         if tick_ns and t_prev is not None:
             for tt in range(t_prev + tick_ns, ev.time_ns, tick_ns):
                 det.advance(tt)
@@ -202,6 +208,8 @@ def run_detector(
                 note(tt)
         det.advance(int(end_ns))
         note(end_ns)
+    if snap_fn is not None:
+        snap_fn(det)
     return det, outs, trace
 
 
@@ -414,10 +422,29 @@ def incipient_slip_trial(
     )
     end_ns = int(round(scene.duration_s * _NS))
     events, n_em = _events(scene, source, end_ns, pipeline)
-    det, outs, trace = run_detector(events, config, end_ns)
     proc = scene.process
     truth = proc.scene_truth(end_ns)
     t_gross = truth["gross_slip_time_ns"]
+    centre = np.asarray(truth["contact_center_m"], dtype=float)
+    a_h = float(truth["hertz_radius_m"])
+    # the detector's own view of the stick zone at gross slip: its contact's centre (a
+    # ring fitted to the micro-slips, or none yet) against the true centre
+    at_gross = {"ring_fitted_at_gross": None, "centre_error_at_gross_over_a": None}
+
+    def view_at_gross(det_g):
+        if det_g.contacts:
+            cg = max(det_g.contacts, key=lambda c: c.valid())
+            at_gross["ring_fitted_at_gross"] = bool(cg.fitted)
+            at_gross["centre_error_at_gross_over_a"] = (
+                float(np.linalg.norm(cg.centre - centre)) / a_h
+            )
+
+    det, outs, trace = run_detector(
+        events,
+        config,
+        end_ns,
+        snapshot=None if t_gross is None else (t_gross, view_at_gross),
+    )
     pre = _first(outs, SlipEventType.SLIP_PRECURSOR)
     # what a SLIP within 50 ms can rest on: the emissions received in the 50 ms after
     # gross slip, and whether one lies inside the stick zone at q = 0.9 (c = (1 - q)^(1/3)
@@ -425,18 +452,7 @@ def incipient_slip_trial(
     gross = []
     if t_gross is not None:
         gross = [e for e in events if t_gross <= e.time_ns <= t_gross + 50 * 10**6]
-    centre = np.asarray(truth["contact_center_m"], dtype=float)
-    a_h = float(truth["hertz_radius_m"])
     stick_r = (1.0 - 0.9) ** (1.0 / 3.0) * a_h
-    # the detector's own view of that zone at gross slip: its contact's centre (a ring
-    # fitted to the micro-slips, or none yet) against the true centre
-    ring_fitted, centre_error = None, None
-    if t_gross is not None:
-        det_g, _, _ = run_detector([e for e in events if e.time_ns < t_gross], config, t_gross)
-        if det_g.contacts:
-            cg = max(det_g.contacts, key=lambda c: c.valid())
-            ring_fitted = bool(cg.fitted)
-            centre_error = float(np.linalg.norm(cg.centre - centre)) / a_h
     slip = _first(outs, SlipEventType.SLIP)
     micro = [e.time_ns for e in events if t_gross is not None and e.time_ns < t_gross]
     out = dict(params)
@@ -458,8 +474,7 @@ def incipient_slip_trial(
             "gross_event_in_stick_zone_50ms": any(
                 float(np.linalg.norm(np.asarray(e.point_m) - centre)) <= stick_r for e in gross
             ),
-            "ring_fitted_at_gross": ring_fitted,
-            "centre_error_at_gross_over_a": centre_error,
+            **at_gross,
             "gross_slip_time_ns": t_gross,
             "precursor_time_ns": None if pre is None else pre.time_ns,
             "slip_time_ns": None if slip is None else slip.time_ns,
