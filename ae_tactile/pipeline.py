@@ -303,6 +303,7 @@ class PacketLocalizer:
         batch_min: int = 4,
         resolve_overlaps: bool = True,
         interference_echo_min: float = ECHO_MIN_LEARN,
+        interference_timing: bool = True,
     ):
         self.localizer = Localizer(method, min_snr_db=min_snr_db)
         #: the interference discriminator's echo test (a device with wall echoes: an apex
@@ -310,8 +311,10 @@ class PacketLocalizer:
         #: from the device's own touches away from the apex, 0 off, > 0 this threshold
         self.interference_echo_min = _echo_min_setting(interference_echo_min)
         self.echo_learner = EchoLearner()
-        #: the timing of the apex packets (periodic interference, `BurstTrain`)
+        #: the timing of the apex packets (periodic interference, `BurstTrain`); False: a
+        #: rig that taps the apex at a crystal-timed rate keeps its touches
         self.burst_train = BurstTrain()
+        self.interference_timing = bool(interference_timing)
         self._echo_calls = 0
         self._echo_pending: list = []
         #: learn the echo inside `process` (False: the caller runs `learn_echo` once the
@@ -342,6 +345,7 @@ class PacketLocalizer:
         channel_gains=None,
         resolve_overlaps: bool | None = None,
         interference_echo_min: float | None = None,
+        interference_timing: bool | None = None,
     ) -> None:
         """Change settings at run time; takes effect at once. ValueError on a bad value
         (channel gains, echo threshold, method, SNR, confidence): nothing changed then."""
@@ -366,6 +370,8 @@ class PacketLocalizer:
         self.min_confidence = conf
         if resolve_overlaps is not None:
             self.resolve_overlaps = bool(resolve_overlaps)
+        if interference_timing is not None:
+            self.interference_timing = bool(interference_timing)
         if geometry is not None:
             if geometry != self.geometry:
                 # another body, another echo: a new learner (a measurement of the old body
@@ -503,7 +509,7 @@ class PacketLocalizer:
         for i in sorted(apex, key=lambda j: _packet_time_s(found[j][0])):
             p = found[i][0]
             t = _packet_time_s(p)
-            if i not in drop and self.burst_train.is_member(
+            if self.interference_timing and i not in drop and self.burst_train.is_member(
                 t, max(TRAIN_TOL_S, TRAIN_TOL_SAMPLES / float(p.sample_rate_hz))
             ):
                 train.add(i)

@@ -408,6 +408,47 @@ def test_a_periodic_burst_train_is_rejected_by_its_timing_on_a_device_without_ec
     assert len(kept_apex) + loc.counts["rejected_LOW_SNR"] >= 30  # every other one kept
 
 
+
+def test_a_crystal_timed_tapping_rig_keeps_its_touches_with_the_timing_test_off():
+    """Acoustic touches within 0.4 mm of the apex (< 3 deg: the packets the timing test
+    watches) at exactly 20 ms intervals (a calibration rig) on a device
+    without echoes: by default the timing test takes them for a periodic train from the
+    4th on (its documented cost); with interference_timing off every touch above the SNR
+    threshold is kept, and switching it back on at run time brings the test back."""
+    from ae_tactile.sim.scene import reference_noise_rms
+    from ae_tactile.slip.evaluate import apex_touch_packets
+
+    cfg = SimConfig(sample_rate_hz=5e6)
+    rng = np.random.default_rng(5)
+    n = 12
+    apex = apex_touch_packets(cfg, n, reference_noise_rms(cfg, 30.0), rng, radius_m=0.4e-3)
+
+    def run(loc, t0_s):
+        kept = 0
+        for i in range(n):
+            on = int(apex.onset_index[i])
+            t = t0_s + 0.02 * i
+            view = PacketView(apex.samples_v[i], 5e6, on, int(round((t - on / 5e6) * 1e9)), i)
+            kept += len(loc.process([view]))
+        return kept
+
+    default = PacketLocalizer("ml", geometry=cfg.geometry)
+    kept = run(default, 0.01)
+    assert kept <= 3  # the first three make the train
+    assert default.counts["rejected_INTERFERENCE_TRAIN"] >= n - 3 - default.counts[
+        "rejected_INTERFERENCE"] - default.counts["rejected_LOW_SNR"]
+    rig = PacketLocalizer("ml", geometry=cfg.geometry, interference_timing=False)
+    kept = run(rig, 0.01)
+    assert rig.counts["rejected_INTERFERENCE_TRAIN"] == 0
+    assert kept + rig.counts["rejected_LOW_SNR"] + rig.counts["rejected_INTERFERENCE"] == n
+    assert rig.counts["rejected_INTERFERENCE"] <= 1 and kept >= n // 2  # weak ones: LOW_SNR
+    rig.update(interference_timing=True)
+    weak = rig.counts["rejected_LOW_SNR"]
+    run(rig, 1.01)  # the same rig a second later: a train again
+    weak = rig.counts["rejected_LOW_SNR"] - weak
+    assert rig.counts["rejected_INTERFERENCE_TRAIN"] >= n - 3 - weak
+
+
 def test_the_common_mode_screen_costs_no_touch_of_a_slip_near_the_apex(monkeypatch):
     """A contact slipping at the apex (gross slip at 1 kHz, many windows holding two
     emissions: common-mode to the screen, but a single template cannot explain them): the

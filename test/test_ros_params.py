@@ -64,6 +64,9 @@ def test_tuning_parameters_change_at_once_and_are_validated(driver_and_client):
     assert not r.successful and loc.echo_min_in_use == 0.25
     (r,) = set_params(localization__interference_echo_min=0.0)
     assert r.successful and loc.echo_min_in_use is None
+    assert loc.interference_timing is True
+    (r,) = set_params(localization__interference_timing=False)
+    assert r.successful and loc.interference_timing is False
     (r,) = set_params(slip__sliding_speed_m_s=0.02)
     assert r.successful
     assert drv.slip_stage.detector.config.sliding_speed_m_s == pytest.approx(0.02)

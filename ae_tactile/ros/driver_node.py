@@ -398,6 +398,7 @@ class DriverNode(Node):
             reject_interference=lp["reject_interference"],
             resolve_overlaps=lp["resolve_overlaps"],
             interference_echo_min=lp["interference_echo_min"],
+            interference_timing=lp["interference_timing"],
         )
         self.slip_stage = SlipStage(slip_config, lag_s=self.p["slip_lag_s"])
         self.pipeline = ContactPipeline(localizer, self.slip_stage)
@@ -696,7 +697,14 @@ def changes_for_localizer(changes: dict) -> dict:
         k: v
         for k, v in changes.items()
         if k
-        in ("method", "min_snr_db", "min_confidence", "resolve_overlaps", "interference_echo_min")
+        in (
+            "method",
+            "min_snr_db",
+            "min_confidence",
+            "resolve_overlaps",
+            "interference_echo_min",
+            "interference_timing",
+        )
     }
 
 

@@ -72,6 +72,7 @@ class LocalizerNode(Node):
             reject_interference=lp["reject_interference"],
             resolve_overlaps=lp["resolve_overlaps"],
             interference_echo_min=lp["interference_echo_min"],
+            interference_timing=lp["interference_timing"],
         )
         self.counts = self.localizer.counts
         # the driver's pipeline without its slip stage: the same localization, overlap

@@ -258,6 +258,16 @@ LOCALIZATION_PARAMS = [
     ),
     tunable(
         Param(
+            "interference_timing",
+            True,
+            "Timing test of the packets at the apex (the test a fingertip without wall "
+            "echoes relies on): one whose intervals to the last 8 repeat intervals among "
+            "them to < 1 us is periodic interference (rejected_INTERFERENCE_TRAIN); false "
+            "for a rig that taps the apex at a crystal-timed rate",
+        )
+    ),
+    tunable(
+        Param(
             "resolve_overlaps",
             True,
             "Localize each emission of a window that holds "
