@@ -737,3 +737,65 @@ def test_ctrl_c_inside_a_c_callback_during_start_up_is_recorded_not_printed():
     assert session.returncode == 0, session.stderr
     assert "stop recorded: True" in session.stdout
     assert "Traceback" not in session.stderr and "Exception ignored" not in session.stderr
+
+
+_CLASS_BODY_SCRIPT = """
+import os, runpy, signal, sys, time
+
+class SignalInSetName:  # Ctrl-C lands while a class body's __set_name__ runs
+    def __set_name__(self, owner, name):
+        os.kill(os.getpid(), signal.SIGINT)
+        t_end = time.monotonic() + 10.0
+        while time.monotonic() < t_end:  # the handler runs here
+            pass
+
+def define_a_class():
+    class Owner:
+        attribute = SignalInSetName()
+
+mode, exe = sys.argv[1], sys.argv[2]
+if mode == "executable":  # while the executable imports its node's modules
+    class Finder:
+        def find_spec(self, name, path=None, target=None):
+            if name.startswith("ae_tactile"):
+                define_a_class()
+            return None
+    sys.meta_path.insert(0, Finder())
+    sys.argv = [exe]
+    runpy.run_path(exe, run_name="__main__")
+elif mode == "node":  # while run_node constructs the node
+    from ae_tactile.ros.node_utils import run_node
+    def factory():
+        define_a_class()
+        raise AssertionError("the stop signal did not interrupt the construction")
+    print("exit code", run_node(factory), flush=True)
+    sys.exit(0)
+else:  # the handler an executable would install with sys.exit
+    signal.signal(signal.SIGINT, lambda *_: sys.exit(0))
+    define_a_class()
+print("went on", flush=True)
+sys.exit(3)
+"""
+
+
+def test_ctrl_c_inside_a_class_body_during_start_up_exits_0_quietly():
+    """A stop signal that lands while a class body's __set_name__ runs (a module being
+    imported, e.g. scipy.stats): Python 3.11 turns the exception a handler raises there into
+    a RuntimeError with a traceback. The executables leave at once with exit code 0
+    while they import, and a node being constructed records the stop and exits 0."""
+    require_ros()
+    exe = installed_executable("driver")
+    runs = {}
+    for mode in ("executable", "node", "sys.exit"):
+        runs[mode] = subprocess.run(
+            [sys.executable, "-c", _CLASS_BODY_SCRIPT, mode, exe],
+            capture_output=True, text=True, timeout=60, cwd=tempfile.gettempdir(),
+        )
+    bare = runs["sys.exit"]
+    if sys.version_info < (3, 12):  # the wrapping this guards against
+        assert bare.returncode == 1 and "RuntimeError" in bare.stderr, bare.stderr
+    for mode in ("executable", "node"):
+        run = runs[mode]
+        assert run.returncode == 0, (mode, run.stdout, run.stderr)
+        assert "Traceback" not in run.stderr and "went on" not in run.stdout, (mode, run.stderr)
+    assert "exit code 0" in runs["node"].stdout, runs["node"].stdout

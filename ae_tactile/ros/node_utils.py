@@ -104,6 +104,18 @@ def _stop_on_signals(state: dict):
             signal.signal(sig, old)
 
 
+def _from_stop_signal(exc: BaseException, stop: threading.Event) -> bool:
+    """Whether ``exc`` is the stop signal's KeyboardInterrupt under another name: raised
+    where Python wraps it (Python 3.11 turns an exception inside a class body's
+    ``__set_name__``, e.g. while a module is imported, into a RuntimeError caused by it)."""
+    seen = 0
+    while exc is not None and seen < 8:
+        if isinstance(exc, KeyboardInterrupt):
+            return stop.is_set()
+        exc, seen = exc.__cause__, seen + 1   # wrapped: 'the direct cause'
+    return False
+
+
 @contextmanager
 def ros_session(args=None, interrupt: bool = True):
     """rclpy.init ... try_shutdown around a node's life; yields a dict with 'exit' (the
@@ -130,6 +142,9 @@ def ros_session(args=None, interrupt: bool = True):
             state["exit"] = 2
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
+        except Exception as exc:
+            if not _from_stop_signal(exc, state["stop"]):
+                raise
         finally:
             state["interrupt"] = False
             rclpy.try_shutdown()
@@ -162,6 +177,9 @@ def run_node(node_factory, args=None, executor_factory=SingleThreadedExecutor) -
                     executor.shutdown(timeout_sec=1.0)
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
+        except Exception as exc:
+            if not _from_stop_signal(exc, state["stop"]):
+                raise
         finally:
             state["interrupt"] = False
             if node is not None:
