@@ -127,6 +127,29 @@ def test_touch_release_cycles_and_taps_near_a_held_touch_never_alarm():
     assert det.state.state == ContactState.STICK  # the first touch is still held
 
 
+def test_a_spot_touched_again_right_after_its_release_keeps_its_contact():
+    """A spot 4.9 mm from a held touch (inside the association radius of 5 mm) is
+    tapped again within release_confirm_s of each release: the contact goes on, so the
+    re-touch's own release pairs with it there (instead of arriving after that contact
+    ended, as an isolated rarefaction next to the held touch): every release pairs, no
+    micro-slip evidence, no alarm."""
+    det = SlipDetector()
+    cfg = det.config
+    gap = int(0.2 * cfg.release_confirm_s * 1e9)  # re-touch 6 ms after the release
+    events = [ev(0, 2.8e-3, 2.8e-3, 1, 0)]
+    t, pid, n_taps = 10 * MS, 1, 12
+    for _ in range(n_taps):
+        events.append(ev(t, -2.1e-3, 1.8e-3, 1, pid))
+        events.append(ev(t + 30 * MS, -2.1e-3 + 15e-6, 1.8e-3, -1, pid + 1))
+        events.append(ev(t + 30 * MS + gap, -2.1e-3, 1.8e-3 - 10e-6, 1, pid + 2))
+        events.append(ev(t + 120 * MS, -2.1e-3 + 40e-6, 1.8e-3, -1, pid + 3))
+        t += 200 * MS
+        pid += 4
+    assert run(det, events) == []
+    assert det.counts["pairs"] == 2 * n_taps
+    assert det.counts["evidence"] == 0
+
+
 def _lost_release_cycles(release_lost):
     """A touch (its release lost), then touches 1.5 .. 2.5 mm round it, each released on
     its spot unless ``release_lost[k]``: (events, packet ids of the unpaired touches)."""

@@ -545,6 +545,12 @@ class SlipDetector:
                         # micro-slip landing near an earlier one rarely comes that close)
                         c.touch_release_ns = t
                 else:
+                    if ev.polarity > 0 and c.pending_release_ns is not None:
+                        # the founder's spot touched again before its release was
+                        # confirmed: the contact goes on (the re-touch's release pairs
+                        # with it here, not as a lone rarefaction after the contact ended)
+                        c.pending_release_ns = None
+                        self.counts["releases_cancelled"] += 1
                     flags |= REPEAT
                     self.counts["repeats"] += 1
             else:
