@@ -67,6 +67,15 @@ from ae_tactile.dsp.interference import (
 )
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import Localizer, Reason
+from ae_tactile.localization.weak_release import (
+    MIN_SNR_DB as WEAK_RELEASE_MIN_SNR_DB,
+)
+from ae_tactile.localization.weak_release import (
+    WeakReleaseGate,
+    check_min_snr_db,
+    is_weak_release,
+    weak_release_confidence,
+)
 from ae_tactile.slip import LocalizedEvent, SlipConfig, SlipDetector
 
 
@@ -175,6 +184,7 @@ class ContactRecord:
     spatial_period_m: float = math.nan
     slip_direction: tuple = _NAN3
     overlap_excess: float = 0.0  # single-emission misfit beyond noise (localization only)
+    weak_release: bool = False  # below min_snr_db, kept by the weak-release gate (localization)
 
 
 @dataclass
@@ -284,6 +294,18 @@ def _packet_time_s(p) -> float:
     return int(p.stamp_ns) * 1e-9 + int(p.onset_index) / fs
 
 
+class _Row:
+    """One packet's fields of a batch `LocalizationResult` (`PacketLocalizer._weak`)."""
+
+    __slots__ = ("_res", "_j", "emission_offset_s")
+
+    def __init__(self, res, j, offset_s):
+        self._res, self._j, self.emission_offset_s = res, j, offset_s
+
+    def __getattr__(self, name):
+        return getattr(self._res, name)[self._j]
+
+
 class PacketLocalizer:
     """Packets -> contact events (TOUCH / DETOUCH), counting every rejection by reason.
 
@@ -304,8 +326,16 @@ class PacketLocalizer:
         resolve_overlaps: bool = True,
         interference_echo_min: float = ECHO_MIN_LEARN,
         interference_timing: bool = True,
+        weak_releases: bool = True,
+        weak_release_min_snr_db: float = WEAK_RELEASE_MIN_SNR_DB,
     ):
         self.localizer = Localizer(method, min_snr_db=min_snr_db)
+        #: weak releases (`ae_tactile.localization.weak_release`): a rarefaction rejected
+        #: only for low SNR, down to weak_release_min_snr_db, on the spot of a touch not
+        #: yet released is that touch's DETOUCH
+        self.weak_releases = bool(weak_releases)
+        self.weak_release_min_snr_db = check_min_snr_db(weak_release_min_snr_db)
+        self.weak_gate = WeakReleaseGate()
         #: the interference discriminator's echo test (a device with wall echoes: an apex
         #: packet without its echo at 2R/c is interference): ECHO_MIN_LEARN (< 0) learnt
         #: from the device's own touches away from the apex, 0 off, > 0 this threshold
@@ -346,10 +376,17 @@ class PacketLocalizer:
         resolve_overlaps: bool | None = None,
         interference_echo_min: float | None = None,
         interference_timing: bool | None = None,
+        weak_releases: bool | None = None,
+        weak_release_min_snr_db: float | None = None,
     ) -> None:
         """Change settings at run time; takes effect at once. ValueError on a bad value
         (channel gains, echo threshold, method, SNR, confidence): nothing changed then."""
         gains = _gains_or_none(channel_gains) if channel_gains is not None else None
+        weak_floor = (
+            check_min_snr_db(weak_release_min_snr_db)
+            if weak_release_min_snr_db is not None
+            else self.weak_release_min_snr_db
+        )
         echo = (
             _echo_min_setting(interference_echo_min)
             if interference_echo_min is not None
@@ -372,8 +409,12 @@ class PacketLocalizer:
             self.resolve_overlaps = bool(resolve_overlaps)
         if interference_timing is not None:
             self.interference_timing = bool(interference_timing)
+        if weak_releases is not None:
+            self.weak_releases = bool(weak_releases)
+        self.weak_release_min_snr_db = weak_floor
         if geometry is not None:
             if geometry != self.geometry:
+                self.weak_gate = WeakReleaseGate()  # touches on the old body
                 # another body, another echo: a new learner (a measurement of the old body
                 # still under way in the reader's thread goes to the old one)
                 self.echo_learner = EchoLearner()
@@ -447,6 +488,8 @@ class PacketLocalizer:
             out = self._drop_interference(out, counts)
         if self.resolve_overlaps:
             out = self._withdraw_suspects(out, counts)
+        if self.weak_releases:
+            out = self._gate_weak(out, counts)
         if self.interference is not None and self.interference_echo_min < 0.0 and count:
             self._stash_echo(out, body)  # single emissions only (suspects withdrawn)
             if self.learn_inline:
@@ -455,6 +498,57 @@ class PacketLocalizer:
             counts["events"] += 1
             counts["detouch" if ev.event_type == EventType.DETOUCH else "touch"] += 1
         return [ev for _, ev in out]
+
+    def _gate_weak(self, found, counts):
+        """The events in order through the weak-release gate: touches remembered, releases
+        end them, a weak release kept only on the spot of a touch not yet released
+        (counted as weak_releases; the others as rejected_LOW_SNR)."""
+        gate = self.weak_gate
+        kept = []
+        for item in found:
+            ev = item[1]
+            c = ev.covariance_m2
+            var = 0.5 * float(c[0, 0] + c[1, 1] + c[2, 2])
+            pol = -1 if ev.event_type == EventType.DETOUCH else 1
+            if gate.admit(ev.time_ns, ev.point_m, var, pol, ev.weak_release):
+                kept.append(item)
+                if ev.weak_release:
+                    counts["weak_releases"] += 1
+            else:
+                counts["rejected_LOW_SNR"] += 1
+        return kept
+
+    def _weak(self, p, r, snr_db, counts) -> ContactRecord | None:
+        """A weak-release candidate's record (`_gate_weak` decides), or None: counted."""
+        if not (
+            self.weak_releases
+            and is_weak_release(r.reason_flags, r.polarity, snr_db, self.weak_release_min_snr_db)
+        ):
+            counts["rejected_" + Reason(int(r.reason)).name] += 1
+            return None
+        c = np.asarray(r.covariance_m2, dtype=float).reshape(3, 3)
+        conf = weak_release_confidence(
+            snr_db, self.weak_release_min_snr_db, math.sqrt(max(c[0, 0] + c[1, 1], 0.0))
+        )
+        if conf < self.min_confidence:
+            counts["below_min_confidence"] += 1
+            return None
+        rec = self._record(
+            p,
+            r.point_m,
+            c,
+            r.polar_rad,
+            r.azimuth_rad,
+            r.tau_x_s,
+            r.tau_y_s,
+            r.amplitude_v,
+            conf,
+            r.polarity,
+            r.emission_offset_s,
+            r.overlap_excess,
+        )
+        rec.weak_release = True
+        return rec
 
     def _drop_interference(self, found, counts):
         """Drop the events whose packets the discriminator calls interference: those at the
@@ -554,7 +648,11 @@ class PacketLocalizer:
         for p, ev in found:
             if room <= 0:
                 break
-            if ev.polar_rad >= APEX_POLAR_RAD and ev.confidence >= ECHO_LEARN_CONFIDENCE:
+            if (
+                ev.polar_rad >= APEX_POLAR_RAD
+                and ev.confidence >= ECHO_LEARN_CONFIDENCE
+                and not ev.weak_release
+            ):
                 self._echo_pending.append(
                     (np.array(p.samples_v, dtype=np.float64), float(p.sample_rate_hz),
                      int(p.onset_index), ev.point_m, *body)
@@ -640,9 +738,8 @@ class PacketLocalizer:
         if not r.accepted:
             if int(r.reason) == Reason.OVERLAP:
                 self._overlap(p, counts)
-            else:
-                counts["rejected_" + Reason(int(r.reason)).name] += 1
-            return None
+                return None
+            return self._weak(p, r, float(r.snr_db), counts)
         if r.confidence < self.min_confidence:
             counts["below_min_confidence"] += 1
             return None
@@ -690,8 +787,10 @@ class PacketLocalizer:
                 if not res.accepted[j]:
                     if int(res.reason[j]) == Reason.OVERLAP:
                         self._overlap(p, counts)
-                    else:
-                        counts["rejected_" + Reason(int(res.reason[j])).name] += 1
+                        continue
+                    rec = self._weak(p, _Row(res, j, offsets[j]), float(res.snr_db_est[j]), counts)
+                    if rec is not None:
+                        found.append((ids[j], p, rec))
                     continue
                 if res.confidence[j] < self.min_confidence:
                     counts["below_min_confidence"] += 1

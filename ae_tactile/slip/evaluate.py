@@ -28,7 +28,13 @@ import time
 
 import numpy as np
 
-from ae_tactile.localization import localize
+from ae_tactile.localization import Reason, localize
+from ae_tactile.localization.weak_release import MIN_SNR_DB as WEAK_MIN_SNR_DB
+from ae_tactile.localization.weak_release import (
+    WeakReleaseGate,
+    kept_with_weak_releases,
+    weak_release_confidence,
+)
 from ae_tactile.sim.generators import hertz_contact_radius_m
 from ae_tactile.sim.scene import load_scene
 from ae_tactile.sim.stream import EmissionList, time_ns_of_sample
@@ -89,12 +95,21 @@ class _WithTouch:
 
 
 # ---------------------------------------------------------------------- pipeline
-def localized_events(packets, geometry, *, id_offset: int = 0) -> list[LocalizedEvent]:
-    """Localize triggered packets (``StreamPackets``) and turn the accepted ones into
-    LocalizedEvents stamped at onset time - travel time (the localizer node's stamp). The
-    packets' saturation flags go with them, as the device's do in the driver (without
-    them the localizer falls back to a flat-top test, which a weak slow pulse quantized
-    to a few LSB can pass)."""
+def localized_events(
+    packets,
+    geometry,
+    *,
+    id_offset: int = 0,
+    weak_release_min_snr_db=WEAK_MIN_SNR_DB,
+    weak_release_gate=None,
+) -> list[LocalizedEvent]:
+    """Localize triggered packets (``StreamPackets``) and turn the accepted ones (and the
+    weak releases the driver keeps, `ae_tactile.localization.weak_release`; None: none)
+    into LocalizedEvents stamped at onset time - travel time (the localizer node's stamp;
+    ``weak_release_gate`` carries the gate's touches across calls). The packets'
+    saturation flags go with them, as the device's do in the driver (without them the
+    localizer falls back to a flat-top test, which a weak slow pulse quantized to a few
+    LSB can pass)."""
     k = len(packets.emissions)
     if k == 0:
         return []
@@ -104,8 +119,9 @@ def localized_events(packets, geometry, *, id_offset: int = 0) -> list[Localized
     onset_ns = time_ns_of_sample(packets.start_index + packets.onset_index, fs)
     travel_ns = np.round(geometry.arrival_times_s(res.point_m).min(axis=1) * 1e9).astype(np.int64)
     t = onset_ns - travel_ns
+    kept, conf = _kept(res, t, weak_release_min_snr_db, gate=weak_release_gate)
     out = []
-    for i in np.flatnonzero(res.accepted):
+    for i in np.flatnonzero(kept):
         out.append(
             LocalizedEvent(
                 int(t[i]),
@@ -113,7 +129,7 @@ def localized_events(packets, geometry, *, id_offset: int = 0) -> list[Localized
                 res.covariance_m2[i],
                 int(res.polarity[i]),
                 float(res.amplitude_v[i]),
-                float(res.confidence[i]),
+                float(conf[i]),
                 id_offset + int(i),
             )
         )
@@ -121,8 +137,32 @@ def localized_events(packets, geometry, *, id_offset: int = 0) -> list[Localized
     return out
 
 
+def _kept(res, t_ns, weak_min_snr_db, usable=None, gate=None):
+    """(kept mask, confidence) of a batch: the accepted (``usable``) packets and, unless
+    ``weak_min_snr_db`` is None, the weak releases the gate keeps."""
+    if weak_min_snr_db is None:
+        kept = np.asarray(res.accepted, bool)
+        return (kept if usable is None else kept & usable), np.asarray(res.confidence, float)
+    kept, weak = kept_with_weak_releases(
+        res, t_ns, float(weak_min_snr_db), gate=gate, usable=usable
+    )
+    conf = np.array(res.confidence, dtype=float)
+    for i in np.flatnonzero(weak):
+        c = res.covariance_m2[i]
+        conf[i] = weak_release_confidence(
+            res.snr_db_est[i], float(weak_min_snr_db), math.sqrt(max(c[0, 0] + c[1, 1], 0.0))
+        )
+    return kept, conf
+
+
 def stream_localized_events(
-    source, geometry, n_samples: int, *, chunk_samples: int = 1_000_000, detector_config=None
+    source,
+    geometry,
+    n_samples: int,
+    *,
+    chunk_samples: int = 1_000_000,
+    detector_config=None,
+    weak_release_min_snr_db=WEAK_MIN_SNR_DB,
 ) -> list[LocalizedEvent]:
     """The stream path instead of ideal triggers: a ``StreamingSource`` read in chunks ->
     ``ae_tactile.dsp.PacketDetector`` (default configuration at the stream's rate) ->
@@ -146,6 +186,7 @@ def stream_localized_events(
     onset_ns = time_ns_of_sample(b.start_index + b.onset_index, fs)
     travel_ns = np.round(geometry.arrival_times_s(res.point_m).min(axis=1) * 1e9).astype(np.int64)
     t = onset_ns - travel_ns
+    kept, conf = _kept(res, t, weak_release_min_snr_db, ~np.asarray(b.in_hit, bool))
     out = [
         LocalizedEvent(
             int(t[i]),
@@ -153,10 +194,10 @@ def stream_localized_events(
             res.covariance_m2[i],
             int(res.polarity[i]),
             float(res.amplitude_v[i]),
-            float(res.confidence[i]),
+            float(conf[i]),
             int(b.packet_id[i]),
         )
-        for i in np.flatnonzero(res.accepted & ~np.asarray(b.in_hit, bool))
+        for i in np.flatnonzero(kept)
     ]
     out.sort(key=lambda e: e.time_ns)
     return out
@@ -541,10 +582,11 @@ def closed_loop_trial(
     t_pre = None
     h = 0
     n_id = 0
+    gate = WeakReleaseGate()
     while h < end_ns:
         h = min(end_ns, h + step)
         pk = src.next_packets(1 << 30, horizon_ns=h)
-        evs = localized_events(pk, geo, id_offset=n_id)
+        evs = localized_events(pk, geo, id_offset=n_id, weak_release_gate=gate)
         n_id += len(pk.emissions)
         for ev in evs:
             for o in det.process(ev):
@@ -842,6 +884,59 @@ def cycles_trial(
     }
     out.update(_alarm_summary(outs))
     return out
+
+
+def weak_release_trial(seed: int) -> dict:
+    """The releases of a touch-release cycles scene (`cycles_trial`'s, waveforms) that the
+    localizer rejects for low SNR alone, against the simulator's truth: estimated SNR,
+    position error (m), polarity right, kept by the weak-release gate; and the packets the
+    gate keeps that are not releases (should be none)."""
+    cap = {}
+
+    def spy(packets, geometry, **kw):
+        cap["packets"], cap["geometry"] = packets, geometry
+        return []
+
+    real = globals()["localized_events"]
+    globals()["localized_events"] = spy
+    try:
+        cycles_trial(seed, pipeline="triggered")
+    finally:
+        globals()["localized_events"] = real
+    pk, geo = cap["packets"], cap["geometry"]
+    res = localize(pk.samples_v, pk.sample_rate_hz, pk.onset_index, geometry=geo,
+                   saturated=pk.saturated)
+    kept, weak = kept_with_weak_releases(res, np.asarray(pk.emissions.time_ns, np.int64))
+    truth_pol = np.sign(np.asarray(pk.emissions.strength_pa_m, float))
+    err = np.linalg.norm(res.point_m - np.asarray(pk.emissions.point_m, float), axis=1)
+    low = (np.asarray(res.reason_flags) == (1 << int(Reason.LOW_SNR))) & (truth_pol < 0)
+    idx = np.flatnonzero(low)
+    return {
+        "seed": int(seed),
+        "n_releases": int((truth_pol < 0).sum()),
+        "low_snr_db": [float(res.snr_db_est[i]) for i in idx],
+        "low_error_m": [float(err[i]) for i in idx],
+        "low_polarity_right": [bool(res.polarity[i] < 0) for i in idx],
+        "low_kept": [bool(weak[i]) for i in idx],
+        "kept_not_release": int((weak & (truth_pol >= 0)).sum()),
+    }
+
+
+def noise_window_snr_db(n: int = 20000, sample_rate_hz: float = 5e6, seed: int = 0):
+    """(estimated SNR dB, polarity, position 1-sigma per axis m, NaN where the packet was
+    rejected for more than low SNR) of ``n`` windows of white noise alone (the triggered
+    windows' 40 us, onset 8 us in, at ``sample_rate_hz``): what the weak-release gate has
+    to keep out."""
+    from ae_tactile.geometry import FingertipGeometry
+
+    rng = np.random.default_rng([7400, int(seed)])
+    m = int(round(40e-6 * sample_rate_hz))
+    x = rng.normal(0.0, 1e-3, (int(n), 4, m))
+    on = np.full(int(n), int(round(8e-6 * sample_rate_hz)))
+    res = localize(x, sample_rate_hz, on, geometry=FingertipGeometry())
+    sd = np.sqrt(np.trace(res.covariance_m2, axis1=1, axis2=2) / 2.0)
+    sd = np.where(np.asarray(res.reason_flags) == (1 << int(Reason.LOW_SNR)), sd, np.nan)
+    return np.asarray(res.snr_db_est, float), np.asarray(res.polarity, int), sd
 
 
 def stylus_trial(

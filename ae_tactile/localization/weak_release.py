@@ -1,0 +1,147 @@
+"""Weak releases: a release on the spot of a touch that has not been released yet.
+
+A release is quieter than its touch: an object leaving at v = 0.05 .. 0.2 m/s emits
+about (v / 0.3 m/s)^2 of a touch's pressure, so its packet often falls below the
+localizer's ``min_snr_db`` (5 dB) and is rejected, and the touch looks held for good.
+The fit of such a packet is still good where it counts: its polarity and, within a few
+tenths of a millimetre, its position (bench/bench_slip.py measures it on the simulator's
+touch-release cycles). Windows of noise alone pass an SNR floor of -5 dB too (often at
+2 MS/s, where a window has few pre-onset samples), but with a random sign and a vague,
+random position: the gate's spot test and its bound on the position's uncertainty are
+what keeps them out.
+
+The gate keeps a packet rejected *only* for low SNR when
+
+  * its polarity is a rarefaction (a release), its estimated SNR >= ``min_snr_db`` of
+    the gate (default -5 dB), and
+  * its position's 1-sigma (per axis) is <= ``MAX_SIGMA_M`` (0.5 mm), and
+  * it lies on the spot of a touch of the last ``WINDOW_S`` that no release has ended:
+    |p - p_touch|^2 <= g^2 (var_touch + var + floor^2), g = ``GATE_SIGMA`` (4),
+    floor = ``FLOOR_M`` (0.1 mm), var the per-axis position variance (m^2): the slip
+    detector's same-spot gate with its default settings.
+
+The touch it ends is forgotten (the nearest one in the gate), as is the touch an
+ordinary release ends. Touches and releases must be fed in time order (`admit`).
+"""
+
+from __future__ import annotations
+
+import math
+
+from ae_tactile.slip.config import SlipConfig
+
+#: the slip detector's same-spot gate (its defaults): a weak release the gate keeps pairs
+#: with its touch there too. Radius in standard deviations of the difference of the two
+#: positions, and the isotropic model error added (m)
+GATE_SIGMA = float(SlipConfig.release_gate_sigma)
+FLOOR_M = float(SlipConfig.release_floor_m)
+#: largest position 1-sigma (per axis, m) of a weak release: windows of noise alone that
+#: pass the SNR floor at 2 MS/s come with >= 1 mm (their gate would take any touch); the
+#: weak releases of the simulator's touch-release cycles: 0.13 mm median, 0.39 mm p99
+MAX_SIGMA_M = 0.5e-3
+#: touches older than this are not remembered (s)
+WINDOW_S = 10.0
+#: at most this many touches remembered (the oldest forgotten first)
+CAPACITY = 32
+#: default lowest estimated SNR of a weak release (dB)
+MIN_SNR_DB = -5.0
+
+
+def check_min_snr_db(value) -> float:
+    """The gate's SNR floor as a float; ValueError unless finite."""
+    v = float(value)
+    if not math.isfinite(v):
+        raise ValueError(f"weak_release_min_snr_db must be finite, got {value!r}")
+    return v
+
+
+def is_weak_release(reason_flags: int, polarity: int, snr_db: float, min_snr_db: float) -> bool:
+    """A candidate: rejected for low SNR and nothing else, a rarefaction, SNR >= floor."""
+    from ae_tactile.localization.common import Reason
+
+    return (
+        int(reason_flags) == (1 << Reason.LOW_SNR)
+        and int(polarity) < 0
+        and float(snr_db) >= min_snr_db
+    )
+
+
+class WeakReleaseGate:
+    """The touches not yet released (time ns, point m, per-axis variance m^2), bounded."""
+
+    def __init__(self):
+        self._touches: list[tuple] = []  # (t_ns, x, y, z, var)
+
+    def __len__(self) -> int:
+        return len(self._touches)
+
+    def clear(self) -> None:
+        self._touches.clear()
+
+    def admit(self, time_ns: int, point_m, var_m2: float, polarity: int, weak: bool) -> bool:
+        """Feed one event in time order; True when it is kept. A touch (polarity >= 0, the
+        localizer's TOUCH) is remembered and kept; a release ends the nearest remembered
+        touch in the gate and is kept; a weak release (``weak``) is kept only if it ended
+        one; a weak touch never is."""
+        if weak and polarity >= 0:
+            return False  # a weak touch stays rejected
+        t = int(time_ns)
+        x, y, z = (float(v) for v in point_m)
+        var = float(var_m2)
+        if not (math.isfinite(x + y + z + var) and var >= 0.0):
+            return not weak
+        if weak and var > MAX_SIGMA_M * MAX_SIGMA_M:
+            return False  # too vague a spot to be any touch's
+        horizon = t - int(WINDOW_S * 1e9)
+        touches = [e for e in self._touches if e[0] >= horizon]
+        if polarity >= 0:
+            touches.append((t, x, y, z, var))
+            self._touches = touches[-CAPACITY:]
+            return True
+        g2, f2 = GATE_SIGMA * GATE_SIGMA, FLOOR_M * FLOOR_M
+        best, best_d2 = -1, math.inf
+        for i, (tt, tx, ty, tz, tv) in enumerate(touches):
+            if tt > t:
+                continue
+            d2 = (x - tx) ** 2 + (y - ty) ** 2 + (z - tz) ** 2
+            if d2 <= g2 * (tv + var + f2) and d2 < best_d2:
+                best, best_d2 = i, d2
+        if best >= 0:
+            del touches[best]
+        self._touches = touches
+        return best >= 0 or not weak
+
+
+def kept_with_weak_releases(
+    res, time_ns, min_snr_db: float = MIN_SNR_DB, gate=None, usable=None
+):
+    """(kept (K,) bool, weak (K,) bool) of a `LocalizationResult` whose packets come at
+    ``time_ns`` (K,): the accepted packets and the weak releases the gate keeps (fed in
+    time order; ``gate`` carries the touches from earlier calls; packets not ``usable``
+    (K,) bool are neither kept nor fed)."""
+    import numpy as np
+
+    gate = WeakReleaseGate() if gate is None else gate
+    k = len(res.accepted)
+    kept = np.zeros(k, bool)
+    weak = np.zeros(k, bool)
+    var = 0.5 * np.trace(res.covariance_m2, axis1=1, axis2=2)
+    for i in np.argsort(np.asarray(time_ns), kind="stable"):
+        if usable is not None and not usable[i]:
+            continue
+        w = not res.accepted[i] and is_weak_release(
+            res.reason_flags[i], res.polarity[i], res.snr_db_est[i], min_snr_db
+        )
+        if res.accepted[i] or w:
+            kept[i] = gate.admit(int(time_ns[i]), res.point_m[i], var[i], int(res.polarity[i]), w)
+            weak[i] = w and kept[i]
+    return kept, weak
+
+
+def weak_release_confidence(snr_db: float, min_snr_db: float, sigma_pos_m: float) -> float:
+    """The localizer's confidence (localization/events.py) of a weak release, with the
+    gate's SNR floor in place of min_snr_db: sqrt(clip((SNR - floor) / 20 dB, 0, 1)) /
+    (1 + sigma_pos^2 / (0.5 mm)^2), the fit term 1 (a weak packet has no OVERLAP flag)."""
+    c_snr = math.sqrt(min(max((float(snr_db) - min_snr_db) / 20.0, 0.0), 1.0))
+    c = c_snr / (1.0 + (float(sigma_pos_m) / 0.5e-3) ** 2)
+    return c if math.isfinite(c) else 0.0
