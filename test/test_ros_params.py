@@ -67,6 +67,14 @@ def test_tuning_parameters_change_at_once_and_are_validated(driver_and_client):
     assert loc.interference_timing is True
     (r,) = set_params(localization__interference_timing=False)
     assert r.successful and loc.interference_timing is False
+    assert loc.weak_releases is True and loc.weak_release_min_snr_db == -5.0
+    r1, r2 = set_params(
+        localization__weak_releases=False, localization__weak_release_min_snr_db=-2.0
+    )
+    assert r1.successful and r2.successful
+    assert loc.weak_releases is False and loc.weak_release_min_snr_db == -2.0
+    (r,) = set_params(localization__weak_release_min_snr_db=-90.0)  # outside -20 .. 80
+    assert not r.successful and loc.weak_release_min_snr_db == -2.0
     (r,) = set_params(slip__sliding_speed_m_s=0.02)
     assert r.successful
     assert drv.slip_stage.detector.config.sliding_speed_m_s == pytest.approx(0.02)

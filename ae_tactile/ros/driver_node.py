@@ -389,16 +389,8 @@ class DriverNode(Node):
             slip_config = SlipConfig(**slip_config_kwargs(self.slip_params.values))
         except (TypeError, ValueError) as exc:
             raise ParameterError(f"slip parameters: {exc}") from exc
-        localizer = PacketLocalizer(
-            lp["method"],
-            min_snr_db=lp["min_snr_db"],
-            min_confidence=lp["min_confidence"],
-            geometry=self.geometry,
-            channel_gains=self.p["channel_gains"],
-            reject_interference=lp["reject_interference"],
-            resolve_overlaps=lp["resolve_overlaps"],
-            interference_echo_min=lp["interference_echo_min"],
-            interference_timing=lp["interference_timing"],
+        localizer = make_packet_localizer(
+            lp, geometry=self.geometry, channel_gains=self.p["channel_gains"]
         )
         self.slip_stage = SlipStage(slip_config, lag_s=self.p["slip_lag_s"])
         self.pipeline = ContactPipeline(localizer, self.slip_stage)
@@ -691,21 +683,32 @@ class DriverNode(Node):
         return super().destroy_node()
 
 
+#: the localization parameters PacketLocalizer takes by name, at start-up and at run time
+#: (`PacketLocalizer.update`); ``method`` is its first argument
+LOCALIZER_SETTINGS = (
+    "min_snr_db",
+    "min_confidence",
+    "resolve_overlaps",
+    "interference_echo_min",
+    "interference_timing",
+    "weak_releases",
+    "weak_release_min_snr_db",
+)
+
+
+def make_packet_localizer(lp: dict, **kwargs) -> PacketLocalizer:
+    """A PacketLocalizer from the localization parameters ``lp`` (plus ``kwargs``)."""
+    return PacketLocalizer(
+        lp["method"],
+        reject_interference=lp["reject_interference"],
+        **{k: lp[k] for k in LOCALIZER_SETTINGS},
+        **kwargs,
+    )
+
+
 def changes_for_localizer(changes: dict) -> dict:
     """Localization parameter changes as PacketLocalizer.update() arguments."""
-    return {
-        k: v
-        for k, v in changes.items()
-        if k
-        in (
-            "method",
-            "min_snr_db",
-            "min_confidence",
-            "resolve_overlaps",
-            "interference_echo_min",
-            "interference_timing",
-        )
-    }
+    return {k: v for k, v in changes.items() if k == "method" or k in LOCALIZER_SETTINGS}
 
 
 def pipeline_statuses(

@@ -27,9 +27,14 @@ from visualization_msgs.msg import MarkerArray
 
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.msg import ContactEvent, PacketArray, SensorInfo
-from ae_tactile.pipeline import ContactPipeline, PacketLocalizer, PacketView
+from ae_tactile.pipeline import ContactPipeline, PacketView
 from ae_tactile.ros.conversions import contact_event_msg, packet_samples, time_msg_to_ns
-from ae_tactile.ros.driver_node import EVENT_QOS, changes_for_localizer, pipeline_statuses
+from ae_tactile.ros.driver_node import (
+    EVENT_QOS,
+    changes_for_localizer,
+    make_packet_localizer,
+    pipeline_statuses,
+)
 from ae_tactile.ros.markers import EventMarkers, sensor_markers
 from ae_tactile.ros.node_utils import LATCHED, run_node
 from ae_tactile.ros.params import LOCALIZATION_PARAMS, Param, ParamSet, declare, tunable
@@ -64,16 +69,7 @@ class LocalizerNode(Node):
         self.geometry = FingertipGeometry(
             p["radius_m"], p["element_offset_m"], p["sound_speed_m_s"]
         )
-        self.localizer = PacketLocalizer(
-            lp["method"],
-            min_snr_db=lp["min_snr_db"],
-            min_confidence=lp["min_confidence"],
-            geometry=self.geometry,
-            reject_interference=lp["reject_interference"],
-            resolve_overlaps=lp["resolve_overlaps"],
-            interference_echo_min=lp["interference_echo_min"],
-            interference_timing=lp["interference_timing"],
-        )
+        self.localizer = make_packet_localizer(lp, geometry=self.geometry)
         self.counts = self.localizer.counts
         # the driver's pipeline without its slip stage: the same localization, overlap
         # hand-off and duplicate check as the live path

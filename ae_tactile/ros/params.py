@@ -24,6 +24,8 @@ from rcl_interfaces.msg import (
     SetParametersResult,
 )
 
+from ae_tactile.localization.weak_release import MIN_SNR_DB as WEAK_RELEASE_MIN_SNR_DB
+
 #: Why structural parameters cannot change while the node runs.
 RESTART = "read-only: takes effect at start-up (restart the node to change it)"
 
@@ -264,6 +266,25 @@ LOCALIZATION_PARAMS = [
             "echoes relies on): one whose intervals to the last 8 repeat intervals among "
             "them to < 1 us is periodic interference (rejected_INTERFERENCE_TRAIN); false "
             "for a rig that taps the apex at a crystal-timed rate",
+        )
+    ),
+    tunable(
+        Param(
+            "weak_releases",
+            True,
+            "Keep a release below min_snr_db (a rarefaction rejected only for low SNR, down "
+            "to weak_release_min_snr_db) when it lies on the spot of a touch not yet "
+            "released (the slip detector's same-spot gate): that touch's DETOUCH "
+            "(counted as weak_releases); false: such packets stay rejected_LOW_SNR",
+        )
+    ),
+    tunable(
+        Param(
+            "weak_release_min_snr_db",
+            WEAK_RELEASE_MIN_SNR_DB,
+            "Lowest estimated SNR of a weak release (noise alone: p99.9 -4.5 dB)",
+            -20.0,
+            80.0,
         )
     ),
     tunable(
