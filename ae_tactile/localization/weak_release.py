@@ -43,6 +43,8 @@ MAX_SIGMA_M = 0.5e-3
 WINDOW_S = 10.0
 #: at most this many touches remembered (the oldest forgotten first)
 CAPACITY = 32
+_WINDOW_NS = int(WINDOW_S * 1e9)
+_G2, _F2 = GATE_SIGMA * GATE_SIGMA, FLOOR_M * FLOOR_M
 #: default lowest estimated SNR of a weak release (dB)
 MIN_SNR_DB = -5.0
 
@@ -92,23 +94,26 @@ class WeakReleaseGate:
             return not weak
         if weak and var > MAX_SIGMA_M * MAX_SIGMA_M:
             return False  # too vague a spot to be any touch's
-        horizon = t - int(WINDOW_S * 1e9)
-        touches = [e for e in self._touches if e[0] >= horizon]
+        touches = self._touches  # in the order fed (time order): the oldest first
+        horizon = t - _WINDOW_NS
+        if touches and touches[0][0] < horizon:
+            k = 1
+            while k < len(touches) and touches[k][0] < horizon:
+                k += 1
+            del touches[:k]
         if polarity >= 0:
             touches.append((t, x, y, z, var))
-            self._touches = touches[-CAPACITY:]
+            if len(touches) > CAPACITY:
+                del touches[0]
             return True
-        g2, f2 = GATE_SIGMA * GATE_SIGMA, FLOOR_M * FLOOR_M
         best, best_d2 = -1, math.inf
         for i, (tt, tx, ty, tz, tv) in enumerate(touches):
-            if tt > t:
-                continue
-            d2 = (x - tx) ** 2 + (y - ty) ** 2 + (z - tz) ** 2
-            if d2 <= g2 * (tv + var + f2) and d2 < best_d2:
+            dx, dy, dz = x - tx, y - ty, z - tz
+            d2 = dx * dx + dy * dy + dz * dz
+            if d2 <= _G2 * (tv + var + _F2) and d2 < best_d2 and tt <= t:
                 best, best_d2 = i, d2
         if best >= 0:
             del touches[best]
-        self._touches = touches
         return best >= 0 or not weak
 
 
