@@ -452,6 +452,25 @@ def summarize_interference_packets(rows) -> dict:
 
 
 # ---------------------------------------------------------------------- tables
+def summarize_weak_releases(rows, noise) -> dict:
+    """Weak releases of the cycles trials (`weak_release_trial`) and noise-only windows."""
+    snr = np.concatenate([r["low_snr_db"] for r in rows] or [np.zeros(0)])
+    err = np.concatenate([r["low_error_m"] for r in rows] or [np.zeros(0)])
+    kept = np.concatenate([r["low_kept"] for r in rows] or [np.zeros(0, bool)])
+    pol = np.concatenate([r["low_polarity_right"] for r in rows] or [np.zeros(0, bool)])
+    return {
+        "n_trials": len(rows),
+        "n_releases": int(sum(r["n_releases"] for r in rows)),
+        "n_low_snr": int(len(snr)),
+        "kept_rate": float(kept.mean()) if len(kept) else None,
+        "polarity_right_rate": float(pol.mean()) if len(pol) else None,
+        "error_mm": _pct(err * 1e3) if len(err) else None,
+        "snr_db_min": float(snr.min()) if len(snr) else None,
+        "kept_not_release": int(sum(r["kept_not_release"] for r in rows)),
+        "noise": noise,
+    }
+
+
 def _f(d, k, nd=0, scale=1.0):
     if d is None or d.get(k) is None:
         return "-"
@@ -541,6 +560,38 @@ def tables(res: dict) -> str:
             f"{d['false_alarms_per_hour']:.1f} |"
         )
     L.append("")
+    wr = s.get("weak_releases")
+    if wr and wr["n_low_snr"]:
+        e = wr["error_mm"]
+        L.append(
+            "**Weak releases** (touch-release cycles on waveforms: the releases the localizer "
+            "rejects for low SNR alone, < 5 dB; kept by the weak-release gate on the spot of "
+            "a touch not yet released, `ae_tactile/localization/weak_release.py`; and "
+            "windows of noise alone, 40 us, onset 8 us in).\n"
+        )
+        L.append(
+            "| trials | releases | below 5 dB | kept | polarity right | position error (mm) | "
+            "lowest estimated SNR | kept but not a release |"
+        )
+        L.append("|---|---|---|---|---|---|---|---|")
+        L.append(
+            f"| {wr['n_trials']} | {wr['n_releases']} | {wr['n_low_snr']} | "
+            f"{_rate(wr['kept_rate'])} | {_rate(wr['polarity_right_rate'])} | median "
+            f"{e['p50']:.2f}, p99 {e['p99']:.2f}, max {e['max']:.2f} | "
+            f"{wr['snr_db_min']:.1f} dB | {wr['kept_not_release']} |"
+        )
+        L.append("")
+        L.append(
+            "| noise alone | windows | estimated SNR p99 / p99.9 / max (dB) | rarefactions "
+            "rejected for low SNR alone at >= -5 dB | of those, position 1-sigma <= 0.5 mm |"
+        )
+        L.append("|---|---|---|---|---|")
+        for key, d in wr["noise"].items():
+            L.append(
+                f"| {key} | {d['n']} | {d['p99']:.1f} / {d['p999']:.1f} / {d['max']:.1f} | "
+                f"{_rate(d['candidate_rate'])} | {_rate(d['candidate_sharp_rate'])} |"
+            )
+        L.append("")
     st = s.get("stylus") or {}
     L.append(
         "**Moving contact: stylus over a texture** (TEXTURE from the tracked speed, no "
@@ -843,6 +894,27 @@ def main(argv=None) -> int:
         trials["interference_packets"] = rows
         summary["interference_packets"] = summarize_interference_packets(rows)
 
+    def weak_releases():
+        a = time.perf_counter()
+        rows = [ev.weak_release_trial(s0 + i) for i in range(n_val)]
+        noise = {}
+        for fs in (2e6, 5e6, 10e6):
+            snr, pol, sd = ev.noise_window_snr_db(4000 if q else 20000, fs, seed=s0)
+            cand = (snr >= -5.0) & (pol < 0) & np.isfinite(sd)
+            p99, p999, mx = np.percentile(snr, [99, 99.9, 100])
+            noise[f"{fs / 1e6:g} MS/s"] = {
+                "n": int(len(snr)),
+                "p99": float(p99),
+                "p999": float(p999),
+                "max": float(mx),
+                "candidate_rate": float(cand.mean()),
+                "candidate_sharp_rate": float((cand & (sd <= 0.5e-3)).mean()),
+            }
+        summary["weak_releases"] = summarize_weak_releases(rows, noise)
+        trials["weak_releases"] = rows
+        timing["weak releases"] = time.perf_counter() - a
+        print(f"  weak releases: {len(rows)} trials ({timing['weak releases']:.0f} s)", flush=True)
+
     def cost():
         res["detector_speed"] = detector_speed()
         res["detector_speed"]["slip_step"] = slip_step_speed(seed=s0)
@@ -869,6 +941,7 @@ def main(argv=None) -> int:
         lambda: alarms("tapping another spot", ev.tapping_trial, "triggered", n_val),
         lambda: alarms("touch-release cycles", ev.cycles_trial, "triggered", n_val),
         lambda: stylus("triggered", n_val),
+        weak_releases,
     ]
     out = None
     for task in tasks:

@@ -246,12 +246,16 @@ def slip_rows(d) -> list[str]:
             )
     al = s.get("alarms", {})
     if al:
-        txt = "; ".join(
-            f"{k.split(':')[0]} {v['false_alarms_per_hour']:.0f}/h"
-            for k, v in al.items()
-            if k.endswith(":events")
-        )
-        rows.append(f"| false precursor / SLIP / TEXTURE alarms | {txt} | bench_slip |")
+        for pl, what in (("events", "the localizer's error model"), ("triggered", "waveforms")):
+            txt = "; ".join(
+                f"{k.split(':')[0]} {v['false_alarms_per_hour']:.0f}/h"
+                for k, v in al.items()
+                if k.endswith(":" + pl)
+            )
+            if txt:
+                rows.append(
+                    f"| false precursor / SLIP / TEXTURE alarms ({what}) | {txt} | bench_slip |"
+                )
     dr = s.get("drift")
     if dr:
         rows.append(
