@@ -128,26 +128,39 @@ def test_touch_release_cycles_and_taps_near_a_held_touch_never_alarm():
 
 
 def test_a_spot_touched_again_right_after_its_release_keeps_its_contact():
-    """A spot 4.9 mm from a held touch (inside the association radius of 5 mm) is
-    tapped again within release_confirm_s of each release: the contact goes on, so the
-    re-touch's own release pairs with it there (instead of arriving after that contact
-    ended, as an isolated rarefaction next to the held touch): every release pairs, no
-    micro-slip evidence, no alarm."""
+    """A spot just outside the association radius (5 mm) of a held touch is tapped again
+    within release_confirm_s of each release; each release lands 80 um toward the held
+    touch (on its tap's spot, but inside that radius). The re-touch takes over as the tap
+    contact's founder, so its own release pairs with it there and ends that contact
+    (instead of arriving after the contact ended and joining the held touch as an
+    isolated emission): every release pairs, no micro-slip evidence, no alarm, and once
+    the taps stop only the held touch is left."""
     det = SlipDetector()
     cfg = det.config
     gap = int(0.2 * cfg.release_confirm_s * 1e9)  # re-touch 6 ms after the release
-    events = [ev(0, 2.8e-3, 2.8e-3, 1, 0)]
+    held = np.array([2.4e-3, 2.2e-3])
+    u = np.array([-0.96, -0.28])  # unit vector from the held touch toward the tap spot
+    spot = held + 5.05e-3 * u
+    rel = spot - 80e-6 * u
+    R_ = cfg.association_radius_m
+    assert np.linalg.norm(surf(*held) - surf(*spot)) > R_
+    assert np.linalg.norm(surf(*held) - surf(*rel)) < R_
+    events = [ev(0, *held, 1, 0)]
     t, pid, n_taps = 10 * MS, 1, 12
     for _ in range(n_taps):
-        events.append(ev(t, -2.1e-3, 1.8e-3, 1, pid))
-        events.append(ev(t + 30 * MS, -2.1e-3 + 15e-6, 1.8e-3, -1, pid + 1))
-        events.append(ev(t + 30 * MS + gap, -2.1e-3, 1.8e-3 - 10e-6, 1, pid + 2))
-        events.append(ev(t + 120 * MS, -2.1e-3 + 40e-6, 1.8e-3, -1, pid + 3))
+        events.append(ev(t, *spot, 1, pid))
+        events.append(ev(t + 30 * MS, *rel, -1, pid + 1))
+        events.append(ev(t + 30 * MS + gap, *spot, 1, pid + 2))
+        events.append(ev(t + 120 * MS, *rel, -1, pid + 3))
         t += 200 * MS
         pid += 4
     assert run(det, events) == []
     assert det.counts["pairs"] == 2 * n_taps
     assert det.counts["evidence"] == 0
+    det.advance(t + 1000 * MS)
+    (left,) = det.contacts
+    assert np.allclose(left.centre, surf(*held))
+    assert det.state.state == ContactState.STICK
 
 
 def _lost_release_cycles(release_lost):

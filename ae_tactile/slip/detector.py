@@ -546,11 +546,17 @@ class SlipDetector:
                         c.touch_release_ns = t
                 else:
                     if ev.polarity > 0 and c.pending_release_ns is not None:
-                        # the founder's spot touched again before its release was
-                        # confirmed: the contact goes on (the re-touch's release pairs
-                        # with it here, not as a lone rarefaction after the contact ended)
-                        c.pending_release_ns = None
-                        self.counts["releases_cancelled"] += 1
+                        fp, fvar, _ = c.founder
+                        fd = fp - p
+                        if float(fd @ fd) <= self._g2 * (fvar + var + self._f2):
+                            # the founder's spot touched again before its release was
+                            # confirmed: the re-touch takes over as the founder and the
+                            # contact goes on; its release pairs with it here and ends
+                            # the contact (not a lone rarefaction after it ended)
+                            c.pending_release_ns = None
+                            c.founder = (p.copy(), var, 1)
+                            flags |= FOUNDER
+                            self.counts["releases_cancelled"] += 1
                     flags |= REPEAT
                     self.counts["repeats"] += 1
             else:
