@@ -66,7 +66,7 @@ from ae_tactile.dsp.interference import (
     packet_common_share,
 )
 from ae_tactile.geometry import FingertipGeometry
-from ae_tactile.localization import Localizer, Reason
+from ae_tactile.localization import Localizer, Reason, get_estimator
 from ae_tactile.localization.weak_release import (
     MIN_SNR_DB as WEAK_RELEASE_MIN_SNR_DB,
 )
@@ -409,7 +409,9 @@ class PacketLocalizer:
             self.resolve_overlaps = bool(resolve_overlaps)
         if interference_timing is not None:
             self.interference_timing = bool(interference_timing)
-        if weak_releases is not None:
+        if weak_releases is not None and bool(weak_releases) != self.weak_releases:
+            # switched: the touches remembered (or not released) meanwhile are stale
+            self.weak_gate = WeakReleaseGate()
             self.weak_releases = bool(weak_releases)
         self.weak_release_min_snr_db = weak_floor
         if geometry is not None:
@@ -476,19 +478,20 @@ class PacketLocalizer:
             good.append(p)
         if not good:
             return []
+        weak_on = self.weak_releases  # read once: `update` may change it meanwhile
         if len(good) >= self.batch_min or self._one is None:
-            out = self._batched(good, counts)
+            out = self._batched(good, counts, weak_on)
         else:
             out = []
             for p in good:
-                ev = self._single(p, counts)
+                ev = self._single(p, counts, weak_on)
                 if ev is not None:
                     out.append((p, ev))
         if self.interference is not None:
             out = self._drop_interference(out, counts)
         if self.resolve_overlaps:
             out = self._withdraw_suspects(out, counts)
-        if self.weak_releases:
+        if weak_on:
             out = self._gate_weak(out, counts)
         if self.interference is not None and self.interference_echo_min < 0.0 and count:
             self._stash_echo(out, body)  # single emissions only (suspects withdrawn)
@@ -498,6 +501,12 @@ class PacketLocalizer:
             counts["events"] += 1
             counts["detouch" if ev.event_type == EventType.DETOUCH else "touch"] += 1
         return [ev for _, ev in out]
+
+    @property
+    def _overlap_threshold(self) -> float:
+        """The localizer's overlap threshold (its method's default unless given)."""
+        thr = self.localizer.kwargs.get("overlap_threshold")
+        return get_estimator(self.method).overlap_threshold if thr is None else float(thr)
 
     def _gate_weak(self, found, counts):
         """The events in order through the weak-release gate: touches remembered, releases
@@ -518,20 +527,29 @@ class PacketLocalizer:
                 counts["rejected_LOW_SNR"] += 1
         return kept
 
-    def _weak(self, p, r, snr_db, counts) -> ContactRecord | None:
-        """A weak-release candidate's record (`_gate_weak` decides), or None: counted."""
+    def _weak(self, p, r, snr_db, counts, weak_on) -> ContactRecord | None:
+        """A weak-release candidate's record (`_gate_weak` decides), or None: counted as
+        rejected by its reason (a candidate below min_confidence: rejected_LOW_SNR)."""
+        c = np.asarray(r.covariance_m2, dtype=float).reshape(3, 3)
+        floor = self.weak_release_min_snr_db
         if not (
-            self.weak_releases
-            and is_weak_release(r.reason_flags, r.polarity, snr_db, self.weak_release_min_snr_db)
+            weak_on
+            and is_weak_release(
+                r.reason_flags, r.polarity, snr_db, floor, 0.5 * (c[0, 0] + c[1, 1] + c[2, 2])
+            )
         ):
             counts["rejected_" + Reason(int(r.reason)).name] += 1
             return None
-        c = np.asarray(r.covariance_m2, dtype=float).reshape(3, 3)
         conf = weak_release_confidence(
-            snr_db, self.weak_release_min_snr_db, math.sqrt(max(c[0, 0] + c[1, 1], 0.0))
+            snr_db,
+            floor,
+            math.sqrt(max(c[0, 0] + c[1, 1], 0.0)),
+            r.overlap_excess,
+            self._overlap_threshold,
+            r.clamped,
         )
         if conf < self.min_confidence:
-            counts["below_min_confidence"] += 1
+            counts["rejected_LOW_SNR"] += 1
             return None
         rec = self._record(
             p,
@@ -726,7 +744,7 @@ class PacketLocalizer:
             counts["overlap_suspects"] += 1
         return [f for i, f in enumerate(found) if i not in drop]
 
-    def _single(self, p, counts) -> ContactRecord | None:
+    def _single(self, p, counts, weak_on=False) -> ContactRecord | None:
         r = self._one(
             p.samples_v,
             p.sample_rate_hz,
@@ -739,7 +757,7 @@ class PacketLocalizer:
             if int(r.reason) == Reason.OVERLAP:
                 self._overlap(p, counts)
                 return None
-            return self._weak(p, r, float(r.snr_db), counts)
+            return self._weak(p, r, float(r.snr_db), counts, weak_on)
         if r.confidence < self.min_confidence:
             counts["below_min_confidence"] += 1
             return None
@@ -758,7 +776,7 @@ class PacketLocalizer:
             r.overlap_excess,
         )
 
-    def _batched(self, packets, counts) -> list[tuple]:
+    def _batched(self, packets, counts, weak_on=False) -> list[tuple]:
         groups: dict[tuple, list[int]] = {}
         for i, p in enumerate(packets):
             groups.setdefault((p.samples_v.shape[1], float(p.sample_rate_hz)), []).append(i)
@@ -788,7 +806,8 @@ class PacketLocalizer:
                     if int(res.reason[j]) == Reason.OVERLAP:
                         self._overlap(p, counts)
                         continue
-                    rec = self._weak(p, _Row(res, j, offsets[j]), float(res.snr_db_est[j]), counts)
+                    row = _Row(res, j, offsets[j])
+                    rec = self._weak(p, row, float(res.snr_db_est[j]), counts, weak_on)
                     if rec is not None:
                         found.append((ids[j], p, rec))
                     continue

@@ -51,6 +51,11 @@ def test_the_gate_keeps_a_weak_release_only_on_the_spot_of_a_touch_not_yet_relea
 
 def test_the_gate_forgets_old_touches_and_never_pairs_a_release_before_its_touch():
     var = (20e-6) ** 2
+    from ae_tactile.slip import SlipConfig
+
+    # a touch older than the slip detector's evidence window: it would not pair the
+    # release with it (an isolated emission, evidence), so the gate does not keep it
+    assert WINDOW_S <= SlipConfig().evidence_window_s
     g = WeakReleaseGate()
     g.admit(0, _pt(0, 0), var, +1, False)
     assert not g.admit(int((WINDOW_S + 0.1) * 1e9), _pt(0, 0), var, -1, True)  # too old
@@ -60,6 +65,7 @@ def test_the_gate_forgets_old_touches_and_never_pairs_a_release_before_its_touch
         g.admit(10_001 * MS + i, _pt(-4 + 0.2 * i, -3), var, +1, False)
     assert len(g) == CAPACITY
     assert not g.admit(10_100 * MS, _pt(-4, -3), var, -1, True)
+    assert g.admit(10_100 * MS, _pt(-4 + 0.2 * (CAPACITY + 4), -3), var, -1, True)
     # the nearest touch in the gate is the one a weak release ends
     g2 = WeakReleaseGate()
     g2.admit(0, _pt(0, 0), (0.2e-3) ** 2, +1, False)
@@ -181,8 +187,10 @@ def test_packet_localizer_keeps_weak_releases_as_detouch_and_counts_them(batch):
     with pytest.raises(ValueError):
         on.update(weak_release_min_snr_db=math.nan, min_confidence=0.5)
     assert on.min_confidence == 0.0  # nothing changed
+    on.weak_gate.admit(10**12, _pt(1, 1), 1e-10, +1, False)  # a touch not yet released
     on.update(weak_releases=False)
-    assert not on.weak_releases
+    on.update(weak_releases=True)  # switched: the gate starts afresh
+    assert on.weak_releases and len(on.weak_gate) == 0
 
 
 def _has_weak(pk, geo):

@@ -15,7 +15,8 @@ The gate keeps a packet rejected *only* for low SNR when
   * its polarity is a rarefaction (a release), its estimated SNR >= ``min_snr_db`` of
     the gate (default -5 dB), and
   * its position's 1-sigma (per axis) is <= ``MAX_SIGMA_M`` (0.5 mm), and
-  * it lies on the spot of a touch of the last ``WINDOW_S`` that no release has ended:
+  * it lies on the spot of a touch of the last ``WINDOW_S`` (2 s, the slip detector's
+    evidence window) that no release has ended:
     |p - p_touch|^2 <= g^2 (var_touch + var + floor^2), g = ``GATE_SIGMA`` (4),
     floor = ``FLOOR_M`` (0.1 mm), var the per-axis position variance (m^2): the slip
     detector's same-spot gate with its default settings.
@@ -39,8 +40,10 @@ FLOOR_M = float(SlipConfig.release_floor_m)
 #: pass the SNR floor at 2 MS/s come with >= 1 mm (their gate would take any touch); the
 #: weak releases of the simulator's touch-release cycles: 0.13 mm median, 0.39 mm p99
 MAX_SIGMA_M = 0.5e-3
-#: touches older than this are not remembered (s)
-WINDOW_S = 10.0
+#: touches older than this are not remembered (s): the slip detector's evidence window
+#: (its default), the span over which it pairs a release with its touch; a release the
+#: gate kept after a longer hold would reach it as an isolated emission
+WINDOW_S = float(SlipConfig.evidence_window_s)
 #: at most this many touches remembered (the oldest forgotten first)
 CAPACITY = 32
 _WINDOW_NS = int(WINDOW_S * 1e9)
@@ -57,14 +60,20 @@ def check_min_snr_db(value) -> float:
     return v
 
 
-def is_weak_release(reason_flags: int, polarity: int, snr_db: float, min_snr_db: float) -> bool:
-    """A candidate: rejected for low SNR and nothing else, a rarefaction, SNR >= floor."""
+def is_weak_release(
+    reason_flags: int, polarity: int, snr_db: float, min_snr_db: float, var_m2: float
+) -> bool:
+    """A candidate: rejected for low SNR and nothing else, a rarefaction, SNR >= floor,
+    per-axis position variance ``var_m2`` finite and <= MAX_SIGMA_M^2."""
     from ae_tactile.localization.common import Reason
 
+    v = float(var_m2)
     return (
         int(reason_flags) == (1 << Reason.LOW_SNR)
         and int(polarity) < 0
         and float(snr_db) >= min_snr_db
+        and math.isfinite(v)
+        and 0.0 <= v <= MAX_SIGMA_M * MAX_SIGMA_M
     )
 
 
@@ -135,7 +144,7 @@ def kept_with_weak_releases(
         if usable is not None and not usable[i]:
             continue
         w = not res.accepted[i] and is_weak_release(
-            res.reason_flags[i], res.polarity[i], res.snr_db_est[i], min_snr_db
+            res.reason_flags[i], res.polarity[i], res.snr_db_est[i], min_snr_db, var[i]
         )
         if res.accepted[i] or w:
             kept[i] = gate.admit(int(time_ns[i]), res.point_m[i], var[i], int(res.polarity[i]), w)
@@ -143,10 +152,14 @@ def kept_with_weak_releases(
     return kept, weak
 
 
-def weak_release_confidence(snr_db: float, min_snr_db: float, sigma_pos_m: float) -> float:
-    """The localizer's confidence (localization/events.py) of a weak release, with the
-    gate's SNR floor in place of min_snr_db: sqrt(clip((SNR - floor) / 20 dB, 0, 1)) /
-    (1 + sigma_pos^2 / (0.5 mm)^2), the fit term 1 (a weak packet has no OVERLAP flag)."""
-    c_snr = math.sqrt(min(max((float(snr_db) - min_snr_db) / 20.0, 0.0), 1.0))
-    c = c_snr / (1.0 + (float(sigma_pos_m) / 0.5e-3) ** 2)
-    return c if math.isfinite(c) else 0.0
+def weak_release_confidence(
+    snr_db, min_snr_db, sigma_pos_m, overlap_excess, overlap_threshold, clamped
+) -> float:
+    """The localizer's confidence (localization/events.py: c_snr c_fit c_pos c_clamp) of a
+    weak release, with the gate's SNR floor in place of min_snr_db."""
+    from ae_tactile.localization.events import confidence
+
+    return float(
+        confidence(True, float(snr_db), float(min_snr_db), float(overlap_excess),
+                   float(overlap_threshold), float(sigma_pos_m), bool(clamped))
+    )

@@ -282,7 +282,9 @@ LOCALIZATION_PARAMS = [
         Param(
             "weak_release_min_snr_db",
             WEAK_RELEASE_MIN_SNR_DB,
-            "Lowest estimated SNR of a weak release (noise alone: p99.9 -4.5 dB)",
+            "Lowest estimated SNR of a weak release (windows of noise alone pass -5 dB "
+            "too, often at 2 MS/s: the spot test and a bound of 0.5 mm on the position's "
+            "1-sigma keep them out; docs/localization.md)",
             -20.0,
             80.0,
         )

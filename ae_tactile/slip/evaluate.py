@@ -28,7 +28,7 @@ import time
 
 import numpy as np
 
-from ae_tactile.localization import Reason, localize
+from ae_tactile.localization import Reason, get_estimator, localize
 from ae_tactile.localization.weak_release import MIN_SNR_DB as WEAK_MIN_SNR_DB
 from ae_tactile.localization.weak_release import (
     WeakReleaseGate,
@@ -147,10 +147,16 @@ def _kept(res, t_ns, weak_min_snr_db, usable=None, gate=None):
         res, t_ns, float(weak_min_snr_db), gate=gate, usable=usable
     )
     conf = np.array(res.confidence, dtype=float)
+    thr = get_estimator(res.method).overlap_threshold  # `localize`'s default
     for i in np.flatnonzero(weak):
         c = res.covariance_m2[i]
         conf[i] = weak_release_confidence(
-            res.snr_db_est[i], float(weak_min_snr_db), math.sqrt(max(c[0, 0] + c[1, 1], 0.0))
+            res.snr_db_est[i],
+            float(weak_min_snr_db),
+            math.sqrt(max(c[0, 0] + c[1, 1], 0.0)),
+            res.overlap_excess[i],
+            thr,
+            res.clamped[i],
         )
     return kept, conf
 
@@ -923,8 +929,8 @@ def weak_release_trial(seed: int) -> dict:
 
 
 def noise_window_snr_db(n: int = 20000, sample_rate_hz: float = 5e6, seed: int = 0):
-    """(estimated SNR dB, polarity, position 1-sigma per axis m, NaN where the packet was
-    rejected for more than low SNR) of ``n`` windows of white noise alone (the triggered
+    """(estimated SNR dB, polarity, position 1-sigma per axis m, NaN unless the packet was
+    rejected for low SNR alone) of ``n`` windows of white noise alone (the triggered
     windows' 40 us, onset 8 us in, at ``sample_rate_hz``): what the weak-release gate has
     to keep out."""
     from ae_tactile.geometry import FingertipGeometry
