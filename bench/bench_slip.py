@@ -908,7 +908,7 @@ def main(argv=None) -> int:
                 "p999": float(p999),
                 "max": float(mx),
                 "candidate_rate": float(cand.mean()),
-                "candidate_sharp_rate": float((cand & (sd <= 0.5e-3)).mean()),
+                "candidate_sharp_rate": float((cand & (sd <= 0.5e-3)).sum() / max(cand.sum(), 1)),
             }
         summary["weak_releases"] = summarize_weak_releases(rows, noise)
         trials["weak_releases"] = rows
