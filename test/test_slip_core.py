@@ -127,14 +127,16 @@ def test_touch_release_cycles_and_taps_near_a_held_touch_never_alarm():
     assert det.state.state == ContactState.STICK  # the first touch is still held
 
 
-def test_a_spot_touched_again_right_after_its_release_keeps_its_contact():
+@pytest.mark.parametrize("retouch_offset_m", [0.0, 0.45e-3])
+def test_a_spot_touched_again_right_after_its_release_keeps_its_contact(retouch_offset_m):
     """A spot just outside the association radius (5 mm) of a held touch is tapped again
     within release_confirm_s of each release; each release lands 80 um toward the held
     touch (on its tap's spot, but inside that radius). The re-touch takes over as the tap
     contact's founder, so its own release pairs with it there and ends that contact
     (instead of arriving after the contact ended and joining the held touch as an
     isolated emission): every release pairs, no micro-slip evidence, no alarm, and once
-    the taps stop only the held touch is left."""
+    the taps stop only the held touch is left. The re-touch may land off the founder's
+    spot (0.45 mm, outside its same-spot gate of 0.42 mm here) but on its release's."""
     det = SlipDetector()
     cfg = det.config
     gap = int(0.2 * cfg.release_confirm_s * 1e9)  # re-touch 6 ms after the release
@@ -150,13 +152,14 @@ def test_a_spot_touched_again_right_after_its_release_keeps_its_contact():
     for _ in range(n_taps):
         events.append(ev(t, *spot, 1, pid))
         events.append(ev(t + 30 * MS, *rel, -1, pid + 1))
-        events.append(ev(t + 30 * MS + gap, *spot, 1, pid + 2))
+        events.append(ev(t + 30 * MS + gap, *(spot - retouch_offset_m * u), 1, pid + 2))
         events.append(ev(t + 120 * MS, *rel, -1, pid + 3))
         t += 200 * MS
         pid += 4
     assert run(det, events) == []
     assert det.counts["pairs"] == 2 * n_taps
     assert det.counts["evidence"] == 0
+    assert det.counts["releases_cancelled"] == n_taps  # every re-touch took over
     det.advance(t + 1000 * MS)
     (left,) = det.contacts
     assert np.allclose(left.centre, surf(*held))

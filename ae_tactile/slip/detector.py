@@ -186,6 +186,7 @@ class _Contact:
         self.confirmed = confirmed
         self.pending_release_ns = None
         self.pending_in_slip = False  # a release-like emission while slipping
+        self.pending_release_spot = None  # (point, variance) of the founder's release
         self.touch_release_ns = None  # latest touch-release pair (not the founder's)
         self.founder = None  # (point, variance, polarity) of the founder
         self.last_p = None  # latest emission's point
@@ -510,6 +511,7 @@ class SlipDetector:
             fd = fp - p
             if ev.polarity * fpol < 0 and float(fd @ fd) <= self._g2 * (fvar + var + self._f2):
                 c.pending_release_ns, c.pending_in_slip = t, True  # confirmed by quiet_s
+                c.pending_release_spot = (p.copy(), var)
                 self.counts["releases"] += 1
             elif c.pending_release_ns is not None:
                 c.pending_release_ns = None
@@ -537,6 +539,7 @@ class SlipDetector:
                     self.counts["pairs"] += 1
                     if F[j] & FOUNDER:
                         c.pending_release_ns, c.pending_in_slip = t, False
+                        c.pending_release_spot = (p.copy(), var)
                         self.counts["releases"] += 1
                     elif ev.polarity < 0 < int(c.pol[j]) and float(d2[j]) <= 9.0 * (
                         float(c.var[j]) + var
@@ -547,12 +550,17 @@ class SlipDetector:
                 else:
                     if ev.polarity > 0 and c.pending_release_ns is not None:
                         fp, fvar, _ = c.founder
-                        fd = fp - p
-                        if float(fd @ fd) <= self._g2 * (fvar + var + self._f2):
-                            # the founder's spot touched again before its release was
-                            # confirmed: the re-touch takes over as the founder and the
-                            # contact goes on; its release pairs with it here and ends
-                            # the contact (not a lone rarefaction after it ended)
+                        rp, rvar = c.pending_release_spot or (fp, fvar)
+                        fd, rd = fp - p, rp - p
+                        if min(
+                            float(fd @ fd) - self._g2 * (fvar + var + self._f2),
+                            float(rd @ rd) - self._g2 * (rvar + var + self._f2),
+                        ) <= 0.0:
+                            # the founder's (or its release's) spot touched again before
+                            # the release was confirmed: the re-touch takes over as the
+                            # founder and the contact goes on; its release pairs with it
+                            # here and ends the contact (not a lone rarefaction after it
+                            # ended)
                             c.pending_release_ns = None
                             c.founder = (p.copy(), var, 1)
                             flags |= FOUNDER
