@@ -284,7 +284,7 @@ LOCALIZATION_PARAMS = [
             WEAK_RELEASE_MIN_SNR_DB,
             "Lowest estimated SNR of a weak release (windows of noise alone pass -5 dB "
             "too, often at 2 MS/s: the spot test and a bound of 0.5 mm on the position's "
-            "1-sigma keep them out; docs/localization.md)",
+            "1-sigma keep them out, see docs/localization.md)",
             -20.0,
             80.0,
         )
