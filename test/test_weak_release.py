@@ -85,20 +85,8 @@ def test_a_non_finite_weak_release_is_not_kept_and_forgets_nothing(bad):
 
 
 def _cycles(seed):
-    """Packets of a touch-release cycles scene (`cycles_trial`'s) and their truth."""
-    captured = {}
-    real = ev.localized_events
-
-    def spy(packets, geometry, **kw):
-        captured["packets"], captured["geometry"] = packets, geometry
-        return real(packets, geometry, **kw)
-
-    ev.localized_events = spy
-    try:
-        ev.cycles_trial(seed, pipeline="triggered")
-    finally:
-        ev.localized_events = real
-    return captured["packets"], captured["geometry"]
+    """Packets of a touch-release cycles scene (`cycles_trial`'s) and their geometry."""
+    return ev.cycles_packets(seed)
 
 
 def test_weak_releases_of_touch_release_cycles_are_kept_true_and_on_their_touch():

@@ -844,6 +844,34 @@ def cycles_trial(
 ) -> dict:
     """Touch-release cycles: touches held 20 .. 500 ms, 10 .. 300 ms apart, each within
     3 mm of the previous one (a finger pressing and lifting over one area): false alarms."""
+    spec, build, medium = _cycles_scene(seed, duration_s)
+    scene, det, outs, trace, events, n_em = _custom_trial(seed, spec, build, config, pipeline)
+    out = {
+        "seed": int(seed),
+        "duration_s": duration_s,
+        "medium": medium,
+        "pipeline": pipeline,
+        "n_emissions": n_em,
+        "n_events": len(events),
+        "state_end": int(det.state.state),
+    }
+    out.update(_alarm_summary(outs))
+    return out
+
+
+def cycles_packets(seed: int, duration_s: float = 3.0):
+    """(triggered packets, geometry) of `cycles_trial`'s scene: the waveforms the
+    'triggered' pipeline localizes, with their emissions (the truth)."""
+    spec, build, _ = _cycles_scene(seed, duration_s)
+    scene = load_scene(spec)
+    em = build(scene, np.random.default_rng([7020, int(seed)]))  # as `_custom_trial`
+    end_ns = int(round(scene.duration_s * _NS))
+    pk = _triggered(scene, _WithTouch(_Empty(), em)).next_packets(1 << 30, horizon_ns=end_ns)
+    return pk, scene.config.geometry
+
+
+def _cycles_scene(seed, duration_s):
+    """(scene spec, emission builder, medium) of the touch-release cycles family."""
     rng = np.random.default_rng([7022, int(seed)])
     medium = "silicone" if rng.uniform() < 0.5 else "water_skin"
     spec = {
@@ -878,18 +906,7 @@ def cycles_trial(
             scene, times, np.array(pts), np.array(pol), np.array(spd), np.arange(len(times))
         )
 
-    scene, det, outs, trace, events, n_em = _custom_trial(seed, spec, build, config, pipeline)
-    out = {
-        "seed": int(seed),
-        "duration_s": duration_s,
-        "medium": medium,
-        "pipeline": pipeline,
-        "n_emissions": n_em,
-        "n_events": len(events),
-        "state_end": int(det.state.state),
-    }
-    out.update(_alarm_summary(outs))
-    return out
+    return spec, build, medium
 
 
 def weak_release_trial(seed: int) -> dict:
@@ -897,19 +914,7 @@ def weak_release_trial(seed: int) -> dict:
     localizer rejects for low SNR alone, against the simulator's truth: estimated SNR,
     position error (m), polarity right, kept by the weak-release gate; and the packets the
     gate keeps that are not releases (should be none)."""
-    cap = {}
-
-    def spy(packets, geometry, **kw):
-        cap["packets"], cap["geometry"] = packets, geometry
-        return []
-
-    real = globals()["localized_events"]
-    globals()["localized_events"] = spy
-    try:
-        cycles_trial(seed, pipeline="triggered")
-    finally:
-        globals()["localized_events"] = real
-    pk, geo = cap["packets"], cap["geometry"]
+    pk, geo = cycles_packets(seed)
     res = localize(pk.samples_v, pk.sample_rate_hz, pk.onset_index, geometry=geo,
                    saturated=pk.saturated)
     kept, weak = kept_with_weak_releases(res, np.asarray(pk.emissions.time_ns, np.int64))
