@@ -659,12 +659,86 @@ def _run_and_signal(tmp_path, exe_name, args, signals, ready_text=None, delay_s=
             time.sleep(delay_s)
             for sig in signals:
                 os.killpg(proc.pid, sig)
-            code = proc.wait(timeout=STOP_TIMEOUT_S)
+            try:
+                code = proc.wait(timeout=STOP_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                # its output holds every thread's stack (printed CLEANUP_DEADLINE_S
+                # after the first signal): where the clean-up hangs
+                pytest.fail(f"{exe_name} still running {STOP_TIMEOUT_S:g} s after "
+                            f"{[s.name for s in signals]}; its output:\n{log.read_text()}")
         finally:
             if proc.poll() is None:
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait(10)
-    return code, log.read_text()
+    out = log.read_text()
+    _assert_no_hang_in_own_code(out)
+    return code, out
+
+
+def _stuck_frames(out: str) -> list[str]:
+    """The main thread's frames, innermost first, from the stacks a forced exit prints
+    (faulthandler's 'Thread 0x... (most recent call first):' blocks; the main thread's
+    block is the one that ends in the script's '<module>')."""
+    blocks = re.split(r"^(?:Current thread|Thread) 0x[0-9a-f]+ \(most recent call first\):$",
+                      out, flags=re.M)[1:]
+    for block in blocks:
+        frames = re.findall(r'^  File "([^"]+)", line \d+ in (\S+)$', block, flags=re.M)
+        if frames and frames[-1][1] == "<module>":
+            return [f"{path}:{name}" for path, name in frames]
+    return []
+
+
+def _assert_no_hang_in_own_code(out: str) -> None:
+    """A clean-up that ended only by its deadline (the node's forced exit) may have hung
+    in the middleware (rclpy or below), never in the package's own code."""
+    from ae_tactile.ros.node_utils import CLEANUP_FORCED_EXIT_TEXT
+    if CLEANUP_FORCED_EXIT_TEXT not in out:
+        return
+    frames = _stuck_frames(out)
+    assert frames, f"a forced exit without the main thread's stack:\n{out}"
+    assert "/site-packages/" in frames[0], f"the clean-up hung in the package's code:\n{out}"
+
+
+_HANGING_CLEANUP_SCRIPT = """
+import sys, time
+from ae_tactile.ros import node_utils
+node_utils.CLEANUP_DEADLINE_S = float(sys.argv[1])
+with node_utils.ros_session(interrupt=False) as state:
+    print("ready", flush=True)
+    state["stop"].wait()
+    while True:  # a clean-up that never ends (as a middleware teardown that hangs)
+        time.sleep(0.05)
+"""
+
+
+def test_a_clean_up_that_hangs_ends_at_its_deadline_with_the_stacks(tmp_path):
+    """A stopped process whose clean-up never ends prints every thread's stack, then
+    leaves by itself with the exit code of a stop (0), without a further signal."""
+    require_ros()
+    script = tmp_path / "hang.py"
+    script.write_text(_HANGING_CLEANUP_SCRIPT)
+    log = tmp_path / "hang.txt"
+    with open(log, "w") as fh:
+        proc = subprocess.Popen([sys.executable, str(script), "1.0"], stdout=fh,
+                                stderr=subprocess.STDOUT, cwd=tmp_path,
+                                env=dict(os.environ, PYTHONUNBUFFERED="1"))
+        try:
+            while "ready" not in log.read_text():
+                assert proc.poll() is None, log.read_text()
+                time.sleep(0.05)
+            proc.send_signal(signal.SIGINT)
+            code = proc.wait(timeout=STOP_TIMEOUT_S)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
+    out = log.read_text()
+    from ae_tactile.ros.node_utils import CLEANUP_FORCED_EXIT_TEXT
+    assert code == 0, out
+    assert CLEANUP_FORCED_EXIT_TEXT in out, out
+    frames = _stuck_frames(out)
+    assert frames and frames[0].startswith(str(script)), out  # where it hung
+    assert "Traceback" not in out, out
 
 
 @pytest.mark.parametrize("signals", [

@@ -5,7 +5,8 @@
   second (a terminal's Ctrl-C reaches every process of the group, then `ros2 launch`
   sends its own SIGINT) is ignored while the nodes are destroyed, *before* the context
   is shut down, so no callback or publisher thread meets an invalid context; a third
-  forces the exit. Exit code 0 on a signal, 2 when a node refused its parameters or ROS
+  forces the exit, and so does a clean-up still running `CLEANUP_DEADLINE_S` after the
+  first (every thread's stack printed first). Exit code 0 on a signal, 2 when a node refused its parameters or ROS
   could not read its arguments (e.g. a --params-file; message on stderr), no traceback.
 - `node_main`: the entry point of a node executable; `--help` prints the usage and the
   node's parameters from its `Param` table and exits 0 without starting anything; the
@@ -39,9 +40,14 @@ LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                      reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
-#: A clean-up taking longer than this after the first SIGINT/SIGTERM (s) prints the stack
-#: of every thread to stderr (the launch log): where it hangs, before launch escalates.
-CLEANUP_TRACEBACK_S = 15.0
+#: A clean-up still running this long after the first SIGINT/SIGTERM (s) prints the stack
+#: of every thread to stderr (the launch log, where it hangs); a second later the process
+#: leaves without finishing it (exit code as if it had: 0 on a stop signal). A clean-up
+#: takes milliseconds; what can hang is the middleware's teardown, which must not keep a
+#: stopped node alive until someone sends SIGKILL.
+CLEANUP_DEADLINE_S = 20.0
+#: The line the forced exit prints on stderr (after the stacks).
+CLEANUP_FORCED_EXIT_TEXT = "[ae_tactile] the clean-up did not end after the stop signal"
 
 #: Longest time the spin loop blocks before it looks at the stop request (s). A Python
 #: signal handler only runs between bytecodes, never inside rcl_wait.
@@ -52,6 +58,24 @@ _STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 #: send one SIGINT (ignored while cleaning up); a third (launch's SIGTERM after its
 #: timeout, or Ctrl-C pressed again) means the clean-up hangs.
 FORCE_EXIT_SIGNALS = 3
+
+
+def _start_cleanup_deadline(state: dict, done: threading.Event) -> None:
+    """Bound the clean-up that the first stop signal starts (`CLEANUP_DEADLINE_S`):
+    faulthandler's own C thread prints every thread's stack even when the main thread is
+    stuck inside a call; a daemon thread then ends the process unless ``done`` is set."""
+    deadline_s = float(CLEANUP_DEADLINE_S)
+    faulthandler.dump_traceback_later(deadline_s, exit=False)
+
+    def leave_if_stuck():
+        if done.wait(deadline_s + 1.0):
+            return
+        os.write(2, (f"{CLEANUP_FORCED_EXIT_TEXT} ({deadline_s + 1.0:g} s; each thread's "
+                     "stack above): leaving without it\n").encode())
+        os._exit(int(state.get("exit", 0)))
+
+    threading.Thread(target=leave_if_stuck, name="ae_tactile_cleanup_deadline",
+                     daemon=True).start()
 
 
 # ------------------------------------------------------------------ start and stop
@@ -66,6 +90,7 @@ def _stop_on_signals(state: dict):
         return
     stop = state["stop"]
     count = [0]
+    cleanup_done = threading.Event()
 
     def handler(signum, frame):
         count[0] += 1
@@ -74,10 +99,8 @@ def _stop_on_signals(state: dict):
             os._exit(1)
         first = not stop.is_set()
         stop.set()
-        if first:
-            # a clean-up that hangs prints where every thread is (a C thread of
-            # faulthandler's: it works while the main thread is stuck in a call)
-            faulthandler.dump_traceback_later(CLEANUP_TRACEBACK_S, exit=False)
+        if first:  # a clean-up that hangs prints where, then the process leaves
+            _start_cleanup_deadline(state, cleanup_done)
         if first and state["interrupt"]:
             raise KeyboardInterrupt
 
@@ -98,6 +121,7 @@ def _stop_on_signals(state: dict):
     try:
         yield
     finally:
+        cleanup_done.set()
         faulthandler.cancel_dump_traceback_later()
         sys.unraisablehook = previous_hook
         for sig, old in previous.items():
