@@ -40,10 +40,10 @@ LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                      reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
-#: A clean-up still running this long after the first SIGINT/SIGTERM (s) prints the stack
-#: of every thread to stderr (the launch log, where it hangs); a second later the process
-#: leaves without finishing it (exit code as if it had: 0 on a stop signal). A clean-up
-#: takes milliseconds; what can hang is the middleware's teardown, which must not keep a
+#: A clean-up still running this long after the first SIGINT/SIGTERM (s) prints every
+#: thread's stack to stderr (the launch log: where it hangs) and the process leaves
+#: without finishing it (exit code as if it had: 0 on a stop signal). A clean-up takes
+#: milliseconds; what can hang is the middleware's teardown, which must not keep a
 #: stopped node alive until someone sends SIGKILL.
 CLEANUP_DEADLINE_S = 20.0
 #: The line the forced exit prints on stderr (after the stacks).
@@ -61,17 +61,20 @@ FORCE_EXIT_SIGNALS = 3
 
 
 def _start_cleanup_deadline(state: dict, done: threading.Event) -> None:
-    """Bound the clean-up that the first stop signal starts (`CLEANUP_DEADLINE_S`):
-    faulthandler's own C thread prints every thread's stack even when the main thread is
-    stuck inside a call; a daemon thread then ends the process unless ``done`` is set."""
+    """Bound the clean-up that the first stop signal starts: unless ``done`` is set within
+    `CLEANUP_DEADLINE_S`, a daemon thread prints every thread's stack and ends the process
+    with the stop's exit code. Should the main thread hold the GIL forever (stuck inside a
+    call that never releases it), faulthandler's own C thread does the same 2 s later,
+    with exit code 1."""
     deadline_s = float(CLEANUP_DEADLINE_S)
-    faulthandler.dump_traceback_later(deadline_s, exit=False)
+    faulthandler.dump_traceback_later(deadline_s + 2.0, exit=True)
 
     def leave_if_stuck():
-        if done.wait(deadline_s + 1.0):
+        if done.wait(deadline_s):
             return
-        os.write(2, (f"{CLEANUP_FORCED_EXIT_TEXT} ({deadline_s + 1.0:g} s; each thread's "
-                     "stack above): leaving without it\n").encode())
+        faulthandler.dump_traceback(all_threads=True)
+        os.write(2, (f"{CLEANUP_FORCED_EXIT_TEXT} ({deadline_s:g} s; each thread's stack "
+                     "above): leaving without it\n").encode())
         os._exit(int(state.get("exit", 0)))
 
     threading.Thread(target=leave_if_stuck, name="ae_tactile_cleanup_deadline",
