@@ -702,26 +702,37 @@ def _assert_no_hang_in_own_code(out: str) -> None:
 
 
 _HANGING_CLEANUP_SCRIPT = """
-import sys, time
+import ctypes, sys, time
 from ae_tactile.ros import node_utils
-node_utils.CLEANUP_DEADLINE_S = float(sys.argv[1])
+node_utils.CLEANUP_DEADLINE_S = float(sys.argv[2])
 with node_utils.ros_session(interrupt=False) as state:
     print("ready", flush=True)
-    state["stop"].wait()
-    while True:  # a clean-up that never ends (as a middleware teardown that hangs)
-        time.sleep(0.05)
+    if sys.argv[1] == "clean-up":
+        state["stop"].wait()
+        while True:  # a clean-up that never ends
+            time.sleep(0.05)
+    else:  # stuck inside a call before the signal: a mutex locked twice (as a middleware
+        # that deadlocks); ctypes releases the GIL, Python never runs a signal handler
+        libc = ctypes.CDLL(None)
+        mutex = ctypes.create_string_buffer(64)
+        libc.pthread_mutex_init(mutex, None)
+        libc.pthread_mutex_lock(mutex)
+        libc.pthread_mutex_lock(mutex)
 """
 
 
-def test_a_clean_up_that_hangs_ends_at_its_deadline_with_the_stacks(tmp_path):
-    """A stopped process whose clean-up never ends prints every thread's stack, then
-    leaves by itself with the exit code of a stop (0), without a further signal."""
+@pytest.mark.parametrize("where", ["clean-up", "call"])
+def test_a_stop_that_hangs_ends_at_its_deadline_with_the_stacks(tmp_path, where):
+    """A stopped process whose clean-up never ends, or whose main thread is stuck inside a
+    call when the signal comes (no Python signal handler can run there), prints every
+    thread's stack, then leaves by itself with the exit code of a stop (0), without a
+    further signal."""
     require_ros()
     script = tmp_path / "hang.py"
     script.write_text(_HANGING_CLEANUP_SCRIPT)
     log = tmp_path / "hang.txt"
     with open(log, "w") as fh:
-        proc = subprocess.Popen([sys.executable, str(script), "1.0"], stdout=fh,
+        proc = subprocess.Popen([sys.executable, str(script), where, "1.0"], stdout=fh,
                                 stderr=subprocess.STDOUT, cwd=tmp_path,
                                 env=dict(os.environ, PYTHONUNBUFFERED="1"))
         try:

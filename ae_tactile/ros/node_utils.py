@@ -24,6 +24,7 @@ import os
 import queue
 import re
 import signal
+import socket
 import sys
 import threading
 from contextlib import contextmanager
@@ -87,25 +88,47 @@ def _stop_on_signals(state: dict):
     """Route SIGINT/SIGTERM to ``state['stop']``; while ``state['interrupt']`` is true the
     first one also raises KeyboardInterrupt in the main thread (to abort a long start-up,
     or for loops that do not poll the event). The second is ignored, the third forces
-    the exit."""
+    the exit, and so does a clean-up still running `CLEANUP_DEADLINE_S` after the first.
+
+    Python runs a signal handler in the main thread only, between bytecodes: a main thread
+    stuck inside a call would never see the signal. So the signals are also counted by a
+    thread of their own, woken through `signal.set_wakeup_fd` (Python's C-level handler
+    writes each signal's number there, whatever the main thread does): it records the
+    stop, starts the clean-up deadline and forces the exit on the third signal."""
     if threading.current_thread() is not threading.main_thread():
         yield                      # signals are delivered to the main thread only
         return
     stop = state["stop"]
-    count = [0]
     cleanup_done = threading.Event()
+    deadline_lock = threading.Lock()
+    deadline = {"started": False, "closed": False}
 
     def handler(signum, frame):
-        count[0] += 1
-        if count[0] >= FORCE_EXIT_SIGNALS:   # the clean-up hangs: the user insists
-            os.write(2, b"[ae_tactile] clean-up interrupted again: forced exit\n")
-            os._exit(1)
         first = not stop.is_set()
         stop.set()
-        if first:  # a clean-up that hangs prints where, then the process leaves
-            _start_cleanup_deadline(state, cleanup_done)
         if first and state["interrupt"]:
             raise KeyboardInterrupt
+
+    def watch_signals(sock):
+        count = 0
+        while True:
+            try:
+                data = sock.recv(64)
+            except OSError:
+                return
+            if not data:           # the session is over (the other end was closed)
+                return
+            count += sum(1 for b in data if b in _STOP_SIGNALS)
+            if not count:
+                continue
+            stop.set()
+            with deadline_lock:    # a clean-up that hangs prints where, then leaves
+                if not deadline["started"] and not deadline["closed"]:
+                    deadline["started"] = True
+                    _start_cleanup_deadline(state, cleanup_done)
+            if count >= FORCE_EXIT_SIGNALS:   # the clean-up hangs: the user insists
+                os.write(2, b"[ae_tactile] clean-up interrupted again: forced exit\n")
+                os._exit(1)
 
     previous_hook = sys.unraisablehook
 
@@ -119,16 +142,29 @@ def _stop_on_signals(state: dict):
             return
         previous_hook(info)
 
+    wake_read, wake_write = socket.socketpair()
+    wake_write.setblocking(False)
+    watcher = threading.Thread(target=watch_signals, args=(wake_read,),
+                               name="ae_tactile_stop_signals", daemon=True)
+    watcher.start()
+    previous_wakeup = signal.set_wakeup_fd(wake_write.fileno(), warn_on_full_buffer=False)
     previous = {sig: signal.signal(sig, handler) for sig in _STOP_SIGNALS}
     sys.unraisablehook = unraisable
     try:
         yield
     finally:
+        with deadline_lock:
+            deadline["closed"] = True
         cleanup_done.set()
         faulthandler.cancel_dump_traceback_later()
         sys.unraisablehook = previous_hook
         for sig, old in previous.items():
             signal.signal(sig, old)
+        signal.set_wakeup_fd(previous_wakeup)
+        wake_write.close()         # the watcher reads the end of the stream and returns
+        watcher.join(1.0)
+        if not watcher.is_alive():  # (else leave the socket to it: no fd closed under it)
+            wake_read.close()
 
 
 def _from_stop_signal(exc: BaseException, stop: threading.Event) -> bool:
