@@ -28,7 +28,7 @@ import signal
 import socket
 import sys
 import threading
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -64,17 +64,23 @@ FORCE_EXIT_SIGNALS = 3
 
 def _start_cleanup_deadline(state: dict, done: threading.Event) -> None:
     """Bound the clean-up that the first stop signal starts: unless ``done`` is set within
-    `CLEANUP_DEADLINE_S`, a daemon thread prints every thread's stack and ends the process
-    with the stop's exit code. Should the main thread hold the GIL forever (stuck inside a
-    call that never releases it), faulthandler's own C thread does the same 2 s later,
-    with exit code 1."""
+    `CLEANUP_DEADLINE_S`, a daemon thread prints every thread's stack (to file descriptor
+    2, whatever ``sys.stderr`` is) and ends the process with the stop's exit code. Should
+    the main thread take the GIL for good meanwhile (stuck inside a call that never
+    releases it), faulthandler's own C thread does the same 2 s later, with exit code 1."""
     deadline_s = float(CLEANUP_DEADLINE_S)
-    faulthandler.dump_traceback_later(deadline_s + 2.0, exit=True)
+    try:
+        faulthandler.dump_traceback_later(deadline_s + 2.0, exit=True, file=2)
+    except (OSError, ValueError, RuntimeError):
+        pass                                   # the deadline thread below still works
 
     def leave_if_stuck():
         if done.wait(deadline_s):
             return
-        faulthandler.dump_traceback(all_threads=True)
+        try:
+            faulthandler.dump_traceback(file=2, all_threads=True)
+        except (OSError, ValueError, RuntimeError):
+            pass
         os.write(2, (f"{CLEANUP_FORCED_EXIT_TEXT} ({deadline_s:g} s; each thread's stack "
                      "above): leaving without it\n").encode())
         os._exit(int(state.get("exit", 0)))
@@ -103,11 +109,13 @@ def _stop_on_signals(state: dict):
     cleanup_done = threading.Event()
     deadline_lock = threading.Lock()
     deadline = {"started": False, "closed": False}
+    interrupted = [False]          # the handler raised its one KeyboardInterrupt
 
     def handler(signum, frame):
-        first = not stop.is_set()
+        # (not 'the first signal': the watcher below may have set the event already)
         stop.set()
-        if first and state["interrupt"]:
+        if state["interrupt"] and not interrupted[0]:
+            interrupted[0] = True
             raise KeyboardInterrupt
 
     def watch_signals(sock):
@@ -143,29 +151,40 @@ def _stop_on_signals(state: dict):
             return
         previous_hook(info)
 
-    wake_read, wake_write = socket.socketpair()
-    wake_write.setblocking(False)
-    watcher = threading.Thread(target=watch_signals, args=(wake_read,),
-                               name="ae_tactile_stop_signals", daemon=True)
-    watcher.start()
-    previous_wakeup = signal.set_wakeup_fd(wake_write.fileno(), warn_on_full_buffer=False)
-    previous = {sig: signal.signal(sig, handler) for sig in _STOP_SIGNALS}
-    sys.unraisablehook = unraisable
-    try:
+    # Each step is undone at the end (last first), also when a later step fails. The
+    # watcher's end: its peer closes, it reads the end of the stream and returns, then its
+    # own socket closes (not under a thread still reading it).
+    with ExitStack() as undo:
+        wake_read, wake_write = socket.socketpair()
+        watcher = threading.Thread(target=watch_signals, args=(wake_read,),
+                                   name="ae_tactile_stop_signals", daemon=True)
+
+        @undo.callback
+        def _close_read():
+            if not watcher.is_alive():
+                wake_read.close()
+
+        undo.callback(lambda: watcher.is_alive() and watcher.join(1.0))
+        undo.callback(wake_write.close)
+        wake_write.setblocking(False)
+        watcher.start()
+        previous_wakeup = signal.set_wakeup_fd(wake_write.fileno(), warn_on_full_buffer=False)
+        undo.callback(signal.set_wakeup_fd, previous_wakeup)
+        for sig in _STOP_SIGNALS:
+            undo.callback(signal.signal, sig, signal.signal(sig, handler))
+        sys.unraisablehook = unraisable
+        undo.callback(setattr, sys, "unraisablehook", previous_hook)
+
+        @undo.callback
+        def _close_deadline():
+            with deadline_lock:
+                deadline["closed"] = True
+                started = deadline["started"]
+            cleanup_done.set()
+            if started:            # (a timer armed by someone else, e.g. pytest's, stays)
+                faulthandler.cancel_dump_traceback_later()
+
         yield
-    finally:
-        with deadline_lock:
-            deadline["closed"] = True
-        cleanup_done.set()
-        faulthandler.cancel_dump_traceback_later()
-        sys.unraisablehook = previous_hook
-        for sig, old in previous.items():
-            signal.signal(sig, old)
-        signal.set_wakeup_fd(previous_wakeup)
-        wake_write.close()         # the watcher reads the end of the stream and returns
-        watcher.join(1.0)
-        if not watcher.is_alive():  # (else leave the socket to it: no fd closed under it)
-            wake_read.close()
 
 
 def _from_stop_signal(exc: BaseException, stop: threading.Event) -> bool:
