@@ -82,6 +82,40 @@ def test_touch_hold_release_no_alarm_and_states():
     assert det.counts["releases"] == 1 and det.counts["evidence"] == 0
 
 
+@pytest.mark.parametrize("hold_over_window", [1.05, 3.0, 60.0])
+@pytest.mark.parametrize("release_pol", [-1, 0])
+def test_a_release_after_a_hold_longer_than_the_evidence_window_ends_the_contact(
+    hold_over_window, release_pol
+):
+    """A grasp held for seconds: its release (a rarefaction, or of unknown polarity, on
+    the touch's spot) pairs with the touch however long the hold, ends the contact after
+    release_confirm_s and is no micro-slip evidence; re-grasping next to it is a new
+    contact. A rarefaction off the touch's spot after the same hold does not end it."""
+    cfg = SlipConfig()
+    t_rel = 10 * MS + int(hold_over_window * cfg.evidence_window_s * 1e9)
+    confirm = int(cfg.release_confirm_s * 1e9)
+    det = SlipDetector(cfg)
+    assert run(det, [ev(10 * MS, 2e-3, -1e-3, +1, 1)]) == []
+    det.advance(t_rel - MS)
+    assert det.state.state == ContactState.STICK
+    assert run(det, [ev(t_rel, 2e-3 + 15e-6, -1e-3, release_pol, 2)]) == []
+    det.advance(t_rel + confirm)
+    s = det.state
+    assert s.state == ContactState.NO_CONTACT and s.n_contacts == 0 and s.since_ns == t_rel
+    assert det.counts["releases"] == 1 and det.counts["evidence"] == 0
+    # a new grasp 1.5 mm away: a new contact, held, no alarm
+    t2 = t_rel + 200 * MS
+    assert run(det, [ev(t2, 3.5e-3, -1e-3, +1, 3)]) == []
+    s = det.state
+    assert s.state == ContactState.STICK and s.n_contacts == 1
+    assert np.linalg.norm(s.contact_point_m - surf(3.5e-3, -1e-3)) < 1e-6
+
+    det = SlipDetector(cfg)
+    run(det, [ev(10 * MS, 2e-3, -1e-3, +1, 1), ev(t_rel, 2e-3 + 1e-3, -1e-3, -1, 2)])
+    det.advance(t_rel + 10 * confirm)
+    assert det.state.state == ContactState.STICK and det.counts["releases"] == 0
+
+
 def test_two_contacts_and_release_of_one():
     det = SlipDetector()
     run(det, [ev(0, -4e-3, 0, 1, 1), ev(5 * MS, 4e-3, 0, 1, 2)])

@@ -81,6 +81,17 @@ def test_no_false_alarms_holds_taps():
     assert all(r["state_mid"] == ContactState.STICK for r in rows)
 
 
+def test_grasps_held_longer_than_the_evidence_window_end_at_their_release_waveforms():
+    """Touch-hold-release on waveforms, holds up to 30 s: the release ends the contact
+    whether the hold was shorter or longer than the evidence window (the latched state
+    NO_CONTACT 0.1 s after it), and no alarm."""
+    rows = [ev.touch_hold_release_trial(s, pipeline="triggered") for s in range(24)]
+    s = ev.summarize_alarms(rows)
+    assert s["alarm_onsets"] == 0, s
+    assert s["n_holds_short"] >= 5 and s["n_holds_long"] >= 5, s
+    assert s["ended_at_release_rate_short"] == 1.0 and s["ended_at_release_rate_long"] == 1.0, s
+
+
 def test_no_false_alarms_touch_release_cycles_waveforms():
     rows = [ev.cycles_trial(s, pipeline="triggered", duration_s=2.0) for s in range(6)]
     assert ev.summarize_alarms(rows)["alarm_onsets"] == 0

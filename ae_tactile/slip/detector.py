@@ -189,6 +189,7 @@ class _Contact:
         self.pending_release_spot = None  # (point, variance) of the founder's release
         self.touch_release_ns = None  # latest touch-release pair (not the founder's)
         self.founder = None  # (point, variance, polarity) of the founder
+        self.founder_paired = False  # the founder's release (or a tap's) came
         self.last_p = None  # latest emission's point
         self.precursor_count = 0
         self.last_report = {}
@@ -520,7 +521,17 @@ class SlipDetector:
             D = c.p[:k] - p
             d2 = np.einsum("ij,ij->i", D, D)
             near = (d2 <= self._g2 * (c.var[:k] + var + self._f2)) & (T >= t - self._w_ev)
-            if near.any():
+            if self._founder_release(c, ev.polarity, p, var, near):
+                # the founding touch's release after a hold longer than the evidence
+                # window (its spot no longer among the windowed emissions): it ends the
+                # contact after release_confirm_s, as any release does
+                flags |= PAIRED
+                c.founder_paired = True
+                c.pending_release_ns, c.pending_in_slip = t, False
+                c.pending_release_spot = (p.copy(), var)
+                self.counts["pairs"] += 1
+                self.counts["releases"] += 1
+            elif near.any():
                 # on the spot of an earlier emission: a release / tap pair, or a repeat
                 cand = near & ((F & PAIRED) == 0)  # a repeat pairs with its release
                 if ev.polarity > 0:
@@ -538,6 +549,7 @@ class SlipDetector:
                     flags |= PAIRED
                     self.counts["pairs"] += 1
                     if F[j] & FOUNDER:
+                        c.founder_paired = True
                         c.pending_release_ns, c.pending_in_slip = t, False
                         c.pending_release_spot = (p.copy(), var)
                         self.counts["releases"] += 1
@@ -563,6 +575,7 @@ class SlipDetector:
                             # ended)
                             c.pending_release_ns = None
                             c.founder = (p.copy(), var, 1)
+                            c.founder_paired = False
                             flags |= FOUNDER
                             self.counts["releases_cancelled"] += 1
                     flags |= REPEAT
@@ -612,6 +625,27 @@ class SlipDetector:
         elif c.state == ContactState.GROSS_SLIP and self._due(c, 4, t):
             out.append(self._slip_event(c, ev, 0.0, onset=False))
         self._texture(c, ev, out)
+
+    def _founder_release(self, c, pol, p, var, near):
+        """Is an emission of polarity ``pol`` at ``p`` the release of the contact's founding
+        touch that the windowed pairing cannot see? True when the founder is unpaired, no
+        windowed emission on this spot could pair with it, the polarities fit (a rarefaction
+        after a compression, or either unknown) and it lies on the founder's spot (the
+        same-spot gate). A held contact has no end to its hold, so this has no time limit."""
+        if c.founder_paired or c.pending_release_ns is not None:
+            return False
+        fp, fvar, fpol = c.founder
+        if pol > 0 or (pol < 0 and fpol <= 0):
+            return False
+        if near.any():
+            k = c.valid()
+            cand = near & ((c.flags[:k] & PAIRED) == 0)
+            if pol < 0:
+                cand &= c.pol[:k] > 0
+            if cand.any():
+                return False  # the windowed pairing decides
+        fd = fp - p
+        return float(fd @ fd) <= self._g2 * (fvar + var + self._f2)
 
     def _geometry(self, c):
         """Centre (circle fit to the evidence emissions, refitted when their number changed:

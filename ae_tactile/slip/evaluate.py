@@ -640,14 +640,21 @@ def _state_at(trace, t):
 
 
 def touch_hold_release_trial(
-    seed: int, config: SlipConfig | None = None, *, pipeline: str = "triggered"
+    seed: int,
+    config: SlipConfig | None = None,
+    *,
+    pipeline: str = "triggered",
+    hold_max_s: float = 30.0,
 ) -> dict:
-    """Touch anywhere on the cap (polar <= 60 deg), hold 20 ms .. 2 s, release; random
-    speeds, medium and SNR. False alarms and the latched state during the hold / after."""
+    """Touch anywhere on the cap (polar <= 60 deg), hold 20 ms .. ``hold_max_s``
+    (log-uniform: a grasp held for seconds, longer than the detector's 2 s evidence window,
+    as well as a tap), release; random speeds, medium and SNR. False alarms and the latched
+    state during the hold and 0.1 s after the release (NO_CONTACT once the release ended
+    the contact)."""
     rng = np.random.default_rng([7002, int(seed)])
     medium = "silicone" if rng.uniform() < 0.5 else "water_skin"
     x, y = _cap_point_xy(rng, 0.01, 60.0)
-    hold = float(math.exp(rng.uniform(math.log(0.02), math.log(2.0))))
+    hold = float(math.exp(rng.uniform(math.log(0.02), math.log(hold_max_s))))
     t0 = 0.005
     spec = {
         "generator": "touch_hold_release",
@@ -1491,7 +1498,29 @@ def summarize_alarms(trials: list[dict]) -> dict:
         "slip_events": sum(t["n_slip"] for t in trials),
         "texture_events": sum(t["n_texture"] for t in trials),
         "trials_with_alarm": [t["seed"] for t in trials if t["n_alarm_onsets"]],
+        **_release_summary(trials),
     }
+
+
+def _release_summary(trials: list[dict]) -> dict:
+    """Touch-hold-release trials: how often the release ended the contact (the latched
+    state NO_CONTACT 0.1 s after it), for holds within / beyond the evidence window."""
+    held = [t for t in trials if "state_end" in t and "hold_s" in t]
+    if not held:
+        return {}
+    w_s = SlipConfig().evidence_window_s
+    out = {"evidence_window_s": w_s}
+    for name, rows in (
+        ("short", [t for t in held if t["hold_s"] <= w_s]),
+        ("long", [t for t in held if t["hold_s"] > w_s]),
+    ):
+        out[f"n_holds_{name}"] = len(rows)
+        out[f"ended_at_release_rate_{name}"] = (
+            sum(t["state_end"] == ContactState.NO_CONTACT for t in rows) / len(rows)
+            if rows
+            else None
+        )
+    return out
 
 
 def summarize_texture(trials: list[dict]) -> dict:
