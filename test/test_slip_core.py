@@ -116,6 +116,33 @@ def test_a_release_after_a_hold_longer_than_the_evidence_window_ends_the_contact
     assert det.state.state == ContactState.STICK and det.counts["releases"] == 0
 
 
+def test_grasps_and_releases_held_for_seconds_wandering_over_the_tip_never_alarm():
+    """Grasp-release cycles of a robot hand: each touch held 3.2 .. 3.4 s (longer than the
+    evidence window), released on its spot, the next one 2.5 mm from the last, so the
+    touches wander farther than association_radius_m from the first; the first touch's
+    release is held back to the end. Every other release pairs with its touch (a touch is
+    micro-slip evidence only until then), all in one contact, no alarm; the first touch's
+    release, at the end, frees the finger."""
+    cfg = SlipConfig()
+    hold = int(1.6 * cfg.evidence_window_s * 1e9)
+    det = SlipDetector(cfg)
+    outs = run(det, [ev(0, 0.0, 0.0, +1, 0)])
+    t, pid = 50 * MS, 1
+    spots = [(2.5e-3 * k, 0.6e-3 * (k % 2)) for k in range(1, 4)]  # up to 7.5 mm away
+    for k, (x, y) in enumerate(spots):
+        t_rel = t + hold + k * 100 * MS
+        outs += run(det, [ev(t, x, y, +1, pid), ev(t_rel, x + 10e-6, y, -1, pid + 1)])
+        t = t_rel + 150 * MS
+        pid += 2
+        det.advance(t)
+    assert outs == []
+    assert det.counts["pairs"] == len(spots) and det.counts["contacts_created"] == 1
+    assert det.state.state == ContactState.STICK and det.state.n_contacts == 1
+    run(det, [ev(t, 10e-6, 0.0, -1, pid)])
+    det.advance(t + int(cfg.release_confirm_s * 1e9))
+    assert det.state.state == ContactState.NO_CONTACT and det.state.n_contacts == 0
+
+
 def test_two_contacts_and_release_of_one():
     det = SlipDetector()
     run(det, [ev(0, -4e-3, 0, 1, 1), ev(5 * MS, 4e-3, 0, 1, 2)])

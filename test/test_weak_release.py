@@ -14,7 +14,6 @@ from ae_tactile.localization.weak_release import (
     CAPACITY,
     FLOOR_M,
     GATE_SIGMA,
-    WINDOW_S,
     WeakReleaseGate,
     kept_with_weak_releases,
 )
@@ -49,30 +48,41 @@ def test_the_gate_keeps_a_weak_release_only_on_the_spot_of_a_touch_not_yet_relea
     assert len(g) == 0
 
 
-def test_the_gate_forgets_old_touches_and_never_pairs_a_release_before_its_touch():
+def test_the_gate_remembers_a_held_touch_however_long_and_never_pairs_a_release_before_it():
     var = (20e-6) ** 2
-    from ae_tactile.slip import SlipConfig
-
-    # a touch older than the slip detector's evidence window: it would not pair the
-    # release with it (an isolated emission, evidence), so the gate does not keep it
-    assert WINDOW_S <= SlipConfig().evidence_window_s
+    # a grasp held for minutes: its weak release is kept (the slip detector pairs a
+    # release with its touch however long the hold)
     g = WeakReleaseGate()
     g.admit(0, _pt(0, 0), var, +1, False)
-    assert not g.admit(int((WINDOW_S + 0.1) * 1e9), _pt(0, 0), var, -1, True)  # too old
+    assert g.admit(600_000 * MS, _pt(0, 0), var, -1, True)
+    # a touch on a remembered touch's spot replaces it: one release ends the spot
+    g.admit(600_100 * MS, _pt(1, 1), var, +1, False)
+    g.admit(600_200 * MS, _pt(1, 1), var, +1, False)
+    assert len(g) == 1
+    assert g.admit(600_300 * MS, _pt(1, 1), var, -1, True)
+    assert not g.admit(600_400 * MS, _pt(1, 1), var, -1, True)
     g.admit(10_000 * MS, _pt(2, 2), var, +1, False)
     assert not g.admit(9_999 * MS, _pt(2, 2), var, -1, True)  # before the touch
+    g = WeakReleaseGate()
+
+    def grid(i):  # spots 1 mm apart, none in another's gate
+        return _pt(-3 + i % 7, -3 + i // 7)
+
     for i in range(CAPACITY + 5):  # bounded memory: the oldest touches go first
-        g.admit(10_001 * MS + i, _pt(-4 + 0.2 * i, -3), var, +1, False)
+        g.admit(10_001 * MS + i, grid(i), var, +1, False)
     assert len(g) == CAPACITY
-    assert not g.admit(10_100 * MS, _pt(-4, -3), var, -1, True)
-    assert g.admit(10_100 * MS, _pt(-4 + 0.2 * (CAPACITY + 4), -3), var, -1, True)
+    assert not g.admit(10_100 * MS, grid(0), var, -1, True)
+    assert g.admit(10_100 * MS, grid(CAPACITY + 4), var, -1, True)
     # the nearest touch in the gate is the one a weak release ends
+    # (touches 0.6 mm apart, each outside the other's gate; releases vague enough to
+    # have both in theirs)
     g2 = WeakReleaseGate()
-    g2.admit(0, _pt(0, 0), (0.2e-3) ** 2, +1, False)
-    g2.admit(1, _pt(0.3, 0), (0.2e-3) ** 2, +1, False)
-    assert g2.admit(2, _pt(0.29, 0), (0.2e-3) ** 2, -1, True)
+    g2.admit(0, _pt(0, 0), var, +1, False)
+    g2.admit(1, _pt(0.6, 0), var, +1, False)
+    assert len(g2) == 2
+    assert g2.admit(2, _pt(0.59, 0), (0.2e-3) ** 2, -1, True)
     assert g2.admit(3, _pt(0.01, 0), (0.2e-3) ** 2, -1, True)
-    assert not g2.admit(4, _pt(0.15, 0), (0.2e-3) ** 2, -1, True)
+    assert not g2.admit(4, _pt(0.3, 0), (0.2e-3) ** 2, -1, True)
 
 
 @pytest.mark.parametrize("bad", [(math.nan, 0.0, R), (0.0, math.inf, R)])

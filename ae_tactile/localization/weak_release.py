@@ -15,14 +15,18 @@ The gate keeps a packet rejected *only* for low SNR when
   * its polarity is a rarefaction (a release), its estimated SNR >= ``min_snr_db`` of
     the gate (default -5 dB), and
   * its position's 1-sigma (per axis) is <= ``MAX_SIGMA_M`` (0.5 mm), and
-  * it lies on the spot of a touch of the last ``WINDOW_S`` (2 s, the slip detector's
-    evidence window) that no release has ended:
+  * it lies on the spot of a touch that no release has ended, however long ago (a grasp
+    is held for as long as it is held; the slip detector pairs a release with its touch
+    however long the hold):
     |p - p_touch|^2 <= g^2 (var_touch + var + floor^2), g = ``GATE_SIGMA`` (4),
     floor = ``FLOOR_M`` (0.1 mm), var the per-axis position variance (m^2): the slip
     detector's same-spot gate with its default settings.
 
 The touch it ends is forgotten (the nearest one in the gate), as is the touch an
-ordinary release ends. Touches and releases must be fed in time order (`admit`).
+ordinary release ends, and a touch on a remembered touch's spot replaces it (nothing
+touches where something is still pressing: the earlier one was released unseen). At most
+``CAPACITY`` touches are remembered, the oldest forgotten first. Touches and releases
+must be fed in time order (`admit`).
 """
 
 from __future__ import annotations
@@ -40,13 +44,8 @@ FLOOR_M = float(SlipConfig.release_floor_m)
 #: pass the SNR floor at 2 MS/s come with >= 1 mm (their gate would take any touch); the
 #: weak releases of the simulator's touch-release cycles: 0.13 mm median, 0.39 mm p99
 MAX_SIGMA_M = 0.5e-3
-#: touches older than this are not remembered (s): the slip detector's evidence window
-#: (its default), the span over which it pairs a release with its touch; a release the
-#: gate kept after a longer hold would reach it as an isolated emission
-WINDOW_S = float(SlipConfig.evidence_window_s)
 #: at most this many touches remembered (the oldest forgotten first)
 CAPACITY = 32
-_WINDOW_NS = int(WINDOW_S * 1e9)
 _G2, _F2 = GATE_SIGMA * GATE_SIGMA, FLOOR_M * FLOOR_M
 #: default lowest estimated SNR of a weak release (dB)
 MIN_SNR_DB = -5.0
@@ -104,17 +103,6 @@ class WeakReleaseGate:
         if weak and var > MAX_SIGMA_M * MAX_SIGMA_M:
             return False  # too vague a spot to be any touch's
         touches = self._touches  # in the order fed (time order): the oldest first
-        horizon = t - _WINDOW_NS
-        if touches and touches[0][0] < horizon:
-            k = 1
-            while k < len(touches) and touches[k][0] < horizon:
-                k += 1
-            del touches[:k]
-        if polarity >= 0:
-            touches.append((t, x, y, z, var))
-            if len(touches) > CAPACITY:
-                del touches[0]
-            return True
         best, best_d2 = -1, math.inf
         for i, (tt, tx, ty, tz, tv) in enumerate(touches):
             dx, dy, dz = x - tx, y - ty, z - tz
@@ -122,7 +110,12 @@ class WeakReleaseGate:
             if d2 <= _G2 * (tv + var + _F2) and d2 < best_d2 and tt <= t:
                 best, best_d2 = i, d2
         if best >= 0:
-            del touches[best]
+            del touches[best]  # released, or replaced by a touch on its spot
+        if polarity >= 0:
+            touches.append((t, x, y, z, var))
+            if len(touches) > CAPACITY:
+                del touches[0]
+            return True
         return best >= 0 or not weak
 
 

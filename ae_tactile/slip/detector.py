@@ -445,7 +445,7 @@ class SlipDetector:
             self._expire(t)
         out: list[SlipEvent] = []
         var = 0.5 * max(tr, 0.0)
-        c = self._associate(px, py, pz, t)
+        c = self._associate(px, py, pz, t, ev.polarity, var)
         overlap = self._last_t is not None and abs(t - self._last_t) < self._guard
         self._last_t = t if self._last_t is None else max(t, self._last_t)
         if c is not None and not c.confirmed and ev.polarity > 0:
@@ -463,10 +463,12 @@ class SlipDetector:
         return out
 
     # ------------------------------------------------------------------ tracking
-    def _associate(self, px, py, pz, t):
+    def _associate(self, px, py, pz, t, pol=1, var=0.0):
         """The contact whose (predicted) centre, or whose latest emission of the last
         track_window_s, is nearest within association_radius_m (the latest emission carries
-        a contact that moves before its track is established)."""
+        a contact that moves before its track is established); failing that, for a
+        rarefaction (polarity ``pol`` < 0, per-axis variance ``var`` m^2), the contact of an
+        unpaired touch on its spot."""
         best, best_d2 = None, self._assoc2
         for c in self.contacts:
             q = c.centre_xyz if not c.moving or c.track_c is None else c.centre_at(t)
@@ -478,6 +480,29 @@ class SlipDetector:
                 d2 = min(d2, dx * dx + dy * dy + dz * dz)
             if d2 <= best_d2:
                 best, best_d2 = c, d2
+        if best is None and pol < 0:
+            best = self._touch_of_release(px, py, pz, var)
+        return best
+
+    def _touch_of_release(self, px, py, pz, var):
+        """The contact holding an unpaired touch (a compression) on this spot (the
+        same-spot gate), however far its centre: a release belongs to its touch's contact,
+        whatever the touches after it made of the contact (touches wandering over
+        seconds of holds carry it farther than association_radius_m)."""
+        p = np.array((px, py, pz))
+        best, best_d2 = None, math.inf
+        for c in self.contacts:
+            k = c.valid()
+            m = (c.pol[:k] > 0) & ((c.flags[:k] & PAIRED) == 0)
+            if not m.any():
+                continue
+            D = c.p[:k][m] - p
+            d2 = np.einsum("ij,ij->i", D, D)
+            ok = d2 <= self._g2 * (c.var[:k][m] + var + self._f2)
+            if ok.any():
+                d = float(d2[ok].min())
+                if d < best_d2:
+                    best, best_d2 = c, d
         return best
 
     def _found(self, ev, p, var, t, overlap):
@@ -520,26 +545,31 @@ class SlipDetector:
         else:
             D = c.p[:k] - p
             d2 = np.einsum("ij,ij->i", D, D)
-            near = (d2 <= self._g2 * (c.var[:k] + var + self._f2)) & (T >= t - self._w_ev)
-            if self._founder_release(c, ev.polarity, p, var, near):
-                # the founding touch's release after a hold longer than the evidence
-                # window (its spot no longer among the windowed emissions): it ends the
-                # contact after release_confirm_s, as any release does
+            spot = d2 <= self._g2 * (c.var[:k] + var + self._f2)
+            recent = T >= t - self._w_ev
+            near = spot & recent
+            # a pair: a release (a rarefaction) with an unpaired touch (a compression) on
+            # its spot, however long the hold (a release comes after its touch: never a
+            # compression on a rarefaction's spot); an emission of unknown polarity with
+            # any unpaired emission on its spot within the evidence window
+            cand = spot & ((F & PAIRED) == 0)
+            if ev.polarity > 0:
+                cand[:] = False
+            elif ev.polarity < 0:
+                cand &= c.pol[:k] > 0
+            else:
+                cand &= recent
+            if not cand.any() and self._founder_release(c, ev.polarity, p, var):
+                # the founding touch's release, its slot no longer in the ring buffer: it
+                # ends the contact after release_confirm_s, as any release does
                 flags |= PAIRED
                 c.founder_paired = True
                 c.pending_release_ns, c.pending_in_slip = t, False
                 c.pending_release_spot = (p.copy(), var)
                 self.counts["pairs"] += 1
                 self.counts["releases"] += 1
-            elif near.any():
+            elif cand.any() or near.any():
                 # on the spot of an earlier emission: a release / tap pair, or a repeat
-                cand = near & ((F & PAIRED) == 0)  # a repeat pairs with its release
-                if ev.polarity > 0:
-                    # a release comes after its touch: a compression on an earlier
-                    # rarefaction's spot is a repeat (a re-touch), never its pair
-                    cand[:] = False
-                elif ev.polarity < 0:
-                    cand &= c.pol[:k] > 0
                 if cand.any():
                     j = int(np.flatnonzero(cand)[np.argmin(d2[cand])])
                     if (int(F[j]) & (EVID | OVERLAP)) == EVID:
@@ -626,24 +656,17 @@ class SlipDetector:
             out.append(self._slip_event(c, ev, 0.0, onset=False))
         self._texture(c, ev, out)
 
-    def _founder_release(self, c, pol, p, var, near):
+    def _founder_release(self, c, pol, p, var):
         """Is an emission of polarity ``pol`` at ``p`` the release of the contact's founding
-        touch that the windowed pairing cannot see? True when the founder is unpaired, no
-        windowed emission on this spot could pair with it, the polarities fit (a rarefaction
-        after a compression, or either unknown) and it lies on the founder's spot (the
-        same-spot gate). A held contact has no end to its hold, so this has no time limit."""
+        touch when no emission in the ring buffer pairs with it (the founder's slot
+        overwritten in a long, busy hold)? True when the founder is unpaired, the
+        polarities fit (a rarefaction after a compression, or unknown) and it lies on the
+        founder's spot (the same-spot gate). A hold has no end, so no time limit."""
         if c.founder_paired or c.pending_release_ns is not None:
             return False
         fp, fvar, fpol = c.founder
         if pol > 0 or (pol < 0 and fpol <= 0):
             return False
-        if near.any():
-            k = c.valid()
-            cand = near & ((c.flags[:k] & PAIRED) == 0)
-            if pol < 0:
-                cand &= c.pol[:k] > 0
-            if cand.any():
-                return False  # the windowed pairing decides
         fd = fp - p
         return float(fd @ fd) <= self._g2 * (fvar + var + self._f2)
 
