@@ -17,8 +17,9 @@ always render waveforms. Families:
                 dense emitters (the simulator's density) and sparse ones (4 .. 12
                 micro-slips per ramp, gross slip at 100 .. 200 Hz), micro-slip polarity
                 random / all compressions / all rarefactions
-  false alarms  touch-hold-release, a held touch with another spot tapped 1 .. 10 Hz,
-                touch-release cycles wandering within 3 mm
+  false alarms  touch-hold-release (holds 20 ms .. 30 s), a held touch with another spot
+                tapped 1 .. 10 Hz, touch-release cycles wandering within 3 mm (holds
+                20 .. 500 ms) and grasp-release cycles (holds 0.5 .. 10 s)
   stylus        a stylus dragged over a texture (period 0.2 .. 0.8 mm, 5 .. 50 mm/s,
                 jitter 0 .. 20 %): TEXTURE from the tracked speed, no sliding speed given
   drift         plane slip drifting along x: SLIP direction error
@@ -552,15 +553,16 @@ def tables(res: dict) -> str:
     L.append("")
     L.append(
         "**False alarms** (SLIP_PRECURSOR / SLIP / TEXTURE onsets; touch-hold-release: holds "
-        "of 20 ms .. 30 s, log-uniform, and how often the release ended the contact, the "
-        "latched state NO_CONTACT 0.1 s after it, for holds within / beyond the detector's "
-        "evidence window).\n"
+        "of 20 ms .. 30 s, log-uniform; 'finger free': the latched state NO_CONTACT 0.1 s "
+        "after the last release, in the families whose every touch is released; for "
+        "touch-hold-release also by hold, within / beyond the detector's 2 s evidence "
+        "window).\n"
     )
     L.append(
-        "| family | pipeline | trials | hours | alarm onsets | per hour | "
-        "release ended the contact, hold <= / > window (trials) |"
+        "| family | pipeline | trials | hours | alarm onsets | per hour | finger free | "
+        "... hold <= / > window (trials) |"
     )
-    L.append("|---|---|---|---|---|---|---|")
+    L.append("|---|---|---|---|---|---|---|---|")
     for key, d in s["alarms"].items():
         fam, pl = key.split(":")
         ended = "-"
@@ -571,29 +573,35 @@ def tables(res: dict) -> str:
             )
         L.append(
             f"| {fam} | {pl} | {d['n_trials']} | {d['hours']:.2f} | {d['alarm_onsets']} | "
-            f"{d['false_alarms_per_hour']:.1f} | {ended} |"
+            f"{d['false_alarms_per_hour']:.1f} | {_rate(d.get('free_after_release_rate'))} | "
+            f"{ended} |"
         )
     L.append("")
     wr = s.get("weak_releases")
     if wr and wr["n_low_snr"]:
-        e = wr["error_mm"]
         L.append(
-            "**Weak releases** (touch-release cycles on waveforms: the releases the localizer "
+            "**Weak releases** (touch-release cycles on waveforms, holds 20 .. 500 ms, and "
+            "grasp-release cycles, holds 0.5 .. 10 s: the releases the localizer "
             "rejects for low SNR alone, < 5 dB; kept by the weak-release gate on the spot of "
-            "a touch not yet released, `ae_tactile/localization/weak_release.py`; and "
+            "a touch not yet released, however long ago, "
+            "`ae_tactile/localization/weak_release.py`; and "
             "windows of noise alone, 40 us, onset 8 us in).\n"
         )
         L.append(
-            "| trials | releases | below 5 dB | kept | polarity right | position error (mm) | "
-            "lowest estimated SNR | kept but not a release |"
+            "| scene | trials | releases | below 5 dB | kept | polarity right | position "
+            "error (mm) | lowest estimated SNR | kept but not a release |"
         )
-        L.append("|---|---|---|---|---|---|---|---|")
-        L.append(
-            f"| {wr['n_trials']} | {wr['n_releases']} | {wr['n_low_snr']} | "
-            f"{_rate(wr['kept_rate'])} | {_rate(wr['polarity_right_rate'])} | median "
-            f"{e['p50']:.2f}, p99 {e['p99']:.2f}, max {e['max']:.2f} | "
-            f"{wr['snr_db_min']:.1f} dB | {wr['kept_not_release']} |"
-        )
+        L.append("|---|---|---|---|---|---|---|---|---|")
+        for scene, w in (("touch-release cycles", wr), ("grasp-release cycles", wr.get("grasp"))):
+            if not w or not w["n_low_snr"]:
+                continue
+            e = w["error_mm"]
+            L.append(
+                f"| {scene} | {w['n_trials']} | {w['n_releases']} | {w['n_low_snr']} | "
+                f"{_rate(w['kept_rate'])} | {_rate(w['polarity_right_rate'])} | median "
+                f"{e['p50']:.2f}, p99 {e['p99']:.2f}, max {e['max']:.2f} | "
+                f"{w['snr_db_min']:.1f} dB | {w['kept_not_release']} |"
+            )
         L.append("")
         L.append(
             "| noise alone | windows | estimated SNR p99 / p99.9 / max (dB) | rarefactions "
@@ -911,6 +919,7 @@ def main(argv=None) -> int:
     def weak_releases():
         a = time.perf_counter()
         rows = [ev.weak_release_trial(s0 + i) for i in range(n_val)]
+        rows_g = [ev.weak_release_trial(s0 + i, **ev.GRASP_CYCLES) for i in range(n_val)]
         noise = {}
         for fs in (2e6, 5e6, 10e6):
             snr, pol, sd = ev.noise_window_snr_db(4000 if q else 20000, fs, seed=s0)
@@ -925,7 +934,9 @@ def main(argv=None) -> int:
                 "candidate_sharp_rate": float((cand & (sd <= 0.5e-3)).sum() / max(cand.sum(), 1)),
             }
         summary["weak_releases"] = summarize_weak_releases(rows, noise)
+        summary["weak_releases"]["grasp"] = summarize_weak_releases(rows_g, None)
         trials["weak_releases"] = rows
+        trials["weak_releases:grasp"] = rows_g
         timing["weak releases"] = time.perf_counter() - a
         print(f"  weak releases: {len(rows)} trials ({timing['weak releases']:.0f} s)", flush=True)
 
@@ -939,6 +950,7 @@ def main(argv=None) -> int:
         lambda: alarms("touch-hold-release", ev.touch_hold_release_trial, "events", N),
         lambda: alarms("tapping another spot", ev.tapping_trial, "events", N),
         lambda: alarms("touch-release cycles", ev.cycles_trial, "events", N),
+        lambda: alarms("grasp-release cycles", ev.grasp_cycles_trial, "events", N),
         lambda: stylus("events", N),
         drift,
         cost,
@@ -954,6 +966,7 @@ def main(argv=None) -> int:
         lambda: alarms("touch-hold-release", ev.touch_hold_release_trial, "triggered", n_val),
         lambda: alarms("tapping another spot", ev.tapping_trial, "triggered", n_val),
         lambda: alarms("touch-release cycles", ev.cycles_trial, "triggered", n_val),
+        lambda: alarms("grasp-release cycles", ev.grasp_cycles_trial, "triggered", n_val),
         lambda: stylus("triggered", n_val),
         weak_releases,
     ]

@@ -686,6 +686,7 @@ def touch_hold_release_trial(
         "n_events": len(events),
         "state_mid_hold": int(_state_at(trace, int((t0 + hold / 2) * _NS))),
         "state_end": int(det.state.state),
+        "state_after_all_released": int(det.state.state),  # 0.1 s after the release
     }
     out.update(_alarm_summary(outs))
     return out
@@ -848,10 +849,13 @@ def cycles_trial(
     *,
     pipeline: str = "triggered",
     duration_s: float = 3.0,
+    hold_s: tuple[float, float] = (0.02, 0.5),
 ) -> dict:
-    """Touch-release cycles: touches held 20 .. 500 ms, 10 .. 300 ms apart, each within
-    3 mm of the previous one (a finger pressing and lifting over one area): false alarms."""
-    spec, build, medium = _cycles_scene(seed, duration_s)
+    """Touch-release cycles: touches held ``hold_s`` (uniform; 20 .. 500 ms: a finger
+    pressing and lifting; seconds: grasps, releases and re-grasps), 10 .. 300 ms apart,
+    each within 3 mm of the previous one: false alarms, and the latched state 0.1 s after
+    the scene's end (every touch released by then)."""
+    spec, build, medium = _cycles_scene(seed, duration_s, hold_s)
     scene, det, outs, trace, events, n_em = _custom_trial(seed, spec, build, config, pipeline)
     out = {
         "seed": int(seed),
@@ -861,15 +865,31 @@ def cycles_trial(
         "n_emissions": n_em,
         "n_events": len(events),
         "state_end": int(det.state.state),
+        "state_after_all_released": int(
+            det.advance(int(round((duration_s + 0.1) * _NS))).state
+        ),
     }
     out.update(_alarm_summary(outs))
     return out
 
 
-def cycles_packets(seed: int, duration_s: float = 3.0):
+#: grasp-release cycles: `cycles_trial`'s scene with a robot hand's holds (s)
+GRASP_CYCLES = {"duration_s": 30.0, "hold_s": (0.5, 10.0)}
+
+
+def grasp_cycles_trial(
+    seed: int, config: SlipConfig | None = None, *, pipeline: str = "triggered"
+) -> dict:
+    """Grasp-release cycles: grasps held 0.5 .. 10 s (longer than the detector's evidence
+    window), released, the next within 3 mm, over 30 s (``GRASP_CYCLES``): false alarms,
+    and the latched state at the end (every touch released)."""
+    return cycles_trial(seed, config, pipeline=pipeline, **GRASP_CYCLES)
+
+
+def cycles_packets(seed: int, duration_s: float = 3.0, hold_s=(0.02, 0.5)):
     """(triggered packets, geometry) of `cycles_trial`'s scene: the waveforms the
     'triggered' pipeline localizes, with their emissions (the truth)."""
-    spec, build, _ = _cycles_scene(seed, duration_s)
+    spec, build, _ = _cycles_scene(seed, duration_s, hold_s)
     scene = load_scene(spec)
     em = build(scene, np.random.default_rng([7020, int(seed)]))  # as `_custom_trial`
     end_ns = int(round(scene.duration_s * _NS))
@@ -877,7 +897,7 @@ def cycles_packets(seed: int, duration_s: float = 3.0):
     return pk, scene.config.geometry
 
 
-def _cycles_scene(seed, duration_s):
+def _cycles_scene(seed, duration_s, hold_s=(0.02, 0.5)):
     """(scene spec, emission builder, medium) of the touch-release cycles family."""
     rng = np.random.default_rng([7022, int(seed)])
     medium = "silicone" if rng.uniform() < 0.5 else "water_skin"
@@ -896,7 +916,7 @@ def _cycles_scene(seed, duration_s):
         t = 0.01
         x, y = _cap_xy(g, 5e-3)
         while True:
-            hold = g.uniform(0.02, 0.5)
+            hold = g.uniform(*hold_s)
             if t + hold > duration_s - 0.01:
                 break
             p = geo.surface_point_from_xy(x, y)
@@ -916,12 +936,12 @@ def _cycles_scene(seed, duration_s):
     return spec, build, medium
 
 
-def weak_release_trial(seed: int) -> dict:
+def weak_release_trial(seed: int, duration_s: float = 3.0, hold_s=(0.02, 0.5)) -> dict:
     """The releases of a touch-release cycles scene (`cycles_trial`'s, waveforms) that the
     localizer rejects for low SNR alone, against the simulator's truth: estimated SNR,
     position error (m), polarity right, kept by the weak-release gate; and the packets the
     gate keeps that are not releases (should be none)."""
-    pk, geo = cycles_packets(seed)
+    pk, geo = cycles_packets(seed, duration_s, hold_s)
     res = localize(pk.samples_v, pk.sample_rate_hz, pk.onset_index, geometry=geo,
                    saturated=pk.saturated)
     kept, weak = kept_with_weak_releases(res, np.asarray(pk.emissions.time_ns, np.int64))
@@ -1503,20 +1523,27 @@ def summarize_alarms(trials: list[dict]) -> dict:
 
 
 def _release_summary(trials: list[dict]) -> dict:
-    """Touch-hold-release trials: how often the release ended the contact (the latched
-    state NO_CONTACT 0.1 s after it), for holds within / beyond the evidence window."""
-    held = [t for t in trials if "state_end" in t and "hold_s" in t]
-    if not held:
+    """Trials whose every touch is released (touch-hold-release, cycles): how often the
+    finger was free 0.1 s after the last release (the latched state NO_CONTACT); for
+    touch-hold-release also for holds within / beyond the evidence window."""
+    rel = [t for t in trials if "state_after_all_released" in t]
+    if not rel:
         return {}
+    free = [t["state_after_all_released"] == ContactState.NO_CONTACT for t in rel]
+    out = {"free_after_release_rate": sum(free) / len(rel)}
+    held = [t for t in rel if "hold_s" in t]
+    if not held:
+        return out
     w_s = SlipConfig().evidence_window_s
-    out = {"evidence_window_s": w_s}
+    out["evidence_window_s"] = w_s
     for name, rows in (
         ("short", [t for t in held if t["hold_s"] <= w_s]),
         ("long", [t for t in held if t["hold_s"] > w_s]),
     ):
         out[f"n_holds_{name}"] = len(rows)
         out[f"ended_at_release_rate_{name}"] = (
-            sum(t["state_end"] == ContactState.NO_CONTACT for t in rows) / len(rows)
+            sum(t["state_after_all_released"] == ContactState.NO_CONTACT for t in rows)
+            / len(rows)
             if rows
             else None
         )
