@@ -221,6 +221,11 @@ def _overlap_delay(s) -> str:
     )
 
 
+def _per_hour(x: float) -> str:
+    """A rate per hour: no rounding a rare alarm to 0."""
+    return "0" if x == 0 else f"{x:.1f}" if x < 10 else f"{x:.0f}"
+
+
 def slip_rows(d) -> list[str]:
     if not d or "summary" not in d:
         return []
@@ -248,7 +253,8 @@ def slip_rows(d) -> list[str]:
     if al:
         for pl, what in (("events", "the localizer's error model"), ("triggered", "waveforms")):
             txt = "; ".join(
-                f"{k.split(':')[0]} {v['false_alarms_per_hour']:.0f}/h"
+                f"{k.split(':')[0]} {_per_hour(v['false_alarms_per_hour'])}/h "
+                f"({v['alarm_onsets']} in {v['hours']:.2g} h)"
                 for k, v in al.items()
                 if k.endswith(":" + pl)
             )
