@@ -188,9 +188,9 @@ class SlipConfig:
     )
     touched_compression_weight: float = _p(
         0.0,
-        "weight of a compression as micro-slip evidence in a contact where a touch and its "
-        "release (a compression, then a rarefaction on its spot) came within "
-        "evidence_window_s: objects touch and leave there, and an unpaired compression is a "
+        "weight of a compression as micro-slip evidence in a contact for evidence_window_s "
+        "after a touch's release (a rarefaction on a compression's spot): objects touch and "
+        "leave there, and an unpaired compression is a "
         "touch whose release is still to come or was lost rather than a micro-slip "
         "(rarefactions still count)",
         "",

@@ -57,7 +57,8 @@ import numpy as np
 from .config import SlipConfig
 from .types import ContactInfo, ContactState, FingerState, LocalizedEvent, SlipEvent, SlipEventType
 
-FOUNDER, EVID, PAIRED, REPEAT, OVERLAP = 1, 2, 4, 8, 16  # member flags
+# member flags; SLIP_EMISSION: came while the contact slipped or moved
+FOUNDER, EVID, PAIRED, REPEAT, OVERLAP, SLIP_EMISSION = 1, 2, 4, 8, 16, 32
 TRACKED = EVID | REPEAT
 _SLIPPING = (ContactState.INCIPIENT_SLIP, ContactState.GROSS_SLIP)
 _NAN3 = np.full(3, np.nan)
@@ -189,7 +190,9 @@ class _Contact:
         self.pending_release_spot = None  # (point, variance) of the founder's release
         self.touch_release_ns = None  # latest touch-release pair (not the founder's)
         self.founder = None  # (point, variance, polarity) of the founder
-        self.founder_paired = False  # the founder's release (or a tap's) came
+        self.founder_ns = t_ns  # its time
+        self.founder_n = 0  # its index among the contact's emissions (c.n when added)
+        self.founder_paired = False  # an emission paired with the founder (its release)
         self.last_p = None  # latest emission's point
         self.precursor_count = 0
         self.last_report = {}
@@ -481,28 +484,38 @@ class SlipDetector:
             if d2 <= best_d2:
                 best, best_d2 = c, d2
         if best is None and pol < 0:
-            best = self._touch_of_release(px, py, pz, var)
+            best = self._touch_of_release(px, py, pz, var, t)
         return best
 
-    def _touch_of_release(self, px, py, pz, var):
-        """The contact holding an unpaired touch (a compression) on this spot (the
-        same-spot gate), however far its centre: a release belongs to its touch's contact,
-        whatever the touches after it made of the contact (touches wandering over
-        seconds of holds carry it farther than association_radius_m)."""
+    def _touch_of_release(self, px, py, pz, var, t):
+        """The contact (sticking, not moving) holding a touch this release pairs with
+        (`_held_touch`, or its founder's record, `_founder_release`), however far its
+        centre: a release belongs to its touch's contact, whatever the touches after it
+        made of the contact (touches wandering over seconds of holds carry it farther than
+        association_radius_m). The nearest such touch's contact; None if none."""
         p = np.array((px, py, pz))
         best, best_d2 = None, math.inf
         for c in self.contacts:
-            k = c.valid()
-            m = (c.pol[:k] > 0) & ((c.flags[:k] & PAIRED) == 0)
-            if not m.any():
+            if c.state in _SLIPPING or c.moving:
                 continue
-            D = c.p[:k][m] - p
-            d2 = np.einsum("ij,ij->i", D, D)
-            ok = d2 <= self._g2 * (c.var[:k][m] + var + self._f2)
-            if ok.any():
-                d = float(d2[ok].min())
-                if d < best_d2:
-                    best, best_d2 = c, d
+            d = math.inf
+            k = c.valid()
+            F = c.flags[:k]
+            m = (c.pol[:k] > 0) & ((F & PAIRED) == 0)
+            if m.any():
+                D = c.p[:k] - p
+                d2 = np.einsum("ij,ij->i", D, D)
+                vsum = c.var[:k] + var
+                m &= d2 <= self._g2 * (vsum + self._f2)
+                if m.any():
+                    m &= self._held_touch(F, d2, vsum, c.t[:k] >= t - self._w_ev)
+                    if m.any():
+                        d = float(d2[m].min())
+            if d == math.inf and self._founder_release(c, -1, p, var, t):
+                fd = c.founder[0] - p
+                d = float(fd @ fd)
+            if d < best_d2:
+                best, best_d2 = c, d
         return best
 
     def _found(self, ev, p, var, t, overlap):
@@ -517,6 +530,7 @@ class SlipDetector:
         self._next_id += 1
         c.add(t, p, var, ev.polarity, ev.packet_id, FOUNDER | (OVERLAP if overlap else 0))
         c.founder = (p.copy(), var, int(ev.polarity))
+        c.founder_ns, c.founder_n = t, 0
         c.centre = p.copy()
         self.contacts.append(c)
         self.counts["contacts_created"] += 1
@@ -532,7 +546,7 @@ class SlipDetector:
             # every emission of a slipping contact is a slip emission; one on the founding
             # touch's spot with the opposite polarity may be its release: the contact ends
             # unless another emission follows within release_confirm_s
-            flags |= EVID
+            flags |= EVID | SLIP_EMISSION
             fp, fvar, fpol = c.founder
             fd = fp - p
             if ev.polarity * fpol < 0 and float(fd @ fd) <= self._g2 * (fvar + var + self._f2):
@@ -545,21 +559,24 @@ class SlipDetector:
         else:
             D = c.p[:k] - p
             d2 = np.einsum("ij,ij->i", D, D)
-            spot = d2 <= self._g2 * (c.var[:k] + var + self._f2)
-            recent = T >= t - self._w_ev
-            near = spot & recent
-            # a pair: a release (a rarefaction) with an unpaired touch (a compression) on
-            # its spot, however long the hold (a release comes after its touch: never a
-            # compression on a rarefaction's spot); an emission of unknown polarity with
-            # any unpaired emission on its spot within the evidence window
-            cand = spot & ((F & PAIRED) == 0)
-            if ev.polarity > 0:
-                cand[:] = False
-            elif ev.polarity < 0:
-                cand &= c.pol[:k] > 0
+            vsum = c.var[:k] + var
+            spot = d2 <= self._g2 * (vsum + self._f2)
+            if spot.any():
+                recent = T >= t - self._w_ev
+                near = spot & recent
+                # a pair: an emission of unknown polarity with any unpaired one of the
+                # window on its spot; a release (a rarefaction) with an unpaired touch (a
+                # compression) on its spot, never the other way round
+                cand = spot & ((F & PAIRED) == 0)
+                if ev.polarity > 0:
+                    cand[:] = False
+                elif ev.polarity < 0:
+                    cand &= (c.pol[:k] > 0) & self._held_touch(F, d2, vsum, recent)
+                else:
+                    cand &= recent
             else:
-                cand &= recent
-            if not cand.any() and self._founder_release(c, ev.polarity, p, var):
+                near = cand = spot
+            if not cand.any() and self._founder_release(c, ev.polarity, p, var, t):
                 # the founding touch's release, its slot no longer in the ring buffer: it
                 # ends the contact after release_confirm_s, as any release does
                 flags |= PAIRED
@@ -605,6 +622,7 @@ class SlipDetector:
                             # ended)
                             c.pending_release_ns = None
                             c.founder = (p.copy(), var, 1)
+                            c.founder_ns, c.founder_n = t, c.n
                             c.founder_paired = False
                             flags |= FOUNDER
                             self.counts["releases_cancelled"] += 1
@@ -656,19 +674,36 @@ class SlipDetector:
             out.append(self._slip_event(c, ev, 0.0, onset=False))
         self._texture(c, ev, out)
 
-    def _founder_release(self, c, pol, p, var):
-        """Is an emission of polarity ``pol`` at ``p`` the release of the contact's founding
-        touch when no emission in the ring buffer pairs with it (the founder's slot
-        overwritten in a long, busy hold)? True when the founder is unpaired, the
-        polarities fit (a rarefaction after a compression, or unknown) and it lies on the
-        founder's spot (the same-spot gate). A hold has no end, so no time limit."""
-        if c.founder_paired or c.pending_release_ns is not None:
+    def _held_touch(self, F, d2, vsum, recent):
+        """Which buffered emissions (flags ``F``, squared distances ``d2`` m^2, summed
+        per-axis variances ``vsum``) a release may pair with by time and place: those of
+        the evidence window (the same-spot gate, model floor included), and older ones
+        however old, since a grasp is held as long as it is held, if they came while the
+        contact stuck (a slipping contact's emissions are slip, not touches) and within
+        ``release_gate_sigma`` sigma of the difference without the model floor (a
+        touch's release lands on its spot to the localization error; a micro-slip near
+        an old one rarely does)."""
+        return recent | (((F & SLIP_EMISSION) == 0) & (d2 <= self._g2 * vsum))
+
+    def _founder_release(self, c, pol, p, var, t):
+        """Is an emission of polarity ``pol`` at ``p`` (per-axis variance ``var``, time
+        ``t``) the release of the contact's founding touch after the ring buffer
+        overwrote the founder's slot? The founder unpaired, the polarities fitting (a
+        rarefaction after a compression; unknown polarity only within the evidence
+        window) and on its spot as `_held_touch` has it."""
+        if (
+            c.founder_paired
+            or c.pending_release_ns is not None
+            or c.n - c.founder_n < c.H  # still in the buffer: the pairing sees it
+        ):
             return False
         fp, fvar, fpol = c.founder
-        if pol > 0 or (pol < 0 and fpol <= 0):
+        recent = t - c.founder_ns <= self._w_ev
+        if pol > 0 or (pol < 0 and fpol <= 0) or (pol == 0 and not recent):
             return False
         fd = fp - p
-        return float(fd @ fd) <= self._g2 * (fvar + var + self._f2)
+        d2 = float(fd @ fd)
+        return d2 <= self._g2 * (fvar + var + (self._f2 if recent else 0.0))
 
     def _geometry(self, c):
         """Centre (circle fit to the evidence emissions, refitted when their number changed:
