@@ -1028,7 +1028,7 @@ def test_sparse_contact_fast_emissions_on_its_ring_weigh_less_than_in_the_disc()
         k = c.valid()
         T, F = c.t[:k], c.flags[:k]
         use = (F & (4 | 8)) == 0
-        v = det._gross_llr(c, int(T.max()), T, use, sorted(T[use].tolist()))
+        v = det._gross_llr(c, int(T.max()), T, use, sorted(T[use].tolist()), c.created_ns)
         c.n, c.t, c.p, c.flags, c.var, c.pol = saved
         return v
 
