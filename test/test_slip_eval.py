@@ -71,6 +71,31 @@ def test_sparse_emitters_precursor_polarity_free(sparse):
     assert max(hit.values()) - min(hit.values()) <= 0.05
 
 
+@pytest.mark.parametrize("mode", ["dense", "sparse"])
+@pytest.mark.parametrize("hold_s", [None, (2.0, 10.0)], ids=["loaded-at-once", "held-2-10s"])
+def test_a_grasp_seen_by_its_touch_then_loaded(mode, hold_s):
+    """A grasp (its touch seen), loaded 80 ms after the touch or after a hold of seconds:
+    the precursor before gross slip, from the second micro-slip on (the touch founds the
+    contact), and SLIP not before the stick zone is nearly gone (q >= 0.9): the silence
+    of the hold and the touch before the load are no jump of the micro-slips' rate."""
+    kw = SPARSE if mode == "sparse" else {}
+    n = 40 if mode == "sparse" else 20
+    rows = [
+        ev.incipient_slip_trial(
+            s, post_s=0.15, pipeline="events", announce_touch=True, hold_s=hold_s, **kw
+        )
+        for s in range(n)
+    ]
+    sel = [r for r in rows if r["n_micro_slip_events"] >= 5]
+    assert len(sel) >= 0.6 * n
+    assert np.mean([r["precursor_before_gross"] for r in sel]) >= 0.95
+    q = [r["q_at_precursor"] for r in sel if r["precursor_before_gross"]]
+    assert np.median(q) <= (0.5 if mode == "sparse" else 0.05)
+    early = [r["q_at_slip"] is not None and r["q_at_slip"] < 0.9 for r in rows]
+    assert np.mean(early) <= 0.1
+    assert np.mean([r["slip_time_ns"] is not None for r in rows]) >= 0.9
+
+
 def test_no_false_alarms_holds_taps():
     for fn, n in ((ev.touch_hold_release_trial, 30), (ev.tapping_trial, 30)):
         rows = [fn(s, pipeline="events") for s in range(n)]

@@ -283,13 +283,16 @@ def incipient_slip_scene(
     polarity: str = "random",
     micro_slip_count=None,
     slip_rate_hz=None,
+    hold_s=None,
 ):
     """(scene, process wrapper or None, drawn parameters) for one randomised trial.
 
     ``polarity``: 'random', 'compression', 'rarefaction' or 'mixed' (one of the three
     drawn per trial); ``micro_slip_count``: None (the simulator's density: dense
     emitters) or (lo, hi): a mean count drawn uniformly, no background emissions (sparse
-    emitters); ``slip_rate_hz``: None (500 Hz) or (lo, hi) log-uniform gross-slip rate."""
+    emitters); ``slip_rate_hz``: None (500 Hz) or (lo, hi) log-uniform gross-slip rate;
+    ``hold_s``: with ``announce_touch``, None (the load starts 80 ms after the touch) or
+    (lo, hi): the touch held a log-uniform time first (a grasp held, then loaded)."""
     r = dict(INCIPIENT_RANGES, **(ranges or {}))
     rng = np.random.default_rng([7001, int(seed)])
     R = 0.01
@@ -311,6 +314,10 @@ def incipient_slip_scene(
         lo, hi = slip_rate_hz
         extra["slip_rate_hz"] = float(math.exp(prng.uniform(math.log(lo), math.log(hi))))
     start_s = 0.1 if announce_touch else 0.0
+    if announce_touch and hold_s is not None:
+        lo, hi = hold_s
+        hrng = np.random.default_rng([7012, int(seed)])
+        start_s = 0.02 + float(math.exp(hrng.uniform(math.log(lo), math.log(hi))))
     qdot = mu * P / T
     spec = {
         "generator": "incipient_slip",
@@ -345,6 +352,7 @@ def incipient_slip_scene(
         "snr_db": snr,
         "hertz_radius_m": a_h,
         "announce_touch": bool(announce_touch),
+        "hold_before_load_s": start_s - 0.02 if announce_touch else None,
         "polarity": polarity,
         "micro_slip_count": extra.get("micro_slip_count"),
         "slip_rate_hz": extra.get("slip_rate_hz", 500.0),
@@ -454,6 +462,7 @@ def incipient_slip_trial(
     polarity: str = "random",
     micro_slip_count=None,
     slip_rate_hz=None,
+    hold_s=None,
 ) -> dict:
     """One open-loop incipient-slip trial: precursor, lead time, q at detection, SLIP delay.
     ``pipeline``: 'triggered' (ideal trigger windows) or 'stream' (stream + dsp detector);
@@ -466,6 +475,7 @@ def incipient_slip_trial(
         polarity=polarity,
         micro_slip_count=micro_slip_count,
         slip_rate_hz=slip_rate_hz,
+        hold_s=hold_s,
     )
     end_ns = int(round(scene.duration_s * _NS))
     events, n_em = _events(scene, source, end_ns, pipeline)
