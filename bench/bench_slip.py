@@ -60,6 +60,10 @@ RESULTS = ROOT / "bench" / "results"
 DOC = ROOT / "docs" / "slip.md"
 BEGIN, END = "<!-- bench:slip:begin -->", "<!-- bench:slip:end -->"
 SPARSE = dict(micro_slip_count=(4.0, 12.0), slip_rate_hz=(100.0, 200.0))
+#: the grasp rows: the touch seen, held this long (log-uniform, s), then loaded
+HELD_BEFORE_LOAD_S = (2.0, 10.0)
+HELD_KEY = ", announced, held 2-10 s"
+ANNOUNCED_KEY = ", announced"
 
 
 # ---------------------------------------------------------------------- cost
@@ -499,7 +503,10 @@ def tables(res: dict) -> str:
         "**Incipient slip** (precursor before gross slip; q = Q/(mu P) at the precursor; "
         "pipeline 'events'). Micro-slip counts are the emissions the detector received "
         "before gross slip; 'q at the 3rd' is the load ratio when the third of them came "
-        "(from the simulator's truth: where a precursor on three emissions would come).\n"
+        "(from the simulator's truth: where a precursor on three emissions would come). "
+        "Rows 'announced': a grasp, its touch seen (the first of those emissions, the "
+        "contact's founder), loaded 80 ms after it, or held 2 .. 10 s first; the other "
+        "rows are never announced (the first micro-slip founds the contact).\n"
     )
     L.append(
         "| emitters | polarity | trials | precursor, >= 10 micro-slips | precursor, 5-10 | "
@@ -853,9 +860,15 @@ def main(argv=None) -> int:
         )
         return rows
 
-    def inc(mode, pol, n, pipeline="events", off=0):
-        kw = SPARSE if mode == "sparse" else {}
-        key = f"{mode}:{pol}" + (", waveforms" if pipeline != "events" else "")
+    def inc(mode, pol, n, pipeline="events", off=0, grasp=None):
+        kw = dict(SPARSE) if mode == "sparse" else {}
+        if grasp:  # the touch seen: loaded 80 ms after it ('now') or after a hold ('held')
+            kw.update(announce_touch=True, hold_s=HELD_BEFORE_LOAD_S if grasp == "held" else None)
+        key = (
+            f"{mode}:{pol}"
+            + {None: "", "now": ANNOUNCED_KEY, "held": HELD_KEY}[grasp]
+            + (", waveforms" if pipeline != "events" else "")
+        )
         rows = run(
             f"incipient {key}",
             lambda s: ev.incipient_slip_trial(
@@ -963,6 +976,11 @@ def main(argv=None) -> int:
         lambda: inc("dense", "rarefaction", n_pol),
         lambda: inc("dense", "random", n_val, "triggered", 50_000),
         lambda: inc("sparse", "random", n_val, "triggered", 50_000),
+        lambda: inc("sparse", "random", N, grasp="now"),
+        lambda: inc("dense", "random", n_pol, grasp="now"),
+        lambda: inc("sparse", "random", N, grasp="held"),
+        lambda: inc("dense", "random", n_pol, grasp="held"),
+        lambda: inc("sparse", "random", n_val, "triggered", 50_000, grasp="held"),
         lambda: alarms("touch-hold-release", ev.touch_hold_release_trial, "triggered", n_val),
         lambda: alarms("tapping another spot", ev.tapping_trial, "triggered", n_val),
         lambda: alarms("touch-release cycles", ev.cycles_trial, "triggered", n_val),

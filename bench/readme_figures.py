@@ -232,7 +232,12 @@ def slip_rows(d) -> list[str]:
     s = d["summary"]
     inc = s["incipient"]
     rows = []
-    for fam in ("dense:random", "sparse:random", "sparse:compression"):
+    for fam in (
+        "dense:random",
+        "sparse:random",
+        "sparse:compression",
+        "sparse:random, announced, held 2-10 s",
+    ):
         f = inc.get(fam)
         if not f:
             continue
@@ -245,8 +250,11 @@ def slip_rows(d) -> list[str]:
                     f"micro-slips (median q {m['q_at_precursor']['p50']:.2f})"
                 )
         if parts:
+            mode, _, rest = fam.partition(":")
+            pol, _, how = rest.partition(", ")
+            how = f" ({how}: a grasp)" if how else " (never announced by a touch)"
             rows.append(
-                f"| slip precursor before gross slip, {fam.replace(':', ', ')} polarity "
+                f"| slip precursor before gross slip, {mode} emitters, {pol} polarity{how} "
                 f"| {'; '.join(parts)} | bench_slip |"
             )
     al = s.get("alarms", {})
