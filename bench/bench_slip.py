@@ -16,7 +16,8 @@ always render waveforms. Families:
   incipient     Cattaneo-Mindlin ramp (docs/slip.md), never announced by a touch;
                 dense emitters (the simulator's density) and sparse ones (4 .. 12
                 micro-slips per ramp, gross slip at 100 .. 200 Hz), micro-slip polarity
-                random / all compressions / all rarefactions
+                random / all compressions / all rarefactions; and a grasp, its touch
+                seen, loaded 80 ms after it or held 2 .. 10 s first
   false alarms  touch-hold-release (holds 20 ms .. 30 s), a held touch with another spot
                 tapped 1 .. 10 Hz, touch-release cycles wandering within 3 mm (holds
                 20 .. 500 ms) and grasp-release cycles (holds 0.5 .. 10 s)
