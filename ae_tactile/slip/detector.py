@@ -185,6 +185,10 @@ class _Contact:
         self.tlist = [0] * H  # self.t as Python ints (cheap per-element reads)
         self.flist = [0] * H  # self.flags as Python ints
         self.n_fit_members = 0  # valid members with EVID set and OVERLAP clear
+        # the box holding every compression the contact ever had (m, grown only) and their
+        # largest per-axis variance: a cheap test for a far release's touch
+        self.touch_box = [math.inf, math.inf, math.inf, -math.inf, -math.inf, -math.inf]
+        self.touch_var = 0.0
         self.n = 0
         self.state = ContactState.STICK
         self.since_ns = t_ns
@@ -247,6 +251,23 @@ class _Contact:
         self.pid[i] = pid
         self.flags[i] = flags
         self.n += 1
+        if pol > 0:
+            b = self.touch_box
+            x, y, z = float(p[0]), float(p[1]), float(p[2])
+            if x < b[0]:
+                b[0] = x
+            if x > b[3]:
+                b[3] = x
+            if y < b[1]:
+                b[1] = y
+            if y > b[4]:
+                b[4] = y
+            if z < b[2]:
+                b[2] = z
+            if z > b[5]:
+                b[5] = z
+            if var > self.touch_var:
+                self.touch_var = float(var)
         if t >= self.last_ns:
             self.last_ns = t
             self.last_p = (float(p[0]), float(p[1]), float(p[2]))
@@ -505,6 +526,14 @@ class SlipDetector:
         for c in self.contacts:
             if c.state in _SLIPPING or c.moving:
                 continue
+            b = c.touch_box
+            r = math.sqrt(self._g2 * (c.touch_var + var + self._f2))  # the widest gate
+            if not (
+                b[0] - r <= px <= b[3] + r
+                and b[1] - r <= py <= b[4] + r
+                and b[2] - r <= pz <= b[5] + r
+            ):
+                continue  # no compression of this contact within reach
             d = math.inf
             k = c.valid()
             F = c.flags[:k]
