@@ -41,7 +41,6 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXP
     os.environ.setdefault(_v, "1")  # one core
 
 import argparse  # noqa: E402
-import gc  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
 import platform  # noqa: E402
@@ -956,18 +955,9 @@ def main(argv=None) -> int:
         print(f"  weak releases: {len(rows)} trials ({timing['weak releases']:.0f} s)", flush=True)
 
     def cost():
-        # the trial records gathered so far (hundreds of thousands of objects) are frozen
-        # out of the cyclic garbage collector while the cost is timed: a driver process
-        # has no such heap, and a full collection over it took up to 1.7 ms inside one
-        # timed call
-        gc.collect()
-        gc.freeze()
-        try:
-            res["detector_speed"] = detector_speed()
-            res["detector_speed"]["slip_step"] = slip_step_speed(seed=s0)
-            res["interference_speed"] = interference_speed()
-        finally:
-            gc.unfreeze()
+        res["detector_speed"] = detector_speed()
+        res["detector_speed"]["slip_step"] = slip_step_speed(seed=s0)
+        res["interference_speed"] = interference_speed()
 
     tasks = [
         lambda: inc("sparse", "random", N),
