@@ -898,6 +898,47 @@ def test_radius_percentile_matches_numpy():
         assert _percentile90(d.tolist()) == float(np.percentile(d, 90))
 
 
+@pytest.mark.parametrize("t_origin_s", [0.0, 1.7e9])  # a stream's own clock, or ROS time
+def test_drift_fit_recovers_a_known_drift_and_its_noise(t_origin_s):
+    """p(t) = p0 + v t along the tangent plane plus Gaussian noise sigma per tangent axis:
+    the moment-matrix fit returns v (tangent), the residual variance sigma^2, and agrees
+    with numpy's least squares on the same points."""
+    from ae_tactile.slip.detector import _drift_fit
+
+    rng = np.random.default_rng(5)
+    p0 = surf(2e-3, -1e-3)
+    nrm = p0 / np.linalg.norm(p0)
+    e1 = np.cross(nrm, [0.0, 0.0, 1.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(nrm, e1)
+    v_true = 2e-3 * e1 - 1e-3 * e2  # m/s, in the tangent plane at p0 (0.4 mm in 0.2 s)
+    n, sig = 4000, 30e-6
+    t_s = np.sort(rng.uniform(0.0, 0.2, n))
+    noise = rng.normal(0, sig, (n, 1)) * e1 + rng.normal(0, sig, (n, 1)) * e2
+    P = p0 + t_s[:, None] * v_true + noise
+    t_ns = np.round((t_origin_s + t_s) * 1e9).astype(np.int64)
+    v, pm, tm, s2, stt = _drift_fit(t_ns, P)
+    # tangent at the mean point; v_true there, up to its component along that normal
+    n_m = pm / np.linalg.norm(pm)
+    assert abs(v @ n_m) < 1e-12
+    se = math.sqrt(s2 / stt)
+    assert np.linalg.norm(v - v_true) < 5 * se + abs(v_true @ n_m)
+    assert s2 == pytest.approx(sig * sig, rel=0.1)
+    # numpy's least squares of P on [1, t - t_m], its slope projected on the tangent plane
+    assert tm == pytest.approx(t_origin_s + t_s.mean(), rel=1e-15, abs=1e-9)
+    tc = (t_ns - t_ns[0]) * 1e-9
+    tc -= tc.mean()
+    coef, *_ = np.linalg.lstsq(np.column_stack([np.ones(n), tc]), P, rcond=None)
+    pm_n = coef[0] / np.linalg.norm(coef[0])
+    v_ls = coef[1] - (coef[1] @ pm_n) * pm_n
+    assert np.allclose(v, v_ls, rtol=1e-6, atol=1e-9)
+    assert np.allclose(pm, P.mean(axis=0), rtol=0, atol=1e-12)
+    res = P - coef[0] - tc[:, None] * v_ls
+    assert s2 == pytest.approx(float((res * res).sum()) / (2 * (n - 2)), rel=1e-6)
+    # no time spread: no drift
+    assert _drift_fit(np.full(5, t_ns[0]), P[:5]) is None
+
+
 def test_texture_period_with_a_missed_packet_jittered_short():
     """A fixed contact sliding over a texture (T = 20 ms, 10 % timing jitter) whose
     localizer lost one packet; the two neighbours of the gap jittered toward it make the

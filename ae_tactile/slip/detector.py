@@ -169,6 +169,38 @@ def _period_fit(ts_ns, kk, with_rss=False):
     return (T, se, rss) if with_rss else (T, se)
 
 
+def _drift_fit(t_ns, P):
+    """Drift of emission points along the surface, least squares p(t) = p_m + v (t - t_m)
+    with v projected onto the tangent plane at p_m (one 4 x 4 moment matrix of (t, p)):
+    (v (3,) m/s, p_m (3,) m, t_m s, s2 m^2, stt s^2), s2 = |p - p_m - v (t - t_m)|^2 summed
+    / (2 (n - 2)) (residual variance per tangent axis), stt = sum (t - t_m)^2; None when
+    the times have no spread."""
+    n = len(P)
+    Z = np.empty((n, 4))
+    t_ref = int(t_ns[0])  # times from the first, in integer ns: exact for any clock origin
+    Z[:, 0] = (t_ns - t_ref) * 1e-9
+    Z[:, 1:] = P
+    zm = Z.sum(axis=0) / n
+    Zc = Z - zm
+    M = (Zc.T @ Zc).tolist()
+    stt = M[0][0]
+    if not stt > 0:
+        return None
+    g = M[0][1:]  # sum (t - t_m)(p - p_m)
+    tm, px, py, pz = zm.tolist()
+    tm += t_ref * 1e-9
+    pn = math.sqrt(px * px + py * py + pz * pz)
+    nx, ny, nz = px / pn, py / pn, pz / pn
+    vx, vy, vz = g[0] / stt, g[1] / stt, g[2] / stt
+    d = vx * nx + vy * ny + vz * nz
+    vx, vy, vz = vx - d * nx, vy - d * ny, vz - d * nz
+    # sum |Pc - tc v|^2 = tr(Pc' Pc) - 2 v . g + stt |v|^2
+    rss = M[1][1] + M[2][2] + M[3][3] - 2.0 * (vx * g[0] + vy * g[1] + vz * g[2])
+    rss += stt * (vx * vx + vy * vy + vz * vz)
+    s2 = max(rss, 0.0) / max(1, 2 * (n - 2))
+    return np.array([vx, vy, vz]), zm[1:], tm, s2, stt
+
+
 class _Contact:
     """One tracked contact: ring buffers of its emissions and its state."""
 
@@ -787,29 +819,20 @@ class SlipDetector:
         if n < max(cfg.track_min_events, 3):
             c.moving = False
             return
-        ts = c.t[:k][m] * 1e-9
-        P = c.p[:k][m]
-        tm = float(ts.sum() / n)
-        tc = ts - tm
-        stt = float(tc @ tc)
-        if stt <= 0:
+        fit = _drift_fit(c.t[:k][m], c.p[:k][m])
+        if fit is None:
             return
-        pm = P.sum(axis=0) / n
-        Pc = P - pm
-        v = (tc @ Pc) / stt
-        nrm = pm / math.sqrt(float(pm @ pm))
-        v = v - (v @ nrm) * nrm
-        res = Pc - tc[:, None] * v
-        s2 = float(np.einsum("ij,ij->", res, res)) / max(1, 2 * (n - 2))
+        v, pm, tm, s2, stt = fit
         se = math.sqrt(s2 / stt)
         speed = math.sqrt(float(v @ v))
+        tk = c.t[:k][m]
         c.track_se = se
         was = c.moving
         # a moving contact: fast enough, significant, its emissions close to the track (a
         # few fixed spots hit in turn are no motion), and it left its spot: the track spans
         # more than the same-spot gate (a spot hit again and again, e.g. apex phantoms of
         # electrical interference, drifts within it)
-        span = speed * float(ts.max() - ts.min())
+        span = speed * float(tk.max() - tk.min()) * 1e-9
         c.moving = (
             speed >= cfg.min_speed_m_s
             and speed >= cfg.track_significance * se
@@ -987,13 +1010,40 @@ class SlipDetector:
         # the prior starts at the onset of the contact's activity, or at the oldest
         # emission the ring buffer still holds once it has wrapped
         born = created if c.n <= c.H else max(created, int(T.min()))
-        best = -math.inf
-        ring_t, rho2 = None, None
+        kap2 = kap * kap
+        d_all = 0.5 / (1.0 - kap2) if kap < 1 else 0.0
+        # the spans tested, and for each the latest ring fitted before it (without the
+        # tested emissions; None: no ring, no position term)
+        plan = []
         for j in range(cfg.gross_min_events, J + 1):
             t0 = ts[J - j]
             cov = min(w_prior, t0 - born)
             if cov <= 0:
                 break
+            ri = None
+            for i in range(len(rings) - 1, -1, -1):
+                if rings[i][0] < t0:
+                    ri = i if rings[i][2] > 0 else None
+                    break
+            plan.append((j, t0, cov, ri))
+        # every ring's rho^2 at once: of the tested emissions (time order), and the
+        # innermost micro-slip before each time (running minimum over the micro-slips in
+        # time order): the annulus the contact's micro-slips drew
+        rows = {}
+        used = sorted({ri for *_, ri in plan if ri is not None})
+        if used:
+            C = np.array([rings[i][1] for i in used])
+            rr = np.array([rings[i][2] for i in used])
+            D = c.p[:k][None, :, :] - C[:, None, :]
+            rho2 = np.einsum("rij,rij->ri", D, D) / (rr * rr)[:, None]
+            ev_i = np.flatnonzero((c.flags[:k] & EVID) != 0)
+            ev_i = ev_i[np.argsort(T[ev_i], kind="stable")]
+            ev_t = T[ev_i].tolist()
+            r2_used = rho2[:, idx].tolist()
+            ev_min = np.minimum.accumulate(rho2[:, ev_i], axis=1).tolist()
+            rows = {ri: n for n, ri in enumerate(used)}
+        best = -math.inf
+        for j, t0, cov, ri in plan:
             n_p = bisect_left(tu, t0) - bisect_left(tu, t0 - cov)
             a, b = n_p + 1.0, cov * 1e-9 / cfg.gross_rate_growth
             m, tau = j - 1, (t - t0) * 1e-9
@@ -1009,28 +1059,18 @@ class SlipDetector:
                     + math.lgamma(a)
                     + (a + m) * math.log(b + tau),
                 )
-            # positions against the latest ring fitted before t0 (without the tested ones)
-            for tr, cr, rr in reversed(rings):
-                if tr < t0:
-                    if rr > 0:
-                        if tr != ring_t:
-                            ring_t = tr
-                            Dp = c.p[:k] - cr
-                            rho2 = np.einsum("ij,ij->i", Dp, Dp) / (rr * rr)
-                        # the annulus the contact's micro-slips drew before t0
-                        prior = ((c.flags[:k] & EVID) != 0) & (T < t0)
-                        k_obs = (
-                            max(kap, math.sqrt(float(rho2[prior].min()))) if prior.any() else kap
-                        )
-                        r2 = rho2[idx[J - j :]]
-                        n_in = int((r2 < kap * kap).sum())
-                        n_obs = int((r2 >= k_obs * k_obs).sum())
-                        d_obs = 0.5 / (1.0 - k_obs * k_obs) if k_obs < 1 else 0.0
-                        d_all = 0.5 / (1.0 - kap * kap) if kap < 1 else 0.0
-                        llr += n_in * s_in
-                        llr -= (j - n_in - n_obs) * math.log(eps + (1.0 - eps) * d_all)
-                        llr -= n_obs * math.log(eps + (1.0 - eps) * (d_all + d_obs))
-                    break
+            if ri is not None:
+                row = rows[ri]
+                n_before = bisect_left(ev_t, t0)
+                k_obs = max(kap, math.sqrt(ev_min[row][n_before - 1])) if n_before else kap
+                k_obs2 = k_obs * k_obs
+                r2 = r2_used[row][J - j :]
+                n_in = sum(1 for v in r2 if v < kap2)
+                n_obs = sum(1 for v in r2 if v >= k_obs2)
+                d_obs = 0.5 / (1.0 - k_obs2) if k_obs < 1 else 0.0
+                llr += n_in * s_in
+                llr -= (j - n_in - n_obs) * math.log(eps + (1.0 - eps) * d_all)
+                llr -= n_obs * math.log(eps + (1.0 - eps) * (d_all + d_obs))
             if llr > best:
                 best = llr
         return best
@@ -1233,19 +1273,11 @@ class SlipDetector:
             n = int(m.sum())
             if n < cfg.track_min_events:
                 return _NAN3.copy()
-            ts = c.t[:k][m] * 1e-9
-            P = c.p[:k][m]
-            tc = ts - ts.sum() / n
-            stt = float(tc @ tc)
-            if stt <= 0:
+            fit = _drift_fit(c.t[:k][m], c.p[:k][m])
+            if fit is None:
                 return _NAN3.copy()
-            pm = P.sum(axis=0) / n
-            Pc = P - pm
-            v = (tc @ Pc) / stt
-            nrm = pm / math.sqrt(float(pm @ pm))
-            v = v - (v @ nrm) * nrm
-            res = Pc - tc[:, None] * v
-            se = math.sqrt(float(np.einsum("ij,ij->", res, res)) / max(1, 2 * (n - 2)) / stt)
+            v, _, _, s2, stt = fit
+            se = math.sqrt(s2 / stt)
             sp = math.sqrt(float(v @ v))
             if sp < cfg.min_speed_m_s or sp < cfg.direction_significance * se:
                 return _NAN3.copy()
