@@ -312,7 +312,14 @@ def slip_rows(d) -> list[str]:
         meta = d.get("meta", {})
         rows.append(
             f"| slip detector step | {sp['us_p50']:.0f} us median, {sp['us_p99']:.0f} us p99 "
-            f"per emission | bench_slip, {_load_str(meta.get('load_before'))} |"
+            "per emission"
+            + (
+                f"; slowest call {sp['replayed_us_max']:.0f} us (replayed on copies of its "
+                "state, apart from the machine's pauses)"
+                if "replayed_us_max" in sp
+                else ""
+            )
+            + f" | bench_slip, {_load_str(meta.get('load_before'))} |"
         )
     return rows
 
