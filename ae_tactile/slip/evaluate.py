@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Evaluation of the slip detector on the simulator's scenes (issue 6).
+"""Evaluation of the slip detector on the simulator's scenes.
 
 The real pipeline at core level, per trial: a scene with its own seed and randomised
 parameters -> the simulator's triggered source (windows cut from the stream around each
@@ -12,6 +12,9 @@ Trials (each function takes a seed and returns a JSON-able dict):
   incipient_slip_trial   Cattaneo-Mindlin incipient slip (optionally announced by a touch
                          at the contact centre): precursor before gross slip, lead time,
                          load fraction q = Q/(mu P) at detection, SLIP delay
+  gross_slip_bound_trial the same scene (never announced, 'events'): the Bayes posterior
+                         that gross slip has begun, given truth no detector has (the
+                         bound a SLIP decision can reach)
   closed_loop_trial      the same scene, P raised (grip reflex) once SLIP_PRECURSOR arrives:
                          was gross slip averted
   touch_hold_release_trial, random_touches_trial   false alarms (any SLIP_PRECURSOR /
@@ -44,6 +47,9 @@ from .detector import SlipDetector
 from .types import ContactState, LocalizedEvent, SlipEventType
 
 _NS = 1_000_000_000
+#: the 'events' pipeline's share of emissions lost at random (packets the localizer
+#: rejects), strong ones included
+EVENTS_DROP = 0.02
 SLIP_KINDS = (SlipEventType.SLIP_PRECURSOR, SlipEventType.SLIP, SlipEventType.TEXTURE)
 
 # Randomised parameter ranges (SI units); "log" = log-uniform.
@@ -389,7 +395,7 @@ def emission_events(
     rng,
     *,
     sigma_m: float = 30e-6,
-    drop: float = 0.02,
+    drop: float = EVENTS_DROP,
     time_sigma_s: float = 100e-9,
     id_offset: int = 0,
 ) -> list[LocalizedEvent]:
@@ -560,6 +566,111 @@ def incipient_slip_trial(
         out["precursor_error_to_ring_m"] = float(
             abs(np.linalg.norm(pre.position_m - c) - params["hertz_radius_m"])
         )
+    return out
+
+
+#: thresholds on the gross-slip posterior reported by `summarize_gross_slip_bound`
+BOUND_THRESHOLDS = (0.5, 0.8, 0.9, 0.95, 0.98, 0.99, 0.999)
+
+
+def gross_slip_bound_trial(
+    seed: int,
+    *,
+    micro_slip_count=(4.0, 12.0),
+    slip_rate_hz=(100.0, 200.0),
+    post_s: float = 0.25,
+    use_position: bool = True,
+    n_t: int = 600,
+) -> dict:
+    """What any SLIP decision could do on `incipient_slip_trial`'s scene (never announced,
+    'events' pipeline, the same seed: the same emissions): the Bayes posterior that gross
+    slip has begun, P(T <= t | emissions up to t), at each emission, computed with what
+    no detector has: the scene family's prior (T log-uniform over time_to_gross_slip_s,
+    N uniform over ``micro_slip_count``, s log-uniform over ``slip_rate_hz``: a grid of
+    ``n_t`` x 17 x 5), the ramp's start (t = 0, q = t / T), the simulator's emission model,
+    and (``use_position``) the contact's true centre and a_H:
+
+      micro-slips (t < T): Poisson at k N (2/3) (1 - q)^(-1/3) / T (uniform in the slip
+      fraction f = 1 - (1 - q)^(2/3)), radially uniform by area over kappa < rho < 1,
+      kappa = (1 - q)^(1/3), rho = r / a_H; gross slip (t >= T): Poisson at k s, over
+      0 < rho < 1; k = 1 - EVENTS_DROP; each radial density blurred by the emission's
+      localization sigma_rho: [Phi((rho - kappa) / sigma_rho) - Phi((rho - 1) / sigma_rho)]
+      / (1 - kappa^2); log L = sum log(rate x density) - k N f(min(t / T, 1)) - k s (t - T)+.
+
+    A decision 'SLIP once the posterior reaches pi' (Shiryaev's rule) is the Bayes-optimal
+    quickest detection for this prior; it bounds the detector, which knows none of that."""
+    from scipy.special import ndtr
+
+    scene, source, params = incipient_slip_scene(
+        seed, post_s=post_s, micro_slip_count=micro_slip_count, slip_rate_hz=slip_rate_hz
+    )
+    end_ns = int(round(scene.duration_s * _NS))
+    events, _ = _events(scene, source, end_ns, "events")
+    t_g = scene.process.scene_truth(end_ns)["gross_slip_time_ns"]
+    centre = np.asarray(scene.process.center, dtype=float)
+    a_h = float(params["hertz_radius_m"])
+    lo, hi, _ = INCIPIENT_RANGES["time_to_gross_slip_s"]
+    T, N, S = (
+        x.ravel()
+        for x in np.meshgrid(
+            np.exp(np.linspace(math.log(lo), math.log(hi), n_t)),
+            np.linspace(*micro_slip_count, 17),
+            np.exp(np.linspace(math.log(slip_rate_hz[0]), math.log(slip_rate_hz[1]), 5)),
+            indexing="ij",
+        )
+    )
+    k = 1.0 - EVENTS_DROP
+    log_sum = np.zeros(T.size)
+    post = []
+    for e in events:
+        u = e.time_ns * 1e-9
+        pre = u < T
+        one_q = np.where(pre, 1.0 - u / T, 1.0)
+        rate = np.where(pre, k * N * (2.0 / 3.0) * one_q ** (-1.0 / 3.0) / T, k * S)
+        if use_position:
+            # the simulator places emissions in the tangent plane at the centre, then on
+            # the sphere along their radius: back into that plane
+            pt = np.asarray(e.point_m, dtype=float)
+            pt = pt * (float(centre @ centre) / float(pt @ centre))
+            rho = float(np.linalg.norm(pt - centre)) / a_h
+            s_rho = max(math.sqrt(max(float(np.trace(e.covariance_m2)), 0.0) / 2.0) / a_h, 1e-3)
+            kap = np.where(pre, one_q ** (1.0 / 3.0), 0.0)
+            outer = float(ndtr((rho - 1.0) / s_rho))
+            dens = (ndtr((rho - kap) / s_rho) - outer) / np.maximum(1.0 - kap * kap, 1e-12)
+            rate = rate * np.maximum(dens, 1e-300)
+        log_sum += np.log(rate)
+        f = np.where(pre, 1.0 - one_q ** (2.0 / 3.0), 1.0)  # slip fraction at t
+        ll = log_sum - k * N * f - k * S * np.maximum(u - T, 0.0)
+        w = np.exp(ll - ll.max())
+        post.append(min(1.0, float(w[~pre].sum() / w.sum())))
+    return {
+        "seed": int(seed),
+        "use_position": bool(use_position),
+        "time_to_gross_slip_s": float(params["time_to_gross_slip_s"]),
+        "gross_slip_time_ns": t_g,
+        "times_ns": [int(e.time_ns) for e in events],
+        "posterior": post,
+    }
+
+
+def summarize_gross_slip_bound(trials: list[dict], thresholds=BOUND_THRESHOLDS) -> dict:
+    """Per posterior threshold pi, the rule 'SLIP at the first emission whose posterior
+    reaches pi': share of trials with SLIP within 50 ms of gross slip, with SLIP at
+    q < 0.9 (t < 0.9 T: the ramp starts at 0), and the delay's p95 (none: infinite)."""
+    out = {"n_trials": len(trials), "by_threshold": {}}
+    for pi in thresholds:
+        d, early = [], 0
+        for r in trials:
+            tg = r["gross_slip_time_ns"]
+            t = next((t for t, p in zip(r["times_ns"], r["posterior"]) if p >= pi), None)
+            d.append(math.inf if t is None else (t - tg) / 1e6)
+            early += t is not None and t < 0.9 * r["time_to_gross_slip_s"] * _NS
+        n = max(len(trials), 1)
+        out["by_threshold"][f"{pi:g}"] = {
+            "slip_within_50ms_rate": sum(x <= 50.0 for x in d) / n,
+            "slip_before_q090_rate": early / n,
+            "slip_delay_p95_ms": float(np.percentile(d, 95, method="higher")) if d else None,
+        }
     return out
 
 
