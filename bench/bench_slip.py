@@ -628,7 +628,7 @@ def tables(res: dict) -> str:
             ("bayes_position", "Bayes, times + true centre and a_H"),
         ):
             for pi, d in to[key]["by_threshold"].items():
-                if pi in ("0.5", "0.98"):
+                if pi == "0.5":
                     continue
                 L.append(
                     f"| {name} | pi = {pi} | {_rate(d['slip_within_50ms_rate'])} | "
