@@ -246,3 +246,23 @@ def test_the_gross_slip_posterior_is_calibrated_and_position_sharpens_it():
     b = ev.summarize_gross_slip_bound(tim)["by_threshold"]["0.9"]
     assert a["slip_within_50ms_rate"] >= b["slip_within_50ms_rate"], (a, b)
     assert a["slip_before_q090_rate"] <= b["slip_before_q090_rate"], (a, b)
+
+
+def test_the_gross_slip_posterior_of_an_announced_grasp_leaves_its_touch_out():
+    """A grasp loaded 80 ms after its touch: the posterior starts at the ramp (the touch,
+    0.08 s before, is no micro-slip), and stays calibrated at its ends (40 trials)."""
+    rows = [
+        ev.gross_slip_bound_trial(s, post_s=0.15, announce_touch=True, **SPARSE)
+        for s in range(5200, 5240)
+    ]
+    for r in rows:
+        assert r["times_ns"] and min(r["times_ns"]) >= r["ramp_start_ns"] > 0
+        # the ramp starts 0.1 s in; gross slip comes T after it
+        assert abs(r["ramp_start_ns"] - 100_000_000) <= 1
+        expected_ns = r["ramp_start_ns"] + r["time_to_gross_slip_s"] * 1e9
+        assert abs(r["gross_slip_time_ns"] - expected_ns) <= 1e6
+    P = np.concatenate([r["posterior"] for r in rows])
+    Y = np.concatenate([np.array(r["times_ns"]) >= r["gross_slip_time_ns"] for r in rows])
+    lo, hi = P <= 0.01, P >= 0.99
+    assert lo.sum() >= 50 and hi.sum() >= 50
+    assert Y[lo].mean() <= 0.03 and Y[hi].mean() >= 0.97
