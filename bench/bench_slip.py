@@ -605,35 +605,54 @@ def tables(res: dict) -> str:
     to = s.get("slip_tradeoff")
     if to and to.get("bayes_position"):
         L.append(
-            "**SLIP within 50 ms against early SLIPs** (sparse emitters, never announced, "
-            "random polarity: the trials of the first row). The detector at its default "
-            "gross_llr_threshold and lower ones; the Bayes rule, SLIP once the posterior "
-            "P(gross slip has begun | the emissions so far) reaches pi "
+            "**SLIP within 50 ms against early SLIPs** (sparse emitters, random polarity: the "
+            "trials of the rows 'sparse random' and 'sparse random, announced' above). The "
+            "detector at its default gross_llr_threshold and lower ones; the Bayes rule, SLIP "
+            "once the posterior P(gross slip has begun | the emissions so far) reaches pi "
             "(`ae_tactile/slip/evaluate.py`, `gross_slip_bound_trial`), computed with truth "
             "the detector lacks: the scene family's prior (time to gross slip, micro-slip "
             "count, gross-slip rate), the ramp's start and the simulator's emission model; "
             "from the emission times alone, and with the contact's true centre and a_H.\n"
         )
-        L.append("| decision | setting | SLIP <= 50 ms | SLIP at q < 0.9 | SLIP delay p95 ms |")
-        L.append("|---|---|---|---|---|")
+        L.append(
+            "| scene | decision | setting | SLIP <= 50 ms | SLIP at q < 0.9 | "
+            "SLIP delay p95 ms |"
+        )
+        L.append("|---|---|---|---|---|---|")
         dflt = f"{SlipConfig().gross_llr_threshold:g}"
-        for thr, d in to["detector"].items():
-            L.append(
-                f"| detector | gross_llr_threshold {thr}{' (default)' if thr == dflt else ''} | "
-                f"{_rate(d['slip_within_50ms_rate'])} | {_rate(d['slip_before_q090_rate'])} | "
-                f"{d['slip_delay_p95_ms_missing_as_inf']:.0f} |"
-            )
-        for key, name in (
-            ("bayes_timing", "Bayes, emission times"),
-            ("bayes_position", "Bayes, times + true centre and a_H"),
+        for scene, sfx, inc_key in (
+            ("never announced", "", "sparse:random"),
+            ("announced", "_announced", "sparse:random" + ANNOUNCED_KEY),
         ):
-            for pi, d in to[key]["by_threshold"].items():
-                if pi == "0.5":
-                    continue
+            det = dict(to["detector"]) if not sfx else {}
+            d_inc = s["incipient"].get(inc_key)
+            if sfx and d_inc:
+                det[dflt] = {
+                    "slip_within_50ms_rate": d_inc["slip_within_50ms_rate"],
+                    "slip_before_q090_rate": d_inc["slip_before_q090_rate"],
+                    "slip_delay_p95_ms_missing_as_inf": d_inc["slip_delay_p95_ms_missing_as_inf"],
+                }
+            for thr, d in det.items():
                 L.append(
-                    f"| {name} | pi = {pi} | {_rate(d['slip_within_50ms_rate'])} | "
-                    f"{_rate(d['slip_before_q090_rate'])} | {d['slip_delay_p95_ms']:.0f} |"
+                    f"| {scene} | detector | gross_llr_threshold {thr}"
+                    f"{' (default)' if thr == dflt else ''} | "
+                    f"{_rate(d['slip_within_50ms_rate'])} | "
+                    f"{_rate(d['slip_before_q090_rate'])} | "
+                    f"{d['slip_delay_p95_ms_missing_as_inf']:.0f} |"
                 )
+            for key, name in (
+                ("bayes_timing", "Bayes, emission times"),
+                ("bayes_position", "Bayes, times + true centre and a_H"),
+            ):
+                if not to.get(key + sfx):
+                    continue
+                for pi, d in to[key + sfx]["by_threshold"].items():
+                    if pi == "0.5":
+                        continue
+                    L.append(
+                        f"| {scene} | {name} | pi = {pi} | {_rate(d['slip_within_50ms_rate'])} | "
+                        f"{_rate(d['slip_before_q090_rate'])} | {d['slip_delay_p95_ms']:.0f} |"
+                    )
         L.append("")
     L.append(
         "**False alarms** (SLIP_PRECURSOR / SLIP / TEXTURE onsets; touch-hold-release: holds "
@@ -1072,15 +1091,22 @@ def main(argv=None) -> int:
                     "slip_delay_p95_ms_missing_as_inf",
                 )
             }
-        for key, pos in (("bayes_timing", False), ("bayes_position", True)):
+        for key, pos, ann in (
+            ("bayes_timing", False, False),
+            ("bayes_position", True, False),
+            ("bayes_timing_announced", False, True),
+            ("bayes_position_announced", True, True),
+        ):
             rows = [
-                ev.gross_slip_bound_trial(s0 + i, post_s=0.15, use_position=pos, **SPARSE)
+                ev.gross_slip_bound_trial(
+                    s0 + i, post_s=0.15, use_position=pos, announce_touch=ann, **SPARSE
+                )
                 for i in range(N)
             ]
             out[key] = ev.summarize_gross_slip_bound(rows)
         summary["slip_tradeoff"] = out
         timing["slip trade-off"] = time.perf_counter() - a
-        print(f"  slip trade-off: {N} trials x {len(GROSS_THRESHOLDS) + 2} "
+        print(f"  slip trade-off: {N} trials x {len(GROSS_THRESHOLDS) + 4} "
               f"({timing['slip trade-off']:.0f} s)", flush=True)
 
     def cost():
