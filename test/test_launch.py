@@ -37,6 +37,8 @@ NODE_EXECUTABLES = ["driver", "grip_reflex", "localizer", "sim_fingertip", "slip
 START_TIMEOUT_S = 180.0     # start-up on a loaded 2-core machine (imports, JIT, discovery)
 SIGTERM_AFTER_S = 60        # launch's SIGINT -> SIGTERM escalation in these tests
 STOP_TIMEOUT_S = 120.0      # > SIGTERM_AFTER_S + launch's 5 s to SIGKILL
+DIAGNOSE_AFTER_S = 30.0     # a stop still under way this long after Ctrl-C: record where
+#                             each process is (before launch escalates to SIGTERM)
 _domains = iter(random.Random(os.getpid()).sample(range(101, 232), 131))
 
 
@@ -70,6 +72,7 @@ class LaunchRun:
         # but clean stop on a loaded machine must not count as a hang, a real hang still does.
         self.cmd = ["ros2", "launch", *target, *args, f"sigterm_timeout:={SIGTERM_AFTER_S}"]
         self._log = open(self.log_path, "w")
+        self.diagnostics = ""       # where each process was, when a stop took long
         self.proc = subprocess.Popen(self.cmd, stdout=self._log, stderr=subprocess.STDOUT,
                                      stdin=subprocess.DEVNULL, env=env, cwd=tmp_path,
                                      start_new_session=True)
@@ -111,12 +114,60 @@ class LaunchRun:
         return self.proc.wait(timeout=timeout_s)
 
     def interrupt(self) -> int:
-        """Ctrl-C: SIGINT to every process of the group; the launch's exit code."""
+        """Ctrl-C: SIGINT to every process of the group; the launch's exit code. A stop
+        still under way after DIAGNOSE_AFTER_S records where each process is first
+        (`self.diagnostics`); the verdict stays launch's (its escalation, the exit code)."""
         try:
             os.killpg(self.proc.pid, signal.SIGINT)
         except ProcessLookupError:
             pass
+        try:
+            return self.proc.wait(timeout=DIAGNOSE_AFTER_S)
+        except subprocess.TimeoutExpired:
+            self.diagnostics = self.where_each_process_is()
         return self.wait_exit()
+
+    def where_each_process_is(self) -> str:
+        """Each live process of this launch: its threads' states and kernel wait channels
+        (/proc), each thread's C function and the main thread's C stack (gdb, where
+        installed) and, for a node that
+        registered it (ae_tactile nodes do), every Python thread's stack through SIGUSR1
+        (faulthandler; printed in the launch output, even while a thread holds the GIL).
+        Also written to a file next to the launch output."""
+        lines = []
+        for pid, cmd in self._processes():
+            lines.append(f"=== pid {pid}: {cmd}")
+            try:
+                for tid in sorted(os.listdir(f"/proc/{pid}/task"), key=int):
+                    base = f"/proc/{pid}/task/{tid}"
+                    with open(f"{base}/comm") as fh:
+                        comm = fh.read().strip()
+                    with open(f"{base}/stat") as fh:
+                        state = fh.read().rsplit(")", 1)[1].split()[0]
+                    with open(f"{base}/wchan") as fh:
+                        wchan = fh.read().strip()
+                    lines.append(f"  thread {tid} {comm!r}: state {state}, waits in {wchan}")
+                with open(f"/proc/{pid}/status") as fh:
+                    caught = int(re.search(r"SigCgt:\s*([0-9a-f]+)", fh.read()).group(1), 16)
+                if caught & (1 << (signal.SIGUSR1 - 1)):
+                    os.kill(pid, signal.SIGUSR1)
+                    lines.append("  (SIGUSR1 sent: its Python stacks are in the launch output)")
+            except (OSError, AttributeError, ValueError) as exc:
+                lines.append(f"  (cannot read it: {exc})")
+                continue
+            if shutil.which("gdb"):
+                try:
+                    gdb = subprocess.run(
+                        ["gdb", "-batch", "-nx", "-p", str(pid), "-ex", "info threads",
+                         "-ex", "thread apply 1 bt 40"],
+                        capture_output=True, text=True, timeout=60)
+                    lines += [ln for ln in gdb.stdout.splitlines()
+                              if ln.startswith(("  ", "* ", "#", "Thread 1 "))]
+                except subprocess.TimeoutExpired:
+                    lines.append("  (gdb did not answer within 60 s)")
+        text = "\n".join(lines)
+        (self.log_path.parent / f"stuck_{self.marker[:8]}.txt").write_text(text)
+        return text
 
     def wait_gone(self, timeout_s=STOP_TIMEOUT_S) -> list[str]:
         """Processes still alive after waiting up to timeout_s for them to go."""
@@ -175,12 +226,14 @@ def assert_clean_stop(run: LaunchRun):
     code = run.interrupt()
     left = run.wait_gone()
     out = run.output()
+    slow = (f"\n--- the stop was still under way {DIAGNOSE_AFTER_S:g} s after Ctrl-C:\n"
+            f"{run.diagnostics[-30000:]}" if run.diagnostics else "")
     expected = {0, 1} if launch_lost_ctrl_c_race(out) else {0}
-    assert code in expected, f"ros2 launch exit code {code}\n{out[-4000:]}"
-    assert not left, f"processes left after Ctrl-C: {left}"
-    assert "Traceback" not in out, out[-6000:]
+    assert code in expected, f"ros2 launch exit code {code}\n{out[-4000:]}{slow}"
+    assert not left, f"processes left after Ctrl-C: {left}{slow}"
+    assert "Traceback" not in out, out[-6000:] + slow
     for bad in ("RCLError", "context is not valid", "escalating to 'SIGTERM'"):
-        assert bad not in out, f"{bad!r} in the launch output:\n{out[-6000:]}"
+        assert bad not in out, f"{bad!r} in the launch output:\n{out[-6000:]}{slow}"
     lost = launch_lost_exit_status(out)
     died = re.findall(r"process has died \[pid (\d+), exit code (-?\d+)", out)
     assert all(pid in lost and code == "255" for pid, code in died), (
@@ -775,6 +828,44 @@ def test_node_stops_cleanly_on_ctrl_c_twice(tmp_path, signals):
                                     ready_text="serving on")
         assert code == 0, out
         assert "Traceback" not in out and "RCLError" not in out, out
+
+
+def test_sigusr1_prints_every_threads_stack_and_the_node_goes_on(tmp_path):
+    """`kill -USR1` on a running node prints each thread's Python stack (the main thread in
+    the spin loop) and nothing stops: the node still serves, and a Ctrl-C afterwards ends
+    it with exit code 0."""
+    require_ros()
+    from ae_tactile.ros.node_utils import STACKS_SIGNAL
+    scene = os.path.join(os.path.dirname(HERE), "config", "scenes", "touch_hold_release.yaml")
+    exe = installed_executable("sim_fingertip")
+    log = tmp_path / "sim_fingertip.txt"
+    env = dict(os.environ, ROS_DOMAIN_ID=str(next(_domains)), PYTHONUNBUFFERED="1",
+               ROS_LOG_DIR=str(tmp_path / "ros_log"))
+    with open(log, "w") as fh:
+        proc = subprocess.Popen([exe, "--ros-args", "-p", f"scene:={scene}"], stdout=fh,
+                                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
+                                cwd=tmp_path, start_new_session=True)
+        try:
+            deadline = time.monotonic() + START_TIMEOUT_S
+            while "serving on" not in log.read_text() and time.monotonic() < deadline:
+                assert proc.poll() is None, log.read_text()
+                time.sleep(0.1)
+            os.kill(proc.pid, STACKS_SIGNAL)
+            while "spin_until_stopped" not in log.read_text() and time.monotonic() < deadline:
+                assert proc.poll() is None, log.read_text()
+                time.sleep(0.1)
+            out = log.read_text()
+            assert proc.poll() is None, out
+            os.kill(proc.pid, signal.SIGINT)
+            code = proc.wait(timeout=STOP_TIMEOUT_S)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(10)
+    stacks = _stuck_frames(out)
+    assert stacks and any("spin_until_stopped" in f for f in stacks), out
+    assert code == 0, log.read_text()
+    assert "Traceback" not in log.read_text(), log.read_text()
 
 
 def test_a_running_bringup_stops_on_ctrl_c_by_itself(tmp_path):

@@ -505,6 +505,21 @@ def module_params(module, tables=None) -> tuple[list, list[str]]:
     return out, missing
 
 
+#: `kill -USR1 <pid>` makes a node print every thread's Python stack on stderr (its launch
+#: log) and go on: where a node hangs, even while one thread holds the GIL for good.
+STACKS_SIGNAL = signal.SIGUSR1
+
+
+def print_stacks_on_signal(signum: int = STACKS_SIGNAL) -> bool:
+    """Register faulthandler on ``signum`` (its C handler needs no GIL); False where the
+    platform cannot (the node still runs)."""
+    try:
+        faulthandler.register(signum, file=2, all_threads=True, chain=False)
+        return True
+    except (AttributeError, OSError, ValueError, RuntimeError):
+        return False
+
+
 def split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
     """(arguments before --ros-args, --ros-args and what follows)."""
     if "--ros-args" in argv:
@@ -522,6 +537,7 @@ def node_main(module_name: str, tables=None, argv=None) -> int:
     with exit code 2; otherwise ``module.main()`` runs the node.
     """
     argv = sys.argv[1:] if argv is None else list(argv)
+    print_stacks_on_signal()
     executable = os.path.basename(sys.argv[0]) or module_name
     own, _ = split_ros_args(argv)
     module = importlib.import_module(module_name)
