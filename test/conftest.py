@@ -10,11 +10,19 @@ runs on one machine do not hear each other.
 
 import os
 import random
+import signal
 
 import pytest
 
 os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random(os.getpid()).randint(1, 100)))
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
+# The processes the tests start (launches, nodes) begin as from a terminal, whoever started
+# the tests: a test run started as a background job of a non-interactive shell (nohup,
+# `cmd &` in a script) ignores SIGINT and would hand that on, so a node signalled in the
+# first milliseconds of its life, before its own handler exists, would lose the Ctrl-C.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def require_ros():

@@ -128,8 +128,8 @@ class LaunchRun:
         return self.wait_exit()
 
     def where_each_process_is(self) -> str:
-        """Each live process of this launch: its threads' states and kernel wait channels
-        (/proc), each thread's C function and the main thread's C stack (gdb, where
+        """Each live process of this launch: its threads' states, kernel wait channels and
+        signal masks, its pending, ignored and caught signals (/proc), each thread's C function and the main thread's C stack (gdb, where
         installed) and, for a node that
         registered it (ae_tactile nodes do), every Python thread's stack through SIGUSR1
         (faulthandler; printed in the launch output, even while a thread holds the GIL).
@@ -146,9 +146,16 @@ class LaunchRun:
                         state = fh.read().rsplit(")", 1)[1].split()[0]
                     with open(f"{base}/wchan") as fh:
                         wchan = fh.read().strip()
-                    lines.append(f"  thread {tid} {comm!r}: state {state}, waits in {wchan}")
+                    with open(f"{base}/status") as fh:
+                        masks = " ".join(ln.replace("\t", " ") for ln in fh.read().splitlines()
+                                         if ln.startswith(("SigPnd", "SigBlk")))
+                    lines.append(f"  thread {tid} {comm!r}: state {state}, waits in {wchan}, "
+                                 f"{masks}")
                 with open(f"/proc/{pid}/status") as fh:
-                    caught = int(re.search(r"SigCgt:\s*([0-9a-f]+)", fh.read()).group(1), 16)
+                    status = fh.read()
+                lines.append("  " + " ".join(ln.replace("\t", " ") for ln in status.splitlines()
+                                             if ln.startswith(("ShdPnd", "SigIgn", "SigCgt"))))
+                caught = int(re.search(r"SigCgt:\s*([0-9a-f]+)", status).group(1), 16)
                 if caught & (1 << (signal.SIGUSR1 - 1)):
                     os.kill(pid, signal.SIGUSR1)
                     lines.append("  (SIGUSR1 sent: its Python stacks are in the launch output)")
