@@ -778,13 +778,26 @@ with node_utils.ros_session(interrupt=False) as state:
         state["stop"].wait()
         while True:  # a clean-up that never ends
             time.sleep(0.05)
-    else:  # stuck inside a call before the signal: a mutex locked twice (as a middleware
-        # that deadlocks); ctypes releases the GIL, Python never runs a signal handler
+    elif sys.argv[1] == "call":  # stuck inside a call before the signal: a mutex locked
+        # twice (as a middleware that deadlocks); ctypes releases the GIL, Python never
+        # runs a signal handler
         libc = ctypes.CDLL(None)
         mutex = ctypes.create_string_buffer(64)
         libc.pthread_mutex_init(mutex, None)
         libc.pthread_mutex_lock(mutex)
         libc.pthread_mutex_lock(mutex)
+    else:  # no signal: the session ends and its clean-up (rclpy's shutdown) gets stuck in
+        # a call that keeps the GIL (as rclpy's bindings keep it around the middleware's):
+        # ctypes.PyDLL does not release it, so no Python thread runs again
+        import rclpy
+
+        def stuck_with_the_gil():
+            libc = ctypes.PyDLL(None)
+            mutex = ctypes.create_string_buffer(64)
+            libc.pthread_mutex_init(mutex, None)
+            libc.pthread_mutex_lock(mutex)
+            libc.pthread_mutex_lock(mutex)
+        rclpy.get_default_context().on_shutdown(stuck_with_the_gil)
 """
 
 
@@ -818,6 +831,33 @@ def test_a_stop_that_hangs_ends_at_its_deadline_with_the_stacks(tmp_path, where)
     assert CLEANUP_FORCED_EXIT_TEXT in out, out
     frames = _stuck_frames(out)
     assert frames and frames[0].startswith(str(script)), out  # where it hung
+    assert "Traceback" not in out, out
+
+
+def test_a_clean_up_stuck_with_the_gil_held_ends_with_the_stacks(tmp_path):
+    """A clean-up stuck inside a call that keeps the GIL, with no signal ever sent (no
+    Python thread can run again: neither the signal watcher nor the deadline thread):
+    the main thread armed the deadline as its clean-up began, so faulthandler's own
+    thread prints every thread's stack 2 s after the deadline and ends the process
+    (exit code 1), the main thread's innermost frame being the stuck call's caller."""
+    require_ros()
+    script = tmp_path / "hang.py"
+    script.write_text(_HANGING_CLEANUP_SCRIPT)
+    log = tmp_path / "hang.txt"
+    with open(log, "w") as fh:
+        proc = subprocess.Popen([sys.executable, str(script), "gil-clean-up", "1.0"],
+                                stdout=fh, stderr=subprocess.STDOUT, cwd=tmp_path,
+                                env=dict(os.environ, PYTHONUNBUFFERED="1"))
+        try:
+            code = proc.wait(timeout=STOP_TIMEOUT_S)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
+    out = log.read_text()
+    assert code == 1, out
+    frames = _stuck_frames(out)
+    assert frames and frames[0] == f"{script}:stuck_with_the_gil", out
     assert "Traceback" not in out, out
 
 

@@ -118,6 +118,17 @@ def _stop_on_signals(state: dict):
             interrupted[0] = True
             raise KeyboardInterrupt
 
+    def arm_cleanup_deadline():
+        """A clean-up that hangs prints where, then leaves (once; from the watcher on the
+        first stop signal, and from the main thread where its clean-up begins: the
+        watcher needs the GIL, which a main thread stuck inside a call may never free)."""
+        with deadline_lock:
+            if not deadline["started"] and not deadline["closed"]:
+                deadline["started"] = True
+                _start_cleanup_deadline(state, cleanup_done)
+
+    state["arm_cleanup_deadline"] = arm_cleanup_deadline
+
     def watch_signals(sock):
         count = 0
         while True:
@@ -131,10 +142,7 @@ def _stop_on_signals(state: dict):
             if not count:
                 continue
             stop.set()
-            with deadline_lock:    # a clean-up that hangs prints where, then leaves
-                if not deadline["started"] and not deadline["closed"]:
-                    deadline["started"] = True
-                    _start_cleanup_deadline(state, cleanup_done)
+            arm_cleanup_deadline()
             if count >= FORCE_EXIT_SIGNALS:   # the clean-up hangs: the user insists
                 os.write(2, b"[ae_tactile] clean-up interrupted again: forced exit\n")
                 os._exit(1)
@@ -187,6 +195,10 @@ def _stop_on_signals(state: dict):
         yield
 
 
+def _nothing() -> None:
+    """(no clean-up deadline outside the main thread: no signals there)"""
+
+
 def _from_stop_signal(exc: BaseException, stop: threading.Event) -> bool:
     """Whether ``exc`` is the stop signal's KeyboardInterrupt under another name: raised
     where Python wraps it (Python 3.11 turns an exception inside a class body's
@@ -230,6 +242,7 @@ def ros_session(args=None, interrupt: bool = True):
                 raise
         finally:
             state["interrupt"] = False
+            state.get("arm_cleanup_deadline", _nothing)()
             rclpy.try_shutdown()
 
 
@@ -265,6 +278,7 @@ def run_node(node_factory, args=None, executor_factory=SingleThreadedExecutor) -
                 raise
         finally:
             state["interrupt"] = False
+            state.get("arm_cleanup_deadline", _nothing)()
             if node is not None:
                 node.destroy_node()
     return state["exit"]
