@@ -129,8 +129,8 @@ class LaunchRun:
 
     def where_each_process_is(self) -> str:
         """Each live process of this launch: its threads' states, kernel wait channels and
-        signal masks, its pending, ignored and caught signals (/proc), each thread's C function and the main thread's C stack (gdb, where
-        installed) and, for a node that
+        signal masks, its pending, ignored and caught signals (/proc), each thread's C
+        function and the main thread's C stack (gdb, where installed) and, for a node that
         registered it (ae_tactile nodes do), every Python thread's stack through SIGUSR1
         (faulthandler; printed in the launch output, even while a thread holds the GIL).
         Also written to a file next to the launch output."""

@@ -6,12 +6,13 @@
   sends its own SIGINT) is ignored while the nodes are destroyed, *before* the context
   is shut down, so no callback or publisher thread meets an invalid context; a third
   forces the exit, and so does a clean-up still running `CLEANUP_DEADLINE_S` after the
-  first (every thread's stack printed first). Exit code 0 on a signal, 2 when a node
-  refused its parameters or ROS could not read its arguments (e.g. a --params-file;
-  message on stderr), no traceback.
+  first or after it began (every thread's stack printed first). Exit code 0 on a signal,
+  2 when a node refused its parameters or ROS could not read its arguments (e.g. a
+  --params-file; message on stderr), no traceback.
 - `node_main`: the entry point of a node executable; `--help` prints the usage and the
   node's parameters from its `Param` table and exits 0 without starting anything; the
-  process leaves without interpreter finalization once its nodes are destroyed.
+  process leaves without interpreter finalization once its nodes are destroyed;
+  SIGUSR1 (`STACKS_SIGNAL`) prints every thread's stack and the node goes on.
 - `forward_python_logging`: records of the core's Python loggers (`ae_tactile.*`, e.g. the
   serial link's warnings) go to the node's rclpy logger, hence to the console and /rosout.
 """
