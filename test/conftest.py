@@ -4,17 +4,45 @@
 ROS tests need rclpy and the built messages. Outside `make test` (e.g. running the core
 tests with a plain python3) they are skipped with that reason; under `make test`
 AE_TACTILE_REQUIRE_ROS=1 turns a missing rclpy into a failure, so CI cannot skip them.
-Each test session gets its own ROS domain id and localhost-only discovery so parallel
-runs on one machine do not hear each other.
+Each test session gets its own ROS domain id (held through a lock file, `claim_domain`)
+and localhost-only discovery so parallel runs on one machine do not hear each other.
 """
 
+import fcntl
 import os
 import random
 import signal
+import tempfile
 
 import pytest
 
-os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random(os.getpid()).randint(1, 100)))
+#: one lock file per ROS domain id: a test run holds the ids it uses until it ends
+DOMAIN_LOCK_DIR = os.path.join(tempfile.gettempdir(), "ae_tactile_test_domains")
+_held_domains: list = []
+
+
+def claim_domain(candidates) -> int:
+    """The first ROS domain id of ``candidates`` (an iterator; ids are taken from it) that
+    no other test run on this machine holds: an exclusive flock on its file in
+    DOMAIN_LOCK_DIR, held until this process ends (the kernel frees it even after a
+    crash). Two runs at once (two CI jobs, `make test` twice) never share a domain."""
+    os.makedirs(DOMAIN_LOCK_DIR, exist_ok=True)
+    for domain_id in candidates:
+        fh = open(os.path.join(DOMAIN_LOCK_DIR, f"{domain_id}.lock"), "a")
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            fh.close()
+            continue
+        _held_domains.append(fh)
+        return domain_id
+    raise RuntimeError(f"every ROS domain id offered is held by another test run "
+                       f"({DOMAIN_LOCK_DIR})")
+
+
+if "ROS_DOMAIN_ID" not in os.environ:
+    os.environ["ROS_DOMAIN_ID"] = str(
+        claim_domain(iter(random.Random(os.getpid()).sample(range(1, 101), 100))))
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 # The processes the tests start (launches, nodes) begin as from a terminal, whoever started

@@ -26,7 +26,7 @@ import uuid
 
 import pytest
 
-from conftest import installed_executable, require_ros
+from conftest import claim_domain, installed_executable, require_ros
 from ros_helpers import cpus_allowed
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -313,7 +313,7 @@ def launch(tmp_path):
 
     class Session:
         def __init__(self):
-            self.domain_id = next(_domains)
+            self.domain_id = claim_domain(_domains)
             self.probe = Probe(self.domain_id)
             probes.append(self.probe)
 
@@ -700,7 +700,7 @@ def _run_and_signal(tmp_path, exe_name, args, signals, ready_text=None, delay_s=
     output)."""
     exe = installed_executable(exe_name)
     log = tmp_path / f"{exe_name}.txt"
-    env = dict(os.environ, ROS_DOMAIN_ID=str(next(_domains)), PYTHONUNBUFFERED="1",
+    env = dict(os.environ, ROS_DOMAIN_ID=str(claim_domain(_domains)), PYTHONUNBUFFERED="1",
                ROS_LOG_DIR=str(tmp_path / "ros_log"))
     with open(log, "w") as fh:
         proc = subprocess.Popen([exe, *cli_args, "--ros-args", *args], stdout=fh,
@@ -886,7 +886,7 @@ def test_sigusr1_prints_every_threads_stack_and_the_node_goes_on(tmp_path):
     scene = os.path.join(os.path.dirname(HERE), "config", "scenes", "touch_hold_release.yaml")
     exe = installed_executable("sim_fingertip")
     log = tmp_path / "sim_fingertip.txt"
-    env = dict(os.environ, ROS_DOMAIN_ID=str(next(_domains)), PYTHONUNBUFFERED="1",
+    env = dict(os.environ, ROS_DOMAIN_ID=str(claim_domain(_domains)), PYTHONUNBUFFERED="1",
                ROS_LOG_DIR=str(tmp_path / "ros_log"))
     with open(log, "w") as fh:
         proc = subprocess.Popen([exe, "--ros-args", "-p", f"scene:={scene}"], stdout=fh,
