@@ -877,40 +877,46 @@ def test_node_stops_cleanly_on_ctrl_c_twice(tmp_path, signals):
         assert "Traceback" not in out and "RCLError" not in out, out
 
 
-def test_sigusr1_prints_every_threads_stack_and_the_node_goes_on(tmp_path):
-    """`kill -USR1` on a running node prints each thread's Python stack (the main thread in
-    the spin loop) and nothing stops: the node still serves, and a Ctrl-C afterwards ends
-    it with exit code 0."""
+@pytest.mark.parametrize("exe_name, args, ready_text, main_frame", [
+    ("sim_fingertip", ["--ros-args", "-p", "scene:={scene}"], "serving on",
+     "node_utils.py:spin_until_stopped"),
+    ("bringup", ["--scene", "{scene}", "--duration", "600"], "driver on ", "bringup.py:spin"),
+])
+def test_sigusr1_prints_every_threads_stack_and_the_node_goes_on(tmp_path, exe_name, args,
+                                                                 ready_text, main_frame):
+    """`kill -USR1` on a running node (or the composed system) prints each thread's Python
+    stack (the main thread in its spin loop) and nothing stops: it still runs, and a
+    Ctrl-C afterwards ends it with exit code 0."""
     require_ros()
     from ae_tactile.ros.node_utils import STACKS_SIGNAL
     scene = os.path.join(os.path.dirname(HERE), "config", "scenes", "touch_hold_release.yaml")
-    exe = installed_executable("sim_fingertip")
-    log = tmp_path / "sim_fingertip.txt"
+    exe = installed_executable(exe_name)
+    log = tmp_path / f"{exe_name}.txt"
     env = dict(os.environ, ROS_DOMAIN_ID=str(claim_domain(_domains)), PYTHONUNBUFFERED="1",
                ROS_LOG_DIR=str(tmp_path / "ros_log"))
     with open(log, "w") as fh:
-        proc = subprocess.Popen([exe, "--ros-args", "-p", f"scene:={scene}"], stdout=fh,
+        proc = subprocess.Popen([exe, *(a.format(scene=scene) for a in args)], stdout=fh,
                                 stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
                                 cwd=tmp_path, start_new_session=True)
         try:
             deadline = time.monotonic() + START_TIMEOUT_S
-            while "serving on" not in log.read_text() and time.monotonic() < deadline:
+            while ready_text not in log.read_text() and time.monotonic() < deadline:
                 assert proc.poll() is None, log.read_text()
                 time.sleep(0.1)
             os.kill(proc.pid, STACKS_SIGNAL)
-            while "spin_until_stopped" not in log.read_text() and time.monotonic() < deadline:
+            while not _stuck_frames(log.read_text()) and time.monotonic() < deadline:
                 assert proc.poll() is None, log.read_text()
                 time.sleep(0.1)
             out = log.read_text()
             assert proc.poll() is None, out
-            os.kill(proc.pid, signal.SIGINT)
+            os.killpg(proc.pid, signal.SIGINT)
             code = proc.wait(timeout=STOP_TIMEOUT_S)
         finally:
             if proc.poll() is None:
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait(10)
     stacks = _stuck_frames(out)
-    assert stacks and any("spin_until_stopped" in f for f in stacks), out
+    assert stacks and any(f.endswith(main_frame) for f in stacks), out
     assert code == 0, log.read_text()
     assert "Traceback" not in log.read_text(), log.read_text()
 

@@ -28,7 +28,7 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
-from ae_tactile.ros.node_utils import ros_session
+from ae_tactile.ros.node_utils import print_stacks_on_signal, ros_session
 
 
 def parse_args(argv):
@@ -375,6 +375,7 @@ class Bringup:
 
 
 def main(argv=None) -> int:
+    print_stacks_on_signal()
     argv = sys.argv[1:] if argv is None else argv
     ros_args = []
     if "--ros-args" in argv:
@@ -416,6 +417,7 @@ def main(argv=None) -> int:
                     with open(args.summary_json, "w") as fh:
                         json.dump(summary, fh, indent=2)
         finally:
+            state["arm_cleanup_deadline"]()
             if system is not None:
                 system.close()
     return state["exit"]

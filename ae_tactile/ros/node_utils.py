@@ -216,15 +216,17 @@ def _from_stop_signal(exc: BaseException, stop: threading.Event) -> bool:
 def ros_session(args=None, interrupt: bool = True):
     """rclpy.init ... try_shutdown around a node's life; yields a dict with 'exit' (the
     process exit code: 2 when a node refused its parameters, else 0), 'stop' (a
-    threading.Event set by the first SIGINT/SIGTERM) and 'interrupt' (whether that first
-    signal also raises KeyboardInterrupt in the body; the body may change it).
+    threading.Event set by the first SIGINT/SIGTERM), 'interrupt' (whether that first
+    signal also raises KeyboardInterrupt in the body; the body may change it) and
+    'arm_cleanup_deadline' (the body calls it where its clean-up begins).
 
     rclpy's own signal handlers are not installed: they shut the context down from the
     signal, while node threads may still publish ("context is not valid"). Here a signal
     only requests the stop; the body destroys its nodes and the context goes last; a
     second signal is ignored, so the clean-up is not interrupted (a third forces the exit).
     """
-    state = {"exit": 0, "stop": threading.Event(), "interrupt": interrupt}
+    state = {"exit": 0, "stop": threading.Event(), "interrupt": interrupt,
+             "arm_cleanup_deadline": _nothing}
     with _stop_on_signals(state):
         try:
             rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
@@ -243,7 +245,7 @@ def ros_session(args=None, interrupt: bool = True):
                 raise
         finally:
             state["interrupt"] = False
-            state.get("arm_cleanup_deadline", _nothing)()
+            state["arm_cleanup_deadline"]()
             rclpy.try_shutdown()
 
 
@@ -279,7 +281,7 @@ def run_node(node_factory, args=None, executor_factory=SingleThreadedExecutor) -
                 raise
         finally:
             state["interrupt"] = False
-            state.get("arm_cleanup_deadline", _nothing)()
+            state["arm_cleanup_deadline"]()
             if node is not None:
                 node.destroy_node()
     return state["exit"]
