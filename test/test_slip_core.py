@@ -297,6 +297,71 @@ def test_a_compression_on_an_earlier_rarefactions_spot_is_no_touch_release_pair(
     assert det.counts["pairs"] == 1
 
 
+def test_touch_release_activity_of_an_ended_contact_goes_on_nearby():
+    """A touch and its release on one spot end their contact; the next touch nearby
+    founds another, and with its release and the next one's lost that contact holds
+    three unpaired compressions: the same hand's touches (the ended contact's
+    touch-release activity goes on within association_radius_m for evidence_window_s),
+    not micro-slips: no precursor (touch-release cycles, events model, seed 245)."""
+    events = [
+        ev(0, 0.0, 0.0, 1, 0),
+        ev(150 * MS, 5e-6, 0.0, -1, 1),  # touched and left: the contact ends
+        ev(200 * MS, 2e-3, 0.0, 1, 2),  # founds the next contact; its release lost
+        ev(600 * MS, 2e-3, 2e-3, 1, 3),  # its release lost too
+        ev(1000 * MS, 0.0, 2e-3, 1, 4),
+    ]
+    det = SlipDetector()
+    assert run(det, events) == []
+    assert det.counts["contacts_created"] == 2
+    det = SlipDetector(SlipConfig(touched_compression_weight=1.0))
+    assert SlipEventType.SLIP_PRECURSOR in kinds(run(det, events))
+
+
+def test_the_first_compression_after_a_touch_release_pair_is_a_touch_however_late():
+    """Grasps round one whose release was lost: a re-grasp held 4 s and released on its
+    spot (a pair), the next grasp's touch lost, its release 5 s later (a rarefaction on
+    no touch's spot) and a touch right after it. Past evidence_window_s after the pair,
+    but the contact's first compression since it: a touch, not a micro-slip: no
+    precursor (grasp-release cycles, events model, seed 61)."""
+    events = [
+        ev(0, 0.0, 0.0, 1, 0),  # a grasp, its release lost
+        ev(500 * MS, 1.5e-3, 0.0, 1, 1),  # a re-grasp held 4 s
+        ev(4500 * MS, 1.5e-3 + 5e-6, 0.0, -1, 2),  # released on its spot
+        ev(9600 * MS, 0.0, 1.5e-3, -1, 3),  # the next grasp's release (its touch lost)
+        ev(9650 * MS, -1.5e-3, 0.0, 1, 4),  # the next touch
+    ]
+    det = SlipDetector()
+    assert run(det, events) == []
+    assert det.counts["pairs"] == 1
+    det = SlipDetector(SlipConfig(touched_compression_weight=1.0))
+    assert SlipEventType.SLIP_PRECURSOR in kinds(run(det, events))
+
+
+def test_release_of_a_silent_founding_touch_keeps_the_model_floor_however_long_the_hold():
+    """A touch held 2.5 s (past evidence_window_s) with nothing else, then a rarefaction
+    0.2 mm from it (5.8 sigma of the difference: outside the gate without the model
+    floor, inside it with the floor): a held touch is silent, so this is its
+    release; the next touch 2 mm away founds a new contact: no precursor (grasp-release
+    cycles, events model, seed 555). With a micro-slip between them the old touch's gate
+    has no floor (gross slip emits from the disc's centre too): evidence, precursor."""
+    events = [
+        ev(0, 0.0, 0.0, 1, 0),
+        ev(2500 * MS, 200e-6, 0.0, -1, 1),
+        ev(2650 * MS, 2e-3, 0.0, 1, 2),
+    ]
+    det = SlipDetector()
+    assert run(det, events) == []
+    assert det.counts["pairs"] == 1 and det.counts["contacts_created"] == 2
+    events = [
+        ev(0, 0.0, 0.0, 1, 0),
+        ev(2400 * MS, 1.5e-3, 0.0, -1, 1),  # a micro-slip at the contact's edge
+        ev(2500 * MS, 200e-6, 0.0, -1, 2),
+    ]
+    det = SlipDetector()
+    pre = [o for o in run(det, events) if o.kind == SlipEventType.SLIP_PRECURSOR]
+    assert pre and pre[0].packet_ids[-1] == 2 and det.counts["pairs"] == 0
+
+
 def test_lone_orphan_release_is_not_a_contact_nor_a_precursor():
     det = SlipDetector()
     outs = det.process(ev(0, 1e-3, 1e-3, -1, 1))  # its touch was missed

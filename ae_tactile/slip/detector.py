@@ -21,7 +21,11 @@ The evidence is *where* emissions come from, not their sign:
   where it is informative: a release (a rarefaction) pairs with an earlier touch (a
   compression) on its spot, never the other way round (a release comes after its touch);
   a later emission on a paired spot, or a compression on a rarefaction's, is a repeat
-  (no evidence);
+  (no evidence); after a touch and its release (in the contact, or in one that ended
+  within ``association_radius_m``) compressions are touches, not evidence
+  (``touched_compression_weight``), for ``evidence_window_s`` and until the contact's
+  next compression however late; a rarefaction on the founding touch's spot with nothing
+  between them is its release however long the hold (the model floor kept);
   the founding emission paired ends the contact after ``release_confirm_s``;
 * an emission of a contact on no other emission's spot is micro-slip evidence:
   SLIP_PRECURSOR (STICK -> INCIPIENT_SLIP) when ``precursor_min_emissions`` of them fall
@@ -230,7 +234,8 @@ class _Contact:
         self.pending_release_ns = None
         self.pending_in_slip = False  # a release-like emission while slipping
         self.pending_release_spot = None  # (point, variance) of the founder's release
-        self.touch_release_ns = None  # latest touch-release pair (not the founder's)
+        self.touch_release_ns = None  # latest touch-release pair
+        self.touch_release_open = False  # no compression came since it (the next is a touch)
         self.founder = None  # (point, variance, polarity) of the founder
         self.founder_ns = t_ns  # its time
         self.founder_n = 0  # its index among the contact's emissions (c.n when added)
@@ -347,6 +352,8 @@ class SlipDetector:
         self._fs_state, self._fs_since, self._fs_pending = ContactState.NO_CONTACT, 0, None
         self._last_end_ns = 0
         self._last_t = None
+        #: (touch-release time ns, spot (3,)) of contacts that ended, at most max_contacts
+        self._ended_activity = []
 
     def _apply(self, c: SlipConfig):
         def ns(s):
@@ -436,6 +443,7 @@ class SlipDetector:
     def reset(self) -> None:
         """Forget every contact (e.g. after a gap in the data)."""
         self.contacts.clear()
+        self._ended_activity.clear()
         self.now_ns = None
         self._last_t = None
         self._finger = FingerState(ContactState.NO_CONTACT, 0, _NAN3.copy(), 0.0, 0, -1, 0, 0)
@@ -639,7 +647,13 @@ class SlipDetector:
                 if ev.polarity > 0:
                     cand[:] = False
                 elif ev.polarity < 0:
-                    cand &= (c.pol[:k] > 0) & self._held_touch(F, d2, vsum, recent)
+                    held = self._held_touch(F, d2, vsum, recent)
+                    if c.n - c.founder_n == 1:
+                        # nothing since the founding touch (a held touch is silent): on
+                        # its spot, model floor included, is its release however long
+                        # the hold
+                        held = held | ((F & FOUNDER) != 0)
+                    cand &= (c.pol[:k] > 0) & held
                 else:
                     cand &= recent
             else:
@@ -663,17 +677,23 @@ class SlipDetector:
                     c.flist[j] = int(F[j])
                     flags |= PAIRED
                     self.counts["pairs"] += 1
-                    if F[j] & FOUNDER:
+                    founder = bool(F[j] & FOUNDER)
+                    if founder:
                         c.founder_paired = True
                         c.pending_release_ns, c.pending_in_slip = t, False
                         c.pending_release_spot = (p.copy(), var)
                         self.counts["releases"] += 1
-                    elif ev.polarity < 0 < int(c.pol[j]) and float(d2[j]) <= 9.0 * (
-                        float(c.var[j]) + var
+                    if (
+                        (not founder or c.n - c.founder_n == 1)
+                        and ev.polarity < 0 < int(c.pol[j])
+                        and float(d2[j]) <= 9.0 * (float(c.var[j]) + var)
                     ):
                         # a touch and its release on one spot (3 sigma, no model floor: a
-                        # micro-slip landing near an earlier one rarely comes that close)
+                        # micro-slip landing near an earlier one rarely comes that close);
+                        # the founder's too when nothing came between them (a held touch
+                        # is silent)
                         c.touch_release_ns = t
+                        c.touch_release_open = True
                 else:
                     if ev.polarity > 0 and c.pending_release_ns is not None:
                         fp, fvar, _ = c.founder
@@ -721,7 +741,11 @@ class SlipDetector:
             ev_mask = ((F & EVID) != 0) & (T > t - self._w_ev)
             n_ev = float(ev_mask.sum())
             w = cfg.compression_evidence_weight
-            if c.touch_release_ns is not None and t - c.touch_release_ns <= self._w_ev:
+            if (
+                c.touch_release_open
+                or (c.touch_release_ns is not None and t - c.touch_release_ns <= self._w_ev)
+                or self._ended_activity_near(t, p, c.founder[0])
+            ):
                 w = min(w, cfg.touched_compression_weight)
             if w < 1.0:
                 n_ev -= (1.0 - w) * float((ev_mask & (c.pol[:k] > 0)).sum())
@@ -741,6 +765,8 @@ class SlipDetector:
         elif c.state == ContactState.GROSS_SLIP and self._due(c, 4, t):
             out.append(self._slip_event(c, ev, 0.0, onset=False))
         self._texture(c, ev, out)
+        if ev.polarity > 0:
+            c.touch_release_open = False
 
     def _held_touch(self, F, d2, vsum, recent):
         """Which buffered emissions (flags ``F``, squared distances ``d2`` m^2, summed
@@ -881,6 +907,29 @@ class SlipDetector:
             self.contacts.remove(c)
         if c.pending_release_ns is not None:
             self._last_end_ns = c.pending_release_ns
+        if c.touch_release_ns is not None:
+            # its touch-release activity outlives it (`_ended_activity_near`)
+            spot = c.pending_release_spot[0] if c.pending_release_spot is not None else c.last_p
+            act = self._ended_activity
+            act[:] = [a for a in act if c.touch_release_ns - a[0] <= self._w_ev]
+            act.append((c.touch_release_ns, np.array(spot, dtype=float)))
+            if len(act) > self.config.max_contacts:
+                del act[0]  # bounded work per event: the oldest forgotten first
+
+    def _ended_activity_near(self, t, *points):
+        """Did a contact that ended see a touch and its release within evidence_window_s
+        before ``t``, its end within association_radius_m of one of ``points``? (Prunes
+        the list.)"""
+        act = self._ended_activity
+        if not act:
+            return False
+        act[:] = [a for a in act if t - a[0] <= self._w_ev]
+        for _, q in act:
+            for p in points:
+                d = q - p
+                if float(d @ d) <= self._assoc2:
+                    return True
+        return False
 
     # ------------------------------------------------------------------ decisions
     def _rate(self, c, t):
