@@ -45,9 +45,9 @@ LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 
 #: A clean-up still running this long after the first SIGINT/SIGTERM, or after it began
 #: (s), prints every thread's stack to stderr (the launch log: where it hangs) and the
-#: process leaves without finishing it (exit code as if it had: 0 on a stop signal). A clean-up takes
-#: milliseconds; what can hang is the middleware's teardown, which must not keep a
-#: stopped node alive until someone sends SIGKILL.
+#: process leaves without finishing it (exit code as if it had: 0 on a stop signal). A
+#: clean-up takes milliseconds; what can hang is the middleware's teardown, which must
+#: not keep a stopped node alive until someone sends SIGKILL.
 CLEANUP_DEADLINE_S = 20.0
 #: The line the forced exit prints on stderr (after the stacks).
 CLEANUP_FORCED_EXIT_TEXT = "[ae_tactile] the clean-up did not end in time"
