@@ -20,7 +20,8 @@ always render waveforms. Families:
                 seen, loaded 80 ms after it or held 2 .. 10 s first
   false alarms  touch-hold-release (holds 20 ms .. 30 s), a held touch with another spot
                 tapped 1 .. 10 Hz, touch-release cycles wandering within 3 mm (holds
-                20 .. 500 ms) and grasp-release cycles (holds 0.5 .. 10 s)
+                20 .. 500 ms) and grasp-release cycles (holds 0.5 .. 10 s); in the
+                'events' pipeline 5,000 trials each on held-out seeds (ALARM_SEED_FROM)
   stylus        a stylus dragged over a texture (period 0.2 .. 0.8 mm, 5 .. 50 mm/s,
                 jitter 0 .. 20 %): TEXTURE from the tracked speed, no sliding speed given
   drift         plane slip drifting along x: SLIP direction error
@@ -67,6 +68,11 @@ GROSS_THRESHOLDS = (5.0, 4.0, 3.0)
 HELD_BEFORE_LOAD_S = (2.0, 10.0)
 HELD_KEY = ", announced, held 2-10 s"
 ANNOUNCED_KEY = ", announced"
+#: the 'events' false-alarm families run on seeds from here on: held out (the detector's
+#: touch / release rules were found on the false alarms of seeds 0 .. 5,999)
+ALARM_SEED_FROM = 100_000
+#: precursor_min_emissions tried for the precursors-against-false-alarms table
+PRECURSOR_MIN_TRIED = (3,)
 
 
 # ---------------------------------------------------------------------- cost
@@ -667,13 +673,14 @@ def tables(res: dict) -> str:
         "of 20 ms .. 30 s, log-uniform; 'finger free': the latched state NO_CONTACT 0.1 s "
         "after the last release, in the families whose every touch is released; for "
         "touch-hold-release also by hold, within / beyond the detector's 2 s evidence "
-        "window).\n"
+        "window; seeds: the first trial's, the 'events' rows held out: the detector's "
+        "touch / release rules were found on the false alarms of seeds 0 .. 5,999).\n"
     )
     L.append(
-        "| family | pipeline | trials | hours | alarm onsets | per hour | finger free | "
-        "... hold <= / > window (trials) |"
+        "| family | pipeline | trials | seeds from | hours | alarm onsets | per hour | "
+        "finger free | ... hold <= / > window (trials) |"
     )
-    L.append("|---|---|---|---|---|---|---|---|")
+    L.append("|---|---|---|---|---|---|---|---|---|")
     for key, d in s["alarms"].items():
         fam, pl = key.split(":")
         ended = "-"
@@ -683,11 +690,54 @@ def tables(res: dict) -> str:
                 for k in ("short", "long")
             )
         L.append(
-            f"| {fam} | {pl} | {d['n_trials']} | {d['hours']:.2f} | {d['alarm_onsets']} | "
+            f"| {fam} | {pl} | {d['n_trials']} | "
+            f"{'-' if d.get('seed_from') is None else format(d['seed_from'], ',')} | "
+            f"{d['hours']:.2f} | {d['alarm_onsets']} | "
             f"{d['false_alarms_per_hour']:.1f} | {_rate(d.get('free_after_release_rate'))} | "
             f"{ended} |"
         )
     L.append("")
+    pt = s.get("precursor_tradeoff")
+    if pt:
+        L.append(
+            "**Precursors against false alarms** (precursor_min_emissions: the micro-slip "
+            "emissions besides the founding one a precursor needs; sparse emitters never "
+            "announced, random polarity: the trials of the row 'sparse random' above; false "
+            "alarms: the held-out 'events' touch-release and grasp-release cycles above).\n"
+        )
+        L.append(
+            "| precursor_min_emissions | precursor, >= 10 micro-slips | precursor, 5-10 | "
+            "median q (>= 10 / 5-10) | touch-release cycles: alarm onsets (per hour) | "
+            "grasp-release cycles: alarm onsets (per hour) |"
+        )
+        L.append("|---|---|---|---|---|---|")
+        rows = {}
+        base = s["incipient"].get("sparse:random")
+        cyc = s["alarms"].get("touch-release cycles:events")
+        gra = s["alarms"].get("grasp-release cycles:events")
+        if base and cyc and gra:
+            rows[f"{SlipConfig().precursor_min_emissions} (default)"] = {
+                "incipient": base,
+                "touch-release cycles": cyc,
+                "grasp-release cycles": gra,
+            }
+        rows.update(pt)
+        for pm, d in rows.items():
+            inc = d["incipient"]
+            hi, mid = inc["micro_ge10"], inc["micro_5to10"]
+
+            def q50(m):
+                return f"{m['q_at_precursor']['p50']:.2f}" if m.get("q_at_precursor") else "-"
+
+            al = " | ".join(
+                f"{d[f]['alarm_onsets']} ({d[f]['false_alarms_per_hour']:.1f})"
+                for f in ("touch-release cycles", "grasp-release cycles")
+            )
+            L.append(
+                f"| {pm} | {_rate(hi['precursor_before_gross_rate'])} | "
+                f"{_rate(mid['precursor_before_gross_rate'])} | {q50(hi)} / {q50(mid)} | {al} |"
+            )
+        L.append("")
     wr = s.get("weak_releases")
     if wr and wr["n_low_snr"]:
         L.append(
@@ -939,6 +989,7 @@ def main(argv=None) -> int:
         return speed_main(args.seed)
     q = args.quick
     N = 60 if q else 1000
+    n_alarm = 60 if q else 5000  # 'events' false-alarm trials per family (held-out seeds)
     n_pol = 30 if q else 300
     n_if, n_if_off, n_val = (8, 4, 4) if q else (150, 40, 200)
     n_pk = 30 if q else 300  # packets per waveform, coupling and case
@@ -963,9 +1014,10 @@ def main(argv=None) -> int:
             "families_done": list(timing),
         }
 
-    def run(name, fn, n):
+    def run(name, fn, n, first=None):
         a = time.perf_counter()
-        rows = [fn(s0 + i) for i in range(n)]
+        first = s0 if first is None else first
+        rows = [fn(first + i) for i in range(n)]
         timing[name] = time.perf_counter() - a
         print(
             f"  {name}: {n} trials ({timing[name]:.0f} s, total {time.perf_counter() - t0:.0f} s)",
@@ -993,9 +1045,44 @@ def main(argv=None) -> int:
         summary["incipient"][key] = summarize_incipient(rows)
 
     def alarms(name, fn, pl, n):
-        rows = run(f"{name} {pl}", lambda s: fn(s, pipeline=pl), n)
+        # the 'events' families on held-out seeds; the waveform ones from --seed
+        first = s0 + ALARM_SEED_FROM if pl == "events" else s0
+        rows = run(f"{name} {pl}", lambda s: fn(s, pipeline=pl), n, first)
         trials[f"alarms:{name}:{pl}"] = rows
         summary["alarms"][f"{name}:{pl}"] = summarize_alarms(rows)
+        summary["alarms"][f"{name}:{pl}"]["seed_from"] = first
+
+    def precursor_tradeoff():
+        """Precursors against false alarms: precursor_min_emissions above its default on
+        the sparse never-announced trials ('incipient sparse:random') and the held-out
+        'events' touch-release and grasp-release cycles."""
+        a = time.perf_counter()
+        out = {}
+        for pm in PRECURSOR_MIN_TRIED:
+            cfg = SlipConfig(precursor_min_emissions=pm)
+            rows = [
+                ev.incipient_slip_trial(
+                    s0 + i, cfg, post_s=0.15, polarity="random", pipeline="events", **SPARSE
+                )
+                for i in range(N)
+            ]
+            d = {"incipient": summarize_incipient(rows)}
+            for name, fn in (
+                ("touch-release cycles", ev.cycles_trial),
+                ("grasp-release cycles", ev.grasp_cycles_trial),
+            ):
+                first = s0 + ALARM_SEED_FROM
+                d[name] = summarize_alarms(
+                    [fn(first + i, cfg, pipeline="events") for i in range(n_alarm)]
+                )
+            out[str(pm)] = d
+        summary["precursor_tradeoff"] = out
+        timing["precursor trade-off"] = time.perf_counter() - a
+        print(
+            f"  precursor trade-off: {len(PRECURSOR_MIN_TRIED)} settings "
+            f"({timing['precursor trade-off']:.0f} s)",
+            flush=True,
+        )
 
     def stylus(pl, n):
         rows = run(
@@ -1112,10 +1199,11 @@ def main(argv=None) -> int:
     tasks = [
         lambda: inc("sparse", "random", N),
         tradeoff,
-        lambda: alarms("touch-hold-release", ev.touch_hold_release_trial, "events", N),
-        lambda: alarms("tapping another spot", ev.tapping_trial, "events", N),
-        lambda: alarms("touch-release cycles", ev.cycles_trial, "events", N),
-        lambda: alarms("grasp-release cycles", ev.grasp_cycles_trial, "events", N),
+        lambda: alarms("touch-hold-release", ev.touch_hold_release_trial, "events", n_alarm),
+        lambda: alarms("tapping another spot", ev.tapping_trial, "events", n_alarm),
+        lambda: alarms("touch-release cycles", ev.cycles_trial, "events", n_alarm),
+        lambda: alarms("grasp-release cycles", ev.grasp_cycles_trial, "events", n_alarm),
+        precursor_tradeoff,
         lambda: stylus("events", N),
         drift,
         cost,
