@@ -337,6 +337,28 @@ def test_the_first_compression_after_a_touch_release_pair_is_a_touch_however_lat
     assert SlipEventType.SLIP_PRECURSOR in kinds(run(det, events))
 
 
+def test_a_compression_taken_for_a_touch_stays_a_touch_after_the_activity_ends():
+    """Grasps whose releases are lost now and then: a re-grasp released on its spot (a
+    pair), the next touch 0.2 s later (a touch: the contact's first compression after the
+    pair), its release lost, and the next touch 1.9 s after it, past evidence_window_s
+    after the pair. The touch stays a touch when the activity ends (its weight is the one
+    it had when it came), so the window holds one micro-slip candidate, not two: no
+    precursor (grasp-release cycles on waveforms, seed 100,020)."""
+    events = [
+        ev(0, 0.0, 0.0, 1, 0),  # a grasp, its release lost
+        ev(500 * MS, 1.5e-3, 0.0, 1, 1),  # a re-grasp
+        ev(4500 * MS, 1.5e-3 + 5e-6, 0.0, -1, 2),  # released on its spot
+        ev(4700 * MS, 0.0, 1.5e-3, 1, 3),  # the next touch; its release lost
+        ev(6600 * MS, -1.5e-3, 0.0, 1, 4),  # the next touch, 2.1 s after the pair
+    ]
+    det = SlipDetector()
+    assert run(det, events) == []
+    assert det.counts["pairs"] == 1 and det.counts["contacts_created"] == 1
+    det = SlipDetector(SlipConfig(touched_compression_weight=1.0))
+    pre = [o for o in run(det, events) if o.kind == SlipEventType.SLIP_PRECURSOR]
+    assert [o.packet_ids for o in pre] == [(3, 4)]
+
+
 def test_release_of_a_silent_founding_touch_keeps_the_model_floor_however_long_the_hold():
     """A touch held 2.5 s (past evidence_window_s) with nothing else, then a rarefaction
     0.2 mm from it (5.8 sigma of the difference: outside the gate without the model

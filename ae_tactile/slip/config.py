@@ -191,9 +191,10 @@ class SlipConfig:
         "weight of a compression as micro-slip evidence in a contact for evidence_window_s "
         "after a touch's release (a rarefaction on a compression's spot, in the contact or in "
         "one that ended within association_radius_m), and until the contact's next "
-        "compression however late: objects touch and leave there, and an unpaired "
-        "compression is a touch whose release is still to come or was lost rather than a "
-        "micro-slip (rarefactions still count)",
+        "compression however late (a compression that came then keeps this weight): "
+        "objects touch and leave there, and an unpaired compression is a touch whose "
+        "release is still to come or was lost rather than a micro-slip (rarefactions still "
+        "count)",
         "",
         0.0,
         1.0,

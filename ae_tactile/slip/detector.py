@@ -24,7 +24,8 @@ The evidence is *where* emissions come from, not their sign:
   (no evidence); after a touch and its release (in the contact, or in one that ended
   within ``association_radius_m``) compressions are touches, not evidence
   (``touched_compression_weight``), for ``evidence_window_s`` and until the contact's
-  next compression however late; a rarefaction on the founding touch's spot with nothing
+  next compression however late, and a compression taken for a touch stays one (its
+  release may be lost); a rarefaction on the founding touch's spot with nothing
   between them is its release however long the hold (the model floor kept);
   the founding emission paired ends the contact after ``release_confirm_s``;
 * an emission of a contact on no other emission's spot is micro-slip evidence:
@@ -61,8 +62,9 @@ import numpy as np
 from .config import SlipConfig
 from .types import ContactInfo, ContactState, FingerState, LocalizedEvent, SlipEvent, SlipEventType
 
-# member flags; SLIP_EMISSION: came while the contact slipped or moved
-FOUNDER, EVID, PAIRED, REPEAT, OVERLAP, SLIP_EMISSION = 1, 2, 4, 8, 16, 32
+# member flags; SLIP_EMISSION: came while the contact slipped or moved; TOUCHED: a
+# compression that came during touch-release activity (a touch, for as long as it counts)
+FOUNDER, EVID, PAIRED, REPEAT, OVERLAP, SLIP_EMISSION, TOUCHED = 1, 2, 4, 8, 16, 32, 64
 TRACKED = EVID | REPEAT
 _SLIPPING = (ContactState.INCIPIENT_SLIP, ContactState.GROSS_SLIP)
 #: a contact's founder is left out of its activity's rate when the silence after it is
@@ -741,14 +743,23 @@ class SlipDetector:
             ev_mask = ((F & EVID) != 0) & (T > t - self._w_ev)
             n_ev = float(ev_mask.sum())
             w = cfg.compression_evidence_weight
+            w_touch = min(w, cfg.touched_compression_weight)
             if (
                 c.touch_release_open
                 or (c.touch_release_ns is not None and t - c.touch_release_ns <= self._w_ev)
                 or self._ended_activity_near(t, p, c.founder[0])
             ):
-                w = min(w, cfg.touched_compression_weight)
+                w = w_touch
+                if ev.polarity > 0:
+                    # a touch when it came, a touch for as long as it counts (its release
+                    # may be lost): the weight an emission had on arrival stays
+                    i = (c.n - 1) % c.H
+                    F[i] |= TOUCHED
+                    c.flist[i] = int(F[i])
             if w < 1.0:
                 n_ev -= (1.0 - w) * float((ev_mask & (c.pol[:k] > 0)).sum())
+            if w > w_touch:
+                n_ev -= (w - w_touch) * float((ev_mask & ((F & TOUCHED) != 0)).sum())
             if c.state == ContactState.STICK and n_ev >= cfg.precursor_min_emissions:
                 c.state, c.since_ns = ContactState.INCIPIENT_SLIP, t
                 idx = np.flatnonzero(ev_mask)
