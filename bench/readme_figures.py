@@ -268,7 +268,8 @@ def slip_rows(d) -> list[str]:
             )
             if txt:
                 rows.append(
-                    f"| false precursor / SLIP / TEXTURE alarms ({what}) | {txt} | bench_slip |"
+                    f"| false precursor / SLIP / TEXTURE alarms ({what}, held-out seeds) | {txt} "
+                    "| bench_slip |"
                 )
     dr = s.get("drift")
     if dr:
