@@ -1209,6 +1209,29 @@ def interference_trial(
     only the timing can tell). Counts:
     interference packets, rejected (by the packet tests, by the timing), localized
     (phantom events), contacts and false alarms; the held touch kept."""
+    st = _interference_finger(
+        seed,
+        discriminate=discriminate,
+        duration_s=duration_s,
+        input_without_echoes=input_without_echoes,
+    )
+    return _interference_outcome(st, config)
+
+
+def _interference_finger(
+    seed: int,
+    *,
+    discriminate: bool,
+    duration_s: float,
+    input_without_echoes: bool,
+    hand: dict | None = None,
+) -> dict:
+    """One fingertip of `interference_trial` up to its detector: the kept events, the
+    phantom events and the apex packets ``apex`` [(onset ns on the scene's clock,
+    acoustic?, ref, rejected by the packet tests or the timing)]. ``hand``: what the
+    fingertips of one hand share ({'medium', 'sample_rate_hz', 'rate_hz', 'periodic',
+    'burst_times_ns'}: one source's bursts on the scene's clock); the fingertip's own draws
+    are made and then replaced, so its other draws stay those of the seed."""
     from ae_tactile.dsp.interference import (
         TRAIN_TOL_S,
         TRAIN_TOL_SAMPLES,
@@ -1253,11 +1276,20 @@ def interference_trial(
             "hold_s": duration_s - 0.05,
         },
     }
+    if hand is not None:
+        medium, fs = str(hand["medium"]), float(hand["sample_rate_hz"])
+        rate = float(hand["rate_hz"])
+        spec["sensor"] = {"medium": medium, "sample_rate_hz": fs}
+        spec["effects"]["attenuation"] = medium == "silicone"
+        spec["params"].update(rate_hz=rate, periodic=bool(hand["periodic"]))
     scene = load_scene(spec)
     geo = scene.config.geometry
     end_ns = int(round(duration_s * _NS))
     pk = scene.triggered_source().next_packets(1 << 30, horizon_ns=end_ns)
-    t_if, ip = InterferenceSource(scene).next_packets(end_ns)
+    source = InterferenceSource(scene)
+    if hand is not None:
+        source.bursts[0]["times_ns"] = np.asarray(hand["burst_times_ns"], np.int64)
+    t_if, ip = source.next_packets(end_ns)
     n_if = int(t_if.size)
     kw = dict(
         noise_rms_v=scene.noise_rms_v,
@@ -1299,6 +1331,7 @@ def interference_trial(
             ev_keep.append(e)
     n_train = 0
     phantom = []
+    train = set()
     if n_if:
         res = localize(ip.samples_v, fs, ip.onset_index, geometry=geo)
         f_if, s_if, share_if = masks(ip.samples_v, ip.onset_index)
@@ -1310,7 +1343,6 @@ def interference_trial(
         onset_ns = t_if + int(round(1e9 / fs))
         for i in np.flatnonzero(res.accepted & (pol < APEX_POLAR_RAD)):
             cand.append((int(onset_ns[i]), False, int(i), bool(mask[i])))
-        train = set()
         if discriminate:
             hist = BurstTrain()
             tol = max(TRAIN_TOL_S, TRAIN_TOL_SAMPLES / fs)
@@ -1335,10 +1367,12 @@ def interference_trial(
                     1_000_000 + int(i),
                 )
             )
-    n_rej = n_if - len(phantom)  # rejected by the localizer, the packet tests or the timing
-    allev = sorted(ev_keep + phantom, key=lambda e: e.time_ns)
-    det, outs, trace = run_detector(allev, config, end_ns, tick_ns=int(0.01 * _NS))
-    out = {
+    # the apex packets as the hand sees them: (onset ns, acoustic?, ref, rejected here)
+    apex = [
+        (t_ns, acoustic, ref, masked or (acoustic, id(ref) if acoustic else ref) in train)
+        for t_ns, acoustic, ref, masked in cand
+    ]
+    return {
         "seed": int(seed),
         "duration_s": duration_s,
         "medium": medium,
@@ -1350,17 +1384,223 @@ def interference_trial(
         "discriminate": discriminate,
         "input_without_echoes": bool(input_without_echoes),
         "n_interference": n_if,
+        "n_train": n_train,
+        "n_acoustic_packets": int(len(pk.emissions)),
+        "n_acoustic_localized": n_acoustic,
+        "end_ns": end_ns,
+        "ev_keep": ev_keep,
+        "phantom": phantom,
+        "apex": apex,
+    }
+
+
+def _interference_outcome(st: dict, config: SlipConfig | None, coincident=()) -> dict:
+    """The detector's outcome of `_interference_finger`'s events; ``coincident``: the
+    apex packets' refs ((acoustic?, the event's id() or the burst's index)) the hand's
+    coincidence rejected."""
+    drop = set(coincident)
+    ev_keep = [e for e in st["ev_keep"] if (True, id(e)) not in drop]
+    phantom = [e for e in st["phantom"] if (False, e.packet_id - 1_000_000) not in drop]
+    n_if, n_train, end_ns = st["n_interference"], st["n_train"], st["end_ns"]
+    n_rej = n_if - len(phantom)  # rejected by the localizer, the packet tests or the timing
+    allev = sorted(ev_keep + phantom, key=lambda e: e.time_ns)
+    det, outs, trace = run_detector(allev, config, end_ns, tick_ns=int(0.01 * _NS))
+    out = {
+        k: st[k]
+        for k in (
+            "seed", "duration_s", "medium", "sample_rate_hz", "rate_hz", "periodic",
+            "coupling", "echoes", "discriminate", "input_without_echoes", "n_interference",
+        )
+    }
+    out.update({
         "n_rejected": n_rej,
         "n_rejected_timing": n_train,
         "n_phantom_events": len(phantom),
-        "n_acoustic_packets": int(len(pk.emissions)),
+        "n_acoustic_packets": st["n_acoustic_packets"],
         "n_acoustic_kept": len(ev_keep),
-        "n_acoustic_localized": n_acoustic,
+        "n_acoustic_localized": st["n_acoustic_localized"],
         "contacts_created": int(det.counts["contacts_created"]),
         "state_mid": int(_state_at(trace, end_ns // 2)),
-    }
+    })
     out.update(_alarm_summary(outs))
     return out
+
+
+def link_clock(rng, warmup_s: float = 12.0):
+    """A fingertip's link on the simulator's model of a USB device, as `DeviceClockMapper`
+    sees it: the device's sample clock runs at 1 + skew (|skew| <= 50 ppm, a crystal's
+    tolerance) from an offset of its own; it sends a frame every 1 ms of its clock, which
+    reaches the host after a latency floor of its own (50 .. 200 us: the host controller's
+    polling and the driver's wake-up; the spread of the floors is what two fingertips'
+    mapped stamps of one burst can differ by) plus the wait for the next 1 ms poll (uniform)
+    plus a tail (exponential, mean 200 us). Returns ``(to_host, arrival)``: to_host(t_ns)
+    is the mapped host stamp (ns) of a device onset at true time t_ns (s on the scene's
+    clock = host time), from the link's mapper as it stands when the frame that carries it
+    has come; arrival(t_ns) that frame's host arrival time (ns)."""
+    from ae_tactile.timesync import DeviceClockMapper
+
+    skew = rng.uniform(-50e-6, 50e-6)
+    d0 = rng.uniform(0.0, 10.0) * _NS
+    floor = rng.uniform(50e3, 200e3)
+    frame = 1_000_000  # ns of device clock
+
+    def device(t_ns):
+        return (np.asarray(t_ns, np.float64) + d0) * (1.0 + skew)
+
+    def true_of_device(d):
+        return np.asarray(d, np.float64) / (1.0 + skew) - d0
+
+    k0 = int(device(-warmup_s * _NS) // frame) + 1
+    mapper = DeviceClockMapper()
+    state = {"k": k0}
+    arrivals: dict[int, float] = {}
+
+    def frame_arrival(k):
+        if k not in arrivals:
+            sent = float(true_of_device(k * frame))
+            arrivals[k] = sent + floor + rng.uniform(0, 1e6) + rng.exponential(200e3)
+        return arrivals[k]
+
+    def advance(k_to):
+        for k in range(state["k"], k_to + 1):
+            mapper.update(k * frame, int(frame_arrival(k)))
+        state["k"] = max(state["k"], k_to + 1)
+
+    def carrier(t_ns):
+        return int(float(device(t_ns)) // frame) + 1  # the first frame sent after the onset
+
+    def to_host(t_ns):
+        k = carrier(t_ns)
+        advance(k)
+        return mapper.to_host_ns(int(round(float(device(t_ns)))))
+
+    def arrival(t_ns):
+        return frame_arrival(carrier(t_ns))
+
+    return to_host, arrival
+
+
+def hand_interference_trial(
+    seed: int,
+    config: SlipConfig | None = None,
+    *,
+    n_fingers: int | None = None,
+    duration_s: float = 1.0,
+    window_s: float | None = None,
+    wait_s: float | None = None,
+    touch_rate_hz: float = 5.0,
+    coincidence: bool = True,
+) -> list[dict]:
+    """Interference across the fingertips of one hand: one source's bursts (1 Hz .. 10 kHz,
+    70 % periodic) enter the amplifier's input of every fingertip (2 .. 5, no wall echoes:
+    one packet cannot tell them from an apex touch), each fingertip holding a touch of its
+    own, through `_interference_finger` (the packet tests and the timing, as the driver)
+    and then `HandCoincidence`: every fingertip's apex packets, mapped to host time by its
+    own link (`link_clock`), reach the others a transport delay (0.2 .. 1 ms) after their
+    frame; an apex packet its own tests kept waits ``wait_s`` for them. Apex touches at
+    random times (Poisson, ``touch_rate_hz`` on each fingertip, not rendered: their packet
+    tests are measured per packet) go through the same test: the coincidence's cost to
+    touches. Returns one row per fingertip: `interference_trial`'s counts after the
+    coincidence, plus ``n_rejected_coincidence``, ``n_apex_touches``,
+    ``n_apex_touches_kept``, ``reports_late`` and ``stamp_error_us`` (each burst's mapped
+    stamp less its true time, this fingertip's bursts). ``coincidence`` False: the same
+    hand without it (each fingertip alone, the control)."""
+    from ae_tactile.dsp.coincidence import (
+        COINCIDENCE_WAIT_S,
+        COINCIDENCE_WINDOW_S,
+        HandCoincidence,
+    )
+    from ae_tactile.sim.interference import burst_times_s
+
+    rng = np.random.default_rng([7031, int(seed)])
+    n_f = int(n_fingers) if n_fingers else int(rng.integers(2, 6))
+    rate = float(math.exp(rng.uniform(math.log(1.0), math.log(1e4))))
+    periodic = bool(rng.uniform() < 0.7)
+    hand = {
+        "medium": "silicone" if rng.uniform() < 0.5 else "water_skin",
+        "sample_rate_hz": float(rng.choice([2e6, 5e6, 10e6])),
+        "rate_hz": rate,
+        "periodic": periodic,
+        "burst_times_ns": np.round(
+            burst_times_s(duration_s, rate, periodic=periodic, rng=rng) * _NS
+        ).astype(np.int64),
+    }
+    window_s = COINCIDENCE_WINDOW_S if window_s is None else window_s
+    wait_s = COINCIDENCE_WAIT_S if wait_s is None else wait_s
+    fingers = []
+    for f in range(n_f):
+        st = _interference_finger(
+            1_000_000 + 8 * int(seed) + f,
+            discriminate=True,
+            duration_s=duration_s,
+            input_without_echoes=True,
+            hand=hand,
+        )
+        to_host, arrival = link_clock(rng)
+        n_touch = int(rng.poisson(touch_rate_hz * duration_s))
+        touch_ns = np.sort(rng.uniform(0.0, duration_s * _NS, n_touch)).astype(np.int64)
+        apex = list(st["apex"]) + [(int(t), None, i, False) for i, t in enumerate(touch_ns)]
+        apex.sort(key=lambda a: a[0])
+        mapped = [to_host(a[0]) for a in apex]
+        came = [arrival(a[0]) for a in apex]
+        fingers.append((st, apex, mapped, came, n_touch))
+    rows = []
+    for f, (st, apex, mapped, came, n_touch) in enumerate(fingers):
+        hc = HandCoincidence(window_s=window_s, wait_s=wait_s)
+        events = []  # (host time ns, order, kind, payload)
+        for g, (_, _, o_mapped, o_came, _) in enumerate(fingers):
+            if g == f:
+                continue
+            for m, c in zip(o_mapped, o_came):
+                events.append((c + rng.uniform(0.2e6, 1e6), 1, "report", m))
+        for a, m, c in zip(apex, mapped, came):
+            if a[3]:
+                continue  # rejected by this fingertip's own tests
+            events.append((c, 2, "hold", (m, a)))
+            # decided when its wait is over, or when its frame comes if that is later
+            events.append((m + hc.wait_ns, 0, "due", None) if c < m + hc.wait_ns
+                          else (c, 3, "due", None))
+        coincident, touches_kept = _hand_decisions(hc, events) if coincidence else (set(), n_touch)
+        out = _interference_outcome(st, config, coincident)
+        out.update(
+            {
+                "n_fingers": n_f,
+                "finger": f,
+                "coincidence": bool(coincidence),
+                "n_rejected_coincidence": sum(1 for k in coincident if not k[0]),
+                "n_acoustic_rejected_coincidence": sum(1 for k in coincident if k[0]),
+                "n_apex_touches": n_touch,
+                "n_apex_touches_kept": touches_kept,
+                "reports_late": int(hc.counts["reports_late"]),
+                "stamp_error_us": [
+                    round((m - a[0]) * 1e-3, 2) for a, m in zip(apex, mapped) if a[1] is False
+                ],
+            }
+        )
+        rows.append(out)
+    return rows
+
+
+def _hand_decisions(hc, events) -> tuple[set, int]:
+    """Play a fingertip's (host time ns, order, kind, payload) events through its
+    `HandCoincidence` in time order: (the refs it rejected, the apex touches it kept)."""
+    coincident: set = set()
+    touches_kept = 0
+    for t, _, kind, payload in sorted(events, key=lambda e: (e[0], e[1])):
+        if kind == "report":
+            hc.add_others([payload])
+        elif kind == "hold":
+            hc.hold(payload[0], payload[1])
+        else:
+            kept, rejected = hc.due(int(t))
+            touches_kept += sum(1 for a in kept if a[1] is None)
+            coincident.update(_apex_key(a) for a in rejected if a[1] is not None)
+    return coincident, touches_kept
+
+
+def _apex_key(a) -> tuple:
+    """The ref `_interference_outcome` knows an apex packet (onset, acoustic?, ref, ...) by."""
+    return (a[1], id(a[2]) if a[1] else a[2])
 
 
 def learnt_echo_min(config, noise_rms_v: float, rng, n: int = 3, n_touches: int = 24):
