@@ -27,7 +27,9 @@ always render waveforms. Families:
                 jitter 0 .. 20 %): TEXTURE from the tracked speed, no sliding speed given
   drift         plane slip drifting along x: SLIP direction error
   interference  a held touch under common-mode bursts (1 Hz .. 10 kHz, every waveform,
-                2 / 5 / 10 MS/s), with and without the discriminator; per packet: apex
+                2 / 5 / 10 MS/s), with and without the discriminator; across a hand (2 .. 5
+                fingertips without wall echoes, one source's bursts, each link's clock
+                mapped), with and without the hand's coincidence; per packet: apex
                 touches kept and bursts rejected by rate, noise (given / estimated),
                 coupling and waveform
 
@@ -478,6 +480,75 @@ def summarize_interference(rows) -> dict:
     return out
 
 
+HAND_RATE_BINS = ((1.0, 10.0), (10.0, 100.0), (100.0, 1e3), (1e3, 1e4))
+
+
+def summarize_hand(rows) -> dict:
+    """Interference across a hand (one row per fingertip): what each fingertip alone lets
+    through and what the hand's coincidence leaves, apex touches kept against the share of
+    time the other fingertips' reports leave free, by burst rate, the links' stamp
+    errors."""
+
+    def part(sel):
+        n = sum(r["n_interference"] for r in sel)
+        n_t = sum(r["n_apex_touches"] for r in sel)
+        # a touch at a random time: kept where the other fingertips' reports' windows
+        # leave the trial free
+        expect = sum(r["n_apex_touches"] * r["apex_touch_kept_expected"] for r in sel)
+        return {
+            "hands": len({r["hand_seed"] for r in sel}),
+            "fingertips": len(sel),
+            "bursts": n,
+            "rejected_alone_rate": (
+                1 - sum(r["alone_phantom_events"] for r in sel) / n if n else None
+            ),
+            "rejected_hand_rate": 1 - sum(r["n_phantom_events"] for r in sel) / n if n else None,
+            "rejected_coincidence": sum(r["n_rejected_coincidence"] for r in sel),
+            "phantom_alone": sum(r["alone_phantom_events"] for r in sel),
+            "phantom_hand": sum(r["n_phantom_events"] for r in sel),
+            "extra_contacts_alone": sum(r["alone_contacts_created"] - 1 for r in sel),
+            "extra_contacts_hand": sum(r["contacts_created"] - 1 for r in sel),
+            "alarm_onsets_alone": sum(r["alone_alarm_onsets"] for r in sel),
+            "alarm_onsets_hand": sum(r["n_alarm_onsets"] for r in sel),
+            "acoustic_kept_rate": (
+                sum(r["n_acoustic_kept"] for r in sel)
+                / max(1, sum(r["n_acoustic_packets"] for r in sel))
+            ),
+            "apex_touches": n_t,
+            "apex_touches_kept_rate": (
+                sum(r["n_apex_touches_kept"] for r in sel) / n_t if n_t else None
+            ),
+            "apex_touches_kept_expected": expect / n_t if n_t else None,
+            "reports_late": sum(r["reports_late"] for r in sel),
+        }
+
+    err = np.abs(np.concatenate([np.asarray(r["stamp_error_us"], float) for r in rows]))
+    out = part(rows)
+    out["window_us"] = 1e6 * rows[0]["window_s"] if rows else None
+    out["stamp_error_us"] = _pct(err) if err.size else None
+    # one burst's stamps on two fingertips of a hand differ by at most the spread of the
+    # fingertips' errors: its largest over the hands
+    spread = [
+        max(e) - min(e)
+        for seed in {r["hand_seed"] for r in rows}
+        for e in [[float(np.median(r["stamp_error_us"])) for r in rows
+                   if r["hand_seed"] == seed and r["stamp_error_us"]]]
+        if len(e) > 1
+    ]
+    out["median_stamp_spread_us_max"] = max(spread) if spread else None
+    out["by_rate"] = {
+        f"{lo:g} .. {hi:g} Hz": part([r for r in rows if lo <= r["rate_hz"] < hi])
+        for lo, hi in HAND_RATE_BINS
+        if any(lo <= r["rate_hz"] < hi for r in rows)
+    }
+    out["by_periodic"] = {
+        ("periodic" if per else "random times"): part([r for r in rows if r["periodic"] == per])
+        for per in (True, False)
+        if any(r["periodic"] == per for r in rows)
+    }
+    return out
+
+
 def summarize_interference_packets(rows) -> dict:
     """Per-packet rates by sample rate and noise (given / estimated): apex touches kept
     (lowest over media and SNRs, and overall), interference rejected per coupling and
@@ -868,6 +939,51 @@ def tables(res: dict) -> str:
                     f"| {k} | {v['trials']} | {v['packets']} | {_rate(v['rejected_rate'])} | "
                     f"{v['phantom_events']} | {v['extra_contacts']} | {v['alarm_onsets']} |"
                 )
+    hd = s.get("hand_interference")
+    if hd:
+        L.append("")
+        L.append(
+            "**Interference across a hand** (2 .. 5 fingertips, one source's bursts at "
+            "1 Hz .. 10 kHz, 70 % periodic, entering the amplifier's input of every "
+            "fingertip, none with wall echoes: one packet cannot tell them from an apex "
+            "touch; each fingertip holds a touch of its own; its link's clock mapped as the "
+            "driver does (`DeviceClockMapper`) on the simulator's link model: crystals within "
+            "50 ppm, a latency floor of 50 .. 200 us per link, 1 ms polling; the other "
+            "fingertips' reports 0.2 .. 1 ms after their frames; apex touches at random "
+            f"times, 5 / s on each fingertip; coincidence window +-{hd['window_us']:.0f} us). "
+            "'alone': the same fingertips without the hand.\n"
+        )
+        L.append(
+            "| | hands | fingertips | bursts | rejected alone / with the hand | phantom events "
+            "alone / hand | extra contacts alone / hand | alarm onsets alone / hand | "
+            "acoustic packets kept | apex touches kept (expected: the time the reports leave "
+            "free) |"
+        )
+        L.append("|---|---|---|---|---|---|---|---|---|---|")
+        rows_h = [("all", hd)] + list(hd["by_periodic"].items()) + list(hd["by_rate"].items())
+        for key, d in rows_h:
+            L.append(
+                f"| {key} | {d['hands']} | {d['fingertips']} | {d['bursts']} | "
+                f"{_rate(d['rejected_alone_rate'])} / {_rate(d['rejected_hand_rate'])} | "
+                f"{d['phantom_alone']} / {d['phantom_hand']} | "
+                f"{d['extra_contacts_alone']} / {d['extra_contacts_hand']} | "
+                f"{d['alarm_onsets_alone']} / {d['alarm_onsets_hand']} | "
+                f"{_rate(d['acoustic_kept_rate'])} | {_rate(d['apex_touches_kept_rate'])} of "
+                f"{d['apex_touches']} ({_rate(d['apex_touches_kept_expected'])}) |"
+            )
+        if hd.get("stamp_error_us"):
+            L.append("")
+            L.append(
+                "Mapped stamp of a burst less its true time: "
+                f"{_dist(hd['stamp_error_us'], 0)} us; "
+                + (
+                    "the largest spread of the fingertips' median errors in one hand "
+                    f"{hd['median_stamp_spread_us_max']:.0f} us; "
+                    if hd["median_stamp_spread_us_max"] is not None
+                    else ""
+                )
+                + f"reports that came after their decision: {hd['reports_late']}."
+            )
     ip = s.get("interference_packets")
     if ip:
         L.append("")
@@ -994,6 +1110,7 @@ def main(argv=None) -> int:
     n_wave = 8 if q else 1000  # sparse emitters and false alarms on waveforms
     n_pol = 30 if q else 300
     n_if, n_if_off, n_val = (8, 4, 4) if q else (150, 40, 200)
+    n_hand = 4 if q else 100
     n_pk = 30 if q else 300  # packets per waveform, coupling and case
     load_before = os.getloadavg()
     t0 = time.perf_counter()
@@ -1112,6 +1229,16 @@ def main(argv=None) -> int:
         trials["interference"] = rows
         summary["interference"] = summarize_interference(rows)
 
+    def hand_interference():
+        rows = run(
+            "interference across a hand",
+            lambda s: ev.hand_interference_trial(s),
+            n_hand,
+        )
+        rows = [r for hand in rows for r in hand]
+        trials["hand_interference"] = rows
+        summary["hand_interference"] = summarize_hand(rows)
+
     def interference_packets():
         a = time.perf_counter()
         rows = [
@@ -1210,6 +1337,7 @@ def main(argv=None) -> int:
         cost,
         lambda: inc("dense", "random", N),
         interference,
+        hand_interference,
         interference_packets,
         lambda: inc("sparse", "compression", N),
         lambda: inc("sparse", "rarefaction", N),

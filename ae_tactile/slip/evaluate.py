@@ -1489,7 +1489,6 @@ def hand_interference_trial(
     window_s: float | None = None,
     wait_s: float | None = None,
     touch_rate_hz: float = 5.0,
-    coincidence: bool = True,
 ) -> list[dict]:
     """Interference across the fingertips of one hand: one source's bursts (1 Hz .. 10 kHz,
     70 % periodic) enter the amplifier's input of every fingertip (2 .. 5, no wall echoes:
@@ -1503,8 +1502,8 @@ def hand_interference_trial(
     touches. Returns one row per fingertip: `interference_trial`'s counts after the
     coincidence, plus ``n_rejected_coincidence``, ``n_apex_touches``,
     ``n_apex_touches_kept``, ``reports_late`` and ``stamp_error_us`` (each burst's mapped
-    stamp less its true time, this fingertip's bursts). ``coincidence`` False: the same
-    hand without it (each fingertip alone, the control)."""
+    stamp less its true time, this fingertip's bursts); ``alone_*``: the same fingertip
+    without the hand (the control: phantom events, contacts, alarm onsets)."""
     from ae_tactile.dsp.coincidence import (
         COINCIDENCE_WAIT_S,
         COINCIDENCE_WINDOW_S,
@@ -1560,17 +1559,31 @@ def hand_interference_trial(
             # decided when its wait is over, or when its frame comes if that is later
             events.append((m + hc.wait_ns, 0, "due", None) if c < m + hc.wait_ns
                           else (c, 3, "due", None))
-        coincident, touches_kept = _hand_decisions(hc, events) if coincidence else (set(), n_touch)
+        coincident, touches_kept = _hand_decisions(hc, events)
+        # a touch at a random time is kept when no report lies within the window: the
+        # share of the trial the reports' windows leave free (their union's complement)
+        rep = np.sort(np.asarray(
+            [m for g, fg in enumerate(fingers) if g != f for m in fg[2]], np.float64
+        ))
+        covered = (
+            2 * hc.window_ns + np.minimum(np.diff(rep), 2 * hc.window_ns).sum() if rep.size else 0
+        )
+        alone = _interference_outcome(st, config)
         out = _interference_outcome(st, config, coincident)
         out.update(
             {
                 "n_fingers": n_f,
                 "finger": f,
-                "coincidence": bool(coincidence),
+                "window_s": hc.window_ns * 1e-9,
+                "alone_phantom_events": alone["n_phantom_events"],
+                "alone_contacts_created": alone["contacts_created"],
+                "alone_alarm_onsets": alone["n_alarm_onsets"],
                 "n_rejected_coincidence": sum(1 for k in coincident if not k[0]),
                 "n_acoustic_rejected_coincidence": sum(1 for k in coincident if k[0]),
                 "n_apex_touches": n_touch,
                 "n_apex_touches_kept": touches_kept,
+                "apex_touch_kept_expected": max(0.0, 1.0 - covered / (duration_s * _NS)),
+                "hand_seed": int(seed),
                 "reports_late": int(hc.counts["reports_late"]),
                 "stamp_error_us": [
                     round((m - a[0]) * 1e-3, 2) for a, m in zip(apex, mapped) if a[1] is False
