@@ -91,7 +91,8 @@ def test_a_hand_rejects_interference_without_wall_echoes_and_keeps_apex_touches(
     n_touch = sum(r["n_apex_touches"] for r in slow)
     assert n_touch >= 4 and sum(r["n_apex_touches_kept"] for r in slow) >= n_touch - 1
     err = np.concatenate([r["stamp_error_us"] for r in rows])
-    assert err.size and np.all(np.abs(err) < 300)  # the links' floors: 50 .. 200 us
+    assert err.size and np.all(np.abs(err) < 600)  # the links' floors: 50 .. 500 us
+    assert all(r["offsets_learnt"] == r["n_fingers"] - 1 for r in rows if r["rate_hz"] > 100)
 
 
 def test_without_the_hand_the_same_bursts_become_phantom_touches(hand_rows):
@@ -102,3 +103,85 @@ def test_without_the_hand_the_same_bursts_become_phantom_touches(hand_rows):
     assert sum(r["alone_phantom_events"] for r in rows) >= 0.3 * n > 0
     assert sum(r["alone_contacts_created"] - 1 for r in rows) >= len(rows)
     assert sum(r["n_phantom_events"] for r in rows) == 0
+
+
+def test_the_pipeline_holds_apex_packets_for_the_hand_and_hands_out_the_touches():
+    """`ContactPipeline` on the hand: switching edges entering the amplifier's input (no
+    echo test: one packet cannot tell) and touches within 0.4 mm of the apex (< 3 deg), all
+    localized at the apex. Their onsets go out for the other fingertips; the packets are
+    held for the wait; those another fingertip reported (the edges, 0.1 ms off on its
+    clock) are dropped and counted, the touches handed out and through the slip step."""
+    from ae_tactile.pipeline import ContactPipeline, PacketLocalizer, PacketView, SlipStage
+    from ae_tactile.sim import SimConfig
+    from ae_tactile.sim.interference import render_interference
+    from ae_tactile.sim.scene import reference_noise_rms
+
+    cfg = SimConfig()
+    rng = np.random.default_rng(4)
+    noise = reference_noise_rms(cfg, 30.0)
+    apex = ev.apex_touch_packets(cfg, 12, noise, rng, radius_m=0.4e-3)  # < 3 deg
+    edges = render_interference(30, cfg, kind="edge", coupling="input", noise_rms_v=noise,
+                                rng=rng)
+    fs = cfg.sample_rate_hz
+    t_edge = 10**9 + np.sort(rng.choice(10**6, len(edges), replace=False)) * 1000
+    # touches at random times (at multiples of one interval they would be a periodic train)
+    t_touch = 3 * 10**9 + np.sort(rng.choice(10**6, len(apex), replace=False)) * 997
+    views = [PacketView(edges.samples_v[i], fs, int(edges.onset_index[i]), int(t_edge[i]), i)
+             for i in range(len(edges))]
+    views += [PacketView(apex.samples_v[i], fs, int(apex.onset_index[i]), int(t_touch[i]),
+                         100 + i) for i in range(len(apex))]
+    pipe = ContactPipeline(PacketLocalizer("ml"), SlipStage())
+    pipe.enable_hand(window_s=3e-4, wait_s=5e-3)
+    out = []
+    pipe.process(views, out.extend)
+    assert out == []  # every packet lies at the apex, and no echo test runs yet
+    onsets = pipe.take_apex_onsets()
+    onset_of = {int(v.stamp_ns + v.onset_index * 1e9 / fs) for v in views}
+    assert len(onsets) >= 0.8 * len(views) and set(onsets) <= onset_of
+    assert pipe.take_apex_onsets() == []
+    pipe.hand_reports(t_edge + np.round(edges.onset_index * 1e9 / fs).astype(np.int64) + 100_000)
+    assert not pipe.idle() and not pipe.release_coincidence(10**9)  # nothing due yet
+    assert pipe.release_coincidence(4 * 10**9)
+    ids = {r.packet_ids[0] for r in out}
+    counts = pipe.all_counts()
+    assert ids <= set(range(100, 100 + len(apex))) and len(ids) >= 0.8 * len(apex)
+    assert counts["rejected_INTERFERENCE_HAND"] == counts["hand_held"] - len(ids) > 0
+    assert counts["hand_rejected_coincidence"] == counts["rejected_INTERFERENCE_HAND"]
+    assert pipe.slip.counts["contacts_in"] == len(out) and pipe.idle()
+
+
+def test_each_fingertips_clock_offset_is_learnt_from_the_common_bursts():
+    """Two other fingertips whose links stamp every burst 0.44 ms late and 0.25 ms early
+    (their latency floors): the first bursts fall outside the 0.3 ms window and are kept;
+    once 8 bursts have paired, each fingertip's offset is known to a few microseconds and
+    every later burst is rejected. Touches at times of their own are kept."""
+    rng = np.random.default_rng(8)
+    bursts = np.sort(rng.uniform(0, 2e9, 400)).astype(np.int64)  # 200 / s, random times
+    touches = np.sort(rng.uniform(0, 2e9, 20)).astype(np.int64)
+    hc = HandCoincidence(window_s=3e-4, wait_s=5e-3, keep_s=5.0)
+    events = [(t, 0, "own", t) for t in bursts] + [(t, 0, "own", t) for t in touches]
+    events += [(t, 1, "hold", (t, "b")) for t in bursts] + [(t, 1, "hold", (t, "t"))
+                                                            for t in touches]
+    for name, off in (("index", 440_000), ("thumb", -250_000)):
+        jitter = rng.normal(0, 5_000, bursts.size).astype(np.int64)
+        events += [(t + 800_000, 2, "report", (t + off + j, name))
+                   for t, j in zip(bursts, jitter)]
+    events += [(t + 5 * MS, 3, "due", None) for t in np.concatenate([bursts, touches])]
+    kept, rejected = [], []
+    for t, _, kind, p in sorted(events, key=lambda e: (e[0], e[1])):
+        if kind == "own":
+            hc.add_own([p])
+        elif kind == "hold":
+            hc.hold(*p)
+        elif kind == "report":
+            hc.add_others([p[0]], p[1])
+        else:
+            k, r = hc.due(int(t))
+            kept += k
+            rejected += r
+    assert abs(hc.offsets_ns["index"] - 440_000) < 10_000
+    assert abs(hc.offsets_ns["thumb"] + 250_000) < 10_000
+    assert hc.counts["offsets_learnt"] == 2
+    assert kept.count("b") <= 12 and rejected.count("b") >= len(bursts) - 12
+    p_keep = math.exp(-2 * 3e-4 * 200 * 2)  # two fingertips' bursts at 200 / s
+    assert kept.count("t") >= np.floor(len(touches) * p_keep) - 3

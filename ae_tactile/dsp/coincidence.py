@@ -13,9 +13,15 @@ reports an apex packet (kept or rejected by its own tests) whose onset lies with
 the packet goes on as a touch.
 
 Times are host times (ns): each device's sample clock mapped by its link's
-`DeviceClockMapper` (the lower envelope of the transport latency), so two fingertips'
-stamps of one burst differ by the spread of their latency floors and the mappers' errors
-(the hand benchmark in docs/slip.md measures it on its model of the links).
+`DeviceClockMapper` (the lower envelope of the transport latency). Two links' mapped
+stamps of one event differ by a constant of their own, the difference of their latency
+floors (hundreds of microseconds between two simulated fingertips' ptys, tens on one USB
+host), more than the window. The common events themselves measure it: each apex packet
+of this fingertip is paired with the nearest report of each other fingertip within
+``search_s`` (2 ms) once its wait is over, and the median of a fingertip's last 32
+differences is its offset d_k = t_k - t once 8 pairs agree (median absolute deviation
+<= window / 2; pairs by chance spread over +-search and do not). Until then d_k = 0.
+The test for an onset t: a report t_k of fingertip k with |t_k - d_k - t| <= window_s.
 
 Cost to touches: with apex packets on the other fingertips at rate lambda (1/s, random
 times), an apex touch is taken for interference with probability
@@ -32,27 +38,34 @@ from collections import Counter, deque
 
 import numpy as np
 
-#: half-width of the coincidence window (s): the fingertips' stamps of one burst agree
-#: to the spread of their links' latency floors
+#: half-width of the coincidence window (s) about a fingertip's learnt clock offset
 COINCIDENCE_WINDOW_S = 3e-4
 #: how long an apex packet waits for the other fingertips' reports (s, host time): their
 #: transport latency, processing and the hand topic's delivery
 COINCIDENCE_WAIT_S = 5e-3
 #: how long the other fingertips' reports are remembered (s)
 COINCIDENCE_KEEP_S = 1.0
+#: pairs (this fingertip's apex packet, another's nearest report) within this (s) measure
+#: the other fingertip's clock offset
+OFFSET_SEARCH_S = 2e-3
+OFFSET_PAIRS = 32  # the differences an offset is the median of
+OFFSET_MIN_PAIRS = 8  # ... at least, and agreeing to window / 2 (median absolute deviation)
 
 
 class HandCoincidence:
     """One fingertip's view of the hand's apex packets.
 
-    ``add_others(onsets_ns)``: the other fingertips' apex packet onsets (host ns, any
-    order). ``hold(onset_ns, item)``: an apex packet of this fingertip the per-packet tests
-    kept. ``due(now_ns)`` -> (kept, rejected): the held items whose wait is over at host
-    time ``now_ns`` (onset + ``wait_s`` <= now), in onset order; rejected when a report of
-    another fingertip lies within ``window_s`` of the onset. Counts: ``held``, ``kept``,
-    ``rejected_coincidence``, ``rejected_nonfinite`` (stamps that are not finite numbers),
-    ``reports_late`` (a report within ``window_s`` of one of the last 64 packets decided
-    before it came: it does not change that decision)."""
+    ``add_own(onsets_ns)``: this fingertip's apex packet onsets (host ns; every one, kept
+    or rejected by its tests: they pair with the others' reports to learn the clock
+    offsets). ``add_others(onsets_ns, source)``: fingertip ``source``'s apex packet onsets.
+    ``hold(onset_ns, item)``: an apex packet of this fingertip the per-packet tests kept.
+    ``due(now_ns)`` -> (kept, rejected): the held items whose wait is over at host time
+    ``now_ns`` (onset + ``wait_s`` <= now), in onset order; rejected when a report of
+    another fingertip lies within ``window_s`` of the onset (less that fingertip's
+    offset). Counts: ``held``, ``kept``, ``rejected_coincidence``, ``rejected_nonfinite``
+    (stamps that are not finite numbers), ``reports_late`` (a report within ``window_s`` of
+    one of the last 64 packets decided before it came: it does not change that decision),
+    ``offsets_learnt`` (fingertips whose offset is known)."""
 
     def __init__(
         self,
@@ -70,28 +83,59 @@ class HandCoincidence:
         self.window_ns = int(round(window_s * 1e9))
         self.wait_ns = int(round(wait_s * 1e9))
         self.keep_ns = int(round(keep_s * 1e9))
-        self._others = np.zeros(0, np.int64)  # sorted
+        self.search_ns = int(round(OFFSET_SEARCH_S * 1e9))
+        self._others: dict[str, np.ndarray] = {}  # source -> sorted onsets
+        self._diffs: dict[str, deque] = {}  # source -> recent t_k - t
+        self.offsets_ns: dict[str, int] = {}  # source -> learnt offset d_k
+        self._own: list[int] = []  # own onsets not yet paired (their wait not over)
         self._held: list[tuple[int, object]] = []  # (onset ns, item), onset order
         self._decided: deque[int] = deque(maxlen=64)  # onsets decided, newest last
         self.counts: Counter = Counter()
 
-    def add_others(self, onsets_ns) -> None:
-        """Remember other fingertips' apex packet onsets (host ns)."""
+    def with_settings(self, window_s: float, wait_s: float) -> HandCoincidence:
+        """A copy with another window and wait that keeps the reports, the learnt offsets,
+        the held packets and the counts (ValueError on bad settings)."""
+        new = HandCoincidence(window_s, wait_s, self.keep_ns * 1e-9)
+        new._others = {k: v.copy() for k, v in self._others.items()}
+        new._diffs = {k: deque(v, maxlen=OFFSET_PAIRS) for k, v in self._diffs.items()}
+        new._own = list(self._own)
+        new._held = list(self._held)
+        new._decided = deque(self._decided, maxlen=self._decided.maxlen)
+        new.counts = self.counts.copy()
+        for k in new._diffs:
+            new._learn(k)
+        return new
+
+    def _finite(self, onsets_ns) -> np.ndarray:
         t = np.asarray(onsets_ns, dtype=np.float64).ravel()
         ok = np.isfinite(t) & (np.abs(t) < 2.0**62)
         if not ok.all():
             self.counts["rejected_nonfinite"] += int(np.count_nonzero(~ok))
-        if not ok.any():
+        return t[ok].astype(np.int64)
+
+    def add_own(self, onsets_ns) -> None:
+        """This fingertip's apex packet onsets (host ns), for learning the offsets."""
+        t = self._finite(onsets_ns)
+        if t.size:
+            self._own.extend(int(x) for x in t)
+            del self._own[:-1024]  # a flood: the newest
+
+    def add_others(self, onsets_ns, source: str = "") -> None:
+        """Remember another fingertip's apex packet onsets (host ns)."""
+        t = self._finite(onsets_ns)
+        if t.size == 0:
             return
-        t = t[ok].astype(np.int64)
-        if self._decided and int(t.min()) <= self._decided[-1] + self.window_ns:
+        source = str(source)
+        off = self.offsets_ns.get(source, 0)
+        if self._decided and int(t.min()) - off <= self._decided[-1] + self.window_ns:
             d = np.fromiter(self._decided, np.int64, len(self._decided))
-            late = np.abs(t[:, None] - d[None, :]).min(axis=1) <= self.window_ns
+            late = np.abs((t - off)[:, None] - d[None, :]).min(axis=1) <= self.window_ns
             self.counts["reports_late"] += int(np.count_nonzero(late))
-        newest = max(int(t.max()), int(self._others[-1]) if self._others.size else -(2**62))
-        both = np.concatenate([self._others, t])
+        old = self._others.get(source, np.zeros(0, np.int64))
+        newest = max(int(t.max()), int(old[-1]) if old.size else -(2**62))
+        both = np.concatenate([old, t])
         both.sort(kind="stable")
-        self._others = both[both >= newest - self.keep_ns]
+        self._others[source] = both[both >= newest - self.keep_ns]
 
     def hold(self, onset_ns, item=None) -> bool:
         """Hold an apex packet of this fingertip until its wait is over; False (counted)
@@ -119,9 +163,15 @@ class HandCoincidence:
         return self._held[0][0] + self.wait_ns if self._held else None
 
     def due(self, now_ns: int) -> tuple[list, list]:
-        """(kept, rejected) items of the held packets whose wait is over at ``now_ns``."""
-        n = 0
+        """(kept, rejected) items of the held packets whose wait is over at ``now_ns``; the
+        own onsets whose wait is over are paired with the reports first (offsets)."""
         limit = int(now_ns) - self.wait_ns
+        if self._own and self._others:
+            ripe = [t for t in self._own if t <= limit]
+            if ripe:
+                self._own = [t for t in self._own if t > limit]
+                self._pair(np.asarray(ripe, np.int64))
+        n = 0
         while n < len(self._held) and self._held[n][0] <= limit:
             n += 1
         if n == 0:
@@ -136,11 +186,42 @@ class HandCoincidence:
         self._decided.extend(int(x) for x in t[-64:])
         return kept, rejected
 
+    def _pair(self, own: np.ndarray) -> None:
+        """Each own onset with each fingertip's nearest report within the search range."""
+        for source, rep in self._others.items():
+            if rep.size == 0:
+                continue
+            j = np.searchsorted(rep, own)
+            lo = rep[np.clip(j - 1, 0, rep.size - 1)] - own
+            hi = rep[np.clip(j, 0, rep.size - 1)] - own
+            d = np.where(np.abs(lo) <= np.abs(hi), lo, hi)
+            d = d[np.abs(d) <= self.search_ns]
+            if d.size:
+                self._diffs.setdefault(source, deque(maxlen=OFFSET_PAIRS)).extend(
+                    int(x) for x in d
+                )
+                self._learn(source)
+
+    def _learn(self, source: str) -> None:
+        d = np.fromiter(self._diffs[source], np.int64, len(self._diffs[source]))
+        if d.size < OFFSET_MIN_PAIRS:
+            return
+        med = float(np.median(d))
+        if float(np.median(np.abs(d - med))) <= 0.5 * self.window_ns:
+            if source not in self.offsets_ns:
+                self.counts["offsets_learnt"] += 1
+            self.offsets_ns[source] = int(round(med))
+
     def coincident(self, onsets_ns) -> np.ndarray:
-        """Mask: another fingertip's report lies within ``window_s`` of each onset (ns)."""
+        """Mask: another fingertip's report lies within ``window_s`` of each onset (ns),
+        that fingertip's offset removed."""
         t = np.asarray(onsets_ns, dtype=np.int64)
-        if self._others.size == 0:
-            return np.zeros(t.shape, bool)
-        lo = np.searchsorted(self._others, t - self.window_ns, side="left")
-        hi = np.searchsorted(self._others, t + self.window_ns, side="right")
-        return hi > lo
+        hit = np.zeros(t.shape, bool)
+        for source, rep in self._others.items():
+            if rep.size == 0:
+                continue
+            c = t + self.offsets_ns.get(source, 0)
+            lo = np.searchsorted(rep, c - self.window_ns, side="left")
+            hi = np.searchsorted(rep, c + self.window_ns, side="right")
+            hit |= hi > lo
+        return hit

@@ -1430,10 +1430,11 @@ def link_clock(rng, warmup_s: float = 12.0):
     """A fingertip's link on the simulator's model of a USB device, as `DeviceClockMapper`
     sees it: the device's sample clock runs at 1 + skew (|skew| <= 50 ppm, a crystal's
     tolerance) from an offset of its own; it sends a frame every 1 ms of its clock, which
-    reaches the host after a latency floor of its own (50 .. 200 us: the host controller's
-    polling and the driver's wake-up; the spread of the floors is what two fingertips'
-    mapped stamps of one burst can differ by) plus the wait for the next 1 ms poll (uniform)
-    plus a tail (exponential, mean 200 us). Returns ``(to_host, arrival)``: to_host(t_ns)
+    reaches the host after a latency floor of its own (50 .. 500 us: the host controller's
+    polling and the driver's wake-up; two fingertips' mapped stamps of one burst differ by
+    the difference of their floors, 0.44 ms between two simulated fingertips' ptys here)
+    plus the wait for the next 1 ms poll (uniform) plus a tail (exponential, mean 200 us).
+    Returns ``(to_host, arrival)``: to_host(t_ns)
     is the mapped host stamp (ns) of a device onset at true time t_ns (s on the scene's
     clock = host time), from the link's mapper as it stands when the frame that carries it
     has come; arrival(t_ns) that frame's host arrival time (ns)."""
@@ -1441,7 +1442,7 @@ def link_clock(rng, warmup_s: float = 12.0):
 
     skew = rng.uniform(-50e-6, 50e-6)
     d0 = rng.uniform(0.0, 10.0) * _NS
-    floor = rng.uniform(50e3, 200e3)
+    floor = rng.uniform(50e3, 500e3)
     frame = 1_000_000  # ns of device clock
 
     def device(t_ns):
@@ -1551,14 +1552,15 @@ def hand_interference_trial(
             if g == f:
                 continue
             for m, c in zip(o_mapped, o_came):
-                events.append((c + rng.uniform(0.2e6, 1e6), 1, "report", m))
+                events.append((c + rng.uniform(0.2e6, 1e6), 1, "report", (m, g)))
         for a, m, c in zip(apex, mapped, came):
+            events.append((c, 2, "own", m))
             if a[3]:
                 continue  # rejected by this fingertip's own tests
-            events.append((c, 2, "hold", (m, a)))
+            events.append((c, 3, "hold", (m, a)))
             # decided when its wait is over, or when its frame comes if that is later
             events.append((m + hc.wait_ns, 0, "due", None) if c < m + hc.wait_ns
-                          else (c, 3, "due", None))
+                          else (c, 4, "due", None))
         coincident, touches_kept = _hand_decisions(hc, events)
         # a touch at a random time is kept when no report lies within the window: the
         # share of the trial the reports' windows leave free (their union's complement)
@@ -1585,6 +1587,7 @@ def hand_interference_trial(
                 "apex_touch_kept_expected": max(0.0, 1.0 - covered / (duration_s * _NS)),
                 "hand_seed": int(seed),
                 "reports_late": int(hc.counts["reports_late"]),
+                "offsets_learnt": int(hc.counts["offsets_learnt"]),
                 "stamp_error_us": [
                     round((m - a[0]) * 1e-3, 2) for a, m in zip(apex, mapped) if a[1] is False
                 ],
@@ -1601,7 +1604,9 @@ def _hand_decisions(hc, events) -> tuple[set, int]:
     touches_kept = 0
     for t, _, kind, payload in sorted(events, key=lambda e: (e[0], e[1])):
         if kind == "report":
-            hc.add_others([payload])
+            hc.add_others([payload[0]], payload[1])
+        elif kind == "own":
+            hc.add_own([payload])
         elif kind == "hold":
             hc.hold(payload[0], payload[1])
         else:
