@@ -335,8 +335,14 @@ class VirtualFingertip:
 
             if scene_bursts(scene.process.scene_truth()):
                 # electrical bursts of the scene: common-mode packets on the same stream
+                # host clock at scene time 0 (shared-clock bursts: one source, every
+                # simulated fingertip of this machine)
+                t0 = self.start_ns - int(self.scene_at_start_ns / self.speed)
                 self._interf = InterferenceSource(
-                    scene, pretrigger_s=self.pre_trigger / fs, window_s=self.packet_samples / fs
+                    scene,
+                    pretrigger_s=self.pre_trigger / fs,
+                    window_s=self.packet_samples / fs,
+                    host_t0_ns=t0,
                 )
 
     # ------------------------------------------------------------------ time

@@ -354,3 +354,36 @@ def test_an_adc_offset_does_not_make_a_touch_common_mode():
     got = [packet_common_share((x[i] + offset[i]).astype(np.float32), float(pk.noise_rms_v[i]),
                                int(pk.onset_index[i])) for i in range(40)]
     np.testing.assert_allclose(got, clean, atol=1e-4)
+
+
+@pytest.mark.parametrize("periodic", [True, False])
+def test_shared_clock_bursts_are_one_source_for_every_simulated_fingertip(periodic):
+    """Bursts on the host's clock ('shared_clock'): two fingertips whose scenes start
+    0.37 s apart render one source's bursts at the same host instants, however their
+    renders are cut into chunks; the count is the rate's (Poisson: within 4 sigma)."""
+    from ae_tactile.sim.interference import InterferenceSource, shared_clock_burst_times_ns
+    from ae_tactile.sim.scene import load_scene
+
+    spec = {"generator": "interference", "duration_s": 3.0, "seed": 1,
+            "noise": {"snr_db": 30.0},
+            "params": {"rate_hz": 200.0, "periodic": periodic, "coupling": "input",
+                       "kind": "edge", "shared_clock": True, "shared_seed": 9}}
+    host = []
+    t0s = (10**12 + 123_456_789, 10**12 + 493_456_789)
+    for k, t0 in enumerate(t0s):
+        src = InterferenceSource(load_scene(dict(spec, seed=k)), host_t0_ns=t0)
+        times = [src.next_packets(h)[0] for h in np.linspace(0, 3e9, 7 + 5 * k)[1:]]
+        host.append(np.concatenate(times) + t0)
+    lo, hi = max(t0s), min(t0s) + 3 * 10**9
+    a, b = (h[(h >= lo) & (h < hi)] for h in host)
+    assert a.size > 0 and np.array_equal(a, b)
+    one = shared_clock_burst_times_ns(lo, hi, 200.0, periodic=periodic, seed=9)
+    assert np.array_equal(one, a)
+    n_expect = 200.0 * (hi - lo) * 1e-9
+    if periodic:
+        assert abs(a.size - n_expect) <= 1 and np.ptp(np.diff(a)) <= 2  # 5 ms apart (ns)
+    else:
+        assert abs(a.size - n_expect) <= 4 * np.sqrt(n_expect)
+    # another seed: another source
+    assert not np.array_equal(one, shared_clock_burst_times_ns(lo, hi, 200.0,
+                                                               periodic=periodic, seed=10))

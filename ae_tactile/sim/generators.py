@@ -708,7 +708,10 @@ def interference(ctx, p):
     at ``touch_time_s`` is held that long under the bursts and released. ``taps_before``
     taps (touch, release 10 ms later, every 30 ms from 5 ms) at random points 10 .. 45 deg
     from the apex come first: the everyday touches from which the driver learns the wall
-    echo (end them before ``start_s``)."""
+    echo (end them before ``start_s``). ``shared_clock``: the bursts lie on the host's
+    monotonic clock (`shared_clock_burst_times_ns`, drawn from ``shared_seed``), the same
+    for every simulated fingertip of the machine playing a scene with that seed: the
+    fingertips of one hand under one source; the truth has no burst list then."""
     from ae_tactile.sim.interference import burst_times_s
 
     rng = _rng(ctx.seed, 81)
@@ -723,12 +726,22 @@ def interference(ctx, p):
     )
     truth = {
         "generator": "interference",
-        "burst_times_ns": [int(x) for x in _ns(t)],
+        "burst_times_ns": [] if p["shared_clock"] else [int(x) for x in _ns(t)],
         "kind": p["kind"],
         "coupling": p["coupling"],
         "amplitude_snr_db": p["amplitude_snr_db"],
         "seed": int(ctx.seed),
     }
+    if p["shared_clock"]:
+        truth.update(
+            shared_clock=True,
+            shared_seed=int(p["shared_seed"]),
+            rate_hz=float(p["rate_hz"]),
+            periodic=bool(p["periodic"]),
+            jitter_s=float(p["jitter_s"]),
+            burst_start_time_ns=int(_ns(p["start_s"])),
+            burst_end_time_ns=int(_ns(end)),
+        )
     lists = []
     n_taps = int(p["taps_before"])
     if n_taps:

@@ -17,7 +17,10 @@ Each channel gets the common waveform times a gain 1 + N(0, ``gain_mismatch``), 
 independent white noise of ``noise_rms_v`` and the ADC's quantization and clipping.
 
 ``burst_times_s`` gives trigger times of a switching source: bursts at ``rate_hz``
-(1 Hz .. 10 kHz), periodic with timing jitter or Poisson.
+(1 Hz .. 10 kHz), periodic with timing jitter or Poisson. ``shared_clock_burst_times_ns``
+puts one source's bursts on the host's monotonic clock, the same for every simulated
+fingertip of the machine that draws them with the same seed: the fingertips of one hand
+under one motor driver.
 
 The returned ``TriggeredPackets`` have the triggered renderer's format (onset after
 ``pretrigger_s``), NaN points and delays, polarity 0.
@@ -66,6 +69,45 @@ def burst_times_s(
         n = g.poisson(rate_hz * (duration_s - start_s))
         t = np.sort(g.uniform(start_s, duration_s, n))
     return np.sort(t[(t >= start_s) & (t < duration_s)])
+
+
+SHARED_BLOCK_NS = 1_000_000_000  # the shared clock's bursts are drawn per second of it
+
+
+def shared_clock_burst_times_ns(
+    from_ns: int,
+    to_ns: int,
+    rate_hz: float,
+    *,
+    periodic: bool = True,
+    jitter_s: float = 0.0,
+    seed: int = 0,
+) -> np.ndarray:
+    """One source's burst times (ns, int64) in [from_ns, to_ns) of the host's monotonic
+    clock, a function of the clock and ``seed`` alone: periodic at phase + k / rate (the
+    phase drawn from the seed; jitter drawn per burst from (seed, second of the clock)),
+    or Poisson, drawn per second of the clock from (seed, that second)."""
+    from_ns, to_ns = int(from_ns), int(to_ns)
+    if not (rate_hz > 0 and to_ns > from_ns):
+        return np.zeros(0, np.int64)
+    out = []
+    period_ns = 1e9 / rate_hz
+    phase_ns = np.random.default_rng([int(seed), 83]).uniform(0, period_ns)
+    for block in range(from_ns // SHARED_BLOCK_NS, (to_ns - 1) // SHARED_BLOCK_NS + 1):
+        b0, b1 = block * SHARED_BLOCK_NS, (block + 1) * SHARED_BLOCK_NS
+        g = np.random.default_rng([int(seed), 84, block])
+        if periodic:
+            k = np.arange(
+                math.ceil((b0 - phase_ns) / period_ns), math.ceil((b1 - phase_ns) / period_ns)
+            )
+            t = phase_ns + k * period_ns
+            if jitter_s > 0:
+                t = t + g.normal(0.0, jitter_s * 1e9, t.size)
+        else:
+            t = np.sort(g.uniform(b0, b1, g.poisson(rate_hz * SHARED_BLOCK_NS * 1e-9)))
+        out.append(t)
+    t = np.round(np.concatenate(out)).astype(np.int64)
+    return np.sort(t[(t >= from_ns) & (t < to_ns)])
 
 
 def _waveforms(kind, n, t, g):
@@ -183,6 +225,7 @@ def scene_bursts(truth: dict) -> list[dict]:
     amplitude_snr_db, seed}]."""
     if truth.get("generator") == "interference":
         return [dict(truth, times_ns=np.asarray(truth["burst_times_ns"], np.int64))]
+    # (a composite scene's parts: shared-clock bursts are not offered there)
     out = []
     for part in truth.get("parts", []):
         if part.get("generator") == "interference":
@@ -200,22 +243,50 @@ class InterferenceSource:
     returns (trigger times (N,) int ns of the packets' onsets, TriggeredPackets) of the
     bursts before ``horizon_ns`` not returned yet. Amplitude: ``amplitude_snr_db`` above
     ``noise_rms_v`` (the scene's noise; 1 mV if the scene has none). The window's first
-    sample is ``pretrigger_s`` before the burst, as the triggered renderer's windows."""
+    sample is ``pretrigger_s`` before the burst, as the triggered renderer's windows.
+    ``host_t0_ns``: the host's monotonic clock at scene time 0 (the simulated device's
+    start), for bursts on the shared clock (``shared_clock``); without it, the scene's own
+    clock stands in for the host's."""
 
-    def __init__(self, scene, *, pretrigger_s: float = 8e-6, window_s: float = 40e-6):
+    def __init__(
+        self,
+        scene,
+        *,
+        pretrigger_s: float = 8e-6,
+        window_s: float = 40e-6,
+        host_t0_ns: int | None = None,
+    ):
         self.config = scene.config
         self.noise_rms_v = float(scene.noise_rms_v or 0.0)
         self.pre, self.win = pretrigger_s, window_s
         truth = scene.process.scene_truth()
         self.bursts = scene_bursts(truth)
         self.seed = int(scene.seed)
+        self.host_t0_ns = 0 if host_t0_ns is None else int(host_t0_ns)
         self._h = np.iinfo(np.int64).min
+
+    def _shared(self, b: dict, horizon_ns: int) -> np.ndarray:
+        """Scene times (ns) of a shared-clock source's bursts in [last horizon, horizon)."""
+        lo = max(self._h, int(b["burst_start_time_ns"]))
+        hi = min(int(horizon_ns), int(b["burst_end_time_ns"]))
+        t = shared_clock_burst_times_ns(
+            self.host_t0_ns + lo,
+            self.host_t0_ns + hi,
+            b["rate_hz"],
+            periodic=b["periodic"],
+            jitter_s=b["jitter_s"],
+            seed=b["shared_seed"],
+        )
+        return t - self.host_t0_ns
 
     def next_packets(self, horizon_ns: int):
         times, parts = [], []
         for i, b in enumerate(self.bursts):
-            t = b["times_ns"]
-            sel = t[(t >= self._h) & (t < horizon_ns)]
+            if b.get("shared_clock"):
+                sel = self._shared(b, horizon_ns)
+            else:
+                t = b["times_ns"]
+                sel = t[(t >= self._h) & (t < horizon_ns)]
             if sel.size == 0:
                 continue
             ref = self.noise_rms_v if self.noise_rms_v > 0 else 1e-3

@@ -266,6 +266,14 @@ GENERATORS = {
             "jitter_s": _f(0.0, "timing jitter of periodic bursts (s)", 0.0, 1.0),
             "start_s": _f(0.0, "first burst (s)", 0.0, 3600.0),
             "burst_duration_s": _f(3600.0, "bursts stop after this long (s)", 0.0, 1e6),
+            "shared_clock": Key(
+                "bool",
+                False,
+                "bursts on the host's monotonic clock, the same for every simulated "
+                "fingertip of the machine with the same shared_seed (one source under a "
+                "hand's fingertips; real time)",
+            ),
+            "shared_seed": Key("int", 0, "seed of the shared-clock bursts", 0, 2**31 - 1),
             "kind": Key("str", "mixed", "waveform", choices=("mixed", "spike", "edge", "ringing")),
             "coupling": Key(
                 "str",
