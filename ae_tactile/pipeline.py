@@ -56,6 +56,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from ae_tactile.dsp.coincidence import HandCoincidence
 from ae_tactile.dsp.interference import (
     ECHO_LEARN_KEEP,
     TRAIN_TOL_S,
@@ -95,6 +96,8 @@ _NAN3 = (math.nan, math.nan, math.nan)
 #: common-mode interference (whose zero delays put it at the apex: measured within 0.1 deg
 #: for bursts with 1 % channel gain mismatch; 3 deg leaves a wide margin) ...
 APEX_POLAR_RAD = math.radians(3.0)
+#: apex packet onsets kept for the hand's topic until taken (`ContactPipeline`)
+APEX_OUT_MAX = 10_000
 #: ... and so are very poorly fitting packets (a burst can also end as a bad fit elsewhere:
 #: seen at confidence 0.13; real touches at 10 dB have 0.35-0.45) ...
 SUSPECT_CONFIDENCE = 0.3
@@ -345,6 +348,13 @@ class PacketLocalizer:
         #: rig that taps the apex at a crystal-timed rate keeps its touches
         self.burst_train = BurstTrain()
         self.interference_timing = bool(interference_timing)
+        #: the hand's coincidence test (`ContactPipeline.enable_hand`): every apex packet's
+        #: onset (host ns) of the last `process` call goes to ``apex_onsets_ns`` (the other
+        #: fingertips' reports), and the events of those the packet tests kept where no
+        #: echo test runs to ``apex_held`` [(onset ns, event)], for the pipeline to hold
+        self.hand_reports = False
+        self.apex_onsets_ns: list[int] = []
+        self.apex_held: list[tuple[int, ContactRecord]] = []
         self._echo_calls = 0
         self._echo_pending: list = []
         #: learn the echo inside `process` (False: the caller runs `learn_echo` once the
@@ -465,6 +475,8 @@ class PacketLocalizer:
         """Contact events of the accepted packets, in packet order."""
         counts = self.counts if count else Counter()
         self.overlap_windows = []
+        if self.apex_onsets_ns or self.apex_held:
+            self.apex_onsets_ns, self.apex_held = [], []
         # the body this call localizes on, and its echo learner (`update` may switch both
         # from another thread meanwhile: the echo of these packets belongs to this one)
         body = (self.geometry, self.echo_learner)
@@ -618,6 +630,8 @@ class PacketLocalizer:
         # the per-packet tests whose intervals repeat the history's is a periodic burst
         train = set()
         apex = [i for i in near if found[i][1].polar_rad < APEX_POLAR_RAD]
+        if self.hand_reports and apex:
+            self._report_apex(found, apex, drop)
         for i in sorted(apex, key=lambda j: _packet_time_s(found[j][0])):
             p = found[i][0]
             t = _packet_time_s(p)
@@ -630,6 +644,18 @@ class PacketLocalizer:
             counts["rejected_INTERFERENCE_TRAIN"] += len(train)
             drop |= train
         return [f for i, f in enumerate(found) if i not in drop]
+
+    def _report_apex(self, found, apex, drop) -> None:
+        """The apex packets' onsets for the hand, and the events of those the packet tests
+        kept where nothing in one packet tells (no echo test) to hold for its decision."""
+        hold = self.echo_min_in_use is None
+        for i in apex:
+            t = _onset_ns(found[i][0])
+            if t != t:  # no host stamp: nothing to compare with the hand's
+                continue
+            self.apex_onsets_ns.append(int(t))
+            if hold and i not in drop:
+                self.apex_held.append((int(t), found[i][1]))
 
     @property
     def echo_min_in_use(self) -> float | None:
@@ -1321,6 +1347,10 @@ class ContactPipeline:
     #: earliest possible emission (ns) of the windows about to be fitted in the reader:
     #: `_slip_before` goes on with what is older
     _inline_horizon_ns: int | None = None
+    #: the coincidence test of the fingertips of one hand (`enable_hand`); None: off
+    hand: HandCoincidence | None = None
+    _hand_lock: threading.Lock = field(default_factory=threading.Lock)
+    _apex_out: list = field(default_factory=list)  # apex onsets (ns) to report to the hand
 
     def __post_init__(self) -> None:
         self.localizer.learn_inline = False  # `process` learns once the events are out
@@ -1336,6 +1366,75 @@ class ContactPipeline:
             )
         if wait_s > 0:
             self.overlaps.ready.wait(wait_s)
+
+    # ------------------------------------------------------------ the hand
+    def enable_hand(self, window_s: float | None = None, wait_s: float | None = None) -> None:
+        """Take part in the coincidence test of the fingertips of one hand
+        (`ae_tactile.dsp.coincidence`): `take_apex_onsets` gives this fingertip's apex
+        packets for the others, `hand_reports` takes theirs, and an apex packet the packet
+        tests kept where no echo test runs is held until `release_coincidence` decides it
+        (ValueError on bad settings: nothing changed then)."""
+        kw = {k: v for k, v in (("window_s", window_s), ("wait_s", wait_s)) if v is not None}
+        hand = HandCoincidence(**kw)  # checks the settings
+        with self._hand_lock:
+            if self.hand is not None:  # the reports, held packets and counts stay
+                hand = self.hand.with_settings(hand.window_ns * 1e-9, hand.wait_ns * 1e-9)
+            self.hand = hand
+        self.localizer.hand_reports = True
+
+    def _hold_apex(self, contacts: list) -> list:
+        """Hold the events of apex packets the localizer left to the hand; the rest go on."""
+        loc = self.localizer
+        if loc.apex_onsets_ns:
+            with self._hand_lock:
+                if self.hand is not None:
+                    self.hand.add_own(loc.apex_onsets_ns)
+                self._apex_out.extend(loc.apex_onsets_ns)
+                if len(self._apex_out) > APEX_OUT_MAX:  # nobody takes them: the newest
+                    del self._apex_out[:-APEX_OUT_MAX]
+        if not loc.apex_held:
+            return contacts
+        held = {id(rec): t for t, rec in loc.apex_held}
+        keep = []
+        with self._hand_lock:
+            for rec in contacts:
+                t = held.get(id(rec))
+                if t is None or self.hand is None:
+                    keep.append(rec)
+                else:
+                    self.hand.hold(t, rec)
+        return keep
+
+    def take_apex_onsets(self) -> list:
+        """This fingertip's apex packet onsets (host ns) not reported yet."""
+        if not self._apex_out:
+            return []
+        with self._hand_lock:
+            out, self._apex_out = self._apex_out, []
+        return out
+
+    def hand_reports(self, onsets_ns, source: str = "") -> None:
+        """Another fingertip's (``source``) apex packet onsets (host ns)."""
+        with self._hand_lock:
+            if self.hand is not None:
+                self.hand.add_others(onsets_ns, source)
+
+    def release_coincidence(self, now_ns: int) -> bool:
+        """Decide the held apex packets whose wait is over at host time ``now_ns``: those
+        another fingertip saw too are interference (``rejected_INTERFERENCE_HAND``), the
+        others are handed out and go through the slip step. True if any was handed out."""
+        if self.hand is None or not self.hand.pending:
+            return False
+        with self._hand_lock:
+            if self.hand is None:
+                return False
+            kept, rejected = self.hand.due(int(now_ns))
+        if rejected:
+            self.counts["rejected_INTERFERENCE_HAND"] += len(rejected)
+        on_contacts, on_slip = self._outputs
+        if kept and on_contacts is not None:
+            self.late(self._claim(kept, resolved=False), on_contacts, on_slip)
+        return bool(kept)
 
     def _late_from_resolver(self, records: list) -> None:
         on_contacts, on_slip = self._outputs
@@ -1422,6 +1521,8 @@ class ContactPipeline:
         with self._step_lock:
             if self._windows_out or self._held or self._slip_pending:
                 return False
+        if self.hand is not None and self.hand.pending:
+            return False
         return self.overlaps is None or not self.overlaps.pending()
 
     def wait_idle(self, timeout_s: float) -> bool:
@@ -1445,6 +1546,10 @@ class ContactPipeline:
         with self._step_lock:
             if self._held:
                 now_ns = min(int(now_ns), min(r.time_ns for r in self._held) + self.slip.lag_ns)
+            hand = self.hand
+            due = hand.next_due_ns() if hand is not None else None
+            if due is not None:  # never past an event the hand still holds
+                now_ns = min(int(now_ns), due - hand.wait_ns + self.slip.lag_ns)
             return self.slip.tick(now_ns)
 
     def process(
@@ -1463,6 +1568,8 @@ class ContactPipeline:
         """
         self._outputs = (on_contacts, on_slip)
         contacts = self.localizer.process(packets)
+        if self.localizer.hand_reports:
+            contacts = self._hold_apex(contacts)
         windows = self.localizer.overlap_windows
         if windows:
             # registered before anything of this batch is remembered: the duplicate check
@@ -1636,6 +1743,9 @@ class ContactPipeline:
         # dict.copy is one C call: a consistent copy while other threads count
         c = Counter(dict.copy(self.localizer.counts))
         c.update(dict.copy(self.counts))
+        hand = self.hand
+        if hand is not None:
+            c.update({f"hand_{k}": v for k, v in dict.copy(hand.counts).items()})
         if self.overlaps is not None:
             c.update(self.overlaps.snapshot_counts())
         return c

@@ -82,6 +82,10 @@ def arguments():
         ("driver_cpus", "", "CPUs the driver runs on, as for taskset -c ('3', '2-3'; "
          "empty: any): a core of its own per finger keeps the reflex path's latency tail "
          "short (the driver's cpu_affinity parameter)"),
+        ("hand_topic", "", "Topic the fingertips of one hand share to drop electrical "
+         "interference every fingertip sees at once (absolute, the same in each finger's "
+         "include, e.g. /hand/apex_packets; empty: the parameter file's "
+         "hand_coincidence_topic)"),
         ("rviz", "false", "Start RViz 2 with config/ae_tactile.rviz (true/false/1/0)"),
         ("record", "false", "Record the package's topics with `ros2 bag record` (MCAP) into "
          "the working directory; packets reliable (true/false/1/0)"),
@@ -150,6 +154,22 @@ def _cpus(value: str) -> str:
     return value
 
 
+def _hand_topic(value: str, split: bool) -> str:
+    """hand_topic, checked by the driver's own rule (`node_utils.hand_topic_problem`)
+    before anything starts; '' when not given."""
+    from ae_tactile.ros.node_utils import hand_topic_problem
+
+    value = value.strip()
+    why = hand_topic_problem(value)
+    if why:
+        raise LaunchArgumentError(f"launch argument 'hand_topic' = {value!r}: {why}")
+    if value and split:
+        raise LaunchArgumentError(
+            "launch argument 'hand_topic' needs split_pipeline:=false (the hand's test runs "
+            "in the driver's pipeline)")
+    return value
+
+
 def _namespace(value: str) -> str:
     ns = value.strip().strip("/")
     parts = ns.split("/") if ns else []
@@ -210,6 +230,7 @@ def _setup(context):
     params_file = _existing_file(arg("params_file"), "params_file")
     wait = _count(arg("wait_for_subscribers"), "wait_for_subscribers")
     cpus = _cpus(arg("driver_cpus"))
+    hand_topic = _hand_topic(arg("hand_topic"), split)
     scene = _scene_path(arg("scene")) if use_sim else None
     if rviz:
         _require_rviz()
@@ -243,8 +264,9 @@ def _setup(context):
         parameters=[params_file, overrides("driver", {
             "port": port, "frame_id": frame, "pipeline": not split,
             "wait_for_subscribers": wait, "reliable_qos": record,
-            # only when given: a cpu_affinity of the parameter file stays otherwise
-            **({"cpu_affinity": cpus} if cpus else {})})],
+            # only when given: the parameter file's values stay otherwise
+            **({"cpu_affinity": cpus} if cpus else {}),
+            **({"hand_coincidence_topic": hand_topic} if hand_topic else {})})],
         on_exit=_required("driver")))
     if split:
         for exe in ("localizer", "slip_detector"):

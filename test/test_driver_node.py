@@ -303,3 +303,32 @@ def test_driver_executable_refuses_bad_parameter():
     )
     assert out.returncode == 2
     assert "not starting" in out.stderr and "'mode'" in out.stderr
+
+
+def test_hand_parameters_are_checked_and_tunable(ros_context, tmp_path):
+    from rclpy.parameter import Parameter
+
+    from ae_tactile.ros.driver_node import DriverNode
+    from ae_tactile.ros.params import ParameterError
+
+    link = str(tmp_path / "nowhere")
+    with pytest.raises(ParameterError, match="hand_coincidence_topic"):
+        DriverNode(context=ros_context, parameter_overrides=[
+            Parameter("port", value=link), Parameter("hand_coincidence_topic", value="hand")])
+    with pytest.raises(ParameterError, match="hand coincidence"):
+        DriverNode(context=ros_context, parameter_overrides=[
+            Parameter("port", value=link),
+            Parameter("hand_coincidence_topic", value="/hand/apex_packets"),
+            Parameter("hand_coincidence_window_s", value=0.005),
+            Parameter("hand_coincidence_wait_s", value=0.001)])
+    drv = DriverNode(context=ros_context, parameter_overrides=[
+        Parameter("port", value=link),
+        Parameter("hand_coincidence_topic", value="/hand/apex_packets")])
+    try:
+        ok = drv.set_parameters([Parameter("hand_coincidence_window_s", value=0.0005)])[0]
+        assert ok.successful and drv.pipeline.hand.window_ns == 500_000
+        bad = drv.set_parameters([Parameter("hand_coincidence_wait_s", value=0.0002)])[0]
+        assert not bad.successful and "wait_s" in bad.reason
+        assert drv.pipeline.hand.wait_ns == 5_000_000  # unchanged
+    finally:
+        drv.destroy_node()

@@ -13,6 +13,8 @@ no ../shared/ros2-launch set up by tools/setup.sh). Waits are on conditions with
 generous timeouts, never on speed.
 """
 import importlib.util
+import json
+import math
 import os
 import random
 import re
@@ -25,6 +27,7 @@ import time
 import uuid
 
 import pytest
+import yaml
 
 from conftest import claim_domain, installed_executable, require_ros
 from ros_helpers import cpus_allowed
@@ -1033,3 +1036,120 @@ def test_ctrl_c_inside_a_class_body_during_start_up_exits_0_quietly():
         assert run.returncode == 0, (mode, run.stdout, run.stderr)
         assert "Traceback" not in run.stderr and "went on" not in run.stdout, (mode, run.stderr)
     assert "exit code 0" in runs["node"].stdout, runs["node"].stdout
+
+
+# ------------------------------------------------------------------ a hand's fingertips
+# Three simulated fingertips of one hand under one source of electrical interference: they
+# play the same bursts on the host's clock (a motor driver's edges entering every
+# amplifier's input; no wall echoes, so no test of one packet can tell them from apex
+# touches), each with a touch of its own held away from the apex. Two drivers share the
+# hand's topic, the third does not (the control).
+HAND_APEX_RAD = math.radians(3.0)
+def hand_scene(tmp_path, seed, x_m, y_m, name):
+    spec = {
+        "name": "hand_interference",
+        "generator": "interference",
+        "duration_s": 5.0,
+        "seed": seed,  # each fingertip its own noise and touch
+        "noise": {"snr_db": 30.0},
+        "params": {
+            "rate_hz": 150.0,
+            "periodic": False,  # at random times: no timing test catches them
+            "coupling": "input",
+            "kind": "edge",
+            "amplitude_snr_db": 35.0,
+            "start_s": 0.3,
+            "shared_clock": True,
+            "shared_seed": 7,
+            "x_m": x_m,
+            "y_m": y_m,
+            "touch_time_s": 0.1,
+            "hold_s": 4.7,
+        },
+    }
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(spec))
+    return str(path)
+
+
+HAND_LAUNCH = os.path.join(HERE, "launch", "hand_interference.launch.py")
+HAND_FINGERS = ("index", "thumb", "control")  # the first two on the hand's topic
+HAND_POSITIONS_M = ((3e-3, 2e-3), (-2e-3, 3e-3), (2e-3, -3e-3))
+
+
+def hand_params_file(tmp_path, wait_s):
+    """The package's parameter file with the hand's wait set (drivers in every namespace)."""
+    with open(os.path.join(os.path.dirname(HERE), "config", "water_skin.yaml")) as fh:
+        params = yaml.safe_load(fh)
+    params["/**/driver"]["ros__parameters"]["hand_coincidence_wait_s"] = wait_s
+    path = tmp_path / "hand_params.yaml"
+    path.write_text(yaml.safe_dump(params))
+    return str(path)
+
+
+@needs_launch
+def test_a_hand_drops_the_bursts_every_fingertip_sees_and_keeps_its_touches(launch, tmp_path):
+    """Three fingers of one hand (test/launch/hand_interference.launch.py) play one source's
+    bursts at random times (150 / s, into every amplifier's input, no wall echoes) with a
+    touch of their own held away from the apex: the control (no hand_topic) publishes a
+    good part of the bursts as apex touches; the two on /hand/apex_packets learn each
+    other's clock offset and publish none of them (<= 1 %), count them, and publish their
+    own touch."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from std_msgs.msg import String
+
+    from ae_tactile.msg import ContactEvent
+    from ae_tactile.ros.conversions import time_msg_to_ns
+    from ae_tactile.ros.driver_node import EVENT_QOS
+    from ae_tactile.ros.node_utils import LATCHED
+
+    for k, (x, y) in enumerate(HAND_POSITIONS_M):
+        hand_scene(tmp_path, 11 + k, x, y, name=f"hand_{k}.yaml")
+    s = launch()
+    events = {f: s.probe.listen(ContactEvent, f"/hand/{f}/contacts", EVENT_QOS)
+              for f in HAND_FINGERS}
+    truth = {f: s.probe.listen(String, f"/hand/{f}/sim/scene_truth", LATCHED)
+             for f in HAND_FINGERS}
+    diag = s.probe.listen(DiagnosticArray, "/diagnostics", 100)
+    # a generous wait: the test asserts what is decided, not how fast (three fingertips'
+    # simulators and drivers share two cores here)
+    run = s.start([f"scene_dir:={tmp_path}", f"params_file:={hand_params_file(tmp_path, 0.3)}"],
+                  target=HAND_LAUNCH)
+    def played(f):
+        return bool(truth[f]) and json.loads(truth[f][-1].data)["finished"]
+
+    assert s.probe.spin_until(lambda: all(map(played, HAND_FINGERS)), run=run), \
+        run.output()[-4000:]
+    s.probe.spin_for(2.0)  # the last held packets are decided and reported
+
+    def counts(f):
+        name = f"/hand/{f}/driver: localization"
+        st = [st for m in diag for st in m.status if st.name == name]
+        return {kv.key: kv.value for kv in st[-1].values} if st else {}
+
+    # only the span in which every simulator played bursts (outside it a fingertip's bursts
+    # have no partner: each simulator starts when its driver is ready), from 0.25 s in (the
+    # drivers learn each other's clock offsets from the first 8 common bursts)
+    spans = [(t["burst_start_time_ns"], t["burst_end_time_ns"])
+             for t in (json.loads(truth[f][-1].data)["truth"] for f in HAND_FINGERS)]
+    lo, hi = max(a for a, _ in spans) + 250_000_000, min(b for _, b in spans) - 20_000_000
+    assert hi - lo >= 1.0e9, spans
+
+    def apex_events(f):
+        return [e for e in events[f]
+                if e.polar_angle_rad < HAND_APEX_RAD and lo <= time_msg_to_ns(e.header.stamp) < hi]
+
+    n_bursts = 150.0 * (hi - lo) * 1e-9
+    # the control, alone: a good part of the bursts become apex touches
+    assert len(apex_events("control")) >= 0.2 * n_bursts, counts("control")
+    assert "hand_held" not in counts("control")
+    for f in ("index", "thumb"):
+        c = counts(f)
+        assert len(apex_events(f)) <= 0.01 * n_bursts, (f, c)
+        assert int(c.get("rejected_INTERFERENCE_HAND", 0)) >= 0.2 * n_bursts, (f, c)
+        assert c.get("hand_offsets_learnt") == "1", (f, c)  # the other one's
+        # its own touch, away from the apex, was never held and reached the hand
+        touches = [e for e in events[f] if e.event_type == ContactEvent.TOUCH
+                   and e.polar_angle_rad > math.radians(10)]
+        assert len(touches) == 1, (f, len(touches), c)
+    assert_clean_stop(run)

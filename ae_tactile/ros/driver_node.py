@@ -25,6 +25,11 @@ Topics (relative, so a namespace per finger works):
 Subscribes: sliding_speed (std_msgs/Float64, m/s; TEXTURE spatial periods),
   sim/scene_truth (the simulated fingertip's body: a mismatch with the parameters is warned
   about once and the device's body is used).
+The fingertips of one hand (``hand_coincidence_topic``, e.g. /hand/apex_packets, the same
+  for each): ae_tactile/ApexPackets published and read there; an apex packet that no test
+  of one packet can tell from interference is held ``hand_coincidence_wait_s`` and
+  dropped if another fingertip saw an apex packet within ``hand_coincidence_window_s``
+  (docs/slip.md, "Interference across a hand").
 """
 
 from __future__ import annotations
@@ -49,9 +54,10 @@ from rclpy.qos import (
 from std_msgs.msg import Float64, String
 from visualization_msgs.msg import MarkerArray
 
+from ae_tactile.dsp.coincidence import COINCIDENCE_WAIT_S, COINCIDENCE_WINDOW_S
 from ae_tactile.geometry import MEDIA, FingertipGeometry
 from ae_tactile.link import MODES, FingertipLink, LinkConfig
-from ae_tactile.msg import ContactEvent, ContactState, PacketArray, SensorInfo
+from ae_tactile.msg import ApexPackets, ContactEvent, ContactState, PacketArray, SensorInfo
 from ae_tactile.pipeline import ContactPipeline, PacketLocalizer, SlipStage
 from ae_tactile.ros.conversions import (
     ContactEventWire,
@@ -61,7 +67,14 @@ from ae_tactile.ros.conversions import (
     packet_array_msgs,
 )
 from ae_tactile.ros.markers import EventMarkers, sensor_markers
-from ae_tactile.ros.node_utils import LATCHED, cpu_list, cpu_list_problem, pin_process, run_node
+from ae_tactile.ros.node_utils import (
+    LATCHED,
+    cpu_list,
+    cpu_list_problem,
+    hand_topic_problem,
+    pin_process,
+    run_node,
+)
 from ae_tactile.ros.params import (
     LOCALIZATION_PARAMS,
     Param,
@@ -174,6 +187,36 @@ DRIVER_PARAMS = [
         True,
         "Localize and detect slip inside the driver (lowest latency); false: "
         "publish raw packets only, for the separate localizer and slip_detector nodes",
+    ),
+    Param(
+        "hand_coincidence_topic",
+        "",
+        "Topic shared by the drivers of one hand's fingertips (absolute, e.g. "
+        "/hand/apex_packets): each publishes the onsets of its apex packets there and "
+        "drops an apex packet another fingertip saw at the same time (electrical "
+        "interference reaches them all at once); empty: off",
+        check=hand_topic_problem,
+    ),
+    tunable(
+        Param(
+            "hand_coincidence_window_s",
+            COINCIDENCE_WINDOW_S,
+            "Two fingertips' apex packets within this of each other (host clock) are one "
+            "electrical event",
+            1e-6,
+            0.01,
+        )
+    ),
+    tunable(
+        Param(
+            "hand_coincidence_wait_s",
+            COINCIDENCE_WAIT_S,
+            "How long an apex packet that one packet's tests cannot tell from interference "
+            "waits for the other fingertips' reports (its contact event comes that much "
+            "later); at least hand_coincidence_window_s",
+            1e-4,
+            1.0,
+        )
     ),
     tunable(Param("markers", True, "Publish RViz markers on 'markers' (only while subscribed)")),
     Param("marker_period_s", 0.1, "Marker refresh period", 0.02, 5.0),
@@ -330,6 +373,11 @@ class DriverNode(Node):
         except ValueError as exc:
             raise ParameterError(f"fingertip geometry: {exc}") from exc
         self.pipeline = None
+        if p["hand_coincidence_topic"] and not p["pipeline"]:
+            raise ParameterError(
+                f"parameter 'hand_coincidence_topic' = {p['hand_coincidence_topic']!r} needs "
+                "pipeline:=true (the hand's test runs in the driver's pipeline)"
+            )
         if p["pipeline"]:
             self._make_pipeline()
         self.create_subscription(String, "sim/scene_truth", self._on_scene_truth, LATCHED)
@@ -407,6 +455,17 @@ class DriverNode(Node):
         self._state_key = None
         self._state_pub_ns = 0
         self.create_subscription(Float64, "sliding_speed", self._on_sliding_speed, 10)
+        self.pub_apex = None
+        if self.p["hand_coincidence_topic"]:
+            try:
+                self.pipeline.enable_hand(
+                    self.p["hand_coincidence_window_s"], self.p["hand_coincidence_wait_s"]
+                )
+            except ValueError as exc:
+                raise ParameterError(f"hand coincidence: {exc}") from exc
+            topic = self.p["hand_coincidence_topic"]
+            self.pub_apex = self.create_publisher(ApexPackets, topic, EVENT_QOS)
+            self.create_subscription(ApexPackets, topic, self._on_hand_apex, EVENT_QOS)
         self.create_timer(self.p["slip_tick_period_s"], self._tick)
         self.create_timer(self.p["marker_period_s"], self._publish_markers)
 
@@ -419,6 +478,8 @@ class DriverNode(Node):
                 self._publish_slip,
                 more_waiting=self.link.bytes_waiting,
             )
+            if self.pub_apex is not None:
+                self._hand_step()
             self._publish_state()
         if self.pub_packets.get_subscription_count() > 0:
             for msg in packet_array_msgs(batch, self.frame_id):
@@ -428,8 +489,29 @@ class DriverNode(Node):
     def _on_link_idle(self) -> None:
         """Reader thread, nothing more to read: the slip step put off under load (and the
         echo test's learning)."""
-        if self.pipeline is not None and self.pipeline.run_idle_work():
+        if self.pipeline is None:
+            return
+        if self.pub_apex is not None and self._hand_step():
             self._publish_state()
+        if self.pipeline.run_idle_work():
+            self._publish_state()
+
+    def _hand_step(self) -> bool:
+        """Reader thread: report this fingertip's apex packets to the hand, and hand out
+        the held ones whose wait is over (True if any)."""
+        onsets = self.pipeline.take_apex_onsets()
+        if onsets:
+            msg = ApexPackets()
+            msg.header.stamp = ns_to_time_msg(self.now_ns())
+            msg.header.frame_id = self.frame_id
+            msg.fingertip = self.get_fully_qualified_name()
+            msg.onset_ns = onsets
+            self.pub_apex.publish(msg)
+        return self.pipeline.release_coincidence(self.now_ns())
+
+    def _on_hand_apex(self, msg: ApexPackets) -> None:
+        if msg.fingertip != self.get_fully_qualified_name():
+            self.pipeline.hand_reports(msg.onset_ns, msg.fingertip)
 
     def _publish_contacts(self, records) -> None:
         encode, publish = self._wire.encode, self.pub_contacts.publish
@@ -457,6 +539,10 @@ class DriverNode(Node):
     def _tick(self) -> None:
         if self.pipeline is not None:
             self.pipeline.release_held()  # slip steps whose wait for the resolver expired
+            if self.pub_apex is not None:
+                # the reader decides the hand's held packets within read_timeout_s; this is
+                # for a reader that is not running (the link down)
+                self.pipeline.release_coincidence(self.now_ns())
             self.pipeline.tick(self.now_ns())
         else:
             self.slip_stage.tick(self.now_ns())
@@ -489,7 +575,15 @@ class DriverNode(Node):
 
     # -------------------------------------------------------------- run-time parameters
     def _on_driver_change(self, changes: dict) -> None:
-        pass  # the tunable driver parameters (markers) are read where they are used
+        """Tunable driver parameters: markers is read where it is used; the hand's window
+        and wait apply at once (ValueError: a wait below the window)."""
+        hand = {k: changes[k] for k in changes if k.startswith("hand_coincidence_")}
+        if hand and self.pipeline is not None and self.pipeline.hand is not None:
+            values = dict(self.p, **changes)
+            self.pipeline.enable_hand(
+                values["hand_coincidence_window_s"], values["hand_coincidence_wait_s"]
+            )
+            self.get_logger().info(f"hand coincidence changed: {hand}")
 
     def _on_localization_change(self, changes: dict) -> None:
         self.pipeline.localizer.update(**changes_for_localizer(changes))

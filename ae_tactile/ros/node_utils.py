@@ -351,6 +351,23 @@ def cpu_list_problem(text) -> str | None:
     return None
 
 
+def hand_topic_problem(text) -> str | None:
+    """Why ``text`` is no usable topic for the hand's coincidence test (None if it is, or
+    empty: off): every fingertip of the hand must name the same topic, so it is absolute
+    ('/hand/apex_packets'), made of letters, digits and '_' between the slashes."""
+    if not isinstance(text, str):
+        return "must be a string such as '/hand/apex_packets'"
+    if text == "":
+        return None
+    parts = text.split("/")
+    if parts[0] != "" or len(parts) < 2 or any(
+        not p or not (p[0].isalpha() or p[0] == "_") or not all(c.isalnum() or c == "_" for c in p)
+        for p in parts[1:]
+    ):
+        return "must be empty or an absolute topic name such as '/hand/apex_packets'"
+    return None
+
+
 def pin_process(cpus: set[int]) -> int:
     """Run every thread of this process on ``cpus`` (threads and processes it starts later
     inherit it). Linux sets affinity thread by thread, so each one in /proc/self/task is
