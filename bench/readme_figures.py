@@ -308,6 +308,18 @@ def slip_rows(d) -> list[str]:
                f"({100 * poi['rejected_rate']:.1f} % rejected)" if poi else "")
             + f"; {ne['alarm_onsets']} slip alarms | bench_slip |"
         )
+    hd = s.get("hand_interference")
+    if hd:
+        rows.append(
+            f"| the same bursts under the {hd['fingertips']} fingertips of {hd['hands']} "
+            "hands (2 .. 5 each), the drivers sharing the hand's topic | "
+            f"{hd['phantom_hand']} phantom touches (each fingertip alone: "
+            f"{hd['phantom_alone']}), {hd['extra_contacts_hand']} extra contacts, "
+            f"{hd['alarm_onsets_hand']} slip alarms; apex touches at random times kept "
+            f"{100 * hd['apex_touches_kept_rate']:.1f} % (the time the other fingertips' "
+            f"reports leave free: {100 * hd['apex_touches_kept_expected']:.1f} %) | "
+            "bench_slip |"
+        )
     sp = d.get("detector_speed")
     if sp:
         meta = d.get("meta", {})
