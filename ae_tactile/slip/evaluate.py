@@ -1563,9 +1563,11 @@ def hand_interference_trial(
                           else (c, 4, "due", None))
         coincident, touches_kept = _hand_decisions(hc, events)
         # a touch at a random time is kept when no report lies within the window: the
-        # share of the trial the reports' windows leave free (their union's complement)
+        # share of the trial the reports' windows leave free (their union's complement),
+        # each fingertip's reports less the offset learnt for it
         rep = np.sort(np.asarray(
-            [m for g, fg in enumerate(fingers) if g != f for m in fg[2]], np.float64
+            [m - hc.offsets_ns.get(str(g), 0)
+             for g, fg in enumerate(fingers) if g != f for m in fg[2]], np.float64
         ))
         covered = (
             2 * hc.window_ns + np.minimum(np.diff(rep), 2 * hc.window_ns).sum() if rep.size else 0
