@@ -1567,7 +1567,13 @@ class ContactPipeline:
         first; `run_pending_slip` (the link's idle call) or a later `process` runs it.
         """
         self._outputs = (on_contacts, on_slip)
-        contacts = self.localizer.process(packets)
+        loc = self.localizer
+        if loc.echo_pending and loc.echo_learner.ratio is None:
+            # the echo test is still being learnt (its first 3 touches, ~70 us each, once):
+            # what the last batch's touches teach judges this batch's packets, however far
+            # behind the reader is (later measurements wait for a moment without packets)
+            loc.learn_echo()
+        contacts = loc.process(packets)
         if self.localizer.hand_reports:
             contacts = self._hold_apex(contacts)
         windows = self.localizer.overlap_windows

@@ -511,6 +511,30 @@ def test_the_pipeline_learns_the_echo_after_handing_out_the_contact_events():
     pipe.close()
 
 
+def test_an_echo_still_being_learnt_judges_the_next_batch_when_the_reader_is_behind():
+    """The device's first three touches come in one batch while more packets wait (the
+    reader behind): their echo is learnt before the next batch is judged, so the
+    input-coupled edges in it are rejected and the apex touches kept. Once learnt, further
+    measurements wait for a moment without packets again."""
+    cfg = SimConfig(reflections=True)
+    loc = PacketLocalizer("ml", geometry=cfg.geometry)
+    pipe = ContactPipeline(loc, SlipStage(SlipConfig()))
+    behind = lambda: True  # noqa: E731
+    pipe.process(_off_apex_touch_views(cfg, 3, 8), lambda c: None, more_waiting=behind)
+    assert loc.echo_pending and loc.echo_learner.ratio is None  # not yet: packets waiting
+    views, edges, touches_apex = _edge_and_apex_views(cfg, 13)
+    got = []
+    pipe.process(views, got.extend, more_waiting=behind)
+    assert loc.echo_test_status().startswith("learnt")
+    kept = {e.packet_ids[0] for e in got}
+    assert not kept & edges and len(kept & touches_apex) >= 15
+    n = loc.echo_learner.n_measured
+    pipe.process(_off_apex_touch_views(cfg, 2, 9), lambda c: None, more_waiting=behind)
+    pipe.process(_off_apex_touch_views(cfg, 1, 10), lambda c: None, more_waiting=behind)
+    assert loc.echo_pending and loc.echo_learner.n_measured == n  # learnt: later, when idle
+    pipe.close()
+
+
 @pytest.mark.parametrize("inline_max", [OVERLAP_INLINE_MAX, 2])
 def test_overlapping_emissions_are_resolved_in_the_reader_or_worker_naming_the_shared_packet(
     inline_max,

@@ -363,7 +363,7 @@ def test_input_coupled_interference_rejected_once_the_wall_echo_is_learnt(ros_co
     rejects every edge: the taps, the touch and its release are found, nothing else."""
     scene = scene_file(
         tmp_path, "interference", effects={"reflections": True}, coupling="input", kind="edge",
-        taps_before=3, start_s=0.1, touch_time_s=0.105, hold_s=0.2, duration_s=0.35,
+        taps_before=3, start_s=0.3, touch_time_s=0.305, hold_s=0.2, duration_s=0.55,
     )
     system, s = run_system(ros_context, scene)
     try:
