@@ -464,6 +464,7 @@ class DriverNode(Node):
             except ValueError as exc:
                 raise ParameterError(f"hand coincidence: {exc}") from exc
             topic = self.p["hand_coincidence_topic"]
+            self._fqn = self.get_fully_qualified_name()  # this fingertip, on the hand's topic
             self.pub_apex = self.create_publisher(ApexPackets, topic, EVENT_QOS)
             self.create_subscription(ApexPackets, topic, self._on_hand_apex, EVENT_QOS)
         self.create_timer(self.p["slip_tick_period_s"], self._tick)
@@ -504,13 +505,13 @@ class DriverNode(Node):
             msg = ApexPackets()
             msg.header.stamp = ns_to_time_msg(self.now_ns())
             msg.header.frame_id = self.frame_id
-            msg.fingertip = self.get_fully_qualified_name()
+            msg.fingertip = self._fqn
             msg.onset_ns = onsets
             self.pub_apex.publish(msg)
         return self.pipeline.release_coincidence(self.now_ns())
 
     def _on_hand_apex(self, msg: ApexPackets) -> None:
-        if msg.fingertip != self.get_fully_qualified_name():
+        if msg.fingertip != self._fqn:
             self.pipeline.hand_reports(msg.onset_ns, msg.fingertip)
 
     def _publish_contacts(self, records) -> None:
