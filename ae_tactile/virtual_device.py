@@ -548,7 +548,9 @@ class PtyTransport:
     """A pseudo-terminal pair in raw mode; the driver opens ``path`` (the slave side).
 
     ``link_path`` (optional) is a symlink kept pointing at the current slave, like a udev
-    rule: it survives `unplug()`/`replug()`, which close the pty and open a new one.
+    rule: `unplug()` closes the pty and removes it, `replug()` opens a new pty and puts it
+    back. While unplugged nothing answers at ``link_path``: a driver retrying it cannot
+    open another program's pty that reused the closed one's number (/dev/pts/N).
     """
 
     def __init__(self, link_path: str | None = None):
@@ -570,6 +572,8 @@ class PtyTransport:
             os.replace(tmp, self.link_path)
 
     def unplug(self) -> None:
+        if self.link_path and os.path.islink(self.link_path):
+            os.unlink(self.link_path)  # first: the number of the pty closed next is free
         for fd in (self.master, self.slave):
             if fd is not None:
                 try:
@@ -606,8 +610,6 @@ class PtyTransport:
 
     def close(self) -> None:
         self.unplug()
-        if self.link_path and os.path.islink(self.link_path):
-            os.unlink(self.link_path)
 
 
 class _TcpClient:

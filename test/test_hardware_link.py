@@ -201,7 +201,12 @@ def test_unplug_for_one_second_reconnects_and_resumes(tmp_path):
             rig.runner.unplug(1.0)
             return log_at_unplug, len(rig.sent_packets())
 
+        link_path = str(tmp_path / "fingertip")
+        assert os.path.islink(link_path)
         log_at_unplug, n_sent = rig.runner.call(unplug)
+        # like a udev rule: nothing at the stable name while unplugged (the driver cannot
+        # open another program's pty that took the closed one's number)
+        assert not os.path.lexists(link_path)
         rig.run(0.2)
         before = len(rig.records)
         assert before <= n_sent  # those in flight at the unplug are lost with it
@@ -212,6 +217,7 @@ def test_unplug_for_one_second_reconnects_and_resumes(tmp_path):
         )
         s = rig.link.stats()
         assert s["disconnects"] == 1 and s["connects"] == 2 and s["state"] == "connected"
+        assert os.path.islink(link_path)  # back, on the new pty
         assert rig.device.boots == 1  # re-plug rebooted the device
         assert s["clock_resyncs"] >= 2  # time mapping rebuilt
         after = [r.device_sample_index for r in rig.records[before:]]
