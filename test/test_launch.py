@@ -864,7 +864,7 @@ def test_node_stops_cleanly_on_ctrl_c_twice(tmp_path, signals):
 @pytest.mark.parametrize("exe_name, args, ready_text, main_frame", [
     ("sim_fingertip", ["--ros-args", "-p", "scene:={scene}"], "serving on",
      "node_utils.py:spin_until_stopped"),
-    ("bringup", ["--scene", "{scene}", "--duration", "600"], "driver on ", "bringup.py:spin"),
+    ("bringup", ["--scene", "{scene}", "--duration", "600"], "every node up", "bringup.py:spin"),
 ])
 def test_sigusr1_prints_every_threads_stack_and_the_node_goes_on(tmp_path, exe_name, args,
                                                                  ready_text, main_frame):
@@ -913,7 +913,7 @@ def test_a_running_bringup_stops_on_ctrl_c_by_itself(tmp_path):
     from ae_tactile.ros.node_utils import CLEANUP_FORCED_EXIT_TEXT
     scene = os.path.join(os.path.dirname(HERE), "config", "scenes", "touch_hold_release.yaml")
     code, out = _run_and_signal(tmp_path, "bringup", [],
-                                [signal.SIGINT], ready_text="driver on ",
+                                [signal.SIGINT], ready_text="every node up",
                                 cli_args=["--scene", scene, "--duration", "600"])
     assert code == 0, out
     assert "Traceback" not in out, out

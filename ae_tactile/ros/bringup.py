@@ -22,6 +22,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 
 import rclpy
@@ -287,13 +288,16 @@ class Bringup:
             )
         return self.driver.pipeline is None or self.driver.pipeline.idle()
 
-    def spin(self, duration_s: float, drain_timeout_s: float = 10.0) -> None:
+    def spin(
+        self, duration_s: float, drain_timeout_s: float = 10.0, stop: threading.Event | None = None
+    ) -> None:
         """Spin for duration_s (0: forever); negative: until the scene has played and the
-        pipeline has drained (quiet for 0.3 s; at most drain_timeout_s after the end)."""
+        pipeline has drained (quiet for 0.3 s; at most drain_timeout_s after the end); and
+        never past ``stop`` (a stop signal: it ends the loop within 0.05 s)."""
         t_end = time.monotonic() + duration_s if duration_s > 0 else None
         done_at = quiet_since = None
         last_count = -1
-        while rclpy.ok(context=self.executor.context):
+        while rclpy.ok(context=self.executor.context) and not (stop is not None and stop.is_set()):
             self.executor.spin_once(timeout_sec=0.05)
             now = time.monotonic()
             if t_end is not None and now >= t_end:
@@ -397,8 +401,14 @@ def main(argv=None) -> int:
     with ros_session(["bringup"] + ros_args) as state:
         try:
             system = Bringup(args)
+            # a stop signal no longer raises here (raised inside rclpy's C++ calls it would
+            # come out as another error): the loop sees it within 0.05 s
+            state["interrupt"] = False
+            if state["stop"].is_set():
+                return state["exit"]
+            print("[ae_tactile] bringup: every node up, spinning", flush=True)
             duration = args.duration if args.duration >= 0 or args.use_sim else 0.0
-            system.spin(duration)
+            system.spin(duration, stop=state["stop"])
             if system.monitor is not None:
                 from ae_tactile.ros.monitor_node import format_summary
 
