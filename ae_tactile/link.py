@@ -522,6 +522,22 @@ class FingertipLink:
         except (OSError, ValueError, AttributeError):
             return False
 
+    def unread_bytes(self) -> int:
+        """Bytes waiting in the port's input buffer now (FIONREAD; 0 where the port has no
+        file descriptor, e.g. a socket:// URL). Safe from any thread, unlike
+        `bytes_waiting`, whose poll object is the reader's."""
+        fd = self._fd
+        if fd is None:
+            return 0
+        try:
+            import fcntl
+            import struct
+            import termios
+
+            return struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0]
+        except (ImportError, OSError, ValueError):
+            return 0
+
     def _read(self, ser) -> bytes:
         """Everything waiting, or block (<= read_timeout_s) for the first byte when idle.
 

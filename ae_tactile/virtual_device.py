@@ -830,6 +830,11 @@ class DeviceRunner:
             with self._callers_lock:
                 self._callers -= 1
 
+    @property
+    def pending_out_bytes(self) -> int:
+        """Bytes the device produced that the transport has not taken yet."""
+        return len(self._out)
+
     def unplug(self, duration_s: float) -> None:
         """Pull the cable for duration_s: transport closed, device unpowered; then re-plug,
         which boots the device again (bus powered), as real USB hardware would."""

@@ -279,7 +279,14 @@ class Bringup:
         return self.driver.published_events
 
     def drained(self) -> bool:
-        """Nothing queued anywhere, and every event passed on."""
+        """Nothing queued anywhere (the simulated fingertip's output, the port, a frame half
+        read: a starved sender can hold a frame back for a second), and every event passed
+        on."""
+        link = self.driver.link
+        if link.decoder.pending_bytes or link.unread_bytes():
+            return False
+        if self.sim is not None and self.sim.runner.pending_out_bytes:
+            return False
         if self.localizer is not None:
             return (
                 self.driver.link.stats()["queue_depth"] == 0
