@@ -66,6 +66,7 @@ def test_bad_stamps_are_counted_and_bad_settings_refused():
                {"wait_s": 2.0}, {"keep_s": 1e-3}):
         with pytest.raises(ValueError):
             HandCoincidence(**kw)
+    assert HandCoincidence(wait_s=1.0).keep_ns == 2 * 10**9  # the reports outlive the wait
 
 
 @pytest.fixture(scope="module")

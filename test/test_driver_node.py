@@ -330,5 +330,7 @@ def test_hand_parameters_are_checked_and_tunable(ros_context, tmp_path):
         bad = drv.set_parameters([Parameter("hand_coincidence_wait_s", value=0.0002)])[0]
         assert not bad.successful and "wait_s" in bad.reason
         assert drv.pipeline.hand.wait_ns == 5_000_000  # unchanged
+        longest = drv.set_parameters([Parameter("hand_coincidence_wait_s", value=1.0)])[0]
+        assert longest.successful and drv.pipeline.hand.wait_ns == 1_000_000_000
     finally:
         drv.destroy_node()

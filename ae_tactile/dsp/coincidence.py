@@ -43,7 +43,7 @@ COINCIDENCE_WINDOW_S = 3e-4
 #: how long an apex packet waits for the other fingertips' reports (s, host time): their
 #: transport latency, processing and the hand topic's delivery
 COINCIDENCE_WAIT_S = 5e-3
-#: how long the other fingertips' reports are remembered (s)
+#: how long the other fingertips' reports are remembered (s; at least twice the wait)
 COINCIDENCE_KEEP_S = 1.0
 #: pairs (this fingertip's apex packet, another's nearest report) within this (s) measure
 #: the other fingertip's clock offset
@@ -71,9 +71,10 @@ class HandCoincidence:
         self,
         window_s: float = COINCIDENCE_WINDOW_S,
         wait_s: float = COINCIDENCE_WAIT_S,
-        keep_s: float = COINCIDENCE_KEEP_S,
+        keep_s: float | None = None,
     ):
-        window_s, wait_s, keep_s = float(window_s), float(wait_s), float(keep_s)
+        window_s, wait_s = float(window_s), float(wait_s)
+        keep_s = max(COINCIDENCE_KEEP_S, 2.0 * wait_s) if keep_s is None else float(keep_s)
         if not (np.isfinite(window_s) and 0.0 < window_s <= 0.01):
             raise ValueError(f"window_s must be in (0, 0.01] s, got {window_s!r}")
         if not (np.isfinite(wait_s) and window_s <= wait_s <= 1.0):
@@ -95,7 +96,7 @@ class HandCoincidence:
     def with_settings(self, window_s: float, wait_s: float) -> HandCoincidence:
         """A copy with another window and wait that keeps the reports, the learnt offsets,
         the held packets and the counts (ValueError on bad settings)."""
-        new = HandCoincidence(window_s, wait_s, self.keep_ns * 1e-9)
+        new = HandCoincidence(window_s, wait_s)
         new._others = {k: v.copy() for k, v in self._others.items()}
         new._diffs = {k: deque(v, maxlen=OFFSET_PAIRS) for k, v in self._diffs.items()}
         new._own = list(self._own)
