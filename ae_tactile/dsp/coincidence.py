@@ -21,6 +21,10 @@ of this fingertip is paired with the nearest report of each other fingertip with
 ``search_s`` (2 ms) once its wait is over, and the median of a fingertip's last 32
 differences is its offset d_k = t_k - t once 8 pairs agree (median absolute deviation
 <= window / 2; pairs by chance spread over +-search and do not). Until then d_k = 0.
+When a link's clock moves (its device reset, its clock mapper re-synced), the newest 8
+pairs agreeing on an offset more than ``window_s`` from the learnt one replace it
+(counted as ``offsets_moved``): at most 7 bursts pass, not the 16 a median of 32 would
+let by.
 The test for an onset t: a report t_k of fingertip k with |t_k - d_k - t| <= window_s.
 
 Cost to touches: with apex packets on the other fingertips at rate lambda (1/s, random
@@ -65,7 +69,8 @@ class HandCoincidence:
     offset). Counts: ``held``, ``kept``, ``rejected_coincidence``, ``rejected_nonfinite``
     (stamps that are not finite numbers), ``reports_late`` (a report within ``window_s`` of
     one of the last 64 packets decided before it came: it does not change that decision),
-    ``offsets_learnt`` (fingertips whose offset is known)."""
+    ``offsets_learnt`` (fingertips whose offset is known), ``offsets_moved`` (learnt offsets
+    replaced by the newest pairs')."""
 
     def __init__(
         self,
@@ -204,12 +209,27 @@ class HandCoincidence:
                 self._learn(source)
 
     def _learn(self, source: str) -> None:
-        d = np.fromiter(self._diffs[source], np.int64, len(self._diffs[source]))
+        """The offset: the median of the last 32 pairs once 8 agree; or, when the newest 8
+        agree on an offset more than ``window_s`` from the learnt one (the link's clock
+        moved: a device reset, a re-synced clock mapper), theirs, the older pairs dropped."""
+        q = self._diffs[source]
+        d = np.fromiter(q, np.int64, len(q))
         if d.size < OFFSET_MIN_PAIRS:
             return
+        half = 0.5 * self.window_ns
+        old = self.offsets_ns.get(source)
+        if old is not None:
+            r = d[-OFFSET_MIN_PAIRS:]
+            med = float(np.median(r))
+            if abs(med - old) > self.window_ns and float(np.median(np.abs(r - med))) <= half:
+                q.clear()
+                q.extend(int(x) for x in r)
+                self.offsets_ns[source] = int(round(med))
+                self.counts["offsets_moved"] += 1
+                return
         med = float(np.median(d))
-        if float(np.median(np.abs(d - med))) <= 0.5 * self.window_ns:
-            if source not in self.offsets_ns:
+        if float(np.median(np.abs(d - med))) <= half:
+            if old is None:
                 self.counts["offsets_learnt"] += 1
             self.offsets_ns[source] = int(round(med))
 
