@@ -189,22 +189,22 @@ def test_each_fingertips_clock_offset_is_learnt_from_the_common_bursts():
 
 
 def test_a_fingertips_offset_that_moves_is_learnt_again_from_eight_bursts():
-    """The other fingertip's device resets after 1 s: its link's latency floor, and so its
-    stamps of the bursts, move from 0.44 ms late to 0.25 ms early. The newest 8 pairs agree
-    on the new offset while the 32 remembered still hold the old one: the 8th burst after
-    the reset (paired before it is decided) and every later one are rejected, at most 7
+    """The other fingertip is re-plugged on another hub after 1 s: its link's latency floor,
+    and so its stamps of the bursts, move from 0.44 ms late to 0.25 ms early. The newest 8
+    pairs agree on the new offset while the 32 remembered still hold the old one: the 8th
+    burst after the move (paired before it is decided) and every later one are rejected, at most 7
     pass; the move is counted once. Touches at times of their own pair with nothing that
     agrees and never move the offset."""
     rng = np.random.default_rng(11)
     bursts = np.sort(rng.uniform(0, 2e9, 400)).astype(np.int64)  # 200 / s, random times
     touches = np.sort(rng.uniform(0, 2e9, 40)).astype(np.int64)
-    reset_ns = 1_000_000_000
+    move_ns = 1_000_000_000
     hc = HandCoincidence(window_s=3e-4, wait_s=5e-3, keep_s=5.0)
     events = [(t, 0, "own", t) for t in np.concatenate([bursts, touches])]
     events += [(t, 1, "hold", (t, ("b", t))) for t in bursts]
     events += [(t, 1, "hold", (t, ("t", t))) for t in touches]
     jitter = rng.normal(0, 5_000, bursts.size).astype(np.int64)
-    off = np.where(bursts < reset_ns, 440_000, -250_000)
+    off = np.where(bursts < move_ns, 440_000, -250_000)
     events += [(t + 800_000, 2, "report", t + o + j) for t, o, j in zip(bursts, off, jitter)]
     events += [(t + 5 * MS, 3, "due", None) for t in np.concatenate([bursts, touches])]
     kept, rejected = [], []
@@ -219,8 +219,8 @@ def test_a_fingertips_offset_that_moves_is_learnt_again_from_eight_bursts():
             k, r = hc.due(int(t))
             kept += k
             rejected += r
-    after = bursts[bursts >= reset_ns]
-    kept_after = sorted(t for kind, t in kept if kind == "b" and t >= reset_ns)
+    after = bursts[bursts >= move_ns]
+    kept_after = sorted(t for kind, t in kept if kind == "b" and t >= move_ns)
     assert len(kept_after) <= 7
     assert not kept_after or kept_after[-1] < after[7]  # from the 8th burst on: rejected
     assert all(t in {r[1] for r in rejected} for t in after[7:])

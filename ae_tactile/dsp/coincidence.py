@@ -21,7 +21,8 @@ of this fingertip is paired with the nearest report of each other fingertip with
 ``search_s`` (2 ms) once its wait is over, and the median of a fingertip's last 32
 differences is its offset d_k = t_k - t once 8 pairs agree (median absolute deviation
 <= window / 2; pairs by chance spread over +-search and do not). Until then d_k = 0.
-When a link's clock moves (its device reset, its clock mapper re-synced), the newest 8
+When a link's offset moves (another latency floor: re-plugged on another port or hub; a
+device reset on the same port re-learns the same floor), the newest 8
 pairs agreeing on an offset more than ``window_s`` from the learnt one replace it
 (counted as ``offsets_moved``): at most 7 bursts pass, not the 16 a median of 32 would
 let by.
@@ -211,7 +212,7 @@ class HandCoincidence:
     def _learn(self, source: str) -> None:
         """The offset: the median of the last 32 pairs once 8 agree; or, when the newest 8
         agree on an offset more than ``window_s`` from the learnt one (the link's clock
-        moved: a device reset, a re-synced clock mapper), theirs, the older pairs dropped."""
+        moved: another latency floor), theirs, the older pairs dropped."""
         q = self._diffs[source]
         d = np.fromiter(q, np.int64, len(q))
         if d.size < OFFSET_MIN_PAIRS:
