@@ -1350,6 +1350,9 @@ class ContactPipeline:
     #: the coincidence test of the fingertips of one hand (`enable_hand`); None: off
     hand: HandCoincidence | None = None
     _hand_lock: threading.Lock = field(default_factory=threading.Lock)
+    #: one thread at a time hands out events while the hand holds some (the reader's
+    #: `process`, `release_coincidence` from the reader or a timer): they go out in order
+    _release_lock: threading.Lock = field(default_factory=threading.Lock)
     _apex_out: list = field(default_factory=list)  # apex onsets (ns) to report to the hand
 
     def __post_init__(self) -> None:
@@ -1383,7 +1386,9 @@ class ContactPipeline:
         self.localizer.hand_reports = True
 
     def _hold_apex(self, contacts: list) -> list:
-        """Hold the events of apex packets the localizer left to the hand; the rest go on."""
+        """Hold the events of apex packets the localizer left to the hand, and behind them
+        every later event of this fingertip (a release never overtakes its touch); the
+        rest go on."""
         loc = self.localizer
         if loc.apex_onsets_ns:
             with self._hand_lock:
@@ -1392,17 +1397,25 @@ class ContactPipeline:
                 self._apex_out.extend(loc.apex_onsets_ns)
                 if len(self._apex_out) > APEX_OUT_MAX:  # nobody takes them: the newest
                     del self._apex_out[:-APEX_OUT_MAX]
-        if not loc.apex_held:
+        hand = self.hand
+        if hand is None or not (loc.apex_held or hand.pending):
             return contacts
         held = {id(rec): t for t, rec in loc.apex_held}
         keep = []
         with self._hand_lock:
             for rec in contacts:
                 t = held.get(id(rec))
-                if t is None or self.hand is None:
-                    keep.append(rec)
+                if t is not None and hand.hold(t, rec):
+                    held[id(rec)] = None  # held
+            oldest = hand.oldest_held()
+            bar = None if oldest is None else oldest.time_ns
+            for rec in contacts:
+                if held.get(id(rec), 0) is None:
+                    continue
+                if bar is not None and rec.time_ns >= bar:
+                    hand.follow(rec)
                 else:
-                    self.hand.hold(t, rec)
+                    keep.append(rec)
         return keep
 
     def take_apex_onsets(self) -> list:
@@ -1413,28 +1426,38 @@ class ContactPipeline:
             out, self._apex_out = self._apex_out, []
         return out
 
-    def hand_reports(self, onsets_ns, source: str = "") -> None:
-        """Another fingertip's (``source``) apex packet onsets (host ns)."""
+    def hand_reports(self, onsets_ns, source: str = "", now_ns: int | None = None) -> None:
+        """Another fingertip's (``source``) apex packet onsets (host ns); ``now_ns``: this
+        fingertip's host time (stamps far from it are counted and dropped)."""
         with self._hand_lock:
             if self.hand is not None:
-                self.hand.add_others(onsets_ns, source)
+                self.hand.add_others(onsets_ns, source, now_ns)
 
-    def release_coincidence(self, now_ns: int) -> bool:
-        """Decide the held apex packets whose wait is over at host time ``now_ns``: those
-        another fingertip saw too are interference (``rejected_INTERFERENCE_HAND``), the
-        others are handed out and go through the slip step. True if any was handed out."""
-        if self.hand is None or not self.hand.pending:
+    def release_coincidence(
+        self, now_ns: int, *, flush: bool = False, blocking: bool = True
+    ) -> bool:
+        """Decide the held apex packets whose wait is over at host time ``now_ns``
+        (``flush``: all of them, with the reports at hand): those another fingertip saw
+        too are interference (``rejected_INTERFERENCE_HAND``), the others are handed out
+        with the events behind them, in time order, and go through the slip step.
+        ``blocking`` False: nothing if another thread is handing out events. True if any
+        was handed out."""
+        hand = self.hand
+        if hand is None or not (hand.pending or hand.unpaired):
             return False
-        with self._hand_lock:
-            if self.hand is None:
-                return False
-            kept, rejected = self.hand.due(int(now_ns))
-        if rejected:
-            self.counts["rejected_INTERFERENCE_HAND"] += len(rejected)
-        on_contacts, on_slip = self._outputs
-        if kept and on_contacts is not None:
-            self.late(self._claim(kept, resolved=False), on_contacts, on_slip)
-        return bool(kept)
+        if not self._release_lock.acquire(blocking):
+            return False
+        try:
+            with self._hand_lock:
+                kept, rejected = hand.due(int(now_ns), _TIME_NS, flush)
+            if rejected:
+                self.counts["rejected_INTERFERENCE_HAND"] += len(rejected)
+            on_contacts, on_slip = self._outputs
+            if kept and on_contacts is not None:
+                self.late(self._claim(kept, resolved=False), on_contacts, on_slip)
+            return bool(kept)
+        finally:
+            self._release_lock.release()
 
     def _late_from_resolver(self, records: list) -> None:
         on_contacts, on_slip = self._outputs
@@ -1565,7 +1588,16 @@ class ContactPipeline:
         `bytes_waiting`); while it says more packets are already waiting, the slip step
         is put off, at most ``SLIP_MAX_DEFER_S``, so that their contact events go out
         first; `run_pending_slip` (the link's idle call) or a later `process` runs it.
+        On a hand (`enable_hand`), one thread at a time hands out events (the held
+        packets' release waits for this batch, or a timer's is skipped).
         """
+        if self.hand is None:
+            self._process(packets, on_contacts, on_slip, more_waiting)
+            return
+        with self._release_lock:
+            self._process(packets, on_contacts, on_slip, more_waiting)
+
+    def _process(self, packets, on_contacts, on_slip, more_waiting) -> None:
         self._outputs = (on_contacts, on_slip)
         loc = self.localizer
         if loc.echo_pending and loc.echo_learner.ratio is None:

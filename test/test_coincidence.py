@@ -229,3 +229,141 @@ def test_a_fingertips_offset_that_moves_is_learnt_again_from_eight_bursts():
     p_keep = math.exp(-2 * 3e-4 * 200)  # one other fingertip's bursts at 200 / s
     n_touch_kept = sum(1 for kind, _ in kept if kind == "t")
     assert n_touch_kept >= np.floor(len(touches) * p_keep) - 4
+
+
+def test_a_release_never_overtakes_its_held_touch_and_the_held_are_flushed():
+    """A touch at the apex (held for the hand: no echo test runs) and its release 1 ms
+    later, localized just past 3 deg off the apex (not held), in the next batch: the
+    release waits behind the touch and both go out in time order once the wait is over;
+    the slip stage then sees a touch and its release (the finger free), not an orphan
+    release and a touch that never ends. A touch still held when the driver stops goes
+    out with `flush`."""
+    from ae_tactile.pipeline import ContactPipeline, PacketLocalizer, SlipStage
+    from ae_tactile.sim import SimConfig
+    from ae_tactile.sim.scene import reference_noise_rms
+    from ae_tactile.sim.triggered import render_triggered
+
+    cfg = SimConfig()
+    g = cfg.geometry
+    fs = cfg.sample_rate_hz
+    rng = np.random.default_rng(12)
+    noise = reference_noise_rms(cfg, 30.0)
+    # 2.3 deg (held: within 3 deg of the apex) and 3.7 deg (not held), 0.25 mm apart
+    pts = g.surface_point_from_xy(np.array([0.4e-3, 0.65e-3, 0.1e-3]),
+                                  np.array([0.0, 0.0, 0.2e-3]))
+    r = render_triggered(pts, cfg, noise_rms_v=noise, rng=rng,
+                         speed_m_s=np.array([0.3, 0.3, 0.3]), polarity=np.array([1, -1, 1]))
+    t0 = 5 * 10**9
+    stamps = [t0, t0 + MS, t0 + 400 * MS]
+    views = [PacketViewFor(r, i, fs, stamps[i]) for i in range(3)]
+    pipe = ContactPipeline(PacketLocalizer("ml"), SlipStage())
+    pipe.enable_hand(window_s=3e-4, wait_s=5e-3)
+    out = []
+    pipe.process(views[:1], out.extend)  # the apex touch: held
+    pipe.process(views[1:2], out.extend)  # its release off the apex: behind the touch
+    assert out == [] and pipe.hand.pending == 2
+    assert not pipe.release_coincidence(t0 + 2 * MS) and out == []
+    assert pipe.release_coincidence(t0 + 10 * MS)
+    assert [e.packet_ids[0] for e in out] == [0, 1]
+    assert [e.time_ns for e in out] == sorted(e.time_ns for e in out)
+    assert pipe.slip.counts["contacts_in"] == 2 and pipe.idle()
+    assert pipe.tick(t0 + 200 * MS).state.name == "NO_CONTACT"
+    pipe.process(views[2:], out.extend)  # another apex touch, then the driver stops
+    assert pipe.hand.pending == 1 and len(out) == 2
+    assert pipe.release_coincidence(t0 + 400 * MS, flush=True)
+    assert [e.packet_ids[0] for e in out] == [0, 1, 2] and pipe.idle()
+
+
+def PacketViewFor(r, i, fs, stamp_ns):
+    from ae_tactile.pipeline import PacketView
+
+    return PacketView(r.samples_v[i], fs, int(r.onset_index[i]), int(stamp_ns), i)
+
+
+def test_reports_that_cannot_be_right_are_counted_and_change_nothing():
+    """The hand's topic carries other nodes' messages: a stamp far from this fingertip's
+    clock (a clock that jumped) is dropped and does not make the fingertip's real reports
+    look old; a flood beyond the cap keeps the newest; a seventeenth name while sixteen are
+    active is counted, a silent one forgotten; epoch stamps stay exact to the nanosecond."""
+    now = 1_764_000_000 * 10**9  # an epoch stamp (2025): float64 would round it to 256 ns
+    hc = HandCoincidence(window_s=1e-6, wait_s=5e-3)
+    hc.add_others([now + 10**15], "index", now_ns=now)  # 11 days ahead
+    hc.add_others([now - 3 * 10**9], "index", now_ns=now)  # 3 s old
+    assert hc.counts["reports_rejected_stamp"] == 2
+    hc.add_others([now - MS + 900], "index", now_ns=now)  # 0.9 us from the packet below
+    assert hc.hold(now - MS, "burst") and hc.hold(now - MS + 2_000, "touch")
+    assert hc.due(now + 10 * MS) == (["touch"], ["burst"])
+    flood = now - np.arange(100_000, dtype=np.int64) * 5_000  # 0.5 s of 200 kHz
+    hc.add_others(flood, "thumb", now_ns=now)
+    assert hc.counts["reports_rejected_flood"] == 100_000 - 65_536
+    for k in range(14):
+        hc.add_others([now - 2 * MS], f"/f{k}", now_ns=now)
+    assert len(hc._others) == 16
+    hc.add_others([now], "/f99", now_ns=now + 10 * MS)
+    assert hc.counts["reports_rejected_sources"] == 1 and "/f99" not in hc._others
+    later = now + 2 * 10**9  # the others silent for 2 s: forgotten for a new name
+    hc.add_others([later], "/f99", now_ns=later)
+    assert set(hc._others) == {"/f99"}
+
+
+def test_a_late_report_is_counted_only_for_a_packet_that_was_kept():
+    """Three fingertips: the second one's report rejects the burst; the third one's,
+    coming after the decision, changes nothing and is not late for it. A report after a
+    kept packet's decision is late (that packet went out)."""
+    hc = HandCoincidence(window_s=3e-4, wait_s=5e-3)
+    hc.add_others([100 * MS + 50_000], "middle")
+    hc.hold(100 * MS, "burst")
+    hc.hold(200 * MS, "touch")
+    assert hc.due(210 * MS) == (["touch"], ["burst"])
+    hc.add_others([100 * MS + 80_000], "ring")
+    assert hc.counts["reports_late"] == 0
+    hc.add_others([200 * MS + 80_000], "ring")
+    assert hc.counts["reports_late"] == 1
+
+
+def test_records_behind_a_held_packet_go_out_after_it_in_time_order():
+    """`follow`: a record later than a held packet waits for its decision (kept or not),
+    one earlier than every held packet is not held back."""
+    key = lambda r: r[0]  # noqa: E731
+    hc = HandCoincidence(window_s=3e-4, wait_s=5e-3)
+    hc.add_others([100 * MS + 10_000], "middle")
+    hc.hold(100 * MS, (100 * MS, "burst"))
+    hc.hold(104 * MS, (104 * MS, "touch"))
+    hc.follow((103 * MS, "release of an earlier touch"))
+    hc.follow((106 * MS, "off-apex touch"))
+    assert hc.pending == 4
+    assert hc.due(103 * MS, key) == ([], [])
+    kept, rejected = hc.due(105 * MS, key)  # the burst is decided, the touch still held
+    assert rejected == [(100 * MS, "burst")]
+    assert kept == [(103 * MS, "release of an earlier touch")]
+    kept, _ = hc.due(109 * MS, key)
+    assert kept == [(104 * MS, "touch"), (106 * MS, "off-apex touch")] and hc.pending == 0
+
+
+def test_the_offsets_are_learnt_when_no_apex_packet_is_held():
+    """A fingertip whose own tests reject every burst (switching spikes after the filters:
+    the shape test) holds nothing, yet its onsets still pair with the other fingertip's
+    reports: the offset is learnt, ready for bursts its own tests would let through."""
+    from ae_tactile.pipeline import ContactPipeline, PacketLocalizer, SlipStage
+    from ae_tactile.sim import SimConfig
+    from ae_tactile.sim.interference import render_interference
+    from ae_tactile.sim.scene import reference_noise_rms
+
+    cfg = SimConfig()
+    rng = np.random.default_rng(6)
+    noise = reference_noise_rms(cfg, 30.0)
+    spikes = render_interference(40, cfg, kind="ringing", coupling="adc", noise_rms_v=noise,
+                                 rng=rng)
+    fs = cfg.sample_rate_hz
+    t = 10**9 + np.sort(rng.choice(10**6, len(spikes), replace=False)) * 1000
+    views = [PacketViewFor(spikes, i, fs, t[i]) for i in range(len(spikes))]
+    pipe = ContactPipeline(PacketLocalizer("ml"), SlipStage())
+    pipe.enable_hand(window_s=3e-4, wait_s=5e-3)
+    out = []
+    pipe.process(views, out.extend)
+    onsets = np.asarray(pipe.take_apex_onsets(), np.int64)
+    assert out == [] and pipe.hand.counts["held"] == 0 and onsets.size >= 20
+    pipe.hand_reports(onsets + 440_000, "index")
+    pipe.release_coincidence(int(t[-1]) + 10 * MS)
+    assert pipe.hand.counts["offsets_learnt"] == 1
+    assert abs(pipe.hand.offsets_ns["index"] - 440_000) < 1_000

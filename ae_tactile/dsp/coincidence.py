@@ -55,6 +55,19 @@ COINCIDENCE_KEEP_S = 1.0
 OFFSET_SEARCH_S = 2e-3
 OFFSET_PAIRS = 32  # the differences an offset is the median of
 OFFSET_MIN_PAIRS = 8  # ... at least, and agreeing to window / 2 (median absolute deviation)
+#: another fingertip's onsets remembered (10 kHz bursts over ``keep_s`` are 10,000); more,
+#: in one report or in all: the newest, the rest counted (``reports_rejected_flood``)
+REPORTS_MAX = 65536
+#: fingertips remembered (a hand has five; more names: the silent ones are forgotten, and
+#: while every one is active a new name's reports are counted, ``reports_rejected_sources``)
+SOURCES_MAX = 16
+
+
+def _median(x: list) -> float:
+    """Median of a short list (plain Python: tens of values, no numpy call overhead)."""
+    s = sorted(x)
+    n = len(s)
+    return 0.5 * (s[(n - 1) // 2] + s[n // 2])
 
 
 class HandCoincidence:
@@ -71,7 +84,15 @@ class HandCoincidence:
     (stamps that are not finite numbers), ``reports_late`` (a report within ``window_s`` of
     one of the last 64 packets decided before it came: it does not change that decision),
     ``offsets_learnt`` (fingertips whose offset is known), ``offsets_moved`` (learnt offsets
-    replaced by the newest pairs')."""
+    replaced by the newest pairs'), and for reports that cannot be right:
+    ``reports_rejected_stamp`` (more than ``keep_s`` from this fingertip's clock, when the
+    receiver's time is given), ``reports_rejected_flood`` (beyond `REPORTS_MAX` of one
+    fingertip), ``reports_rejected_sources`` (a name beyond `SOURCES_MAX` active ones).
+
+    ``follow``: records that must not overtake the held packets (later events of the same
+    fingertip: a release after its held touch); `due` hands them out in time order once no
+    held packet older than them is left. ``key`` gives a record's time (ns), for the
+    order."""
 
     def __init__(
         self,
@@ -96,7 +117,8 @@ class HandCoincidence:
         self.offsets_ns: dict[str, int] = {}  # source -> learnt offset d_k
         self._own: list[int] = []  # own onsets not yet paired (their wait not over)
         self._held: list[tuple[int, object]] = []  # (onset ns, item), onset order
-        self._decided: deque[int] = deque(maxlen=64)  # onsets decided, newest last
+        self._follow: list = []  # records behind the held packets, arrival order
+        self._decided: deque[int] = deque(maxlen=64)  # onsets kept, newest last
         self.counts: Counter = Counter()
 
     def with_settings(self, window_s: float, wait_s: float) -> HandCoincidence:
@@ -107,6 +129,7 @@ class HandCoincidence:
         new._diffs = {k: deque(v, maxlen=OFFSET_PAIRS) for k, v in self._diffs.items()}
         new._own = list(self._own)
         new._held = list(self._held)
+        new._follow = list(self._follow)
         new._decided = deque(self._decided, maxlen=self._decided.maxlen)
         new.counts = self.counts.copy()
         for k in new._diffs:
@@ -114,11 +137,27 @@ class HandCoincidence:
         return new
 
     def _finite(self, onsets_ns) -> np.ndarray:
-        t = np.asarray(onsets_ns, dtype=np.float64).ravel()
-        ok = np.isfinite(t) & (np.abs(t) < 2.0**62)
+        """The stamps as int64 ns (integers exactly: a float64 rounds today's epoch stamps
+        to 256 ns); not finite or beyond +-2^62 ns: counted and dropped."""
+        t = np.asarray(onsets_ns).ravel()
+        if t.dtype.kind == "i":
+            t = t.astype(np.int64, copy=False)
+            ok = (t > -(2**62)) & (t < 2**62)
+        elif t.dtype.kind == "u":
+            ok = t < 2**62
+            t = np.where(ok, t, 0).astype(np.int64)
+        else:
+            try:
+                f = t.astype(np.float64)
+            except (TypeError, ValueError):
+                self.counts["rejected_nonfinite"] += int(t.size)
+                return np.zeros(0, np.int64)
+            ok = np.isfinite(f) & (np.abs(f) < 2.0**62)
+            t = np.where(ok, f, 0.0).astype(np.int64)
         if not ok.all():
             self.counts["rejected_nonfinite"] += int(np.count_nonzero(~ok))
-        return t[ok].astype(np.int64)
+            t = t[ok]
+        return t
 
     def add_own(self, onsets_ns) -> None:
         """This fingertip's apex packet onsets (host ns), for learning the offsets."""
@@ -127,70 +166,140 @@ class HandCoincidence:
             self._own.extend(int(x) for x in t)
             del self._own[:-1024]  # a flood: the newest
 
-    def add_others(self, onsets_ns, source: str = "") -> None:
-        """Remember another fingertip's apex packet onsets (host ns)."""
+    def add_others(self, onsets_ns, source: str = "", now_ns: int | None = None) -> None:
+        """Remember another fingertip's apex packet onsets (host ns). ``now_ns``: this
+        fingertip's host time; stamps more than ``keep_s`` from it are counted and dropped
+        (a clock that jumped, a node on another clock), and old reports are forgotten by
+        it (else by the source's newest stamp)."""
         t = self._finite(onsets_ns)
+        if t.size > REPORTS_MAX:
+            self.counts["reports_rejected_flood"] += int(t.size - REPORTS_MAX)
+            t = np.sort(t)[-REPORTS_MAX:]
+        if now_ns is not None:
+            now_ns = int(now_ns)
+            ok = np.abs(t - now_ns) <= self.keep_ns
+            if not ok.all():
+                self.counts["reports_rejected_stamp"] += int(np.count_nonzero(~ok))
+                t = t[ok]
         if t.size == 0:
             return
         source = str(source)
+        if source not in self._others and len(self._others) >= SOURCES_MAX:
+            self._forget_silent(now_ns if now_ns is not None else int(t.max()))
+            if len(self._others) >= SOURCES_MAX:
+                self.counts["reports_rejected_sources"] += int(t.size)
+                return
         off = self.offsets_ns.get(source, 0)
-        if self._decided and int(t.min()) - off <= self._decided[-1] + self.window_ns:
-            d = np.fromiter(self._decided, np.int64, len(self._decided))
-            late = np.abs((t - off)[:, None] - d[None, :]).min(axis=1) <= self.window_ns
+        if self._decided and int(t.min()) - off <= max(self._decided) + self.window_ns:
+            d = np.sort(np.fromiter(self._decided, np.int64, len(self._decided)))
+            c = t - off
+            late = (np.searchsorted(d, c + self.window_ns, side="right")
+                    > np.searchsorted(d, c - self.window_ns, side="left"))
             self.counts["reports_late"] += int(np.count_nonzero(late))
         old = self._others.get(source, np.zeros(0, np.int64))
-        newest = max(int(t.max()), int(old[-1]) if old.size else -(2**62))
+        if now_ns is not None:
+            oldest = now_ns - self.keep_ns
+        else:
+            oldest = max(int(t.max()), int(old[-1]) if old.size else -(2**62)) - self.keep_ns
         both = np.concatenate([old, t])
         both.sort(kind="stable")
-        self._others[source] = both[both >= newest - self.keep_ns]
+        both = both[both >= oldest]
+        if both.size > REPORTS_MAX:
+            self.counts["reports_rejected_flood"] += int(both.size - REPORTS_MAX)
+            both = both[-REPORTS_MAX:]
+        self._others[source] = both
+
+    def _forget_silent(self, now_ns: int) -> None:
+        """Forget the fingertips with no report within ``keep_s`` of ``now_ns``."""
+        for k in [k for k, v in self._others.items() if v.size == 0
+                  or int(v[-1]) < now_ns - self.keep_ns]:
+            del self._others[k]
+            self._diffs.pop(k, None)
+            self.offsets_ns.pop(k, None)
 
     def hold(self, onset_ns, item=None) -> bool:
         """Hold an apex packet of this fingertip until its wait is over; False (counted)
         if its stamp is not a finite number."""
-        try:
-            t = float(onset_ns)
-        except (TypeError, ValueError):
-            t = float("nan")
-        if not (np.isfinite(t) and abs(t) < 2.0**62):
+        if isinstance(onset_ns, (int, np.integer)) and not isinstance(onset_ns, bool):
+            t_ns = int(onset_ns)
+            ok = abs(t_ns) < 2**62
+        else:
+            try:
+                t = float(onset_ns)
+            except (TypeError, ValueError):
+                t = float("nan")
+            ok = bool(np.isfinite(t) and abs(t) < 2.0**62)
+            t_ns = int(t) if ok else 0
+        if not ok:
             self.counts["rejected_nonfinite"] += 1
             return False
-        t_ns = int(t)
         self._held.append((t_ns, item))
         if len(self._held) > 1 and t_ns < self._held[-2][0]:
             self._held.sort(key=lambda h: h[0])
         self.counts["held"] += 1
         return True
 
+    def follow(self, item) -> None:
+        """A record that must wait behind the held packets older than it."""
+        self._follow.append(item)
+
+    def oldest_held(self):
+        """The oldest held item (None: none held)."""
+        return self._held[0][1] if self._held else None
+
     @property
     def pending(self) -> int:
-        return len(self._held)
+        """Held packets and records behind them."""
+        return len(self._held) + len(self._follow)
+
+    @property
+    def unpaired(self) -> int:
+        """This fingertip's onsets not yet paired with the others' reports."""
+        return len(self._own)
 
     def next_due_ns(self) -> int | None:
         """Host time (ns) at which the oldest held packet is decided (None: none held)."""
         return self._held[0][0] + self.wait_ns if self._held else None
 
-    def due(self, now_ns: int) -> tuple[list, list]:
-        """(kept, rejected) items of the held packets whose wait is over at ``now_ns``; the
-        own onsets whose wait is over are paired with the reports first (offsets)."""
+    def due(self, now_ns: int, key=None, flush: bool = False) -> tuple[list, list]:
+        """(kept, rejected) items of the held packets whose wait is over at ``now_ns``
+        (``flush``: every held packet, with the reports at hand), and after them the
+        records behind them (`follow`) that no held packet older than them (by ``key``,
+        a record's time in ns) holds back any more; the own onsets whose wait is over are
+        paired with the reports first (offsets)."""
         limit = int(now_ns) - self.wait_ns
         if self._own and self._others:
-            ripe = [t for t in self._own if t <= limit]
+            ripe = [t for t in self._own if t <= limit or flush]
             if ripe:
-                self._own = [t for t in self._own if t > limit]
+                self._own = [t for t in self._own if t > limit and not flush]
                 self._pair(np.asarray(ripe, np.int64))
-        n = 0
+        n = len(self._held) if flush else 0
         while n < len(self._held) and self._held[n][0] <= limit:
             n += 1
-        if n == 0:
-            return [], []
-        done, self._held = self._held[:n], self._held[n:]
-        t = np.fromiter((h[0] for h in done), np.int64, n)
-        hit = self.coincident(t)
-        kept = [h[1] for h, m in zip(done, hit) if not m]
-        rejected = [h[1] for h, m in zip(done, hit) if m]
-        self.counts["kept"] += len(kept)
-        self.counts["rejected_coincidence"] += len(rejected)
-        self._decided.extend(int(x) for x in t[-64:])
+        kept: list = []
+        rejected: list = []
+        if n:
+            done, self._held = self._held[:n], self._held[n:]
+            t = np.fromiter((h[0] for h in done), np.int64, n)
+            hit = self.coincident(t)
+            kept = [h[1] for h, m in zip(done, hit) if not m]
+            rejected = [h[1] for h, m in zip(done, hit) if m]
+            self.counts["kept"] += len(kept)
+            self.counts["rejected_coincidence"] += len(rejected)
+            self._decided.extend(int(x) for x in t[~hit][-64:])
+        if self._follow and (n or not self._held):
+            if not self._held:
+                free, self._follow = self._follow, []
+            elif key is None:
+                free = []
+            else:
+                bar = key(self._held[0][1])
+                free = [r for r in self._follow if key(r) < bar]
+                self._follow = [r for r in self._follow if key(r) >= bar]
+            if free:
+                kept = kept + free
+                if key is not None:
+                    kept.sort(key=key)
         return kept, rejected
 
     def _pair(self, own: np.ndarray) -> None:
@@ -198,9 +307,9 @@ class HandCoincidence:
         for source, rep in self._others.items():
             if rep.size == 0:
                 continue
-            j = np.searchsorted(rep, own)
-            lo = rep[np.clip(j - 1, 0, rep.size - 1)] - own
-            hi = rep[np.clip(j, 0, rep.size - 1)] - own
+            j = rep.searchsorted(own)
+            lo = rep[np.maximum(j - 1, 0)] - own
+            hi = rep[np.minimum(j, rep.size - 1)] - own
             d = np.where(np.abs(lo) <= np.abs(hi), lo, hi)
             d = d[np.abs(d) <= self.search_ns]
             if d.size:
@@ -214,22 +323,22 @@ class HandCoincidence:
         agree on an offset more than ``window_s`` from the learnt one (the link's clock
         moved: another latency floor), theirs, the older pairs dropped."""
         q = self._diffs[source]
-        d = np.fromiter(q, np.int64, len(q))
-        if d.size < OFFSET_MIN_PAIRS:
+        if len(q) < OFFSET_MIN_PAIRS:
             return
+        d = list(q)
         half = 0.5 * self.window_ns
         old = self.offsets_ns.get(source)
         if old is not None:
             r = d[-OFFSET_MIN_PAIRS:]
-            med = float(np.median(r))
-            if abs(med - old) > self.window_ns and float(np.median(np.abs(r - med))) <= half:
+            med = _median(r)
+            if abs(med - old) > self.window_ns and _median([abs(x - med) for x in r]) <= half:
                 q.clear()
-                q.extend(int(x) for x in r)
+                q.extend(r)
                 self.offsets_ns[source] = int(round(med))
                 self.counts["offsets_moved"] += 1
                 return
-        med = float(np.median(d))
-        if float(np.median(np.abs(d - med))) <= half:
+        med = _median(d)
+        if _median([abs(x - med) for x in d]) <= half:
             if old is None:
                 self.counts["offsets_learnt"] += 1
             self.offsets_ns[source] = int(round(med))

@@ -512,7 +512,7 @@ class DriverNode(Node):
 
     def _on_hand_apex(self, msg: ApexPackets) -> None:
         if msg.fingertip != self._fqn:
-            self.pipeline.hand_reports(msg.onset_ns, msg.fingertip)
+            self.pipeline.hand_reports(msg.onset_ns, msg.fingertip, self.now_ns())
 
     def _publish_contacts(self, records) -> None:
         encode, publish = self._wire.encode, self.pub_contacts.publish
@@ -542,8 +542,8 @@ class DriverNode(Node):
             self.pipeline.release_held()  # slip steps whose wait for the resolver expired
             if self.pub_apex is not None:
                 # the reader decides the hand's held packets within read_timeout_s; this is
-                # for a reader that is not running (the link down)
-                self.pipeline.release_coincidence(self.now_ns())
+                # for a reader that is not running (the link down): never beside it
+                self.pipeline.release_coincidence(self.now_ns(), blocking=False)
             self.pipeline.tick(self.now_ns())
         else:
             self.slip_stage.tick(self.now_ns())
@@ -774,6 +774,13 @@ class DriverNode(Node):
         if hasattr(self, "link") and self.link._thread is not None:
             self.link.stop()
         if getattr(self, "pipeline", None) is not None:
+            if getattr(self, "pub_apex", None) is not None:
+                # the apex touches the hand still holds: decided with the reports at hand
+                try:
+                    self.pipeline.release_coincidence(self.now_ns(), flush=True)
+                except Exception as exc:  # noqa: BLE001 (the context may be gone already)
+                    print(f"[ae_tactile] driver: held apex packets not handed out at "
+                          f"shutdown: {exc!r}", flush=True)
             self.pipeline.close()
         return super().destroy_node()
 
