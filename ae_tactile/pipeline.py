@@ -1379,7 +1379,8 @@ class ContactPipeline:
         (ValueError on bad settings: nothing changed then)."""
         kw = {k: v for k, v in (("window_s", window_s), ("wait_s", wait_s)) if v is not None}
         hand = HandCoincidence(**kw)  # checks the settings
-        with self._hand_lock:
+        # never in the middle of a hand-out (the same lock order as `process`)
+        with self._release_lock, self._hand_lock:
             if self.hand is not None:  # the reports, held packets and counts stay
                 hand = self.hand.with_settings(hand.window_ns * 1e-9, hand.wait_ns * 1e-9)
             self.hand = hand
@@ -1397,18 +1398,17 @@ class ContactPipeline:
                 self._apex_out.extend(loc.apex_onsets_ns)
                 if len(self._apex_out) > APEX_OUT_MAX:  # nobody takes them: the newest
                     del self._apex_out[:-APEX_OUT_MAX]
-        hand = self.hand
-        if hand is None or not (loc.apex_held or hand.pending):
+        if self.hand is None or not (loc.apex_held or self.hand.pending):
             return contacts
         held = {id(rec): t for t, rec in loc.apex_held}
         keep = []
         with self._hand_lock:
+            hand = self.hand
             for rec in contacts:
                 t = held.get(id(rec))
                 if t is not None and hand.hold(t, rec):
                     held[id(rec)] = None  # held
-            oldest = hand.oldest_held()
-            bar = None if oldest is None else oldest.time_ns
+            bar = hand.held_min(_TIME_NS)  # the earliest held event
             for rec in contacts:
                 if held.get(id(rec), 0) is None:
                     continue
@@ -1434,26 +1434,36 @@ class ContactPipeline:
                 self.hand.add_others(onsets_ns, source, now_ns)
 
     def release_coincidence(
-        self, now_ns: int, *, flush: bool = False, blocking: bool = True
+        self,
+        now_ns: int,
+        *,
+        flush: bool = False,
+        blocking: bool = True,
+        timeout_s: float | None = None,
     ) -> bool:
         """Decide the held apex packets whose wait is over at host time ``now_ns``
         (``flush``: all of them, with the reports at hand): those another fingertip saw
         too are interference (``rejected_INTERFERENCE_HAND``), the others are handed out
-        with the events behind them, in time order, and go through the slip step.
-        ``blocking`` False: nothing if another thread is handing out events. True if any
-        was handed out."""
+        with the events behind them, in time order, and go through the slip step after
+        the earlier events' put-off one. ``blocking`` False: nothing if another thread is
+        handing out events (``timeout_s``: waiting at most that long). True if any was
+        handed out."""
         hand = self.hand
         if hand is None or not (hand.pending or hand.unpaired):
             return False
-        if not self._release_lock.acquire(blocking):
+        wait = -1 if timeout_s is None else max(0.0, float(timeout_s))
+        if not (self._release_lock.acquire(True, wait) if blocking else
+                self._release_lock.acquire(False)):
             return False
         try:
             with self._hand_lock:
+                hand = self.hand
                 kept, rejected = hand.due(int(now_ns), _TIME_NS, flush)
             if rejected:
                 self.counts["rejected_INTERFERENCE_HAND"] += len(rejected)
             on_contacts, on_slip = self._outputs
             if kept and on_contacts is not None:
+                self.run_pending_slip()  # earlier events first, in the slip stage too
                 self.late(self._claim(kept, resolved=False), on_contacts, on_slip)
             return bool(kept)
         finally:
@@ -1750,9 +1760,10 @@ class ContactPipeline:
 
     def run_pending_slip(self) -> None:
         """The slip step of contact events handed out while more packets were waiting."""
-        pending, self._slip_pending = self._slip_pending, []
-        if pending:
-            self._slip_step(pending)
+        with self._step_lock:  # the reader's idle call and a hand-out from a timer
+            pending, self._slip_pending = self._slip_pending, []
+            if pending:
+                self._slip_step(pending)
 
     def run_idle_work(self) -> bool:
         """What waits for a moment without packets: the slip step put off, then the echo

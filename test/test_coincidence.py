@@ -304,6 +304,15 @@ def test_reports_that_cannot_be_right_are_counted_and_change_nothing():
     later = now + 2 * 10**9  # the others silent for 2 s: forgotten for a new name
     hc.add_others([later], "/f99", now_ns=later)
     assert set(hc._others) == {"/f99"}
+    bad = hc.counts["rejected_nonfinite"]
+    hc.add_others([True, False], "/f99")  # not stamps
+    hc.add_others(["123", "4.5"], "/f99")
+    hc.add_others([2**70, later + 1], "/f99")  # one beyond int64: the good one stays exact
+    assert not (hc.hold(True, "x") or hc.hold("12", "y"))
+    assert hc.counts["rejected_nonfinite"] == bad + 7
+    assert int(hc._others["/f99"][-1]) == later + 1
+    hc.add_others([later], "/f99", now_ns=2**70)  # no clock reads that: nothing checked
+    assert hc.counts["reports_rejected_stamp"] == 3
 
 
 def test_a_late_report_is_counted_only_for_a_packet_that_was_kept():

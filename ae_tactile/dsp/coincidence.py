@@ -82,7 +82,7 @@ class HandCoincidence:
     another fingertip lies within ``window_s`` of the onset (less that fingertip's
     offset). Counts: ``held``, ``kept``, ``rejected_coincidence``, ``rejected_nonfinite``
     (stamps that are not finite numbers), ``reports_late`` (a report within ``window_s`` of
-    one of the last 64 packets decided before it came: it does not change that decision),
+    one of the last 64 packets kept before it came: that packet went out as a touch),
     ``offsets_learnt`` (fingertips whose offset is known), ``offsets_moved`` (learnt offsets
     replaced by the newest pairs'), and for reports that cannot be right:
     ``reports_rejected_stamp`` (more than ``keep_s`` from this fingertip's clock, when the
@@ -140,6 +140,16 @@ class HandCoincidence:
         """The stamps as int64 ns (integers exactly: a float64 rounds today's epoch stamps
         to 256 ns); not finite or beyond +-2^62 ns: counted and dropped."""
         t = np.asarray(onsets_ns).ravel()
+        if t.dtype.kind == "O":  # Python ints beyond int64 among good ones: one by one
+            good = [int(x) for x in t.tolist()
+                    if isinstance(x, (int, np.integer)) and not isinstance(x, bool)
+                    and -(2**62) < int(x) < 2**62]
+            if len(good) < t.size:
+                self.counts["rejected_nonfinite"] += int(t.size - len(good))
+            return np.asarray(good, np.int64)
+        if t.dtype.kind not in "iuf":  # bools, strings: no stamps
+            self.counts["rejected_nonfinite"] += int(t.size)
+            return np.zeros(0, np.int64)
         if t.dtype.kind == "i":
             t = t.astype(np.int64, copy=False)
             ok = (t > -(2**62)) & (t < 2**62)
@@ -147,11 +157,7 @@ class HandCoincidence:
             ok = t < 2**62
             t = np.where(ok, t, 0).astype(np.int64)
         else:
-            try:
-                f = t.astype(np.float64)
-            except (TypeError, ValueError):
-                self.counts["rejected_nonfinite"] += int(t.size)
-                return np.zeros(0, np.int64)
+            f = t.astype(np.float64)
             ok = np.isfinite(f) & (np.abs(f) < 2.0**62)
             t = np.where(ok, f, 0.0).astype(np.int64)
         if not ok.all():
@@ -172,15 +178,18 @@ class HandCoincidence:
         (a clock that jumped, a node on another clock), and old reports are forgotten by
         it (else by the source's newest stamp)."""
         t = self._finite(onsets_ns)
-        if t.size > REPORTS_MAX:
-            self.counts["reports_rejected_flood"] += int(t.size - REPORTS_MAX)
-            t = np.sort(t)[-REPORTS_MAX:]
         if now_ns is not None:
             now_ns = int(now_ns)
-            ok = np.abs(t - now_ns) <= self.keep_ns
+            if abs(now_ns) < 2**62:
+                ok = np.abs(t - now_ns) <= self.keep_ns
+            else:  # no clock of this machine reads that: nothing can be checked
+                ok = np.zeros(t.size, bool)
             if not ok.all():
                 self.counts["reports_rejected_stamp"] += int(np.count_nonzero(~ok))
                 t = t[ok]
+        if t.size > REPORTS_MAX:
+            self.counts["reports_rejected_flood"] += int(t.size - REPORTS_MAX)
+            t = np.sort(t)[-REPORTS_MAX:]
         if t.size == 0:
             return
         source = str(source)
@@ -210,17 +219,22 @@ class HandCoincidence:
         self._others[source] = both
 
     def _forget_silent(self, now_ns: int) -> None:
-        """Forget the fingertips with no report within ``keep_s`` of ``now_ns``."""
+        """Forget the reports of the fingertips with none within ``keep_s`` of ``now_ns``
+        (their offsets stay, but for names beyond 4 `SOURCES_MAX`)."""
         for k in [k for k, v in self._others.items() if v.size == 0
                   or int(v[-1]) < now_ns - self.keep_ns]:
             del self._others[k]
-            self._diffs.pop(k, None)
-            self.offsets_ns.pop(k, None)
+        if len(self._diffs) > 4 * SOURCES_MAX:
+            for k in [k for k in self._diffs if k not in self._others]:
+                self._diffs.pop(k, None)
+                self.offsets_ns.pop(k, None)
 
     def hold(self, onset_ns, item=None) -> bool:
         """Hold an apex packet of this fingertip until its wait is over; False (counted)
         if its stamp is not a finite number."""
-        if isinstance(onset_ns, (int, np.integer)) and not isinstance(onset_ns, bool):
+        if isinstance(onset_ns, (bool, np.bool_, str, bytes)):
+            ok, t_ns = False, 0
+        elif isinstance(onset_ns, (int, np.integer)):
             t_ns = int(onset_ns)
             ok = abs(t_ns) < 2**62
         else:
@@ -243,9 +257,10 @@ class HandCoincidence:
         """A record that must wait behind the held packets older than it."""
         self._follow.append(item)
 
-    def oldest_held(self):
-        """The oldest held item (None: none held)."""
-        return self._held[0][1] if self._held else None
+    def held_min(self, key):
+        """The least ``key(item)`` of the held items (None: none held)."""
+        held = self._held
+        return min(key(h[1]) for h in held) if held else None
 
     @property
     def pending(self) -> int:
@@ -259,7 +274,8 @@ class HandCoincidence:
 
     def next_due_ns(self) -> int | None:
         """Host time (ns) at which the oldest held packet is decided (None: none held)."""
-        return self._held[0][0] + self.wait_ns if self._held else None
+        held = self._held  # one read: another thread may rebind it
+        return held[0][0] + self.wait_ns if held else None
 
     def due(self, now_ns: int, key=None, flush: bool = False) -> tuple[list, list]:
         """(kept, rejected) items of the held packets whose wait is over at ``now_ns``
@@ -293,7 +309,7 @@ class HandCoincidence:
             elif key is None:
                 free = []
             else:
-                bar = key(self._held[0][1])
+                bar = self.held_min(key)
                 free = [r for r in self._follow if key(r) < bar]
                 self._follow = [r for r in self._follow if key(r) >= bar]
             if free:

@@ -776,11 +776,18 @@ class DriverNode(Node):
         if getattr(self, "pipeline", None) is not None:
             if getattr(self, "pub_apex", None) is not None:
                 # the apex touches the hand still holds: decided with the reports at hand
+                # (not waiting long for a reader that did not stop)
+                problem = None
                 try:
-                    self.pipeline.release_coincidence(self.now_ns(), flush=True)
+                    self.pipeline.release_coincidence(self.now_ns(), flush=True, timeout_s=1.0)
                 except Exception as exc:  # noqa: BLE001 (the context may be gone already)
+                    problem = repr(exc)
+                hand = self.pipeline.hand
+                if problem is None and hand is not None and hand.pending:
+                    problem = f"{hand.pending} still held (the reader did not stop)"
+                if problem is not None:
                     print(f"[ae_tactile] driver: held apex packets not handed out at "
-                          f"shutdown: {exc!r}", flush=True)
+                          f"shutdown: {problem}", flush=True)
             self.pipeline.close()
         return super().destroy_node()
 
