@@ -1456,15 +1456,18 @@ class ContactPipeline:
                 self._release_lock.acquire(False)):
             return False
         try:
-            with self._hand_lock:
-                hand = self.hand
-                kept, rejected = hand.due(int(now_ns), _TIME_NS, flush)
-            if rejected:
-                self.counts["rejected_INTERFERENCE_HAND"] += len(rejected)
-            on_contacts, on_slip = self._outputs
-            if kept and on_contacts is not None:
-                self.run_pending_slip()  # earlier events first, in the slip stage too
-                self.late(self._claim(kept, resolved=False), on_contacts, on_slip)
+            # the slip stage's clock (`tick`, a timer) waits until what is decided here
+            # has been through the slip step: it never runs past a released event
+            with self._step_lock:
+                with self._hand_lock:
+                    hand = self.hand
+                    kept, rejected = hand.due(int(now_ns), _TIME_NS, flush)
+                if rejected:
+                    self.counts["rejected_INTERFERENCE_HAND"] += len(rejected)
+                on_contacts, on_slip = self._outputs
+                if kept and on_contacts is not None:
+                    self.run_pending_slip()  # earlier events first, in the slip stage too
+                    self.late(self._claim(kept, resolved=False), on_contacts, on_slip)
             return bool(kept)
         finally:
             self._release_lock.release()
