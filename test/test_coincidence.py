@@ -151,6 +151,24 @@ def test_the_pipeline_holds_apex_packets_for_the_hand_and_hands_out_the_touches(
     assert pipe.slip.counts["contacts_in"] == len(out) and pipe.idle()
 
 
+def _play(hc, events):
+    """Play (host ns, order, kind, payload) events through ``hc`` in time order: own onsets,
+    held packets, the others' reports ((stamp, name)) and decisions; (kept, rejected)."""
+    kept, rejected = [], []
+    for t, _, kind, p in sorted(events, key=lambda e: (e[0], e[1])):
+        if kind == "own":
+            hc.add_own([p])
+        elif kind == "hold":
+            hc.hold(*p)
+        elif kind == "report":
+            hc.add_others([p[0]], p[1])
+        else:
+            k, r = hc.due(int(t))
+            kept += k
+            rejected += r
+    return kept, rejected
+
+
 def test_each_fingertips_clock_offset_is_learnt_from_the_common_bursts():
     """Two other fingertips whose links stamp every burst 0.44 ms late and 0.25 ms early
     (their latency floors): the first bursts fall outside the 0.3 ms window and are kept;
@@ -168,18 +186,7 @@ def test_each_fingertips_clock_offset_is_learnt_from_the_common_bursts():
         events += [(t + 800_000, 2, "report", (t + off + j, name))
                    for t, j in zip(bursts, jitter)]
     events += [(t + 5 * MS, 3, "due", None) for t in np.concatenate([bursts, touches])]
-    kept, rejected = [], []
-    for t, _, kind, p in sorted(events, key=lambda e: (e[0], e[1])):
-        if kind == "own":
-            hc.add_own([p])
-        elif kind == "hold":
-            hc.hold(*p)
-        elif kind == "report":
-            hc.add_others([p[0]], p[1])
-        else:
-            k, r = hc.due(int(t))
-            kept += k
-            rejected += r
+    kept, rejected = _play(hc, events)
     assert abs(hc.offsets_ns["index"] - 440_000) < 10_000
     assert abs(hc.offsets_ns["thumb"] + 250_000) < 10_000
     assert hc.counts["offsets_learnt"] == 2
@@ -205,20 +212,10 @@ def test_a_fingertips_offset_that_moves_is_learnt_again_from_eight_bursts():
     events += [(t, 1, "hold", (t, ("t", t))) for t in touches]
     jitter = rng.normal(0, 5_000, bursts.size).astype(np.int64)
     off = np.where(bursts < move_ns, 440_000, -250_000)
-    events += [(t + 800_000, 2, "report", t + o + j) for t, o, j in zip(bursts, off, jitter)]
+    events += [(t + 800_000, 2, "report", (t + o + j, "index"))
+               for t, o, j in zip(bursts, off, jitter)]
     events += [(t + 5 * MS, 3, "due", None) for t in np.concatenate([bursts, touches])]
-    kept, rejected = [], []
-    for t, _, kind, p in sorted(events, key=lambda e: (e[0], e[1])):
-        if kind == "own":
-            hc.add_own([p])
-        elif kind == "hold":
-            hc.hold(*p)
-        elif kind == "report":
-            hc.add_others([p], "index")
-        else:
-            k, r = hc.due(int(t))
-            kept += k
-            rejected += r
+    kept, rejected = _play(hc, events)
     after = bursts[bursts >= move_ns]
     kept_after = sorted(t for kind, t in kept if kind == "b" and t >= move_ns)
     assert len(kept_after) <= 7
