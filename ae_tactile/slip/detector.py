@@ -132,32 +132,50 @@ def _multiples(dt, unit):
 
 
 _MISS_PENALTY = 2.0 * math.log(9.0)
+#: ambiguous intervals whose period counts `_period_fit_best` tries both ways (2^8 fits)
+_MAX_AMBIGUOUS = 8
 
 
-def _period_fit_best(ts_ns, kk, dt, unit):
-    """``_period_fit`` with the period counts of ambiguous intervals (the up to 3 of
-    1.25 .. 2.75 ``unit`` farthest from a whole number: a jittered double interval or a
-    long single one) chosen by the whole fit: a wrong count shifts every later time by a
-    period, a jitter of sd s T only one time by s T. Score n ln(RSS) (Gaussian jitter,
-    its variance fitted) + 2 ln 9 per missed packet (one interval in ten spans two
-    periods a priori), the least wins. Returns (T, se, kk)."""
-    r = dt / unit
-    dev = np.abs(r - np.round(r))
-    amb = np.flatnonzero((dev > 0.25) & (r > 1.25) & (r < 2.75))
-    if amb.size == 0:
-        return (*_period_fit(ts_ns, kk), kk)
-    amb = amb[np.argsort(-dev[amb])[:3]]
-    best = None
+def _period_fit_best(ts_ns, dt, units):
+    """Period T (s), its standard error and the period count of each interval, the counts
+    chosen by the whole fit: a wrong count shifts every later time by a period, a jitter
+    of sd s T only one time by s T. For each trial ``unit`` (ns: the median interval, a
+    period found before), every interval counts `_multiples` units, except the ambiguous
+    ones (1.25 .. 2.75 units, > 0.25 from a whole number: a jittered double interval or a
+    long single one; the ``_MAX_AMBIGUOUS`` farthest from a whole number), whose counts are
+    tried both ways in one batch. Score n ln(RSS) (Gaussian jitter, its variance fitted) +
+    2 ln 9 per missed packet (one interval in ten spans two periods a priori); the least
+    wins over every unit. (A unit that is itself wrong, e.g. a period that took four long
+    singles for doubles, cannot reach the right counts alone: hence several units.)"""
+    tt = (ts_ns - ts_ns[0]) * 1e-9
+    tc = tt - tt.mean()
     n = float(ts_ns.size)
-    for code in range(1 << amb.size):
-        k2 = kk.copy()
-        for b, i in enumerate(amb):
-            k2[i] = math.floor(r[i]) + ((code >> b) & 1)
-        T, se, rss = _period_fit(ts_ns, k2, True)
-        score = n * math.log(max(rss, 1e-30)) + _MISS_PENALTY * float(k2.sum() - k2.size)
-        if best is None or score < best[2]:
-            best = (T, se, score, k2)
-    return best[0], best[1], best[3]
+    best = None
+    for unit in units:
+        if not unit > 0:
+            continue
+        r = dt / unit
+        kk = _multiples(dt, unit)
+        dev = np.abs(r - np.round(r))
+        amb = np.flatnonzero((dev > 0.25) & (r > 1.25) & (r < 2.75))
+        amb = amb[np.argsort(-dev[amb])[:_MAX_AMBIGUOUS]]
+        bits = (np.arange(1 << amb.size)[:, None] >> np.arange(amb.size)) & 1
+        k2 = np.broadcast_to(kk, (bits.shape[0], kk.size)).copy()
+        k2[:, amb] = np.floor(r[amb]) + bits
+        K = np.concatenate((np.zeros((k2.shape[0], 1)), np.cumsum(k2, axis=1)), axis=1)
+        Kc = K - K.mean(axis=1, keepdims=True)
+        skk = np.einsum("ij,ij->i", Kc, Kc)
+        skt = Kc @ tc
+        rss = np.maximum(float(tc @ tc) - skt * skt / skk, 1e-30)
+        score = n * np.log(rss) + _MISS_PENALTY * (k2.sum(axis=1) - k2.shape[1])
+        j = int(np.argmin(score))
+        if best is None or score[j] < best[0]:
+            best = (float(score[j]), float(skt[j] / skk[j]), float(rss[j]), float(skk[j]), k2[j])
+    if best is None:
+        return math.nan, math.inf, None
+    _, T, rss, skk, kk = best
+    se = math.sqrt(rss / max(1.0, n - 2.0) / skk)
+    return T, se, kk
 
 
 def _period_fit(ts_ns, kk, with_rss=False):
@@ -909,9 +927,14 @@ class SlipDetector:
             return None
         om = float(tc @ (phi - phi.mean())) / stt
         res = phi - phi.mean() - om * tc
-        s2 = float(res @ res) / max(1, n - 2)
         rn = float(np.sqrt(np.einsum("ij,ij->i", P, P)).mean())
-        return rn * abs(om), rn * math.sqrt(s2 / stt)
+        # the scatter round the track is isotropic in the tangent plane (the contact patch,
+        # localization): the variance along it (n - 2 dof) pooled with the distances from
+        # the great circle's plane (n - 2 more), so that the first report, made once the
+        # standard error falls below a bound, is not made on a chance low estimate of it
+        off = P @ vt[2]
+        s2 = (rn * rn * float(res @ res) + float(off @ off)) / max(1, 2 * n - 4)
+        return rn * abs(om), math.sqrt(s2 / stt)
 
     def _end_contact(self, c):
         if c in self.contacts:
@@ -1256,7 +1279,7 @@ class SlipDetector:
         if llr < cfg.texture_min_llr:
             c.texture_on, c.texture_run = False, 0
             return
-        period, se_period, kk = _period_fit_best(ts, kk, dt, m)
+        period, se_period, kk = _period_fit_best(ts, dt, (m,))
         c.texture_run += 1
         if c.texture_run < cfg.texture_confirm_events or not period > 0:
             return
@@ -1272,9 +1295,9 @@ class SlipDetector:
             # the period over the same emissions (a longer run: a smaller error)
             tr = np.sort(c.t[:k][run])
             dtr = np.diff(tr).astype(float)
-            kr = _multiples(dtr, period * 1e9)
-            if kr.max() <= cfg.texture_max_multiple:
-                period, se_period, _ = _period_fit_best(tr, kr, dtr, period * 1e9)
+            pr, ser, kr = _period_fit_best(tr, dtr, (period * 1e9, float(np.median(dtr))))
+            if kr is not None and kr.max() <= cfg.texture_max_multiple:
+                period, se_period = pr, ser
             rel = math.hypot(fit[1] / fit[0], se_period / period) if fit[0] > 0 else math.inf
             if rel > cfg.texture_period_rel_se:
                 return  # periodic, but the spatial period is not known well yet
