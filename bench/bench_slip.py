@@ -1094,7 +1094,7 @@ def speed_main(seed: int = 0) -> int:
 
 
 #: families `--only` reruns on top of a full run's results
-RERUNNABLE = ("cost", "hand_interference")
+RERUNNABLE = ("cost", "hand_interference", "stylus")
 
 
 def main(argv=None) -> int:
@@ -1384,7 +1384,11 @@ def main(argv=None) -> int:
         for mine, theirs in ((summary, "summary"), (trials, "trials"), (timing, "timing_s")):
             mine.update(stored.get(theirs, {}))
         res.update({k: v for k, v in stored.items() if k not in res})  # the costs, ...
-        {"hand_interference": hand_interference, "cost": cost}[args.only]()
+        {
+            "hand_interference": hand_interference,
+            "cost": cost,
+            "stylus": lambda: (stylus("events", N), stylus("triggered", n_val)),
+        }[args.only]()
         res["meta"] = stored.get("meta", {})
         res["meta"].setdefault("reruns", []).append({
             "family": args.only,
