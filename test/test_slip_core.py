@@ -1073,6 +1073,31 @@ def test_texture_period_with_many_long_single_intervals():
     assert all(abs(o.spatial_period_m / (v * T) - 1) < 0.03 for o in tex)
 
 
+@pytest.mark.parametrize("jitter", [1e-7, 0.05])
+def test_period_fit_on_ros_time_stamps_matches_least_squares(jitter):
+    """Times in ROS-clock ns (1.7e9 s), one packet missed, timing jitter of 1e-7 (a
+    near-perfect train, where tc.tc - (Kc.tc)^2 / Kc.Kc cancels) and 5 % of the period:
+    the period and its standard error are numpy's least squares on the chosen counts."""
+    from ae_tactile.slip.detector import _period_fit_best
+
+    rng = np.random.default_rng(3)
+    T = 0.0123
+    k = np.delete(np.arange(30), 11)
+    t_ns = 1_700_000_000_000_000_000 + np.round(
+        (k * T + rng.normal(0, jitter * T, k.size)) * 1e9
+    ).astype(np.int64)
+    dt = np.diff(t_ns).astype(float)
+    period, se, kk = _period_fit_best(t_ns, dt, (float(np.median(dt)),))
+    assert kk.tolist() == np.diff(k).tolist()
+    A = np.stack([np.ones(k.size), k - k[0]], axis=1).astype(float)
+    y = (t_ns - t_ns[0]) * 1e-9
+    coef, rss, *_ = np.linalg.lstsq(A, y, rcond=None)
+    se_ls = math.sqrt(float(rss[0]) / (k.size - 2) / float(((k - k.mean()) ** 2).sum()))
+    assert period == pytest.approx(coef[1], rel=1e-12)
+    assert se == pytest.approx(se_ls, rel=1e-6)
+    assert abs(period / T - 1) < 10 * se / T + 1e-9
+
+
 def _stroke_events(rng, v, lam, patch_m, jitter=0.02, arc_m=10e-3):
     """A stylus dragged along the great circle y = 0 from polar angle -arc / 2R to
     +arc / 2R at surface speed v over a texture of period lam: an emission at each ridge

@@ -132,8 +132,10 @@ def _multiples(dt, unit):
 
 
 _MISS_PENALTY = 2.0 * math.log(9.0)
-#: ambiguous intervals whose period counts `_period_fit_best` tries both ways (2^8 fits)
+#: ambiguous intervals whose period counts `_period_fit_best` tries both ways: at most
+#: 2^8 fits, and at most this many times (counts) in all (2^6 fits of a run of 64)
 _MAX_AMBIGUOUS = 8
+_MAX_FIT_TIMES = 4096
 
 
 def _period_fit_best(ts_ns, dt, units):
@@ -142,55 +144,63 @@ def _period_fit_best(ts_ns, dt, units):
     of sd s T only one time by s T. For each trial ``unit`` (ns: the median interval, a
     period found before), every interval counts `_multiples` units, except the ambiguous
     ones (1.25 .. 2.75 units, > 0.25 from a whole number: a jittered double interval or a
-    long single one; the ``_MAX_AMBIGUOUS`` farthest from a whole number), whose counts are
-    tried both ways in one batch. Score n ln(RSS) (Gaussian jitter, its variance fitted) +
-    2 ln 9 per missed packet (one interval in ten spans two periods a priori); the least
-    wins over every unit. (A unit that is itself wrong, e.g. a period that took four long
-    singles for doubles, cannot reach the right counts alone: hence several units.)"""
-    tt = (ts_ns - ts_ns[0]) * 1e-9
-    tc = tt - tt.mean()
-    n = float(ts_ns.size)
+    long single one; the ``_MAX_AMBIGUOUS`` farthest from a whole number, fewer in a long
+    run: at most ``_MAX_FIT_TIMES`` times in all), whose counts are tried both ways in one
+    batch. Score n ln(RSS) (Gaussian jitter, its variance fitted) + 2 ln 9 per missed
+    packet (one interval in ten spans two periods a priori); the least wins over every
+    unit. (A unit that is itself wrong, e.g. a period that took four long singles for
+    doubles, cannot reach the right counts alone: hence several units.)
+    Least squares t_j = t_0 + K_j T on the cumulative counts K_j (c: less the mean):
+    T = Kc.tc / Kc.Kc, RSS = tc.tc - (Kc.tc)^2 / Kc.Kc."""
+    tc = (ts_ns - ts_ns[0]) * 1e-9
+    tc -= tc.mean()
+    stt = float(tc @ tc)
+    n = ts_ns.size
+    n_amb = min(_MAX_AMBIGUOUS, (_MAX_FIT_TIMES // n).bit_length() - 1)
+    K = np.zeros((1, n))
     best = None
+    tried = []
     for unit in units:
         if not unit > 0:
             continue
         r = dt / unit
-        kk = _multiples(dt, unit)
-        dev = np.abs(r - np.round(r))
+        rr = np.rint(r)
+        dev = np.abs(r - rr)
+        kk = np.where(r < 1.7, 1.0, rr)
         amb = np.flatnonzero((dev > 0.25) & (r > 1.25) & (r < 2.75))
-        amb = amb[np.argsort(-dev[amb])[:_MAX_AMBIGUOUS]]
-        bits = (np.arange(1 << amb.size)[:, None] >> np.arange(amb.size)) & 1
-        k2 = np.broadcast_to(kk, (bits.shape[0], kk.size)).copy()
-        k2[:, amb] = np.floor(r[amb]) + bits
-        K = np.concatenate((np.zeros((k2.shape[0], 1)), np.cumsum(k2, axis=1)), axis=1)
+        if amb.size > n_amb:
+            amb = amb[np.argsort(-dev[amb])[:n_amb]]
+        key = (kk.tobytes(), amb.tobytes())
+        if key in tried:  # the same counts to try as a unit before
+            continue
+        tried.append(key)
+        if amb.size:
+            bits = (np.arange(1 << amb.size)[:, None] >> np.arange(amb.size)) & 1
+            k2 = np.repeat(kk[None, :], bits.shape[0], axis=0)
+            k2[:, amb] = np.floor(r[amb]) + bits
+        else:
+            k2 = kk[None, :]
+        if K.shape[0] != k2.shape[0]:
+            K = np.zeros((k2.shape[0], n))
+        np.cumsum(k2, axis=1, out=K[:, 1:])
         Kc = K - K.mean(axis=1, keepdims=True)
         skk = np.einsum("ij,ij->i", Kc, Kc)
         skt = Kc @ tc
-        rss = np.maximum(float(tc @ tc) - skt * skt / skk, 1e-30)
+        rss = np.maximum(stt - skt * skt / skk, 1e-30)
         score = n * np.log(rss) + _MISS_PENALTY * (k2.sum(axis=1) - k2.shape[1])
         j = int(np.argmin(score))
         if best is None or score[j] < best[0]:
-            best = (float(score[j]), float(skt[j] / skk[j]), float(rss[j]), float(skk[j]), k2[j])
+            best = (float(score[j]), Kc[j].copy(), k2[j])
     if best is None:
         return math.nan, math.inf, None
-    _, T, rss, skk, kk = best
-    se = math.sqrt(rss / max(1.0, n - 2.0) / skk)
-    return T, se, kk
-
-
-def _period_fit(ts_ns, kk, with_rss=False):
-    """(T, its standard error) (s), and with ``with_rss`` the residual sum of squares
-    (s^2): least squares t_j = t_0 + K_j T on the cumulative period counts K_j of sorted
-    times ``ts_ns``."""
-    K = np.concatenate(([0.0], np.cumsum(kk)))
-    tt = (ts_ns - ts_ns[0]) * 1e-9
-    Kc = K - K.mean()
+    _, Kc, kk = best
+    # the chosen fit's error from its residuals: tc.tc - (Kc.tc)^2 / Kc.Kc cancels when
+    # the jitter is tiny (a near-perfect train), the residuals do not
     skk = float(Kc @ Kc)
-    T = float(Kc @ (tt - tt.mean()) / skk)
-    res = tt - tt.mean() - Kc * T
-    rss = float(res @ res)
-    se = math.sqrt(rss / max(1, K.size - 2) / skk)
-    return (T, se, rss) if with_rss else (T, se)
+    T = float(Kc @ tc) / skk
+    res = tc - Kc * T
+    se = math.sqrt(float(res @ res) / max(1.0, n - 2.0) / skk)
+    return T, se, kk
 
 
 def _drift_fit(t_ns, P):
@@ -912,11 +922,11 @@ class SlipDetector:
             return None
         ts = c.t[:k][m] * 1e-9
         P = c.p[:k][m]
-        try:
-            _, _, vt = np.linalg.svd(P, full_matrices=False)
+        try:  # the plane: P'P's eigenvectors (ascending), as P's right singular vectors
+            _, ev3 = np.linalg.eigh(P.T @ P)
         except np.linalg.LinAlgError:
             return None
-        u, w = vt[0], vt[1]
+        u, w, normal = ev3[:, 2], ev3[:, 1], ev3[:, 0]
         pu = P @ u
         if pu.sum() < 0:  # singular vectors have no sign: face the points
             pu = -pu
@@ -932,7 +942,7 @@ class SlipDetector:
         # localization): the variance along it (n - 2 dof) pooled with the distances from
         # the great circle's plane (n - 2 more), so that the first report, made once the
         # standard error falls below a bound, is not made on a chance low estimate of it
-        off = P @ vt[2]
+        off = P @ normal
         s2 = (rn * rn * float(res @ res) + float(off @ off)) / max(1, 2 * n - 4)
         return rn * abs(om), math.sqrt(s2 / stt)
 
@@ -1295,7 +1305,8 @@ class SlipDetector:
             # the period over the same emissions (a longer run: a smaller error)
             tr = np.sort(c.t[:k][run])
             dtr = np.diff(tr).astype(float)
-            pr, ser, kr = _period_fit_best(tr, dtr, (period * 1e9, float(np.median(dtr))))
+            h = dtr.size // 2  # the run's median interval (the upper one of an even count)
+            pr, ser, kr = _period_fit_best(tr, dtr, (period * 1e9, float(np.partition(dtr, h)[h])))
             if kr is not None and kr.max() <= cfg.texture_max_multiple:
                 period, se_period = pr, ser
             rel = math.hypot(fit[1] / fit[0], se_period / period) if fit[0] > 0 else math.inf
