@@ -283,7 +283,9 @@ def slip_rows(d) -> list[str]:
             f"| moving textured stylus | one contact in {100 * st['one_contact_rate']:.0f} %, "
             f"TEXTURE in {100 * st['found_rate']:.1f} %, first period within 3 % in "
             f"{100 * st['period_within_3pct_first']:.1f} % (the median of a slide's reports: "
-            f"{100 * st['period_within_3pct_median']:.1f} %) | bench_slip |"
+            f"{100 * st['period_within_3pct_median']:.1f} %); found with its first period "
+            f"within 3 % in {100 * st['found_within_3pct_first']:.1f} % of the slides "
+            "| bench_slip |"
         )
     itf = s.get("interference", {}).get("with_discriminator")
     if itf:
@@ -332,6 +334,12 @@ def slip_rows(d) -> list[str]:
                 f"; slowest call {sp['replayed_us_max']:.0f} us (replayed on copies of its "
                 "state, apart from the machine's pauses)"
                 if "replayed_us_max" in sp
+                else ""
+            )
+            + (
+                f"; a textured moving contact: {sp['stylus']['us_p50']:.0f} us median, "
+                f"slowest call {sp['stylus']['replayed_us_max']:.0f} us"
+                if "stylus" in sp
                 else ""
             )
             + f" | bench_slip, {_load_str(meta.get('load_before'))} |"
