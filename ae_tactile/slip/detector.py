@@ -156,7 +156,7 @@ def _period_fit_best(ts_ns, dt, units):
     tc -= tc.mean()
     stt = float(tc @ tc)
     n = ts_ns.size
-    n_amb = min(_MAX_AMBIGUOUS, (_MAX_FIT_TIMES // n).bit_length() - 1)
+    n_amb = max(0, min(_MAX_AMBIGUOUS, (_MAX_FIT_TIMES // n).bit_length() - 1))
     K = np.zeros((1, n))
     best = None
     tried = []
@@ -912,10 +912,11 @@ class SlipDetector:
     @staticmethod
     def _motion_fit(c, m):
         """(speed, its standard error) (m/s) of the members ``m`` along a great circle: the
-        plane through the centre of the sphere that best holds them (SVD), the angle phi of
-        each in that plane regressed on time, speed = |p| dphi/dt. (A straight-line fit in
-        3-D would read the curvature of a stroke over the sphere as a lower speed: -5 %
-        over 14 mm on R = 10 mm.) A stroke that turns is not a great circle: biased."""
+        plane through the centre of the sphere that best holds them (the eigenvectors of
+        their 3 x 3 moment matrix), the angle phi of each in that plane regressed on time,
+        speed = |p| dphi/dt. (A straight-line fit in 3-D would read the curvature of a
+        stroke over the sphere as a lower speed: -5 % over 14 mm on R = 10 mm.) A stroke
+        that turns is not a great circle: biased."""
         k = c.valid()
         n = int(m.sum())
         if n < 6:
