@@ -738,8 +738,8 @@ class TcpTransport:
         data = bytes(data)
         for c in list(self.clients):
             if len(c.out) + len(data) > self.max_client_buffer:
-                self.overflowed += 1
                 self._drop(c, f"more than {self.max_client_buffer} bytes waiting")
+                self.overflowed += 1  # counted once gone: never counted and still listed
                 continue
             c.out += data
         self.service()
@@ -763,8 +763,8 @@ class TcpTransport:
             else:
                 c.last_progress = now
             if c.out and now - c.last_progress > self.idle_timeout_s:
-                self.timed_out += 1
                 self._drop(c, f"took no byte for {self.idle_timeout_s:g} s")
+                self.timed_out += 1  # counted once gone: never counted and still listed
 
     def connected(self) -> bool:
         return self.listener is not None

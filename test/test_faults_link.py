@@ -275,6 +275,48 @@ def test_tcp_server_serves_several_clients_refuses_extra_ones_and_drops_stuck_on
     stuck.close()
 
 
+def test_tcp_server_counts_a_dropped_client_only_once_it_is_gone():
+    """The link's thread serves the clients while another reads the counters (stats, the
+    test above): a client is counted as timed out or overflowed only after it has left
+    the list. Seen from the drop's own log line (the last moment it is listed), the count
+    is still the old one; after it, the count is one more and the client is gone."""
+    import logging
+
+    seen = []
+
+    class Snapshot(logging.Handler):
+        def emit(self, record):
+            if "disconnected" in record.getMessage():
+                seen.append((t.timed_out, t.overflowed, len(t.clients)))
+
+    log = logging.getLogger("ae_tactile.virtual_device")
+    handler, level = Snapshot(), log.level
+    log.addHandler(handler)
+    log.setLevel(logging.INFO)
+    t = TcpTransport(max_clients=2, idle_timeout_s=0.05, client_sndbuf=4096)
+    host, port = t.host, int(t.port.rsplit(":", 1)[1])
+    stuck = socket.create_connection((host, port))  # connects, never reads
+    stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    try:
+        deadline = time.monotonic() + 30.0
+        while not t.clients and time.monotonic() < deadline:
+            t.read()  # accepts it
+            time.sleep(0.001)
+        assert len(t.clients) == 1
+        t.write(memoryview(bytes(200_000)))  # more than its buffers take: it stalls
+        while t.timed_out + t.overflowed == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+            t.service()
+        assert t.timed_out + t.overflowed == 1
+        assert seen == [(0, 0, 1)]
+        assert t.clients == []
+    finally:
+        log.removeHandler(handler)
+        log.setLevel(level)
+        stuck.close()
+        t.close()
+
+
 def test_tcp_transport_parameters_are_checked():
     with pytest.raises(ValueError):
         TcpTransport(max_clients=0)
