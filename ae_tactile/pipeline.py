@@ -1028,9 +1028,11 @@ class OverlapResolver:
         return records
 
     def pending(self) -> int:
-        return self._queue.qsize() + self._busy
-
-    _busy = 0
+        """Windows queued or being resolved: the queue's unfinished tasks (one per window
+        put, done once its records are handed on), so that no moment between taking a
+        window and working on it reads as idle."""
+        with self._queue.mutex:
+            return self._queue.unfinished_tasks
 
     def _quick_here(self) -> bool:
         """The quick search runs in this thread: compiled (numba, a lossless medium), it
@@ -1127,10 +1129,10 @@ class OverlapResolver:
         while True:
             item = self._queue.get()
             if item is None:
+                self._queue.task_done()
                 self._stop_worker()
                 return
             p, quick_first, hard = item
-            self._busy = 1
             told = False  # on_done called (the quick answer said DEFERRED)
             try:
                 for res in self._answers(p, quick_first, hard):
@@ -1146,9 +1148,9 @@ class OverlapResolver:
             except Exception:  # never let one window stop the resolver
                 self._count("overlap_errors")
             finally:
-                self._busy = 0
                 if not told:
                     self._done(p)
+                self._queue.task_done()
 
     def _stop_worker(self) -> None:
         proc, self._proc = self._proc, None
@@ -1168,6 +1170,7 @@ class OverlapResolver:
                 self._queue.get_nowait()
             except queue.Empty:
                 break
+            self._queue.task_done()  # given up
         try:
             self._queue.put_nowait(None)
         except queue.Full:
