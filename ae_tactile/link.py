@@ -473,7 +473,8 @@ class FingertipLink:
         if data:
             self._last_byte_mono = now_mono
             self._stall_reported = False
-            frames = self.decoder.feed(data)
+            with self._lock:  # stats() sees a frame counted and its bytes gone together
+                frames = self.decoder.feed(data)
             self._handle_frames(frames)
             if not frames:
                 self._idle()
@@ -613,7 +614,8 @@ class FingertipLink:
         return data if len(parts) == 1 else b"".join(parts)
 
     def _open(self) -> bool:
-        self.state = "connecting"
+        # the state stays "disconnected" through a failed attempt ("connecting" once the
+        # port is open, until a valid frame): a reader never sees a retry flap it
         try:
             ser = serial.serial_for_url(
                 self.config.port,
@@ -622,14 +624,15 @@ class FingertipLink:
                 write_timeout=1.0,
             )
         except (serial.SerialException, OSError, ValueError, _TermiosError) as exc:
-            self.counters["connect_failures"] += 1
+            with self._lock:  # counted with its reason, for stats() readers
+                self.counters["connect_failures"] += 1
+                self.last_error = f"open failed: {exc}"
+                self.state = "disconnected"
             if not self._open_failure_logged:  # once per outage, not every retry
                 self.log.warning(
                     "cannot open %s: %s (retrying with back-off)", self.config.port, exc
                 )
                 self._open_failure_logged = True
-            self.last_error = f"open failed: {exc}"
-            self.state = "disconnected"
             return False
         fd = None
         if not self._is_socket:
@@ -662,7 +665,8 @@ class FingertipLink:
         # frames in the buffer are delivered; a frame cut short by the disconnect is
         # counted (its bytes are also in bytes_discarded).
         discarded_before = self.decoder.bytes_discarded
-        frames = self.decoder.flush()
+        with self._lock:
+            frames = self.decoder.flush()
         if reason != "stopped":  # stopping: nobody is listening any more
             self._handle_frames(frames)
         self.counters["bytes_cut_at_disconnect"] += (
@@ -800,7 +804,9 @@ class FingertipLink:
 
     # ---------------------------------------------------------------- frames
     def _handle_bytes(self, data: bytes) -> None:
-        self._handle_frames(self.decoder.feed(data))
+        with self._lock:
+            frames = self.decoder.feed(data)
+        self._handle_frames(frames)
 
     def _handle_frames(self, frames: list) -> None:
         for ev in self.decoder.pop_events():
