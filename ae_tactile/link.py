@@ -473,9 +473,7 @@ class FingertipLink:
         if data:
             self._last_byte_mono = now_mono
             self._stall_reported = False
-            with self._lock:  # stats() sees a frame counted and its bytes gone together
-                frames = self.decoder.feed(data)
-            self._handle_frames(frames)
+            frames = self._handle_bytes(data)
             if not frames:
                 self._idle()
         else:
@@ -803,10 +801,13 @@ class FingertipLink:
         return None
 
     # ---------------------------------------------------------------- frames
-    def _handle_bytes(self, data: bytes) -> None:
+    def _handle_bytes(self, data: bytes) -> list:
+        """Decode ``data`` and hand on its frames (returned). The decoder is fed under the
+        stats lock: stats() sees a frame counted and its bytes gone together."""
         with self._lock:
             frames = self.decoder.feed(data)
         self._handle_frames(frames)
+        return frames
 
     def _handle_frames(self, frames: list) -> None:
         for ev in self.decoder.pop_events():
