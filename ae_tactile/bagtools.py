@@ -39,16 +39,10 @@ from pathlib import Path
 import numpy as np
 
 from ae_tactile.geometry import FingertipGeometry
+from ae_tactile.records import EVENT_NAMES, EventType
 
 MSG_NAMES = ("Packet", "PacketArray", "ContactEvent", "ContactState", "SensorInfo")
-TOUCH, DETOUCH, SLIP_PRECURSOR, SLIP, TEXTURE = 1, 2, 3, 4, 5
-EVENT_NAMES = {
-    TOUCH: "TOUCH",
-    DETOUCH: "DETOUCH",
-    SLIP_PRECURSOR: "SLIP_PRECURSOR",
-    SLIP: "SLIP",
-    TEXTURE: "TEXTURE",
-}
+TOUCH, DETOUCH = int(EventType.TOUCH), int(EventType.DETOUCH)
 
 
 def msg_dir() -> Path:

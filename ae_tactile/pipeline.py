@@ -51,7 +51,6 @@ import threading
 import time
 from collections import Counter, deque
 from dataclasses import dataclass, field
-from enum import IntEnum
 from typing import Callable, Sequence
 
 import numpy as np
@@ -77,20 +76,14 @@ from ae_tactile.localization.weak_release import (
     is_weak_release,
     weak_release_confidence,
 )
+from ae_tactile.records import (  # noqa: F401  (re-exported: the pipeline's records)
+    ContactRecord,
+    EventType,
+    PacketView,
+    slip_record,
+    source_record,
+)
 from ae_tactile.slip import LocalizedEvent, SlipConfig, SlipDetector
-
-
-class EventType(IntEnum):
-    """ContactEvent types (the values of ContactEvent.msg; a test checks they agree)."""
-
-    TOUCH = 1
-    DETOUCH = 2
-    SLIP_PRECURSOR = 3
-    SLIP = 4
-    TEXTURE = 5
-
-
-_NAN3 = (math.nan, math.nan, math.nan)
 
 #: Packets localized closer to the apex than this polar angle (rad) are checked for
 #: common-mode interference (whose zero delays put it at the apex: measured within 0.1 deg
@@ -162,45 +155,6 @@ DUPLICATE_DISTANCE_M = 1e-3
 #: the oldest window still with the resolver (or of the newest event, when none is) minus
 #: this margin (ns): more than a window's pre-trigger plus its span.
 RECENT_MARGIN_NS = 1_000_000
-
-
-@dataclass(slots=True)
-class ContactRecord:
-    """One event for the robot hand (core side of ContactEvent.msg), SI units, int ns.
-
-    point_m (3,) fingertip frame; covariance_m2 (3, 3); angles in rad; delays in s;
-    packet_ids: the source packets (a slip event's last id is the emission that decided it).
-    """
-
-    event_type: int
-    time_ns: int
-    point_m: tuple
-    covariance_m2: np.ndarray
-    packet_ids: tuple
-    polar_rad: float = math.nan
-    azimuth_rad: float = math.nan
-    tau_x_s: float = math.nan
-    tau_y_s: float = math.nan
-    amplitude_v: float = math.nan
-    confidence: float = 0.0
-    emission_rate_hz: float = math.nan
-    spatial_period_m: float = math.nan
-    slip_direction: tuple = _NAN3
-    overlap_excess: float = 0.0  # single-emission misfit beyond noise (localization only)
-    weak_release: bool = False  # below min_snr_db, kept by the weak-release gate (localization)
-
-
-@dataclass
-class PacketView:
-    """What the pipeline needs of one packet (a link PacketRecord or a received message)."""
-
-    samples_v: np.ndarray  # (4, N) volts
-    sample_rate_hz: float
-    onset_index: int
-    stamp_ns: int  # host time of samples_v[:, 0]
-    sequence_id: int
-    noise_rms_v: float = 0.0
-    saturated: bool = False
 
 
 def packet_problem(samples_v, sample_rate_hz, onset_index) -> str | None:
@@ -1208,25 +1162,6 @@ def _TIME_NS(r) -> int:
     return r.time_ns
 
 
-def source_record(p, src) -> ContactRecord:
-    """Contact event of one emission resolved in an overlapping window."""
-    x, y, z = (float(v) for v in src.point_m)
-    tau = FingertipGeometry.delays_from_arrival_times(np.asarray(src.arrival_times_s, dtype=float))
-    return ContactRecord(
-        event_type=int(EventType.DETOUCH if src.polarity < 0 else EventType.TOUCH),
-        time_ns=int(p.stamp_ns) + int(round(float(src.emission_time_s) * 1e9)),
-        point_m=(x, y, z),
-        covariance_m2=np.asarray(src.covariance_m2, dtype=float).reshape(3, 3),
-        packet_ids=(int(p.sequence_id),),
-        polar_rad=math.atan2(math.hypot(x, y), z),
-        azimuth_rad=math.atan2(y, x),
-        tau_x_s=float(tau[0]),
-        tau_y_s=float(tau[1]),
-        amplitude_v=float(src.amplitude_v),
-        confidence=float(src.confidence),
-    )
-
-
 class SlipStage:
     """Contact events -> slip events and the finger's contact state.
 
@@ -1285,25 +1220,6 @@ class SlipStage:
             d = {f"slip_{k}": v for k, v in self.detector.counts.items()}
         d.update(self.counts)
         return d
-
-
-def slip_record(s) -> ContactRecord:
-    """A slip detector event as a ContactRecord."""
-    x, y, z = (float(v) for v in s.position_m)
-    rho = math.hypot(x, y)
-    return ContactRecord(
-        event_type=int(s.kind),
-        time_ns=int(s.time_ns),
-        point_m=(x, y, z),
-        covariance_m2=np.asarray(s.covariance_m2, dtype=float).reshape(3, 3),
-        packet_ids=tuple(int(i) for i in s.packet_ids),
-        polar_rad=math.atan2(rho, z),
-        azimuth_rad=math.atan2(y, x),
-        confidence=float(s.confidence),
-        emission_rate_hz=float(s.emission_rate_hz),
-        spatial_period_m=float(s.spatial_period_m),
-        slip_direction=tuple(float(v) for v in np.asarray(s.slip_direction, dtype=float)),
-    )
 
 
 @dataclass

@@ -22,10 +22,10 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 
-from .slip.types import ContactState
+from .records import ContactState, EventType
 
 #: Event type names in ContactEvent order (1..5), with their plot style.
-EVENT_TYPES = ("TOUCH", "DETOUCH", "SLIP_PRECURSOR", "SLIP", "TEXTURE")
+EVENT_TYPES = tuple(t.name for t in EventType)  # index + 1 = the type's value
 STYLE = {
     "TOUCH": ("#1f77b4", "o"),
     "DETOUCH": ("#ff7f0e", "s"),

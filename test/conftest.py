@@ -12,9 +12,15 @@ import fcntl
 import os
 import random
 import signal
+import sys
 import tempfile
 
 import pytest
+
+# the evaluation package (trial generators, scoring, bounds) lives beside the benchmarks,
+# outside the installed product: bench/ae_eval
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                                "bench"))
 
 #: one lock file per ROS domain id: a test run holds the ids it uses until it ends
 DOMAIN_LOCK_DIR = os.path.join(tempfile.gettempdir(), "ae_tactile_test_domains")

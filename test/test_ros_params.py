@@ -113,13 +113,13 @@ def test_pre_trigger_without_packet_length_is_refused(ros_context, tmp_path):
 def test_event_types_agree_between_core_and_messages():
     require_ros()
     from ae_tactile.msg import ContactEvent
-    from ae_tactile.pipeline import EventType
-    from ae_tactile.slip.types import SlipEventType
+    from ae_tactile.msg import ContactState as ContactStateMsg
+    from ae_tactile.records import ContactState, EventType
 
     for t in EventType:
         assert getattr(ContactEvent, t.name) == int(t)
-    for t in SlipEventType:
-        assert EventType[t.name] == int(t)
+    for s in ContactState:
+        assert getattr(ContactStateMsg, s.name) == int(s)
 
 
 def test_a_fingertip_whose_body_disagrees_with_the_parameters_wins_with_one_warning(

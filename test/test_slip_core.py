@@ -9,12 +9,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from ae_tactile.records import ContactState, EventType
 from ae_tactile.slip import (
-    ContactState,
     LocalizedEvent,
     SlipConfig,
     SlipDetector,
-    SlipEventType,
     periodicity,
 )
 
@@ -258,7 +257,7 @@ def test_touches_round_a_held_touch_whose_release_was_lost_are_no_precursor():
     assert len(lost) == 3 and det.counts["pairs"] >= 2
     # without the touch-release rule the same sequence is a (false) precursor
     det = SlipDetector(SlipConfig(touched_compression_weight=1.0))
-    assert SlipEventType.SLIP_PRECURSOR in kinds(run(det, events))
+    assert EventType.SLIP_PRECURSOR in kinds(run(det, events))
 
 
 def test_micro_slip_rarefactions_still_count_next_to_touch_release_activity():
@@ -270,7 +269,7 @@ def test_micro_slip_rarefactions_still_count_next_to_touch_release_activity():
     ring = ring_events(rng, 6, t0, 40.0, (0, 0), 1.2e-3, width_m=0.2e-3, pid0=100)
     ring = [ev(e.time_ns, *(e.point_m[:2]), -1, e.packet_id) for e in ring]
     outs = run(SlipDetector(), events + ring)
-    pre = [o for o in outs if o.kind == SlipEventType.SLIP_PRECURSOR and o.onset]
+    pre = [o for o in outs if o.kind == EventType.SLIP_PRECURSOR and o.onset]
     assert pre and pre[0].packet_ids[-1] in {e.packet_id for e in ring[1:4]}
 
 
@@ -289,11 +288,11 @@ def test_a_compression_on_an_earlier_rarefactions_spot_is_no_touch_release_pair(
         ]
 
     det = SlipDetector()
-    pre = [o for o in run(det, seq(-1)) if o.kind == SlipEventType.SLIP_PRECURSOR]
+    pre = [o for o in run(det, seq(-1)) if o.kind == EventType.SLIP_PRECURSOR]
     assert pre and pre[0].packet_ids[-1] == 4
     assert det.counts["pairs"] == 0 and det.counts["repeats"] == 1
     det = SlipDetector()
-    assert not [o for o in run(det, seq(1)) if o.kind == SlipEventType.SLIP_PRECURSOR]
+    assert not [o for o in run(det, seq(1)) if o.kind == EventType.SLIP_PRECURSOR]
     assert det.counts["pairs"] == 1
 
 
@@ -314,7 +313,7 @@ def test_touch_release_activity_of_an_ended_contact_goes_on_nearby():
     assert run(det, events) == []
     assert det.counts["contacts_created"] == 2
     det = SlipDetector(SlipConfig(touched_compression_weight=1.0))
-    assert SlipEventType.SLIP_PRECURSOR in kinds(run(det, events))
+    assert EventType.SLIP_PRECURSOR in kinds(run(det, events))
 
 
 def test_the_first_compression_after_a_touch_release_pair_is_a_touch_however_late():
@@ -334,7 +333,7 @@ def test_the_first_compression_after_a_touch_release_pair_is_a_touch_however_lat
     assert run(det, events) == []
     assert det.counts["pairs"] == 1
     det = SlipDetector(SlipConfig(touched_compression_weight=1.0))
-    assert SlipEventType.SLIP_PRECURSOR in kinds(run(det, events))
+    assert EventType.SLIP_PRECURSOR in kinds(run(det, events))
 
 
 def test_a_compression_taken_for_a_touch_stays_a_touch_after_the_activity_ends():
@@ -355,7 +354,7 @@ def test_a_compression_taken_for_a_touch_stays_a_touch_after_the_activity_ends()
     assert run(det, events) == []
     assert det.counts["pairs"] == 1 and det.counts["contacts_created"] == 1
     det = SlipDetector(SlipConfig(touched_compression_weight=1.0))
-    pre = [o for o in run(det, events) if o.kind == SlipEventType.SLIP_PRECURSOR]
+    pre = [o for o in run(det, events) if o.kind == EventType.SLIP_PRECURSOR]
     assert [o.packet_ids for o in pre] == [(3, 4)]
 
 
@@ -380,7 +379,7 @@ def test_release_of_a_silent_founding_touch_keeps_the_model_floor_however_long_t
         ev(2500 * MS, 200e-6, 0.0, -1, 2),
     ]
     det = SlipDetector()
-    pre = [o for o in run(det, events) if o.kind == SlipEventType.SLIP_PRECURSOR]
+    pre = [o for o in run(det, events) if o.kind == EventType.SLIP_PRECURSOR]
     assert pre and pre[0].packet_ids[-1] == 2 and det.counts["pairs"] == 0
 
 
@@ -410,11 +409,11 @@ def test_micro_slip_ring_gives_precursor(announced):
     events = [ev(0, *centre, 1, 999)] if announced else []
     events += ring_events(rng, 40, 50 * MS, 60.0, centre, 1.6e-3, width_m=0.2e-3)
     outs = run(det, events)
-    pre = [o for o in outs if o.kind == SlipEventType.SLIP_PRECURSOR]
+    pre = [o for o in outs if o.kind == EventType.SLIP_PRECURSOR]
     assert pre and pre[0].onset
     i_first = next(i for i, e in enumerate(events) if e.time_ns == pre[0].time_ns)
     assert i_first <= (9 if announced else 8)  # a handful of emissions
-    assert SlipEventType.SLIP not in kinds(outs)  # the stick zone is still there
+    assert EventType.SLIP not in kinds(outs)  # the stick zone is still there
     s = det.state
     assert s.state == ContactState.INCIPIENT_SLIP and s.precursor_count == len(pre)
     # the contact centre comes from the ring even when it was never announced
@@ -461,12 +460,12 @@ def test_a_contact_that_slipped_before_gets_its_next_precursor(sig_m):
             det = SlipDetector()
             outs = run(det, [ev(0, 0.0, 0.0, +1, 1, sig=sig_m)] + history)
             if history:
-                assert SlipEventType.SLIP_PRECURSOR in kinds(outs, onset=True)
+                assert EventType.SLIP_PRECURSOR in kinds(outs, onset=True)
             det.advance(t2 - 1)
             assert det.state.state == ContactState.STICK and det.state.n_contacts == 1
             n = None
             for i, e in enumerate(second):
-                if SlipEventType.SLIP_PRECURSOR in kinds(det.process(e), onset=True):
+                if EventType.SLIP_PRECURSOR in kinds(det.process(e), onset=True):
                     n = i + 1
                     break
             counts.append(n)
@@ -545,11 +544,11 @@ def test_gross_slip_when_emissions_reach_the_centre():
     det = SlipDetector()
     ring = ring_events(rng, 40, 10 * MS, 150.0, (0, 0), 1.6e-3, width_m=0.3e-3)
     outs = run(det, ring)
-    assert SlipEventType.SLIP not in kinds(outs)
+    assert EventType.SLIP not in kinds(outs)
     t0 = ring[-1].time_ns
     disc = ring_events(rng, 60, t0, 500.0, (0, 0), 1.6e-3, width_m=1.6e-3, pid0=100)
     outs = run(det, disc)
-    slips = [o for o in outs if o.kind == SlipEventType.SLIP]
+    slips = [o for o in outs if o.kind == EventType.SLIP]
     assert slips and slips[0].onset
     assert slips[0].time_ns - t0 < 80 * MS
     assert det.state.state == ContactState.GROSS_SLIP
@@ -570,7 +569,7 @@ def test_direction_of_a_drifting_contact():
         events.append(ev(t, cx + r * math.cos(th), r * math.sin(th), int(rng.choice([-1, 1])), i))
     outs = run(det, events)
     slips = [
-        o for o in outs if o.kind == SlipEventType.SLIP and np.all(np.isfinite(o.slip_direction))
+        o for o in outs if o.kind == EventType.SLIP and np.all(np.isfinite(o.slip_direction))
     ]
     assert slips
     for o in slips:
@@ -604,7 +603,7 @@ def test_texture_period(random_pol):
     v, lam = 0.02, 0.5e-3  # 40 Hz
     det = SlipDetector(SlipConfig(sliding_speed_m_s=v))
     outs = run(det, _texture_events(rng, v / lam, 60, random_pol=random_pol))
-    tex = [o for o in outs if o.kind == SlipEventType.TEXTURE]
+    tex = [o for o in outs if o.kind == EventType.TEXTURE]
     assert tex and tex[0].onset
     for o in tex:
         assert abs(o.spatial_period_m / lam - 1) < 0.02
@@ -614,7 +613,7 @@ def test_texture_period(random_pol):
     outs = run(det, _texture_events(np.random.default_rng(32), v / lam, 30)[:0])
     det2 = SlipDetector()
     outs = run(det2, _texture_events(rng, v / lam, 60))
-    tex2 = [o for o in outs if o.kind == SlipEventType.TEXTURE]
+    tex2 = [o for o in outs if o.kind == EventType.TEXTURE]
     assert tex2 and all(math.isnan(o.spatial_period_m) for o in tex2)
 
 
@@ -622,7 +621,7 @@ def test_no_texture_from_poisson_or_tapping():
     rng = np.random.default_rng(41)
     det = SlipDetector()
     outs = run(det, ring_events(rng, 400, 0, 500.0, (0, 0), 1.5e-3, width_m=1.5e-3))
-    assert SlipEventType.TEXTURE not in kinds(outs)
+    assert EventType.TEXTURE not in kinds(outs)
     det = SlipDetector()
     taps = []
     for k in range(40):  # regular tapping at one spot, 10 Hz
@@ -736,8 +735,8 @@ def test_late_events_within_the_reorder_tolerance_are_processed_alike():
             shuffled[i], shuffled[i + 1] = shuffled[i + 1], shuffled[i]
     assert shuffled != evs
     a, b = SlipDetector(), SlipDetector()
-    pa = [o for o in run(a, evs) if o.kind == SlipEventType.SLIP_PRECURSOR and o.onset]
-    pb = [o for o in run(b, shuffled) if o.kind == SlipEventType.SLIP_PRECURSOR and o.onset]
+    pa = [o for o in run(a, evs) if o.kind == EventType.SLIP_PRECURSOR and o.onset]
+    pb = [o for o in run(b, shuffled) if o.kind == EventType.SLIP_PRECURSOR and o.onset]
     assert b.counts["rejected_out_of_order"] == 0 and b.counts["events"] == len(evs)
     assert pa and pb and sorted(pa[0].packet_ids) == sorted(pb[0].packet_ids)
 
@@ -775,9 +774,9 @@ def test_arbitrary_sequences_keep_valid_outputs(items):
         t += dt * 10_000
         for o in det.process(ev(t, x, y, pol, t)):
             assert o.kind in (
-                SlipEventType.SLIP_PRECURSOR,
-                SlipEventType.SLIP,
-                SlipEventType.TEXTURE,
+                EventType.SLIP_PRECURSOR,
+                EventType.SLIP,
+                EventType.TEXTURE,
             )
             assert np.all(np.isfinite(o.position_m)) and 0 <= o.confidence <= 1
             assert np.all(np.isfinite(o.covariance_m2))
@@ -819,13 +818,13 @@ def test_packet_ids_end_with_the_deciding_emission():
         for o in det.process(e):
             assert o.packet_ids[-1] == e.packet_id
             outs.append(o)
-    assert {SlipEventType.SLIP_PRECURSOR, SlipEventType.SLIP} <= set(kinds(outs))
+    assert {EventType.SLIP_PRECURSOR, EventType.SLIP} <= set(kinds(outs))
     det = SlipDetector(SlipConfig(sliding_speed_m_s=0.02))
     for e in _texture_events(np.random.default_rng(82), 40.0, 60):
         for o in det.process(e):
             assert o.packet_ids[-1] == e.packet_id
             outs.append(o)
-    assert SlipEventType.TEXTURE in kinds(outs)
+    assert EventType.TEXTURE in kinds(outs)
 
 
 def test_gross_slip_without_a_precursor_and_a_tracked_moving_contact():
@@ -834,7 +833,7 @@ def test_gross_slip_without_a_precursor_and_a_tracked_moving_contact():
     rng = np.random.default_rng(83)
     det = SlipDetector()
     outs = run(det, ring_events(rng, 40, 0, 400.0, (0, 0), 1.5e-3, width_m=1.5e-3))
-    assert SlipEventType.SLIP in kinds(outs)
+    assert EventType.SLIP in kinds(outs)
     det = SlipDetector()
     evs = []
     t = 0
@@ -867,7 +866,7 @@ def test_stylus_closer_than_the_same_spot_gate_is_tracked_with_its_texture(pol):
         evs.append(ev(int(10 * MS + t * 1e9), x + rng.normal(0, SIG), rng.normal(0, SIG), pol, i))
     det = SlipDetector()
     outs = run(det, evs)
-    tex = [o for o in outs if o.kind == SlipEventType.TEXTURE]
+    tex = [o for o in outs if o.kind == EventType.TEXTURE]
     assert tex and det.counts["contacts_created"] == 1
     assert det.counts["repeats"] >= 5  # the emissions are on each other's spots
     # along the surface: x = R sin(theta), so one period of x is lam / cos(theta) of arc
@@ -1043,7 +1042,7 @@ def test_texture_period_with_a_missed_packet_jittered_short():
         for k, d in zip(j[keep].tolist(), dt[keep])
     ]
     det = SlipDetector(SlipConfig(sliding_speed_m_s=v))
-    tex = [o for o in run(det, evs) if o.kind == SlipEventType.TEXTURE]
+    tex = [o for o in run(det, evs) if o.kind == EventType.TEXTURE]
     late = [o for o in tex if o.packet_ids[0] <= 10 <= o.packet_ids[-1]]  # the gap in view
     assert late
     assert all(abs(o.emission_rate_hz * T - 1) < 0.03 for o in late)
@@ -1067,7 +1066,7 @@ def test_texture_period_with_many_long_single_intervals():
         for i, kj in enumerate(k)
     ]
     det = SlipDetector(SlipConfig(sliding_speed_m_s=v))
-    tex = [o for o in run(det, evs) if o.kind == SlipEventType.TEXTURE]
+    tex = [o for o in run(det, evs) if o.kind == EventType.TEXTURE]
     assert len(tex) >= 5
     assert all(abs(o.emission_rate_hz * T - 1) < 0.03 for o in tex)
     assert all(abs(o.spatial_period_m / (v * T) - 1) < 0.03 for o in tex)
@@ -1133,7 +1132,7 @@ def test_moving_texture_first_report_within_twice_its_standard_error():
         tex = [
             o
             for o in run(det, _stroke_events(rng, 0.01, lam, 0.3e-3))
-            if o.kind == SlipEventType.TEXTURE and np.isfinite(o.spatial_period_m)
+            if o.kind == EventType.TEXTURE and np.isfinite(o.spatial_period_m)
         ]
         if tex:
             errs.append(tex[0].spatial_period_m / lam - 1)
@@ -1178,10 +1177,10 @@ def test_stick_zone_judged_against_the_ring_drawn_before_the_window():
         evs.append(ev((415 + 8 * i) * MS, x, y, 1, 100 + i))
     evs.append(ev(450 * MS, 0.45e-3, 0.0, -1, 200))
     outs = run(SlipDetector(SlipConfig(gross_llr_threshold=0.0)), evs)
-    slip = [o for o in outs if o.kind == SlipEventType.SLIP and o.onset]
+    slip = [o for o in outs if o.kind == EventType.SLIP and o.onset]
     assert slip and slip[0].packet_ids[-1] == 200 and slip[0].evidence == 1.0
     outs = run(SlipDetector(), evs)
-    slip = [o for o in outs if o.kind == SlipEventType.SLIP and o.onset]
+    slip = [o for o in outs if o.kind == EventType.SLIP and o.onset]
     assert slip and slip[0].evidence == 6.0 and slip[0].packet_ids[-1] == 200
 
 
@@ -1212,11 +1211,11 @@ def test_sparse_contact_three_fast_emissions_in_the_disc_give_slip(pol):
         p = pol if pol else 1 - 2 * (i % 2)
         evs.append(ev(t0 + 8 * MS * i, x, y, p, 100 + i))
     outs = run(SlipDetector(), evs)
-    slip = [o for o in outs if o.kind == SlipEventType.SLIP and o.onset]
+    slip = [o for o in outs if o.kind == EventType.SLIP and o.onset]
     assert slip and slip[0].packet_ids[-1] == 102 and slip[0].evidence == 6.0
     # without the likelihood ratio the older rules need more emissions
     outs = run(SlipDetector(SlipConfig(gross_llr_threshold=0.0)), evs)
-    assert SlipEventType.SLIP not in kinds(outs)
+    assert EventType.SLIP not in kinds(outs)
 
 
 def test_sparse_contact_the_same_emissions_spread_over_a_second_are_no_slip():
@@ -1227,8 +1226,8 @@ def test_sparse_contact_the_same_emissions_spread_over_a_second_are_no_slip():
     for i, (x, y) in enumerate(_DISC):
         evs.append(ev(t0 + 500 * MS * i, x, y, 1 - 2 * (i % 2), 100 + i))
     outs = run(SlipDetector(), evs)
-    assert SlipEventType.SLIP not in kinds(outs)
-    assert SlipEventType.SLIP_PRECURSOR in kinds(outs)
+    assert EventType.SLIP not in kinds(outs)
+    assert EventType.SLIP_PRECURSOR in kinds(outs)
 
 
 def test_sparse_contact_fast_emissions_on_its_ring_weigh_less_than_in_the_disc():
@@ -1264,4 +1263,4 @@ def test_a_steady_poisson_stream_on_its_ring_is_no_gross_slip():
     rng = np.random.default_rng(5)
     evs = ring_events(rng, 300, 0, 300.0, (0, 0), 1.5e-3, width_m=0.1e-3)
     outs = run(SlipDetector(), evs)
-    assert SlipEventType.SLIP not in kinds(outs)
+    assert EventType.SLIP not in kinds(outs)

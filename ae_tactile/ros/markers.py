@@ -26,13 +26,6 @@ EVENT_COLORS = {
     ContactEvent.SLIP: (1.0, 0.1, 0.1),
     ContactEvent.TEXTURE: (0.7, 0.2, 0.9),
 }
-EVENT_NAMES = {
-    ContactEvent.TOUCH: "TOUCH",
-    ContactEvent.DETOUCH: "DETOUCH",
-    ContactEvent.SLIP_PRECURSOR: "SLIP_PRECURSOR",
-    ContactEvent.SLIP: "SLIP",
-    ContactEvent.TEXTURE: "TEXTURE",
-}
 
 
 def _duration(seconds: float) -> Duration:

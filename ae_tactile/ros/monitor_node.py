@@ -20,17 +20,11 @@ from rclpy.node import Node
 
 from ae_tactile.evaluation import match_by_time, score
 from ae_tactile.msg import ContactEvent, ContactState
+from ae_tactile.records import EVENT_NAMES, STATE_NAMES
 from ae_tactile.ros.conversions import time_msg_to_ns
-from ae_tactile.ros.markers import EVENT_NAMES
 from ae_tactile.ros.node_utils import LATCHED
 from ae_tactile.ros.sim_fingertip_node import TRUTH_QOS
 
-STATE_NAMES = {
-    ContactState.NO_CONTACT: "NO_CONTACT",
-    ContactState.STICK: "STICK",
-    ContactState.INCIPIENT_SLIP: "INCIPIENT_SLIP",
-    ContactState.GROSS_SLIP: "GROSS_SLIP",
-}
 TRUTH_KIND = {
     ContactEvent.TOUCH: "touch",
     ContactEvent.DETOUCH: "release",

@@ -16,15 +16,13 @@ See docs/slip.md.
 from .config import SlipConfig
 from .detector import SlipDetector
 from .periodicity import Periodicity, periodicity
-from .types import ContactInfo, ContactState, FingerState, LocalizedEvent, SlipEvent, SlipEventType
+from .types import ContactInfo, FingerState, LocalizedEvent, SlipEvent
 
 __all__ = [
     "SlipConfig",
     "SlipDetector",
     "LocalizedEvent",
     "SlipEvent",
-    "SlipEventType",
-    "ContactState",
     "ContactInfo",
     "FingerState",
     "Periodicity",

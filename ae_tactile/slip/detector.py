@@ -59,8 +59,10 @@ from bisect import bisect_left, bisect_right
 
 import numpy as np
 
+from ae_tactile.records import ContactState, EventType
+
 from .config import SlipConfig
-from .types import ContactInfo, ContactState, FingerState, LocalizedEvent, SlipEvent, SlipEventType
+from .types import ContactInfo, FingerState, LocalizedEvent, SlipEvent
 
 # member flags; SLIP_EMISSION: came while the contact slipped or moved; TOUCHED: a
 # compression that came during touch-release activity (a touch, for as long as it counts)
@@ -1178,7 +1180,7 @@ class SlipDetector:
         c.last_report[3] = ev.time_ns
         conf = 1.0 - 2.0 ** (-n_ev / self.config.precursor_min_emissions)
         return SlipEvent(
-            SlipEventType.SLIP_PRECURSOR,
+            EventType.SLIP_PRECURSOR,
             ev.time_ns,
             ev.point_m.copy(),
             ev.covariance_m2.copy(),
@@ -1202,7 +1204,7 @@ class SlipDetector:
             ids = tuple(int(x) for x in c.pid[:k][w] if x != ev.packet_id) + ids
         conf = 0.9 if why in (1, 4) or c.texture_on else 0.75
         return SlipEvent(
-            SlipEventType.SLIP,
+            EventType.SLIP,
             t,
             c.centre_at(t).copy(),
             self._centre_cov(c),
@@ -1329,7 +1331,7 @@ class SlipDetector:
             frac = float((kk == 1).mean())
             out.append(
                 SlipEvent(
-                    SlipEventType.TEXTURE,
+                    EventType.TEXTURE,
                     t,
                     c.centre_at(t).copy(),
                     self._centre_cov(c),

@@ -38,19 +38,20 @@ from ae_tactile.localization.weak_release import (
     kept_with_weak_releases,
     weak_release_confidence,
 )
+from ae_tactile.records import ContactState, EventType
 from ae_tactile.sim.generators import hertz_contact_radius_m
 from ae_tactile.sim.scene import load_scene
 from ae_tactile.sim.stream import EmissionList, time_ns_of_sample
 
 from .config import SlipConfig
 from .detector import SlipDetector
-from .types import ContactState, LocalizedEvent, SlipEventType
+from .types import LocalizedEvent
 
 _NS = 1_000_000_000
 #: the 'events' pipeline's share of emissions lost at random (packets the localizer
 #: rejects), strong ones included
 EVENTS_DROP = 0.02
-SLIP_KINDS = (SlipEventType.SLIP_PRECURSOR, SlipEventType.SLIP, SlipEventType.TEXTURE)
+SLIP_KINDS = (EventType.SLIP_PRECURSOR, EventType.SLIP, EventType.TEXTURE)
 
 # Randomised parameter ranges (SI units); "log" = log-uniform.
 INCIPIENT_RANGES = {
@@ -508,7 +509,7 @@ def incipient_slip_trial(
         end_ns,
         snapshot=None if t_gross is None else (t_gross, view_at_gross),
     )
-    pre = _first(outs, SlipEventType.SLIP_PRECURSOR)
+    pre = _first(outs, EventType.SLIP_PRECURSOR)
     # what a SLIP within 50 ms can rest on: the emissions received in the 50 ms after
     # gross slip, and whether one lies inside the stick zone at q = 0.9 (c = (1 - q)^(1/3)
     # a_H = 0.46 a_H round the centre), where no micro-slip at q < 0.9 can come from
@@ -516,7 +517,7 @@ def incipient_slip_trial(
     if t_gross is not None:
         gross = [e for e in events if t_gross <= e.time_ns <= t_gross + 50 * 10**6]
     stick_r = (1.0 - 0.9) ** (1.0 / 3.0) * a_h
-    slip = _first(outs, SlipEventType.SLIP)
+    slip = _first(outs, EventType.SLIP)
     micro = [e.time_ns for e in events if t_gross is not None and e.time_ns < t_gross]
     out = dict(params)
     out.update(
@@ -555,9 +556,9 @@ def incipient_slip_trial(
             if slip is None
             else float(proc.state_at(slip.time_ns)["load_ratio"]),
             "precursor_error_to_ring_m": None,
-            "n_precursor_events": sum(o.kind == SlipEventType.SLIP_PRECURSOR for o in outs),
-            "n_slip_events": sum(o.kind == SlipEventType.SLIP for o in outs),
-            "n_texture_events": sum(o.kind == SlipEventType.TEXTURE for o in outs),
+            "n_precursor_events": sum(o.kind == EventType.SLIP_PRECURSOR for o in outs),
+            "n_slip_events": sum(o.kind == EventType.SLIP for o in outs),
+            "n_texture_events": sum(o.kind == EventType.TEXTURE for o in outs),
             "states": [[t, int(s)] for t, s in trace],
         }
     )
@@ -728,7 +729,7 @@ def closed_loop_trial(
         n_id += len(pk.emissions)
         for ev in evs:
             for o in det.process(ev):
-                if t_pre is None and o.kind == SlipEventType.SLIP_PRECURSOR:
+                if t_pre is None and o.kind == EventType.SLIP_PRECURSOR:
                     t_pre = o.time_ns
         det.advance(h)
         if t_pre is not None and t_reflex is None:
@@ -756,9 +757,9 @@ def closed_loop_trial(
 # ---------------------------------------------------------------------- false alarms
 def _alarm_summary(outs):
     return {
-        "n_precursor": sum(o.kind == SlipEventType.SLIP_PRECURSOR for o in outs),
-        "n_slip": sum(o.kind == SlipEventType.SLIP for o in outs),
-        "n_texture": sum(o.kind == SlipEventType.TEXTURE for o in outs),
+        "n_precursor": sum(o.kind == EventType.SLIP_PRECURSOR for o in outs),
+        "n_slip": sum(o.kind == EventType.SLIP for o in outs),
+        "n_texture": sum(o.kind == EventType.TEXTURE for o in outs),
         "n_alarm_onsets": sum(o.onset for o in outs if o.kind in SLIP_KINDS),
     }
 
@@ -1174,7 +1175,7 @@ def stylus_trial(
     jit, path = spec["params"]["jitter_fraction"], spec["params"]["path_m"]
     det, outs, trace = run_detector(events, config, end_ns)
     truth = scene.process.scene_truth()
-    tex = [o for o in outs if o.kind == SlipEventType.TEXTURE]
+    tex = [o for o in outs if o.kind == EventType.TEXTURE]
     lam_est = np.array([o.spatial_period_m for o in tex])
     first = tex[0] if tex else None
     ids = {o.contact_id for o in outs}
@@ -1182,7 +1183,7 @@ def stylus_trial(
 
     dir_err = []
     for o in outs:
-        if o.kind in (SlipEventType.SLIP, SlipEventType.TEXTURE) and np.all(
+        if o.kind in (EventType.SLIP, EventType.TEXTURE) and np.all(
             np.isfinite(o.slip_direction)
         ):
             _, vel = stylus_track(truth, scene.config.geometry.radius_m, [o.time_ns])
@@ -1206,7 +1207,7 @@ def stylus_trial(
         "rel_error_median": None if not tex else float(np.nanmedian(lam_est) / lam - 1.0),
         "rel_error_max": None if not tex else float(np.nanmax(np.abs(lam_est / lam - 1.0))),
         "direction_error_deg_median": None if not dir_err else float(np.median(dir_err)),
-        "n_precursor": sum(o.kind == SlipEventType.SLIP_PRECURSOR for o in outs),
+        "n_precursor": sum(o.kind == EventType.SLIP_PRECURSOR for o in outs),
     }
 
 
@@ -1790,7 +1791,7 @@ def texture_trial(
     det, outs, trace = run_detector(
         events, config, end_ns, sliding_speed_m_s=v if speed_known else None
     )
-    tex = [o for o in outs if o.kind == SlipEventType.TEXTURE]
+    tex = [o for o in outs if o.kind == EventType.TEXTURE]
     first = tex[0] if tex else None
     lam_est = np.array([o.spatial_period_m for o in tex])
     out = {
@@ -1813,8 +1814,8 @@ def texture_trial(
     }
     out.update(
         {
-            "n_precursor": sum(o.kind == SlipEventType.SLIP_PRECURSOR for o in outs),
-            "n_slip": sum(o.kind == SlipEventType.SLIP for o in outs),
+            "n_precursor": sum(o.kind == EventType.SLIP_PRECURSOR for o in outs),
+            "n_slip": sum(o.kind == EventType.SLIP for o in outs),
         }
     )
     return out
@@ -1852,8 +1853,8 @@ def drift_slip_trial(
     end_ns = int(0.2 * _NS)
     events, _ = _events(scene, None, end_ns, pipeline)
     det, outs, trace = run_detector(events, config, end_ns)
-    slips = [o for o in outs if o.kind == SlipEventType.SLIP]
-    first = _first(outs, SlipEventType.SLIP)
+    slips = [o for o in outs if o.kind == EventType.SLIP]
+    first = _first(outs, EventType.SLIP)
     angles = []
     for o in slips:
         if np.all(np.isfinite(o.slip_direction)):

@@ -5,26 +5,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from enum import IntEnum
 
 import numpy as np
 
-
-class ContactState(IntEnum):
-    """Latched contact state of a finger (values of ContactState.msg)."""
-
-    NO_CONTACT = 0
-    STICK = 1
-    INCIPIENT_SLIP = 2
-    GROSS_SLIP = 3
-
-
-class SlipEventType(IntEnum):
-    """Output event types (values of ContactEvent.msg)."""
-
-    SLIP_PRECURSOR = 3
-    SLIP = 4
-    TEXTURE = 5
+from ae_tactile.records import ContactState, EventType
 
 
 def _nan3():
@@ -136,7 +120,7 @@ class LocalizedEvent:
 class SlipEvent:
     """One output event (a ContactEvent of type SLIP_PRECURSOR, SLIP or TEXTURE).
 
-    kind               SlipEventType
+    kind               EventType (SLIP_PRECURSOR, SLIP or TEXTURE)
     time_ns            time of the emission that produced it (ns)
     position_m         (3,) SLIP_PRECURSOR: the micro-slip emission point; SLIP, TEXTURE:
                        the contact centre (fingertip frame, m)
@@ -156,7 +140,7 @@ class SlipEvent:
                        near the centre in the test window; TEXTURE: regular intervals
     """
 
-    kind: SlipEventType
+    kind: EventType
     time_ns: int
     position_m: np.ndarray
     covariance_m2: np.ndarray
