@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: Apache-2.0
 """Reproduce launch's own Ctrl-C race (no ROS node, none of ae_tactile's code).
 
 `LaunchService.run_async` lets Ctrl-C's KeyboardInterrupt surface anywhere in its loop
