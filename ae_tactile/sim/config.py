@@ -14,6 +14,7 @@ from functools import cached_property
 import numpy as np
 
 from ae_tactile.geometry import MEDIA, FingertipGeometry, resolve_front_end_lowpass
+from ae_tactile.sim.frontend import FrontEnd
 
 
 @dataclass(frozen=True)
@@ -239,7 +240,6 @@ class SimConfig:
         return int(math.ceil(self.max_support_s * self.sample_rate_hz))
 
     @cached_property
-    def frontend(self):
+    def frontend(self) -> FrontEnd:
         """Cached `ae_tactile.sim.frontend.FrontEnd` (filter poles, residues, tables)."""
-        from ae_tactile.sim.frontend import FrontEnd
         return FrontEnd(self)

@@ -28,6 +28,9 @@ import math
 import numpy as np
 from scipy import signal
 
+from ae_tactile.sim.propagation import path_lengths
+from ae_tactile.sim.response import att_support_samples, fast_support_samples
+
 #: Length of the SNR window after the earliest direct arrival (docs/conventions.md).
 SNR_WINDOW_S = 30e-6
 
@@ -65,8 +68,6 @@ class FrontEnd:
         self.fast_residues = np.array([self._residue(q) for q in self.fast_poles])
         # Slowest filter pole sets how long the fast part lasts.
         self.fast_decay_rate = float(np.min(-self.fast_poles.real))
-        from ae_tactile.sim.propagation import path_lengths
-        from ae_tactile.sim.response import att_support_samples, fast_support_samples
         #: config-constant truncation lengths (samples) of the fast / attenuation parts
         self.support_fast = fast_support_samples(config, self)
         r = config.geometry.radius_m

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ae_tactile.geometry import FingertipGeometry
+from ae_tactile.sim.interference import burst_times_s
 from ae_tactile.sim.stream import EmissionList, StaticEmissions
 
 _NS = 1_000_000_000
@@ -712,8 +713,6 @@ def interference(ctx, p):
     monotonic clock (`shared_clock_burst_times_ns`, drawn from ``shared_seed``), the same
     for every simulated fingertip of the machine playing a scene with that seed: the
     fingertips of one hand under one source; the truth has no burst list then."""
-    from ae_tactile.sim.interference import burst_times_s
-
     rng = _rng(ctx.seed, 81)
     end = min(ctx.duration_s, p["start_s"] + p["burst_duration_s"])
     t = burst_times_s(

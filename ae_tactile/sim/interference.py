@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy import signal
 
 from ae_tactile.sim.config import SimConfig
 from ae_tactile.sim.frontend import quantize
@@ -137,8 +138,6 @@ def _waveforms(kind, n, t, g):
 
 
 def _front_end_filter(w, config: SimConfig):
-    from scipy import signal
-
     fs = config.sample_rate_hz
     sos = [
         signal.butter(config.highpass_order, config.highpass_hz, "highpass", fs=fs, output="sos")

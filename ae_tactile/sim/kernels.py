@@ -60,29 +60,6 @@ def accumulate_windows(out, w0, a_lo, a_hi, n0, length, channel, key, cs, tabs, 
                 out[w, ch, s + k] += v
 
 
-_WARM = False
-
-
-def warm_up() -> bool:
-    """Compile (or load from numba's cache) the kernels now, so that the first rendered
-    packet is not delayed by compilation (~0.1-0.5 s from the cache, seconds without).
-    Idempotent; `load_scene` calls it. Returns HAVE_NUMBA."""
-    global _WARM
-    if HAVE_NUMBA and not _WARM:
-        _WARM = True
-        i1 = np.zeros(1, np.int64)
-        accumulate_windows(np.zeros((1, 4, 2)), i1, i1, i1 + 1, i1, i1 + 2, i1, i1,
-                           np.zeros((1, 2)), np.zeros((1, 2, 2)), np.zeros((1, 6)),
-                           np.zeros((6, 2)), 2, np.zeros((1, 0)), 0)
-        from ae_tactile.sim.config import SimConfig
-        from ae_tactile.sim.response import KernelInputs, SlowTables
-        cfg = SimConfig(attenuation=True)
-        KernelInputs.compiled(np.array([[0.0, 0.0, cfg.geometry.radius_m]]), np.ones(1),
-                              np.full(1, 3000.0), np.zeros(1, np.int64), np.zeros(1), cfg,
-                              SlowTables(cfg, 4))
-    return HAVE_NUMBA
-
-
 @njit(cache=True, nogil=True)
 def arrival_inputs(points, strength, alpha, n_e, frac, elem, radius_m, sound_speed_m_s,
                    n_paths, refl_coef, att_db_per_m, sep_alpha, sep_w, fe_zeros, fe_poles,
@@ -203,3 +180,84 @@ def _transfer(s, zeros, poles, gain):  # pragma: no cover - compiled
     for p in poles:
         den = den * (s - p)
     return (gain * num / den).real
+
+
+def compute_arrival_inputs(points_m, strength_pa_m, alpha_1_s, n_e, frac_s, elements_m, radius_m,
+                           sound_speed_m_s, n_paths, reflection_coefficient, att_db_per_m,
+                           sep_alpha_1_s, sep_att_rad_s, fe_zeros, fe_poles, fe_gain, fast_poles,
+                           fast_weighted_residues, support_fast, support_att, max_support,
+                           support_rel_tol, sensitivity_v_per_pa, sample_rate_hz, dt_s):
+    """`arrival_inputs` with its arguments converted to the one signature it is compiled for
+    (C-contiguous float64 / int64 / complex128 arrays, Python floats and ints), so that
+    `warm_up` and the renderers use the same machine code.
+
+    Parameters
+    ----------
+    points_m, strength_pa_m, alpha_1_s : array_like
+        Emission points (n, 3) [m], signed source strengths (n,) [Pa m], alphas (n,) [1/s].
+    n_e, frac_s : array_like
+        Emission instants as absolute sample (n,) [samples] plus a fraction (n,) [s].
+    elements_m, radius_m, sound_speed_m_s : array_like, float, float
+        Element centres (4, 3) [m], sphere radius [m], sound speed [m/s].
+    n_paths, reflection_coefficient, att_db_per_m : int, float, float
+        Direct path plus echoes, echo ratio per bounce, loss at 1 MHz [dB/m] (0: lossless).
+    sep_alpha_1_s, sep_att_rad_s : array_like
+        Values an alpha [1/s] / an attenuation pole [rad/s] is nudged away from.
+    fe_zeros, fe_poles, fe_gain : array_like, array_like, float
+        Front-end zeros and poles [rad/s] and gain [V/Pa].
+    fast_poles, fast_weighted_residues : array_like
+        Filter poles kept (one per conjugate pair) [rad/s] and their weighted residues.
+    support_fast, support_att, max_support : int
+        Truncation lengths of the filter-pole and attenuation parts, and the cap [samples].
+    support_rel_tol, sensitivity_v_per_pa, sample_rate_hz, dt_s : float
+        Truncation tolerance, in-band gain [V/Pa], sample rate [Hz], period [s].
+
+    Returns
+    -------
+    tuple
+        (n0, length, channel, al_sep, cs, fcoef, att), see `arrival_inputs`.
+    """
+    f8 = np.float64
+    return arrival_inputs(
+        np.ascontiguousarray(points_m, f8), np.ascontiguousarray(strength_pa_m, f8),
+        np.ascontiguousarray(alpha_1_s, f8), np.ascontiguousarray(n_e, np.int64),
+        np.ascontiguousarray(frac_s, f8), np.ascontiguousarray(elements_m, f8),
+        float(radius_m), float(sound_speed_m_s), int(n_paths), float(reflection_coefficient),
+        float(att_db_per_m), np.ascontiguousarray(sep_alpha_1_s, f8),
+        np.ascontiguousarray(sep_att_rad_s, f8), np.ascontiguousarray(fe_zeros, np.complex128),
+        np.ascontiguousarray(fe_poles, np.complex128), float(fe_gain),
+        np.ascontiguousarray(fast_poles, np.complex128),
+        np.ascontiguousarray(fast_weighted_residues, np.complex128), int(support_fast),
+        int(support_att), int(max_support), float(support_rel_tol), float(sensitivity_v_per_pa),
+        float(sample_rate_hz), float(dt_s))
+
+
+_WARM = False
+
+
+def warm_up() -> bool:
+    """Compile (or load from numba's cache) the kernels now, so that the first rendered
+    packet is not delayed by compilation (seconds; a fraction of a second from the cache).
+    Each kernel is called once on tiny inputs of the types the renderers pass. Idempotent;
+    `load_scene` calls it.
+
+    Returns
+    -------
+    bool
+        `HAVE_NUMBA`: whether the compiled kernels exist (else the numpy path runs).
+    """
+    global _WARM
+    if HAVE_NUMBA and not _WARM:
+        _WARM = True
+        i1 = np.zeros(1, np.int64)
+        accumulate_windows(np.zeros((1, 4, 2)), i1, i1, i1 + 1, i1, i1 + 2, i1, i1,
+                           np.zeros((1, 2)), np.zeros((1, 2, 2)), np.zeros((1, 6)),
+                           np.zeros((6, 2)), 2, np.zeros((1, 0)), 0)
+        w0 = 2e5 * math.pi                          # [rad/s] a 100 kHz high-pass pair
+        pair = np.array([w0 * (-1 + 1j), w0 * (-1 - 1j)]) / math.sqrt(2.0)
+        compute_arrival_inputs(
+            [[0.0, 0.0, 0.01]], [1.0], [3000.0], [0], [0.0],
+            np.array([[1.5e-3, 0.0, 0.0], [-1.5e-3, 0.0, 0.0], [0.0, 1.5e-3, 0.0],
+                      [0.0, -1.5e-3, 0.0]]), 0.01, 1480.0, 1, -0.5, 100.0, [w0], [w0], [0, 0],
+            pair, 0.01, pair[:1], [2.0], 4, 4, 2000, 1e-6, 0.01, 10e6, 1e-7)
+    return HAVE_NUMBA

@@ -41,6 +41,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ae_tactile.sim.emission import event_partial_fractions, event_transfer
+from ae_tactile.sim.kernels import HAVE_NUMBA, accumulate_windows, compute_arrival_inputs
+from ae_tactile.sim.propagation import attenuation_pole_rad_s
 
 
 def _separate(x, forbidden, rel=1e-7):
@@ -98,7 +100,6 @@ def fast_support_samples(config, fe) -> int:
 def att_support_samples(config, max_path_m) -> int:
     """Config constant L_att for the attenuation-pole term: |c_att| <= 4 |A| G (conservative)
     and the slowest pole belongs to the longest path."""
-    from ae_tactile.sim.propagation import attenuation_pole_rad_s
     if config.attenuation_db_per_m <= 0:
         return 0
     w = float(attenuation_pole_rad_s(max_path_m, config.attenuation_db_per_m))
@@ -269,22 +270,18 @@ class KernelInputs:
         """The numba engine: inputs of emissions at absolute sample n_e + frac_s fs computed
         by `kernels.arrival_inputs` in one compiled call (arrivals ordered emission, path,
         channel, as `propagation.compute_arrivals`)."""
-        from ae_tactile.sim.kernels import arrival_inputs
         fe = config.frontend
         geo = config.geometry
         real = fe.fast_poles.real[np.abs(fe.fast_poles.imag) == 0]
         n_paths = 1 + (config.n_reflections if config.reflections else 0)
-        n0, length, channel, al, cs, fcoef, att = arrival_inputs(
-            np.ascontiguousarray(points_m, dtype=float),
-            np.ascontiguousarray(strength_pa_m, float),
-            np.ascontiguousarray(alpha_1_s, float), np.ascontiguousarray(n_e, np.int64),
-            np.ascontiguousarray(frac_s, float), np.ascontiguousarray(geo.element_positions_m),
-            float(geo.radius_m), float(geo.sound_speed_m_s), n_paths,
-            float(config.reflection_coefficient), float(config.attenuation_db_per_m),
-            np.concatenate([-real, -real / 2.0]), -real, fe.zeros, fe.poles, float(fe.gain),
-            fe.fast_poles, fe.fast_weights * fe.fast_residues, int(fe.support_fast),
-            int(fe.support_att), int(config.max_support_samples), float(config.support_rel_tol),
-            float(config.sensitivity_v_per_pa), float(config.sample_rate_hz), float(config.dt_s))
+        n0, length, channel, al, cs, fcoef, att = compute_arrival_inputs(
+            points_m, strength_pa_m, alpha_1_s, n_e, frac_s, geo.element_positions_m,
+            geo.radius_m, geo.sound_speed_m_s, n_paths, config.reflection_coefficient,
+            config.attenuation_db_per_m, np.concatenate([-real, -real / 2.0]), -real, fe.zeros,
+            fe.poles, fe.gain, fe.fast_poles, fe.fast_weights * fe.fast_residues,
+            fe.support_fast, fe.support_att, config.max_support_samples,
+            config.support_rel_tol, config.sensitivity_v_per_pa, config.sample_rate_hz,
+            config.dt_s)
         self = cls.__new__(cls)
         self.n0, self.length, self.channel, self.cs, self.fcoef = n0, length, channel, cs, fcoef
         per = 4 * n_paths
@@ -303,7 +300,6 @@ class KernelInputs:
 
     def call_kernel(self, out, w0, a_lo, a_hi):
         """The compiled kernel over windows ``out`` (n_win, 4, width) at ``w0``."""
-        from ae_tactile.sim.kernels import accumulate_windows
         accumulate_windows(out, np.asarray(w0, np.int64), np.asarray(a_lo, np.int64),
                            np.asarray(a_hi, np.int64), self.n0, self.length, self.channel,
                            self.key, self.cs, self.tabs, self.fcoef, self.basis, self.k_fast,
@@ -313,7 +309,6 @@ class KernelInputs:
 def default_engine(engine=None) -> str:
     """'numba' when the compiled kernel is available (kernels.HAVE_NUMBA), else 'numpy';
     an explicit 'numba' / 'numpy' is checked and returned."""
-    from ae_tactile.sim.kernels import HAVE_NUMBA
     if engine in (None, "auto"):
         return "numba" if HAVE_NUMBA else "numpy"
     if engine not in ("numba", "numpy"):

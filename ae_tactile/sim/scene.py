@@ -37,6 +37,7 @@ from ae_tactile.sim.emission import DEFAULT_ALPHA_1_S, DEFAULT_CURVATURE_1_M, DE
 from ae_tactile.sim.frontend import noise_rms_for_snr, noise_rms_from_density
 from ae_tactile.sim.kernels import warm_up
 from ae_tactile.sim.stream import StreamingSource, TriggeredSource
+from ae_tactile.sim.triggered import render_triggered
 
 REQUIRED = object()
 
@@ -494,8 +495,6 @@ class Scene:
 
 def reference_noise_rms(config: SimConfig, snr_db: float) -> float:
     """sigma giving ``snr_db`` (conventions.md) for the reference touch at the apex."""
-    from ae_tactile.sim.triggered import render_triggered
-
     apex = np.array([[0.0, 0.0, config.geometry.radius_m]])
     pk = render_triggered(apex, config.replace(quantization=False), subsample_offset=0.0)
     return float(noise_rms_for_snr(pk.signal_power_v2[0], snr_db))
