@@ -100,29 +100,10 @@ def _per_packet(name, value, n, positive=True):
     return v
 
 
-def render_triggered(points_m, config: SimConfig | None = None, *, snr_db=None, noise_rms_v=None,
-                     polarity=1, speed_m_s=DEFAULT_SPEED_M_S, curvature_1_m=DEFAULT_CURVATURE_1_M,
-                     alpha_1_s=DEFAULT_ALPHA_1_S, pretrigger_s=8e-6, window_s=40e-6,
-                     subsample_offset="random", rng=None) -> TriggeredPackets:
-    """Render one triggered window per emission at ``points_m`` (N, 3) on the sphere.
-
-    The window holds M = round(window_s fs) samples; the earliest direct arrival lies at
-    pretrigger_s + u / fs after its first sample, u = ``subsample_offset`` in [0, 1) or
-    uniform random ('random', the default: real triggers are not sample-aligned).
-    Defaults (8 us + 32 us) leave the 30 us SNR window after the onset inside the packet.
-
-    Noise: ``snr_db`` (scalar or (N,), conventions.md definition, per packet) or
-    ``noise_rms_v`` (scalar or (N,)), not both; neither = noise-free.
-    Event parameters (scalar or (N,)): ``polarity`` +1 touch / -1 release, ``speed_m_s``,
-    ``curvature_1_m``, ``alpha_1_s`` (emission.py). ``rng``: seed or numpy Generator.
-    """
-    cfg = SimConfig() if config is None else config
-    if not isinstance(cfg, SimConfig):
-        raise TypeError(f"config must be a SimConfig, got {type(cfg).__name__}")
-    pts = validate_surface_points(points_m, cfg.geometry)
-    n = pts.shape[0]
+def _window_samples(cfg, pretrigger_s, window_s, snr_db, noise_rms_v) -> tuple[int, float]:
+    """(M, pretrigger [s]) of a triggered window, checked: the window exceeds the pretrigger
+    by a sample, and holds the SNR window after the onset when ``snr_db`` is given."""
     fs = float(cfg.sample_rate_hz)
-    dt = cfg.dt_s
     m_len = int(round(float(window_s) * fs))
     pre = float(pretrigger_s)
     if not (math.isfinite(pre) and pre >= 0):
@@ -136,30 +117,25 @@ def render_triggered(points_m, config: SimConfig | None = None, *, snr_db=None, 
         raise ValueError(f"snr_db needs the {SNR_WINDOW_S * 1e6:g} us SNR window after the"
                          " onset inside the packet: window_s - pretrigger_s must be >="
                          f" {SNR_WINDOW_S * 1e6:g} us + 1 sample")
-    pol = _per_packet("polarity", polarity, n, positive=False)
-    if not np.all(np.isin(pol, (-1.0, 1.0))):
-        raise ValueError("polarity must be +1 (touch) or -1 (release)")
-    speed = _per_packet("speed_m_s", speed_m_s, n)
-    curv = _per_packet("curvature_1_m", curvature_1_m, n)
-    alpha = _per_packet("alpha_1_s", alpha_1_s, n)
-    gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    return m_len, pre
+
+
+def _subsample_offsets(subsample_offset, n, gen) -> np.ndarray:
+    """u (n,) in [0, 1): drawn from ``gen`` for 'random', else the given value(s)."""
     if isinstance(subsample_offset, str):
         if subsample_offset != "random":
             raise ValueError("subsample_offset must be 'random' or a number in [0, 1)")
-        u = gen.random(n)
-    else:
-        u = _per_packet("subsample_offset", subsample_offset, n, positive=False)
-        if np.any((u < 0) | (u >= 1)):
-            raise ValueError("subsample_offset must lie in [0, 1)")
+        return gen.random(n)
+    u = _per_packet("subsample_offset", subsample_offset, n, positive=False)
+    if np.any((u < 0) | (u >= 1)):
+        raise ValueError("subsample_offset must lie in [0, 1)")
+    return u
 
-    geo = cfg.geometry
-    direct_t = geo.arrival_times_s(pts)                       # (N, 4) travel times
-    t_first = pre + u * dt                                    # earliest direct arrival
-    t_emit = t_first - direct_t.min(axis=1)
-    arrival_times = t_emit[:, None] + direct_t
-    onset = np.ceil(t_first * fs - 1e-9).astype(np.int64)
-    strength = source_strength_pa_m(speed, curv, cfg.density, pol)
 
+def _render_clean(pts, strength, alpha, t_first, direct_t, cfg, m_len) -> np.ndarray:
+    """Noise-free windows (N, 4, M) [V] whose earliest direct arrival is at ``t_first`` [s]
+    after the first sample, in batches of _BATCH emissions."""
+    n = pts.shape[0]
     clean = np.zeros((n, 4, m_len))
     for b0 in range(0, n, _BATCH):
         sl = slice(b0, min(n, b0 + _BATCH))
@@ -176,22 +152,93 @@ def render_triggered(points_m, config: SimConfig | None = None, *, snr_db=None, 
         placed = view[np.arange(len(co)), np.clip(m_len - co.n0, 0, m_len)]
         n_paths = len(arr) // (4 * nb)
         clean[sl] = placed.reshape(nb, n_paths, 4, m_len).sum(axis=1)
+    return clean
 
+
+def _noise_levels(clean, onset, fs, snr_db, noise_rms_v):
+    """(sigma [V], SNR [dB], P_signal [V^2]) per packet, from ``snr_db`` or ``noise_rms_v``
+    (neither: no noise, SNR inf); P_signal is NaN when the SNR window does not fit."""
+    n, _, m_len = clean.shape
     if snr_db is not None:
         snr = _per_packet("snr_db", snr_db, n, positive=False)
         p_sig = signal_power_v2(clean, onset, fs)
-        sigma = noise_rms_for_snr(p_sig, snr)
+        return noise_rms_for_snr(p_sig, snr), snr, p_sig
+    p_sig = (signal_power_v2(clean, onset, fs)
+             if m_len - onset.max() >= round(SNR_WINDOW_S * fs) else np.full(n, np.nan))
+    if noise_rms_v is not None:
+        sigma = _per_packet("noise_rms_v", noise_rms_v, n, positive=False)
+        if np.any(sigma < 0):
+            raise ValueError("noise_rms_v must be >= 0")
     else:
-        p_sig = (signal_power_v2(clean, onset, fs)
-                 if m_len - onset.max() >= round(SNR_WINDOW_S * fs) else np.full(n, np.nan))
-        if noise_rms_v is not None:
-            sigma = _per_packet("noise_rms_v", noise_rms_v, n, positive=False)
-            if np.any(sigma < 0):
-                raise ValueError("noise_rms_v must be >= 0")
-        else:
-            sigma = np.zeros(n)
-        with np.errstate(divide="ignore"):
-            snr = 10.0 * np.log10(p_sig / sigma ** 2)
+        sigma = np.zeros(n)
+    with np.errstate(divide="ignore"):
+        snr = 10.0 * np.log10(p_sig / sigma ** 2)
+    return sigma, snr, p_sig
+
+
+def render_triggered(points_m, config: SimConfig | None = None, *, snr_db=None, noise_rms_v=None,
+                     polarity=1, speed_m_s=DEFAULT_SPEED_M_S, curvature_1_m=DEFAULT_CURVATURE_1_M,
+                     alpha_1_s=DEFAULT_ALPHA_1_S, pretrigger_s=8e-6, window_s=40e-6,
+                     subsample_offset="random", rng=None) -> TriggeredPackets:
+    """Render one triggered window per emission on the sphere, as a hardware trigger would
+    capture it.
+
+    The window holds M = round(window_s fs) samples; the earliest direct arrival lies at
+    pretrigger_s + u / fs after its first sample. The defaults (8 us + 32 us) leave the
+    30 us SNR window after the onset inside the packet.
+
+    Parameters
+    ----------
+    points_m : array_like
+        (N, 3) contact points on the upper hemisphere [m]
+        (``config.geometry.surface_point_from_xy`` builds them).
+    config : SimConfig, optional
+        The simulated sensor (default ``SimConfig()``, the paper's water-skin tip).
+    snr_db, noise_rms_v : float or array_like, optional
+        Noise level per packet, not both: SNR [dB] (docs/conventions.md) or sigma [V];
+        neither gives noise-free packets. Scalar or (N,).
+    polarity : int or array_like
+        +1 compression (touch), -1 rarefaction (release); scalar or (N,).
+    speed_m_s, curvature_1_m, alpha_1_s : float or array_like
+        Eq. 10 event parameters (emission.py) [m/s], [1/m], [1/s]; scalar or (N,).
+    pretrigger_s, window_s : float
+        Window start before the earliest direct arrival, and window length [s].
+    subsample_offset : 'random' or float or array_like
+        u in [0, 1): the arrival's fraction of a sample after the pretrigger; 'random'
+        (default) draws it, as real triggers are not sample-aligned.
+    rng : int, numpy.random.Generator or None
+        Seed or generator of the offsets and the noise.
+
+    Returns
+    -------
+    TriggeredPackets
+        Samples, noise-free signal and ground truth of each window.
+    """
+    cfg = SimConfig() if config is None else config
+    if not isinstance(cfg, SimConfig):
+        raise TypeError(f"config must be a SimConfig, got {type(cfg).__name__}")
+    pts = validate_surface_points(points_m, cfg.geometry)
+    n = pts.shape[0]
+    fs = float(cfg.sample_rate_hz)
+    m_len, pre = _window_samples(cfg, pretrigger_s, window_s, snr_db, noise_rms_v)
+    pol = _per_packet("polarity", polarity, n, positive=False)
+    if not np.all(np.isin(pol, (-1.0, 1.0))):
+        raise ValueError("polarity must be +1 (touch) or -1 (release)")
+    speed = _per_packet("speed_m_s", speed_m_s, n)
+    curv = _per_packet("curvature_1_m", curvature_1_m, n)
+    alpha = _per_packet("alpha_1_s", alpha_1_s, n)
+    gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    u = _subsample_offsets(subsample_offset, n, gen)
+
+    geo = cfg.geometry
+    direct_t = geo.arrival_times_s(pts)                       # (N, 4) travel times [s]
+    t_first = pre + u * cfg.dt_s                              # earliest direct arrival [s]
+    t_emit = t_first - direct_t.min(axis=1)
+    onset = np.ceil(t_first * fs - 1e-9).astype(np.int64)
+    strength = source_strength_pa_m(speed, curv, cfg.density, pol)
+    clean = _render_clean(pts, strength, alpha, t_first, direct_t, cfg, m_len)
+
+    sigma, snr, p_sig = _noise_levels(clean, onset, fs, snr_db, noise_rms_v)
     samples = clean.copy()
     if np.any(sigma > 0):
         samples += sigma[:, None, None] * gen.standard_normal(samples.shape)
@@ -203,7 +250,7 @@ def render_triggered(points_m, config: SimConfig | None = None, *, snr_db=None, 
     d = geo.delays_from_arrival_times(direct_t)
     return TriggeredPackets(samples_v=samples, clean_v=clean, sample_rate_hz=fs, onset_index=onset,
                             points_m=pts, delays_s=d[:, :2], twist_s=d[:, 2],
-                            arrival_times_s=arrival_times, emission_time_s=t_emit,
+                            arrival_times_s=t_emit[:, None] + direct_t, emission_time_s=t_emit,
                             noise_rms_v=sigma, snr_db=np.asarray(snr, float),
                             signal_power_v2=p_sig,
                             saturated=saturated, polarity=pol)
