@@ -15,7 +15,8 @@ i.e. a step of height rho v0^2/(a_c l) at the arrival followed by a zero-mean re
 so well above 2 alpha it is a step (1/s) and a high-pass with cut-off omega_0 >> alpha
 turns it into a pulse of height A (Eq. 11) lasting ~ 1/omega_0.
 
-A release (detouch) emits the same shape with the opposite sign (polarity -1).
+A release (detouch) emits the same shape with the opposite sign (polarity RAREFACTION = -1,
+a touch COMPRESSION = +1).
 The signed source strength ``S = polarity rho v0^2 / a_c`` (Pa m) is what the
 simulator carries per emission; the pressure jump at distance l is S / l.
 
@@ -34,11 +35,14 @@ DEFAULT_SPEED_M_S = 0.30
 DEFAULT_CURVATURE_1_M = 1000.0
 DEFAULT_ALPHA_1_S = 3000.0
 
-TOUCH = 1
-RELEASE = -1
+#: Polarity of an emission: the sign of its pressure jump (of the source strength S). A
+#: touch compresses the medium, a release (detouch) rarefies it. A polarity, not an event
+#: type (event types: `ae_tactile.records.EventType`).
+COMPRESSION = 1
+RAREFACTION = -1
 
 
-def source_strength_pa_m(speed_m_s, curvature_1_m, density_kg_m3, polarity=1):
+def source_strength_pa_m(speed_m_s, curvature_1_m, density_kg_m3, polarity=COMPRESSION):
     """Signed source strength S = polarity rho v0^2 / a_c (Pa m); pressure jump = S / l."""
     v = np.asarray(speed_m_s, dtype=float)
     a = np.asarray(curvature_1_m, dtype=float)
@@ -53,7 +57,7 @@ def peak_pressure_pa(speed_m_s, curvature_1_m, distance_m, density_kg_m3):
 
 def collision_pressure_pa(t_s, distance_m, sound_speed_m_s, *, speed_m_s=DEFAULT_SPEED_M_S,
                           curvature_1_m=DEFAULT_CURVATURE_1_M, alpha_1_s=DEFAULT_ALPHA_1_S,
-                          density_kg_m3=1000.0, polarity=1):
+                          density_kg_m3=1000.0, polarity=COMPRESSION):
     """Eq. (10): unfiltered pressure p(t) (Pa) at distance l from a collision at t = 0.
 
     Zero for t <= l/c. Broadcasts over all arguments.

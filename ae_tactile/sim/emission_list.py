@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ae_tactile.sim.emission import source_strength_pa_m
+from ae_tactile.sim.emission import COMPRESSION, source_strength_pa_m
 
 KINDS = ("touch", "release", "micro_slip", "slip", "texture")
 KIND_CODE = {k: i for i, k in enumerate(KINDS)}
@@ -60,8 +60,8 @@ class EmissionList:
                    np.zeros(0, np.int64))
 
     @classmethod
-    def create(cls, time_ns, point_m, kind, *, polarity=1, speed_m_s, curvature_1_m, alpha_1_s,
-               density_kg_m3, event_id) -> "EmissionList":
+    def create(cls, time_ns, point_m, kind, *, polarity=COMPRESSION, speed_m_s, curvature_1_m,
+               alpha_1_s, density_kg_m3, event_id) -> "EmissionList":
         """Build and sort a list; scalars broadcast. ``kind`` names or codes."""
         t = np.atleast_1d(np.asarray(time_ns, dtype=np.int64))
         n = t.shape[0]

@@ -20,6 +20,7 @@ import math
 
 import numpy as np
 
+from ae_tactile.sim.emission import COMPRESSION, RAREFACTION
 from ae_tactile.sim.emission_list import EmissionList, StaticEmissions
 from ae_tactile.sim.generator_tools import (
     EventParams,
@@ -55,7 +56,7 @@ def single_touch(ctx, p):
     geo = ctx.config.geometry
     pt = geo.surface_point_from_xy(p["x_m"], p["y_m"])
     ev = EventParams(p["speed_m_s"], p["curvature_1_m"], p["alpha_1_s"])
-    em = make_emissions(ctx, [p["time_s"]], pt[None, :], "touch", ev, 1, [0])
+    em = make_emissions(ctx, [p["time_s"]], pt[None, :], "touch", ev, COMPRESSION, [0])
     return StaticEmissions(em, {"generator": "single_touch"})
 
 
@@ -67,7 +68,7 @@ def paper_positions(ctx, p):
     t = p["start_s"] + p["interval_s"] * np.arange(xs.size)
     ev = EventParams(p["speed_m_s"], p["curvature_1_m"], p["alpha_1_s"])
     return StaticEmissions(
-        make_emissions(ctx, t, pts, "touch", ev, 1, np.arange(xs.size)),
+        make_emissions(ctx, t, pts, "touch", ev, COMPRESSION, np.arange(xs.size)),
         {"generator": "paper_positions"},
     )
 
@@ -84,7 +85,8 @@ def three_pins(ctx, p):
     pts = geo.surface_point_from_xy(xy[:, 0], xy[:, 1])
     ev = EventParams(p["speed_m_s"], p["curvature_1_m"], p["alpha_1_s"])
     return StaticEmissions(
-        make_emissions(ctx, t, pts, "touch", ev, 1, np.arange(t.size)), {"generator": "three_pins"}
+        make_emissions(ctx, t, pts, "touch", ev, COMPRESSION, np.arange(t.size)),
+        {"generator": "three_pins"},
     )
 
 
@@ -130,7 +132,7 @@ def random_touches(ctx, p):
             to_ns(t),
             pts,
             "touch",
-            polarity=1,
+            polarity=COMPRESSION,
             speed_m_s=v,
             curvature_1_m=p["curvature_1_m"],
             alpha_1_s=p["alpha_1_s"],
@@ -147,7 +149,7 @@ def random_touches(ctx, p):
                 to_ns(tr[ok]),
                 pts[ok],
                 "release",
-                polarity=-1,
+                polarity=RAREFACTION,
                 speed_m_s=v[ok] * p["release_speed_ratio"],
                 curvature_1_m=p["curvature_1_m"],
                 alpha_1_s=p["alpha_1_s"],
@@ -164,11 +166,11 @@ def touch_hold_release(ctx, p):
     geo = ctx.config.geometry
     pt = geo.surface_point_from_xy(p["x_m"], p["y_m"])[None, :]
     ev = EventParams(p["speed_m_s"], p["curvature_1_m"], p["alpha_1_s"])
-    lists = [make_emissions(ctx, [p["time_s"]], pt, "touch", ev, 1, [0])]
+    lists = [make_emissions(ctx, [p["time_s"]], pt, "touch", ev, COMPRESSION, [0])]
     t_rel = p["time_s"] + p["hold_s"]
     if ctx.effects["release_emissions"]:
         evr = EventParams(p["release_speed_m_s"], p["curvature_1_m"], p["alpha_1_s"])
-        lists.append(make_emissions(ctx, [t_rel], pt, "release", evr, -1, [1]))
+        lists.append(make_emissions(ctx, [t_rel], pt, "release", evr, RAREFACTION, [1]))
     return StaticEmissions(
         EmissionList.concat(lists),
         {"generator": "touch_hold_release", "release_time_ns": int(to_ns(t_rel))},
@@ -245,7 +247,7 @@ def stylus(ctx, p):
                 p0[None, :],
                 "touch",
                 EventParams(p["touch_speed_m_s"], p["curvature_1_m"], p["alpha_1_s"]),
-                1,
+                COMPRESSION,
                 [0],
             )
         )
@@ -258,7 +260,7 @@ def stylus(ctx, p):
                 rotate_on_sphere(p0, d, [p["path_m"] / R]),
                 "release",
                 EventParams(p["touch_speed_m_s"] * 0.5, p["curvature_1_m"], p["alpha_1_s"]),
-                -1,
+                RAREFACTION,
                 [1],
             )
         )
@@ -329,10 +331,11 @@ def interference(ctx, p):
         t_tap = 0.005 + 0.03 * np.arange(n_taps)
         ev = EventParams(p["speed_m_s"], p["curvature_1_m"], p["alpha_1_s"])
         ids = 100 + 2 * np.arange(n_taps)
-        lists.append(make_emissions(ctx, t_tap, pts, "touch", ev, 1, ids))
+        lists.append(make_emissions(ctx, t_tap, pts, "touch", ev, COMPRESSION, ids))
         if ctx.effects["release_emissions"]:
             evr = EventParams(p["release_speed_m_s"], p["curvature_1_m"], p["alpha_1_s"])
-            lists.append(make_emissions(ctx, t_tap + 0.01, pts, "release", evr, -1, ids + 1))
+            lists.append(make_emissions(ctx, t_tap + 0.01, pts, "release", evr, RAREFACTION,
+                                        ids + 1))
     if p["hold_s"] > 0:
         # a held touch (touch_hold_release) under the interference: the false-alarm scene
         sub = touch_hold_release(ctx, {**p, "time_s": p["touch_time_s"]})

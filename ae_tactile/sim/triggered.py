@@ -11,6 +11,7 @@ import numpy as np
 
 from ae_tactile.sim.config import SimConfig
 from ae_tactile.sim.emission import (
+    COMPRESSION,
     DEFAULT_ALPHA_1_S,
     DEFAULT_CURVATURE_1_M,
     DEFAULT_SPEED_M_S,
@@ -177,9 +178,10 @@ def _noise_levels(clean, onset, fs, snr_db, noise_rms_v):
 
 
 def render_triggered(points_m, config: SimConfig | None = None, *, snr_db=None, noise_rms_v=None,
-                     polarity=1, speed_m_s=DEFAULT_SPEED_M_S, curvature_1_m=DEFAULT_CURVATURE_1_M,
-                     alpha_1_s=DEFAULT_ALPHA_1_S, pretrigger_s=8e-6, window_s=40e-6,
-                     subsample_offset="random", rng=None) -> TriggeredPackets:
+                     polarity=COMPRESSION, speed_m_s=DEFAULT_SPEED_M_S,
+                     curvature_1_m=DEFAULT_CURVATURE_1_M, alpha_1_s=DEFAULT_ALPHA_1_S,
+                     pretrigger_s=8e-6, window_s=40e-6, subsample_offset="random",
+                     rng=None) -> TriggeredPackets:
     """Render one triggered window per emission on the sphere, as a hardware trigger would
     capture it.
 
