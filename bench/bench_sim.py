@@ -36,7 +36,9 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from ae_tactile.geometry import FingertipGeometry  # noqa: E402
 from ae_tactile.sim import render_triggered  # noqa: E402
+from ae_tactile.sim.kernels import HAVE_NUMBA, warm_up  # noqa: E402
 from ae_tactile.sim.scene import load_scene  # noqa: E402
 
 SCENES = {
@@ -134,7 +136,6 @@ def _packet_loop(path, batch, render_path="fast", engine=None, poll_s=None):
 def run_device_packets(repeats):
     """Per built-in scene: emissions/s per core (1 and 16 per call), the device's
     real-time factor, and the reference path."""
-    from ae_tactile.sim.kernels import HAVE_NUMBA, warm_up
     warm_up()
     rows = []
     for path in sorted(glob.glob(os.path.join(SCENE_DIR, "*.yaml"))):
@@ -174,7 +175,6 @@ def run_device_packets(repeats):
 
 def run_triggered(n_packets=10_000):
     rng = np.random.default_rng(0)
-    from ae_tactile.geometry import FingertipGeometry
     g = FingertipGeometry()
     pts = g.surface_point_from_angles(np.arccos(rng.uniform(0.2, 1, n_packets)),
                                       rng.uniform(0, 2 * np.pi, n_packets))
@@ -232,9 +232,9 @@ def main(argv=None):
     print("wrote", args.out)
     if args.png and rows:
         try:
-            import matplotlib
+            import matplotlib  # lazy: optional, only for --png
             matplotlib.use("Agg")
-            import matplotlib.pyplot as plt
+            import matplotlib.pyplot as plt  # lazy: optional, only for --png
         except ImportError:
             print("matplotlib not available: no PNG")
             return 0
