@@ -31,9 +31,9 @@ from __future__ import annotations
 
 import numpy as np
 
-DEFAULT_SPEED_M_S = 0.30
-DEFAULT_CURVATURE_1_M = 1000.0
-DEFAULT_ALPHA_1_S = 3000.0
+DEFAULT_SPEED_M_S = 0.30          # [m/s] contact speed v0
+DEFAULT_CURVATURE_1_M = 1000.0    # [1/m] object curvature a_c (1/mm)
+DEFAULT_ALPHA_1_S = 3000.0        # [1/s] indentation rate alpha
 
 #: Polarity of an emission: the sign of its pressure jump (of the source strength S). A
 #: touch compresses the medium, a release (detouch) rarefies it. A polarity, not an event
@@ -43,14 +43,45 @@ RAREFACTION = -1
 
 
 def source_strength_pa_m(speed_m_s, curvature_1_m, density_kg_m3, polarity=COMPRESSION):
-    """Signed source strength S = polarity rho v0^2 / a_c (Pa m); pressure jump = S / l."""
+    """Signed source strength S = polarity rho v0^2 / a_c; the pressure jump at distance l
+    is S / l.
+
+    Parameters
+    ----------
+    speed_m_s, curvature_1_m : float or array_like
+        Contact speed v0 [m/s] and object curvature a_c [1/m].
+    density_kg_m3 : float
+        Density rho of the medium [kg/m^3].
+    polarity : int or array_like
+        `COMPRESSION` (+1, touch) or `RAREFACTION` (-1, release).
+
+    Returns
+    -------
+    numpy.ndarray
+        S [Pa m], broadcast over the arguments.
+    """
     v = np.asarray(speed_m_s, dtype=float)
     a = np.asarray(curvature_1_m, dtype=float)
     return np.asarray(polarity, dtype=float) * float(density_kg_m3) * v * v / a
 
 
 def peak_pressure_pa(speed_m_s, curvature_1_m, distance_m, density_kg_m3):
-    """Eq. (11): high-passed pressure just after the arrival, rho v0^2 / (a_c l) (Pa)."""
+    """Eq. (11): the high-passed pressure just after the arrival, rho v0^2 / (a_c l).
+
+    Parameters
+    ----------
+    speed_m_s, curvature_1_m : float or array_like
+        Contact speed v0 [m/s] and object curvature a_c [1/m].
+    distance_m : float or array_like
+        Path length l [m].
+    density_kg_m3 : float
+        Density rho [kg/m^3].
+
+    Returns
+    -------
+    numpy.ndarray
+        Peak pressure [Pa] (9 Pa for the paper's numbers at l = 1 cm in water).
+    """
     s = source_strength_pa_m(speed_m_s, curvature_1_m, density_kg_m3)
     return s / np.asarray(distance_m, float)
 
@@ -58,9 +89,27 @@ def peak_pressure_pa(speed_m_s, curvature_1_m, distance_m, density_kg_m3):
 def collision_pressure_pa(t_s, distance_m, sound_speed_m_s, *, speed_m_s=DEFAULT_SPEED_M_S,
                           curvature_1_m=DEFAULT_CURVATURE_1_M, alpha_1_s=DEFAULT_ALPHA_1_S,
                           density_kg_m3=1000.0, polarity=COMPRESSION):
-    """Eq. (10): unfiltered pressure p(t) (Pa) at distance l from a collision at t = 0.
+    """Eq. (10): the unfiltered pressure at distance l from a collision at t = 0.
 
-    Zero for t <= l/c. Broadcasts over all arguments.
+    Parameters
+    ----------
+    t_s : float or array_like
+        Times [s].
+    distance_m : float or array_like
+        Path length l [m].
+    sound_speed_m_s : float
+        Sound speed c [m/s].
+    speed_m_s, curvature_1_m, alpha_1_s : float or array_like
+        Event parameters v0 [m/s], a_c [1/m], alpha [1/s].
+    density_kg_m3 : float
+        Density rho [kg/m^3].
+    polarity : int or array_like
+        `COMPRESSION` (+1) or `RAREFACTION` (-1).
+
+    Returns
+    -------
+    numpy.ndarray
+        p(t) [Pa], zero for t <= l/c; broadcast over all arguments.
     """
     t = np.asarray(t_s, dtype=float)
     dist = np.asarray(distance_m, dtype=float)
@@ -77,8 +126,23 @@ def event_partial_fractions(amplitude_pa, alpha_1_s, att_pole_rad_s=None):
 
     P1(s) = 2/(s + 2 alpha) - 1/(s + alpha) (Eq. 9 with unit jump) and
     W(s) = w/(s + w) the medium's attenuation pole (omitted when ``att_pole_rad_s`` is None).
-    Vectorized over arrivals: inputs (n,), returns (poles (n, m), residues (n, m)) real,
-    m = 2 or 3. Poles must be distinct (the caller separates w from alpha, 2 alpha).
+    Poles must be distinct (the caller separates w from alpha, 2 alpha).
+
+    Parameters
+    ----------
+    amplitude_pa : array_like
+        Pressure jump A per arrival (n,) [Pa].
+    alpha_1_s : array_like
+        Indentation rate alpha (n,) [1/s].
+    att_pole_rad_s : array_like, optional
+        Attenuation pole w (n,) [rad/s]; None: lossless.
+
+    Returns
+    -------
+    poles : numpy.ndarray
+        (n, m) real [1/s], m = 2 (lossless) or 3.
+    residues : numpy.ndarray
+        (n, m) real [Pa/s].
     """
     A = np.asarray(amplitude_pa, dtype=float)
     al = np.broadcast_to(np.asarray(alpha_1_s, dtype=float), A.shape)
@@ -97,7 +161,19 @@ def event_partial_fractions(amplitude_pa, alpha_1_s, att_pole_rad_s=None):
 def event_transfer(s, amplitude_pa, alpha_1_s, att_pole_rad_s=None):
     """R(s) = A (2/(s + 2 alpha) - 1/(s + alpha)) [w/(s + w)] at complex s.
 
-    Broadcasting: ``s`` (..., m) against per-arrival parameters (..., 1).
+    Parameters
+    ----------
+    s : array_like
+        Complex frequencies (..., m) [1/s].
+    amplitude_pa, alpha_1_s : array_like
+        Pressure jump A [Pa] and alpha [1/s] per arrival, (..., 1).
+    att_pole_rad_s : array_like, optional
+        Attenuation pole w [rad/s] per arrival (..., 1); None: lossless.
+
+    Returns
+    -------
+    numpy.ndarray
+        R(s) [Pa s], complex, broadcast shape.
     """
     s = np.asarray(s)
     A = np.asarray(amplitude_pa, dtype=float)

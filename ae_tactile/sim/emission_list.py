@@ -17,7 +17,7 @@ from ae_tactile.sim.emission import COMPRESSION, source_strength_pa_m
 KINDS = ("touch", "release", "micro_slip", "slip", "texture")
 KIND_CODE = {k: i for i, k in enumerate(KINDS)}
 
-_NS = 1_000_000_000
+_NS = 1_000_000_000  # [ns/s]
 
 
 @dataclass(frozen=True)
@@ -47,6 +47,7 @@ class EmissionList:
 
     @property
     def polarity(self) -> np.ndarray:
+        """(N,) +1 compression, -1 rarefaction (the sign of the source strength)."""
         return np.sign(self.strength_pa_m)
 
     @property
@@ -62,7 +63,29 @@ class EmissionList:
     @classmethod
     def create(cls, time_ns, point_m, kind, *, polarity=COMPRESSION, speed_m_s, curvature_1_m,
                alpha_1_s, density_kg_m3, event_id) -> "EmissionList":
-        """Build and sort a list; scalars broadcast. ``kind`` names or codes."""
+        """Build a list sorted by (time_ns, event_id); scalars broadcast to every emission.
+
+        Parameters
+        ----------
+        time_ns : array_like
+            Emission instants (N,) [ns].
+        point_m : array_like
+            Contact points (N, 3) on the sensing surface [m].
+        kind : str or array_like
+            A name of `KINDS`, or names / codes per emission.
+        polarity : int or array_like
+            `emission.COMPRESSION` (+1) or `emission.RAREFACTION` (-1).
+        speed_m_s, curvature_1_m, alpha_1_s : float or array_like
+            Eq. 10 event parameters [m/s], [1/m], [1/s].
+        density_kg_m3 : float
+            Density of the medium [kg/m^3] (sets the source strength).
+        event_id : int or array_like
+            Unique id per emission within a scene.
+
+        Returns
+        -------
+        EmissionList
+        """
         t = np.atleast_1d(np.asarray(time_ns, dtype=np.int64))
         n = t.shape[0]
         p = np.asarray(point_m, dtype=float).reshape(n, 3)

@@ -152,6 +152,25 @@ def _front_end_filter(w, config: SimConfig):
     return w / np.where(peak > 0, peak, 1.0)
 
 
+def _unit_windows(n, kind, coupling, cfg, m_len, pre, g):
+    """(n, M) unit-peak waveforms in their windows, each starting a random fraction of a
+    sample after ``pre`` samples; 'input' coupling filtered by the front end."""
+    fs = float(cfg.sample_rate_hz)
+    frac = g.uniform(0, 1, n)
+    kinds = g.choice(KINDS, n) if kind == "mixed" else np.full(n, kind)
+    # a long pre-roll so 'input' coupling sees the filters' full transient
+    roll = int(round(60e-6 * fs))
+    t = (np.arange(-roll, m_len)[None, :] - pre - frac[:, None]) / fs
+    w = np.zeros((n, roll + m_len))
+    for k in KINDS:
+        sel = kinds == k
+        if sel.any():
+            w[sel] = np.concatenate([_waveforms(k, 1, t[i], g) for i in np.flatnonzero(sel)])
+    if coupling == "input" and n:
+        w = _front_end_filter(w, cfg)
+    return w[:, roll:]
+
+
 def render_interference(
     n: int,
     config: SimConfig | None = None,
@@ -165,9 +184,35 @@ def render_interference(
     window_s: float = 40e-6,
     rng=None,
 ) -> TriggeredPackets:
-    """``n`` common-mode interference packets (see the module docstring). ``kind``: one of
-    KINDS or 'mixed' (uniform choice per packet); ``amplitude_v``: scalar, (n,), or None
-    (log-uniform 10 .. 300 noise sigmas, or 0.01 .. 0.3 V without noise)."""
+    """Common-mode interference packets (waveforms and coupling: the module docstring).
+
+    Parameters
+    ----------
+    n : int
+        Number of packets.
+    config : SimConfig, optional
+        The simulated sensor (default ``SimConfig()``).
+    kind : str
+        One of `KINDS`, or 'mixed' (a uniform choice per packet).
+    coupling : {'adc', 'input'}
+        After the front end's filters, or at the amplifier input (filtered by them).
+    amplitude_v : float or array_like, optional
+        Peak at the ADC [V], scalar or (n,); None: log-uniform over 10 .. 300 noise sigmas
+        (0.01 .. 0.3 V without noise).
+    noise_rms_v : float
+        White noise sigma per channel [V].
+    gain_mismatch : float
+        Relative std of each channel's gain on the common waveform.
+    pretrigger_s, window_s : float
+        Window start before the burst, and window length [s].
+    rng : int, numpy.random.Generator or None
+        Seed or generator of every draw.
+
+    Returns
+    -------
+    TriggeredPackets
+        The triggered renderer's format, with NaN points and delays and polarity 0.
+    """
     cfg = SimConfig() if config is None else config
     g = _rng(rng)
     if coupling not in COUPLINGS:
@@ -178,19 +223,7 @@ def render_interference(
     pre = int(round(pretrigger_s * fs))
     if n < 0 or m_len <= pre + 1:
         raise ValueError("need n >= 0 and a window longer than the pretrigger")
-    frac = g.uniform(0, 1, n)
-    kinds = g.choice(KINDS, n) if kind == "mixed" else np.full(n, kind)
-    # a long pre-roll so 'input' coupling sees the filters' full transient
-    roll = int(round(60e-6 * fs))
-    t = (np.arange(-roll, m_len)[None, :] - pre - frac[:, None]) / fs
-    w = np.zeros((n, roll + m_len))
-    for k in KINDS:
-        sel = kinds == k
-        if sel.any():
-            w[sel] = np.concatenate([_waveforms(k, 1, t[i], g) for i in np.flatnonzero(sel)])
-    if coupling == "input" and n:
-        w = _front_end_filter(w, cfg)
-    w = w[:, roll:]
+    w = _unit_windows(n, kind, coupling, cfg, m_len, pre, g)
     if amplitude_v is None:
         lo, hi = (10 * noise_rms_v, 300 * noise_rms_v) if noise_rms_v > 0 else (0.01, 0.3)
         amplitude_v = np.exp(g.uniform(math.log(lo), math.log(hi), n))
@@ -279,6 +312,20 @@ class InterferenceSource:
         return t - self.host_t0_ns
 
     def next_packets(self, horizon_ns: int):
+        """The bursts before ``horizon_ns`` not returned yet, rendered.
+
+        Parameters
+        ----------
+        horizon_ns : int
+            Scene time [ns] up to which bursts are due.
+
+        Returns
+        -------
+        times_ns : numpy.ndarray
+            (N,) int64 scene times of the packets' onsets [ns], sorted.
+        packets : TriggeredPackets or None
+            The packets in that order; None when no burst is due.
+        """
         times, parts = [], []
         for i, b in enumerate(self.bursts):
             if b.get("shared_clock"):

@@ -51,7 +51,20 @@ from ae_tactile.sim.response import (
 class StreamRenderer:
     """Render absolute sample windows of a stream from an `EmissionList`.
 
-    ``noise_rms_v``: sigma per channel (0 = no noise); ``seed`` fixes the noise.
+    Parameters
+    ----------
+    config : SimConfig
+        The simulated sensor.
+    noise_rms_v : float
+        Noise sigma per channel [V] (0: no noise).
+    seed : int
+        Seed of the noise (a window's noise does not depend on where it starts).
+    noise_block : int
+        Samples per independently seeded noise block.
+    batch_emissions : int
+        Emissions per batch of the numpy engine.
+    engine : {'numba', 'numpy', None}
+        None: numba when available (`response.default_engine`).
     """
 
     def __init__(self, config: SimConfig, *, noise_rms_v: float = 0.0, seed: int = 0,
@@ -254,9 +267,29 @@ class StreamRenderer:
 
     # ------------------------------------------------------------------ output
     def render(self, emissions: EmissionList, n0: int, n1: int, *, out=None, return_clean=False):
-        """ADC output (volts, (4, n1 - n0) float64) for absolute samples [n0, n1): signal,
-        plus noise, then quantization/clipping if on. With ``return_clean`` also the
-        noise-free signal. Returns (samples, clipped_any[, clean])."""
+        """ADC output for absolute samples [n0, n1): signal, plus noise, then quantization
+        and clipping if on.
+
+        Parameters
+        ----------
+        emissions : EmissionList
+            Every emission that may reach the window (earlier ones included).
+        n0, n1 : int
+            Absolute sample indices of the window.
+        out : numpy.ndarray, optional
+            A C-contiguous float64 (4, n1 - n0) buffer to render into.
+        return_clean : bool
+            Also return the noise-free, unquantized signal.
+
+        Returns
+        -------
+        samples : numpy.ndarray
+            (4, n1 - n0) float64 [V].
+        clipped : bool
+            Whether any sample clipped at full scale.
+        clean : numpy.ndarray
+            (4, n1 - n0) [V], only with ``return_clean``.
+        """
         y = self.render_clean(emissions, n0, n1, out=out)
         clean = y.copy() if return_clean else None
         self.add_noise(y, n0)

@@ -83,6 +83,7 @@ class Scene:
 
     @property
     def n_samples(self) -> int:
+        """Samples per channel over ``duration_s``."""
         return int(round(self.duration_s * self.config.sample_rate_hz))
 
     @property
@@ -92,13 +93,34 @@ class Scene:
 
     def streaming_source(self, **kw) -> StreamingSource:
         """A fresh stream of this scene (the process is shared: build the scene again for
-        an independent replay)."""
+        an independent replay).
+
+        Parameters
+        ----------
+        **kw
+            `StreamingSource` options (``start_index``, ``keep_clean``).
+
+        Returns
+        -------
+        StreamingSource
+        """
         return StreamingSource(
             self.process, self.config, noise_rms_v=self.noise_rms_v, seed=self.seed, **kw
         )
 
     def triggered_source(self, **kw) -> TriggeredSource:
-        """Packets of this scene's emissions before its end (``end_ns`` = duration_s)."""
+        """Packets of this scene's emissions before its end (``end_ns`` = duration_s).
+
+        Parameters
+        ----------
+        **kw
+            `TriggeredSource` options (``pretrigger_s``, ``window_s``, ``render_path``,
+            ``engine``, ``keep_clean``, ``end_ns``).
+
+        Returns
+        -------
+        TriggeredSource
+        """
         kw.setdefault("end_ns", int(round(self.duration_s * 1e9)))
         return TriggeredSource(
             self.process, self.config, noise_rms_v=self.noise_rms_v, seed=self.seed, **kw
@@ -106,13 +128,29 @@ class Scene:
 
 
 def reference_noise_rms(config: SimConfig, snr_db: float) -> float:
-    """sigma giving ``snr_db`` (conventions.md) for the reference touch at the apex."""
+    """The noise sigma giving ``snr_db`` (docs/conventions.md) for the reference touch at
+    the apex (default event parameters, noise-free and unquantized).
+
+    Parameters
+    ----------
+    config : SimConfig
+        The simulated sensor.
+    snr_db : float
+        SNR of the reference touch [dB].
+
+    Returns
+    -------
+    float
+        Noise sigma per channel [V].
+    """
     apex = np.array([[0.0, 0.0, config.geometry.radius_m]])
     pk = render_triggered(apex, config.replace(quantization=False), subsample_offset=0.0)
     return float(noise_rms_for_snr(pk.signal_power_v2[0], snr_db))
 
 
 def build_config(sensor: dict, effects: dict) -> SimConfig:
+    """The `SimConfig` of validated ``sensor`` and ``effects`` sections (SceneError if the
+    combination does not validate)."""
     s = dict(sensor)
     medium = s.pop("medium")
     c = s.pop("sound_speed_m_s")

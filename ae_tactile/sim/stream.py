@@ -52,10 +52,25 @@ class Chunk:
 
 class StreamingSource:
     """Continuous 4-channel stream: ``next_chunk(n)`` returns the next n samples and the
-    ground truth falling in them. Source: an `EmissionList` or an emission process (an
-    object with ``advance(t_ns) -> EmissionList`` returning, deterministically, the
-    emissions up to t_ns not returned before; e.g. `generators.IncipientSlipProcess`).
-    Memory is bounded: emissions older than the renderer's look-back are dropped.
+    ground truth falling in them. Memory is bounded: emissions older than the renderer's
+    look-back are dropped.
+
+    Parameters
+    ----------
+    source : EmissionList or emission process
+        The emissions, or an object with ``advance(t_ns) -> EmissionList`` returning,
+        deterministically, the emissions up to t_ns not returned before (e.g.
+        `incipient_slip.IncipientSlipProcess`).
+    config : SimConfig
+        The simulated sensor.
+    noise_rms_v : float
+        Noise sigma per channel [V] (0: no noise).
+    seed : int
+        Seed of the stream's noise.
+    start_index : int
+        Absolute index of the first sample served.
+    keep_clean : bool
+        Also return the noise-free signal of each chunk (``Chunk.clean_v``).
     """
 
     def __init__(self, source, config: SimConfig, *, noise_rms_v: float = 0.0, seed: int = 0,
@@ -82,6 +97,21 @@ class StreamingSource:
         return new
 
     def next_chunk(self, n_samples: int, out=None) -> Chunk:
+        """The next ``n_samples`` samples of the stream and the emissions falling in them.
+
+        Parameters
+        ----------
+        n_samples : int
+            Samples per channel (> 0).
+        out : numpy.ndarray, optional
+            A C-contiguous float64 (4, n_samples) buffer to render into (reusing one buffer
+            across chunks avoids page-faulting fresh memory).
+
+        Returns
+        -------
+        Chunk
+            ADC output [V], its position and time, and the ground truth.
+        """
         n = int(n_samples)
         if n <= 0:
             raise ValueError(f"n_samples must be positive, got {n_samples!r}")
@@ -130,9 +160,29 @@ class TriggeredSource:
     """Windows around each emission, as an ideal hardware trigger would capture them: the
     window starts ``pretrigger_s`` before the emission's earliest direct arrival and holds
     ``window_s`` of the *stream* (overlapping emissions, echoes and the stream's noise
-    included). ``next_packets(n)`` returns up to n packets in emission order, of emissions
-    before ``end_ns`` if given (a scene's source ends with the scene: `Scene.triggered_source`
-    sets it to the scene's duration)."""
+    included). ``next_packets(n)`` returns up to n packets in emission order.
+
+    Parameters
+    ----------
+    source : EmissionList or emission process
+        As for `StreamingSource`.
+    config : SimConfig
+        The simulated sensor.
+    noise_rms_v, seed : float, int
+        The stream's noise sigma per channel [V] and seed.
+    pretrigger_s, window_s : float
+        Window start before the earliest direct arrival, and window length [s].
+    keep_clean : bool
+        Also return the noise-free windows (``StreamPackets.clean_v``).
+    render_path : {'fast', 'reference'}
+        'fast' renders only each window's samples and noise; 'reference' renders each
+        window with the stream renderer. Both give the same bits.
+    engine : {'numba', 'numpy', None}
+        Renderer engine (None: numba when available, `response.default_engine`).
+    end_ns : int, optional
+        No packet for emissions from this time on [ns] (a scene's source ends with the
+        scene: `Scene.triggered_source` sets it to the scene's duration).
+    """
 
     def __init__(self, source, config: SimConfig, *, noise_rms_v: float = 0.0, seed: int = 0,
                  pretrigger_s: float = 8e-6, window_s: float = 40e-6, keep_clean: bool = False,
@@ -249,15 +299,10 @@ class TriggeredSource:
                              delays_s=np.zeros((0, 2)), emissions=EmissionList.empty(),
                              n_overlapping=i0.copy(), saturated=np.zeros(0, bool))
 
-    def next_packets(self, n: int, horizon_ns: int | None = None) -> StreamPackets:
-        """Up to n packets (fewer if the source ends, or none beyond ``horizon_ns``)."""
-        cfg = self.config
-        fs = cfg.sample_rate_hz
-        geo = cfg.geometry
+    def _fill(self, n: int, limit) -> None:
+        """Pull emissions from the process until n are waiting to be served, the horizon
+        reaches ``limit`` [ns], or a static list is exhausted."""
         step = self._lookahead_ns
-        limit = horizon_ns if horizon_ns is not None else None
-        if self.end_ns is not None:                # the scene's end: no emission from then on
-            limit = self.end_ns if limit is None else min(int(limit), self.end_ns)
         while len(self._buffer) - self._next < n:
             target = self._horizon_ns + 100 * step
             if limit is not None:
@@ -270,6 +315,58 @@ class TriggeredSource:
                     and isinstance(self.process, StaticEmissions)):
                 if self._horizon_ns > int(self.process.emissions.time_ns.max(initial=0)):
                     break
+
+    def _render_reference(self, start):
+        """Reference path: each window [start_i, start_i + M) rendered by the stream renderer.
+        Returns (samples (k, 4, M), clean or None, saturated (k,))."""
+        fs = self.config.sample_rate_hz
+        k = start.shape[0]
+        samples = np.zeros((k, 4, self.m))
+        clean = np.zeros((k, 4, self.m)) if self.keep_clean else None
+        sat = np.zeros(k, bool)
+        for i in range(k):
+            self._ensure(int(time_ns_of_sample(start[i] + self.m, fs)) + self._lookahead_ns)
+            res = self.renderer.render(self._buffer, int(start[i]), int(start[i]) + self.m,
+                                       return_clean=self.keep_clean)
+            samples[i] = res[0]
+            sat[i] = res[1]
+            if self.keep_clean:
+                clean[i] = res[2]
+        return samples, clean, sat
+
+    def _n_overlapping(self, start):
+        """Per window (k,): the other buffered emissions whose first direct arrival falls
+        inside it."""
+        all_first = self._derived[2]
+        if np.all(np.diff(all_first) >= 0):
+            s0 = np.searchsorted(all_first, start, side="left")
+            return np.searchsorted(all_first, start + self.m, side="left") - s0 - 1
+        return np.array([int(np.sum((all_first >= s) & (all_first < s + self.m))) - 1
+                         for s in start.tolist()], np.int64)
+
+    def next_packets(self, n: int, horizon_ns: int | None = None) -> StreamPackets:
+        """The next packets, in emission order.
+
+        Parameters
+        ----------
+        n : int
+            Most packets returned.
+        horizon_ns : int, optional
+            No packet for emissions from this time on [ns] (the device's "now"); fewer
+            packets when the source ends.
+
+        Returns
+        -------
+        StreamPackets
+            Up to ``n`` windows with their ground truth (empty when none is due).
+        """
+        cfg = self.config
+        fs = cfg.sample_rate_hz
+        geo = cfg.geometry
+        limit = horizon_ns if horizon_ns is not None else None
+        if self.end_ns is not None:                # the scene's end: no emission from then on
+            limit = self.end_ns if limit is None else min(int(limit), self.end_ns)
+        self._fill(n, limit)
         take = list(range(self._next, min(len(self._buffer), self._next + n)))
         if limit is not None:
             take = [i for i in take if self._buffer.time_ns[i] < limit]
@@ -284,28 +381,12 @@ class TriggeredSource:
         onset_abs = n_e + np.ceil(first * fs - 1e-9).astype(np.int64)
         start = onset_abs - self.pre
         if self.render_path == "reference":
-            samples = np.zeros((k, 4, self.m))
-            clean = np.zeros((k, 4, self.m)) if self.keep_clean else None
-            sat = np.zeros(k, bool)
-            for i in range(k):
-                self._ensure(int(time_ns_of_sample(start[i] + self.m, fs)) + step)
-                res = self.renderer.render(self._buffer, int(start[i]), int(start[i]) + self.m,
-                                           return_clean=self.keep_clean)
-                samples[i] = res[0]
-                sat[i] = res[1]
-                if self.keep_clean:
-                    clean[i] = res[2]
+            samples, clean, sat = self._render_reference(start)
         else:
-            self._ensure(int(time_ns_of_sample(int(start.max()) + self.m, fs)) + step)
+            self._ensure(int(time_ns_of_sample(int(start.max()) + self.m, fs))
+                         + self._lookahead_ns)
             samples, clean, sat = self._render_windows(start)
-        all_first = self._derived[2]
-        s0 = (np.searchsorted(all_first, start, side="left")
-              if np.all(np.diff(all_first) >= 0) else None)
-        if s0 is not None:
-            n_over = np.searchsorted(all_first, start + self.m, side="left") - s0 - 1
-        else:
-            n_over = np.array([int(np.sum((all_first >= s) & (all_first < s + self.m))) - 1
-                               for s in start.tolist()], np.int64)
+        n_over = self._n_overlapping(start)
         self._next += k
         # drop served emissions that can no longer reach future windows (later emissions'
         # windows may start a little earlier than this batch's: travel times differ)
