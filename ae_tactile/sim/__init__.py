@@ -54,13 +54,25 @@ window's samples and noise, bit-identical to the stream). Engines: compiled kern
 (kernels.py, numba; compiled or loaded from the cache by the first `load_scene`, or by
 `kernels.warm_up()`) or numpy (the reference and the fallback without numba).
 
-Scenes (`scene.py`, `generators.py`): `load_scene('config/scenes/x.yaml')` -> `Scene`
-with `.streaming_source()`, `.triggered_source()`, `.truth`; the incipient-slip scene's
+Scenes (`scene.py`): `load_scene('config/scenes/x.yaml')` -> `Scene` with
+`.streaming_source()`, `.triggered_source()`, `.truth`; the incipient-slip scene's
 `scene.process.set_normal_load(P, at_time_ns)` changes the grip while it plays. A scene
 whose estimated cost (`scene.cost`: emissions, memory, output size) exceeds the budget
 (1 GiB of memory; 16 GiB of output on the command line) is refused with a SceneError.
 CLI: ``python3 -m ae_tactile.sim.cli scene.yaml -o out.npz``. Full description, scene
 keys and benchmark: docs/simulator.md.
+
+Modules, in import order (each imports only modules listed before it):
+
+* physics: emission.py (Eqs. 6-11), propagation.py (paths, echoes, attenuation pole),
+  kernels.py (the compiled sample formula), response.py (exact sampled responses),
+  frontend.py (filters, SNR, ADC), config.py (`SimConfig`);
+* rendering: triggered.py (batch triggered packets), emission_list.py (ground truth),
+  renderer.py (`StreamRenderer`, the stream's noise), stream.py (the two sources),
+  interference.py (common-mode interference packets);
+* scenes: generator_tools.py, incipient_slip.py, generators.py (emission processes),
+  scene_schema.py (keys, validation, generator registry), scene_budget.py (cost),
+  scene.py (`load_scene`), cli.py (render a scene to .npz).
 """
 from ae_tactile.sim.config import MEDIUM_PRESETS, Medium, SimConfig
 from ae_tactile.sim.emission import (

@@ -68,38 +68,51 @@ def _int_in(name, value, lo, hi):
 @dataclass(frozen=True)
 class SimConfig:
     """Everything fixed about the simulated sensor. Defaults: the paper's water-skin tip.
+    Validated on construction (ValueError naming the field).
 
-    Geometry and medium
-      geometry            FingertipGeometry (R = 10 mm, a = 1.5 mm, c = 1480 m/s).
-      medium              'water_skin' | 'silicone' | 'custom'. For a preset, the
-                          geometry's sound speed must match the preset's (use
-                          ``SimConfig.for_medium('silicone')``); 'custom' needs
-                          density_kg_m3 and attenuation_db_per_m_at_1mhz.
-      density_kg_m3       rho of Eq. 10 (None: the preset's).
-      attenuation_db_per_m_at_1mhz   None: the preset's.
-    Front end (PVDF + amplifier + filters + ADC)
-      sensitivity_v_per_pa   PVDF + amplifier gain, flat in band (default 0.01 V/Pa:
-                          ~10 uV/Pa of a 28 um PVDF film times a 60 dB amplifier).
-      highpass_hz, highpass_order   Butterworth high-pass (paper: 100 kHz; order 2).
-      lowpass_hz, lowpass_order     Butterworth anti-alias / PVDF band limit. "auto"
-                          (default): ``geometry.resolve_front_end_lowpass``: (1 MHz, order 4),
-                          the PVDF/amplifier band, and below 3.33 MS/s the ADC's anti-alias
-                          filter (0.3 f_s, order 8). Numbers set them, ``lowpass_hz=None``
-                          disables the low-pass (an "auto" order is then 4). "auto" is
-                          resolved on construction; ``replace`` re-resolves it for a new
-                          sample rate.
-      sample_rate_hz      ADC rate, an integer number of Hz (10 MS/s).
-      adc_bits, adc_full_scale_v    codes in [-2^(b-1), 2^(b-1)-1], LSB = 2 FS / 2^b,
-                          clipping at full scale (12 bit, +-1 V).
-    Effects (each costs nothing when off)
-      attenuation         frequency-dependent loss of the medium along each path.
-      reflections         specular wall echoes (see propagation.py).
-      reflection_coefficient, n_reflections   echo amplitude ratio per bounce, echo count.
-      quantization        round to ADC codes and clip (noise is on iff a level is given).
-    Rendering
-      support_rel_tol     each arrival's response is truncated once a bound on its
-                          remaining tail falls below this fraction of its jump |A| G.
-      max_support_s       hard cap on an arrival's response length (200 us).
+    Parameters
+    ----------
+    geometry : FingertipGeometry
+        R = 10 mm, a = 1.5 mm, c = 1480 m/s by default.
+    medium : {'water_skin', 'silicone', 'custom'}
+        For a preset, the geometry's sound speed must match the preset's (use
+        ``SimConfig.for_medium('silicone')``); 'custom' needs ``density_kg_m3`` and
+        ``attenuation_db_per_m_at_1mhz``.
+    density_kg_m3 : float, optional
+        rho of Eq. 10 [kg/m^3] (None: the preset's).
+    attenuation_db_per_m_at_1mhz : float, optional
+        Loss at 1 MHz [dB/m] (None: the preset's); used when ``attenuation`` is on.
+    sensitivity_v_per_pa : float
+        PVDF + amplifier gain, flat in band [V/Pa] (0.01: ~10 uV/Pa of a 28 um PVDF film
+        times a 60 dB amplifier).
+    highpass_hz, highpass_order : float, int
+        Butterworth high-pass [Hz] (the paper's 100 kHz; order 2).
+    lowpass_hz, lowpass_order : float or "auto" or None, int or "auto"
+        Butterworth anti-alias / PVDF band limit [Hz]. "auto" (default):
+        ``geometry.resolve_front_end_lowpass``: (1 MHz, order 4), the PVDF/amplifier band,
+        and below 3.33 MS/s the ADC's anti-alias filter (0.3 f_s, order 8).
+        ``lowpass_hz=None`` disables the low-pass (an "auto" order is then 4). "auto" is
+        resolved on construction; ``replace`` re-resolves it for a new sample rate.
+    sample_rate_hz : float
+        ADC rate, an integer number of Hz (10 MS/s).
+    adc_bits, adc_full_scale_v : int, float
+        Codes in [-2^(b-1), 2^(b-1)-1], LSB = 2 FS / 2^b, clipping at full scale [V]
+        (12 bit, +-1 V).
+    attenuation : bool
+        Frequency-dependent loss of the medium along each path (propagation.py).
+    reflections : bool
+        Specular wall echoes (propagation.py).
+    reflection_coefficient, n_reflections : float, int
+        Echo amplitude ratio per bounce, and the number of echoes.
+    quantization : bool
+        Round to ADC codes and clip (noise is on iff a level is given).
+    support_rel_tol : float
+        Each arrival's response is truncated once a bound on its remaining tail falls
+        below this fraction of its jump |A| G.
+    max_support_s : float
+        Hard cap on an arrival's response length [s] (200 us).
+
+    Each effect switched off costs nothing.
     """
 
     geometry: FingertipGeometry = field(default_factory=FingertipGeometry)
@@ -190,8 +203,20 @@ class SimConfig:
 
     @classmethod
     def for_medium(cls, medium: str, **kwargs) -> "SimConfig":
-        """Config whose geometry uses the preset's sound speed (other geometry fields default
-        or from ``radius_m`` / ``element_offset_m`` keyword arguments)."""
+        """A config whose geometry uses the preset medium's sound speed.
+
+        Parameters
+        ----------
+        medium : str
+            A preset of `MEDIUM_PRESETS`.
+        **kwargs
+            ``radius_m`` / ``element_offset_m`` for the geometry [m]; the rest are
+            `SimConfig` fields.
+
+        Returns
+        -------
+        SimConfig
+        """
         if medium not in MEDIUM_PRESETS:
             raise ValueError(f"unknown medium preset {medium!r}; choose one of"
                              f" {sorted(MEDIUM_PRESETS)}")
@@ -201,7 +226,17 @@ class SimConfig:
 
     def replace(self, **changes) -> "SimConfig":
         """A validated copy with some fields changed (an "auto" low-pass follows a new
-        sample rate)."""
+        sample rate).
+
+        Parameters
+        ----------
+        **changes
+            `SimConfig` fields.
+
+        Returns
+        -------
+        SimConfig
+        """
         for name in getattr(self, "_auto_fields", ()):
             changes.setdefault(name, "auto")
         return replace(self, **changes)
@@ -209,6 +244,7 @@ class SimConfig:
     # ---------------------------------------------------------------- derived
     @property
     def density(self) -> float:
+        """rho actually used [kg/m^3]."""
         if self.density_kg_m3 is not None:
             return float(self.density_kg_m3)
         return MEDIUM_PRESETS[self.medium].density_kg_m3
@@ -224,10 +260,12 @@ class SimConfig:
 
     @property
     def dt_s(self) -> float:
+        """Sample period [s]."""
         return 1.0 / float(self.sample_rate_hz)
 
     @property
     def fs_int(self) -> int:
+        """Sample rate as an integer [Hz]."""
         return int(round(self.sample_rate_hz))
 
     @property
@@ -237,6 +275,7 @@ class SimConfig:
 
     @property
     def max_support_samples(self) -> int:
+        """``max_support_s`` in samples (rounded up)."""
         return int(math.ceil(self.max_support_s * self.sample_rate_hz))
 
     @cached_property
