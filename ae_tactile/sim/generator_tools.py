@@ -19,10 +19,13 @@ NS_PER_S = 1_000_000_000  # [ns/s]
 
 
 def to_ns(t_s) -> np.ndarray:
+    """Times [s] -> int64 [ns], rounded to the nearest nanosecond."""
     return np.round(np.asarray(t_s, dtype=float) * NS_PER_S).astype(np.int64)
 
 
 def seeded_rng(seed, *keys) -> np.random.Generator:
+    """A PCG64 generator of (scene seed, keys): each generator (and each part of one) draws
+    from its own stream, so adding draws to one never changes another's."""
     return np.random.Generator(
         np.random.PCG64(np.random.SeedSequence([int(seed), *map(int, keys)]))
     )
@@ -58,6 +61,8 @@ def uniform_disc(rng, n, r_in, r_out):
 
 
 def check_patch(geometry, center, radius_m, what):
+    """ValueError when a contact patch of ``radius_m`` [m] around ``center`` (3,) [m]
+    reaches below the sensing hemisphere."""
     pol = math.acos(min(1.0, center[2] / geometry.radius_m))
     if pol + radius_m / geometry.radius_m > math.pi / 2:
         raise ValueError(
@@ -68,12 +73,17 @@ def check_patch(geometry, center, radius_m, what):
 
 @dataclass(frozen=True)
 class EventParams:
+    """Eq. 10 event parameters shared by a generator's emissions: contact speed v0 [m/s],
+    object curvature a_c [1/m], indentation rate alpha [1/s]."""
+
     speed_m_s: float
     curvature_1_m: float
     alpha_1_s: float
 
 
 def make_emissions(ctx, t_s, pts, kind, params: EventParams, polarity, ids):
+    """`EmissionList` of emissions at times ``t_s`` [s] and points ``pts`` (n, 3) [m] with
+    one set of event parameters, in the scene's medium (``ctx.config``)."""
     return EmissionList.create(
         to_ns(t_s),
         pts,
