@@ -6,7 +6,7 @@ interference discriminator's cost.
     python3 bench/bench_slip.py [--quick]
     python3 bench/bench_slip.py --speed   # only the slip step's CPU cost per emission
 
-Pipelines (ae_tactile.slip.evaluate): 'events' = the simulator's true emissions ->
+Pipelines (bench/ae_eval/slip): 'events' = the simulator's true emissions ->
 LocalizedEvents with the localizer's error model (Gaussian, 5 .. 40 um per axis, 2 %
 lost, ``emission_events``): fast enough for >= 1,000 trials per family; 'triggered' =
 rendered trigger windows (noise, quantization, overlaps) -> ``localize`` -> detector: a
@@ -59,8 +59,8 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from ae_eval import slip as ev  # noqa: E402
 from ae_tactile.slip import LocalizedEvent, SlipConfig, SlipDetector  # noqa: E402
-from ae_tactile.slip import evaluate as ev  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 DOC = ROOT / "docs" / "slip.md"
@@ -290,7 +290,7 @@ def incipient_event_rows(n_trials: int = 20, seed: int = 0) -> list:
     for s in range(seed, seed + n_trials):
         scene, source, _ = ev.incipient_slip_scene(s, post_s=0.15)
         end_ns = int(round(scene.duration_s * 1e9))
-        events, _ = ev._events(scene, source, end_ns, "events")
+        events, _ = ev.scene_events(scene, source, end_ns, "events")
         out.append(
             [(e.time_ns, e.point_m, e.covariance_m2, e.polarity, e.packet_id) for e in events]
         )

@@ -7,9 +7,9 @@ thresholds leave margins to the rates the benchmark measures (docs/slip.md)."""
 import numpy as np
 import pytest
 
+from ae_eval import slip as ev
 from ae_tactile.records import ContactState
 from ae_tactile.slip import SlipConfig
-from ae_tactile.slip import evaluate as ev
 
 SPARSE = dict(micro_slip_count=(4.0, 12.0), slip_rate_hz=(100.0, 200.0))
 

@@ -9,8 +9,8 @@ events and a latched per-finger contact state. Pure numpy, never imports rclpy.
     det.advance(now_ns); det.state       # FingerState (NO_CONTACT / STICK / INCIPIENT_SLIP /
                                          # GROSS_SLIP)
 
-Evaluation on the simulator: ``ae_tactile.slip.evaluate`` (bench/bench_slip.py).
-See docs/slip.md.
+Its evaluation on the simulator lives outside the product, in bench/ae_eval/slip
+(bench/bench_slip.py). See docs/slip.md.
 """
 
 from .config import SlipConfig
