@@ -17,12 +17,20 @@ Receiving::
     for frame in dec.feed(port.read(4096)):    # any chunking; frames in order
         if isinstance(frame.body, Packet): ...frame.body.samples  # (4, N) int16
     dec.stats(); dec.pop_events()              # counters, recent rejections with reasons
+
+Modules, bottom up: `layout` (sizes, struct formats, enums, rejection reasons), `fields`
+(the field checks and the bodies' base), `samples` (PACKET, STREAM) and `control`
+(STATUS, COMMAND, ACK), `frames` (a whole frame: encoder and single-frame parser),
+`unwrap` (sequence numbers and the device clock), `decoder` (the incremental byte-stream
+decoder), `crc` and `hexdump` (helpers).
 """
 
+from .control import Ack, Command, Status
 from .crc import CRC32_CHECK, crc32, crc32_reference
 from .decoder import COUNTER_NAMES, DecoderEvent, StreamDecoder
-from .frames import (
-    BODY_TYPES,
+from .frames import BODY_TYPES, Body, Frame, FrameEncoder, decode_frame, encode_frame
+from .hexdump import format_hex, parse_hex
+from .layout import (
     CRC_LEN,
     FLAG_BOOT,
     FRAME_OVERHEAD,
@@ -38,28 +46,18 @@ from .frames import (
     STATUS_PREFIX_LEN,
     STREAM_PREFIX_LEN,
     SYNC,
-    Ack,
     AckResult,
     AcqMode,
-    Body,
-    Command,
     DeviceState,
     Direction,
     ErrorBits,
-    Frame,
-    FrameEncoder,
     FrameType,
     Opcode,
-    Packet,
     ProtocolError,
     Reason,
-    Status,
-    StreamBlock,
-    decode_frame,
     direction_of,
-    encode_frame,
 )
-from .hexdump import format_hex, parse_hex
+from .samples import Packet, StreamBlock
 from .unwrap import U32_MODULUS, SequenceTracker, SequenceUpdate, TimestampUnwrapper
 
 __all__ = [

@@ -45,20 +45,17 @@ from dataclasses import dataclass
 from operator import itemgetter
 from typing import Callable
 
-from .frames import (
-    _BODY_BY_TYPE_INT,
+from .frames import _BODY_BY_TYPE_INT, Frame, parse_body, parse_header
+from .layout import (
     CRC_LEN,
     FLAG_BOOT,
     FRAME_OVERHEAD,
     HEADER_LEN,
     SYNC,
     Direction,
-    Frame,
     ProtocolError,
     Reason,
     direction_of,
-    parse_body,
-    parse_header,
 )
 from .unwrap import SequenceTracker, TimestampUnwrapper
 
@@ -236,84 +233,17 @@ class StreamDecoder:
             self.on_event(ev)
 
     def _process(self, final: bool) -> list[Frame]:
+        """Deliver the frames now complete, then settle what stays pending (or, if
+        ``final``, give it up); consumed bytes leave the buffer."""
         buf = self._buf
-        n = len(buf)
         base = self._base
-        end_abs = base + n
-        items, cands = self._items, self._cands
-        pos = base  # stream offset: bytes before it are consumed
-        out: list[Frame] = []
         mv = memoryview(buf)
         try:
-            while True:
-                self._examine(buf, mv, base, n)
-                best = self._first_complete_frame(mv, base, end_abs)
-                if best is None:
-                    break
-                bj, h, be, _ = best
-                if items[0][0] < bj:
-                    self._commit(bj, bj)
-                # sync words inside the delivered frame are payload: forget them
-                k = 1
-                for k in range(1, len(items) + 1):
-                    if k == len(items) or items[k][0] >= be:
-                        break
-                del items[:k]
-                k = 0
-                for c in cands:
-                    if c[0] >= be:
-                        break
-                    k += 1
-                del cands[:k]
-                self.bytes_discarded += bj - pos
-                pos = be
-                if self._scan < be:
-                    self._scan = be
-                frame = self._accept(h, mv, bj - base, be - base, bj)
-                if frame is not None:
-                    out.append(frame)
+            out, pos = self._deliver(buf, mv)
             if final:
-                j = buf.find(SYNC, self._scan - base)
-                while j >= 0:  # sync words whose header never came
-                    items.append(
-                        [
-                            base + j,
-                            None,
-                            Reason.TRUNCATED,
-                            f"input ended {n - j} bytes into a header",
-                        ]
-                    )
-                    j = buf.find(SYNC, j + 1)
-                for c in cands:
-                    if c[3] is None:
-                        c[3] = (
-                            f"input ended {end_abs - c[0]} of {c[2] - c[0]} bytes into a frame"
-                            f" (seq {c[1].seq})"
-                        )
-                self._commit(end_abs, None)
-                cands.clear()
-                self.bytes_discarded += end_abs - pos
-                pos = end_abs
-                self._scan = end_abs
-                self._need = 0
-                self._wait_end = 0
+                pos = self._give_up_rest(buf, pos)
             else:
-                # keep from the earliest candidate, or a header / sync prefix still coming
-                scan_rel = self._scan - base
-                j = buf.find(SYNC, scan_rel)
-                keep = base + (j if j >= 0 else n - _sync_prefix_tail(buf, scan_rel, n))
-                need = keep + FRAME_OVERHEAD
-                self._wait_end = 0
-                if cands:
-                    keep = min(keep, cands[0][0])
-                    self._wait_end = min(c[2] for c in cands)
-                    need = min(need, self._wait_end)
-                if items and items[0][0] < keep:
-                    self._commit(keep, None)
-                if keep > pos:
-                    self.bytes_discarded += keep - pos
-                    pos = keep
-                self._need = need - pos
+                pos = self._keep_pending(buf, pos)
         finally:
             mv.release()
         del buf[: pos - base]
@@ -321,6 +251,90 @@ class StreamDecoder:
         if self._scan < pos:
             self._scan = pos
         return out
+
+    def _deliver(self, buf: bytearray, mv: memoryview) -> tuple[list[Frame], int]:
+        """Frames complete in the buffer, in the order of rule 2; returns them and the
+        stream offset up to which the bytes are consumed."""
+        base, n = self._base, len(buf)
+        end_abs = base + n
+        items, cands = self._items, self._cands
+        pos = base  # stream offset: bytes before it are consumed
+        out: list[Frame] = []
+        while True:
+            self._examine(buf, mv, base, n)
+            best = self._first_complete_frame(mv, base, end_abs)
+            if best is None:
+                return out, pos
+            bj, h, be, _ = best
+            if items[0][0] < bj:
+                self._commit(bj, bj)
+            # sync words inside the delivered frame are payload: forget them
+            k = 1
+            for k in range(1, len(items) + 1):
+                if k == len(items) or items[k][0] >= be:
+                    break
+            del items[:k]
+            k = 0
+            for c in cands:
+                if c[0] >= be:
+                    break
+                k += 1
+            del cands[:k]
+            self.bytes_discarded += bj - pos
+            pos = be
+            if self._scan < be:
+                self._scan = be
+            frame = self._accept(h, mv, bj - base, be - base, bj)
+            if frame is not None:
+                out.append(frame)
+
+    def _give_up_rest(self, buf: bytearray, pos: int) -> int:
+        """End of input: every sync word and candidate still open is given up (counted);
+        returns the new consumed offset (everything)."""
+        base, n = self._base, len(buf)
+        end_abs = base + n
+        items, cands = self._items, self._cands
+        j = buf.find(SYNC, self._scan - base)
+        while j >= 0:  # sync words whose header never came
+            items.append(
+                [base + j, None, Reason.TRUNCATED, f"input ended {n - j} bytes into a header"]
+            )
+            j = buf.find(SYNC, j + 1)
+        for c in cands:
+            if c[3] is None:
+                c[3] = (
+                    f"input ended {end_abs - c[0]} of {c[2] - c[0]} bytes into a frame"
+                    f" (seq {c[1].seq})"
+                )
+        self._commit(end_abs, None)
+        cands.clear()
+        self.bytes_discarded += end_abs - pos
+        self._scan = end_abs
+        self._need = 0
+        self._wait_end = 0
+        return end_abs
+
+    def _keep_pending(self, buf: bytearray, pos: int) -> int:
+        """Keep from the earliest candidate, or a header / sync prefix still coming;
+        returns the new consumed offset and sets how many bytes the next step needs."""
+        base, n = self._base, len(buf)
+        items, cands = self._items, self._cands
+        scan_rel = self._scan - base
+        j = buf.find(SYNC, scan_rel)
+        keep = base + (j if j >= 0 else n - _sync_prefix_tail(buf, scan_rel, n))
+        need = keep + FRAME_OVERHEAD
+        self._wait_end = 0
+        if cands:
+            keep = min(keep, cands[0][0])
+            self._wait_end = min(c[2] for c in cands)
+            need = min(need, self._wait_end)
+        if items and items[0][0] < keep:
+            self._commit(keep, None)
+        if keep > pos:
+            self.bytes_discarded += keep - pos
+            pos = keep
+        self._need = need - pos
+        return pos
 
     def _examine(self, buf: bytearray, mv: memoryview, base: int, n: int) -> None:
         """Check the header of every new sync word whose 24 header bytes are in."""
