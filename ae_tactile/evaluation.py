@@ -1,5 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Scoring detected events against the simulator's ground truth (pure Python).
+"""Scoring detected events against the simulator's ground truth (pure Python): the demo's
+monitor (`ae_tactile.ros.monitor_node`) reports its own truth score with it.
 
 Matching is one-to-one in time: each detected event is paired with the nearest unpaired
 ground-truth emission within ``tolerance_ns`` (greedy over all candidate pairs, closest
@@ -14,9 +15,28 @@ import numpy as np
 
 def match_by_time(truth_ns, event_ns, tolerance_ns: int, truth_points_m=None, event_points_m=None,
                   position_scale_m: float = 1e-3) -> list[tuple[int, int]]:
-    """Pairs (truth index, event index) with |t_truth - t_event| <= tolerance, one-to-one,
-    cheapest first; cost = (dt / tolerance)^2 (+ (distance / position_scale_m)^2 when points
-    are given, which separates dense emissions that are close in time but not in space)."""
+    """Pair detected events with truth emissions, one-to-one, cheapest pair first.
+
+    A pair needs |t_truth - t_event| <= ``tolerance_ns``; its cost is
+    (dt / tolerance)^2, plus (distance / ``position_scale_m``)^2 when points are given
+    (which separates dense emissions that are close in time but not in space).
+
+    Parameters
+    ----------
+    truth_ns, event_ns : array_like of int
+        Truth emission times and detected event times [ns].
+    tolerance_ns : int
+        Largest time difference of a pair [ns].
+    truth_points_m, event_points_m : array_like, optional
+        (n, 3) points of each [m]; both or neither.
+    position_scale_m : float
+        Distance that costs as much as a time difference of ``tolerance_ns`` [m].
+
+    Returns
+    -------
+    list of tuple of int
+        (truth index, event index) pairs, sorted.
+    """
     t = np.asarray(truth_ns, dtype=np.int64)
     e = np.asarray(event_ns, dtype=np.int64)
     if t.size == 0 or e.size == 0:
@@ -47,7 +67,13 @@ def match_by_time(truth_ns, event_ns, tolerance_ns: int, truth_points_m=None, ev
 
 @dataclass
 class Score:
-    """Detection and localization figures of one run."""
+    """Detection and localization figures of one run.
+
+    ``n_truth``, ``n_events``, ``n_matched``: truth emissions, detected events and pairs;
+    ``position_errors_m``: (n_matched,) distance of each pair [m]; ``type_correct`` of
+    ``type_checked`` pairs have the truth's polarity sign. ``recall``, ``precision``,
+    ``rms_error_m`` [m] and ``type_accuracy`` derive from them.
+    """
 
     n_truth: int
     n_events: int
@@ -82,8 +108,24 @@ class Score:
 
 def score(truth_ns, truth_points_m, truth_polarity, event_ns, event_points_m, event_polarity,
           tolerance_ns: int = 1_000_000) -> Score:
-    """Score localized events (time, point, polarity +1/-1) against truth emissions
-    (matched within tolerance_ns in time, nearest in time and space)."""
+    """Score localized events against truth emissions (`match_by_time` with points).
+
+    Parameters
+    ----------
+    truth_ns, event_ns : array_like of int
+        Times [ns].
+    truth_points_m, event_points_m : array_like
+        (n, 3) points [m].
+    truth_polarity, event_polarity : array_like
+        Polarity of each, +1 (touch) or -1 (release); compared by sign.
+    tolerance_ns : int
+        Largest time difference of a pair [ns].
+
+    Returns
+    -------
+    Score
+        Counts, position errors of the pairs and polarity agreement.
+    """
     pairs = match_by_time(truth_ns, event_ns, tolerance_ns, truth_points_m, event_points_m)
     tp = np.asarray(truth_points_m, float).reshape(-1, 3)
     ep = np.asarray(event_points_m, float).reshape(-1, 3)
