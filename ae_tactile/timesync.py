@@ -33,7 +33,23 @@ import numpy as np
 
 
 class DeviceClockMapper:
-    """Map device timestamps (ns) to host timestamps (ns) through the lower envelope."""
+    """Map device timestamps (ns) to host timestamps (ns) through the lower envelope.
+
+    Parameters
+    ----------
+    window_s : float
+        Span of recent pairs the model is fitted to [s].
+    bucket_s : float
+        Width of one bucket of the lower envelope [s] (its minimum offset is kept).
+    max_jump_s : float
+        A frame earlier than the model by more than this [s] resets the model.
+    min_span_for_skew_s : float
+        Skew is fitted only over at least this span of device time [s].
+    max_skew : float
+        Bound of the fitted skew (dimensionless, 200e-6 = 200 ppm).
+    max_backstep_s : float
+        Device time going back by more than this [s] is a restarted device clock.
+    """
 
     def __init__(
         self,
@@ -87,7 +103,20 @@ class DeviceClockMapper:
         return -self._skew / (1.0 + self._skew)
 
     def update(self, device_ns: int, host_ns: int) -> bool:
-        """Add one (device, host receive) pair; returns True if the model was reset by it."""
+        """Add one (device, host receive) pair.
+
+        Parameters
+        ----------
+        device_ns : int
+            Device time of the frame [ns].
+        host_ns : int
+            Host receive time of the frame [ns].
+
+        Returns
+        -------
+        bool
+            True if the model was reset by this pair (a restart or a clock jump).
+        """
         device_ns = int(device_ns)
         host_ns = int(host_ns)
         did_reset = False
@@ -144,7 +173,23 @@ class DeviceClockMapper:
         return device_ns + int(round(self._offset_ns + self._skew * dd))
 
     def to_host_ns(self, device_ns: int) -> int:
-        """Host time (ns) of a device time (ns); monotonic in device time. Needs one update."""
+        """Host time of a device time; monotonic in device time.
+
+        Parameters
+        ----------
+        device_ns : int
+            Device time [ns].
+
+        Returns
+        -------
+        int
+            Host time [ns]; never earlier than one returned for an earlier device time.
+
+        Raises
+        ------
+        RuntimeError
+            Before the first `update`.
+        """
         if self._d_ref is None:
             raise RuntimeError("DeviceClockMapper.to_host_ns called before any update()")
         device_ns = int(device_ns)

@@ -37,17 +37,32 @@ from .layout import (
 class Status(_Body):
     """Status / heartbeat (frame type STATUS), sent >= 1 Hz in every state.
 
-    uptime_us:        full 64-bit device clock, us since boot (its low 32 bits equal the
-                      header timestamp_us of this frame).
-    state:            DeviceState.
-    sample_rate_hz, v_per_count: current acquisition settings.
-    threshold_counts: trigger threshold |x| >= threshold (ADC counts, 1..32767).
-    packet_samples, pre_trigger: PACKET length N and pre-trigger length in effect.
-    error_bits:       ErrorBits (bits 16..31 firmware-specific).
-    device_dropped:   frames the device discarded since boot because its transmit queue
-                      was full (u32). They also show as sequence gaps on the host.
-    firmware_version: (major, minor, patch), each 0..255.
-    serial_number:    1..32 printable ASCII characters (0x20..0x7E): tells fingertips apart.
+    Parameters
+    ----------
+    uptime_us : int
+        Full 64-bit device clock [us] since boot (its low 32 bits equal the header
+        timestamp_us of this frame).
+    state : DeviceState
+        What the device is doing.
+    sample_rate_hz : int
+        Current ADC sample rate [Hz].
+    v_per_count : float
+        Current volts per ADC count [V].
+    threshold_counts : int
+        Trigger threshold |x| >= threshold [ADC counts], 1..32767.
+    packet_samples : int
+        PACKET length N in effect [samples].
+    pre_trigger : int
+        Pre-trigger length in effect [samples], < packet_samples.
+    error_bits : int
+        ErrorBits (bits 16..31 firmware-specific).
+    device_dropped : int
+        Frames the device discarded since boot because its transmit queue was full
+        (u32). They also show as sequence gaps on the host.
+    firmware_version : tuple of int
+        (major, minor, patch), each 0..255.
+    serial_number : str
+        1..32 printable ASCII characters (0x20..0x7E): tells fingertips apart.
     """
 
     uptime_us: int
@@ -163,12 +178,25 @@ class Status(_Body):
 class Command(_Body):
     """Host -> device command (frame type COMMAND); the device answers one ACK.
 
-    command_id: u16 chosen by the host, echoed in the ACK (the host increments it).
-    opcode:     Opcode; exactly the arguments of that opcode are given, others None:
-                START: mode; SET_THRESHOLD: threshold_counts (1..32767);
-                SET_SAMPLE_RATE: sample_rate_hz (>= 1);
-                SET_PACKET_LENGTH: n_samples (1..MAX_SAMPLES), pre_trigger (< n_samples).
     Prefer the constructors ``Command.start(...)``, ``Command.stop(...)``, ...
+
+    Parameters
+    ----------
+    opcode : Opcode
+        What to do; exactly the arguments of that opcode are given, the others None:
+        START: mode; SET_THRESHOLD: threshold_counts (1..32767);
+        SET_SAMPLE_RATE: sample_rate_hz (>= 1);
+        SET_PACKET_LENGTH: n_samples (1..MAX_SAMPLES), pre_trigger (< n_samples).
+    command_id : int
+        u16 chosen by the host, echoed in the ACK (the host increments it).
+    mode : AcqMode or None
+        START's acquisition mode.
+    threshold_counts : int or None
+        SET_THRESHOLD's threshold [ADC counts].
+    sample_rate_hz : int or None
+        SET_SAMPLE_RATE's rate [Hz].
+    n_samples, pre_trigger : int or None
+        SET_PACKET_LENGTH's packet and pre-trigger lengths [samples].
     """
 
     opcode: Opcode
@@ -270,13 +298,19 @@ class Command(_Body):
 class Ack(_Body):
     """Device's answer to one COMMAND (frame type ACK).
 
-    command_id: echo of Command.command_id.
-    opcode:     echo of the opcode byte (an Opcode, or the raw int for UNKNOWN_OPCODE).
-    result:     AckResult.
-    value:      u32, the setting in effect after the command: START -> mode,
-                SET_THRESHOLD -> threshold_counts, SET_SAMPLE_RATE -> sample_rate_hz
-                actually used (the device may round to a rate it supports),
-                SET_PACKET_LENGTH -> n_samples | pre_trigger << 16; STOP, GET_STATUS -> 0.
+    Parameters
+    ----------
+    command_id : int
+        Echo of Command.command_id.
+    opcode : Opcode or int
+        Echo of the opcode byte (the raw int for UNKNOWN_OPCODE).
+    result : AckResult
+        Whether the command was applied.
+    value : int
+        u32, the setting in effect after the command: START -> mode, SET_THRESHOLD ->
+        threshold_counts, SET_SAMPLE_RATE -> sample_rate_hz actually used (the device
+        may round to a rate it supports), SET_PACKET_LENGTH -> n_samples | pre_trigger
+        << 16; STOP, GET_STATUS -> 0.
     """
 
     command_id: int

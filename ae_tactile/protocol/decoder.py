@@ -89,10 +89,15 @@ DUPLICATE_WINDOW = 64
 class DecoderEvent:
     """One rejection or notable condition, for logging.
 
-    reason:        Reason code (stable string values, e.g. "frame_crc").
-    stream_offset: byte offset in the decoder's input where it happened (the sync word
-                   of the frame concerned).
-    detail:        human-readable explanation.
+    Parameters
+    ----------
+    reason : Reason
+        Reason code (stable string values, e.g. "frame_crc").
+    stream_offset : int
+        Byte offset in the decoder's input where it happened (the sync word of the frame
+        concerned).
+    detail : str
+        Human-readable explanation.
     """
 
     reason: Reason
@@ -114,12 +119,17 @@ def _sync_prefix_tail(buf: bytearray, start: int, end: int) -> int:
 class StreamDecoder:
     """Incremental decoder of one byte stream (one serial port, one direction); not thread-safe.
 
-    direction: frames accepted; the other direction's frames are rejected and counted
-               (``wrong_direction``). ``None`` accepts both, each with its own sequence
-               tracker and clock unwrapper (e.g. to re-parse a loop-back capture).
-    max_events: size of the bounded ``events`` deque of recent DecoderEvents.
-    on_event:  optional callback called with each DecoderEvent as it happens
-               (e.g. a throttled ROS logger). Exceptions from it propagate.
+    Parameters
+    ----------
+    direction : Direction or None
+        Frames accepted; the other direction's frames are rejected and counted
+        (``wrong_direction``). ``None`` accepts both, each with its own sequence tracker
+        and clock unwrapper (e.g. to re-parse a loop-back capture).
+    max_events : int
+        Size of the bounded ``events`` deque of recent DecoderEvents.
+    on_event : callable or None
+        Called with each DecoderEvent as it happens (e.g. a throttled ROS logger).
+        Exceptions from it propagate.
 
     Counters (ints, attributes; ``stats()`` returns them as a dict):
       bytes_received   all bytes fed
@@ -169,7 +179,18 @@ class StreamDecoder:
 
     # ------------------------------------------------------------ public API
     def feed(self, data) -> list[Frame]:
-        """Append ``data`` (bytes-like) to the stream; return the frames it completed, in order."""
+        """Append bytes to the stream.
+
+        Parameters
+        ----------
+        data : bytes, bytearray or memoryview
+            The next bytes of the stream, any chunking.
+
+        Returns
+        -------
+        list of Frame
+            The frames these bytes completed, in stream order.
+        """
         if isinstance(data, str) or not isinstance(data, (bytes, bytearray, memoryview)):
             raise TypeError(
                 f"feed() takes bytes, bytearray or memoryview, got {type(data).__name__}"
@@ -198,6 +219,11 @@ class StreamDecoder:
         for longer than the transmission time of a MAX_FRAME_LEN frame. An incomplete
         frame is counted in ``truncated_frames``; valid frames after it are returned.
         The buffer is empty afterwards; sequence/clock sessions are kept.
+
+        Returns
+        -------
+        list of Frame
+            The valid frames still in the buffer, in stream order.
         """
         return self._process(final=True)
 
@@ -214,13 +240,25 @@ class StreamDecoder:
         return len(self._buf)
 
     def stats(self) -> dict[str, int]:
-        """Snapshot of all counters (COUNTER_NAMES) as a dict, plus pending_bytes."""
+        """Snapshot of the counters.
+
+        Returns
+        -------
+        dict of str to int
+            Every counter of COUNTER_NAMES, plus ``pending_bytes``.
+        """
         d = {name: getattr(self, name) for name in COUNTER_NAMES}
         d["pending_bytes"] = len(self._buf)
         return d
 
     def pop_events(self) -> list[DecoderEvent]:
-        """Return and clear the recent events (oldest first; at most max_events kept)."""
+        """Return and clear the recent events.
+
+        Returns
+        -------
+        list of DecoderEvent
+            Oldest first; at most ``max_events`` are kept.
+        """
         out = list(self.events)
         self.events.clear()
         return out

@@ -104,17 +104,26 @@ _BODY_BY_TYPE_INT: dict[int, type] = {int(k): v for k, v in BODY_TYPES.items()}
 class Frame:
     """One frame: header fields + body. Equality ignores the receive-side metadata.
 
-    seq:          sender's u32 sequence number.
-    timestamp_us: sender's u32 microsecond clock (wraps every 2^32 us = 71.6 min). For
-                  PACKET/STREAM it is latched at samples[:, 0]; otherwise at frame creation.
-    flags:        FLAG_BOOT or 0.
-
-    Set by StreamDecoder (defaults when built by hand):
-    device_time_us: timestamp_us unwrapped to a monotonic int for this sender session
-                    (see TimestampUnwrapper); resets when ``restart`` is True.
-    dropped_before: frames lost (sequence gap) immediately before this one.
-    restart:        this frame is the first one seen of a new sender session.
-    stream_offset:  byte offset of the frame's sync word in the decoder's input.
+    Parameters
+    ----------
+    body : Packet, StreamBlock, Status, Command or Ack
+        The payload.
+    seq : int
+        The sender's u32 sequence number.
+    timestamp_us : int
+        The sender's u32 clock [us] (wraps every 2^32 us = 71.6 min). For PACKET/STREAM
+        it is latched at samples[:, 0]; otherwise at frame creation.
+    flags : int
+        FLAG_BOOT or 0.
+    device_time_us : int or None
+        Set by StreamDecoder: timestamp_us unwrapped to a monotonic int [us] for this
+        sender session (see TimestampUnwrapper); resets when ``restart`` is True.
+    dropped_before : int
+        Set by StreamDecoder: frames lost (sequence gap) immediately before this one.
+    restart : bool
+        Set by StreamDecoder: this frame is the first one seen of a new sender session.
+    stream_offset : int or None
+        Set by StreamDecoder: byte offset of the frame's sync word in its input.
     """
 
     body: Body
@@ -143,10 +152,27 @@ class Frame:
 def encode_frame(body: Body, seq: int, timestamp_us: int, flags: int = 0) -> bytes:
     """Complete wire bytes of one frame: header, payload of ``body``, CRC-32.
 
-    body:         Packet, StreamBlock, Status, Command or Ack (validated on construction).
-    seq:          u32 sequence number; timestamp_us: u32 clock reading (take it modulo
-                  2**32 yourself: out-of-range values raise ValueError, they are not wrapped).
-    flags:        0 or FLAG_BOOT.
+    Parameters
+    ----------
+    body : Packet, StreamBlock, Status, Command or Ack
+        The payload (validated when it was constructed).
+    seq : int
+        u32 sequence number.
+    timestamp_us : int
+        u32 clock reading [us]; take it modulo 2**32 yourself: out-of-range values raise
+        ValueError, they are not wrapped.
+    flags : int
+        0 or FLAG_BOOT.
+
+    Returns
+    -------
+    bytes
+        HEADER_LEN + payload + CRC_LEN bytes.
+
+    Raises
+    ------
+    TypeError, ValueError
+        Not a frame body, or a header field out of range.
     """
     if not isinstance(body, _Body) or type(body) not in BODY_TYPES.values():
         raise TypeError(
@@ -173,8 +199,15 @@ class FrameEncoder:
     """Sender side with its own sequence counter (for firmware simulators and the host).
 
     ``encode(body, timestamp_us)`` numbers frames ``first_seq, first_seq + 1, ...``
-    modulo 2^32 and sets FLAG_BOOT on the first frame when ``boot`` is True (a freshly
-    started sender; the protocol then expects first_seq == 0).
+    modulo 2^32 and sets FLAG_BOOT on the first frame when ``boot`` is True.
+
+    Parameters
+    ----------
+    first_seq : int
+        Sequence number of the first frame (u32).
+    boot : bool
+        A freshly started sender: FLAG_BOOT on its first frame (the protocol then expects
+        first_seq == 0).
     """
 
     def __init__(self, first_seq: int = 0, boot: bool = True) -> None:
@@ -182,6 +215,20 @@ class FrameEncoder:
         self._boot_pending = bool(boot)
 
     def encode(self, body: Body, timestamp_us: int) -> bytes:
+        """The wire bytes of the next frame (see `encode_frame`).
+
+        Parameters
+        ----------
+        body : Packet, StreamBlock, Status, Command or Ack
+            The payload.
+        timestamp_us : int
+            u32 sender clock reading [us].
+
+        Returns
+        -------
+        bytes
+            The frame, numbered with the next sequence number.
+        """
         data = encode_frame(
             body, self.next_seq, timestamp_us, FLAG_BOOT if self._boot_pending else 0
         )
@@ -218,7 +265,25 @@ class Header:
 
 
 def parse_header(buf, pos: int = 0) -> Header:
-    """Check the 24 header bytes at ``buf[pos:]`` (sync already located). Raises ProtocolError."""
+    """Check the 24 header bytes at ``buf[pos:]`` (sync already located).
+
+    Parameters
+    ----------
+    buf : bytes-like
+        The input.
+    pos : int
+        Offset of the sync word in ``buf``.
+
+    Returns
+    -------
+    Header
+        The header's fields.
+
+    Raises
+    ------
+    ProtocolError
+        Header CRC, version, flags / reserved byte or payload length wrong.
+    """
     version, ftype, flags, reserved, length, seq, ts, hcrc = _HEADER_FULL.unpack_from(buf, pos)
     with memoryview(buf) as mv:
         crc = zlib.crc32(mv[pos : pos + HEADER_LEN - 4])
@@ -242,9 +307,25 @@ def parse_header(buf, pos: int = 0) -> Header:
 
 
 def parse_body(frame_type: int, buf, off: int, length: int) -> Body:
-    """Body of a CRC-checked frame from ``buf[off:off+length]``. Raises ProtocolError.
+    """Body of a CRC-checked frame from ``buf[off:off+length]``.
 
-    Sample arrays are read-only int16 views into ``buf`` when ``buf`` is bytes.
+    Parameters
+    ----------
+    frame_type : int
+        The header's frame-type byte.
+    buf : bytes-like
+        The frame; sample arrays are read-only int16 views into it when it is bytes.
+    off, length : int
+        Offset and length of the payload in ``buf``.
+
+    Returns
+    -------
+    Packet, StreamBlock, Status, Command or Ack
+
+    Raises
+    ------
+    ProtocolError
+        Unknown frame type, or a payload that violates its layout.
     """
     cls = _BODY_BY_TYPE_INT.get(frame_type)
     if cls is None:
@@ -256,9 +337,22 @@ def parse_body(frame_type: int, buf, off: int, length: int) -> Body:
 
 
 def decode_frame(data) -> Frame:
-    """Parse exactly one complete frame (bytes-like). Raises ProtocolError on any defect.
+    """Parse exactly one complete frame; for byte streams use StreamDecoder.
 
-    For byte streams use StreamDecoder; this is for single, already delimited frames.
+    Parameters
+    ----------
+    data : bytes-like
+        One already delimited frame, sync word to frame CRC.
+
+    Returns
+    -------
+    Frame
+        The frame (its receive-side fields left at their defaults).
+
+    Raises
+    ------
+    ProtocolError
+        On any defect (the reason says which check failed).
     """
     data = bytes(data)
     if len(data) < FRAME_OVERHEAD:

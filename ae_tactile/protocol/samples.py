@@ -57,16 +57,30 @@ class _SampleBlock(_Body):
 class Packet(_SampleBlock):
     """Triggered acoustic-emission packet (frame type PACKET).
 
-    samples:            (4, N) int16 ADC counts, channel-major, 1 <= N <= MAX_SAMPLES.
-    sample_rate_hz:     ADC sample rate (Hz), u32 >= 1.
-    v_per_count:        input-referred volts per ADC count incl. the analog gain
-                        (float32, > 0): volts = samples * v_per_count.
-    first_sample_index: device sample counter of samples[:, 0] (u64; 0 at START), so
-                        t(sample j) = (first_sample_index + j) / sample_rate_hz after START.
-    pre_trigger:        samples before the trigger: the threshold crossing is at
-                        samples[:, pre_trigger] (0 <= pre_trigger < N).
-    onset_index:        device's onset estimate within the packet (< N), or NO_ONSET.
-    saturation_mask:    bit k set if channel k reached the ADC rail in this packet (0..15).
+    Parameters
+    ----------
+    samples : array_like, shape (4, N)
+        ADC counts (int16 range), channel-major, 1 <= N <= MAX_SAMPLES.
+    sample_rate_hz : int
+        ADC sample rate [Hz], u32 >= 1.
+    v_per_count : float
+        Input-referred volts per ADC count incl. the analog gain [V] (float32, > 0):
+        volts = samples * v_per_count.
+    first_sample_index : int
+        Device sample counter of samples[:, 0] (u64; 0 at START), so
+        t(sample j) = (first_sample_index + j) / sample_rate_hz after START.
+    pre_trigger : int
+        Samples before the trigger: the threshold crossing is at samples[:, pre_trigger]
+        (0 <= pre_trigger < N).
+    onset_index : int
+        The device's onset estimate within the packet (< N), or NO_ONSET.
+    saturation_mask : int
+        Bit k set if channel k reached the ADC rail in this packet (0..15).
+
+    Raises
+    ------
+    TypeError, ValueError
+        A field of the wrong type or out of its range (the message names it).
     """
 
     samples: np.ndarray
@@ -150,12 +164,25 @@ def _unpack_samples(
 class StreamBlock(_SampleBlock):
     """Block of continuous samples (frame type STREAM).
 
-    samples:            (4, N) int16 ADC counts, channel-major, 1 <= N <= MAX_SAMPLES.
-    sample_rate_hz, v_per_count: as in Packet.
-    first_sample_index: device sample counter of samples[:, 0] (u64; 0 at START). The next
-                        block of an unbroken stream starts at first_sample_index + N, so
-                        the host can detect lost samples exactly and time every sample.
-    saturation_mask:    bit k set if channel k reached the ADC rail in this block.
+    Parameters
+    ----------
+    samples : array_like, shape (4, N)
+        ADC counts (int16 range), channel-major, 1 <= N <= MAX_SAMPLES.
+    sample_rate_hz : int
+        ADC sample rate [Hz], as in `Packet`.
+    v_per_count : float
+        Volts per ADC count [V], as in `Packet`.
+    first_sample_index : int
+        Device sample counter of samples[:, 0] (u64; 0 at START). The next block of an
+        unbroken stream starts at first_sample_index + N, so the host can detect lost
+        samples exactly and time every sample.
+    saturation_mask : int
+        Bit k set if channel k reached the ADC rail in this block (0..15).
+
+    Raises
+    ------
+    TypeError, ValueError
+        A field of the wrong type or out of its range.
     """
 
     samples: np.ndarray
