@@ -16,6 +16,7 @@ from ae_tactile.slip import (
     SlipDetector,
     periodicity,
 )
+from ae_tactile.slip.fits import drift_fit, percentile90, period_fit_best
 
 R = 0.01
 MS = 1_000_000
@@ -976,12 +977,10 @@ def test_trusted_events_decide_as_validated_ones():
 
 
 def test_radius_percentile_matches_numpy():
-    from ae_tactile.slip.detector import _percentile90
-
     rng = np.random.default_rng(11)
     for n in range(1, 70):
         d = np.abs(rng.normal(0.0, 1e-3, n))
-        assert _percentile90(d.tolist()) == float(np.percentile(d, 90))
+        assert percentile90(d.tolist()) == float(np.percentile(d, 90))
 
 
 @pytest.mark.parametrize("t_origin_s", [0.0, 1.7e9])  # a stream's own clock, or ROS time
@@ -989,8 +988,6 @@ def test_drift_fit_recovers_a_known_drift_and_its_noise(t_origin_s):
     """p(t) = p0 + v t along the tangent plane plus Gaussian noise sigma per tangent axis:
     the moment-matrix fit returns v (tangent), the residual variance sigma^2, and agrees
     with numpy's least squares on the same points."""
-    from ae_tactile.slip.detector import _drift_fit
-
     rng = np.random.default_rng(5)
     p0 = surf(2e-3, -1e-3)
     nrm = p0 / np.linalg.norm(p0)
@@ -1003,7 +1000,7 @@ def test_drift_fit_recovers_a_known_drift_and_its_noise(t_origin_s):
     noise = rng.normal(0, sig, (n, 1)) * e1 + rng.normal(0, sig, (n, 1)) * e2
     P = p0 + t_s[:, None] * v_true + noise
     t_ns = np.round((t_origin_s + t_s) * 1e9).astype(np.int64)
-    v, pm, tm, s2, stt = _drift_fit(t_ns, P)
+    v, pm, tm, s2, stt = drift_fit(t_ns, P)
     # tangent at the mean point; v_true there, up to its component along that normal
     n_m = pm / np.linalg.norm(pm)
     assert abs(v @ n_m) < 1e-12
@@ -1022,7 +1019,7 @@ def test_drift_fit_recovers_a_known_drift_and_its_noise(t_origin_s):
     res = P - coef[0] - tc[:, None] * v_ls
     assert s2 == pytest.approx(float((res * res).sum()) / (2 * (n - 2)), rel=1e-6)
     # no time spread: no drift
-    assert _drift_fit(np.full(5, t_ns[0]), P[:5]) is None
+    assert drift_fit(np.full(5, t_ns[0]), P[:5]) is None
 
 
 def test_texture_period_with_a_missed_packet_jittered_short():
@@ -1079,8 +1076,6 @@ def test_period_fit_on_ros_time_stamps_matches_least_squares(jitter, n):
     a run of 30 and one longer than the fit's bound on fitted times (no counts tried both
     ways then): the period and its standard error are numpy's least squares on the chosen
     counts."""
-    from ae_tactile.slip.detector import _period_fit_best
-
     rng = np.random.default_rng(3)
     T = 0.0123
     k = np.delete(np.arange(n), 11)
@@ -1088,7 +1083,7 @@ def test_period_fit_on_ros_time_stamps_matches_least_squares(jitter, n):
         (k * T + rng.normal(0, jitter * T, k.size)) * 1e9
     ).astype(np.int64)
     dt = np.diff(t_ns).astype(float)
-    period, se, kk = _period_fit_best(t_ns, dt, (float(np.median(dt)),))
+    period, se, kk = period_fit_best(t_ns, dt, (float(np.median(dt)),))
     assert kk.tolist() == np.diff(k).tolist()
     A = np.stack([np.ones(k.size), k - k[0]], axis=1).astype(float)
     y = (t_ns - t_ns[0]) * 1e-9

@@ -1,0 +1,205 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Gross-slip test of the slip detector: SLIP (-> GROSS_SLIP) when the contact moves, when
+the sequential likelihood ratio of gross slip against micro-slip continuation reaches
+``gross_llr_threshold``, when an emission of the latest window lies inside the stick
+zone, or when the latest emissions' rate is a Poisson tail of the rate before them."""
+
+from __future__ import annotations
+
+import math
+from bisect import bisect_left, bisect_right
+
+import numpy as np
+
+from .contact import EVID, PAIRED, REPEAT
+
+#: a contact's founder is left out of its activity's rate when the silence after it is
+#: this many times the mean of the next (up to 4) intervals: a touch that announced the
+#: contact, then its micro-slips, whose onset is no jump from that silence
+FOUNDER_SILENCE_RATIO = 10.0
+
+
+class GrossSlipTest:
+    """The gross-slip decision of a contact.
+
+    Methods of `SlipDetector` (`ae_tactile.slip.detector`), which holds the state they
+    use: ``config``, ``counts``, ``contacts`` and the windows in ns set by ``_apply``.
+    """
+
+    def _gross_test(self, c, t):
+        """0 or the reason for GROSS_SLIP (1 inner emission, 2 rate jump, 4 moving, 6 the
+        sequential likelihood ratio; 5, TEXTURE, is set by ``_texture``)."""
+        cfg = self.config
+        k = c.valid()
+        if c.moving:
+            return 4
+        T, F = c.t[:k], c.flags[:k]
+        use = (F & (PAIRED | REPEAT)) == 0
+        tu = sorted(T[use].tolist())  # the times used, sorted: counts in ranges by bisection
+        # the contact's rate is learnt from its current activity: from its first emission,
+        # or the first after a silence of gross_prior_s or more (a grasp held silent for
+        # seconds, then loaded: its micro-slips' onset is no jump from that silence)
+        onset = c.created_ns
+        if len(tu) > 2 and tu[0] == c.founder_ns:
+            # a founder followed by a silence much longer than the intervals after it is a
+            # touch that announced the contact, not its first micro-slip: the activity
+            # starts after it (a grasp loaded 0.1 s after its touch)
+            nxt = tu[2:6]
+            if tu[1] - tu[0] > FOUNDER_SILENCE_RATIO * (nxt[-1] - tu[1]) / len(nxt):
+                onset = tu[1]
+        if len(tu) > 1:
+            gaps = np.flatnonzero(np.diff(np.asarray(tu)) >= self._w_prior)
+            if gaps.size:
+                onset = max(onset, tu[int(gaps[-1]) + 1])
+        if (
+            cfg.gross_llr_threshold > 0
+            and self._gross_llr(c, t, T, use, tu, onset) >= cfg.gross_llr_threshold
+        ):
+            return 6
+        n_w = len(tu) - bisect_right(tu, t - self._w_gross)  # T > t - gross_window
+        if n_w < cfg.gross_min_events:
+            return 0
+        if c.fitted and c.radius > 0:
+            inner = cfg.gross_inner_fraction
+            # the stick zone of the ring as fitted now and as fitted before this window
+            # (the window's own emissions, gross slip's among them, pull the fit; a
+            # drifting contact's older ring lags behind it): inside either
+            Pw = c.p[:k][use & (T > t - self._w_gross)]
+            D = Pw - c.centre
+            if float(np.einsum("ij,ij->i", D, D).min()) < (inner * c.radius) ** 2:
+                return 1
+            t_old = t - self._w_gross
+            for tr, cr, rr in reversed(c.rings):
+                if tr <= t_old:
+                    if tr != c.rings[-1][0]:
+                        D = Pw - cr
+                        if float(np.einsum("ij,ij->i", D, D).min()) < (inner * rr) ** 2:
+                            return 1
+                    break
+        # rate jump (scan statistic): the latest j emissions span tau; under the contact's
+        # prior rate lambda (over the part of gross_history_s before them that it has
+        # lived) j - 1 of them in tau is a Poisson tail P(N >= j - 1 | lambda tau); SLIP
+        # when that is below gross_rate_alpha / (number of spans tested)
+        ts = tu[-cfg.gross_scan_events :]
+        n = len(ts)
+        alpha = cfg.gross_rate_alpha / (n - cfg.gross_min_events + 1)
+        w_hist, w_min, created = self._w_hist, 2 * self._w_gross, onset
+        for j in range(cfg.gross_min_events, n + 1):
+            t0 = ts[n - j]
+            # local prior: the 4 spans before this one (2 .. gross_history_s long), so a
+            # rate that grows smoothly (Cattaneo-Mindlin) is no jump
+            covered = min(w_hist, max(4 * (t - t0), w_min), t0 - created)
+            if covered < w_min:
+                continue
+            n_p = bisect_left(tu, t0) - bisect_left(tu, t0 - covered)  # t0 - covered <= T < t0
+            mu = max(n_p, 1) / covered * (t - t0)
+            # P(N >= j - 1) for N ~ Poisson(mu)
+            term, cdf = math.exp(-mu), 0.0
+            for i in range(j - 1):
+                cdf += term
+                term *= mu / (i + 1)
+            if 1.0 - cdf < alpha:
+                return 2
+        return 0
+
+    def _gross_llr(self, c, t, T, use, tu, onset):
+        """Largest log likelihood ratio ln L over the latest j = gross_min_events ..
+        gross_scan_events used emissions (times t_0 < ... < t_(j-1) = t, m = j - 1 arrivals
+        in tau = t - t_0), gross slip (H1) against micro-slip continuation (H0):
+
+        timing: H1 Poisson at lambda_1 = clip(m / tau, gross_rate_min_hz,
+        gross_rate_max_hz); H0 Poisson at g lambda, g = gross_rate_growth, lambda ~
+        Gamma(n_p + 1, h) (flat prior, n_p of the contact's emissions in the h =
+        min(gross_prior_s, t_0 - born) before t_0; born: ``onset``, the first emission of
+        its current activity, or the oldest one the ring buffer holds), marginalised
+        (a = n_p + 1, b = h / g):
+          ln L_t = m ln lambda_1 - lambda_1 tau
+                   - [a ln b + lnG(a + m) - lnG(a) - (a + m) ln(b + tau)],
+        0 unless m / tau > a / b (a jump), floored at 0;
+        positions, rho = |p - centre| / radius of the ring fitted before t_0 (no ring:
+        nothing): H1 uniform over the disc, p1 = 2 rho; H0 the slip annulus, p0 = 2 rho
+        [eps + (1 - eps) (1[rho > kappa] / (2 (1 - kappa^2)) + 1[rho > k_o] /
+        (2 (1 - k_o^2)))], kappa = gross_stick_fraction, eps = gross_position_outlier, k_o
+        = max(kappa, the innermost micro-slip before t_0): half the annulus the contact
+        drew, half the widest one allowed (its stick zone may have shrunk);
+          ln L = ln L_t + sum_i ln(p1 / p0)(rho_i)."""
+        cfg = self.config
+        k = len(T)
+        J = min(cfg.gross_scan_events, len(tu))
+        if J < 2:
+            return -math.inf
+        ts = tu[-J:]
+        idx = np.flatnonzero(use)
+        idx = idx[np.argsort(T[idx], kind="stable")][-J:]
+        lo, hi = cfg.gross_rate_min_hz, cfg.gross_rate_max_hz
+        w_prior, created = self._w_prior, onset
+        kap, eps = cfg.gross_stick_fraction, cfg.gross_position_outlier
+        s_in = -math.log(eps)
+        rings = c.rings if c.fitted else ()
+        # the prior starts at the onset of the contact's activity, or at the oldest
+        # emission the ring buffer still holds once it has wrapped
+        born = created if c.n <= c.H else max(created, int(T.min()))
+        kap2 = kap * kap
+        d_all = 0.5 / (1.0 - kap2) if kap < 1 else 0.0
+        # the spans tested, and for each the latest ring fitted before it (without the
+        # tested emissions; None: no ring, no position term)
+        plan = []
+        for j in range(cfg.gross_min_events, J + 1):
+            t0 = ts[J - j]
+            cov = min(w_prior, t0 - born)
+            if cov <= 0:
+                break
+            ri = None
+            for i in range(len(rings) - 1, -1, -1):
+                if rings[i][0] < t0:
+                    ri = i if rings[i][2] > 0 else None
+                    break
+            plan.append((j, t0, cov, ri))
+        # every ring's rho^2 at once: of the tested emissions (time order), and the
+        # innermost micro-slip before each time (running minimum over the micro-slips in
+        # time order): the annulus the contact's micro-slips drew
+        rows = {}
+        used = sorted({ri for *_, ri in plan if ri is not None})
+        if used:
+            C = np.array([rings[i][1] for i in used])
+            rr = np.array([rings[i][2] for i in used])
+            D = c.p[:k][None, :, :] - C[:, None, :]
+            rho2 = np.einsum("rij,rij->ri", D, D) / (rr * rr)[:, None]
+            ev_i = np.flatnonzero((c.flags[:k] & EVID) != 0)
+            ev_i = ev_i[np.argsort(T[ev_i], kind="stable")]
+            ev_t = T[ev_i].tolist()
+            r2_used = rho2[:, idx].tolist()
+            ev_min = np.minimum.accumulate(rho2[:, ev_i], axis=1).tolist()
+            rows = {ri: n for n, ri in enumerate(used)}
+        best = -math.inf
+        for j, t0, cov, ri in plan:
+            n_p = bisect_left(tu, t0) - bisect_left(tu, t0 - cov)
+            a, b = n_p + 1.0, cov * 1e-9 / cfg.gross_rate_growth
+            m, tau = j - 1, (t - t0) * 1e-9
+            llr = 0.0
+            if m > tau * a / b:  # faster than the prior rate
+                lam1 = min(hi, max(lo, m / tau if tau > 0 else hi))
+                llr = max(
+                    0.0,
+                    m * math.log(lam1)
+                    - lam1 * tau
+                    - a * math.log(b)
+                    - math.lgamma(a + m)
+                    + math.lgamma(a)
+                    + (a + m) * math.log(b + tau),
+                )
+            if ri is not None:
+                row = rows[ri]
+                n_before = bisect_left(ev_t, t0)
+                k_obs = max(kap, math.sqrt(ev_min[row][n_before - 1])) if n_before else kap
+                k_obs2 = k_obs * k_obs
+                r2 = r2_used[row][J - j :]
+                n_in = sum(1 for v in r2 if v < kap2)
+                n_obs = sum(1 for v in r2 if v >= k_obs2)
+                d_obs = 0.5 / (1.0 - k_obs2) if k_obs < 1 else 0.0
+                llr += n_in * s_in
+                llr -= (j - n_in - n_obs) * math.log(eps + (1.0 - eps) * d_all)
+                llr -= n_obs * math.log(eps + (1.0 - eps) * (d_all + d_obs))
+            if llr > best:
+                best = llr
+        return best

@@ -1,0 +1,131 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The slip detector's output records: SLIP_PRECURSOR and SLIP events of a contact, its
+slip emission rate, the covariance of its centre, its direction of travel, and the
+report interval between repeated events."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ae_tactile.records import EventType
+
+from .contact import EVID, NAN3, OVERLAP, PAIRED, REPEAT
+from .fits import drift_fit
+from .types import SlipEvent
+
+
+class SlipOutputs:
+    """The events a contact reports and the quantities they carry.
+
+    Methods of `SlipDetector` (`ae_tactile.slip.detector`), which holds the state they
+    use: ``config``, ``counts``, ``contacts`` and the windows in ns set by ``_apply``.
+    """
+
+    def _rate(self, c, t):
+        if c.rate_key == (t, c.n):
+            return c.rate_val
+        c.rate_key = (t, c.n)
+        c.rate_val = self._rate_now(c, t)
+        return c.rate_val
+
+    def _rate_now(self, c, t):
+        k = c.valid()
+        F = c.flags[:k]
+        return float((((F & PAIRED) == 0) & (c.t[:k] > t - self._w_rate)).sum()) / (
+            self._w_rate * 1e-9
+        )
+
+    def _due(self, c, kind, t):
+        last = c.last_report.get(kind)
+        return last is None or t - last >= self._report
+
+    def _precursor(self, c, ev, n_ev, ids, onset):
+        c.precursor_count += 1
+        c.last_report[3] = ev.time_ns
+        conf = 1.0 - 2.0 ** (-n_ev / self.config.precursor_min_emissions)
+        return SlipEvent(
+            EventType.SLIP_PRECURSOR,
+            ev.time_ns,
+            ev.point_m.copy(),
+            ev.covariance_m2.copy(),
+            c.id,
+            self._rate(c, ev.time_ns),
+            math.nan,
+            NAN3.copy(),
+            float(conf) * (0.5 + 0.5 * ev.confidence),
+            ids,
+            onset,
+            float(n_ev),
+        )
+
+    def _slip_event(self, c, ev, why, onset):
+        t = ev.time_ns
+        c.last_report[4] = t
+        ids = (ev.packet_id,)
+        if onset:
+            k = c.valid()
+            w = ((c.flags[:k] & (PAIRED | REPEAT)) == 0) & (c.t[:k] > t - self._w_gross)
+            ids = tuple(int(x) for x in c.pid[:k][w] if x != ev.packet_id) + ids
+        conf = 0.9 if why in (1, 4) or c.texture_on else 0.75
+        return SlipEvent(
+            EventType.SLIP,
+            t,
+            c.centre_at(t).copy(),
+            self._centre_cov(c),
+            c.id,
+            self._rate(c, t),
+            math.nan,
+            self._direction(c, t),
+            conf,
+            ids,
+            onset,
+            float(why),
+        )
+
+    def _centre_cov(self, c):
+        k = c.valid()
+        m = (c.flags[:k] & PAIRED) == 0
+        P = c.p[:k][m]
+        if len(P) < 3 or c.moving:
+            v = max(float(c.var[(c.n - 1) % c.H]), 1e-12)
+            return np.eye(3) * v
+        D = P - P.sum(axis=0) / len(P)
+        return (D.T @ D) / (len(P) * (len(P) - 1))
+
+    def _direction(self, c, t=None, tt=None):
+        """Unit tangent direction of travel at time ``t`` or ``tt`` (ns): the tracked motion
+        of a moving contact (carried along its great circle to that time), else, given
+        ``t``, a fresh regression of the slip emissions over track_window_s when its drift
+        exceeds ``direction_significance`` standard errors (and min_speed_m_s); else NaN."""
+        if not c.moving:
+            if t is None:
+                return NAN3.copy()
+            cfg = self.config
+            k = c.valid()
+            m = ((c.flags[:k] & (OVERLAP | EVID)) == EVID) & (c.t[:k] > t - self._w_track)
+            n = int(m.sum())
+            if n < cfg.track_min_events:
+                return NAN3.copy()
+            fit = drift_fit(c.t[:k][m], c.p[:k][m])
+            if fit is None:
+                return NAN3.copy()
+            v, _, _, s2, stt = fit
+            se = math.sqrt(s2 / stt)
+            sp = math.sqrt(float(v @ v))
+            if sp < cfg.min_speed_m_s or sp < cfg.direction_significance * se:
+                return NAN3.copy()
+            return v / sp
+        s = math.sqrt(float(c.vel @ c.vel))
+        if not s > 0:
+            return NAN3.copy()
+        u = c.vel / s
+        at = t if t is not None else tt
+        if at is None or c.track_c is None:
+            return u
+        # the track's velocity belongs to its mean time; along the great circle the
+        # direction turns by omega dt (omega = v / |p|) toward -p: the direction at ``at``
+        rn = math.sqrt(float(c.track_c @ c.track_c))
+        a = s / rn * (at * 1e-9 - c.track_t)
+        return u * math.cos(a) - (c.track_c / rn) * math.sin(a)

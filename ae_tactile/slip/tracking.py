@@ -1,0 +1,239 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Contact tracking of the slip detector: which contact an emission belongs to (nearest
+predicted centre or latest emission, or the contact of the touch a release pairs with), new
+contacts, the fitted centre and radius, the motion track, and contacts ending."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .contact import (
+    EVID,
+    FOUNDER,
+    OVERLAP,
+    PAIRED,
+    SLIP_EMISSION,
+    SLIPPING,
+    TRACKED,
+    Contact,
+)
+from .fits import circle_centre, drift_fit, percentile90
+
+
+class ContactTracking:
+    """Association of emissions with contacts, contact creation, geometry and motion.
+
+    Methods of `SlipDetector` (`ae_tactile.slip.detector`), which holds the state they
+    use: ``config``, ``counts``, ``contacts`` and the windows in ns set by ``_apply``.
+    """
+
+    def _associate(self, px, py, pz, t, pol=1, var=0.0):
+        """The contact whose (predicted) centre, or whose latest emission of the last
+        track_window_s, is nearest within association_radius_m (the latest emission carries
+        a contact that moves before its track is established); failing that, for a
+        rarefaction (polarity ``pol`` < 0, per-axis variance ``var`` m^2), the contact of an
+        unpaired touch on its spot."""
+        best, best_d2 = None, self._assoc2
+        for c in self.contacts:
+            q = c.centre_xyz if not c.moving or c.track_c is None else c.centre_at(t)
+            dx, dy, dz = px - q[0], py - q[1], pz - q[2]
+            d2 = dx * dx + dy * dy + dz * dz
+            lp = c.last_p
+            if lp is not None and t - c.last_ns <= self._w_track:
+                dx, dy, dz = px - lp[0], py - lp[1], pz - lp[2]
+                d2 = min(d2, dx * dx + dy * dy + dz * dz)
+            if d2 <= best_d2:
+                best, best_d2 = c, d2
+        if best is None and pol < 0:
+            best = self._touch_of_release(px, py, pz, var, t)
+        return best
+
+    def _touch_of_release(self, px, py, pz, var, t):
+        """The contact (sticking, not moving) holding a touch this release pairs with
+        (`_held_touch`, or its founder's record, `_founder_release`), however far its
+        centre: a release belongs to its touch's contact, whatever the touches after it
+        made of the contact (touches wandering over seconds of holds carry it farther than
+        association_radius_m). The nearest such touch's contact; None if none."""
+        p = np.array((px, py, pz))
+        best, best_d2 = None, math.inf
+        for c in self.contacts:
+            if c.state in SLIPPING or c.moving:
+                continue
+            b = c.touch_box
+            r = math.sqrt(self._g2 * (c.touch_var + var + self._f2))  # the widest gate
+            if not (
+                b[0] - r <= px <= b[3] + r
+                and b[1] - r <= py <= b[4] + r
+                and b[2] - r <= pz <= b[5] + r
+            ):
+                continue  # no compression of this contact within reach
+            d = math.inf
+            k = c.valid()
+            F = c.flags[:k]
+            m = (c.pol[:k] > 0) & ((F & PAIRED) == 0)
+            if m.any():
+                D = c.p[:k] - p
+                d2 = np.einsum("ij,ij->i", D, D)
+                vsum = c.var[:k] + var
+                m &= d2 <= self._g2 * (vsum + self._f2)
+                if m.any():
+                    m &= self._held_touch(F, d2, vsum, c.t[:k] >= t - self._w_ev)
+                    if m.any():
+                        d = float(d2[m].min())
+            if d == math.inf and self._founder_release(c, -1, p, var, t):
+                fd = c.founder[0] - p
+                d = float(fd @ fd)
+            if d < best_d2:
+                best, best_d2 = c, d
+        return best
+
+    def _found(self, ev, p, var, t, overlap):
+        """A new contact founded by ``ev``. A lone rarefaction (a release, or a micro-slip
+        of a contact nobody announced) stays unconfirmed until a second emission joins."""
+        if len(self.contacts) >= self.config.max_contacts:
+            idle = [c for c in self.contacts if c.state not in SLIPPING] or self.contacts
+            drop = min(idle, key=lambda c: (c.confirmed, c.last_ns))
+            self.contacts.remove(drop)
+            self.counts["contacts_dropped"] += 1
+        c = Contact(self._next_id, t, self.config.member_history, confirmed=ev.polarity >= 0)
+        self._next_id += 1
+        c.add(t, p, var, ev.polarity, ev.packet_id, FOUNDER | (OVERLAP if overlap else 0))
+        c.founder = (p.copy(), var, int(ev.polarity))
+        c.founder_ns, c.founder_n = t, 0
+        c.centre = p.copy()
+        self.contacts.append(c)
+        self.counts["contacts_created"] += 1
+        return c
+
+    def _held_touch(self, F, d2, vsum, recent):
+        """Which buffered emissions (flags ``F``, squared distances ``d2`` m^2, summed
+        per-axis variances ``vsum``) a release may pair with by time and place: those of
+        the evidence window (the same-spot gate, model floor included), and older ones
+        however old, since a grasp is held as long as it is held, if they came while the
+        contact stuck (a slipping contact's emissions are slip, not touches) and within
+        ``release_gate_sigma`` sigma of the difference without the model floor (a
+        touch's release lands on its spot to the localization error; a micro-slip near
+        an old one rarely does)."""
+        return recent | (((F & SLIP_EMISSION) == 0) & (d2 <= self._g2 * vsum))
+
+    def _founder_release(self, c, pol, p, var, t):
+        """Is an emission of polarity ``pol`` at ``p`` (per-axis variance ``var``, time
+        ``t``) the release of the contact's founding touch after the ring buffer
+        overwrote the founder's slot? The founder unpaired, the polarities fitting (a
+        rarefaction after a compression; unknown polarity only within the evidence
+        window) and on its spot as `_held_touch` has it."""
+        if (
+            c.founder_paired
+            or c.pending_release_ns is not None
+            or c.n - c.founder_n < c.H  # still in the buffer: the pairing sees it
+        ):
+            return False
+        fp, fvar, fpol = c.founder
+        recent = t - c.founder_ns <= self._w_ev
+        if pol > 0 or (pol < 0 and fpol <= 0) or (pol == 0 and not recent):
+            return False
+        fd = fp - p
+        d2 = float(fd @ fd)
+        return d2 <= self._g2 * (fvar + var + (self._f2 if recent else 0.0))
+
+    def _geometry(self, c):
+        """Centre (circle fit to the evidence emissions, refitted when their number changed:
+        every one up to 16, then every 4th) and radius (90th percentile of their distances)."""
+        n = c.n_fit_members
+        if n < 3 or n == c.n_evid_fit or (n > 16 and abs(n - c.n_evid_fit) < 4):
+            return
+        k = c.valid()
+        F = c.flags[:k]
+        m = ((F & EVID) != 0) & ((F & OVERLAP) == 0)
+        c.n_evid_fit = n
+        P = c.p[:k][m]
+        centre = circle_centre(P) if n >= self.config.fit_min_events else None
+        if centre is not None:
+            c.centre, c.fitted = centre, True
+        d = np.sqrt(np.einsum("ij,ij->i", P - c.centre, P - c.centre))
+        c.radius = percentile90(d.tolist())
+        if c.fitted:
+            c.rings.append((c.last_ns, c.centre, c.radius))
+            if len(c.rings) > 8:
+                del c.rings[0]
+
+    def _track(self, c, t):
+        """Motion regression p(t) = c0 + v (t - t_mean) over the track window."""
+        c.events_since_track = 0
+        cfg = self.config
+        k = c.valid()
+        F = c.flags[:k]
+        # the latest emissions within track_window_s, or the latest 12 within 4 x that
+        # (a slow stylus emits a few per window)
+        m = (
+            ((F & (OVERLAP | PAIRED)) == 0)
+            & ((F & TRACKED) != 0)
+            & (c.t[:k] > t - 4 * self._w_track)
+        )
+        recent = m & (c.t[:k] > t - self._w_track)
+        if int(recent.sum()) >= 12:
+            m = recent
+        elif int(m.sum()) > 12:
+            idx = np.flatnonzero(m)
+            keep = idx[np.argsort(c.t[:k][idx])[-12:]]
+            m = np.zeros(k, bool)
+            m[keep] = True
+        n = int(m.sum())
+        if n < max(cfg.track_min_events, 3):
+            c.moving = False
+            return
+        fit = drift_fit(c.t[:k][m], c.p[:k][m])
+        if fit is None:
+            return
+        v, pm, tm, s2, stt = fit
+        se = math.sqrt(s2 / stt)
+        speed = math.sqrt(float(v @ v))
+        tk = c.t[:k][m]
+        c.track_se = se
+        was = c.moving
+        # a moving contact: fast enough, significant, its emissions close to the track (a
+        # few fixed spots hit in turn are no motion), and it left its spot: the track spans
+        # more than the same-spot gate (a spot hit again and again, e.g. apex phantoms of
+        # electrical interference, drifts within it)
+        span = speed * float(tk.max() - tk.min()) * 1e-9
+        c.moving = (
+            speed >= cfg.min_speed_m_s
+            and speed >= cfg.track_significance * se
+            and s2 <= cfg.track_max_residual_m**2
+            and span * span > self._g2 * (2.0 * float(c.var[:k][m].sum()) / n + self._f2)
+        )
+        if c.moving:
+            c.vel, c.track_t, c.track_c = v, tm, pm
+        elif was:
+            c.centre = c.centre_at(t) if c.track_c is not None else c.centre
+
+    def _end_contact(self, c):
+        if c in self.contacts:
+            self.contacts.remove(c)
+        if c.pending_release_ns is not None:
+            self._last_end_ns = c.pending_release_ns
+        if c.touch_release_ns is not None:
+            # its touch-release activity outlives it (`_ended_activity_near`)
+            spot = c.pending_release_spot[0] if c.pending_release_spot is not None else c.last_p
+            act = self._ended_activity
+            act[:] = [a for a in act if c.touch_release_ns - a[0] <= self._w_ev]
+            act.append((c.touch_release_ns, np.array(spot, dtype=float)))
+            if len(act) > self.config.max_contacts:
+                del act[0]  # bounded work per event: the oldest forgotten first
+
+    def _ended_activity_near(self, t, *points):
+        """Did a contact that ended see a touch and its release within evidence_window_s
+        before ``t``, its end within association_radius_m of one of ``points``? (Prunes
+        the list.)"""
+        act = self._ended_activity
+        if not act:
+            return False
+        act[:] = [a for a in act if t - a[0] <= self._w_ev]
+        for _, q in act:
+            for p in points:
+                d = q - p
+                if float(d @ d) <= self._assoc2:
+                    return True
+        return False
