@@ -106,6 +106,8 @@ if [ ! -f "$build_stamp" ]; then
   fi
   cd "$ROOT"; mkdir -p log
   rm -f install/.ae_tactile_build_*
+  # a module moved or removed leaves its symlink behind in the symlink install: drop them
+  find "$ROOT/install" "$ROOT/build" -xtype l -delete 2>/dev/null || true
   colcon build --base-paths "$ROOT" --packages-select ae_tactile --symlink-install \
     --event-handlers console_direct- console_cohesion+ summary+ \
     --cmake-args -DPython3_EXECUTABLE="$VENV/bin/python" -DBUILD_TESTING=OFF \
@@ -120,7 +122,7 @@ fi
 # numba keys its cache on each kernel source's path, modification time and size: so does
 # this stamp. Without it the driver's warm-up (or the first test) would pay the compilation.
 kernel_hash="$( { echo "$env_hash"; cd "$ROOT/install/ae_tactile" && \
-                  grep -Rl --include='*.py' '@njit' . | LC_ALL=C sort | xargs -r stat -L -c '%n %Y %s'; \
+                  grep -Rls --include='*.py' '@njit' . | LC_ALL=C sort | xargs -r stat -L -c '%n %Y %s'; \
                 } | hash_of)"
 kernel_stamp="$ROOT/install/.ae_tactile_kernels_$kernel_hash"
 if [ ! -f "$kernel_stamp" ]; then
