@@ -10,6 +10,7 @@ descriptors from one place. See docs/slip.md for the reasoning behind every defa
 from __future__ import annotations
 
 import math
+import textwrap
 from dataclasses import asdict, dataclass, field, fields, replace
 
 
@@ -460,8 +461,6 @@ class SlipConfig:
 def _field_list_doc() -> str:
     """The field list of the class docstring (name, then its description on continuation
     lines), generated from the metadata so it cannot drift."""
-    import textwrap
-
     lines = []
     for f in fields(SlipConfig):
         md = f.metadata

@@ -30,121 +30,21 @@ class MicroSlipEvidence:
     """
 
     def _member(self, c, ev, p, var, t, overlap, out):
-        cfg = self.config
-        k = c.valid()
-        T, F = c.t[:k], c.flags[:k]
+        """Add ``ev`` (point ``p`` [m], per-axis variance ``var`` [m^2], time ``t`` [ns],
+        ``overlap``: it may share a trigger window) to contact ``c``: classify it, update
+        the contact and its tests, and append the events they decide to ``out``."""
         slipping = c.state in SLIPPING or c.moving  # a moving contact has no fixed spots
         flags = OVERLAP if overlap else 0
         if slipping:
-            # every emission of a slipping contact is a slip emission; one on the founding
-            # touch's spot with the opposite polarity may be its release: the contact ends
-            # unless another emission follows within release_confirm_s
-            flags |= EVID | SLIP_EMISSION
-            fp, fvar, fpol = c.founder
-            fd = fp - p
-            if ev.polarity * fpol < 0 and float(fd @ fd) <= self._g2 * (fvar + var + self._f2):
-                c.pending_release_ns, c.pending_in_slip = t, True  # confirmed by quiet_s
-                c.pending_release_spot = (p.copy(), var)
-                self.counts["releases"] += 1
-            elif c.pending_release_ns is not None:
-                c.pending_release_ns = None
-                self.counts["releases_cancelled"] += 1
+            flags |= self._slip_emission(c, ev, p, var, t)
         else:
-            D = c.p[:k] - p
-            d2 = np.einsum("ij,ij->i", D, D)
-            vsum = c.var[:k] + var
-            spot = d2 <= self._g2 * (vsum + self._f2)
-            if spot.any():
-                recent = T >= t - self._w_ev
-                near = spot & recent
-                # a pair: an emission of unknown polarity with any unpaired one of the
-                # window on its spot; a release (a rarefaction) with an unpaired touch (a
-                # compression) on its spot, never the other way round
-                cand = spot & ((F & PAIRED) == 0)
-                if ev.polarity > 0:
-                    cand[:] = False
-                elif ev.polarity < 0:
-                    held = self._held_touch(F, d2, vsum, recent)
-                    if c.n - c.founder_n == 1:
-                        # nothing since the founding touch (a held touch is silent): on
-                        # its spot, model floor included, is its release however long
-                        # the hold
-                        held = held | ((F & FOUNDER) != 0)
-                    cand &= (c.pol[:k] > 0) & held
-                else:
-                    cand &= recent
-            else:
-                near = cand = spot
-            if not cand.any() and self._founder_release(c, ev.polarity, p, var, t):
-                # the founding touch's release, its slot no longer in the ring buffer: it
-                # ends the contact after release_confirm_s, as any release does
-                flags |= PAIRED
-                c.founder_paired = True
-                c.pending_release_ns, c.pending_in_slip = t, False
-                c.pending_release_spot = (p.copy(), var)
-                self.counts["pairs"] += 1
-                self.counts["releases"] += 1
-            elif cand.any() or near.any():
-                # on the spot of an earlier emission: a release / tap pair, or a repeat
-                if cand.any():
-                    j = int(np.flatnonzero(cand)[np.argmin(d2[cand])])
-                    if (int(F[j]) & (EVID | OVERLAP)) == EVID:
-                        c.n_fit_members -= 1
-                    F[j] = (F[j] | PAIRED) & (0xFF ^ EVID)
-                    c.flist[j] = int(F[j])
-                    flags |= PAIRED
-                    self.counts["pairs"] += 1
-                    founder = bool(F[j] & FOUNDER)
-                    if founder:
-                        c.founder_paired = True
-                        c.pending_release_ns, c.pending_in_slip = t, False
-                        c.pending_release_spot = (p.copy(), var)
-                        self.counts["releases"] += 1
-                    if (
-                        (not founder or c.n - c.founder_n == 1)
-                        and ev.polarity < 0 < int(c.pol[j])
-                        and float(d2[j]) <= 9.0 * (float(c.var[j]) + var)
-                    ):
-                        # a touch and its release on one spot (3 sigma, no model floor: a
-                        # micro-slip landing near an earlier one rarely comes that close);
-                        # the founder's too when nothing came between them (a held touch
-                        # is silent)
-                        c.touch_release_ns = t
-                        c.touch_release_open = True
-                else:
-                    if ev.polarity > 0 and c.pending_release_ns is not None:
-                        fp, fvar, _ = c.founder
-                        rp, rvar = c.pending_release_spot or (fp, fvar)
-                        fd, rd = fp - p, rp - p
-                        if min(
-                            float(fd @ fd) - self._g2 * (fvar + var + self._f2),
-                            float(rd @ rd) - self._g2 * (rvar + var + self._f2),
-                        ) <= 0.0:
-                            # the founder's (or its release's) spot touched again before
-                            # the release was confirmed: the re-touch takes over as the
-                            # founder and the contact goes on; its release pairs with it
-                            # here and ends the contact (not a lone rarefaction after it
-                            # ended)
-                            c.pending_release_ns = None
-                            c.founder = (p.copy(), var, 1)
-                            c.founder_ns, c.founder_n = t, c.n
-                            c.founder_paired = False
-                            flags |= FOUNDER
-                            self.counts["releases_cancelled"] += 1
-                    flags |= REPEAT
-                    self.counts["repeats"] += 1
-            else:
-                if c.pending_release_ns is not None:
-                    ev_m = (F & EVID) != 0
-                    if not (T[ev_m] >= t - self._w_ev).any():
-                        # the founder was released: this is a new touch nearby
-                        self._end_contact(c)
-                        self._found(ev, p, var, t, overlap)
-                        return
-                    c.pending_release_ns = None
-                    self.counts["releases_cancelled"] += 1
-                flags |= EVID
-                self.counts["evidence"] += 1
+            kind = self._held_emission(c, ev, p, var, t)
+            if kind is None:
+                # the founder was released: this is a new touch nearby
+                self._end_contact(c)
+                self._found(ev, p, var, t, overlap)
+                return
+            flags |= kind
         c.add(t, p, var, ev.polarity, ev.packet_id, flags)
         c.confirmed = True
         self._geometry(c)
@@ -152,37 +52,7 @@ class MicroSlipEvidence:
         if c.events_since_track >= 8 or (c.moving and c.events_since_track >= 4):
             self._track(c, t)
         if flags & EVID and c.state != ContactState.GROSS_SLIP:
-            # micro-slip evidence in the window (needed only for a precursor decision)
-            k = c.valid()
-            T, F = c.t[:k], c.flags[:k]
-            ev_mask = ((F & EVID) != 0) & (T > t - self._w_ev)
-            n_ev = float(ev_mask.sum())
-            w = cfg.compression_evidence_weight
-            w_touch = min(w, cfg.touched_compression_weight)
-            if (
-                c.touch_release_open
-                or (c.touch_release_ns is not None and t - c.touch_release_ns <= self._w_ev)
-                or self._ended_activity_near(t, p, c.founder[0])
-            ):
-                w = w_touch
-                if ev.polarity > 0:
-                    # a touch when it came, a touch for as long as it counts (its release
-                    # may be lost): the weight an emission had on arrival stays
-                    i = (c.n - 1) % c.H
-                    F[i] |= TOUCHED
-                    c.flist[i] = int(F[i])
-            if w < 1.0:
-                n_ev -= (1.0 - w) * float((ev_mask & (c.pol[:k] > 0)).sum())
-            if w > w_touch:
-                n_ev -= (w - w_touch) * float((ev_mask & ((F & TOUCHED) != 0)).sum())
-            if c.state == ContactState.STICK and n_ev >= cfg.precursor_min_emissions:
-                c.state, c.since_ns = ContactState.INCIPIENT_SLIP, t
-                idx = np.flatnonzero(ev_mask)
-                idx = idx[np.argsort(T[idx], kind="stable")]
-                ids = tuple(int(x) for x in c.pid[idx] if x != ev.packet_id) + (ev.packet_id,)
-                out.append(self._precursor(c, ev, n_ev, ids, onset=True))
-            elif c.state == ContactState.INCIPIENT_SLIP and self._due(c, 3, t):
-                out.append(self._precursor(c, ev, n_ev, (ev.packet_id,), onset=False))
+            self._precursor_decision(c, ev, p, t, out)
         if c.state != ContactState.GROSS_SLIP and flags & (EVID | REPEAT):
             why = self._gross_test(c, t)
             if why:
@@ -193,3 +63,173 @@ class MicroSlipEvidence:
         self._texture(c, ev, out)
         if ev.polarity > 0:
             c.touch_release_open = False
+
+    def _slip_emission(self, c, ev, p, var, t):
+        """The flags of an emission of a slipping (or moving) contact: every one is a slip
+        emission; one on the founding touch's spot with the opposite polarity may be its
+        release: the contact ends unless another emission follows within quiet_s."""
+        fp, fvar, fpol = c.founder
+        fd = fp - p
+        if ev.polarity * fpol < 0 and float(fd @ fd) <= self._g2 * (fvar + var + self._f2):
+            c.pending_release_ns, c.pending_in_slip = t, True  # confirmed by quiet_s
+            c.pending_release_spot = (p.copy(), var)
+            self.counts["releases"] += 1
+        elif c.pending_release_ns is not None:
+            c.pending_release_ns = None
+            self.counts["releases_cancelled"] += 1
+        return EVID | SLIP_EMISSION
+
+    def _held_emission(self, c, ev, p, var, t):
+        """The flags of an emission of a sticking contact: the founding touch's release
+        (PAIRED), a pair with an earlier emission on its spot (PAIRED), a repeat on an
+        earlier spot (REPEAT, FOUNDER for a re-touch), or micro-slip evidence (EVID); None:
+        the contact's founder was released and this is a new touch nearby."""
+        k = c.valid()
+        T, F = c.t[:k], c.flags[:k]
+        D = c.p[:k] - p
+        d2 = np.einsum("ij,ij->i", D, D)
+        vsum = c.var[:k] + var
+        spot = d2 <= self._g2 * (vsum + self._f2)
+        if spot.any():
+            near, cand = self._pair_candidates(c, ev, k, T, F, d2, vsum, spot, t)
+        else:
+            near = cand = spot
+        if not cand.any() and self._founder_release(c, ev.polarity, p, var, t):
+            # the founding touch's release, its slot no longer in the ring buffer: it
+            # ends the contact after release_confirm_s, as any release does
+            c.founder_paired = True
+            c.pending_release_ns, c.pending_in_slip = t, False
+            c.pending_release_spot = (p.copy(), var)
+            self.counts["pairs"] += 1
+            self.counts["releases"] += 1
+            return PAIRED
+        # on the spot of an earlier emission: a release / tap pair, or a repeat
+        if cand.any():
+            return self._pair(c, ev, p, var, t, F, d2, cand)
+        if near.any():
+            return self._repeat(c, ev, p, var, t)
+        return self._isolated(c, t, T, F)
+
+    def _pair_candidates(self, c, ev, k, T, F, d2, vsum, spot, t):
+        """(the emissions of the window on the new one's spot, those it may pair with) of
+        the ``k`` buffered ones (times ``T`` [ns], flags ``F``, squared distances ``d2``
+        [m^2], summed per-axis variances ``vsum`` [m^2], on its spot: ``spot``)."""
+        recent = T >= t - self._w_ev
+        near = spot & recent
+        # a pair: an emission of unknown polarity with any unpaired one of the window on
+        # its spot; a release (a rarefaction) with an unpaired touch (a compression) on its
+        # spot, never the other way round
+        cand = spot & ((F & PAIRED) == 0)
+        if ev.polarity > 0:
+            cand[:] = False
+        elif ev.polarity < 0:
+            held = self._held_touch(F, d2, vsum, recent)
+            if c.n - c.founder_n == 1:
+                # nothing since the founding touch (a held touch is silent): on its spot,
+                # model floor included, is its release however long the hold
+                held = held | ((F & FOUNDER) != 0)
+            cand &= (c.pol[:k] > 0) & held
+        else:
+            cand &= recent
+        return near, cand
+
+    def _pair(self, c, ev, p, var, t, F, d2, cand):
+        """Pair the new emission with the nearest candidate (``cand``): the candidate leaves
+        the evidence; the founder's pair is its release (the contact ends after
+        release_confirm_s); a touch and its release open touch-release activity."""
+        j = int(np.flatnonzero(cand)[np.argmin(d2[cand])])
+        if (int(F[j]) & (EVID | OVERLAP)) == EVID:
+            c.n_fit_members -= 1
+        F[j] = (F[j] | PAIRED) & (0xFF ^ EVID)
+        c.flist[j] = int(F[j])
+        self.counts["pairs"] += 1
+        founder = bool(F[j] & FOUNDER)
+        if founder:
+            c.founder_paired = True
+            c.pending_release_ns, c.pending_in_slip = t, False
+            c.pending_release_spot = (p.copy(), var)
+            self.counts["releases"] += 1
+        if (
+            (not founder or c.n - c.founder_n == 1)
+            and ev.polarity < 0 < int(c.pol[j])
+            and float(d2[j]) <= 9.0 * (float(c.var[j]) + var)
+        ):
+            # a touch and its release on one spot (3 sigma, no model floor: a micro-slip
+            # landing near an earlier one rarely comes that close); the founder's too when
+            # nothing came between them (a held touch is silent)
+            c.touch_release_ns = t
+            c.touch_release_open = True
+        return PAIRED
+
+    def _repeat(self, c, ev, p, var, t):
+        """The flags of a repeat on an earlier emission's spot: REPEAT, plus FOUNDER when a
+        touch on the founder's (or its release's) spot comes before the release was
+        confirmed: the re-touch takes over as the founder and the contact goes on; its
+        release pairs with it here and ends the contact (not a lone rarefaction after it
+        ended)."""
+        flags = REPEAT
+        if ev.polarity > 0 and c.pending_release_ns is not None:
+            fp, fvar, _ = c.founder
+            rp, rvar = c.pending_release_spot or (fp, fvar)
+            fd, rd = fp - p, rp - p
+            if min(
+                float(fd @ fd) - self._g2 * (fvar + var + self._f2),
+                float(rd @ rd) - self._g2 * (rvar + var + self._f2),
+            ) <= 0.0:
+                c.pending_release_ns = None
+                c.founder = (p.copy(), var, 1)
+                c.founder_ns, c.founder_n = t, c.n
+                c.founder_paired = False
+                flags |= FOUNDER
+                self.counts["releases_cancelled"] += 1
+        self.counts["repeats"] += 1
+        return flags
+
+    def _isolated(self, c, t, T, F):
+        """EVID for an emission on no other emission's spot (micro-slip evidence; it cancels
+        a pending release), or None when the contact's founder was released and no
+        evidence came in the window (a new touch nearby)."""
+        if c.pending_release_ns is not None:
+            ev_m = (F & EVID) != 0
+            if not (T[ev_m] >= t - self._w_ev).any():
+                return None
+            c.pending_release_ns = None
+            self.counts["releases_cancelled"] += 1
+        self.counts["evidence"] += 1
+        return EVID
+
+    def _precursor_decision(self, c, ev, p, t, out):
+        """Micro-slip evidence in the window (compressions weighed down during touch-release
+        activity): SLIP_PRECURSOR (STICK -> INCIPIENT_SLIP) once it reaches
+        precursor_min_emissions, then again every report_interval_s."""
+        cfg = self.config
+        k = c.valid()
+        T, F = c.t[:k], c.flags[:k]
+        ev_mask = ((F & EVID) != 0) & (T > t - self._w_ev)
+        n_ev = float(ev_mask.sum())
+        w = cfg.compression_evidence_weight
+        w_touch = min(w, cfg.touched_compression_weight)
+        if (
+            c.touch_release_open
+            or (c.touch_release_ns is not None and t - c.touch_release_ns <= self._w_ev)
+            or self._ended_activity_near(t, p, c.founder[0])
+        ):
+            w = w_touch
+            if ev.polarity > 0:
+                # a touch when it came, a touch for as long as it counts (its release may
+                # be lost): the weight an emission had on arrival stays
+                i = (c.n - 1) % c.H
+                F[i] |= TOUCHED
+                c.flist[i] = int(F[i])
+        if w < 1.0:
+            n_ev -= (1.0 - w) * float((ev_mask & (c.pol[:k] > 0)).sum())
+        if w > w_touch:
+            n_ev -= (w - w_touch) * float((ev_mask & ((F & TOUCHED) != 0)).sum())
+        if c.state == ContactState.STICK and n_ev >= cfg.precursor_min_emissions:
+            c.state, c.since_ns = ContactState.INCIPIENT_SLIP, t
+            idx = np.flatnonzero(ev_mask)
+            idx = idx[np.argsort(T[idx], kind="stable")]
+            ids = tuple(int(x) for x in c.pid[idx] if x != ev.packet_id) + (ev.packet_id,)
+            out.append(self._precursor(c, ev, n_ev, ids, onset=True))
+        elif c.state == ContactState.INCIPIENT_SLIP and self._due(c, 3, t):
+            out.append(self._precursor(c, ev, n_ev, (ev.packet_id,), onset=False))

@@ -36,9 +36,24 @@ class GrossSlipTest:
         T, F = c.t[:k], c.flags[:k]
         use = (F & (PAIRED | REPEAT)) == 0
         tu = sorted(T[use].tolist())  # the times used, sorted: counts in ranges by bisection
-        # the contact's rate is learnt from its current activity: from its first emission,
-        # or the first after a silence of gross_prior_s or more (a grasp held silent for
-        # seconds, then loaded: its micro-slips' onset is no jump from that silence)
+        onset = self._activity_onset(c, tu)
+        if (
+            cfg.gross_llr_threshold > 0
+            and self._gross_llr(c, t, T, use, tu, onset) >= cfg.gross_llr_threshold
+        ):
+            return 6
+        n_w = len(tu) - bisect_right(tu, t - self._w_gross)  # T > t - gross_window
+        if n_w < cfg.gross_min_events:
+            return 0
+        if c.fitted and c.radius > 0 and self._in_stick_zone(c, t, k, T, use):
+            return 1
+        return 2 if self._rate_jump(tu, t, onset) else 0
+
+    def _activity_onset(self, c, tu):
+        """The onset [ns] of the contact's current activity, from which its rate is learnt:
+        its first emission, or the first after a silence of gross_prior_s or more (a grasp
+        held silent for seconds, then loaded: its micro-slips' onset is no jump from that
+        silence); ``tu``: the times used [ns], sorted."""
         onset = c.created_ns
         if len(tu) > 2 and tu[0] == c.founder_ns:
             # a founder followed by a silence much longer than the intervals after it is a
@@ -51,35 +66,35 @@ class GrossSlipTest:
             gaps = np.flatnonzero(np.diff(np.asarray(tu)) >= self._w_prior)
             if gaps.size:
                 onset = max(onset, tu[int(gaps[-1]) + 1])
-        if (
-            cfg.gross_llr_threshold > 0
-            and self._gross_llr(c, t, T, use, tu, onset) >= cfg.gross_llr_threshold
-        ):
-            return 6
-        n_w = len(tu) - bisect_right(tu, t - self._w_gross)  # T > t - gross_window
-        if n_w < cfg.gross_min_events:
-            return 0
-        if c.fitted and c.radius > 0:
-            inner = cfg.gross_inner_fraction
-            # the stick zone of the ring as fitted now and as fitted before this window
-            # (the window's own emissions, gross slip's among them, pull the fit; a
-            # drifting contact's older ring lags behind it): inside either
-            Pw = c.p[:k][use & (T > t - self._w_gross)]
-            D = Pw - c.centre
-            if float(np.einsum("ij,ij->i", D, D).min()) < (inner * c.radius) ** 2:
-                return 1
-            t_old = t - self._w_gross
-            for tr, cr, rr in reversed(c.rings):
-                if tr <= t_old:
-                    if tr != c.rings[-1][0]:
-                        D = Pw - cr
-                        if float(np.einsum("ij,ij->i", D, D).min()) < (inner * rr) ** 2:
-                            return 1
-                    break
-        # rate jump (scan statistic): the latest j emissions span tau; under the contact's
-        # prior rate lambda (over the part of gross_history_s before them that it has
-        # lived) j - 1 of them in tau is a Poisson tail P(N >= j - 1 | lambda tau); SLIP
-        # when that is below gross_rate_alpha / (number of spans tested)
+        return onset
+
+    def _in_stick_zone(self, c, t, k, T, use):
+        """Does an emission of the latest gross_window_s lie inside the stick zone
+        (gross_inner_fraction of the radius) of the ring as fitted now or as fitted before
+        this window? (The window's own emissions, gross slip's among them, pull the fit; a
+        drifting contact's older ring lags behind it.)"""
+        inner = self.config.gross_inner_fraction
+        Pw = c.p[:k][use & (T > t - self._w_gross)]
+        D = Pw - c.centre
+        if float(np.einsum("ij,ij->i", D, D).min()) < (inner * c.radius) ** 2:
+            return True
+        t_old = t - self._w_gross
+        for tr, cr, rr in reversed(c.rings):
+            if tr <= t_old:
+                if tr != c.rings[-1][0]:
+                    D = Pw - cr
+                    if float(np.einsum("ij,ij->i", D, D).min()) < (inner * rr) ** 2:
+                        return True
+                break
+        return False
+
+    def _rate_jump(self, tu, t, onset):
+        """Rate jump (scan statistic): the latest j emissions (times ``tu`` [ns], sorted)
+        span tau; under the contact's prior rate lambda (over the part of gross_history_s
+        before them that it has lived since ``onset``) j - 1 of them in tau is a Poisson
+        tail P(N >= j - 1 | lambda tau); a jump when that is below gross_rate_alpha /
+        (number of spans tested)."""
+        cfg = self.config
         ts = tu[-cfg.gross_scan_events :]
         n = len(ts)
         alpha = cfg.gross_rate_alpha / (n - cfg.gross_min_events + 1)
@@ -99,8 +114,8 @@ class GrossSlipTest:
                 cdf += term
                 term *= mu / (i + 1)
             if 1.0 - cdf < alpha:
-                return 2
-        return 0
+                return True
+        return False
 
     def _gross_llr(self, c, t, T, use, tu, onset):
         """Largest log likelihood ratio ln L over the latest j = gross_min_events ..
@@ -131,22 +146,32 @@ class GrossSlipTest:
         ts = tu[-J:]
         idx = np.flatnonzero(use)
         idx = idx[np.argsort(T[idx], kind="stable")][-J:]
-        lo, hi = cfg.gross_rate_min_hz, cfg.gross_rate_max_hz
-        w_prior, created = self._w_prior, onset
-        kap, eps = cfg.gross_stick_fraction, cfg.gross_position_outlier
-        s_in = -math.log(eps)
         rings = c.rings if c.fitted else ()
         # the prior starts at the onset of the contact's activity, or at the oldest
         # emission the ring buffer still holds once it has wrapped
-        born = created if c.n <= c.H else max(created, int(T.min()))
+        born = onset if c.n <= c.H else max(onset, int(T.min()))
+        plan = self._llr_plan(ts, J, born, rings)
+        ring = _ring_rho2(c, k, T, idx, rings, plan)
+        kap, eps = cfg.gross_stick_fraction, cfg.gross_position_outlier
         kap2 = kap * kap
-        d_all = 0.5 / (1.0 - kap2) if kap < 1 else 0.0
-        # the spans tested, and for each the latest ring fitted before it (without the
-        # tested emissions; None: no ring, no position term)
+        pos = (kap, kap2, eps, -math.log(eps), 0.5 / (1.0 - kap2) if kap < 1 else 0.0)
+        best = -math.inf
+        for j, t0, cov, ri in plan:
+            llr = self._timing_llr(tu, t, j, t0, cov)
+            if ri is not None:
+                llr = _position_llr(llr, j, J, t0, ring, ri, pos)
+            if llr > best:
+                best = llr
+        return best
+
+    def _llr_plan(self, ts, J, born, rings):
+        """The spans `_gross_llr` tests [(j, t_0 [ns], prior time covered [ns], index of the
+        latest ring fitted before t_0, without the tested emissions; None: no ring, no
+        position term)] over the latest ``J`` used times ``ts`` [ns]."""
         plan = []
-        for j in range(cfg.gross_min_events, J + 1):
+        for j in range(self.config.gross_min_events, J + 1):
             t0 = ts[J - j]
-            cov = min(w_prior, t0 - born)
+            cov = min(self._w_prior, t0 - born)
             if cov <= 0:
                 break
             ri = None
@@ -155,51 +180,68 @@ class GrossSlipTest:
                     ri = i if rings[i][2] > 0 else None
                     break
             plan.append((j, t0, cov, ri))
-        # every ring's rho^2 at once: of the tested emissions (time order), and the
-        # innermost micro-slip before each time (running minimum over the micro-slips in
-        # time order): the annulus the contact's micro-slips drew
-        rows = {}
-        used = sorted({ri for *_, ri in plan if ri is not None})
-        if used:
-            C = np.array([rings[i][1] for i in used])
-            rr = np.array([rings[i][2] for i in used])
-            D = c.p[:k][None, :, :] - C[:, None, :]
-            rho2 = np.einsum("rij,rij->ri", D, D) / (rr * rr)[:, None]
-            ev_i = np.flatnonzero((c.flags[:k] & EVID) != 0)
-            ev_i = ev_i[np.argsort(T[ev_i], kind="stable")]
-            ev_t = T[ev_i].tolist()
-            r2_used = rho2[:, idx].tolist()
-            ev_min = np.minimum.accumulate(rho2[:, ev_i], axis=1).tolist()
-            rows = {ri: n for n, ri in enumerate(used)}
-        best = -math.inf
-        for j, t0, cov, ri in plan:
-            n_p = bisect_left(tu, t0) - bisect_left(tu, t0 - cov)
-            a, b = n_p + 1.0, cov * 1e-9 / cfg.gross_rate_growth
-            m, tau = j - 1, (t - t0) * 1e-9
-            llr = 0.0
-            if m > tau * a / b:  # faster than the prior rate
-                lam1 = min(hi, max(lo, m / tau if tau > 0 else hi))
-                llr = max(
-                    0.0,
-                    m * math.log(lam1)
-                    - lam1 * tau
-                    - a * math.log(b)
-                    - math.lgamma(a + m)
-                    + math.lgamma(a)
-                    + (a + m) * math.log(b + tau),
-                )
-            if ri is not None:
-                row = rows[ri]
-                n_before = bisect_left(ev_t, t0)
-                k_obs = max(kap, math.sqrt(ev_min[row][n_before - 1])) if n_before else kap
-                k_obs2 = k_obs * k_obs
-                r2 = r2_used[row][J - j :]
-                n_in = sum(1 for v in r2 if v < kap2)
-                n_obs = sum(1 for v in r2 if v >= k_obs2)
-                d_obs = 0.5 / (1.0 - k_obs2) if k_obs < 1 else 0.0
-                llr += n_in * s_in
-                llr -= (j - n_in - n_obs) * math.log(eps + (1.0 - eps) * d_all)
-                llr -= n_obs * math.log(eps + (1.0 - eps) * (d_all + d_obs))
-            if llr > best:
-                best = llr
-        return best
+        return plan
+
+    def _timing_llr(self, tu, t, j, t0, cov):
+        """ln L_t of `_gross_llr` for the span of the latest ``j`` used emissions from
+        ``t0`` to ``t`` [ns], the prior rate learnt over the ``cov`` ns before ``t0``."""
+        cfg = self.config
+        lo, hi = cfg.gross_rate_min_hz, cfg.gross_rate_max_hz
+        n_p = bisect_left(tu, t0) - bisect_left(tu, t0 - cov)
+        a, b = n_p + 1.0, cov * 1e-9 / cfg.gross_rate_growth
+        m, tau = j - 1, (t - t0) * 1e-9
+        llr = 0.0
+        if m > tau * a / b:  # faster than the prior rate
+            lam1 = min(hi, max(lo, m / tau if tau > 0 else hi))
+            llr = max(
+                0.0,
+                m * math.log(lam1)
+                - lam1 * tau
+                - a * math.log(b)
+                - math.lgamma(a + m)
+                + math.lgamma(a)
+                + (a + m) * math.log(b + tau),
+            )
+        return llr
+
+
+def _ring_rho2(c, k, T, idx, rings, plan):
+    """Every planned ring's rho^2 at once (rho = distance to the ring's centre / its
+    radius): (ring index -> row, the micro-slips' times in time order [ns], rho^2 of the
+    tested emissions ``idx`` (time order), the innermost micro-slip's rho^2 before each
+    time (running minimum over the micro-slips in time order): the annulus the contact's
+    micro-slips drew); empty when no span has a ring."""
+    rows, ev_t, r2_used, ev_min = {}, None, None, None
+    used = sorted({ri for *_, ri in plan if ri is not None})
+    if used:
+        C = np.array([rings[i][1] for i in used])
+        rr = np.array([rings[i][2] for i in used])
+        D = c.p[:k][None, :, :] - C[:, None, :]
+        rho2 = np.einsum("rij,rij->ri", D, D) / (rr * rr)[:, None]
+        ev_i = np.flatnonzero((c.flags[:k] & EVID) != 0)
+        ev_i = ev_i[np.argsort(T[ev_i], kind="stable")]
+        ev_t = T[ev_i].tolist()
+        r2_used = rho2[:, idx].tolist()
+        ev_min = np.minimum.accumulate(rho2[:, ev_i], axis=1).tolist()
+        rows = {ri: n for n, ri in enumerate(used)}
+    return rows, ev_t, r2_used, ev_min
+
+
+def _position_llr(llr, j, J, t0, ring, ri, pos):
+    """``llr`` plus the position term of `_gross_llr` for the span of the latest ``j`` of
+    ``J`` tested emissions from ``t0`` [ns], against ring ``ri`` (``ring``: `_ring_rho2`;
+    ``pos``: kappa, kappa^2, eps, ln(1/eps), 1 / (2 (1 - kappa^2)))."""
+    rows, ev_t, r2_used, ev_min = ring
+    kap, kap2, eps, s_in, d_all = pos
+    row = rows[ri]
+    n_before = bisect_left(ev_t, t0)
+    k_obs = max(kap, math.sqrt(ev_min[row][n_before - 1])) if n_before else kap
+    k_obs2 = k_obs * k_obs
+    r2 = r2_used[row][J - j :]
+    n_in = sum(1 for v in r2 if v < kap2)
+    n_obs = sum(1 for v in r2 if v >= k_obs2)
+    d_obs = 0.5 / (1.0 - k_obs2) if k_obs < 1 else 0.0
+    llr += n_in * s_in
+    llr -= (j - n_in - n_obs) * math.log(eps + (1.0 - eps) * d_all)
+    llr -= n_obs * math.log(eps + (1.0 - eps) * (d_all + d_obs))
+    return llr

@@ -24,79 +24,21 @@ class TextureTest:
     """
 
     def _texture(self, c, ev, out):
-        """Periodicity of the contact's latest intervals: robust dispersion MAD/median of the
-        intervals (counting multiples of the period for missed packets) below
-        ``texture_max_dispersion``; period by least squares on the cumulative counts."""
+        """TEXTURE while the contact's latest texture_min_intervals intervals are periodic
+        (`_periodic_window`) for texture_confirm_events tests in a row; the period by least
+        squares on the intervals' period counts (`period_fit_best`), the spatial period
+        from the tracked speed (moving contact) or the sliding speed (fixed contact). A
+        texture is gross slip: GROSS_SLIP and its SLIP come first."""
         cfg = self.config
         n = cfg.texture_min_intervals + 1
         k = c.valid()
         if k < n:
             return
-        # every emission of the contact counts (a texture under a fixed contact also lands
-        # on spots hit before), but a run of pairs and repeats is tapping, not texture.
-        # The latest n slots of the ring (events come nearly in time order), sorted.
-        H = c.H
-        if c.n >= n:
-            s0 = (c.n - n) % H
-            if s0 + n <= H:
-                tl, fl = c.tlist[s0 : s0 + n], c.flist[s0 : s0 + n]
-            else:
-                tl = c.tlist[s0:] + c.tlist[: s0 + n - H]
-                fl = c.flist[s0:] + c.flist[: s0 + n - H]
-        else:
-            tl, fl = c.tlist[:n], c.flist[:n]
-        if not c.moving and sum(1 for f in fl if f & EVID) * 2 < n:
+        window = self._periodic_window(c, n, k)
+        if window is None:
             c.texture_on, c.texture_run = False, 0
             return
-        tl.sort()
-        dtl = [b - a for a, b in zip(tl, tl[1:])]
-        m = sorted(dtl)[len(dtl) // 2]
-        if not m > 0:
-            c.texture_on, c.texture_run = False, 0
-            return
-        # cheap screen: a texture's intervals mostly lie within 40 % of the median or 30 %
-        # of its double or triple (20 % jitter: ~85 %), a Poisson process's do not (~44 %)
-        lo1, hi1, lo2, hi2, lo3, hi3 = 0.6 * m, 1.4 * m, 1.7 * m, 2.3 * m, 2.7 * m, 3.3 * m
-        far_max = len(dtl) - (6 * len(dtl) + 9) // 10  # more far intervals fail the screen
-        near = far = 0
-        for d in dtl:
-            if lo1 <= d <= hi1 or lo2 <= d <= hi2 or lo3 <= d <= hi3:
-                near += 1
-            else:
-                far += 1
-                if far > far_max:
-                    break
-        if near * 10 < 6 * len(dtl):
-            c.texture_on, c.texture_run = False, 0
-            return
-        slots = [(c.n - n + i) % H for i in range(n)] if c.n >= n else list(range(n))
-        order = np.asarray(slots)
-        sel = np.zeros(k, bool)
-        sel[order] = True
-        ts = np.asarray(tl, dtype=np.int64)
-        dt = np.asarray(dtl, dtype=float)
-        m = float(m)
-        kk = multiples(dt, m)
-        if kk.max() > cfg.texture_max_multiple:
-            c.texture_on, c.texture_run = False, 0
-            return
-        period = float(dt.sum() / kk.sum())
-        x = dt / period
-        llr = float(
-            (
-                np.logaddexp.reduce(
-                    self._tex_w
-                    - np.log(self._tex_s)
-                    - 0.5 * ((x - self._tex_k) / self._tex_s) ** 2,
-                    axis=0,
-                )
-                + np.log(x.mean())
-                + x / x.mean()
-            ).sum()
-        )
-        if llr < cfg.texture_min_llr:
-            c.texture_on, c.texture_run = False, 0
-            return
+        sel, ts, dt, m, llr = window
         period, se_period, kk = period_fit_best(ts, dt, (m,))
         c.texture_run += 1
         if c.texture_run < cfg.texture_confirm_events or not period > 0:
@@ -104,23 +46,10 @@ class TextureTest:
         t = ev.time_ns
         lam = math.nan
         if c.moving:
-            # the speed over every remembered emission of the run (not only track_window_s):
-            # its standard error falls as n^-3/2
-            run = (c.flags[:k] & (FOUNDER | PAIRED)) == 0
-            fit = self._motion_fit(c, run)
-            if fit is None:
-                return
-            # the period over the same emissions (a longer run: a smaller error)
-            tr = np.sort(c.t[:k][run])
-            dtr = np.diff(tr).astype(float)
-            h = dtr.size // 2  # the run's median interval (the upper one of an even count)
-            pr, ser, kr = period_fit_best(tr, dtr, (period * 1e9, float(np.partition(dtr, h)[h])))
-            if kr is not None and kr.max() <= cfg.texture_max_multiple:
-                period, se_period = pr, ser
-            rel = math.hypot(fit[1] / fit[0], se_period / period) if fit[0] > 0 else math.inf
-            if rel > cfg.texture_period_rel_se:
+            spatial = self._moving_period(c, k, period, se_period)
+            if spatial is None:
                 return  # periodic, but the spatial period is not known well yet
-            lam = fit[0] * period
+            lam, period = spatial
         elif self._speed is not None:
             lam = self._speed * period
         onset = not c.texture_on
@@ -150,6 +79,90 @@ class TextureTest:
                     llr,
                 )
             )
+
+    def _periodic_window(self, c, n, k):
+        """The latest ``n`` emissions of the contact if they pass the periodicity tests:
+        mostly evidence (unless the contact moves: a run of pairs and repeats is tapping,
+        not texture), the cheap screen (`_near_multiples`), no interval longer than
+        texture_max_multiple periods, and the interval model's log-likelihood ratio against
+        Poisson (`_interval_llr`) at least texture_min_llr. Returns (their slots as a mask
+        of the ``k`` valid ones, times [ns] sorted, intervals [ns], median interval [ns],
+        log-likelihood ratio), or None."""
+        cfg = self.config
+        # every emission of the contact counts (a texture under a fixed contact also lands
+        # on spots hit before). The latest n slots of the ring (events come nearly in time
+        # order), sorted.
+        H = c.H
+        if c.n >= n:
+            s0 = (c.n - n) % H
+            if s0 + n <= H:
+                tl, fl = c.tlist[s0 : s0 + n], c.flist[s0 : s0 + n]
+            else:
+                tl = c.tlist[s0:] + c.tlist[: s0 + n - H]
+                fl = c.flist[s0:] + c.flist[: s0 + n - H]
+        else:
+            tl, fl = c.tlist[:n], c.flist[:n]
+        if not c.moving and sum(1 for f in fl if f & EVID) * 2 < n:
+            return None
+        tl.sort()
+        dtl = [b - a for a, b in zip(tl, tl[1:])]
+        m = sorted(dtl)[len(dtl) // 2]
+        if not m > 0 or not _near_multiples(dtl, m):
+            return None
+        slots = [(c.n - n + i) % H for i in range(n)] if c.n >= n else list(range(n))
+        order = np.asarray(slots)
+        sel = np.zeros(k, bool)
+        sel[order] = True
+        ts = np.asarray(tl, dtype=np.int64)
+        dt = np.asarray(dtl, dtype=float)
+        m = float(m)
+        kk = multiples(dt, m)
+        if kk.max() > cfg.texture_max_multiple:
+            return None
+        period = float(dt.sum() / kk.sum())
+        llr = self._interval_llr(dt / period)
+        if llr < cfg.texture_min_llr:
+            return None
+        return sel, ts, dt, m, llr
+
+    def _interval_llr(self, x):
+        """Log-likelihood ratio of intervals ``x`` (in periods): a jittered periodic train
+        with missed packets (k = 1, 2, 3 periods, sd texture_interval_sd sqrt(k), prior
+        0.9 on k = 1) against a Poisson process of the same mean rate."""
+        return float(
+            (
+                np.logaddexp.reduce(
+                    self._tex_w
+                    - np.log(self._tex_s)
+                    - 0.5 * ((x - self._tex_k) / self._tex_s) ** 2,
+                    axis=0,
+                )
+                + np.log(x.mean())
+                + x / x.mean()
+            ).sum()
+        )
+
+    def _moving_period(self, c, k, period, se_period):
+        """(spatial period [m], period [s]) of a moving contact's texture: the speed along
+        its great circle over every remembered emission of the run (not only
+        track_window_s: its standard error falls as n^-3/2) times the period refitted over
+        the same emissions (a longer run: a smaller error); None until their relative
+        standard error is below texture_period_rel_se."""
+        cfg = self.config
+        run = (c.flags[:k] & (FOUNDER | PAIRED)) == 0
+        fit = self._motion_fit(c, run)
+        if fit is None:
+            return None
+        tr = np.sort(c.t[:k][run])
+        dtr = np.diff(tr).astype(float)
+        h = dtr.size // 2  # the run's median interval (the upper one of an even count)
+        pr, ser, kr = period_fit_best(tr, dtr, (period * 1e9, float(np.partition(dtr, h)[h])))
+        if kr is not None and kr.max() <= cfg.texture_max_multiple:
+            period, se_period = pr, ser
+        rel = math.hypot(fit[1] / fit[0], se_period / period) if fit[0] > 0 else math.inf
+        if rel > cfg.texture_period_rel_se:
+            return None
+        return fit[0] * period, period
 
     @staticmethod
     def _motion_fit(c, m):
@@ -188,3 +201,20 @@ class TextureTest:
         off = P @ normal
         s2 = (rn * rn * float(res @ res) + float(off @ off)) / max(1, 2 * n - 4)
         return rn * abs(om), math.sqrt(s2 / stt)
+
+
+def _near_multiples(dtl, m):
+    """Cheap screen of intervals ``dtl`` [ns] with median ``m`` [ns]: at least 60 % of them
+    within 40 % of the median or 30 % of its double or triple, where a texture's intervals
+    mostly lie and a Poisson process's mostly do not."""
+    lo1, hi1, lo2, hi2, lo3, hi3 = 0.6 * m, 1.4 * m, 1.7 * m, 2.3 * m, 2.7 * m, 3.3 * m
+    far_max = len(dtl) - (6 * len(dtl) + 9) // 10  # more far intervals fail the screen
+    near = far = 0
+    for d in dtl:
+        if lo1 <= d <= hi1 or lo2 <= d <= hi2 or lo3 <= d <= hi3:
+            near += 1
+        else:
+            far += 1
+            if far > far_max:
+                break
+    return near * 10 >= 6 * len(dtl)
