@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The link's per-packet front end: int16 counts -> float32 volts, pre-trigger noise RMS
 and onset index. The compiled kernel against the numpy reference (same volts bit for bit,
 same onset, same noise to rounding), and both against what was put into the window (a
