@@ -75,9 +75,11 @@ def _check(name, md, value):
 
 @dataclass(frozen=True)
 class SlipConfig:
-    """Slip / texture detector parameters (docs/slip.md, section "Parameters").
+    """Slip / texture detector parameters, SI units, validated on construction.
 
-    Fields (name, meaning; unit and range in the field metadata, ``describe()``):
+    Every field carries its description, unit, valid range and whether it may change at
+    run time in its metadata (``describe()``); the parameter list below is generated from
+    it (docs/slip.md, section "Parameters", gives the reasoning behind the defaults).
     """
 
     # ------------------------------------------------------------------ tracking
@@ -432,13 +434,30 @@ class SlipConfig:
             )
 
     def replace(self, **changes) -> "SlipConfig":
+        """A copy with ``changes`` (field -> value) applied.
+
+        Returns
+        -------
+        SlipConfig
+            The new configuration, validated (ValueError as on construction).
+        """
         return replace(self, **changes)
 
     def as_dict(self) -> dict:
+        """Returns
+        -------
+        dict
+            field name -> value.
+        """
         return asdict(self)
 
     @classmethod
     def field_names(cls) -> tuple[str, ...]:
+        """Returns
+        -------
+        tuple of str
+            The field names, in declaration order.
+        """
         return tuple(f.name for f in fields(cls))
 
     @classmethod
@@ -459,15 +478,28 @@ class SlipConfig:
 
 
 def _field_list_doc() -> str:
-    """The field list of the class docstring (name, then its description on continuation
-    lines), generated from the metadata so it cannot drift."""
-    lines = []
+    """The numpydoc Parameters and Raises sections of the class docstring, generated from
+    the field metadata so they cannot drift: per field its type, description, unit [in
+    brackets], valid range and default."""
+    lines = ["    Parameters", "    ----------"]
     for f in fields(SlipConfig):
         md = f.metadata
-        unit = f" ({md['unit']})" if md["unit"] else ""
-        text = textwrap.wrap(md["doc"] + unit, 70)
-        lines.append(f"      {f.name:<24} {text[0]}")
-        lines += [" " * 10 + "  " + t for t in text[1:]]
+        kind = md["kind"] + (" or None" if md["allow_none"] else "")
+        unit = f" [{md['unit']}]" if md["unit"] else ""
+        lo = "-inf" if md["lo"] is None else f"{md['lo']:g}"
+        hi = "inf" if md["hi"] is None else f"{md['hi']:g}"
+        rng = f"{'(' if md['lo_open'] else '['}{lo}, {hi}]"
+        text = f"{md['doc']}{unit}; in {rng}, default {f.default!r}"
+        lines.append(f"    {f.name} : {kind}")
+        lines += ["        " + t for t in textwrap.wrap(text, 84)]
+    lines += [
+        "",
+        "    Raises",
+        "    ------",
+        "    ValueError",
+        "        A value of the wrong type or outside its range, gross_rate_min_hz above",
+        "        gross_rate_max_hz, or member_history below texture_min_intervals + 1.",
+    ]
     return "\n".join(lines)
 
 

@@ -24,7 +24,19 @@ NAN3 = np.full(3, np.nan)
 
 
 class Contact:
-    """One tracked contact: ring buffers of its emissions and its state."""
+    """One tracked contact: ring buffers of its emissions and its state.
+
+    Parameters
+    ----------
+    cid : int
+        Tracker id.
+    t_ns : int
+        Time of the founding emission [ns].
+    history : int
+        Emissions kept (ring buffer length, member_history).
+    confirmed : bool
+        Confirmed (a touch founded it, or a second emission joined).
+    """
 
     def __init__(self, cid, t_ns, history, confirmed):
         H = history
@@ -92,6 +104,9 @@ class Contact:
 
     # -------------------------------------------------------------- buffers
     def add(self, t, p, var, pol, pid, flags):
+        """Store an emission (time [ns], point (3,) [m], per-axis variance [m^2], polarity,
+        packet id, member flags) in the next slot, overwriting the oldest once full;
+        returns the slot."""
         i = self.n % self.H
         if self.n >= self.H and (int(self.flags[i]) & (EVID | OVERLAP)) == EVID:
             self.n_fit_members -= 1  # the overwritten slot leaves the fit set
@@ -133,6 +148,7 @@ class Contact:
         return self.n if self.n < self.H else self.H
 
     def centre_at(self, t_ns):
+        """Centre (3,) [m] at ``t_ns``: predicted along the track of a moving contact."""
         if self.moving and self.track_c is not None:
             return self.track_c + self.vel * (t_ns * 1e-9 - self.track_t)
         return self.centre

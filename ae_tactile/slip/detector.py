@@ -36,7 +36,7 @@ The evidence is *where* emissions come from, not their sign:
   emissions are more likely gross slip (a rate jump to gross_rate_min_hz ..
   gross_rate_max_hz, from the whole contact disc) than the contact's micro-slips going on
   (its own prior rate, from the slip annulus): a sequential likelihood ratio of at least
-  ``gross_llr_threshold`` (``_gross_llr``); or when in the latest ``gross_window_s`` at
+  ``gross_llr_threshold`` (`gross`); or when in the latest ``gross_window_s`` at
   least ``gross_min_events`` emissions came and either one lies inside the stick zone
   (closer than ``gross_inner_fraction`` of the contact radius to the centre fitted to its
   emissions), or their rate is a Poisson tail below ``gross_rate_alpha`` of the rate
@@ -50,6 +50,12 @@ The evidence is *where* emissions come from, not their sign:
 
 Work per event is bounded: ring buffers of ``member_history`` emissions per contact,
 at most ``max_contacts`` contacts, small fits run only when their input changed.
+
+Layout: `SlipDetector` (here: the public API, ``process`` and the latched finger state)
+gathers one mixin per stage, each in its module: `tracking` (association, new contacts,
+centre, radius and motion), `evidence` (an emission's membership of its contact and
+SLIP_PRECURSOR), `gross` (SLIP), `texture` (TEXTURE) and `outputs` (the event records);
+`contact` holds a contact's ring buffers, `fits` the small least-squares fits.
 """
 
 from __future__ import annotations
@@ -71,7 +77,30 @@ from .types import ContactInfo, FingerState, LocalizedEvent, SlipEvent
 
 
 class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTest, SlipOutputs):
-    """Stateful slip / texture detector for one finger (see the module docstring)."""
+    """Stateful slip / texture detector for one finger (see the module docstring).
+
+    Parameters
+    ----------
+    config : SlipConfig, optional
+        Detector parameters; None: the defaults.
+
+    Attributes
+    ----------
+    config : SlipConfig
+        The parameters in use (``update_config`` changes the run-time ones).
+    contacts : list of Contact
+        The tracked contacts, unconfirmed candidates included.
+    counts : dict of str to int
+        Emissions processed, rejected (by reason) and classified, contacts created and
+        dropped.
+    now_ns : int or None
+        Time of the newest emission or ``advance`` [ns].
+
+    Raises
+    ------
+    TypeError
+        When ``config`` is not a SlipConfig.
+    """
 
     def __init__(self, config: SlipConfig | None = None):
         if config is None:
@@ -106,6 +135,9 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
         self._ended_activity = []
 
     def _apply(self, c: SlipConfig):
+        """Take configuration ``c``: its windows in integer ns, squared gates [m^2] and the
+        texture interval model's constants."""
+
         def ns(s):
             return int(round(s * 1e9))
 
@@ -135,12 +167,35 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
     # ------------------------------------------------------------------ public API
     @property
     def state(self) -> FingerState:
-        """Latched finger state (as of the last ``process`` / ``advance``)."""
+        """Latched finger state as of the last ``process`` / ``advance``.
+
+        Returns
+        -------
+        FingerState
+            The most severe state over the confirmed contacts, the contact that sets it
+            and since when.
+        """
         return self._finger_state()
 
     def update_config(self, **changes) -> SlipConfig:
-        """Change run-time-safe parameters (``SlipConfig.runtime_fields()``) at once; the
-        whole new configuration is validated first (ValueError, nothing changed)."""
+        """Change run-time-safe parameters at once; the whole new configuration is
+        validated first.
+
+        Parameters
+        ----------
+        **changes
+            SlipConfig field -> new value, fields of ``SlipConfig.runtime_fields()`` only.
+
+        Returns
+        -------
+        SlipConfig
+            The configuration now in use.
+
+        Raises
+        ------
+        ValueError
+            A field that cannot change at run time, or an invalid value (nothing changed).
+        """
         bad = sorted(set(changes) - set(SlipConfig.runtime_fields()))
         if bad:
             raise ValueError(
@@ -155,7 +210,19 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
         return new
 
     def set_sliding_speed(self, speed_m_s: float | None) -> None:
-        """Sliding speed for TEXTURE spatial periods of fixed contacts (m/s, > 0), or None."""
+        """Set the sliding speed that gives fixed contacts' TEXTURE spatial periods.
+
+        Parameters
+        ----------
+        speed_m_s : float or None
+            Sliding speed [m/s], > 0; None: unknown (spatial period NaN unless the contact
+            is tracked moving).
+
+        Raises
+        ------
+        ValueError
+            A speed that is not a positive finite number.
+        """
         if speed_m_s is not None:
             v = float(speed_m_s)
             if not math.isfinite(v) or v <= 0:
@@ -166,7 +233,13 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
         self._speed = speed_m_s
 
     def contact_infos(self) -> list[ContactInfo]:
-        """Snapshots of every tracked contact (unconfirmed candidates included)."""
+        """Snapshots of every tracked contact.
+
+        Returns
+        -------
+        list of ContactInfo
+            One per contact, unconfirmed candidates included, as of ``now_ns``.
+        """
         now = self.now_ns if self.now_ns is not None else 0
         out = []
         for c in self.contacts:
@@ -191,7 +264,7 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
         return out
 
     def reset(self) -> None:
-        """Forget every contact (e.g. after a gap in the data)."""
+        """Forget every contact (e.g. after a gap in the data); counts are kept."""
         self.contacts.clear()
         self._ended_activity.clear()
         self.now_ns = None
@@ -200,15 +273,42 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
         self._fs_state, self._fs_since, self._fs_pending = ContactState.NO_CONTACT, 0, None
 
     def process_batch(self, events) -> list[SlipEvent]:
-        """``process`` for each event in order; the outputs concatenated."""
+        """``process`` for each event in order.
+
+        Parameters
+        ----------
+        events : iterable of LocalizedEvent
+            Emissions in time order.
+
+        Returns
+        -------
+        list of SlipEvent
+            The outputs of every event, concatenated.
+        """
         out = []
         for ev in events:
             out.extend(self.process(ev))
         return out
 
     def advance(self, now_ns: int) -> FingerState:
-        """Let time pass to ``now_ns`` without events: release confirmations, candidate
-        expiry, quiet slip states falling back to STICK. Returns the finger state."""
+        """Let time pass without events (a node's timer): release confirmations,
+        candidate expiry, quiet slip states falling back to STICK.
+
+        Parameters
+        ----------
+        now_ns : int
+            The time now [ns]; earlier than the newest time seen: nothing changes.
+
+        Returns
+        -------
+        FingerState
+            The latched finger state (``state``).
+
+        Raises
+        ------
+        TypeError
+            When ``now_ns`` is not an integer.
+        """
         if isinstance(now_ns, bool) or not hasattr(now_ns, "__index__"):
             raise TypeError(f"now_ns must be an integer (ns), got {now_ns!r}")
         now = int(now_ns.__index__())
@@ -219,6 +319,8 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
         return self._finger_state()
 
     def _expire(self, now):
+        """Advance to ``now`` [ns]: end contacts whose release is confirmed, drop
+        candidates left alone for evidence_window_s, let quiet slipping contacts stick."""
         self.now_ns = now
         for c in list(self.contacts):
             wait = self._quiet if c.pending_in_slip else self._confirm
@@ -236,8 +338,22 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
                 c.moving = False
 
     def process(self, ev: LocalizedEvent) -> list[SlipEvent]:
-        """Feed one localized emission; returns the events it produced. Never raises on
-        bad event data: it is rejected and counted in ``counts``."""
+        """Feed one localized emission.
+
+        Never raises on bad event data: it is rejected and counted in ``counts`` (not a
+        LocalizedEvent, non-finite values, older than reorder_tolerance_s before the newest
+        one seen, confidence below min_confidence).
+
+        Parameters
+        ----------
+        ev : LocalizedEvent
+            The emission, in time order (within reorder_tolerance_s).
+
+        Returns
+        -------
+        list of SlipEvent
+            The SLIP_PRECURSOR, SLIP and TEXTURE events it decided (often none).
+        """
         if not isinstance(ev, LocalizedEvent):
             self.counts["rejected_bad_type"] += 1
             return []
@@ -283,8 +399,7 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
         self._update_finger(self.now_ns)
         return out
 
-    # ------------------------------------------------------------------ tracking
-
+    # ------------------------------------------------------------------ finger state
     def _update_finger(self, t):
         """The finger's state and its start time now; the FingerState record itself is built
         when read (``state``): nothing it depends on changes before the next update."""

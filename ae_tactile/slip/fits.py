@@ -59,8 +59,9 @@ def percentile90(d):
 
 
 def multiples(dt, unit):
-    """Periods in each interval: 1, unless clearly more (>= 1.7 units: a missed packet;
-    timing jitter of 20 % of the period gives 1.7 in 0.3 % of the intervals)."""
+    """Periods in each interval ``dt`` of ``unit`` (same time unit): 1, unless clearly
+    more (>= 1.7 units: a missed packet, since timing jitter rarely stretches one interval
+    by 0.7 of a period)."""
     r = dt / unit
     return np.where(r < 1.7, 1.0, np.round(r))
 

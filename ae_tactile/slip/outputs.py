@@ -24,6 +24,7 @@ class SlipOutputs:
     """
 
     def _rate(self, c, t):
+        """The contact's slip emission rate at ``t`` [ns] (1/s), cached per (t, members)."""
         if c.rate_key == (t, c.n):
             return c.rate_val
         c.rate_key = (t, c.n)
@@ -31,6 +32,8 @@ class SlipOutputs:
         return c.rate_val
 
     def _rate_now(self, c, t):
+        """Unpaired emissions of the contact in the latest rate_window_s / its length
+        (1/s)."""
         k = c.valid()
         F = c.flags[:k]
         return float((((F & PAIRED) == 0) & (c.t[:k] > t - self._w_rate)).sum()) / (
@@ -38,10 +41,15 @@ class SlipOutputs:
         )
 
     def _due(self, c, kind, t):
+        """Is an event of ``kind`` (3 SLIP_PRECURSOR, 4 SLIP, 5 TEXTURE) of the contact due
+        at ``t`` [ns]: none reported yet, or the last one report_interval_s ago?"""
         last = c.last_report.get(kind)
         return last is None or t - last >= self._report
 
     def _precursor(self, c, ev, n_ev, ids, onset):
+        """The SLIP_PRECURSOR of contact ``c`` decided by emission ``ev`` at its point, on
+        ``n_ev`` micro-slips of evidence (packets ``ids``); confidence grows with the
+        evidence and the localization confidence."""
         c.precursor_count += 1
         c.last_report[3] = ev.time_ns
         conf = 1.0 - 2.0 ** (-n_ev / self.config.precursor_min_emissions)
@@ -61,6 +69,9 @@ class SlipOutputs:
         )
 
     def _slip_event(self, c, ev, why, onset):
+        """The SLIP of contact ``c`` decided by emission ``ev`` at the contact's centre, for
+        reason ``why`` (`GrossSlipTest._gross_test`; 5: a texture; 0: a repeated report);
+        an onset lists the packets of the gross-slip window."""
         t = ev.time_ns
         c.last_report[4] = t
         ids = (ev.packet_id,)
@@ -85,6 +96,8 @@ class SlipOutputs:
         )
 
     def _centre_cov(self, c):
+        """(3, 3) covariance of the contact's centre [m^2]: the scatter of its unpaired
+        emissions / n, or (fewer than 3, or moving) the latest emission's variance."""
         k = c.valid()
         m = (c.flags[:k] & PAIRED) == 0
         P = c.p[:k][m]

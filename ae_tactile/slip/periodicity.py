@@ -16,7 +16,7 @@ test takes the latest n + 1 emission times of a contact:
 
 For a Poisson process the residuals of step 2 spread over +-T/2 (RMS ~ 0.29 T), so the
 test fails; for a texture with timing jitter sigma (fraction of T) the residual RMS is
-~sigma. False-positive and detection rates are measured in test_slip_core.py.
+~sigma.
 """
 
 from __future__ import annotations
@@ -28,6 +28,9 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Periodicity:
+    """Result of `periodicity`: the verdict, the period [s] and rate [1/s], the fractions
+    of regular emissions and single intervals, the regular emissions' RMS residual."""
+
     periodic: bool
     period_s: float
     rate_hz: float
@@ -39,7 +42,24 @@ class Periodicity:
 def periodicity(
     times_ns, *, tolerance: float = 0.2, min_fraction: float = 0.75, max_multiple: int = 3
 ) -> Periodicity:
-    """Test emission times (int ns, increasing) for a common period; see the module doc."""
+    """Test emission times for a common period (see the module docstring).
+
+    Parameters
+    ----------
+    times_ns : array_like of int
+        Emission times, increasing [ns].
+    tolerance : float
+        Largest residual of a regular emission, as a fraction of the period.
+    min_fraction : float
+        Smallest fraction of regular emissions (and, less 0.15, of single intervals).
+    max_multiple : int
+        Largest number of periods in one interval (missed emissions).
+
+    Returns
+    -------
+    Periodicity
+        Not periodic, with NaN period, for fewer than 4 times or no positive interval.
+    """
     t = (np.asarray(times_ns, dtype=np.int64) - int(np.asarray(times_ns)[0])).astype(float) * 1e-9
     nan = Periodicity(False, np.nan, np.nan, 0.0, 0.0, np.nan)
     if t.size < 4:

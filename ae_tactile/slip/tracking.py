@@ -210,6 +210,8 @@ class ContactTracking:
             c.centre = c.centre_at(t) if c.track_c is not None else c.centre
 
     def _end_contact(self, c):
+        """Remove contact ``c``; its touch-release activity outlives it for
+        evidence_window_s (`_ended_activity_near`)."""
         if c in self.contacts:
             self.contacts.remove(c)
         if c.pending_release_ns is not None:
