@@ -119,6 +119,8 @@ def random_touches_trial(
 
 
 def _touch_list(scene, t_s, pts, pol, speed, ids):
+    """Touch (polarity > 0) and release emissions at times ``t_s`` [s], points ``pts``
+    (n, 3) [m], speeds ``speed`` [m/s], event ids ``ids``, on the scene's medium."""
     return EmissionList.create(
         np.round(np.asarray(t_s) * NS).astype(np.int64),
         pts,

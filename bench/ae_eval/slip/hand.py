@@ -28,12 +28,11 @@ def link_clock(rng, warmup_s: float = 12.0):
     tolerance) from an offset of its own; it sends a frame every 1 ms of its clock, which
     reaches the host after a latency floor of its own (50 .. 500 us: the host controller's
     polling and the driver's wake-up; two fingertips' mapped stamps of one burst differ by
-    the difference of their floors, 0.44 ms between two simulated fingertips' ptys here)
-    plus the wait for the next 1 ms poll (uniform) plus a tail (exponential, mean 200 us).
-    Returns ``(to_host, arrival)``: to_host(t_ns)
-    is the mapped host stamp (ns) of a device onset at true time t_ns (s on the scene's
-    clock = host time), from the link's mapper as it stands when the frame that carries it
-    has come; arrival(t_ns) that frame's host arrival time (ns)."""
+    the difference of their floors) plus the wait for the next 1 ms poll (uniform) plus a
+    tail (exponential, mean 200 us). Returns ``(to_host, arrival)``: to_host(t_ns) is the
+    mapped host stamp (ns) of a device onset at true time t_ns (ns on the scene's clock =
+    host time), from the link's mapper as it stands when the frame that carries it has
+    come; arrival(t_ns) that frame's host arrival time (ns)."""
     skew = rng.uniform(-50e-6, 50e-6)
     d0 = rng.uniform(0.0, 10.0) * NS
     floor = rng.uniform(50e3, 500e3)

@@ -17,6 +17,8 @@ from .texture import drift_slip_trial, texture_trial
 
 
 def _pct(x, qs=(0, 5, 50, 95, 100)):
+    """Percentiles ``qs`` of the values of ``x`` that are not None ('min', 'p5', ...,
+    'max'); None when there are none."""
     x = np.asarray([v for v in x if v is not None], dtype=float)
     if x.size == 0:
         return None
@@ -27,6 +29,8 @@ def _pct(x, qs=(0, 5, 50, 95, 100)):
 
 
 def summarize_incipient(trials: list[dict]) -> dict:
+    """Incipient-slip trials: precursor before gross slip (rate, lead [ms], q), SLIP
+    (rate, delay [ms], q), the precursor's distance to the ring [m], failures (seeds)."""
     n = len(trials)
     ok = [t for t in trials if t["precursor_before_gross"]]
     return {
@@ -57,6 +61,8 @@ def summarize_incipient(trials: list[dict]) -> dict:
 
 
 def summarize_alarms(trials: list[dict]) -> dict:
+    """False-alarm trials: alarm onsets per minute, events by kind, the trials with an
+    alarm (seeds), and the latched state after the releases (`_release_summary`)."""
     minutes = sum(t["duration_s"] for t in trials) / 60.0
     onsets = sum(t["n_alarm_onsets"] for t in trials)
     return {
@@ -101,6 +107,8 @@ def _release_summary(trials: list[dict]) -> dict:
 
 
 def summarize_texture(trials: list[dict]) -> dict:
+    """Texture trials: detected rate, relative spatial period errors, detection time
+    [ms], failures (seeds)."""
     det = [t for t in trials if t["n_texture"]]
     n = len(trials)
     return {
