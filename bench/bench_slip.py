@@ -728,7 +728,7 @@ def tables(res: dict) -> str:
             "trials of the rows 'sparse random' and 'sparse random, announced' above). The "
             "detector at its default gross_llr_threshold and lower ones; the Bayes rule, SLIP "
             "once the posterior P(gross slip has begun | the emissions so far) reaches pi "
-            "(`ae_tactile/slip/evaluate.py`, `gross_slip_bound_trial`), computed with truth "
+            "(`bench/ae_eval/slip/bound.py`, `gross_slip_bound_trial`), computed with truth "
             "the detector lacks: the scene family's prior (time to gross slip, micro-slip "
             "count, gross-slip rate), the ramp's start and the simulator's emission model; "
             "from the emission times alone, and with the contact's true centre and a_H.\n"
