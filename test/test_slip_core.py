@@ -302,7 +302,7 @@ def test_touch_release_activity_of_an_ended_contact_goes_on_nearby():
     founds another, and with its release and the next one's lost that contact holds
     three unpaired compressions: the same hand's touches (the ended contact's
     touch-release activity goes on within association_radius_m for evidence_window_s),
-    not micro-slips: no precursor (touch-release cycles, events model, seed 245)."""
+    not micro-slips: no precursor (as in touch-release cycles)."""
     events = [
         ev(0, 0.0, 0.0, 1, 0),
         ev(150 * MS, 5e-6, 0.0, -1, 1),  # touched and left: the contact ends
@@ -322,7 +322,7 @@ def test_the_first_compression_after_a_touch_release_pair_is_a_touch_however_lat
     spot (a pair), the next grasp's touch lost, its release 5 s later (a rarefaction on
     no touch's spot) and a touch right after it. Past evidence_window_s after the pair,
     but the contact's first compression since it: a touch, not a micro-slip: no
-    precursor (grasp-release cycles, events model, seed 61)."""
+    precursor (as in grasp-release cycles)."""
     events = [
         ev(0, 0.0, 0.0, 1, 0),  # a grasp, its release lost
         ev(500 * MS, 1.5e-3, 0.0, 1, 1),  # a re-grasp held 4 s
@@ -343,7 +343,7 @@ def test_a_compression_taken_for_a_touch_stays_a_touch_after_the_activity_ends()
     pair), its release lost, and the next touch 1.9 s after it, past evidence_window_s
     after the pair. The touch stays a touch when the activity ends (its weight is the one
     it had when it came), so the window holds one micro-slip candidate, not two: no
-    precursor (grasp-release cycles on waveforms, seed 100,020)."""
+    precursor (as in grasp-release cycles on waveforms)."""
     events = [
         ev(0, 0.0, 0.0, 1, 0),  # a grasp, its release lost
         ev(500 * MS, 1.5e-3, 0.0, 1, 1),  # a re-grasp
@@ -363,8 +363,8 @@ def test_release_of_a_silent_founding_touch_keeps_the_model_floor_however_long_t
     """A touch held 2.5 s (past evidence_window_s) with nothing else, then a rarefaction
     0.2 mm from it (5.8 sigma of the difference: outside the gate without the model
     floor, inside it with the floor): a held touch is silent, so this is its
-    release; the next touch 2 mm away founds a new contact: no precursor (grasp-release
-    cycles, events model, seed 555). With a micro-slip between them the old touch's gate
+    release; the next touch 2 mm away founds a new contact: no precursor (as in
+    grasp-release cycles). With a micro-slip between them the old touch's gate
     has no floor (gross slip emits from the disc's centre too): evidence, precursor."""
     events = [
         ev(0, 0.0, 0.0, 1, 0),

@@ -2,7 +2,8 @@
 """Reduced statistical evaluation of the slip detector on the simulator (the full one is
 bench/bench_slip.py, >= 1,000 trials per family). Most families use the 'events' pipeline
 (true emissions + the localizer's error model), a few the rendered waveforms. Seeded;
-thresholds leave margins to the rates the benchmark measures (docs/slip.md)."""
+thresholds leave margins to the rates the benchmark measures
+(bench/results/slip_tables.md)."""
 
 import numpy as np
 import pytest
@@ -123,7 +124,7 @@ def test_grasp_release_cycles_held_for_seconds_never_alarm(pipeline, n):
     """Grasps held 0.5 .. 10 s, released, re-grasped within 3 mm, for 30 s: no alarm, and
     on waveforms the finger ends free (the releases pair with their touches, the weak ones
     kept by the localizer, however long the hold) but where a release was too weak even
-    for the weak-release gate (3 of 60 trials in a run: the margin below)."""
+    for the weak-release gate (the margin below)."""
     assert ev.GRASP_CYCLES["hold_s"][1] > SlipConfig().evidence_window_s
     rows = [ev.grasp_cycles_trial(s, pipeline=pipeline) for s in range(n)]
     assert ev.summarize_alarms(rows)["alarm_onsets"] == 0
@@ -226,8 +227,8 @@ def test_the_gross_slip_posterior_is_calibrated_and_position_sharpens_it():
     """The Bayes posterior that gross slip has begun (the benchmark's bound on SLIP
     decisions), on scenes drawn from the prior it assumes: calibrated (among emissions
     where it says about p, a share of about p has gross slip begun; pooled over 80
-    trials, within 0.08 in the middle bins: 0.01 .. 0.02 measured, 0.12 with the
-    micro-slip rate doubled), sharp (Brier score below a quarter of the base rate's),
+    trials, within 0.08 in the middle bins, which a posterior with a wrong micro-slip
+    rate misses), sharp (Brier score below a quarter of the base rate's),
     and the contact's true centre and a_H only add information: the rule 'SLIP at pi =
     0.9' with them is within 50 ms at least as often as on the times alone, with no
     more SLIPs at q < 0.9."""
