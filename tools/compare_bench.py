@@ -86,6 +86,14 @@ def show(path: tuple) -> str:
     return "".join(f"[{k}]" if isinstance(k, int) else f".{k}" for k in path)[1:]
 
 
+def diff_line(rel: str, path: tuple, va, vb) -> str:
+    """One differing figure: file, key path, both values and their relative difference."""
+    rel_d = ""
+    if is_num(va) and is_num(vb):
+        rel_d = f"  (rel {abs(va - vb) / max(abs(va), abs(vb), 1e-300):.2g})"
+    return f"{rel}:{show(path)}  A={va!r}  B={vb!r}{rel_d}"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("a_dir", type=Path)
@@ -115,12 +123,8 @@ def main(argv=None) -> int:
                 only.append(f"{rel}:{show(path)} (only in {'A' if path in a else 'B'})")
             else:
                 n_fig += 1
-                va, vb = a[path], b[path]
-                if not same(va, vb, args.rtol, args.atol):
-                    rel_d = ""
-                    if is_num(va) and is_num(vb):
-                        rel_d = f"  (rel {abs(va - vb) / max(abs(va), abs(vb), 1e-300):.2g})"
-                    differ.append(f"{rel}:{show(path)}  A={va!r}  B={vb!r}{rel_d}")
+                if not same(a[path], b[path], args.rtol, args.atol):
+                    differ.append(diff_line(rel, path, a[path], b[path]))
     for title, rows in (("figures that differ", differ), ("in one run only", only)):
         if rows:
             print(f"{title} ({len(rows)}):")
