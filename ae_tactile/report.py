@@ -123,15 +123,44 @@ def write_run_summary(path: str | os.PathLike, events=None, *, truth=None, conta
                       latencies_s=None, radius_m: float = 10e-3,
                       element_offset_m: float = 1.5e-3, title: str = "",
                       size_px: tuple[int, int] = (1500, 900), dpi: int = 100) -> dict[str, Any]:
-    """Write the PNG summary of a run to ``path``; returns what was plotted:
-    {"path", "events", "events_plotted", "events_without_position", "events_without_time",
-    "truth_points", "latencies", "latency_median_s", "latency_p95_s"}.
+    """Write the PNG summary of a run.
 
-    events         rows with time_s, type, x_m, y_m, z_m [, latency_s] (see module doc)
-    truth          rows with x_m, y_m [, z_m, time_s]: ground-truth contact points
-    contact_state  rows with time_s, state (e.g. NO_CONTACT, STICK, SLIP): state changes
-    latencies_s    latencies (s); default: the events' latency_s column
-    radius_m       sphere radius R (m); element_offset_m: PVDF centres at (+-a, +-a) (m)
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The PNG file.
+    events : list of dict, dict of arrays or structured array, optional
+        Rows with time_s, type, x_m, y_m, z_m [, latency_s] (see the module docstring).
+    truth : same forms, optional
+        Rows with x_m, y_m [, z_m, time_s]: ground-truth contact points [m].
+    contact_state : same forms, optional
+        Rows with time_s, state (e.g. NO_CONTACT, STICK, GROSS_SLIP): state changes.
+    latencies_s : array_like, optional
+        Latencies [s]; default: the events' latency_s column.
+    radius_m : float
+        Sphere radius R [m].
+    element_offset_m : float
+        PVDF centres at (+-a, +-a) [m].
+    title : str
+        Figure title.
+    size_px : tuple of int
+        Width and height [pixel], each 200..10000.
+    dpi : int
+        Resolution [dot/inch].
+
+    Returns
+    -------
+    dict
+        What was plotted: "path", "events", "events_plotted", "events_without_position",
+        "events_without_time", "truth_points", "latencies", "latency_median_s",
+        "latency_p95_s".
+
+    Raises
+    ------
+    ReportUnavailable
+        matplotlib is not installed.
+    ValueError
+        A bad argument or column (the message names it).
     """
     if not (math.isfinite(radius_m) and radius_m > 0):
         raise ValueError(f"radius_m must be a positive number, got {radius_m!r}")
@@ -140,14 +169,7 @@ def write_run_summary(path: str | os.PathLike, events=None, *, truth=None, conta
     width_px, height_px = (int(v) for v in size_px)
     if not (200 <= width_px <= 10000 and 200 <= height_px <= 10000) or dpi <= 0:
         raise ValueError(f"size_px must be within 200..10000 pixels, got {size_px!r}")
-    try:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-        from matplotlib.patches import Circle, Rectangle
-    except ImportError as exc:
-        raise ReportUnavailable(
-            "PNG summaries need matplotlib, which is not installed (pip install matplotlib, "
-            f"or apt install python3-matplotlib): {exc}") from exc
+    fig, ax_top, ax_time, ax_lat = _figure(width_px, height_px, dpi, title)
 
     ev = _columns(events, ("time_s", "type", "x_m", "y_m", "z_m", "latency_s"),
                   ("time_s", "type"), "events")
@@ -163,8 +185,27 @@ def write_run_summary(path: str | os.PathLike, events=None, *, truth=None, conta
 
     has_xy = np.isfinite(ev["x_m"]) & np.isfinite(ev["y_m"])
     has_t = np.isfinite(ev["time_s"])
-    scale = 1e3   # m -> mm
+    tr_xy = _top_view(ax_top, ev, types, has_xy, tr, radius_m, element_offset_m)
+    _timeline(ax_time, ev, types, has_t, contact_state)
+    summary_lat = _latency_histogram(ax_lat, lat)
 
+    path = os.fspath(path)
+    fig.savefig(path, dpi=dpi, format="png")
+    return {"path": path, "events": ev["n"], "events_plotted": int(has_xy.sum()),
+            "events_without_position": int((~has_xy).sum()),
+            "events_without_time": int((~has_t).sum()), "truth_points": int(tr_xy.sum()),
+            "latencies": int(lat.size), **summary_lat}
+
+
+def _figure(width_px: int, height_px: int, dpi: int, title: str):
+    """The figure and its three panels (top view, timeline, latency)."""
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg  # lazy: optional, slow
+        from matplotlib.figure import Figure  # lazy: optional (ReportUnavailable), slow
+    except ImportError as exc:
+        raise ReportUnavailable(
+            "PNG summaries need matplotlib, which is not installed (pip install matplotlib, "
+            f"or apt install python3-matplotlib): {exc}") from exc
     fig = Figure(figsize=(width_px / dpi, height_px / dpi), dpi=dpi)
     FigureCanvasAgg(fig)
     grid = fig.add_gridspec(2, 2, width_ratios=(1.0, 1.35), hspace=0.35, wspace=0.32,
@@ -174,19 +215,28 @@ def write_run_summary(path: str | os.PathLike, events=None, *, truth=None, conta
     ax_lat = fig.add_subplot(grid[1, 1])
     if title:
         fig.suptitle(title)
+    return fig, ax_top, ax_time, ax_lat
 
-    # --- top view -------------------------------------------------------------
+
+def _top_view(ax, ev: dict, types, has_xy, tr: dict, radius_m: float,
+              element_offset_m: float):
+    """The fingertip from above (mm): outline, PVDF elements, truth, events by type
+    (hollow: lower hemisphere). Returns which truth rows have a position."""
+    # lazy: matplotlib is optional; write_run_summary checked it is there
+    from matplotlib.patches import Circle, Rectangle
+
+    scale = 1e3   # m -> mm
     r_mm, a_mm = radius_m * scale, element_offset_m * scale
-    ax_top.add_patch(Circle((0, 0), r_mm, fill=False, lw=1.5, color="#555555"))
+    ax.add_patch(Circle((0, 0), r_mm, fill=False, lw=1.5, color="#555555"))
     side = 0.8 * a_mm
     for sx in (-1, 1):
         for sy in (-1, 1):
-            ax_top.add_patch(Rectangle((sx * a_mm - side / 2, sy * a_mm - side / 2), side, side,
-                                       color="#bbbbbb", zorder=1))
+            ax.add_patch(Rectangle((sx * a_mm - side / 2, sy * a_mm - side / 2), side, side,
+                                   color="#bbbbbb", zorder=1))
     tr_xy = np.isfinite(tr["x_m"]) & np.isfinite(tr["y_m"])
     if tr_xy.any():
-        ax_top.scatter(tr["x_m"][tr_xy] * scale, tr["y_m"][tr_xy] * scale, marker="x", s=70,
-                       color=TRUTH_COLOUR, lw=1.5, zorder=4, label="ground truth")
+        ax.scatter(tr["x_m"][tr_xy] * scale, tr["y_m"][tr_xy] * scale, marker="x", s=70,
+                   color=TRUTH_COLOUR, lw=1.5, zorder=4, label="ground truth")
     for name in EVENT_TYPES:
         colour, marker = STYLE[name]
         sel = has_xy & (types == name)
@@ -195,69 +245,67 @@ def write_run_summary(path: str | os.PathLike, events=None, *, truth=None, conta
         below = sel & (ev["z_m"] < 0)
         above = sel & ~below
         if above.any():
-            ax_top.scatter(ev["x_m"][above] * scale, ev["y_m"][above] * scale, marker=marker,
-                           s=36, color=colour, zorder=3, label=f"{name} ({int(sel.sum())})")
+            ax.scatter(ev["x_m"][above] * scale, ev["y_m"][above] * scale, marker=marker,
+                       s=36, color=colour, zorder=3, label=f"{name} ({int(sel.sum())})")
         if below.any():
-            ax_top.scatter(ev["x_m"][below] * scale, ev["y_m"][below] * scale, marker=marker,
-                           s=36, facecolors="none", edgecolors=colour, zorder=3,
-                           label=None if above.any() else f"{name} ({int(sel.sum())})")
+            ax.scatter(ev["x_m"][below] * scale, ev["y_m"][below] * scale, marker=marker,
+                       s=36, facecolors="none", edgecolors=colour, zorder=3,
+                       label=None if above.any() else f"{name} ({int(sel.sum())})")
     lim = 1.1 * r_mm
-    ax_top.set_xlim(-lim, lim)
-    ax_top.set_ylim(-lim, lim)
-    ax_top.set_aspect("equal")
-    ax_top.set_xlabel("x (mm)")
-    ax_top.set_ylabel("y (mm)")
-    ax_top.set_title(f"fingertip from above: R = {r_mm:g} mm, PVDF at (±{a_mm:g}, ±{a_mm:g}) mm")
-    if ax_top.get_legend_handles_labels()[0]:
-        ax_top.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=3,
-                      fontsize="small", frameon=False)
+    ax.set_xlim(-lim, lim)
+    ax.set_ylim(-lim, lim)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_title(f"fingertip from above: R = {r_mm:g} mm, PVDF at (±{a_mm:g}, ±{a_mm:g}) mm")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=3,
+                  fontsize="small", frameon=False)
+    return tr_xy
 
-    # --- timeline ---------------------------------------------------------------
+
+def _timeline(ax, ev: dict, types, has_t, contact_state) -> None:
+    """Events by type against time [s], the contact state as coloured spans."""
     t_end = float(np.max(ev["time_s"][has_t])) if has_t.any() else 0.0
     spans = _state_spans(contact_state, t_end) if contact_state is not None else []
     if spans:
         t_end = max(t_end, max(s0 + d for _, s0, d in spans))
     t0_plot = min([0.0] + [s0 for _, s0, _ in spans])
     for name, start, duration in spans:
-        ax_time.broken_barh([(start, duration)], (-0.4, 0.8),
-                            facecolors=STATE_COLOURS.get(name, "#eeeeee"))
+        ax.broken_barh([(start, duration)], (-0.4, 0.8),
+                       facecolors=STATE_COLOURS.get(name, "#eeeeee"))
         if duration >= 0.12 * max(t_end - t0_plot, 1e-9):  # narrow spans: colour only
-            ax_time.text(start, 0, f" {name}", va="center", fontsize="x-small", clip_on=True)
+            ax.text(start, 0, f" {name}", va="center", fontsize="x-small", clip_on=True)
     for row, name in enumerate(EVENT_TYPES, start=1):
         colour, marker = STYLE[name]
         sel = has_t & (types == name)
         if sel.any():
-            ax_time.scatter(ev["time_s"][sel], np.full(int(sel.sum()), row), marker=marker,
-                            s=28, color=colour)
-    ax_time.set_yticks(range(len(EVENT_TYPES) + 1), ["contact state", *EVENT_TYPES],
-                       fontsize="small")
-    ax_time.set_ylim(-0.7, len(EVENT_TYPES) + 0.7)
-    ax_time.set_xlabel("time (s)")
-    ax_time.set_title(f"timeline: {int(has_t.sum())} events")
+            ax.scatter(ev["time_s"][sel], np.full(int(sel.sum()), row), marker=marker,
+                       s=28, color=colour)
+    ax.set_yticks(range(len(EVENT_TYPES) + 1), ["contact state", *EVENT_TYPES],
+                  fontsize="small")
+    ax.set_ylim(-0.7, len(EVENT_TYPES) + 0.7)
+    ax.set_xlabel("time (s)")
+    ax.set_title(f"timeline: {int(has_t.sum())} events")
     if not has_t.any() and not spans:
-        ax_time.set_xlim(0.0, 1.0)
+        ax.set_xlim(0.0, 1.0)
 
-    # --- latency histogram ------------------------------------------------------
+
+def _latency_histogram(ax, lat) -> dict:
+    """Latency histogram [ms] with median and 95th percentile; returns them [s]."""
     summary_lat = {"latency_median_s": math.nan, "latency_p95_s": math.nan}
     if lat.size:
         lat_ms = lat * 1e3
-        ax_lat.hist(lat_ms, bins=min(50, max(5, int(math.sqrt(lat.size)) * 2)),
-                    color="#4c72b0")
+        ax.hist(lat_ms, bins=min(50, max(5, int(math.sqrt(lat.size)) * 2)), color="#4c72b0")
         med, p95 = np.percentile(lat_ms, [50, 95])
         summary_lat = {"latency_median_s": float(med) / 1e3, "latency_p95_s": float(p95) / 1e3}
         for value, style in ((med, "-"), (p95, "--")):
-            ax_lat.axvline(value, color="#333333", ls=style, lw=1)
-        ax_lat.set_title(f"latency: median {med:.2f} ms, 95% {p95:.2f} ms ({lat.size} events)")
+            ax.axvline(value, color="#333333", ls=style, lw=1)
+        ax.set_title(f"latency: median {med:.2f} ms, 95% {p95:.2f} ms ({lat.size} events)")
     else:
-        ax_lat.text(0.5, 0.5, "no latency data", ha="center", va="center",
-                    transform=ax_lat.transAxes)
-        ax_lat.set_title("latency")
-    ax_lat.set_xlabel("latency (ms)")
-    ax_lat.set_ylabel("events")
-
-    path = os.fspath(path)
-    fig.savefig(path, dpi=dpi, format="png")
-    return {"path": path, "events": ev["n"], "events_plotted": int(has_xy.sum()),
-            "events_without_position": int((~has_xy).sum()),
-            "events_without_time": int((~has_t).sum()), "truth_points": int(tr_xy.sum()),
-            "latencies": int(lat.size), **summary_lat}
+        ax.text(0.5, 0.5, "no latency data", ha="center", va="center",
+                transform=ax.transAxes)
+        ax.set_title("latency")
+    ax.set_xlabel("latency (ms)")
+    ax.set_ylabel("events")
+    return summary_lat
