@@ -28,8 +28,16 @@ import time
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
+from std_msgs.msg import String
 
-from ae_tactile.ros.node_utils import print_stacks_on_signal, ros_session
+from ae_tactile.report import ReportUnavailable, write_run_summary
+from ae_tactile.ros.driver_node import DriverNode
+from ae_tactile.ros.grip_reflex_node import GripReflexNode
+from ae_tactile.ros.localizer_node import LocalizerNode
+from ae_tactile.ros.monitor_node import MonitorNode, format_summary, two_hop_floor_ms
+from ae_tactile.ros.node_utils import LATCHED, print_stacks_on_signal, ros_session
+from ae_tactile.ros.sim_fingertip_node import SimFingertipNode, default_scene_path, scene_body
+from ae_tactile.ros.slip_node import SlipDetectorNode
 
 
 def parse_args(argv):
@@ -94,6 +102,7 @@ def parse_args(argv):
 def default_params_file() -> str:
     """config/water_skin.yaml as installed (the launch file's default parameter file)."""
     try:
+        # lazy: optional, absent outside an ament environment
         from ament_index_python.packages import get_package_share_directory
 
         path = os.path.join(get_package_share_directory("ae_tactile"), "config", "water_skin.yaml")
@@ -109,7 +118,7 @@ def make_executor(context=None):
     dispatching thread is enough; rclpy's MultiThreadedExecutor would hurt:
     it spins while a callback group is busy and starves those threads of the GIL."""
     try:
-        from rclpy.experimental import EventsExecutor
+        from rclpy.experimental import EventsExecutor  # lazy: optional, Jazzy and later only
 
         return EventsExecutor(context=context) if context is not None else EventsExecutor()
     except (ImportError, TypeError):
@@ -119,7 +128,7 @@ def make_executor(context=None):
 def _installed_executable(name: str) -> str:
     """Path of one of this package's node executables (colcon install, or next to us)."""
     try:
-        from ament_index_python.packages import get_package_prefix
+        from ament_index_python.packages import get_package_prefix  # lazy: optional (ament)
 
         path = os.path.join(get_package_prefix("ae_tactile"), "lib", "ae_tactile", name)
         if os.path.exists(path):
@@ -139,13 +148,6 @@ class Bringup:
     """
 
     def __init__(self, args, context=None, sim_in_process: bool = False):
-        from std_msgs.msg import String
-
-        from ae_tactile.ros.driver_node import DriverNode
-        from ae_tactile.ros.localizer_node import LocalizerNode
-        from ae_tactile.ros.node_utils import LATCHED
-        from ae_tactile.ros.slip_node import SlipDetectorNode
-
         kw = {"namespace": args.namespace}
         if context is not None:
             kw["context"] = context
@@ -158,109 +160,101 @@ class Bringup:
         self.scene_info = None
         self._tmp = None
         if args.use_sim:
-            from ae_tactile.ros.sim_fingertip_node import SimFingertipNode, default_scene_path
-
-            self._tmp = tempfile.TemporaryDirectory(prefix="ae_tactile_")
             scene = (
                 os.path.abspath(args.scene) if args.scene else default_scene_path("showcase.yaml")
             )
-            port = os.path.join(self._tmp.name, "fingertip")
-            sim_params = {
-                "scene": scene,
-                "speed": float(args.speed),
-                "link_path": port,
-                "frame_id": args.frame_id,
-            }
-            if sim_in_process:
-                self.sim = SimFingertipNode(
-                    parameter_overrides=[Parameter(k, value=v) for k, v in sim_params.items()],
-                    **kw,
-                )
-                self.nodes.append(self.sim)
-            else:
-                cmd = [_installed_executable("sim_fingertip"), "--ros-args"]
-                for k, v in dict(sim_params, exit_with_parent=True).items():
-                    cmd += ["-p", f"{k}:={v}"]
-                if args.namespace:
-                    cmd += ["-r", f"__ns:=/{args.namespace.strip('/')}"]
-                self.sim_process = subprocess.Popen(cmd, stdout=sys.stdout, stderr=sys.stderr)
-                t_end = time.monotonic() + 20.0
-                while (
-                    not os.path.exists(port)
-                    and time.monotonic() < t_end
-                    and self.sim_process.poll() is None
-                ):
-                    time.sleep(0.02)
-                if not os.path.exists(port):
-                    raise RuntimeError(
-                        "the simulated fingertip did not start "
-                        f"(exit code {self.sim_process.poll()})"
-                    )
+            port = self._start_sim(scene, kw, sim_in_process)
+            sensor = [Parameter(k, value=v) for k, v in scene_body(scene).items()]
         else:
-            port = args.port
-        sensor = self._scene_sensor_params(scene) if args.use_sim else []
-        driver_params = sensor + [
-            Parameter("port", value=port),
-            Parameter("frame_id", value=args.frame_id),
-            Parameter("pipeline", value=not args.split),
-            Parameter("wait_for_subscribers", value=1 if (args.monitor or args.split) else 0),
-        ]
-        if args.split:
-            driver_params.append(Parameter("reliable_qos", value=bool(args.reliable)))
-        elif args.method:
-            driver_params.append(Parameter("localization.method", value=args.method))
-        if args.sliding_speed and not args.split:
-            driver_params.append(
-                Parameter("slip.sliding_speed_m_s", value=float(args.sliding_speed))
-            )
-        self.driver = DriverNode(parameter_overrides=driver_params, **kw)
+            port, sensor = args.port, []
+        self.driver = DriverNode(parameter_overrides=self._driver_params(port, sensor), **kw)
         self.nodes.append(self.driver)
         self.localizer = self.slip = None
         if args.split:
-            loc_params = [Parameter("reliable_qos", value=bool(args.reliable))]
-            if args.method:
-                loc_params.append(Parameter("localization.method", value=args.method))
-            self.localizer = LocalizerNode(parameter_overrides=loc_params, **kw)
-            slip_params = (
-                [Parameter("slip.sliding_speed_m_s", value=float(args.sliding_speed))]
-                if args.sliding_speed
-                else []
-            )
-            self.slip = SlipDetectorNode(parameter_overrides=slip_params, **kw)
-            self.nodes += [self.localizer, self.slip]
+            self._add_split_nodes(kw)
         self.driver.create_subscription(String, "sim/scene_truth", self._on_scene_info, LATCHED)
         if args.grip_reflex:
-            from ae_tactile.ros.grip_reflex_node import GripReflexNode
-
             self.reflex = GripReflexNode(**kw)
             self.nodes.append(self.reflex)
         if args.monitor:
-            from ae_tactile.ros.monitor_node import MonitorNode
-
             self.monitor = MonitorNode(**kw)
             self.nodes.append(self.monitor)
         self.executor = make_executor(context)
         for n in self.nodes:
             self.executor.add_node(n)
 
-    @staticmethod
-    def _scene_sensor_params(scene_path: str) -> list:
-        """The simulated sensor's geometry and medium as driver parameters, so that the
-        latched sensor_info (and hence the localizer) matches the fingertip being played,
-        as a user would pick config/water_skin.yaml or config/silicone.yaml for hardware."""
-        from ae_tactile.sim.scene import load_scene
+    def _start_sim(self, scene: str, kw: dict, sim_in_process: bool) -> str:
+        """The simulated fingertip on a pty (its own process, or this one); returns the
+        port the driver opens."""
+        args = self.args
+        self._tmp = tempfile.TemporaryDirectory(prefix="ae_tactile_")
+        port = os.path.join(self._tmp.name, "fingertip")
+        sim_params = {
+            "scene": scene,
+            "speed": float(args.speed),
+            "link_path": port,
+            "frame_id": args.frame_id,
+        }
+        if sim_in_process:
+            self.sim = SimFingertipNode(
+                parameter_overrides=[Parameter(k, value=v) for k, v in sim_params.items()],
+                **kw,
+            )
+            self.nodes.append(self.sim)
+            return port
+        cmd = [_installed_executable("sim_fingertip"), "--ros-args"]
+        for k, v in dict(sim_params, exit_with_parent=True).items():
+            cmd += ["-p", f"{k}:={v}"]
+        if args.namespace:
+            cmd += ["-r", f"__ns:=/{args.namespace.strip('/')}"]
+        self.sim_process = subprocess.Popen(cmd, stdout=sys.stdout, stderr=sys.stderr)
+        t_end = time.monotonic() + 20.0
+        while (
+            not os.path.exists(port)
+            and time.monotonic() < t_end
+            and self.sim_process.poll() is None
+        ):
+            time.sleep(0.02)
+        if not os.path.exists(port):
+            raise RuntimeError(
+                f"the simulated fingertip did not start (exit code {self.sim_process.poll()})"
+            )
+        return port
 
-        cfg = load_scene(scene_path).config
-        g = cfg.geometry
-        return [
-            Parameter(
-                "medium", value=str(cfg.medium.name if hasattr(cfg.medium, "name") else cfg.medium)
-            ),
-            Parameter("radius_m", value=float(g.radius_m)),
-            Parameter("element_offset_m", value=float(g.element_offset_m)),
-            Parameter("sound_speed_m_s", value=float(g.sound_speed_m_s)),
-            Parameter("highpass_hz", value=float(cfg.highpass_hz)),
+    def _driver_params(self, port: str, sensor: list) -> list:
+        """The driver's parameters: the simulated sensor's body (so that the latched
+        sensor_info, hence the localizer, matches the fingertip being played, as a user
+        would pick config/water_skin.yaml or config/silicone.yaml for hardware), the port
+        and what the command line asks."""
+        args = self.args
+        params = sensor + [
+            Parameter("port", value=port),
+            Parameter("frame_id", value=args.frame_id),
+            Parameter("pipeline", value=not args.split),
+            Parameter("wait_for_subscribers", value=1 if (args.monitor or args.split) else 0),
         ]
+        if args.split:
+            params.append(Parameter("reliable_qos", value=bool(args.reliable)))
+        elif args.method:
+            params.append(Parameter("localization.method", value=args.method))
+        if args.sliding_speed and not args.split:
+            params.append(Parameter("slip.sliding_speed_m_s", value=float(args.sliding_speed)))
+        return params
+
+    def _add_split_nodes(self, kw: dict) -> None:
+        """The velodyne-style split: separate localizer and slip_detector nodes."""
+        args = self.args
+        loc_params = [Parameter("reliable_qos", value=bool(args.reliable))]
+        if args.method:
+            loc_params.append(Parameter("localization.method", value=args.method))
+        self.localizer = LocalizerNode(parameter_overrides=loc_params, **kw)
+        slip_params = (
+            [Parameter("slip.sliding_speed_m_s", value=float(args.sliding_speed))]
+            if args.sliding_speed
+            else []
+        )
+        self.slip = SlipDetectorNode(parameter_overrides=slip_params, **kw)
+        self.nodes += [self.localizer, self.slip]
 
     def _on_scene_info(self, msg) -> None:
         try:
@@ -346,8 +340,6 @@ class Bringup:
 
     def write_report(self, path: str, summary: dict) -> None:
         """PNG summary of the run (ae_tactile.report; needs matplotlib)."""
-        from ae_tactile.report import ReportUnavailable, write_run_summary
-
         data = self.monitor.report_data()
         geo = self.driver.geometry
         lat = summary.get("latency_ms", {})
@@ -385,6 +377,21 @@ class Bringup:
             self._tmp.cleanup()
 
 
+def _report(system: Bringup, args) -> None:
+    """The monitor's summary against the ground truth: printed, and as asked a PNG and a
+    JSON file."""
+    system.executor.spin_once(timeout_sec=0.1)
+    system.monitor._flush()
+    summary = system.monitor.summary(system.gross_slip_times_ns(), system.slip_part_starts_ns())
+    summary["floor_two_hop_ms"] = two_hop_floor_ms()
+    print(format_summary(summary), flush=True)
+    if args.report_png:
+        system.write_report(args.report_png, summary)
+    if args.summary_json:
+        with open(args.summary_json, "w") as fh:
+            json.dump(summary, fh, indent=2)
+
+
 def main(argv=None) -> int:
     print_stacks_on_signal()
     argv = sys.argv[1:] if argv is None else argv
@@ -417,22 +424,7 @@ def main(argv=None) -> int:
             duration = args.duration if args.duration >= 0 or args.use_sim else 0.0
             system.spin(duration, stop=state["stop"])
             if system.monitor is not None:
-                from ae_tactile.ros.monitor_node import format_summary
-
-                system.executor.spin_once(timeout_sec=0.1)
-                system.monitor._flush()
-                summary = system.monitor.summary(
-                    system.gross_slip_times_ns(), system.slip_part_starts_ns()
-                )
-                from ae_tactile.ros.monitor_node import two_hop_floor_ms
-
-                summary["floor_two_hop_ms"] = two_hop_floor_ms()
-                print(format_summary(summary), flush=True)
-                if args.report_png:
-                    system.write_report(args.report_png, summary)
-                if args.summary_json:
-                    with open(args.summary_json, "w") as fh:
-                        json.dump(summary, fh, indent=2)
+                _report(system, args)
         finally:
             state["arm_cleanup_deadline"]()
             if system is not None:

@@ -13,10 +13,13 @@ from __future__ import annotations
 import bisect
 import math
 import sys
+import time
 from dataclasses import dataclass
 
 import numpy as np
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from std_msgs.msg import Empty
 
 from ae_tactile.evaluation import match_by_time, score
 from ae_tactile.msg import ContactEvent, ContactState
@@ -243,11 +246,6 @@ def two_hop_floor_ms(context=None, n: int = 300, timeout_s: float = 10.0) -> dic
 
     What any rclpy pipeline pays at least for one hop pair; measured in the same run as
     the latency it is compared with."""
-    import time as _time
-
-    from rclpy.executors import SingleThreadedExecutor
-    from std_msgs.msg import Empty
-
     kw = {"context": context} if context is not None else {}
     a = Node("ae_tactile_floor_ping", **kw)
     b = Node("ae_tactile_floor_pong", **kw)
@@ -259,21 +257,21 @@ def two_hop_floor_ms(context=None, n: int = 300, timeout_s: float = 10.0) -> dic
         b.create_subscription(Empty, "ae_tactile_floor/ping", lambda m: pong.publish(Empty()), 10)
         got = []
         a.create_subscription(
-            Empty, "ae_tactile_floor/pong", lambda m: got.append(_time.perf_counter_ns()), 10
+            Empty, "ae_tactile_floor/pong", lambda m: got.append(time.perf_counter_ns()), 10
         )
         ping = a.create_publisher(Empty, "ae_tactile_floor/ping", 10)
-        t_end = _time.monotonic() + timeout_s
+        t_end = time.monotonic() + timeout_s
         while (
             ping.get_subscription_count() < 1 or pong.get_subscription_count() < 1
-        ) and _time.monotonic() < t_end:
+        ) and time.monotonic() < t_end:
             ex.spin_once(timeout_sec=0.05)
         rtt = []
         for _ in range(n):
             k = len(got)
-            t0 = _time.perf_counter_ns()
+            t0 = time.perf_counter_ns()
             ping.publish(Empty())
-            t_stop = _time.monotonic() + 1.0
-            while len(got) == k and _time.monotonic() < t_stop:
+            t_stop = time.monotonic() + 1.0
+            while len(got) == k and time.monotonic() < t_stop:
                 ex.spin_once(timeout_sec=0.1)
             if len(got) > k:
                 rtt.append((got[-1] - t0) * 1e-6)

@@ -34,6 +34,7 @@ from ae_tactile.msg import ContactEvent
 from ae_tactile.ros.conversions import ns_to_time_msg
 from ae_tactile.ros.node_utils import LATCHED, run_node
 from ae_tactile.ros.params import Param, ParameterError, declare
+from ae_tactile.sim.scene import load_scene
 from ae_tactile.virtual_device import DeviceRunner, PtyTransport, TcpTransport, VirtualFingertip
 
 #: Ground truth is kept for late joiners (a monitor or recorder that starts after the scene).
@@ -58,6 +59,7 @@ def default_scene_path(name: str = "random_touches.yaml") -> str:
     here = os.path.dirname(os.path.abspath(__file__))
     candidates = [os.path.join(here, "..", "..", "config", "scenes", name)]
     try:
+        # lazy: optional, absent outside an ament environment (pip install)
         from ament_index_python.packages import get_package_share_directory
 
         candidates.insert(
@@ -110,8 +112,6 @@ SIM_PARAMS = [
 def scene_body(scene_path: str) -> dict:
     """The simulated fingertip's body (medium and geometry), as the driver compares it with
     its parameters."""
-    from ae_tactile.sim.scene import load_scene
-
     cfg = load_scene(scene_path).config
     g = cfg.geometry
     medium = cfg.medium.name if hasattr(cfg.medium, "name") else str(cfg.medium)
