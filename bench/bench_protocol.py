@@ -30,16 +30,20 @@ import argparse
 import json
 import os
 import platform
+import socket
 import struct
 import sys
+import tempfile
 import time
 import zlib
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from ae_tactile.link import FingertipLink, LinkConfig  # noqa: E402
 from ae_tactile.protocol import (  # noqa: E402
     MAX_PAYLOAD_LEN,
     SYNC,
@@ -48,6 +52,12 @@ from ae_tactile.protocol import (  # noqa: E402
     Packet,
     Status,
     StreamDecoder,
+)
+from ae_tactile.virtual_device import (  # noqa: E402
+    DeviceRunner,
+    PtyTransport,
+    TcpTransport,
+    VirtualFingertip,
 )
 
 
@@ -263,18 +273,6 @@ def _wait(cond, timeout_s: float, poll=None) -> float | None:
 
 def bench_faults(trials: int, out: Path) -> dict:
     """Recovery times of a real FingertipLink from injected faults (pty / TCP)."""
-    import tempfile
-
-    import yaml
-
-    from ae_tactile.link import FingertipLink, LinkConfig
-    from ae_tactile.virtual_device import (
-        DeviceRunner,
-        PtyTransport,
-        TcpTransport,
-        VirtualFingertip,
-    )
-
     root = Path(__file__).resolve().parents[1]
     with open(root / "config" / "scenes" / "random_touches.yaml") as fh:
         scene = dict(yaml.safe_load(fh), duration_s=12.0, name="long")
@@ -379,8 +377,6 @@ def bench_faults(trials: int, out: Path) -> dict:
             close(runner, link)
         # 5. a stuck TCP client next to the driver
         tr = TcpTransport(idle_timeout_s=5.0, client_sndbuf=4096)
-        import socket
-
         stuck = socket.create_connection((tr.host, int(tr.port.rsplit(":", 1)[1])))
         stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
         dev, runner, link, records, poll = rig(None, transport=tr)
