@@ -25,7 +25,9 @@ setup(
     packages=find_packages(include=["ae_tactile", "ae_tactile.*"],
                            exclude=["ae_tactile.ros", "ae_tactile.ros.*"]),
     install_requires=["numpy>=1.24", "scipy>=1.10", "pyserial>=3.5", "pyyaml>=6.0"],
-    extras_require={"test": ["pytest>=7.0", "hypothesis>=6.80"], "bag": ["rosbags>=0.10"]},
+    extras_require={"test": ["pytest>=7.0", "hypothesis>=6.80"], "bag": ["rosbags>=0.10"],
+                    "recordings": ["vallenae>=0.14"]},
     entry_points={"console_scripts": ["ae-tactile-sim = ae_tactile.sim.cli:main",
-                                      "ae-tactile-replay = ae_tactile.bagtools:main"]},
+                                      "ae-tactile-replay = ae_tactile.bagtools:main",
+                                      "ae-tactile-detect = ae_tactile.recordings.cli:main"]},
 )
