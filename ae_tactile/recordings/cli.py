@@ -88,8 +88,10 @@ def _fmt(v, spec: str) -> str:
     return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, spec)
 
 
-def print_detection(det: Detection, max_rows: int = 50, out=sys.stdout) -> None:
-    """A detection as text: a summary line, notes, warnings, then its tables."""
+def print_detection(det: Detection, max_rows: int = 50, out=None) -> None:
+    """A detection as text (on ``out``, default stdout): a summary line, notes, warnings,
+    then its tables."""
+    out = out or sys.stdout
     d = det.definition
     recs = det.recordings
     r0 = recs[0]

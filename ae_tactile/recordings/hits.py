@@ -136,8 +136,9 @@ class Hit:
 
     ``peak_v``, ``threshold_v`` and ``noise_rms_v`` are in recorded volts (gain
     included); ``amplitude_db_ae`` and the energies at the sensor. ``truncated``:
-    'start' (the record begins inside the hit), 'end' (it may go on past the record's
-    end) or ''.
+    'start' (the first crossing is within `NOISE_GUARD_SAMPLES` of the record's start: the
+    hit may have begun before it), 'end' (within DDT of the record's end: it may go on past
+    it) or ''.
     """
 
     channel: object
@@ -281,7 +282,7 @@ def _hit(rec, ch, x, s, e, on, thr, noise, d: HitDefinition, record: int) -> Hit
     peak = float(abs(x[pk]))
     up = np.count_nonzero((seg[1:] >= thr) & (seg[:-1] < thr)) + int(seg[0] >= thr)
     energy = float(np.dot(seg, seg)) / fs / (g * g)
-    trunc = "start" if s == 0 else (
+    trunc = "start" if s < NOISE_GUARD_SAMPLES else (
         "end" if e + _samples(d.ddt_us, fs) >= x.size else "")
     t0 = rec.start_time_s
     return Hit(

@@ -371,8 +371,8 @@ def _from_array(x: np.ndarray, sample_rate_hz, path, meta: dict) -> Recording:
     start = float(meta["start_time_s"]) if "start_time_s" in meta else (
         int(meta["start_time_ns"]) * 1e-9 if "start_time_ns" in meta else 0.0)
     names = tuple(meta["channels"].tolist()) if "channels" in meta else ()
-    return Recording(x, float(fs), int(meta.get("pretrigger_samples", 0)), start, names,
-                     str(path))
+    fs = check_sample_rate(fs.item() if isinstance(fs, np.ndarray) else fs, str(path))
+    return Recording(x, fs, int(meta.get("pretrigger_samples", 0)), start, names, str(path))
 
 
 def _vallenae(path):
