@@ -164,3 +164,16 @@ def test_bad_hit_definitions_are_refused():
             HitDefinition(**kw)
     with pytest.raises(ValueError, match="either a HitDefinition or its keywords"):
         detect("x.wav", definition=HitDefinition(), ddt_us=3.0)
+
+
+def test_a_threshold_in_the_noise_is_warned_and_the_hits_per_channel_bounded(tmp_path):
+    """Threshold at half the noise rms and DDT 0: a hit every few samples; the channel
+    stops at MAX_HITS_PER_CHANNEL with a warning rather than growing without bound."""
+    from ae_tactile.recordings.hits import MAX_HITS_PER_CHANNEL
+
+    x = _noise(1_000_000, seed=10, sigma=1e-3)[0]
+    np.save(tmp_path / "noise.npy", x)
+    det = detect(tmp_path / "noise.npy", sample_rate_hz=1e6, threshold_db_ae=54.0, ddt_us=0.0)
+    assert len(det.hits) == MAX_HITS_PER_CHANNEL
+    assert any("within 12 dB of the noise" in w for w in det.warnings)
+    assert any(f"stopped at {MAX_HITS_PER_CHANNEL} hits" in w for w in det.warnings)

@@ -18,13 +18,20 @@ from __future__ import annotations
 import csv
 import json
 import math
+from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from ae_tactile.geometry import FingertipGeometry
 
 from .fingertip import FingertipReplay, contact_row, replay_fingertip
-from .hits import HitDefinition, find_hits, noise_floor_v, threshold_warnings
+from .hits import (
+    MAX_HITS_PER_CHANNEL,
+    HitDefinition,
+    find_hits,
+    noise_floor_v,
+    threshold_warnings,
+)
 from .locate import (
     PlanarEvent,
     locate_events,
@@ -126,6 +133,7 @@ def detect(path, *, format: str | None = None, definition: HitDefinition | None 
         noise = noise_floor_v(rec)
         det.warnings += threshold_warnings(rec, definition, noise)
         per_record.append(find_hits(rec, definition, record=i, noise_rms_v=noise))
+        det.warnings += _capped(rec, per_record[-1])
         det.notes += [n for n in rec.notes if n not in det.notes and not n.startswith("Vallen")]
     det.hits = sorted((h for hs in per_record for h in hs),
                       key=lambda h: (h.onset_time_s, str(h.channel)))
@@ -134,6 +142,14 @@ def detect(path, *, format: str | None = None, definition: HitDefinition | None 
         det.fingertip = replay_fingertip(recs, per_record, geometry=geometry,
                                          channel_map=channel_map, method=method)
     return det
+
+
+def _capped(rec: Recording, hits) -> list[str]:
+    """A warning for each channel whose hits reached `MAX_HITS_PER_CHANNEL`."""
+    n = Counter(h.channel for h in hits)
+    return [f"{rec.source}: channel {c}: stopped at {MAX_HITS_PER_CHANNEL} hits (the rest "
+            "of the record is not analysed): is the threshold in the noise?"
+            for c, k in n.items() if k >= MAX_HITS_PER_CHANNEL]
 
 
 def _locate(det: Detection, path, sensor_xy, velocity_m_s, setup) -> None:

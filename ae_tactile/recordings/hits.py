@@ -44,6 +44,13 @@ NOISE_BLOCK_S = 50e-6
 NOISE_QUIET_SHARE = 0.2
 #: a threshold below this many noise rms fires on noise (warned)
 MIN_THRESHOLD_NOISE_RATIO = 4.0
+#: most hits kept per channel of one record (a threshold in the noise would make one per
+#: few samples); `detect` warns when a channel reaches it
+MAX_HITS_PER_CHANNEL = 100_000
+#: longest AIC window side [samples] (bounds the work per hit at any sample rate), and
+#: the most window samples per AIC call (bounds the memory: 8 MiB per float64 copy)
+MAX_ONSET_SIDE_SAMPLES = 8192
+AIC_CHUNK_SAMPLES = 1 << 20
 
 
 def db_ae_to_v(db_ae) -> float:
@@ -190,12 +197,13 @@ def noise_floor_v(rec: Recording) -> np.ndarray:
 
 
 def _segments(idx: np.ndarray, ddt: int, rearm: int, max_dur: int | None) -> list[tuple]:
-    """(first, last) crossing sample of each hit from the sorted crossing samples."""
+    """(first, last) crossing sample of each hit from the sorted crossing samples (at most
+    `MAX_HITS_PER_CHANNEL`)."""
     if idx.size == 0:
         return []
     ends = np.flatnonzero(np.diff(idx) > ddt)  # a gap longer than DDT ends a hit
     out, arm = [], -1
-    while True:
+    while len(out) < MAX_HITS_PER_CHANNEL:
         k = int(np.searchsorted(idx, arm))
         if k >= idx.size:
             return out
@@ -207,6 +215,7 @@ def _segments(idx: np.ndarray, ddt: int, rearm: int, max_dur: int | None) -> lis
             j = int(np.searchsorted(idx, start + max_dur, side="right")) - 1
         out.append((start, int(idx[j])))
         arm = int(idx[j]) + 1 if cut else int(idx[j]) + ddt + rearm + 1
+    return out
 
 
 def _peak(a: np.ndarray, pdt: int | None) -> int:
@@ -223,16 +232,20 @@ def _onsets(x: np.ndarray, starts, floors, pre: int, post: int) -> np.ndarray:
     """AIC onsets of the hits starting (first crossing) at ``starts``, each no earlier
     than its ``floors`` sample (the previous hit's end) and no later than its crossing."""
     starts = np.asarray(starts, np.int64)
-    if starts.size == 0:
-        return starts
+    pre, post = min(pre, MAX_ONSET_SIDE_SAMPLES), min(post, MAX_ONSET_SIDE_SAMPLES)
     length = pre + post + 1
-    first = starts - pre
-    cols = np.clip(first[:, None] + np.arange(length)[None, :], 0, x.size - 1)
-    lo = np.maximum(np.asarray(floors, np.int64), 0) - first
-    if length < 7:
+    if starts.size == 0 or length < 7:
         return starts
-    on, _ = aic_pick(x[cols][:, None, :], margin=2, start=np.clip(lo, 0, None))
-    return np.minimum(first + on, starts)
+    first = starts - pre
+    lo = np.clip(np.asarray(floors, np.int64) - first, 0, None)
+    out = np.empty_like(starts)
+    step = max(1, AIC_CHUNK_SAMPLES // length)
+    for i in range(0, starts.size, step):
+        f = first[i:i + step]
+        cols = np.clip(f[:, None] + np.arange(length)[None, :], 0, x.size - 1)
+        on, _ = aic_pick(x[cols][:, None, :], margin=2, start=lo[i:i + step])
+        out[i:i + step] = np.minimum(f + on, starts[i:i + step])
+    return out
 
 
 def find_hits(rec: Recording, definition: HitDefinition | None = None, *, record: int = 0,
