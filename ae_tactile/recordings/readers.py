@@ -246,16 +246,17 @@ def read_csv(path, *, sample_rate_hz: float | None = None) -> Recording:
     header = None
     if not _is_numeric_row(rows[0]):
         header, rows = [h.strip().lower() for h in rows[0]], rows[1:]
-    try:
-        data = np.array([[float(v) for v in r] for r in rows], dtype=np.float64)
-    except ValueError:
-        bad = next(i for i, r in enumerate(rows) if not _is_numeric_row(r))
-        raise RecordingError(f"{path}: row {bad + 1 + (header is not None)} is not numeric: "
-                             f"{','.join(rows[bad])[:80]!r}") from None
-    except Exception:  # noqa: BLE001 - ragged rows
-        raise RecordingError(f"{path}: rows have different numbers of columns") from None
-    if data.ndim != 2 or data.shape[0] < 2:
+    if len(rows) < 2:
         raise RecordingError(f"{path}: fewer than 2 data rows")
+    bad = next((i for i, r in enumerate(rows) if not _is_numeric_row(r)), None)
+    if bad is not None:
+        raise RecordingError(f"{path}: row {bad + 1 + (header is not None)} is not numeric: "
+                             f"{','.join(rows[bad])[:80]!r}")
+    widths = {len(r) for r in rows} | ({len(header)} if header is not None else set())
+    if len(widths) > 1:
+        raise RecordingError(f"{path}: rows have different numbers of columns "
+                             f"({', '.join(map(str, sorted(widths)))})")
+    data = np.array([[float(v) for v in r] for r in rows], dtype=np.float64)
     names = header or [f"ch{i}" for i in range(data.shape[1])]
     t_col = next((i for i, h in enumerate(names) if h in TIME_COLUMNS), None)
     notes = []
