@@ -17,7 +17,7 @@ on average (0 for consistent times).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from xml.etree import ElementTree
 
@@ -40,7 +40,6 @@ class PlanarEvent:
     y_m: float = math.nan
     lucy_m: float = math.nan
     reason: str = ""  # '' located; else why not (e.g. 'fewer than 3 sensors')
-    extra: dict = field(default_factory=dict)
 
 
 def parse_sensor_xy(text: str) -> np.ndarray:
