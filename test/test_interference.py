@@ -7,12 +7,12 @@ rendered by the acoustic simulator. Seeded; thresholds leave margins to the meas
 import numpy as np
 import pytest
 
+from ae_eval.slip import apex_touch_packets
 from ae_tactile.dsp.interference import common_mode_interference
 from ae_tactile.sim.config import SimConfig
 from ae_tactile.sim.interference import burst_times_s, render_interference
 from ae_tactile.sim.scene import reference_noise_rms
 from ae_tactile.sim.triggered import render_triggered
-from ae_tactile.slip.evaluate import apex_touch_packets
 
 
 def apex_packets(cfg, n, noise, rng, radius_m=1e-3):
