@@ -43,6 +43,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from ae_eval.synth import SynthEvent, random_delays, snr_amplitude, synth_stream  # noqa: E402
 from ae_tactile.dsp import DetectorConfig, PacketBatch, PacketDetector  # noqa: E402
 from ae_tactile.sim import SimConfig  # noqa: E402
 from ae_tactile.sim.scene import reference_noise_rms  # noqa: E402
@@ -190,8 +191,6 @@ def _detect_sim(em, cfg, snr_db, seed, t_end, **kw):
 def accuracy_tables(seed=5):
     """Recall / precision / onset error vs SNR on the simulator, and the resolution of
     overlapping pairs on the simulator and on analytic streams."""
-    from ae_tactile.dsp.synth import SynthEvent, random_delays, snr_amplitude, synth_stream
-
     out = {"snr_sweep": [], "pairs_sim": [], "pairs_analytic": []}
     for refl, echo in ((False, None), (True, 13.5e-6), (True, None)):
         for snr in (30.0, 20.0, 10.0, 5.0, 0.0) if not refl else (20.0,):

@@ -14,7 +14,7 @@ each, random sub-sample trigger offsets; SNR 10, 20, 30, 40 dB (docs/conventions
     RMS over points of the mean error at each point (noise part removed: |mean|^2 -
     var / R), i.e. what averaging many packets would not remove;
   * the CRLB for the same pulse, noise (sigma_n^2 + LSB^2/12: the ADC's rounding noise is
-    in the data too) and geometry, on the echo-free samples (ae_tactile.localization.crlb);
+    in the data too) and geometry, on the echo-free samples (ae_eval.crlb);
   * the time per packet on one core, batched and one packet per call.
 
 Baselines: the paper's one-shot Eq. 2 inversion from plain cross-correlation peaks
@@ -55,6 +55,7 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from ae_eval.crlb import simulated_crlb  # noqa: E402
 from ae_tactile.localization import (  # noqa: E402
     NUMBA_AVAILABLE,
     Localizer,
@@ -63,7 +64,6 @@ from ae_tactile.localization import (  # noqa: E402
     localize,
 )
 from ae_tactile.localization.common import make_plan  # noqa: E402
-from ae_tactile.localization.crlb import simulated_crlb  # noqa: E402
 from ae_tactile.sim import SimConfig, render_triggered  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"

@@ -6,7 +6,7 @@
 single-source figures, and puts its tables into docs/localization.md.
 
 Windows from the simulator (ae_tactile.sim; 10 MS/s, 1 MHz front end, 12-bit ADC, two
-wall echoes) holding two emissions (`ae_tactile.localization.overlap.simulate_overlaps`:
+wall echoes) holding two emissions (`ae_eval.overlap_trials.simulate_overlaps`:
 each rendered alone and summed with an exact sub-sample delay, then noise and the ADC):
 points uniform over the cap polar <= 60 deg and >= 2 mm apart, emission-time separation
 1-10 us, strength ratio (stronger / weaker) 1, 2, 4 (which one comes first is random),
@@ -46,13 +46,13 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from ae_eval.crlb import joint_crlb  # noqa: E402
+from ae_eval.overlap_trials import simulate_overlaps  # noqa: E402
 from ae_tactile.localization import NUMBA_AVAILABLE, localize  # noqa: E402
 from ae_tactile.localization.overlap import (  # noqa: E402
     PulseModel,
     calibrate_pulse,
-    joint_crlb,
     resolve_overlaps,
-    simulate_overlaps,
     suspect_overlap,
 )
 from ae_tactile.sim import SimConfig, render_triggered  # noqa: E402

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
+from ae_eval.synth import SynthEvent, hp_step, random_delays, snr_amplitude, synth_stream
 from ae_tactile.dsp import (
     BlockNoiseTracker,
     DetectorConfig,
@@ -19,7 +20,6 @@ from ae_tactile.dsp import (
 )
 from ae_tactile.dsp.features import window_features_fixed
 from ae_tactile.dsp.filters import diff_noise_ratio
-from ae_tactile.dsp.synth import SynthEvent, hp_step, random_delays, snr_amplitude, synth_stream
 
 FS = 10e6
 

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Packet detector against ground truth: analytic streams (ae_tactile.dsp.synth, exact
+"""Packet detector against ground truth: analytic streams (ae_eval.synth, exact
 onsets) and the simulator's streaming source (ae_tactile.sim). No ROS."""
 
 import math
@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
+from ae_eval.synth import SynthEvent, random_delays, snr_amplitude, synth_stream
 from ae_tactile.dsp import DetectorConfig, PacketBatch, PacketDetector, analyze_window
-from ae_tactile.dsp.synth import SynthEvent, random_delays, snr_amplitude, synth_stream
 
 FS = 10e6
 SIGMA = 2e-3

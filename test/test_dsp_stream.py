@@ -9,8 +9,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from ae_eval.synth import SynthEvent, random_delays, snr_amplitude, synth_stream
 from ae_tactile.dsp import PacketBatch, PacketDetector
-from ae_tactile.dsp.synth import SynthEvent, random_delays, snr_amplitude, synth_stream
 
 FS = 10e6
 SIGMA = 2e-3

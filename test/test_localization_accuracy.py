@@ -4,8 +4,8 @@ accuracy against the Cramer-Rao bound, covariance calibration, touch vs release.
 import numpy as np
 import pytest
 
+from ae_eval.crlb import simulated_crlb
 from ae_tactile.localization import localize
-from ae_tactile.localization.crlb import simulated_crlb
 from ae_tactile.sim import SimConfig, noise_rms_for_snr, render_triggered, signal_power_v2
 from ae_tactile.sim.stream import EmissionList, StreamRenderer
 

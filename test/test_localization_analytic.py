@@ -82,7 +82,7 @@ def analytic_windows(shape, points, fs, snr_db, rng, *, geo=GEO, pre_s=8e-6, win
     """(K, 4, M) noisy windows of an analytic pulse at the exact arrival times, the onsets,
     and the Cramer-Rao bound (RMS, m) for those packets (white noise at ``snr_db`` per
     docs/conventions.md, echo-free samples; `crlb.position_crlb` with the exact derivative)."""
-    from ae_tactile.localization.crlb import position_crlb
+    from ae_eval.crlb import position_crlb
 
     pts = np.atleast_2d(points)
     k, m = len(pts), int(round(window_s * fs))

@@ -10,8 +10,8 @@ import sys
 import numpy as np
 import pytest
 
+from ae_eval.crlb import simulated_crlb
 from ae_tactile.localization import NUMBA_AVAILABLE, Localizer, PacketLocation, Reason, localize
-from ae_tactile.localization.crlb import simulated_crlb
 from ae_tactile.sim import SimConfig, render_triggered
 
 CFG = SimConfig()

@@ -12,15 +12,15 @@ rates (docs/localization.md) so that the tests do not flake.
 import numpy as np
 import pytest
 
+from ae_eval.crlb import joint_crlb
+from ae_eval.overlap_trials import simulate_overlaps
 from ae_tactile.localization import localize
 from ae_tactile.localization import overlap as overlap_mod
 from ae_tactile.localization.common import Reason
 from ae_tactile.localization.overlap import (
     OverlapReason,
     PulseModel,
-    joint_crlb,
     resolve_overlaps,
-    simulate_overlaps,
     suspect_overlap,
 )
 from ae_tactile.sim import SimConfig, noise_rms_for_snr, render_triggered, signal_power_v2

@@ -8,8 +8,8 @@
 - `analyze_window`: the same per-packet fields for windows the device already cut
   (PACKET frames).
 - Building blocks: `design_bandpass_sos`, `StreamingSOS` (filters), `BlockNoiseTracker`
-  (noise), `aic_pick` (onset), `window_features` (features); `ae_tactile.dsp.synth`:
-  analytic test streams with exact onsets (independent of the simulator).
+  (noise), `aic_pick` (onset), `window_features` (features). Analytic test streams with
+  exact onsets are evaluation code: `ae_eval.synth` in bench/.
 
 See docs/detection.md.
 """
