@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Weak releases: a release on the spot of a touch that has not been released yet.
 
 A release is quieter than its touch: an object leaving at v = 0.05 .. 0.2 m/s emits
@@ -33,16 +34,23 @@ from __future__ import annotations
 
 import math
 
-from ae_tactile.slip.config import SlipConfig
+import numpy as np
 
-#: the slip detector's same-spot gate (its defaults): a weak release the gate keeps pairs
-#: with its touch there too. Radius in standard deviations of the difference of the two
-#: positions, and the isotropic model error added (m)
-GATE_SIGMA = float(SlipConfig.release_gate_sigma)
-FLOOR_M = float(SlipConfig.release_floor_m)
-#: largest position 1-sigma (per axis, m) of a weak release: windows of noise alone that
-#: pass the SNR floor at 2 MS/s come with >= 1 mm (their gate would take any touch); the
-#: weak releases of the simulator's touch-release cycles: 0.13 mm median, 0.39 mm p99
+from ae_tactile.localization.common import Reason
+from ae_tactile.localization.events import confidence
+
+#: same-spot gate radius [standard deviations of the difference of the two positions]: the
+#: one definition; the slip detector's ``SlipConfig.release_gate_sigma`` defaults to it, so
+#: a weak release the gate keeps pairs with its touch in the slip detector too
+RELEASE_GATE_SIGMA = 4.0
+#: [m] isotropic model error (bias) added to that gate; ``SlipConfig.release_floor_m``'s default
+RELEASE_FLOOR_M = 0.1e-3
+#: the gate's radius and floor used here (the defaults above)
+GATE_SIGMA = RELEASE_GATE_SIGMA
+FLOOR_M = RELEASE_FLOOR_M
+#: [m] largest position 1-sigma (per axis) of a weak release: windows of noise alone that
+#: pass the SNR floor at 2 MS/s come with >= 1 mm (their gate would take any touch), the
+#: simulator's weak releases lie well below it (bench/bench_slip.py)
 MAX_SIGMA_M = 0.5e-3
 #: at most this many touches remembered (the oldest forgotten first)
 CAPACITY = 32
@@ -64,8 +72,6 @@ def is_weak_release(
 ) -> bool:
     """A candidate: rejected for low SNR and nothing else, a rarefaction, SNR >= floor,
     per-axis position variance ``var_m2`` finite and <= MAX_SIGMA_M^2."""
-    from ae_tactile.localization.common import Reason
-
     v = float(var_m2)
     return (
         int(reason_flags) == (1 << Reason.LOW_SNR)
@@ -126,8 +132,6 @@ def kept_with_weak_releases(
     ``time_ns`` (K,): the accepted packets and the weak releases the gate keeps (fed in
     time order; ``gate`` carries the touches from earlier calls; packets not ``usable``
     (K,) bool are neither kept nor fed)."""
-    import numpy as np
-
     gate = WeakReleaseGate() if gate is None else gate
     k = len(res.accepted)
     kept = np.zeros(k, bool)
@@ -150,8 +154,6 @@ def weak_release_confidence(
 ) -> float:
     """The localizer's confidence (localization/events.py: c_snr c_fit c_pos c_clamp) of a
     weak release, with the gate's SNR floor in place of min_snr_db."""
-    from ae_tactile.localization.events import confidence
-
     return float(
         confidence(True, float(snr_db), float(min_snr_db), float(overlap_excess),
                    float(overlap_threshold), float(sigma_pos_m), bool(clamped))
