@@ -23,6 +23,8 @@ from ae_tactile.localization.overlap import (
     resolve_overlaps,
     suspect_overlap,
 )
+from ae_tactile.localization.overlap.model import _Model
+from ae_tactile.localization.overlap.search import _grid_search, _segments, _surface_grid
 from ae_tactile.sim import SimConfig, noise_rms_for_snr, render_triggered, signal_power_v2
 from ae_tactile.sim.frontend import quantize
 from ae_tactile.sim.stream import EmissionList, StreamRenderer
@@ -647,13 +649,13 @@ def test_compiled_grid_search_is_the_numpy_grid_search():
 
     plan = make_plan(FS, geo, d["samples_v"].shape[2], (100e3, 1e6))
     prep = prepare(d["samples_v"], d["onset_index"], plan)
-    seg, start, length, inside = overlap_mod._segments(prep, plan, geo, FS, None)
+    seg, start, length, inside = _segments(prep, plan, geo, FS, None)
     pulse = PulseModel.for_sample_rate(FS)
-    grid = overlap_mod._surface_grid(geo, 1e-3)
+    grid = _surface_grid(geo, 1e-3)
     out = {}
     for engine in ("numpy", "auto"):
-        model = overlap_mod._Model(geo, FS, start, length, pulse, True, inside, engine)
-        out[engine] = overlap_mod._grid_search(model, seg, grid, n_peaks=3)
+        model = _Model(geo, FS, start, length, pulse, True, inside, engine)
+        out[engine] = _grid_search(model, seg, grid, n_peaks=3)
     np.testing.assert_array_equal(out["auto"][0], out["numpy"][0])
     np.testing.assert_array_equal(out["auto"][1], out["numpy"][1])
     # and it finds an emission: the best point is within 1.5 mm of one of the true points

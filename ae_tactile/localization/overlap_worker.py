@@ -61,7 +61,13 @@ def main() -> int:
     background_priority(IDLE_FLAG in sys.argv[1:])  # the driver's reader comes first
     inp, out = sys.stdin.buffer, sys.stdout.buffer
     sys.stdout = sys.stderr  # stdout carries the answers only
-    from ae_tactile.localization.overlap import OverlapReason, resolve_overlaps, warm_up
+    # imported after stdout is redirected and the priority lowered: nothing the import
+    # prints (numba compilation) reaches the answer pipe
+    from ae_tactile.localization.overlap import (  # lazy: after the redirect above
+        OverlapReason,
+        resolve_overlaps,
+        warm_up,
+    )
 
     warm_up()  # a two-emission window: every kernel and table of the first real one
     pickle.dump("ready", out)

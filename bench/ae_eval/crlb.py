@@ -39,7 +39,8 @@ import math
 import numpy as np
 
 from ae_tactile.geometry import FingertipGeometry
-from ae_tactile.localization.overlap import PulseModel, _lstsq_amplitudes, _Model, _model_values
+from ae_tactile.localization.overlap.model import _lstsq_amplitudes, _Model, _model_values
+from ae_tactile.localization.overlap.pulse import PulseModel
 from ae_tactile.sim import SimConfig, noise_rms_for_snr, render_triggered, signal_power_v2
 
 __all__ = ["position_crlb", "simulated_crlb", "joint_crlb"]

@@ -1,0 +1,335 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The public calls: `resolve_overlaps`, `warm_up`, `calibrate_pulse` and
+`localize_with_overlaps`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.optimize import minimize
+
+from ae_tactile.geometry import FingertipGeometry
+from ae_tactile.localization.common import (
+    Reason,
+    adc_noise,
+    make_plan,
+    prepare,
+    subset,
+    validate_windows,
+)
+from ae_tactile.localization.estimators import localize
+from ae_tactile.localization.overlap.decide import _decide, _first_reason, _resolve_quick
+from ae_tactile.localization.overlap.model import (
+    OverlapPacket,
+    _compiled_medium,
+    _lm,
+    _Model,
+    _positive,
+)
+from ae_tactile.localization.overlap.pulse import _PR_CACHE, _TAB_CACHE, PulseModel, _given
+from ae_tactile.localization.overlap.search import _segments, _surface_grid
+from ae_tactile.localization.overlap.suspect import _time_search, suspect_overlap
+
+
+def resolve_overlaps(
+    windows,
+    sample_rate_hz,
+    onset_index,
+    *,
+    geometry=None,
+    pulse=None,
+    noise_rms_v=None,
+    saturated=None,
+    full_scale_v=None,
+    max_sources=3,
+    band_hz=(100e3, 1e6),
+    analysis_s=None,
+    add_threshold=60.0,
+    max_chi2_ratio=None,
+    max_sigma_m=0.2e-3,
+    min_snr_db=5.0,
+    echo=True,
+    grid_spacing_m=1.0e-3,
+    min_separation_s=1.5e-6,
+    engine="auto",
+    exhaustive=True,
+) -> list:
+    """Localize every emission in each of K windows (two or three overlapping emissions).
+
+    windows (K, 4, M) volts (a (4, M) window is accepted), sample_rate_hz, onset_index (K,)
+    the first sample at/after the earliest arrival (detector or trigger). geometry:
+    FingertipGeometry (default tip); pulse: `PulseModel` of the front end (default:
+    `PulseModel.for_sample_rate`: 100 kHz 2nd-order high-pass, 1 MHz 4th-order low-pass,
+    below 3.33 MS/s the 0.3 fs 8th-order anti-alias low-pass). noise_rms_v: known sigma (scalar or
+    (K,)), default measured before the onset (the ADC's rounding by `common.adc_noise`).
+    saturated, full_scale_v: as `localize`. max_sources: 1-3. add_threshold: residual-energy drop
+    (in sigma^2) needed to add an emission. max_chi2_ratio: largest accepted residual /
+    (sigma^2 dof) (default 1 + 5 sqrt(2/n_noise + 2/dof)). max_sigma_m: emissions with a
+    larger in-plane 1-sigma are dropped. echo: model the first wall echo.
+    min_separation_s: emissions fitted closer than this in time are not separated reliably
+    (the joint likelihood has several nearly equal optima): such packets are rejected
+    (UNRESOLVED). engine: "auto" fits with the compiled kernels (`overlap_kernels`) when
+    numba is present and the medium lossless, "numpy" always with the numpy path.
+    exhaustive=False: a window whose first joint fit still leaves more than noise is not
+    searched further but answered DEFERRED (the quick answer of the driver's resolver,
+    which then runs the exhaustive search on it).
+
+    Returns a list of K `OverlapPacket` (``sources`` earliest first, or a rejection reason).
+    Parameter and shape errors raise ValueError / TypeError; data problems are rejections.
+    """
+    geo = FingertipGeometry() if geometry is None else geometry
+    if not isinstance(geo, FingertipGeometry):
+        raise TypeError(f"geometry must be a FingertipGeometry, got {type(geo).__name__}")
+    pulse = PulseModel.for_sample_rate(sample_rate_hz) if pulse is None else pulse
+    if not isinstance(pulse, PulseModel):
+        raise TypeError(f"pulse must be a PulseModel, got {type(pulse).__name__}")
+    if (
+        isinstance(max_sources, bool)
+        or not isinstance(max_sources, (int, np.integer))
+        or not 1 <= max_sources <= 3
+    ):
+        raise ValueError(f"max_sources must be 1, 2 or 3, got {max_sources!r}")
+    add_threshold = _positive("add_threshold", add_threshold)
+    max_sigma_m = _positive("max_sigma_m", max_sigma_m)
+    if max_chi2_ratio is not None:
+        max_chi2_ratio = _positive("max_chi2_ratio", max_chi2_ratio)
+    min_snr_db = float(min_snr_db)
+    if not math.isfinite(min_snr_db):
+        raise ValueError(f"min_snr_db must be finite, got {min_snr_db!r}")
+    if analysis_s is not None:
+        analysis_s = _positive("analysis_s", analysis_s)
+    grid_spacing_m = _positive("grid_spacing_m", grid_spacing_m)
+    min_separation_s = float(min_separation_s)
+    if not (math.isfinite(min_separation_s) and min_separation_s >= 0):
+        raise ValueError(f"min_separation_s must be >= 0, got {min_separation_s!r}")
+    if engine not in ("auto", "numpy"):
+        raise ValueError(f"engine must be 'auto' or 'numpy', got {engine!r}")
+    x, on = validate_windows(windows, onset_index)
+    plan = make_plan(sample_rate_hz, geo, x.shape[2], band_hz)
+    K = x.shape[0]
+    if K == 0:
+        return []
+    grid = _surface_grid(geo, grid_spacing_m)
+    if not exhaustive and engine == "auto" and _compiled_medium(pulse):
+        decide_args = (
+            max_sources, add_threshold, max_chi2_ratio, max_sigma_m, min_snr_db,
+            min_separation_s,
+        )
+        with np.errstate(all="ignore"):
+            return _resolve_quick(
+                x, on, plan, geo, pulse, noise_rms_v, saturated, full_scale_v, echo,
+                analysis_s, grid, decide_args,
+            )
+    with np.errstate(all="ignore"):
+        prep = prepare(
+            x,
+            on,
+            plan,
+            noise_rms_v=noise_rms_v,
+            saturated=saturated,
+            full_scale_v=full_scale_v,
+            spectra=False,
+        )
+        sigma2 = adc_noise(prep.sigma2, prep.quant2, _given(prep))
+        n_noise = np.maximum(4 * (prep.onset - plan.pre), 4).astype(float)
+        if noise_rms_v is not None:
+            n_noise[:] = np.inf
+        unknown = ~np.isfinite(sigma2) | (sigma2 <= 0)
+        flags = prep.flags.copy()
+        flags[unknown] |= 1 << Reason.WINDOW
+        ok = flags == 0
+        out: list = [None] * K
+        ids = np.nonzero(ok)[0]
+        if ids.size:
+            seg, start, length, inside = _segments(
+                subset(prep, ids), plan, geo, plan.fs, analysis_s
+            )
+            model = _Model(geo, plan.fs, start, length, pulse, echo, inside, engine)
+            res = _decide(
+                model,
+                seg,
+                sigma2[ids],
+                n_noise[ids],
+                max_sources,
+                add_threshold,
+                max_chi2_ratio,
+                max_sigma_m,
+                min_snr_db,
+                prep.scale[ids],
+                geo,
+                grid,
+                min_separation_s,
+                exhaustive,
+            )
+            for i, r in zip(ids, res):
+                out[i] = r
+        for i in np.nonzero(~ok)[0]:
+            code = _first_reason(int(flags[i]))
+            out[i] = OverlapPacket(
+                False, code, noise_rms_v=float(np.sqrt(np.nan_to_num(sigma2[i])) * prep.scale[i])
+            )
+    return out
+
+
+def warm_up(geometry=None, sample_rate_hz=10e6, n_samples=400, pulse=None) -> OverlapPacket:
+    """Resolve one synthetic two-emission window (4 us apart, opposite polarities, light
+    noise) by the quick and by the exhaustive search: loads every table and compiled
+    kernel the first real overlap would otherwise wait for (the driver's overlap worker
+    does this before it says it is ready). Returns the exhaustive search's answer."""
+    geo = FingertipGeometry() if geometry is None else geometry
+    fs = float(sample_rate_hz)
+    pulse = PulseModel.for_sample_rate(fs) if pulse is None else pulse
+    n = max(int(n_samples), 64)
+    on = n // 4
+    pts = geo.surface_point_from_angles(np.array([0.35, 0.3]), np.array([0.4, 3.5]))
+    tt = geo.arrival_times_s(pts)  # (2, 4)
+    gain = geo.radius_m / (tt * geo.sound_speed_m_s)  # R / d
+    t0 = on / fs - tt.min()
+    t = np.arange(n) / fs
+    x = np.random.default_rng(0).normal(0.0, 1e-4, (4, n))
+    for j, (amp, delay) in enumerate(((1e-2, 0.0), (-0.7e-2, 4e-6))):
+        x += amp * gain[j][:, None] * pulse.waveform(t[None, :] - t0 - delay - tt[j][:, None])
+    with np.errstate(all="ignore"):
+        resolve_overlaps(x[None], fs, [on], geometry=geo, pulse=pulse, exhaustive=False)
+        return resolve_overlaps(x[None], fs, [on], geometry=geo, pulse=pulse)[0]
+
+
+def calibrate_pulse(
+    windows,
+    sample_rate_hz,
+    onset_index,
+    *,
+    geometry=None,
+    initial=None,
+    noise_rms_v=None,
+    max_packets=64,
+    echo=True,
+):
+    """Fit the front end's corner frequencies (`PulseModel` high-pass and low-pass) to
+    single-emission packets, e.g. a few dozen single touches recorded at start-up.
+
+    The known-pulse model needs the pulse shape: a front end whose corners are off by 10 %
+    makes every overlap fit fail the residual test (rejected, not wrong; docs/localization.md).
+    Each packet is localized by `localize` (ml); the objective is the summed residual of
+    the one-emission model (3 LM steps from that point) over the accepted packets,
+    minimised over (log f_hp, log f_lp) by Nelder-Mead from ``initial``.
+    Returns the fitted `PulseModel` (orders, alpha and medium loss as in ``initial``)."""
+    geo = FingertipGeometry() if geometry is None else geometry
+    init = PulseModel.for_sample_rate(sample_rate_hz) if initial is None else initial
+    x, on = validate_windows(windows, onset_index)
+    ml = localize(x, sample_rate_hz, on, geometry=geo, noise_rms_v=noise_rms_v)
+    ids = np.nonzero(ml.accepted)[0][: int(max_packets)]
+    if ids.size == 0:
+        raise ValueError("calibrate_pulse needs single-emission packets that localize accepts")
+    plan = make_plan(sample_rate_hz, geo, x.shape[2], (100e3, 1e6))
+    with np.errstate(all="ignore"):
+        prep = prepare(x[ids], on[ids], plan)
+        seg, start, length, inside = _segments(prep, plan, geo, plan.fs, None)
+    y = seg.reshape(len(ids), -1)
+    pts = ml.point_m[ids, :2]
+    lp0 = init.lowpass_hz
+
+    def model_of(v):
+        return PulseModel(
+            float(np.exp(v[0])),
+            init.highpass_order,
+            None if lp0 is None else float(np.exp(v[1])),
+            init.lowpass_order,
+            init.alpha_1_s,
+            init.attenuation_db_per_m_at_1mhz,
+        )
+
+    def objective(v):
+        pm = model_of(v)
+        with np.errstate(all="ignore"):
+            model = _Model(geo, plan.fs, start, length, pm, echo, inside)
+            th0 = _time_search(model, seg, pts)
+            _, _, rss, _ = _lm(model, y, th0[:, None, :], iterations=3)
+        _TAB_CACHE.pop((pm, plan.fs, length), None)
+        _PR_CACHE.pop(pm, None)
+        return float(np.sum(rss))
+
+    v0 = np.log([init.highpass_hz, lp0 if lp0 is not None else 1.0])
+    r = minimize(
+        objective,
+        v0,
+        method="Nelder-Mead",
+        options=dict(
+            xatol=2e-3, fatol=1e-9, initial_simplex=[v0, v0 + [0.15, 0], v0 + [0, 0.15]], maxfev=80
+        ),
+    )
+    return model_of(r.x)
+
+
+def localize_with_overlaps(
+    windows,
+    sample_rate_hz,
+    onset_index,
+    *,
+    geometry=None,
+    pulse=None,
+    noise_rms_v=None,
+    saturated=None,
+    max_sources=3,
+    overlap_kwargs=None,
+    **localize_kwargs,
+):
+    """The fast single-source path plus the overlap path only where needed.
+
+    1. ``localize`` (``method``, default ml) on every window;
+    2. `suspect_overlap` on what it accepted;
+    3. `resolve_overlaps` on the windows it rejected as OVERLAP and on the suspects.
+
+    Returns (single, overlap): ``single`` the `LocalizationResult`, with ``accepted`` set to
+    False for the suspects (their single-source point is withdrawn: publish the overlap
+    result instead); ``overlap`` a dict {window index: `OverlapPacket`}.
+    """
+    geo = FingertipGeometry() if geometry is None else geometry
+    x, on = validate_windows(windows, onset_index)
+    single = localize(
+        x,
+        sample_rate_hz,
+        on,
+        geometry=geo,
+        noise_rms_v=noise_rms_v,
+        saturated=saturated,
+        **localize_kwargs,
+    )
+    sus = suspect_overlap(
+        x, sample_rate_hz, on, single, geometry=geo, pulse=pulse, noise_rms_v=noise_rms_v
+    )
+    need = sus | (single.reason == int(Reason.OVERLAP))
+    ids = np.nonzero(need)[0]
+    overlap = {}
+    if ids.size:
+        nr = (
+            None
+            if noise_rms_v is None
+            else np.broadcast_to(np.asarray(noise_rms_v, float), (len(on),))[ids]
+        )
+        sat = (
+            None
+            if saturated is None
+            else np.broadcast_to(np.asarray(saturated, bool), (len(on),))[ids]
+        )
+        res = resolve_overlaps(
+            x[ids],
+            sample_rate_hz,
+            on[ids],
+            geometry=geo,
+            pulse=pulse,
+            noise_rms_v=nr,
+            saturated=sat,
+            max_sources=max_sources,
+            **(overlap_kwargs or {}),
+        )
+        overlap = {int(i): r for i, r in zip(ids, res)}
+    single.accepted = single.accepted & ~sus
+    single.confidence = np.where(sus, 0.0, single.confidence)
+    single.reason = np.where(sus, np.uint8(Reason.OVERLAP), single.reason).astype(np.uint8)
+    single.reason_flags = (
+        single.reason_flags | np.where(sus, 1 << int(Reason.OVERLAP), 0)
+    ).astype(np.uint16)
+    return single, overlap

@@ -1,0 +1,267 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The decision on a searched window: model order, the residual test against noise, the
+separation test, each emission's covariance and confidence (`OverlapPacket`), and the
+quick path from the raw window to that decision.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ae_tactile.localization import overlap_kernels as _kernels
+from ae_tactile.localization.common import Reason
+from ae_tactile.localization.overlap.model import (
+    OverlapPacket,
+    OverlapReason,
+    OverlapSource,
+    _Model,
+)
+from ae_tactile.localization.overlap.search import (
+    _noise_sat_fs,
+    _quick_search_compiled,
+    _search,
+    _segments_compiled,
+)
+
+
+def _resolve_quick(x, on, plan, geo, pulse, noise_rms_v, saturated, full_scale_v, echo,
+                   analysis_s, grid, decide_args) -> list:
+    """`resolve_overlaps` with ``exhaustive=False`` by the compiled kernels: per window one
+    call to prepare it (`overlap_kernels.prepare_window`, the equations of
+    `common.prepare` and `common.adc_noise`), one to cut its segment and one for the whole
+    quick search; then the same decisions (`_answers`)."""
+    K, _, m = x.shape
+    noise, sat, fsv = _noise_sat_fs(noise_rms_v, saturated, full_scale_v, K)
+    out: list = [None] * K
+    ok, preps = [], []
+    for k in range(K):
+        pr = _kernels.prepare_window(
+            x[k], int(on[k]), float(noise[k]), int(sat[k]), fsv, plan.pre, plan.seg_len,
+            plan.flat_run,
+        )
+        flags, scale, s2 = int(pr[2]), pr[4], pr[5]
+        if not (math.isfinite(s2) and s2 > 0):
+            flags |= 1 << Reason.WINDOW
+        if flags:
+            noise_v = math.sqrt(float(np.nan_to_num(s2))) * scale
+            out[k] = OverlapPacket(False, _first_reason(flags), noise_rms_v=noise_v)
+        else:
+            ok.append(k)
+            preps.append(pr)
+    if not ok:
+        return out
+    fs = plan.fs
+    ys, masks, start, L = _segments_compiled(preps, m, plan, geo, analysis_s)
+    sigma2 = np.array([pr[5] for pr in preps])
+    if noise_rms_v is None:
+        n_noise = np.maximum(4 * (np.array([pr[3] for pr in preps]) - plan.pre), 4)
+        n_noise = n_noise.astype(float)
+    else:
+        n_noise = np.full(len(ok), np.inf)
+    N = masks.sum(axis=1)
+    search_limit = _search_limit(n_noise, N)
+    model = _Model(geo, fs, start, L, pulse, echo)
+    max_sources, add_threshold = decide_args[0], decide_args[1]
+    deferred = np.zeros(len(ok), bool)
+    fits = _quick_search_compiled(
+        model, ys, masks, max_sources, grid, sigma2, add_threshold, search_limit, deferred
+    )
+    res = _answers(
+        fits, deferred, N, sigma2, n_noise, *decide_args,
+        np.array([pr[4] for pr in preps]), geo, model.tab.h_samples, fs,
+    )
+    for k, r in zip(ok, res):
+        out[k] = r
+    return out
+
+
+def _first_reason(flags: int) -> int:
+    for r in Reason:
+        if r != Reason.OK and flags & (1 << int(r)):
+            return int(r)
+    return int(OverlapReason.UNRESOLVED)
+
+
+def _search_limit(n_noise, n_fit):
+    """Residual per sample and sigma^2 above which another emission is searched: 1 + 2
+    sqrt(2 / n_noise + 2 / n_fit) (two standard deviations of both variance estimates)."""
+    return 1.0 + 2.0 * np.sqrt(2.0 / n_noise + 2.0 / n_fit)
+
+
+def _chi2_limit(n_noise, dof, max_chi2_ratio):
+    if max_chi2_ratio is not None:
+        return np.full(np.shape(dof), max_chi2_ratio)
+    return 1.0 + 5.0 * np.sqrt(2.0 / n_noise + 2.0 / dof)
+
+
+def _decide(
+    model,
+    seg,
+    sigma2,
+    n_noise,
+    max_sources,
+    add_threshold,
+    max_chi2_ratio,
+    max_sigma_m,
+    min_snr_db,
+    scale,
+    geo,
+    grid,
+    min_separation_s,
+    exhaustive=True,
+):
+    K = seg.shape[0]
+    deferred = None if exhaustive else np.zeros(K, bool)
+    N = (
+        model.mask.sum(axis=1)
+        if model.mask is not None
+        else np.full(K, seg.shape[1] * seg.shape[2])
+    )
+    search_limit = _search_limit(n_noise, N)
+    fits = _search(
+        model, seg, max_sources, grid, sigma2, add_threshold, search_limit, deferred
+    )
+    return _answers(
+        fits, deferred, N, sigma2, n_noise, max_sources, add_threshold, max_chi2_ratio,
+        max_sigma_m, min_snr_db, min_separation_s, scale, geo, model.tab.h_samples, model.fs,
+    )
+
+
+def _answers(
+    fits,
+    deferred,
+    N,
+    sigma2,
+    n_noise,
+    max_sources,
+    add_threshold,
+    max_chi2_ratio,
+    max_sigma_m,
+    min_snr_db,
+    min_separation_s,
+    scale,
+    geo,
+    h_samples,
+    fs,
+):
+    """The `OverlapPacket` of each window from its fits (one per number of emissions):
+    model order, residual test, separation, covariances, per-emission SNR and confidence.
+    N (K,): samples in each window's fit."""
+    K = len(sigma2)
+    # Model order: add emission j+1 while the residual energy drops by > add_threshold sigma^2.
+    J = np.ones(K, np.int64)
+    going = np.ones(K, bool)
+    for j in range(2, max_sources + 1):
+        gain = (fits[j - 2].rss - fits[j - 1].rss) / sigma2
+        step = going & (gain > add_threshold)
+        J[step] = j
+        going &= step
+    out = []
+    snr_len = int(round(30e-6 * fs))
+    e_pulse = float((h_samples[:snr_len] ** 2).sum())  # the direct wave's energy in 30 us
+    R = geo.radius_m
+    for i in range(K):
+        if deferred is not None and deferred[i]:
+            out.append(
+                OverlapPacket(
+                    False,
+                    int(OverlapReason.DEFERRED),
+                    noise_rms_v=float(np.sqrt(sigma2[i]) * scale[i]),
+                )
+            )
+            continue
+        f = fits[J[i] - 1]
+        j = int(J[i])
+        theta, amp, rss, gram = f.theta[i, :j], f.amp[i, : 2 * j], f.rss[i], f.gram[i]
+        dof = max(N[i] - 5 * j, 1)
+        ratio = rss / (sigma2[i] * dof)
+        noise_v = float(np.sqrt(sigma2[i]) * scale[i])
+        limit = float(_chi2_limit(n_noise[i], dof, max_chi2_ratio))
+        times = theta[:, 2].tolist()
+        too_close = j > 1 and min(b - a for a, b in zip(times, times[1:])) < min_separation_s
+        if not math.isfinite(ratio) or ratio > limit or too_close:
+            out.append(
+                OverlapPacket(
+                    False,
+                    int(OverlapReason.UNRESOLVED),
+                    n_fitted=j,
+                    chi2_ratio=float(ratio),
+                    noise_rms_v=noise_v,
+                )
+            )
+            continue
+        s2 = sigma2[i] * max(ratio, 1.0)
+        fis = gram / s2
+        try:
+            cov = np.linalg.pinv(fis, rcond=1e-13, hermitian=True)
+        except np.linalg.LinAlgError:
+            cov = np.full(fis.shape, np.nan)
+        d_all = geo._xy_distances(theta[:, 0], theta[:, 1])  # (j, 4)
+        gain2 = ((R / d_all) ** 2).sum(axis=1)
+        sources = []
+        dropped = 0
+        for q in range(j):
+            c_xy = cov[3 * q : 3 * q + 2, 3 * q : 3 * q + 2]
+            sx, sy, T = (float(v) for v in theta[q])
+            vxx, vxy, vyx, vyy = c_xy.ravel().tolist()
+            finite = all(math.isfinite(v) for v in (vxx, vxy, vyx, vyy))
+            sig = math.sqrt(max(vxx + vyy, 0.0)) if finite else math.inf
+            a_dir = float(amp[2 * q])
+            # SNR of this emission alone: power of its direct wave over the 30 us window
+            p_sig = a_dir**2 * float(gain2[q]) * e_pulse / (4.0 * snr_len)
+            snr = 10.0 * math.log10(max(p_sig, 1e-300) / sigma2[i])
+            if not (sig <= max_sigma_m) or snr < min_snr_db:
+                dropped += 1
+                continue
+            sz = math.sqrt(max(R**2 - sx * sx - sy * sy, 0.0))
+            g = np.array(
+                [
+                    [1.0, 0.0],
+                    [0.0, 1.0],
+                    [-sx / max(sz, 1e-6 * R), -sy / max(sz, 1e-6 * R)],
+                ]
+            )
+            c3 = g @ c_xy @ g.T
+            c_snr = math.sqrt(min(max((snr - min_snr_db) / 20.0, 0.0), 1.0))
+            c_pos = 1.0 / (1.0 + (sig / 0.5e-3) ** 2)
+            c_fit = min(max(1.0 - max(ratio - 1.0, 0.0) / max(limit - 1.0, 1e-9), 0.0), 1.0)
+            conf = min(max(c_snr * c_pos * c_fit, 0.0), 1.0)
+            sources.append(
+                OverlapSource(
+                    point_m=np.array([sx, sy, sz]),
+                    covariance_m2=c3,
+                    sigma_m=sig,
+                    confidence=conf,
+                    polarity=(a_dir > 0) - (a_dir < 0),
+                    amplitude_v=a_dir * float(scale[i]),
+                    emission_time_s=T,
+                    arrival_times_s=T + d_all[q] / geo.sound_speed_m_s,
+                    snr_db=float(snr),
+                )
+            )
+        if not sources:
+            out.append(
+                OverlapPacket(
+                    False,
+                    int(OverlapReason.UNCERTAIN),
+                    n_fitted=j,
+                    n_dropped=dropped,
+                    chi2_ratio=float(ratio),
+                    noise_rms_v=noise_v,
+                )
+            )
+        else:
+            out.append(
+                OverlapPacket(
+                    True,
+                    0,
+                    sources,
+                    n_fitted=j,
+                    n_dropped=dropped,
+                    chi2_ratio=float(ratio),
+                    noise_rms_v=noise_v,
+                )
+            )
+    return out

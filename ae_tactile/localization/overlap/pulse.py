@@ -1,0 +1,171 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The known pulse shape of the overlap model: the front end (Butterworth high-pass and
+low-pass, optional medium loss) driven by the collision pressure, in closed form at any
+sub-sample time (`PulseModel`), and its cached sample tables.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import signal
+
+from ae_tactile.geometry import front_end_lowpass
+
+
+@dataclass(frozen=True)
+class PulseModel:
+    """Known pulse shape h(t): front-end response to the collision pressure (paper Eq. 9).
+
+    H(s) = P1(s) HP_n(s) LP_m(s), P1(s) = s / ((s + alpha)(s + 2 alpha)) (= 2/(s + 2 alpha)
+    - 1/(s + alpha)), Butterworth HP (``highpass_hz``, order ``highpass_order``) and LP
+    (``lowpass_hz``, order ``lowpass_order``; None: no low-pass). h(t) = sum_p r_p e^{p t}
+    for t >= 0 (simple poles), 0 before, scaled to a peak of +1 (a touch starts positive).
+    Parameters of the product's front end, not of any simulator.
+
+    ``attenuation_db_per_m_at_1mhz`` > 0: a lossy medium, loss att l (f / 1 MHz)^2 dB over
+    a path of length l, realised as one real pole per path, W_l(s) = w_a / (s + w_a) with
+    10 log10(1 + (1 MHz / f_a)^2) = att l (the causal viscous law of docs/simulator.md):
+    every arrival's pulse then depends on its path length.
+    """
+
+    highpass_hz: float = 100e3
+    highpass_order: int = 2
+    lowpass_hz: float | None = 1e6
+    lowpass_order: int = 4
+    alpha_1_s: float = 3000.0
+    attenuation_db_per_m_at_1mhz: float = 0.0
+
+    @classmethod
+    def from_config(cls, config) -> "PulseModel":
+        """From any object with the front-end attributes of ``ae_tactile.sim.SimConfig``
+        (and its medium loss when its ``attenuation`` is on)."""
+        att = float(getattr(config, "attenuation_db_per_m", 0.0) or 0.0)
+        return cls(
+            float(config.highpass_hz),
+            int(config.highpass_order),
+            None if config.lowpass_hz is None else float(config.lowpass_hz),
+            int(config.lowpass_order),
+            attenuation_db_per_m_at_1mhz=att,
+        )
+
+    @classmethod
+    def for_sample_rate(cls, sample_rate_hz: float) -> "PulseModel":
+        """The product's default front end at this ADC rate: its low-pass is
+        `ae_tactile.geometry.front_end_lowpass` (1 MHz, order 4; below 3.33 MS/s the
+        anti-alias filter, 0.3 fs, order 8). The default wherever ``pulse`` is None."""
+        lp_hz, lp_order = front_end_lowpass(float(sample_rate_hz))
+        return cls(lowpass_hz=lp_hz, lowpass_order=lp_order)
+
+    def attenuation_pole_rad_s(self, path_m):
+        """w_a (rad/s) of paths of length ``path_m`` (inf when lossless)."""
+        loss_db = np.asarray(path_m, float) * float(self.attenuation_db_per_m_at_1mhz)
+        x = np.expm1(loss_db * (math.log(10.0) / 10.0))
+        return np.where(x > 0, 2.0 * math.pi * 1e6 / np.sqrt(np.where(x > 0, x, 1.0)), np.inf)
+
+    def poles_residues(self):
+        """(poles (P,) complex, residues (P,) complex) of h, peak-normalised (cached)."""
+        cache = _PR_CACHE.get(self)
+        if cache is not None:
+            return cache
+        zs, ps, k = (
+            [np.zeros(1, complex)],
+            [np.array([-self.alpha_1_s, -2.0 * self.alpha_1_s], complex)],
+            1.0,
+        )
+        z, p, kk = signal.butter(
+            self.highpass_order,
+            2 * math.pi * self.highpass_hz,
+            btype="highpass",
+            analog=True,
+            output="zpk",
+        )
+        zs.append(z)
+        ps.append(p)
+        k *= kk
+        if self.lowpass_hz is not None:
+            z, p, kk = signal.butter(
+                self.lowpass_order,
+                2 * math.pi * self.lowpass_hz,
+                btype="lowpass",
+                analog=True,
+                output="zpk",
+            )
+            zs.append(z)
+            ps.append(p)
+            k *= kk
+        zeros = np.concatenate(zs).astype(complex)
+        poles = np.concatenate(ps).astype(complex)
+        res = np.array(
+            [
+                k * np.prod(q - zeros) / np.prod(q - np.delete(poles, i))
+                for i, q in enumerate(poles)
+            ]
+        )
+        t = np.linspace(0.0, 20.0 / (2 * math.pi * self.highpass_hz), 20001)
+        h = (res[None, :] * np.exp(poles[None, :] * t[:, None])).sum(axis=1).real
+        res = res / h[np.argmax(np.abs(h))]
+        _PR_CACHE[self] = (poles, res)
+        return poles, res
+
+    def waveform(self, t_s):
+        """h(t) (unit peak) at times t_s (s, any shape)."""
+        p, r = self.poles_residues()
+        t = np.asarray(t_s, float)
+        v = (r * np.exp(p * np.maximum(t, 0.0)[..., None])).sum(axis=-1).real
+        return np.where(t >= 0, v, 0.0)
+
+
+_PR_CACHE: dict = {}
+
+
+@dataclass(frozen=True)
+class _Tables:
+    """Exponential tables E_p[m] = e^{p m dt} stacked [Re; Im] (2P, L) for h and h'."""
+
+    poles: np.ndarray
+    res: np.ndarray
+    table: np.ndarray
+    h_samples: np.ndarray  # h(m dt), m = 0..L-1 (matched filter)
+    #: one pole of each conjugate pair (residue doubled: Re(c e^{pt}) + Re(c* e^{p* t}) =
+    #: 2 Re(c e^{pt})) and the real poles; their tables [Re; Im]: the compiled kernels'
+    half_poles: np.ndarray
+    half_res: np.ndarray
+    half_table: np.ndarray
+    #: z_p = e^{p / f_s} of the half poles: h[m] = Re sum_p half_res_p z_p^m (the compiled
+    #: matched filter's recursion)
+    half_z: np.ndarray
+
+
+def _given(prep):
+    """(K,) bool: the noise sigma was given (analog: + q^2/12), not measured."""
+    if prep.noise_given is None:
+        return np.zeros(len(prep.sigma2), bool)
+    return np.asarray(prep.noise_given, bool)
+
+
+def _tables(pulse: PulseModel, fs: float, n: int) -> _Tables:
+    key = (pulse, fs, n)
+    t = _TAB_CACHE.get(key)
+    if t is None:
+        p, r = pulse.poles_residues()
+        e = np.exp(p[:, None] * (np.arange(n) / fs)[None, :])
+        tab = np.ascontiguousarray(np.vstack([e.real, e.imag]))
+        h = (r[:, None] * e).sum(axis=0).real
+        tiny = 1e-9 * np.abs(p)
+        upper, real = p.imag > tiny, np.abs(p.imag) <= tiny
+        if upper.sum() == (p.imag < -tiny).sum():  # every complex pole has its conjugate
+            keep = upper | real
+        else:
+            keep = np.ones(p.size, bool)
+        hp, hr, eh = p[keep], (np.where(upper, 2.0, 1.0) * r)[keep], e[keep]
+        htab = np.ascontiguousarray(np.vstack([eh.real, eh.imag]))
+        t = _TAB_CACHE[key] = _Tables(
+            p, r, tab, h, hp.copy(), hr.copy(), htab, np.exp(hp / fs)
+        )
+    return t
+
+
+_TAB_CACHE: dict = {}
