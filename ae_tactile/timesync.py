@@ -19,10 +19,23 @@ Skew is only fitted over at least ``min_span_for_skew_s`` (10 s) and bounded by
 ``max_skew`` (200 ppm, several times a crystal's tolerance): a latency floor that rises
 for a while (a loaded host) must not pass for clock drift.
 
-Guarantees: mapped times never go backwards for increasing device times (a would-be
-step back is clamped and counted); a device restart (device time going backwards by
-more than ``max_backstep_s``; the link also resets on the protocol's BOOT flag) or a
-jump of the offset beyond ``max_jump_s`` resets the model (counted as a re-sync).
+Guarantees: mapped times never go backwards, whatever the device clock does (a would-be
+step back is clamped and counted), also across a re-sync: the new model's outputs start
+after the last output of the old one. The model is rebuilt (counted as a re-sync) when
+
+* device time goes back by more than ``max_backstep_s`` (a restarted device clock; the
+  link also resets on the protocol's BOOT flag and passes a large ``max_backstep_s``,
+  since its packets carry sample times older than the frames sent before them);
+* a frame is earlier than the model by more than ``max_jump_s`` (the device clock stepped
+  forward, the host clock back): at once, on that frame;
+* ``step_frames`` frames in a row are later than the model by more than ``step_back_s``
+  (the device clock stepped back without a restart, the host clock forward): a latency
+  that large and that persistent is no transport delay. The new model starts from those
+  frames (``clock_steps`` counts these events).
+
+The bucket minima are fitted robustly: a bucket whose minimum sits well above the line
+(every frame of it delayed, e.g. behind a burst of garbage or a host stall) is left out
+of the line, so it cannot pull the envelope late.
 """
 
 from __future__ import annotations
@@ -49,6 +62,12 @@ class DeviceClockMapper:
         Bound of the fitted skew (dimensionless, 200e-6 = 200 ppm).
     max_backstep_s : float
         Device time going back by more than this [s] is a restarted device clock.
+    step_back_s : float
+        Latency above the model [s] that, ``step_frames`` frames in a row, means the clock
+        stepped (device clock back or host clock forward); above any transport delay or
+        host stall the link expects.
+    step_frames : int
+        Frames in a row needed to detect such a step (one delayed read is not one).
     """
 
     def __init__(
@@ -59,6 +78,8 @@ class DeviceClockMapper:
         min_span_for_skew_s: float = 10.0,
         max_skew: float = 200e-6,
         max_backstep_s: float = 1.0,
+        step_back_s: float = 0.1,
+        step_frames: int = 4,
     ):
         if not (window_s > 0 and bucket_s > 0 and bucket_s < window_s):
             raise ValueError("need 0 < bucket_s < window_s")
@@ -71,9 +92,15 @@ class DeviceClockMapper:
         self.max_jump_ns = int(max_jump_s * 1e9)
         self.min_span_ns = int(min_span_for_skew_s * 1e9)
         self.max_skew = float(max_skew)
+        if not (step_back_s > 0 and int(step_frames) >= 1):
+            raise ValueError("step_back_s must be > 0 and step_frames >= 1")
         self.max_backstep_ns = int(max_backstep_s * 1e9)
+        self.step_back_ns = int(step_back_s * 1e9)
+        self.step_frames = int(step_frames)
         self.resyncs = 0  # model resets (device restart, offset jump)
         self.clamped = 0  # outputs held back to stay monotonic
+        self.steps = 0  # clock steps detected from a persistent latency (step_back_s)
+        self._floor_out: int | None = None  # last output of any model: outputs stay after it
         self.reset()
         self.resyncs = 0
 
@@ -82,10 +109,9 @@ class DeviceClockMapper:
         self._buckets: deque[list[int]] = deque()  # [bucket_id, d_at_min, offset_min]
         self._d_ref: int | None = None
         self._last_d: int | None = None
-        self._last_out: int | None = None
-        self._last_out_d: int | None = None
         self._offset_ns = 0.0
         self._skew = 0.0
+        self._late_run: list[tuple[int, int]] = []  # frames in a row later than step_back_s
         self.resyncs += 1
 
     @property
@@ -129,9 +155,30 @@ class DeviceClockMapper:
         elif self._d_ref is not None:
             # latency = host - model >= 0; a frame earlier than the model by more than
             # max_jump means a clock jumped (device time forward, host clock back): start over.
-            if host_ns - self._predict(device_ns) < -self.max_jump_ns:
+            latency = host_ns - self._predict(device_ns)
+            if latency < -self.max_jump_ns:
                 self.reset()
                 did_reset = True
+            elif latency > self.step_back_ns:
+                self._late_run.append((device_ns, host_ns))
+                if len(self._late_run) >= self.step_frames:
+                    return self._restart_from_late_run()
+            else:
+                self._late_run.clear()
+        self._add(device_ns, host_ns)
+        return did_reset
+
+    def _restart_from_late_run(self) -> bool:
+        """A clock step: rebuild the model from the frames that showed it."""
+        run = self._late_run
+        self.reset()
+        self.steps += 1
+        for d, h in run:
+            self._add(d, h)
+        return True
+
+    def _add(self, device_ns: int, host_ns: int) -> None:
+        """One pair into the bucket minima (and the fit, when a minimum moved)."""
         if self._d_ref is None:
             self._d_ref = device_ns
         self._last_d = device_ns if self._last_d is None else max(self._last_d, device_ns)
@@ -151,7 +198,6 @@ class DeviceClockMapper:
             changed = True
         if changed:  # the envelope only moves when a bucket minimum does
             self._fit()
-        return did_reset
 
     def _fit(self) -> None:
         b = np.array(self._buckets, dtype=np.float64)
@@ -173,7 +219,7 @@ class DeviceClockMapper:
         return device_ns + int(round(self._offset_ns + self._skew * dd))
 
     def to_host_ns(self, device_ns: int) -> int:
-        """Host time of a device time; monotonic in device time.
+        """Host time of a device time; strictly increasing from call to call.
 
         Parameters
         ----------
@@ -183,7 +229,8 @@ class DeviceClockMapper:
         Returns
         -------
         int
-            Host time [ns]; never earlier than one returned for an earlier device time.
+            Host time [ns]; later than every one returned before (clamped and counted in
+            ``clamped`` when the model would give an earlier one).
 
         Raises
         ------
@@ -194,11 +241,11 @@ class DeviceClockMapper:
             raise RuntimeError("DeviceClockMapper.to_host_ns called before any update()")
         device_ns = int(device_ns)
         out = self._predict(device_ns)
-        if self._last_out is not None and device_ns >= self._last_out_d:
-            floor = self._last_out + (1 if device_ns > self._last_out_d else 0)
-            if out < floor:
-                out = floor
-                self.clamped += 1
-        if self._last_out is None or device_ns >= self._last_out_d:
-            self._last_out, self._last_out_d = out, device_ns
+        # strictly after everything already handed out: across a re-sync, for a device time
+        # behind the last one (a clock step not detected yet, a packet out of order)
+        floor = self._floor_out
+        if floor is not None and out <= floor:
+            out = floor + 1
+            self.clamped += 1
+        self._floor_out = out
         return out

@@ -75,3 +75,38 @@ def test_mapping_before_update_and_bad_parameters_are_errors():
         DeviceClockMapper(window_s=1.0, bucket_s=2.0)
     with pytest.raises(ValueError):
         DeviceClockMapper(max_skew=0.5)
+
+
+@pytest.mark.parametrize("step_s", [-5.0, -1000.0, -0.2, 1000.0])
+def test_device_clock_step_without_restart_is_detected_and_output_stays_monotonic(step_s):
+    """The device clock steps (no BOOT: the link's mapper ignores device time going back,
+    max_backstep_s = 3600): a step back shows as frames later than the model, frame after
+    frame; a step forward as a frame earlier than it. Either way the model is rebuilt
+    within a few frames and the output never goes back."""
+    rng = np.random.default_rng(3)
+    true_ns, latency = link(rng, 4000)
+    device_ns = (true_ns - true_ns[0]).astype(np.int64) + 5_000_000_000
+    at = 2000
+    device_ns[at:] += int(step_s * 1e9)
+    mapper = DeviceClockMapper(max_backstep_s=3600.0)
+    mapped = simulate(mapper, true_ns, device_ns, latency)
+    assert mapper.resyncs == 1 and mapper.steps == (1 if step_s < 0 else 0)
+    assert np.all(np.diff(mapped) > 0)
+    err = np.abs(mapped - true_ns)
+    late = np.flatnonzero(err[at:] > 2 * MS)
+    assert late.size == 0 or late.max() < 8  # back within 2 ms after < 8 frames
+    assert np.percentile(err[at + 400 :], 99) < 1 * MS
+
+
+def test_delayed_buckets_do_not_pull_the_envelope_late():
+    """Every frame of a 0.5 s bucket delayed by 15 ms (queued behind a burst of garbage):
+    the fitted line is not pulled up by that bucket's minimum."""
+    rng = np.random.default_rng(4)
+    true_ns, latency = link(rng, 6000)
+    device_ns = (true_ns - true_ns[0]).astype(np.int64)
+    latency[4000:4100] += 15 * MS
+    mapper = DeviceClockMapper()
+    mapped = simulate(mapper, true_ns, device_ns, latency)
+    err = mapped - true_ns
+    assert np.percentile(np.abs(err[2200:]), 99) < 1 * MS
+    assert np.max(np.abs(err[4000:4400])) < 1.5 * MS

@@ -59,6 +59,13 @@ class LinkConfig:
     sync_period_s : float
         One more round trip every sync_period_s while acquiring [s] (0: none), so that
         the clock mapping's window (30 s) always holds round-trip samples.
+    clock_step_s : float
+        Latency above the clock mapping [s] that, ``clock_step_frames`` frames in a row,
+        means the device clock stepped back (or the host clock forward) without a
+        restart: the mapping is rebuilt from those frames. Above any host stall or
+        device queue the link should ride out (a smaller step is clamped, not rebuilt).
+    clock_step_frames : int
+        Frames in a row needed for such a step.
     adc_bits : int
         ADC resolution [bit] (full scale = v_per_count * 2^(adc_bits-1), for saturation).
     detector : dict
@@ -90,6 +97,8 @@ class LinkConfig:
     sync_max_pings: int = 100
     sync_rtt_s: float = 0.0015
     sync_period_s: float = 5.0
+    clock_step_s: float = 0.1
+    clock_step_frames: int = 4
     adc_bits: int = 12
     detector: dict = field(default_factory=dict)
 
@@ -107,6 +116,7 @@ class LinkConfig:
             "reconnect_initial_s",
             "reconnect_max_s",
             "command_timeout_s",
+            "clock_step_s",
         ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
@@ -121,6 +131,8 @@ class LinkConfig:
             raise ValueError("reconnect_max_s must be >= reconnect_initial_s")
         if int(self.queue_max_batches) < 1 or int(self.read_chunk_bytes) < 1:
             raise ValueError("queue_max_batches and read_chunk_bytes must be >= 1")
+        if int(self.clock_step_frames) < 1:
+            raise ValueError(f"clock_step_frames must be >= 1, got {self.clock_step_frames}")
         if (
             self.packet_samples is not None
             and self.pre_trigger_samples is not None

@@ -120,7 +120,13 @@ class FingertipLink(DeviceControl):
         # Restarts come from the protocol (BOOT flag, sequence): the mapper's own
         # "device time stepped back by > 1 s" guess would fire on a device that lags
         # (packets carry their sample time, older than the STATUS it sent just before).
-        self.mapper = DeviceClockMapper(max_backstep_s=3600.0)
+        # A clock step without a restart shows as a latency above the model, frame after
+        # frame (step_back_s, step_frames): the mapping is rebuilt from those frames.
+        self.mapper = DeviceClockMapper(
+            max_backstep_s=3600.0,
+            step_back_s=config.clock_step_s,
+            step_frames=config.clock_step_frames,
+        )
         self.encoder = FrameEncoder(boot=False)
         self.state = "disconnected"
         self.device_status: Status | None = None
@@ -134,6 +140,7 @@ class FingertipLink(DeviceControl):
         self._last_byte_mono = 0.0  # last byte of any kind (stall report)
         self._stall_reported = False  # this stall of a partial frame is reported
         self._open_failure_logged = False
+        self._clock_step_logged = False
 
     # ---------------------------------------------------------------- control
     def start(self) -> None:
@@ -192,7 +199,8 @@ class FingertipLink(DeviceControl):
         dict
             The link's counters (COUNTER_NAMES), the decoder's, ``state``
             ("disconnected", "connecting" or "connected"), ``queue_depth``,
-            ``last_error``, the clock mapping's ``clock_resyncs`` / ``clock_clamped``,
+            ``last_error``, the clock mapping's ``clock_resyncs`` / ``clock_clamped`` /
+            ``clock_steps`` (clock steps without a restart, each a re-sync),
             ``packets_dropped`` and, once the device sent a STATUS, its ``device_*``
             fields.
         """
@@ -205,6 +213,7 @@ class FingertipLink(DeviceControl):
                 last_error=self.last_error,
                 clock_resyncs=self.mapper.resyncs,
                 clock_clamped=self.mapper.clamped,
+                clock_steps=self.mapper.steps,
                 packets_dropped=self.packets_dropped(),
             )
             st = self.device_status
@@ -428,11 +437,14 @@ class FingertipLink(DeviceControl):
             self._reconfigure_pending = True
         body = frame.body
         device_ns = int(frame.device_time_us) * 1000
+        steps = self.mapper.steps
         if isinstance(body, (Packet, StreamBlock)):
             last_ns = device_ns + int(round((body.n_samples - 1) * 1e9 / body.sample_rate_hz))
             self.mapper.update(last_ns, receive_ns)
         else:
             self.mapper.update(device_ns, receive_ns)
+        if self.mapper.steps != steps:
+            self._report_clock_step()
         if (
             isinstance(body, (Packet, StreamBlock))
             and float(body.v_per_count) * 32768.0 > _FLOAT32_MAX
@@ -449,6 +461,19 @@ class FingertipLink(DeviceControl):
             self._file_ack(body, receive_ns, device_ns)
         else:
             self.counters["frames_ignored"] += 1
+
+    def _report_clock_step(self) -> None:
+        """Log a clock step once per connection (every one is counted: ``clock_steps``)."""
+        if self._clock_step_logged:
+            return
+        self._clock_step_logged = True
+        self.log.warning(
+            "device clock stepped (frames %g s or more behind the clock mapping, %d in a"
+            " row): mapping rebuilt, stamps held monotonic (clock_steps counts further"
+            " steps)",
+            self.config.clock_step_s,
+            self.config.clock_step_frames,
+        )
 
     # ---------------------------------------------------------------- hand-over
     def _emit(self, receive_ns: int, records: list[PacketRecord]) -> None:

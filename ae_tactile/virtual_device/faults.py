@@ -5,14 +5,16 @@
 (flip one payload bit: the host sees a CRC error and a sequence gap), `drop_next`
 (sequence gap), `repeat_next` (a frame sent twice), `inject_frame` (any body, numbered
 like the rest), `reset_mid_frame` (a watchdog reset while a frame is on the wire, port
-left open), `garble` (every output byte replaced by noise, as a wrong baud rate would).
+left open), `garble` (every output byte replaced by noise, as a wrong baud rate would),
+`step_clock` (the device clock steps, no reboot), `halt_acquisition` (the device stops
+acquiring, no reboot: a firmware fault or another host's STOP; heartbeats go on).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ae_tactile.protocol import MAX_SAMPLES, Packet
+from ae_tactile.protocol import MAX_SAMPLES, DeviceState, Packet
 
 #: Frames the faults of corrupt_next / drop_next / repeat_next apply to.
 _DATA_KINDS = ("packet", "stream")
@@ -20,7 +22,8 @@ _DATA_KINDS = ("packet", "stream")
 
 class FaultInjection:
     """The faults of `VirtualFingertip` (uses its ``out``, ``encoder``, ``boot``,
-    ``_send``, ``device_us``, ``sample_rate_hz`` and ``v_per_count``)."""
+    ``_send``, ``device_us``, ``clock_step_ns``, ``state``, ``_source``,
+    ``sample_rate_hz`` and ``v_per_count``)."""
 
     #: frames sent twice by repeat_next so far
     frames_repeated = 0
@@ -67,6 +70,17 @@ class FaultInjection:
         self.boot()
         self.out += pending + cut
         return len(frame) - len(cut)
+
+    def step_clock(self, delta_s: float) -> None:
+        """The device clock steps by ``delta_s`` [s] (back if negative) without a reboot:
+        every later frame's ``timestamp_us`` is shifted (wrapping modulo 2^32 us)."""
+        self.clock_step_ns += int(round(float(delta_s) * 1e9))
+
+    def halt_acquisition(self) -> None:
+        """Stop acquiring without a reboot or an ACK (a firmware fault, another host's
+        STOP): the device goes IDLE and keeps sending its heartbeat STATUS."""
+        self.state = DeviceState.IDLE
+        self._source = None
 
     def garble(self, on: bool = True) -> None:
         """Replace every output byte by noise (a wrong baud rate) until garble(False)."""

@@ -107,7 +107,8 @@ class VirtualFingertip(FaultInjection):
         The host's monotonic clock [ns].
     record : bool
         Keep every frame's fate in ``sent_log``: (kind, seq, body, 'sent' | 'dropped' |
-        'corrupted').
+        'corrupted'), and in ``sent_host_ns`` the host time [ns] its timestamp stands for
+        (a packet's first sample).
 
     Raises
     ------
@@ -146,6 +147,7 @@ class VirtualFingertip(FaultInjection):
         self.clock_ns = clock_ns
         self.record = bool(record)
         self.sent_log: list[tuple] = []
+        self.sent_host_ns: list[int] = []  # host clock [ns] each sent_log frame is stamped at
         self.packet_samples = int(packet_samples)
         self.pre_trigger = int(pre_trigger)
         self.stream_block_samples = int(stream_block_samples)
@@ -173,6 +175,7 @@ class VirtualFingertip(FaultInjection):
     def boot(self) -> None:
         """(Re)boot: clock from 0, BOOT flag on the first frame, idle, nothing queued."""
         self.boot_ns = int(self.clock_ns())
+        self.clock_step_ns = 0  # steps of the device clock (fault injection) [ns]
         self.encoder = FrameEncoder(boot=True)
         self.decoder = StreamDecoder(direction=Direction.HOST_TO_DEVICE)
         self.state = DeviceState.IDLE
@@ -183,15 +186,16 @@ class VirtualFingertip(FaultInjection):
 
     def device_us(self, now_ns: int) -> int:
         """Device clock [us] at host time ``now_ns`` [ns]."""
-        return (int(now_ns) - self.boot_ns) // 1000
+        return (int(now_ns) - self.boot_ns + self.clock_step_ns) // 1000
 
     # ------------------------------------------------------------------ framing
     def _send(self, body, device_time_ns: int, kind: str) -> None:
-        ts_us = ((int(device_time_ns) - self.boot_ns) // 1000) & 0xFFFFFFFF
+        ts_us = self.device_us(device_time_ns) & 0xFFFFFFFF
         seq = self.encoder.next_seq
         data, fate = self._fate(kind, self.encoder.encode(body, ts_us))
         if self.record:
             self.sent_log.append((kind, seq, body, fate))
+            self.sent_host_ns.append(int(device_time_ns))
         if fate == "dropped":
             return
         self.out += data
@@ -203,7 +207,7 @@ class VirtualFingertip(FaultInjection):
     def status(self, now_ns: int) -> Status:
         """The STATUS body at host time ``now_ns`` [ns]."""
         return Status(
-            uptime_us=self.device_us(now_ns),
+            uptime_us=self.device_us(now_ns) % (1 << 64),  # a clock stepped below 0 wraps
             state=self.state,
             sample_rate_hz=self.sample_rate_hz,
             v_per_count=self.v_per_count,
