@@ -645,7 +645,8 @@ def test_compiled_grid_search_is_the_numpy_grid_search():
     and times, with the same statistic, as the numpy path."""
     d = simulate_overlaps(8, WATER, separation_s=4e-6, snr_db=25.0, rng=2)
     geo = WATER.geometry
-    from ae_tactile.localization.common import make_plan, prepare
+    from ae_tactile.localization.common import make_plan
+    from ae_tactile.localization.segments import prepare
 
     plan = make_plan(FS, geo, d["samples_v"].shape[2], (100e3, 1e6))
     prep = prepare(d["samples_v"], d["onset_index"], plan)

@@ -16,21 +16,19 @@ See docs/localization.md.
 """
 
 from ae_tactile.localization.common import REASON_DESCRIPTIONS, Reason
-from ae_tactile.localization.estimators import (
+from ae_tactile.localization.estimators import localize, localize_packets
+from ae_tactile.localization.fast import NUMBA_AVAILABLE
+from ae_tactile.localization.localizer import Localizer
+from ae_tactile.localization.registry import (
     DEFAULT_BAND_HZ,
     ESTIMATORS,
     EstimatorInfo,
-    LocalizationResult,
-    Localizer,
-    PacketLocation,
     available_methods,
     default_band_hz,
     get_estimator,
-    localize,
-    localize_packets,
     register_estimator,
 )
-from ae_tactile.localization.fast import NUMBA_AVAILABLE
+from ae_tactile.localization.result import LocalizationResult, PacketLocation
 
 __all__ = [
     "localize",

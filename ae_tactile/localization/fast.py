@@ -1,7 +1,9 @@
+# SPDX-License-Identifier: Apache-2.0
+# size: the ml hot path's numba kernel and helpers, one compiled unit (numpy twin: ml.py)
 """Compiled `ml` localization: one numba kernel per packet (the driver's hot path).
 
 The kernel runs, per packet and with the same equations as the numpy path
-(common.prepare, ml.estimate, estimators._finish):
+(segments.prepare, ml.estimate, estimators._finish):
 
   prepare   non-finite samples, window, saturation (flag / full scale / flat top), channel
             gains, per-packet scale, pre-onset noise and baselines, SNR window power, ADC

@@ -20,19 +20,19 @@ from __future__ import annotations
 import numpy as np
 import scipy.fft as sfft
 
-from ae_tactile.localization.common import (
-    Plan,
-    Prepared,
-    aligned_spectra,
-    delays_from_pairs,
-    pair_delays,
-    relative_arrivals,
-)
+from ae_tactile.localization.common import Plan
 from ae_tactile.localization.covariance import (
     arrival_fisher,
     delay_covariance_from_fisher,
     weighted_pair_delay_covariance,
 )
+from ae_tactile.localization.pairs import (
+    aligned_spectra,
+    delays_from_pairs,
+    pair_delays,
+    relative_arrivals,
+)
+from ae_tactile.localization.segments import Prepared
 
 
 def _finish(prep, plan, theta, point, clamped, cov_kind, pair_res, raw, edge):

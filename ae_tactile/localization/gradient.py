@@ -22,17 +22,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from ae_tactile.localization.common import (
-    CONTRASTS,
-    Plan,
-    Prepared,
+from ae_tactile.localization.common import CONTRASTS, Plan
+from ae_tactile.localization.covariance import arrival_fisher, delay_covariance_from_fisher
+from ae_tactile.localization.pairs import (
     aligned_spectra,
     delays_from_pairs,
     pair_delays,
     relative_arrivals,
-    subset,
 )
-from ae_tactile.localization.covariance import arrival_fisher, delay_covariance_from_fisher
+from ae_tactile.localization.segments import Prepared, subset
 
 _SIGNS = CONTRASTS * 4.0  # rows: -xi, -eta, xi eta
 

@@ -28,17 +28,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ae_tactile.localization.common import (
-    Plan,
-    Prepared,
-    adc_noise,
-    aligned_spectra,
-    band_edge_hz,
-    delays_from_pairs,
-    pair_delays,
-    subset,
-)
+from ae_tactile.localization.common import Plan, adc_noise, band_edge_hz
 from ae_tactile.localization.covariance import arrival_fisher, sphere_covariance
+from ae_tactile.localization.pairs import aligned_spectra, delays_from_pairs, pair_delays
+from ae_tactile.localization.segments import Prepared, subset
 
 _ALPHAS = np.array([1.0, 0.5, 0.25, 0.125, 0.0])
 

@@ -1,12 +1,13 @@
 # SPDX-License-Identifier: Apache-2.0
+# size: the overlap fit's numba kernels, one compiled unit (numpy twins: overlap/model, search)
 """Compiled joint fit of overlapping emissions: the Levenberg-Marquardt runs and the
 matched-filter grid of `ae_tactile.localization.overlap`, one window at a time.
 
-Same equations as the numpy path of `overlap` (``_Model.evaluate`` / ``jacobian``,
-``_lstsq_amplitudes``, ``_lm``, the inner loop of ``_grid_search``), without the per-call
-overhead of ~60 small numpy calls per model evaluation: a two-emission window fits in
-about a millisecond instead of tens. The pulse of an arrival at t_a on the segment grid
-t_n = t_0 + n / f_s is
+Same equations as the numpy path of `overlap` (``model._Model.evaluate`` / ``jacobian``,
+``model._lstsq_amplitudes``, ``model._lm``, the inner loop of ``search._grid_search``),
+without the per-call overhead of ~60 small numpy calls per model evaluation (a
+two-emission window fits in about a millisecond). The pulse of an arrival at t_a on the
+segment grid t_n = t_0 + n / f_s is
 
     h(t_n - t_a) = Re sum_p c_p E_p[n],  c_p = r_p e^{p (t_0 - t_a)},  E_p[n] = e^{p n / f_s}
 

@@ -11,14 +11,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from ae_tactile.geometry import FingertipGeometry
-from ae_tactile.localization.common import (
-    Reason,
-    adc_noise,
-    make_plan,
-    prepare,
-    subset,
-    validate_windows,
-)
+from ae_tactile.localization.common import Reason, adc_noise, make_plan, validate_windows
 from ae_tactile.localization.estimators import localize
 from ae_tactile.localization.overlap.decide import _decide, _first_reason, _resolve_quick
 from ae_tactile.localization.overlap.model import (
@@ -31,6 +24,7 @@ from ae_tactile.localization.overlap.model import (
 from ae_tactile.localization.overlap.pulse import _PR_CACHE, _TAB_CACHE, PulseModel, _given
 from ae_tactile.localization.overlap.search import _segments, _surface_grid
 from ae_tactile.localization.overlap.suspect import _time_search, suspect_overlap
+from ae_tactile.localization.segments import prepare, subset
 
 
 def resolve_overlaps(

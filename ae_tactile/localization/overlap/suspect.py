@@ -9,12 +9,7 @@ import scipy.fft as sfft
 
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import overlap_kernels as _kernels
-from ae_tactile.localization.common import (
-    adc_noise,
-    make_plan,
-    prepare,
-    validate_windows,
-)
+from ae_tactile.localization.common import adc_noise, make_plan, validate_windows
 from ae_tactile.localization.overlap.decide import _chi2_limit
 from ae_tactile.localization.overlap.model import (
     _compiled_medium,
@@ -25,6 +20,7 @@ from ae_tactile.localization.overlap.model import (
 )
 from ae_tactile.localization.overlap.pulse import PulseModel, _given
 from ae_tactile.localization.overlap.search import _noise_sat_fs, _segments, _segments_compiled
+from ae_tactile.localization.segments import prepare
 
 
 def suspect_overlap(

@@ -1,0 +1,202 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The per-packet hot path: `Localizer`, an estimator with its settings fixed and its tables
+warmed up, localizing one window at a time (`localize_one`, compiled with numba where
+available) or a batch (`__call__`, the same as `localize`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ae_tactile.geometry import FingertipGeometry
+from ae_tactile.localization import fast
+from ae_tactile.localization.estimators import (
+    _gains_arg,
+    _iterations,
+    _plan,
+    _positive_arg,
+    localize,
+    resolve_engine,
+)
+from ae_tactile.localization.registry import get_estimator
+from ae_tactile.localization.result import PacketLocation
+
+#: the input types `localize_one` takes without conversion
+_FLOATS = (np.dtype(np.float64), np.dtype(np.float32))
+_REALS = (int, np.integer, float, np.floating)
+
+
+
+class Localizer:
+    """A configured `localize` (what the ROS node holds):
+    ``Localizer(method='ml', ...)(windows, fs, onset)``.
+
+    ``localize_one(window (4, M), fs, onset)`` is the per-packet hot path: with numba and
+    ``ml`` one compiled call per packet (plans and tables cached per (fs, M, geometry));
+    ``warm_up(geometry, fs, n_samples)`` compiles and caches it before acquisition.
+    """
+
+    _ONE_KEYS = frozenset(
+        {
+            "band_hz",
+            "min_snr_db",
+            "overlap_threshold",
+            "pre_onset_s",
+            "echo_guard_s",
+            "full_scale_v",
+            "engine",
+            "iterations",
+            "geometry",
+        }
+    )
+
+    def __init__(self, method="ml", **kwargs):
+        info = get_estimator(method)
+        self.method = method
+        self.kwargs = kwargs
+        opts = {
+            k: v
+            for k, v in kwargs.items()
+            if k not in self._ONE_KEYS and k not in ("noise_rms_v", "saturated", "channel_gains")
+        }
+        if "iterations" in kwargs:
+            opts["iterations"] = kwargs["iterations"]
+        self._one_engine = resolve_engine(kwargs.get("engine"), method, opts)
+        if self._one_engine == "numba":
+            self._iterations = _iterations(kwargs)
+            self._min_snr_db = float(kwargs.get("min_snr_db", 5.0))
+            thr = kwargs.get("overlap_threshold")
+            self._thr = info.overlap_threshold if thr is None else float(thr)
+            fsv = kwargs.get("full_scale_v")
+            self._full_scale = np.nan if fsv is None else _positive_arg("full_scale_v", fsv)
+            if not (np.isfinite(self._min_snr_db) and np.isfinite(self._thr) and self._thr > 0):
+                raise ValueError("min_snr_db must be finite and overlap_threshold positive")
+        self._plans = {}
+        self._default_geometry = kwargs.get("geometry") or FingertipGeometry()
+
+    def __call__(self, windows, sample_rate_hz, onset_index, **overrides):
+        kw = dict(self.kwargs)
+        kw.update(overrides)
+        return localize(windows, sample_rate_hz, onset_index, method=self.method, **kw)
+
+    def _tables(self, fs, m, geometry):
+        key = (fs, m, geometry)
+        hit = self._plans.get(key)
+        if hit is None:
+            plan = _plan(
+                fs,
+                geometry,
+                m,
+                self.kwargs.get("band_hz"),
+                self.kwargs.get("pre_onset_s", 1e-6),
+                self.kwargs.get("echo_guard_s", 0.3e-6),
+                self.method,
+            )
+            hit = fast.tables_for(plan)
+            if len(self._plans) > 32:
+                self._plans.clear()
+            self._plans[key] = hit
+        return hit
+
+    def localize_one(
+        self,
+        samples_v,
+        sample_rate_hz,
+        onset_index,
+        *,
+        noise_rms_v=None,
+        saturated=False,
+        geometry=None,
+        channel_gains=None,
+    ) -> PacketLocation:
+        """Localize one (4, M) window (float32 / float64 volts). Never raises on the data
+        (NaN, zeros, clipping: a rejection with its reason); ValueError / TypeError on bad
+        arguments. noise_rms_v: known sigma (V, > 0) or None / NaN (measured);
+        saturated: upstream clip flag (None: the flat-top heuristic decides)."""
+        geo = self._default_geometry if geometry is None else geometry
+        if self._one_engine != "numba":
+            kw = dict(self.kwargs)
+            kw.update(
+                geometry=geo,
+                noise_rms_v=noise_rms_v,
+                channel_gains=channel_gains,
+                saturated=None if saturated is None else [bool(saturated)],
+            )
+            x = np.asarray(samples_v)
+            if x.ndim != 2:
+                raise ValueError(f"samples_v must have shape (4, M), got {x.shape}")
+            res = localize(x[None], sample_rate_hz, [onset_index], method=self.method, **kw)
+            return PacketLocation.from_result(res, 0)
+        x = samples_v
+        if not (type(x) is np.ndarray and x.dtype in _FLOATS and x.flags.c_contiguous):
+            x = np.asarray(x)
+            if x.dtype == object or not (
+                np.issubdtype(x.dtype, np.floating) or np.issubdtype(x.dtype, np.integer)
+            ):
+                raise TypeError(f"samples_v must be a real numeric array, got dtype {x.dtype}")
+            x = np.ascontiguousarray(x, dtype=np.float64)
+        if x.ndim != 2 or x.shape[0] != 4 or x.shape[1] < 4:
+            raise ValueError(f"samples_v must have shape (4, M) with M >= 4, got {x.shape}")
+        fs = sample_rate_hz
+        if type(fs) is not float:
+            fs = _positive_arg("sample_rate_hz", fs)
+        elif not (fs > 0 and fs < np.inf):
+            raise ValueError(
+                f"sample_rate_hz must be a positive finite number, got {sample_rate_hz!r}"
+            )
+        on = onset_index
+        if type(on) is not int:
+            if isinstance(on, (bool, np.bool_)) or not isinstance(on, _REALS):
+                raise TypeError(f"onset_index must be an integer sample index, got {on!r}")
+            if not (np.isfinite(on) and on == int(on)):
+                raise ValueError(f"onset_index must be an integer sample index, got {on!r}")
+            on = int(on)
+        if noise_rms_v is None:
+            nr = np.nan
+        else:
+            nr = float(noise_rms_v)
+            if not (nr > 0 and nr < np.inf) and not math.isnan(nr):
+                raise ValueError(
+                    f"noise_rms_v must be positive and finite (NaN: unknown), got {noise_rms_v!r}"
+                )
+        sat = -1 if saturated is None else int(bool(saturated))
+        if not isinstance(geo, FingertipGeometry):
+            raise TypeError(f"geometry must be a FingertipGeometry, got {type(geo).__name__}")
+        tb = self._tables(fs, x.shape[1], geo)
+        gains = None if channel_gains is None else _gains_arg(channel_gains)
+        out = np.empty(fast.N_SCALAR_OUT)
+        pt = np.empty(3)
+        cov = np.empty((3, 3))
+        ctau = np.empty((2, 2))
+        fast.run_one(
+            x,
+            on,
+            nr,
+            sat,
+            self._full_scale,
+            gains,
+            tb,
+            self._iterations,
+            self._min_snr_db,
+            self._thr,
+            out,
+            pt,
+            cov,
+            ctau,
+        )
+        return PacketLocation(out, pt, cov, ctau)
+
+    def warm_up(self, geometry=None, sample_rate_hz=10e6, n_samples=400):
+        """Compile and cache the kernels (float32 and float64 windows) and the plan for this
+        (geometry, fs, M) so that the first packet is fast. Returns self."""
+        geo = self._default_geometry if geometry is None else geometry
+        fs = _positive_arg("sample_rate_hz", sample_rate_hz)
+        m = int(n_samples)
+        rng = np.random.default_rng(0)
+        x = rng.standard_normal((4, m)) * 1e-3
+        for dt in (np.float64, np.float32):
+            self.localize_one(x.astype(dt), fs, m // 4, geometry=geo)
+            self(x.astype(dt)[None], fs, [m // 4], geometry=geo)
+        return self
