@@ -13,6 +13,8 @@ import math
 import textwrap
 from dataclasses import asdict, dataclass, field, fields, replace
 
+from ae_tactile.localization.weak_release import RELEASE_FLOOR_M, RELEASE_GATE_SIGMA
+
 
 def _p(
     default,
@@ -93,7 +95,7 @@ class SlipConfig:
         lo_open=True,
     )
     release_gate_sigma: float = _p(
-        4.0,
+        RELEASE_GATE_SIGMA,
         "two emissions of a contact are one spot (a touch and its release, repeated taps) "
         "when their distance is below this many standard deviations of the difference",
         "",
@@ -102,7 +104,7 @@ class SlipConfig:
         lo_open=True,
     )
     release_floor_m: float = _p(
-        0.1e-3,
+        RELEASE_FLOOR_M,
         "isotropic position uncertainty added to that gate (model error, bias)",
         "m",
         0.0,
