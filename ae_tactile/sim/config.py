@@ -87,12 +87,41 @@ class SimConfig:
         times a 60 dB amplifier).
     highpass_hz, highpass_order : float, int
         Butterworth high-pass [Hz] (the paper's 100 kHz; order 2).
+    highpass_rc_hz : tuple of float, optional
+        Corners [Hz] of causal first-order RC high-pass stages, distinct, one per stage;
+        given, they replace the Butterworth high-pass (a textbook coupling network:
+        (60e3, 69e3) is two RC stages with -3 dB near 100 kHz). ``highpass_hz`` then only
+        serves the ``lowpass_hz > highpass_hz`` check.
     lowpass_hz, lowpass_order : float or "auto" or None, int or "auto"
-        Butterworth anti-alias / PVDF band limit [Hz]. "auto" (default):
+        Anti-alias / PVDF band limit [Hz] of family ``lowpass_family``. "auto" (default):
         ``geometry.resolve_front_end_lowpass``: (1 MHz, order 4), the PVDF/amplifier band,
         and below 3.33 MS/s the ADC's anti-alias filter (0.3 f_s, order 8).
         ``lowpass_hz=None`` disables the low-pass (an "auto" order is then 4). "auto" is
         resolved on construction; ``replace`` re-resolves it for a new sample rate.
+    lowpass_family : {'butter', 'bessel', 'cheby1'}
+        Low-pass family (scipy's analog designs; Bessel normalised to -3 dB at
+        ``lowpass_hz``; Chebyshev-I with ``lowpass_ripple_db`` of pass-band ripple [dB],
+        its edge at ``lowpass_hz``).
+    amplifier_pole_hz : float, optional
+        One extra real pole of the amplifier [Hz] (None: none).
+    attenuation_law : {'pole', 'power'}
+        'pole': the f^2 loss realised by one causal pole per path (propagation.py);
+        'power': loss att_1MHz l (f / 1 MHz)^y with y = ``attenuation_exponent`` and the
+        Kramers-Kronig dispersion of that law, the sound speed being the phase velocity
+        at ``attenuation_ref_hz``; rendered by `render_triggered` only.
+    attenuation_exponent, attenuation_ref_hz : float
+        y in (0, 2], y != 1 (1.5: silicone-like rubbers) and the reference frequency of
+        the sound speed [Hz] (300 kHz: where the pulse's energy lies).
+    channel_gain : tuple of 4 float
+        Gain of each channel relative to ``sensitivity_v_per_pa`` (mismatch; 1.0 each).
+    channel_delay_s : tuple of 4 float
+        Extra delay of each channel [s] (phase mismatch of the electronics; 0 each);
+        the ground truth (``delays_s``) stays geometric.
+    amplifier_noise_share : float
+        Share in [0, 1] of the noise variance at the ADC that is amplifier noise: white
+        at the amplifier's input, filtered by the whole analog chain (coloured); the
+        rest is white ADC noise. 0: all white (rendered by `render_triggered` only
+        when > 0).
     sample_rate_hz : float
         ADC rate, an integer number of Hz (10 MS/s).
     adc_bits, adc_full_scale_v : int, float
@@ -124,6 +153,16 @@ class SimConfig:
     highpass_order: int = 2
     lowpass_hz: float | str | None = "auto"
     lowpass_order: int | str = "auto"
+    highpass_rc_hz: tuple | None = None
+    lowpass_family: str = "butter"
+    lowpass_ripple_db: float = 0.5
+    amplifier_pole_hz: float | None = None
+    attenuation_law: str = "pole"
+    attenuation_exponent: float = 1.5
+    attenuation_ref_hz: float = 300e3
+    channel_gain: tuple = (1.0, 1.0, 1.0, 1.0)
+    channel_delay_s: tuple = (0.0, 0.0, 0.0, 0.0)
+    amplifier_noise_share: float = 0.0
     sample_rate_hz: float = 10e6
     adc_bits: int = 12
     adc_full_scale_v: float = 1.0
@@ -184,6 +223,7 @@ class SimConfig:
             raise ValueError(f"highpass_hz={hp} must be below Nyquist ({fs / 2} Hz)")
         if lp is not None and lp <= hp:
             raise ValueError(f"lowpass_hz={lp} must be above highpass_hz={hp}")
+        self._validate_device(fs, lp)
         _int_in("adc_bits", self.adc_bits, 2, 24)
         _pos("adc_full_scale_v", self.adc_full_scale_v)
         for name in ("attenuation", "reflections", "quantization"):
@@ -200,6 +240,56 @@ class SimConfig:
         ms = _pos("max_support_s", self.max_support_s)
         if ms * fs < 16:
             raise ValueError(f"max_support_s={ms} is shorter than 16 samples")
+
+    def _validate_device(self, fs, lp) -> None:
+        """Checks of the device fields (front-end families, loss law, mismatch, noise)."""
+        if self.highpass_rc_hz is not None:
+            rc = tuple(_pos("highpass_rc_hz", v) for v in self.highpass_rc_hz)
+            if not 1 <= len(rc) <= 4:
+                raise ValueError("highpass_rc_hz must hold 1 to 4 corners")
+            if len(set(rc)) != len(rc):
+                raise ValueError(f"highpass_rc_hz corners must be distinct, got {rc}")
+            if max(rc) >= fs / 2:
+                raise ValueError(f"highpass_rc_hz={rc} must be below Nyquist ({fs / 2} Hz)")
+            object.__setattr__(self, "highpass_rc_hz", rc)
+        if self.lowpass_family not in ("butter", "bessel", "cheby1"):
+            raise ValueError("lowpass_family must be 'butter', 'bessel' or 'cheby1', got"
+                             f" {self.lowpass_family!r}")
+        _pos("lowpass_ripple_db", self.lowpass_ripple_db)
+        _pos("amplifier_pole_hz", self.amplifier_pole_hz, allow_none=True)
+        if self.attenuation_law not in ("pole", "power"):
+            raise ValueError(f"attenuation_law must be 'pole' or 'power', got"
+                             f" {self.attenuation_law!r}")
+        y = _pos("attenuation_exponent", self.attenuation_exponent)
+        if y > 2.0 or abs(y - 1.0) < 1e-3:
+            raise ValueError(f"attenuation_exponent must lie in (0, 2] and differ from 1, got {y}")
+        _pos("attenuation_ref_hz", self.attenuation_ref_hz)
+        for name in ("channel_gain", "channel_delay_s"):
+            v = np.asarray(getattr(self, name), dtype=float)
+            if v.shape != (4,) or not np.all(np.isfinite(v)):
+                raise ValueError(f"{name} must hold 4 finite numbers, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, tuple(float(x) for x in v))
+        if min(self.channel_gain) <= 0:
+            raise ValueError(f"channel_gain must be positive, got {self.channel_gain}")
+        if min(self.channel_delay_s) < 0 or max(self.channel_delay_s) * fs > 64:
+            raise ValueError("channel_delay_s must lie in [0, 64 samples], got"
+                             f" {self.channel_delay_s}")
+        share = float(self.amplifier_noise_share)
+        if not 0.0 <= share <= 1.0:
+            raise ValueError(f"amplifier_noise_share must lie in [0, 1], got {share}")
+        if share > 0 and lp is None and self.amplifier_pole_hz is None:
+            raise ValueError("amplifier noise needs a low-pass or an amplifier pole (its"
+                             " variance is infinite through a chain without one)")
+
+    @property
+    def streamable(self) -> bool:
+        """True when the streaming renderers support every effect switched on (the power
+        loss law, channel mismatch and amplifier noise are rendered by `render_triggered`
+        only)."""
+        return (not (self.attenuation and self.attenuation_law == "power")
+                and self.channel_gain == (1.0, 1.0, 1.0, 1.0)
+                and self.channel_delay_s == (0.0, 0.0, 0.0, 0.0)
+                and self.amplifier_noise_share == 0.0)
 
     @classmethod
     def for_medium(cls, medium: str, **kwargs) -> "SimConfig":

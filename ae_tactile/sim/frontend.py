@@ -1,20 +1,25 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Front end: PVDF + amplifier gain, Butterworth high-pass and anti-alias low-pass, noise, ADC.
+"""Front end: PVDF + amplifier gain, high-pass, anti-alias low-pass, noise, ADC.
 
 The analog chain is the rational transfer function (volts per pascal)
 
-    F(s) = G * HP_n(s) * LP_m(s)
+    F(s) = G * HP(s) * LP_m(s) [* AMP(s)]
 
-with G = ``sensitivity_v_per_pa``, HP_n an n-th order Butterworth high-pass at
-``highpass_hz`` (paper: 100 kHz) and LP_m an m-th order Butterworth low-pass at
-``lowpass_hz`` (1 MHz: the PVDF/amplifier band and the ADC's anti-alias filter).
+with G = ``sensitivity_v_per_pa``, HP an n-th order Butterworth high-pass at
+``highpass_hz`` (paper: 100 kHz, n = 2) or a cascade of first-order RC stages
+(``highpass_rc_hz``), LP_m an m-th order low-pass at ``lowpass_hz`` (Butterworth by
+default, 1 MHz: the PVDF/amplifier band and the ADC's anti-alias filter; Bessel or
+Chebyshev-I by ``lowpass_family``) and AMP an optional amplifier pole. All stages are
+given as analog zpk (`analog_stages`); the poles must be simple.
 It is applied causally, as the analog front end would be. Because the emission (Eq. 9)
 is rational too, the filtered response to each arrival is a finite sum of complex
 exponentials, evaluated *exactly* at the sample instants (see `response.py`); sampling
 then aliases whatever the low-pass lets through above fs/2, as a real ADC does.
 
-Noise: white Gaussian, variance sigma^2 per channel over 0..fs/2, added at the ADC
-input. SNR (docs/conventions.md): SNR_dB = 10 log10(P_signal / sigma^2), P_signal the
+Noise: Gaussian, variance sigma^2 per channel, added at the ADC input: white (ADC
+noise) and, for a share ``amplifier_noise_share`` of the variance, amplifier noise, white
+at the amplifier input and coloured by the whole analog chain (`AmplifierNoise`).
+SNR (docs/conventions.md): SNR_dB = 10 log10(P_signal / sigma^2), P_signal the
 mean power of the noise-free signal over the 4 channels and the 30 us window that
 starts at the earliest direct arrival. `noise_rms_for_snr` is the one conversion.
 
@@ -35,24 +40,54 @@ from ae_tactile.sim.response import att_support_samples, fast_support_samples
 SNR_WINDOW_S = 30e-6
 
 
+def analog_stages(config) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """The analog chain as a list of stages (zeros, poles [rad/s], gain), without the
+    sensitivity: the high-pass (Butterworth, or one first-order RC stage per corner of
+    ``highpass_rc_hz``), the anti-alias low-pass of ``lowpass_family``, and the optional
+    amplifier pole. F(s) = sensitivity * product of the stages.
+
+    Parameters
+    ----------
+    config : SimConfig
+
+    Returns
+    -------
+    list of (ndarray, ndarray, float)
+    """
+    w = 2 * math.pi
+    if config.highpass_rc_hz is None:
+        stages = [signal.butter(config.highpass_order, w * config.highpass_hz,
+                                btype="highpass", analog=True, output="zpk")]
+    else:
+        stages = [signal.butter(1, w * f, btype="highpass", analog=True, output="zpk")
+                  for f in config.highpass_rc_hz]
+    if config.lowpass_hz is not None:
+        wn = w * config.lowpass_hz
+        n = config.lowpass_order
+        if config.lowpass_family == "bessel":
+            stages.append(signal.bessel(n, wn, btype="lowpass", analog=True, output="zpk",
+                                        norm="mag"))
+        elif config.lowpass_family == "cheby1":
+            stages.append(signal.cheby1(n, config.lowpass_ripple_db, wn, btype="lowpass",
+                                        analog=True, output="zpk"))
+        else:
+            stages.append(signal.butter(n, wn, btype="lowpass", analog=True, output="zpk"))
+    if config.amplifier_pole_hz is not None:
+        stages.append(signal.butter(1, w * config.amplifier_pole_hz, btype="lowpass",
+                                    analog=True, output="zpk"))
+    return stages
+
+
 class FrontEnd:
     """Poles, residues and exponential tables of F(s) for one `SimConfig` (built lazily
     via ``config.frontend``)."""
 
     def __init__(self, config):
         self.config = config
-        zs, ps, ks = [], [], []
-        z, p, k = signal.butter(config.highpass_order, 2 * math.pi * config.highpass_hz,
-                                btype="highpass", analog=True, output="zpk")
-        zs.append(z)
-        ps.append(p)
-        ks.append(k)
-        if config.lowpass_hz is not None:
-            z, p, k = signal.butter(config.lowpass_order, 2 * math.pi * config.lowpass_hz,
-                                    btype="lowpass", analog=True, output="zpk")
-            zs.append(z)
-            ps.append(p)
-            ks.append(k)
+        stages = analog_stages(config)
+        zs = [z for z, _, _ in stages]
+        ps = [p for _, p, _ in stages]
+        ks = [k for _, _, k in stages]
         self.zeros = np.concatenate(zs).astype(complex)
         self.poles = np.concatenate(ps).astype(complex)
         self.gain = float(np.prod(ks)) * config.sensitivity_v_per_pa
@@ -77,8 +112,18 @@ class FrontEnd:
 
     def _residue(self, q):
         others = [pp for pp in self.poles if abs(pp - q) > 1e-9 * abs(q)]
-        assert len(others) == len(self.poles) - 1, "Butterworth poles are simple"
+        if len(others) != len(self.poles) - 1:
+            raise ValueError("the front end's poles must be simple (two stages share a pole"
+                             f" at {q / (2 * math.pi):.6g} rad/s / 2 pi)")
         return self.gain * np.prod(q - self.zeros) / np.prod(q - np.array(others))
+
+    @property
+    def amplifier_noise(self) -> AmplifierNoise:
+        """Cached `AmplifierNoise` of this chain."""
+        a = getattr(self, "_amp_noise", None)
+        if a is None:
+            a = self._amp_noise = AmplifierNoise(self)
+        return a
 
     def transfer(self, s):
         """F(s) (V/Pa) at complex or real s (any shape)."""
@@ -113,6 +158,86 @@ class FrontEnd:
             re, im = self.exp_table(self.config.max_support_samples)
             b = self._basis = np.ascontiguousarray(np.vstack([re, im]))
         return b
+
+
+# ------------------------------------------------------------------------ amplifier noise
+#: Oversampling of the amplifier-noise filter: the analog chain is discretized by the
+#: bilinear transform at NOISE_OVERSAMPLING fs and the output decimated (a sample of every
+#: NOISE_OVERSAMPLING). At 8 fs the bilinear frequency warping is below 0.2 % at fs / 2
+#: and the spectrum folded from above 4 fs is below 1e-3 of the variance for any low-pass
+#: of order >= 2 at or below fs / 2; the sampled noise aliases what the chain passes
+#: above fs / 2, as a real ADC does. (An exact discretization of the state space is
+#: ill-conditioned at order 10 and poles three decades apart.)
+NOISE_OVERSAMPLING = 8
+
+
+class AmplifierNoise:
+    """Unit-variance amplifier noise at the ADC: white at the amplifier input, filtered by
+    the analog chain F(s) / G (see `NOISE_OVERSAMPLING` for the discretization).
+
+    Parameters
+    ----------
+    frontend : FrontEnd
+        The chain's zeros, poles and gain.
+    """
+
+    def __init__(self, frontend):
+        cfg = frontend.config
+        self.factor = NOISE_OVERSAMPLING
+        fs_up = self.factor * float(cfg.sample_rate_hz)
+        z, p, k = signal.bilinear_zpk(frontend.zeros, frontend.poles,
+                                      frontend.gain / cfg.sensitivity_v_per_pa, fs_up)
+        self.sos = signal.zpk2sos(z, p, k)
+        slowest = float(np.min(np.abs(frontend.poles.real)))       # [rad/s]
+        #: up-rate samples of filter start-up discarded: e^-14 of the slowest pole
+        self.burn = int(math.ceil(14.0 / slowest * fs_up))
+        imp = np.zeros(2 * self.burn)
+        imp[0] = 1.0
+        self.impulse = signal.sosfilt(self.sos, imp)
+        #: variance of the filtered unit white noise (sum of h^2)
+        self.variance = float(np.sum(self.impulse ** 2))
+
+    def autocorrelation(self, n_lags: int) -> np.ndarray:
+        """Normalised autocovariance r[m], m = 0..n_lags-1, of the noise at the ADC
+        (r[0] = 1), exact for the discretized chain.
+
+        Parameters
+        ----------
+        n_lags : int
+
+        Returns
+        -------
+        ndarray
+        """
+        h = self.impulse
+        k = self.factor
+        r = [np.dot(h[:h.size - k * m], h[k * m:]) if k * m < h.size else 0.0
+             for m in range(int(n_lags))]
+        return np.asarray(r) / self.variance
+
+    def draw(self, shape, gen, rows_per_batch: int = 256) -> np.ndarray:
+        """Unit-variance noise of ``shape`` (..., M) at the ADC rate.
+
+        Parameters
+        ----------
+        shape : tuple of int
+        gen : numpy.random.Generator
+
+        Returns
+        -------
+        ndarray
+        """
+        shape = tuple(shape)
+        m_len = shape[-1]
+        rows = int(np.prod(shape[:-1]))
+        out = np.empty((rows, m_len))
+        n_up = self.burn + self.factor * m_len
+        scale = 1.0 / math.sqrt(self.variance)
+        for r0 in range(0, rows, rows_per_batch):
+            r1 = min(rows, r0 + rows_per_batch)
+            y = signal.sosfilt(self.sos, gen.standard_normal((r1 - r0, n_up)), axis=-1)
+            out[r0:r1] = y[:, self.burn::self.factor][:, :m_len] * scale
+        return out.reshape(shape)
 
 
 # ------------------------------------------------------------------------ SNR / noise

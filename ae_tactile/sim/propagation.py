@@ -25,8 +25,15 @@ concave wall refocuses the echo toward the centre, so instead of 1/L spreading e
 bounce multiplies the pressure at the array centre, S/R, by ``reflection_coefficient``
 (default -0.5: a nearly pressure-release skin/air wall with losses in skin and base).
 
-Attenuation (``attenuation`` switch): loss L_dB(f) = att_1MHz * l * (f / 1 MHz)^2 at low
-frequency (viscous / Kelvin-Voigt law), realised causally as one real pole per path,
+Channel mismatch: every arrival at element k is scaled by ``channel_gain[k]`` and delayed
+by ``channel_delay_s[k]`` (the electronics of that channel).
+
+Power-law attenuation (``attenuation_law='power'``, `power_law_transfer`): loss
+att_1MHz l (f / 1 MHz)^y with its Kramers-Kronig dispersion, applied per path by FFT in
+`render_triggered`.
+
+Attenuation (``attenuation`` switch, ``attenuation_law='pole'``): loss
+L_dB(f) = att_1MHz * l * (f / 1 MHz)^2 at low frequency (viscous / Kelvin-Voigt law), realised causally as one real pole per path,
 |W(f)|^2 = 1 / (1 + (f/f_a)^2), with f_a chosen so that the loss at 1 MHz is exactly
 att_1MHz * l. A causal loss is dispersive: W adds a group delay 1/(2 pi f_a) that grows
 with l (~0.1 us over 1 cm of the silicone preset), so in a lossy body the four channels
@@ -46,6 +53,58 @@ def attenuation_pole_rad_s(path_m, att_db_per_m_at_1mhz):
     with np.errstate(divide="ignore"):
         x = np.expm1(loss_db * (math.log(10.0) / 10.0))
         return np.where(x > 0, 2.0 * math.pi * 1e6 / np.sqrt(np.where(x > 0, x, 1.0)), np.inf)
+
+
+def power_law_transfer(f_hz, path_m, att_db_per_m_at_1mhz, exponent, ref_hz):
+    """Transfer of a path in a power-law lossy medium, relative to the lossless delay l/c.
+
+    H(f) = exp(-a(f) l) exp(-j b(f) l) with a(f) = a1 (f / 1 MHz)^y [Np/m] and the
+    Kramers-Kronig (Szabo's time-causal) dispersion
+    b(f) = a1 tan(pi y / 2) [(f / 1 MHz)^y - (f / 1 MHz) (f_ref / 1 MHz)^(y-1)] [rad/m],
+    which makes c the phase velocity at f_ref.
+
+    Parameters
+    ----------
+    f_hz : array_like
+        Frequencies >= 0 [Hz].
+    path_m : array_like
+        Path lengths [m], broadcast against ``f_hz``.
+    att_db_per_m_at_1mhz, exponent, ref_hz : float
+        Loss at 1 MHz [dB/m], y, f_ref [Hz].
+
+    Returns
+    -------
+    ndarray
+        Complex H.
+    """
+    a1 = float(att_db_per_m_at_1mhz) * math.log(10.0) / 20.0          # [Np/m]
+    y = float(exponent)
+    x = np.asarray(f_hz, dtype=float) / 1e6
+    xr = float(ref_hz) / 1e6
+    b = a1 * math.tan(math.pi * y / 2.0) * (x ** y - x * xr ** (y - 1.0))
+    return np.exp(-(a1 * x ** y + 1j * b) * np.asarray(path_m, dtype=float))
+
+
+def apply_power_law(x, path_m, config) -> np.ndarray:
+    """Filter windows ``x`` (..., M) [V] by the power-law loss of their paths ``path_m``
+    (...) (config's ``attenuation_law='power'``), by FFT: the caller pads the windows so
+    that the circular wrap of the loss's short impulse response stays in the padding.
+
+    Parameters
+    ----------
+    x : ndarray
+    path_m : ndarray
+    config : SimConfig
+
+    Returns
+    -------
+    ndarray
+    """
+    m_len = x.shape[-1]
+    f = np.fft.rfftfreq(m_len, config.dt_s)
+    h = power_law_transfer(f, np.asarray(path_m)[..., None], config.attenuation_db_per_m,
+                           config.attenuation_exponent, config.attenuation_ref_hz)
+    return np.fft.irfft(np.fft.rfft(x, axis=-1) * h, n=m_len, axis=-1)
 
 
 @dataclass(frozen=True)
@@ -105,9 +164,11 @@ def compute_arrivals(points_m, strength_pa_m, alpha_1_s, config) -> Arrivals:
         r = config.reflection_coefficient
         for m in range(1, n_paths):
             amp[:, m, :] = (S * (r ** m) / config.geometry.radius_m)[:, None]
-    delay = lengths / config.geometry.sound_speed_m_s
+    # channel gain and delay mismatch of the electronics (1.0 and 0.0: exact no-ops)
+    amp *= np.asarray(config.channel_gain, dtype=float)
+    delay = lengths / config.geometry.sound_speed_m_s + np.asarray(config.channel_delay_s, float)
     att = None
-    if config.attenuation_db_per_m > 0.0:
+    if config.attenuation_db_per_m > 0.0 and config.attenuation_law == "pole":
         att = attenuation_pole_rad_s(lengths, config.attenuation_db_per_m).reshape(-1)
         if not np.all(np.isfinite(att)):
             att = None

@@ -71,6 +71,9 @@ class StreamRenderer:
                  noise_block: int = 32768, batch_emissions: int = 32, engine=None):
         if not isinstance(config, SimConfig):
             raise TypeError(f"config must be a SimConfig, got {type(config).__name__}")
+        if not config.streamable:
+            raise ValueError("the streaming renderer does not render the power loss law,"
+                             " channel mismatch or amplifier noise (render_triggered does)")
         sigma = float(noise_rms_v)
         if not math.isfinite(sigma) or sigma < 0:
             raise ValueError(f"noise_rms_v must be finite and >= 0, got {noise_rms_v!r}")

@@ -100,7 +100,7 @@ def fast_support_samples(config, fe) -> int:
 def att_support_samples(config, max_path_m) -> int:
     """Config constant L_att for the attenuation-pole term: |c_att| <= 4 |A| G (conservative)
     and the slowest pole belongs to the longest path."""
-    if config.attenuation_db_per_m <= 0:
+    if config.attenuation_db_per_m <= 0 or config.attenuation_law != "pole":
         return 0
     w = float(attenuation_pole_rad_s(max_path_m, config.attenuation_db_per_m))
     if not np.isfinite(w):

@@ -18,10 +18,13 @@ from ae_tactile.sim.emission import (
     source_strength_pa_m,
 )
 from ae_tactile.sim.frontend import SNR_WINDOW_S, noise_rms_for_snr, quantize, signal_power_v2
-from ae_tactile.sim.propagation import compute_arrivals
+from ae_tactile.sim.propagation import apply_power_law, compute_arrivals, path_lengths
 from ae_tactile.sim.response import arrival_coefficients, evaluate
 
 _BATCH = 1024
+#: Padding of each side of a window rendered with the power loss law [s]: the loss's
+#: impulse response (and its circular wrap in the FFT) is far shorter.
+_LOSS_PAD_S = 10e-6
 
 
 @dataclass(frozen=True)
@@ -135,8 +138,13 @@ def _subsample_offsets(subsample_offset, n, gen) -> np.ndarray:
 
 def _render_clean(pts, strength, alpha, t_first, direct_t, cfg, m_len) -> np.ndarray:
     """Noise-free windows (N, 4, M) [V] whose earliest direct arrival is at ``t_first`` [s]
-    after the first sample, in batches of _BATCH emissions."""
+    after the first sample, in batches of _BATCH emissions. With the power loss law each
+    path is rendered on a window padded by `_LOSS_PAD_S` on both sides, filtered by its
+    loss (`propagation.apply_power_law`) and cropped."""
     n = pts.shape[0]
+    power = cfg.attenuation_db_per_m > 0.0 and cfg.attenuation_law == "power"
+    pad = int(math.ceil(_LOSS_PAD_S * cfg.sample_rate_hz)) if power else 0
+    m_ext = m_len + 2 * pad
     clean = np.zeros((n, 4, m_len))
     for b0 in range(0, n, _BATCH):
         sl = slice(b0, min(n, b0 + _BATCH))
@@ -144,16 +152,31 @@ def _render_clean(pts, strength, alpha, t_first, direct_t, cfg, m_len) -> np.nda
         arr = compute_arrivals(pts[sl], strength[sl], alpha[sl], cfg)
         # offset from the window start = t_first + (delay - min direct delay) >= 0
         off = (t_first[sl] - direct_t[sl].min(axis=1))[arr.emission] + arr.delay_s
+        if pad:
+            off = off + pad * cfg.dt_s
         co = arrival_coefficients(arr.amplitude_pa, arr.alpha_1_s, arr.att_pole_rad_s,
                                   np.zeros(len(arr), np.int64), off, cfg)
-        y = evaluate(co, cfg, n_samples=m_len)                # (n_arr, M)
+        y = evaluate(co, cfg, n_samples=m_ext)                # (n_arr, M)
         # shift row a right by n0_a samples: window M - n0_a of [zeros(M) | y]
         padded = np.concatenate([np.zeros_like(y), y], axis=1)
-        view = np.lib.stride_tricks.sliding_window_view(padded, m_len, axis=1)
-        placed = view[np.arange(len(co)), np.clip(m_len - co.n0, 0, m_len)]
+        view = np.lib.stride_tricks.sliding_window_view(padded, m_ext, axis=1)
+        placed = view[np.arange(len(co)), np.clip(m_ext - co.n0, 0, m_ext)]
         n_paths = len(arr) // (4 * nb)
-        clean[sl] = placed.reshape(nb, n_paths, 4, m_len).sum(axis=1)
+        placed = placed.reshape(nb, n_paths, 4, m_ext)
+        if pad:
+            placed = apply_power_law(placed, path_lengths(pts[sl], cfg), cfg)[..., pad:pad + m_len]
+        clean[sl] = placed.sum(axis=1)
     return clean
+
+
+def _add_noise(samples, sigma, cfg, gen) -> None:
+    """Add the noise of sigma [V] (N,) per packet in place: white, and the config's
+    ``amplifier_noise_share`` of the variance as amplifier noise through the chain."""
+    share = float(cfg.amplifier_noise_share)
+    samples += (sigma * math.sqrt(1.0 - share))[:, None, None] * gen.standard_normal(samples.shape)
+    if share > 0.0:
+        coloured = cfg.frontend.amplifier_noise.draw(samples.shape, gen)
+        samples += (sigma * math.sqrt(share))[:, None, None] * coloured
 
 
 def _noise_levels(clean, onset, fs, snr_db, noise_rms_v):
@@ -243,7 +266,7 @@ def render_triggered(points_m, config: SimConfig | None = None, *, snr_db=None, 
     sigma, snr, p_sig = _noise_levels(clean, onset, fs, snr_db, noise_rms_v)
     samples = clean.copy()
     if np.any(sigma > 0):
-        samples += sigma[:, None, None] * gen.standard_normal(samples.shape)
+        _add_noise(samples, sigma, cfg, gen)
     if cfg.quantization:
         samples, clipped = quantize(samples, cfg, out=samples)
         saturated = clipped.any(axis=(1, 2))
