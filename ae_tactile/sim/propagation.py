@@ -33,7 +33,8 @@ att_1MHz l (f / 1 MHz)^y with its Kramers-Kronig dispersion, applied per path by
 `render_triggered`.
 
 Attenuation (``attenuation`` switch, ``attenuation_law='pole'``): loss
-L_dB(f) = att_1MHz * l * (f / 1 MHz)^2 at low frequency (viscous / Kelvin-Voigt law), realised causally as one real pole per path,
+L_dB(f) = att_1MHz * l * (f / 1 MHz)^2 at low frequency (viscous / Kelvin-Voigt law),
+realised causally as one real pole per path,
 |W(f)|^2 = 1 / (1 + (f/f_a)^2), with f_a chosen so that the loss at 1 MHz is exactly
 att_1MHz * l. A causal loss is dispersive: W adds a group delay 1/(2 pi f_a) that grows
 with l (~0.1 us over 1 cm of the silicone preset), so in a lossy body the four channels
