@@ -14,6 +14,7 @@ from functools import cached_property
 import numpy as np
 
 from ae_tactile.geometry import MEDIA, FingertipGeometry, resolve_front_end_lowpass
+from ae_tactile.sim.emission import DEFAULT_ALPHA_1_S
 from ae_tactile.sim.frontend import FrontEnd
 
 
@@ -122,6 +123,9 @@ class SimConfig:
         at the amplifier's input, filtered by the whole analog chain (coloured); the
         rest is white ADC noise. 0: all white (rendered by `render_triggered` only
         when > 0).
+    emission_alpha_1_s : float
+        The body's emission decay alpha of Eq. 10 [1/s] (3e3), used by `render_triggered`
+        when no ``alpha_1_s`` is given.
     sample_rate_hz : float
         ADC rate, an integer number of Hz (10 MS/s).
     adc_bits, adc_full_scale_v : int, float
@@ -163,6 +167,7 @@ class SimConfig:
     channel_gain: tuple = (1.0, 1.0, 1.0, 1.0)
     channel_delay_s: tuple = (0.0, 0.0, 0.0, 0.0)
     amplifier_noise_share: float = 0.0
+    emission_alpha_1_s: float = DEFAULT_ALPHA_1_S
     sample_rate_hz: float = 10e6
     adc_bits: int = 12
     adc_full_scale_v: float = 1.0
@@ -264,6 +269,7 @@ class SimConfig:
         if y > 2.0 or abs(y - 1.0) < 1e-3:
             raise ValueError(f"attenuation_exponent must lie in (0, 2] and differ from 1, got {y}")
         _pos("attenuation_ref_hz", self.attenuation_ref_hz)
+        _pos("emission_alpha_1_s", self.emission_alpha_1_s)
         for name in ("channel_gain", "channel_delay_s"):
             v = np.asarray(getattr(self, name), dtype=float)
             if v.shape != (4,) or not np.all(np.isfinite(v)):

@@ -12,7 +12,6 @@ import numpy as np
 from ae_tactile.sim.config import SimConfig
 from ae_tactile.sim.emission import (
     COMPRESSION,
-    DEFAULT_ALPHA_1_S,
     DEFAULT_CURVATURE_1_M,
     DEFAULT_SPEED_M_S,
     source_strength_pa_m,
@@ -202,7 +201,7 @@ def _noise_levels(clean, onset, fs, snr_db, noise_rms_v):
 
 def render_triggered(points_m, config: SimConfig | None = None, *, snr_db=None, noise_rms_v=None,
                      polarity=COMPRESSION, speed_m_s=DEFAULT_SPEED_M_S,
-                     curvature_1_m=DEFAULT_CURVATURE_1_M, alpha_1_s=DEFAULT_ALPHA_1_S,
+                     curvature_1_m=DEFAULT_CURVATURE_1_M, alpha_1_s=None,
                      pretrigger_s=8e-6, window_s=40e-6, subsample_offset="random",
                      rng=None) -> TriggeredPackets:
     """Render one triggered window per emission on the sphere, as a hardware trigger would
@@ -225,7 +224,8 @@ def render_triggered(points_m, config: SimConfig | None = None, *, snr_db=None, 
     polarity : int or array_like
         +1 compression (touch), -1 rarefaction (release); scalar or (N,).
     speed_m_s, curvature_1_m, alpha_1_s : float or array_like
-        Eq. 10 event parameters (emission.py) [m/s], [1/m], [1/s]; scalar or (N,).
+        Eq. 10 event parameters (emission.py) [m/s], [1/m], [1/s]; scalar or (N,);
+        ``alpha_1_s`` None: the config's ``emission_alpha_1_s``.
     pretrigger_s, window_s : float
         Window start before the earliest direct arrival, and window length [s].
     subsample_offset : 'random' or float or array_like
@@ -251,7 +251,7 @@ def render_triggered(points_m, config: SimConfig | None = None, *, snr_db=None, 
         raise ValueError("polarity must be +1 (touch) or -1 (release)")
     speed = _per_packet("speed_m_s", speed_m_s, n)
     curv = _per_packet("curvature_1_m", curvature_1_m, n)
-    alpha = _per_packet("alpha_1_s", alpha_1_s, n)
+    alpha = _per_packet("alpha_1_s", cfg.emission_alpha_1_s if alpha_1_s is None else alpha_1_s, n)
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     u = _subsample_offsets(subsample_offset, n, gen)
 
