@@ -40,7 +40,7 @@ Modules, along the data flow: `port` (the input: open, read, drain), `reader`
 from .config import MODES, LinkConfig
 from .frontend import packet_volts_noise_onset, warm_up, window_noise_and_onset
 from .packets import PacketBatch, PacketBuilder, PacketRecord
-from .port import PORT_ERRORS, TTY_LINE_BUFFER_BYTES, SerialPort
+from .port import PORT_ERRORS, TTY_LINE_BUFFER_BYTES, PortBusy, PortLock, SerialPort
 from .reader import COUNTER_NAMES, LOG, FingertipLink
 
 __all__ = [
@@ -54,6 +54,8 @@ __all__ = [
     "PacketBatch",
     "PacketBuilder",
     "PacketRecord",
+    "PortBusy",
+    "PortLock",
     "SerialPort",
     "packet_volts_noise_onset",
     "warm_up",

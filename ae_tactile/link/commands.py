@@ -71,6 +71,8 @@ class DeviceControl:
             if self._stop.is_set() or self._port is None:
                 return
             self.send_command(make)
+        self._acquisition_expected = True  # from now on, acquisition must show
+        self._last_acquiring_mono = time.monotonic()
 
     def _sync_clock(self) -> None:
         """Status round trips before acquisition starts, until ``sync_good_pings`` of them

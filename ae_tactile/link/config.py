@@ -38,6 +38,14 @@ class LinkConfig:
     link_timeout_s : float
         Time without a valid frame that means the link is dead [s] (the device sends a
         heartbeat >= 1 Hz).
+    acquisition_timeout_s : float
+        Time [s] without sign of acquisition, while the link expects it (after START),
+        that restarts it: no PACKET or STREAM frame and no STATUS reporting the running
+        state (a heartbeat saying IDLE is no sign: the device stopped acquiring, by a
+        fault or another host's STOP). The link then sends STOP / settings / START; if
+        another ``acquisition_timeout_s`` passes without a sign, it reconnects. More than
+        the 1 s heartbeat period (a triggered device with nothing to capture reports its
+        state only there); 0: never.
     stall_report_s : float
         A partial frame waiting this long without any byte is reported once
         (``stalled_frames``) and kept [s]; the default exceeds the 0.22 s a
@@ -87,6 +95,7 @@ class LinkConfig:
     read_timeout_s: float = 0.002
     read_chunk_bytes: int = 1 << 16
     link_timeout_s: float = 3.0
+    acquisition_timeout_s: float = 2.5
     stall_report_s: float = 0.25
     reconnect_initial_s: float = 0.2
     reconnect_max_s: float = 5.0
@@ -127,6 +136,12 @@ class LinkConfig:
             and self.sync_period_s >= 0
         ):
             raise ValueError(f"sync_period_s must be >= 0 s, got {self.sync_period_s!r}")
+        a = self.acquisition_timeout_s
+        if not (isinstance(a, (int, float)) and np.isfinite(a) and (a == 0 or a > 1.0)):
+            raise ValueError(
+                f"acquisition_timeout_s must be 0 (never) or > 1 s (the heartbeat period),"
+                f" got {a!r}"
+            )
         if self.reconnect_max_s < self.reconnect_initial_s:
             raise ValueError("reconnect_max_s must be >= reconnect_initial_s")
         if int(self.queue_max_batches) < 1 or int(self.read_chunk_bytes) < 1:

@@ -14,6 +14,7 @@ import errno
 import os
 import select
 import struct
+import tempfile
 import threading
 
 import serial
@@ -40,14 +41,105 @@ OPEN_ERRORS = (serial.SerialException, OSError, ValueError, _TermiosError)
 TTY_LINE_BUFFER_BYTES = 4096
 
 
+class PortBusy(OSError):
+    """The port is owned by another link (this process or another one).
+
+    Parameters
+    ----------
+    port : str
+        The port as configured.
+    owner_pid : int or None
+        Process id of the owner, as its lock file says (None: unreadable).
+    lock_path : str
+        The lock file.
+    """
+
+    def __init__(self, port: str, owner_pid: int | None, lock_path: str):
+        owner = f"pid {owner_pid}" if owner_pid else "an unknown process"
+        super().__init__(
+            errno.EBUSY, f"port {port} is in use by {owner} (lock {lock_path}); not opened"
+        )
+        self.port, self.owner_pid, self.lock_path = port, owner_pid, lock_path
+
+
+def _lock_dir() -> str:
+    """/run/lock where this user may write there (the system's place for port locks),
+    the temporary directory otherwise."""
+    for d in ("/run/lock", "/var/lock"):
+        if os.path.isdir(d) and os.access(d, os.W_OK | os.X_OK):
+            return d
+    return tempfile.gettempdir()
+
+
+def lock_key(port: str) -> str | None:
+    """What identifies ``port`` for its lock: the resolved device path (a symlink such as a
+    udev name and its target share one lock), the URL of a socket:// port; None for other
+    URLs (loop://, rfc2217://: nothing local to own)."""
+    if port.startswith("socket://"):
+        return port
+    if "://" in port:
+        return None
+    return os.path.realpath(port)
+
+
+class PortLock:
+    """An exclusive flock on a lock file keyed by the port (`lock_key`), holding the
+    owner's pid; released by `release` or when the process ends (the kernel drops flocks).
+
+    Parameters
+    ----------
+    port : str
+        The port as configured (named in the error).
+
+    Raises
+    ------
+    PortBusy
+        Another open file description holds the lock (another link, in any process).
+    OSError
+        The lock file cannot be created.
+    """
+
+    def __init__(self, port: str):
+        self.fd: int | None = None
+        key = lock_key(port)
+        if key is None or fcntl is None:
+            return
+        name = "ae_tactile" + "".join(c if c.isalnum() else "_" for c in key) + ".lock"
+        self.path = os.path.join(_lock_dir(), name)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            try:
+                pid = int(os.pread(fd, 32, 0).split()[0])
+            except (OSError, ValueError, IndexError):
+                pid = None
+            os.close(fd)
+            if exc.errno in (errno.EWOULDBLOCK, errno.EACCES, errno.EAGAIN):
+                raise PortBusy(port, pid, self.path) from None
+            raise
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        self.fd = fd
+
+    def release(self) -> None:
+        """Give the port up (the lock file stays: removing it would race a new owner)."""
+        fd, self.fd = self.fd, None
+        if fd is not None:
+            os.close(fd)  # closing the last descriptor drops the flock
+
+
 def open_serial(config: LinkConfig):
     """The pyserial object of ``config.port``; raises one of OPEN_ERRORS if it cannot be
-    opened."""
+    opened. A device path is opened exclusively (pyserial's ``exclusive``: a flock on the
+    tty itself, which also keeps out programs that do not know `PortLock`)."""
+    kw = {} if "://" in config.port else {"exclusive": True}
     return serial.serial_for_url(
         config.port,
         baudrate=int(config.baudrate),
         timeout=config.read_timeout_s,
         write_timeout=1.0,
+        **kw,
     )
 
 
@@ -65,10 +157,20 @@ class SerialPort:
         The link's stop flag (a hang-up waits on it).
     counters : dict
         The link's counters (``hangups`` and ``spurious_wakeups`` are counted here).
+    lock : PortLock or None
+        The port's lock, released when the port is closed.
     """
 
-    def __init__(self, ser, config: LinkConfig, stop: threading.Event, counters: dict):
+    def __init__(
+        self,
+        ser,
+        config: LinkConfig,
+        stop: threading.Event,
+        counters: dict,
+        lock: PortLock | None = None,
+    ):
         self.ser = ser
+        self.lock = lock
         self.read_timeout_s = config.read_timeout_s
         self.chunk = config.read_chunk_bytes
         self.is_socket = config.port.startswith("socket://")
@@ -93,11 +195,13 @@ class SerialPort:
         self.ser.flush()
 
     def close(self) -> None:
-        """Close the port; a port already gone is no error."""
+        """Close the port, then release its lock; a port already gone is no error."""
         try:
             self.ser.close()
         except PORT_ERRORS:
             pass
+        if self.lock is not None:
+            self.lock.release()
 
     def bytes_waiting(self) -> bool:
         """Whether bytes are waiting now (one poll(0); False without a file descriptor)."""

@@ -20,6 +20,7 @@ import numpy as np
 from ae_tactile.protocol import (
     Ack,
     Command,
+    DeviceState,
     FrameEncoder,
     Packet,
     Status,
@@ -32,7 +33,7 @@ from .commands import DeviceControl
 from .config import LinkConfig
 from .frontend import warm_up
 from .packets import PacketBatch, PacketBuilder, PacketRecord
-from .port import OPEN_ERRORS, PORT_ERRORS, SerialPort, open_serial
+from .port import OPEN_ERRORS, PORT_ERRORS, PortBusy, PortLock, SerialPort, open_serial
 
 LOG = logging.getLogger("ae_tactile.link")
 
@@ -43,8 +44,11 @@ COUNTER_NAMES = (
     "connects",
     "disconnects",
     "connect_failures",
+    "port_busy",
     "read_errors",
     "link_timeouts",
+    "acquisition_restarts",
+    "acquisition_reconnects",
     "packets_out",
     "batches_out",
     "queue_overflow_packets",
@@ -141,6 +145,9 @@ class FingertipLink(DeviceControl):
         self._stall_reported = False  # this stall of a partial frame is reported
         self._open_failure_logged = False
         self._clock_step_logged = False
+        self._acquisition_expected = False  # START sent on this connection
+        self._acquisition_restarted = False  # restarted, no sign of acquisition since
+        self._last_acquiring_mono = 0.0  # last sign of acquisition (or its START)
 
     # ---------------------------------------------------------------- control
     def start(self) -> None:
@@ -270,6 +277,7 @@ class FingertipLink(DeviceControl):
                 if self._reconfigure_pending and self._port is not None:
                     self._reconfigure_pending = False
                     self._configure_device()
+                self._check_acquisition()
             except Exception as exc:  # no input may stop the reader: count, go on
                 self.counters["internal_errors"] += 1
                 self.last_error = f"internal error: {exc!r}"
@@ -307,6 +315,48 @@ class FingertipLink(DeviceControl):
             )
             self.counters["link_timeouts"] += 1  # after the reason is readable in stats()
 
+    def _check_acquisition(self) -> None:
+        """Restart acquisition that shows no sign of life for ``acquisition_timeout_s``
+        (see `LinkConfig`): first STOP / settings / START, then, if that did not help,
+        a reconnect. Each step counted and logged."""
+        timeout = self.config.acquisition_timeout_s
+        if (
+            not timeout
+            or not self._acquisition_expected
+            or self._port is None
+            or self.state != "connected"
+            or time.monotonic() - self._last_acquiring_mono <= timeout
+        ):
+            return
+        st = self.device_status
+        seen = st.state.name if st is not None else "no status"
+        if self._acquisition_restarted:
+            self.counters["acquisition_reconnects"] += 1
+            self.log.error(
+                "%s: still no acquisition %g s after restarting it (device state %s):"
+                " reconnecting",
+                self.config.port,
+                timeout,
+                seen,
+            )
+            self._close(f"acquisition did not resume (device state {seen})")
+            return
+        self.counters["acquisition_restarts"] += 1
+        self.log.warning(
+            "%s: connected but not acquiring for %g s (no packet, device state %s):"
+            " restarting acquisition",
+            self.config.port,
+            timeout,
+            seen,
+        )
+        self._configure_device()
+        self._acquisition_restarted = True
+
+    def _acquiring(self) -> None:
+        """A sign that the device acquires (a data frame, a STATUS in the running state)."""
+        self._last_acquiring_mono = time.monotonic()
+        self._acquisition_restarted = False
+
     def _report_stall(self, now_mono: float) -> None:
         """Report once a partial frame left waiting ``stall_report_s`` without a byte."""
         if (
@@ -335,20 +385,26 @@ class FingertipLink(DeviceControl):
     def _open(self) -> bool:
         # the state stays "disconnected" through a failed attempt ("connecting" once the
         # port is open, until a valid frame): a reader never sees a retry flap it
+        lock = None
         try:
+            lock = PortLock(self.config.port)  # one owner per port: before touching it
             ser = open_serial(self.config)
         except OPEN_ERRORS as exc:
+            if lock is not None:
+                lock.release()
             with self._lock:  # counted with its reason, for stats() readers
                 self.counters["connect_failures"] += 1
+                self.counters["port_busy"] += isinstance(exc, PortBusy) or (
+                    "exclusive" in str(exc).lower()
+                )
                 self.last_error = f"open failed: {exc}"
                 self.state = "disconnected"
             if not self._open_failure_logged:  # once per outage, not every retry
-                self.log.warning(
-                    "cannot open %s: %s (retrying with back-off)", self.config.port, exc
-                )
+                log = self.log.error if isinstance(exc, PortBusy) else self.log.warning
+                log("cannot open %s: %s (retrying with back-off)", self.config.port, exc)
                 self._open_failure_logged = True
             return False
-        port = SerialPort(ser, self.config, self._stop, self.counters)
+        port = SerialPort(ser, self.config, self._stop, self.counters, lock)
         with self._lock:
             self._port = port
             # A (re)connected device may have restarted: decode it as a new sender and
@@ -357,6 +413,7 @@ class FingertipLink(DeviceControl):
             self.decoder.forget_senders()
             self.mapper.reset()
             self._packets.stream_next_index = None
+            self._acquisition_expected = self._acquisition_restarted = False  # until START
             self.state = "connecting"  # "connected" once a valid frame arrives
             self.counters["connects"] += 1
             self._open_failure_logged = False
@@ -452,11 +509,18 @@ class FingertipLink(DeviceControl):
             self.counters["packets_rejected_nonfinite"] += 1  # counts x v_per_count = inf
             return
         if isinstance(body, Packet):
+            self._acquiring()
             records.append(self._packets.packet(body, device_ns))
         elif isinstance(body, StreamBlock):
+            self._acquiring()
             records.extend(self._packets.stream(body, device_ns))
         elif isinstance(body, Status):
             self.device_status = body
+            running = (
+                DeviceState.STREAMING if self.config.mode == "stream" else DeviceState.TRIGGERED
+            )
+            if body.state == running:
+                self._acquiring()
         elif isinstance(body, Ack):
             self._file_ack(body, receive_ns, device_ns)
         else:
