@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Localization benchmark: accuracy against the Cramer-Rao bound, and speed (issue 4).
 
     python3 bench/bench_localization.py [--quick]        (or: make bench-localization)

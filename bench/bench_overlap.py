@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Overlapping emissions: accuracy of `resolve_overlaps` against the joint Cramer-Rao bound.
 
     python3 bench/bench_overlap.py [--quick]        (or: make bench-overlap)

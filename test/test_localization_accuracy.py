@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Localization accuracy on simulated packets: the paper's Fig. 7(d) and Fig. 8(e) cases,
 accuracy against the Cramer-Rao bound, covariance calibration, touch vs release."""
 

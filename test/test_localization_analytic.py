@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Estimators on analytic pulses (independent of the simulator): exact delays from the
 geometry, a Gabor pulse evaluated at the sample instants, any sample rate and geometry."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The localization interface: parameters, registry, rejection reasons, invariances."""
 
 import numpy as np

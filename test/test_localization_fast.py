@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The compiled per-packet path (`fast.py`, `Localizer.localize_one`) against the numpy
 path: same points (to a tiny fraction of the Cramer-Rao bound), same decisions and
 reasons, on clean and damaged packets; the light result; argument errors; the emission

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Overlapping emissions (`ae_tactile.localization.overlap`): two or three emissions in one
 window, each localized; single emissions stay single; wrong answers are rejected, not
 accepted; the stated covariances match the actual errors; bad input gives clear errors.

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Property-based stability of `localize` over random geometry, sample rate, noise, gain,
 DC offset, dtype and damage (NaN/inf, zero and constant windows, clipping, overlapping
 packets): never an exception, never a non-finite output, bad input rejected with its

@@ -41,6 +41,7 @@ import math
 from functools import lru_cache
 
 import numpy as np
+from scipy import signal
 
 from ae_tactile.geometry import resolve_front_end_lowpass
 from ae_tactile.jit import NUMBA_AVAILABLE, njit
@@ -125,8 +126,6 @@ def _step_responses(
     sample_rate_hz, n_samples, highpass_hz, highpass_order, lowpass_hz, lowpass_order, n_offsets
 ) -> np.ndarray:
     """Front-end step responses (n_offsets, n_samples), not normalized (see above)."""
-    from scipy import signal
-
     z, p, k = signal.butter(
         highpass_order, 2 * math.pi * highpass_hz, "highpass", analog=True, output="zpk"
     )
@@ -517,8 +516,8 @@ TRAIN_KEEP = 8
 TRAIN_TOL_S = 1e-6
 TRAIN_TOL_SAMPLES = 3
 #: pairs (new interval, earlier interval) that must agree: 2 lets a train's 3rd burst pass
-#: and catches the 4th, where one would let chance matches among dense Poisson bursts drop
-#: ~5 % of the apex packets at 10 kHz
+#: and catches the 4th, where one would let chance matches among dense random bursts drop
+#: apex packets
 TRAIN_MIN_MATCHES = 2
 #: intervals shorter than this (s) are no period (packets closer than a packet's length;
 #: stamps that do not advance)
@@ -532,10 +531,9 @@ class BurstTrain:
     milliseconds). Remember the times of the last TRAIN_KEEP packets localized at the apex;
     a new one whose intervals to them equal intervals between two of them (within
     ``tol_s``, TRAIN_MIN_MATCHES distinct relations t = h_j + h_k - h_i) belongs to a
-    train. The first three bursts of a train are not caught. Measured (scratch runs,
-    2 .. 10 MS/s): an apex touch during a 1 kHz train is taken for a burst 0.5 .. 1 % of
-    the time, during a 10 kHz train ~5 %; apex packets at random times 0.1 % at 1,000/s,
-    3 .. 5 % at 10,000/s (more below 2 MS/s, where the tolerance is 3 samples)."""
+    train. The first three bursts of a train are not caught; an apex touch that falls on
+    a train's period by chance is taken for a burst, more often the faster the train and
+    below 2 MS/s, where the tolerance is 3 samples (rates: bench/bench_slip.py)."""
 
     def __init__(self, keep: int = TRAIN_KEEP):
         self._t: list[float] = []

@@ -1,4 +1,5 @@
-"""Contact localization from the four PVDF channels (issue 4). Pure numpy/scipy, no rclpy.
+# SPDX-License-Identifier: Apache-2.0
+"""Contact localization from the four PVDF channels. Pure numpy/scipy, no rclpy.
 
     from ae_tactile.localization import localize, available_methods
     res = localize(windows (K, 4, M), sample_rate_hz, onset_index (K,), method="ml")
@@ -6,7 +7,9 @@
 
 Methods (registry ``ESTIMATORS``, pick by name): ``ml`` (exact-sphere maximum
 likelihood), ``gradient`` (the paper's gradient method, iterated), ``gcc_phat``,
-``xcorr_farfield`` (the paper's one-shot Eq. 2 baseline). Cramer-Rao bounds: `crlb`.
+``xcorr_farfield`` (the paper's one-shot Eq. 2 baseline); one module each, registered in
+`registry`. Overlapping emissions: `overlap`. Cramer-Rao bounds are evaluation code
+(``ae_eval.crlb`` in bench/).
 
 Per-packet hot path (compiled with numba when available, `fast.py`):
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Shared machinery of the delay estimators: validation, analysis plan, segments, spectra.
 
 Every estimator works on the *well-ordered* part of each packet, the direct wave before

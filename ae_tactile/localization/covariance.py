@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Delay and position uncertainty from the Fisher information of the fitted model.
 
 Model of an aligned packet: y_k(t) = g_k s(t - eps_k) + n_k(t), white Gaussian noise of
@@ -29,7 +30,7 @@ import numpy as np
 
 from ae_tactile.localization.common import CONTRASTS, PAIR_INCIDENCE, PAIR_PINV
 
-#: Weight of the noise-by-noise term of `arrival_fisher` (measured, see there).
+#: Weight of the noise-by-noise term of `arrival_fisher` (calibrated, see there).
 NOISE_BY_NOISE = 0.5
 
 
@@ -54,8 +55,8 @@ def arrival_fisher(Zb, w, sigma2, count, n_fft, n_bins=None, noise_by_noise=Fals
     over the bins in use (a prefix of ``n_bins`` per packet), c = NOISE_BY_NOISE: the
     noise-by-noise share of the delay variance, which matters at low per-bin SNR (kappa ~4 %
     at 10 dB for the simulator's pulse, < 1 % from 20 dB). c = 1 is the two-channel
-    correlator's first-order term; measured on simulated and analytic pulses, 1/2 calibrates
-    the four-channel fit."""
+    correlator's first-order term; 1/2 calibrates the four-channel fit on simulated and
+    analytic pulses (bench/bench_localization.py)."""
     s2, g2 = signal_spectrum(Zb, sigma2, count, n_bins)
     e_mean = (2.0 / n_fft) * (w * w * s2).sum(axis=1)  # (K,)
     if noise_by_noise:

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """One interface for the delay estimators: `localize`, `LocalizationResult`, the registry.
 
     res = localize(windows (K, 4, M), sample_rate_hz, onset_index (K,), method="ml")
@@ -117,20 +118,52 @@ def localize(
 ) -> LocalizationResult:
     """Localize K packets (see the module docstring).
 
-    windows (K, 4, M) volts (any real dtype; a single (4, M) window is accepted),
-    sample_rate_hz, onset_index (K,) first sample at/after the earliest arrival (the
-    detector's or the simulator's), method: a name in `available_methods()`.
-    geometry: FingertipGeometry (default tip). band_hz: signal band for the estimators
-    (default `default_band_hz(fs)`).
-    noise_rms_v: scalar or (K,) known noise sigma (V, > 0; NaN entries: unknown). Default:
-    measured on the samples before ``onset - pre_onset_s``, else from the fit residual.
-    saturated: (K,) flags from upstream; full_scale_v: ADC clip level (either one, or
-    neither: a flat top of >= max(4, 0.3 us fs) samples at a channel's dominant extreme
-    then flags saturation). channel_gains: relative gains of the 4 channels (divided out).
-    min_snr_db: LOW_SNR below this. overlap_threshold: OVERLAP when the excess misfit
-    exceeds it (default per method). engine: None (compiled kernel for ``ml`` when numba
-    is available), 'numba' or 'numpy'. Extra keyword options go to the estimator (e.g.
-    iterations=).
+    Parameters
+    ----------
+    windows : array_like, (K, 4, M) or (4, M)
+        Packet windows [V], any real dtype.
+    sample_rate_hz : float
+        Sample rate [Hz], > 0.
+    onset_index : array_like of int, (K,)
+        First sample at/after the earliest arrival (the detector's or the simulator's).
+    method : str
+        A name in `available_methods()` (default ``"ml"``).
+    geometry : FingertipGeometry, optional
+        The fingertip (default tip).
+    band_hz : (float, float), optional
+        Signal band [Hz] of the estimators; None: ``ml`` picks each packet's upper edge
+        from its spectrum, the others use `default_band_hz(fs)`.
+    noise_rms_v : float or array_like (K,), optional
+        Known noise sigma [V], > 0 (NaN entries: unknown). Default: measured on the
+        samples before ``onset - pre_onset_s``, else from the fit residual.
+    saturated : array_like of bool (K,), optional
+        Clip flags from upstream.
+    full_scale_v : float, optional
+        ADC clip level [V]. With neither this nor ``saturated``, a flat top of
+        >= max(4, 0.3 us fs) samples at a channel's dominant extreme flags saturation.
+    channel_gains : array_like (4,), optional
+        Relative gains of the 4 channels (divided out).
+    min_snr_db : float
+        LOW_SNR below this [dB].
+    overlap_threshold : float, optional
+        OVERLAP when the excess misfit exceeds it (default per method).
+    pre_onset_s, echo_guard_s : float
+        Noise samples end this long before the onset [s]; the analysis ends this long
+        before the first wall echo [s].
+    engine : {None, "numba", "numpy"}
+        None: the compiled kernel for ``ml`` when numba is available.
+    **options
+        Passed to the estimator (e.g. ``iterations=``).
+
+    Returns
+    -------
+    LocalizationResult
+        K rows: point, covariance, accepted, reason, polarity, confidence, ...
+
+    Raises
+    ------
+    ValueError, TypeError
+        Bad parameters or shapes (data problems are rejections, never exceptions).
     """
     info = get_estimator(method)
     geo = FingertipGeometry() if geometry is None else geometry
@@ -143,33 +176,11 @@ def localize(
     thr = info.overlap_threshold if overlap_threshold is None else float(overlap_threshold)
     if not (np.isfinite(thr) and thr > 0):
         raise ValueError(f"overlap_threshold must be positive, got {overlap_threshold!r}")
-    k = x.shape[0]
-    noise = _noise_arg(noise_rms_v, k)
+    noise = _noise_arg(noise_rms_v, x.shape[0])
     if eng == "numba":
-        iterations = _iterations(options)
-        sat = (
-            np.full(k, -1, np.int8)
-            if saturated is None
-            else per_packet("saturated", saturated, k, dtype=bool).astype(np.int8)
-        )
-        fsv = np.nan if full_scale_v is None else _positive_arg("full_scale_v", full_scale_v)
-        gains = _gains_arg(channel_gains)
-        if k == 0:
-            return _empty(method, options)
-        out, pt, cov, ctau = fast.run_batch(
-            x,
-            onset,
-            fast.tables_for(plan),
-            noise_rms=noise,
-            sat=sat,
-            full_scale=fsv,
-            gains=gains,
-            iterations=iterations,
-            min_snr_db=min_snr_db,
-            thr=thr,
-        )
-        return _result_from_kernel(method, options, out, pt, cov, ctau)
-    if k == 0:
+        return _localize_compiled(x, onset, plan, method, options, noise, saturated,
+                                  full_scale_v, channel_gains, min_snr_db, thr)
+    if x.shape[0] == 0:
         return _empty(method, options)
     with np.errstate(all="ignore"):
         prep = prepare(
@@ -183,6 +194,35 @@ def localize(
         )
         core = info.function(prep, plan, **options)
         return _finish(core, prep, plan, geo, method, min_snr_db, thr, options)
+
+
+def _localize_compiled(x, onset, plan, method, options, noise, saturated, full_scale_v,
+                       channel_gains, min_snr_db, thr):
+    """`localize` through the compiled ``ml`` kernel (`fast.run_batch`)."""
+    k = x.shape[0]
+    iterations = _iterations(options)
+    sat = (
+        np.full(k, -1, np.int8)
+        if saturated is None
+        else per_packet("saturated", saturated, k, dtype=bool).astype(np.int8)
+    )
+    fsv = np.nan if full_scale_v is None else _positive_arg("full_scale_v", full_scale_v)
+    gains = _gains_arg(channel_gains)
+    if k == 0:
+        return _empty(method, options)
+    out, pt, cov, ctau = fast.run_batch(
+        x,
+        onset,
+        fast.tables_for(plan),
+        noise_rms=noise,
+        sat=sat,
+        full_scale=fsv,
+        gains=gains,
+        iterations=iterations,
+        min_snr_db=min_snr_db,
+        thr=thr,
+    )
+    return _result_from_kernel(method, options, out, pt, cov, ctau)
 
 
 def _plan(sample_rate_hz, geo, n, band_hz, pre_onset_s, echo_guard_s, method):

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Event type (touch / release), amplitude and confidence of a localized packet.
 
 Touch vs release: the paper's collision model (Eq. 10) starts with a compressive

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Pairwise correlation estimators: GCC-PHAT (method ``"gcc_phat"``) and the paper's
 one-shot far-field inversion from plain cross-correlation peaks (``"xcorr_farfield"``).
 
@@ -24,6 +25,7 @@ from ae_tactile.localization.common import Plan
 from ae_tactile.localization.covariance import (
     arrival_fisher,
     delay_covariance_from_fisher,
+    signal_spectrum,
     weighted_pair_delay_covariance,
 )
 from ae_tactile.localization.pairs import (
@@ -45,8 +47,6 @@ def _finish(prep, plan, theta, point, clamped, cov_kind, pair_res, raw, edge):
 
     def covariance(sigma2):
         if cov_kind == "phat":
-            from ae_tactile.localization.covariance import signal_spectrum
-
             s2, _ = signal_spectrum(zb, sigma2, al.count)
             L = al.count.mean(axis=1)
             weight = 1.0 / np.maximum(s2 + L[:, None] * sigma2[:, None], 1e-300)

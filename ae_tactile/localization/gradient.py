@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The paper's gradient method (its ref. [8]), iterated with re-alignment (method ``"gradient"``).
 
 With p_{xi,eta}(t) = f(t + xi tau_x + eta tau_y), the channel mean m = (1/4) sum p and the

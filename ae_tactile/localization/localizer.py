@@ -36,6 +36,26 @@ class Localizer:
     ``localize_one(window (4, M), fs, onset)`` is the per-packet hot path: with numba and
     ``ml`` one compiled call per packet (plans and tables cached per (fs, M, geometry));
     ``warm_up(geometry, fs, n_samples)`` compiles and caches it before acquisition.
+
+    Parameters
+    ----------
+    method : str
+        A name in `available_methods()` (default ``"ml"``).
+    **kwargs
+        The keyword arguments of `localize` (``geometry``, ``band_hz``, ``min_snr_db``,
+        ``overlap_threshold``, ``full_scale_v``, ``engine``, estimator options...), held
+        for every call; a call's own keywords override them.
+
+    Returns
+    -------
+    Localizer
+        Calling it returns the `LocalizationResult` of `localize`; `localize_one` a
+        `PacketLocation`.
+
+    Raises
+    ------
+    ValueError
+        Unknown method, non-finite ``min_snr_db`` or non-positive ``overlap_threshold``.
     """
 
     _ONE_KEYS = frozenset(
@@ -111,56 +131,42 @@ class Localizer:
         geometry=None,
         channel_gains=None,
     ) -> PacketLocation:
-        """Localize one (4, M) window (float32 / float64 volts). Never raises on the data
-        (NaN, zeros, clipping: a rejection with its reason); ValueError / TypeError on bad
-        arguments. noise_rms_v: known sigma (V, > 0) or None / NaN (measured);
-        saturated: upstream clip flag (None: the flat-top heuristic decides)."""
+        """Localize one window: the per-packet hot path.
+
+        Never raises on the data (NaN, zeros, clipping: a rejection with its reason).
+
+        Parameters
+        ----------
+        samples_v : ndarray, (4, M)
+            The window [V], float32 or float64 (other real dtypes are converted).
+        sample_rate_hz : float
+            Sample rate [Hz], > 0.
+        onset_index : int
+            First sample at/after the earliest arrival, in the window.
+        noise_rms_v : float, optional
+            Known noise sigma [V], > 0; None or NaN: measured before the onset.
+        saturated : bool or None
+            Upstream clip flag; None: the flat-top heuristic decides.
+        geometry : FingertipGeometry, optional
+            Default: the one given at construction, else the default tip.
+        channel_gains : array_like (4,), optional
+            Relative gains of the 4 channels (divided out).
+
+        Returns
+        -------
+        PacketLocation
+            accepted, reason, point_m, covariance_m2, polarity, confidence, ... as floats.
+
+        Raises
+        ------
+        ValueError, TypeError
+            Bad arguments (shape, dtype, non-positive rate, non-integer onset).
+        """
         geo = self._default_geometry if geometry is None else geometry
         if self._one_engine != "numba":
-            kw = dict(self.kwargs)
-            kw.update(
-                geometry=geo,
-                noise_rms_v=noise_rms_v,
-                channel_gains=channel_gains,
-                saturated=None if saturated is None else [bool(saturated)],
-            )
-            x = np.asarray(samples_v)
-            if x.ndim != 2:
-                raise ValueError(f"samples_v must have shape (4, M), got {x.shape}")
-            res = localize(x[None], sample_rate_hz, [onset_index], method=self.method, **kw)
-            return PacketLocation.from_result(res, 0)
-        x = samples_v
-        if not (type(x) is np.ndarray and x.dtype in _FLOATS and x.flags.c_contiguous):
-            x = np.asarray(x)
-            if x.dtype == object or not (
-                np.issubdtype(x.dtype, np.floating) or np.issubdtype(x.dtype, np.integer)
-            ):
-                raise TypeError(f"samples_v must be a real numeric array, got dtype {x.dtype}")
-            x = np.ascontiguousarray(x, dtype=np.float64)
-        if x.ndim != 2 or x.shape[0] != 4 or x.shape[1] < 4:
-            raise ValueError(f"samples_v must have shape (4, M) with M >= 4, got {x.shape}")
-        fs = sample_rate_hz
-        if type(fs) is not float:
-            fs = _positive_arg("sample_rate_hz", fs)
-        elif not (fs > 0 and fs < np.inf):
-            raise ValueError(
-                f"sample_rate_hz must be a positive finite number, got {sample_rate_hz!r}"
-            )
-        on = onset_index
-        if type(on) is not int:
-            if isinstance(on, (bool, np.bool_)) or not isinstance(on, _REALS):
-                raise TypeError(f"onset_index must be an integer sample index, got {on!r}")
-            if not (np.isfinite(on) and on == int(on)):
-                raise ValueError(f"onset_index must be an integer sample index, got {on!r}")
-            on = int(on)
-        if noise_rms_v is None:
-            nr = np.nan
-        else:
-            nr = float(noise_rms_v)
-            if not (nr > 0 and nr < np.inf) and not math.isnan(nr):
-                raise ValueError(
-                    f"noise_rms_v must be positive and finite (NaN: unknown), got {noise_rms_v!r}"
-                )
+            return self._one_numpy(samples_v, sample_rate_hz, onset_index, geo, noise_rms_v,
+                                   saturated, channel_gains)
+        x, fs, on, nr = _one_args(samples_v, sample_rate_hz, onset_index, noise_rms_v)
         sat = -1 if saturated is None else int(bool(saturated))
         if not isinstance(geo, FingertipGeometry):
             raise TypeError(f"geometry must be a FingertipGeometry, got {type(geo).__name__}")
@@ -188,6 +194,22 @@ class Localizer:
         )
         return PacketLocation(out, pt, cov, ctau)
 
+    def _one_numpy(self, samples_v, sample_rate_hz, onset_index, geo, noise_rms_v, saturated,
+                   channel_gains) -> PacketLocation:
+        """`localize_one` through `localize` (engine numpy, or a method other than ml)."""
+        kw = dict(self.kwargs)
+        kw.update(
+            geometry=geo,
+            noise_rms_v=noise_rms_v,
+            channel_gains=channel_gains,
+            saturated=None if saturated is None else [bool(saturated)],
+        )
+        x = np.asarray(samples_v)
+        if x.ndim != 2:
+            raise ValueError(f"samples_v must have shape (4, M), got {x.shape}")
+        res = localize(x[None], sample_rate_hz, [onset_index], method=self.method, **kw)
+        return PacketLocation.from_result(res, 0)
+
     def warm_up(self, geometry=None, sample_rate_hz=10e6, n_samples=400):
         """Compile and cache the kernels (float32 and float64 windows) and the plan for this
         (geometry, fs, M) so that the first packet is fast. Returns self."""
@@ -200,3 +222,41 @@ class Localizer:
             self.localize_one(x.astype(dt), fs, m // 4, geometry=geo)
             self(x.astype(dt)[None], fs, [m // 4], geometry=geo)
         return self
+
+
+def _one_args(samples_v, sample_rate_hz, onset_index, noise_rms_v):
+    """The checked arguments of the compiled `Localizer.localize_one`: (x (4, M) float
+    C-contiguous, fs [Hz], onset int, noise sigma [V] or NaN); TypeError / ValueError."""
+    x = samples_v
+    if not (type(x) is np.ndarray and x.dtype in _FLOATS and x.flags.c_contiguous):
+        x = np.asarray(x)
+        if x.dtype == object or not (
+            np.issubdtype(x.dtype, np.floating) or np.issubdtype(x.dtype, np.integer)
+        ):
+            raise TypeError(f"samples_v must be a real numeric array, got dtype {x.dtype}")
+        x = np.ascontiguousarray(x, dtype=np.float64)
+    if x.ndim != 2 or x.shape[0] != 4 or x.shape[1] < 4:
+        raise ValueError(f"samples_v must have shape (4, M) with M >= 4, got {x.shape}")
+    fs = sample_rate_hz
+    if type(fs) is not float:
+        fs = _positive_arg("sample_rate_hz", fs)
+    elif not (fs > 0 and fs < np.inf):
+        raise ValueError(
+            f"sample_rate_hz must be a positive finite number, got {sample_rate_hz!r}"
+        )
+    on = onset_index
+    if type(on) is not int:
+        if isinstance(on, (bool, np.bool_)) or not isinstance(on, _REALS):
+            raise TypeError(f"onset_index must be an integer sample index, got {on!r}")
+        if not (np.isfinite(on) and on == int(on)):
+            raise ValueError(f"onset_index must be an integer sample index, got {on!r}")
+        on = int(on)
+    if noise_rms_v is None:
+        nr = np.nan
+    else:
+        nr = float(noise_rms_v)
+        if not (nr > 0 and nr < np.inf) and not math.isnan(nr):
+            raise ValueError(
+                f"noise_rms_v must be positive and finite (NaN: unknown), got {noise_rms_v!r}"
+            )
+    return x, fs, on, nr

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Maximum-likelihood fit of the exact spherical geometry (method ``"ml"``).
 
 For an unknown deterministic waveform in white noise with equal channel gains, the

@@ -36,8 +36,8 @@ emission are part of the model. Search (RELAX, cyclic superimposed-signal estima
      re-searched on the data minus emission 2 (RELAX), and with the points swapped; the
      best residual wins. A third emission likewise;
   3. model order: J + 1 emissions only if the residual energy falls by more than
-     ``add_threshold`` sigma^2 (a generalised likelihood-ratio test; single-source packets
-     stay single, measured in docs/localization.md);
+     ``add_threshold`` sigma^2 (a generalised likelihood-ratio test, so that single-source
+     packets stay single);
   4. the final residual must be consistent with noise (chi^2 per degree of freedom below
      ``max_chi2_ratio``) and no two emissions closer than ``min_separation_s``, else the
      packet is rejected (a wrong or missing emission leaves its energy in the residual);

@@ -52,27 +52,94 @@ def resolve_overlaps(
 ) -> list:
     """Localize every emission in each of K windows (two or three overlapping emissions).
 
-    windows (K, 4, M) volts (a (4, M) window is accepted), sample_rate_hz, onset_index (K,)
-    the first sample at/after the earliest arrival (detector or trigger). geometry:
-    FingertipGeometry (default tip); pulse: `PulseModel` of the front end (default:
-    `PulseModel.for_sample_rate`: 100 kHz 2nd-order high-pass, 1 MHz 4th-order low-pass,
-    below 3.33 MS/s the 0.3 fs 8th-order anti-alias low-pass). noise_rms_v: known sigma (scalar or
-    (K,)), default measured before the onset (the ADC's rounding by `common.adc_noise`).
-    saturated, full_scale_v: as `localize`. max_sources: 1-3. add_threshold: residual-energy drop
-    (in sigma^2) needed to add an emission. max_chi2_ratio: largest accepted residual /
-    (sigma^2 dof) (default 1 + 5 sqrt(2/n_noise + 2/dof)). max_sigma_m: emissions with a
-    larger in-plane 1-sigma are dropped. echo: model the first wall echo.
-    min_separation_s: emissions fitted closer than this in time are not separated reliably
-    (the joint likelihood has several nearly equal optima): such packets are rejected
-    (UNRESOLVED). engine: "auto" fits with the compiled kernels (`overlap_kernels`) when
-    numba is present and the medium lossless, "numpy" always with the numpy path.
-    exhaustive=False: a window whose first joint fit still leaves more than noise is not
-    searched further but answered DEFERRED (the quick answer of the driver's resolver,
-    which then runs the exhaustive search on it).
+    Parameters
+    ----------
+    windows : array_like, (K, 4, M) or (4, M)
+        Packet windows [V].
+    sample_rate_hz : float
+        Sample rate [Hz], > 0.
+    onset_index : array_like of int, (K,)
+        First sample at/after the earliest arrival (detector or trigger).
+    geometry : FingertipGeometry, optional
+        The fingertip (default tip).
+    pulse : PulseModel, optional
+        The front end's pulse; default `PulseModel.for_sample_rate`: 100 kHz 2nd-order
+        high-pass, 1 MHz 4th-order low-pass, below 3.33 MS/s the 0.3 fs 8th-order
+        anti-alias low-pass.
+    noise_rms_v : float or array_like (K,), optional
+        Known noise sigma [V]; default measured before the onset (with the ADC's rounding,
+        `common.adc_noise`).
+    saturated, full_scale_v : optional
+        As for `localize`.
+    max_sources : int
+        1, 2 or 3.
+    band_hz : (float, float)
+        Band [Hz] of the analysis plan.
+    analysis_s : float, optional
+        Length of the fit window after the onset [s]; default up to just before the
+        second wall echo.
+    add_threshold : float
+        Residual-energy drop [sigma^2] needed to add an emission.
+    max_chi2_ratio : float, optional
+        Largest accepted residual / (sigma^2 dof); default 1 + 5 sqrt(2/n_noise + 2/dof).
+    max_sigma_m : float
+        [m] emissions with a larger in-plane 1-sigma are dropped.
+    min_snr_db : float
+        [dB] SNR floor of an emission.
+    echo : bool
+        Model the first wall echo.
+    grid_spacing_m : float
+        [m] spacing of the matched-filter grid on the surface.
+    min_separation_s : float
+        [s] emissions fitted closer in time are not separated reliably (the joint
+        likelihood has several nearly equal optima): such windows are rejected
+        (UNRESOLVED).
+    engine : {"auto", "numpy"}
+        "auto": the compiled kernels (`overlap_kernels`) when numba is present and the
+        medium lossless; "numpy": always the numpy path.
+    exhaustive : bool
+        False: a window whose first joint fit still leaves more than noise is answered
+        DEFERRED (the quick answer of the driver's resolver, which then runs the
+        exhaustive search on it).
 
-    Returns a list of K `OverlapPacket` (``sources`` earliest first, or a rejection reason).
-    Parameter and shape errors raise ValueError / TypeError; data problems are rejections.
+    Returns
+    -------
+    list of OverlapPacket
+        K packets: ``sources`` earliest first, or a rejection reason.
+
+    Raises
+    ------
+    ValueError, TypeError
+        Bad parameters or shapes (data problems are rejections).
     """
+    geo, pulse, add_threshold, max_sigma_m, max_chi2_ratio, min_snr_db, analysis_s, \
+        grid_spacing_m, min_separation_s = _checked(
+            geometry, pulse, sample_rate_hz, max_sources, add_threshold, max_sigma_m,
+            max_chi2_ratio, min_snr_db, analysis_s, grid_spacing_m, min_separation_s, engine)
+    x, on = validate_windows(windows, onset_index)
+    plan = make_plan(sample_rate_hz, geo, x.shape[2], band_hz)
+    K = x.shape[0]
+    if K == 0:
+        return []
+    grid = _surface_grid(geo, grid_spacing_m)
+    decide_args = (
+        max_sources, add_threshold, max_chi2_ratio, max_sigma_m, min_snr_db,
+        min_separation_s,
+    )
+    if not exhaustive and engine == "auto" and _compiled_medium(pulse):
+        with np.errstate(all="ignore"):
+            return _resolve_quick(
+                x, on, plan, geo, pulse, noise_rms_v, saturated, full_scale_v, echo,
+                analysis_s, grid, decide_args,
+            )
+    with np.errstate(all="ignore"):
+        return _resolve_full(x, on, plan, geo, pulse, noise_rms_v, saturated, full_scale_v,
+                             echo, analysis_s, engine, grid, decide_args, exhaustive)
+
+
+def _checked(geometry, pulse, sample_rate_hz, max_sources, add_threshold, max_sigma_m,
+             max_chi2_ratio, min_snr_db, analysis_s, grid_spacing_m, min_separation_s, engine):
+    """`resolve_overlaps`' parameters checked and converted (TypeError / ValueError)."""
     geo = FingertipGeometry() if geometry is None else geometry
     if not isinstance(geo, FingertipGeometry):
         raise TypeError(f"geometry must be a FingertipGeometry, got {type(geo).__name__}")
@@ -100,70 +167,64 @@ def resolve_overlaps(
         raise ValueError(f"min_separation_s must be >= 0, got {min_separation_s!r}")
     if engine not in ("auto", "numpy"):
         raise ValueError(f"engine must be 'auto' or 'numpy', got {engine!r}")
-    x, on = validate_windows(windows, onset_index)
-    plan = make_plan(sample_rate_hz, geo, x.shape[2], band_hz)
+    return (geo, pulse, add_threshold, max_sigma_m, max_chi2_ratio, min_snr_db, analysis_s,
+            grid_spacing_m, min_separation_s)
+
+
+def _resolve_full(x, on, plan, geo, pulse, noise_rms_v, saturated, full_scale_v, echo,
+                  analysis_s, engine, grid, decide_args, exhaustive):
+    """The numpy preparation and the search of `resolve_overlaps` (every path but the
+    compiled quick one); one `OverlapPacket` per window."""
+    (max_sources, add_threshold, max_chi2_ratio, max_sigma_m, min_snr_db,
+     min_separation_s) = decide_args
     K = x.shape[0]
-    if K == 0:
-        return []
-    grid = _surface_grid(geo, grid_spacing_m)
-    if not exhaustive and engine == "auto" and _compiled_medium(pulse):
-        decide_args = (
-            max_sources, add_threshold, max_chi2_ratio, max_sigma_m, min_snr_db,
+    prep = prepare(
+        x,
+        on,
+        plan,
+        noise_rms_v=noise_rms_v,
+        saturated=saturated,
+        full_scale_v=full_scale_v,
+        spectra=False,
+    )
+    sigma2 = adc_noise(prep.sigma2, prep.quant2, _given(prep))
+    n_noise = np.maximum(4 * (prep.onset - plan.pre), 4).astype(float)
+    if noise_rms_v is not None:
+        n_noise[:] = np.inf
+    unknown = ~np.isfinite(sigma2) | (sigma2 <= 0)
+    flags = prep.flags.copy()
+    flags[unknown] |= 1 << Reason.WINDOW
+    ok = flags == 0
+    out: list = [None] * K
+    ids = np.nonzero(ok)[0]
+    if ids.size:
+        seg, start, length, inside = _segments(
+            subset(prep, ids), plan, geo, plan.fs, analysis_s
+        )
+        model = _Model(geo, plan.fs, start, length, pulse, echo, inside, engine)
+        res = _decide(
+            model,
+            seg,
+            sigma2[ids],
+            n_noise[ids],
+            max_sources,
+            add_threshold,
+            max_chi2_ratio,
+            max_sigma_m,
+            min_snr_db,
+            prep.scale[ids],
+            geo,
+            grid,
             min_separation_s,
+            exhaustive,
         )
-        with np.errstate(all="ignore"):
-            return _resolve_quick(
-                x, on, plan, geo, pulse, noise_rms_v, saturated, full_scale_v, echo,
-                analysis_s, grid, decide_args,
-            )
-    with np.errstate(all="ignore"):
-        prep = prepare(
-            x,
-            on,
-            plan,
-            noise_rms_v=noise_rms_v,
-            saturated=saturated,
-            full_scale_v=full_scale_v,
-            spectra=False,
+        for i, r in zip(ids, res):
+            out[i] = r
+    for i in np.nonzero(~ok)[0]:
+        code = _first_reason(int(flags[i]))
+        out[i] = OverlapPacket(
+            False, code, noise_rms_v=float(np.sqrt(np.nan_to_num(sigma2[i])) * prep.scale[i])
         )
-        sigma2 = adc_noise(prep.sigma2, prep.quant2, _given(prep))
-        n_noise = np.maximum(4 * (prep.onset - plan.pre), 4).astype(float)
-        if noise_rms_v is not None:
-            n_noise[:] = np.inf
-        unknown = ~np.isfinite(sigma2) | (sigma2 <= 0)
-        flags = prep.flags.copy()
-        flags[unknown] |= 1 << Reason.WINDOW
-        ok = flags == 0
-        out: list = [None] * K
-        ids = np.nonzero(ok)[0]
-        if ids.size:
-            seg, start, length, inside = _segments(
-                subset(prep, ids), plan, geo, plan.fs, analysis_s
-            )
-            model = _Model(geo, plan.fs, start, length, pulse, echo, inside, engine)
-            res = _decide(
-                model,
-                seg,
-                sigma2[ids],
-                n_noise[ids],
-                max_sources,
-                add_threshold,
-                max_chi2_ratio,
-                max_sigma_m,
-                min_snr_db,
-                prep.scale[ids],
-                geo,
-                grid,
-                min_separation_s,
-                exhaustive,
-            )
-            for i, r in zip(ids, res):
-                out[i] = r
-        for i in np.nonzero(~ok)[0]:
-            code = _first_reason(int(flags[i]))
-            out[i] = OverlapPacket(
-                False, code, noise_rms_v=float(np.sqrt(np.nan_to_num(sigma2[i])) * prep.scale[i])
-            )
     return out
 
 
@@ -276,9 +337,36 @@ def localize_with_overlaps(
     2. `suspect_overlap` on what it accepted;
     3. `resolve_overlaps` on the windows it rejected as OVERLAP and on the suspects.
 
-    Returns (single, overlap): ``single`` the `LocalizationResult`, with ``accepted`` set to
-    False for the suspects (their single-source point is withdrawn: publish the overlap
-    result instead); ``overlap`` a dict {window index: `OverlapPacket`}.
+    Parameters
+    ----------
+    windows : array_like, (K, 4, M) or (4, M)
+        Packet windows [V].
+    sample_rate_hz : float
+        Sample rate [Hz], > 0.
+    onset_index : array_like of int, (K,)
+        First sample at/after the earliest arrival.
+    geometry : FingertipGeometry, optional
+        The fingertip (default tip).
+    pulse : PulseModel, optional
+        The front end's pulse (default `PulseModel.for_sample_rate`).
+    noise_rms_v : float or array_like (K,), optional
+        Known noise sigma [V]; default measured before the onset.
+    saturated : array_like of bool (K,), optional
+        Upstream clip flags.
+    max_sources : int
+        1, 2 or 3 emissions per window.
+    overlap_kwargs : dict, optional
+        Further keyword arguments of `resolve_overlaps`.
+    **localize_kwargs
+        Keyword arguments of `localize` (``method``, ``min_snr_db``...).
+
+    Returns
+    -------
+    single : LocalizationResult
+        The result of `localize`, with ``accepted`` False (reason OVERLAP) for the
+        suspects: their single-source point is withdrawn, publish the overlap result.
+    overlap : dict of int to OverlapPacket
+        {window index: `OverlapPacket`} for the OVERLAP rejections and the suspects.
     """
     geo = FingertipGeometry() if geometry is None else geometry
     x, on = validate_windows(windows, onset_index)
@@ -298,28 +386,8 @@ def localize_with_overlaps(
     ids = np.nonzero(need)[0]
     overlap = {}
     if ids.size:
-        nr = (
-            None
-            if noise_rms_v is None
-            else np.broadcast_to(np.asarray(noise_rms_v, float), (len(on),))[ids]
-        )
-        sat = (
-            None
-            if saturated is None
-            else np.broadcast_to(np.asarray(saturated, bool), (len(on),))[ids]
-        )
-        res = resolve_overlaps(
-            x[ids],
-            sample_rate_hz,
-            on[ids],
-            geometry=geo,
-            pulse=pulse,
-            noise_rms_v=nr,
-            saturated=sat,
-            max_sources=max_sources,
-            **(overlap_kwargs or {}),
-        )
-        overlap = {int(i): r for i, r in zip(ids, res)}
+        overlap = _overlaps_of(x, sample_rate_hz, on, ids, geo, pulse, noise_rms_v, saturated,
+                               max_sources, overlap_kwargs)
     single.accepted = single.accepted & ~sus
     single.confidence = np.where(sus, 0.0, single.confidence)
     single.reason = np.where(sus, np.uint8(Reason.OVERLAP), single.reason).astype(np.uint8)
@@ -327,3 +395,30 @@ def localize_with_overlaps(
         single.reason_flags | np.where(sus, 1 << int(Reason.OVERLAP), 0)
     ).astype(np.uint16)
     return single, overlap
+
+
+def _overlaps_of(x, sample_rate_hz, on, ids, geo, pulse, noise_rms_v, saturated, max_sources,
+                 overlap_kwargs):
+    """{window index: `OverlapPacket`} of `resolve_overlaps` on the windows ``ids``."""
+    nr = (
+        None
+        if noise_rms_v is None
+        else np.broadcast_to(np.asarray(noise_rms_v, float), (len(on),))[ids]
+    )
+    sat = (
+        None
+        if saturated is None
+        else np.broadcast_to(np.asarray(saturated, bool), (len(on),))[ids]
+    )
+    res = resolve_overlaps(
+        x[ids],
+        sample_rate_hz,
+        on[ids],
+        geometry=geo,
+        pulse=pulse,
+        noise_rms_v=nr,
+        saturated=sat,
+        max_sources=max_sources,
+        **(overlap_kwargs or {}),
+    )
+    return {int(i): r for i, r in zip(ids, res)}
