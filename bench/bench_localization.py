@@ -32,7 +32,7 @@ Then the overlap sweep (bench/bench_overlap.py: two and three emissions in one w
 
 Writes bench/results/localization.json, bench/results/localization_speed_error.png,
 bench/results/localization_table.md, bench/results/overlap.json, overlap_table.md,
-overlap_success.png, and both tables into docs/localization.md (between the bench markers).
+overlap_success.png (docs/localization.md and docs/overlap.md link the tables).
 """
 
 from __future__ import annotations
@@ -68,9 +68,6 @@ from ae_tactile.localization.common import make_plan  # noqa: E402
 from ae_tactile.sim import SimConfig, render_triggered  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
-DOC = ROOT / "docs" / "localization.md"
-BEGIN, END = "<!-- bench:localization:begin -->", "<!-- bench:localization:end -->"
-OV_BEGIN, OV_END = "<!-- bench:overlap:begin -->", "<!-- bench:overlap:end -->"
 METHODS = ["ml", "ml_fixed_band", "gradient", "gcc_phat", "xcorr_farfield"]
 BASELINES = ["pra_srp_phat", "pra_music"]
 LABELS = {
@@ -670,19 +667,6 @@ def plot(res, path):
     plt.close(fig)
 
 
-def update_doc(table, begin=BEGIN, end=END):
-    """Replace the text between the ``begin`` and ``end`` markers of docs/localization.md."""
-    if not DOC.exists():
-        return False
-    text = DOC.read_text()
-    if begin not in text or end not in text:
-        return False
-    a = text.index(begin) + len(begin)
-    b = text.index(end)
-    DOC.write_text(text[:a] + "\n" + table + text[b:])
-    return True
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer packets (a smoke run)")
@@ -690,7 +674,7 @@ def main(argv=None):
     ap.add_argument(
         "--report-only",
         action="store_true",
-        help="redo the table, plot and docs from the last JSON without running",
+        help="redo the tables and plot from the last JSON without running",
     )
     args = ap.parse_args(argv)
     suffix = "_quick" if args.quick else ""
@@ -703,8 +687,6 @@ def main(argv=None):
     table = table_markdown(res)
     (RESULTS / f"localization_table{suffix}.md").write_text(table)
     plot(res, RESULTS / f"localization_speed_error{suffix}.png")
-    if not args.quick:
-        update_doc(table)
     print(table)
     print(f"run time {res['run_time_s']:.0f} s; results in {RESULTS}")
     if args.no_overlap:
@@ -714,11 +696,9 @@ def main(argv=None):
 
     if args.report_only:
         ov = json.loads((RESULTS / f"overlap{suffix}.json").read_text())
-        ov_table = bench_overlap.make_table(ov)
+        (RESULTS / f"overlap_table{suffix}.md").write_text(bench_overlap.make_table(ov))
     else:
-        _, ov_table = bench_overlap.main(["--quick"] if args.quick else [])
-    if not args.quick:
-        update_doc(ov_table, OV_BEGIN, OV_END)
+        bench_overlap.main(["--quick"] if args.quick else [])
 
 
 if __name__ == "__main__":

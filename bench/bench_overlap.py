@@ -4,7 +4,7 @@
     python3 bench/bench_overlap.py [--quick]        (or: make bench-overlap)
 
 `make bench-localization` (bench/bench_localization.py) runs this sweep too, after the
-single-source figures, and puts its tables into docs/localization.md.
+single-source figures; docs/overlap.md links the table (bench/results/overlap_table.md).
 
 Windows from the simulator (ae_tactile.sim; 10 MS/s, 1 MHz front end, 12-bit ADC, two
 wall echoes) holding two emissions (`ae_eval.overlap_trials.simulate_overlaps`:
