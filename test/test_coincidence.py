@@ -2,15 +2,15 @@
 """Coincidence across the fingertips of one hand (ae_tactile.dsp.coincidence): one
 electrical event seen by several fingertips is interference, an apex touch at a time of its
 own is kept, at the rate Poisson statistics give; and the hand trial that runs it behind
-each fingertip's packet tests (ae_tactile.slip.evaluate.hand_interference_trial)."""
+each fingertip's packet tests (ae_eval.slip.hand_interference_trial)."""
 
 import math
 
 import numpy as np
 import pytest
 
+from ae_eval import slip as ev
 from ae_tactile.dsp.coincidence import HandCoincidence
-from ae_tactile.slip import evaluate as ev
 
 MS = 1_000_000
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Weak releases: a release below the localizer's SNR threshold, kept on its touch's spot.
 
 Ground truth comes from the simulator's emissions (where and with which sign each packet
@@ -8,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from ae_eval import slip as ev
 from ae_tactile.localization import localize
 from ae_tactile.localization.common import Reason
 from ae_tactile.localization.weak_release import (
@@ -18,7 +20,6 @@ from ae_tactile.localization.weak_release import (
     kept_with_weak_releases,
 )
 from ae_tactile.pipeline import EventType, PacketLocalizer, PacketView
-from ae_tactile.slip import evaluate as ev
 
 MS = 1_000_000
 R = 10e-3
