@@ -12,6 +12,8 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import yaml
+
 from ae_tactile.geometry import FingertipGeometry
 
 from .recovery import _count, _raw_messages
@@ -85,6 +87,10 @@ class ReplayResult:
         What stopped or hampered reading the bag (damage).
     recovered : int
         Messages read by the record-by-record fallback after the normal reader failed.
+    damaged_records : int
+        Records the fallback found but could not use (a damaged row or record), skipped.
+    expected_records : int or None
+        Messages the bag's metadata.yaml lists (None: no readable metadata).
     """
 
     packets: int = 0
@@ -96,6 +102,8 @@ class ReplayResult:
     undecodable: dict = field(default_factory=dict)
     read_errors: list = field(default_factory=list)
     recovered: int = 0
+    damaged_records: int = 0
+    expected_records: int | None = None
 
     @property
     def damaged(self) -> bool:
@@ -117,7 +125,15 @@ class ReplayResult:
                 f"bag damaged ({len(self.read_errors)} read error(s)): "
                 + "; ".join(self.read_errors[:5])
             )
-            lines.append(f"{self.recovered} message(s) recovered record by record")
+            listed = (
+                f"; the bag's metadata lists {self.expected_records} message(s) in all"
+                if self.expected_records is not None
+                else ""
+            )
+            lines.append(
+                f"{self.recovered} message(s) recovered record by record,"
+                f" {self.damaged_records} damaged record(s) skipped{listed}"
+            )
         return "\n".join(lines)
 
 
@@ -169,9 +185,20 @@ def read_bag(path, store, packet_topic: str | None = None, report: ReplayResult 
     yield from _read_record_by_record(path, store, wanted, report, seen)
 
 
+class IncompleteBag(RuntimeError):
+    """rosbags read fewer messages than the bag's metadata lists (a damaged sqlite3 row it
+    drops without a word, e.g. a topic_id a flipped byte made NULL)."""
+
+
 def _read_with_rosbags(path, store, wanted, report: ReplayResult, seen: set):
     """The wanted messages through rosbags' reader; each one's (topic, time, size) goes
-    to ``seen``, so that a fallback after a failure does not deliver it again."""
+    to ``seen``, so that a fallback after a failure does not deliver it again.
+
+    Raises
+    ------
+    IncompleteBag
+        Fewer messages came than the metadata lists for the wanted topics.
+    """
     # lazy: rosbags is an optional dependency (the 'bag' extra)
     from rosbags.highlevel import AnyReader
 
@@ -184,17 +211,23 @@ def _read_with_rosbags(path, store, wanted, report: ReplayResult, seen: set):
                 _count(report.skipped, c.msgtype, int(getattr(c, "msgcount", 0) or 0))
         if not conns:  # (an empty list would mean "all connections" to rosbags)
             return
+        listed = sum(int(getattr(c, "msgcount", 0) or 0) for c in conns)
+        n = 0
         for conn, t_ns, raw in reader.messages(connections=conns):
             seen.add((conn.topic, int(t_ns), len(raw)))
+            n += 1
             msg = _deserialize(store, raw, conn.msgtype, report)
             if msg is not None:
                 yield conn.topic, conn.msgtype, t_ns, msg
+        if n < listed:
+            raise IncompleteBag(f"{listed - n} of the {listed} messages listed were not read")
 
 
 def _read_record_by_record(path, store, wanted, report: ReplayResult, seen: set):
     """The wanted messages the normal reader did not deliver, record by record."""
     skipped_before = dict(report.skipped)
     report.skipped.clear()
+    report.expected_records = _listed_messages(Path(path))
     n_raw = 0
     for topic, msgtype, t_ns, raw in _raw_messages(Path(path), report):
         if not wanted(topic, msgtype):
@@ -209,6 +242,16 @@ def _read_record_by_record(path, store, wanted, report: ReplayResult, seen: set)
     report.recovered += n_raw
     if not report.skipped:
         report.skipped.update(skipped_before)
+
+
+def _listed_messages(path: Path) -> int | None:
+    """The message count of a bag directory's metadata.yaml (None: none readable)."""
+    try:
+        with open(path / "metadata.yaml", encoding="utf-8") as fh:
+            info = yaml.safe_load(fh)["rosbag2_bagfile_information"]
+        return int(info["message_count"])
+    except Exception:  # noqa: BLE001 - no file, a file cut short, not a mapping: unknown
+        return None
 
 
 def _deserialize(store, raw, msgtype: str, report: ReplayResult):
