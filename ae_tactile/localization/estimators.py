@@ -136,17 +136,14 @@ def localize(
     noise_rms_v : float or array_like (K,), optional
         Known noise sigma [V], > 0 (NaN entries: unknown). Default: measured on the
         samples before ``onset - pre_onset_s``, else from the fit residual.
-    saturated : array_like of bool (K,), optional
-        Clip flags from upstream.
-    full_scale_v : float, optional
-        ADC clip level [V]. With neither this nor ``saturated``, a flat top of
-        >= max(4, 0.3 us fs) samples at a channel's dominant extreme flags saturation.
+    saturated, full_scale_v : array_like of bool (K,), float, optional
+        Upstream clip flags; ADC clip level [V]. With neither, a flat top of >= max(4,
+        0.3 us fs) samples at a channel's dominant extreme flags saturation.
     channel_gains : array_like (4,), optional
         Relative gains of the 4 channels (divided out).
-    min_snr_db : float
-        LOW_SNR below this [dB].
-    overlap_threshold : float, optional
-        OVERLAP when the excess misfit exceeds it (default per method).
+    min_snr_db, overlap_threshold : float
+        LOW_SNR below this [dB]; OVERLAP when the excess misfit exceeds that (default
+        per method).
     pre_onset_s, echo_guard_s : float
         Noise samples end this long before the onset [s]; the analysis ends this long
         before the first wall echo [s].
@@ -159,23 +156,15 @@ def localize(
     -------
     LocalizationResult
         K rows: point, covariance, accepted, reason, polarity, confidence, ...
-
-    Raises
-    ------
-    ValueError, TypeError
-        Bad parameters or shapes (data problems are rejections, never exceptions).
+        Bad parameters or shapes raise ValueError / TypeError; data problems are
+        rejections, never exceptions.
     """
     info = get_estimator(method)
     geo = FingertipGeometry() if geometry is None else geometry
     eng = resolve_engine(engine, method, options)
     x, onset = validate_windows(windows, onset_index, copy=eng != "numba")
     plan = _plan(sample_rate_hz, geo, x.shape[2], band_hz, pre_onset_s, echo_guard_s, method)
-    min_snr_db = float(min_snr_db)
-    if not np.isfinite(min_snr_db):
-        raise ValueError(f"min_snr_db must be finite, got {min_snr_db!r}")
-    thr = info.overlap_threshold if overlap_threshold is None else float(overlap_threshold)
-    if not (np.isfinite(thr) and thr > 0):
-        raise ValueError(f"overlap_threshold must be positive, got {overlap_threshold!r}")
+    min_snr_db, thr = _thresholds(info, min_snr_db, overlap_threshold)
     noise = _noise_arg(noise_rms_v, x.shape[0])
     if eng == "numba":
         return _localize_compiled(x, onset, plan, method, options, noise, saturated,
@@ -183,17 +172,22 @@ def localize(
     if x.shape[0] == 0:
         return _empty(method, options)
     with np.errstate(all="ignore"):
-        prep = prepare(
-            x,
-            onset,
-            plan,
-            noise_rms_v=None if noise_rms_v is None else noise,
-            saturated=saturated,
-            full_scale_v=full_scale_v,
-            channel_gains=channel_gains,
-        )
+        prep = prepare(x, onset, plan, noise_rms_v=None if noise_rms_v is None else noise,
+                       saturated=saturated, full_scale_v=full_scale_v,
+                       channel_gains=channel_gains)
         core = info.function(prep, plan, **options)
         return _finish(core, prep, plan, geo, method, min_snr_db, thr, options)
+
+
+def _thresholds(info, min_snr_db, overlap_threshold):
+    """(min_snr_db [dB], overlap threshold) of `localize`, checked (ValueError)."""
+    min_snr_db = float(min_snr_db)
+    if not np.isfinite(min_snr_db):
+        raise ValueError(f"min_snr_db must be finite, got {min_snr_db!r}")
+    thr = info.overlap_threshold if overlap_threshold is None else float(overlap_threshold)
+    if not (np.isfinite(thr) and thr > 0):
+        raise ValueError(f"overlap_threshold must be positive, got {overlap_threshold!r}")
+    return min_snr_db, thr
 
 
 def _localize_compiled(x, onset, plan, method, options, noise, saturated, full_scale_v,
@@ -260,8 +254,9 @@ def _gains_arg(channel_gains):
     return g
 
 
-def _finish(core, prep, plan, geo, method, min_snr_db, thr, options):
-    flags = prep.flags.copy()
+def _noise_snr_excess(core, prep):
+    """(misfit, noise variance sigma^2 [V^2, scaled], SNR [dB], excess misfit) of the
+    estimator's aligned channels: noise pre-onset (or given), else from the fit residual."""
     zb = core["zb"]
     count = core["count"]
     mis, res_e, tot_e = misfit(zb)
@@ -282,9 +277,33 @@ def _finish(core, prep, plan, geo, method, min_snr_db, thr, options):
     sigma2 = np.maximum(sigma2, floor)
     p_sig = np.maximum(p_total - sigma2, 1e-300)
     snr = np.clip(10.0 * np.log10(p_sig / sigma2), -100.0, 120.0)
-    flags[snr < min_snr_db] |= 1 << Reason.LOW_SNR
     excess = mis - 3.0 * nb * L * sigma2 / np.maximum(tot_e, 1e-300)
     excess = np.where(np.isfinite(excess), excess, 1.0)
+    return mis, sigma2, snr, excess
+
+
+def _point_covariance(geo, point, theta, c_tau, cov_ok):
+    """Finite point (the pole where the fit gave none), delays, 3-D covariance [m^2] and
+    the delay covariance used [s^2] (a horizon-wide one where the fit's is unusable)."""
+    finite_pt = np.all(np.isfinite(point), axis=1) & np.all(np.isfinite(theta), axis=1)
+    pole = np.array([0.0, 0.0, geo.radius_m])
+    point = np.where(finite_pt[:, None], point, pole)
+    theta = np.where(finite_pt[:, None], theta, 0.0)
+    big = geo.radius_m**2
+    cov_fin = finite_pt & cov_ok & np.all(np.isfinite(c_tau), axis=(1, 2))
+    c_tau_safe = np.where(cov_fin[:, None, None], c_tau, np.eye(2) * geo.max_delay_s**2)
+    cov = geo.point_covariance(point, c_tau_safe)
+    cov_good = cov_fin & np.all(np.isfinite(cov), axis=(1, 2))
+    cov = np.where(cov_good[:, None, None], cov, np.eye(3) * big)
+    cov = np.minimum(cov, 1e3 * big)
+    cov = np.maximum(cov, -1e3 * big)
+    return point, theta, cov, c_tau_safe, finite_pt
+
+
+def _finish(core, prep, plan, geo, method, min_snr_db, thr, options):
+    flags = prep.flags.copy()
+    mis, sigma2, snr, excess = _noise_snr_excess(core, prep)
+    flags[snr < min_snr_db] |= 1 << Reason.LOW_SNR
     flags[excess > thr] |= 1 << Reason.OVERLAP
 
     theta = np.asarray(core["theta"], float)
@@ -299,18 +318,8 @@ def _finish(core, prep, plan, geo, method, min_snr_db, thr, options):
     over |= np.asarray(core.get("at_edge", False), bool)
     flags[over] |= 1 << Reason.OUT_OF_RANGE
 
-    finite_pt = np.all(np.isfinite(point), axis=1) & np.all(np.isfinite(theta), axis=1)
-    pole = np.array([0.0, 0.0, geo.radius_m])
-    point = np.where(finite_pt[:, None], point, pole)
-    theta = np.where(finite_pt[:, None], theta, 0.0)
-    big = geo.radius_m**2
-    cov_fin = finite_pt & cov_ok & np.all(np.isfinite(c_tau), axis=(1, 2))
-    c_tau_safe = np.where(cov_fin[:, None, None], c_tau, np.eye(2) * geo.max_delay_s**2)
-    cov = geo.point_covariance(point, c_tau_safe)
-    cov_good = cov_fin & np.all(np.isfinite(cov), axis=(1, 2))
-    cov = np.where(cov_good[:, None, None], cov, np.eye(3) * big)
-    cov = np.minimum(cov, 1e3 * big)
-    cov = np.maximum(cov, -1e3 * big)
+    point, theta, cov, c_tau_safe, finite_pt = _point_covariance(geo, point, theta, c_tau,
+                                                                 cov_ok)
     bad_numeric = ~finite_pt
     flags[bad_numeric & (flags == 0)] |= 1 << Reason.OUT_OF_RANGE
 

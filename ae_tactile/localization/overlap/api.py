@@ -28,27 +28,10 @@ from ae_tactile.localization.segments import prepare, subset
 
 
 def resolve_overlaps(
-    windows,
-    sample_rate_hz,
-    onset_index,
-    *,
-    geometry=None,
-    pulse=None,
-    noise_rms_v=None,
-    saturated=None,
-    full_scale_v=None,
-    max_sources=3,
-    band_hz=(100e3, 1e6),
-    analysis_s=None,
-    add_threshold=60.0,
-    max_chi2_ratio=None,
-    max_sigma_m=0.2e-3,
-    min_snr_db=5.0,
-    echo=True,
-    grid_spacing_m=1.0e-3,
-    min_separation_s=1.5e-6,
-    engine="auto",
-    exhaustive=True,
+    windows, sample_rate_hz, onset_index, *, geometry=None, pulse=None, noise_rms_v=None,
+    saturated=None, full_scale_v=None, max_sources=3, band_hz=(100e3, 1e6), analysis_s=None,
+    add_threshold=60.0, max_chi2_ratio=None, max_sigma_m=0.2e-3, min_snr_db=5.0, echo=True,
+    grid_spacing_m=1.0e-3, min_separation_s=1.5e-6, engine="auto", exhaustive=True,
 ) -> list:
     """Localize every emission in each of K windows (two or three overlapping emissions).
 
@@ -71,25 +54,20 @@ def resolve_overlaps(
         `common.adc_noise`).
     saturated, full_scale_v : optional
         As for `localize`.
-    max_sources : int
-        1, 2 or 3.
-    band_hz : (float, float)
-        Band [Hz] of the analysis plan.
+    max_sources, band_hz : int, (float, float)
+        1, 2 or 3 emissions at most; band [Hz] of the analysis plan.
     analysis_s : float, optional
         Length of the fit window after the onset [s]; default up to just before the
         second wall echo.
-    add_threshold : float
-        Residual-energy drop [sigma^2] needed to add an emission.
-    max_chi2_ratio : float, optional
-        Largest accepted residual / (sigma^2 dof); default 1 + 5 sqrt(2/n_noise + 2/dof).
+    add_threshold, max_chi2_ratio : float
+        Residual-energy drop [sigma^2] needed to add an emission; largest accepted
+        residual / (sigma^2 dof) (default 1 + 5 sqrt(2/n_noise + 2/dof)).
     max_sigma_m : float
         [m] emissions with a larger in-plane 1-sigma are dropped.
     min_snr_db : float
         [dB] SNR floor of an emission.
-    echo : bool
-        Model the first wall echo.
-    grid_spacing_m : float
-        [m] spacing of the matched-filter grid on the surface.
+    echo, grid_spacing_m : bool, float
+        Model the first wall echo; [m] spacing of the matched-filter grid on the surface.
     min_separation_s : float
         [s] emissions fitted closer in time are not separated reliably (the joint
         likelihood has several nearly equal optima): such windows are rejected
@@ -105,12 +83,8 @@ def resolve_overlaps(
     Returns
     -------
     list of OverlapPacket
-        K packets: ``sources`` earliest first, or a rejection reason.
-
-    Raises
-    ------
-    ValueError, TypeError
-        Bad parameters or shapes (data problems are rejections).
+        K packets: ``sources`` earliest first, or a rejection reason. Bad parameters or
+        shapes raise ValueError / TypeError; data problems are rejections.
     """
     geo, pulse, add_threshold, max_sigma_m, max_chi2_ratio, min_snr_db, analysis_s, \
         grid_spacing_m, min_separation_s = _checked(
@@ -122,10 +96,8 @@ def resolve_overlaps(
     if K == 0:
         return []
     grid = _surface_grid(geo, grid_spacing_m)
-    decide_args = (
-        max_sources, add_threshold, max_chi2_ratio, max_sigma_m, min_snr_db,
-        min_separation_s,
-    )
+    decide_args = (max_sources, add_threshold, max_chi2_ratio, max_sigma_m, min_snr_db,
+                   min_separation_s)
     if not exhaustive and engine == "auto" and _compiled_medium(pulse):
         with np.errstate(all="ignore"):
             return _resolve_quick(

@@ -145,30 +145,7 @@ def _grid_search(model: _Model, r, grid, chunk=64, n_peaks=1, min_sep_s=0.8e-6):
     best_g = prof_g[np.arange(K), i]
     best_m = mm[i]
     if n_peaks > 1:
-        # further peaks of the time profile max_g stat(g, m), >= min_sep samples apart
-        peaks = [np.stack([grid[best_g, 0], grid[best_g, 1], best_m.astype(float)], 1)]
-        pr = prof.copy()
-        rows_ = np.arange(K)
-        last = i
-        for _ in range(n_peaks - 1):
-            lo = np.searchsorted(mm, mm[last] - min_sep)
-            hi = np.searchsorted(mm, mm[last] + min_sep, side="right")
-            mask = (np.arange(mm.size)[None, :] >= lo[:, None]) & (
-                np.arange(mm.size)[None, :] < hi[:, None]
-            )
-            pr[mask] = -np.inf
-            last = np.argmax(pr, axis=1)
-            g2 = prof_g[rows_, last]
-            peaks.append(np.stack([grid[g2, 0], grid[g2, 1], mm[last].astype(float)], 1))
-        extra = []
-        for pk in peaks[1:]:
-            gidx = np.argmin(
-                np.abs(grid[:, None, 0] - pk[None, :, 0])
-                + np.abs(grid[:, None, 1] - pk[None, :, 1]),
-                axis=0,
-            )
-            T2 = (model.start + pk[:, 2]) / fs - tt[gidx].min(axis=1)
-            extra.append(np.stack([pk[:, 0], pk[:, 1], T2], 1))
+        extra = _further_peaks(model, grid, tt, prof, prof_g, mm, i, n_peaks, min_sep)
     rows = np.arange(K)
     cand = np.clip(best_m[:, None] + np.array([-1, 0, 1]), 0, L - 1)  # (K, 3)
     ix = rel[best_g][:, :, None] + cand[:, None, :]  # (K, 4, 3)
@@ -186,6 +163,38 @@ def _grid_search(model: _Model, r, grid, chunk=64, n_peaks=1, min_sep_s=0.8e-6):
     if n_peaks > 1:
         return np.stack([best] + extra, axis=1), best_val
     return best, best_val
+
+
+def _further_peaks(model: _Model, grid, tt, prof, prof_g, mm, i, n_peaks, min_sep):
+    """(s_x, s_y, T) (K, 3) of each further peak of `_grid_search`'s time profile
+    max_g stat(g, m) (``prof`` (K, len(mm)) with its grid points ``prof_g``), each >=
+    ``min_sep`` samples from the earlier ones, after the best at ``i``."""
+    K = prof.shape[0]
+    fs = model.fs
+    peaks = []
+    pr = prof.copy()
+    rows_ = np.arange(K)
+    last = i
+    for _ in range(n_peaks - 1):
+        lo = np.searchsorted(mm, mm[last] - min_sep)
+        hi = np.searchsorted(mm, mm[last] + min_sep, side="right")
+        mask = (np.arange(mm.size)[None, :] >= lo[:, None]) & (
+            np.arange(mm.size)[None, :] < hi[:, None]
+        )
+        pr[mask] = -np.inf
+        last = np.argmax(pr, axis=1)
+        g2 = prof_g[rows_, last]
+        peaks.append(np.stack([grid[g2, 0], grid[g2, 1], mm[last].astype(float)], 1))
+    extra = []
+    for pk in peaks:
+        gidx = np.argmin(
+            np.abs(grid[:, None, 0] - pk[None, :, 0])
+            + np.abs(grid[:, None, 1] - pk[None, :, 1]),
+            axis=0,
+        )
+        T2 = (model.start + pk[:, 2]) / fs - tt[gidx].min(axis=1)
+        extra.append(np.stack([pk[:, 0], pk[:, 1], T2], 1))
+    return extra
 
 
 @dataclass

@@ -24,18 +24,8 @@ from ae_tactile.localization.segments import prepare
 
 
 def suspect_overlap(
-    windows,
-    sample_rate_hz,
-    onset_index,
-    single_source_result,
-    *,
-    geometry=None,
-    pulse=None,
-    noise_rms_v=None,
-    band_hz=(100e3, 1e6),
-    analysis_s=None,
-    echo=True,
-    max_chi2_ratio=None,
+    windows, sample_rate_hz, onset_index, single_source_result, *, geometry=None, pulse=None,
+    noise_rms_v=None, band_hz=(100e3, 1e6), analysis_s=None, echo=True, max_chi2_ratio=None,
     engine="auto",
 ):
     """(K,) bool: packets that `localize` ACCEPTED as single-source but whose one-emission fit
