@@ -53,6 +53,7 @@ from ae_tactile.sim.scene_schema import (
     TOP_KEYS,
     SceneContext,
     SceneError,
+    check_event_times,
     scene_schema_markdown,
     validate_map,
 )
@@ -60,8 +61,17 @@ from ae_tactile.sim.stream import StreamingSource, TriggeredSource
 from ae_tactile.sim.triggered import render_triggered
 
 __all__ = [
-    "Scene", "SceneError", "load_scene", "reference_noise_rms", "build_config", "GENERATORS",
-    "Budget", "DEFAULT_BUDGET", "CLI_BUDGET", "SceneCost", "scene_schema_markdown",
+    "Scene",
+    "SceneError",
+    "load_scene",
+    "reference_noise_rms",
+    "build_config",
+    "GENERATORS",
+    "Budget",
+    "DEFAULT_BUDGET",
+    "CLI_BUDGET",
+    "SceneCost",
+    "scene_schema_markdown",
 ]
 
 
@@ -263,6 +273,7 @@ def load_scene(source, overrides: dict | None = None, *, budget: Budget | None =
     effects = validate_map("effects", top["effects"], EFFECT_KEYS)
     factory, schema = GENERATORS[gen]
     params = validate_map("params", top["params"], schema)
+    check_event_times("params", top["params"], params, top["duration_s"])
     config = build_config(sensor, effects)
     cost = estimate_cost(gen, params, top["duration_s"], config, effects).check(budget)
     noise_rms = _noise_rms_v(top["noise"], config)

@@ -74,7 +74,11 @@ SENSOR_KEYS = {
         auto=True,
     ),
     "lowpass_order": Key(
-        "int", "auto", "low-pass order; auto: 4, or 8 for an auto cut-off below 1 MHz", 1, 8,
+        "int",
+        "auto",
+        "low-pass order; auto: 4, or 8 for an auto cut-off below 1 MHz",
+        1,
+        8,
         auto=True,
     ),
     "sample_rate_hz": _f(10e6, "ADC sample rate (Hz, integer)", 1e3, 1e9),
@@ -265,8 +269,9 @@ GENERATORS = {
             "touch_time_s": _f(1e-3, "held touch: touch time (s)", 0.0, 3600.0),
             "hold_s": _f(0.0, "held touch: hold time (s); 0: no touch", 0.0, 3600.0),
             "release_speed_m_s": _f(0.15, "held touch: separation speed (m/s)", 1e-4, 20.0),
-            "taps_before": Key("int", 0, "taps away from the apex before it all (every 30 ms)",
-                               0, 1000),
+            "taps_before": Key(
+                "int", 0, "taps away from the apex before it all (every 30 ms)", 0, 1000
+            ),
             **_EV,
         },
     ),
@@ -392,6 +397,47 @@ PART_KEYS = {
 }
 
 
+#: Parameters that place an event on the scene's timeline [s] (lists: every element).
+EVENT_TIME_KEYS = ("time_s", "times_s", "start_s", "touch_time_s", "at_s")
+
+
+def check_event_times(where: str, raw: dict, values: dict, duration_s: float) -> None:
+    """Refuse an event placed at or after the end of its timeline (nothing of it would be
+    played or rendered, without a word).
+
+    Parameters
+    ----------
+    where : str
+        Name of the mapping in messages (``params``, ``params.parts[1]``).
+    raw : dict
+        The mapping as written (only keys given there are checked: defaults are not the
+        writer's choice).
+    values : dict
+        The validated mapping.
+    duration_s : float
+        Length of the timeline [s].
+
+    Raises
+    ------
+    SceneError
+        The message names the key, its value and the duration.
+    """
+    if not isinstance(raw, dict):
+        return
+    for key in EVENT_TIME_KEYS:
+        if key not in raw or key not in values:
+            continue
+        v = values[key]
+        times = v if isinstance(v, (list, tuple)) else [v]
+        late = [float(t) for t in times if t is not None and float(t) >= duration_s]
+        if late:
+            raise SceneError(
+                f"{where}.{key}: {late[0]:g} s is at or after the end of the scene"
+                f" (duration_s = {duration_s:g} s here): nothing of it would be played;"
+                " lengthen duration_s or move the event"
+            )
+
+
 def composite(ctx, p):
     """Parts ``[{at_s, generator, params, name}]`` played on one timeline (CompositeProcess)."""
     parts = p["parts"]
@@ -401,6 +447,7 @@ def composite(ctx, p):
     for i, raw in enumerate(parts):
         where = f"params.parts[{i}]"
         part = validate_map(where, raw, PART_KEYS)
+        check_event_times(where, raw, part, ctx.duration_s)
         gen = part["generator"]
         if gen not in GENERATORS or gen == "composite":
             raise SceneError(
@@ -409,6 +456,7 @@ def composite(ctx, p):
             )
         factory, schema = GENERATORS[gen]
         params = validate_map(f"{where}.params", part["params"], schema)
+        check_event_times(f"{where}.params", part["params"], params, ctx.duration_s - part["at_s"])
         sub = SceneContext(
             config=ctx.config,
             seed=ctx.seed + 1000 * (i + 1),
