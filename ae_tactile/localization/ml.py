@@ -119,6 +119,44 @@ def _times(geometry, sx, sy):
     return geometry._xy_distances(sx, sy) / geometry.sound_speed_m_s
 
 
+def _data_band(prep: Prepared, plan: Plan, X):
+    """Data-driven band: each packet keeps the candidate bins up to its own edge. Returns
+    (X with the pair start's bins cut at min(edge, fallback edge) (the start needs the
+    integer lag only), the (K, 1, bins) mask of the aligned bins up to each edge)."""
+    given = np.zeros(len(prep.sigma2), bool) if prep.noise_given is None else prep.noise_given
+    s2 = adc_noise(prep.sigma2, prep.quant2, given)
+    f_edge = band_edge_hz(X[..., plan.band], s2, prep.seg_count, plan)
+    X = X.copy()
+    f_start = np.minimum(f_edge, plan.auto_fallback_hz)
+    X[..., plan.band] *= (plan.w / (2 * np.pi) <= f_start[:, None])[:, None, :]
+    mask_al = (plan.w_al / (2 * np.pi) <= f_edge[:, None])[:, None, :]
+    return X, mask_al
+
+
+def _recut(prep, plan, ids, s, clamped, al, c0, mask_al, iterations, max_step):
+    """Re-cut the packets ``ids`` on their fitted points and fit them again; ``s``,
+    ``clamped``, ``al`` and ``c0`` are updated in place."""
+    geo = plan.geometry
+    fs = plan.fs
+    sub = subset(prep, ids)
+    t = _times(geo, s[ids, 0], s[ids, 1])
+    al2 = aligned_spectra(sub, plan, t)
+    if mask_al is not None:
+        al2.Yb = al2.Yb * mask_al[ids]
+    c2 = al2.ref[:, None] + al2.shift / fs
+    s2, cl2 = newton(al2.Yb, plan.w_al, geo, s[ids], c2, iterations, max_step, 1e-4 * max_step)
+    s[ids], clamped[ids] = s2, cl2
+    al.Y[ids], al.Yb[ids], al.shift[ids], al.ref[ids], al.count[ids] = (
+        al2.Y,
+        al2.Yb,
+        al2.shift,
+        al2.ref,
+        al2.count,
+    )
+    al.seg[ids] = al2.seg
+    c0[ids] = c2
+
+
 def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4):
     """Exact-sphere ML fit. Returns the estimator core dict (see estimators.py)."""
     if (
@@ -132,15 +170,7 @@ def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4):
     X = prep.X
     mask_al = None
     if plan.auto_fallback_hz > 0:
-        # Data-driven band: each packet keeps the candidate bins up to its own edge.
-        given = np.zeros(len(prep.sigma2), bool) if prep.noise_given is None else prep.noise_given
-        s2 = adc_noise(prep.sigma2, prep.quant2, given)
-        f_edge = band_edge_hz(X[..., plan.band], s2, prep.seg_count, plan)
-        X = X.copy()
-        # the pair start needs the integer lag only: bins up to min(edge, fallback edge)
-        f_start = np.minimum(f_edge, plan.auto_fallback_hz)
-        X[..., plan.band] *= (plan.w / (2 * np.pi) <= f_start[:, None])[:, None, :]
-        mask_al = (plan.w_al / (2 * np.pi) <= f_edge[:, None])[:, None, :]
+        X, mask_al = _data_band(prep, plan, X)
     d, _, edge = pair_delays(X, plan)
     theta0, pair_res = delays_from_pairs(d)
     pts0, _ = geo.point_from_delays(theta0[:, 0], theta0[:, 1], exact=True)
@@ -157,24 +187,8 @@ def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4):
     eps = _times(geo, s[:, 0], s[:, 1]) - c0
     drift = np.abs(eps - eps.mean(axis=1, keepdims=True)).max(axis=1) * fs >= 0.75
     if drift.any():
-        ids = np.nonzero(drift)[0]
-        sub = subset(prep, ids)
-        t = _times(geo, s[ids, 0], s[ids, 1])
-        al2 = aligned_spectra(sub, plan, t)
-        if mask_al is not None:
-            al2.Yb = al2.Yb * mask_al[ids]
-        c2 = al2.ref[:, None] + al2.shift / fs
-        s2, cl2 = newton(al2.Yb, plan.w_al, geo, s[ids], c2, iterations, max_step, 1e-4 * max_step)
-        s[ids], clamped[ids] = s2, cl2
-        al.Y[ids], al.Yb[ids], al.shift[ids], al.ref[ids], al.count[ids] = (
-            al2.Y,
-            al2.Yb,
-            al2.shift,
-            al2.ref,
-            al2.count,
-        )
-        al.seg[ids] = al2.seg
-        c0[ids] = c2
+        _recut(prep, plan, np.nonzero(drift)[0], s, clamped, al, c0, mask_al, iterations,
+               max_step)
     t, dt, _ = geo.arrival_time_derivatives(s[:, 0], s[:, 1])
     eps = t - c0
     zb = al.Yb * np.exp(1j * plan.w_al * eps[..., None])

@@ -122,21 +122,8 @@ def _quantum2(raw):
     return np.where(np.isfinite(dif), dif * dif / 12.0, 0.0)
 
 
-def prepare(
-    x,
-    onset,
-    plan: Plan,
-    *,
-    noise_rms_v=None,
-    saturated=None,
-    full_scale_v=None,
-    channel_gains=None,
-    spectra: bool = True,
-) -> Prepared:
-    """Sanitise, flag and transform a batch (see the module docstring). ``spectra=False``
-    leaves out what only the single-emission estimators use (``X``, ``p_signal``: None)."""
-    k, _, m = x.shape
-    flags = np.zeros(k, np.int64)
+def _zero_nonfinite(x, flags) -> None:
+    """Non-finite samples set to 0 in place; their packets flagged NONFINITE."""
     total = x.sum(axis=(1, 2))
     suspect = ~np.isfinite(total)
     if suspect.any():
@@ -147,44 +134,13 @@ def prepare(
         sub[~fin] = 0.0
         x[ids] = sub
         flags[ids[bad_sub]] |= 1 << Reason.NONFINITE
-    outside = (onset < 0) | (onset >= m)
-    on = np.clip(onset, 0, m - 1)
-    # Too little of the packet inside the window: fewer than a quarter of the
-    # echo-free samples after the onset.
-    short = (m - on) < max(4, (plan.seg_len - plan.pre) // 4)
-    flags[outside | short] |= 1 << Reason.WINDOW
-    seg_start = on - plan.pre
-    start4 = np.repeat(seg_start[:, None], 4, axis=1)
-    sat = np.zeros(k, bool)
-    if full_scale_v is not None:
-        fsv = _positive("full_scale_v", full_scale_v)
-        sat |= (np.abs(raw_gather(x, start4, plan.seg_len)[0]) >= fsv * (1.0 - 1e-3)).any(
-            axis=(1, 2)
-        )
-    if saturated is not None:
-        sat |= per_packet("saturated", saturated, k, dtype=bool)
-    if channel_gains is not None:
-        g = np.asarray(channel_gains, dtype=float)
-        if g.shape != (4,) or not np.all(np.isfinite(g)) or np.any(g <= 0):
-            raise ValueError(
-                f"channel_gains must be 4 positive finite numbers, got {channel_gains!r}"
-            )
-        x /= g[None, :, None]
-    # Per-packet scale: the estimators work on (x - x[:, :, :1]) / scale, scale the largest
-    # deviation from the first samples, so that every statistic is gain- and DC-invariant
-    # to rounding and nothing overflows; volts are restored on output.
-    x -= x[:, :, :1].copy()
-    dev = np.abs(x).max(axis=(1, 2))
-    huge = ~np.isfinite(dev)
-    if huge.any():  # |x| ~ 1e308: as unusable as inf
-        x[huge] = 0.0
-        flags[huge] |= 1 << Reason.NONFINITE
-    scale = np.where(np.isfinite(dev) & (dev > 0), dev, 1.0)
-    x /= scale[:, None, None]
 
-    # Noise from the pre-onset samples [0, onset - pre), pooled over the 4 channels
-    # (relative to each channel's first sample: no cancellation under DC offsets).
-    n_pre = np.clip(seg_start, 0, m)
+
+def _pre_onset_noise(x, n_pre):
+    """(noise variance (K,) pooled over the 4 channels, NaN with fewer than 4 samples;
+    pre-onset mean (K, 4)) of the samples [0, n_pre), relative to each channel's first
+    sample (no cancellation under DC offsets)."""
+    k = x.shape[0]
     p_max = int(n_pre.max(initial=0))
     x0 = x[:, :, :1]
     if p_max > 0:
@@ -200,16 +156,109 @@ def prepare(
     else:
         sigma2 = np.zeros(k)
         pre_mean = x0[:, :, 0].copy()
-    sigma2 = np.where(n_pre >= 4, sigma2, np.nan)
+    return np.where(n_pre >= 4, sigma2, np.nan), pre_mean
+
+
+def _given_noise(noise_rms_v, k, channel_gains, scale, sigma2):
+    """(sigma^2 with the known noise [V] where given (scaled like the samples), given
+    (K,) bool)."""
+    nr = per_packet("noise_rms_v", noise_rms_v, k)
+    ok = np.isfinite(nr) & (nr > 0)
+    if channel_gains is not None:
+        nr = nr / np.sqrt(np.mean(np.asarray(channel_gains, float) ** 2))
+    nr = nr / scale
+    return np.where(ok, nr * nr, sigma2), ok
+
+
+def _snr_window_power(x, on, plan: Plan, pre_mean):
+    """Mean power (K,) over the SNR window after the onset (what the window holds of it)."""
+    k, _, m = x.shape
+    w_len = min(plan.snr_len, m)
+    s0 = np.minimum(on, m - w_len)
+    lo, hi = int(s0.min()), int(s0.max())
+    if lo == hi:
+        sw = x[:, :, lo : lo + w_len]
+    else:
+        sw = sliding_window_view(x, w_len, axis=2)[
+            np.arange(k)[:, None], np.arange(4)[None, :], np.repeat(s0[:, None], 4, axis=1)
+        ]
+    sw = sw - pre_mean[..., None]
+    return np.einsum("kcm,kcm->k", sw, sw) / (4.0 * w_len)
+
+
+def _upstream_saturation(x, start4, plan: Plan, full_scale_v, saturated):
+    """(K,) bool: a coarse-segment sample at the clip level ``full_scale_v`` [V], or the
+    upstream flag ``saturated``."""
+    k = x.shape[0]
+    sat = np.zeros(k, bool)
+    if full_scale_v is not None:
+        fsv = _positive("full_scale_v", full_scale_v)
+        sat |= (np.abs(raw_gather(x, start4, plan.seg_len)[0]) >= fsv * (1.0 - 1e-3)).any(
+            axis=(1, 2)
+        )
+    if saturated is not None:
+        sat |= per_packet("saturated", saturated, k, dtype=bool)
+    return sat
+
+
+def _normalise(x, flags):
+    """Per-packet scale (K,), applied in place: the estimators work on
+    (x - x[:, :, :1]) / scale, scale the largest deviation from the first samples, so that
+    every statistic is gain- and DC-invariant to rounding and nothing overflows; volts are
+    restored on output. Packets with |x| ~ 1e308 (as unusable as inf) are zeroed and
+    flagged NONFINITE."""
+    x -= x[:, :, :1].copy()
+    dev = np.abs(x).max(axis=(1, 2))
+    huge = ~np.isfinite(dev)
+    if huge.any():
+        x[huge] = 0.0
+        flags[huge] |= 1 << Reason.NONFINITE
+    scale = np.where(np.isfinite(dev) & (dev > 0), dev, 1.0)
+    x /= scale[:, None, None]
+    return scale
+
+
+def prepare(
+    x,
+    onset,
+    plan: Plan,
+    *,
+    noise_rms_v=None,
+    saturated=None,
+    full_scale_v=None,
+    channel_gains=None,
+    spectra: bool = True,
+) -> Prepared:
+    """Sanitise, flag and transform a batch (see the module docstring). ``spectra=False``
+    leaves out what only the single-emission estimators use (``X``, ``p_signal``: None)."""
+    k, _, m = x.shape
+    flags = np.zeros(k, np.int64)
+    _zero_nonfinite(x, flags)
+    outside = (onset < 0) | (onset >= m)
+    on = np.clip(onset, 0, m - 1)
+    # Too little of the packet inside the window: fewer than a quarter of the
+    # echo-free samples after the onset.
+    short = (m - on) < max(4, (plan.seg_len - plan.pre) // 4)
+    flags[outside | short] |= 1 << Reason.WINDOW
+    seg_start = on - plan.pre
+    start4 = np.repeat(seg_start[:, None], 4, axis=1)
+    sat = _upstream_saturation(x, start4, plan, full_scale_v, saturated)
+    if channel_gains is not None:
+        g = np.asarray(channel_gains, dtype=float)
+        if g.shape != (4,) or not np.all(np.isfinite(g)) or np.any(g <= 0):
+            raise ValueError(
+                f"channel_gains must be 4 positive finite numbers, got {channel_gains!r}"
+            )
+        x /= g[None, :, None]
+    scale = _normalise(x, flags)
+
+    # Noise from the pre-onset samples [0, onset - pre), pooled over the 4 channels
+    # (relative to each channel's first sample: no cancellation under DC offsets).
+    n_pre = np.clip(seg_start, 0, m)
+    sigma2, pre_mean = _pre_onset_noise(x, n_pre)
     given = np.zeros(k, bool)
     if noise_rms_v is not None:
-        nr = per_packet("noise_rms_v", noise_rms_v, k)
-        ok = np.isfinite(nr) & (nr > 0)
-        if channel_gains is not None:
-            nr = nr / np.sqrt(np.mean(np.asarray(channel_gains, float) ** 2))
-        nr = nr / scale
-        sigma2 = np.where(ok, nr * nr, sigma2)
-        given = ok
+        sigma2, given = _given_noise(noise_rms_v, k, channel_gains, scale, sigma2)
 
     # Coarse segment (common start), raw for saturation checks, baseline-removed for spectra.
     raw, count = raw_gather(x, start4, plan.seg_len)
@@ -231,18 +280,7 @@ def prepare(
         )
     seg = demean(raw, start4, count, m, pre_mean)
 
-    # Mean power over the SNR window after the onset (what the window holds of it).
-    w_len = min(plan.snr_len, m)
-    s0 = np.minimum(on, m - w_len)
-    lo, hi = int(s0.min()), int(s0.max())
-    if lo == hi:
-        sw = x[:, :, lo : lo + w_len]
-    else:
-        sw = sliding_window_view(x, w_len, axis=2)[
-            np.arange(k)[:, None], np.arange(4)[None, :], np.repeat(s0[:, None], 4, axis=1)
-        ]
-    sw = sw - pre_mean[..., None]
-    p_total = np.einsum("kcm,kcm->k", sw, sw) / (4.0 * w_len)
+    p_total = _snr_window_power(x, on, plan, pre_mean)
 
     X = sfft.rfft(seg, n=plan.n_fft, axis=2)
     return Prepared(
