@@ -130,38 +130,17 @@ def _decide(
 
 
 def _answers(
-    fits,
-    deferred,
-    N,
-    sigma2,
-    n_noise,
-    max_sources,
-    add_threshold,
-    max_chi2_ratio,
-    max_sigma_m,
-    min_snr_db,
-    min_separation_s,
-    scale,
-    geo,
-    h_samples,
-    fs,
+    fits, deferred, N, sigma2, n_noise, max_sources, add_threshold, max_chi2_ratio,
+    max_sigma_m, min_snr_db, min_separation_s, scale, geo, h_samples, fs,
 ):
     """The `OverlapPacket` of each window from its fits (one per number of emissions):
     model order, residual test, separation, covariances, per-emission SNR and confidence.
     N (K,): samples in each window's fit."""
     K = len(sigma2)
-    # Model order: add emission j+1 while the residual energy drops by > add_threshold sigma^2.
-    J = np.ones(K, np.int64)
-    going = np.ones(K, bool)
-    for j in range(2, max_sources + 1):
-        gain = (fits[j - 2].rss - fits[j - 1].rss) / sigma2
-        step = going & (gain > add_threshold)
-        J[step] = j
-        going &= step
+    J = _model_order(fits, sigma2, max_sources, add_threshold)
     out = []
     snr_len = int(round(30e-6 * fs))
     e_pulse = float((h_samples[:snr_len] ** 2).sum())  # the direct wave's energy in 30 us
-    R = geo.radius_m
     for i in range(K):
         if deferred is not None and deferred[i]:
             out.append(
@@ -192,76 +171,87 @@ def _answers(
                 )
             )
             continue
-        s2 = sigma2[i] * max(ratio, 1.0)
-        fis = gram / s2
-        try:
-            cov = np.linalg.pinv(fis, rcond=1e-13, hermitian=True)
-        except np.linalg.LinAlgError:
-            cov = np.full(fis.shape, np.nan)
-        d_all = geo._xy_distances(theta[:, 0], theta[:, 1])  # (j, 4)
-        gain2 = ((R / d_all) ** 2).sum(axis=1)
-        sources = []
-        dropped = 0
-        for q in range(j):
-            c_xy = cov[3 * q : 3 * q + 2, 3 * q : 3 * q + 2]
-            sx, sy, T = (float(v) for v in theta[q])
-            vxx, vxy, vyx, vyy = c_xy.ravel().tolist()
-            finite = all(math.isfinite(v) for v in (vxx, vxy, vyx, vyy))
-            sig = math.sqrt(max(vxx + vyy, 0.0)) if finite else math.inf
-            a_dir = float(amp[2 * q])
-            # SNR of this emission alone: power of its direct wave over the 30 us window
-            p_sig = a_dir**2 * float(gain2[q]) * e_pulse / (4.0 * snr_len)
-            snr = 10.0 * math.log10(max(p_sig, 1e-300) / sigma2[i])
-            if not (sig <= max_sigma_m) or snr < min_snr_db:
-                dropped += 1
-                continue
-            sz = math.sqrt(max(R**2 - sx * sx - sy * sy, 0.0))
-            g = np.array(
-                [
-                    [1.0, 0.0],
-                    [0.0, 1.0],
-                    [-sx / max(sz, 1e-6 * R), -sy / max(sz, 1e-6 * R)],
-                ]
+        sources, dropped = _sources(theta, amp, gram, sigma2[i], float(scale[i]), ratio, limit,
+                                    geo, max_sigma_m, min_snr_db, e_pulse, snr_len)
+        out.append(
+            OverlapPacket(
+                bool(sources),
+                0 if sources else int(OverlapReason.UNCERTAIN),  # UNCERTAIN: all dropped
+                sources,
+                n_fitted=j,
+                n_dropped=dropped,
+                chi2_ratio=float(ratio),
+                noise_rms_v=noise_v,
             )
-            c3 = g @ c_xy @ g.T
-            c_snr = math.sqrt(min(max((snr - min_snr_db) / 20.0, 0.0), 1.0))
-            c_pos = 1.0 / (1.0 + (sig / 0.5e-3) ** 2)
-            c_fit = min(max(1.0 - max(ratio - 1.0, 0.0) / max(limit - 1.0, 1e-9), 0.0), 1.0)
-            conf = min(max(c_snr * c_pos * c_fit, 0.0), 1.0)
-            sources.append(
-                OverlapSource(
-                    point_m=np.array([sx, sy, sz]),
-                    covariance_m2=c3,
-                    sigma_m=sig,
-                    confidence=conf,
-                    polarity=(a_dir > 0) - (a_dir < 0),
-                    amplitude_v=a_dir * float(scale[i]),
-                    emission_time_s=T,
-                    arrival_times_s=T + d_all[q] / geo.sound_speed_m_s,
-                    snr_db=float(snr),
-                )
-            )
-        if not sources:
-            out.append(
-                OverlapPacket(
-                    False,
-                    int(OverlapReason.UNCERTAIN),
-                    n_fitted=j,
-                    n_dropped=dropped,
-                    chi2_ratio=float(ratio),
-                    noise_rms_v=noise_v,
-                )
-            )
-        else:
-            out.append(
-                OverlapPacket(
-                    True,
-                    0,
-                    sources,
-                    n_fitted=j,
-                    n_dropped=dropped,
-                    chi2_ratio=float(ratio),
-                    noise_rms_v=noise_v,
-                )
-            )
+        )
     return out
+
+
+def _model_order(fits, sigma2, max_sources, add_threshold):
+    """(K,) emissions per window: emission j+1 is added while the residual energy drops by
+    more than ``add_threshold`` sigma^2."""
+    J = np.ones(len(sigma2), np.int64)
+    going = np.ones(len(sigma2), bool)
+    for j in range(2, max_sources + 1):
+        gain = (fits[j - 2].rss - fits[j - 1].rss) / sigma2
+        step = going & (gain > add_threshold)
+        J[step] = j
+        going &= step
+    return J
+
+
+def _sources(theta, amp, gram, sigma2, scale, ratio, limit, geo, max_sigma_m, min_snr_db,
+             e_pulse, snr_len):
+    """(the `OverlapSource` of each fitted emission of one window, earliest first; how many
+    were dropped for a 1-sigma above ``max_sigma_m`` or an SNR below ``min_snr_db``)."""
+    R = geo.radius_m
+    s2 = sigma2 * max(ratio, 1.0)
+    fis = gram / s2
+    try:
+        cov = np.linalg.pinv(fis, rcond=1e-13, hermitian=True)
+    except np.linalg.LinAlgError:
+        cov = np.full(fis.shape, np.nan)
+    d_all = geo._xy_distances(theta[:, 0], theta[:, 1])  # (j, 4)
+    gain2 = ((R / d_all) ** 2).sum(axis=1)
+    sources = []
+    dropped = 0
+    for q in range(len(theta)):
+        c_xy = cov[3 * q : 3 * q + 2, 3 * q : 3 * q + 2]
+        sx, sy, T = (float(v) for v in theta[q])
+        vxx, vxy, vyx, vyy = c_xy.ravel().tolist()
+        finite = all(math.isfinite(v) for v in (vxx, vxy, vyx, vyy))
+        sig = math.sqrt(max(vxx + vyy, 0.0)) if finite else math.inf
+        a_dir = float(amp[2 * q])
+        # SNR of this emission alone: power of its direct wave over the 30 us window
+        p_sig = a_dir**2 * float(gain2[q]) * e_pulse / (4.0 * snr_len)
+        snr = 10.0 * math.log10(max(p_sig, 1e-300) / sigma2)
+        if not (sig <= max_sigma_m) or snr < min_snr_db:
+            dropped += 1
+            continue
+        sz = math.sqrt(max(R**2 - sx * sx - sy * sy, 0.0))
+        g = np.array(
+            [
+                [1.0, 0.0],
+                [0.0, 1.0],
+                [-sx / max(sz, 1e-6 * R), -sy / max(sz, 1e-6 * R)],
+            ]
+        )
+        c3 = g @ c_xy @ g.T
+        c_snr = math.sqrt(min(max((snr - min_snr_db) / 20.0, 0.0), 1.0))
+        c_pos = 1.0 / (1.0 + (sig / 0.5e-3) ** 2)
+        c_fit = min(max(1.0 - max(ratio - 1.0, 0.0) / max(limit - 1.0, 1e-9), 0.0), 1.0)
+        conf = min(max(c_snr * c_pos * c_fit, 0.0), 1.0)
+        sources.append(
+            OverlapSource(
+                point_m=np.array([sx, sy, sz]),
+                covariance_m2=c3,
+                sigma_m=sig,
+                confidence=conf,
+                polarity=(a_dir > 0) - (a_dir < 0),
+                amplitude_v=a_dir * scale,
+                emission_time_s=T,
+                arrival_times_s=T + d_all[q] / geo.sound_speed_m_s,
+                snr_db=float(snr),
+            )
+        )
+    return sources, dropped
