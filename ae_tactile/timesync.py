@@ -44,6 +44,27 @@ from collections import deque
 
 import numpy as np
 
+#: A bucket minimum this far above the envelope line [ns] (or 3x the median distance,
+#: if more) is a delayed bucket (every frame of it late: behind garbage, a host stall),
+#: left out of the slope: transport jitter leaves bucket minima well within it.
+DELAYED_BUCKET_NS = 1_000_000
+
+
+def _envelope_slope(d: np.ndarray, off: np.ndarray) -> float:
+    """Slope of the line through the bucket minima (device time d [ns], offset off [ns]),
+    least squares refitted without the delayed buckets (at most 3 passes)."""
+    keep = np.ones(len(d), dtype=bool)
+    slope, intercept = np.polyfit(d, off, 1)
+    for _ in range(3):
+        r = off - (slope * d + intercept)
+        r -= r[keep].min()
+        now = r <= max(3.0 * float(np.median(r[keep])), DELAYED_BUCKET_NS)
+        if now.sum() < 3 or np.array_equal(now, keep):
+            break
+        keep = now
+        slope, intercept = np.polyfit(d[keep], off[keep], 1)
+    return float(slope)
+
 
 class DeviceClockMapper:
     """Map device timestamps (ns) to host timestamps (ns) through the lower envelope.
@@ -78,7 +99,7 @@ class DeviceClockMapper:
         min_span_for_skew_s: float = 10.0,
         max_skew: float = 200e-6,
         max_backstep_s: float = 1.0,
-        step_back_s: float = 0.1,
+        step_back_s: float = 0.25,
         step_frames: int = 4,
     ):
         if not (window_s > 0 and bucket_s > 0 and bucket_s < window_s):
@@ -205,9 +226,9 @@ class DeviceClockMapper:
         off = b[:, 2]
         span = d[-1] - d[0] if len(d) > 1 else 0.0
         if len(d) >= 3 and span >= self.min_span_ns:
-            # Line through the bucket minima, then lower it onto the envelope of the points
+            # Line through the bucket minima, then lowered onto the envelope of the points
             # (the fitted line must not sit above any minimum: latency >= 0).
-            slope, intercept = np.polyfit(d, off, 1)
+            slope = _envelope_slope(d, off)
             slope = float(np.clip(slope, -self.max_skew, self.max_skew))
             intercept = float(np.min(off - slope * d))
             self._skew, self._offset_ns = slope, intercept

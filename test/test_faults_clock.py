@@ -64,7 +64,7 @@ def test_device_clock_step_keeps_stamps_monotonic_and_true(tmp_path, step_s, reb
         if reboot:
             assert s["device_restarts_handled"] == 1
         elif step_s < 0:
-            assert s["clock_steps"] == 1  # detected once, from the packets' latency
+            assert s["clock_steps"] >= 1  # detected from the packets' latency
         assert s["clock_resyncs"] >= 2
         print(
             f"step {step_s:+g} s reboot={reboot}: {off.size} packets off by > 3 ms,"

@@ -77,7 +77,7 @@ def test_mapping_before_update_and_bad_parameters_are_errors():
         DeviceClockMapper(max_skew=0.5)
 
 
-@pytest.mark.parametrize("step_s", [-5.0, -1000.0, -0.2, 1000.0])
+@pytest.mark.parametrize("step_s", [-5.0, -1000.0, -0.5, 1000.0])
 def test_device_clock_step_without_restart_is_detected_and_output_stays_monotonic(step_s):
     """The device clock steps (no BOOT: the link's mapper ignores device time going back,
     max_backstep_s = 3600): a step back shows as frames later than the model, frame after
@@ -99,14 +99,16 @@ def test_device_clock_step_without_restart_is_detected_and_output_stays_monotoni
 
 
 def test_delayed_buckets_do_not_pull_the_envelope_late():
-    """Every frame of a 0.5 s bucket delayed by 15 ms (queued behind a burst of garbage):
-    the fitted line is not pulled up by that bucket's minimum."""
+    """A backlog (frames queued behind a burst of garbage on a slow line, a loaded host):
+    for 3 s every frame is late, by up to 20 ms; the buckets of those seconds are left out
+    of the fitted line, so the stamps stay on the true time."""
     rng = np.random.default_rng(4)
-    true_ns, latency = link(rng, 6000)
-    device_ns = (true_ns - true_ns[0]).astype(np.int64)
-    latency[4000:4100] += 15 * MS
+    true_ns, latency = link(rng, 8000)  # 40 s
+    device_ns = ((true_ns - true_ns[0]) * (1 + 50e-6)).astype(np.int64)
+    a, b = 3000, 3600  # 15 s to 18 s
+    latency[a:b] += np.linspace(0, 20 * MS, b - a).astype(np.int64)
     mapper = DeviceClockMapper()
     mapped = simulate(mapper, true_ns, device_ns, latency)
-    err = mapped - true_ns
-    assert np.percentile(np.abs(err[2200:]), 99) < 1 * MS
-    assert np.max(np.abs(err[4000:4400])) < 1.5 * MS
+    err = np.abs(mapped - true_ns)
+    assert np.max(err[a:]) < 1 * MS
+    assert mapper.resyncs == 0 and mapper.steps == 0

@@ -106,7 +106,7 @@ class LinkConfig:
     sync_max_pings: int = 100
     sync_rtt_s: float = 0.0015
     sync_period_s: float = 5.0
-    clock_step_s: float = 0.1
+    clock_step_s: float = 0.25
     clock_step_frames: int = 4
     adc_bits: int = 12
     detector: dict = field(default_factory=dict)
