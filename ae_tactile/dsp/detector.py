@@ -109,6 +109,29 @@ class PacketDetector(_TriggerStage, _ReleaseStage):
     >>> det = PacketDetector(DetectorConfig(sample_rate_hz=10e6))
     >>> batch = det.process(block_volts, first_sample_index)    # (4, n) float
     >>> last = det.flush()                                       # at the end of the stream
+
+    The trigger stage (`ae_tactile.dsp.trigger`) and the release stage
+    (`ae_tactile.dsp.release`) are mixins holding their steps; the state is the detector's.
+
+    Parameters
+    ----------
+    config : DetectorConfig, optional
+        The settings (SI units); default ``DetectorConfig(**overrides)``.
+    **overrides
+        Fields of `DetectorConfig` replaced in ``config``.
+
+    Returns
+    -------
+    PacketDetector
+        `process` returns a `PacketBatch` of the packets each chunk completes, `flush`
+        those left at the end of the stream; counters in ``stats`` (`DetectorStats`).
+
+    Raises
+    ------
+    TypeError
+        ``config`` is not a `DetectorConfig`.
+    ValueError
+        An override names no field or has a bad value.
     """
 
     def __init__(self, config: DetectorConfig | None = None, **overrides):
@@ -183,11 +206,25 @@ class PacketDetector(_TriggerStage, _ReleaseStage):
         self.stats = DetectorStats()
 
     def process(self, samples, first_sample_index) -> PacketBatch:
-        """Feed one chunk (4, n) in volts starting at absolute sample ``first_sample_index``.
+        """Feed one chunk of the stream.
 
-        Returns the packets completed by this chunk (possibly none). Wrong shapes, dtypes
-        or index types raise ValueError; bad sample values are counted, never raised.
-        The caller may reuse its buffer afterwards (the detector keeps copies).
+        Parameters
+        ----------
+        samples : array_like, (4, n)
+            The chunk [V]; the caller may reuse its buffer afterwards (copies are kept).
+        first_sample_index : int
+            Absolute index of the chunk's first sample (a jump ends the stream segment).
+
+        Returns
+        -------
+        PacketBatch
+            The packets completed by this chunk (possibly none).
+
+        Raises
+        ------
+        ValueError
+            Wrong shapes, dtypes or index types; bad sample values are counted, never
+            raised.
         """
         x = self._check_chunk(samples)
         idx = self._check_index(first_sample_index)
@@ -393,21 +430,6 @@ class PacketDetector(_TriggerStage, _ReleaseStage):
             self._prune_invalid()
 
 
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
 # ---------------------------------------------------------------------- triggered windows
 def analyze_window(
     windows,
@@ -419,77 +441,49 @@ def analyze_window(
 ) -> PacketBatch:
     """Onset, noise, saturation, peak, polarity and SNR of already-cut windows.
 
-    For devices that send PACKET frames (windows cut by the device's own trigger), so the
-    driver fills the same Packet fields as in STREAM mode. ``windows``: (K, 4, M) or
-    (4, M) volts. Per window: band-pass (state started at the first sample's steady
-    state), noise sigma per channel from the median of y^2 (robust to the packet), the
-    first crossing of threshold_sigma by the channel-RMS envelope (or ``onset_hint``
-    (K,) where >= 0, e.g. the device's onset index; or the envelope maximum when nothing
-    crosses), then the AIC pick in [crossing - aic_pre, crossing + aic_post) and the
-    features of ae_tactile/dsp/features.py. Windows with non-finite samples get
+    For PACKET frames (windows cut by the device's trigger), as in STREAM mode. Per window:
+    band-pass (state started at the first sample's steady state), noise sigma per channel
+    from the median of y^2 (robust to the packet), the first crossing of threshold_sigma
+    by the channel-RMS envelope (or ``onset_hint`` where >= 0; or the envelope maximum
+    when nothing crosses), the AIC pick in [crossing - aic_pre, crossing + aic_post) and
+    the features of ae_tactile/dsp/features.py. Windows with non-finite samples get
     valid=False and are analysed with those samples set to 0 (never NaN out).
-    ``start_index`` (K,) fills the batch's start_index (default 0).
+
+    Parameters
+    ----------
+    windows : array_like, shape (K, 4, M) or (4, M)
+        Samples [V], real numbers.
+    sample_rate_hz : float, optional
+        Sample rate [Hz]; overrides the config's (default 10 MHz without a config).
+    config : DetectorConfig, optional
+        Filter, threshold, AIC and feature settings.
+    onset_hint : array_like of int, shape (K,), optional
+        Onset sample index per window (e.g. the device's); negative: none.
+    start_index : array_like of int, shape (K,), optional
+        Absolute index of each window's first sample (default 0).
+
+    Returns
+    -------
+    PacketBatch
+        One packet per window (packet_id, hit_id -1; no overlap flags).
+
+    Raises
+    ------
+    ValueError
+        Wrong shapes or dtypes, windows too short for the AIC segment.
     """
-    if config is None:
-        config = DetectorConfig(sample_rate_hz=10e6 if sample_rate_hz is None else sample_rate_hz)
-    elif sample_rate_hz is not None and float(sample_rate_hz) != float(config.sample_rate_hz):
-        config = config.replace(sample_rate_hz=sample_rate_hz)
-    try:
-        w = np.asarray(windows)
-    except Exception as exc:  # noqa: BLE001
-        raise ValueError(f"windows must be an array of shape (K, 4, M): {exc}") from None
-    if w.dtype == bool or w.dtype.kind not in "fiu":
-        raise ValueError(f"windows must be real numbers, got dtype {w.dtype}")
-    if w.ndim == 2:
-        w = w[None]
-    if w.ndim != 3 or w.shape[1] != N_CHANNELS:
-        raise ValueError(f"windows must have shape (K, 4, M) or (4, M), got {np.shape(windows)}")
+    config = _window_config(config, sample_rate_hz)
+    w = _as_windows(windows)
     k, _, m = w.shape
     sp = config.samples()
     length = sp.aic_pre + sp.aic_post
     if m < max(16, length):
         raise ValueError(f"windows of {m} samples are too short (need >= {max(16, length)})")
-    w = np.array(w, dtype=np.float64, copy=True)
-    lim = config.invalid_level_v
-    bad = ~(np.abs(w) <= lim)
-    valid = ~bad.any(axis=(1, 2))
-    w[bad] = 0.0
-    if start_index is None:
-        start = np.zeros(k, np.int64)
-    else:
-        start = np.asarray(start_index, dtype=np.int64).reshape(-1)
-        if start.shape != (k,):
-            raise ValueError(f"start_index must have shape ({k},), got {np.shape(start_index)}")
-    hint = None
-    if onset_hint is not None:
-        hint = np.asarray(onset_hint).reshape(-1)
-        if hint.shape != (k,) or hint.dtype.kind not in "iu":
-            raise ValueError(
-                f"onset_hint must be {k} integers (negative: none), got {onset_hint!r}"
-            )
-        hint = hint.astype(np.int64)
+    w, valid = _zero_invalid(w, config.invalid_level_v)
+    start, hint = _window_indices(k, start_index, onset_hint)
     if k == 0:
         return PacketBatch.empty(config.sample_rate_hz, m)
-
-    sos = design_bandpass_sos(
-        config.sample_rate_hz, config.highpass_hz, config.lowpass_hz, config.filter_order
-    )
-    zi = signal.sosfilt_zi(sos)[:, None, None, :] * w[None, :, :, 0, None]
-    y, _ = signal.sosfilt(sos, w, axis=-1, zi=zi)
-    floor_var = (0.1 * config.lsb_v) ** 2
-    var = np.maximum(np.median(y * y, axis=-1) / _MEDIAN_CHI2_1, floor_var)  # (K, 4)
-    e2 = y[:, 0] ** 2 * (0.25 / var[:, 0, None])
-    for ch in range(1, N_CHANNELS):
-        e2 = e2 + y[:, ch] ** 2 * (0.25 / var[:, ch, None])
-    above = e2 >= float(config.threshold_sigma) ** 2
-    crossing = np.where(above.any(axis=-1), np.argmax(above, axis=-1), np.argmax(e2, axis=-1))
-    if hint is not None:
-        crossing = np.where((hint >= 0) & (hint < m), hint, crossing)
-    seg_start = np.clip(crossing - sp.aic_pre, 0, m - length)
-    idx = seg_start[:, None] + np.arange(length)[None, :]
-    seg = np.take_along_axis(w, np.broadcast_to(idx[:, None, :], (k, N_CHANNELS, length)), axis=-1)
-    pick, _ = aic_pick(seg, 1.0 / var, margin=2)
-    onset = (seg_start + pick).astype(np.int64)
+    onset, crossing, floor_var = _window_onsets(w, config, hint)
     feats = window_features(
         w,
         onset,
@@ -517,6 +511,88 @@ def analyze_window(
         valid=valid,
         **feats,
     )
+
+
+def _window_config(config: DetectorConfig | None, sample_rate_hz) -> DetectorConfig:
+    """The config (default: `DetectorConfig` at 10 MHz) with ``sample_rate_hz`` [Hz] set."""
+    if config is None:
+        config = DetectorConfig(sample_rate_hz=10e6 if sample_rate_hz is None else sample_rate_hz)
+    elif sample_rate_hz is not None and float(sample_rate_hz) != float(config.sample_rate_hz):
+        config = config.replace(sample_rate_hz=sample_rate_hz)
+    return config
+
+
+def _zero_invalid(w: np.ndarray, lim: float):
+    """float64 copy of w (K, 4, M) with NaN, inf and |x| > lim [V] set to 0; (copy, valid
+    (K,) False where a window held such a sample)."""
+    w = np.array(w, dtype=np.float64, copy=True)
+    bad = ~(np.abs(w) <= lim)
+    valid = ~bad.any(axis=(1, 2))
+    w[bad] = 0.0
+    return w, valid
+
+
+def _as_windows(windows) -> np.ndarray:
+    """``windows`` as an array (K, 4, M) of real numbers (a (4, M) window gets K = 1)."""
+    try:
+        w = np.asarray(windows)
+    except Exception as exc:  # noqa: BLE001
+        raise ValueError(f"windows must be an array of shape (K, 4, M): {exc}") from None
+    if w.dtype == bool or w.dtype.kind not in "fiu":
+        raise ValueError(f"windows must be real numbers, got dtype {w.dtype}")
+    if w.ndim == 2:
+        w = w[None]
+    if w.ndim != 3 or w.shape[1] != N_CHANNELS:
+        raise ValueError(f"windows must have shape (K, 4, M) or (4, M), got {np.shape(windows)}")
+    return w
+
+
+def _window_indices(k: int, start_index, onset_hint):
+    """Checked (start indices (K,) int64, onset hints (K,) int64 or None)."""
+    if start_index is None:
+        start = np.zeros(k, np.int64)
+    else:
+        start = np.asarray(start_index, dtype=np.int64).reshape(-1)
+        if start.shape != (k,):
+            raise ValueError(f"start_index must have shape ({k},), got {np.shape(start_index)}")
+    hint = None
+    if onset_hint is not None:
+        hint = np.asarray(onset_hint).reshape(-1)
+        if hint.shape != (k,) or hint.dtype.kind not in "iu":
+            raise ValueError(
+                f"onset_hint must be {k} integers (negative: none), got {onset_hint!r}"
+            )
+        hint = hint.astype(np.int64)
+    return start, hint
+
+
+def _window_onsets(w: np.ndarray, config: DetectorConfig, hint):
+    """Band-pass, noise, envelope crossing and AIC onset of windows w (K, 4, M) [V].
+
+    Returns (onset index (K,), crossing index (K,), noise variance floor [V^2])."""
+    k, _, m = w.shape
+    sp = config.samples()
+    length = sp.aic_pre + sp.aic_post
+    sos = design_bandpass_sos(
+        config.sample_rate_hz, config.highpass_hz, config.lowpass_hz, config.filter_order
+    )
+    zi = signal.sosfilt_zi(sos)[:, None, None, :] * w[None, :, :, 0, None]
+    y, _ = signal.sosfilt(sos, w, axis=-1, zi=zi)
+    floor_var = (0.1 * config.lsb_v) ** 2
+    var = np.maximum(np.median(y * y, axis=-1) / _MEDIAN_CHI2_1, floor_var)  # (K, 4)
+    e2 = y[:, 0] ** 2 * (0.25 / var[:, 0, None])
+    for ch in range(1, N_CHANNELS):
+        e2 = e2 + y[:, ch] ** 2 * (0.25 / var[:, ch, None])
+    above = e2 >= float(config.threshold_sigma) ** 2
+    crossing = np.where(above.any(axis=-1), np.argmax(above, axis=-1), np.argmax(e2, axis=-1))
+    if hint is not None:
+        crossing = np.where((hint >= 0) & (hint < m), hint, crossing)
+    seg_start = np.clip(crossing - sp.aic_pre, 0, m - length)
+    idx = seg_start[:, None] + np.arange(length)[None, :]
+    seg = np.take_along_axis(w, np.broadcast_to(idx[:, None, :], (k, N_CHANNELS, length)), axis=-1)
+    pick, _ = aic_pick(seg, 1.0 / var, margin=2)
+    onset = (seg_start + pick).astype(np.int64)
+    return onset, crossing, floor_var
 
 
 __all__ = ["PacketDetector", "DetectorStats", "analyze_window"]

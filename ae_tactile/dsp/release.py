@@ -14,8 +14,8 @@ from .onset import aic_pick
 
 
 class _ReleaseStage:
-    """Mixin of `PacketDetector`: refines pending onsets and releases complete windows (it
-uses the detector's state; see `ae_tactile.dsp.detector`)."""
+    """Mixin of `PacketDetector`: refines pending onsets and releases complete windows
+    (it uses the detector's state; see `ae_tactile.dsp.detector`)."""
 
     def _raw_span(self) -> int:
         """First absolute index of the raw samples held (history + last piece)."""
@@ -83,84 +83,19 @@ uses the detector's state; see `ae_tactile.dsp.detector`)."""
 
     def _release(self, final: bool) -> PacketBatch:
         """Refine what can be refined and publish the windows that are final."""
-        sp = self.sp
-        if not self._pending:
+        taken = self._take_ready(final)
+        if taken is None:
             return self._empty_batch
-        # earliest possible onset of each pending packet -> can anything be released?
-        lower = min(
-            p.onset if p.onset is not None else p.crossing + 1 - sp.aic_pre for p in self._pending
-        )
-        if not final and lower + sp.posttrigger + sp.release_lag > self._proc_end:
-            return self._empty_batch
-        self._refine()
-        if final:
-            for p in self._pending:
-                if p.onset is None:
-                    p.onset = -1
-        known = [p for p in self._pending if p.onset is not None]
-        ready = [
-            p
-            for p in known
-            if p.onset < 0 or final or p.onset + sp.posttrigger + sp.release_lag <= self._proc_end
-        ]
-        if not ready:
-            return self._empty_batch
-        # neighbours for the overlap flags: recent released + all known pending
-        neigh = self._recent + [(p.pid, p.onset) for p in known if p.onset >= 0]
-        lo_ok = max(self._origin, self._raw_span())
-        cand = []
-        drop_trunc = 0
-        for p in ready:
-            if (
-                p.onset < 0
-                or p.onset - sp.pretrigger < lo_ok
-                or p.onset + sp.posttrigger > self._proc_end
-            ):
-                drop_trunc += 1
-            else:
-                cand.append(p)
-        ready_ids = {p.pid for p in ready}
-        self._pending = [p for p in self._pending if p.pid not in ready_ids]
-        horizon = self._proc_end - 4 * sp.window - sp.release_lag
-        self._recent = [t for t in self._recent if t[1] > horizon]
-        self._recent.extend((p.pid, p.onset) for p in ready if p.onset >= 0)
-        self.stats.dropped_truncated += drop_trunc
+        cand, neigh = taken
         if not cand:
             return self._empty_batch
-        onset = np.array([p.onset for p in cand], dtype=np.int64)
-        start = onset - sp.pretrigger
-        win = self._gather(start[:, None] + self._win_range)  # (K, 4, M)
-        good = np.abs(win).max(axis=(1, 2)) <= self._invalid_level
-        if self._invalid:
-            end = start + sp.window
-            for a, z in self._invalid:
-                good &= ~((start < z) & (end > a))
-        if not good.all():
-            self.stats.dropped_invalid += int((~good).sum())
-            gl = good.tolist()
-            cand = [p for p, g in zip(cand, gl) if g]
-            if not cand:
-                return self._empty_batch
-            onset, start, win = onset[good], start[good], win[good]
+        cut = self._cut_windows(cand)
+        if cut is None:
+            return self._empty_batch
+        cand, start, win = cut
+        sp = self.sp
         k = len(cand)
-        m = sp.window
-        prev_id = [-1] * k
-        next_id = [-1] * k
-        clear = [sp.posttrigger] * k
-        for i, p in enumerate(cand):
-            po, pp = p.onset, p.pid
-            for pid, on in neigh:
-                if pid == pp:
-                    continue
-                if abs(on - po) < m:
-                    if pp > pid > prev_id[i]:
-                        prev_id[i] = pid
-                    if pid > pp and (next_id[i] < 0 or pid < next_id[i]):
-                        next_id[i] = pid
-                if po < on < po + clear[i]:
-                    clear[i] = on - po
-        prev_id = np.array(prev_id, np.int64)
-        next_id = np.array(next_id, np.int64)
+        prev_id, next_id, clear = self._overlap_links(cand, neigh, sp.window, sp.posttrigger)
         overlap = (prev_id >= 0) | (next_id >= 0)
         feats = window_features_fixed(
             win,
@@ -192,3 +127,101 @@ uses the detector's state; see `ae_tactile.dsp.detector`)."""
             valid=np.ones(k, bool),
             **feats,
         )
+
+    def _take_ready(self, final: bool):
+        """Take the pending emissions whose windows are final out of the pending list.
+
+        Returns None when nothing is ready, else (the ready ones whose windows lie inside
+        the samples held, the (pid, onset) neighbours for the overlap flags); the ready
+        ones cut by the stream start, a gap or the end are counted as truncated."""
+        sp = self.sp
+        if not self._pending:
+            return None
+        # earliest possible onset of each pending packet -> can anything be released?
+        lower = min(
+            p.onset if p.onset is not None else p.crossing + 1 - sp.aic_pre for p in self._pending
+        )
+        if not final and lower + sp.posttrigger + sp.release_lag > self._proc_end:
+            return None
+        self._refine()
+        if final:
+            for p in self._pending:
+                if p.onset is None:
+                    p.onset = -1
+        known = [p for p in self._pending if p.onset is not None]
+        ready = [
+            p
+            for p in known
+            if p.onset < 0 or final or p.onset + sp.posttrigger + sp.release_lag <= self._proc_end
+        ]
+        if not ready:
+            return None
+        # neighbours for the overlap flags: recent released + all known pending
+        neigh = self._recent + [(p.pid, p.onset) for p in known if p.onset >= 0]
+        lo_ok = max(self._origin, self._raw_span())
+        cand = []
+        drop_trunc = 0
+        for p in ready:
+            if (
+                p.onset < 0
+                or p.onset - sp.pretrigger < lo_ok
+                or p.onset + sp.posttrigger > self._proc_end
+            ):
+                drop_trunc += 1
+            else:
+                cand.append(p)
+        ready_ids = {p.pid for p in ready}
+        self._pending = [p for p in self._pending if p.pid not in ready_ids]
+        horizon = self._proc_end - 4 * sp.window - sp.release_lag
+        self._recent = [t for t in self._recent if t[1] > horizon]
+        self._recent.extend((p.pid, p.onset) for p in ready if p.onset >= 0)
+        self.stats.dropped_truncated += drop_trunc
+        return cand, neigh
+
+    def _cut_windows(self, cand: list):
+        """Windows [onset - pre, onset + post) of the original samples; the ones touching
+        invalid samples are dropped and counted.
+
+        Returns None when none is left, else (kept emissions, start indices (K,),
+        windows (K, 4, M))."""
+        sp = self.sp
+        onset = np.array([p.onset for p in cand], dtype=np.int64)
+        start = onset - sp.pretrigger
+        win = self._gather(start[:, None] + self._win_range)  # (K, 4, M)
+        good = np.abs(win).max(axis=(1, 2)) <= self._invalid_level
+        if self._invalid:
+            end = start + sp.window
+            for a, z in self._invalid:
+                good &= ~((start < z) & (end > a))
+        if not good.all():
+            self.stats.dropped_invalid += int((~good).sum())
+            gl = good.tolist()
+            cand = [p for p, g in zip(cand, gl) if g]
+            if not cand:
+                return None
+            start, win = start[good], win[good]
+        return cand, start, win
+
+    @staticmethod
+    def _overlap_links(cand: list, neigh: list, m: int, post: int):
+        """Overlap links of each released emission among its neighbours (pid, onset).
+
+        Returns (previous overlapping packet id (K,), next one (K,), -1 when none; samples
+        after the onset clear of the next onset, at most ``post``, list of K)."""
+        k = len(cand)
+        prev_id = [-1] * k
+        next_id = [-1] * k
+        clear = [post] * k
+        for i, p in enumerate(cand):
+            po, pp = p.onset, p.pid
+            for pid, on in neigh:
+                if pid == pp:
+                    continue
+                if abs(on - po) < m:
+                    if pp > pid > prev_id[i]:
+                        prev_id[i] = pid
+                    if pid > pp and (next_id[i] < 0 or pid < next_id[i]):
+                        next_id[i] = pid
+                if po < on < po + clear[i]:
+                    clear[i] = on - po
+        return np.array(prev_id, np.int64), np.array(next_id, np.int64), clear

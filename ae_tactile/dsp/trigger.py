@@ -25,10 +25,9 @@ class _Pending:
         self.onset = None
 
 
-
 class _TriggerStage:
-    """Mixin of `PacketDetector`: turns the filtered trigger path into pending emissions (it
-uses the detector's state; see `ae_tactile.dsp.detector`)."""
+    """Mixin of `PacketDetector`: turns the filtered trigger path into pending emissions
+    (it uses the detector's state; see `ae_tactile.dsp.detector`)."""
 
     def _decimate(self, xf: np.ndarray):
         """Group sums of d samples (float64, in sample order) for the groups completed by
