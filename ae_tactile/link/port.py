@@ -106,7 +106,10 @@ class PortLock:
             return
         name = "ae_tactile" + "".join(c if c.isalnum() else "_" for c in key) + ".lock"
         self.path = os.path.join(_lock_dir(), name)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        except PermissionError:  # another user's lock file: flock works read-only too
+            fd = os.open(self.path, os.O_RDONLY)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as exc:
@@ -118,8 +121,11 @@ class PortLock:
             if exc.errno in (errno.EWOULDBLOCK, errno.EACCES, errno.EAGAIN):
                 raise PortBusy(port, pid, self.path) from None
             raise
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        except OSError:  # read-only: the owner's pid stays unknown to a second link
+            pass
         self.fd = fd
 
     def release(self) -> None:
