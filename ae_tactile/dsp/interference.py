@@ -254,24 +254,89 @@ def packet_common_share(samples_v, noise_rms_v: float = 0.0, onset_index=None) -
     return float(common_mode_share(np.asarray(x)[None], noise_rms_v, onset_index)[0])
 
 
+def _noise_power(x, on, noise_rms_v):
+    """(noise power per channel [V^2] (scalar or (K,)), its relative variance (0: given),
+    whether a noise level is known): given, else from the samples before the onset (the
+    trigger's pretrigger) when there are >= 8."""
+    if noise_rms_v is not None:
+        return np.asarray(noise_rms_v, float).reshape(-1) ** 2, 0.0, True
+    npre = int(on.min()) - 2
+    if npre >= 8:
+        pre = x[:, :, :npre]
+        nv = (pre * pre).mean(axis=(1, 2)) - pre.mean(axis=2).__pow__(2).mean(axis=1)
+        return nv, 2.0 / (4 * (npre - 1)), True  # chi^2 over 4 (npre - 1) dof
+    return 0.0, 0.0, False
+
+
+def _shape_scores(x, on, cand, common, nv, nv_rel_var, w, fs, geometry, front_end, shape_min,
+                  shape_z):
+    """Shape score of the packets ``cand``: what the best acoustic template per channel
+    (sub-sample offsets x lags -SHAPE_LEAD .. SHAPE_LAGS - SHAPE_LEAD - 1 round the onset)
+    leaves unexplained, less the noise, against the larger of an acoustic packet's template
+    mismatch (1 - shape_min of its energy) and shape_z standard deviations of the noise's
+    chi^2 (a weak touch is never rejected for noise), before the first wall echo (2R/c
+    after the onset, when the geometry is known). Only with a noise level (given, or from
+    >= 8 pretrigger samples): weak touches could not be told from a mismatch."""
+    highpass_hz, highpass_order, lowpass_hz, lowpass_order = front_end
+    m = x.shape[2]
+    t_echo = 10e-6 if geometry is None else 2.0 * geometry.radius_m / geometry.sound_speed_m_s
+    nl = SHAPE_LAGS
+    nvc = nv if np.size(nv) == 1 else nv[cand]
+    st = np.clip(on[cand] - SHAPE_LEAD, 0, None)
+    # each packet's span ends before the echo, the analysis length and its window's end
+    end = np.minimum(on[cand] + min(int(t_echo * fs) - 1, w), m)
+    n_span = end - st
+    shape_score = np.zeros(cand.size)
+    for n in np.unique(n_span[n_span >= nl + 4]):  # shorter: no shape test
+        n = int(n)
+        tpls = _lag_templates(
+            fs,
+            n,
+            nl,
+            float(highpass_hz),
+            int(highpass_order),
+            None if lowpass_hz is None else float(lowpass_hz),
+            int(lowpass_order),
+        )
+        group = np.flatnonzero(n_span == n)
+        for i in range(0, group.size, SHAPE_CHUNK):  # bounded memory: (chunk, 4, n)
+            part = group[i : i + SHAPE_CHUNK]
+            span = x[
+                cand[part][:, None, None],
+                np.arange(4)[None, :, None],
+                (st[part][:, None] + np.arange(n))[:, None, :],
+            ]
+            shape_score[part] = common[cand[part]] * _unexplained_share(
+                span, tpls, nvc if np.size(nvc) == 1 else nvc[part], nv_rel_var,
+                shape_min, shape_z,
+            )
+    return shape_score
+
+
+def _echo_scores(score, s_full, on, cand, common, fs, geometry, echo_min) -> None:
+    """Raise ``score[cand]`` (in place) for common-mode packets whose wall echo at 2R/c
+    (regression coefficient beta of the common mode ``s_full`` at that lag on the direct
+    packet) is weaker than ``|beta| >= echo_min``."""
+    m = s_full.shape[1]
+    lag = int(round(2.0 * geometry.radius_m / geometry.sound_speed_m_s * fs))
+    wd = max(2, min(lag, int(round(5e-6 * fs))))
+    if m >= lag + wd:
+        a0 = np.clip(on[cand] - 1, 0, max(0, m - lag - wd))
+        i0 = a0[:, None] + np.arange(wd)[None, :]
+        direct, echo = s_full[cand[:, None], i0], s_full[cand[:, None], i0 + lag]
+        ed = np.einsum("kw,kw->k", direct, direct)
+        beta = np.einsum("kw,kw->k", direct, echo) / np.maximum(ed, 1e-30)
+        score[cand] = np.maximum(
+            score[cand], common[cand] * (1.0 - np.minimum(np.abs(beta) / echo_min, 1.0)) * 2.0
+        )
+
+
 def common_mode_interference(
-    windows,
-    sample_rate_hz: float,
-    onset_index,
-    *,
-    geometry=None,
-    noise_rms_v=None,
-    lowpass_hz: float | str = "auto",
-    window_s: float = 20e-6,
-    echo_min: float | None = None,
-    common_min: float = COMMON_MIN,
-    highpass_hz: float = 100e3,
-    highpass_order: int = 2,
-    lowpass_order: int | str = "auto",
-    shape_min: float | None = SHAPE_MIN,
-    shape_z: float = 5.0,
-    low_max: float = LOW_MAX,
-    high_max: float = HIGH_MAX,
+    windows, sample_rate_hz: float, onset_index, *, geometry=None, noise_rms_v=None,
+    lowpass_hz: float | str = "auto", window_s: float = 20e-6, echo_min: float | None = None,
+    common_min: float = COMMON_MIN, highpass_hz: float = 100e3, highpass_order: int = 2,
+    lowpass_order: int | str = "auto", shape_min: float | None = SHAPE_MIN,
+    shape_z: float = 5.0, low_max: float = LOW_MAX, high_max: float = HIGH_MAX,
 ):
     """(mask (K,) bool: interference, score (K,) float) for packets ``windows`` (K, 4, M)
     volts at ``sample_rate_hz`` with onsets ``onset_index`` (K,) (window-relative samples).
@@ -312,20 +377,7 @@ def common_mode_interference(
     rows = np.arange(k)[:, None]
     idx = start[:, None] + np.arange(w)[None, :]
     s = s_full[rows, idx]
-    nv_rel_var = 0.0  # relative variance of the noise power used (0: given)
-    noise_known = noise_rms_v is not None
-    if noise_rms_v is not None:
-        nv = np.asarray(noise_rms_v, float).reshape(-1) ** 2
-    else:
-        # the noise from the samples before the onset (the trigger's pretrigger)
-        npre = int(on.min()) - 2
-        if npre >= 8:
-            pre = x[:, :, :npre]
-            nv = (pre * pre).mean(axis=(1, 2)) - pre.mean(axis=2).__pow__(2).mean(axis=1)
-            nv_rel_var = 2.0 / (4 * (npre - 1))  # chi^2 over 4 (npre - 1) dof
-            noise_known = True
-        else:
-            nv = 0.0
+    nv, nv_rel_var, noise_known = _noise_power(x, on, noise_rms_v)
     e_ch = q_full[rows, idx].sum(axis=1) - w * nv
     e_s = np.einsum("kw,kw->k", s, s) - w * nv * 0.25
     tiny = 1e-30
@@ -342,58 +394,12 @@ def common_mode_interference(
     # are off the apex: common mode < common_min, nothing more to compute)
     cand = np.flatnonzero((common >= common_min) & ~(score >= 1.0))
     if shape_min is not None and cand.size and noise_known:
-        # shape: what the best acoustic template per channel (sub-sample offsets x lags
-        # -SHAPE_LEAD .. SHAPE_LAGS - SHAPE_LEAD - 1 round the onset) leaves unexplained,
-        # less the noise, against the larger of an acoustic packet's template mismatch
-        # (1 - shape_min of its energy) and shape_z standard deviations of the noise's
-        # chi^2 (a weak touch is never rejected for noise) (before the first wall echo,
-        # 2R/c after the onset, when the geometry is known); not without a noise level
-        # (given, or estimated from >= 8 pretrigger samples): weak touches could not be told
-        # from a mismatch
-        t_echo = 10e-6 if geometry is None else 2.0 * geometry.radius_m / geometry.sound_speed_m_s
-        nl = SHAPE_LAGS
-        nvc = nv if np.size(nv) == 1 else nv[cand]
-        st = np.clip(on[cand] - SHAPE_LEAD, 0, None)
-        # each packet's span ends before the echo, the analysis length and its window's end
-        end = np.minimum(on[cand] + min(int(t_echo * fs) - 1, w), m)
-        n_span = end - st
-        shape_score = np.zeros(cand.size)
-        for n in np.unique(n_span[n_span >= nl + 4]):  # shorter: no shape test
-            n = int(n)
-            tpls = _lag_templates(
-                fs,
-                n,
-                nl,
-                float(highpass_hz),
-                int(highpass_order),
-                None if lowpass_hz is None else float(lowpass_hz),
-                int(lowpass_order),
-            )
-            group = np.flatnonzero(n_span == n)
-            for i in range(0, group.size, SHAPE_CHUNK):  # bounded memory: (chunk, 4, n)
-                part = group[i : i + SHAPE_CHUNK]
-                span = x[
-                    cand[part][:, None, None],
-                    np.arange(4)[None, :, None],
-                    (st[part][:, None] + np.arange(n))[:, None, :],
-                ]
-                shape_score[part] = common[cand[part]] * _unexplained_share(
-                    span, tpls, nvc if np.size(nvc) == 1 else nvc[part], nv_rel_var,
-                    shape_min, shape_z,
-                )
+        front_end = (highpass_hz, highpass_order, lowpass_hz, lowpass_order)
+        shape_score = _shape_scores(x, on, cand, common, nv, nv_rel_var, w, fs, geometry,
+                                    front_end, shape_min, shape_z)
         score[cand] = np.maximum(score[cand], shape_score)
     if echo_min is not None and geometry is not None and cand.size:
-        lag = int(round(2.0 * geometry.radius_m / geometry.sound_speed_m_s * fs))
-        wd = max(2, min(lag, int(round(5e-6 * fs))))
-        if m >= lag + wd:
-            a0 = np.clip(on[cand] - 1, 0, max(0, m - lag - wd))
-            i0 = a0[:, None] + np.arange(wd)[None, :]
-            direct, echo = s_full[cand[:, None], i0], s_full[cand[:, None], i0 + lag]
-            ed = np.einsum("kw,kw->k", direct, direct)
-            beta = np.einsum("kw,kw->k", direct, echo) / np.maximum(ed, tiny)
-            score[cand] = np.maximum(
-                score[cand], common[cand] * (1.0 - np.minimum(np.abs(beta) / echo_min, 1.0)) * 2.0
-            )
+        _echo_scores(score, s_full, on, cand, common, fs, geometry, echo_min)
     finite = np.isfinite(score) & np.isfinite(e_ch)
     score = np.where(finite, np.where(e_s > 0, score, 0.0), np.nan)
     mask = finite & (common >= common_min) & (score >= 1.0)
