@@ -163,3 +163,27 @@ def test_device_fields_are_validated_and_streaming_refuses_what_it_cannot_render
     with pytest.raises(ValueError, match="streaming"):
         StreamRenderer(SimConfig(channel_gain=(1, 1.02, 1, 1)))
     assert SimConfig().streamable
+
+
+def test_zoo_members_build_and_hold_the_issue_examples():
+    from ae_eval.zoo import ZOO, held_out
+
+    assert 12 <= len(ZOO) <= 20
+    a = ZOO["rc2_bessel6"].config()
+    assert a.highpass_rc_hz == (60e3, 69e3) and a.lowpass_family == "bessel"
+    assert a.lowpass_order == 6
+    b = ZOO["hp1_50k_lp2_800k"].config()
+    assert (b.highpass_hz, b.highpass_order, b.lowpass_hz, b.lowpass_order) == (50e3, 1, 800e3, 2)
+    c = ZOO["alpha_1e6"].config()
+    assert c.emission_alpha_1_s == 1e6 and c.highpass_hz == 100e3
+    for d in ZOO.values():
+        for medium in ("water_skin", "silicone"):
+            for fs in (2e6, 5e6, 10e6):
+                assert d.config(medium, fs).frontend.poles.size >= 2
+    drawn = held_out(3, 6)
+    assert [d.fields for d in drawn] == [d.fields for d in held_out(3, 6)]
+    for d in drawn:
+        assert all(d.fields != m.fields for m in ZOO.values())
+        cfg = d.config("silicone", 2e6)
+        assert 1e3 <= cfg.emission_alpha_1_s <= 1e6
+        assert 0.3 * 2e6 * (1 - 1e-9) <= cfg.lowpass_hz <= 1e6 * (1 + 1e-9)
