@@ -1,8 +1,8 @@
 # SPDX-License-Identifier: Apache-2.0
 """The registry of delay estimators (pyroomacoustics' doa/ algorithms dict is the model):
-each estimator lives in its own module (`ml`, `gradient`, `gcc`) and is registered here by
-name with its description and default overlap threshold; `get_estimator` looks one up.
-Also the default analysis band.
+each estimator lives in its own module (`ml`, `gradient`, `gcc`, `xcorr_farfield`) and is
+registered here by name with its description and default overlap threshold;
+`get_estimator` looks one up. Also the default analysis band.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
-from ae_tactile.localization import gcc, gradient, ml
+from ae_tactile.localization import gcc, gradient, ml, xcorr_farfield
 
 #: Default signal band (Hz): the front end's 100 kHz high-pass to its 1 MHz low-pass,
 #: the upper edge lowered to fs/4 at low sample rates (see `default_band_hz`).
@@ -91,7 +91,7 @@ register_estimator(
 )
 register_estimator(
     "xcorr_farfield",
-    gcc.estimate_xcorr_farfield,
+    xcorr_farfield.estimate_xcorr_farfield,
     "paper baseline: plain cross-correlation peaks of channel sums, far-field Eq. 2 inversion",
     overlap_threshold=0.12,
 )
