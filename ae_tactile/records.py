@@ -5,8 +5,8 @@
 - `ContactState`: a finger's latched contact state (values of ContactState.msg);
 - `PacketView`: what the pipeline needs of one packet (a link record or a message);
 - `ContactRecord`: one event for the robot hand (core side of ContactEvent.msg);
-- `source_record`, `slip_record`: a resolved emission and a slip detector event as a
-  ContactRecord.
+- `packet_record`, `source_record`, `slip_record`: a localized packet, a resolved emission
+  and a slip detector event as a ContactRecord; `onset_ns`: a packet's trigger time.
 
 SI units and integer nanoseconds throughout; no rclpy.
 """
@@ -123,3 +123,58 @@ def slip_record(s) -> ContactRecord:
         spatial_period_m=float(s.spatial_period_m),
         slip_direction=tuple(float(v) for v in np.asarray(s.slip_direction, dtype=float)),
     )
+
+
+def packet_record(
+    p, point, cov, polar, azimuth, tau_x, tau_y, amp, conf, polarity, offset_s, excess=0.0
+) -> ContactRecord:
+    """A localized packet as a ContactRecord (compression -> TOUCH, rarefaction -> DETOUCH).
+
+    Parameters
+    ----------
+    p : PacketView
+        The packet (its host stamp and sequence id).
+    point, cov : array_like
+        Fitted point (3,) [m] and its covariance (3, 3) [m^2].
+    polar, azimuth : float
+        Direction of the point [rad].
+    tau_x, tau_y : float
+        Fitted delays [s].
+    amp, conf : float
+        Amplitude [V] and confidence in [0, 1].
+    polarity : int
+        Sign of the first arrival (< 0: rarefaction).
+    offset_s : float
+        Emission instant after the packet's first sample [s].
+    excess : float
+        Unexplained in-band energy share of the fit.
+
+    Returns
+    -------
+    ContactRecord
+        Stamped ``p.stamp_ns + offset_s`` [ns].
+    """
+    kind = EventType.DETOUCH if polarity < 0 else EventType.TOUCH
+    x, y, z = (float(v) for v in point)
+    return ContactRecord(
+        event_type=int(kind),
+        time_ns=int(p.stamp_ns) + int(round(float(offset_s) * 1e9)),
+        point_m=(x, y, z),
+        covariance_m2=np.asarray(cov, dtype=float).reshape(3, 3),
+        packet_ids=(int(p.sequence_id),),
+        polar_rad=float(polar),
+        azimuth_rad=float(azimuth),
+        tau_x_s=float(tau_x),
+        tau_y_s=float(tau_y),
+        amplitude_v=float(amp),
+        confidence=float(conf),
+        overlap_excess=float(excess),
+    )
+
+
+def onset_ns(p) -> float:
+    """Host time [ns] of a packet's onset sample (its trigger); NaN if it cannot be told."""
+    try:
+        return int(p.stamp_ns) + int(p.onset_index) * 1e9 / float(p.sample_rate_hz)
+    except (TypeError, ValueError, ZeroDivisionError, OverflowError):
+        return math.nan

@@ -270,9 +270,9 @@ def test_common_mode_interference_is_rejected_and_counted_while_apex_touches_are
 def _edge_and_apex_views(cfg, seed):
     """Switching edges entering the amplifier's input (packet ids 0..39) and touches within
     1 mm of the apex (ids 100..119), as packet views."""
+    from ae_eval.slip import apex_touch_packets
     from ae_tactile.sim.interference import render_interference
     from ae_tactile.sim.scene import reference_noise_rms
-    from ae_tactile.slip.evaluate import apex_touch_packets
 
     rng = np.random.default_rng(seed)
     noise = reference_noise_rms(cfg, 30.0)
@@ -382,9 +382,9 @@ def test_a_periodic_burst_train_is_rejected_by_its_timing_on_a_device_without_ec
     """No wall echo, edges entering the amplifier's input at 1 kHz (an apex touch's packet,
     each one): from the 4th burst on, their timing gives them away (counted apart); apex
     touches at random times among them are all kept (those above the SNR threshold)."""
+    from ae_eval.slip import apex_touch_packets
     from ae_tactile.sim.interference import render_interference
     from ae_tactile.sim.scene import reference_noise_rms
-    from ae_tactile.slip.evaluate import apex_touch_packets
 
     cfg = SimConfig(sample_rate_hz=fs)
     rng = np.random.default_rng(21)
@@ -419,8 +419,8 @@ def test_a_crystal_timed_tapping_rig_keeps_its_touches_with_the_timing_test_off(
     without echoes: by default the timing test takes them for a periodic train from the
     4th on (its documented cost); with interference_timing off every touch above the SNR
     threshold is kept, and switching it back on at run time brings the test back."""
+    from ae_eval.slip import apex_touch_packets
     from ae_tactile.sim.scene import reference_noise_rms
-    from ae_tactile.slip.evaluate import apex_touch_packets
 
     cfg = SimConfig(sample_rate_hz=5e6)
     rng = np.random.default_rng(5)
@@ -458,7 +458,7 @@ def test_the_common_mode_screen_costs_no_touch_of_a_slip_near_the_apex(monkeypat
     emissions: common-mode to the screen, but a single template cannot explain them): the
     screen's spectrum tests reject none of them; what is rejected as interference is what
     the apex tests rejected without the screen."""
-    import ae_tactile.pipeline as pl
+    import ae_tactile.pipeline.screens as pl
     from ae_tactile.sim.scene import load_scene
 
     spec = {"generator": "incipient_slip", "duration_s": 1.2, "seed": 3,
@@ -545,7 +545,7 @@ def test_overlapping_emissions_are_resolved_in_the_reader_or_worker_naming_the_s
     window come, each within 0.1 mm, naming the shared packet."""
     import threading
 
-    from ae_tactile.localization.overlap import simulate_overlaps
+    from ae_eval.overlap_trials import simulate_overlaps
 
     cfg = SimConfig(reflections=True)
     d = simulate_overlaps(
@@ -620,7 +620,7 @@ def test_overlap_worker_process_and_in_process_fallback_give_the_same_sources(id
     holds the interpreter lock)."""
     import threading
 
-    from ae_tactile.localization.overlap import simulate_overlaps
+    from ae_eval.overlap_trials import simulate_overlaps
     from ae_tactile.pipeline import OverlapResolver
 
     cfg = SimConfig(reflections=True)
@@ -776,7 +776,7 @@ def test_a_pair_window_sent_to_the_worker_repeats_nothing_the_reader_handed_out(
     there was (the second window of a pair holds the same emissions) goes to the worker,
     whose answer repeats those emissions: they are dropped, also when a later window of
     the same batch, milliseconds newer, was answered in the reader meanwhile."""
-    from ae_tactile.localization.overlap import simulate_overlaps
+    from ae_eval.overlap_trials import simulate_overlaps
 
     cfg = SimConfig(reflections=True)
     d = simulate_overlaps(2, cfg, separation_s=np.array([4e-6, 5e-6]), amplitude_ratio=1.0,
@@ -898,7 +898,7 @@ def test_a_slip_step_put_off_runs_before_a_later_window_is_fitted_in_the_reader(
     overlapping window that arrived meanwhile is fitted in the reader: a precursor it
     decides does not wait ~1 ms for the fit. The slip stage then takes the window's two
     emissions too, none out of order."""
-    from ae_tactile.localization.overlap import simulate_overlaps
+    from ae_eval.overlap_trials import simulate_overlaps
 
     views, _, _ = _packets(n=1)
     first = views[0]  # stamp 1 s
@@ -931,7 +931,8 @@ def test_a_slip_step_put_off_runs_before_a_later_window_is_fitted_in_the_reader(
 def _pairs_and_their_quick_events(n, rng):
     """n two-emission windows (4 us apart, 30 dB) as packets 1 s apart, and the sorted
     (stamp, point) of the emissions their quick answers hold (all accepted: none DEFERRED)."""
-    from ae_tactile.localization.overlap import resolve_overlaps, simulate_overlaps
+    from ae_eval.overlap_trials import simulate_overlaps
+    from ae_tactile.localization.overlap import resolve_overlaps
     from ae_tactile.pipeline import source_record
 
     cfg = SimConfig(reflections=True)
@@ -1010,7 +1011,7 @@ def test_duplicate_check_survives_stamps_that_go_back_while_windows_are_pending(
     windows' answers still come."""
     import threading
 
-    from ae_tactile.localization.overlap import simulate_overlaps
+    from ae_eval.overlap_trials import simulate_overlaps
 
     cfg = SimConfig(reflections=True)
     d = simulate_overlaps(1, cfg, separation_s=np.array([4e-6]), amplitude_ratio=1.0,

@@ -1,0 +1,226 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The pipeline's constants and settings, in one place (SI units; ns where the name says so).
+
+`LocalizationConfig` holds the localization settings (`PacketLocalizer`, and the pipeline's
+``overlap_inline_max``) with their default, unit, range and description in the field
+metadata: the ROS parameter table (`ae_tactile.ros.params.localization_params`), the YAML
+files and docs/parameters.md are generated from it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields, replace
+
+from ae_tactile.localization.weak_release import MIN_SNR_DB as WEAK_RELEASE_MIN_SNR_DB
+from ae_tactile.localization.weak_release import check_min_snr_db
+
+# ---------------------------------------------------------------- screens (`screens.py`)
+#: [rad] packets localized closer to the apex than this are checked for common-mode
+#: interference: its zero delays put it at the apex; 3 deg leaves a wide margin over the
+#: spread a 1 % channel gain mismatch gives.
+APEX_POLAR_RAD = math.radians(3.0)
+#: [1] ... and so are packets fitting this poorly (a burst can also end as a bad fit away
+#: from the apex; real touches at 10 dB SNR fit better).
+SUSPECT_CONFIDENCE = 0.3
+#: [1] ... and every packet whose common-mode share of the window's energy (noise removed)
+#: is at least this: the discriminator's own bar (touches reach it only near the apex).
+COMMON_SUSPECT = 0.9
+#: [1] screened packets with at least this share (the four channels one waveform within the
+#: noise) get every test, the others only the spectrum tests (a slip's window holding two
+#: emissions near the apex is common-mode too, and no single template explains it).
+COMMON_IDENTICAL = 0.99
+#: `interference_route`: which of the discriminator's tests a packet gets
+ROUTE_NONE, ROUTE_SPECTRUM, ROUTE_ALL = 0, 1, 2
+#: `interference_echo_min` of a learnt echo test (`ae_tactile.dsp.interference.EchoLearner`)
+ECHO_MIN_LEARN = -1.0
+#: [1] the learnt echo test measures the echo of accepted packets away from the apex with
+#: at least this confidence, at most ECHO_LEARN_PER_CALL per call and, once the learner
+#: holds ECHO_LEARN_KEEP, in one call in ECHO_LEARN_EVERY (it follows a device whose echo
+#: changes; a measuring call costs tens of us).
+ECHO_LEARN_CONFIDENCE = 0.5
+ECHO_LEARN_PER_CALL = 4
+ECHO_LEARN_EVERY = 16
+#: [1] accepted packets below this confidence whose fit leaves more than
+#: OVERLAP_SUSPECT_EXCESS [1] of unexplained in-band energy are checked for a second
+#: emission in the window (single emissions stay below the excess bar).
+OVERLAP_SUSPECT_CONFIDENCE = 0.6
+OVERLAP_SUSPECT_EXCESS = 0.028
+
+# ---------------------------------------------------------------- hand (`hand.py`)
+#: [1] apex packet onsets kept for the hand's topic until taken (the newest)
+APEX_OUT_MAX = 10_000
+
+# ---------------------------------------------------------------- slip order (`slip_stage.py`)
+#: [s] longest time the slip step of contact events already handed out may wait while more
+#: packets are waiting on the port (their contact events go out first; a slip event comes
+#: at most this much later than it would alone).
+SLIP_MAX_DEFER_S = 0.5e-3
+#: [s] longest time the slip step waits for the overlap resolver's answer to a window (so
+#: that the slip detector sees every emission in time order, as offline); then the events
+#: go on without it (``slip_hold_expired``) and its emissions, when they come, are
+#: processed late with their own stamps.
+OVERLAP_HOLD_MAX_S = 0.1
+
+# ---------------------------------------------------------------- overlaps (`overlaps.py`)
+#: [1] overlapping windows per batch whose quick answer (one compiled call, about a
+#: millisecond) comes in the reader's thread, right after the batch's other contact events:
+#: their emissions reach the hand soonest, while the packets that arrive meanwhile wait
+#: that long. The others (0: all) get their quick answer in the resolver's thread; DEFERRED
+#: ones the exhaustive search in the worker process. The driver's
+#: `localization.overlap_inline_max`.
+OVERLAP_INLINE_MAX = 2
+#: [s] a window whose trigger lies within this of the first arrival of an emission resolved
+#: in the reader, or of the trigger of a window answered there, holds what that window held
+#: (the second window of a pair; two emissions closer than 1.5 us are not resolved anyway,
+#: and a trigger lags the arrival by well under 1 us): it goes to the worker, which adds,
+#: late, what the first window did not hold.
+COVERED_TOL_S = 2e-6
+#: [s], [m] an emission the resolver finds within DUPLICATE_TIME_S and DUPLICATE_DISTANCE_M
+#: of an event already handed out is that emission (two windows' fits of one emission agree
+#: to nanoseconds and micrometres; two emissions at one spot within 1 us cannot be told
+#: apart): dropped and counted (``overlap_duplicates``).
+DUPLICATE_TIME_S = 1e-6
+DUPLICATE_DISTANCE_M = 1e-3
+#: [ns] contact events are remembered for that check from the earliest possible emission of
+#: the oldest window still with the resolver (or of the newest event) minus this margin:
+#: more than a window's pre-trigger plus its span.
+RECENT_MARGIN_NS = 1_000_000
+#: [1] windows waiting for the resolver at most; more are dropped (``overlap_dropped_backlog``)
+OVERLAP_MAX_PENDING = 64
+
+
+# ---------------------------------------------------------------- settings
+def echo_min_setting(echo_min) -> float:
+    """The echo test's setting: < 0 learnt (ECHO_MIN_LEARN), 0 off, 0 < v <= 1 fixed.
+    ValueError otherwise."""
+    v = float(echo_min)
+    if not (math.isfinite(v) and -1.0 <= v <= 1.0):
+        raise ValueError(f"interference_echo_min must be in [-1, 1], got {echo_min!r}")
+    return ECHO_MIN_LEARN if v < 0.0 else v
+
+
+def _setting(default, doc, unit="", lo=None, hi=None, *, expert=True):
+    """A field with its description, unit [SI], range (the ROS parameter's) and whether only
+    an expert should change it."""
+    return field(
+        default=default,
+        metadata={"doc": doc, "unit": unit, "lo": lo, "hi": hi, "expert": expert},
+    )
+
+
+@dataclass(frozen=True)
+class LocalizationConfig:
+    """The localization settings, defined once.
+
+    Parameters
+    ----------
+    method : str
+        Delay estimator (`ae_tactile.localization.available_methods`).
+    min_snr_db : float
+        Reject packets below this SNR [dB].
+    min_confidence : float
+        Drop accepted packets below this confidence [1].
+    reject_interference : bool
+        Run the common-mode interference screen.
+    interference_echo_min : float
+        Echo test: -1 learnt, 0 off, (0, 1] fixed [1].
+    interference_timing : bool
+        Timing test of the apex packets.
+    weak_releases : bool
+        Keep weak releases on the spot of an unreleased touch.
+    weak_release_min_snr_db : float
+        Lowest SNR of a weak release [dB].
+    resolve_overlaps : bool
+        Localize each emission of a window holding several.
+    overlap_inline_max : int
+        Overlapping windows per batch answered in the reader (`ContactPipeline`).
+
+    Returns
+    -------
+    LocalizationConfig
+        Validated (ValueError naming the field); ``interference_echo_min`` < 0 is stored
+        as -1.
+    """
+
+    method: str = _setting("ml", "Delay estimator (ml: exact-sphere maximum likelihood)")
+    min_snr_db: float = _setting(
+        5.0,
+        "Reject packets below this SNR (docs/conventions.md): lower keeps fainter touches "
+        "and more false ones from noise",
+        "dB", -20.0, 80.0, expert=False,
+    )
+    min_confidence: float = _setting(
+        0.0,
+        "Do not publish contact events below this localization confidence: higher drops "
+        "poorly fitting events (fewer wrong points, more missed touches)",
+        "", 0.0, 1.0, expert=False,
+    )
+    reject_interference: bool = _setting(
+        True,
+        "Reject common-mode electrical interference (identical waveforms on the four "
+        "channels)",
+    )
+    interference_echo_min: float = _setting(
+        ECHO_MIN_LEARN,
+        "Echo test of a fingertip with wall echoes: an apex packet whose echo at 2R/c is "
+        "weaker than this share of the direct packet (regression coefficient) is "
+        "interference (catches interference entering the amplifier's input, shaped like a "
+        "touch). -1: learnt, half the echo of the device's own touches away from the apex, "
+        "once 3 have shown one of >= 0.15 (none on a device without echoes); 0: no echo "
+        "test; 0.25 for a wall returning half",
+        "", -1.0, 1.0,
+    )
+    interference_timing: bool = _setting(
+        True,
+        "Timing test of the packets at the apex (the test a fingertip without wall echoes "
+        "relies on): one whose intervals to the last 8 repeat intervals among them to < 1 us "
+        "is periodic interference (rejected_INTERFERENCE_TRAIN); false for a rig that taps "
+        "the apex at a crystal-timed rate",
+    )
+    weak_releases: bool = _setting(
+        True,
+        "Keep a release below min_snr_db (a rarefaction rejected only for low SNR, down to "
+        "weak_release_min_snr_db) when it lies on the spot of a touch not yet released (the "
+        "slip detector's same-spot gate): that touch's DETOUCH (counted as weak_releases); "
+        "false: such packets stay rejected_LOW_SNR",
+    )
+    weak_release_min_snr_db: float = _setting(
+        WEAK_RELEASE_MIN_SNR_DB,
+        "Lowest estimated SNR of a weak release (windows of noise alone reach it too: the "
+        "spot test and a bound of 0.5 mm on the position's 1-sigma keep them out, see "
+        "docs/localization.md)",
+        "dB", -20.0, 80.0,
+    )
+    resolve_overlaps: bool = _setting(
+        True,
+        "Localize each emission of a window that holds several (the first "
+        "overlap_inline_max of a batch in the reader, the others beside it); false: reject "
+        "such windows",
+    )
+    overlap_inline_max: int = _setting(
+        OVERLAP_INLINE_MAX,
+        "Overlapping windows per batch whose quick fit runs in the reader (about 1 ms each: "
+        "their emissions reach the hand soonest, the packets behind them that much later); "
+        "the others are fitted in the resolver's thread beside it",
+        "", 0, 8,
+    )
+
+    def __post_init__(self):
+        for name, conv in (("min_snr_db", float), ("min_confidence", float),
+                           ("interference_echo_min", echo_min_setting),
+                           ("weak_release_min_snr_db", check_min_snr_db),
+                           ("overlap_inline_max", int)):
+            object.__setattr__(self, name, conv(getattr(self, name)))
+        for f in fields(self):
+            if isinstance(f.default, bool):
+                object.__setattr__(self, f.name, bool(getattr(self, f.name)))
+
+    def replace(self, **changes) -> "LocalizationConfig":
+        """A validated copy with ``changes`` (TypeError on an unknown name)."""
+        return replace(self, **changes)
+
+    @classmethod
+    def describe(cls) -> dict[str, dict]:
+        """Per field: default, doc, unit, lo, hi, expert (the ROS table's source)."""
+        return {f.name: {"default": f.default, **f.metadata} for f in fields(cls)}

@@ -1,0 +1,348 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The fingertip's hot path: decoded packets -> contact events -> slip events (no rclpy).
+
+`ContactPipeline.process` runs, for each batch of packets the link decodes and in the thread
+that decoded them, the stages in order (one module each, docs/pipeline.md):
+
+1. localize (`localize.PacketLocalizer`): per-packet check, localization (one packet alone
+   on the compiled single-packet path, a backlog in batches), records;
+2. screens (`screens.Screens`, called by the localizer): common-mode interference, windows
+   holding overlapping emissions withdrawn, the weak-release gate;
+3. hand (`hand.HandStage`): apex packets held for the hand's coincidence test;
+4. contacts out: the contact events go to ``on_contacts`` at once, before the slip step;
+5. overlaps (`overlaps.OverlapStage`): windows holding several emissions, the first few
+   answered here, the others by `OverlapResolver` (its thread and worker process), later;
+6. slip (`slip_stage.SlipOrder`, `slip_stage.SlipStage`): the slip step in time order,
+   put off while packets wait, held while a window that may hold an earlier emission is
+   with the resolver.
+
+Emission time of a contact event (int ns, host clock):
+    t_emit = t_first_sample + emission_offset_s,
+emission_offset_s being the fitted arrival at the nearest element minus the travel time
+from the fitted point to it (or onset_index / fs minus that travel time when the
+estimator gives no fitted arrival).
+
+Threads and locks. The reader thread calls `process`; the resolver's thread hands its
+answers over (`_late_from_resolver`, `OverlapStage._window_done`); a timer calls `tick`,
+`release_held` and `release_coincidence`. Locks, each owned by one stage, outermost first
+(a lock is only ever taken while holding locks above it in this list):
+
+1. `HandStage.release_lock` (hand): one thread at a time hands out events while the hand
+   holds some (`process` on a hand, `release_coincidence`, `enable_hand`);
+2. `SlipOrder.lock` (slip, re-entrant; the step lock): held, put-off and waited-for
+   events, one slip step at a time; `release_coincidence` holds it around its hand-out;
+3. `HandStage.lock` (hand): the coincidence test and its reports; and
+   `OverlapStage.lock` (overlaps): the duplicate check's memory; and
+   `SlipStage.lock` (slip): the detector. These three are never nested in one another.
+
+`OverlapResolver._count_lock` and the resolver's queue are leaves. The localizer and its
+screens have no lock: only the reader thread calls them.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from typing import Callable, Sequence
+
+from ae_tactile.dsp.coincidence import HandCoincidence
+from ae_tactile.pipeline.config import COVERED_TOL_S, OVERLAP_HOLD_MAX_S, OVERLAP_INLINE_MAX
+from ae_tactile.pipeline.hand import HandStage
+from ae_tactile.pipeline.localize import PacketLocalizer
+from ae_tactile.pipeline.overlaps import OverlapResolver, OverlapStage, earliest_emission_ns
+from ae_tactile.pipeline.slip_stage import SlipOrder, SlipStage
+
+
+def _stage_attr(stage: str, name: str, doc: str) -> property:
+    """A stage's setting seen (and set) through the pipeline."""
+    return property(
+        lambda self: getattr(getattr(self, stage), name),
+        lambda self, v: setattr(getattr(self, stage), name, v),
+        doc=doc,
+    )
+
+
+class ContactPipeline:
+    """The stages behind one call: ``process(packets, on_contacts, on_slip)``.
+
+    ``on_contacts`` is called with the contact events of the batch before the slip step
+    runs (a touch reaches the hand without waiting for slip analysis), then ``on_slip``
+    with the slip events (if any).
+
+    Parameters
+    ----------
+    localizer : PacketLocalizer
+        The localize stage (and its screens).
+    slip : SlipStage or None
+        The slip stage (None: contact events only).
+    counts : collections.Counter, optional
+        The pipeline's own counters (the stages after the localizer count into it).
+    overlaps : OverlapResolver, optional
+        A resolver already running (default: started at the first overlapping window or
+        by `start_overlaps`).
+    overlap_hold_max_s : float
+        Longest wait of the slip step for the overlap resolver [s].
+    overlap_inline_max : int
+        Overlapping windows per `process` call answered in the caller's thread.
+    overlap_covered_tol_s : float
+        Tolerance [s] of the second window of a pair; 0 answers every window on its own.
+    overlap_idle : bool
+        The resolver's thread and worker as SCHED_IDLE (the driver has cores of its own).
+    hand : HandCoincidence, optional
+        The hand's coincidence test (default: off until `enable_hand`).
+
+    Returns
+    -------
+    ContactPipeline
+    """
+
+    def __init__(
+        self,
+        localizer: PacketLocalizer,
+        slip: SlipStage | None,
+        counts: Counter | None = None,
+        overlaps: OverlapResolver | None = None,
+        overlap_hold_max_s: float = OVERLAP_HOLD_MAX_S,
+        overlap_inline_max: int = OVERLAP_INLINE_MAX,
+        overlap_covered_tol_s: float = COVERED_TOL_S,
+        overlap_idle: bool = False,
+        hand: HandCoincidence | None = None,
+    ):
+        self.localizer = localizer
+        self.slip = slip
+        self.counts = Counter() if counts is None else counts
+        self._outputs: tuple = (None, None)  # (on_contacts, on_slip) of the latest process()
+        self.slip_order = SlipOrder(slip, self.counts, overlap_hold_max_s)
+        so = self.slip_order
+        self.overlap_stage = OverlapStage(
+            self.counts, self._late_from_resolver, so.window_done, so.hold_windows,
+            so.unhold_windows, inline_max=overlap_inline_max,
+            covered_tol_s=overlap_covered_tol_s, idle=overlap_idle, resolver=overlaps,
+        )
+        self.hand_stage = HandStage(self.counts, hand)
+        self.localizer.learn_inline = False  # `process` learns once the events are out
+
+    overlaps = _stage_attr("overlap_stage", "resolver", "The `OverlapResolver` (or None).")
+    overlap_inline_max = _stage_attr("overlap_stage", "inline_max", "`OverlapStage.inline_max`")
+    overlap_covered_tol_s = _stage_attr(
+        "overlap_stage", "covered_tol_s", "`OverlapStage.covered_tol_s` [s]")
+    overlap_idle = _stage_attr("overlap_stage", "idle", "`OverlapStage.idle`")
+    overlap_hold_max_s = _stage_attr("slip_order", "hold_max_s", "`SlipOrder.hold_max_s` [s]")
+    hand = _stage_attr("hand_stage", "hand", "The `HandCoincidence` (None: off).")
+
+    # ------------------------------------------------------------ the batch
+    def process(
+        self,
+        packets: Sequence,
+        on_contacts: Callable[[list], None],
+        on_slip: Callable[[list], None] | None = None,
+        more_waiting: Callable[[], bool] | None = None,
+    ) -> None:
+        """Localize, hand out the contact events, then run the slip step on them.
+
+        Parameters
+        ----------
+        packets : sequence of PacketView
+            One batch, in arrival order.
+        on_contacts : callable
+            Called with each list of contact records, before their slip step.
+        on_slip : callable, optional
+            Called with each list of slip records.
+        more_waiting : callable, optional
+            Asked after the contact events are out (e.g. the link's `bytes_waiting`);
+            while it says more packets are already waiting, the slip step is put off, at
+            most ``SLIP_MAX_DEFER_S``, so that their contact events go out first;
+            `run_pending_slip` (the link's idle call) or a later `process` runs it.
+
+        Returns
+        -------
+        None
+            On a hand (`enable_hand`), one thread at a time hands out events (the held
+            packets' release waits for this batch, or a timer's is skipped).
+        """
+        if self.hand_stage.hand is None:
+            self._process(packets, on_contacts, on_slip, more_waiting)
+            return
+        with self.hand_stage.release_lock:
+            self._process(packets, on_contacts, on_slip, more_waiting)
+
+    def _process(self, packets, on_contacts, on_slip, more_waiting) -> None:
+        """The stages in order (`process`)."""
+        self._outputs = (on_contacts, on_slip)
+        self.slip_order.on_slip = on_slip
+        loc = self.localizer
+        self._learn_echo_first()
+        contacts = loc.process(packets)  # localize, screens
+        if loc.hand_reports:
+            contacts = self.hand_stage.hold_apex(contacts, loc.apex_onsets_ns, loc.apex_held)
+        windows = loc.overlap_windows
+        if windows:
+            # registered before anything of this batch is remembered: the duplicate check
+            # keeps every event a window could hold until the window is answered
+            self.overlap_stage.register(windows, loc.geometry)
+        contacts = self.overlap_stage.claim(contacts, resolved=False)
+        if windows:
+            contacts = self._contacts_and_overlaps(contacts, windows, on_contacts)
+        elif contacts:
+            on_contacts(contacts)
+        self.slip_order.after_batch(contacts, more_waiting)
+        if loc.echo_pending and (more_waiting is None or self.slip is None or not more_waiting()):
+            loc.learn_echo()  # else when the link is idle (`run_idle_work`)
+
+    def _learn_echo_first(self) -> None:
+        """While the echo test is still being learnt (its first touches, once), what the
+        last batch's touches teach judges this batch's packets, however far behind the
+        reader is (later measurements wait for a moment without packets)."""
+        loc = self.localizer
+        if loc.echo_pending and loc.echo_learner.ratio is None:
+            loc.learn_echo()
+
+    def _contacts_and_overlaps(self, contacts: list, windows: list, on_contacts) -> list:
+        """The batch's contact events out, the slip step put off before them run, then the
+        overlapping windows (their events out as they come); returns all of them."""
+        if contacts:  # out before the overlapping windows are resolved
+            on_contacts(contacts)
+        if self.slip_order.pending:
+            g = self.localizer.geometry
+            self.slip_order.before(min(earliest_emission_ns(p, g) for p in windows))
+        return contacts + self.overlap_stage.overlapping(
+            windows, on_contacts, self.localizer.geometry
+        )
+
+    def late(
+        self,
+        contacts: list,
+        on_contacts: Callable[[list], None],
+        on_slip: Callable[[list], None] | None = None,
+    ) -> None:
+        """Contact events (from the hot path, or later from the overlap resolver): handed
+        out, then through the slip stage."""
+        if contacts:
+            on_contacts(contacts)
+            self.slip_order.step(contacts)
+
+    def _late_from_resolver(self, records: list) -> None:
+        on_contacts, on_slip = self._outputs
+        if on_contacts is None:
+            return
+        self.late(self.overlap_stage.claim(records, resolved=True), on_contacts, on_slip)
+
+    # ------------------------------------------------------------ overlaps
+    def start_overlaps(self, wait_s: float = 0.0) -> None:
+        """Start the overlap resolver (and its worker process) now, not at the first
+        overlapping window, and wait up to wait_s [s] for the worker to be warm; the driver
+        calls this while warming up, before acquisition."""
+        self.overlap_stage.start(self.localizer.geometry, wait_s)
+
+    # ------------------------------------------------------------ the hand
+    def enable_hand(self, window_s: float | None = None, wait_s: float | None = None) -> None:
+        """Take part in the coincidence test of the fingertips of one hand
+        (`ae_tactile.dsp.coincidence`): `take_apex_onsets` gives this fingertip's apex
+        packets for the others, `hand_reports` takes theirs, and an apex packet the packet
+        tests kept where no echo test runs is held until `release_coincidence` decides it
+        (ValueError on bad settings: nothing changed then)."""
+        self.hand_stage.enable(window_s, wait_s)
+        self.localizer.hand_reports = True
+
+    def take_apex_onsets(self) -> list:
+        """This fingertip's apex packet onsets (host ns) not reported yet."""
+        return self.hand_stage.take_apex_onsets()
+
+    def hand_reports(self, onsets_ns, source: str = "", now_ns: int | None = None) -> None:
+        """Another fingertip's (``source``) apex packet onsets (host ns); ``now_ns``: this
+        fingertip's host time (stamps far from it are counted and dropped)."""
+        self.hand_stage.reports(onsets_ns, source, now_ns)
+
+    def release_coincidence(
+        self,
+        now_ns: int,
+        *,
+        flush: bool = False,
+        blocking: bool = True,
+        timeout_s: float | None = None,
+    ) -> bool:
+        """Decide the held apex packets whose wait is over at host time ``now_ns``
+        (``flush``: all of them, with the reports at hand): those another fingertip saw
+        too are interference (``rejected_INTERFERENCE_HAND``), the others are handed out
+        with the events behind them, in time order, and go through the slip step after
+        the earlier events' put-off one. ``blocking`` False: nothing if another thread is
+        handing out events (``timeout_s``: waiting at most that long). True if any was
+        handed out."""
+        if not self.hand_stage.waiting():
+            return False
+        lock = self.hand_stage.release_lock
+        wait = -1 if timeout_s is None else max(0.0, float(timeout_s))
+        if not (lock.acquire(True, wait) if blocking else lock.acquire(False)):
+            return False
+        try:
+            # the slip stage's clock (`tick`, a timer) waits until what is decided here
+            # has been through the slip step: it never runs past a released event
+            with self.slip_order.lock:
+                kept = self.hand_stage.decide(now_ns, flush)
+                on_contacts, on_slip = self._outputs
+                if kept and on_contacts is not None:
+                    self.slip_order.run_pending()  # earlier events first, in the slip stage too
+                    self.late(self.overlap_stage.claim(kept, resolved=False), on_contacts,
+                              on_slip)
+            return bool(kept)
+        finally:
+            lock.release()
+
+    # ------------------------------------------------------------ time and idle work
+    def tick(self, now_ns: int):
+        """Let time pass in the slip stage (`SlipStage.tick`), never past a held event;
+        returns the finger state."""
+        return self.slip_order.tick(now_ns, self.hand_stage.limit_ns)
+
+    def release_held(self) -> None:
+        """Run the slip step of held events whose wait has expired (a timer calls this)."""
+        self.slip_order.release_held()
+
+    @property
+    def slip_pending(self) -> bool:
+        """Contact events handed out whose slip step is still due."""
+        return self.slip_order.pending
+
+    def run_pending_slip(self) -> None:
+        """The slip step of contact events handed out while more packets were waiting."""
+        self.slip_order.run_pending()
+
+    def run_idle_work(self) -> bool:
+        """What waits for a moment without packets: the slip step put off, then the echo
+        test's learning. True when it published slip or state changes may have come."""
+        slip = self.slip_pending
+        if slip:
+            self.run_pending_slip()
+        if self.localizer.echo_pending:
+            self.localizer.learn_echo()
+        return slip
+
+    def idle(self) -> bool:
+        """No window with the overlap resolver and no slip step waiting for one."""
+        if self.slip_order.busy() or self.hand_stage.pending():
+            return False
+        return not self.overlap_stage.pending()
+
+    def wait_idle(self, timeout_s: float) -> bool:
+        """Wait (up to timeout_s [s]) until `idle`; True if so (offline replay and tests;
+        never on the hot path)."""
+        deadline = time.monotonic() + float(timeout_s)
+        while not self.idle():
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.001)
+        return True
+
+    def all_counts(self) -> Counter:
+        """Every count of the pipeline (a copy; safe beside the reader and resolver)."""
+        # dict.copy is one C call: a consistent copy while other threads count
+        c = Counter(dict.copy(self.localizer.counts))
+        c.update(dict.copy(self.counts))
+        c.update(self.hand_stage.all_counts())
+        if self.overlaps is not None:
+            c.update(self.overlaps.snapshot_counts())
+        return c
+
+    def close(self) -> None:
+        """Stop the overlap resolver's thread and worker process."""
+        self.overlap_stage.close()

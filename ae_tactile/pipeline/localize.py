@@ -1,0 +1,449 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Localize: packets -> contact records (TOUCH / DETOUCH), every rejection counted by reason.
+
+The per-packet check (`packet_problem`) keeps one bad packet from costing its neighbours;
+one packet alone takes the compiled single-packet path, ``batch_min`` or more are localized
+as one batch; then the screens (`screens.Screens`) drop interference, withdraw windows
+holding overlapping emissions (for the overlap resolver) and gate weak releases.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from types import SimpleNamespace
+from typing import Sequence
+
+import numpy as np
+
+from ae_tactile.dsp.interference import common_mode_interference
+from ae_tactile.dsp.interference import warm_up as warm_interference
+from ae_tactile.geometry import FingertipGeometry
+from ae_tactile.localization import Localizer, Reason, get_estimator
+from ae_tactile.localization.overlap import suspect_overlap
+from ae_tactile.localization.overlap import warm_up as warm_overlaps
+from ae_tactile.pipeline.config import LocalizationConfig
+from ae_tactile.pipeline.screens import Screens
+from ae_tactile.records import ContactRecord, EventType, PacketView, packet_record
+
+
+def packet_problem(samples_v, sample_rate_hz, onset_index) -> str | None:
+    """Why a packet cannot be localized at all: the per-packet check.
+
+    Parameters
+    ----------
+    samples_v : numpy.ndarray
+        The packet's window (4, N) [V].
+    sample_rate_hz : float
+        Its sample rate [Hz].
+    onset_index : int
+        Its onset sample.
+
+    Returns
+    -------
+    str or None
+        "shape", "too_short", "sample_rate" or "onset"; None if it can be localized.
+    """
+    x = samples_v
+    if not isinstance(x, np.ndarray) or x.ndim != 2 or x.shape[0] != 4:
+        return "shape"
+    if x.shape[1] < 8:
+        return "too_short"
+    try:
+        fs = float(sample_rate_hz)
+    except (TypeError, ValueError):
+        return "sample_rate"
+    if not math.isfinite(fs) or fs <= 0:
+        return "sample_rate"
+    if not 0 <= int(onset_index) < x.shape[1]:
+        return "onset"
+    return None
+
+
+def _gains_or_none(channel_gains):
+    """Relative channel gains as a validated (4,) array, or None when all are 1 (nothing
+    to apply: the per-packet path skips them). ValueError unless 4 positive finite numbers."""
+    if channel_gains is None:
+        return None
+    g = np.asarray(channel_gains, dtype=float)
+    if g.shape != (4,) or not np.all(np.isfinite(g) & (g > 0)):
+        raise ValueError(f"channel_gains must be 4 positive finite numbers, got {channel_gains!r}")
+    return None if np.all(g == 1.0) else g
+
+
+class _Row:
+    """One packet's fields of a batch `LocalizationResult` (`Screens.weak`)."""
+
+    __slots__ = ("_res", "_j", "emission_offset_s")
+
+    def __init__(self, res, j, offset_s):
+        self._res, self._j, self.emission_offset_s = res, j, offset_s
+
+    def __getattr__(self, name):
+        return getattr(self._res, name)[self._j]
+
+
+def _screen_attr(name: str) -> property:
+    """A `Screens` attribute seen (and set) through the localizer."""
+    return property(
+        lambda self: getattr(self.screens, name),
+        lambda self, v: setattr(self.screens, name, v),
+        doc=f"`Screens.{name}`",
+    )
+
+
+class PacketLocalizer:
+    """Packets -> contact events (TOUCH / DETOUCH), counting every rejection by reason.
+
+    ``batch_min`` packets or more in one call are localized as a batch (cheaper per
+    packet under load); fewer take the single-packet path (lowest latency).
+
+    Parameters
+    ----------
+    method : str, optional
+        Localization estimator (`ae_tactile.localization.get_estimator`); default the
+        config's.
+    config : LocalizationConfig, optional
+        The settings (default: `LocalizationConfig()`).
+    geometry : FingertipGeometry, optional
+        The fingertip's body (default: `FingertipGeometry()`).
+    channel_gains : array_like, optional
+        Relative gains of the four channels (4 positive numbers).
+    batch_min : int
+        Packets per call from which the batch path is taken.
+    **settings
+        Fields of `LocalizationConfig` replacing the config's (``min_snr_db=10.0``, ...).
+
+    Returns
+    -------
+    PacketLocalizer
+        `process(packets)` gives the contact records of a batch.
+    """
+
+    def __init__(
+        self,
+        method: str | None = None,
+        *,
+        config: LocalizationConfig | None = None,
+        geometry: FingertipGeometry | None = None,
+        channel_gains=None,
+        batch_min: int = 4,
+        **settings,
+    ):
+        if method is not None:
+            settings["method"] = method
+        cfg = (config or LocalizationConfig()).replace(**settings)
+        #: the settings in use (`update` replaces it)
+        self.config = cfg
+        self.localizer = Localizer(cfg.method, min_snr_db=cfg.min_snr_db)
+        self.screens = Screens(
+            reject_interference=cfg.reject_interference,
+            interference_echo_min=cfg.interference_echo_min,
+            interference_timing=cfg.interference_timing,
+            weak_releases=cfg.weak_releases,
+            weak_release_min_snr_db=cfg.weak_release_min_snr_db,
+        )
+        #: learn the echo inside `process` (False: the caller runs `learn_echo` once the
+        #: contact events are out, as `ContactPipeline` does)
+        self.learn_inline = True
+        self.resolve_overlaps = cfg.resolve_overlaps
+        #: windows of the last `process` call that hold overlapping emissions (for the
+        #: overlap stage; rejected as OVERLAP or withdrawn as suspects)
+        self.overlap_windows: list = []
+        self.method = cfg.method
+        self.min_snr_db = cfg.min_snr_db
+        self.min_confidence = cfg.min_confidence
+        self.geometry = geometry or FingertipGeometry()
+        self.channel_gains = _gains_or_none(channel_gains)
+        self.batch_min = int(batch_min)
+        self.counts: Counter = Counter()
+        self._one = getattr(self.localizer, "localize_one", None)
+
+    weak_releases = _screen_attr("weak_releases")
+    weak_release_min_snr_db = _screen_attr("weak_release_min_snr_db")
+    weak_gate = _screen_attr("weak_gate")
+    interference = _screen_attr("interference")
+    interference_echo_min = _screen_attr("interference_echo_min")
+    interference_timing = _screen_attr("interference_timing")
+    echo_learner = _screen_attr("echo_learner")
+    burst_train = _screen_attr("burst_train")
+    hand_reports = _screen_attr("hand_reports")
+    apex_onsets_ns = _screen_attr("apex_onsets_ns")
+    apex_held = _screen_attr("apex_held")
+
+    @property
+    def echo_min_in_use(self) -> float | None:
+        """`Screens.echo_min_in_use`."""
+        return self.screens.echo_min_in_use
+
+    @property
+    def echo_pending(self) -> bool:
+        """`Screens.echo_pending`."""
+        return self.screens.echo_pending
+
+    def echo_test_status(self) -> str:
+        """`Screens.echo_test_status`."""
+        return self.screens.echo_test_status()
+
+    def learn_echo(self) -> None:
+        """`Screens.learn_echo`: run once the contact events are out."""
+        self.screens.learn_echo()
+
+    # ---------------------------------------------------------------- settings
+    def update(
+        self,
+        *,
+        geometry: FingertipGeometry | None = None,
+        channel_gains=None,
+        **settings,
+    ) -> None:
+        """Change settings at run time; takes effect at once.
+
+        Parameters
+        ----------
+        geometry : FingertipGeometry, optional
+            Another body (its touches and echo start afresh).
+        channel_gains : array_like, optional
+            Relative gains of the four channels.
+        **settings
+            Fields of `LocalizationConfig` (None: unchanged).
+
+        Returns
+        -------
+        None
+            ValueError on a bad value (channel gains, echo threshold, method, SNR,
+            confidence): nothing changed then.
+        """
+        sc = self.screens
+        gains = _gains_or_none(channel_gains) if channel_gains is not None else None
+        given = {k: v for k, v in settings.items() if v is not None}
+        cfg = self.config.replace(**given)
+        localizer = None
+        if "method" in given or "min_snr_db" in given:
+            localizer = Localizer(cfg.method, min_snr_db=cfg.min_snr_db)
+        # everything checked: apply what was given
+        if localizer is not None:
+            self.localizer = localizer
+            self._one = getattr(localizer, "localize_one", None)
+            self.method, self.min_snr_db = cfg.method, cfg.min_snr_db
+        for name in given:
+            self._apply(name, getattr(cfg, name))
+        self.config = cfg
+        if geometry is not None:
+            if geometry != self.geometry:
+                sc.new_body()
+            self.geometry = geometry
+        if channel_gains is not None:
+            self.channel_gains = gains
+
+    def _apply(self, name: str, value) -> None:
+        """One validated setting (not method / min_snr_db: the localizer's) at work."""
+        sc = self.screens
+        if name == "min_confidence":
+            self.min_confidence = value
+        elif name == "resolve_overlaps":
+            self.resolve_overlaps = value
+        elif name == "weak_releases":
+            sc.set_weak_releases(value)
+        elif name == "reject_interference":
+            sc.interference = common_mode_interference if value else None
+        elif name in ("interference_echo_min", "interference_timing", "weak_release_min_snr_db"):
+            setattr(sc, name, value)
+
+    def set_interference(self, enabled: bool) -> None:
+        """Switch the common-mode interference rejection on or off."""
+        self.screens.interference = common_mode_interference if enabled else None
+        self.config = self.config.replace(reject_interference=bool(enabled))
+
+    def warm_up(self, sample_rate_hz: float = 10e6, n_samples: int = 400) -> None:
+        """Compile / cache what the first packet would otherwise pay for.
+
+        Parameters
+        ----------
+        sample_rate_hz : float
+            Sample rate of the packets to come [Hz].
+        n_samples : int
+            Their window length.
+
+        Returns
+        -------
+        None
+        """
+        warm = getattr(self.localizer, "warm_up", None)
+        if warm is not None:
+            warm(self.geometry, sample_rate_hz, n_samples)
+        rng = np.random.default_rng(0)
+        x = rng.normal(0.0, 1e-3, (4, int(n_samples))).astype(np.float32)
+        view = PacketView(x, sample_rate_hz, int(n_samples) // 4, 0, -1)
+        self.process([view], count=False)
+        self.process([view] * self.batch_min, count=False)
+        # the paths a first odd packet would take: tables, compiled code
+        w = x[None].astype(np.float64)
+        on = [int(n_samples) // 4]
+        with np.errstate(all="ignore"):
+            if self.interference is not None:
+                warm_interference(sample_rate_hz, geometry=self.geometry)  # templates
+                self.interference(w, sample_rate_hz, on, geometry=self.geometry)
+            single = SimpleNamespace(
+                accepted=np.ones(1, bool), point_m=np.array([[0.0, 0.0, self.geometry.radius_m]])
+            )
+            suspect_overlap(w, sample_rate_hz, on, single, geometry=self.geometry)
+            warm_overlaps(self.geometry, sample_rate_hz, n_samples)
+        self.overlap_windows = []
+
+    # ---------------------------------------------------------------- packets
+    def process(self, packets: Sequence, *, count: bool = True) -> list[ContactRecord]:
+        """Contact events of the accepted packets, in packet order.
+
+        Parameters
+        ----------
+        packets : sequence of PacketView
+            One batch, in arrival order.
+        count : bool
+            Count into ``counts`` and learn (False: a warm-up call).
+
+        Returns
+        -------
+        list of ContactRecord
+            TOUCH / DETOUCH records of the packets kept; the windows holding overlapping
+            emissions are in ``overlap_windows`` after the call.
+        """
+        counts = self.counts if count else Counter()
+        self.overlap_windows = []
+        sc = self.screens
+        sc.new_call()
+        # the body this call localizes on, and its echo learner (`update` may switch both
+        # from another thread meanwhile: the echo of these packets belongs to this one)
+        body = (self.geometry, sc.echo_learner)
+        good = self._checked(packets, counts)
+        if not good:
+            return []
+        weak_on = sc.weak_releases  # read once: `update` may change it meanwhile
+        if len(good) >= self.batch_min or self._one is None:
+            out = self._batched(good, counts, weak_on)
+        else:
+            out = []
+            for p in good:
+                ev = self._single(p, counts, weak_on)
+                if ev is not None:
+                    out.append((p, ev))
+        if sc.interference is not None:
+            out = sc.drop_interference(out, counts, self.geometry)
+        if self.resolve_overlaps:
+            out, withdrawn = sc.withdraw_suspects(out, self.geometry)
+            for p in withdrawn:
+                self._overlap(p, counts)
+                counts["overlap_suspects"] += 1
+        if weak_on:
+            out = sc.gate_weak(out, counts)
+        if sc.learning_echo and count:
+            sc.stash_echo(out, body)  # single emissions only (suspects withdrawn)
+            if self.learn_inline:
+                sc.learn_echo()
+        for _, ev in out:
+            counts["events"] += 1
+            counts["detouch" if ev.event_type == EventType.DETOUCH else "touch"] += 1
+        return [ev for _, ev in out]
+
+    @staticmethod
+    def _checked(packets, counts) -> list:
+        """The packets `packet_problem` passes (the others counted by reason)."""
+        good = []
+        for p in packets:
+            counts["packets"] += 1
+            why = packet_problem(p.samples_v, p.sample_rate_hz, p.onset_index)
+            if why is not None:
+                counts["rejected_MALFORMED_" + why] += 1
+                continue
+            good.append(p)
+        return good
+
+    @property
+    def _overlap_threshold(self) -> float:
+        """The localizer's overlap threshold (its method's default unless given)."""
+        thr = self.localizer.kwargs.get("overlap_threshold")
+        return get_estimator(self.method).overlap_threshold if thr is None else float(thr)
+
+    def _overlap(self, p, counts) -> None:
+        counts["rejected_OVERLAP"] += 1
+        if self.resolve_overlaps:
+            self.overlap_windows.append(p)
+
+    def _weak(self, p, r, snr_db, counts, weak_on) -> ContactRecord | None:
+        return self.screens.weak(
+            p, r, snr_db, counts, weak_on, self._overlap_threshold, self.min_confidence
+        )
+
+    def _single(self, p, counts, weak_on=False) -> ContactRecord | None:
+        """The single-packet path: one compiled call."""
+        r = self._one(
+            p.samples_v,
+            p.sample_rate_hz,
+            int(p.onset_index),
+            saturated=bool(p.saturated),
+            geometry=self.geometry,
+            channel_gains=self.channel_gains,
+        )
+        if not r.accepted:
+            if int(r.reason) == Reason.OVERLAP:
+                self._overlap(p, counts)
+                return None
+            return self._weak(p, r, float(r.snr_db), counts, weak_on)
+        if r.confidence < self.min_confidence:
+            counts["below_min_confidence"] += 1
+            return None
+        return packet_record(
+            p, r.point_m, r.covariance_m2, r.polar_rad, r.azimuth_rad, r.tau_x_s, r.tau_y_s,
+            r.amplitude_v, r.confidence, r.polarity, r.emission_offset_s, r.overlap_excess,
+        )
+
+    def _batched(self, packets, counts, weak_on=False) -> list[tuple]:
+        """The batch path: one call per (window length, sample rate) group; (packet, record)
+        pairs in packet order."""
+        groups: dict[tuple, list[int]] = {}
+        for i, p in enumerate(packets):
+            groups.setdefault((p.samples_v.shape[1], float(p.sample_rate_hz)), []).append(i)
+        found: list[tuple[int, PacketView, ContactRecord]] = []
+        for (_, fs), ids in groups.items():
+            items = [packets[i] for i in ids]
+            found += self._batch_group(items, ids, fs, counts, weak_on)
+        found.sort(key=lambda t: t[0])
+        return [(p, ev) for _, p, ev in found]
+
+    def _batch_group(self, items, ids, fs, counts, weak_on) -> list[tuple]:
+        """(index, packet, record) of one group of equal windows."""
+        windows = np.stack([np.asarray(p.samples_v) for p in items])
+        onset = np.array([int(p.onset_index) for p in items], dtype=np.int64)
+        sat = np.array([bool(p.saturated) for p in items])
+        res = self.localizer(
+            windows, fs, onset, geometry=self.geometry, saturated=sat,
+            channel_gains=self.channel_gains,
+        )
+        excess = getattr(res, "overlap_excess", None)
+        if excess is None:
+            excess = np.zeros(len(items))
+        offsets = getattr(res, "emission_offset_s", None)
+        if offsets is None:
+            travel = self.geometry.arrival_times_s(np.nan_to_num(res.point_m)).min(axis=-1)
+            offsets = onset / fs - travel
+        found = []
+        for j, p in enumerate(items):
+            if not res.accepted[j]:
+                if int(res.reason[j]) == Reason.OVERLAP:
+                    self._overlap(p, counts)
+                    continue
+                row = _Row(res, j, offsets[j])
+                rec = self._weak(p, row, float(res.snr_db_est[j]), counts, weak_on)
+                if rec is not None:
+                    found.append((ids[j], p, rec))
+                continue
+            if res.confidence[j] < self.min_confidence:
+                counts["below_min_confidence"] += 1
+                continue
+            rec = packet_record(
+                p, res.point_m[j], res.covariance_m2[j], res.polar_rad[j], res.azimuth_rad[j],
+                res.tau_x_s[j], res.tau_y_s[j], res.amplitude_v[j], res.confidence[j],
+                res.polarity[j], offsets[j], excess[j],
+            )
+            found.append((ids[j], p, rec))
+        return found
