@@ -1,5 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Shared machinery of the delay estimators: validation, analysis plan, segments, spectra.
+"""Shared definitions of the delay estimators: channel contrasts and pairs, `Reason`,
+validation, the analysis plan (`Plan`), ADC noise and the data-driven band edge; the
+segments and spectra below are cut and computed in `segments`.
 
 Every estimator works on the *well-ordered* part of each packet, the direct wave before
 the first wall echo: per channel, from ``pre_onset_s`` before its arrival to
