@@ -28,14 +28,49 @@ def suspect_overlap(
     noise_rms_v=None, band_hz=(100e3, 1e6), analysis_s=None, echo=True, max_chi2_ratio=None,
     engine="auto",
 ):
-    """(K,) bool: packets that `localize` ACCEPTED as single-source but whose one-emission fit
-    (known pulse, first echo, started at the accepted point) leaves a residual inconsistent
-    with noise (chi^2 per degree of freedom above the limit of `resolve_overlaps`): hand
-    those to `resolve_overlaps`. Rejected packets give False (they are not single-source
-    answers to withdraw). Cost: a 1-D matched-filter search of the emission time and
-    ``iterations`` LM steps per accepted packet. engine: "auto" one compiled call per
-    packet (`overlap_kernels.suspect_rss`) where numba is present and the medium lossless,
-    "numpy" always numpy."""
+    """Packets that `localize` accepted as single-source but hold more than one emission.
+
+    The one-emission fit (known pulse, first echo, started at the accepted point) of each
+    accepted packet leaves a residual; a chi^2 per degree of freedom above the limit of
+    `resolve_overlaps` marks the packet: hand those to `resolve_overlaps`. Rejected packets
+    give False (they are not single-source answers to withdraw). Cost: a 1-D matched-filter
+    search of the emission time and a linearised amplitude fit per accepted packet.
+
+    Parameters
+    ----------
+    windows : array_like, (K, 4, M)
+        The packets' windows [V].
+    sample_rate_hz : float
+        Sample rate [Hz].
+    onset_index : array_like of int, (K,)
+        Packet onset (earliest arrival) per window [samples].
+    single_source_result : LocalizationResult
+        `localize`'s answer for the same K windows (``accepted``, ``point_m``).
+    geometry : FingertipGeometry, optional
+        Sensor geometry and medium (default `FingertipGeometry()`).
+    pulse : PulseModel, optional
+        The front end's pulse (default `PulseModel.for_sample_rate(sample_rate_hz)`).
+    noise_rms_v : float or array_like (K,), optional
+        Known noise sigma [V]; default measured before the onset.
+    band_hz : (float, float)
+        Analysis band [Hz].
+    analysis_s : float, optional
+        Length of the fit window after the onset [s]; default up to just before the
+        second wall echo.
+    echo : bool
+        Model the first wall echo.
+    max_chi2_ratio : float, optional
+        Largest accepted residual / (sigma^2 dof) (default 1 + 5 sqrt(2/n_noise + 2/dof),
+        as in `resolve_overlaps`).
+    engine : {"auto", "numpy"}
+        "auto": one compiled call per packet (`overlap_kernels.suspect_rss`) where numba
+        is present and the medium lossless; "numpy": always numpy.
+
+    Returns
+    -------
+    numpy.ndarray of bool, (K,)
+        True: the packet is suspected to hold overlapping emissions.
+    """
     geo = FingertipGeometry() if geometry is None else geometry
     pulse = PulseModel.for_sample_rate(sample_rate_hz) if pulse is None else pulse
     x, on = validate_windows(windows, onset_index)
@@ -58,10 +93,21 @@ def suspect_overlap(
                 analysis_s, echo, max_chi2_ratio,
             )
         return out
+    out[ids] = _suspects_numpy(
+        x[ids], on[ids], pts[ids, :2], plan, geo, pulse, noise_rms_v, K, ids, analysis_s, echo,
+        max_chi2_ratio,
+    )
+    return out
+
+
+def _suspects_numpy(x, on, s_xy, plan, geo, pulse, noise_rms_v, K, ids, analysis_s, echo,
+                    max_chi2_ratio):
+    """`suspect_overlap` of accepted windows x (n, 4, M) at their points s_xy (n, 2) by numpy;
+    (n,) bool."""
     with np.errstate(all="ignore"):
         prep = prepare(
-            x[ids],
-            on[ids],
+            x,
+            on,
             plan,
             noise_rms_v=None
             if noise_rms_v is None
@@ -72,7 +118,7 @@ def suspect_overlap(
         sigma2 = adc_noise(prep.sigma2, prep.quant2, _given(prep))
         model = _Model(geo, plan.fs, start, length, pulse, echo, inside)
         # emission time: matched filter along the accepted point's travel times
-        th0 = _time_search(model, seg, pts[ids, :2])
+        th0 = _time_search(model, seg, s_xy)
         y = seg.reshape(len(ids), -1)
         # Linearised in the emission time: LS on [h, h'] of the direct wave and the echo at
         # (ml point, matched-filter time +- half a sample); the ml point is good to ~20 um,
@@ -92,8 +138,7 @@ def suspect_overlap(
             n_noise[:] = np.inf
         limit = _chi2_limit(n_noise, dof, max_chi2_ratio)
         ratio = rss / (sigma2 * dof)
-        out[ids] = ~(ratio <= limit)
-    return out
+        return ~(ratio <= limit)
 
 
 def _suspects_compiled(x, on, s_xy, plan, geo, pulse, noise_rms_v, K, ids, analysis_s, echo,
