@@ -204,7 +204,24 @@ def warm_up(geometry=None, sample_rate_hz=10e6, n_samples=400, pulse=None) -> Ov
     """Resolve one synthetic two-emission window (4 us apart, opposite polarities, light
     noise) by the quick and by the exhaustive search: loads every table and compiled
     kernel the first real overlap would otherwise wait for (the driver's overlap worker
-    does this before it says it is ready). Returns the exhaustive search's answer."""
+    does this before it says it is ready).
+
+    Parameters
+    ----------
+    geometry : FingertipGeometry, optional
+        Sensor geometry and medium (default `FingertipGeometry()`).
+    sample_rate_hz : float
+        Sample rate [Hz] of the window.
+    n_samples : int
+        Window length [samples] (at least 64).
+    pulse : PulseModel, optional
+        The front end's pulse (default `PulseModel.for_sample_rate(sample_rate_hz)`).
+
+    Returns
+    -------
+    OverlapPacket
+        The exhaustive search's answer.
+    """
     geo = FingertipGeometry() if geometry is None else geometry
     fs = float(sample_rate_hz)
     pulse = PulseModel.for_sample_rate(fs) if pulse is None else pulse
@@ -242,7 +259,36 @@ def calibrate_pulse(
     Each packet is localized by `localize` (ml); the objective is the summed residual of
     the one-emission model (3 LM steps from that point) over the accepted packets,
     minimised over (log f_hp, log f_lp) by Nelder-Mead from ``initial``.
-    Returns the fitted `PulseModel` (orders, alpha and medium loss as in ``initial``)."""
+
+    Parameters
+    ----------
+    windows : array_like, (K, 4, M)
+        Single-emission packets [V].
+    sample_rate_hz : float
+        Sample rate [Hz].
+    onset_index : array_like of int, (K,)
+        Packet onset per window [samples].
+    geometry : FingertipGeometry, optional
+        Sensor geometry and medium (default `FingertipGeometry()`).
+    initial : PulseModel, optional
+        Start of the fit (default `PulseModel.for_sample_rate(sample_rate_hz)`).
+    noise_rms_v : float or array_like (K,), optional
+        Known noise sigma [V]; default measured before the onset.
+    max_packets : int
+        At most this many accepted packets enter the objective (the first ones).
+    echo : bool
+        Model the first wall echo.
+
+    Returns
+    -------
+    PulseModel
+        The fitted model (orders, alpha and medium loss as in ``initial``).
+
+    Raises
+    ------
+    ValueError
+        No packet is accepted by `localize`.
+    """
     geo = FingertipGeometry() if geometry is None else geometry
     init = PulseModel.for_sample_rate(sample_rate_hz) if initial is None else initial
     x, on = validate_windows(windows, onset_index)
@@ -257,37 +303,46 @@ def calibrate_pulse(
     y = seg.reshape(len(ids), -1)
     pts = ml.point_m[ids, :2]
     lp0 = init.lowpass_hz
-
-    def model_of(v):
-        return PulseModel(
-            float(np.exp(v[0])),
-            init.highpass_order,
-            None if lp0 is None else float(np.exp(v[1])),
-            init.lowpass_order,
-            init.alpha_1_s,
-            init.attenuation_db_per_m_at_1mhz,
-        )
-
-    def objective(v):
-        pm = model_of(v)
-        with np.errstate(all="ignore"):
-            model = _Model(geo, plan.fs, start, length, pm, echo, inside)
-            th0 = _time_search(model, seg, pts)
-            _, _, rss, _ = _lm(model, y, th0[:, None, :], iterations=3)
-        _TAB_CACHE.pop((pm, plan.fs, length), None)
-        _PR_CACHE.pop(pm, None)
-        return float(np.sum(rss))
-
+    fit = (geo, plan.fs, start, length, echo, inside, seg, pts, y)
     v0 = np.log([init.highpass_hz, lp0 if lp0 is not None else 1.0])
     r = minimize(
-        objective,
+        _calibration_rss,
         v0,
+        args=(init, fit),
         method="Nelder-Mead",
         options=dict(
             xatol=2e-3, fatol=1e-9, initial_simplex=[v0, v0 + [0.15, 0], v0 + [0, 0.15]], maxfev=80
         ),
     )
-    return model_of(r.x)
+    return _pulse_of(init, r.x)
+
+
+def _pulse_of(init, v):
+    """``init`` with the corners exp(v[0]) and exp(v[1]) [Hz] (the low-pass only where
+    ``init`` has one)."""
+    lp0 = init.lowpass_hz
+    return PulseModel(
+        float(np.exp(v[0])),
+        init.highpass_order,
+        None if lp0 is None else float(np.exp(v[1])),
+        init.lowpass_order,
+        init.alpha_1_s,
+        init.attenuation_db_per_m_at_1mhz,
+    )
+
+
+def _calibration_rss(v, init, fit):
+    """`calibrate_pulse`'s objective: the summed residual [V^2] of the one-emission model
+    (3 LM steps) over the calibration packets ``fit`` under the corners exp(v) [Hz]."""
+    geo, fs, start, length, echo, inside, seg, pts, y = fit
+    pm = _pulse_of(init, v)
+    with np.errstate(all="ignore"):
+        model = _Model(geo, fs, start, length, pm, echo, inside)
+        th0 = _time_search(model, seg, pts)
+        _, _, rss, _ = _lm(model, y, th0[:, None, :], iterations=3)
+    _TAB_CACHE.pop((pm, fs, length), None)
+    _PR_CACHE.pop(pm, None)
+    return float(np.sum(rss))
 
 
 def localize_with_overlaps(
