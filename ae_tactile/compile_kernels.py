@@ -19,15 +19,16 @@ import time
 
 def compile_kernels() -> dict:
     """Compile (or load) the simulator and localization kernels; seconds per part."""
-    from ae_tactile.localization.fast import NUMBA_AVAILABLE
-    from ae_tactile.sim.kernels import HAVE_NUMBA
+    # lazy: nothing below is imported when numba is absent (nothing to compile)
+    from ae_tactile.localization.fast import NUMBA_AVAILABLE  # lazy: see above
+    from ae_tactile.sim.kernels import HAVE_NUMBA  # lazy: see above
 
     out = {"numba": bool(NUMBA_AVAILABLE or HAVE_NUMBA)}
     if not out["numba"]:
         return out
-    from ae_tactile.link import warm_up as warm_link
-    from ae_tactile.pipeline import PacketLocalizer
-    from ae_tactile.sim.kernels import warm_up as warm_sim
+    from ae_tactile.link import warm_up as warm_link  # lazy: only with numba
+    from ae_tactile.pipeline import PacketLocalizer  # lazy: only with numba
+    from ae_tactile.sim.kernels import warm_up as warm_sim  # lazy: only with numba
 
     t0 = time.perf_counter()
     warm_sim()
@@ -45,7 +46,7 @@ def main(argv=None) -> int:
     if not res["numba"]:
         print("numba not available: the numpy paths run, nothing to compile")
         return 0
-    import ae_tactile
+    import ae_tactile  # lazy: the path printed only
 
     print(
         f"numba kernels of {os.path.dirname(ae_tactile.__file__)} ready: "

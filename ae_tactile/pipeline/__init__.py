@@ -6,7 +6,7 @@
 - `hand` (`HandStage`): the hand's coincidence test;
 - `overlaps` (`OverlapStage`, `OverlapResolver`): windows holding several emissions;
 - `slip_stage` (`SlipOrder`, `SlipStage`): the slip step in time order;
-- `config`: the constants;
+- `config`: the constants and `LocalizationConfig`;
 - `core` (`ContactPipeline`): the stages in order, and which lock each owns.
 """
 
@@ -32,6 +32,7 @@ from ae_tactile.pipeline.config import (
     ROUTE_SPECTRUM,
     SLIP_MAX_DEFER_S,
     SUSPECT_CONFIDENCE,
+    LocalizationConfig,
 )
 from ae_tactile.pipeline.core import ContactPipeline
 from ae_tactile.pipeline.hand import HandStage
@@ -74,6 +75,7 @@ __all__ = [
     "ContactRecord",
     "EventType",
     "HandStage",
+    "LocalizationConfig",
     "OverlapResolver",
     "OverlapStage",
     "PacketLocalizer",

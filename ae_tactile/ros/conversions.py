@@ -15,7 +15,8 @@ import numpy as np
 from builtin_interfaces.msg import Time
 
 from ae_tactile.geometry import N_CHANNELS
-from ae_tactile.msg import Packet
+from ae_tactile.msg import ContactEvent, ContactState, Packet, PacketArray
+from ae_tactile.records import ContactRecord
 
 NS_PER_S = 1_000_000_000
 
@@ -92,8 +93,6 @@ def contact_event_msg(rec, frame_id: str):
     """ContactEvent message of a core `ae_tactile.pipeline.ContactRecord` (~7 us; the
     driver publishes `ContactEventWire` bytes instead). The covariance is handed over as
     a float64 array, the packet ids as array('Q'): the setters take both at once."""
-    from ae_tactile.msg import ContactEvent
-
     msg = ContactEvent()
     stamp = msg.header.stamp
     stamp.sec, stamp.nanosec = divmod(int(rec.time_ns), NS_PER_S)
@@ -177,8 +176,6 @@ class ContactEventWire:
 
 def contact_record_of_msg(msg):
     """Core ContactRecord of a received ContactEvent (the slip_detector node's input)."""
-    from ae_tactile.pipeline import ContactRecord
-
     return ContactRecord(
         event_type=int(msg.event_type),
         time_ns=time_msg_to_ns(msg.header.stamp),
@@ -196,8 +193,6 @@ def contact_record_of_msg(msg):
 
 def contact_state_msg(st, frame_id: str, now_ns: int):
     """ContactState message of the slip detector's FingerState."""
-    from ae_tactile.msg import ContactState
-
     msg = ContactState()
     msg.header.stamp = ns_to_time_msg(st.time_ns if st.time_ns > 0 else now_ns)
     msg.header.frame_id = frame_id
@@ -218,8 +213,6 @@ MAX_PACKETS_PER_ARRAY = 128
 def packet_array_msgs(batch, frame_id: str) -> list:
     """PacketArrays of a link PacketBatch (several when it holds more than
     MAX_PACKETS_PER_ARRAY packets)."""
-    from ae_tactile.msg import PacketArray
-
     out = []
     recs = batch.packets
     for i in range(0, max(len(recs), 1), MAX_PACKETS_PER_ARRAY):

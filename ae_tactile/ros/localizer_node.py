@@ -29,15 +29,19 @@ from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.msg import ContactEvent, PacketArray, SensorInfo
 from ae_tactile.pipeline import ContactPipeline, PacketView
 from ae_tactile.ros.conversions import contact_event_msg, packet_samples, time_msg_to_ns
-from ae_tactile.ros.driver_node import (
-    EVENT_QOS,
-    changes_for_localizer,
-    make_packet_localizer,
-    pipeline_statuses,
-)
+from ae_tactile.ros.diagnostics import pipeline_statuses
+from ae_tactile.ros.driver_params import EVENT_QOS
 from ae_tactile.ros.markers import EventMarkers, sensor_markers
 from ae_tactile.ros.node_utils import LATCHED, run_node
-from ae_tactile.ros.params import LOCALIZATION_PARAMS, Param, ParamSet, declare, tunable
+from ae_tactile.ros.params import (
+    LOCALIZATION_PARAMS,
+    Param,
+    ParamSet,
+    changes_for_localizer,
+    declare,
+    make_packet_localizer,
+    tunable,
+)
 
 LOCALIZER_PARAMS = [
     Param(

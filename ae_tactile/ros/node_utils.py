@@ -24,7 +24,6 @@ import logging
 import logging.handlers
 import os
 import queue
-import re
 import signal
 import socket
 import sys
@@ -36,6 +35,13 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
+from ae_tactile.ros import params as shared_params
+from ae_tactile.ros.cpus import (  # noqa: F401  (public here too)
+    cpu_list,
+    cpu_list_problem,
+    hand_topic_problem,
+    pin_process,
+)
 from ae_tactile.ros.params import Param, ParameterError
 
 #: Latched topics (sensor_info, contact_state, sim/port): reliable, transient local, depth 1.
@@ -91,44 +97,10 @@ def _start_cleanup_deadline(state: dict, done: threading.Event) -> None:
 
 
 # ------------------------------------------------------------------ start and stop
-@contextmanager
-def _stop_on_signals(state: dict):
-    """Route SIGINT/SIGTERM to ``state['stop']``; while ``state['interrupt']`` is true the
-    first one also raises KeyboardInterrupt in the main thread (to abort a long start-up,
-    or for loops that do not poll the event). The second is ignored, the third forces
-    the exit, and so does a clean-up still running `CLEANUP_DEADLINE_S` after the first.
-
-    Python runs a signal handler in the main thread only, between bytecodes: a main thread
-    stuck inside a call would never see the signal. So the signals are also counted by a
-    thread of their own, woken through `signal.set_wakeup_fd` (Python's C-level handler
-    writes each signal's number there, whatever the main thread does): it records the
-    stop, starts the clean-up deadline and forces the exit on the third signal."""
-    if threading.current_thread() is not threading.main_thread():
-        yield                      # signals are delivered to the main thread only
-        return
-    stop = state["stop"]
-    cleanup_done = threading.Event()
-    deadline_lock = threading.Lock()
-    deadline = {"started": False, "closed": False}
-    interrupted = [False]          # the handler raised its one KeyboardInterrupt
-
-    def handler(signum, frame):
-        # (not 'the first signal': the watcher below may have set the event already)
-        stop.set()
-        if state["interrupt"] and not interrupted[0]:
-            interrupted[0] = True
-            raise KeyboardInterrupt
-
-    def arm_cleanup_deadline():
-        """A clean-up that hangs prints where, then leaves (once; from the watcher on the
-        first stop signal, and from the main thread where its clean-up begins: the
-        watcher needs the GIL, which a main thread stuck inside a call may never free)."""
-        with deadline_lock:
-            if not deadline["started"] and not deadline["closed"]:
-                deadline["started"] = True
-                _start_cleanup_deadline(state, cleanup_done)
-
-    state["arm_cleanup_deadline"] = arm_cleanup_deadline
+def _signal_watcher(stop: threading.Event, arm_cleanup_deadline):
+    """The thread body that counts the stop signals written to its socket (by
+    `signal.set_wakeup_fd`): records the stop, arms the clean-up deadline, and forces the
+    exit on the FORCE_EXIT_SIGNALS-th signal."""
 
     def watch_signals(sock):
         count = 0
@@ -148,51 +120,111 @@ def _stop_on_signals(state: dict):
                 os.write(2, b"[ae_tactile] clean-up interrupted again: forced exit\n")
                 os._exit(1)
 
-    previous_hook = sys.unraisablehook
+    return watch_signals
+
+
+def _quiet_unraisable(stop: threading.Event, previous_hook):
+    """An unraisable hook that drops the stop signal's KeyboardInterrupt.
+
+    That KeyboardInterrupt, when the signal lands while C code calls back into Python
+    (a ctypes callback, e.g. llvmlite's while numba loads or compiles kernels at start-up):
+    Python cannot raise it there and would print it as "Exception ignored" with a
+    traceback. The stop is already recorded in state['stop'] (the start-up goes on and the
+    node exits without spinning): nothing to report."""
 
     def unraisable(info):
-        # That KeyboardInterrupt, when the signal lands while C code calls back into Python
-        # (a ctypes callback, e.g. llvmlite's while numba loads or compiles kernels at
-        # start-up): Python cannot raise it there and would print it as "Exception ignored"
-        # with a traceback. The stop is already recorded in state['stop'] (the start-up
-        # goes on and the node exits without spinning): nothing to report.
         if info.exc_type is KeyboardInterrupt and stop.is_set():
             return
         previous_hook(info)
 
-    # Each step is undone at the end (last first), also when a later step fails. The
-    # watcher's end: its peer closes, it reads the end of the stream and returns, then its
-    # own socket closes (not under a thread still reading it).
+    return unraisable
+
+
+class _CleanupDeadline:
+    """The clean-up deadline, armed once (from the watcher on the first stop signal, and
+    from the main thread where its clean-up begins: the watcher needs the GIL, which a main
+    thread stuck inside a call may never free), closed at the end."""
+
+    def __init__(self, state: dict):
+        self.state = state
+        self.done = threading.Event()
+        self.lock = threading.Lock()
+        self.started = False
+        self.closed = False
+
+    def arm(self) -> None:
+        with self.lock:
+            if not self.started and not self.closed:
+                self.started = True
+                _start_cleanup_deadline(self.state, self.done)
+
+    def close(self) -> None:
+        with self.lock:
+            self.closed = True
+            started = self.started
+        self.done.set()
+        if started:            # (a timer armed by someone else, e.g. pytest's, stays)
+            faulthandler.cancel_dump_traceback_later()
+
+
+def _start_watcher(undo: ExitStack, watch_signals) -> socket.socket:
+    """The watcher thread on a socket pair; returns the end `signal.set_wakeup_fd` writes
+    to. Undone: its peer closes, it reads the end of the stream and returns, then its own
+    socket closes (not under a thread still reading it)."""
+    wake_read, wake_write = socket.socketpair()
+    watcher = threading.Thread(target=watch_signals, args=(wake_read,),
+                               name="ae_tactile_stop_signals", daemon=True)
+
+    @undo.callback
+    def _close_read():
+        if not watcher.is_alive():
+            wake_read.close()
+
+    undo.callback(lambda: watcher.is_alive() and watcher.join(1.0))
+    undo.callback(wake_write.close)
+    wake_write.setblocking(False)
+    watcher.start()
+    return wake_write
+
+
+@contextmanager
+def _stop_on_signals(state: dict):
+    """Route SIGINT/SIGTERM to ``state['stop']``; while ``state['interrupt']`` is true the
+    first one also raises KeyboardInterrupt in the main thread (to abort a long start-up,
+    or for loops that do not poll the event). The second is ignored, the third forces
+    the exit, and so does a clean-up still running `CLEANUP_DEADLINE_S` after the first.
+
+    Python runs a signal handler in the main thread only, between bytecodes: a main thread
+    stuck inside a call would never see the signal. So the signals are also counted by a
+    thread of their own, woken through `signal.set_wakeup_fd` (Python's C-level handler
+    writes each signal's number there, whatever the main thread does): it records the
+    stop, starts the clean-up deadline and forces the exit on the third signal."""
+    if threading.current_thread() is not threading.main_thread():
+        yield                      # signals are delivered to the main thread only
+        return
+    stop = state["stop"]
+    deadline = _CleanupDeadline(state)
+    interrupted = [False]          # the handler raised its one KeyboardInterrupt
+
+    def handler(signum, frame):
+        # (not 'the first signal': the watcher below may have set the event already)
+        stop.set()
+        if state["interrupt"] and not interrupted[0]:
+            interrupted[0] = True
+            raise KeyboardInterrupt
+
+    state["arm_cleanup_deadline"] = deadline.arm
+    previous_hook = sys.unraisablehook
+    # Each step is undone at the end (last first), also when a later step fails.
     with ExitStack() as undo:
-        wake_read, wake_write = socket.socketpair()
-        watcher = threading.Thread(target=watch_signals, args=(wake_read,),
-                                   name="ae_tactile_stop_signals", daemon=True)
-
-        @undo.callback
-        def _close_read():
-            if not watcher.is_alive():
-                wake_read.close()
-
-        undo.callback(lambda: watcher.is_alive() and watcher.join(1.0))
-        undo.callback(wake_write.close)
-        wake_write.setblocking(False)
-        watcher.start()
+        wake_write = _start_watcher(undo, _signal_watcher(stop, deadline.arm))
         previous_wakeup = signal.set_wakeup_fd(wake_write.fileno(), warn_on_full_buffer=False)
         undo.callback(signal.set_wakeup_fd, previous_wakeup)
         for sig in _STOP_SIGNALS:
             undo.callback(signal.signal, sig, signal.signal(sig, handler))
-        sys.unraisablehook = unraisable
+        sys.unraisablehook = _quiet_unraisable(stop, previous_hook)
         undo.callback(setattr, sys, "unraisablehook", previous_hook)
-
-        @undo.callback
-        def _close_deadline():
-            with deadline_lock:
-                deadline["closed"] = True
-                started = deadline["started"]
-            cleanup_done.set()
-            if started:            # (a timer armed by someone else, e.g. pytest's, stays)
-                faulthandler.cancel_dump_traceback_later()
-
+        undo.callback(deadline.close)
         yield
 
 
@@ -298,93 +330,6 @@ def exit_process(code: int) -> None:
         except (OSError, ValueError):
             pass
     os._exit(code)
-
-
-# ------------------------------------------------------------------ CPU affinity
-#: one item of a CPU list: N or N-M, ASCII digits
-_CPU_ITEM = re.compile(r"([0-9]{1,6})(?:-([0-9]{1,6}))?")
-
-
-def _cpus_possible() -> int:
-    """Number of CPU ids this kernel knows (/sys/devices/system/cpu/possible, e.g. '0-7';
-    offline ones included), else os.cpu_count()."""
-    try:
-        with open("/sys/devices/system/cpu/possible") as fh:
-            return max(int(v) for v in re.split(r"[-,]", fh.read().strip())) + 1
-    except (OSError, ValueError):
-        return os.cpu_count() or 1
-
-
-def cpu_list(text: str) -> set[int]:
-    """The CPUs of a list written as for ``taskset -c``: '3', '2-3', '0,2-3' (spaces
-    ignored); the empty list is empty. Raises ValueError for anything else, and for CPU
-    ids this kernel does not know (before expanding a range)."""
-    cpus: set[int] = set()
-    text = text.replace(" ", "")
-    if not text:
-        return cpus
-    n = _cpus_possible()
-    for part in text.split(","):
-        m = _CPU_ITEM.fullmatch(part)
-        if m is None:
-            raise ValueError(f"{part!r} is not a CPU list item such as '3' or '2-3'")
-        first = int(m.group(1))
-        last = int(m.group(2)) if m.group(2) else first
-        if last < first:
-            raise ValueError(f"{part!r}: a range runs upwards")
-        if last >= n:
-            raise ValueError(f"CPU {last} is not on this machine (CPUs 0-{n - 1})")
-        cpus.update(range(first, last + 1))
-    return cpus
-
-
-def cpu_list_problem(text) -> str | None:
-    """Why ``text`` is no usable CPU list here (None if it is): not a string, not a list,
-    or CPUs this machine does not have. (A CPU that is offline or that a cpuset forbids is
-    refused by `pin_process`.)"""
-    if not isinstance(text, str):
-        return "must be a string such as '3' or '2-3'"
-    try:
-        cpu_list(text)
-    except ValueError as exc:
-        return str(exc)
-    return None
-
-
-def hand_topic_problem(text) -> str | None:
-    """Why ``text`` is no usable topic for the hand's coincidence test (None if it is, or
-    empty: off): every fingertip of the hand must name the same topic, so it is absolute
-    ('/hand/apex_packets'), made of letters, digits and '_' between the slashes."""
-    if not isinstance(text, str):
-        return "must be a string such as '/hand/apex_packets'"
-    if text == "":
-        return None
-    parts = text.split("/")
-    if parts[0] != "" or len(parts) < 2 or any(
-        not p or not (p[0].isalpha() or p[0] == "_") or not all(c.isalnum() or c == "_" for c in p)
-        for p in parts[1:]
-    ):
-        return "must be empty or an absolute topic name such as '/hand/apex_packets'"
-    return None
-
-
-def pin_process(cpus: set[int]) -> int:
-    """Run every thread of this process on ``cpus`` (threads and processes it starts later
-    inherit it). Linux sets affinity thread by thread, so each one in /proc/self/task is
-    set, twice over (a thread started meanwhile inherits its creator's); returns how many
-    threads were set the second time. Raises OSError when this process may not run there
-    (a cpuset without those CPUs)."""
-    os.sched_setaffinity(0, cpus)  # this thread first: what it may not do, none may
-    n = 0
-    for _ in range(2):
-        n = 0
-        for tid in os.listdir("/proc/self/task"):
-            try:
-                os.sched_setaffinity(int(tid), cpus)
-                n += 1
-            except ProcessLookupError:  # it ended meanwhile
-                pass
-    return n
 
 
 # ------------------------------------------------------------------ Python logging
@@ -525,10 +470,9 @@ def module_params(module, tables=None) -> tuple[list, list[str]]:
     if tables is None:
         tables = getattr(module, "NODE_PARAMETERS", None)
     if tables is None:
-        from ae_tactile.ros import params as shared  # tables shared by several nodes
         tables = [("", name) for name, value in vars(module).items()
                   if name.endswith("_PARAMS") and _resolve(module, value) is not None
-                  and value is not getattr(shared, name, None)]
+                  and value is not getattr(shared_params, name, None)]
     out, missing = [], []
     for prefix, source in tables:
         table = _resolve(module, source)

@@ -18,7 +18,7 @@ import re
 import sys
 
 from ae_tactile.geometry import MEDIA
-from ae_tactile.ros.driver_node import DRIVER_PARAMS
+from ae_tactile.ros.driver_params import DRIVER_PARAMS
 from ae_tactile.ros.grip_reflex_node import REFLEX_PARAMS
 from ae_tactile.ros.localizer_node import LOCALIZER_PARAMS
 from ae_tactile.ros.params import LOCALIZATION_PARAMS, slip_params

@@ -24,7 +24,9 @@ from rcl_interfaces.msg import (
     SetParametersResult,
 )
 
-from ae_tactile.localization.weak_release import MIN_SNR_DB as WEAK_RELEASE_MIN_SNR_DB
+from ae_tactile.localization import available_methods
+from ae_tactile.pipeline import LocalizationConfig, PacketLocalizer
+from ae_tactile.slip import SlipConfig
 
 #: Why structural parameters cannot change while the node runs.
 RESTART = "read-only: takes effect at start-up (restart the node to change it)"
@@ -64,6 +66,7 @@ class Param:
     unit: str | None = None  # None: from the name's suffix
     allow_zero_as_none: bool = False  # 0 means "unknown / device's own" (documented in text)
     numbers_as_text: bool = False  # a text parameter that may be a number (`cpus:=3`)
+    expert: bool = False  # only an expert should change it (grouped apart in the docs)
 
     @property
     def si_unit(self) -> str:
@@ -200,124 +203,41 @@ def declare(
 
 
 # ---------------------------------------------------------------------- shared tables
-def _method_choices() -> tuple:
-    from ae_tactile.localization import available_methods
-
-    return tuple(available_methods())
-
-
-def _overlap_inline_default() -> int:
-    from ae_tactile.pipeline import OVERLAP_INLINE_MAX
-
-    return OVERLAP_INLINE_MAX
+def localization_params() -> list[Param]:
+    """One tunable parameter per `LocalizationConfig` field (prefix 'localization.'), with
+    its default, description, unit and range from the field metadata."""
+    out = []
+    for name, md in LocalizationConfig.describe().items():
+        choices = tuple(available_methods()) if name == "method" else None
+        out.append(
+            tunable(
+                Param(name, md["default"], md["doc"], md["lo"], md["hi"], choices=choices,
+                      unit=md["unit"] or None, expert=md["expert"])
+            )
+        )
+    return out
 
 
 #: In-process localization (driver, prefix 'localization.') and the localizer node.
-LOCALIZATION_PARAMS = [
-    tunable(
-        Param(
-            "method",
-            "ml",
-            "Delay estimator (ml: exact-sphere maximum likelihood)",
-            choices=_method_choices(),
-        )
-    ),
-    tunable(
-        Param(
-            "min_snr_db", 5.0, "Reject packets below this SNR (docs/conventions.md)", -20.0, 80.0
-        )
-    ),
-    tunable(
-        Param(
-            "min_confidence",
-            0.0,
-            "Do not publish contact events below this localization confidence",
-            0.0,
-            1.0,
-        )
-    ),
-    tunable(
-        Param(
-            "reject_interference",
-            True,
-            "Reject common-mode electrical interference "
-            "(identical waveforms on the four channels)",
-        )
-    ),
-    tunable(
-        Param(
-            "interference_echo_min",
-            -1.0,
-            "Echo test of a fingertip with wall echoes: an apex packet whose echo at 2R/c "
-            "is weaker than this share of the direct packet (regression coefficient) is "
-            "interference (catches interference entering the amplifier's input, shaped "
-            "like a touch). -1: learnt, half the echo of the device's own touches away "
-            "from the apex, once 3 have shown one of >= 0.15 (none on a device without "
-            "echoes); 0: no echo test; 0.25 for a wall returning half",
-            -1.0,
-            1.0,
-        )
-    ),
-    tunable(
-        Param(
-            "interference_timing",
-            True,
-            "Timing test of the packets at the apex (the test a fingertip without wall "
-            "echoes relies on): one whose intervals to the last 8 repeat intervals among "
-            "them to < 1 us is periodic interference (rejected_INTERFERENCE_TRAIN); false "
-            "for a rig that taps the apex at a crystal-timed rate",
-        )
-    ),
-    tunable(
-        Param(
-            "weak_releases",
-            True,
-            "Keep a release below min_snr_db (a rarefaction rejected only for low SNR, down "
-            "to weak_release_min_snr_db) when it lies on the spot of a touch not yet "
-            "released (the slip detector's same-spot gate): that touch's DETOUCH "
-            "(counted as weak_releases); false: such packets stay rejected_LOW_SNR",
-        )
-    ),
-    tunable(
-        Param(
-            "weak_release_min_snr_db",
-            WEAK_RELEASE_MIN_SNR_DB,
-            "Lowest estimated SNR of a weak release (windows of noise alone pass -5 dB "
-            "too, often at 2 MS/s: the spot test and a bound of 0.5 mm on the position's "
-            "1-sigma keep them out, see docs/localization.md)",
-            -20.0,
-            80.0,
-        )
-    ),
-    tunable(
-        Param(
-            "resolve_overlaps",
-            True,
-            "Localize each emission of a window that holds "
-            "several (the first overlap_inline_max of a batch in the reader, the others "
-            "beside it); "
-            "false: reject such windows",
-        )
-    ),
-    tunable(
-        Param(
-            "overlap_inline_max",
-            _overlap_inline_default(),
-            "Overlapping windows per batch whose quick fit runs in the reader (~1 ms each: "
-            "their emissions reach the hand soonest, the packets behind them that much "
-            "later); the others are fitted in the resolver's thread beside it",
-            0,
-            8,
-        )
-    ),
-]
+LOCALIZATION_PARAMS = localization_params()
+#: the localization parameters PacketLocalizer takes (all but the pipeline's
+#: ``overlap_inline_max``)
+LOCALIZER_SETTINGS = tuple(n for n in LocalizationConfig.describe() if n != "overlap_inline_max")
+
+
+def make_packet_localizer(lp: dict, **kwargs) -> PacketLocalizer:
+    """A PacketLocalizer from the localization parameters ``lp`` (plus ``kwargs``)."""
+    return PacketLocalizer(**{k: lp[k] for k in LOCALIZER_SETTINGS}, **kwargs)
+
+
+def changes_for_localizer(changes: dict) -> dict:
+    """Localization parameter changes as PacketLocalizer.update() arguments."""
+    return {k: v for k, v in changes.items() if k in LOCALIZER_SETTINGS}
 
 
 def slip_params() -> list[Param]:
     """One parameter per SlipConfig field, with its description, unit and range from the
     field metadata (prefix 'slip.'); run-time fields are tunable."""
-    from ae_tactile.slip import SlipConfig
-
     out = []
     for f in dataclasses.fields(SlipConfig):
         md = f.metadata or {}

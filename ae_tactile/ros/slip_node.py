@@ -29,7 +29,8 @@ from visualization_msgs.msg import MarkerArray
 from ae_tactile.msg import ContactEvent, ContactState
 from ae_tactile.pipeline import EventType, SlipStage
 from ae_tactile.ros.conversions import contact_event_msg, contact_record_of_msg, contact_state_msg
-from ae_tactile.ros.driver_node import EVENT_QOS, pipeline_statuses
+from ae_tactile.ros.diagnostics import pipeline_statuses
+from ae_tactile.ros.driver_params import EVENT_QOS
 from ae_tactile.ros.markers import EventMarkers
 from ae_tactile.ros.node_utils import LATCHED, run_node
 from ae_tactile.ros.params import (
