@@ -15,11 +15,12 @@ See docs/detection.md.
 """
 from .batch import PacketBatch
 from .config import DetectorConfig, SampleParams
-from .detector import DetectorStats, PacketDetector, analyze_window
+from .detector import DetectorStats, PacketDetector
 from .features import window_features
 from .filters import StreamingSOS, design_bandpass_sos, noise_power_gain
 from .noise import BlockNoiseTracker
 from .onset import aic_pick
+from .windows import analyze_window
 
 __all__ = [
     "PacketDetector", "DetectorConfig", "SampleParams", "DetectorStats", "PacketBatch",
