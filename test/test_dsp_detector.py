@@ -7,8 +7,16 @@ import math
 import numpy as np
 import pytest
 
+import ae_tactile.sim as sim
 from ae_eval.synth import SynthEvent, random_delays, snr_amplitude, synth_stream
 from ae_tactile.dsp import DetectorConfig, PacketBatch, PacketDetector, analyze_window
+from ae_tactile.sim.scene import reference_noise_rms
+from ae_tactile.sim.stream import (
+    EmissionList,
+    StaticEmissions,
+    StreamingSource,
+    sample_index_of_ns,
+)
 
 FS = 10e6
 SIGMA = 2e-3
@@ -75,14 +83,6 @@ def test_detects_every_emission_with_exact_onsets(snr_db):
 
 @pytest.mark.parametrize("snr_db", [20.0, 30.0])
 def test_simulator_stream_ground_truth(snr_db):
-    import ae_tactile.sim as sim
-    from ae_tactile.sim.scene import reference_noise_rms
-    from ae_tactile.sim.stream import (
-        EmissionList,
-        StaticEmissions,
-        StreamingSource,
-        sample_index_of_ns,
-    )
 
     cfg = sim.SimConfig()
     rng = np.random.default_rng(11)
@@ -166,14 +166,6 @@ def test_overlapping_emissions_each_get_a_flagged_window(dt_us, ratio):
 
 
 def test_overlapping_emissions_in_the_simulator():
-    import ae_tactile.sim as sim
-    from ae_tactile.sim.scene import reference_noise_rms
-    from ae_tactile.sim.stream import (
-        EmissionList,
-        StaticEmissions,
-        StreamingSource,
-        sample_index_of_ns,
-    )
 
     cfg = sim.SimConfig()
     rng = np.random.default_rng(5)

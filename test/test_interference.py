@@ -8,10 +8,24 @@ import numpy as np
 import pytest
 
 from ae_eval.slip import apex_touch_packets
-from ae_tactile.dsp.interference import common_mode_interference
+from ae_tactile.dsp.interference import (
+    BurstTrain,
+    EchoLearner,
+    common_mode_interference,
+    common_mode_share,
+    echo_ratio,
+    packet_common_share,
+)
+from ae_tactile.localization import localize
+from ae_tactile.pipeline import COMMON_SUSPECT
 from ae_tactile.sim.config import SimConfig
-from ae_tactile.sim.interference import burst_times_s, render_interference
-from ae_tactile.sim.scene import reference_noise_rms
+from ae_tactile.sim.interference import (
+    InterferenceSource,
+    burst_times_s,
+    render_interference,
+    shared_clock_burst_times_ns,
+)
+from ae_tactile.sim.scene import load_scene, reference_noise_rms
 from ae_tactile.sim.triggered import render_triggered
 
 
@@ -150,8 +164,6 @@ def test_echo_ratio_of_touches_is_the_walls_reflection_coefficient(medium, fs):
     the array: its ratio to the direct wave is the wall's reflection coefficient), measured
     at the localized point; about 0 without echoes, NaN for a window too short to hold
     the echo, and the learner's threshold follows."""
-    from ae_tactile.dsp.interference import EchoLearner, echo_ratio
-    from ae_tactile.localization import localize
 
     for r_wall in (-0.5, 0.3, None):
         cfg = SimConfig.for_medium(medium, sample_rate_hz=fs, reflections=r_wall is not None,
@@ -251,7 +263,6 @@ def test_a_crystal_timed_burst_train_is_recognized_and_touches_are_not():
     the 4th on, whatever the period (1 Hz .. 10 kHz) and with bursts missing; touches,
     whose timing jitters by milliseconds, are not taken for one (two in 10,000 taps at
     random times; at a random phase of a 1 kHz train ~2 tol / T = 0.4 %)."""
-    from ae_tactile.dsp.interference import BurstTrain
 
     rng = np.random.default_rng(4)
     tol = 1e-6
@@ -318,8 +329,6 @@ def test_common_mode_share_screen_compiled_and_numpy_agree():
     """The driver's cheap screen: one waveform on the four channels scores ~1, touches
     beyond ~12 deg from the apex less than its bar of 0.9; the compiled and the numpy paths
     agree."""
-    from ae_tactile.dsp.interference import common_mode_share, packet_common_share
-    from ae_tactile.pipeline import COMMON_SUSPECT
 
     cfg, pk, rng = _water_touches_off_apex(8, 50, 12.0, 50.0, 30.0)
     noise = float(pk.noise_rms_v[0])
@@ -342,7 +351,6 @@ def test_an_adc_offset_does_not_make_a_touch_common_mode():
     """An ADC offset common to the four channels (a quarter of the packet's peak) is
     removed before the screen measures the common-mode share: off-apex touches keep their
     low share, the same as without the offset."""
-    from ae_tactile.dsp.interference import common_mode_share, packet_common_share
 
     _, pk, _ = _water_touches_off_apex(9, 40, 15.0, 45.0, 10.0)
     x = pk.samples_v
@@ -361,8 +369,6 @@ def test_shared_clock_bursts_are_one_source_for_every_simulated_fingertip(period
     """Bursts on the host's clock ('shared_clock'): two fingertips whose scenes start
     0.37 s apart render one source's bursts at the same host instants, however their
     renders are cut into chunks; the count is the rate's (Poisson: within 4 sigma)."""
-    from ae_tactile.sim.interference import InterferenceSource, shared_clock_burst_times_ns
-    from ae_tactile.sim.scene import load_scene
 
     spec = {"generator": "interference", "duration_s": 3.0, "seed": 1,
             "noise": {"snr_db": 30.0},

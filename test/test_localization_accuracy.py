@@ -4,9 +4,12 @@ accuracy against the Cramer-Rao bound, covariance calibration, touch vs release.
 
 import numpy as np
 import pytest
+from test_localization_analytic import analytic_windows
 
 from ae_eval.crlb import simulated_crlb
-from ae_tactile.localization import localize
+from ae_tactile.dsp import DetectorConfig, PacketDetector
+from ae_tactile.localization import localize, localize_packets
+from ae_tactile.localization.common import adc_noise
 from ae_tactile.sim import SimConfig, noise_rms_for_snr, render_triggered, signal_power_v2
 from ae_tactile.sim.stream import EmissionList, StreamRenderer
 
@@ -78,8 +81,6 @@ def test_fig8e_three_pins_through_the_packet_detector():
     # The same three pins, 2 ms of stream with wall echoes, cut by ae_tactile.dsp's detector
     # (AIC onsets, its own windows): the direct packets localize within 50 um; the
     # detector's in-hit re-triggers on the echoes are not accepted.
-    from ae_tactile.dsp import DetectorConfig, PacketDetector
-    from ae_tactile.localization import localize_packets
 
     cfg = CFG.replace(reflections=True)
     xy = np.array([[-3e-3, 2e-3], [3e-3, 2e-3], [0.0, -3e-3]])
@@ -297,7 +298,6 @@ def test_ml_at_the_bound_on_analytic_pulses():
     # causal damped 0.6 MHz sine. The data-driven band reaches the bound for all three; the
     # old fixed 100 kHz - 1 MHz band loses a third on the Ricker. 500 packets per cell: the
     # fraction inside 1.515 sigma has a sampling spread of ~2 %.
-    from test_localization_analytic import analytic_windows
 
     rng = np.random.default_rng(41)
     pts = _grid_points(500)
@@ -319,7 +319,6 @@ def test_ml_at_the_bound_at_2_ms_on_a_band_limited_analytic_pulse():
     # data-driven band must reach the bound (<= 1.2x) and stay calibrated; measured
     # 0.99-1.01x and 66-71 % over 500 packets per SNR. (Broadband pulses alias at 2 MS/s
     # and are not at the bound there: the causal damped sine is 4.5-67x.)
-    from test_localization_analytic import analytic_windows
 
     fs = 2e6
     rng = np.random.default_rng(43)
@@ -338,7 +337,6 @@ def test_adc_noise_inverts_the_quantized_quiet_baseline():
     # samples the noise is sigma^2 + q^2/12 (the signal crosses levels: uniform rounding
     # error). adc_noise must return that total from the quantized baseline's variance;
     # the earlier linear rule read 6 % low at sigma = 0.27 q and 21 % low at 0.15 q.
-    from ae_tactile.localization.common import adc_noise
 
     rng = np.random.default_rng(50)
     q = 1.0

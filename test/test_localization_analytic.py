@@ -5,6 +5,7 @@ geometry, a Gabor pulse evaluated at the sample instants, any sample rate and ge
 import numpy as np
 import pytest
 
+from ae_eval.crlb import position_crlb
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import available_methods, localize
 
@@ -83,7 +84,6 @@ def analytic_windows(shape, points, fs, snr_db, rng, *, geo=GEO, pre_s=8e-6, win
     """(K, 4, M) noisy windows of an analytic pulse at the exact arrival times, the onsets,
     and the Cramer-Rao bound (RMS, m) for those packets (white noise at ``snr_db`` per
     docs/conventions.md, echo-free samples; `crlb.position_crlb` with the exact derivative)."""
-    from ae_eval.crlb import position_crlb
 
     pts = np.atleast_2d(points)
     k, m = len(pts), int(round(window_s * fs))

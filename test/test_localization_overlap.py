@@ -15,17 +15,22 @@ import pytest
 
 from ae_eval.crlb import joint_crlb
 from ae_eval.overlap_trials import simulate_overlaps
+from ae_tactile.dsp import PacketDetector
+from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import localize
 from ae_tactile.localization import overlap as overlap_mod
-from ae_tactile.localization.common import Reason
+from ae_tactile.localization.common import Reason, make_plan
 from ae_tactile.localization.overlap import (
     OverlapReason,
     PulseModel,
+    calibrate_pulse,
+    localize_with_overlaps,
     resolve_overlaps,
     suspect_overlap,
 )
 from ae_tactile.localization.overlap.model import _Model
 from ae_tactile.localization.overlap.search import _grid_search, _segments, _surface_grid
+from ae_tactile.localization.segments import prepare
 from ae_tactile.sim import SimConfig, noise_rms_for_snr, render_triggered, signal_power_v2
 from ae_tactile.sim.frontend import quantize
 from ae_tactile.sim.stream import EmissionList, StreamRenderer
@@ -243,8 +248,6 @@ def test_detector_windows_end_to_end():
     # A stream (the simulator's renderer) with single touches and pairs 2-9 us apart, cut
     # by the packet detector (ae_tactile.dsp), then localize_with_overlaps: singles stay
     # on the fast path, pairs are resolved.
-    from ae_tactile.dsp import PacketDetector
-    from ae_tactile.localization.overlap import localize_with_overlaps
 
     geo = WATER.geometry
     rng = np.random.default_rng(31)
@@ -406,7 +409,6 @@ def test_lossy_medium_needs_and_takes_its_loss_in_the_model():
 def test_calibrate_pulse_recovers_the_front_end_from_single_touches():
     # The data's high-pass corner is 90 kHz, the default model's 100 kHz: calibration on
     # single touches finds the corners, and overlapping pairs then resolve.
-    from ae_tactile.localization.overlap import calibrate_pulse
 
     cfg = WATER.replace(highpass_hz=90e3)
     rng = np.random.default_rng(15)
@@ -499,7 +501,6 @@ def test_bad_parameters_raise_clear_errors():
 
 
 def test_localize_with_overlaps_routes_only_what_needs_it():
-    from ae_tactile.localization.overlap import localize_with_overlaps
 
     rng = np.random.default_rng(12)
     n = 20
@@ -646,8 +647,6 @@ def test_compiled_grid_search_is_the_numpy_grid_search():
     and times, with the same statistic, as the numpy path."""
     d = simulate_overlaps(8, WATER, separation_s=4e-6, snr_db=25.0, rng=2)
     geo = WATER.geometry
-    from ae_tactile.localization.common import make_plan
-    from ae_tactile.localization.segments import prepare
 
     plan = make_plan(FS, geo, d["samples_v"].shape[2], (100e3, 1e6))
     prep = prepare(d["samples_v"], d["onset_index"], plan)
@@ -669,7 +668,6 @@ def test_compiled_grid_search_is_the_numpy_grid_search():
 def test_warm_up_resolves_its_two_emissions():
     """The driver's warm-up window (two emissions 4 us apart) takes the two-emission path
     the first real overlap takes, and its points come out where they were put."""
-    from ae_tactile.geometry import FingertipGeometry
 
     geo = FingertipGeometry()
     res = overlap_mod.warm_up(geo, FS, 400)
@@ -701,7 +699,6 @@ def test_joint_fit_is_stable_on_degenerate_windows():
     no second emission, a point at the cap's edge): no exception, no non-finite output, the
     physically right answer, and (with numba) the same decision and points from both
     paths."""
-    from ae_tactile.geometry import FingertipGeometry
 
     geo = FingertipGeometry()
     rng = np.random.default_rng(8)
