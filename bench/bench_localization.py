@@ -119,7 +119,7 @@ class PraBaseline:
     """
 
     def __init__(self, algo, geo, fs, n_samples, band):
-        import pyroomacoustics as pra
+        import pyroomacoustics as pra  # lazy: optional dependency, only for the pra_* baselines
 
         self.pra = pra
         self.algo = algo
@@ -405,7 +405,7 @@ def run(quick=False):
 
 def _numba_version():
     try:
-        import numba
+        import numba  # lazy: optional dependency
 
         return numba.__version__ if NUMBA_AVAILABLE else f"{numba.__version__} (disabled)"
     except ImportError:
@@ -524,10 +524,10 @@ def table_markdown(res):
 
 
 def plot(res, path):
-    import matplotlib
+    import matplotlib  # lazy: only for the plot, slow to import
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: after the Agg backend is chosen
 
     fig, axes = plt.subplots(1, 3, figsize=(19, 5.6))
     ax = axes[0]
@@ -692,7 +692,7 @@ def main(argv=None):
     if args.no_overlap:
         return
     sys.path.insert(0, str(ROOT / "bench"))
-    import bench_overlap  # noqa: PLC0415 - the overlap sweep, same directory
+    import bench_overlap  # noqa: PLC0415 - lazy: the overlap sweep, same directory, after sys.path
 
     if args.report_only:
         ov = json.loads((RESULTS / f"overlap{suffix}.json").read_text())

@@ -36,6 +36,7 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXP
     os.environ.setdefault(_v, "1")  # one core
 
 import argparse  # noqa: E402
+import itertools  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
 import sys  # noqa: E402
@@ -83,8 +84,6 @@ def match_errors(truth, sources):
         return errs, nrm, per_truth, errs_xy
     pts = np.array([s.point_m for s in sources])
     d = np.linalg.norm(pts[:, None, :] - truth[None, :, :], axis=2)  # (S, J)
-    import itertools
-
     best, best_cost = None, np.inf
     S = len(sources)
     for perm in itertools.permutations(range(J), min(S, J)):
@@ -595,10 +594,10 @@ def make_table(out):
 
 def plot(out, path):
     try:
-        import matplotlib
+        import matplotlib  # lazy: optional, only for the plot
 
         matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        import matplotlib.pyplot as plt  # lazy: after the Agg backend is chosen
     except ImportError:
         print("matplotlib missing: no plot")
         return
