@@ -92,7 +92,30 @@ class HandCoincidence:
     ``follow``: records that must not overtake the held packets (later events of the same
     fingertip: a release after its held touch); `due` hands them out in time order once no
     held packet older than them is left. ``key`` gives a record's time (ns), for the
-    order."""
+    order.
+
+    Parameters
+    ----------
+    window_s : float
+        Coincidence window [s], in (0, 0.01]: another fingertip's report this close to an
+        onset (less the learnt clock offset) rejects the packet.
+    wait_s : float
+        Wait [s] before a held packet is decided, in [window_s, 1]: the others' reports
+        arrive within it.
+    keep_s : float, optional
+        How long the other fingertips' reports are remembered [s], >= 2 wait_s (default
+        max(COINCIDENCE_KEEP_S, 2 wait_s)).
+
+    Returns
+    -------
+    HandCoincidence
+        ``due(now_ns)`` returns (kept, rejected) lists of the held items.
+
+    Raises
+    ------
+    ValueError
+        A duration out of its range.
+    """
 
     def __init__(
         self,
