@@ -74,7 +74,7 @@ ALL_CPUS = frozenset(os.sched_getaffinity(0))
 def _pin_harness(cpus) -> None:
     """This process, every thread of it (DDS's too), and what it starts later (the
     writer), on ``cpus``."""
-    from ae_tactile.ros.node_utils import pin_process
+    from ae_tactile.ros.cpus import pin_process
 
     pin_process(set(cpus))
 
@@ -137,7 +137,7 @@ class Listener:
         from rclpy.executors import SingleThreadedExecutor
 
         from ae_tactile.msg import ContactEvent
-        from ae_tactile.ros.driver_node import EVENT_QOS
+        from ae_tactile.ros.driver_params import EVENT_QOS
 
         self.node = rclpy.create_node("bench_hand", namespace=namespace)
         self.rows: list[tuple[int, int, int]] = []

@@ -60,3 +60,30 @@ def test_every_parameter_is_described_with_unit_and_range():
                     and p.choices is None
                 ):
                     assert "range:" in text, (node, p.name, text)
+
+
+def test_full_parameter_table_is_generated_into_docs():
+    require_ros()
+    from ae_tactile.ros.param_docs import full_markdown
+
+    text = open(os.path.join(ROOT, "docs", "parameters.md"), encoding="utf-8").read()
+    assert text == full_markdown(), "docs/parameters.md is stale: run tools/update_param_docs.sh"
+
+
+def test_readme_names_the_few_parameters_a_user_sets_and_the_rest_are_expert():
+    require_ros()
+    from ae_tactile.ros.param_docs import SECTIONS, _table_of, markdown
+    from ae_tactile.ros.params import USER_PARAMS, describe, is_expert
+
+    assert len(USER_PARAMS) <= 10
+    text = markdown()
+    names = set()
+    for _, _, tables in SECTIONS:
+        for prefix, t in tables:
+            for p in _table_of(prefix, t):
+                full = prefix + p.name
+                names.add(full)
+                assert describe(p, full).startswith("[expert] ") == is_expert(full), full
+    for name, trade in USER_PARAMS.items():
+        assert name in names, name  # a parameter some node declares
+        assert f"`{name}`" in text and trade in text, name

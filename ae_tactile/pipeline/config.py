@@ -100,13 +100,9 @@ def echo_min_setting(echo_min) -> float:
     return ECHO_MIN_LEARN if v < 0.0 else v
 
 
-def _setting(default, doc, unit="", lo=None, hi=None, *, expert=True):
-    """A field with its description, unit [SI], range (the ROS parameter's) and whether only
-    an expert should change it."""
-    return field(
-        default=default,
-        metadata={"doc": doc, "unit": unit, "lo": lo, "hi": hi, "expert": expert},
-    )
+def _setting(default, doc, unit="", lo=None, hi=None):
+    """A field with its description, unit [SI] and range (the ROS parameter's)."""
+    return field(default=default, metadata={"doc": doc, "unit": unit, "lo": lo, "hi": hi})
 
 
 @dataclass(frozen=True)
@@ -148,13 +144,13 @@ class LocalizationConfig:
         5.0,
         "Reject packets below this SNR (docs/conventions.md): lower keeps fainter touches "
         "and more false ones from noise",
-        "dB", -20.0, 80.0, expert=False,
+        "dB", -20.0, 80.0,
     )
     min_confidence: float = _setting(
         0.0,
         "Do not publish contact events below this localization confidence: higher drops "
         "poorly fitting events (fewer wrong points, more missed touches)",
-        "", 0.0, 1.0, expert=False,
+        "", 0.0, 1.0,
     )
     reject_interference: bool = _setting(
         True,
@@ -222,5 +218,5 @@ class LocalizationConfig:
 
     @classmethod
     def describe(cls) -> dict[str, dict]:
-        """Per field: default, doc, unit, lo, hi, expert (the ROS table's source)."""
+        """Per field: default, doc, unit, lo, hi (the ROS table's source)."""
         return {f.name: {"default": f.default, **f.metadata} for f in fields(cls)}

@@ -39,6 +39,17 @@ class SlipStage:
     time pass without events (quiet slip states fall back to STICK): it never advances the
     detector's clock past ``now - lag_s``, so events still in flight are not overtaken.
     Thread-safe: the reader thread feeds events, a timer thread ticks.
+
+    Parameters
+    ----------
+    config : SlipConfig, optional
+        The detector's settings (default: `SlipConfig()`).
+    lag_s : float
+        How far behind now [s] `tick` keeps the detector's clock (events in flight).
+
+    Returns
+    -------
+    SlipStage
     """
 
     def __init__(self, config: SlipConfig | None = None, *, lag_s: float = 0.02):
@@ -48,7 +59,18 @@ class SlipStage:
         self.counts: Counter = Counter()
 
     def process(self, contacts: Sequence[ContactRecord]) -> list[ContactRecord]:
-        """Slip events produced by these contact events (time order)."""
+        """Slip events produced by these contact events.
+
+        Parameters
+        ----------
+        contacts : sequence of ContactRecord
+            TOUCH / DETOUCH records, in time order.
+
+        Returns
+        -------
+        list of ContactRecord
+            SLIP_PRECURSOR / SLIP / TEXTURE records (`slip_record`).
+        """
         out: list[ContactRecord] = []
         with self.lock:
             for c in contacts:
@@ -74,16 +96,29 @@ class SlipStage:
         return out
 
     def tick(self, now_ns: int):
-        """Advance the detector to now_ns - lag; returns the finger state."""
+        """Advance the detector to ``now_ns`` - lag [host ns].
+
+        Parameters
+        ----------
+        now_ns : int
+            Host time now [ns].
+
+        Returns
+        -------
+        FingerState
+            The finger's contact state.
+        """
         with self.lock:
             return self.detector.advance(int(now_ns) - self.lag_ns)
 
     @property
     def state(self):
+        """The finger's contact state (`FingerState`)."""
         with self.lock:
             return self.detector.state
 
     def all_counts(self) -> dict:
+        """The stage's counters and the detector's (``slip_*``)."""
         with self.lock:
             d = {f"slip_{k}": v for k, v in self.detector.counts.items()}
         d.update(self.counts)

@@ -66,20 +66,42 @@ class Param:
     unit: str | None = None  # None: from the name's suffix
     allow_zero_as_none: bool = False  # 0 means "unknown / device's own" (documented in text)
     numbers_as_text: bool = False  # a text parameter that may be a number (`cpus:=3`)
-    expert: bool = False  # only an expert should change it (grouped apart in the docs)
 
     @property
     def si_unit(self) -> str:
         return unit_of(self.name) if self.unit is None else self.unit
 
 
+#: The handful of parameters a user sets, with what each trades (README.md's table); every
+#: other parameter is expert: its descriptor says so and docs/parameters.md lists it apart.
+USER_PARAMS = {
+    "port": "which fingertip: its serial device or socket:// URL",
+    "medium": "the body's fill (its sound speed): a wrong one shifts every position",
+    "sample_rate_hz": "finer delays (better positions) against more bytes per packet on the "
+    "link; 0 keeps the device's",
+    "threshold_counts": "lower triggers on fainter touches, and on more noise; 0 keeps the "
+    "device's",
+    "localization.min_snr_db": "lower keeps fainter touches, and more false ones from noise",
+    "initial_force_n": "the grip before any slip (a firmer hold, more pressure "
+    "on the object)",
+    "gain": "force factor per slip precursor (fewer slips, a harder squeeze)",
+    "max_force_n": "the reflex's ceiling (protects the object, limits the grip)",
+}
+
+
+def is_expert(full_name: str) -> bool:
+    """Only an expert should change it: not one of `USER_PARAMS`."""
+    return full_name not in USER_PARAMS
+
+
 def tunable(p: Param) -> Param:
     return dataclasses.replace(p, read_only=False)
 
 
-def describe(p: Param) -> str:
-    """Description with unit and range, as the descriptor and the docs show it."""
-    parts = [p.description]
+def describe(p: Param, full_name: str | None = None) -> str:
+    """Description with unit and range, as the descriptor and the docs show it (marked
+    ``[expert]`` when ``full_name`` is given and not one of `USER_PARAMS`)."""
+    parts = [("[expert] " if full_name and is_expert(full_name) else "") + p.description]
     if p.si_unit:
         parts.append(f"unit: {p.si_unit}")
     if p.choices:
@@ -92,7 +114,9 @@ def describe(p: Param) -> str:
 
 
 def descriptor(p: Param, full_name: str) -> ParameterDescriptor:
-    d = ParameterDescriptor(name=full_name, description=describe(p), read_only=p.read_only)
+    d = ParameterDescriptor(
+        name=full_name, description=describe(p, full_name), read_only=p.read_only
+    )
     if p.choices:
         d.additional_constraints = "one of: " + ", ".join(map(str, p.choices))
     if isinstance(p.default, float) or p.numbers_as_text:
@@ -212,7 +236,7 @@ def localization_params() -> list[Param]:
         out.append(
             tunable(
                 Param(name, md["default"], md["doc"], md["lo"], md["hi"], choices=choices,
-                      unit=md["unit"] or None, expert=md["expert"])
+                      unit=md["unit"] or None)
             )
         )
     return out
