@@ -1049,7 +1049,10 @@ def hand_scene(tmp_path, seed, x_m, y_m, name):
     spec = {
         "name": "hand_interference",
         "generator": "interference",
-        "duration_s": 5.0,
+        # long enough that the three fingertips play together for seconds even when their
+        # drivers become ready seconds apart (each simulator starts with its driver; on a
+        # loaded 2-core machine the warm-ups spread over up to ~5 s)
+        "duration_s": 10.0,
         "seed": seed,  # each fingertip its own noise and touch
         "noise": {"snr_db": 30.0},
         "params": {
@@ -1064,7 +1067,7 @@ def hand_scene(tmp_path, seed, x_m, y_m, name):
             "x_m": x_m,
             "y_m": y_m,
             "touch_time_s": 0.1,
-            "hold_s": 4.7,
+            "hold_s": 9.7,
         },
     }
     path = tmp_path / name
