@@ -9,6 +9,11 @@ slip events and the contact state, then (only when someone subscribes or records
 raw packets. With ``pipeline:=false`` it publishes raw packets only, for the separate
 `localizer` and `slip_detector` nodes (replaying bags, velodyne-style: same core code).
 
+From the read callback to the publish call (three files): the link's reader thread calls
+`DriverNode._on_batch` (this file) -> `ContactPipeline.process` (`pipeline/core.py`, which
+calls the stages in order) -> `DriverNode._publish_contacts` / `_publish_slip` ->
+`ContactEventWire.encode` (`conversions.py`) -> ``Publisher.publish``.
+
 Acquisition starts once the pipeline is ready (compiled, geometry known) and, with
 ``wait_for_subscribers:=N``, once N subscribers are matched on ``contacts`` or on
 ``packets`` (``packets`` only without the pipeline): no first event is lost.
