@@ -21,7 +21,9 @@ for a while (a loaded host) must not pass for clock drift.
 
 Guarantees: mapped times never go backwards, whatever the device clock does (a would-be
 step back is clamped and counted), also across a re-sync: the new model's outputs start
-after the last output of the old one. The model is rebuilt (counted as a re-sync) when
+after the last output of the old one. One exception keeps stamps true: a packet whose
+device time is at most ``reorder_s`` behind the latest one mapped (a window that started
+before a packet sent earlier) keeps its own stamp. The model is rebuilt (counted as a re-sync) when
 
 * device time goes back by more than ``max_backstep_s`` (a restarted device clock; the
   link also resets on the protocol's BOOT flag and passes a large ``max_backstep_s``,
@@ -89,6 +91,11 @@ class DeviceClockMapper:
         host stall the link expects.
     step_frames : int
         Frames in a row needed to detect such a step (one delayed read is not one).
+    reorder_s : float
+        A device time at most this far [s] behind the latest one mapped is a packet out of
+        order (e.g. a window that started before a packet sent earlier): it keeps its own
+        stamp. Farther behind, it is a clock step not detected yet: held after the last
+        output (counted in ``clamped``).
     """
 
     def __init__(
@@ -101,6 +108,7 @@ class DeviceClockMapper:
         max_backstep_s: float = 1.0,
         step_back_s: float = 0.25,
         step_frames: int = 4,
+        reorder_s: float = 0.05,
     ):
         if not (window_s > 0 and bucket_s > 0 and bucket_s < window_s):
             raise ValueError("need 0 < bucket_s < window_s")
@@ -118,6 +126,10 @@ class DeviceClockMapper:
         self.max_backstep_ns = int(max_backstep_s * 1e9)
         self.step_back_ns = int(step_back_s * 1e9)
         self.step_frames = int(step_frames)
+        if not reorder_s >= 0:
+            raise ValueError("reorder_s must be >= 0")
+        self.reorder_ns = int(reorder_s * 1e9)
+        self._last_out_d: int | None = None  # the latest device time mapped [ns]
         self.resyncs = 0  # model resets (device restart, offset jump)
         self.clamped = 0  # outputs held back to stay monotonic
         self.steps = 0  # clock steps detected from a persistent latency (step_back_s)
@@ -240,7 +252,7 @@ class DeviceClockMapper:
         return device_ns + int(round(self._offset_ns + self._skew * dd))
 
     def to_host_ns(self, device_ns: int) -> int:
-        """Host time of a device time; strictly increasing from call to call.
+        """Host time of a device time; increasing from call to call (but for packets out of order).
 
         Parameters
         ----------
@@ -251,7 +263,8 @@ class DeviceClockMapper:
         -------
         int
             Host time [ns]; later than every one returned before (clamped and counted in
-            ``clamped`` when the model would give an earlier one).
+            ``clamped`` when the model would give an earlier one), except for a device time
+            less than ``reorder_s`` behind the latest one mapped, which keeps its own.
 
         Raises
         ------
@@ -262,11 +275,15 @@ class DeviceClockMapper:
             raise RuntimeError("DeviceClockMapper.to_host_ns called before any update()")
         device_ns = int(device_ns)
         out = self._predict(device_ns)
+        last_d = self._last_out_d
+        if last_d is not None and last_d - self.reorder_ns <= device_ns < last_d:
+            return out  # a packet out of order: its own stamp (the outputs after it stay)
         # strictly after everything already handed out: across a re-sync, for a device time
-        # behind the last one (a clock step not detected yet, a packet out of order)
+        # far behind the last one (a clock step not detected yet)
         floor = self._floor_out
         if floor is not None and out <= floor:
             out = floor + 1
             self.clamped += 1
         self._floor_out = out
+        self._last_out_d = device_ns
         return out

@@ -112,3 +112,21 @@ def test_delayed_buckets_do_not_pull_the_envelope_late():
     err = np.abs(mapped - true_ns)
     assert np.max(err[a:]) < 1 * MS
     assert mapper.resyncs == 0 and mapper.steps == 0
+
+
+def test_a_packet_out_of_order_keeps_its_own_stamp_and_a_step_back_is_held():
+    """A window that started 2 ms before a packet mapped earlier (within reorder_s) is
+    stamped at its own time, exactly as in order; one 1 s behind (a clock step not detected
+    yet) is held after the last stamp instead of going back."""
+    m = DeviceClockMapper(reorder_s=0.05)
+    d0, h0 = 10**12, 5 * 10**12
+    for k in range(20):
+        m.update(d0 + k * 10 * MS, h0 + k * 10 * MS + MS // 2)
+    in_order = m.to_host_ns(d0 + 150 * MS)
+    late_packet = m.to_host_ns(d0 + 148 * MS)
+    assert late_packet == in_order - 2 * MS  # its true time, not clamped
+    assert m.clamped == 0
+    later = m.to_host_ns(d0 + 160 * MS)
+    assert later == in_order + 10 * MS
+    stepped = m.to_host_ns(d0 + 160 * MS - 10**9)
+    assert stepped == later + 1 and m.clamped == 1
