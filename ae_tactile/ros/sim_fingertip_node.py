@@ -31,7 +31,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from std_msgs.msg import Float64, String
 
 from ae_tactile.msg import ContactEvent
-from ae_tactile.ros.conversions import ns_to_time_msg
+from ae_tactile.records import ContactRecord
+from ae_tactile.ros.conversions import contact_event_msg
 from ae_tactile.ros.node_utils import LATCHED, run_node
 from ae_tactile.ros.params import Param, ParameterError, declare
 from ae_tactile.sim.scene import load_scene
@@ -284,22 +285,19 @@ class SimFingertipNode(Node):
 
     def _publish_truth(self) -> None:
         for t in self.device.pop_truth():
-            ev = ContactEvent()
-            ev.header.stamp = ns_to_time_msg(self.ros_ns_of_device_ns(t.device_time_ns))
-            ev.header.frame_id = self.p["frame_id"]
-            ev.event_type = KIND_TO_EVENT[t.kind]
-            ev.position.x, ev.position.y, ev.position.z = (float(v) for v in t.point_m)
-            polar, azimuth = (
-                np.arctan2(np.hypot(t.point_m[0], t.point_m[1]), t.point_m[2]),
-                np.arctan2(t.point_m[1], t.point_m[0]),
+            x, y, z = (float(v) for v in t.point_m)
+            rec = ContactRecord(
+                event_type=int(KIND_TO_EVENT[t.kind]),
+                time_ns=int(self.ros_ns_of_device_ns(t.device_time_ns)),
+                point_m=(x, y, z),
+                covariance_m2=np.zeros((3, 3)),  # the truth: exact
+                packet_ids=(int(t.event_id),),
+                polar_rad=math.atan2(math.hypot(x, y), z),
+                azimuth_rad=math.atan2(y, x),
+                amplitude_v=float(np.sign(t.amplitude_pa_m)),  # polarity only
+                confidence=1.0 if t.captured else 0.0,
             )
-            ev.polar_angle_rad, ev.azimuth_angle_rad = float(polar), float(azimuth)
-            ev.tau_x_s = ev.tau_y_s = math.nan
-            ev.amplitude_v = float(np.sign(t.amplitude_pa_m))
-            ev.confidence = 1.0 if t.captured else 0.0
-            ev.packet_ids = [int(t.event_id)]
-            ev.emission_rate_hz = ev.spatial_period_m = math.nan
-            ev.slip_direction.x = ev.slip_direction.y = ev.slip_direction.z = math.nan
+            ev = contact_event_msg(rec, self.p["frame_id"])
             self.pub_truth.publish(ev)
             self.truth_published += 1
 
