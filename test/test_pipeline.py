@@ -77,7 +77,8 @@ def test_single_packet_and_batched_paths_agree():
 
 
 @pytest.mark.parametrize(
-    "bad", ["fs0", "fs_nan", "fs_neg", "fs_inf", "short", "shape", "onset", "nan"]
+    "bad", ["fs0", "fs_nan", "fs_neg", "fs_inf", "fs_1hz", "fs_150khz", "fs_1e11", "long",
+            "short", "shape", "onset", "nan"]
 )
 def test_a_bad_packet_is_counted_and_costs_no_neighbour(bad):
     views, _, _ = _packets(6, seed=11)
@@ -87,6 +88,12 @@ def test_a_bad_packet_is_counted_and_costs_no_neighbour(bad):
         "fs_nan": dict(sample_rate_hz=float("nan")),
         "fs_neg": dict(sample_rate_hz=-FS),
         "fs_inf": dict(sample_rate_hz=float("inf")),
+        # valid numbers the localizer cannot use (issue 39: they raised from the band's
+        # check and lost the whole batch) or that would cost gigabytes (issue 37)
+        "fs_1hz": dict(sample_rate_hz=1.0),
+        "fs_150khz": dict(sample_rate_hz=150e3),
+        "fs_1e11": dict(sample_rate_hz=1e11),
+        "long": dict(samples_v=np.zeros((4, 100_000), dtype=np.float32)),
         "short": dict(samples_v=v.samples_v[:, :3]),
         "shape": dict(samples_v=v.samples_v[:3]),
         "onset": dict(onset_index=10_000),

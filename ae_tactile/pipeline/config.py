@@ -89,6 +89,15 @@ RECENT_MARGIN_NS = 1_000_000
 #: [1] windows waiting for the resolver at most; more are dropped (``overlap_dropped_backlog``)
 OVERLAP_MAX_PENDING = 64
 
+#: Sample rates a packet may have [Hz]: from where the localization band (100 kHz up to
+#: fs/4) still has an octave (800 kHz) up to 10x the fastest front end planned (100 MHz:
+#: above it one window's analysis grows past a bounded memory)
+MIN_SAMPLE_RATE_HZ = 800e3
+MAX_SAMPLE_RATE_HZ = 100e6
+#: Longest packet localized [samples per channel] (a device packet is a few hundred; the
+#: bound keeps one call's memory bounded)
+MAX_PACKET_SAMPLES = 65_536
+
 
 # ---------------------------------------------------------------- settings
 def echo_min_setting(echo_min) -> float:

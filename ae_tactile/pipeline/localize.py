@@ -22,7 +22,12 @@ from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import Localizer, Reason, get_estimator
 from ae_tactile.localization.overlap import suspect_overlap
 from ae_tactile.localization.overlap import warm_up as warm_overlaps
-from ae_tactile.pipeline.config import LocalizationConfig
+from ae_tactile.pipeline.config import (
+    MAX_PACKET_SAMPLES,
+    MAX_SAMPLE_RATE_HZ,
+    MIN_SAMPLE_RATE_HZ,
+    LocalizationConfig,
+)
 from ae_tactile.pipeline.screens import Screens
 from ae_tactile.records import ContactRecord, EventType, PacketView, packet_record
 
@@ -42,18 +47,22 @@ def packet_problem(samples_v, sample_rate_hz, onset_index) -> str | None:
     Returns
     -------
     str or None
-        "shape", "too_short", "sample_rate" or "onset"; None if it can be localized.
+        "shape", "too_short", "too_long" (over MAX_PACKET_SAMPLES), "sample_rate" (not
+        finite, or outside MIN_SAMPLE_RATE_HZ .. MAX_SAMPLE_RATE_HZ) or "onset"; None if it
+        can be localized.
     """
     x = samples_v
     if not isinstance(x, np.ndarray) or x.ndim != 2 or x.shape[0] != 4:
         return "shape"
     if x.shape[1] < 8:
         return "too_short"
+    if x.shape[1] > MAX_PACKET_SAMPLES:
+        return "too_long"
     try:
         fs = float(sample_rate_hz)
     except (TypeError, ValueError):
         return "sample_rate"
-    if not math.isfinite(fs) or fs <= 0:
+    if not (math.isfinite(fs) and MIN_SAMPLE_RATE_HZ <= fs <= MAX_SAMPLE_RATE_HZ):
         return "sample_rate"
     if not 0 <= int(onset_index) < x.shape[1]:
         return "onset"
