@@ -179,7 +179,6 @@ def import_graph(root: Path):
 def _cycles(edges: dict[str, set]) -> list[list[str]]:
     """Strongly connected components with more than one module (Tarjan)."""
     index, low, stack, on, out = {}, {}, [], set(), []
-    sys.setrecursionlimit(max(10_000, sys.getrecursionlimit()))
 
     def strong(v):
         index[v] = low[v] = len(index)
@@ -202,9 +201,17 @@ def _cycles(edges: dict[str, set]) -> list[list[str]]:
             if len(comp) > 1:
                 out.append(sorted(comp))
 
-    for v in sorted(edges):
-        if v not in index:
-            strong(v)
+    # the recursion goes as deep as the longest import chain (tens of modules): the limit is
+    # raised for this call only (a raised limit left behind changes other code's behaviour,
+    # e.g. how deep a YAML document may nest before it is refused)
+    limit = sys.getrecursionlimit()
+    sys.setrecursionlimit(max(10_000, limit))
+    try:
+        for v in sorted(edges):
+            if v not in index:
+                strong(v)
+    finally:
+        sys.setrecursionlimit(limit)
     return out
 
 
