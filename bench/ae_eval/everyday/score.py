@@ -24,6 +24,7 @@ GRACE_S = 0.3  # [s] an alarm this long after the truth left a slip state is sti
 SETTLE_S = 0.1  # [s] after each change of the truth, the state is not scored
 AFTER_RELEASE_S = 0.2  # [s] after the last release, the finger must read NO_CONTACT
 GRID_S = 1e-3  # [s] step of the state comparison
+STAMP_S = 1e-6  # [s] an output may precede its emission's true time by the time stamp error
 PRE, SLIP, TEX = EventType.SLIP_PRECURSOR, EventType.SLIP, EventType.TEXTURE
 KIND_NAME = {PRE: "precursor", SLIP: "slip", TEX: "texture"}
 TOUCH_FAMILIES = ("hold", "multi_point", "touch_beside_held", "broad_press", "tap_beside_held")
@@ -60,7 +61,7 @@ def _q_at(scene, t):
 
 
 def _backed(kind, scene, tt, ts, t):
-    st = _max_state(tt, ts, t - GRACE_S, t)
+    st = _max_state(tt, ts, t - GRACE_S, t + STAMP_S)
     if kind == PRE:
         return st >= ContactState.INCIPIENT_SLIP
     if kind == SLIP:
@@ -131,7 +132,7 @@ def _loads(scene, outs):
                 r["lead_s"] = tg - pre.time_ns / NS
                 r["q_precursor"] = _q_at(scene, pre.time_ns / NS)
             sl = next((o for o in outs if o.kind == SLIP and o.time_ns / NS >= tl
-                       and _q_at(scene, o.time_ns / NS) >= 0.9), None)
+                       and _q_at(scene, o.time_ns / NS + STAMP_S) >= 0.9), None)
             r["slip_delay_s"] = None if sl is None else sl.time_ns / NS - tg
         out.append(r)
     return out
