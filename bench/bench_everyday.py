@@ -31,6 +31,10 @@ from pathlib import Path  # noqa: E402
 from ae_eval.everyday import FAMILIES, run_trial, summarize  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
+#: the parameter each family's false alarms and slides are broken down by
+BREAKDOWN = {"multi_point": "n_points", "touch_beside_held": "n_beside",
+             "broad_press": "n_compressions", "slide_start": "process",
+             "slide_restick_ramp": "process", "tap_beside_held": "n_taps"}
 #: trials of a mixed stream last 60 s: 1,000 trials are ~17 h of everyday use
 MIXED_TRIAL_S = 60.0
 
@@ -41,6 +45,17 @@ def run_family(name, n, held_out):
     trials = [run_trial(FAMILIES[name], seed, held_out) for seed in range(n)]
     s = summarize(name, trials)
     s["held_out"] = held_out
+    key = BREAKDOWN.get(name)
+    if key:
+        by = {}
+        for t in trials:
+            v = t["params"].get(key)
+            v = min(int(v), 10) if key == "n_taps" else v
+            d = by.setdefault(str(v), {"n": 0, "with_false": 0, "slide_pass": 0})
+            d["n"] += 1
+            d["with_false"] += int(t["false_any"] > 0)
+            d["slide_pass"] += sum(x["pass"] for x in t["slides"])
+        s["by_" + key] = dict(sorted(by.items()))
     s["worst_trials"] = sorted(
         ({"seed": t["seed"], "false_any": t["false_any"], "false_times_s": t["false_times_s"]}
          for t in trials if t["false_any"]), key=lambda x: -x["false_any"])[:5]
@@ -96,6 +111,15 @@ def table(results):
                 f"| {_f(sl['pass_lt_50hz'], True)} "
                 f"| {_f(sl['delay_p50_s'] and sl['delay_p50_s'] * 1e3, nd=0)} / "
                 f"{_f(sl['delay_p95_s'] and sl['delay_p95_s'] * 1e3, nd=0)} |")
+    rows += ["", "## Breakdowns (trials with a false alarm; slides passing)", ""]
+    for s in results:
+        for k, by in s.items():
+            if k.startswith("by_"):
+                cells = ", ".join(f"{v}: {d['with_false']}/{d['n']}" + (
+                    f" (pass {d['slide_pass']})" if s.get("slides") else "")
+                    for v, d in by.items())
+                rows.append(f"- {s['family']} ({'held-out' if s['held_out'] else 'nominal'})"
+                            f", by {k[3:]}: {cells}")
     rows += ["", "## Targets missed", ""] + (missed or ["none"])
     rows += ["", "Not covered: the waveform path (`ContactPipeline` over rendered packets) and "
              "the device zoo (issue 37); every figure is the 'events' model on the nominal "

@@ -203,7 +203,8 @@ def score_trial(scene, outs, trace):
     trace_t = np.array([x[0] / NS for x in trace], float)
     trace_s = np.array([int(x[1]) for x in trace], int)
     r = {"family": scene.family, "seed": scene.seed, "held_out": scene.held_out,
-         "duration_s": scene.duration_s, "n_emissions": int(scene.t_s.size)}
+         "duration_s": scene.duration_s, "n_emissions": int(scene.t_s.size),
+         "params": {k: v for k, v in scene.params.items() if k != "scenes"}}
     r.update(_alarms(scene, outs, tt, ts))
     r["slides"] = _slides(scene, outs, trace_t, trace_s)
     r["loads"] = _loads(scene, outs)
