@@ -208,3 +208,23 @@ def test_slip_at_every_emission_counted_by_hand():
     assert r["state_ms"] == pytest.approx(1300, abs=2)
     # wrong: from the release's settling (1.1 s) to the end (1.5 s)
     assert r["state_ok_ms"] == pytest.approx(1300 - 400, abs=2)
+
+
+def test_bounds():
+    from ae_eval.everyday.bounds import (
+        q_at_kth_micro_slip,
+        slide_decision_bound,
+        slide_touch_confusion,
+        stick_zone_bound,
+    )
+
+    c, p, n95 = stick_zone_bound(0.9)
+    assert c == pytest.approx(0.1 ** (1 / 3)) and p == pytest.approx(c * c)
+    assert (1 - p) ** n95 == pytest.approx(0.05)
+    assert slipped_fraction(q_at_kth_micro_slip(3, 10)) == pytest.approx(0.3)
+    # Poisson at exactly 50 Hz, no loss: the 3rd emission (2 after t0) within 0.1 s
+    exact = 1 - math.exp(-5) * (1 + 5)
+    got = slide_decision_bound(3, rates=(50.0, 50.0), drop=0.0, n=40_000)
+    assert got == pytest.approx(exact, abs=0.01)
+    assert slide_touch_confusion(1, n=1000) == pytest.approx(0.5)
+    assert slide_touch_confusion(3, n=20_000) < 0.01

@@ -131,7 +131,8 @@ def _loads(scene, outs):
             if pre is not None:
                 r["lead_s"] = tg - pre.time_ns / NS
                 r["q_precursor"] = _q_at(scene, pre.time_ns / NS)
-            sl = next((o for o in outs if o.kind == SLIP and o.time_ns / NS >= tl
+            t_end = ep["q_knots"][-1][0] + GRACE_S
+            sl = next((o for o in outs if o.kind == SLIP and tl <= o.time_ns / NS <= t_end
                        and _q_at(scene, o.time_ns / NS + STAMP_S) >= 0.9), None)
             r["slip_delay_s"] = None if sl is None else sl.time_ns / NS - tg
         out.append(r)
