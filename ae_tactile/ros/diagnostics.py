@@ -17,7 +17,17 @@ LINK_PROBLEMS = (
     "internal_errors",
     "frames_unusable",
     "packets_rejected_nonfinite",
+    "port_busy",
+    "acquisition_restarts",
+    "acquisition_reconnects",
+    "clock_steps",
 )
+
+
+def _busy(last_error: str) -> bool:
+    """The last open failed because another link owns the port (`PortBusy`, or pyserial's
+    exclusive lock)."""
+    return "in use by" in last_error or "exclusive" in last_error.lower()
 
 
 def link_rates(stats: dict, last, now_ns: int) -> dict:
@@ -51,17 +61,18 @@ def link_status(
     Returns
     -------
     DiagnosticStatus
-        ERROR unless connected, WARN with problems counted, else OK.
+        ERROR unless connected (``port busy: ...`` naming the port and its owner when
+        another driver holds it), WARN with problems counted (the link's restarts of an
+        idle device, its clock steps included), else OK.
     """
     link = DiagnosticStatus()
     link.name = f"{node_name}: fingertip link"
     link.hardware_id = hardware_id
     problems = {k: s.get(k, 0) for k in LINK_PROBLEMS if s.get(k, 0)}
     if s["state"] != "connected":
-        link.level, link.message = (
-            DiagnosticStatus.ERROR,
-            f"link {s['state']}: {s['last_error']}",
-        )
+        why = s["last_error"]
+        link.level = DiagnosticStatus.ERROR
+        link.message = f"port busy: {why}" if _busy(why) else f"link {s['state']}: {why}"
     elif problems:
         link.level = DiagnosticStatus.WARN
         link.message = "connected; " + ", ".join(

@@ -95,6 +95,32 @@ DRIVER_PARAMS = [
         60.0,
     ),
     Param("reconnect_max_s", 5.0, "Longest wait between reconnection attempts (s)", 0.1, 300.0),
+    Param(
+        "acquisition_timeout_s",
+        2.5,
+        "Time without a packet (or a STATUS saying it acquires) while acquisition is "
+        "expected after which the link restarts it (STOP/START), then reconnects if "
+        "another such time passes; more than the 1 s heartbeat period (0: never)",
+        0.0,
+        600.0,
+        check=lambda v: None if v == 0 or v > 1.0 else "must be 0 (never) or > 1 s",
+    ),
+    Param(
+        "clock_step_s",
+        0.25,
+        "Latency above the device-clock mapping that, clock_step_frames frames in a row, "
+        "counts as a clock step (the mapping is rebuilt, stamps stay monotonic); above "
+        "any host stall the link should ride out",
+        0.001,
+        3600.0,
+    ),
+    Param(
+        "clock_step_frames",
+        4,
+        "Frames in a row above clock_step_s that make a clock step",
+        1,
+        1000,
+    ),
     Param("diagnostics_period_s", 1.0, "Period of /diagnostics messages (s)", 0.05, 60.0),
     Param(
         "wait_for_subscribers",
@@ -266,6 +292,9 @@ def link_config_from_params(p: dict) -> LinkConfig:
             pre_trigger_samples=pre or None,
             queue_max_batches=p["queue_max_batches"],
             link_timeout_s=p["link_timeout_s"],
+            acquisition_timeout_s=p["acquisition_timeout_s"],
+            clock_step_s=p["clock_step_s"],
+            clock_step_frames=p["clock_step_frames"],
             reconnect_max_s=max(p["reconnect_max_s"], 0.2),
             detector=detector_options(p),
         )

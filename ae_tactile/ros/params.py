@@ -81,6 +81,8 @@ USER_PARAMS = {
     "link; 0 keeps the device's",
     "threshold_counts": "lower triggers on fainter touches, and on more noise; 0 keeps the "
     "device's",
+    "acquisition_timeout_s": "how long a device that stopped sending data goes before the "
+    "driver restarts it (shorter recovers sooner; > 1 s, the heartbeat; 0: never)",
     "localization.min_snr_db": "lower keeps fainter touches, and more false ones from noise",
     "initial_force_n": "the grip before any slip (a firmer hold, more pressure "
     "on the object)",

