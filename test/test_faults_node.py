@@ -6,6 +6,7 @@ parameter names are warned about, and the ``localizer`` node counts oversized pa
 
 import os
 import subprocess
+import sys
 
 import pytest
 
@@ -120,3 +121,21 @@ def test_link_counters_make_the_status_warn():
     for key in ("acquisition_restarts", "acquisition_reconnects", "clock_steps"):
         st = link_status("/d", "hw", dict(base, **{key: 1}), {}, 0)
         assert st.level == DiagnosticStatus.WARN and key.replace("_", " ") in st.message
+
+
+@pytest.mark.parametrize("how", ["python -m", "installed"])
+def test_driver_help_prints_usage_and_exits_without_starting(how, tmp_path):
+    """``python -m ae_tactile.ros.driver_node --help`` and the installed ``driver --help``
+    print the usage with the driver's parameters and exit 0 at once: no node, no port."""
+    exe = installed_executable("driver")
+    cmd = [exe] if how == "installed" else [sys.executable, "-m", "ae_tactile.ros.driver_node"]
+    out = subprocess.run(
+        cmd + ["--help"], capture_output=True, text=True, timeout=60,
+        cwd=tmp_path,  # the installed package (with its messages), not the source tree
+    )
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert out.stdout.startswith("usage: ros2 run ae_tactile driver "), out.stdout[:300]
+    for name in ("port (string", "acquisition_timeout_s", "localization.min_snr_db"):
+        assert name in out.stdout, name
+    assert "cannot open" not in out.stdout + out.stderr
+    assert "driver on" not in out.stdout + out.stderr

@@ -86,6 +86,15 @@ from ae_tactile.ros.params import (
 )
 from ae_tactile.slip import SlipConfig
 
+#: Name of the executable (`ros2 run ae_tactile driver`), for ``--help``.
+EXECUTABLE = "driver"
+#: The node's parameters as it declares them, (prefix, table), for ``--help``.
+NODE_PARAMETERS = [
+    ("", "DRIVER_PARAMS"),
+    ("localization.", "ae_tactile.ros.params:LOCALIZATION_PARAMS"),
+    ("slip.", "ae_tactile.ros.params:slip_params"),
+]
+
 
 class DriverNode(Node):
     def __init__(self, **kwargs):

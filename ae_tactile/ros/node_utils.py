@@ -293,7 +293,17 @@ def run_node(node_factory, args=None, executor_factory=SingleThreadedExecutor) -
     context is still valid. Returns the exit code: 0, or 2 on a parameter error.
 
     A signal during the node's construction (which may JIT-compile for a while) aborts
-    the construction; during spinning it ends the loop within STOP_POLL_S."""
+    the construction; during spinning it ends the loop within STOP_POLL_S. ``-h`` or
+    ``--help`` before ``--ros-args`` (``python -m ae_tactile.ros.<node> --help``) prints
+    the usage of the factory's module (`print_help`) and returns 0 without starting ROS."""
+    own, _ = split_ros_args(sys.argv[1:] if args is None else list(args))
+    if wants_help(own):
+        module = sys.modules[node_factory.__module__]
+        executable = getattr(module, "EXECUTABLE", None) or os.path.basename(
+            sys.argv[0]
+        ).removesuffix(".py")
+        print_help(module, executable)
+        return 0
     node = None
     with ros_session(args, interrupt=True) as state, forward_python_logging(lambda: node):
         try:
@@ -506,6 +516,39 @@ def split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
     return argv, []
 
 
+def wants_help(own_args: list[str]) -> bool:
+    """``-h`` or ``--help`` among the arguments before ``--ros-args``."""
+    return any(a in ("-h", "--help") for a in own_args)
+
+
+def print_help(module, executable: str, tables=None) -> None:
+    """Print the usage of the node ``module`` (`format_usage`) with every parameter of
+    ``tables`` (see `module_params`), falling back to the module's own tables.
+
+    Parameters
+    ----------
+    module : module
+        The node's module (its docstring is the description).
+    executable : str
+        Name shown in the synopsis.
+    tables : list or None
+        (prefix, source) pairs of the node's parameters.
+
+    Returns
+    -------
+    None
+    """
+    doc = (module.__doc__ or "").strip()
+    params, missing = module_params(module, tables)
+    if missing:        # the help must work even when a table was renamed
+        fallback, _ = module_params(module)
+        known = {name for name, _ in params}
+        params += [(name, p) for name, p in fallback if name not in known]
+    print(format_usage(executable, doc, params), flush=True)
+    if missing:
+        print(f"\n(parameter tables not found: {', '.join(missing)})", flush=True)
+
+
 def node_main(module_name: str, tables=None, argv=None) -> int:
     """Entry point of a node executable; ``tables``: (prefix, source) pairs of the node's
     parameters for ``--help`` (see `module_params`).
@@ -519,16 +562,8 @@ def node_main(module_name: str, tables=None, argv=None) -> int:
     executable = os.path.basename(sys.argv[0]) or module_name
     own, _ = split_ros_args(argv)
     module = importlib.import_module(module_name)
-    if any(a in ("-h", "--help") for a in own):
-        doc = (module.__doc__ or "").strip()
-        params, missing = module_params(module, tables)
-        if missing:        # the help must work even when a table was renamed
-            fallback, _ = module_params(module)
-            known = {name for name, _ in params}
-            params += [(name, p) for name, p in fallback if name not in known]
-        print(format_usage(executable, doc, params))
-        if missing:
-            print(f"\n(parameter tables not found: {', '.join(missing)})")
+    if wants_help(own):
+        print_help(module, executable, tables)
         return 0
     if own:
         print(f"{executable}: unrecognized arguments: {' '.join(own)}\n"
