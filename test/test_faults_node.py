@@ -139,3 +139,82 @@ def test_driver_help_prints_usage_and_exits_without_starting(how, tmp_path):
         assert name in out.stdout, name
     assert "cannot open" not in out.stdout + out.stderr
     assert "driver on" not in out.stdout + out.stderr
+
+
+def _rosout_listener(ctx, got):
+    import rclpy
+    from rcl_interfaces.msg import Log
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    node = rclpy.create_node("rosout_listener", context=ctx)
+    qos = QoSProfile(
+        depth=1000,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
+    node.create_subscription(Log, "/rosout", got.append, qos)
+    return node
+
+
+def test_unknown_parameter_names_are_warned_once_and_the_driver_runs(ros_context, tmp_path):
+    """A misspelt name ('localisation.min_snr_db') given to the driver: one WARN on its
+    logger (/rosout) naming it and the name meant; the node runs, with its known values."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    from ae_tactile.ros.driver_node import DriverNode
+
+    logs, diags = [], []
+    listener = _rosout_listener(ros_context, logs)
+    listener.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 100)
+    drv = DriverNode(
+        context=ros_context,
+        parameter_overrides=[
+            Parameter("port", value=str(tmp_path / "no_device")),
+            Parameter("diagnostics_period_s", value=0.1),
+            Parameter("localisation.min_snr_db", value=12.0),
+            Parameter("localization.min_snr_db", value=11.0),
+            Parameter("linktimeout_s", value=1.0),
+        ],
+    )
+    ex = SingleThreadedExecutor(context=ros_context)
+    ex.add_node(drv)
+    ex.add_node(listener)
+
+    def warnings():
+        return [m.msg for m in logs if "unknown parameter" in m.msg and m.name == "driver"]
+
+    try:
+        assert spin_until(ex, lambda: warnings() and len(diags) >= 3, 20.0), [m.msg for m in logs]
+        spin_until(ex, lambda: False, 0.5)
+        (text,) = warnings()  # once
+        assert "'localisation.min_snr_db'" in text and "'localization.min_snr_db'?" in text
+        assert "'linktimeout_s'" in text and "link_timeout_s" in text
+        assert drv.pipeline.localizer.min_snr_db == 11.0
+    finally:
+        ex.shutdown()
+        drv.destroy_node()
+        listener.destroy_node()
+
+
+def test_pipeline_names_given_to_a_raw_driver_are_not_warned_about(ros_context, tmp_path):
+    """pipeline:=false with a parameter file written for the full driver: its
+    localization.* and slip.* names are the driver's own, not unknown."""
+    from rclpy.parameter import Parameter
+
+    from ae_tactile.ros.params import unknown_overrides
+
+    drv = _driver(
+        ros_context,
+        tmp_path / "no_device",
+        Parameter("localization.min_snr_db", value=11.0),
+        Parameter("slip.track_window_s", value=0.2),
+        Parameter("no_such_name", value=1),
+    )
+    try:
+        from ae_tactile.ros.driver_node import _pipeline_names
+
+        assert unknown_overrides(drv, _pipeline_names()) == ["no_such_name"]
+    finally:
+        drv.destroy_node()

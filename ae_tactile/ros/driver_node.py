@@ -83,6 +83,7 @@ from ae_tactile.ros.params import (
     make_packet_localizer,
     slip_config_kwargs,
     slip_params,
+    warn_unknown_parameters,
 )
 from ae_tactile.slip import SlipConfig
 
@@ -94,6 +95,15 @@ NODE_PARAMETERS = [
     ("localization.", "ae_tactile.ros.params:LOCALIZATION_PARAMS"),
     ("slip.", "ae_tactile.ros.params:slip_params"),
 ]
+
+
+def _pipeline_names() -> list[str]:
+    """Full names of the in-process pipeline's parameters (declared with pipeline:=true)."""
+    return [
+        prefix + p.name
+        for prefix, table in (("localization.", LOCALIZATION_PARAMS), ("slip.", slip_params()))
+        for p in table
+    ]
 
 
 class DriverNode(Node):
@@ -136,6 +146,8 @@ class DriverNode(Node):
         if p["pipeline"]:
             self._make_pipeline()
         self.create_subscription(String, "sim/scene_truth", self._on_scene_truth, LATCHED)
+        # the pipeline's names, in a parameter file shared with pipeline:=true, are known
+        warn_unknown_parameters(self, known=[] if p["pipeline"] else _pipeline_names())
         self.now_ns = self._clock_ns()
         self.link = FingertipLink(
             self.link_config,

@@ -8,11 +8,14 @@ the node refuses to start with a clear message), and installs a parameter callba
 `ros2 param set` on a tunable parameter is validated against the same table and handed
 to ``on_change({name: value})``, which applies it at once (a ValueError from it rejects
 the change with its message). Integers are accepted for floating-point parameters.
+`warn_unknown_parameters` warns once about names given to a node that it does not have
+(rclpy ignores them silently).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -301,3 +304,56 @@ def slip_config_kwargs(values: dict) -> dict:
     if kw.get("sliding_speed_m_s", 0.0) <= 0.0:
         kw["sliding_speed_m_s"] = None
     return kw
+
+
+def unknown_overrides(node, known=()) -> list[str]:
+    """Names given to ``node`` (``-p``, a parameter file, ``parameter_overrides``) that it
+    did not declare and that are not in ``known``: rclpy ignores them without a word
+    (``allow_undeclared_parameters`` is off).
+
+    Parameters
+    ----------
+    node : rclpy.node.Node
+        The node, after it declared all its parameters.
+    known : iterable of str
+        Names the node knows but did not declare this time (a table it left out).
+
+    Returns
+    -------
+    list of str
+        The unknown names, sorted.
+    """
+    overrides = getattr(node, "_parameter_overrides", None) or {}  # rclpy keeps no public copy
+    known = set(known)
+    return sorted(n for n in overrides if n not in known and not node.has_parameter(n))
+
+
+def warn_unknown_parameters(node, known=()) -> list[str]:
+    """Log one WARN through the node's logger naming every parameter given to it that it
+    does not have (`unknown_overrides`), with the closest declared name of each.
+
+    Parameters
+    ----------
+    node : rclpy.node.Node
+        The node, after it declared all its parameters.
+    known : iterable of str
+        Names the node knows but did not declare this time (not warned about).
+
+    Returns
+    -------
+    list of str
+        The names warned about (empty: no warning).
+    """
+    names = unknown_overrides(node, known)
+    if not names:
+        return names
+    declared = list(node._parameters) + list(known)
+    parts = []
+    for name in names:
+        close = difflib.get_close_matches(name, declared, n=1, cutoff=0.75)
+        parts.append(f"'{name}'" + (f" (did you mean '{close[0]}'?)" if close else ""))
+    node.get_logger().warning(
+        f"ignoring {len(names)} unknown parameter(s): {', '.join(parts)}: not parameters of "
+        f"this node (misspelt, or an old name); `--help` lists them"
+    )
+    return names
