@@ -218,3 +218,88 @@ def test_pipeline_names_given_to_a_raw_driver_are_not_warned_about(ros_context, 
         assert unknown_overrides(drv, _pipeline_names()) == ["no_such_name"]
     finally:
         drv.destroy_node()
+
+
+def test_localizer_node_counts_every_packet_of_an_oversized_message(ros_context):
+    """One PacketArray (reliable, ~1.7 MB) with good packets around a packet of 100,000
+    samples, one whose sizes disagree and one claiming 3 channels:
+    every packet is counted, each bad one with its reason (in /diagnostics too), and the
+    good neighbours are localized and published."""
+    import numpy as np
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from test_ros_params import _packet_array
+
+    from ae_tactile.msg import ContactEvent, PacketArray
+    from ae_tactile.ros.conversions import make_packet
+    from ae_tactile.ros.localizer_node import LocalizerNode
+
+    loc = LocalizerNode(
+        context=ros_context,
+        parameter_overrides=[
+            Parameter("reliable_qos", value=True),
+            Parameter("diagnostics_period_s", value=0.1),
+        ],
+    )
+    node = rclpy.create_node("packet_source", context=ros_context)
+    pub = node.create_publisher(
+        PacketArray, "packets", QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    )
+    got, diags = [], []
+    node.create_subscription(ContactEvent, "contacts", got.append, 100)
+    node.create_subscription(
+        DiagnosticArray,
+        "/diagnostics",
+        lambda m: diags.extend(s for s in m.status if s.name.endswith(": localization")),
+        100,
+    )
+    msg = _packet_array([0, 1, 2, 6, 7])
+    good = list(msg.packets)
+    huge = make_packet(
+        np.zeros((4, 100_000), np.float32),
+        stamp_ns=10**9 + 3 * 10**6,
+        sample_rate_hz=10e6,
+        onset_index=100,
+        sequence_id=3,
+    )
+    sizes_disagree = make_packet(
+        np.zeros((4, 400), np.float32), stamp_ns=10**9 + 4 * 10**6, sample_rate_hz=10e6,
+        onset_index=100, sequence_id=4,
+    )
+    sizes_disagree.samples_per_channel = 100_000
+    three_channels = make_packet(
+        np.zeros((4, 400), np.float32), stamp_ns=10**9 + 5 * 10**6, sample_rate_hz=10e6,
+        onset_index=100, sequence_id=5,
+    )
+    three_channels.channel_count = 3
+    msg.packets = good[:3] + [huge, sizes_disagree, three_channels] + good[3:]
+    ex = SingleThreadedExecutor(context=ros_context)
+    ex.add_node(loc)
+    ex.add_node(node)
+    try:
+        assert spin_until(ex, lambda: pub.get_subscription_count() >= 1, 20.0)
+        pub.publish(msg)
+        assert spin_until(ex, lambda: loc.counts["packets"] >= 8 and loc.idle(), 30.0), dict(
+            loc.counts
+        )
+        assert loc.counts["packets"] == 8
+        assert loc.counts["rejected_MALFORMED_too_long"] == 1
+        assert loc.counts["rejected_MALFORMED_inconsistent"] == 2
+        assert loc.counts["packets_missing"] == 0
+        assert spin_until(ex, lambda: len(got) >= 5, 10.0)
+        assert sorted(e.packet_ids[0] for e in got) == [0, 1, 2, 6, 7]
+        assert spin_until(
+            ex,
+            lambda: diags
+            and {kv.key: kv.value for kv in diags[-1].values}.get("rejected_MALFORMED_too_long")
+            == "1",
+            10.0,
+        )
+        assert "3 rejected" in diags[-1].message, diags[-1].message
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        loc.destroy_node()
