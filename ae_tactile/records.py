@@ -3,6 +3,7 @@
 
 - `EventType`: the ContactEvent types (values of ContactEvent.msg);
 - `ContactState`: a finger's latched contact state (values of ContactState.msg);
+- `Reading`: what one emission was read as (touch, release, micro-slip, ...);
 - `PacketView`: what the pipeline needs of one packet (a link record or a message);
 - `ContactRecord`: one event for the robot hand (core side of ContactEvent.msg);
 - `packet_record`, `source_record`, `slip_record`: a localized packet, a resolved emission
@@ -41,9 +42,25 @@ class ContactState(IntEnum):
     GROSS_SLIP = 3
 
 
-#: ContactEvent type -> name, ContactState value -> name (logs, reports, bag exports)
+class Reading(IntEnum):
+    """What one localized emission was read as (values of Emission.msg's ``reading``).
+
+    The slip detector's interpretation of the emission stream assigns each emission to
+    the physical event that best explains it.
+    """
+
+    UNKNOWN = 0  # not explained (interference that got through, a lost context)
+    TOUCH = 1  # a contact began (or grew: a new point of an arriving object)
+    RELEASE = 2  # a contact (or one of its points) ended
+    MICRO_SLIP = 3  # Cattaneo-Mindlin micro-slip at the edge of a held, loaded contact
+    SLIP = 4  # gross slip of a contact
+    TEXTURE = 5  # a periodic emission of a contact sliding over a texture
+
+
+#: ContactEvent type -> name, ContactState value -> name, Reading -> name (logs, bag exports)
 EVENT_NAMES = {int(t): t.name for t in EventType}
 STATE_NAMES = {int(s): s.name for s in ContactState}
+READING_NAMES = {int(r): r.name for r in Reading}
 
 _NAN3 = (math.nan, math.nan, math.nan)
 
