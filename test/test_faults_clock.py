@@ -7,11 +7,15 @@ No wall-clock bounds: waits are on conditions with generous timeouts, the assert
 counters, stamps and packet counts.
 """
 
+import os
+
 import numpy as np
 import pytest
 import yaml
 from test_hardware_link import SCENE, Rig
 
+from ae_tactile.pipeline import ContactPipeline, PacketLocalizer, SlipStage
+from ae_tactile.records import EventType
 from ae_tactile.virtual_device import PtyTransport
 
 #: 40 emissions/s for 12 s: packets keep coming long after the step.
@@ -70,3 +74,45 @@ def test_device_clock_step_keeps_stamps_monotonic_and_true(tmp_path, step_s, reb
             f"step {step_s:+g} s reboot={reboot}: {off.size} packets off by > 3 ms,"
             f" first ones {np.round(err_ms[n_before : n_before + 6], 2)} ms"
         )
+
+
+SLIP_SCENE = os.path.join(os.path.dirname(SCENE), "incipient_slip.yaml")
+
+
+@pytest.mark.parametrize("step_s", [-5.0, 1000.0])
+def test_slip_detection_keeps_working_across_a_clock_step(tmp_path, step_s):
+    """The incipient-slip scene (micro-slips from the start, gross slip at 1 s of its 1.2 s)
+    through the link and the driver's ContactPipeline; the device clock steps while the
+    micro-slips come. The slip detector sees monotonic stamps: it rejects nothing as out of
+    order, and the gross slip after the step is still reported as SLIP."""
+    pipe = ContactPipeline(PacketLocalizer("ml"), SlipStage())
+    contacts, slips = [], []
+    with Rig(PtyTransport(str(tmp_path / "fingertip")), scene=SLIP_SCENE) as rig:
+        rig.wait_connected()
+        fed = 0
+
+        def feed():
+            nonlocal fed
+            new = rig.records[fed:]
+            fed = len(rig.records)
+            if new:
+                pipe.process(new, contacts.extend, slips.extend)
+                pipe.run_pending_slip()
+            return False
+
+        rig.run(60.0, until=lambda: feed() or len(rig.records) >= 20)
+        n_before = rig.runner.call(lambda: (rig.device.step_clock(step_s), len(rig.records))[1])
+        # until the scene's end (gross slip and its SLIP) has come through
+        rig.run(60.0, until=lambda: feed() or any(
+            s.event_type == EventType.SLIP for s in slips[:]) and len(rig.records) > n_before + 40)
+        feed()
+        pipe.run_pending_slip()
+    c = pipe.all_counts()
+    stamps = np.array([r.stamp_ns for r in rig.records], dtype=np.int64)
+    assert np.all(np.diff(stamps) > 0)
+    assert c.get("slip_rejected_out_of_order", 0) == 0, dict(c)
+    t_step = rig.records[n_before].stamp_ns
+    slip_after = [s for s in slips if s.event_type == EventType.SLIP and s.time_ns > t_step]
+    assert slip_after, [(EventType(s.event_type).name, s.time_ns - t_step) for s in slips]
+    assert sum(1 for x in contacts if x.time_ns > t_step) >= 20
+    assert rig.link.stats()["clock_steps"] >= (1 if step_s < 0 else 0)
