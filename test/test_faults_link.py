@@ -363,9 +363,10 @@ def test_link_survives_a_consumer_and_a_device_that_never_answer(tmp_path):
 
 
 def test_hostile_but_crc_valid_frames_never_stop_the_link(tmp_path):
-    """Frames that pass every protocol check but carry extreme values (1 Hz sample rate,
-    1-sample packets, a STREAM block in triggered mode, ACKs nobody asked for, clock
-    jumps): each is used or counted, the reader never stops, packets keep flowing."""
+    """Frames that pass every protocol check but carry extreme values (1 Hz and 4.29 GHz
+    sample rates, 1-sample packets, a STREAM block in triggered mode, ACKs nobody asked
+    for, clock jumps): each is used or counted, the reader never stops, packets keep
+    flowing. Packets at a rate the device does not run at are counted rejections."""
     from ae_tactile.protocol import Ack, AckResult, StreamBlock
 
     with Rig(PtyTransport(str(tmp_path / "fingertip")), scene=LONG) as rig:
@@ -386,25 +387,53 @@ def test_hostile_but_crc_valid_frames_never_stop_the_link(tmp_path):
         ]
         for body in hostile:
             rig.runner.call(rig.device.inject_frame, body, now_ns())
-        odd = (1.0, 4_294_967_295.0)
 
-        def n_odd():
-            return sum(r.sample_rate_hz in odd for r in rig.records)
+        def n_rejected():
+            return rig.link.stats()["packets_rejected_sample_rate"]
 
-        rig.run(30.0, until=lambda: n_odd() >= 2)
+        rig.run(30.0, until=lambda: n_rejected() >= 3)
         n = len(rig.records)
         rig.run(30.0, until=lambda: len(rig.records) > n + 3)  # still delivering after them
         s = rig.link.stats()
         assert s["internal_errors"] == 0 and s["disconnects"] == 0 and s["state"] == "connected"
         assert s["frames_ok"] >= 4 and s["crc_errors"] == 0
-        assert s["frames_unusable"] <= 1  # the 1 Hz STREAM block, if refused
-        got = [r for r in rig.records if r.sample_rate_hz in odd]
-        assert len(got) == 2 and all(np.isfinite(r.samples_v).all() for r in got)
+        assert s["packets_rejected_sample_rate"] == 3  # two packets and the STREAM block
+        fs = s["device_sample_rate_hz"]
+        assert all(r.sample_rate_hz == fs for r in rig.records)
         assert all(
             np.isfinite(r.noise_rms_v) and 0 <= r.onset_index < r.samples_v.shape[1]
             for r in rig.records
         )
         assert len(rig.records) > n + 3  # still delivering
+
+
+@pytest.mark.parametrize("relabel_hz", [5_000_000, 1])
+def test_packet_relabelled_mid_stream_costs_only_itself(tmp_path, relabel_hz):
+    """A packet of the device's own samples whose sample-rate field says 5 MHz (or 1 Hz)
+    while the device runs at 10 MHz: read at that rate its delays, so its point, would be
+    off by 2x (or its 400 samples would span 400 s and move the clock mapping). It is a
+    counted rejection; its neighbours arrive, stamped within 3 ms of the true host time."""
+    from test_faults_clock import true_stamps
+
+    with Rig(PtyTransport(str(tmp_path / "fingertip")), scene=LONG) as rig:
+        rig.wait_connected()
+        rig.run(60.0, until=lambda: len(rig.records) >= 20)
+        fs = rig.link.stats()["device_sample_rate_hz"]
+        assert relabel_hz != fs
+        real = rig.sent_packets()[-1]
+        fake = Packet(real.samples, relabel_hz, real.v_per_count,
+                      pre_trigger=real.pre_trigger, first_sample_index=real.first_sample_index)
+        n_before = rig.runner.call(
+            lambda: (rig.device.inject_frame(fake, now_ns()), len(rig.records))[1])
+        rig.run(60.0, until=lambda: len(rig.records) >= n_before + 30)
+        s = rig.link.stats()
+    assert s["packets_rejected_sample_rate"] == 1
+    assert all(r.sample_rate_hz == fs for r in rig.records)
+    stamps = np.array([r.stamp_ns for r in rig.records], dtype=np.int64)
+    assert np.all(np.diff(stamps) > 0)
+    err_ms = (stamps - true_stamps(rig, rig.records)) / 1e6
+    assert np.abs(err_ms).max() < 3.0, err_ms
+    assert s["clock_steps"] == 0 and s["internal_errors"] == 0
 
 
 @pytest.mark.parametrize("then", ["rest_of_the_frame", "a_new_frame"])
@@ -499,7 +528,7 @@ def test_any_sequence_of_valid_frames_and_damage_is_used_or_counted(items, mode)
     """The link's frame handling (the reader thread's code, without a port) on any
     sequence of CRC-valid frames with arbitrary field values, repeats, cut frames and
     garbage: no exception, no non-finite value delivered, every packet accounted for."""
-    from ae_tactile.protocol import FrameEncoder, Packet
+    from ae_tactile.protocol import Ack, AckResult, FrameEncoder, Opcode, Packet, Status
 
     out = []
     link = FingertipLink(
@@ -509,13 +538,19 @@ def test_any_sequence_of_valid_frames_and_damage_is_used_or_counted(items, mode)
     )
     enc = FrameEncoder()
     n_packets = 0
+    device_fs = 0  # the device's rate as its STATUS / SET_SAMPLE_RATE ACK say (0: unknown)
     rng = np.random.default_rng(len(items))
     for body, ts, kind in items:
         wire = enc.encode(body, ts)
+        if kind != "cut" and isinstance(body, Status):
+            device_fs = body.sample_rate_hz
+        elif kind != "cut" and isinstance(body, Ack) and body.result == AckResult.OK:
+            device_fs = body.value if body.opcode == Opcode.SET_SAMPLE_RATE else device_fs
         n_packets += (
             isinstance(body, Packet)
             and kind != "cut"
             and float(body.v_per_count) * 32768.0 <= float(np.finfo(np.float32).max)
+            and device_fs in (0, body.sample_rate_hz)  # else: packets_rejected_sample_rate
         )
         if kind == "repeat":
             wire += wire

@@ -19,9 +19,11 @@ import numpy as np
 
 from ae_tactile.protocol import (
     Ack,
+    AckResult,
     Command,
     DeviceState,
     FrameEncoder,
+    Opcode,
     Packet,
     Status,
     StreamBlock,
@@ -68,6 +70,7 @@ COUNTER_NAMES = (
     "hangups",
     "internal_errors",
     "packets_rejected_nonfinite",
+    "packets_rejected_sample_rate",
     "frames_unusable",
     "bytes_cut_at_disconnect",
 )
@@ -145,6 +148,8 @@ class FingertipLink(DeviceControl):
         self._stall_reported = False  # this stall of a partial frame is reported
         self._open_failure_logged = False
         self._clock_step_logged = False
+        self._rate_mismatch_logged = False
+        self._device_fs = 0.0  # [Hz] its STATUS / SET_SAMPLE_RATE ACK rate; 0: unknown
         self._acquisition_expected = False  # START sent on this connection
         self._acquisition_restarted = False  # restarted, no sign of acquisition since
         self._last_acquiring_mono = 0.0  # last sign of acquisition (or its START)
@@ -412,6 +417,7 @@ class FingertipLink(DeviceControl):
             self.decoder.flush()
             self.decoder.forget_senders()
             self.mapper.reset()
+            self._device_fs = 0.0  # until its STATUS says
             self._packets.stream_next_index = None
             self._acquisition_expected = self._acquisition_restarted = False  # until START
             self.state = "connecting"  # "connected" once a valid frame arrives
@@ -492,8 +498,11 @@ class FingertipLink(DeviceControl):
             self._packets.stream_next_index = None
             self._packets.stream_ref = None
             self._reconfigure_pending = True
+            self._device_fs = 0.0  # its settings are lost: until its STATUS says
         body = frame.body
         device_ns = int(frame.device_time_us) * 1000
+        if isinstance(body, (Packet, StreamBlock)) and self._rate_disagrees(body):
+            return  # before the clock mapping: its duration would move the mapping
         steps = self.mapper.steps
         if isinstance(body, (Packet, StreamBlock)):
             last_ns = device_ns + int(round((body.n_samples - 1) * 1e9 / body.sample_rate_hz))
@@ -516,15 +525,37 @@ class FingertipLink(DeviceControl):
             records.extend(self._packets.stream(body, device_ns))
         elif isinstance(body, Status):
             self.device_status = body
+            self._device_fs = float(body.sample_rate_hz)
             running = (
                 DeviceState.STREAMING if self.config.mode == "stream" else DeviceState.TRIGGERED
             )
             if body.state == running:
                 self._acquiring()
         elif isinstance(body, Ack):
+            if body.opcode == Opcode.SET_SAMPLE_RATE and body.result == AckResult.OK:
+                self._device_fs = float(body.value)  # the rate actually used
             self._file_ack(body, receive_ns, device_ns)
         else:
             self.counters["frames_ignored"] += 1
+
+    def _rate_disagrees(self, body) -> bool:
+        """A PACKET / STREAM block whose sample rate is not the device's (its last STATUS
+        or SET_SAMPLE_RATE ACK; the rate changes only while IDLE) is counted
+        (``packets_rejected_sample_rate``), logged once per connection and dropped: read
+        at the wrong rate its delays, and so its point, would be wrong."""
+        fs = float(body.sample_rate_hz)
+        if self._device_fs <= 0.0 or abs(fs - self._device_fs) <= 1e-6 * self._device_fs:
+            return False
+        self.counters["packets_rejected_sample_rate"] += 1
+        if not self._rate_mismatch_logged:
+            self._rate_mismatch_logged = True
+            self.log.warning(
+                "packet at %g Hz from a device running at %g Hz: dropped (the sample rate"
+                " changes only while idle; packets_rejected_sample_rate counts them)",
+                fs,
+                self._device_fs,
+            )
+        return True
 
     def _report_clock_step(self) -> None:
         """Log a clock step once per connection (every one is counted: ``clock_steps``)."""

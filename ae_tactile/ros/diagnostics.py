@@ -17,6 +17,7 @@ LINK_PROBLEMS = (
     "internal_errors",
     "frames_unusable",
     "packets_rejected_nonfinite",
+    "packets_rejected_sample_rate",
     "port_busy",
     "acquisition_restarts",
     "acquisition_reconnects",
