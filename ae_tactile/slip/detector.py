@@ -64,7 +64,7 @@ import math
 
 import numpy as np
 
-from ae_tactile.records import ContactState
+from ae_tactile.records import ContactState, Reading
 
 from .config import SlipConfig
 from .contact import NAN3, SLIPPING, Contact
@@ -83,6 +83,10 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
     ----------
     config : SlipConfig, optional
         Detector parameters; None: the defaults.
+    contact_events : bool, optional
+        ``process`` also returns a TOUCH SlipEvent when a contact begins and a DETOUCH
+        when it ends; False (the default, the output of earlier versions): only
+        SLIP_PRECURSOR / SLIP / TEXTURE.
 
     Attributes
     ----------
@@ -95,6 +99,9 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
         dropped.
     now_ns : int or None
         Time of the newest emission or ``advance`` [ns].
+    last_reading : tuple of (Reading, int)
+        What the latest emission given to ``process`` was read as and the id of the
+        contact it was assigned to (-1: none; (UNKNOWN, -1) for a rejected one).
 
     Raises
     ------
@@ -102,7 +109,7 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
         When ``config`` is not a SlipConfig.
     """
 
-    def __init__(self, config: SlipConfig | None = None):
+    def __init__(self, config: SlipConfig | None = None, *, contact_events: bool = False):
         if config is None:
             config = SlipConfig()
         if not isinstance(config, SlipConfig):
@@ -131,6 +138,10 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
         self._fs_state, self._fs_since, self._fs_pending = ContactState.NO_CONTACT, 0, None
         self._last_end_ns = 0
         self._last_t = None
+        self.contact_events = bool(contact_events)
+        #: TOUCH / DETOUCH events decided and not yet returned (``pop_events``)
+        self._pending: list[SlipEvent] = []
+        self.last_reading = (Reading.UNKNOWN, -1)
         #: (touch-release time ns, spot (3,)) of contacts that ended, at most max_contacts
         self._ended_activity = []
 
@@ -264,7 +275,10 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
         return out
 
     def reset(self) -> None:
-        """Forget every contact (e.g. after a gap in the data); counts are kept."""
+        """Forget every contact (e.g. after a gap in the data); counts are kept. Each
+        contact that was reported begun gets its DETOUCH (``pop_events``)."""
+        for c in list(self.contacts):
+            self._end_contact(c)
         self.contacts.clear()
         self._ended_activity.clear()
         self.now_ns = None
@@ -292,7 +306,8 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
 
     def advance(self, now_ns: int) -> FingerState:
         """Let time pass without events (a node's timer): release confirmations,
-        candidate expiry, quiet slip states falling back to STICK.
+        candidate expiry, quiet slip states falling back to STICK. A contact that ends
+        here leaves its DETOUCH for ``pop_events`` (or the next ``process``'s return).
 
         Parameters
         ----------
@@ -317,6 +332,19 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
         self._expire(now)
         self._update_finger(now)
         return self._finger_state()
+
+    def pop_events(self) -> list[SlipEvent]:
+        """The TOUCH / DETOUCH events decided outside ``process`` (contacts ended by
+        ``advance`` or ``reset``), oldest first; each is returned once (``process``
+        returns those not popped before its own).
+
+        Returns
+        -------
+        list of SlipEvent
+            The pending events (often none).
+        """
+        out, self._pending = self._pending, []
+        return out
 
     def _expire(self, now):
         """Advance to ``now`` [ns]: end contacts whose release is confirmed, drop
@@ -352,11 +380,16 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
         Returns
         -------
         list of SlipEvent
-            The SLIP_PRECURSOR, SLIP and TEXTURE events it decided (often none).
+            The events it decided (often none): TOUCH when a contact begins (at its
+            first point), DETOUCH when one ends (at its centre; those ended by time
+            passing before this emission come first, as do any ``pop_events`` had not
+            returned), then SLIP_PRECURSOR, SLIP and TEXTURE. ``last_reading`` tells what
+            the emission was read as.
         """
+        self.last_reading = (Reading.UNKNOWN, -1)
         if not isinstance(ev, LocalizedEvent):
             self.counts["rejected_bad_type"] += 1
-            return []
+            return self.pop_events()
         p = ev.point_m
         px, py, pz = p.tolist()
         cov = ev.covariance_m2
@@ -369,14 +402,14 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
             and px * px + py * py + pz * pz > 0.0
         ):
             self.counts["rejected_non_finite"] += 1
-            return []
+            return self.pop_events()
         t = ev.time_ns
         if self.now_ns is not None and t < self.now_ns - self._reorder:
             self.counts["rejected_out_of_order"] += 1
-            return []
+            return self.pop_events()
         if ev.confidence < self.config.min_confidence:
             self.counts["rejected_low_confidence"] += 1
-            return []
+            return self.pop_events()
         self.counts["events"] += 1
         if self.now_ns is None or t > self.now_ns:
             self._expire(t)
@@ -392,12 +425,12 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
             self.counts["orphans_dropped"] += 1
             c = None
         if c is None:
-            self._found(ev, p, var, t, overlap)
-            self._update_finger(self.now_ns)
-            return out
-        self._member(c, ev, p, var, t, overlap, out)
+            c = self._found(ev, p, var, t, overlap)
+            self.last_reading = (Reading.TOUCH if c.confirmed else Reading.UNKNOWN, c.id)
+        else:
+            self._member(c, ev, p, var, t, overlap, out)
         self._update_finger(self.now_ns)
-        return out
+        return self.pop_events() + out if self._pending else out
 
     # ------------------------------------------------------------------ finger state
     def _update_finger(self, t):

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ae_tactile.records import ContactState
+from ae_tactile.records import ContactState, EventType, Reading
 
 from .contact import (
     EVID,
@@ -42,11 +42,14 @@ class MicroSlipEvidence:
             if kind is None:
                 # the founder was released: this is a new touch nearby
                 self._end_contact(c)
-                self._found(ev, p, var, t, overlap)
+                n = self._found(ev, p, var, t, overlap)
+                self.last_reading = (Reading.TOUCH if n.confirmed else Reading.UNKNOWN, n.id)
                 return
             flags |= kind
         c.add(t, p, var, ev.polarity, ev.packet_id, flags)
-        c.confirmed = True
+        if not c.confirmed:
+            c.confirmed = True
+            self._contact_event(EventType.TOUCH, c, c.founder_ns, c.founder[0])
         self._geometry(c)
         c.events_since_track += 1
         if c.events_since_track >= 8 or (c.moving and c.events_since_track >= 4):
@@ -63,6 +66,24 @@ class MicroSlipEvidence:
         self._texture(c, ev, out)
         if ev.polarity > 0:
             c.touch_release_open = False
+        self.last_reading = (self._reading(c, ev, flags), c.id)
+
+    @staticmethod
+    def _reading(c, ev, flags):
+        """What an emission of contact ``c`` with member ``flags`` was read as: a slip
+        emission (TEXTURE in a periodic run), a release (or a release-like emission of a
+        slipping contact), a touch or re-touch on an earlier spot, a micro-slip."""
+        if flags & SLIP_EMISSION:
+            if c.pending_release_ns == ev.time_ns:
+                return Reading.RELEASE
+            return Reading.TEXTURE if c.texture_on else Reading.SLIP
+        if flags & PAIRED:
+            return Reading.RELEASE
+        if flags & REPEAT:
+            return Reading.TOUCH if ev.polarity > 0 else Reading.RELEASE
+        if flags & EVID:
+            return Reading.MICRO_SLIP
+        return Reading.UNKNOWN
 
     def _slip_emission(self, c, ev, p, var, t):
         """The flags of an emission of a slipping (or moving) contact: every one is a slip

@@ -95,6 +95,27 @@ class SlipOutputs:
             float(why),
         )
 
+    def _contact_event(self, kind, c, t, position):
+        """Queue the TOUCH (``kind``) of contact ``c`` beginning, or its DETOUCH, at time
+        ``t`` [ns] and ``position`` (3,) [m] (nothing when contact events are off)."""
+        if not self.contact_events:
+            return
+        v = max(float(c.var[0]), 1e-12) if c.n else 1e-12
+        pids = (int(c.pid[(c.n - 1) % c.H]),) if c.n else ()
+        self._pending.append(
+            SlipEvent(
+                kind,
+                int(t),
+                np.array(position, dtype=float),
+                np.eye(3) * v,
+                c.id,
+                0.0,
+                confidence=1.0,
+                packet_ids=pids,
+                onset=True,
+            )
+        )
+
     def _centre_cov(self, c):
         """(3, 3) covariance of the contact's centre [m^2]: the scatter of its unpaired
         emissions / n, or (fewer than 3, or moving) the latest emission's variance."""

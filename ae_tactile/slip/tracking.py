@@ -9,6 +9,8 @@ import math
 
 import numpy as np
 
+from ae_tactile.records import EventType
+
 from .contact import (
     EVID,
     FOUNDER,
@@ -96,6 +98,8 @@ class ContactTracking:
             idle = [c for c in self.contacts if c.state not in SLIPPING] or self.contacts
             drop = min(idle, key=lambda c: (c.confirmed, c.last_ns))
             self.contacts.remove(drop)
+            if drop.confirmed:
+                self._contact_event(EventType.DETOUCH, drop, t, drop.centre_at(t))
             self.counts["contacts_dropped"] += 1
         c = Contact(self._next_id, t, self.config.member_history, confirmed=ev.polarity >= 0)
         self._next_id += 1
@@ -105,6 +109,8 @@ class ContactTracking:
         c.centre = p.copy()
         self.contacts.append(c)
         self.counts["contacts_created"] += 1
+        if c.confirmed:
+            self._contact_event(EventType.TOUCH, c, t, p)
         return c
 
     def _held_touch(self, F, d2, vsum, recent):
@@ -210,10 +216,14 @@ class ContactTracking:
             c.centre = c.centre_at(t) if c.track_c is not None else c.centre
 
     def _end_contact(self, c):
-        """Remove contact ``c``; its touch-release activity outlives it for
-        evidence_window_s (`_ended_activity_near`)."""
+        """Remove contact ``c`` (its DETOUCH queued when it was reported begun); its
+        touch-release activity outlives it for evidence_window_s (`_ended_activity_near`)."""
         if c in self.contacts:
             self.contacts.remove(c)
+        if c.confirmed:
+            t = c.pending_release_ns if c.pending_release_ns is not None else self.now_ns
+            t = c.last_ns if t is None else t
+            self._contact_event(EventType.DETOUCH, c, t, c.centre_at(t))
         if c.pending_release_ns is not None:
             self._last_end_ns = c.pending_release_ns
         if c.touch_release_ns is not None:

@@ -86,7 +86,8 @@ def stylus_trial(
     tex = [o for o in outs if o.kind == EventType.TEXTURE]
     lam_est = np.array([o.spatial_period_m for o in tex])
     first = tex[0] if tex else None
-    ids = {o.contact_id for o in outs}
+    # contacts that raised an alarm (the TOUCH / DETOUCH of short-lived ones are no alarm)
+    ids = {o.contact_id for o in outs if o.kind in (EventType.SLIP, EventType.TEXTURE)}
     dir_err = []
     for o in outs:
         if o.kind in (EventType.SLIP, EventType.TEXTURE) and np.all(
