@@ -303,3 +303,41 @@ def test_localizer_node_counts_every_packet_of_an_oversized_message(ros_context)
         ex.shutdown()
         node.destroy_node()
         loc.destroy_node()
+
+
+@pytest.mark.parametrize(
+    "module, given, meant",
+    [
+        ("slip_node", "slip.trak_window_s", "slip.track_window_s"),
+        ("localizer_node", "localisation.min_snr_db", "localization.min_snr_db"),
+        ("grip_reflex_node", "initial_forse_n", "initial_force_n"),
+    ],
+)
+def test_every_node_warns_once_about_a_parameter_it_does_not_have(tmp_path, module, given, meant):
+    """The other nodes, started as a user starts them (a process, ``--ros-args -p``), warn
+    once about a misspelt name, naming the one meant, and keep running until SIGINT."""
+    import signal
+    import time
+
+    require_ros()
+    log = tmp_path / "node.log"
+    with open(log, "w") as out:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", f"ae_tactile.ros.{module}", "--ros-args",
+             "-p", f"{given}:=1.0", "-r", f"__ns:=/t{os.getpid()}"],
+            stdout=out, stderr=subprocess.STDOUT, cwd=tmp_path,
+        )
+    try:
+        deadline = time.monotonic() + 120.0  # a generous wait on a condition, not a bound
+        while time.monotonic() < deadline and "unknown parameter" not in log.read_text():
+            assert proc.poll() is None, log.read_text()
+            time.sleep(0.1)
+        text = log.read_text()
+        assert proc.poll() is None, text  # still running
+    finally:
+        proc.send_signal(signal.SIGINT)
+        code = proc.wait(timeout=60)
+    lines = [ln for ln in log.read_text().splitlines() if "unknown parameter" in ln]
+    assert len(lines) == 1, text
+    assert f"'{given}'" in lines[0] and f"'{meant}'?" in lines[0], lines[0]
+    assert code == 0, text

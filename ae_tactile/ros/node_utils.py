@@ -295,7 +295,9 @@ def run_node(node_factory, args=None, executor_factory=SingleThreadedExecutor) -
     A signal during the node's construction (which may JIT-compile for a while) aborts
     the construction; during spinning it ends the loop within STOP_POLL_S. ``-h`` or
     ``--help`` before ``--ros-args`` (``python -m ae_tactile.ros.<node> --help``) prints
-    the usage of the factory's module (`print_help`) and returns 0 without starting ROS."""
+    the usage of the factory's module (`print_help`) and returns 0 without starting ROS.
+    Parameter names given to the node that it does not have are warned about once
+    (`params.warn_unknown_parameters`) unless the node did so itself."""
     own, _ = split_ros_args(sys.argv[1:] if args is None else list(args))
     if wants_help(own):
         module = sys.modules[node_factory.__module__]
@@ -309,6 +311,8 @@ def run_node(node_factory, args=None, executor_factory=SingleThreadedExecutor) -
         try:
             node = node_factory()
             state["interrupt"] = False
+            if not getattr(node, "_ae_tactile_names_checked", False):
+                shared_params.warn_unknown_parameters(node)  # a misspelt -p is not silent
             if not state["stop"].is_set():
                 executor = executor_factory()
                 executor.add_node(node)

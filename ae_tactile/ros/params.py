@@ -345,6 +345,7 @@ def warn_unknown_parameters(node, known=()) -> list[str]:
         The names warned about (empty: no warning).
     """
     names = unknown_overrides(node, known)
+    node._ae_tactile_names_checked = True  # run_node checks every node once, this one done
     if not names:
         return names
     declared = list(node._parameters) + list(known)
