@@ -18,6 +18,10 @@ defaults:
       second emission lost without a rejection or a count;
   (d) identical waveforms on the four channels (a touch's channel 0 copied): rejected by
       `localize`, `Localizer.localize_one`, `localize_with_overlaps` and the pipeline?
+  (e) slip (`ae_eval.zoo_slip`): the incipient-slip scene and three touch scenes (Fig. 8's
+      pins, a touch held and released, Fig. 7's sequence), their emissions rendered on the
+      device, through the pipeline and its slip stage: precursor before gross slip, SLIP
+      before q = 0.9, SLIP delay, touch-scene runs with a false slip output.
 
     python3 bench_zoo.py --quick          # a few minutes: 2 x 2 x 2 cells, small counts
     python3 bench_zoo.py                  # 4 SNR x 3 rates x 2 media
@@ -37,6 +41,7 @@ from scipy import linalg
 
 from ae_eval.overlap_trials import simulate_overlaps
 from ae_eval.zoo import NOMINAL, ZOO, held_out
+from ae_eval.zoo_slip import device_slip_figures
 from ae_tactile.localization import Localizer, localize
 from ae_tactile.localization.overlap import localize_with_overlaps
 from ae_tactile.pipeline import ContactPipeline, PacketLocalizer
@@ -262,6 +267,7 @@ def run_device(dev, grid, counts, seed):
     out["cells"] = [accuracy_cell(dev, m, fs, s, counts["cell"], g) for m, fs, s in grid]
     out["overlap"] = overlap_pairs(dev, counts["overlap"], g)
     out["identical"] = identical_channels(dev, counts["identical"], g)
+    out["slip"] = device_slip_figures(dev, range(1, 1 + counts["slip_seeds"]))
     ratios = [c["rms_over_crlb"] for c in out["cells"]]
     ins = [c["inside_68"] for c in out["cells"]]
     out["worst_rms_over_crlb"] = float(np.nanmax(ratios))
@@ -295,11 +301,13 @@ def table(result) -> str:
         "",
         "| device | apex kept % warm (cold) | interf. rejected % warm (cold) | worst rms/CRLB"
         " | inside 68 % (min-max) | overlaps resolved % | silent 2nd drop % | identical"
-        " rejected % (localize / localize_one / with_overlaps / pipeline) |",
-        "|---|---|---|---|---|---|---|---|",
+        " rejected % (localize / localize_one / with_overlaps / pipeline) | slip: precursor"
+        " before gross % / SLIP before q=0.9 % / SLIP delay p50 ms / touch runs with a false"
+        " alarm % |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        idn, ap = r["identical"], r["apex"]
+        idn, ap, sl = r["identical"], r["apex"], r["slip"]
         lines.append(
             f"| {r['name']} | {_pct(ap['apex_kept'])} ({_pct(ap.get('cold_apex_kept'))}) |"
             f" {_pct(ap['interference_rejected'])}"
@@ -308,7 +316,9 @@ def table(result) -> str:
             f" {_pct(r['inside_68_range'][0])}-{_pct(r['inside_68_range'][1])} |"
             f" {_pct(r['overlap']['resolved'])} | {_pct(r['overlap']['silent_second_dropped'])} |"
             f" {_pct(idn['localize'])} / {_pct(idn['localize_one'])} /"
-            f" {_pct(idn['localize_with_overlaps'])} / {_pct(idn['pipeline'])} |")
+            f" {_pct(idn['localize_with_overlaps'])} / {_pct(idn['pipeline'])} |"
+            f" {_pct(sl['precursor_before_gross'])} / {_pct(sl['slip_before_q09'])} /"
+            f" {sl['slip_delay_ms']:.0f} / {_pct(sl['false_alarm_runs'])} |")
     w = result["worst"]
     lines += ["", "Worst over the named zoo (and over the held-out draws) beside the nominal:",
               "", "| figure | nominal | worst (zoo) | device | worst (held-out) |",
@@ -334,6 +344,10 @@ FIGURES = {  # name: (extractor, worst is max?)
     "identical_rejected_with_overlaps": (lambda r: r["identical"]["localize_with_overlaps"],
                                          False),
     "identical_rejected_pipeline": (lambda r: r["identical"]["pipeline"], False),
+    "slip_precursor_before_gross": (lambda r: r["slip"]["precursor_before_gross"], False),
+    "slip_before_q09": (lambda r: r["slip"]["slip_before_q09"], True),
+    "slip_found": (lambda r: r["slip"]["slip_found"], False),
+    "slip_false_alarm_runs": (lambda r: r["slip"]["false_alarm_runs"], True),
 }
 
 
@@ -361,12 +375,12 @@ def main(argv=None):
     if a.quick:
         grid = [(m, fs, s) for m in ("water_skin", "silicone") for fs in (2e6, 10e6)
                 for s in (20.0, 40.0)]
-        counts = dict(apex=60, cell=30, overlap=20, identical=12)
+        counts = dict(apex=60, cell=30, overlap=20, identical=12, slip_seeds=3)
         n_held = 3 if a.held_out is None else a.held_out
     else:
         grid = [(m, fs, s) for m in ("water_skin", "silicone") for fs in (2e6, 5e6, 10e6)
                 for s in (10.0, 20.0, 30.0, 40.0)]
-        counts = dict(apex=200, cell=100, overlap=60, identical=40)
+        counts = dict(apex=200, cell=100, overlap=60, identical=40, slip_seeds=10)
         n_held = 8 if a.held_out is None else a.held_out
     devices = [d for d in ZOO.values() if not a.only or d.name in a.only or d is NOMINAL]
     devices += held_out(a.seed, n_held)
