@@ -32,7 +32,7 @@ PACKAGE = "ae_tactile"
 #: rank of each top-level part of the package along the data flow: a module may import
 #: from its own rank or below, never from above
 LAYERS = {
-    "geometry": 0, "records": 0, "jit": 0, "protocol": 0,
+    "geometry": 0, "records": 0, "jit": 0, "protocol": 0, "calibration": 0,
     "dsp": 1, "localization": 1, "sim": 1,
     "slip": 2,
     "pipeline": 3,
