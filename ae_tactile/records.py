@@ -6,8 +6,11 @@
 - `Reading`: what one emission was read as (touch, release, micro-slip, ...);
 - `PacketView`: what the pipeline needs of one packet (a link record or a message);
 - `ContactRecord`: one event for the robot hand (core side of ContactEvent.msg);
+- `EmissionRecord`: one localized emission with its reading (core side of Emission.msg);
+- `ContactSnapshot`: one current contact (core side of Contact.msg);
 - `packet_record`, `source_record`, `slip_record`: a localized packet, a resolved emission
-  and a slip detector event as a ContactRecord; `onset_ns`: a packet's trigger time.
+  and a slip detector event as a ContactRecord; `emission_record`: a localized packet's
+  record with its reading; `onset_ns`: a packet's trigger time.
 
 SI units and integer nanoseconds throughout; no rclpy.
 """
@@ -76,6 +79,7 @@ class PacketView:
     sequence_id: int
     noise_rms_v: float = 0.0
     saturated: bool = False
+    device_sample_index: int | None = None  # device sample count at samples_v[:, 0]; None: unknown
 
 
 @dataclass(slots=True)
@@ -84,6 +88,9 @@ class ContactRecord:
 
     point_m (3,) fingertip frame; covariance_m2 (3, 3); angles in rad; delays in s;
     packet_ids: the source packets (a slip event's last id is the emission that decided it).
+    A localized emission's record (the localizer's output) is TOUCH for a compression and
+    DETOUCH for a rarefaction; what the hand receives on ``contacts`` is the slip
+    detector's TOUCH at a contact's begin and DETOUCH at its end, with ``contact_id``.
     """
 
     event_type: int
@@ -102,6 +109,153 @@ class ContactRecord:
     slip_direction: tuple = _NAN3
     overlap_excess: float = 0.0  # single-emission misfit beyond noise (localization only)
     weak_release: bool = False  # below min_snr_db, kept by the weak-release gate (localization)
+    contact_id: int = 0  # the slip detector's contact (from 1); 0: none
+    device_time_ns: int = -1  # emission time on the device clock [ns]; -1 unknown
+
+
+@dataclass(slots=True)
+class EmissionRecord:
+    """One localized emission and what it was read as (core side of Emission.msg).
+
+    Attributes
+    ----------
+    time_ns : int
+        Emission time, host clock [ns].
+    point_m : tuple
+        (x, y, z) emission point, fingertip frame [m].
+    covariance_m2 : numpy.ndarray
+        (3, 3) covariance of the point [m^2].
+    packet_ids : tuple
+        Source packets' sequence ids.
+    polarity : int
+        +1 compression, -1 rarefaction, 0 unknown.
+    reading : int
+        A `Reading` value.
+    contact_id : int
+        The contact it was assigned to (from 1); 0: none.
+    polar_rad, azimuth_rad : float
+        Direction of the point [rad].
+    tau_x_s, tau_y_s : float
+        Fitted delays [s].
+    amplitude_v : float
+        Signed amplitude [V].
+    confidence : float
+        Localization confidence in [0, 1].
+    device_time_ns : int
+        Emission time on the device clock [ns]; -1 unknown.
+    """
+
+    time_ns: int
+    point_m: tuple
+    covariance_m2: np.ndarray
+    packet_ids: tuple
+    polarity: int
+    reading: int = int(Reading.UNKNOWN)
+    contact_id: int = 0
+    polar_rad: float = math.nan
+    azimuth_rad: float = math.nan
+    tau_x_s: float = math.nan
+    tau_y_s: float = math.nan
+    amplitude_v: float = math.nan
+    confidence: float = 0.0
+    device_time_ns: int = -1
+
+
+@dataclass(slots=True)
+class ContactSnapshot:
+    """One current contact of a finger (core side of Contact.msg).
+
+    Attributes
+    ----------
+    contact_id : int
+        The contact's id (from 1).
+    point_m : tuple
+        (x, y, z) its centre, fingertip frame [m].
+    state : int
+        A `ContactState` value (its own state).
+    since_ns : int
+        When that state began, host clock [ns].
+    slip_emission_rate_hz : float
+        Recent rate of its micro-slip / slip emissions [Hz].
+    precursor_count : int
+        Its SLIP_PRECURSOR events since it began.
+    """
+
+    contact_id: int
+    point_m: tuple
+    state: int
+    since_ns: int
+    slip_emission_rate_hz: float = 0.0
+    precursor_count: int = 0
+
+
+def emission_record(c: ContactRecord, reading=Reading.UNKNOWN, contact_id: int = 0
+                    ) -> EmissionRecord:
+    """A localized emission's record (`packet_record`, `source_record`) with its reading.
+
+    Parameters
+    ----------
+    c : ContactRecord
+        The localizer's record (TOUCH: compression, DETOUCH: rarefaction).
+    reading : Reading or int
+        What the slip detector read it as.
+    contact_id : int
+        The contact it was assigned to; 0 (or negative): none.
+
+    Returns
+    -------
+    EmissionRecord
+    """
+    return EmissionRecord(
+        time_ns=c.time_ns,
+        point_m=c.point_m,
+        covariance_m2=c.covariance_m2,
+        packet_ids=c.packet_ids,
+        polarity=-1 if c.event_type == EventType.DETOUCH else 1,
+        reading=int(reading),
+        contact_id=max(int(contact_id), 0),
+        polar_rad=c.polar_rad,
+        azimuth_rad=c.azimuth_rad,
+        tau_x_s=c.tau_x_s,
+        tau_y_s=c.tau_y_s,
+        amplitude_v=c.amplitude_v,
+        confidence=c.confidence,
+        device_time_ns=c.device_time_ns,
+    )
+
+
+def contact_snapshot(info) -> ContactSnapshot:
+    """A slip detector's `ContactInfo` as a ContactSnapshot.
+
+    Parameters
+    ----------
+    info : ae_tactile.slip.ContactInfo
+        One tracked contact.
+
+    Returns
+    -------
+    ContactSnapshot
+    """
+    x, y, z = (float(v) for v in info.centre_m)
+    return ContactSnapshot(
+        contact_id=int(info.contact_id),
+        point_m=(x, y, z),
+        state=int(info.state),
+        since_ns=int(info.since_ns),
+        slip_emission_rate_hz=float(info.slip_emission_rate_hz),
+        precursor_count=int(info.precursor_count),
+    )
+
+
+def _device_time_ns(p, offset_s: float) -> int:
+    """Device-clock time [ns] of ``offset_s`` after a packet's first sample; -1 unknown."""
+    k = getattr(p, "device_sample_index", -1)
+    if k is None or k < 0:
+        return -1
+    try:
+        return int(round((int(k) / float(p.sample_rate_hz) + float(offset_s)) * 1e9))
+    except (TypeError, ValueError, ZeroDivisionError, OverflowError):
+        return -1
 
 
 def source_record(p, src) -> ContactRecord:
@@ -120,11 +274,13 @@ def source_record(p, src) -> ContactRecord:
         tau_y_s=float(tau[1]),
         amplitude_v=float(src.amplitude_v),
         confidence=float(src.confidence),
+        device_time_ns=_device_time_ns(p, float(src.emission_time_s)),
     )
 
 
 def slip_record(s) -> ContactRecord:
-    """A slip detector event as a ContactRecord."""
+    """A slip detector event (a contact's TOUCH / DETOUCH, its SLIP_PRECURSOR, SLIP or
+    TEXTURE) as a ContactRecord carrying the contact's id."""
     x, y, z = (float(v) for v in s.position_m)
     rho = math.hypot(x, y)
     return ContactRecord(
@@ -139,6 +295,7 @@ def slip_record(s) -> ContactRecord:
         emission_rate_hz=float(s.emission_rate_hz),
         spatial_period_m=float(s.spatial_period_m),
         slip_direction=tuple(float(v) for v in np.asarray(s.slip_direction, dtype=float)),
+        contact_id=max(int(s.contact_id), 0),
     )
 
 
@@ -186,6 +343,7 @@ def packet_record(
         amplitude_v=float(amp),
         confidence=float(conf),
         overlap_excess=float(excess),
+        device_time_ns=_device_time_ns(p, offset_s),
     )
 
 

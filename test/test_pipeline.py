@@ -157,67 +157,84 @@ def _slip_scene_packets():
 
 
 def test_pipeline_reports_touches_before_slip_and_slip_events_name_the_deciding_packet():
+    """The incipient-slip scene in read cycles: the contact's TOUCH goes out before any slip
+    event of it, which carries its id; every localized emission goes out once on the
+    emissions callback, with a reading, after the localizer handed it over."""
+    from ae_tactile.records import Reading
+
     views, sc, _ = _slip_scene_packets()
     geo = sc.config.geometry
     pipe = ContactPipeline(PacketLocalizer("ml", geometry=geo), SlipStage(SlipConfig()))
-    order, slips = [], []
+    order, slips, contacts, localized, emissions = [], [], [], [], []
 
     def on_contacts(cs):
         order.append(("contacts", len(cs)))
+        contacts.extend(cs)
 
     def on_slip(ss):
         order.append(("slip", len(ss)))
         slips.extend(ss)
 
+    def on_emissions(es):
+        assert all(e.packet_ids[0] in {c.packet_ids[0] for c in localized} for e in es)
+        emissions.extend(es)
+
     for i in range(0, len(views), 4):  # batches as a read cycle would give them
-        pipe.process(views[i : i + 4], on_contacts, on_slip)
+        pipe.process(views[i : i + 4], localized.extend, on_slip, on_contacts=on_contacts,
+                     on_emissions=on_emissions)
     assert pipe.wait_idle(120.0)  # what waited for the overlap resolver's answers
     pipe.close()
     kinds = {s.event_type for s in slips}
     assert EventType.SLIP_PRECURSOR in kinds and EventType.SLIP in kinds
     first_slip = next(i for i, o in enumerate(order) if o[0] == "slip")
-    assert order[first_slip - 1][0] == "contacts"  # the batch's contacts went out first
+    assert order[first_slip - 1][0] == "contacts"  # the contact's TOUCH went out first
+    touched = {c.contact_id for c in contacts if c.event_type == EventType.TOUCH}
+    assert touched and 0 not in touched
+    assert {s.contact_id for s in slips} <= touched
     ids = {v.sequence_id for v in views}
     for s in slips:
         assert s.packet_ids and s.packet_ids[-1] in ids
         assert all(np.isfinite(s.point_m))
     # the deciding packet is the newest one the event names
     assert all(s.packet_ids[-1] == max(s.packet_ids) for s in slips)
+    # one emission record per localized emission, in the order of their slip step
+    assert sorted(e.packet_ids for e in emissions) == sorted(c.packet_ids for c in localized)
+    assert all(e.reading in set(Reading) for e in emissions)
+    assert {e.contact_id for e in emissions if e.contact_id} <= touched
 
 
-def test_slip_step_put_off_while_packets_wait_gives_the_same_slip_events_after_the_contacts():
-    """With more packets waiting (the link's bytes_waiting), the slip step waits for them:
-    every contact event of a batch goes out before any slip event it decides, and the
-    slip events are exactly those of the immediate pipeline, in the same order."""
+def test_the_slip_step_is_not_put_off_while_packets_wait():
+    """The slip step decides a contact's TOUCH: it runs for each batch within its own
+    `process` call even while the link says more packets wait, and gives the same events
+    as without that signal, in the same order."""
     views, sc, _ = _slip_scene_packets()
     geo = sc.config.geometry
 
-    def run(more_waiting, flush_every=None):
+    def run(more_waiting):
         pipe = ContactPipeline(
             PacketLocalizer("ml", geometry=geo, resolve_overlaps=False), SlipStage(SlipConfig())
         )
-        handed, slips, late = set(), [], []
+        out, late = [], []
+        for i in range(0, len(views), 4):
+            batch_ids = {v.sequence_id for v in views[i : i + 4]}
+            n = pipe.slip.counts["contacts_in"]
 
-        def on_contacts(cs):
-            handed.update(c.packet_ids[0] for c in cs)
+            def on_events(rs, batch_ids=batch_ids):
+                late.extend(r for r in rs if r.packet_ids and r.packet_ids[-1] not in batch_ids
+                            and r.event_type != EventType.DETOUCH)
+                out.extend(rs)
 
-        def on_slip(ss):
-            late.extend(s for s in ss if s.packet_ids[-1] not in handed)
-            slips.extend(ss)
-
-        for k, i in enumerate(range(0, len(views), 4)):
-            pipe.process(views[i : i + 4], on_contacts, on_slip, more_waiting=more_waiting)
-            if flush_every and k % flush_every == flush_every - 1:
-                pipe.run_pending_slip()  # the link's idle call
-        pipe.run_pending_slip()
-        assert not pipe.slip_pending and not late
-        return [(s.event_type, s.time_ns, s.packet_ids) for s in slips]
+            localized = []
+            pipe.process(views[i : i + 4], localized.extend, on_events,
+                         more_waiting=more_waiting, on_contacts=on_events)
+            assert not pipe.slip_pending
+            assert pipe.slip.counts["contacts_in"] - n == len(localized)  # all stepped
+        assert not late
+        return [(int(r.event_type), r.time_ns, r.packet_ids, r.contact_id) for r in out]
 
     immediate = run(None)
-    assert len(immediate) >= 10
-    assert run(lambda: False) == immediate
-    assert run(lambda: True, flush_every=7) == immediate  # bursts of 7 batches
-    assert run(lambda: True) == immediate  # up to SLIP_MAX_DEFER_S, then all at the end
+    assert sum(1 for r in immediate if r[0] == EventType.TOUCH) >= 1
+    assert run(lambda: True) == immediate
 
 
 def test_slip_stage_processes_late_events_within_the_tolerance_and_counts_older_ones():
@@ -700,7 +717,7 @@ def test_slip_events_do_not_depend_on_when_the_overlap_resolver_answers(inline_m
     got = []
     try:
         for v in views:
-            pipe.process([v], lambda cs: None, got.extend)
+            pipe.process([v], None, got.extend, on_contacts=got.extend)
         assert pipe.wait_idle(120.0)
         counts = pipe.all_counts()
         assert counts["overlap_windows_resolved"] >= 2  # the scene's overlaps went there
@@ -709,8 +726,13 @@ def test_slip_events_do_not_depend_on_when_the_overlap_resolver_answers(inline_m
         assert "slip_hold_expired" not in counts
     finally:
         pipe.close()
-    key = [(int(s.event_type), s.packet_ids, s.time_ns) for s in expected]
-    assert [(int(s.event_type), s.packet_ids, s.time_ns) for s in got] == key
+    # a contact's begin / end and its slip events, each in the same order with the same stamps
+    for kinds in ((EventType.TOUCH, EventType.DETOUCH),
+                  (EventType.SLIP_PRECURSOR, EventType.SLIP, EventType.TEXTURE)):
+        key = [(int(s.event_type), s.packet_ids, s.time_ns, s.contact_id) for s in expected
+               if s.event_type in kinds]
+        assert [(int(s.event_type), s.packet_ids, s.time_ns, s.contact_id) for s in got
+                if s.event_type in kinds] == key
 
 
 def test_an_emission_in_the_windows_of_two_triggers_is_handed_out_once():
@@ -900,11 +922,11 @@ def test_the_pair_window_of_a_deferred_window_is_answered_by_the_worker_alone():
     assert [(e.time_ns, e.point_m) for e in got] == [(e.time_ns, e.point_m) for e in expected]
 
 
-def test_a_slip_step_put_off_runs_before_a_later_window_is_fitted_in_the_reader():
-    """A packet's slip step, put off while more bytes were waiting, runs before an
-    overlapping window that arrived meanwhile is fitted in the reader: a precursor it
-    decides does not wait ~1 ms for the fit. The slip stage then takes the window's two
-    emissions too, none out of order."""
+def test_a_batchs_touch_goes_out_before_a_later_window_of_the_batch_is_fitted():
+    """A batch holding a packet and, 5 ms later, an overlapping window fitted in the reader
+    (about a millisecond): the packet's slip step runs first, so its TOUCH is handed out
+    before the window's emissions are localized; the slip stage then takes the window's
+    two emissions too, none out of order."""
     from ae_eval.overlap_trials import simulate_overlaps
 
     views, _, _ = _packets(n=1)
@@ -916,22 +938,20 @@ def test_a_slip_step_put_off_runs_before_a_later_window_is_fitted_in_the_reader(
                         first.stamp_ns + 5_000_000, 7)  # 5 ms later
     pipe = ContactPipeline(PacketLocalizer("ml", geometry=cfg.geometry), SlipStage(SlipConfig()))
     pipe.overlap_inline_max = 2
-    seen_by_slip = []  # slip stage's contacts_in when the contact events are handed out
-
-    def contacts_out(recs):
-        seen_by_slip.append((recs[0].packet_ids, pipe.slip.counts["contacts_in"]))
+    seq = []  # what was handed out, in order
 
     try:
-        pipe.process([first], contacts_out, more_waiting=lambda: True)  # slip step put off
-        assert pipe.slip.counts["contacts_in"] == 0 and pipe.slip_pending
-        pipe.process([window], contacts_out, more_waiting=lambda: True)
-        pipe.run_pending_slip()
+        pipe.process([first, window], lambda rs: seq.extend(("localized", r.packet_ids)
+                                                            for r in rs),
+                     on_contacts=lambda rs: seq.extend((EventType(r.event_type).name,
+                                                        r.packet_ids) for r in rs))
         assert pipe.wait_idle(300.0)
         counts, slip_counts = pipe.all_counts(), pipe.slip.all_counts()
     finally:
         pipe.close()
     assert counts["overlap_answered_in_reader"] == 1
-    assert seen_by_slip == [((0,), 0), ((7,), 1)], seen_by_slip  # first's step before the fit
+    assert seq[:2] == [("localized", (0,)), ("TOUCH", (0,))], seq  # before the fit
+    assert [s for s in seq if s[0] == "localized"][1:] == [("localized", (7,))] * 2, seq
     assert slip_counts["contacts_in"] == 3 and slip_counts["slip_rejected_out_of_order"] == 0
 
 

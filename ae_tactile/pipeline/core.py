@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The fingertip's hot path: decoded packets -> contact events -> slip events (no rclpy).
+"""The fingertip's hot path: decoded packets -> emissions -> contacts and slips (no rclpy).
 
 `ContactPipeline.process` runs, for each batch of packets the link decodes and in the thread
 that decoded them, the stages in order (one module each, docs/pipeline.md):
@@ -9,14 +9,19 @@ that decoded them, the stages in order (one module each, docs/pipeline.md):
 2. screens (`screens.Screens`, called by the localizer): common-mode interference, windows
    holding overlapping emissions withdrawn, the weak-release gate;
 3. hand (`hand.HandStage`): apex packets held for the hand's coincidence test;
-4. contacts out: the contact events go to ``on_contacts`` at once, before the slip step;
+4. slip (`slip_stage.SlipOrder`, `slip_stage.SlipStage`): the slip detector interprets
+   the batch's emissions at once (before any overlapping window is fitted): a contact's
+   TOUCH (its begin) and DETOUCH (its end) go to ``on_contacts``, its SLIP_PRECURSOR /
+   SLIP / TEXTURE to ``on_slip``, every emission with its reading to ``on_emissions``;
 5. overlaps (`overlaps.OverlapStage`): windows holding several emissions, the first few
    answered here, the others by `OverlapResolver` (its thread and worker process), later;
-6. slip (`slip_stage.SlipOrder`, `slip_stage.SlipStage`): the slip step in time order,
-   put off while packets wait, held while a window that may hold an earlier emission is
-   with the resolver.
+   emissions later than a window with the resolver are held until its answer (time
+   order), then go through the slip step.
 
-Emission time of a contact event (int ns, host clock):
+The localizer's records (a ContactRecord per emission: TOUCH for a compression, DETOUCH
+for a rarefaction) go to ``on_localized`` as they come, before the slip step.
+
+Emission time of a localized emission (int ns, host clock):
     t_emit = t_first_sample + emission_offset_s,
 emission_offset_s being the fitted arrival at the nearest element minus the travel time
 from the fitted point to it (or onset_index / fs minus that travel time when the
@@ -29,8 +34,9 @@ answers over (`_late_from_resolver`, `OverlapStage._window_done`); a timer calls
 
 1. `HandStage.release_lock` (hand): one thread at a time hands out events while the hand
    holds some (`process` on a hand, `release_coincidence`, `enable_hand`);
-2. `SlipOrder.lock` (slip, re-entrant; the step lock): held, put-off and waited-for
-   events, one slip step at a time; `release_coincidence` holds it around its hand-out;
+2. `SlipOrder.lock` (slip, re-entrant; the step lock): held and waited-for events, one
+   slip step at a time (its outputs are handed out under it); `release_coincidence`
+   holds it around its hand-out;
 3. `HandStage.lock` (hand): the coincidence test and its reports; and
    `OverlapStage.lock` (overlaps): the duplicate check's memory; and
    `SlipStage.lock` (slip): the detector. These three are never nested in one another.
@@ -53,6 +59,10 @@ from ae_tactile.pipeline.overlaps import OverlapResolver, OverlapStage, earliest
 from ae_tactile.pipeline.slip_stage import SlipOrder, SlipStage
 
 
+def _ignore(records: list) -> None:
+    """A callback that takes nothing (no ``on_localized`` given)."""
+
+
 def _stage_attr(stage: str, name: str, doc: str) -> property:
     """A stage's setting seen (and set) through the pipeline."""
     return property(
@@ -63,11 +73,15 @@ def _stage_attr(stage: str, name: str, doc: str) -> property:
 
 
 class ContactPipeline:
-    """The stages behind one call: ``process(packets, on_contacts, on_slip)``.
+    """The stages behind one call: ``process(packets, on_localized, on_slip, ...,
+    on_contacts=..., on_emissions=...)``.
 
-    ``on_contacts`` is called with the contact events of the batch before the slip step
-    runs (a touch reaches the hand without waiting for slip analysis), then ``on_slip``
-    with the slip events (if any).
+    The slip step runs for a batch's emissions at once: ``on_contacts`` gets a contact's
+    TOUCH when it begins and its DETOUCH when it ends (also from `tick`), ``on_slip`` its
+    SLIP_PRECURSOR / SLIP / TEXTURE, ``on_emissions`` every emission with its reading
+    (`ae_tactile.records.EmissionRecord`); ``on_localized`` the localizer's records as
+    they come, before the slip step. Without a slip stage, ``on_emissions`` gets each
+    emission at once with the reading UNKNOWN.
 
     Parameters
     ----------
@@ -111,7 +125,8 @@ class ContactPipeline:
         self.localizer = localizer
         self.slip = slip
         self.counts = Counter() if counts is None else counts
-        self._outputs: tuple = (None, None)  # (on_contacts, on_slip) of the latest process()
+        #: on_localized of the latest process() (None: none given); False: no process() yet
+        self._on_localized: Callable[[list], None] | None | bool = False
         self.slip_order = SlipOrder(slip, self.counts, overlap_hold_max_s)
         so = self.slip_order
         self.overlap_stage = OverlapStage(
@@ -134,25 +149,31 @@ class ContactPipeline:
     def process(
         self,
         packets: Sequence,
-        on_contacts: Callable[[list], None],
+        on_localized: Callable[[list], None] | None = None,
         on_slip: Callable[[list], None] | None = None,
         more_waiting: Callable[[], bool] | None = None,
+        *,
+        on_contacts: Callable[[list], None] | None = None,
+        on_emissions: Callable[[list], None] | None = None,
     ) -> None:
-        """Localize, hand out the contact events, then run the slip step on them.
+        """Localize the batch, run the slip step on its emissions, hand out what it gives.
 
         Parameters
         ----------
         packets : sequence of PacketView
             One batch, in arrival order.
-        on_contacts : callable
-            Called with each list of contact records, before their slip step.
+        on_localized : callable, optional
+            Called with each list of the localizer's records (ContactRecord per emission,
+            TOUCH: compression, DETOUCH: rarefaction), before their slip step.
         on_slip : callable, optional
-            Called with each list of slip records.
+            Called with each list of SLIP_PRECURSOR / SLIP / TEXTURE records.
         more_waiting : callable, optional
-            Asked after the contact events are out (e.g. the link's `bytes_waiting`);
-            while it says more packets are already waiting, the slip step is put off, at
-            most ``SLIP_MAX_DEFER_S``, so that their contact events go out first;
-            `run_pending_slip` (the link's idle call) or a later `process` runs it.
+            Asked after the batch (e.g. the link's `bytes_waiting`): while more packets
+            wait, the echo test's learning waits for `run_idle_work`.
+        on_contacts : callable, optional
+            Called with each list of a contact's TOUCH (begin) / DETOUCH (end) records.
+        on_emissions : callable, optional
+            Called with each list of `EmissionRecord` (every emission, its reading).
 
         Returns
         -------
@@ -160,16 +181,24 @@ class ContactPipeline:
             On a hand (`enable_hand`), one thread at a time hands out events (the held
             packets' release waits for this batch, or a timer's is skipped).
         """
+        self.set_outputs(on_localized, on_slip, on_contacts=on_contacts,
+                         on_emissions=on_emissions)
         if self.hand_stage.hand is None:
-            self._process(packets, on_contacts, on_slip, more_waiting)
+            self._process(packets, on_localized, more_waiting)
             return
         with self.hand_stage.release_lock:
-            self._process(packets, on_contacts, on_slip, more_waiting)
+            self._process(packets, on_localized, more_waiting)
 
-    def _process(self, packets, on_contacts, on_slip, more_waiting) -> None:
+    def set_outputs(self, on_localized=None, on_slip=None, *, on_contacts=None,
+                    on_emissions=None) -> None:
+        """Where the outputs go (as `process`'s callbacks), e.g. before the first batch so
+        that `tick`'s DETOUCHes and the resolver's late answers have a destination."""
+        self._on_localized = on_localized
+        so = self.slip_order
+        so.on_slip, so.on_contacts, so.on_emissions = on_slip, on_contacts, on_emissions
+
+    def _process(self, packets, on_localized, more_waiting) -> None:
         """The stages in order (`process`)."""
-        self._outputs = (on_contacts, on_slip)
-        self.slip_order.on_slip = on_slip
         loc = self.localizer
         self._learn_echo_first()
         contacts = loc.process(packets)  # localize, screens
@@ -181,11 +210,12 @@ class ContactPipeline:
             # keeps every event a window could hold until the window is answered
             self.overlap_stage.register(windows, loc.geometry)
         contacts = self.overlap_stage.claim(contacts, resolved=False)
+        if contacts and on_localized:
+            on_localized(contacts)
         if windows:
-            contacts = self._contacts_and_overlaps(contacts, windows, on_contacts)
-        elif contacts:
-            on_contacts(contacts)
-        self.slip_order.after_batch(contacts, more_waiting)
+            self._overlaps(contacts, windows, on_localized)
+        else:
+            self.slip_order.after_batch(contacts)
         if loc.echo_pending and (more_waiting is None or self.slip is None or not more_waiting()):
             loc.learn_echo()  # else when the link is idle (`run_idle_work`)
 
@@ -197,35 +227,27 @@ class ContactPipeline:
         if loc.echo_pending and loc.echo_learner.ratio is None:
             loc.learn_echo()
 
-    def _contacts_and_overlaps(self, contacts: list, windows: list, on_contacts) -> list:
-        """The batch's contact events out, the slip step put off before them run, then the
-        overlapping windows (their events out as they come); returns all of them."""
-        if contacts:  # out before the overlapping windows are resolved
-            on_contacts(contacts)
-        if self.slip_order.pending:
-            g = self.localizer.geometry
-            self.slip_order.before(min(earliest_emission_ns(p, g) for p in windows))
-        return contacts + self.overlap_stage.overlapping(
-            windows, on_contacts, self.localizer.geometry
-        )
+    def _overlaps(self, contacts: list, windows: list, on_localized) -> None:
+        """The slip step of the batch's emissions older than the overlapping windows'
+        earliest one (their TOUCHes out before the fits), then the windows (their
+        emissions to ``on_localized`` as they come), then the slip step of the rest."""
+        g = self.localizer.geometry
+        self.slip_order.step_before(contacts, min(earliest_emission_ns(p, g) for p in windows))
+        found = self.overlap_stage.overlapping(windows, on_localized or _ignore, g)
+        self.slip_order.after_batch(found)
 
-    def late(
-        self,
-        contacts: list,
-        on_contacts: Callable[[list], None],
-        on_slip: Callable[[list], None] | None = None,
-    ) -> None:
-        """Contact events (from the hot path, or later from the overlap resolver): handed
-        out, then through the slip stage."""
+    def late(self, contacts: list) -> None:
+        """Localized emissions that come late (the overlap resolver's, the hand's held
+        ones): to ``on_localized``, then through the slip step (outputs as `process`'s)."""
         if contacts:
-            on_contacts(contacts)
+            if self._on_localized:
+                self._on_localized(contacts)
             self.slip_order.step(contacts)
 
     def _late_from_resolver(self, records: list) -> None:
-        on_contacts, on_slip = self._outputs
-        if on_contacts is None:
+        if self._on_localized is False:  # no process() yet: nowhere to hand them
             return
-        self.late(self.overlap_stage.claim(records, resolved=True), on_contacts, on_slip)
+        self.late(self.overlap_stage.claim(records, resolved=True))
 
     # ------------------------------------------------------------ overlaps
     def start_overlaps(self, wait_s: float = 0.0) -> None:
@@ -279,11 +301,8 @@ class ContactPipeline:
             # has been through the slip step: it never runs past a released event
             with self.slip_order.lock:
                 kept = self.hand_stage.decide(now_ns, flush)
-                on_contacts, on_slip = self._outputs
-                if kept and on_contacts is not None:
-                    self.slip_order.run_pending()  # earlier events first, in the slip stage too
-                    self.late(self.overlap_stage.claim(kept, resolved=False), on_contacts,
-                              on_slip)
+                if kept and self._on_localized is not False:
+                    self.late(self.overlap_stage.claim(kept, resolved=False))
             return bool(kept)
         finally:
             lock.release()
@@ -291,7 +310,8 @@ class ContactPipeline:
     # ------------------------------------------------------------ time and idle work
     def tick(self, now_ns: int):
         """Let time pass in the slip stage (`SlipStage.tick`), never past a held event;
-        returns the finger state."""
+        contacts that end meanwhile go to ``on_contacts`` (their DETOUCH); returns the
+        finger state."""
         return self.slip_order.tick(now_ns, self.hand_stage.limit_ns)
 
     def release_held(self) -> None:
@@ -300,22 +320,19 @@ class ContactPipeline:
 
     @property
     def slip_pending(self) -> bool:
-        """Contact events handed out whose slip step is still due."""
+        """Emissions whose slip step was put off: never (it runs at once)."""
         return self.slip_order.pending
 
     def run_pending_slip(self) -> None:
-        """The slip step of contact events handed out while more packets were waiting."""
+        """Nothing to do: the slip step runs at once (kept for the idle-work callers)."""
         self.slip_order.run_pending()
 
     def run_idle_work(self) -> bool:
-        """What waits for a moment without packets: the slip step put off, then the echo
-        test's learning. True when it published slip or state changes may have come."""
-        slip = self.slip_pending
-        if slip:
-            self.run_pending_slip()
+        """What waits for a moment without packets: the echo test's learning. True when
+        slip or state changes may have come (never: the slip step runs at once)."""
         if self.localizer.echo_pending:
             self.localizer.learn_echo()
-        return slip
+        return False
 
     def idle(self) -> bool:
         """No window with the overlap resolver and no slip step waiting for one."""

@@ -1,13 +1,16 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Slip: contact records -> slip records and the finger's state, in time order.
+"""Slip: localized emissions -> what the hand receives, in time order.
 
-`SlipStage` feeds the records to the `SlipDetector`; `SlipOrder` decides when: the slip
-step of contact events already out is put off while more packets wait on the port (at most
-``SLIP_MAX_DEFER_S``), and held while a window that may hold an earlier emission is with
-the overlap resolver (at most ``OVERLAP_HOLD_MAX_S``), so that the detector sees every
-emission in time order, as offline.
+`SlipStage` feeds the localizer's records to the `SlipDetector`, which interprets them:
+each emission comes back as an `EmissionRecord` with its reading (touch, release,
+micro-slip, slip, texture, unknown) and its contact's id, and the detector's events as
+ContactRecords: TOUCH when a contact begins, DETOUCH when it ends, SLIP_PRECURSOR / SLIP /
+TEXTURE of a contact. `SlipOrder` decides when: at once for a new emission (a TOUCH is
+decided there, so nothing puts the step off), except that emissions later than a window
+with the overlap resolver are held until its answer (at most ``OVERLAP_HOLD_MAX_S``), so
+that the detector sees every emission in time order, as offline.
 
-Locks: `SlipOrder.lock` (re-entrant; the step lock) guards the held and put-off events and
+Locks: `SlipOrder.lock` (re-entrant; the step lock) guards the held events and
 the windows waited for, and makes one slip step at a time; inside it `SlipStage.lock`
 guards the detector (a timer's `tick` takes it too).
 """
@@ -21,8 +24,14 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ae_tactile.pipeline.config import OVERLAP_HOLD_MAX_S, SLIP_MAX_DEFER_S
-from ae_tactile.records import ContactRecord, EventType, slip_record
+from ae_tactile.pipeline.config import OVERLAP_HOLD_MAX_S
+from ae_tactile.records import (
+    ContactRecord,
+    EventType,
+    contact_snapshot,
+    emission_record,
+    slip_record,
+)
 from ae_tactile.slip import LocalizedEvent, SlipConfig, SlipDetector
 
 
@@ -30,8 +39,12 @@ def _time_ns(r) -> int:
     return r.time_ns
 
 
+#: the detector's events that go to the hand's ``contacts`` (a contact's begin and end)
+CONTACT_EVENTS = (int(EventType.TOUCH), int(EventType.DETOUCH))
+
+
 class SlipStage:
-    """Contact events -> slip events and the finger's contact state.
+    """Localized emissions -> contact and slip events, readings and the finger's state.
 
     Events are fed in the order they come; the detector processes an event up to
     ``SlipConfig.reorder_tolerance_s`` older than the newest one it has seen with its own
@@ -53,25 +66,33 @@ class SlipStage:
     """
 
     def __init__(self, config: SlipConfig | None = None, *, lag_s: float = 0.02):
-        self.detector = SlipDetector(config or SlipConfig())
+        self.detector = SlipDetector(config or SlipConfig(), contact_events=True)
         self.lag_ns = int(lag_s * 1e9)
         self.lock = threading.Lock()
         self.counts: Counter = Counter()
 
-    def process(self, contacts: Sequence[ContactRecord]) -> list[ContactRecord]:
-        """Slip events produced by these contact events.
+    def process(
+        self, contacts: Sequence[ContactRecord], emissions: list | None = None
+    ) -> list[ContactRecord]:
+        """The detector's events decided by these localized emissions.
 
         Parameters
         ----------
         contacts : sequence of ContactRecord
-            TOUCH / DETOUCH records, in time order.
+            The localizer's records (TOUCH: compression, DETOUCH: rarefaction), in time
+            order.
+        emissions : list, optional
+            Gets one `EmissionRecord` per record, with its reading and contact id (a
+            record the detector rejects: UNKNOWN, no contact).
 
         Returns
         -------
         list of ContactRecord
-            SLIP_PRECURSOR / SLIP / TEXTURE records (`slip_record`).
+            In the order decided (`slip_record`, with the contact's id): TOUCH when a
+            contact begins, DETOUCH when one ends, SLIP_PRECURSOR / SLIP / TEXTURE.
         """
         out: list[ContactRecord] = []
+        det = self.detector
         with self.lock:
             for c in contacts:
                 self.counts["contacts_in"] += 1
@@ -90,10 +111,33 @@ class SlipStage:
                     else 0.0,
                     int(c.packet_ids[0]) if c.packet_ids else -1,
                 )
-                for s in self.detector.process(ev):
+                for s in det.process(ev):
                     out.append(slip_record(s))
+                if emissions is not None:
+                    reading, cid = det.last_reading
+                    emissions.append(emission_record(c, reading, cid))
         self.counts["slip_events"] += len(out)
         return out
+
+    def pop_events(self) -> list[ContactRecord]:
+        """The detector's events decided while time passed (`tick`: a contact's DETOUCH
+        once its release is confirmed), each returned once.
+
+        Returns
+        -------
+        list of ContactRecord
+            Oldest first (often none).
+        """
+        with self.lock:
+            return [slip_record(s) for s in self.detector.pop_events()]
+
+    @property
+    def contacts(self) -> list:
+        """The current contacts (`ContactSnapshot`, oldest first): those begun (their
+        TOUCH sent) and not ended."""
+        with self.lock:
+            infos = self.detector.contact_infos()
+        return [contact_snapshot(i) for i in infos if i.confirmed]
 
     def tick(self, now_ns: int):
         """Advance the detector to ``now_ns`` - lag [host ns].
@@ -126,7 +170,8 @@ class SlipStage:
 
 
 class SlipOrder:
-    """When the slip step of contact events runs (time order, put off, held for windows).
+    """When the slip step of localized emissions runs (at once, in time order, held for
+    windows) and where its outputs go (``on_contacts``, ``on_slip``, ``on_emissions``).
 
     Parameters
     ----------
@@ -147,11 +192,12 @@ class SlipOrder:
         self.slip = slip
         self.counts = counts
         self.hold_max_s = hold_max_s
-        #: where the slip events go (the latest `ContactPipeline.process` call's on_slip)
+        #: where the outputs go (the latest `ContactPipeline.process` call's): a contact's
+        #: TOUCH / DETOUCH, its SLIP_PRECURSOR / SLIP / TEXTURE, every emission's record
+        self.on_contacts: Callable[[list], None] | None = None
         self.on_slip: Callable[[list], None] | None = None
+        self.on_emissions: Callable[[list], None] | None = None
         self.lock = threading.RLock()
-        self._pending: list = []  # contacts handed out, slip step due (put off)
-        self._pending_since = 0.0  # time.monotonic() of the oldest of them [s]
         #: windows with the overlap resolver: id -> (time.monotonic() handed over [s],
         #: earliest possible emission stamp of theirs [ns])
         self._windows_out: dict = {}
@@ -183,9 +229,14 @@ class SlipOrder:
 
     # ------------------------------------------------------------ the step
     def step(self, contacts: list) -> None:
-        """The slip step of these contact events, in time order with those held back: held
-        while a window is with the overlap resolver (at most ``hold_max_s``)."""
+        """The slip step of these localized emissions, in time order with those held back:
+        held while a window is with the overlap resolver (at most ``hold_max_s``); its
+        outputs handed out. Without a slip stage, each emission goes out at once with the
+        reading UNKNOWN."""
         if self.slip is None:
+            on_emissions = self.on_emissions
+            if contacts and on_emissions is not None:
+                on_emissions([emission_record(c) for c in contacts])
             return
         with self.lock:
             self._held.extend(contacts)
@@ -201,10 +252,22 @@ class SlipOrder:
                 return
             if len(batch) > 1:
                 batch.sort(key=_time_ns)  # stable: packet order where stamps tie
-            slips = self.slip.process(batch)
-            on_slip = self.on_slip
-            if slips and on_slip is not None:
-                on_slip(slips)
+            emissions: list = []
+            self._hand_out(self.slip.process(batch, emissions), emissions)
+
+    def _hand_out(self, events: list, emissions: list) -> None:
+        """The slip step's outputs to their callbacks: the contacts' begin / end first (the
+        reflex), then the slip events, then the emissions with their readings."""
+        if events:
+            contact = [r for r in events if r.event_type in CONTACT_EVENTS]
+            if contact and self.on_contacts is not None:
+                self.on_contacts(contact)
+            slips = [r for r in events if r.event_type not in CONTACT_EVENTS] if contact \
+                else events
+            if slips and self.on_slip is not None:
+                self.on_slip(slips)
+        if emissions and self.on_emissions is not None:
+            self.on_emissions(emissions)
 
     def _horizon(self) -> int | None:
         """Stamp [ns] from which events wait (None: none waits); expires old windows."""
@@ -219,46 +282,32 @@ class SlipOrder:
                 self._windows_out.clear()
         return horizon
 
-    def before(self, horizon_ns: int) -> None:
+    def step_before(self, contacts: list, horizon_ns: int) -> None:
         """Before overlapping windows are fitted in this thread (about a millisecond each):
-        the slip step put off while they arrived (earlier packets' contact events), so that
-        a slip precursor those decide does not wait for the fits. What is not older than
-        ``horizon_ns`` (the windows' earliest possible emission) is held until a later slip
-        step (time order, as offline)."""
-        pending, self._pending = self._pending, []
+        the slip step of the batch's other emissions older than ``horizon_ns`` (the
+        windows' earliest possible emission), so that a TOUCH or slip precursor they
+        decide does not wait for the fits; the rest are held until a later step (time
+        order, as offline)."""
         with self.lock:
             self._inline_horizon_ns = horizon_ns
             try:
-                self.step(pending)
+                self.step(contacts)
             finally:
                 self._inline_horizon_ns = None
 
-    def after_batch(self, contacts: list, more_waiting: Callable[[], bool] | None) -> None:
-        """A batch's contact events are out: their slip step now, or put off (at most
-        ``SLIP_MAX_DEFER_S``) while ``more_waiting()`` says more packets wait."""
-        if more_waiting is None or self.slip is None:
-            self.step(contacts)
-            return
-        if contacts:
-            if not self._pending:
-                self._pending_since = time.monotonic()
-            self._pending.extend(contacts)
-        if self._pending and (
-            time.monotonic() - self._pending_since >= SLIP_MAX_DEFER_S or not more_waiting()
-        ):
-            self.run_pending()
+    def after_batch(self, contacts: list, more_waiting: Callable[[], bool] | None = None
+                    ) -> None:
+        """A batch's emissions are localized: their slip step now (``more_waiting`` is not
+        asked: the step decides the batch's TOUCHes, nothing may wait for it)."""
+        self.step(contacts)
 
     @property
     def pending(self) -> bool:
-        """Contact events handed out whose slip step is still due."""
-        return bool(self._pending)
+        """Emissions whose slip step was put off: never (the step runs at once)."""
+        return False
 
     def run_pending(self) -> None:
-        """The slip step of contact events handed out while more packets were waiting."""
-        with self.lock:  # the reader's idle call and a hand-out from a timer
-            pending, self._pending = self._pending, []
-            if pending:
-                self.step(pending)
+        """Nothing: the slip step runs at once (kept for callers of the idle work)."""
 
     def release_held(self) -> None:
         """Run the slip step of held events whose wait has expired (a timer calls this)."""
@@ -268,16 +317,20 @@ class SlipOrder:
     def busy(self) -> bool:
         """A window waited for, or events held or put off."""
         with self.lock:
-            return bool(self._windows_out or self._held or self._pending)
+            return bool(self._windows_out or self._held)
 
     def tick(self, now_ns: int, hand_limit_ns: Callable[[], int | None]):
         """Let time pass in the slip stage (`SlipStage.tick`), never past a held event nor
-        (``hand_limit_ns()``, under this lock) an event the hand still holds; returns the
-        finger state."""
+        (``hand_limit_ns()``, under this lock) an event the hand still holds; the contacts
+        ended meanwhile go to ``on_contacts`` (their DETOUCH); returns the finger state."""
         with self.lock:
             if self._held:
                 now_ns = min(int(now_ns), min(r.time_ns for r in self._held) + self.slip.lag_ns)
             limit = hand_limit_ns()
             if limit is not None:
                 now_ns = min(int(now_ns), limit + self.slip.lag_ns)
-            return self.slip.tick(now_ns)
+            state = self.slip.tick(now_ns)
+            events = self.slip.pop_events()
+            if events:
+                self._hand_out(events, [])
+            return state

@@ -15,8 +15,8 @@ import numpy as np
 from builtin_interfaces.msg import Time
 
 from ae_tactile.geometry import N_CHANNELS
-from ae_tactile.msg import ContactEvent, ContactState, Packet, PacketArray
-from ae_tactile.records import ContactRecord
+from ae_tactile.msg import Contact, ContactEvent, ContactState, Emission, Packet, PacketArray
+from ae_tactile.records import ContactRecord, EmissionRecord
 
 NS_PER_S = 1_000_000_000
 
@@ -109,6 +109,7 @@ def contact_event_msg(rec, frame_id: str):
     msg.emission_rate_hz, msg.spatial_period_m = rec.emission_rate_hz, rec.spatial_period_m
     d = msg.slip_direction
     d.x, d.y, d.z = rec.slip_direction
+    msg.contact_id = int(rec.contact_id)
     return msg
 
 
@@ -124,7 +125,7 @@ class ContactEventWire:
         int32 sec, uint32 nanosec, string frame_id, uint8 event_type, <pad to 8>,
         float64 x3 position, x9 covariance, polar, azimuth, tau_x, tau_y,
         float32 amplitude_v, confidence, uint32 n, <pad to 8>, uint64 x n packet_ids,
-        float64 emission_rate_hz, spatial_period_m, x3 slip_direction.
+        float64 emission_rate_hz, spatial_period_m, x3 slip_direction, uint32 contact_id.
 
     A test checks it byte for byte against ``rclpy.serialization.serialize_message``.
     """
@@ -143,7 +144,7 @@ class ContactEventWire:
         n = len(ids)
         st = self._structs.get(n)
         if st is None:
-            st = self._structs[n] = struct.Struct(self._head + f"16dffI4x{n}Q5d")
+            st = self._structs[n] = struct.Struct(self._head + f"16dffI4x{n}Q5dI")
         sec, nanosec = divmod(int(rec.time_ns), NS_PER_S)
         x, y, z = rec.point_m
         dx, dy, dz = rec.slip_direction
@@ -171,6 +172,83 @@ class ContactEventWire:
             dx,
             dy,
             dz,
+            rec.contact_id,
+        )
+
+
+def emission_msg(rec, frame_id: str):
+    """Emission message of a core `ae_tactile.records.EmissionRecord` (the driver
+    publishes `EmissionWire` bytes instead)."""
+    msg = Emission()
+    stamp = msg.header.stamp
+    stamp.sec, stamp.nanosec = divmod(int(rec.time_ns), NS_PER_S)
+    msg.header.frame_id = frame_id
+    msg.device_time_ns = int(rec.device_time_ns)
+    msg.packet_ids = array.array("Q", rec.packet_ids)
+    pos = msg.position
+    pos.x, pos.y, pos.z = rec.point_m
+    msg.position_covariance = np.asarray(rec.covariance_m2, dtype=np.float64).reshape(9)
+    msg.polar_angle_rad, msg.azimuth_angle_rad = rec.polar_rad, rec.azimuth_rad
+    msg.tau_x_s, msg.tau_y_s = rec.tau_x_s, rec.tau_y_s
+    msg.polarity = int(rec.polarity)
+    msg.amplitude_v = rec.amplitude_v
+    msg.confidence = rec.confidence
+    msg.reading = int(rec.reading)
+    msg.contact_id = int(rec.contact_id)
+    return msg
+
+
+class EmissionWire:
+    """EmissionRecords -> the serialized Emission message (CDR, little endian), as
+    `ContactEventWire` does for ContactEvent. Layout (XCDR1, aligned as there):
+
+        int32 sec, uint32 nanosec, string frame_id, <pad to 8>, int64 device_time_ns,
+        uint32 n, <pad to 8>, uint64 x n packet_ids, float64 x3 position, x9 covariance,
+        polar, azimuth, tau_x, tau_y, int8 polarity, <pad to 4>, float32 amplitude_v,
+        confidence, uint8 reading, <pad to 4>, uint32 contact_id.
+
+    A test checks it byte for byte against ``rclpy.serialization.serialize_message``.
+    """
+
+    ENCAPSULATION = b"\x00\x01\x00\x00"
+
+    def __init__(self, frame_id: str):
+        fid = frame_id.encode("utf-8") + b"\0"
+        end = 12 + len(fid)  # after sec, nanosec and the string
+        self._head = f"<4siII{len(fid)}s{-end % 8}x"
+        self._frame_id = fid
+        self._structs: dict[int, struct.Struct] = {}
+
+    def encode(self, rec) -> bytes:
+        ids = rec.packet_ids
+        n = len(ids)
+        st = self._structs.get(n)
+        if st is None:
+            st = self._structs[n] = struct.Struct(self._head + f"qI4x{n}Q16db3xffB3xI")
+        sec, nanosec = divmod(int(rec.time_ns), NS_PER_S)
+        x, y, z = rec.point_m
+        return st.pack(
+            self.ENCAPSULATION,
+            sec,
+            nanosec,
+            len(self._frame_id),
+            self._frame_id,
+            int(rec.device_time_ns),
+            n,
+            *ids,
+            x,
+            y,
+            z,
+            *np.asarray(rec.covariance_m2, dtype=np.float64).reshape(9).tolist(),
+            rec.polar_rad,
+            rec.azimuth_rad,
+            rec.tau_x_s,
+            rec.tau_y_s,
+            int(rec.polarity),
+            rec.amplitude_v,
+            rec.confidence,
+            int(rec.reading),
+            int(rec.contact_id),
         )
 
 
@@ -188,11 +266,46 @@ def contact_record_of_msg(msg):
         tau_y_s=msg.tau_y_s,
         amplitude_v=float(msg.amplitude_v),
         confidence=float(msg.confidence),
+        contact_id=int(msg.contact_id),
     )
 
 
-def contact_state_msg(st, frame_id: str, now_ns: int):
-    """ContactState message of the slip detector's FingerState."""
+def emission_record_of_msg(msg) -> EmissionRecord:
+    """Core EmissionRecord of a received Emission message (the slip_detector node's
+    input, the bag tools' export)."""
+    return EmissionRecord(
+        time_ns=time_msg_to_ns(msg.header.stamp),
+        point_m=(float(msg.position.x), float(msg.position.y), float(msg.position.z)),
+        covariance_m2=np.asarray(msg.position_covariance, dtype=float).reshape(3, 3),
+        packet_ids=tuple(int(i) for i in msg.packet_ids),
+        polarity=int(msg.polarity),
+        reading=int(msg.reading),
+        contact_id=int(msg.contact_id),
+        polar_rad=msg.polar_angle_rad,
+        azimuth_rad=msg.azimuth_angle_rad,
+        tau_x_s=msg.tau_x_s,
+        tau_y_s=msg.tau_y_s,
+        amplitude_v=float(msg.amplitude_v),
+        confidence=float(msg.confidence),
+        device_time_ns=int(msg.device_time_ns),
+    )
+
+
+def contact_msg(c) -> Contact:
+    """Contact message of a core `ae_tactile.records.ContactSnapshot`."""
+    msg = Contact()
+    msg.id = int(c.contact_id)
+    msg.position.x, msg.position.y, msg.position.z = (float(v) for v in c.point_m)
+    msg.state = int(c.state)
+    msg.since = ns_to_time_msg(max(int(c.since_ns), 0))
+    msg.slip_emission_rate_hz = float(c.slip_emission_rate_hz)
+    msg.precursor_count = int(c.precursor_count)
+    return msg
+
+
+def contact_state_msg(st, frame_id: str, now_ns: int, contacts=()):
+    """ContactState message of the slip detector's FingerState and the current contacts
+    (`ae_tactile.records.ContactSnapshot`, e.g. `SlipStage.contacts`)."""
     msg = ContactState()
     msg.header.stamp = ns_to_time_msg(st.time_ns if st.time_ns > 0 else now_ns)
     msg.header.frame_id = frame_id
@@ -202,6 +315,8 @@ def contact_state_msg(st, frame_id: str, now_ns: int):
     msg.contact_point.x, msg.contact_point.y, msg.contact_point.z = (float(v) for v in p)
     msg.slip_emission_rate_hz = float(st.slip_emission_rate_hz)
     msg.precursor_count = int(st.precursor_count)
+    msg.contact_id = max(int(st.contact_id), 0)
+    msg.contacts = [contact_msg(c) for c in contacts]
     return msg
 
 
