@@ -206,3 +206,25 @@ def test_zoo_slip_plays_a_scene_on_a_device_through_the_driver_path():
     assert all(t >= _q_time_ns(r["scene"], 0.9) for k, t in r["slip"] if k == 4)
     other = run_on_device(ZOO["rc2_bessel6"], "incipient_slip", 1)
     assert other["n_emissions"] == r["n_emissions"] and other["n_contacts"] > 0
+
+
+def test_everyday_scene_on_a_device_is_localized_where_the_truth_says():
+    """ae_eval.everyday_zoo renders a multi-point touch's emissions on a device and
+    localizes them with the driver's PacketLocalizer: on the nominal device and on a
+    textbook front end every touch and release is kept, at its true time, within 0.2 mm of
+    its true point, with its polarity."""
+    from ae_eval.everyday import multi_point
+    from ae_eval.everyday_zoo import device_events
+    from ae_eval.zoo import ZOO
+    from ae_tactile.geometry import FingertipGeometry
+
+    scene = multi_point(3)
+    truth = FingertipGeometry().surface_point_from_xy(scene.xy_m[:, 0], scene.xy_m[:, 1])
+    for name in ("nominal", "hp2_150k"):
+        ev, counts = device_events(scene, ZOO[name], np.random.default_rng(1))
+        assert sorted(e.packet_id for e in ev) == list(range(scene.t_s.size)), (name, counts)
+        for e in ev:
+            i = e.packet_id
+            assert abs(e.time_ns - scene.t_s[i] * 1e9) < 1e3  # [ns]
+            assert np.linalg.norm(e.point_m - truth[i]) < 0.2e-3, name
+            assert e.polarity == scene.polarity[i]

@@ -36,7 +36,6 @@ SCENES = os.path.join(ROOT, "config", "scenes")
 TOUCH_SCENES = ("three_pins", "touch_hold_release", "paper_positions")
 READ_CYCLE_NS = 1_000_000  # [ns] the driver's read cycle
 TICK_NS = 20_000_000  # [ns] the driver's slip timer
-PRETRIGGER_S = 8e-6  # [s] render_triggered's default window start before the arrival
 ALARMS = (int(EventType.SLIP_PRECURSOR), int(EventType.SLIP), int(EventType.TEXTURE))
 
 
@@ -74,7 +73,7 @@ def run_on_device(dev, name: str, seed: int, sample_rate_hz: float = 10e6):
                           polarity=em.polarity.astype(int), speed_m_s=em.speed_m_s,
                           curvature_1_m=em.curvature_1_m, alpha_1_s=alpha, rng=g)
     fs = cfg.sample_rate_hz
-    start = em.time_ns - np.rint(pk.onset_index / fs * 1e9).astype(np.int64)
+    start = em.time_ns - np.rint(pk.emission_time_s * 1e9).astype(np.int64)  # first sample
     views = [PacketView(pk.samples_v[i], fs, int(pk.onset_index[i]), int(start[i]), i)
              for i in range(n)]
     pipe = ContactPipeline(PacketLocalizer("ml", geometry=cfg.geometry), SlipStage())
