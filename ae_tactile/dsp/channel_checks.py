@@ -1,0 +1,234 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Per-packet checks on the raw samples that need no model of the device: four identical
+channels, and clipping (flat tops at a rail).
+
+Identical channels. Four sensors and four amplifiers always add their own, independent
+noise: after any common waveform, the difference of two channels carries at least the
+noise of both (2 sigma^2 per sample). Four channels that differ by much less than that
+are one signal copied onto four inputs (a wiring or firmware fault, a replayed or
+synthetic packet, common-mode interference with no channel noise), never four sensors'
+view of one emission, which places it at the pole. The noise is the packet's own: the
+variance of the samples before the onset (mean removed), else the caller's noise sigma,
+floored by the ADC's quantization (LSB^2 / 12, the LSB the smallest step between two
+consecutive samples): identical when the mean over the six channel pairs of
+sum_n (x_c - x_d)^2 is below IDENTICAL_MAX_SHARE of 2 sigma^2 M (M samples). With no
+noise seen at all (noise-free samples, no pretrigger), only channels equal to rounding
+(IDENTICAL_FLOAT_SHARE of their energy) are identical.
+
+Clipping. An ADC (or an amplifier before it) that saturates holds its rail: a run of
+equal samples at the channel's extreme value. A channel is clipped when its dominant
+extreme (the larger excursion from its median) is held for at least
+``max(CLIP_MIN_RUN, CLIP_MIN_RUN_S fs)`` consecutive samples and lies at least
+CLIP_MIN_LSB quantization steps from the median (a smooth peak a few LSB high can hold
+one value for a while without clipping). The rail itself need not be known: +/- full
+scale, an amplifier's lower rail, or an offset ADC's all look the same.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ae_tactile.jit import NUMBA_AVAILABLE, njit
+
+#: channel differences below this share of what independent noise gives: identical [1]
+#: (an estimate of the noise from >= 8 pretrigger samples errs by a factor of 2 at most
+#: at 5 sigma of its chi^2; real channels give 1 or more)
+IDENTICAL_MAX_SHARE = 0.1
+#: without any noise seen: channels equal to this share of their energy [1] (float
+#: rounding of one signal copied)
+IDENTICAL_FLOAT_SHARE = 1e-20
+#: pretrigger samples (onset - 2) from which the noise is measured on the packet
+IDENTICAL_MIN_PRETRIGGER = 8
+#: a flat top holds its rail for at least this many samples, and this long [s] (a smooth peak
+#: quantized below one LSB of noise holds one value for a sample or two)
+CLIP_MIN_RUN = 4
+CLIP_MIN_RUN_S = 0.3e-6
+#: a clipped extreme lies at least this many quantization steps from the channel's median
+CLIP_MIN_LSB = 16.0
+
+
+@njit(cache=True, nogil=True)
+def _identical_kernel(x, npre, nv_given, share, float_share):  # pragma: no cover - compiled
+    """Identical-channel test of one packet ``x`` (4, M): see the module docstring."""
+    m = x.shape[1]
+    e = 0.0
+    step = np.inf
+    for c in range(4):
+        for i in range(m):
+            v = float(x[c, i])
+            if not math.isfinite(v):
+                return False
+            e += v * v
+            if i > 0:
+                d = abs(v - float(x[c, i - 1]))
+                if d > 0.0 and d < step:
+                    step = d
+    if not e > 0.0:
+        return False
+    dd = 0.0
+    for c in range(4):
+        for k in range(c + 1, 4):
+            for i in range(m):
+                d = float(x[c, i]) - float(x[k, i])
+                dd += d * d
+    dd /= 6.0
+    nv = 0.0
+    if npre >= IDENTICAL_MIN_PRETRIGGER:
+        for c in range(4):
+            s1 = 0.0
+            s2 = 0.0
+            for i in range(npre):
+                v = float(x[c, i])
+                s1 += v
+                s2 += v * v
+            nv += max(s2 - s1 * s1 / npre, 0.0) / (npre - 1)
+        nv /= 4.0
+    elif nv_given > 0.0:
+        nv = nv_given
+    if math.isfinite(step):
+        nv = max(nv, step * step / 12.0)
+    if nv > 0.0:
+        return dd <= share * 2.0 * nv * m
+    return dd <= float_share * e / 4.0
+
+
+def identical_channels(windows, onset_index=None, noise_rms_v=None, *,
+                       max_share: float = IDENTICAL_MAX_SHARE) -> np.ndarray:
+    """Which packets carry one waveform on all four channels, equal beyond what the
+    channels' independent noise allows (the physics: the module docstring).
+
+    Parameters
+    ----------
+    windows : array_like, (K, 4, M) or (4, M)
+        Packet windows [V].
+    onset_index : int or array_like of int (K,), optional
+        Onset sample of each packet; the noise is measured on the samples before
+        onset - 2 when there are >= IDENTICAL_MIN_PRETRIGGER. None: no pretrigger.
+    noise_rms_v : float or array_like (K,), optional
+        Per-channel noise sigma [V] used when the pretrigger is too short (NaN, 0 or None:
+        unknown).
+    max_share : float
+        Channel differences below this share of the independent noise's 2 sigma^2 per
+        sample are identical [1].
+
+    Returns
+    -------
+    numpy.ndarray
+        (K,) bool (a scalar-shaped (1,) for one (4, M) window): True where the four
+        channels are one signal. Non-finite or all-zero windows are False (other checks
+        reject them).
+    """
+    x = np.asarray(windows)
+    if x.ndim == 2:
+        x = x[None]
+    if x.ndim != 3 or x.shape[1] != 4:
+        raise ValueError(f"windows must be (K, 4, M) or (4, M), got shape {x.shape}")
+    k, _, m = x.shape
+    on = (np.zeros(k, np.int64) if onset_index is None
+          else np.broadcast_to(np.asarray(onset_index, np.int64).reshape(-1), (k,)))
+    nr = (np.zeros(k) if noise_rms_v is None
+          else np.broadcast_to(np.asarray(noise_rms_v, float).reshape(-1), (k,)))
+    if not np.issubdtype(x.dtype, np.floating):
+        x = x.astype(np.float64)
+    out = np.zeros(k, bool)
+    for i in range(k):
+        out[i] = packet_identical(x[i], int(on[i]), float(nr[i]), max_share=max_share)
+    return out
+
+
+def packet_identical(samples_v, onset_index=None, noise_rms_v=None, *,
+                     max_share: float = IDENTICAL_MAX_SHARE) -> bool:
+    """`identical_channels` of one packet (4, M) (compiled where numba is: a few us).
+
+    Parameters
+    ----------
+    samples_v : numpy.ndarray
+        The window (4, M) [V].
+    onset_index : int, optional
+        Its onset sample (None: no pretrigger).
+    noise_rms_v : float, optional
+        Per-channel noise sigma [V] when the pretrigger is too short.
+    max_share : float
+        As in `identical_channels`.
+
+    Returns
+    -------
+    bool
+        True where the four channels are one signal.
+    """
+    x = samples_v
+    if not (isinstance(x, np.ndarray) and x.dtype in (np.float32, np.float64)):
+        x = np.asarray(x, dtype=np.float64)
+    if x.ndim != 2 or x.shape[0] != 4 or x.shape[1] < 2:
+        raise ValueError(f"samples_v must be (4, M) with M >= 2, got shape {x.shape}")
+    npre = 0 if onset_index is None else min(max(int(onset_index) - 2, 0), x.shape[1])
+    nv = 0.0
+    if noise_rms_v is not None:
+        nr = float(noise_rms_v)
+        nv = nr * nr if math.isfinite(nr) and nr > 0 else 0.0
+    if not NUMBA_AVAILABLE:
+        x = np.ascontiguousarray(x, dtype=np.float64)
+    return bool(_identical_kernel(x, npre, nv, float(max_share), IDENTICAL_FLOAT_SHARE))
+
+
+@njit(cache=True, nogil=True)
+def _clip_kernel(x, min_run, min_lsb):  # pragma: no cover - compiled
+    """Flat-top test of one packet ``x`` (4, M): see the module docstring."""
+    m = x.shape[1]
+    for c in range(4):
+        row = np.empty(m)
+        step = np.inf
+        for i in range(m):
+            row[i] = float(x[c, i])
+            if not math.isfinite(row[i]):
+                return False
+            if i > 0:
+                d = abs(row[i] - row[i - 1])
+                if d > 0.0 and d < step:
+                    step = d
+        vmax = row.max()
+        vmin = row.min()
+        if not vmax > vmin:
+            continue
+        med = np.median(row)
+        v = vmax if vmax - med >= med - vmin else vmin
+        if not abs(v - med) >= min_lsb * step:
+            continue
+        run = 0
+        for i in range(m):
+            run = run + 1 if row[i] == v else 0
+            if run >= min_run:
+                return True
+    return False
+
+
+def packet_clipped(samples_v, sample_rate_hz: float) -> bool:
+    """Whether a packet (4, M) is clipped: a flat top at a rail on any channel (the rule:
+    the module docstring), whatever the device's saturation flag says.
+
+    Parameters
+    ----------
+    samples_v : numpy.ndarray
+        The window (4, M) [V].
+    sample_rate_hz : float
+        Its sample rate [Hz] (the shortest flat top is CLIP_MIN_RUN_S long).
+
+    Returns
+    -------
+    bool
+        True when a channel holds its dominant extreme for the flat-top run.
+    """
+    x = samples_v
+    if not (isinstance(x, np.ndarray) and x.dtype in (np.float32, np.float64)):
+        x = np.asarray(x, dtype=np.float64)
+    if x.ndim != 2 or x.shape[0] != 4:
+        raise ValueError(f"samples_v must be (4, M), got shape {x.shape}")
+    fs = float(sample_rate_hz)
+    run = max(CLIP_MIN_RUN, int(math.ceil(CLIP_MIN_RUN_S * fs))) if math.isfinite(fs) else 0
+    if run < 1 or x.shape[1] < run:
+        return False
+    if not NUMBA_AVAILABLE:
+        x = np.ascontiguousarray(x, dtype=np.float64)
+    return bool(_clip_kernel(x, run, CLIP_MIN_LSB))
