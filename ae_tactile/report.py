@@ -2,9 +2,11 @@
 """A picture of what happened in a run: one PNG with three panels.
 
 - Top view of the fingertip (x, y in mm): the sphere's outline (radius R), the 2x2 PVDF
-  matrix at (+-a, +-a), every localized event by type (hollow markers: lower hemisphere,
-  z < 0, seen through the body) and the ground truth where known.
-- Timeline: events by type against time, and the contact state as coloured spans.
+  matrix at (+-a, +-a), every event by type (hollow markers: lower hemisphere, z < 0, seen
+  through the body), every localized emission as a small dot and the ground truth where
+  known.
+- Timeline: events by type against time, the reported contact state as coloured spans
+  and, where the scene's truth is known, the true state under it.
 - Latency histogram (ms) with median and 95th percentile.
 
 Plain data in, no rclpy: the live monitor and the bag replay tool both call
@@ -120,7 +122,8 @@ def _state_spans(states, end_time_s: float) -> list[tuple[str, float, float]]:
 
 
 def write_run_summary(path: str | os.PathLike, events=None, *, truth=None, contact_state=None,
-                      latencies_s=None, radius_m: float = 10e-3,
+                      truth_state=None, emissions=None, latencies_s=None,
+                      radius_m: float = 10e-3,
                       element_offset_m: float = 1.5e-3, title: str = "",
                       size_px: tuple[int, int] = (1500, 900), dpi: int = 100) -> dict[str, Any]:
     """Write the PNG summary of a run.
@@ -135,6 +138,11 @@ def write_run_summary(path: str | os.PathLike, events=None, *, truth=None, conta
         Rows with x_m, y_m [, z_m, time_s]: ground-truth contact points [m].
     contact_state : same forms, optional
         Rows with time_s, state (e.g. NO_CONTACT, STICK, GROSS_SLIP): state changes.
+    truth_state : same forms, optional
+        The true state's changes (the scene's truth, `ae_tactile.scoring`), drawn under
+        the reported state.
+    emissions : same forms, optional
+        Rows with x_m, y_m [, time_s]: every localized emission [m] (small dots).
     latencies_s : array_like, optional
         Latencies [s]; default: the events' latency_s column.
     radius_m : float
@@ -152,8 +160,8 @@ def write_run_summary(path: str | os.PathLike, events=None, *, truth=None, conta
     -------
     dict
         What was plotted: "path", "events", "events_plotted", "events_without_position",
-        "events_without_time", "truth_points", "latencies", "latency_median_s",
-        "latency_p95_s".
+        "events_without_time", "truth_points", "emissions_plotted", "latencies",
+        "latency_median_s", "latency_p95_s".
 
     Raises
     ------
@@ -162,13 +170,7 @@ def write_run_summary(path: str | os.PathLike, events=None, *, truth=None, conta
     ValueError
         A bad argument or column (the message names it).
     """
-    if not (math.isfinite(radius_m) and radius_m > 0):
-        raise ValueError(f"radius_m must be a positive number, got {radius_m!r}")
-    if not (math.isfinite(element_offset_m) and 0 < element_offset_m < radius_m):
-        raise ValueError(f"element_offset_m must be in (0, radius_m), got {element_offset_m!r}")
-    width_px, height_px = (int(v) for v in size_px)
-    if not (200 <= width_px <= 10000 and 200 <= height_px <= 10000) or dpi <= 0:
-        raise ValueError(f"size_px must be within 200..10000 pixels, got {size_px!r}")
+    width_px, height_px = _check_sizes(radius_m, element_offset_m, size_px, dpi)
     fig, ax_top, ax_time, ax_lat = _figure(width_px, height_px, dpi, title)
 
     ev = _columns(events, ("time_s", "type", "x_m", "y_m", "z_m", "latency_s"),
@@ -185,8 +187,9 @@ def write_run_summary(path: str | os.PathLike, events=None, *, truth=None, conta
 
     has_xy = np.isfinite(ev["x_m"]) & np.isfinite(ev["y_m"])
     has_t = np.isfinite(ev["time_s"])
+    n_em = _emission_dots(ax_top, emissions)
     tr_xy = _top_view(ax_top, ev, types, has_xy, tr, radius_m, element_offset_m)
-    _timeline(ax_time, ev, types, has_t, contact_state)
+    _timeline(ax_time, ev, types, has_t, contact_state, truth_state)
     summary_lat = _latency_histogram(ax_lat, lat)
 
     path = os.fspath(path)
@@ -194,7 +197,33 @@ def write_run_summary(path: str | os.PathLike, events=None, *, truth=None, conta
     return {"path": path, "events": ev["n"], "events_plotted": int(has_xy.sum()),
             "events_without_position": int((~has_xy).sum()),
             "events_without_time": int((~has_t).sum()), "truth_points": int(tr_xy.sum()),
-            "latencies": int(lat.size), **summary_lat}
+            "emissions_plotted": n_em, "latencies": int(lat.size), **summary_lat}
+
+
+def _check_sizes(radius_m, element_offset_m, size_px, dpi) -> tuple[int, int]:
+    """(width, height) [pixel]; ValueError naming a bad size."""
+    if not (math.isfinite(radius_m) and radius_m > 0):
+        raise ValueError(f"radius_m must be a positive number, got {radius_m!r}")
+    if not (math.isfinite(element_offset_m) and 0 < element_offset_m < radius_m):
+        raise ValueError(f"element_offset_m must be in (0, radius_m), got {element_offset_m!r}")
+    width_px, height_px = (int(v) for v in size_px)
+    if not (200 <= width_px <= 10000 and 200 <= height_px <= 10000) or dpi <= 0:
+        raise ValueError(f"size_px must be within 200..10000 pixels, got {size_px!r}")
+    return width_px, height_px
+
+
+def _emission_dots(ax, emissions) -> int:
+    """Every localized emission as a small grey dot on the top view [mm]; returns how many
+    had a position."""
+    em = _columns(emissions, ("x_m", "y_m", "time_s"), ("x_m", "y_m"), "emissions")
+    if not em["n"]:
+        return 0
+    x, y = em["x_m"].astype(float), em["y_m"].astype(float)
+    ok = np.isfinite(x) & np.isfinite(y)
+    if ok.any():
+        ax.scatter(x[ok] * 1e3, y[ok] * 1e3, s=4, color="#888888", zorder=2,
+                   label=f"emissions ({int(ok.sum())})")
+    return int(ok.sum())
 
 
 def _figure(width_px: int, height_px: int, dpi: int, title: str):
@@ -264,27 +293,31 @@ def _top_view(ax, ev: dict, types, has_xy, tr: dict, radius_m: float,
     return tr_xy
 
 
-def _timeline(ax, ev: dict, types, has_t, contact_state) -> None:
-    """Events by type against time [s], the contact state as coloured spans."""
+def _timeline(ax, ev: dict, types, has_t, contact_state, truth_state=None) -> None:
+    """Events by type against time [s], the reported contact state as coloured spans and
+    the true state's under them (row -1) when given."""
     t_end = float(np.max(ev["time_s"][has_t])) if has_t.any() else 0.0
     spans = _state_spans(contact_state, t_end) if contact_state is not None else []
-    if spans:
-        t_end = max(t_end, max(s0 + d for _, s0, d in spans))
-    t0_plot = min([0.0] + [s0 for _, s0, _ in spans])
-    for name, start, duration in spans:
-        ax.broken_barh([(start, duration)], (-0.4, 0.8),
-                       facecolors=STATE_COLOURS.get(name, "#eeeeee"))
-        if duration >= 0.12 * max(t_end - t0_plot, 1e-9):  # narrow spans: colour only
-            ax.text(start, 0, f" {name}", va="center", fontsize="x-small", clip_on=True)
+    truth_spans = _state_spans(truth_state, t_end) if truth_state is not None else []
+    if spans or truth_spans:
+        t_end = max([t_end] + [s0 + d for _, s0, d in spans + truth_spans])
+    t0_plot = min([0.0] + [s0 for _, s0, _ in spans + truth_spans])
+    for row, rows in ((0, spans), (-1, truth_spans)):
+        for name, start, duration in rows:
+            ax.broken_barh([(start, duration)], (row - 0.4, 0.8),
+                           facecolors=STATE_COLOURS.get(name, "#eeeeee"))
+            if duration >= 0.12 * max(t_end - t0_plot, 1e-9):  # narrow spans: colour only
+                ax.text(start, row, f" {name}", va="center", fontsize="x-small", clip_on=True)
     for row, name in enumerate(EVENT_TYPES, start=1):
         colour, marker = STYLE[name]
         sel = has_t & (types == name)
         if sel.any():
             ax.scatter(ev["time_s"][sel], np.full(int(sel.sum()), row), marker=marker,
                        s=28, color=colour)
-    ax.set_yticks(range(len(EVENT_TYPES) + 1), ["contact state", *EVENT_TYPES],
-                  fontsize="small")
-    ax.set_ylim(-0.7, len(EVENT_TYPES) + 0.7)
+    low = -1 if truth_spans else 0
+    labels = (["true state"] if truth_spans else []) + ["contact state", *EVENT_TYPES]
+    ax.set_yticks(range(low, len(EVENT_TYPES) + 1), labels, fontsize="small")
+    ax.set_ylim(low - 0.7, len(EVENT_TYPES) + 0.7)
     ax.set_xlabel("time (s)")
     ax.set_title(f"timeline: {int(has_t.sum())} events")
     if not has_t.any() and not spans:

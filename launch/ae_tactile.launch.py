@@ -2,9 +2,10 @@
 """Launch one ae_tactile fingertip: the driver (+ the simulated fingertip).
 
 The driver hosts the whole pipeline (read, localize, detect slip) in-process and
-publishes `contacts`, `slip`, `contact_state`, `sensor_info` and /diagnostics. With
-split_pipeline:=true it publishes raw `packets` only and the separate `localizer` and
-`slip_detector` nodes do the rest (the set-up for replaying bags).
+publishes `contacts` (a contact's begin / end), `slip`, `emissions` (every localized
+emission with its reading), `contact_state`, `sensor_info` and /diagnostics. With
+split_pipeline:=true it publishes raw `packets` only and the separate `localizer` (on
+`localized`) and `slip_detector` nodes do the rest (the set-up for replaying bags).
 
     ros2 launch ae_tactile ae_tactile.launch.py --show-args     # every argument
 
@@ -41,7 +42,7 @@ from launch_ros.actions import Node
 PACKAGE = "ae_tactile"
 TRUE_WORDS, FALSE_WORDS = ("true", "1"), ("false", "0")
 #: Topics `record:=true` writes (relative to the namespace) besides /diagnostics.
-RECORDED_TOPICS = ["packets", "sensor_info", "contacts", "slip", "contact_state",
+RECORDED_TOPICS = ["packets", "sensor_info", "contacts", "slip", "emissions", "contact_state",
                    "sim/ground_truth", "sim/scene_truth", "grip_force_command"]
 
 

@@ -96,16 +96,30 @@ def test_bag_of_packets_relocalizes_offline(tmp_path, storage):
         assert all(
             e["frame_id"] == "finger1_tip" and e["topic_ns"] == "/finger1" for e in res.contacts
         )
-    # events to a new bag, read back with rosbags
+    # the paper's six touches 5 ms apart, 2.5-5 mm apart, never released: six contacts
+    # begun, each emission read as its contact's touch
+    begun = [e for e in res.contact_events if e["event_type"] == 1]
+    assert len({e["contact_id"] for e in begun}) == len(begun) >= 1
+    assert {e["contact_id"] for e in res.contacts} <= {e["contact_id"] for e in begun}
+    # events to a new bag, read back with rosbags: every field of the emissions and the
+    # contacts' events, contact ids and readings included
     n = write_bag(res, tmp_path / "out", storage)
     from rosbags.highlevel import AnyReader
 
     with AnyReader([tmp_path / "out"], default_typestore=typestore()) as r:
         topics = {c.topic for c in r.connections}
-        msgs = [r.deserialize(raw, c.msgtype) for c, _, raw in r.messages()]
-    assert n == len(msgs) == 6 + len(res.slip) and "/finger1/contacts" in topics
-    xyz = np.array([[m.position.x, m.position.y, m.position.z] for m in msgs if m.event_type == 1])
-    assert np.allclose(xyz, got[np.argsort([e["time_ns"] for e in res.contacts])])
+        msgs = [(c.topic, r.deserialize(raw, c.msgtype)) for c, _, raw in r.messages()]
+    assert n == len(msgs) == 6 + len(res.contact_events) + len(res.slip)
+    assert {"/finger1/emissions", "/finger1/contacts"} <= topics
+    em = [m for t, m in msgs if t == "/finger1/emissions"]
+    by_time = sorted(res.contacts, key=lambda e: e["time_ns"])
+    xyz = np.array([[m.position.x, m.position.y, m.position.z] for m in em])
+    assert np.allclose(xyz, np.array([e["point_m"] for e in by_time]))
+    assert [(m.reading, m.contact_id, m.polarity, tuple(m.packet_ids)) for m in em] == [
+        (e["reading"], e["contact_id"], e["polarity"], (e["packet_id"],)) for e in by_time]
+    ce = [m for t, m in msgs if t == "/finger1/contacts"]
+    assert sorted((m.event_type, m.contact_id) for m in ce) == sorted(
+        (e["event_type"], e["contact_id"]) for e in res.contact_events)
 
 
 def test_replay_cli_writes_csv(tmp_path):
@@ -115,8 +129,11 @@ def test_replay_cli_writes_csv(tmp_path):
         == 0
     )
     rows = list(csv.DictReader(open(tmp_path / "events.csv")))
-    assert len([r for r in rows if r["topic"] == "contacts"]) == 6
+    em = [r for r in rows if r["topic"] == "emissions"]
+    assert len(em) == 6 and all(r["polarity"] == "1" and r["reading"] for r in em)
     assert all(r["event_type"] in ("TOUCH", "DETOUCH") for r in rows if r["topic"] == "contacts")
+    assert {r["contact_id"] for r in em} <= {r["contact_id"] for r in rows
+                                             if r["topic"] == "contacts"}
     assert replay_main([str(tmp_path / "missing"), str(tmp_path / "x.csv")]) == 2
 
 
@@ -139,7 +156,7 @@ def test_live_packets_record_and_replay(ros_context, tmp_path):
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rosbags.rosbag2 import Writer
 
-    from ae_tactile.msg import ContactEvent, PacketArray, SensorInfo
+    from ae_tactile.msg import Emission, PacketArray, SensorInfo
     from ae_tactile.ros.conversions import time_msg_to_ns
     from ae_tactile.ros.driver_node import DriverNode
     from ae_tactile.ros.localizer_node import LocalizerNode
@@ -181,7 +198,7 @@ def test_live_packets_record_and_replay(ros_context, tmp_path):
         LATCHED,
         raw=True,
     )
-    rec.create_subscription(ContactEvent, "contacts", live.append, 1000)
+    rec.create_subscription(Emission, "localized", live.append, 1000)
     ex = SingleThreadedExecutor(context=ros_context)
     for n in (sim, drv, loc, rec):
         ex.add_node(n)

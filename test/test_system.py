@@ -51,7 +51,7 @@ def run_system(
     try:
         system.spin(-1.0, drain_timeout_s=15.0)
         summary = system.monitor.summary(
-            system.gross_slip_times_ns(), system.slip_part_starts_ns()
+            system.gross_slip_times_ns(), system.slip_part_starts_ns(), system.scene_truth()
         )
     except BaseException:
         system.close()
@@ -102,10 +102,12 @@ def test_every_builtin_scene_is_found_and_localized(ros_context, scene):
             v for k, v in c.items() if k.startswith("rejected_") or k == "below_min_confidence"
         )
         assert c["packets"] == c["events"] + rejected
-        # ... and every event it found was published (overlapping windows: one per emission)
+        # ... and every emission it found was published (overlapping windows: one per
+        # emission), each once, with a reading
         assert (
-            system.driver.published_events
+            system.driver.published_emissions
             == c["events"] + system.driver.pipeline.all_counts()["overlap_sources"]
+            == len(system.monitor.emissions)
         )
     finally:
         system.close()
@@ -120,6 +122,100 @@ def test_split_pipeline_gives_the_same_events_through_the_separate_nodes(ros_con
         e = s["emissions"]
         assert e["matched"] == e["truth"] == 3 and e["rms_position_error_mm"] < 0.05, e
         assert system.slip.received == system.localizer.counts["published_events"]
+    finally:
+        system.close()
+
+
+def test_a_contact_begins_and_ends_once_with_its_id(ros_context, tmp_path):
+    """A touch held 0.2 s and released: `contacts` carries one TOUCH when it begins and one
+    DETOUCH when it ends, with the same id; its two emissions go out on `emissions` read as
+    the contact's touch and release; the state is back to NO_CONTACT with no contact."""
+    path = scene_file(tmp_path, "touch_hold_release", duration_s=0.6, hold_s=0.2)
+    system, s = run_system(ros_context, path)
+    try:
+        m = system.monitor
+        kinds = [(x.msg.event_type, x.msg.contact_id) for x in m.contacts]
+        assert len(kinds) == 2 and kinds[0][0] == 1 and kinds[1][0] == 2, kinds
+        assert kinds[0][1] == kinds[1][1] > 0
+        em = sorted(m.emissions, key=lambda x: x.stamp_ns)
+        assert [(x.msg.reading, x.msg.contact_id, x.msg.polarity) for x in em] == [
+            (1, kinds[0][1], 1), (2, kinds[0][1], -1)]
+        # TOUCH at its first emission, DETOUCH once its release is confirmed, after it
+        assert m.contacts[0].stamp_ns == em[0].stamp_ns
+        assert m.contacts[1].stamp_ns >= em[1].stamp_ns
+        assert m.states[-1][1] == 0 and m.states[-1][3] == 0
+        assert max(st[3] for st in m.states) == 1  # one contact listed while it lasted
+    finally:
+        system.close()
+
+
+def test_three_pins_are_three_contacts(ros_context, tmp_path):
+    """Fig. 8's three pins within 2 ms, 5-6 mm apart: three TOUCHes with three ids, and the
+    latched ContactState lists three contacts at their points."""
+    system, s = run_system(ros_context, scene_file(tmp_path, "three_pins", duration_s=0.2))
+    try:
+        m = system.monitor
+        touches = [x.msg for x in m.contacts if x.msg.event_type == 1]
+        assert len({t.contact_id for t in touches}) == len(touches) == 3
+        assert max(st[3] for st in m.states) == 3
+        truth = [(t.position.x, t.position.y) for t in m.truth]
+        for t in touches:  # each at one pin (within the localization error)
+            assert min(np.hypot(t.position.x - x, t.position.y - y) for x, y in truth) < 0.3e-3
+    finally:
+        system.close()
+
+
+def test_a_held_contacts_micro_slips_are_emissions_not_touches(ros_context, tmp_path):
+    """The incipient-slip scene's first 0.4 s (a contact held and loaded, its micro-slips
+    before gross slip): one TOUCH per contact begun, none per micro-slip; the micro-slips
+    go out on `emissions` read as MICRO_SLIP of a contact whose TOUCH came first."""
+    path = scene_file(tmp_path, "incipient_slip", duration_s=0.4)
+    system, s = run_system(ros_context, path)
+    try:
+        m = system.monitor
+        touch_ns = {x.msg.contact_id: x.stamp_ns for x in m.contacts if x.msg.event_type == 1}
+        micro = [x for x in m.emissions if x.msg.reading == 3]
+        print("readings", s["emission_readings"], "contact events", s["contact_events"])
+        assert len(m.emissions) >= 20 and len(touch_ns) <= 3
+        assert sum(1 for x in m.contacts if x.msg.event_type == 1) == len(touch_ns)
+        assert micro, s["emission_readings"]
+        assert all(x.msg.contact_id in touch_ns and touch_ns[x.msg.contact_id] <= x.stamp_ns
+                   for x in micro)
+    finally:
+        system.close()
+
+
+def test_the_summary_scores_the_contact_state_against_the_scenes_truth(ros_context, tmp_path):
+    """touch_hold_release scored against its truth (ae_tactile.scoring): the finger is in
+    contact from the touch to the release, NO_CONTACT before and after; the share of time
+    the reported state is right counts the time the detector needs to confirm the release
+    (its quiet time) as wrong, no slip alarm is false."""
+    path = scene_file(tmp_path, "touch_hold_release", duration_s=0.6, hold_s=0.2)
+    system, s = run_system(ros_context, path)
+    try:
+        tr = s["truth"]
+        assert [st for _, st in tr["truth_timeline"]] == ["STICK", "NO_CONTACT"]
+        t_touch, t_release = (t for t, _ in tr["truth_timeline"])
+        assert abs(t_release - t_touch - 0.2) < 1e-3  # the scene's hold
+        assert tr["contacts"] == {"truth_begun": 1, "truth_ended": 1, "touch_events": 1,
+                                  "detouch_events": 1}
+        assert tr["false_alarms"] == 0 and tr["true_alarms"] == 0
+        # independent: the reported state's own changes, scored by hand on the same grid
+        rep = [(t, st) for t, st in tr["reported_timeline"]]
+        end = t_release + 0.1
+        grid = np.arange(0.0, end, 1e-3)
+
+        def at(timeline, t):
+            cur = "NO_CONTACT"
+            for t0, st in timeline:
+                if t0 <= t:
+                    cur = st
+            return cur
+
+        scored = [t for t in grid if not (t_release <= t < t_release + 0.1)]
+        right = sum(at(rep, t) == at(tr["truth_timeline"], t) for t in scored)
+        assert tr["state_right_share"] == pytest.approx(right / len(scored), abs=0.01)
+        assert tr["state_right_share"] > 0.5
     finally:
         system.close()
 

@@ -18,7 +18,8 @@ from ae_tactile.geometry import FingertipGeometry
 
 from .recovery import _count, _raw_messages
 
-MSG_NAMES = ("Packet", "PacketArray", "ContactEvent", "ContactState", "SensorInfo")
+MSG_NAMES = ("Packet", "PacketArray", "ContactEvent", "Contact", "ContactState", "Emission",
+             "SensorInfo")
 #: The message types a replay reads (the packets and the sensor they came from).
 WANTED = ("ae_tactile/msg/PacketArray", "ae_tactile/msg/SensorInfo")
 
@@ -74,9 +75,13 @@ class ReplayResult:
     rejected : dict
         Packets refused, by reason.
     contacts : list of dict
-        Contact events (TOUCH / DETOUCH).
+        The localized emissions, one each (time, point, polarity, packet id, ...), with
+        what the slip detector read each as ("reading", a Reading value) and its contact
+        ("contact_id", 0: none).
+    contact_events : list of dict
+        A contact's TOUCH when it begins and DETOUCH when it ends (with "contact_id").
     slip : list of dict
-        Slip events.
+        Slip events (with "contact_id").
     geometry : FingertipGeometry or None
         The fingertip the packets came from (the bag's sensor_info).
     skipped : dict
@@ -96,6 +101,7 @@ class ReplayResult:
     packets: int = 0
     rejected: dict = field(default_factory=dict)
     contacts: list = field(default_factory=list)
+    contact_events: list = field(default_factory=list)
     slip: list = field(default_factory=list)
     geometry: FingertipGeometry | None = None
     skipped: dict = field(default_factory=dict)
@@ -113,7 +119,8 @@ class ReplayResult:
     def summary(self) -> str:
         """A few lines saying what was read, produced, refused and lost."""
         lines = [
-            f"{self.packets} packets -> {len(self.contacts)} contact events,"
+            f"{self.packets} packets -> {len(self.contacts)} emissions,"
+            f" {len(self.contact_events)} contact events (begin / end),"
             f" {len(self.slip)} slip events; rejected: {self.rejected or 'none'}"
         ]
         if self.skipped:

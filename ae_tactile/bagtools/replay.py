@@ -89,7 +89,7 @@ def replay(
         raise FileNotFoundError(f"no such bag: {path}")
     store = typestore()
     loc = Localizer(method, **(localize_options or {}))
-    det = SlipDetector(slip_config or SlipConfig())
+    det = SlipDetector(slip_config or SlipConfig(), contact_events=True)
     out = ReplayResult(geometry=FingertipGeometry())
     gains = None
     for topic, msgtype, _, msg in read_bag(path, store, packet_topic, out):
@@ -138,7 +138,10 @@ def _replay_packets(loc, msg, msgtype: str, topic: str, gains, out: ReplayResult
 
 
 def _detect_slip(det: SlipDetector, out: ReplayResult) -> None:
-    """The slip detector over the contact events, in time order."""
+    """The slip detector over the emissions, in time order: each emission's reading and
+    contact, the contacts' begin / end and the slip events; then time lets the contacts
+    whose release is confirmed end."""
+    e = None
     for e in out.contacts:
         ev = LocalizedEvent(
             time_ns=e["time_ns"],
@@ -153,26 +156,42 @@ def _detect_slip(det: SlipDetector, out: ReplayResult) -> None:
             slips = det.process(ev)
         except Exception:  # noqa: BLE001 - counted, replay goes on
             _count(out.rejected, "SLIP_DETECTOR_ERROR")
+            e["reading"], e["contact_id"] = 0, 0
             continue
-        for s in slips:
-            out.slip.append(
-                {
-                    "time_ns": int(s.time_ns),
-                    "frame_id": e["frame_id"],
-                    "topic_ns": e["topic_ns"],
-                    "event_type": int(s.kind),
-                    "point_m": np.asarray(s.position_m, float),
-                    "covariance_m2": np.asarray(s.covariance_m2, float),
-                    "tau_x_s": math.nan,
-                    "tau_y_s": math.nan,
-                    "amplitude_v": math.nan,
-                    "confidence": float(s.confidence),
-                    "packet_ids": [int(i) for i in s.packet_ids],
-                    "emission_rate_hz": float(s.emission_rate_hz),
-                    "spatial_period_m": float(s.spatial_period_m),
-                    "slip_direction": np.asarray(s.slip_direction, float),
-                }
-            )
+        reading, cid = det.last_reading
+        e["reading"], e["contact_id"] = int(reading), max(int(cid), 0)
+        _slip_events(out, slips, e)
+    if e is not None and det.now_ns is not None:
+        # the releases confirmed by the time after the last emission (the longest wait)
+        wait_s = max(det.config.release_confirm_s, det.config.quiet_s)
+        det.advance(det.now_ns + int(wait_s * 1e9) + 1)
+        _slip_events(out, det.pop_events(), e)
+
+
+def _slip_events(out: ReplayResult, slips, e: dict) -> None:
+    """The detector's events as dicts: a contact's TOUCH / DETOUCH to ``contact_events``,
+    the others to ``slip`` (frame and namespace of the emission ``e``)."""
+    for s in slips:
+        kind = int(s.kind)
+        (out.contact_events if kind in (TOUCH, DETOUCH) else out.slip).append(
+            {
+                "time_ns": int(s.time_ns),
+                "frame_id": e["frame_id"],
+                "topic_ns": e["topic_ns"],
+                "event_type": kind,
+                "point_m": np.asarray(s.position_m, float),
+                "covariance_m2": np.asarray(s.covariance_m2, float),
+                "tau_x_s": math.nan,
+                "tau_y_s": math.nan,
+                "amplitude_v": math.nan,
+                "confidence": float(s.confidence),
+                "packet_ids": [int(i) for i in s.packet_ids],
+                "emission_rate_hz": float(s.emission_rate_hz),
+                "spatial_period_m": float(s.spatial_period_m),
+                "slip_direction": np.asarray(s.slip_direction, float),
+                "contact_id": max(int(s.contact_id), 0),
+            }
+        )
 
 
 def _localize(loc, items, fs, geometry, gains, out):
@@ -218,6 +237,7 @@ def _contacts(out, items, res, fs, frame, topic):
                 "frame_id": frame,
                 "topic_ns": _topic_ns(topic),
                 "event_type": DETOUCH if res.polarity[i] < 0 else TOUCH,
+                "polarity": -1 if res.polarity[i] < 0 else 1,
                 "point_m": res.point_m[i].copy(),
                 "covariance_m2": res.covariance_m2[i].copy(),
                 "tau_x_s": float(res.tau_x_s[i]),

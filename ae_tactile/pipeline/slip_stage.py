@@ -131,6 +131,12 @@ class SlipStage:
         with self.lock:
             return [slip_record(s) for s in self.detector.pop_events()]
 
+    def contacts_key(self) -> tuple:
+        """(id, state) of each current contact: cheap (no snapshot), for telling whether
+        `contacts` changed."""
+        with self.lock:
+            return tuple((c.id, int(c.state)) for c in self.detector.contacts if c.confirmed)
+
     @property
     def contacts(self) -> list:
         """The current contacts (`ContactSnapshot`, oldest first): those begun (their

@@ -267,10 +267,10 @@ class Bringup:
         return bool(self.scene_info and self.scene_info.get("finished"))
 
     def events_published(self) -> int:
-        """Contact events published so far (driver, or the separate localizer)."""
+        """Localized emissions published so far (driver, or the separate localizer)."""
         if self.localizer is not None:
             return self.localizer.counts["published_events"]
-        return self.driver.published_events
+        return self.driver.published_emissions
 
     def drained(self) -> bool:
         """Nothing queued anywhere (the simulated fingertip's output, the port, a frame half
@@ -338,9 +338,13 @@ class Bringup:
             if p.get("gross_slip_time_ns") is not None
         ]
 
+    def scene_truth(self) -> dict | None:
+        """The scene's truth (ROS ns), from sim/scene_truth; None before it came."""
+        return self.scene_info.get("truth") if self.scene_info else None
+
     def write_report(self, path: str, summary: dict) -> None:
         """PNG summary of the run (ae_tactile.report; needs matplotlib)."""
-        data = self.monitor.report_data()
+        data = self.monitor.report_data(summary.get("truth"))
         geo = self.driver.geometry
         lat = summary.get("latency_ms", {})
         title = (
@@ -349,12 +353,18 @@ class Bringup:
             f"RMS {summary['emissions']['rms_position_error_mm'] * 1e3:.0f} um"
             + (f", latency median {lat['median']:.2f} ms" if lat else "")
         )
+        tr = summary.get("truth") or {}
+        if tr.get("state_right_share") is not None:
+            title += (f"\ncontact state right {100 * tr['state_right_share']:.0f} % of the time, "
+                      f"{tr['false_alarms']} false slip alarms")
         try:
             write_run_summary(
                 path,
                 data["events"],
                 truth=data["truth"],
                 contact_state=data["contact_state"],
+                truth_state=data.get("truth_state"),
+                emissions=data["emissions"],
                 radius_m=geo.radius_m,
                 element_offset_m=geo.element_offset_m,
                 title=title,
@@ -382,7 +392,8 @@ def _report(system: Bringup, args) -> None:
     JSON file."""
     system.executor.spin_once(timeout_sec=0.1)
     system.monitor._flush()
-    summary = system.monitor.summary(system.gross_slip_times_ns(), system.slip_part_starts_ns())
+    summary = system.monitor.summary(system.gross_slip_times_ns(), system.slip_part_starts_ns(),
+                                     system.scene_truth())
     summary["floor_two_hop_ms"] = two_hop_floor_ms()
     print(format_summary(summary), flush=True)
     if args.report_png:

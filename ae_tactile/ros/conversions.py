@@ -16,7 +16,7 @@ from builtin_interfaces.msg import Time
 
 from ae_tactile.geometry import N_CHANNELS
 from ae_tactile.msg import Contact, ContactEvent, ContactState, Emission, Packet, PacketArray
-from ae_tactile.records import ContactRecord, EmissionRecord
+from ae_tactile.records import ContactRecord, EmissionRecord, EventType
 
 NS_PER_S = 1_000_000_000
 
@@ -267,6 +267,28 @@ def contact_record_of_msg(msg):
         amplitude_v=float(msg.amplitude_v),
         confidence=float(msg.confidence),
         contact_id=int(msg.contact_id),
+    )
+
+
+def contact_record_of_emission(msg) -> ContactRecord:
+    """The localizer's record of a received Emission (the slip_detector node's input):
+    TOUCH for a compression, DETOUCH for a rarefaction (ValueError: a polarity that is
+    neither +1 nor -1)."""
+    if msg.polarity not in (1, -1):
+        raise ValueError(f"emission polarity {msg.polarity}: neither +1 nor -1")
+    return ContactRecord(
+        event_type=int(EventType.TOUCH if msg.polarity > 0 else EventType.DETOUCH),
+        time_ns=time_msg_to_ns(msg.header.stamp),
+        point_m=(float(msg.position.x), float(msg.position.y), float(msg.position.z)),
+        covariance_m2=np.asarray(msg.position_covariance, dtype=float).reshape(3, 3),
+        packet_ids=tuple(int(i) for i in msg.packet_ids),
+        polar_rad=msg.polar_angle_rad,
+        azimuth_rad=msg.azimuth_angle_rad,
+        tau_x_s=msg.tau_x_s,
+        tau_y_s=msg.tau_y_s,
+        amplitude_v=float(msg.amplitude_v),
+        confidence=float(msg.confidence),
+        device_time_ns=int(msg.device_time_ns),
     )
 
 

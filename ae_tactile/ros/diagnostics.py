@@ -94,6 +94,7 @@ def pipeline_statuses(
     slip_stage,
     events: int,
     slip_events: int,
+    emissions: int | None = None,
 ) -> list:
     """DiagnosticStatus of the localization (``pipeline``: a ContactPipeline, its counts by
     reason) and slip stages; ``pipeline`` None: the slip stage's only."""
@@ -113,6 +114,10 @@ def pipeline_statuses(
             slip.level = DiagnosticStatus.WARN
         slip.values = [KeyValue(key=k, value=str(v)) for k, v in sorted(counts.items())]
         slip.values += [KeyValue(key="published_slip_events", value=str(slip_events))]
+        if emissions is not None:
+            slip.values += [KeyValue(key="published_emissions", value=str(emissions))]
+            slip.values += [KeyValue(key="current_contacts",
+                                     value=str(len(slip_stage.contacts)))]
         out.append(slip)
     return out
 

@@ -1,27 +1,35 @@
 # SPDX-License-Identifier: Apache-2.0
 """`driver` node: the fingertip from serial bytes to contact and slip events, in one process.
 
-The hot path runs in the serial reader thread, with no message hop between stages: the
-link (`ae_tactile.link`) decodes frames and hands each batch of packets to the core
-pipeline (`ae_tactile.pipeline`: validation, interference rejection, localization, slip
-detection), and this node publishes what comes out at once: contact events first, then
-slip events and the contact state, then (only when someone subscribes or records) the
-raw packets. With ``pipeline:=false`` it publishes raw packets only, for the separate
-`localizer` and `slip_detector` nodes (replaying bags, velodyne-style: same core code).
+The hot path runs in the serial reader thread, with no message hop between stages: the link
+(`ae_tactile.link`) decodes frames and hands each batch of packets to the core pipeline
+(`ae_tactile.pipeline`: validation, interference rejection, localization, the slip
+detector's interpretation), and this node publishes what comes out at once: a contact's
+begin / end first, then slip events, the emissions with their readings and the contact
+state, then (only when someone subscribes or records) the raw packets. With
+``pipeline:=false`` it publishes raw packets only, for the separate `localizer` and
+`slip_detector` nodes (replaying bags, velodyne-style: same core code).
 
 From the read callback to the publish call (three files): the link's reader thread calls
 `DriverNode._on_batch` (this file) -> `ContactPipeline.process` (`pipeline/core.py`, which
-calls the stages in order) -> `DriverNode._publish_contacts` / `_publish_slip` ->
-`ContactEventWire.encode` (`conversions.py`) -> ``Publisher.publish``.
+calls the stages in order) -> `DriverNode._publish_contacts` / `_publish_slip` /
+`_publish_emissions` -> `ContactEventWire.encode` / `EmissionWire.encode`
+(`conversions.py`) -> ``Publisher.publish``.
 
 Acquisition starts once the pipeline is ready (compiled, geometry known) and, with
 ``wait_for_subscribers:=N``, once N subscribers are matched on ``contacts`` or on
 ``packets`` (``packets`` only without the pipeline): no first event is lost.
 
 Topics (relative, so a namespace per finger works):
-  contacts      ae_tactile/ContactEvent  TOUCH / DETOUCH, reliable, depth 100
-  slip          ae_tactile/ContactEvent  SLIP_PRECURSOR / SLIP / TEXTURE, reliable, depth 100
-  contact_state ae_tactile/ContactState  latched (transient local, depth 1)
+  contacts      ae_tactile/ContactEvent  TOUCH when a contact begins, DETOUCH when it ends
+                                         (with its contact_id), reliable, depth 100
+  slip          ae_tactile/ContactEvent  SLIP_PRECURSOR / SLIP / TEXTURE of a contact,
+                                         reliable, depth 100
+  emissions     ae_tactile/Emission      every localized emission with its reading (touch,
+                                         release, micro-slip, slip, texture, unknown) and
+                                         contact_id, reliable, depth 1000
+  contact_state ae_tactile/ContactState  the finger's state and its current contacts,
+                                         latched (transient local, depth 1)
   markers       visualization_msgs/MarkerArray  when subscribed
   packets       ae_tactile/PacketArray   sensor-data QoS, or reliable with reliable_qos:=true
                                          (for `ros2 bag record`); only when subscribed
@@ -54,26 +62,36 @@ from visualization_msgs.msg import MarkerArray
 
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.link import FingertipLink
-from ae_tactile.msg import ApexPackets, ContactEvent, ContactState, PacketArray, SensorInfo
+from ae_tactile.msg import (
+    ApexPackets,
+    ContactEvent,
+    ContactState,
+    Emission,
+    PacketArray,
+    SensorInfo,
+)
 from ae_tactile.pipeline import ContactPipeline, SlipStage
 from ae_tactile.protocol import PROTOCOL_VERSION
 from ae_tactile.ros.conversions import (
     ContactEventWire,
+    EmissionWire,
     contact_event_msg,
     contact_state_msg,
+    emission_msg,
     ns_to_time_msg,
     packet_array_msgs,
 )
 from ae_tactile.ros.diagnostics import link_rates, link_status, pipeline_statuses
 from ae_tactile.ros.driver_params import (  # noqa: F401  (DRIVER_PARAMS, EVENT_QOS: public here too)
     DRIVER_PARAMS,
+    EMISSION_QOS,
     EVENT_QOS,
     detector_options,
     geometry_from_params,
     link_config_from_params,
     packet_qos,
 )
-from ae_tactile.ros.markers import EventMarkers, sensor_markers
+from ae_tactile.ros.markers import EventMarkers, contact_markers, sensor_markers
 from ae_tactile.ros.node_utils import LATCHED, cpu_list, pin_process, run_node
 from ae_tactile.ros.params import (
     LOCALIZATION_PARAMS,
@@ -131,6 +149,7 @@ class DriverNode(Node):
         self.published_packets = 0
         self.published_events = 0
         self.published_slip = 0
+        self.published_emissions = 0
         self.scene_body = None
         self._body_warned = False
         try:
@@ -214,11 +233,16 @@ class DriverNode(Node):
         self.pipeline.overlap_idle = bool(self.p["cpu_affinity"].strip())
         self.pub_contacts = self.create_publisher(ContactEvent, "contacts", EVENT_QOS)
         self.pub_slip = self.create_publisher(ContactEvent, "slip", EVENT_QOS)
+        self.pub_emissions = self.create_publisher(Emission, "emissions", EMISSION_QOS)
         self.pub_state = self.create_publisher(ContactState, "contact_state", LATCHED)
         self.pub_markers = self.create_publisher(MarkerArray, "markers", 10)
         self.markers = EventMarkers(self.frame_id, self.p["marker_lifetime_s"])
         self._marker_inbox: deque = deque(maxlen=64)  # ContactRecords not drawn yet
         self._wire = ContactEventWire(self.frame_id)
+        self._emission_wire = EmissionWire(self.frame_id)
+        # a DETOUCH decided by the timer's tick (a release confirmed) goes out there too
+        self.pipeline.set_outputs(None, self._publish_slip, on_contacts=self._publish_contacts,
+                                  on_emissions=self._publish_emissions)
         self._state_key = None
         self._state_pub_ns = 0
         self.create_subscription(Float64, "sliding_speed", self._on_sliding_speed, 10)
@@ -242,9 +266,11 @@ class DriverNode(Node):
         if self.pipeline is not None:
             self.pipeline.process(
                 batch.packets,
-                self._publish_contacts,
+                None,
                 self._publish_slip,
                 more_waiting=self.link.bytes_waiting,
+                on_contacts=self._publish_contacts,
+                on_emissions=self._publish_emissions,
             )
             if self.pub_apex is not None:
                 self._hand_step()
@@ -255,8 +281,8 @@ class DriverNode(Node):
             self.published_packets += len(batch.packets)
 
     def _on_link_idle(self) -> None:
-        """Reader thread, nothing more to read: the slip step put off under load (and the
-        echo test's learning)."""
+        """Reader thread, nothing more to read: the hand's held packets, the echo test's
+        learning."""
         if self.pipeline is None:
             return
         if self.pub_apex is not None and self._hand_step():
@@ -295,14 +321,23 @@ class DriverNode(Node):
         self._marker_inbox.extend(records)
         self.published_slip += len(records)
 
+    def _publish_emissions(self, records) -> None:
+        encode, publish = self._emission_wire.encode, self.pub_emissions.publish
+        for r in records:
+            publish(encode(r))
+        self._marker_inbox.extend(records)
+        self.published_emissions += len(records)
+
     def _publish_state(self, force: bool = False) -> None:
         st = self.slip_stage.state
-        key = (int(st.state), int(st.since_ns), int(st.contact_id))
+        key = (int(st.state), int(st.since_ns), int(st.contact_id),
+               self.slip_stage.contacts_key())
         now = self.now_ns()
         if not force and key == self._state_key and now - self._state_pub_ns < 1_000_000_000:
             return
         self._state_key, self._state_pub_ns = key, now
-        self.pub_state.publish(contact_state_msg(st, self.frame_id, now))
+        self.pub_state.publish(
+            contact_state_msg(st, self.frame_id, now, self.slip_stage.contacts))
 
     def _tick(self) -> None:
         if self.pipeline is not None:
@@ -323,10 +358,14 @@ class DriverNode(Node):
         now = self.get_clock().now()
         while self._marker_inbox:
             rec = self._marker_inbox.popleft()
-            self.markers.add(contact_event_msg(rec, self.frame_id), now.nanoseconds)
+            msg = (emission_msg(rec, self.frame_id) if hasattr(rec, "reading")
+                   else contact_event_msg(rec, self.frame_id))
+            self.markers.add(msg, now.nanoseconds)
         stamp = now.to_msg()
         arr = sensor_markers(self.geometry, self.frame_id, stamp)
         arr.markers.extend(self.markers.render(now.nanoseconds, stamp).markers)
+        arr.markers.extend(contact_markers(self.slip_stage.contacts, self.frame_id, stamp,
+                                           3.0 * self.p["marker_period_s"]).markers)
         self.pub_markers.publish(arr)
 
     def _on_sliding_speed(self, msg: Float64) -> None:
@@ -376,11 +415,22 @@ class DriverNode(Node):
         self.get_logger().info(f"slip parameters changed: {changes}")
 
     # -------------------------------------------------------------- start
+    #: [s] once enough subscribers are matched on `contacts`, how long acquisition waits for
+    #: as many on `emissions` (a consumer of both, e.g. the monitor, is discovered topic by
+    #: topic; one of `contacts` alone starts this much later)
+    EMISSIONS_GRACE_S = 0.5
+
     def _start_when_subscribed(self) -> None:
+        need = self.p["wait_for_subscribers"]
         matched = self.pub_packets.get_subscription_count()
         if self.pipeline is not None:
             matched = max(matched, self.pub_contacts.get_subscription_count())
-        if matched >= self.p["wait_for_subscribers"]:
+            if matched >= need and self.pub_emissions.get_subscription_count() < need:
+                now = time.monotonic()
+                self._matched_at = getattr(self, "_matched_at", None) or now
+                if now - self._matched_at < self.EMISSIONS_GRACE_S:
+                    return
+        if matched >= need:
             self._start_timer.cancel()
             self.link.start()
 
@@ -485,7 +535,7 @@ class DriverNode(Node):
         if self.pipeline is not None:
             statuses += pipeline_statuses(
                 name, hw, self.pipeline, self.slip_stage, self.published_events,
-                self.published_slip,
+                self.published_slip, self.published_emissions,
             )
         msg = DiagnosticArray()
         msg.header.stamp = ns_to_time_msg(now)

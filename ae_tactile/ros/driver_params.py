@@ -236,6 +236,13 @@ EVENT_QOS = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.VOLATILE,
 )
+#: `emissions`: reliable, depth 1000 (a second of emissions at the rate a slide gives)
+EMISSION_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1000,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
 
 
 def geometry_from_params(p: dict) -> FingertipGeometry:

@@ -4,9 +4,11 @@
 On every SLIP_PRECURSOR (or SLIP) event on `slip`, the commanded grip force on
 `grip_force_command` (std_msgs/Float64, N) is multiplied by ``gain`` (up to
 ``max_force_n``), at most once per ``refractory_s``. The reaction time from the
-precursor's emission stamp to the command is logged and kept (`reactions_ms`). It is a
-documented example of closing the loop, not a grasp controller: a real hand would feed
-the command to its force controller.
+precursor's emission stamp to the command is logged and kept (`reactions_ms`), with the
+contact that slipped. The contacts held come from `contacts` (TOUCH when a contact begins,
+DETOUCH when it ends, with its id): a slip event of a contact that already ended is
+ignored (its object was let go). It is a documented example of closing the loop, not a
+grasp controller: a real hand would feed the command to its force controller.
 """
 
 from __future__ import annotations
@@ -43,6 +45,9 @@ class GripReflexNode(Node):
         # simulated fingertip that subscribes late still gets the latest one.
         self.pub = self.create_publisher(Float64, "grip_force_command", LATCHED)
         self.create_subscription(ContactEvent, "slip", self.on_slip, 100)
+        self.create_subscription(ContactEvent, "contacts", self.on_contact, 100)
+        self.held: set[int] = set()  # ids of the contacts begun and not ended
+        self.ended: set[int] = set()  # ids of the contacts that ended
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(self.p["diagnostics_period_s"], self.publish_diagnostics)
 
@@ -56,13 +61,23 @@ class GripReflexNode(Node):
         st.values = [
             KeyValue(key="force_n", value=f"{self.force_n:.3f}"),
             KeyValue(key="reflexes", value=str(len(self.commands))),
+            KeyValue(key="contacts_held", value=" ".join(map(str, sorted(self.held)))),
         ]
         msg = DiagnosticArray(status=[st])
         msg.header.stamp = self.get_clock().now().to_msg()
         self.pub_diag.publish(msg)
 
+    def on_contact(self, ev: ContactEvent) -> None:
+        if ev.event_type == ContactEvent.TOUCH:
+            self.held.add(int(ev.contact_id))
+        elif ev.event_type == ContactEvent.DETOUCH:
+            self.held.discard(int(ev.contact_id))
+            self.ended.add(int(ev.contact_id))
+
     def on_slip(self, ev: ContactEvent) -> None:
         if ev.event_type not in (ContactEvent.SLIP_PRECURSOR, ContactEvent.SLIP):
+            return
+        if ev.contact_id in self.ended:  # its object was let go: nothing to hold
             return
         now = self.get_clock().now().nanoseconds
         if self.last_ns is not None and now - self.last_ns < self.p["refractory_s"] * 1e9:
@@ -75,8 +90,10 @@ class GripReflexNode(Node):
         reaction = (now - time_msg_to_ns(ev.header.stamp)) * 1e-6
         self.reactions_ms.append(reaction)
         self.commands.append((now, new))
+        kind = "slip precursor" if ev.event_type == ContactEvent.SLIP_PRECURSOR else "slip"
         self.get_logger().info(
-            f"slip precursor -> grip force {new:.2f} N ({reaction:.1f} ms after the emission)"
+            f"{kind} of contact {ev.contact_id} -> grip force {new:.2f} N ({reaction:.1f} ms "
+            "after the emission)"
         )
 
 

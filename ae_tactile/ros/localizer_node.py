@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""`localizer` node: PacketArray -> ContactEvent (TOUCH / DETOUCH), markers, diagnostics.
+"""`localizer` node: PacketArray -> localized emissions (Emission), markers, diagnostics.
 
 The replay half of the velodyne-style split: the driver localizes in-process by default;
 this node does the same work (`ae_tactile.pipeline.PacketLocalizer`, the same code) on a
@@ -7,10 +7,13 @@ this node does the same work (`ae_tactile.pipeline.PacketLocalizer`, the same co
 takes every PacketArray queued since its last pass (one packet alone takes the
 single-packet path, a backlog is localized in batches). The
 geometry comes from the driver's latched `sensor_info` when it arrives (so a bag is
-self-describing), else from the parameters. Each accepted packet gives one ContactEvent
-on `contacts`: TOUCH for compressive onsets, DETOUCH for rarefactions, stamped at the
-emission time (first-sample stamp + onset / fs - travel time from the fitted point to
-the nearest element). Rejected packets are counted by reason in `/diagnostics`.
+self-describing), else from the parameters. Each accepted emission (one per packet, or
+several from a window holding overlapping emissions) goes out as an Emission on
+`localized` with its polarity (+1 compression, -1 rarefaction) and the reading UNKNOWN
+(the `slip_detector` node reads it and publishes `contacts`, `slip`, `emissions` and
+`contact_state`), stamped at the emission time (first-sample stamp + onset / fs - travel
+time from the fitted point to the nearest element). Rejected packets are counted by reason
+in `/diagnostics`.
 Markers (`markers`, MarkerArray): the fingertip, the PVDF matrix, recent events.
 """
 
@@ -26,11 +29,12 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from visualization_msgs.msg import MarkerArray
 
 from ae_tactile.geometry import FingertipGeometry
-from ae_tactile.msg import ContactEvent, PacketArray, SensorInfo
+from ae_tactile.msg import Emission, PacketArray, SensorInfo
 from ae_tactile.pipeline import ContactPipeline, PacketView
-from ae_tactile.ros.conversions import contact_event_msg, packet_samples, time_msg_to_ns
+from ae_tactile.records import emission_record
+from ae_tactile.ros.conversions import emission_msg, packet_samples, time_msg_to_ns
 from ae_tactile.ros.diagnostics import pipeline_statuses
-from ae_tactile.ros.driver_params import EVENT_QOS
+from ae_tactile.ros.driver_params import EMISSION_QOS
 from ae_tactile.ros.markers import EventMarkers, sensor_markers
 from ae_tactile.ros.node_utils import LATCHED, run_node
 from ae_tactile.ros.params import (
@@ -80,7 +84,7 @@ class LocalizerNode(Node):
         self.pipeline = ContactPipeline(self.localizer, None)
         self.pipeline.overlap_inline_max = int(lp["overlap_inline_max"])
         self.frame_id = ""
-        self.pub_events = self.create_publisher(ContactEvent, "contacts", EVENT_QOS)
+        self.pub_events = self.create_publisher(Emission, "localized", EMISSION_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.pub_markers = self.create_publisher(MarkerArray, "markers", 10)
         self._inbox: deque[PacketArray] = deque()
@@ -226,7 +230,7 @@ class LocalizerNode(Node):
 
     def _publish(self, records) -> None:
         for rec in records:
-            ev = contact_event_msg(rec, self.frame_id)
+            ev = emission_msg(emission_record(rec), self.frame_id)
             self.pub_events.publish(ev)
             self.counts["published_events"] += 1
             if self.p["markers"]:

@@ -1,8 +1,12 @@
 # SPDX-License-Identifier: Apache-2.0
-"""RViz markers: the fingertip sphere, the PVDF matrix, and recent events as fading spheres.
+"""RViz markers: the fingertip sphere, the PVDF matrix, recent events and emissions as fading
+spheres, the current contacts.
 
-Each event is drawn as a sphere at its position, 2 sigma across (largest principal axis of
-its covariance, at least 0.3 mm), coloured by type, fading out over its lifetime. Markers
+Each event (ContactEvent) or emission (Emission) is drawn as a sphere at its position, 2
+sigma across (largest principal axis of its covariance, at least 0.3 mm), coloured by type
+(an emission by its reading), fading out over its lifetime. Each current contact
+(`contact_markers`) is a translucent disc-like sphere 1.5 mm across coloured by its state,
+labelled with its id. Markers
 carry a lifetime, so RViz removes them by itself; no TF is needed beyond the fingertip
 frame (use it as RViz's fixed frame, or publish a static transform to the hand).
 """
@@ -16,7 +20,7 @@ from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ae_tactile.geometry import FingertipGeometry
-from ae_tactile.msg import ContactEvent
+from ae_tactile.msg import ContactEvent, ContactState, Emission
 
 #: RGB per event type.
 EVENT_COLORS = {
@@ -26,6 +30,24 @@ EVENT_COLORS = {
     ContactEvent.SLIP: (1.0, 0.1, 0.1),
     ContactEvent.TEXTURE: (0.7, 0.2, 0.9),
 }
+#: RGB per emission reading (an emission's marker; the events' colours where they agree).
+READING_COLORS = {
+    Emission.UNKNOWN: (0.6, 0.6, 0.6),
+    Emission.TOUCH: EVENT_COLORS[ContactEvent.TOUCH],
+    Emission.RELEASE: EVENT_COLORS[ContactEvent.DETOUCH],
+    Emission.MICRO_SLIP: EVENT_COLORS[ContactEvent.SLIP_PRECURSOR],
+    Emission.SLIP: EVENT_COLORS[ContactEvent.SLIP],
+    Emission.TEXTURE: EVENT_COLORS[ContactEvent.TEXTURE],
+}
+#: RGB per contact state (a current contact's marker).
+STATE_COLORS = {
+    ContactState.NO_CONTACT: (0.6, 0.6, 0.6),
+    ContactState.STICK: (0.1, 0.8, 0.2),
+    ContactState.INCIPIENT_SLIP: (1.0, 0.6, 0.0),
+    ContactState.GROSS_SLIP: (1.0, 0.1, 0.1),
+}
+#: [m] diameter of a current contact's marker (about a fingertip contact's size)
+CONTACT_MARKER_M = 1.5e-3
 
 
 def _duration(seconds: float) -> Duration:
@@ -63,8 +85,41 @@ def sensor_markers(geometry: FingertipGeometry, frame_id: str, stamp) -> MarkerA
     return arr
 
 
+def contact_markers(contacts, frame_id: str, stamp, lifetime_s: float = 0.5) -> MarkerArray:
+    """The current contacts (`ae_tactile.records.ContactSnapshot` or Contact messages): a
+    sphere coloured by the contact's state and a text with its id, each living
+    ``lifetime_s`` [s] (refreshed while the contact lasts)."""
+    arr = MarkerArray()
+    for c in contacts:
+        cid = int(getattr(c, "contact_id", getattr(c, "id", 0)))
+        if hasattr(c, "point_m"):
+            x, y, z = (float(v) for v in c.point_m)
+        else:
+            x, y, z = c.position.x, c.position.y, c.position.z
+        for kind in (Marker.SPHERE, Marker.TEXT_VIEW_FACING):
+            m = Marker()
+            m.header.frame_id, m.header.stamp = frame_id, stamp
+            m.ns = "ae_tactile/contacts" if kind == Marker.SPHERE else "ae_tactile/contact_ids"
+            m.id, m.type, m.action = cid, kind, Marker.ADD
+            m.pose.position = Point(x=x, y=y, z=z)
+            m.pose.orientation.w = 1.0
+            r, g, b = STATE_COLORS.get(int(c.state), (1.0, 1.0, 1.0))
+            if kind == Marker.SPHERE:
+                m.scale.x = m.scale.y = m.scale.z = CONTACT_MARKER_M
+                m.color = ColorRGBA(r=r, g=g, b=b, a=0.4)
+            else:
+                m.pose.position.z = z + CONTACT_MARKER_M
+                m.scale.z = 0.8e-3  # [m] text height
+                m.text = str(cid)
+                m.color = ColorRGBA(r=1.0, g=1.0, b=1.0, a=0.9)
+            m.lifetime = _duration(lifetime_s)
+            arr.markers.append(m)
+    return arr
+
+
 class EventMarkers:
-    """Keeps the recent events and renders them as fading spheres."""
+    """Keeps the recent events (ContactEvent) and emissions (Emission) and renders them as
+    fading spheres."""
 
     def __init__(
         self,
@@ -106,7 +161,10 @@ class EventMarkers:
             m.pose.position = Point(x=ev.position.x, y=ev.position.y, z=ev.position.z)
             m.pose.orientation.w = 1.0
             m.scale.x = m.scale.y = m.scale.z = size
-            r, g, b = EVENT_COLORS.get(ev.event_type, (1.0, 1.0, 1.0))
+            if isinstance(ev, Emission):
+                r, g, b = READING_COLORS.get(ev.reading, (1.0, 1.0, 1.0))
+            else:
+                r, g, b = EVENT_COLORS.get(ev.event_type, (1.0, 1.0, 1.0))
             m.color = ColorRGBA(r=r, g=g, b=b, a=float(max(0.05, 1.0 - age / self.lifetime_s)))
             m.lifetime = _duration(max(self.lifetime_s - age, 0.05))
             arr.markers.append(m)

@@ -1,11 +1,14 @@
 # SPDX-License-Identifier: Apache-2.0
 """`monitor`: a readable live log of events, scored against the simulator's ground truth.
 
-Subscribes to `contacts` (localizer), `slip` (slip detector), `contact_state` and, when a
-simulated fingertip runs, `sim/ground_truth`. Each event is printed once its ground truth
-had time to arrive (``print_delay_s``), with its position error and end-to-end latency
-(receive time - emission stamp). `summary()` scores the run: emissions found / missed /
-false, touch-release typing, RMS position error, slip precursor lead time, latency.
+Subscribes to `emissions` (every localized emission with its reading), `contacts` (a
+contact's begin and end), `slip` (slip events), `contact_state` and, when a simulated
+fingertip runs, `sim/ground_truth`. Each emission and event is printed once its ground
+truth had time to arrive (``print_delay_s``), with its position error and end-to-end
+latency (receive time - emission stamp). `summary()` scores the run: emissions found /
+missed / false, touch-release typing by polarity, RMS position error, latency; and, with
+the scene's truth (`ae_tactile.scoring`), the contact state against the true one (share
+of time right), false alarms, SLIP timing against each gross slip, the precursor's lead.
 """
 
 from __future__ import annotations
@@ -22,11 +25,12 @@ from rclpy.node import Node
 from std_msgs.msg import Empty
 
 from ae_tactile.evaluation import match_by_time, score
-from ae_tactile.msg import ContactEvent, ContactState
-from ae_tactile.records import EVENT_NAMES, STATE_NAMES
+from ae_tactile.msg import ContactEvent, ContactState, Emission
+from ae_tactile.records import EVENT_NAMES, READING_NAMES, STATE_NAMES
 from ae_tactile.ros.conversions import time_msg_to_ns
 from ae_tactile.ros.node_utils import LATCHED
 from ae_tactile.ros.sim_fingertip_node import TRUTH_QOS
+from ae_tactile.scoring import score_run
 
 TRUTH_KIND = {
     ContactEvent.TOUCH: "touch",
@@ -54,9 +58,11 @@ class MonitorNode(Node):
         self.out = out
         self.truth: list[ContactEvent] = []
         self.truth_ns: list[int] = []
-        self.contacts: list[Seen] = []
+        self.contacts: list[Seen] = []  # a contact's TOUCH (begin) / DETOUCH (end)
         self.slip: list[Seen] = []
-        self.states: list[tuple[int, int]] = []
+        self.emissions: list[Seen] = []
+        #: (stamp ns, state, state_since ns, current contacts) of each ContactState
+        self.states: list[tuple[int, int, int, int]] = []
         self._queue: list[tuple[str, Seen]] = []
         self.t0_ns: int | None = None
         self.create_subscription(ContactEvent, "sim/ground_truth", self._on_truth, TRUTH_QOS)
@@ -65,6 +71,9 @@ class MonitorNode(Node):
         )
         self.create_subscription(
             ContactEvent, "slip", lambda m: self._on(m, self.slip, "slip"), 1000
+        )
+        self.create_subscription(
+            Emission, "emissions", lambda m: self._on(m, self.emissions, "emission"), 1000
         )
         self.create_subscription(ContactState, "contact_state", self._on_state, LATCHED)
         self.create_timer(0.02, self._flush)
@@ -78,7 +87,7 @@ class MonitorNode(Node):
     def _now(self) -> int:
         return self.get_clock().now().nanoseconds
 
-    def _on(self, msg: ContactEvent, store: list, kind: str) -> None:
+    def _on(self, msg, store: list, kind: str) -> None:
         seen = Seen(time_msg_to_ns(msg.header.stamp), self._now(), msg)
         store.append(seen)
         if self.t0_ns is None:
@@ -87,13 +96,17 @@ class MonitorNode(Node):
 
     def _on_state(self, msg: ContactState) -> None:
         changed = not self.states or self.states[-1][1] != msg.state
-        self.states.append((time_msg_to_ns(msg.header.stamp), msg.state))
+        stamp, since = time_msg_to_ns(msg.header.stamp), time_msg_to_ns(msg.state_since)
+        # a state that began before anything happened (since 0): from its message on
+        self.states.append((stamp, msg.state, since if since > 0 else stamp, len(msg.contacts)))
         if self.print_live and changed:
             t = (
                 time_msg_to_ns(msg.header.stamp) - (self.t0_ns or time_msg_to_ns(msg.header.stamp))
             ) * 1e-9
+            ids = ", ".join(str(c.id) for c in msg.contacts)
             print(
-                f"{t:9.4f} s  state -> {STATE_NAMES.get(msg.state, msg.state)}",
+                f"{t:9.4f} s  state -> {STATE_NAMES.get(msg.state, msg.state)}"
+                f"  (contacts: {ids or 'none'})",
                 file=self.out,
                 flush=True,
             )
@@ -120,11 +133,15 @@ class MonitorNode(Node):
             m = s.msg
             t = (s.stamp_ns - self.t0_ns) * 1e-9
             p = m.position
+            name = (f"~{READING_NAMES.get(m.reading, m.reading).lower()}" if kind == "emission"
+                    else EVENT_NAMES.get(m.event_type, m.event_type))
             line = (
-                f"{t:9.4f} s  {EVENT_NAMES.get(m.event_type, m.event_type):<14s} "
+                f"{t:9.4f} s  {name:<14s} "
                 f"at ({p.x * 1e3:+6.2f}, {p.y * 1e3:+6.2f}, {p.z * 1e3:+6.2f}) mm"
             )
-            if kind == "contact":
+            if kind != "emission":
+                line += f"  contact {m.contact_id}"
+            if kind == "emission":
                 truth = self._nearest_truth(s.stamp_ns, (p.x, p.y, p.z))
                 if truth is not None:
                     err = math.dist(
@@ -133,7 +150,7 @@ class MonitorNode(Node):
                     kind = TRUTH_KIND.get(truth.event_type, "?")
                     line += f"  err {err * 1e6:6.1f} um  [truth: {kind}]"
                 line += f"  conf {m.confidence:.2f}"
-            else:
+            elif kind == "slip":
                 if not math.isnan(m.emission_rate_hz):
                     line += f"  rate {m.emission_rate_hz:6.1f} Hz"
                 if not math.isnan(m.spatial_period_m):
@@ -145,9 +162,12 @@ class MonitorNode(Node):
             print(line, file=self.out, flush=True)
 
     # ------------------------------------------------------------------ picture
-    def report_data(self) -> dict:
+    def report_data(self, truth_score: dict | None = None) -> dict:
         """The run as plain rows for `ae_tactile.report.write_run_summary`: events (time from
-        the first event, type, point, latency), the ground truth, the contact-state changes."""
+        the first event, type, point, latency: a contact's begin / end and the slip events),
+        the emissions (time, point, reading name), the ground truth, the contact-state
+        changes and, with the scene's truth (``truth_score``: `summary`'s "truth"), the true
+        state's."""
         t0 = self.t0_ns or 0
         events = [
             {
@@ -171,23 +191,37 @@ class MonitorNode(Node):
             if t.confidence > 0
         ]
         states = [
-            {"time_s": (t - t0) * 1e-9, "state": STATE_NAMES.get(st, str(st))}
-            for t, st in self.states
+            {"time_s": (since - t0) * 1e-9, "state": STATE_NAMES.get(st, str(st))}
+            for _, st, since, _ in self.states
         ]
-        return {"events": events, "truth": truth, "contact_state": states}
+        emissions = [
+            {"time_s": (x.stamp_ns - t0) * 1e-9, "x_m": x.msg.position.x,
+             "y_m": x.msg.position.y, "reading": READING_NAMES.get(x.msg.reading, "UNKNOWN")}
+            for x in self.emissions
+        ]
+        out = {"events": events, "truth": truth, "contact_state": states,
+               "emissions": emissions}
+        if truth_score:
+            shift = (truth_score["t0_ns"] - t0) * 1e-9
+            out["truth_state"] = [{"time_s": t + shift, "state": st}
+                                  for t, st in truth_score["truth_timeline"]]
+        return out
 
     # ------------------------------------------------------------------ summary
-    def summary(self, gross_slip_times_ns=(), slip_windows_ns=()) -> dict:
+    def summary(self, gross_slip_times_ns=(), slip_windows_ns=(), scene_truth=None,
+                end_ns: int | None = None) -> dict:
         """Scores of the run so far (see the module docstring). ``slip_windows_ns``: per
         gross slip, the start of the part of the scene it belongs to (precursors count from
-        there); default: anything before the gross slip."""
+        there); default: anything before the gross slip. ``scene_truth``: the scene's truth
+        (sim/scene_truth's "truth"), for "truth" (`ae_tactile.scoring.score_run`; the
+        ground truth alone without it); ``end_ns``: the scene's end (ROS ns)."""
         captured = [t for t in self.truth if t.confidence > 0]
         tr_ns = [time_msg_to_ns(t.header.stamp) for t in captured]
         tr_pt = [(t.position.x, t.position.y, t.position.z) for t in captured]
         tr_pol = [t.amplitude_v for t in captured]
-        ev_ns = [s.stamp_ns for s in self.contacts]
-        ev_pt = [(s.msg.position.x, s.msg.position.y, s.msg.position.z) for s in self.contacts]
-        ev_pol = [1 if s.msg.event_type == ContactEvent.TOUCH else -1 for s in self.contacts]
+        ev_ns = [s.stamp_ns for s in self.emissions]
+        ev_pt = [(s.msg.position.x, s.msg.position.y, s.msg.position.z) for s in self.emissions]
+        ev_pol = [1 if s.msg.polarity >= 0 else -1 for s in self.emissions]
         sc = score(tr_ns, tr_pt, tr_pol, ev_ns, ev_pt, ev_pol)
         out = {
             "emissions": sc.as_dict(),
@@ -212,16 +246,15 @@ class MonitorNode(Node):
             "found": len(found),
             "typed_correctly": len(typed),
         }
-        lat = np.array([(s.received_ns - s.stamp_ns) * 1e-6 for s in self.contacts + self.slip])
-        out["latency_ms"] = (
-            {
-                "median": float(np.median(lat)),
-                "p99": float(np.percentile(lat, 99)),
-                "max": float(lat.max()),
-            }
-            if lat.size
-            else {}
-        )
+        # a DETOUCH is decided once the release is confirmed (a quiet time after it): its
+        # delay is not the path's latency, and is shown on its own
+        reflex = [s for s in self.contacts if s.msg.event_type == ContactEvent.TOUCH]
+        detouch = [s for s in self.contacts if s.msg.event_type == ContactEvent.DETOUCH]
+        out["latency_ms"] = _latency(reflex + self.slip + self.emissions)
+        out["latency_by_kind_ms"] = {
+            "TOUCH": _latency(reflex), "slip": _latency(self.slip),
+            "emissions": _latency(self.emissions), "DETOUCH": _latency(detouch),
+        }
         counts = {}
         for s in self.slip:
             name = EVENT_NAMES.get(s.msg.event_type, str(s.msg.event_type))
@@ -237,6 +270,31 @@ class MonitorNode(Node):
             ]
             leads.append((g - min(pre)) * 1e-6 if pre else None)
         out["slip_precursor_lead_ms"] = leads
+        out.update(self._contact_scores(scene_truth, end_ns))
+        return out
+
+    def _contact_scores(self, scene_truth, end_ns) -> dict:
+        """The contacts' events and the emissions' readings counted, and the run against
+        the scene's truth (`ae_tactile.scoring.score_run`)."""
+        out = {}
+        out["contact_events"] = {
+            EVENT_NAMES[int(k)]: sum(1 for s in self.contacts if s.msg.event_type == k)
+            for k in (ContactEvent.TOUCH, ContactEvent.DETOUCH)
+        }
+        readings = {}
+        for s in self.emissions:
+            name = READING_NAMES.get(s.msg.reading, str(s.msg.reading))
+            readings[name] = readings.get(name, 0) + 1
+        out["emission_readings"] = readings
+        out["truth"] = score_run(
+            [(time_msg_to_ns(t.header.stamp), int(t.event_type),
+              (t.position.x, t.position.y, t.position.z)) for t in self.truth],
+            [(since, st) for _, st, since, _ in self.states],
+            [(s.stamp_ns, int(s.msg.event_type)) for s in self.slip],
+            scene_truth,
+            [(s.stamp_ns, int(s.msg.event_type)) for s in self.contacts],
+            end_ns,
+        )
         return out
 
 
@@ -291,6 +349,41 @@ def two_hop_floor_ms(context=None, n: int = 300, timeout_s: float = 10.0) -> dic
         b.destroy_node()
 
 
+def _latency(seen: list) -> dict:
+    """Median, p99 and max of receive - emission stamp [ms] ({} if none)."""
+    lat = np.array([(s.received_ns - s.stamp_ns) * 1e-6 for s in seen])
+    if not lat.size:
+        return {}
+    return {"median": float(np.median(lat)), "p99": float(np.percentile(lat, 99)),
+            "max": float(lat.max()), "n": int(lat.size)}
+
+
+def _truth_lines(tr: dict | None, ce: dict) -> list:
+    """The summary's lines scoring the run against the scene's truth."""
+    if not tr:
+        return []
+    c = tr["contacts"]
+    share = tr["state_right_share"]
+    lines = [
+        f"contacts: {ce.get('TOUCH', 0)} TOUCH / {ce.get('DETOUCH', 0)} DETOUCH published; "
+        f"the scene's truth: {c['truth_begun']} contacts begun, {c['truth_ended']} ended",
+        "contact state vs truth: "
+        + ("n/a" if share is None else f"right {100 * share:.1f} % of the time")
+        + f" ({tr['state_scored_s']:.2f} s scored, 0.1 s after each change excepted)",
+        f"slip alarms: {tr['true_alarms']} backed by the truth, {tr['false_alarms']} false"
+        + ("" if not tr["false_alarms"] else " (" + ", ".join(
+            f"{k} at {t:.3f} s" for t, k in tr["false_alarm_list"][:8])
+            + (", ..." if tr["false_alarms"] > 8 else "") + ")"),
+    ]
+    for g in tr["gross_slips"]:
+        d, lead = g["slip_delay_ms"], g["precursor_lead_ms"]
+        lines.append(
+            f"gross slip ({g['part'] or 'scene'}): SLIP "
+            + ("none" if d is None else (f"{-d:.0f} ms before" if d < 0 else f"{d:.0f} ms after"))
+            + ", precursor lead " + ("none" if lead is None else f"{lead:.0f} ms"))
+    return lines
+
+
 def format_summary(s: dict) -> str:
     e = s["emissions"]
     tr = s["touch_release"]
@@ -315,12 +408,20 @@ def format_summary(s: dict) -> str:
             "slip precursor lead time: "
             + ("none before gross slip" if lead is None else f"{lead:.0f} ms before gross slip")
         )
+    if s.get("emission_readings"):
+        lines.append("emissions read as: " + ", ".join(
+            f"{k.lower()} x{v}" for k, v in sorted(s["emission_readings"].items())))
+    lines += _truth_lines(s.get("truth"), s.get("contact_events", {}))
     if s["latency_ms"]:
         la = s["latency_ms"]
         lines.append(
-            f"end-to-end latency (emission -> event received): median {la['median']:.2f} ms, "
-            f"p99 {la['p99']:.2f} ms"
+            f"end-to-end latency (emission -> TOUCH, slip event or emission received): "
+            f"median {la['median']:.2f} ms, p99 {la['p99']:.2f} ms"
         )
+        dt = s.get("latency_by_kind_ms", {}).get("DETOUCH")
+        if dt:
+            lines.append(f"DETOUCH after the release's emission (its confirmation): median "
+                         f"{dt['median']:.0f} ms")
     fl = s.get("floor_two_hop_ms")
     if fl:
         line = (

@@ -200,20 +200,25 @@ class SimFingertipNode(Node):
         return best[1]
 
     def scene_truth_ros(self) -> dict:
-        """The scene's truth with every *_time_ns (scene time) as ROS time (ns)."""
+        """The scene's truth with every *_time_ns and every *_intervals_ns' [start, end]
+        (scene time) as ROS time (ns)."""
         proc = self.device.scene_process
         truth = proc.scene_truth() if proc is not None else {}
 
+        def ros(v):
+            return None if v is None else self.ros_ns_of_device_ns(
+                self.device.device_ns_of_scene(int(v)))
+
+        def conv_value(k, v):
+            if k.endswith("_time_ns") and v is not None:
+                return ros(v)
+            if k.endswith("_intervals_ns") and isinstance(v, list):
+                return [[ros(a) for a in iv] for iv in v]
+            return conv(v)
+
         def conv(obj):
             if isinstance(obj, dict):
-                return {
-                    k: (
-                        self.ros_ns_of_device_ns(self.device.device_ns_of_scene(int(v)))
-                        if k.endswith("_time_ns") and v is not None
-                        else conv(v)
-                    )
-                    for k, v in obj.items()
-                }
+                return {k: conv_value(k, v) for k, v in obj.items()}
             if isinstance(obj, list):
                 return [conv(v) for v in obj]
             return obj

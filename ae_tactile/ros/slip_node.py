@@ -1,11 +1,14 @@
 # SPDX-License-Identifier: Apache-2.0
-"""`slip_detector` node: localized TOUCH / DETOUCH events -> slip precursors, slip, texture.
+"""`slip_detector` node: localized emissions -> contacts, slip events, readings, state.
 
 The replay half of the velodyne-style split (the driver runs the same stage in-process by
-default): feeds ContactEvents from `contacts` to the core `ae_tactile.pipeline.SlipStage`
-and publishes what it finds on `slip` (ContactEvent SLIP_PRECURSOR / SLIP / TEXTURE), the
-finger's latched `contact_state` (ContactState, transient local: a hand controller can
-read it at any time), markers and /diagnostics. The sliding speed for TEXTURE spatial
+default): feeds the localizer's emissions (Emission on `localized`) to the core
+`ae_tactile.pipeline.SlipStage` and publishes what the driver would: `contacts`
+(ContactEvent TOUCH when a contact begins, DETOUCH when it ends, with its id), `slip`
+(SLIP_PRECURSOR / SLIP / TEXTURE of a contact), `emissions` (each emission with its
+reading and contact id), the finger's latched `contact_state` (ContactState with the
+current contacts, transient local: a hand controller can read it at any time), markers
+and /diagnostics. The sliding speed for TEXTURE spatial
 periods comes from the `slip.sliding_speed_m_s` parameter or the `sliding_speed` topic
 (std_msgs/Float64, m/s). Every field of `SlipConfig` is a parameter `slip.<field>`
 (docs/slip.md); the run-time ones can be changed with `ros2 param set`.
@@ -26,12 +29,17 @@ from rclpy.node import Node
 from std_msgs.msg import Float64
 from visualization_msgs.msg import MarkerArray
 
-from ae_tactile.msg import ContactEvent, ContactState
+from ae_tactile.msg import ContactEvent, ContactState, Emission
 from ae_tactile.pipeline import EventType, SlipStage
-from ae_tactile.ros.conversions import contact_event_msg, contact_record_of_msg, contact_state_msg
+from ae_tactile.ros.conversions import (
+    contact_event_msg,
+    contact_record_of_emission,
+    contact_state_msg,
+    emission_msg,
+)
 from ae_tactile.ros.diagnostics import pipeline_statuses
-from ae_tactile.ros.driver_params import EVENT_QOS
-from ae_tactile.ros.markers import EventMarkers
+from ae_tactile.ros.driver_params import EMISSION_QOS, EVENT_QOS
+from ae_tactile.ros.markers import EventMarkers, contact_markers
 from ae_tactile.ros.node_utils import LATCHED, run_node
 from ae_tactile.ros.params import (
     Param,
@@ -72,12 +80,14 @@ class SlipDetectorNode(Node):
             raise ParameterError(f"slip detector parameters: {exc}") from exc
         self.stage = SlipStage(config, lag_s=self.p["lag_s"])
         self.detector = self.stage.detector
+        self.pub_contacts = self.create_publisher(ContactEvent, "contacts", EVENT_QOS)
         self.pub_slip = self.create_publisher(ContactEvent, "slip", EVENT_QOS)
+        self.pub_emissions = self.create_publisher(Emission, "emissions", EMISSION_QOS)
         self.pub_state = self.create_publisher(ContactState, "contact_state", LATCHED)
         self.pub_markers = self.create_publisher(MarkerArray, "markers", 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.markers = EventMarkers("", 2.0, namespace="ae_tactile/slip")
-        self.create_subscription(ContactEvent, "contacts", self.on_contact, EVENT_QOS)
+        self.create_subscription(Emission, "localized", self.on_emission, EMISSION_QOS)
         self.create_subscription(Float64, "sliding_speed", self.on_speed, 10)
         self.create_timer(self.p["tick_period_s"], self.tick)
         self.create_timer(self.p["marker_period_s"], self.publish_markers)
@@ -85,7 +95,9 @@ class SlipDetectorNode(Node):
         self.frame_id = self.p["frame_id"]
         self.last_state_key = None
         self.last_state_pub_ns = 0
-        self.published = 0
+        self.published = 0  # slip events
+        self.published_contacts = 0
+        self.published_emissions = 0
         self.received = 0
         self.publish_state(force=True)
 
@@ -109,39 +121,55 @@ class SlipDetectorNode(Node):
                 f"sliding_speed {v} ignored: {exc}", throttle_duration_sec=5.0
             )
 
-    def on_contact(self, msg: ContactEvent) -> None:
+    def on_emission(self, msg: Emission) -> None:
         self.received += 1
-        if msg.event_type not in (EventType.TOUCH, EventType.DETOUCH):
-            self.stage.counts["ignored_not_a_contact"] += 1
-            return
         if not self.frame_id:
             self.frame_id = msg.header.frame_id
         try:
-            rec = contact_record_of_msg(msg)
+            rec = contact_record_of_emission(msg)
         except (TypeError, ValueError):
-            self.stage.counts["rejected_invalid_contact"] += 1
+            self.stage.counts["rejected_invalid_emission"] += 1
             return
-        for out in self.stage.process([rec]):
-            ev = contact_event_msg(out, self.frame_id)
-            self.pub_slip.publish(ev)
-            self.published += 1
+        emissions: list = []
+        self._publish(self.stage.process([rec], emissions))
+        for e in emissions:
+            out = emission_msg(e, self.frame_id)
+            self.pub_emissions.publish(out)
+            self.published_emissions += 1
+            if self.p["markers"]:
+                self.markers.add(out, self.get_clock().now().nanoseconds)
+        self.publish_state()
+
+    def _publish(self, records) -> None:
+        """A contact's TOUCH / DETOUCH on `contacts`, its slip events on `slip`."""
+        for r in records:
+            ev = contact_event_msg(r, self.frame_id)
+            if r.event_type in (EventType.TOUCH, EventType.DETOUCH):
+                self.pub_contacts.publish(ev)
+                self.published_contacts += 1
+            else:
+                self.pub_slip.publish(ev)
+                self.published += 1
             if self.p["markers"]:
                 self.markers.add(ev, self.get_clock().now().nanoseconds)
-        self.publish_state()
 
     def tick(self) -> None:
         self.stage.tick(self.get_clock().now().nanoseconds)
+        self._publish(self.stage.pop_events())  # contacts whose release was confirmed
         self.publish_state()
 
     def publish_markers(self) -> None:
         if self.frame_id and self.markers.events and self.pub_markers.get_subscription_count():
             now = self.get_clock().now()
             self.markers.frame_id = self.frame_id
-            self.pub_markers.publish(self.markers.render(now.nanoseconds, now.to_msg()))
+            arr = self.markers.render(now.nanoseconds, now.to_msg())
+            arr.markers.extend(contact_markers(self.stage.contacts, self.frame_id, now.to_msg(),
+                                               3.0 * self.p["marker_period_s"]).markers)
+            self.pub_markers.publish(arr)
 
     def publish_state(self, force: bool = False) -> None:
         st = self.stage.state
-        key = (int(st.state), int(st.since_ns), int(st.contact_id))
+        key = (int(st.state), int(st.since_ns), int(st.contact_id), self.stage.contacts_key())
         now = self.get_clock().now().nanoseconds
         if (
             not force
@@ -150,7 +178,7 @@ class SlipDetectorNode(Node):
         ):
             return
         self.last_state_key, self.last_state_pub_ns = key, now
-        self.pub_state.publish(contact_state_msg(st, self.frame_id, now))
+        self.pub_state.publish(contact_state_msg(st, self.frame_id, now, self.stage.contacts))
 
     def publish_diagnostics(self) -> None:
         statuses = pipeline_statuses(
@@ -158,8 +186,9 @@ class SlipDetectorNode(Node):
             self.frame_id or "fingertip",
             None,
             self.stage,
-            0,
+            self.published_contacts,
             self.published,
+            self.published_emissions,
         )
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()
