@@ -280,7 +280,8 @@ def score_run(truth_events, reported_states, outputs, scene_truth: dict | None =
     right = int(np.sum((truth == got) & mask))
     out = {"state_right_share": right / n if n else None, "state_scored_s": n * GRID_S}
     out.update(_alarms(outputs, tt, ts, t0))
-    out["gross_slips"] = _gross(outputs, scene_truth)
+    backed = [(int(t), int(k)) for t, k in outputs if _backed(int(t), int(k), tt, ts)]
+    out["gross_slips"] = _gross(outputs, backed, scene_truth)
     ce = [(int(t), int(k)) for t, k in contact_events]
     out["contacts"] = {
         "truth_begun": len(contacts),
@@ -295,25 +296,32 @@ def score_run(truth_events, reported_states, outputs, scene_truth: dict | None =
     return out
 
 
+def _backed(t: int, k: int, tt, ts) -> bool:
+    """An output at ``t`` [ns] of kind ``k`` is backed by the truth: a precursor by a slip
+    state (INCIPIENT_SLIP or GROSS_SLIP), a SLIP / TEXTURE by GROSS_SLIP, within GRACE_S
+    before it (STAMP_S after)."""
+    lo = np.searchsorted(tt, t - int(GRACE_S * NS), side="right") - 1
+    hi = np.searchsorted(tt, t + int(STAMP_S * NS), side="right")
+    worst = int(ts[max(lo, 0):max(hi, lo + 1)].max()) if tt.size and hi > 0 else NO
+    return worst >= INC if k == EventType.SLIP_PRECURSOR else worst == GROSS
+
+
 def _alarms(outputs, tt, ts, t0) -> dict:
     """Each SLIP_PRECURSOR / SLIP / TEXTURE backed by the truth or not."""
     false, true = [], 0
     for t, k in outputs:
         t, k = int(t), int(k)
-        lo = np.searchsorted(tt, t - int(GRACE_S * NS), side="right") - 1
-        hi = np.searchsorted(tt, t + int(STAMP_S * NS), side="right")
-        worst = int(ts[max(lo, 0):max(hi, lo + 1)].max()) if tt.size and hi > 0 else NO
-        ok = worst >= INC if k == EventType.SLIP_PRECURSOR else worst == GROSS
-        if ok:
+        if _backed(t, k, tt, ts):
             true += 1
         else:
             false.append([(t - t0) / NS, EventType(k).name])
     return {"false_alarms": len(false), "false_alarm_list": false, "true_alarms": true}
 
 
-def _gross(outputs, scene_truth) -> list:
-    """Per gross slip of the scene: the first SLIP's delay after it [ms] (negative: early)
-    and the first precursor's lead before it [ms], counted from its part's start."""
+def _gross(outputs, backed, scene_truth) -> list:
+    """Per gross slip of the scene: the first SLIP's delay after it [ms] (negative: early,
+    any SLIP from its part's start on) and the lead before it [ms] of the first precursor
+    the truth backs (``backed``: the outputs that are), from its part's start."""
     out = []
     if not scene_truth:
         return out
@@ -323,8 +331,7 @@ def _gross(outputs, scene_truth) -> list:
             continue
         start = int(part.get("start_time_ns", 0) or 0)
         slips = [int(t) for t, k in outputs if k == EventType.SLIP and int(t) >= start]
-        pre = [int(t) for t, k in outputs
-               if k == EventType.SLIP_PRECURSOR and start <= int(t) < int(g)]
+        pre = [t for t, k in backed if k == EventType.SLIP_PRECURSOR and start <= t < int(g)]
         out.append({
             "part": part.get("name", ""),
             "slip_delay_ms": (min(slips) - int(g)) / 1e6 if slips else None,

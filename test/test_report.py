@@ -143,3 +143,22 @@ def test_bad_geometry_or_size_is_refused(tmp_path):
         write_run_summary(tmp_path / "g.png", [], radius_m=0.01, element_offset_m=0.02)
     with pytest.raises(ValueError, match="size_px"):
         write_run_summary(tmp_path / "g.png", [], size_px=(10, 10))
+
+
+def test_the_true_state_is_drawn_under_the_reported_one(tmp_path):
+    """Given the true state's changes, the timeline gets a row of its own: a state only the
+    truth holds (INCIPIENT_SLIP here) is drawn in its colour; without the truth it is not."""
+    from ae_tactile.report import STATE_COLOURS
+
+    events = events_of(["TOUCH", "SLIP"], np.random.default_rng(3))
+    reported = [{"time_s": 0.0, "state": "STICK"}, {"time_s": 0.01, "state": "GROSS_SLIP"}]
+    truth = [{"time_s": 0.0, "state": "INCIPIENT_SLIP"}, {"time_s": 0.01, "state": "GROSS_SLIP"}]
+    emissions = [{"x_m": 1e-3, "y_m": -2e-3, "time_s": 0.0}, {"x_m": math.nan, "y_m": 0.0}]
+    with_truth = write_run_summary(tmp_path / "t.png", events, contact_state=reported,
+                                   truth_state=truth, emissions=emissions, size_px=SIZE, dpi=50)
+    without = write_run_summary(tmp_path / "n.png", events, contact_state=reported,
+                                size_px=SIZE, dpi=50)
+    inc = STATE_COLOURS["INCIPIENT_SLIP"]
+    assert colour_pixels(read_png(with_truth["path"])[2], inc, tol=2) > 0
+    assert colour_pixels(read_png(without["path"])[2], inc, tol=2) == 0
+    assert with_truth["emissions_plotted"] == 1 and without["emissions_plotted"] == 0

@@ -153,6 +153,7 @@ def contact_event_fields(m):
         m.slip_direction.x,
         m.slip_direction.y,
         m.slip_direction.z,
+        m.contact_id,
     ]
 
 
@@ -185,6 +186,7 @@ def random_contact_records(rng, n):
             emission_rate_hz=nan_or(float(rng.uniform(0, 1e3))),
             spatial_period_m=nan_or(float(rng.uniform(0, 1e-3))),
             slip_direction=(nan_or(1.0), 0.0, -0.5),
+            contact_id=int(rng.integers(0, 2**32)),
         )
 
 
@@ -222,6 +224,109 @@ def test_contact_event_wire_bytes_cross_dds(two_nodes):
         got = exchange(two_nodes, ContactEvent, "t_wire", ContactEventWire("tip").encode(rec))
         sent = deserialize_message(serialize_message(contact_event_msg(rec, "tip")), ContactEvent)
         assert same_fields(got, sent)
+
+
+def test_reading_and_state_constants_agree_with_the_records():
+    """Emission.msg's readings are ae_tactile.records.Reading's values, ContactState.msg's
+    states ContactState's, ContactEvent.msg's types EventType's."""
+    require_ros()
+    from ae_tactile import records
+    from ae_tactile.msg import ContactEvent, ContactState, Emission
+
+    for enum, msg in ((records.Reading, Emission), (records.ContactState, ContactState),
+                      (records.EventType, ContactEvent)):
+        assert {e.name: int(e) for e in enum} == {e.name: getattr(msg, e.name) for e in enum}
+
+
+def random_emission_records(rng, n):
+    from ae_tactile.records import EmissionRecord
+
+    for _ in range(n):
+        k = int(rng.integers(0, 4))
+        nan_or = lambda v: math.nan if rng.uniform() < 0.3 else v  # noqa: E731
+        yield EmissionRecord(
+            time_ns=int(rng.integers(0, 2**31 * 10**9)),
+            point_m=tuple(float(v) for v in rng.normal(0, 0.01, 3)),
+            covariance_m2=rng.normal(size=(3, 3)) * 1e-9,
+            packet_ids=tuple(int(v) for v in rng.integers(0, 2**63, k)),
+            polarity=int(rng.choice([-1, 0, 1])),
+            reading=int(rng.integers(0, 6)),
+            contact_id=int(rng.integers(0, 2**32)),
+            polar_rad=nan_or(float(rng.uniform(0, 1.5))),
+            azimuth_rad=float(rng.uniform(-3.1, 3.1)),
+            tau_x_s=nan_or(float(rng.normal(0, 1e-6))),
+            tau_y_s=float(rng.normal(0, 1e-6)),
+            amplitude_v=float(rng.normal(0, 0.1)),
+            confidence=float(rng.uniform()),
+            device_time_ns=int(rng.choice([-1, int(rng.integers(0, 2**62))])),
+        )
+
+
+def emission_fields(m):
+    """Every field of an Emission, in order, NaN as a string (comparable)."""
+    out = [m.header.stamp.sec, m.header.stamp.nanosec, m.header.frame_id, m.device_time_ns,
+           *(int(v) for v in m.packet_ids), m.position.x, m.position.y, m.position.z,
+           *(float(v) for v in m.position_covariance), m.polar_angle_rad, m.azimuth_angle_rad,
+           m.tau_x_s, m.tau_y_s, m.polarity, m.amplitude_v, m.confidence, m.reading,
+           m.contact_id]
+    return [("nan" if isinstance(v, float) and math.isnan(v) else v) for v in out]
+
+
+def test_emission_wire_bytes_are_what_rclpy_serializes():
+    """The driver's hand-written CDR of an Emission against rclpy's own serializer (same
+    length, every field the same once deserialized), and the record read back from the
+    message (the slip_detector node's and the bag tools' input) is the record sent."""
+    require_ros()
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from ae_tactile.msg import Emission
+    from ae_tactile.ros.conversions import EmissionWire, emission_msg, emission_record_of_msg
+
+    rng = np.random.default_rng(12)
+    for frame_id in ("", "f", "fingertip", "hand/index_distal_link", "doigt_é"):
+        wire = EmissionWire(frame_id)
+        for rec in random_emission_records(rng, 200):
+            ours = wire.encode(rec)
+            theirs = serialize_message(emission_msg(rec, frame_id))
+            assert len(ours) == len(theirs)
+            a = deserialize_message(ours, Emission)
+            assert emission_fields(a) == emission_fields(deserialize_message(theirs, Emission))
+            back = emission_record_of_msg(a)
+            assert (back.time_ns, back.packet_ids, back.polarity, back.reading, back.contact_id,
+                    back.device_time_ns) == (rec.time_ns, rec.packet_ids, rec.polarity,
+                                             rec.reading, rec.contact_id, rec.device_time_ns)
+            assert back.point_m == rec.point_m
+
+
+def test_emission_and_contact_state_cross_dds(two_nodes):
+    """An Emission published as bytes and a ContactState listing three contacts arrive with
+    every field."""
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from ae_tactile.msg import ContactState, Emission
+    from ae_tactile.records import ContactSnapshot
+    from ae_tactile.ros.conversions import (
+        EmissionWire,
+        contact_state_msg,
+        emission_msg,
+        time_msg_to_ns,
+    )
+    from ae_tactile.slip import SlipDetector
+
+    for rec in random_emission_records(np.random.default_rng(4), 2):
+        got = exchange(two_nodes, Emission, "t_emission", EmissionWire("tip").encode(rec))
+        sent = deserialize_message(serialize_message(emission_msg(rec, "tip")), Emission)
+        assert emission_fields(got) == emission_fields(sent)
+    st = SlipDetector().state
+    contacts = [ContactSnapshot(i, (x, -2e-3, 9.7e-3), 1 + i % 3, 10**9 + i, 50.0 * i, i)
+                for i, x in ((3, 3e-3), (7, 7e-3), (9, 9e-3))]
+    got = exchange(two_nodes, ContactState, "t_state",
+                   contact_state_msg(st, "tip", 2 * 10**9, contacts))
+    assert [(c.id, c.state, time_msg_to_ns(c.since), c.precursor_count) for c in got.contacts] \
+        == [(3, 1, 10**9 + 3, 3), (7, 2, 10**9 + 7, 7), (9, 1, 10**9 + 9, 9)]
+    assert [(c.position.x, c.slip_emission_rate_hz) for c in got.contacts] == [
+        (3e-3, 150.0), (7e-3, 350.0), (9e-3, 450.0)]
+    assert got.state == ContactState.NO_CONTACT and got.contact_id == 0
 
 
 def test_make_packet_rejects_bad_shapes():
