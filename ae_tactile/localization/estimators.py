@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ae_tactile.dsp.channel_checks import identical_channels
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import fast
 from ae_tactile.localization.common import (
@@ -167,8 +168,9 @@ def localize(
     min_snr_db, thr = _thresholds(info, min_snr_db, overlap_threshold)
     noise = _noise_arg(noise_rms_v, x.shape[0])
     if eng == "numba":
-        return _localize_compiled(x, onset, plan, method, options, noise, saturated,
-                                  full_scale_v, channel_gains, min_snr_db, thr)
+        res = _localize_compiled(x, onset, plan, method, options, noise, saturated,
+                                 full_scale_v, channel_gains, min_snr_db, thr)
+        return _reject_identical(res, x, onset, noise)
     if x.shape[0] == 0:
         return _empty(method, options)
     with np.errstate(all="ignore"):
@@ -176,7 +178,28 @@ def localize(
                        saturated=saturated, full_scale_v=full_scale_v,
                        channel_gains=channel_gains)
         core = info.function(prep, plan, **options)
-        return _finish(core, prep, plan, geo, method, min_snr_db, thr, options)
+        res = _finish(core, prep, plan, geo, method, min_snr_db, thr, options)
+    return _reject_identical(res, x, onset, noise)
+
+
+def _reject_identical(res, x, onset, noise):
+    """The entry check every caller gets: packets whose four channels are one signal
+    (`ae_tactile.dsp.channel_checks.identical_channels`: equal beyond what independent
+    channel noise allows, which four sensors never are) are rejected as NO_SIGNAL (no
+    acoustic signal: one waveform copied onto four inputs, which a fit would place at
+    the pole), confidence 0, polarity 0."""
+    if x.shape[0] == 0:
+        return res
+    same = identical_channels(x, onset, noise)
+    if same.any():
+        flags = res.reason_flags.copy()
+        flags[same] |= np.uint16(1 << Reason.NO_SIGNAL)
+        res.reason_flags = flags
+        res.reason = primary_reason(flags)
+        res.accepted = res.reason == 0
+        res.confidence = np.where(same, 0.0, res.confidence)
+        res.polarity = np.where(same, 0, res.polarity).astype(np.int8)
+    return res
 
 
 def _thresholds(info, min_snr_db, overlap_threshold):

@@ -10,8 +10,10 @@ import math
 
 import numpy as np
 
+from ae_tactile.dsp.channel_checks import packet_identical
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import fast
+from ae_tactile.localization.common import Reason
 from ae_tactile.localization.estimators import (
     _gains_arg,
     _iterations,
@@ -192,7 +194,10 @@ class Localizer:
             cov,
             ctau,
         )
-        return PacketLocation(out, pt, cov, ctau)
+        loc = PacketLocation(out, pt, cov, ctau)
+        if packet_identical(x, on, nr):
+            _reject_identical_one(loc)
+        return loc
 
     def _one_numpy(self, samples_v, sample_rate_hz, onset_index, geo, noise_rms_v, saturated,
                    channel_gains) -> PacketLocation:
@@ -222,6 +227,18 @@ class Localizer:
             self.localize_one(x.astype(dt), fs, m // 4, geometry=geo)
             self(x.astype(dt)[None], fs, [m // 4], geometry=geo)
         return self
+
+
+def _reject_identical_one(loc: PacketLocation) -> None:
+    """The entry check of `Localizer.localize_one` (as `localize`'s): four channels that
+    are one signal (`ae_tactile.dsp.channel_checks.packet_identical`) are rejected as
+    NO_SIGNAL, confidence 0, polarity 0."""
+    loc.reason_flags = int(loc.reason_flags) | (1 << int(Reason.NO_SIGNAL))
+    first = next(r for r in Reason if r and loc.reason_flags & (1 << int(r)))
+    loc.reason = Reason(first)
+    loc.accepted = False
+    loc.confidence = 0.0
+    loc.polarity = 0
 
 
 def _one_args(samples_v, sample_rate_hz, onset_index, noise_rms_v):

@@ -16,6 +16,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ae_tactile.dsp.channel_checks import packet_clipped, packet_identical
 from ae_tactile.dsp.interference import common_mode_interference
 from ae_tactile.dsp.interference import warm_up as warm_interference
 from ae_tactile.geometry import FingertipGeometry
@@ -167,6 +168,8 @@ class PacketLocalizer:
         self.batch_min = int(batch_min)
         self.counts: Counter = Counter()
         self._one = getattr(self.localizer, "localize_one", None)
+        #: ids of this call's packets found clipped in their samples (`_checked`)
+        self._clipped: set = set()
 
     weak_releases = _screen_attr("weak_releases")
     weak_release_min_snr_db = _screen_attr("weak_release_min_snr_db")
@@ -354,18 +357,33 @@ class PacketLocalizer:
             counts["detouch" if ev.event_type == EventType.DETOUCH else "touch"] += 1
         return [ev for _, ev in out]
 
-    @staticmethod
-    def _checked(packets, counts) -> list:
-        """The packets `packet_problem` passes (the others counted by reason)."""
+    def _checked(self, packets, counts) -> list:
+        """The packets `packet_problem` passes (the others counted by reason), less those
+        whose four channels are one signal (`packet_identical`: rejected_IDENTICAL_CHANNELS,
+        never four sensors' view of an emission); a packet whose samples show a flat top at
+        a rail (`packet_clipped`) without the device's flag is marked saturated
+        (``clipped_from_samples``; the localizer rejects it as SATURATED)."""
         good = []
+        self._clipped = set()
         for p in packets:
             counts["packets"] += 1
             why = packet_problem(p.samples_v, p.sample_rate_hz, p.onset_index)
             if why is not None:
                 counts["rejected_MALFORMED_" + why] += 1
                 continue
+            nv = float(getattr(p, "noise_rms_v", 0.0) or 0.0)
+            if packet_identical(p.samples_v, int(p.onset_index), nv):
+                counts["rejected_IDENTICAL_CHANNELS"] += 1
+                continue
+            if not p.saturated and packet_clipped(p.samples_v, float(p.sample_rate_hz)):
+                counts["clipped_from_samples"] += 1
+                self._clipped.add(id(p))
             good.append(p)
         return good
+
+    def _saturated(self, p) -> bool:
+        """The device's saturation flag, or a flat top found in the samples this call."""
+        return bool(p.saturated) or id(p) in self._clipped
 
     @property
     def _overlap_threshold(self) -> float:
@@ -389,7 +407,7 @@ class PacketLocalizer:
             p.samples_v,
             p.sample_rate_hz,
             int(p.onset_index),
-            saturated=bool(p.saturated),
+            saturated=self._saturated(p),
             geometry=self.geometry,
             channel_gains=self.channel_gains,
         )
@@ -423,7 +441,7 @@ class PacketLocalizer:
         """(index, packet, record) of one group of equal windows."""
         windows = np.stack([np.asarray(p.samples_v) for p in items])
         onset = np.array([int(p.onset_index) for p in items], dtype=np.int64)
-        sat = np.array([bool(p.saturated) for p in items])
+        sat = np.array([self._saturated(p) for p in items])
         res = self.localizer(
             windows, fs, onset, geometry=self.geometry, saturated=sat,
             channel_gains=self.channel_gains,
