@@ -168,9 +168,9 @@ def localize(
     min_snr_db, thr = _thresholds(info, min_snr_db, overlap_threshold)
     noise = _noise_arg(noise_rms_v, x.shape[0])
     if eng == "numba":
-        res = _localize_compiled(x, onset, plan, method, options, noise, saturated,
-                                 full_scale_v, channel_gains, min_snr_db, thr)
-        return _reject_identical(res, x, onset, noise)
+        return _reject_identical(_localize_compiled(
+            x, onset, plan, method, options, noise, saturated, full_scale_v, channel_gains,
+            min_snr_db, thr), x, onset, noise)
     if x.shape[0] == 0:
         return _empty(method, options)
     with np.errstate(all="ignore"):
