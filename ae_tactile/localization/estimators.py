@@ -166,31 +166,26 @@ def localize(
     x, onset = validate_windows(windows, onset_index, copy=eng != "numba")
     plan = _plan(sample_rate_hz, geo, x.shape[2], band_hz, pre_onset_s, echo_guard_s, method)
     min_snr_db, thr = _thresholds(info, min_snr_db, overlap_threshold)
-    noise = _noise_arg(noise_rms_v, x.shape[0])
+    same = identical_channels(x, onset, noise := _noise_arg(noise_rms_v, x.shape[0]))
     if eng == "numba":
-        return _reject_identical(_localize_compiled(
-            x, onset, plan, method, options, noise, saturated, full_scale_v, channel_gains,
-            min_snr_db, thr), x, onset, noise)
+        return _reject_identical(_localize_compiled(x, onset, plan, method, options, noise,
+            saturated, full_scale_v, channel_gains, min_snr_db, thr), same)
     if x.shape[0] == 0:
         return _empty(method, options)
     with np.errstate(all="ignore"):
         prep = prepare(x, onset, plan, noise_rms_v=None if noise_rms_v is None else noise,
                        saturated=saturated, full_scale_v=full_scale_v,
                        channel_gains=channel_gains)
-        core = info.function(prep, plan, **options)
-        res = _finish(core, prep, plan, geo, method, min_snr_db, thr, options)
-    return _reject_identical(res, x, onset, noise)
+        return _reject_identical(_finish(info.function(prep, plan, **options), prep, plan,
+                                         geo, method, min_snr_db, thr, options), same)
 
 
-def _reject_identical(res, x, onset, noise):
+def _reject_identical(res, same):
     """The entry check every caller gets: packets whose four channels are one signal
-    (`ae_tactile.dsp.channel_checks.identical_channels`: equal beyond what independent
-    channel noise allows, which four sensors never are) are rejected as NO_SIGNAL (no
-    acoustic signal: one waveform copied onto four inputs, which a fit would place at
-    the pole), confidence 0, polarity 0."""
-    if x.shape[0] == 0:
-        return res
-    same = identical_channels(x, onset, noise)
+    (``same``: `ae_tactile.dsp.channel_checks.identical_channels`, equal beyond what
+    independent channel noise allows, which four sensors never are) are rejected as
+    NO_SIGNAL (no acoustic signal: one waveform copied onto four inputs, which a fit would
+    place at the pole), confidence 0, polarity 0."""
     if same.any():
         flags = res.reason_flags.copy()
         flags[same] |= np.uint16(1 << Reason.NO_SIGNAL)
