@@ -142,7 +142,8 @@ def main(argv) -> int:
             time.sleep(0.0005)
             continue
         elapsed_s = (time.monotonic_ns() - state["t0"]) * 1e-9
-        while k < k_total and due_s[k] <= elapsed_s:
+        # a stop also ends a backlog (packets overdue because the port was full)
+        while k < k_total and due_s[k] <= elapsed_s and not state["stop"]:
             first_us = int((state["t0"] - t_boot) // 1000 + first_index[k] * 1e6 / fs) & 0xFFFFFFFF
             write(enc.encode(bodies[k], first_us))
             log[k] = time.time_ns()
