@@ -22,13 +22,14 @@ import subprocess
 import sys
 import threading
 from collections import Counter, deque
+from types import SimpleNamespace
 from typing import Callable, Sequence
 
 import numpy as np
 
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import overlap, overlap_worker
-from ae_tactile.localization.overlap import OverlapReason
+from ae_tactile.localization.overlap import OverlapReason, PulseLearner
 from ae_tactile.pipeline.config import (
     COVERED_TOL_S,
     DUPLICATE_DISTANCE_M,
@@ -73,8 +74,11 @@ class OverlapResolver:
         use_process: bool = True,
         on_done: Callable[[object], None] | None = None,
         idle: bool = False,
+        learner: PulseLearner | None = None,
     ):
         self.geometry = geometry
+        #: the pulse learnt from the device's single emissions: used once it is trusted
+        self.learner = learner
         self.idle = bool(idle)
         #: what the thread's priority became ("idle", "nice" or "": as created)
         self.priority = ""
@@ -114,9 +118,21 @@ class OverlapResolver:
             self.counts[key] += n
 
     def snapshot_counts(self) -> dict:
-        """A consistent copy of the counts (the reader and the resolver's thread write them)."""
+        """A consistent copy of the counts (the reader and the resolver's thread write them),
+        with the pulse learner's state (``pulse_converged``, ``pulse_inliers``,
+        ``pulse_fits``, ``pulse_candidates_kept``, ``pulse_candidates_offered``)."""
         with self._count_lock:
-            return dict(self.counts)
+            out = dict(self.counts)
+        if self.learner is not None:
+            st = self.learner.state()
+            out.update({k: int(v) for k, v in st.items() if k != "pulse_chi2_median"})
+        return out
+
+    def current_pulse(self):
+        """The pulse the fits use: the learnt one once trusted, else the configured one
+        (None: the default `PulseModel.for_sample_rate`)."""
+        learnt = None if self.learner is None else self.learner.pulse
+        return learnt if learnt is not None else self.pulse
 
     def submit(self, packets: Sequence, *, quick_first: bool = True, hard: bool = False) -> list:
         """Queue windows for the resolver (``quick_first=False``: windows whose quick
@@ -148,7 +164,7 @@ class OverlapResolver:
                     float(p.sample_rate_hz),
                     [int(p.onset_index)],
                     geometry=self.geometry,
-                    pulse=self.pulse,
+                    pulse=self.current_pulse(),
                     saturated=[bool(getattr(p, "saturated", False))],
                     exhaustive=False,
                 )[0]
@@ -189,7 +205,7 @@ class OverlapResolver:
         """The quick search runs in this thread: compiled (numba, a lossless medium), it
         spends most of its ~0.5 ms without the interpreter lock, so the reader goes on
         beside it, and the answer needs no trip to the worker process."""
-        pulse = self.pulse
+        pulse = self.current_pulse()
         lossless = pulse is None or not pulse.attenuation_db_per_m_at_1mhz > 0
         return overlap._kernels.NUMBA_AVAILABLE and lossless
 
@@ -201,11 +217,12 @@ class OverlapResolver:
         samples = np.asarray(p.samples_v, dtype=np.float64)
         fs, onset = float(p.sample_rate_hz), int(p.onset_index)
         sat = bool(getattr(p, "saturated", False))
+        pulse = self.current_pulse()
         if quick_first and not hard and self._quick_here():
             try:
                 with np.errstate(all="ignore"):
                     res = overlap.resolve_overlaps(
-                        samples[None], fs, [onset], geometry=self.geometry, pulse=self.pulse,
+                        samples[None], fs, [onset], geometry=self.geometry, pulse=pulse,
                         saturated=[sat], exhaustive=False,
                     )[0]
             except Exception:  # counted; the worker process answers the window instead
@@ -220,7 +237,7 @@ class OverlapResolver:
         if proc is not None:
             try:
                 pickle.dump(
-                    (samples, fs, onset, sat, self.geometry, self.pulse, quick_first),
+                    (samples, fs, onset, sat, self.geometry, pulse, quick_first),
                     proc.stdin,
                     protocol=pickle.HIGHEST_PROTOCOL,
                 )
@@ -244,7 +261,7 @@ class OverlapResolver:
         for exhaustive in (False, True) if quick_first else (True,):
             with np.errstate(all="ignore"):
                 res = overlap.resolve_overlaps(
-                    samples[None], fs, [onset], geometry=self.geometry, pulse=self.pulse,
+                    samples[None], fs, [onset], geometry=self.geometry, pulse=pulse,
                     saturated=[sat], exhaustive=exhaustive,
                 )[0]
             yield res
@@ -391,6 +408,9 @@ class OverlapStage:
         self._on_late, self._on_window_done = on_late, on_window_done
         self._on_hold, self._on_unhold = on_hold, on_unhold
         self.lock = threading.Lock()
+        #: the pulse learnt from the accepted single emissions (`offer_events`), fitted in
+        #: a thread of its own; the resolver uses it once trusted
+        self.pulse_learner = PulseLearner(background=True)
         #: (stamp ns, x, y, z) of the contact events handed out that a window still with the
         #: resolver could hold again (duplicate check), oldest first
         self._recent: deque = deque()
@@ -404,12 +424,51 @@ class OverlapStage:
     def start(self, geometry: FingertipGeometry, wait_s: float = 0.0) -> None:
         """Start the resolver (and its worker process) unless running; wait up to wait_s [s]
         for the worker to be warm."""
+        self._body(geometry)
         if self.resolver is None:
             self.resolver = OverlapResolver(
                 geometry, self._on_late, on_done=self._window_done, idle=self.idle,
+                learner=self.pulse_learner,
             )
         if wait_s > 0:
             self.resolver.ready.wait(wait_s)
+
+    def _body(self, geometry: FingertipGeometry) -> None:
+        """Another body than the pulse learner's: it starts again on this one."""
+        if self.pulse_learner.geometry != geometry:
+            self.pulse_learner.reset()
+            self.pulse_learner.geometry = geometry
+
+    def offer_events(self, found: list, geometry: FingertipGeometry) -> int:
+        """Offer accepted single emissions to the pulse learner.
+
+        Parameters
+        ----------
+        found : list of (PacketView, ContactRecord)
+            Packets the pipeline kept as single emissions (suspects and interference
+            withdrawn), with their events (``polar_rad``).
+        geometry : FingertipGeometry
+            The body they were localized on (another body resets the learner).
+
+        Returns
+        -------
+        int
+            Candidates kept (the fit checks each one's SNR and residual itself).
+        """
+        self._body(geometry)
+        groups: dict = {}  # by (window length, sample rate)
+        for p, ev in found:
+            key = (int(np.shape(p.samples_v)[1]), float(p.sample_rate_hz))
+            groups.setdefault(key, []).append((p, ev))
+        kept = 0
+        for (_, fs), items in groups.items():
+            w = np.stack([np.asarray(p.samples_v, dtype=np.float64) for p, _ in items])
+            on = np.array([int(p.onset_index) for p, _ in items])
+            single = SimpleNamespace(  # the SNR is checked by the fit itself
+                accepted=np.ones(len(items), bool), snr_db_est=np.full(len(items), np.inf),
+                polar_rad=np.array([float(ev.polar_rad) for _, ev in items]))
+            kept += self.pulse_learner.offer(w, fs, on, single)
+        return kept
 
     def _window_done(self, p) -> None:
         """The resolver answered a window: the slip step of what waited for it runs."""

@@ -50,10 +50,13 @@ emission are part of the model. Search (RELAX, cyclic superimposed-signal estima
 emission time by the matched filter along the accepted point's travel times, one linear
 LS on [h, h'] (direct wave and echo), chi^2 per degree of freedom against the same limit.
 `localize_with_overlaps` chains the fast path, the test and the overlap fit.
-`calibrate_pulse` fits the front-end corners of `PulseModel` to single touches. The LM
+`calibrate_pulse` fits the front-end corners of `PulseModel` to single touches;
+`fit_pulse` / `PulseLearner` learn the whole pulse (emission decay and the front end's
+poles) from the device's own single-emission packets (`learn`). The LM
 fits and the grid run as compiled kernels where numba is present (`overlap_kernels`).
 
-Modules: `pulse` (the pulse shape), `model` (results, the J-emission model, the LM fit),
+Modules: `pulse` (the pulse shape), `learn` (the pulse learnt from the device's data),
+`model` (results, the J-emission model, the LM fit),
 `search` (grid and RELAX search), `decide` (order, residual test, covariance), `suspect`
 (`suspect_overlap`), `api` (the public calls).
 """
@@ -66,12 +69,17 @@ from ae_tactile.localization.overlap.api import (
     resolve_overlaps,
     warm_up,
 )
+from ae_tactile.localization.overlap.learn import PulseFit, fit_pulse
+from ae_tactile.localization.overlap.learner import PulseLearner
 from ae_tactile.localization.overlap.model import OverlapPacket, OverlapReason, OverlapSource
 from ae_tactile.localization.overlap.pulse import PulseModel
 from ae_tactile.localization.overlap.suspect import suspect_overlap
 
 __all__ = [
     "PulseModel",
+    "PulseLearner",
+    "PulseFit",
+    "fit_pulse",
     "OverlapReason",
     "OverlapSource",
     "OverlapPacket",

@@ -14,8 +14,10 @@ from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization.common import Reason, adc_noise, make_plan, validate_windows
 from ae_tactile.localization.estimators import localize
 from ae_tactile.localization.overlap.decide import _decide, _first_reason, _resolve_quick
+from ae_tactile.localization.overlap.learner import PulseLearner
 from ae_tactile.localization.overlap.model import (
     OverlapPacket,
+    OverlapReason,
     _compiled_medium,
     _lm,
     _Model,
@@ -345,24 +347,22 @@ def _calibration_rss(v, init, fit):
     return float(np.sum(rss))
 
 
-def localize_with_overlaps(
-    windows,
-    sample_rate_hz,
-    onset_index,
-    *,
-    geometry=None,
-    pulse=None,
-    noise_rms_v=None,
-    saturated=None,
-    max_sources=3,
-    overlap_kwargs=None,
-    **localize_kwargs,
-):
+def localize_with_overlaps(windows, sample_rate_hz, onset_index, *, geometry=None, pulse=None,
+                           noise_rms_v=None, saturated=None, max_sources=3,
+                           overlap_kwargs=None, **localize_kwargs):
     """The fast single-source path plus the overlap path only where needed.
 
     1. ``localize`` (``method``, default ml) on every window;
     2. `suspect_overlap` on what it accepted;
     3. `resolve_overlaps` on the windows it rejected as OVERLAP and on the suspects.
+    The pulse is *trusted* when it is given (a `PulseModel`), learnt (a converged
+    `PulseLearner`), or, by default, when the batch's single emissions agree with it (at
+    least MIN_JUDGED accepted windows, at most MAX_SUSPECT_SHARE of them suspects). A
+    suspect the overlap fit resolves is replaced by its emissions either way; one it does
+    not resolve is withdrawn under a trusted pulse, but under an untrusted one (a device
+    unlike the default model) its single-source point is kept, its OVERLAP flag set in
+    ``reason_flags`` and its overlap answer `OverlapReason.UNMODELLED`: one point with a
+    count, never a silently dropped emission nor a rejected single touch.
 
     Parameters
     ----------
@@ -374,8 +374,10 @@ def localize_with_overlaps(
         First sample at/after the earliest arrival.
     geometry : FingertipGeometry, optional
         The fingertip (default tip).
-    pulse : PulseModel, optional
-        The front end's pulse (default `PulseModel.for_sample_rate`).
+    pulse : PulseModel or PulseLearner, optional
+        The front end's pulse (default `PulseModel.for_sample_rate`, judged on the batch),
+        or a learner: it is offered this batch's accepted packets first, and its pulse is
+        used once converged.
     noise_rms_v : float or array_like (K,), optional
         Known noise sigma [V]; default measured before the onset.
     saturated : array_like of bool (K,), optional
@@ -391,37 +393,68 @@ def localize_with_overlaps(
     -------
     single : LocalizationResult
         The result of `localize`, with ``accepted`` False (reason OVERLAP) for the
-        suspects: their single-source point is withdrawn, publish the overlap result.
+        suspects withdrawn: publish their overlap result.
     overlap : dict of int to OverlapPacket
         {window index: `OverlapPacket`} for the OVERLAP rejections and the suspects.
     """
     geo = FingertipGeometry() if geometry is None else geometry
     x, on = validate_windows(windows, onset_index)
-    single = localize(
-        x,
-        sample_rate_hz,
-        on,
-        geometry=geo,
-        noise_rms_v=noise_rms_v,
-        saturated=saturated,
-        **localize_kwargs,
-    )
+    single = localize(x, sample_rate_hz, on, geometry=geo, noise_rms_v=noise_rms_v,
+                      saturated=saturated, **localize_kwargs)
+    pulse, trusted = _pulse_of_call(pulse, x, sample_rate_hz, on, single, noise_rms_v)
     sus = suspect_overlap(
         x, sample_rate_hz, on, single, geometry=geo, pulse=pulse, noise_rms_v=noise_rms_v
     )
-    need = sus | (single.reason == int(Reason.OVERLAP))
-    ids = np.nonzero(need)[0]
+    n_acc = int(np.sum(single.accepted))
+    if trusted is None:  # the default pulse: judged by the batch's single emissions
+        trusted = n_acc >= MIN_JUDGED and sus.sum() <= MAX_SUSPECT_SHARE * n_acc
+    ids = np.nonzero(sus | (single.reason == int(Reason.OVERLAP)))[0]
     overlap = {}
     if ids.size:
         overlap = _overlaps_of(x, sample_rate_hz, on, ids, geo, pulse, noise_rms_v, saturated,
                                max_sources, overlap_kwargs)
-    single.accepted = single.accepted & ~sus
-    single.confidence = np.where(sus, 0.0, single.confidence)
-    single.reason = np.where(sus, np.uint8(Reason.OVERLAP), single.reason).astype(np.uint8)
+    drop = sus & ~_kept_suspects(sus, overlap, trusted)
+    single.accepted = single.accepted & ~drop
+    single.confidence = np.where(drop, 0.0, single.confidence)
+    single.reason = np.where(drop, np.uint8(Reason.OVERLAP), single.reason).astype(np.uint8)
     single.reason_flags = (
         single.reason_flags | np.where(sus, 1 << int(Reason.OVERLAP), 0)
     ).astype(np.uint16)
     return single, overlap
+
+
+def _kept_suspects(sus, overlap, trusted):
+    """(K,) bool: the suspects whose single-source point stays: under an untrusted pulse,
+    those the overlap fit did not resolve (their answer becomes UNMODELLED)."""
+    kept = np.zeros(len(sus), bool)
+    if not trusted:
+        for i in np.nonzero(sus)[0]:
+            o = overlap.get(int(i))
+            if o is not None and not o.accepted:
+                o.reason = int(OverlapReason.UNMODELLED)
+                kept[i] = True
+    return kept
+
+
+#: accepted windows a batch needs for its single emissions to judge the default pulse
+MIN_JUDGED = 4
+#: largest share of a batch's accepted windows that may be suspects under a pulse that
+#: describes the device (a wrong pulse makes nearly every single emission a suspect)
+MAX_SUSPECT_SHARE = 0.5
+
+
+def _pulse_of_call(pulse, x, fs, on, single, noise_rms_v):
+    """(PulseModel or None, trusted: True / False / None = judge by the batch) of
+    `localize_with_overlaps`' ``pulse`` argument."""
+    if pulse is None:
+        return None, None
+    if isinstance(pulse, PulseModel):
+        return pulse, True
+    if isinstance(pulse, PulseLearner):
+        pulse.offer(x, fs, on, single, noise_rms_v)
+        learnt = pulse.pulse
+        return (learnt, True) if learnt is not None else (None, False)
+    raise TypeError(f"pulse must be a PulseModel or a PulseLearner, got {type(pulse).__name__}")
 
 
 def _overlaps_of(x, sample_rate_hz, on, ids, geo, pulse, noise_rms_v, saturated, max_sources,

@@ -20,7 +20,7 @@ from ae_tactile.localization.overlap.pulse import PulseModel, _tables
 
 class OverlapReason(IntEnum):
     """Why `resolve_overlaps` rejected a packet (0 = accepted). Codes 1-5 are those of
-    `Reason` (input problems), 8 and 9 are specific to the overlap fit."""
+    `Reason` (input problems), 8-11 are specific to the overlap fit."""
 
     OK = 0
     NONFINITE = int(Reason.NONFINITE)
@@ -31,6 +31,11 @@ class OverlapReason(IntEnum):
     UNRESOLVED = 8  # residual inconsistent with noise even with max_sources emissions
     UNCERTAIN = 9  # no emission could be localized with in-plane sigma <= max_sigma_m
     DEFERRED = 10  # exhaustive=False: the first joint fit left more than noise (not an answer)
+    #: the window is not explained and the pulse is not trusted for this device (neither
+    #: given, nor learnt, nor consistent with the batch's single emissions): it may hold a
+    #: second emission that was not resolved; `localize_with_overlaps` keeps the
+    #: single-source point of such a suspect (its OVERLAP flag set) and counts it here
+    UNMODELLED = 11
 
 
 @dataclass

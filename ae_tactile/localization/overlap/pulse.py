@@ -37,6 +37,41 @@ class PulseModel:
     lowpass_order: int = 4
     alpha_1_s: float = 3000.0
     attenuation_db_per_m_at_1mhz: float = 0.0
+    #: explicit poles [rad/s] and residues of h (a pulse learnt from the device's own
+    #: packets, `ae_tactile.localization.overlap.learn`); empty: the front end above
+    poles_rad_s: tuple = ()
+    residues: tuple = ()
+
+    @classmethod
+    def from_poles(cls, poles_rad_s, residues) -> "PulseModel":
+        """A pulse given by its poles and residues: h(t) = Re sum_p r_p e^{p t}, t >= 0
+        (every complex pole with its conjugate, whose residue is the conjugate), scaled to
+        a unit peak; the corner fields keep their defaults and are not used.
+
+        Parameters
+        ----------
+        poles_rad_s : array_like of complex, (P,)
+            Poles [rad/s], Re < 0.
+        residues : array_like of complex, (P,)
+            Residues [1/s].
+
+        Returns
+        -------
+        PulseModel
+        """
+        p = np.asarray(poles_rad_s, complex).ravel()
+        r = np.asarray(residues, complex).ravel()
+        if p.size == 0 or p.shape != r.shape:
+            raise ValueError("poles_rad_s and residues must be non-empty and of one length")
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(r)) and np.all(p.real < 0)):
+            raise ValueError("poles must be finite with a negative real part")
+        return cls(poles_rad_s=tuple(complex(v) for v in p),
+                   residues=tuple(complex(v) for v in r))
+
+    @property
+    def learnt(self) -> bool:
+        """The pulse is given by explicit poles and residues (`from_poles`)."""
+        return len(self.poles_rad_s) > 0
 
     @classmethod
     def from_config(cls, config) -> "PulseModel":
@@ -70,6 +105,20 @@ class PulseModel:
         cache = _PR_CACHE.get(self)
         if cache is not None:
             return cache
+        if self.learnt:
+            poles = np.array(self.poles_rad_s, complex)
+            res = np.array(self.residues, complex)
+            # the slowest pole sets the span searched for the peak [s]
+            span = min(20.0 / np.min(np.abs(poles.real)), 1e-3)
+            t = np.linspace(0.0, span, 20001)
+            h = (res[None, :] * np.exp(poles[None, :] * t[:, None])).sum(axis=1).real
+            i = int(np.argmax(np.abs(h)))
+            # the peak refined around the coarse one (one coarse step either side)
+            t = np.linspace(t[max(i - 1, 0)], t[min(i + 1, t.size - 1)], 2001)
+            h = (res[None, :] * np.exp(poles[None, :] * t[:, None])).sum(axis=1).real
+            res = res / h[np.argmax(np.abs(h))]
+            _PR_CACHE[self] = (poles, res)
+            return poles, res
         zs, ps, k = (
             [np.zeros(1, complex)],
             [np.array([-self.alpha_1_s, -2.0 * self.alpha_1_s], complex)],
