@@ -259,7 +259,11 @@ class SlipOrder:
             if len(batch) > 1:
                 batch.sort(key=_time_ns)  # stable: packet order where stamps tie
             emissions: list = []
-            self._hand_out(self.slip.process(batch, emissions), emissions)
+            for c in batch:  # each emission's TOUCH / slip events out before the next's step
+                events = self.slip.process((c,), emissions)
+                if events:
+                    self._hand_out(events, [])
+            self._hand_out([], emissions)
 
     def _hand_out(self, events: list, emissions: list) -> None:
         """The slip step's outputs to their callbacks: the contacts' begin / end first (the
