@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from ae_eval.slip import apex_touch_packets
+from ae_tactile.dsp.burst_train import BurstTrain
 from ae_tactile.dsp.interference import (
-    BurstTrain,
     EchoLearner,
     common_mode_interference,
     common_mode_share,

@@ -27,6 +27,12 @@ filter allows). Per packet (all vectorized over K packets, M samples after the o
              noise's chi^2 spread, whichever is larger (common-mode candidates only;
              score = max(score, common * shape))
 
+The limits and the templates above are the nominal front end's until the device's own
+acoustic packets are learnt (``acoustic``: `ae_tactile.dsp.acoustic_model.AcousticLearner`,
+from its accepted touches away from the apex): then the spectrum limits are at least what
+the device's touches give, and the templates its touches' own waveforms wherever the
+nominal ones do not describe them.
+
 Interference when common >= ``common_min`` and score >= 1. Interference shaped by the
 front end itself (coupled into the amplifier's input) has an acoustic packet's spectrum
 and is not separable from an apex touch by one packet without the wall echo an acoustic
@@ -43,6 +49,15 @@ from functools import lru_cache
 import numpy as np
 from scipy import signal
 
+from ae_tactile.dsp.burst_train import (  # the timing screen, importable from here too
+    TRAIN_TOL_S as TRAIN_TOL_S,
+)
+from ae_tactile.dsp.burst_train import (
+    TRAIN_TOL_SAMPLES as TRAIN_TOL_SAMPLES,
+)
+from ae_tactile.dsp.burst_train import (
+    BurstTrain as BurstTrain,
+)
 from ae_tactile.geometry import resolve_front_end_lowpass
 from ae_tactile.jit import NUMBA_AVAILABLE, njit
 
@@ -269,7 +284,7 @@ def _noise_power(x, on, noise_rms_v):
 
 
 def _shape_scores(x, on, cand, common, nv, nv_rel_var, w, fs, geometry, front_end, shape_min,
-                  shape_z):
+                  shape_z, learned=None):
     """Shape score of the packets ``cand``: what the best acoustic template per channel
     (sub-sample offsets x lags -SHAPE_LEAD .. SHAPE_LAGS - SHAPE_LEAD - 1 round the onset)
     leaves unexplained, less the noise, against the larger of an acoustic packet's template
@@ -285,18 +300,15 @@ def _shape_scores(x, on, cand, common, nv, nv_rel_var, w, fs, geometry, front_en
     st = np.clip(on[cand] - SHAPE_LEAD, 0, None)
     # each packet's span ends before the echo, the analysis length and its window's end
     end = np.minimum(on[cand] + min(int(t_echo * fs) - 1, w), m)
+    if learned is not None:  # the device's own waveforms: as long as they are
+        end = np.minimum(end, st + learned.span(fs))
     n_span = end - st
     shape_score = np.zeros(cand.size)
     for n in np.unique(n_span[n_span >= nl + 4]):  # shorter: no shape test
         n = int(n)
-        tpls = _lag_templates(
-            fs,
-            n,
-            nl,
-            float(highpass_hz),
-            int(highpass_order),
-            None if lowpass_hz is None else float(lowpass_hz),
-            int(lowpass_order),
+        tpls = learned.templates(fs, n, nl) if learned is not None else _lag_templates(
+            fs, n, nl, float(highpass_hz), int(highpass_order),
+            None if lowpass_hz is None else float(lowpass_hz), int(lowpass_order),
         )
         group = np.flatnonzero(n_span == n)
         for i in range(0, group.size, SHAPE_CHUNK):  # bounded memory: (chunk, 4, n)
@@ -311,6 +323,47 @@ def _shape_scores(x, on, cand, common, nv, nv_rel_var, w, fs, geometry, front_en
                 shape_min, shape_z,
             )
     return shape_score
+
+
+def _checked_args(windows, sample_rate_hz, onset_index):
+    """(windows (K, 4, M) float, fs [Hz], onsets (K,) int) of `common_mode_interference`,
+    checked (ValueError)."""
+    x = np.asarray(windows, dtype=float)
+    if x.ndim != 3 or x.shape[1] != 4:
+        raise ValueError(f"windows must be (K, 4, M), got shape {x.shape}")
+    k = x.shape[0]
+    fs = float(sample_rate_hz)
+    if not (math.isfinite(fs) and fs > 0):
+        raise ValueError(f"sample_rate_hz must be positive, got {sample_rate_hz!r}")
+    on = np.asarray(onset_index, dtype=np.int64).reshape(-1)
+    if on.size == 1 and k != 1:
+        on = np.full(k, int(on[0]))
+    if on.shape != (k,):
+        raise ValueError(f"onset_index must have one entry per packet ({k}), got {on.shape}")
+    return x, fs, on
+
+
+def _model(acoustic, fs, front_end, low_max, high_max):
+    """(the learnt model whose templates the shape test uses, or None for the nominal
+    front end's; the spectrum tests' limits [1]): the device's own model once it is ready
+    at this rate, its templates only where the nominal ones miss its touches."""
+    if acoustic is None or not acoustic.ready(fs):
+        return None, low_max, high_max
+    low_max, high_max = acoustic.low_max(fs, low_max), acoustic.high_max(fs, high_max)
+    if not acoustic.nominal_misfit(fs, front_end, _nominal_residual):
+        return None, low_max, high_max  # the nominal front end describes the device
+    return acoustic, low_max, high_max
+
+
+def _nominal_residual(waves, sample_rate_hz, front_end) -> np.ndarray:
+    """What the nominal templates (the shape test's, ``front_end`` = (high-pass Hz,
+    order, low-pass Hz or None, order)) leave unexplained of each unit-norm waveform
+    ``waves`` (J, L) [1]: 1 - the best squared correlation over offsets and lags."""
+    hp, hp_order, lp, lp_order = front_end
+    tpls = _lag_templates(float(sample_rate_hz), waves.shape[1], SHAPE_LAGS, float(hp),
+                          int(hp_order), None if lp is None else float(lp), int(lp_order))
+    c = waves @ tpls.T
+    return 1.0 - (c * c).max(axis=1)
 
 
 def _echo_scores(score, s_full, on, cand, common, fs, geometry, echo_min) -> None:
@@ -337,6 +390,7 @@ def common_mode_interference(
     common_min: float = COMMON_MIN, highpass_hz: float = 100e3, highpass_order: int = 2,
     lowpass_order: int | str = "auto", shape_min: float | None = SHAPE_MIN,
     shape_z: float = 5.0, low_max: float = LOW_MAX, high_max: float = HIGH_MAX,
+    acoustic=None,
 ):
     """(mask (K,) bool: interference, score (K,) float) for packets ``windows`` (K, 4, M)
     volts at ``sample_rate_hz`` with onsets ``onset_index`` (K,) (window-relative samples).
@@ -354,22 +408,18 @@ def common_mode_interference(
     explain at least (None: no shape test); ``shape_z``: how many standard deviations of
     the noise the unexplained energy must exceed before the shape test can reject (no shape
     test without a noise level: neither given nor >= 8 pretrigger samples).
+    ``acoustic``: the device's own model of an acoustic packet
+    (`ae_tactile.dsp.acoustic_model.AcousticLearner`); once it is ready at this rate its
+    waveforms are the shape test's templates and its limits the spectrum tests' (at least
+    ``low_max``, ``high_max``), instead of the nominal front end's.
     Non-finite windows give mask False and score NaN (the localizer rejects them)."""
-    x = np.asarray(windows, dtype=float)
-    if x.ndim != 3 or x.shape[1] != 4:
-        raise ValueError(f"windows must be (K, 4, M), got shape {x.shape}")
+    x, fs, on = _checked_args(windows, sample_rate_hz, onset_index)
     k, _, m = x.shape
-    fs = float(sample_rate_hz)
-    if not (math.isfinite(fs) and fs > 0):
-        raise ValueError(f"sample_rate_hz must be positive, got {sample_rate_hz!r}")
-    on = np.asarray(onset_index, dtype=np.int64).reshape(-1)
-    if on.size == 1 and k != 1:
-        on = np.full(k, int(on[0]))
-    if on.shape != (k,):
-        raise ValueError(f"onset_index must have one entry per packet ({k}), got {on.shape}")
     if k == 0:
         return np.zeros(0, bool), np.zeros(0)
     lowpass_hz, lowpass_order = _front_end_lowpass(fs, lowpass_hz, lowpass_order)
+    front_end = (highpass_hz, highpass_order, lowpass_hz, lowpass_order)
+    learned, low_max, high_max = _model(acoustic, fs, front_end, low_max, high_max)
     w = max(4, min(m, int(round(window_s * fs))))
     start = np.clip(on - 1, 0, max(0, m - w))
     s_full = x.mean(axis=1)  # (K, M) common mode
@@ -394,9 +444,8 @@ def common_mode_interference(
     # are off the apex: common mode < common_min, nothing more to compute)
     cand = np.flatnonzero((common >= common_min) & ~(score >= 1.0))
     if shape_min is not None and cand.size and noise_known:
-        front_end = (highpass_hz, highpass_order, lowpass_hz, lowpass_order)
         shape_score = _shape_scores(x, on, cand, common, nv, nv_rel_var, w, fs, geometry,
-                                    front_end, shape_min, shape_z)
+                                    front_end, shape_min, shape_z, learned)
         score[cand] = np.maximum(score[cand], shape_score)
     if echo_min is not None and geometry is not None and cand.size:
         _echo_scores(score, s_full, on, cand, common, fs, geometry, echo_min)
@@ -514,60 +563,3 @@ class EchoLearner:
     def echo_min(self) -> float | None:
         r = self.ratio
         return None if r is None or r < ECHO_LEARN_MIN else ECHO_LEARN_MARGIN * r
-
-
-#: Periodic interference (`BurstTrain`): the apex packets remembered, and how closely (s; at
-#: least TRAIN_TOL_SAMPLES sample periods) a new interval must equal an earlier one.
-TRAIN_KEEP = 8
-TRAIN_TOL_S = 1e-6
-TRAIN_TOL_SAMPLES = 3
-#: pairs (new interval, earlier interval) that must agree: 2 lets a train's 3rd burst pass
-#: and catches the 4th, where one would let chance matches among dense random bursts drop
-#: apex packets
-TRAIN_MIN_MATCHES = 2
-#: intervals shorter than this (s) are no period (packets closer than a packet's length;
-#: stamps that do not advance)
-TRAIN_MIN_PERIOD_S = 20e-6
-
-
-class BurstTrain:
-    """Timing of a crystal-timed interference source (a switching regulator, a motor
-    driver's PWM): its bursts come at multiples of one period, to a fraction of a
-    microsecond, where touches never do (a hand's or a robot's timing jitters by
-    milliseconds). Remember the times of the last TRAIN_KEEP packets localized at the apex;
-    a new one whose intervals to them equal intervals between two of them (within
-    ``tol_s``, TRAIN_MIN_MATCHES distinct relations t = h_j + h_k - h_i) belongs to a
-    train. The first three bursts of a train are not caught; an apex touch that falls on
-    a train's period by chance is taken for a burst, more often the faster the train and
-    below 2 MS/s, where the tolerance is 3 samples (rates: bench/bench_slip.py)."""
-
-    def __init__(self, keep: int = TRAIN_KEEP):
-        self._t: list[float] = []
-        self.keep = int(keep)
-
-    def is_member(self, t_s: float, tol_s: float) -> bool:
-        n = len(self._t)
-        if n < 2:
-            return False  # (one earlier interval: one pair at most)
-        # t - h_j = h_k - h_i (i < k, j != i: with j = i it only says t is near h_k), all
-        # three intervals at least TRAIN_MIN_PERIOD_S (no near-duplicates, no still stamps)
-        h = np.sort(np.asarray(self._t))
-        i, k = np.triu_indices(n, 1)
-        d_old = h[k] - h[i]
-        d_new = t_s - h
-        ok_old = (d_old >= TRAIN_MIN_PERIOD_S) & (t_s - h[k] >= TRAIN_MIN_PERIOD_S)
-        ok_new = d_new >= TRAIN_MIN_PERIOD_S
-        hit = np.abs(d_new[:, None] - d_old[None, :]) <= tol_s
-        hit &= ok_new[:, None] & ok_old[None, :]
-        j = np.arange(n)[:, None]
-        # t - h_j = h_k - h_i and t - h_k = h_j - h_i are one relation: counted once (j >=
-        # k); j = i only says t is near h_k
-        hit &= (j != i[None, :]) & (j >= k[None, :])
-        return int(np.count_nonzero(hit)) >= TRAIN_MIN_MATCHES
-
-    def add(self, t_s: float) -> None:
-        self._t.append(float(t_s))
-        del self._t[: -self.keep]
-
-    def reset(self) -> None:
-        self._t.clear()

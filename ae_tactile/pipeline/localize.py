@@ -201,6 +201,12 @@ class PacketLocalizer:
         """`Screens.learn_echo`: run once the contact events are out."""
         self.screens.learn_echo()
 
+    def interference_model_status(self) -> str:
+        """`Screens.acoustic_model_status`: the interference screen's model of an acoustic
+        packet (the nominal front end's until the device's own is learnt) and how many
+        packets it judged and rejected, in words for diagnostics."""
+        return self.screens.acoustic_model_status()
+
     # ---------------------------------------------------------------- settings
     def update(
         self,
@@ -326,7 +332,7 @@ class PacketLocalizer:
         sc.new_call()
         # the body this call localizes on, and its echo learner (`update` may switch both
         # from another thread meanwhile: the echo of these packets belongs to this one)
-        body = (self.geometry, sc.echo_learner)
+        body = (self.geometry, sc.echo_learner, sc.acoustic)
         good = self._checked(packets, counts)
         if not good:
             return []
@@ -348,7 +354,7 @@ class PacketLocalizer:
                 counts["overlap_suspects"] += 1
         if weak_on:
             out = sc.gate_weak(out, counts)
-        if sc.learning_echo and count:
+        if sc.learning and count:
             sc.stash_echo(out, body)  # single emissions only (suspects withdrawn)
             if self.learn_inline:
                 sc.learn_echo()

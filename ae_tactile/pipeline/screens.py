@@ -10,16 +10,16 @@ localizes, so it has no lock of its own (`learn_echo` runs in that thread too).
 
 from __future__ import annotations
 
+import logging
 import math
 from types import SimpleNamespace
 
 import numpy as np
 
+from ae_tactile.dsp.acoustic_model import LEARN_KEEP, AcousticLearner
+from ae_tactile.dsp.burst_train import TRAIN_TOL_S, TRAIN_TOL_SAMPLES, BurstTrain
 from ae_tactile.dsp.interference import (
     ECHO_LEARN_KEEP,
-    TRAIN_TOL_S,
-    TRAIN_TOL_SAMPLES,
-    BurstTrain,
     EchoLearner,
     common_mode_interference,
     echo_ratio,
@@ -49,6 +49,14 @@ from ae_tactile.pipeline.config import (
     echo_min_setting,
 )
 from ae_tactile.records import ContactRecord, EventType, onset_ns, packet_record
+
+_log = logging.getLogger(__name__)
+
+#: an interference screen that rejects more than this share of the packets it screens
+#: (after UNUSUAL_MIN of them) says so once in the log: a device whose acoustic packets the
+#: screen's model does not describe loses its apex touches [1]
+UNUSUAL_SHARE = 0.5
+UNUSUAL_MIN = 20
 
 
 def interference_route(polar_rad: float, confidence: float, share: float | None = None):
@@ -156,6 +164,13 @@ class Screens:
         #: its echo at 2R/c is interference)
         self.interference_echo_min = echo_min_setting(interference_echo_min)
         self.echo_learner = EchoLearner()
+        #: the device's own acoustic packets (templates and spectrum limits of the
+        #: discriminator), learnt from its accepted touches away from the apex
+        self.acoustic = AcousticLearner()
+        #: packets the discriminator judged and rejected (the unusual-share warning)
+        self.screened = 0
+        self.screened_rejected = 0
+        self._warned = False
         #: the timing of the apex packets (periodic interference)
         self.burst_train = BurstTrain()
         self.interference_timing = bool(interference_timing)
@@ -180,6 +195,7 @@ class Screens:
         body still under way goes to the old learner)."""
         self.weak_gate = WeakReleaseGate()
         self.echo_learner = EchoLearner()
+        self.acoustic = AcousticLearner()
         self._echo_pending = []
 
     def set_weak_releases(self, enabled: bool) -> None:
@@ -303,12 +319,12 @@ class Screens:
                 else {"echo_min": self.echo_min_in_use}
             )
             try:
-                mask, _ = self.interference(w, fs, onset, geometry=geometry, **kw)
+                mask, _ = self.interference(w, fs, onset, geometry=geometry,
+                                            acoustic=self.acoustic, **kw)
             except ValueError:
                 continue
             drop.update(i for i, m in zip(ids, np.asarray(mask, bool)) if m)
-        if drop:
-            counts["rejected_INTERFERENCE"] += len(drop)
+        self._count_screened(counts, len(near) + len(screened), len(drop))
         apex = [i for i in near if found[i][1].polar_rad < APEX_POLAR_RAD]
         if self.hand_reports and apex:
             self._report_apex(found, apex, drop)
@@ -317,6 +333,23 @@ class Screens:
             counts["rejected_INTERFERENCE_TRAIN"] += len(train)
             drop |= train
         return [f for i, f in enumerate(found) if i not in drop]
+
+    def _count_screened(self, counts, n_screened: int, n_rejected: int) -> None:
+        """Count the discriminator's packets (``interference_screened``) and rejections
+        (``rejected_INTERFERENCE``); warn once when it rejects an unusual share of them."""
+        counts["interference_screened"] += n_screened
+        if n_rejected:
+            counts["rejected_INTERFERENCE"] += n_rejected
+        self.screened += n_screened
+        self.screened_rejected += n_rejected
+        if (not self._warned and self.screened >= UNUSUAL_MIN
+                and self.screened_rejected > UNUSUAL_SHARE * self.screened):
+            self._warned = True
+            _log.warning(
+                "the interference screen rejected %d of the %d packets it judged (%s): "
+                "either a source of interference, or a device whose touches the screen's "
+                "model does not describe yet (apex touches lost)", self.screened_rejected,
+                self.screened, self.acoustic.status())
 
     def _train(self, found, apex, drop) -> set:
         """Timing: every apex packet (kept or not) joins the train's history; one kept by
@@ -374,13 +407,29 @@ class Screens:
         """The learnt echo test is on (interference rejection with a learnt threshold)."""
         return self.interference is not None and self.interference_echo_min < 0.0
 
+    @property
+    def learning(self) -> bool:
+        """The discriminator is on: it learns the device's acoustic packets (and the echo
+        when `learning_echo`)."""
+        return self.interference is not None
+
+    def acoustic_model_status(self) -> str:
+        """The discriminator's model of an acoustic packet in words (diagnostics)."""
+        if self.interference is None:
+            return "off"
+        return (f"{self.acoustic.status()}; screened {self.screened}, rejected "
+                f"{self.screened_rejected}")
+
     def stash_echo(self, found, body) -> None:
         """Keep (copies of) up to ECHO_LEARN_PER_CALL accepted, well-fitting packets away
         from the apex (never interference: its zero delays put it at the apex) for
-        `learn_echo`, while the learner fills, then from one call in ECHO_LEARN_EVERY.
-        ``body``: (geometry, echo learner) the packets were localized with."""
+        `learn_echo`, while the learners fill, then from one call in ECHO_LEARN_EVERY.
+        ``body``: (geometry, echo learner, acoustic learner) the packets were localized
+        with."""
         self._echo_calls += 1
-        if self.echo_learner.n_measured >= ECHO_LEARN_KEEP and self._echo_calls % ECHO_LEARN_EVERY:
+        full = (self.echo_learner.n_measured >= ECHO_LEARN_KEEP or not self.learning_echo) and (
+            self.acoustic.n_learnt >= LEARN_KEEP)
+        if full and self._echo_calls % ECHO_LEARN_EVERY:
             return
         room = ECHO_LEARN_PER_CALL - len(self._echo_pending)
         for p, ev in found:
@@ -403,8 +452,9 @@ class Screens:
         return bool(self._echo_pending)
 
     def learn_echo(self) -> None:
-        """Measure the wall echo of the packets kept (`echo_ratio`, tens of us a call) and
-        teach it to the learner of the body each was localized on (after a geometry change,
+        """Measure the wall echo (`echo_ratio`, when the echo is learnt) and the acoustic
+        packet (`AcousticLearner.add`) of the packets kept, tens of us a call, and teach
+        them to the learners of the body each was localized on (after a geometry change,
         to none)."""
         pending, self._echo_pending = self._echo_pending, []
         groups: dict[tuple, list] = {}
@@ -412,10 +462,11 @@ class Screens:
             if item[5] is self.echo_learner:
                 groups.setdefault((item[0].shape, item[1]), []).append(item)
         for (_, fs), grp in groups.items():
-            geometry, learner = grp[0][4], grp[0][5]
+            geometry, learner, acoustic = grp[0][4], grp[0][5], grp[0][6]
+            w = np.stack([g[0] for g in grp])
+            onset = np.array([g[2] for g in grp])
+            pts = np.array([g[3] for g in grp])
             with np.errstate(all="ignore"):
-                beta = echo_ratio(
-                    np.stack([g[0] for g in grp]), fs, np.array([g[2] for g in grp]),
-                    np.array([g[3] for g in grp]), geometry,
-                )
-            learner.add(beta)
+                if self.learning_echo:
+                    learner.add(echo_ratio(w, fs, onset, pts, geometry))
+                acoustic.add(w, fs, onset, pts, geometry)

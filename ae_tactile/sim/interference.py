@@ -10,8 +10,9 @@ Waveforms (``kind``), amplitude ``amplitude_v`` at the ADC:
 Coupling (``coupling``):
   adc       added after the front end's filters (ADC lines, ground bounce): the
             waveform keeps its own spectrum
-  input     added at the amplifier's input: shaped by the front end's high-pass and
-            low-pass (Butterworth, the SimConfig orders and cut-offs), so its spectrum is an
+  input     added at the amplifier's input: shaped by the device's own analog chain
+            (`ae_tactile.sim.frontend.analog_stages`: high-pass or RC stages, the
+            anti-alias family and order, the amplifier pole), so its spectrum is an
             acoustic packet's band
 Each channel gets the common waveform times a gain 1 + N(0, ``gain_mismatch``), then
 independent white noise of ``noise_rms_v`` and the ADC's quantization and clipping.
@@ -34,7 +35,7 @@ import numpy as np
 from scipy import signal
 
 from ae_tactile.sim.config import SimConfig
-from ae_tactile.sim.frontend import quantize
+from ae_tactile.sim.frontend import analog_stages, quantize
 from ae_tactile.sim.triggered import TriggeredPackets
 
 KINDS = ("spike", "edge", "ringing")
@@ -138,16 +139,17 @@ def _waveforms(kind, n, t, g):
 
 
 def _front_end_filter(w, config: SimConfig):
-    fs = config.sample_rate_hz
-    sos = [
-        signal.butter(config.highpass_order, config.highpass_hz, "highpass", fs=fs, output="sos")
-    ]
-    if config.lowpass_hz is not None and config.lowpass_hz < 0.5 * fs:
-        sos.append(
-            signal.butter(config.lowpass_order, config.lowpass_hz, "lowpass", fs=fs, output="sos")
-        )
-    for s in sos:
-        w = signal.sosfilt(s, w, axis=-1)
+    """``w`` (n, M) through the device's own analog chain (`analog_stages`: its high-pass,
+    RC stages, anti-alias family and order, amplifier pole), discretized by the bilinear
+    transform at the sample rate, as an interference entering the amplifier's input meets
+    it; unit peak."""
+    fs = float(config.sample_rate_hz)
+    stages = analog_stages(config)
+    z = np.concatenate([st[0] for st in stages]).astype(complex)
+    p = np.concatenate([st[1] for st in stages]).astype(complex)
+    k = float(np.prod([st[2] for st in stages]))
+    sos = signal.zpk2sos(*signal.bilinear_zpk(z, p, k, fs))
+    w = signal.sosfilt(sos, w, axis=-1)
     peak = np.abs(w).max(axis=1, keepdims=True)
     return w / np.where(peak > 0, peak, 1.0)
 
