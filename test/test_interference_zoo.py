@@ -149,3 +149,47 @@ def test_the_pipeline_learns_the_device_and_keeps_its_apex_touches(dev, caplog):
     kept, rejected = run(2 * 10**10)
     assert kept >= 0.97 and rejected >= 0.97
     assert len([r for r in caplog.records if "interference screen" in r.getMessage()]) == 1
+
+
+def test_the_learnt_model_survives_a_restart_through_the_calibration_store(tmp_path):
+    """Saved per serial number and loaded by a new driver: the same decisions; a damaged
+    section is refused (ValueError, as the store expects) and changes nothing."""
+    from ae_tactile.calibration import CalibrationStore
+
+    cfg = ZOO["alpha_1e6"].config("water_skin", 10e6)
+    fs = cfg.sample_rate_hz
+    g = np.random.default_rng(9)
+    model = _learnt(cfg, g)
+    store = CalibrationStore(str(tmp_path), "tip-7")
+    assert store.save({"acoustic": model})
+    again = AcousticLearner()
+    assert CalibrationStore(str(tmp_path), "tip-7").load_into({"acoustic": again}) == [
+        "acoustic"]
+    assert again.ready(fs) and again.n_learnt == model.n_learnt
+    noise = reference_noise_rms(cfg, 30.0)
+    apex = render_triggered(_cap(cfg.geometry, 30, g, 3.0), cfg, noise_rms_v=noise, rng=g)
+    a = common_mode_interference(apex.samples_v, fs, apex.onset_index, geometry=cfg.geometry,
+                                 acoustic=model)
+    b = common_mode_interference(apex.samples_v, fs, apex.onset_index, geometry=cfg.geometry,
+                                 acoustic=again)
+    np.testing.assert_allclose(a[1], b[1], rtol=1e-9)
+    bad = model.calibration_state()
+    bad["rates"][next(iter(bad["rates"]))]["waves"][0][0] = float("nan")
+    with pytest.raises(ValueError):
+        again.load_calibration(bad)
+    assert again.n_learnt == model.n_learnt
+    assert AcousticLearner().calibration_state() is None
+
+
+def test_the_echo_learnt_survives_a_restart():
+    from ae_tactile.dsp.interference import EchoLearner
+
+    e = EchoLearner()
+    e.add([-0.5, -0.48, -0.52, -0.51])
+    again = EchoLearner()
+    again.load_calibration(e.calibration_state())
+    assert again.echo_min == e.echo_min and again.n_measured == 4
+    with pytest.raises(ValueError):
+        again.load_calibration({"format": 1, "betas": [float("nan")]})
+    pipe_learners = PacketLocalizer("ml").calibration_learners()
+    assert set(pipe_learners) == {"interference_acoustic", "interference_echo"}

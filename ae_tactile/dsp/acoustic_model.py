@@ -229,6 +229,60 @@ class AcousticLearner:
         v = self._high.get(float(sample_rate_hz))
         return max(nominal, LEARN_MARGIN * float(np.max(v))) if v else nominal
 
+    def calibration_state(self) -> dict | None:
+        """The learnt model as a JSON mapping for `ae_tactile.calibration.CalibrationStore`
+        (None: nothing learnt).
+
+        Returns
+        -------
+        dict or None
+            {"format": 1, "rates": {fs [Hz] as text: {"waves": [[...]], "low": [...],
+            "high": [...]}}}.
+        """
+        if not self._waves:
+            return None
+        rates = {repr(fs): {"waves": [list(map(float, w)) for w in self._waves[fs]],
+                            "low": [float(v) for v in self._low.get(fs, ())],
+                            "high": [float(v) for v in self._high.get(fs, ())]}
+                 for fs in self._waves}
+        return {"format": 1, "rates": rates}
+
+    def load_calibration(self, state: dict) -> None:
+        """Start from a saved `calibration_state`.
+
+        Parameters
+        ----------
+        state : dict
+            As `calibration_state` wrote it.
+
+        Returns
+        -------
+        None
+            ValueError when it cannot be used (another format, waveforms of unequal
+            length, non-finite or not unit-norm values): nothing changed then.
+        """
+        if not isinstance(state, dict) or state.get("format") != 1:
+            raise ValueError("acoustic model: unknown format")
+        waves, low, high = {}, {}, {}
+        try:
+            for key, r in dict(state["rates"]).items():
+                fs = float(key)
+                w = np.array(r["waves"], dtype=float)
+                lo = np.array(r["low"], dtype=float).reshape(-1)
+                hi = np.array(r["high"], dtype=float).reshape(-1)
+                if not (math.isfinite(fs) and fs > 0 and w.ndim == 2 and w.shape[1] >= 8
+                        and np.isfinite(w).all() and np.isfinite(lo).all()
+                        and np.isfinite(hi).all() and (lo >= 0).all() and (hi >= 0).all()
+                        and np.allclose(np.linalg.norm(w, axis=1), 1.0, atol=1e-6)):
+                    raise ValueError("acoustic model: values out of range")
+                waves[fs] = deque(w, maxlen=self.keep)
+                low[fs] = deque(lo, maxlen=self.keep)
+                high[fs] = deque(hi, maxlen=self.keep)
+        except (KeyError, TypeError, AttributeError) as exc:
+            raise ValueError(f"acoustic model: malformed ({exc})") from None
+        self._waves, self._low, self._high, self._cache = waves, low, high, {}
+        self.n_learnt = sum(len(w) for w in waves.values())
+
     def status(self) -> str:
         """The model in words (diagnostics)."""
         if not self._waves:

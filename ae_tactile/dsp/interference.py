@@ -563,3 +563,21 @@ class EchoLearner:
     def echo_min(self) -> float | None:
         r = self.ratio
         return None if r is None or r < ECHO_LEARN_MIN else ECHO_LEARN_MARGIN * r
+
+    def calibration_state(self) -> dict | None:
+        """The echo ratios measured (`ae_tactile.calibration.CalibrationStore`'s section;
+        None: none yet)."""
+        if not self._betas:
+            return None
+        return {"format": 1, "betas": [float(b) for b in self._betas],
+                "n_measured": int(self.n_measured)}
+
+    def load_calibration(self, state: dict) -> None:
+        """Start from a saved `calibration_state` (ValueError: unusable, nothing changed)."""
+        if not isinstance(state, dict) or state.get("format") != 1:
+            raise ValueError("echo: unknown format")
+        b = np.asarray(state.get("betas", ()), dtype=float).reshape(-1)
+        if not (np.isfinite(b).all() and (np.abs(b) <= 1.0).all()):
+            raise ValueError("echo: ratios out of range")
+        self._betas = b[-ECHO_LEARN_KEEP:].tolist()
+        self.n_measured = max(int(state.get("n_measured", b.size)), len(self._betas))

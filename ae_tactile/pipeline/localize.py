@@ -201,6 +201,11 @@ class PacketLocalizer:
         """`Screens.learn_echo`: run once the contact events are out."""
         self.screens.learn_echo()
 
+    def calibration_learners(self) -> dict:
+        """`Screens.calibration_learners`: section name -> learner of what the screens
+        learn about the device (for `ae_tactile.calibration.CalibrationStore`)."""
+        return self.screens.calibration_learners()
+
     def interference_model_status(self) -> str:
         """`Screens.acoustic_model_status`: the interference screen's model of an acoustic
         packet (the nominal front end's until the device's own is learnt) and how many

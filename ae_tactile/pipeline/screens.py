@@ -413,6 +413,12 @@ class Screens:
         when `learning_echo`)."""
         return self.interference is not None
 
+    def calibration_learners(self) -> dict:
+        """The screens' learners by section name, for
+        `ae_tactile.calibration.CalibrationStore` (load_into / save): the device's acoustic
+        packet and its wall echo."""
+        return {"interference_acoustic": self.acoustic, "interference_echo": self.echo_learner}
+
     def acoustic_model_status(self) -> str:
         """The discriminator's model of an acoustic packet in words (diagnostics)."""
         if self.interference is None:
