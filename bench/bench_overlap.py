@@ -38,6 +38,7 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXP
 import argparse  # noqa: E402
 import itertools  # noqa: E402
 import json  # noqa: E402
+import math  # noqa: E402
 import platform  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -50,10 +51,12 @@ sys.path.insert(0, str(ROOT))
 
 from ae_eval.crlb import joint_crlb  # noqa: E402
 from ae_eval.overlap_trials import simulate_overlaps  # noqa: E402
+from ae_eval.zoo import ZOO  # noqa: E402
 from ae_tactile.localization import NUMBA_AVAILABLE, localize  # noqa: E402
 from ae_tactile.localization.overlap import (  # noqa: E402
     PulseModel,
     calibrate_pulse,
+    fit_pulse,
     resolve_overlaps,
     suspect_overlap,
 )
@@ -170,15 +173,17 @@ def timed_resolve(d, cfg, **kw):
     return res, time.perf_counter() - t0
 
 
-def one_window_cost(rng, n):
+def one_window_cost(rng, n, config=None, pulse=None):
     """ms per window, one window per call: two emissions 1-8 us apart, strength ratio 1-4,
     SNR of the weaker 15-35 dB, water; the quick answer (``exhaustive=False``, as the
     driver's reader and overlap thread run it) and the exhaustive search (as its worker
     process runs it), each with the compiled kernels and the numpy path on the same
-    windows. Median / p90 / max, and whether the two paths gave the same points."""
+    windows. Median / p90 / max, and whether the two paths gave the same points.
+    ``config`` / ``pulse``: another device and the pulse learnt on it (default: the
+    nominal device and pulse)."""
     d = simulate_overlaps(
         n,
-        SimConfig(reflections=True),
+        SimConfig(reflections=True) if config is None else config,
         separation_s=rng.uniform(1e-6, 8e-6, n),
         amplitude_ratio=4.0,
         snr_db=rng.uniform(15, 35, n),
@@ -188,7 +193,7 @@ def one_window_cost(rng, n):
     out, points = {}, {}
     for mode, exhaustive in (("quick", False), ("exhaustive", True)):
         for engine in ("auto", "numpy"):
-            kw = dict(engine=engine, exhaustive=exhaustive)
+            kw = dict(engine=engine, exhaustive=exhaustive, pulse=pulse)
             resolve_overlaps(x[:1], fs, on[:1], **kw)  # warm (kernels loaded)
             ts, pts = [], []
             for i in range(n):
@@ -210,6 +215,24 @@ def one_window_cost(rng, n):
         for mode in ("quick", "exhaustive")
         for a, b in zip(points[mode, "auto"], points[mode, "numpy"])
     )
+    return out
+
+
+def learnt_pulse_cost(rng, n, device="rc2_bessel6", n_singles=32):
+    """`one_window_cost` on a zoo device with the pulse learnt from ``n_singles`` of its
+    single touches (`PulseLearner`; 13 poles against the default's 8), and the learning's
+    own cost [s]."""
+    cfg = ZOO[device].config("water_skin", 10e6, reflections=True)
+    geo = cfg.geometry
+    cos_t = rng.uniform(math.cos(math.radians(60.0)), 1.0, n_singles)
+    pts = geo.surface_point_from_angles(np.arccos(cos_t), rng.uniform(0, 2 * math.pi, n_singles))
+    pk = render_triggered(pts, cfg, snr_db=30.0, rng=rng)
+    t0 = time.perf_counter()
+    fit = fit_pulse(pk.samples_v, cfg.sample_rate_hz, pk.onset_index, geometry=geo)
+    learn_s = time.perf_counter() - t0
+    out = one_window_cost(rng, n, cfg, fit.pulse)
+    out.update(device=device, learn_s=learn_s, converged=fit.converged,
+               n_poles=len(fit.pulse.poles_rad_s))
     return out
 
 
@@ -420,8 +443,11 @@ def main(argv=None):
         print("mismatch", name, out["mismatch"][name], flush=True)
     one_window = one_window_cost(rng, 20 if args.quick else 100)
     print("one window at a time", one_window, flush=True)
+    learnt = learnt_pulse_cost(rng, 20 if args.quick else 100)
+    print("one window at a time, learnt pulse", learnt, flush=True)
     out["timing"] = dict(
         one_window_ms=one_window,
+        one_window_learnt_pulse_ms=learnt,
         ms_per_pair_resolve=1e3 * t_resolve / max(n_resolve, 1),
         total_s=time.perf_counter() - t_start,
         total_cpu_s=time.process_time() - cpu_start,

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 from scipy.optimize import minimize
@@ -93,9 +94,9 @@ def resolve_overlaps(
             geometry, pulse, sample_rate_hz, max_sources, add_threshold, max_sigma_m,
             max_chi2_ratio, min_snr_db, analysis_s, grid_spacing_m, min_separation_s, engine)
     x, on = validate_windows(windows, onset_index)
+    x = pulse.correct_channels(x, sample_rate_hz)
     plan = make_plan(sample_rate_hz, geo, x.shape[2], band_hz)
-    K = x.shape[0]
-    if K == 0:
+    if x.shape[0] == 0:
         return []
     grid = _surface_grid(geo, grid_spacing_m)
     decide_args = (max_sources, add_threshold, max_chi2_ratio, max_sigma_m, min_snr_db,
@@ -402,6 +403,12 @@ def localize_with_overlaps(windows, sample_rate_hz, onset_index, *, geometry=Non
     single = localize(x, sample_rate_hz, on, geometry=geo, noise_rms_v=noise_rms_v,
                       saturated=saturated, **localize_kwargs)
     pulse, trusted = _pulse_of_call(pulse, x, sample_rate_hz, on, single, noise_rms_v)
+    if pulse is not None and (pulse.channel_gain or pulse.channel_delay_s):
+        # the device's channels made alike once, for every step (then none does it again)
+        x = pulse.correct_channels(x, sample_rate_hz)
+        pulse = replace(pulse, channel_gain=(), channel_delay_s=())
+        single = localize(x, sample_rate_hz, on, geometry=geo, noise_rms_v=noise_rms_v,
+                          saturated=saturated, **localize_kwargs)
     sus = suspect_overlap(
         x, sample_rate_hz, on, single, geometry=geo, pulse=pulse, noise_rms_v=noise_rms_v
     )

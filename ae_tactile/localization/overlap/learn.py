@@ -21,7 +21,7 @@ below the resolver's limit) and they are at least ``min_inlier_share`` of the ca
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -32,7 +32,7 @@ from ae_tactile.localization.common import adc_noise, make_plan, validate_window
 from ae_tactile.localization.estimators import localize
 from ae_tactile.localization.overlap.decide import _chi2_limit
 from ae_tactile.localization.overlap.model import _lm, _Model
-from ae_tactile.localization.overlap.pulse import PulseModel, _given
+from ae_tactile.localization.overlap.pulse import PulseModel, _given, shift_channels
 from ae_tactile.localization.overlap.search import _segments
 from ae_tactile.localization.segments import prepare
 
@@ -48,6 +48,8 @@ MAX_DECAY_RAD_S = 1.5e7
 #: [s] samples this close to a modelled arrival (before, after) are left out of the
 #: first pole fit (`_Modes`): the emission time is not known to better than this yet
 MODES_GUARD_S = (-1.0e-6, 2.0e-6)
+#: rounds of the channels' gain and delay estimate (`_channels`)
+CHANNEL_ROUNDS = 4
 #: packets in the pole fit (the rest are checked against its pulse: 16 packets of 4
 #: channels hold some 2e4 samples, far more than the ~10 pole parameters need)
 POLE_FIT_PACKETS = 12
@@ -367,6 +369,11 @@ def _fit(init, fs, geo, echo, data, n, min_packets, min_inlier_share, lowpass_se
             break
         pulse, model = got
         theta, amp, ratio, limit = _chi2(model, y, theta, sigma2, n_noise)
+    if pulse.learnt:
+        y, theta, amp, ratio, limit, gain, delay = _channels(
+            model, seg, y, theta, amp, ratio, limit, weight, sigma2, n_noise)
+    else:
+        gain, delay = np.ones(4), np.zeros(4)
     keep = np.ones(n, bool)
     for rnd in range(int(rounds) + 1):
         if rnd == int(rounds):  # the last round: the inliers only
@@ -388,11 +395,57 @@ def _fit(init, fs, geo, echo, data, n, min_packets, min_inlier_share, lowpass_se
         if not np.nanmedian(ratio2) <= np.nanmedian(ratio):
             break
         v, pulse, theta, amp, ratio, limit = v_new, cand, th2, amp2, ratio2, limit2
+    if pulse.learnt and (np.any(gain != 1.0) or np.any(delay != 0.0)):
+        pulse = replace(pulse, channel_gain=tuple(float(g) for g in gain),
+                        channel_delay_s=tuple(float(d) for d in delay))
     ok = ratio <= limit
     n_in = int(ok.sum())
     converged = bool(pulse.learnt and n_in >= min_packets and n_in >= min_inlier_share * n)
     med = float(np.median(ratio[ok])) if n_in else float("nan")
     return PulseFit(pulse, converged, n, n_in, med, ratio)
+
+
+def _channels(model, seg, y, theta, amp, ratio, limit, weight, sigma2, n_noise):
+    """The channels' own gain and delay: y_k = g_k m_k(t - d_k) ~ m_k + dg_k m_k - d_k m_k'
+    about the fitted model m; each packet's residual and these columns are projected off
+    what the packet's own parameters absorb (its (s_x, s_y, T) Jacobian and amplitude
+    columns), then one least squares over all packets; the windows corrected and the
+    packets refitted, CHANNEL_ROUNDS times, kept where the median chi^2 ratio falls.
+    Returns (y, theta, amp, ratio, limit, gain (4,), delay (4,) [s])."""
+    n, _, L = seg.shape
+    gain, delay = np.ones(4), np.zeros(4)
+    best = (y, theta, amp, ratio, limit, gain.copy(), delay.copy())
+    mask = model.mask.reshape(n, 4, L)
+    eye = np.eye(4)[None, :, :, None]
+    for _ in range(CHANNEL_ROUNDS):
+        phi, parts = model.evaluate(theta)
+        h, dh, g_path = parts[0], parts[1], parts[2]  # (n, 1, 2, 4, L), (n, 1, 2, 4)
+        a = amp.reshape(n, 1, 2)[..., None, None] * g_path[..., None]
+        m = (a * h).sum(axis=(1, 2)) * mask  # (n, 4, L)
+        md = (a * dh).sum(axis=(1, 2)) * mask
+        cols = np.concatenate([(eye * m[:, None]), -(eye * md[:, None])], axis=1)
+        cols = cols.reshape(n, 8, 4 * L)  # (dg_k, d_k) columns, channel k's rows only
+        own = np.concatenate([model.jacobian(parts, amp), phi], axis=1)  # (n, 5, 4L)
+        res = y - m.reshape(n, -1)
+        w = weight[:, None, None]
+        q = own * w
+        g = q @ q.transpose(0, 2, 1) + 1e-12 * np.eye(q.shape[1])
+        rhs = np.concatenate([cols * w, (res * weight[:, None])[:, None]], axis=1)
+        coef = np.linalg.solve(g, q @ rhs.transpose(0, 2, 1))  # (n, 5, 9)
+        proj = rhs - (coef.transpose(0, 2, 1) @ q)  # (n, 9, 4L)
+        big = proj[:, :8].transpose(0, 2, 1).reshape(-1, 8)
+        beta, *_ = np.linalg.lstsq(big, proj[:, 8].ravel(), rcond=1e-8)
+        if not np.all(np.isfinite(beta)):
+            return best
+        gain *= 1.0 + beta[:4]
+        delay += beta[4:]
+        gain /= np.mean(gain)
+        delay -= np.mean(delay)
+        y = (shift_channels(seg, model.fs, gain, delay) * mask).reshape(n, -1)
+        theta, amp, ratio, limit = _chi2(model, y, theta, sigma2, n_noise)
+        if np.median(ratio) < np.median(best[3]):
+            best = (y, theta, amp, ratio, limit, gain.copy(), delay.copy())
+    return best
 
 
 def _shared(geo, fs, start, length, echo, inside, y, theta, amp, weight, v):

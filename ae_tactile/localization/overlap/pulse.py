@@ -41,6 +41,10 @@ class PulseModel:
     #: packets, `ae_tactile.localization.overlap.learn`); empty: the front end above
     poles_rad_s: tuple = ()
     residues: tuple = ()
+    #: per-channel gain [1] and delay [s] of the device's four chains (learnt with the
+    #: pulse; empty: identical channels): `correct_channels` removes them from a window
+    channel_gain: tuple = ()
+    channel_delay_s: tuple = ()
 
     @classmethod
     def from_poles(cls, poles_rad_s, residues) -> "PulseModel":
@@ -67,6 +71,27 @@ class PulseModel:
             raise ValueError("poles must be finite with a negative real part")
         return cls(poles_rad_s=tuple(complex(v) for v in p),
                    residues=tuple(complex(v) for v in r))
+
+    def correct_channels(self, windows, sample_rate_hz):
+        """Windows with the channels' own gain and delay removed (channel k advanced by
+        ``channel_delay_s[k]``, a band-limited shift, and divided by ``channel_gain[k]``);
+        the windows themselves when the model has none.
+
+        Parameters
+        ----------
+        windows : numpy.ndarray, (K, 4, M)
+            Windows [V].
+        sample_rate_hz : float
+            Sample rate [Hz].
+
+        Returns
+        -------
+        numpy.ndarray, (K, 4, M)
+        """
+        if not self.channel_gain and not self.channel_delay_s:
+            return windows
+        return shift_channels(windows, sample_rate_hz, self.channel_gain or (1.0,) * 4,
+                              self.channel_delay_s or (0.0,) * 4)
 
     @property
     def learnt(self) -> bool:
@@ -168,6 +193,18 @@ class PulseModel:
 
 
 _PR_CACHE: dict = {}
+
+
+def shift_channels(x, fs, gain, delay_s):
+    """x (..., 4, M) with channel k advanced by delay_s[k] [s] (phase ramp of the
+    zero-padded spectrum: a band-limited fractional shift) and divided by gain[k]."""
+    x = np.asarray(x, float)
+    m = x.shape[-1]
+    n = 2 * m
+    f = np.fft.rfftfreq(n, 1.0 / float(fs))
+    ramp = np.exp(2j * np.pi * f[None, :] * np.asarray(delay_s, float)[:, None])  # (4, F)
+    spec = np.fft.rfft(x, n=n, axis=-1) * ramp
+    return np.fft.irfft(spec, n=n, axis=-1)[..., :m] / np.asarray(gain, float)[:, None]
 
 
 @dataclass(frozen=True)
