@@ -328,12 +328,19 @@ class DriverNode(Node):
         self._marker_inbox.extend(records)
         self.published_emissions += len(records)
 
-    def _publish_state(self, force: bool = False) -> None:
+    def _publish_state(self, force: bool = False, contacts_now: bool = False) -> None:
+        """ContactState when the finger's state changed (at once), when only its contacts
+        changed (``contacts_now``: the timer, every slip_tick_period_s; the reader thread
+        leaves that to it: a TOUCH already told the hand, and listing the contacts costs
+        the next packet's latency), and once a second."""
         st = self.slip_stage.state
-        key = (int(st.state), int(st.since_ns), int(st.contact_id),
-               self.slip_stage.contacts_key())
+        contacts = self.slip_stage.contacts_key()
+        key = (int(st.state), int(st.since_ns), int(st.contact_id), contacts)
         now = self.now_ns()
-        if not force and key == self._state_key and now - self._state_pub_ns < 1_000_000_000:
+        old = self._state_key
+        if not force and now - self._state_pub_ns < 1_000_000_000 and (
+            key == old or (not contacts_now and old is not None and key[:3] == old[:3])
+        ):
             return
         self._state_key, self._state_pub_ns = key, now
         self.pub_state.publish(
@@ -349,7 +356,7 @@ class DriverNode(Node):
             self.pipeline.tick(self.now_ns())
         else:
             self.slip_stage.tick(self.now_ns())
-        self._publish_state()
+        self._publish_state(contacts_now=True)
 
     def _publish_markers(self) -> None:
         if not self.p["markers"] or self.pub_markers.get_subscription_count() == 0:
