@@ -12,13 +12,16 @@ whatever else falls into it, so some need the overlap resolver), each finger its
 This process subscribes to every finger's `contacts` and `slip` like a hand controller.
 
 Per finger: emission -> ContactEvent received latency (median / p99 / max; time the event
-is received here - time the last byte of the packet that produced it was written on the
-pty, both CLOCK_REALTIME), SLIP_PRECURSOR where the scene gives some, the driver's CPU
-(% of one core, while its device plays) and memory (RSS, PSS, peak RSS, threads), every
-packet accounted for in the driver's /diagnostics (written = decoded + counted as
-dropped; decoded = localized or rejected by reason), the device's lateness (bytes
-written after their instant: the port did not take them, the device fell behind). The
-two-hop rclpy floor (bench_system.floor_ms) is measured in the same run, before and after.
+is received here - time the last byte of the packet that decided it was written on the
+pty, both CLOCK_REALTIME) of the reflex events (TOUCH, SLIP_PRECURSOR, SLIP, TEXTURE), of
+TOUCH and SLIP_PRECURSOR alone and of DETOUCH (decided release_confirm_s after the release
+by design); the driver's CPU (% of one core, while its device plays) and memory (RSS, PSS,
+peak RSS, threads), and those of its overlap worker (a child process); every packet
+accounted for in the driver's /diagnostics (written = decoded + counted as dropped;
+decoded = localized or rejected by a counted reason); the device's lateness (bytes written
+after their instant: the port did not take them, the device fell behind). The two-hop
+rclpy floor (bench_system.floor_ms) is measured in the same run, before and after, and the
+machine's load average before and after.
 
 Cases: N = 1, 3, 5 fingertips x 200, 1,000, 5,000 emissions/s each; drivers unpinned, and
 each pinned to a core of its own where cores allow (N <= CPUs; with N < CPUs the writers
@@ -26,7 +29,8 @@ and this process keep the other CPUs). The knee: per N and placement the highest
 tried without backlog (the device falls behind, the latency grows over the run, or
 packets are not processed by the end).
 
-Run (on an idle machine; ~12 minutes on 2 cores, the estimate is printed first):
+Run (on an idle machine; 12 cases, ~6.5 minutes on 2 cores, at most ~9.5 if every case backs
+up; the estimate is printed first):
     tools/run.sh python bench/bench_hand.py             # bench/results/hand.json, hand_table.md
     tools/run.sh python bench/bench_hand.py --quick --fingers 1,3 --rates 200 --out /tmp/h
 Options: --quick (short runs, N = 1, 3 at 200 and 1,000/s), --fingers 1,3,5,
@@ -69,17 +73,17 @@ DRAIN_S = 1.5  # [s] after the last device's schedule: events still in flight ar
 STOP_TIMEOUT_S = 60.0  # [s] Ctrl-C -> every process of the launch gone
 #: [s] what a case costs besides its devices' schedule on an idle 2-core machine
 #: (launch, imports and JIT per driver, discovery, drain, stop), for the run-time estimate
-CASE_OVERHEAD_S, PER_DRIVER_START_S = 12.0, 4.0
+CASE_OVERHEAD_S, PER_DRIVER_START_S = 12.0, 6.0
 ALL_CPUS = bs.ALL_CPUS
 MB = 1024.0 * 1024.0
 
 
 def default_duration_s(rate_hz: float, quick: bool) -> float:
-    """[s] of each device's schedule: >= ~1,000 emissions per finger for its p99 (quick:
-    ~400), never below 2 s (1 s quick), never above 6 s."""
+    """[s] of each device's schedule: >= ~1,200 emissions per finger (quick: ~400), never
+    below 2 s (1 s quick), never above 6 s (enough reflex events for a p99)."""
     if quick:
         return float(np.clip(400.0 / rate_hz, 1.0, 2.0))
-    return float(np.clip(1500.0 / rate_hz, 2.0, 6.0))
+    return float(np.clip(3000.0 / rate_hz, 2.0, 6.0))
 
 
 # ---------------------------------------------------------------------------- devices
@@ -342,10 +346,13 @@ class HandListener:
 
 
 # ---------------------------------------------------------------------------- analysis
-#: event kinds measured: (label, ContactEvent event types, which windows). TOUCH is the reflex
-#: event (a contact begins, decided by its first emission); DETOUCH is decided by design
-#: release_confirm_s after the release (unless the contact slips meanwhile), so it is apart.
-KINDS = (("touch", (1,), "all"), ("detouch", (2,), "all"), ("contact", (1, 2), "all"),
+#: event kinds measured: (label, ContactEvent event types, which windows). The reflex events
+#: are decided by the emission whose packet they name: TOUCH (a contact begins),
+#: SLIP_PRECURSOR, SLIP, TEXTURE; DETOUCH is decided by design release_confirm_s after the
+#: release (unless the contact slips meanwhile), so it is apart. At high rates most
+#: emissions join a contact already there: TOUCHes are few, the slip events many.
+KINDS = (("reflex", (1, 3, 4, 5), "all"), ("touch", (1,), "all"), ("detouch", (2,), "all"),
+         ("contact", (1, 2), "all"),
          ("slip_precursor", (3,), "all"), ("slip", (4,), "all"),
          ("touch_single", (1,), "single"), ("touch_overlapped", (1,), "overlapped"))
 
@@ -410,7 +417,7 @@ def accounting(device: dict, diag: dict) -> dict:
 def backlog(finger: dict) -> bool:
     """A backlog builds: the device fell behind, the latency grows over the run, or packets
     were not processed by the end."""
-    c = finger["latency"]["touch"]
+    c = finger["latency"]["reflex"]
     if not c.get("events"):
         return True
     grows = c["last_quarter_median_ms"] > max(3.0 * c["first_quarter_median_ms"], 5.0)
@@ -593,6 +600,7 @@ def _lat(entries, key="p99_ms") -> str:
 
 def case_row(c: dict) -> str:
     fs = list(c["fingers"].values())
+    reflex = [f["latency"]["reflex"] for f in fs]
     touch = [f["latency"]["touch"] for f in fs]
     detouch = [f["latency"]["detouch"] for f in fs]
     pre = [f["latency"]["slip_precursor"] for f in fs]
@@ -605,8 +613,10 @@ def case_row(c: dict) -> str:
     return (
         f"| {c['fingertips']} x {c['rate_hz']:,.0f} | {where} "
         f"| {sum(a['written'] for a in acc)} "
-        f"| {_lat(touch, 'median_ms')} / {_lat(touch)} / "
-        f"{_span([x.get('max_ms') for x in touch], '{:.1f}')} ({sum(x['events'] for x in touch)}) "
+        f"| {_lat(reflex, 'median_ms')} / {_lat(reflex)} / "
+        f"{_span([x.get('max_ms') for x in reflex], '{:.1f}')} "
+        f"({sum(x['events'] for x in reflex)}) "
+        f"| {_lat(touch)} ({sum(x['events'] for x in touch)}) "
         f"| {_lat(detouch, 'median_ms')} / {_lat(detouch)} ({sum(x['events'] for x in detouch)}) "
         f"| {_lat(pre)} ({sum(x['events'] for x in pre)}) "
         f"| {_lat(dev, 'lateness_ms_p99')} / "
@@ -636,10 +646,10 @@ def targets(res: dict) -> list[str]:
         c = case(n, rate)
         if c is None:
             continue
-        p99 = [f["latency"]["touch"].get("p99_ms", np.inf) for f in c["fingers"].values()]
+        p99 = [f["latency"]["reflex"].get("p99_ms", np.inf) for f in c["fingers"].values()]
         pre = [f["latency"]["slip_precursor"].get("p99_ms") for f in c["fingers"].values()]
         pre = [p for p in pre if p is not None]
-        out.append(f"{n} x {rate:,}/s unpinned: TOUCH p99 <= 2 ms per finger: "
+        out.append(f"{n} x {rate:,}/s unpinned: reflex events p99 <= 2 ms per finger: "
                    f"{'met' if max(p99) <= 2.0 else 'NOT met'} (worst {max(p99):.2f} ms); "
                    "SLIP_PRECURSOR p99 <= 3 ms: "
                    + (f"{'met' if max(pre) <= 3.0 else 'NOT met'} (worst {max(pre):.2f} ms)"
@@ -675,8 +685,9 @@ def markdown(res: dict) -> str:
         "",
         "Each cell is the range over the fingers (min-max), events summed over them. Latency: "
         "emission (the last byte of the packet that decided the event, on the pty) -> "
-        "ContactEvent received in another process. TOUCH: a contact begins (the reflex "
-        "event); DETOUCH is decided by design release_confirm_s after the release. Device "
+        "ContactEvent received in another process. Reflex events: TOUCH (a contact begins), "
+        "SLIP_PRECURSOR, SLIP, TEXTURE; DETOUCH is decided by design release_confirm_s after "
+        "the release. Device "
         f"lateness: bytes written after their instant (p99 > {res['behind_ms']:g} ms or bytes "
         "never written: **behind**). Packets: each written one decoded or counted as lost, "
         "each decoded one localized or rejected by a counted reason (the drivers' "
@@ -684,18 +695,20 @@ def markdown(res: dict) -> str:
         "resolver's): its CPU and memory in parentheses.",
         "",
         "| fingertips x emissions/s each | drivers | packets written "
-        "| TOUCH median / p99 / max (ms) (events) | DETOUCH median / p99 (ms) (events) "
+        "| reflex events median / p99 / max (ms) (events) | TOUCH p99 (ms) (events) "
+        "| DETOUCH median / p99 (ms) (events) "
         "| SLIP_PRECURSOR p99 (ms) (events) | device lateness p99 / max (ms) "
         "| driver CPU (% of a core) (+ its worker) "
         "| driver RSS / PSS (MB) (+ its worker) | driver threads | packets "
         "| backlog |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     lines += [case_row(c) for c in res["cases"]]
     lines += ["", "Knee (highest rate tried without backlog):", ""]
     for k in res["knee"]:
         lines.append(f"- {k['fingertips']} fingertip(s), {'pinned' if k['pinned'] else 'unpinned'}"
-                     f": {k['sustained_hz']:,.0f}/s"
+                     + (f": {k['sustained_hz']:,.0f}/s" if k["sustained_hz"]
+                        else ": none of the rates tried")
                      + (f" (backlog at {k['backlog_from_hz']:,.0f}/s)" if k["backlog_from_hz"]
                         else " (the highest rate tried)"))
     t = targets(res)
