@@ -39,6 +39,8 @@ from ae_tactile.localization.common import (
     QUANT_SIGMA2_Q2,
     QUANT_V_Q2,
 )
+from ae_tactile.localization.noise_model import MIN_PRE_SAMPLES, PSD_FLOOR
+from ae_tactile.localization.pairs import segment_taper
 
 _XI = np.array([1.0, 1.0, -1.0, -1.0])
 _ETA = np.array([1.0, -1.0, 1.0, -1.0])
@@ -74,7 +76,8 @@ class Tables:
         ph = 2 * np.pi * np.outer(kc, nn) / n
         self.cc, self.sc = np.cos(ph), np.sin(ph)  # (nbc, L)
         ph = 2 * np.pi * np.outer(ka, nn) / n_al
-        self.ca, self.sa = np.cos(ph), np.sin(ph)  # (nba, L)
+        win = segment_taper(L)  # the aligned segments' taper (pairs.aligned_spectra)
+        self.ca, self.sa = np.cos(ph) * win, np.sin(ph) * win  # (nba, L)
         self.wa = 2 * np.pi * ka * plan.fs / n_al
         # band bin frequencies exactly as the numpy path computes them (band edge tests)
         self.fc = plan.w / (2 * np.pi)
@@ -117,7 +120,7 @@ class Tables:
             self.fc,
             self.fa,
             self.auto,
-            np.array([self.fs, self.max_step, float(self.lag0)]),
+            np.array([self.fs, self.max_step, float(self.lag0), float(win @ win / L)]),
         )
 
 
@@ -216,6 +219,45 @@ def _adc_noise(var, quant2, given):
     else:
         s2 = v - 1.0 / 12.0
     return (s2 + 1.0 / 12.0) * q2
+
+
+@njit(cache=True, nogil=True)
+def _noise_acov(x, n_pre, pre_mean, L):
+    """noise_model.pre_onset_autocov of one packet: the lag-windowed, shrunk
+    autocovariance (P + 1,) of its pre-onset samples; empty when it has too few."""
+    if n_pre < MIN_PRE_SAMPLES:
+        return np.empty(0)
+    p = max(1, min(n_pre // 3, L // 2))
+    out = np.zeros(p + 1)
+    n = float(max(n_pre, 1))
+    for lag in range(p + 1):
+        r = 0.0
+        for k in range(4):
+            mu = pre_mean[k]
+            for i in range(n_pre - lag):
+                r += (x[k, i + lag] - mu) * (x[k, i] - mu)
+        out[lag] = r / (4.0 * n)
+    r0 = out[0]
+    for lag in range(1, p + 1):
+        r = out[lag]
+        rho2 = r * r / max(r0 * r0, 1e-300)
+        out[lag] = r * (rho2 / (rho2 + 1.0 / (4.0 * n))) * (1.0 - lag / (p + 1.0))
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _noise_gains(acov, f_hz, fs, out):
+    """noise_model.whitening_gains of one packet at the bins f_hz [Hz] into out."""
+    p = acov.shape[0] - 1
+    ok = p >= 1 and acov[0] > 0 and math.isfinite(acov[0])
+    for j in range(f_hz.shape[0]):
+        if not ok:
+            out[j] = 1.0
+            continue
+        sh = 1.0
+        for lag in range(1, p + 1):
+            sh += 2.0 * (acov[lag] / acov[0]) * math.cos(2.0 * math.pi * f_hz[j] * lag / fs)
+        out[j] = 1.0 / math.sqrt(max(sh, PSD_FLOOR))
 
 
 @njit(cache=True, nogil=True)
@@ -391,7 +433,10 @@ def _newton(yb, w, geo, sx, sy, c0, iterations, max_step, tol):
 
 
 @njit(cache=True, nogil=True)
-def _aligned(x, m, seg_start, t, fs, max_shift, L, pre_mean, ca, sa, seg, count, yb, c0):
+def _aligned(x, m, seg_start, t, fs, max_shift, L, pre_mean, ca, sa, seg, count, yb, c0,
+             gains):
+    """pairs.aligned_spectra of one packet: segments cut at the integer arrivals, the
+    tapered DFT (the taper is in ca, sa), band bins whitened by ``gains``."""
     ref = min(min(t[0], t[1]), min(t[2], t[3]))
     for k in range(4):
         sh = np.rint((t[k] - ref) * fs)
@@ -399,6 +444,9 @@ def _aligned(x, m, seg_start, t, fs, max_shift, L, pre_mean, ca, sa, seg, count,
         c0[k] = ref + sh / fs
         _gather(x, m, seg_start + int(sh), L, pre_mean[k], seg, count, k)
     _dft(seg, ca, sa, yb)
+    for k in range(4):
+        for f in range(yb.shape[1]):
+            yb[k, f] *= gains[f]
 
 
 @njit(cache=True, nogil=True)
@@ -627,7 +675,7 @@ def _packet(
     """One packet. out: 16 scalars (see estimators.PacketLocation); pt (3,), cov (3, 3),
     ctau (2, 2). tabs: `Tables.packed`."""
     cc, sc, ca, sa, wa, lc, ls, max_lag, geo, ints, fc, fa, auto, scal = tabs
-    fs, max_step, lag0 = scal[0], scal[1], int(scal[2])
+    fs, max_step, lag0, win2 = scal[0], scal[1], int(scal[2]), scal[3]
     pre, L, snr_len, flat_run, max_shift, stop_s, span, n_al = (
         ints[0],
         ints[1],
@@ -661,6 +709,13 @@ def _packet(
     nbc = cc.shape[0]
     xb = np.empty((4, nbc), np.complex128)
     _dft(seg, cc, sc, xb)
+    # the noise's colour from the pre-onset samples (noise_model): whitened band bins
+    acov = _noise_acov(x, min(max(seg_start, 0), m), pre_mean, L)
+    gc = np.empty(nbc)
+    _noise_gains(acov, fc, fs, gc)
+    for k in range(4):
+        for f in range(nbc):
+            xb[k, f] *= gc[f]
     # data-driven band (common.band_edge_hz): bins up to each packet's own edge
     nbc_u = nbc
     nba_u = wa.shape[0]
@@ -739,7 +794,9 @@ def _packet(
     yb = np.empty((4, nba), np.complex128)
     c0 = np.empty(4)
     cnt_al = np.empty(4, np.int64)
-    _aligned(x, m, seg_start, t, fs, max_shift, L, pre_mean, ca, sa, seg, cnt_al, yb, c0)
+    ga = np.empty(nba)
+    _noise_gains(acov, fa[:nba], fs, ga)
+    _aligned(x, m, seg_start, t, fs, max_shift, L, pre_mean, ca, sa, seg, cnt_al, yb, c0, ga)
     tol = 1e-4 * max_step
     sx, sy, clamped = _newton(yb, wa, geo, sx, sy, c0, iterations, max_step, tol)
     _times(geo, sx, sy, t)
@@ -748,7 +805,8 @@ def _packet(
     for k in range(4):
         drift = max(drift, abs(t[k] - c0[k] - em))
     if drift * fs >= 0.75:
-        _aligned(x, m, seg_start, t, fs, max_shift, L, pre_mean, ca, sa, seg, cnt_al, yb, c0)
+        _aligned(x, m, seg_start, t, fs, max_shift, L, pre_mean, ca, sa, seg, cnt_al, yb, c0,
+                 ga)
         sx, sy, clamped = _newton(yb, wa, geo, sx, sy, c0, iterations, max_step, tol)
     _times(geo, sx, sy, t)
     zb = np.empty((4, nba), np.complex128)
@@ -770,7 +828,8 @@ def _packet(
             res_e += dz.real * dz.real + dz.imag * dz.imag
             tot_e += zb[k, f].real * zb[k, f].real + zb[k, f].imag * zb[k, f].imag
     mis = min(max(res_e / max(tot_e, 1e-300), 0.0), 1.0)
-    Lm = 0.25 * (cnt_al[0] + cnt_al[1] + cnt_al[2] + cnt_al[3])
+    # noise energy per bin of the tapered segments, in samples (pairs.aligned_spectra)
+    Lm = 0.25 * (cnt_al[0] + cnt_al[1] + cnt_al[2] + cnt_al[3]) * win2
     if not math.isfinite(sigma2):
         sigma2 = res_e / max(3.0 * nba * Lm, 1.0)
     else:

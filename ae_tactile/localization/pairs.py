@@ -7,11 +7,13 @@ given arrivals (`aligned_spectra`) and the misfit of one shifted waveform (`misf
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 import scipy.fft as sfft
 
 from ae_tactile.localization.common import CHANNEL_ROWS, PAIR_DESIGN, PAIR_PINV, PAIRS, Plan
+from ae_tactile.localization.noise_model import whitening_gains
 from ae_tactile.localization.segments import Prepared, gather
 
 
@@ -100,8 +102,44 @@ class Aligned:
     seg: np.ndarray = None  # (K, 4, L) the aligned segments themselves (time domain)
 
 
+#: Share of the aligned segment's end under a raised-cosine taper: a front end that rings
+#: past the echo-free segment leaves the pulse cut at a sample-grid edge that does not move
+#: with a channel's fractional delay (not a shifted copy: a bias growing with the SNR); the
+#: taper brings the segment smoothly to zero, so that what is kept is what the shifted-copy
+#: model describes, at the cost of the information in the tapered tail.
+TAPER_FRACTION = 0.25
+
+
+@lru_cache(maxsize=64)
+def _taper(seg_len: int) -> np.ndarray:
+    nr = max(1, int(round(TAPER_FRACTION * seg_len)))
+    win = np.ones(seg_len)
+    win[seg_len - nr:] = 0.5 * (1.0 + np.cos(np.pi * (np.arange(nr) + 1) / (nr + 1)))
+    win.flags.writeable = False
+    return win
+
+
+def segment_taper(seg_len: int) -> np.ndarray:
+    """The aligned segments' window (seg_len,): 1, then a raised cosine to 0 over the last
+    `TAPER_FRACTION` of the segment.
+
+    Parameters
+    ----------
+    seg_len : int
+        Samples per aligned segment.
+
+    Returns
+    -------
+    ndarray (seg_len,), read-only
+    """
+    return _taper(int(seg_len))
+
+
 def aligned_spectra(prep: Prepared, plan: Plan, arrivals_rel) -> Aligned:
-    """Re-cut each channel's segment at its own arrival (integer samples) and transform.
+    """Re-cut each channel's segment at its own arrival (integer samples), taper its end
+    (`segment_taper`), transform, and whiten the band bins by the noise colour of the
+    pre-onset samples (`noise_model.whitening_gains`; ``count`` then holds the tapered
+    segment's noise energy in samples, sum of w^2 over the samples inside the window).
 
     ``arrivals_rel`` (K, 4): arrival times relative to any per-packet constant (s).
     The residual (fractional) shifts are eps_k = arrivals_rel_k - ref - shift_k / fs.
@@ -114,8 +152,14 @@ def aligned_spectra(prep: Prepared, plan: Plan, arrivals_rel) -> Aligned:
     shift = np.clip(shift, 0, max_shift)
     start = prep.seg_start[:, None] + shift
     seg, count = gather(prep.x, start, plan.seg_len, prep.pre_mean)
-    Y = sfft.rfft(seg, n=plan.n_fft_al, axis=2)
-    return Aligned(Y=Y, Yb=Y[..., plan.band_al], shift=shift, ref=ref, count=count, seg=seg)
+    win = segment_taper(plan.seg_len)
+    # noise energy per bin of a tapered segment: sigma^2 sum w^2 (count: its sample share)
+    count = count * (win @ win / plan.seg_len)
+    Y = sfft.rfft(seg * win, n=plan.n_fft_al, axis=2)
+    Yb = Y[..., plan.band_al]
+    if prep.noise_acov is not None:
+        Yb = Yb * whitening_gains(prep.noise_acov, plan.w_al, fs)[:, None, :]
+    return Aligned(Y=Y, Yb=Yb, shift=shift, ref=ref, count=count, seg=seg)
 
 
 def misfit(Zb):

@@ -14,6 +14,7 @@ import scipy.fft as sfft
 from numpy.lib.stride_tricks import sliding_window_view
 
 from ae_tactile.localization.common import Plan, Reason, _positive, per_packet
+from ae_tactile.localization.noise_model import pre_onset_autocov, whitening_gains
 
 
 def raw_gather(x, start, length):
@@ -79,6 +80,7 @@ class Prepared:
     quant2: np.ndarray  # (K,) q^2 / 12 of the apparent ADC quantum q, 0 if none
     scale: np.ndarray  # (K,) volts per unit of x (sigma2, p_signal, quant2 are in units^2)
     noise_given: np.ndarray = None  # (K,) bool: sigma2 from the caller's noise_rms_v
+    noise_acov: np.ndarray = None  # (K, P + 1) pre-onset autocovariance (units^2), NaN: none
 
 
 def subset(prep: Prepared, ids) -> Prepared:
@@ -218,6 +220,16 @@ def _normalise(x, flags):
     return scale
 
 
+def _whitened_spectra(seg, x, n_pre, pre_mean, plan: Plan):
+    """(coarse spectra (K, 4, n_fft//2+1) with the band bins whitened by the noise's colour
+    of the pre-onset samples (`noise_model`: for the band edge and the start), that colour's
+    lag-windowed autocovariance (K, P + 1))."""
+    X = sfft.rfft(seg, n=plan.n_fft, axis=2)
+    acov = pre_onset_autocov(x, n_pre, pre_mean, plan.seg_len)
+    X[..., plan.band] *= whitening_gains(acov, plan.w, plan.fs)[:, None, :]
+    return X, acov
+
+
 def prepare(
     x,
     onset,
@@ -282,7 +294,7 @@ def prepare(
 
     p_total = _snr_window_power(x, on, plan, pre_mean)
 
-    X = sfft.rfft(seg, n=plan.n_fft, axis=2)
+    X, acov = _whitened_spectra(seg, x, n_pre, pre_mean, plan)
     return Prepared(
         x=x,
         onset=on,
@@ -296,4 +308,5 @@ def prepare(
         quant2=_quantum2(raw),
         scale=scale,
         noise_given=given,
+        noise_acov=acov,
     )

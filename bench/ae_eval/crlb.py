@@ -37,13 +37,15 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy import linalg
 
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization.overlap.model import _lstsq_amplitudes, _Model, _model_values
 from ae_tactile.localization.overlap.pulse import PulseModel
 from ae_tactile.sim import SimConfig, noise_rms_for_snr, render_triggered, signal_power_v2
 
-__all__ = ["position_crlb", "simulated_crlb", "joint_crlb"]
+__all__ = ["position_crlb", "simulated_crlb", "joint_crlb", "noise_covariance",
+           "coloured_position_crlb"]
 
 
 def position_crlb(
@@ -113,6 +115,83 @@ def position_crlb(
     )
 
 
+def noise_covariance(config, noise_var_v2, m_len, include_quantization=True):
+    """True per-channel noise covariance (M, M) [V^2] of a simulated device: white ADC
+    noise (share 1 - ``amplifier_noise_share`` of ``noise_var_v2``), amplifier noise through
+    the chain (the rest, its exact sampled autocorrelation `AmplifierNoise.autocorrelation`)
+    and LSB^2/12 of rounding when the config quantizes.
+
+    Parameters
+    ----------
+    config : SimConfig
+    noise_var_v2 : float
+        sigma_n^2 of the SNR definition [V^2].
+    m_len : int
+        Samples.
+    include_quantization : bool
+
+    Returns
+    -------
+    ndarray (M, M)
+    """
+    share = float(config.amplifier_noise_share)
+    q = config.lsb_v**2 / 12.0 if (include_quantization and config.quantization) else 0.0
+    cov = (noise_var_v2 * (1.0 - share) + q) * np.eye(m_len)
+    if share > 0:
+        r = config.frontend.amplifier_noise.autocorrelation(m_len)
+        cov = cov + noise_var_v2 * share * linalg.toeplitz(r)
+    return cov
+
+
+def coloured_position_crlb(clean_v, dclean_dt_v, sample_rate_hz, noise_cov_v2, points_m,
+                           arrival_times_s, geometry: FingertipGeometry, *,
+                           echo_guard_s=0.3e-6):
+    """Known-shape bound of `position_crlb` (x, y, emission time, amplitude) in Gaussian
+    noise of any covariance: per channel F += J^T Sigma^-1 J over the echo-free samples
+    (Sigma restricted to them), channels independent.
+
+    Parameters
+    ----------
+    clean_v, dclean_dt_v : ndarray (K, 4, M)
+        Noise-free windows [V] and their time derivative [V/s].
+    sample_rate_hz : float
+    noise_cov_v2 : ndarray (K, M, M) or (M, M)
+        Per-channel noise covariance of each packet [V^2] (`noise_covariance`).
+    points_m : ndarray (K, 3)
+    arrival_times_s : ndarray (K, 4)
+        Relative to the first sample [s].
+    geometry : FingertipGeometry
+    echo_guard_s : float
+
+    Returns
+    -------
+    dict
+        crb_xy_m2 (K, 2, 2), rms_m (K,) = sqrt(tr).
+    """
+    c = np.asarray(clean_v, float)
+    dc = np.asarray(dclean_dt_v, float)
+    k, _, m = c.shape
+    cov = np.asarray(noise_cov_v2, float)
+    if cov.ndim == 2:
+        cov = np.broadcast_to(cov, (k, m, m))
+    pts = np.asarray(points_m, float)
+    t = np.arange(m) / float(sample_rate_hz)
+    cut = np.asarray(arrival_times_s, float) + geometry.echo_free_duration_s - echo_guard_s
+    _, dt, _ = geometry.arrival_time_derivatives(pts[:, 0], pts[:, 1])
+    crb = np.empty((k, 2, 2))
+    for i in range(k):
+        f = np.zeros((4, 4))
+        for ch in range(4):
+            n = int(np.sum(t < cut[i, ch]))
+            chol = linalg.cholesky(cov[i, :n, :n], lower=True)
+            jac = np.column_stack([-dc[i, ch, :n] * dt[i, ch, 0], -dc[i, ch, :n] * dt[i, ch, 1],
+                                   -dc[i, ch, :n], c[i, ch, :n]])
+            w = linalg.solve_triangular(chol, jac, lower=True)
+            f += w.T @ w
+        crb[i] = np.linalg.inv(f)[:2, :2]
+    return dict(crb_xy_m2=crb, rms_m=np.sqrt(np.trace(crb, axis1=1, axis2=2)))
+
+
 def simulated_crlb(
     points_m,
     config=None,
@@ -146,6 +225,17 @@ def simulated_crlb(
     var = sigma_n**2
     if include_quantization and cfg.quantization:
         var = var + cfg.lsb_v**2 / 12.0
+    if cfg.amplifier_noise_share > 0 and window == "echo_free":
+        # coloured noise: the bound with the true covariance (white + amplifier noise)
+        m_len = base.clean_v.shape[2]
+        covs = np.stack([noise_covariance(cfg, s2, m_len, include_quantization)
+                         for s2 in np.broadcast_to(sigma_n**2, (len(base),))])
+        out = coloured_position_crlb(base.clean_v, dcdt, fs, covs, base.points_m,
+                                     base.arrival_times_s, cfg.geometry,
+                                     echo_guard_s=echo_guard_s)
+        out["noise_var_v2"] = np.broadcast_to(var, (len(base),)).copy()
+        out["sigma_n_v"] = np.broadcast_to(sigma_n, (len(base),)).copy()
+        return out
     out = position_crlb(
         base.clean_v,
         dcdt,
