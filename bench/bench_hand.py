@@ -711,6 +711,9 @@ def markdown(res: dict) -> str:
                         else ": none of the rates tried")
                      + (f" (backlog at {k['backlog_from_hz']:,.0f}/s)" if k["backlog_from_hz"]
                         else " (the highest rate tried)"))
+    for f in res.get("failed_cases", []):
+        lines.append(f"- FAILED: {f['fingertips']} x {f['rate_hz']:,.0f}/s"
+                     f"{' pinned' if f['pinned'] else ''}: {f['error'].splitlines()[0]}")
     t = targets(res)
     if t:
         lines += ["", "Issue 40's targets:", ""] + [f"- {x}" for x in t]
@@ -788,9 +791,16 @@ def main(argv=None) -> int:
            "launch_logs": log_dir}
     res["floor_two_hop_ms"] = bs.floor_ms()
     print("floor:", res["floor_two_hop_ms"], flush=True)
-    res["cases"] = []
+    res["cases"], res["failed_cases"] = [], []
     for n, rate, pinned, dur in cases:
-        c = run_case(n, rate, pinned, dur, log_dir)
+        try:
+            c = run_case(n, rate, pinned, dur, log_dir)
+        except Exception as exc:  # noqa: BLE001 - one case's failure is recorded, not fatal
+            res["failed_cases"].append({"fingertips": n, "rate_hz": rate, "pinned": pinned,
+                                        "error": f"{type(exc).__name__}: {exc}"[-3000:]})
+            print(f"case {n} x {rate:g}/s{' pinned' if pinned else ''} FAILED: {exc}",
+                  flush=True)
+            continue
         res["cases"].append(c)
         print(case_row(c), flush=True)
     res["floor_two_hop_ms_after"] = bs.floor_ms()
