@@ -1091,11 +1091,13 @@ def tables(res: dict) -> str:
 # ---------------------------------------------------------------------- main
 def _save(res, q, final=False):
     RESULTS.mkdir(parents=True, exist_ok=True)
-    out = RESULTS / ("slip_quick.json" if q else "slip.json")
+    model = bool(ev.pipelines.DETECTOR_OPTIONS.get("model"))
+    stem = "slip_model" if model else "slip"
+    out = RESULTS / (f"{stem}_quick.json" if q else f"{stem}.json")
     out.write_text(
         json.dumps(res, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
     )
-    tab = write_tables(res) if not q else tables(res)
+    tab = write_tables(res) if not (q or model) else tables(res)
     return out, tab
 
 
@@ -1143,6 +1145,12 @@ RERUNNABLE = ("cost", "hand_interference", "stylus")
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="reduced trial counts (smoke run)")
+    ap.add_argument(
+        "--model",
+        action="store_true",
+        help="the detector with the fingertip model's readings (SlipDetector(model=True)); "
+        "results to slip_model_quick.json / slip_model.json",
+    )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
         "--speed",
@@ -1170,6 +1178,8 @@ def main(argv=None) -> int:
         help="start no new family after this many seconds (results so far are kept)",
     )
     args = ap.parse_args(argv)
+    if args.model:
+        ev.pipelines.DETECTOR_OPTIONS["model"] = True
     warnings.simplefilter("ignore", RuntimeWarning)
     if args.speed:
         return speed_main(args.seed)

@@ -15,8 +15,11 @@ from ae_tactile.records import ContactState
 # (on no other emission's spot); PAIRED: a touch / release pair; REPEAT: on an earlier
 # emission's spot; OVERLAP: may share a trigger window with another emission;
 # SLIP_EMISSION: came while the contact slipped or moved; TOUCHED: a compression that came
-# during touch-release activity (a touch, for as long as it counts)
+# during touch-release activity (a touch, for as long as it counts); ARRIVAL: a touch of
+# the arriving object (a point of a multi-point object or of a broad press)
 FOUNDER, EVID, PAIRED, REPEAT, OVERLAP, SLIP_EMISSION, TOUCHED = 1, 2, 4, 8, 16, 32, 64
+ARRIVAL = 128
+TOUCH_POINT = FOUNDER | ARRIVAL
 TRACKED = EVID | REPEAT
 SLIPPING = (ContactState.INCIPIENT_SLIP, ContactState.GROSS_SLIP)
 #: (3,) of NaN: an unknown point or direction (copied before it is handed out)
@@ -89,6 +92,10 @@ class Contact:
         self.events_since_track = 0
         self.rate_key = None
         self.rate_val = 0.0
+        self.arriving = True  # no silence of HOLD_GAP_S since its first emission
+        self.saw_rarefaction = False  # a rarefaction came (the arrival is over)
+        self.slid = False  # it slid (a lift of it may be a re-stick)
+        self.provisional = False  # its pending release is off its touches (`model`)
 
     @property
     def centre(self):

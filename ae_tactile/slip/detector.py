@@ -70,13 +70,16 @@ from .config import SlipConfig
 from .contact import NAN3, SLIPPING, Contact
 from .evidence import MicroSlipEvidence
 from .gross import GrossSlipTest
+from .model import ContactModel
 from .outputs import SlipOutputs
 from .texture import TextureTest
 from .tracking import ContactTracking
 from .types import ContactInfo, FingerState, LocalizedEvent, SlipEvent
 
 
-class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTest, SlipOutputs):
+class SlipDetector(
+    ContactTracking, ContactModel, MicroSlipEvidence, GrossSlipTest, TextureTest, SlipOutputs
+):
     """Stateful slip / texture detector for one finger (see the module docstring).
 
     Parameters
@@ -87,6 +90,11 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
         ``process`` also returns a TOUCH SlipEvent when a contact begins and a DETOUCH
         when it ends; False (the default, the output of earlier versions): only
         SLIP_PRECURSOR / SLIP / TEXTURE.
+    model : bool, optional
+        Read the emissions with the fingertip model (`ae_tactile.slip.model`: objects
+        arriving, held, loaded, sliding, lifted, released) instead of the per-emission
+        rules (default False while the rules' tests are moved over; bench_everyday runs
+        both).
 
     Attributes
     ----------
@@ -109,7 +117,13 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
         When ``config`` is not a SlipConfig.
     """
 
-    def __init__(self, config: SlipConfig | None = None, *, contact_events: bool = False):
+    def __init__(
+        self,
+        config: SlipConfig | None = None,
+        *,
+        contact_events: bool = False,
+        model: bool = False,
+    ):
         if config is None:
             config = SlipConfig()
         if not isinstance(config, SlipConfig):
@@ -139,11 +153,14 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
         self._last_end_ns = 0
         self._last_t = None
         self.contact_events = bool(contact_events)
+        self._model = bool(model)
         #: TOUCH / DETOUCH events decided and not yet returned (``pop_events``)
         self._pending: list[SlipEvent] = []
         self.last_reading = (Reading.UNKNOWN, -1)
         #: (touch-release time ns, spot (3,)) of contacts that ended, at most max_contacts
         self._ended_activity = []
+        #: (end time ns, centre (3,)) of contacts lifted or released off their touches
+        self._lifted = []
 
     def _apply(self, c: SlipConfig):
         """Take configuration ``c``: its windows in integer ns, squared gates [m^2] and the
@@ -174,6 +191,7 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
         self._tex_w = np.log(prior) - 0.5 * math.log(2 * math.pi)
         self._g2 = c.release_gate_sigma**2
         self._f2 = c.release_floor_m**2
+        self._model_apply()
 
     # ------------------------------------------------------------------ public API
     @property
@@ -281,6 +299,7 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
             self._end_contact(c)
         self.contacts.clear()
         self._ended_activity.clear()
+        self._lifted.clear()
         self.now_ns = None
         self._last_t = None
         self._finger = FingerState(ContactState.NO_CONTACT, 0, NAN3.copy(), 0.0, 0, -1, 0, 0)
@@ -352,11 +371,28 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
         self.now_ns = now
         for c in list(self.contacts):
             wait = self._quiet if c.pending_in_slip else self._confirm
+            if self._model and c.pending_in_slip:
+                wait = self._rel_wait
+            if c.provisional:
+                wait = self._w_ev  # reads released meanwhile; a micro-slip may follow
             if c.pending_release_ns is not None and now - c.pending_release_ns >= wait:
                 self._end_contact(c)
                 continue
             if not c.confirmed and now - c.last_ns >= self._w_ev:
                 self.contacts.remove(c)
+                continue
+            if c.arriving and now - c.last_ns > self._hold_gap:
+                c.arriving = False
+            if (
+                self._model
+                and c.state == ContactState.GROSS_SLIP
+                and now - c.last_ns >= self._lift_quiet_ns(c)
+            ):
+                # silent after sliding: lifted (`ContactModel`)
+                c.pending_release_ns, c.pending_in_slip = c.last_ns, True
+                c.pending_release_spot = None
+                c.slid = True
+                self._end_contact(c)
                 continue
             if c.state in SLIPPING and now - c.last_ns >= self._quiet:
                 c.state = ContactState.STICK
@@ -418,7 +454,12 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
         c = self._associate(px, py, pz, t, ev.polarity, var)
         overlap = self._last_t is not None and abs(t - self._last_t) < self._guard
         self._last_t = t if self._last_t is None else max(t, self._last_t)
-        if c is not None and not c.confirmed and ev.polarity > 0:
+        if (
+            c is not None
+            and not c.confirmed
+            and ev.polarity > 0
+            and not (c.arriving and t - c.last_ns <= self._hold_gap)
+        ):
             # a touch next to a lone rarefaction (a release whose touch was missed): the
             # touch founds the contact, the orphan is forgotten
             self.contacts.remove(c)
@@ -440,7 +481,7 @@ class SlipDetector(ContactTracking, MicroSlipEvidence, GrossSlipTest, TextureTes
             return
         top, top_key, n_conf = None, None, 0
         for c in self.contacts:
-            if c.confirmed:
+            if c.confirmed and not (c.provisional and c.pending_release_ns is not None):
                 n_conf += 1
                 key = (int(c.state), c.last_ns)
                 if top is None or key > top_key:  # the first of equals, as max() picks

@@ -11,6 +11,7 @@ import numpy as np
 from ae_tactile.records import ContactState, EventType, Reading
 
 from .contact import (
+    ARRIVAL,
     EVID,
     FOUNDER,
     OVERLAP,
@@ -18,6 +19,7 @@ from .contact import (
     REPEAT,
     SLIP_EMISSION,
     SLIPPING,
+    TOUCH_POINT,
     TOUCHED,
 )
 
@@ -35,8 +37,11 @@ class MicroSlipEvidence:
         the contact and its tests, and append the events they decide to ``out``."""
         slipping = c.state in SLIPPING or c.moving  # a moving contact has no fixed spots
         flags = OVERLAP if overlap else 0
+        kind = None if slipping or not self._model else self._arrival_flags(c, ev, t)
         if slipping:
             flags |= self._slip_emission(c, ev, p, var, t)
+        elif kind is not None:
+            flags |= kind
         else:
             kind = self._held_emission(c, ev, p, var, t)
             if kind is None:
@@ -46,6 +51,8 @@ class MicroSlipEvidence:
                 self.last_reading = (Reading.TOUCH if n.confirmed else Reading.UNKNOWN, n.id)
                 return
             flags |= kind
+            if self._model and kind & EVID and self._provisional_release(c, ev, t):
+                flags |= REPEAT
         c.add(t, p, var, ev.polarity, ev.packet_id, flags)
         if not c.confirmed:
             c.confirmed = True
@@ -54,9 +61,14 @@ class MicroSlipEvidence:
         c.events_since_track += 1
         if c.events_since_track >= 8 or (c.moving and c.events_since_track >= 4):
             self._track(c, t)
-        if flags & EVID and c.state != ContactState.GROSS_SLIP:
+        if c.arriving and not slipping:
+            if flags & EVID:
+                self._slide_decision(c, ev, t, out)
+        elif flags & EVID and c.state != ContactState.GROSS_SLIP and not flags & REPEAT:
             self._precursor_decision(c, ev, p, t, out)
-        if c.state != ContactState.GROSS_SLIP and flags & (EVID | REPEAT):
+        if c.arriving and not slipping:
+            pass
+        elif c.state != ContactState.GROSS_SLIP and flags & (EVID | REPEAT):
             why = self._gross_test(c, t)
             if why:
                 c.state, c.since_ns = ContactState.GROSS_SLIP, t
@@ -79,6 +91,8 @@ class MicroSlipEvidence:
             return Reading.TEXTURE if c.texture_on else Reading.SLIP
         if flags & PAIRED:
             return Reading.RELEASE
+        if flags & ARRIVAL:
+            return Reading.TOUCH
         if flags & REPEAT:
             return Reading.TOUCH if ev.polarity > 0 else Reading.RELEASE
         if flags & EVID:
@@ -96,7 +110,7 @@ class MicroSlipEvidence:
             c.pending_release_spot = (p.copy(), var)
             self.counts["releases"] += 1
         elif c.pending_release_ns is not None:
-            c.pending_release_ns = None
+            c.pending_release_ns, c.provisional = None, False
             self.counts["releases_cancelled"] += 1
         return EVID | SLIP_EMISSION
 
@@ -110,7 +124,19 @@ class MicroSlipEvidence:
         D = c.p[:k] - p
         d2 = np.einsum("ij,ij->i", D, D)
         vsum = c.var[:k] + var
+        # a touch makes a spot (a release pairs with it, a re-touch repeats it); so does
+        # any compression for an emission within 3 sigma of it, without the model floor (a
+        # tap's touch and release; micro-slips seldom land that close): an emission near
+        # an earlier micro-slip is another micro-slip
         spot = d2 <= self._g2 * (vsum + self._f2)
+        if self._model:
+            touch = (F & TOUCH_POINT) != 0
+            # a held touch's spot is occupied: a compression there is a re-touch only on
+            # its exact spot (its release lost; micro-slips keep off the centre)
+            tight = d2 <= 9.0 * vsum
+            tp = touch & (((F & PAIRED) != 0) | tight) if ev.polarity > 0 else touch
+            spot &= tp
+            spot |= (d2 <= 9.0 * vsum) & ~touch & (c.pol[:k] > 0)
         if spot.any():
             near, cand = self._pair_candidates(c, ev, k, T, F, d2, vsum, spot, t)
         else:
@@ -150,6 +176,10 @@ class MicroSlipEvidence:
                 # model floor included, is its release however long the hold
                 held = held | ((F & FOUNDER) != 0)
             cand &= (c.pol[:k] > 0) & held
+            if c.arriving:
+                # a release right after its touch (a tap) lands on its spot to the
+                # localization error: an arriving object's other emissions seldom do
+                cand &= d2 <= 9.0 * vsum
         else:
             cand &= recent
         return near, cand
@@ -165,6 +195,19 @@ class MicroSlipEvidence:
         c.flist[j] = int(F[j])
         self.counts["pairs"] += 1
         founder = bool(F[j] & FOUNDER)
+        if (
+            self._model
+            and ev.polarity < 0 < int(c.pol[j])
+            and F[j] & TOUCH_POINT
+            and c.pending_release_ns is None
+        ):
+            # the release of a point of the object: the object is released when none of
+            # its touch points is left held (or all but one, a release lost, after two)
+            k = c.valid()
+            tp = ((c.flags[:k] & TOUCH_POINT) != 0) & (c.pol[:k] > 0)
+            left = int((tp & ((c.flags[:k] & PAIRED) == 0)).sum())
+            if left == 0 or (left == 1 and int(tp.sum()) >= 3):
+                founder = True
         if founder:
             c.founder_paired = True
             c.pending_release_ns, c.pending_in_slip = t, False
@@ -189,6 +232,8 @@ class MicroSlipEvidence:
         release pairs with it here and ends the contact (not a lone rarefaction after it
         ended)."""
         flags = REPEAT
+        if self._model and ev.polarity > 0:
+            flags |= ARRIVAL  # a touch again on a released spot: its release ends the contact
         if ev.polarity > 0 and c.pending_release_ns is not None:
             fp, fvar, _ = c.founder
             rp, rvar = c.pending_release_spot or (fp, fvar)
@@ -197,7 +242,7 @@ class MicroSlipEvidence:
                 float(fd @ fd) - self._g2 * (fvar + var + self._f2),
                 float(rd @ rd) - self._g2 * (rvar + var + self._f2),
             ) <= 0.0:
-                c.pending_release_ns = None
+                c.pending_release_ns, c.provisional = None, False
                 c.founder = (p.copy(), var, 1)
                 c.founder_ns, c.founder_n = t, c.n
                 c.founder_paired = False
@@ -214,7 +259,7 @@ class MicroSlipEvidence:
             ev_m = (F & EVID) != 0
             if not (T[ev_m] >= t - self._w_ev).any():
                 return None
-            c.pending_release_ns = None
+            c.pending_release_ns, c.provisional = None, False
             self.counts["releases_cancelled"] += 1
         self.counts["evidence"] += 1
         return EVID

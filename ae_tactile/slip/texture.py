@@ -27,12 +27,15 @@ class TextureTest:
         """TEXTURE while the contact's latest texture_min_intervals intervals are periodic
         (`_periodic_window`) for texture_confirm_events tests in a row; the period by least
         squares on the intervals' period counts (`period_fit_best`), the spatial period
-        from the tracked speed (moving contact) or the sliding speed (fixed contact). A
-        texture is gross slip: GROSS_SLIP and its SLIP come first."""
+        from the tracked speed (moving contact) or the sliding speed (fixed contact). With the
+        fingertip model only a sliding (GROSS_SLIP) or moving contact has a texture; the
+        rules make a texture gross slip: GROSS_SLIP and its SLIP come first."""
         cfg = self.config
         n = cfg.texture_min_intervals + 1
         k = c.valid()
-        if k < n:
+        if k < n or (self._model and not (c.state == ContactState.GROSS_SLIP or c.moving)):
+            # a texture is read off a sliding contact: a held one's regular micro-slips
+            # under a steady load are no texture
             return
         window = self._periodic_window(c, n, k)
         if window is None:

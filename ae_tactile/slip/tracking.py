@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from ae_tactile.records import EventType
+from ae_tactile.records import ContactState, EventType
 
 from .contact import (
     EVID,
@@ -18,6 +18,7 @@ from .contact import (
     PAIRED,
     SLIP_EMISSION,
     SLIPPING,
+    TOUCH_POINT,
     TRACKED,
     Contact,
 )
@@ -36,7 +37,10 @@ class ContactTracking:
         track_window_s, is nearest within association_radius_m (the latest emission carries
         a contact that moves before its track is established); failing that, for a
         rarefaction (polarity ``pol`` < 0, per-axis variance ``var`` m^2), the contact of an
-        unpaired touch on its spot."""
+        unpaired touch on its spot. With the fingertip model (`model`), its gates instead:
+        `_model_distance`, then a rarefaction's object (`_object_of_release`)."""
+        if self._model:
+            return self._associate_model(px, py, pz, t, pol, var)
         best, best_d2 = None, self._assoc2
         for c in self.contacts:
             q = c.centre_xyz if not c.moving or c.track_c is None else c.centre_at(t)
@@ -51,6 +55,85 @@ class ContactTracking:
         if best is None and pol < 0:
             best = self._touch_of_release(px, py, pz, var, t)
         return best
+
+    def _associate_model(self, px, py, pz, t, pol, var):
+        """`_associate` of the fingertip model: the nearest contact within its gate
+        (`_model_distance`); failing that, for a rarefaction, the contact of the touch on
+        its spot, or the object it releases."""
+        best, best_d2 = None, math.inf
+        for c in self.contacts:
+            d2, gate = self._model_distance(c, px, py, pz, t, pol)
+            if d2 <= gate and d2 <= best_d2:
+                best, best_d2 = c, d2
+        if best is None and pol < 0:
+            best = self._touch_of_release(px, py, pz, var, t)
+        if best is None and pol < 0:
+            best = self._object_of_release(px, py, pz, t)
+        return best
+
+    def _model_distance(self, c, px, py, pz, t, pol):
+        """(squared distance, squared gate) [m^2] of an emission of polarity ``pol`` at
+        (px, py, pz), time ``t``, to contact ``c`` as the fingertip model reads it."""
+        q = c.centre_xyz if not c.moving or c.track_c is None else c.centre_at(t)
+        dx, dy, dz = px - q[0], py - q[1], pz - q[2]
+        d2 = dx * dx + dy * dy + dz * dz
+        lp = c.last_p
+        held = c.state not in SLIPPING and not c.moving
+        if not held:
+            # a sliding contact reaches association_radius_m round its centre or its
+            # latest emission (it moves before its track is established)
+            gate = self._assoc2
+            if lp is not None and t - c.last_ns <= self._w_track:
+                dx, dy, dz = px - lp[0], py - lp[1], pz - lp[2]
+                d2 = min(d2, dx * dx + dy * dy + dz * dz)
+        elif (
+            pol > 0
+            and c.arriving
+            and not c.saw_rarefaction
+            and t - c.founder_ns <= self._w_arrive
+        ):
+            # a point of an arriving object: within association_radius_m of its points
+            gate = self._assoc2
+            d2 = min(d2, self._touch_point_d2(c, px, py, pz))
+        else:
+            # a held or arriving contact's patch: its disc round its touch points (an
+            # arriving one's: round any of its emissions)
+            gate = self._patch2 if c.founder[2] > 0 else self._assoc2
+            if d2 > gate:
+                d2 = min(d2, self._touch_point_d2(c, px, py, pz, c.arriving))
+        return d2, gate
+
+    def _object_of_release(self, px, py, pz, t):
+        """The held, silent contact (or one releasing now) nearest a rarefaction within
+        association_radius_m: a broad object leaves where it pleases, so its release may
+        land off its patch (an untouched spot releases nothing). None if none."""
+        best, best_d2 = None, self._assoc2
+        for c in self.contacts:
+            if c.moving or c.state != ContactState.STICK:
+                continue
+            releasing = (
+                c.pending_release_ns is not None and t - c.pending_release_ns <= self._w_release
+            )
+            if not releasing and (c.arriving or not self._silent(c, t)):
+                continue
+            q = c.centre_xyz
+            d2 = (px - q[0]) ** 2 + (py - q[1]) ** 2 + (pz - q[2]) ** 2
+            d2 = min(d2, self._touch_point_d2(c, px, py, pz))
+            if d2 <= best_d2:
+                best, best_d2 = c, d2
+        return best
+
+    def _touch_point_d2(self, c, px, py, pz, any_member=False):
+        """Squared distance [m^2] from (px, py, pz) to the nearest touch point (founder or
+        arrival touch; ``any_member``: any emission) of contact ``c`` in its buffer."""
+        k = c.valid()
+        m = (c.flags[:k] & TOUCH_POINT) != 0
+        if any_member:
+            m = (c.flags[:k] & PAIRED) == 0
+        if not m.any():
+            return math.inf
+        D = c.p[:k][m] - np.array((px, py, pz))
+        return float(np.einsum("ij,ij->i", D, D).min())
 
     def _touch_of_release(self, px, py, pz, var, t):
         """The contact (sticking, not moving) holding a touch this release pairs with
@@ -107,6 +190,10 @@ class ContactTracking:
         c.founder = (p.copy(), var, int(ev.polarity))
         c.founder_ns, c.founder_n = t, 0
         c.centre = p.copy()
+        c.arriving = self._model  # (the per-emission rules know no arrival)
+        lifted = self._near_lifted(p, t) if self._model else None
+        if lifted is not None:
+            self._resume(c, lifted, t)
         self.contacts.append(c)
         self.counts["contacts_created"] += 1
         if c.confirmed:
@@ -224,6 +311,14 @@ class ContactTracking:
             t = c.pending_release_ns if c.pending_release_ns is not None else self.now_ns
             t = c.last_ns if t is None else t
             self._contact_event(EventType.DETOUCH, c, t, c.centre_at(t))
+        if self._model and c.pending_in_slip:
+            # lifted after a slide or released off its touches: an emission on its disc
+            # soon after is the same object re-stuck or loaded (`_near_lifted`)
+            lst = self._lifted
+            q = self._lift_quiet_ns(c) if c.slid else 0
+            lst.append((c.last_ns, np.array(c.centre_at(c.last_ns), dtype=float), q))
+            if len(lst) > self.config.max_contacts:
+                del lst[0]
         if c.pending_release_ns is not None:
             self._last_end_ns = c.pending_release_ns
         if c.touch_release_ns is not None:

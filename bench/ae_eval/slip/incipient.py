@@ -19,7 +19,13 @@ from ae_tactile.sim.stream import EmissionList
 from ae_tactile.slip import SlipConfig, SlipDetector
 
 from .common import NS, WithTouch, cap_point_xy, draw, first_output, n_before
-from .pipelines import localized_events, run_detector, scene_events, triggered_source
+from .pipelines import (
+    DETECTOR_OPTIONS,
+    localized_events,
+    run_detector,
+    scene_events,
+    triggered_source,
+)
 
 # Randomised parameter ranges (SI units); "log" = log-uniform.
 INCIPIENT_RANGES = {
@@ -291,7 +297,7 @@ def closed_loop_trial(
     proc = scene.process
     src = triggered_source(scene, source)
     geo = scene.config.geometry
-    det = SlipDetector(config)
+    det = SlipDetector(config, **DETECTOR_OPTIONS)
     end_ns = int(round(scene.duration_s * NS))
     step = int(round(chunk_s * NS))
     t_reflex = None

@@ -147,6 +147,11 @@ def stream_localized_events(
     return out
 
 
+#: keyword options of every SlipDetector the evaluation builds (``model=True``: the
+#: fingertip model's readings; bench_everyday.py and bench_slip.py --model set it)
+DETECTOR_OPTIONS: dict = {}
+
+
 def run_detector(
     events,
     config: SlipConfig | None = None,
@@ -160,7 +165,7 @@ def run_detector(
     events (a node's timer) and up to ``end_ns``. ``snapshot``: (t_ns, fn), fn(detector)
     called once, before the first event at or after t_ns (or at the end). Returns
     (detector, outputs, state trace [(time_ns, ContactState)])."""
-    det = SlipDetector(config)
+    det = SlipDetector(config, **DETECTOR_OPTIONS)
     snap_ns, snap_fn = snapshot if snapshot is not None else (None, None)
     if sliding_speed_m_s is not None:
         det.set_sliding_speed(sliding_speed_m_s)

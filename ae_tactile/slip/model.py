@@ -1,0 +1,220 @@
+# SPDX-License-Identifier: Apache-2.0
+"""What happens at a fingertip, as the slip detector reads it: objects arrive (at one point,
+at several points within milliseconds, or as a broad press), are held (silent), are loaded
+(Cattaneo-Mindlin micro-slips inside their disc), slide (from the start or after a load),
+are lifted or released. Each emission gets the reading that explains it:
+
+* **touch** -- a compression while its object arrives: within `ARRIVAL_WINDOW_S` of the
+  object's first emission, before any rarefaction, within association_radius_m of its
+  points (a point of a multi-point object or of a broad press); a compression outside
+  every held contact's patch (`PATCH_FRACTION` of association_radius_m round its touch)
+  founds a contact of its own (a second object, a tap beside);
+* **release** -- a rarefaction on a touch's spot (a touch and its release), or, on a
+  silent held contact, anywhere on its disc (a broad object leaves where it pleases);
+  further rarefactions within `RELEASE_WINDOW_S` are the same release; the contact reads
+  released at once and ends when nothing follows (a micro-slip that follows shows the
+  "release" was the load's first micro-slip: the contact goes on, its evidence counted);
+* **slide** -- the unexplained emissions (neither touch nor release) of an object still
+  arriving (no silence of `HOLD_GAP_S` since its first emission): there is no held patch to
+  load, so two of them are SLIP at once (the slide's 3rd emission; see
+  ``ae_eval.everyday.bounds``), never a precursor;
+* **micro-slip** -- an unexplained emission inside the disc of a held contact (after a
+  silence): the evidence of SLIP_PRECURSOR and the gross-slip test (`evidence`, `gross`);
+* **lift** -- a sliding contact silent for `lift_quiet_s` (a few of its own intervals) is
+  lifted: it reads NO_CONTACT; an emission on its disc before it ends (``quiet_s``) shows
+  the slide went on, one after (within ``evidence_window_s``) that the object re-stuck and
+  is being loaded (it founds a held contact, not an arriving one).
+
+The constants below are the model's physical parameters (SI units)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ae_tactile.records import ContactState
+
+from .contact import ARRIVAL, EVID, PAIRED, REPEAT
+from .fits import circle_centre
+
+#: largest radius of one contact patch as a share of association_radius_m (the largest
+#: Hertz contact's diameter, 2 a_H <= 5 mm): micro-slips of a held contact fall within it
+#: of the touch that announced it, a compression farther from every held contact is a
+#: new contact; a contact nobody announced (its first emission on its ring) reaches the
+#: whole association_radius_m
+PATCH_FRACTION = 0.5
+#: [s] longest spread of one object's arrival (multi-point touches 0.2-5 ms, broad presses
+#: 1-10 ms, up to 20 ms held out)
+ARRIVAL_WINDOW_S = 20e-3
+#: [s] longest spread of one object's release
+RELEASE_WINDOW_S = 20e-3
+#: [s] a contact silent this long after its last emission is held (no longer arriving): a
+#: grasp is held >= 50 ms before it is loaded, a slide's emissions come at >= 20 Hz
+HOLD_GAP_S = 0.1
+#: [s] a release off the touches' spots (or while slipping) ends its contact when nothing
+#: follows for this long (a load's micro-slips follow within it; the NO_CONTACT target is
+#: 0.2 s after a release)
+RELEASE_WAIT_S = 0.15
+#: largest relative spread (beyond 4 localization sigmas) of the distances of a load's
+#: first micro-slips from its centre: its stick front at first is a thin ring (c = a (1 -
+#: q)^(1/3) >= 0.97 a up to q = 0.1); wider, more slides pass for loads (the trade-off in
+#: docs/slip.md)
+RING_SPREAD = 0.03
+#: localization sigmas (of a difference of two distances) the ring's spread may exceed
+RING_SIGMAS = 2.5
+#: lift: a sliding contact silent for this many of its mean intervals ...
+LIFT_INTERVALS = 5.0
+#: [s] ... but at least this long and at most this long (the NO_CONTACT target is 0.2 s
+#: after a lift; a 20 Hz Poisson slide has a gap of 0.15 s in 5 % of its intervals)
+LIFT_QUIET_MIN_S, LIFT_QUIET_MAX_S = 0.05, 0.15
+
+
+class ContactModel:
+    """The readings of an emission of a contact that is arriving, held or released, the
+    slide-from-the-start decision and the lift of a sliding contact.
+
+    Methods of `SlipDetector` (`ae_tactile.slip.detector`), which holds the state they
+    use: ``config``, ``counts``, ``contacts`` and the windows in ns set by ``_apply``.
+    """
+
+    def _model_apply(self):
+        """Windows of the model in integer ns, the patch gate squared [m^2] (from the
+        configuration's association_radius_m)."""
+        self._w_arrive = int(round(ARRIVAL_WINDOW_S * 1e9))
+        self._w_release = int(round(RELEASE_WINDOW_S * 1e9))
+        self._hold_gap = int(round(HOLD_GAP_S * 1e9))
+        self._patch2 = (PATCH_FRACTION * self.config.association_radius_m) ** 2
+        self._rel_wait = int(round(RELEASE_WAIT_S * 1e9))
+
+    def _arrival_flags(self, c, ev, t):
+        """Flags of an emission of a held (not slipping) contact that the arrival or the
+        release of its object explains, or None: ARRIVAL for a touch of the arriving
+        object, REPEAT for a rarefaction of a release under way."""
+        if c.arriving and t - c.last_ns > self._hold_gap:
+            c.arriving = False
+        if ev.polarity < 0:
+            c.saw_rarefaction = True
+            if c.pending_release_ns is not None and t - c.pending_release_ns <= self._w_release:
+                self.counts["release_burst"] = self.counts.get("release_burst", 0) + 1
+                return REPEAT
+            return None
+        if (
+            ev.polarity > 0
+            and c.arriving
+            and not c.saw_rarefaction
+            and t - c.founder_ns <= self._w_arrive
+        ):
+            return ARRIVAL
+        return None
+
+    def _silent(self, c, t):
+        """No micro-slip evidence of the contact within evidence_window_s before ``t``."""
+        k = c.valid()
+        m = ((c.flags[:k] & EVID) != 0) & (c.t[:k] > t - self._w_ev)
+        return int(m.sum()) == 0
+
+    def _provisional_release(self, c, ev, t):
+        """A rarefaction on the disc of a silent held contact: read as its release (the
+        contact reads released; it ends after quiet_s unless an emission follows)."""
+        if ev.polarity < 0 and not c.arriving and c.state == ContactState.STICK:
+            if c.pending_release_ns is None and self._silent(c, t):
+                c.pending_release_ns, c.pending_in_slip = t, True
+                c.provisional = True
+                c.pending_release_spot = (ev.point_m.copy(), 0.0)
+                self.counts["releases"] += 1
+                return True
+        return False
+
+    def _slide_decision(self, c, ev, t, out):
+        """Slide or load, for an arriving object's unexplained emissions: on one ring (the
+        stick front of a load, round the touch that announced it or fitted) they are
+        micro-slips (the contact is held and loaded: the precursor decides); spread over
+        a disc they are a slide from the start: SLIP at once. Decided at the 3rd
+        unexplained emission (the 4th of the object), at the 2nd when they are clearly
+        off one ring round the touch."""
+        if c.state == ContactState.GROSS_SLIP:
+            return
+        k = c.valid()
+        F = c.flags[:k]
+        free = (F & PAIRED) == 0
+        n = int((((F & (EVID | ARRIVAL)) != 0) & free).sum())  # arrival touches too
+        if n < 2:
+            return
+        ring = self._ring_spread(c, k, F, free)
+        if ring is None or (n == 2 and ring <= 2.0 * RING_SPREAD):
+            return  # not decided yet
+        if ring <= RING_SPREAD:
+            c.arriving = False  # a held contact being loaded: its micro-slips
+            self._precursor_decision(c, ev, ev.point_m, t, out)
+            return
+        c.state, c.since_ns = ContactState.GROSS_SLIP, t
+        c.slid = True
+        out.append(self._slip_event(c, ev, 7, onset=True))
+
+    def _ring_spread(self, c, k, F, free):
+        """Relative spread (max - min) / mean of the distances of the contact's unpaired
+        emissions from the touch that announced it (a compression followed by a pause),
+        or from the circle fitted to them (4 or more), less RING_SIGMAS localization sigmas; None:
+        not enough emissions to tell."""
+        P = c.p[:k][free]
+        sig = RING_SIGMAS * math.sqrt(2.0 * float(c.var[:k][free].max()))
+        fp, _, fpol = c.founder
+        T = np.sort(c.t[:k][free])
+        announced = fpol > 0 and len(T) > 1 and T[1] - c.founder_ns > self._w_arrive
+        if announced:
+            D = P - fp
+            d = np.sqrt(np.einsum("ij,ij->i", D, D))
+            d = d[d > sig]  # the touch itself
+            if len(d) < 2:
+                return None
+        else:
+            if len(P) < 4:
+                return None
+            centre = circle_centre(P)
+            if centre is None:
+                return math.inf  # on a line: no ring
+            D = P - centre
+            d = np.sqrt(np.einsum("ij,ij->i", D, D))
+        mean = float(d.mean())
+        return max(float(d.max() - d.min()) - sig, 0.0) / mean if mean > 0 else math.inf
+
+    def _lift_quiet_ns(self, c):
+        """How long a sliding contact may stay silent before it reads lifted [ns]: a few
+        of its mean intervals over the latest member_history emissions."""
+        k = c.valid()
+        if k >= 3:
+            tt = np.sort(c.t[:k])
+            iv = float(tt[-1] - tt[0]) / (k - 1) * 1e-9
+        else:
+            iv = LIFT_QUIET_MAX_S / LIFT_INTERVALS
+        q = min(max(LIFT_INTERVALS * iv, LIFT_QUIET_MIN_S), LIFT_QUIET_MAX_S)
+        return int(q * 1e9)
+
+    def _near_lifted(self, p, t):
+        """The (end time ns, centre, lift quiet ns or 0) of a contact lifted after a slide
+        or released off its touches within evidence_window_s before ``t``, within
+        the patch radius of ``p`` (a slide going on, a re-stuck object, a load's micro-slips
+        after its first), or None. (Prunes the list.)"""
+        lst = self._lifted
+        if not lst:
+            return None
+        lst[:] = [a for a in lst if t - a[0] <= self._w_ev]
+        for a in reversed(lst):
+            d = a[1] - p
+            if float(d @ d) <= self._patch2:
+                return a
+        return None
+
+    def _resume(self, c, lifted, t):
+        """A contact founded on the disc of a contact that ended: not an arriving object;
+        within twice its lift quiet of a lifted slide, the slide going on (GROSS_SLIP)."""
+        c.arriving = False
+        if lifted[2] and t - lifted[0] <= 2 * lifted[2]:
+            c.state, c.since_ns, c.slid = ContactState.GROSS_SLIP, t, True
+
+
+def lift_bound(rate_hz, quiet_s, intervals):
+    """P(a Poisson slide at ``rate_hz`` shows no gap of ``quiet_s`` [s] in ``intervals``
+    intervals): how often a slide is not taken for lifted before it ends."""
+    return (1.0 - math.exp(-rate_hz * quiet_s)) ** intervals
