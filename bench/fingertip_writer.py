@@ -87,13 +87,18 @@ def main(argv) -> int:
     out_ready = select.poll()
     out_ready.register(master, select.POLLOUT)
 
-    def write(data: bytes) -> None:
+    def write(data: bytes) -> bool:
+        """True once every byte is handed over; False if a stop came while the port was
+        full (nobody may read any more: a stop does not wait for ever)."""
         view = memoryview(data)
         while view:
             try:
                 view = view[os.write(master, view) :]
             except BlockingIOError:  # the port is full: wait until the driver reads
+                if state["stop"]:
+                    return False
                 out_ready.poll(1.0)
+        return True
 
     def status() -> bytes:
         st = DeviceState.TRIGGERED if state["acquiring"] else DeviceState.IDLE
@@ -145,7 +150,8 @@ def main(argv) -> int:
         # a stop also ends a backlog (packets overdue because the port was full)
         while k < k_total and due_s[k] <= elapsed_s and not state["stop"]:
             first_us = int((state["t0"] - t_boot) // 1000 + first_index[k] * 1e6 / fs) & 0xFFFFFFFF
-            write(enc.encode(bodies[k], first_us))
+            if not write(enc.encode(bodies[k], first_us)):
+                break  # not (wholly) written: its log entry stays -1
             log[k] = time.time_ns()
             k += 1
         if k >= k_total:
