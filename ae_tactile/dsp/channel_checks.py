@@ -8,12 +8,16 @@ noise of both (2 sigma^2 per sample). Four channels that differ by much less tha
 are one signal copied onto four inputs (a wiring or firmware fault, a replayed or
 synthetic packet, common-mode interference with no channel noise), never four sensors'
 view of one emission, which places it at the pole. The noise is the packet's own: the
-variance of the samples before the onset (mean removed), else the caller's noise sigma,
+variance of the first half of the samples before the onset (mean removed; the half
+furthest from the onset, where a packet's own leading edge, a filter's precursor or an
+arrival before the detector's onset, has least energy), else the caller's noise sigma,
 floored by the ADC's quantization (LSB^2 / 12, the LSB the smallest step between two
-consecutive samples): identical when the mean over the six channel pairs of
-sum_n (x_c - x_d)^2 is below IDENTICAL_MAX_SHARE of 2 sigma^2 M (M samples). With no
-noise seen at all (noise-free samples, no pretrigger), only channels equal to rounding
-(IDENTICAL_FLOAT_SHARE of their energy) are identical.
+consecutive samples, where every sample is a multiple of it): identical when the mean over
+the six channel pairs of sum_n (x_c - x_d)^2, each channel less its mean (an ADC's offset is
+no signal), is below IDENTICAL_MAX_SHARE of 2 sigma^2 M (M samples). Without any noise seen
+(noise-free, unquantized samples, no pretrigger, or only float rounding: below FLOAT_NOISE
+of the packet's extent), nothing tells a copied signal from a noise-free touch at the pole:
+not identical.
 
 Clipping. An ADC (or an amplifier before it) that saturates holds its rail: a run of
 equal samples at the channel's extreme value. A channel is clipped when its dominant
@@ -36,10 +40,16 @@ from ae_tactile.jit import NUMBA_AVAILABLE, njit
 #: (an estimate of the noise from >= 8 pretrigger samples errs by a factor of 2 at most
 #: at 5 sigma of its chi^2; real channels give 1 or more)
 IDENTICAL_MAX_SHARE = 0.1
-#: without any noise seen: channels equal to this share of their energy [1] (float
-#: rounding of one signal copied)
-IDENTICAL_FLOAT_SHARE = 1e-20
-#: pretrigger samples (onset - 2) from which the noise is measured on the packet
+#: samples within this share of a step of a multiple of the smallest step between two
+#: consecutive samples: the packet is quantized (ADC codes x LSB) [1]
+QUANTIZED_TOL = 0.01
+#: codes an ADC has at most (24 bits): a smaller smallest step is float resolution
+MAX_ADC_LEVELS = 2.0**24
+#: noise sigma below this share of the packet's largest |sample| is float rounding [1]
+#: (a 24-bit ADC's LSB is 6e-8 of its full scale)
+FLOAT_NOISE = 1e-9
+#: pretrigger samples (onset - 2) from which the noise is measured on the packet (on
+#: their first half)
 IDENTICAL_MIN_PRETRIGGER = 8
 #: a flat top holds its rail for at least this many samples, and this long [s] (a smooth peak
 #: quantized below one LSB of noise holds one value for a sample or two)
@@ -50,48 +60,72 @@ CLIP_MIN_LSB = 16.0
 
 
 @njit(cache=True, nogil=True)
-def _identical_kernel(x, npre, nv_given, share, float_share):  # pragma: no cover - compiled
+def _identical_kernel(x, npre, nv_given, share):  # pragma: no cover - compiled
     """Identical-channel test of one packet ``x`` (4, M): see the module docstring."""
     m = x.shape[1]
-    e = 0.0
     step = np.inf
+    mean = np.zeros(4)
     for c in range(4):
         for i in range(m):
             v = float(x[c, i])
             if not math.isfinite(v):
                 return False
-            e += v * v
+            mean[c] += v
             if i > 0:
                 d = abs(v - float(x[c, i - 1]))
                 if d > 0.0 and d < step:
                     step = d
+        mean[c] /= m
+    # the ADC's step shows only where every sample is a multiple of it (codes x LSB) and
+    # the packet spans at most an ADC's 2^24 of them
+    lo = np.inf
+    hi = -np.inf
+    for c in range(4):
+        for i in range(m):
+            lo = min(lo, float(x[c, i]))
+            hi = max(hi, float(x[c, i]))
+    quantized = math.isfinite(step) and (hi - lo) <= MAX_ADC_LEVELS * step
+    for c in range(4):
+        for i in range(m):
+            if not quantized:
+                break
+            r = (float(x[c, i]) - float(x[c, 0])) / step  # (an offset is no step)
+            if abs(r - round(r)) > QUANTIZED_TOL:
+                quantized = False
+    dd = 0.0
+    e = 0.0
+    for c in range(4):
+        for i in range(m):
+            a = float(x[c, i]) - mean[c]
+            e += a * a
+            for k in range(c + 1, 4):
+                d = a - (float(x[k, i]) - mean[k])
+                dd += d * d
     if not e > 0.0:
         return False
-    dd = 0.0
-    for c in range(4):
-        for k in range(c + 1, 4):
-            for i in range(m):
-                d = float(x[c, i]) - float(x[k, i])
-                dd += d * d
     dd /= 6.0
     nv = 0.0
     if npre >= IDENTICAL_MIN_PRETRIGGER:
-        for c in range(4):
-            s1 = 0.0
+        nh = npre // 2  # the first half: a packet's own leading edge is no noise
+        for c in range(4):  # two passes: an offset must not leave its rounding as noise
+            mu = 0.0
+            for i in range(nh):
+                mu += float(x[c, i])
+            mu /= nh
             s2 = 0.0
-            for i in range(npre):
-                v = float(x[c, i])
-                s1 += v
+            for i in range(nh):
+                v = float(x[c, i]) - mu
                 s2 += v * v
-            nv += max(s2 - s1 * s1 / npre, 0.0) / (npre - 1)
+            nv += s2 / (nh - 1)
         nv /= 4.0
     elif nv_given > 0.0:
         nv = nv_given
-    if math.isfinite(step):
+    if quantized:
         nv = max(nv, step * step / 12.0)
-    if nv > 0.0:
-        return dd <= share * 2.0 * nv * m
-    return dd <= float_share * e / 4.0
+    # noise below FLOAT_NOISE of the packet's extent is float rounding (an offset added to
+    # noise-free samples), not a sensor's: no noise seen
+    floor = FLOAT_NOISE * max(abs(hi), abs(lo))
+    return nv > floor * floor and dd <= share * 2.0 * nv * m
 
 
 def identical_channels(windows, onset_index=None, noise_rms_v=None, *,
@@ -117,8 +151,8 @@ def identical_channels(windows, onset_index=None, noise_rms_v=None, *,
     -------
     numpy.ndarray
         (K,) bool (a scalar-shaped (1,) for one (4, M) window): True where the four
-        channels are one signal. Non-finite or all-zero windows are False (other checks
-        reject them).
+        channels are one signal. Non-finite or all-zero windows and onsets outside the
+        window are False (other checks reject them).
     """
     x = np.asarray(windows)
     if x.ndim == 2:
@@ -163,14 +197,18 @@ def packet_identical(samples_v, onset_index=None, noise_rms_v=None, *,
         x = np.asarray(x, dtype=np.float64)
     if x.ndim != 2 or x.shape[0] != 4 or x.shape[1] < 2:
         raise ValueError(f"samples_v must be (4, M) with M >= 2, got shape {x.shape}")
-    npre = 0 if onset_index is None else min(max(int(onset_index) - 2, 0), x.shape[1])
+    npre = 0
+    if onset_index is not None:
+        if not 0 <= int(onset_index) < x.shape[1]:
+            return False  # no onset in the window: nothing to judge (the localizer's WINDOW)
+        npre = max(int(onset_index) - 2, 0)
     nv = 0.0
     if noise_rms_v is not None:
         nr = float(noise_rms_v)
         nv = nr * nr if math.isfinite(nr) and nr > 0 else 0.0
     if not NUMBA_AVAILABLE:
         x = np.ascontiguousarray(x, dtype=np.float64)
-    return bool(_identical_kernel(x, npre, nv, float(max_share), IDENTICAL_FLOAT_SHARE))
+    return bool(_identical_kernel(x, npre, nv, float(max_share)))
 
 
 @njit(cache=True, nogil=True)
