@@ -204,3 +204,23 @@ def test_learnt_channels_are_the_device_channels():
     d_true = np.array(fields["channel_delay_s"]) - np.mean(fields["channel_delay_s"])
     np.testing.assert_allclose(learner.pulse.channel_gain, g_true, atol=5e-3)
     np.testing.assert_allclose(learner.pulse.channel_delay_s, d_true, atol=3e-9)
+
+
+@pytest.mark.parametrize("name", ["nominal", "rc2_bessel6"])
+def test_identical_channels_rejected_by_the_overlap_calls(name):
+    """One waveform copied onto the four channels (interference, not a touch): no point
+    from `resolve_overlaps` (NO_SIGNAL, as `localize`) nor `localize_with_overlaps`."""
+    cfg = ZOO[name].config("water_skin", 10e6, reflections=True)
+    rng = np.random.default_rng(21)
+    pk, _ = singles(cfg, 12, rng)
+    d = pairs(cfg, 4, rng)
+    x = np.concatenate([pk.samples_v, d["samples_v"][:, :, : pk.samples_v.shape[2]]])
+    x = np.repeat(x[:, :1], 4, axis=1)
+    on = np.concatenate([pk.onset_index, d["onset_index"]])
+    res = resolve_overlaps(x, 10e6, on, geometry=cfg.geometry)
+    assert all(not r.accepted and r.reason == OverlapReason.NO_SIGNAL for r in res)
+    quick = resolve_overlaps(x, 10e6, on, geometry=cfg.geometry, exhaustive=False)
+    assert all(r.reason == OverlapReason.NO_SIGNAL for r in quick)
+    single, over = localize_with_overlaps(x, 10e6, on, geometry=cfg.geometry)
+    assert not single.accepted.any()
+    assert not any(o.accepted for o in over.values())

@@ -11,6 +11,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.optimize import minimize
 
+from ae_tactile.dsp.channel_checks import identical_channels
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization.common import Reason, adc_noise, make_plan, validate_windows
 from ae_tactile.localization.estimators import localize
@@ -94,22 +95,44 @@ def resolve_overlaps(
             geometry, pulse, sample_rate_hz, max_sources, add_threshold, max_sigma_m,
             max_chi2_ratio, min_snr_db, analysis_s, grid_spacing_m, min_separation_s, engine)
     x, on = validate_windows(windows, onset_index)
-    x = pulse.correct_channels(x, sample_rate_hz)
-    plan = make_plan(sample_rate_hz, geo, x.shape[2], band_hz)
-    if x.shape[0] == 0:
+    K = x.shape[0]
+    if K == 0:
         return []
+    # one waveform copied onto the four channels is no acoustic signal (as for `localize`)
+    same = np.asarray(identical_channels(x, on, noise_rms_v), bool).reshape(K)
+    out: list = [OverlapPacket(False, int(OverlapReason.NO_SIGNAL)) for _ in range(K)]
+    ids = np.nonzero(~same)[0]
+    if ids.size == 0:
+        return out
+    res = _resolve_ids(x, on, ids, sample_rate_hz, geo, pulse, noise_rms_v, saturated,
+                       full_scale_v, band_hz, grid_spacing_m, echo, analysis_s, engine,
+                       exhaustive, (max_sources, add_threshold, max_chi2_ratio, max_sigma_m,
+                                    min_snr_db, min_separation_s))
+    for i, r in zip(ids, res):
+        out[i] = r
+    return out
+
+
+def _resolve_ids(x, on, ids, fs, geo, pulse, noise_rms_v, saturated, full_scale_v, band_hz,
+                 grid_spacing_m, echo, analysis_s, engine, exhaustive, decide_args):
+    """`resolve_overlaps` of the windows ``ids`` of x (K, 4, M) (the per-window noise and
+    flags taken at ``ids``; ``full_scale_v`` is one value): the compiled quick search or
+    `_resolve_full`."""
+    K = x.shape[0]
+    x = pulse.correct_channels(x[ids], fs)
+    if noise_rms_v is not None:
+        noise_rms_v = np.broadcast_to(np.asarray(noise_rms_v, float), (K,))[ids]
+    if saturated is not None:
+        saturated = np.broadcast_to(np.asarray(saturated, bool), (K,))[ids]
+    plan = make_plan(fs, geo, x.shape[2], band_hz)
     grid = _surface_grid(geo, grid_spacing_m)
-    decide_args = (max_sources, add_threshold, max_chi2_ratio, max_sigma_m, min_snr_db,
-                   min_separation_s)
-    if not exhaustive and engine == "auto" and _compiled_medium(pulse):
-        with np.errstate(all="ignore"):
-            return _resolve_quick(
-                x, on, plan, geo, pulse, noise_rms_v, saturated, full_scale_v, echo,
-                analysis_s, grid, decide_args,
-            )
     with np.errstate(all="ignore"):
-        return _resolve_full(x, on, plan, geo, pulse, noise_rms_v, saturated, full_scale_v,
-                             echo, analysis_s, engine, grid, decide_args, exhaustive)
+        if not exhaustive and engine == "auto" and _compiled_medium(pulse):
+            return _resolve_quick(x, on[ids], plan, geo, pulse, noise_rms_v, saturated,
+                                  full_scale_v, echo, analysis_s, grid, decide_args)
+        return _resolve_full(x, on[ids], plan, geo, pulse, noise_rms_v, saturated,
+                             full_scale_v, echo, analysis_s, engine, grid, decide_args,
+                             exhaustive)
 
 
 def _checked(geometry, pulse, sample_rate_hz, max_sources, add_threshold, max_sigma_m,
