@@ -1,10 +1,11 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Reflex latency of the live path: device bytes -> ContactEvent received by another process.
+"""Reflex latency of the live path: device bytes -> events received by another process.
 
 Three processes, as on a robot: a light fingertip (bench/fingertip_writer.py) writes
 pre-rendered PACKET frames on a pty at real time; the `driver` executable (in-process
 pipeline: decode, localize, slip detection, publish) reads it; this process subscribes to
-`contacts` and `slip` like a hand controller. Latency of an event = time it is received
+`emissions` (every localized emission), `contacts` (a contact's TOUCH / DETOUCH) and `slip`
+like a hand controller. Latency of an event = time it is received
 here - time the last byte of the packet that produced it (for a slip event: the packet
 of the emission that decided it, the last of its packet_ids) was written on the pty.
 Both are CLOCK_REALTIME readings on this machine.
@@ -128,16 +129,21 @@ def cpu_seconds(pid: int) -> float:
         return float("nan")
 
 
+#: the row type of an Emission message (ContactEvent types are 1 .. 5)
+EMISSION = 100
+
+
 class Listener:
-    """Subscribes to contacts and slip; records (receive ns, type, deciding packet id)."""
+    """Subscribes to emissions, contacts and slip; records (receive ns, type, deciding
+    packet id, the event's stamp)."""
 
     def __init__(self, namespace: str):
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.executors import SingleThreadedExecutor
 
-        from ae_tactile.msg import ContactEvent
-        from ae_tactile.ros.driver_params import EVENT_QOS
+        from ae_tactile.msg import ContactEvent, Emission
+        from ae_tactile.ros.driver_params import EMISSION_QOS, EVENT_QOS
 
         self.node = rclpy.create_node("bench_hand", namespace=namespace)
         self.rows: list[tuple[int, int, int]] = []
@@ -148,6 +154,7 @@ class Listener:
         cb = self._on
         self.node.create_subscription(ContactEvent, "contacts", cb, EVENT_QOS)
         self.node.create_subscription(ContactEvent, "slip", cb, EVENT_QOS)
+        self.node.create_subscription(Emission, "emissions", self._on_emission, EMISSION_QOS)
         try:  # rclpy's events executor: the least dispatch overhead per message
             from rclpy.experimental import EventsExecutor
 
@@ -161,6 +168,17 @@ class Listener:
             (
                 time.time_ns(),
                 msg.event_type,
+                msg.packet_ids[-1] if len(msg.packet_ids) else -1,
+                msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec,
+            )
+        )
+
+    def _on_emission(self, msg) -> None:
+        """Every localized emission (its reading): the per-packet path, type EMISSION."""
+        self.rows.append(
+            (
+                time.time_ns(),
+                EMISSION,
                 msg.packet_ids[-1] if len(msg.packet_ids) else -1,
                 msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec,
             )
@@ -291,20 +309,25 @@ def run_case(
         float(np.percentile((written[ok] - sched[ok]) * 1e-6, 99)) if ok.any() else None
     )
     # A window the overlap resolver handles (quick fit ~1 ms in the reader or beside it;
-    # the exhaustive search in a worker process) gives two contact events with its packet id.
-    contact_ids = rows[np.isin(rows[:, 1], (1, 2)), 2] if rows.size else np.zeros(0, np.int64)
+    # the exhaustive search in a worker process) gives two emissions with its packet id.
+    # 'contact*': every emission's event (Emission, one per localized emission: the
+    # per-packet path); 'touch': a contact's TOUCH (begin); 'detouch': its DETOUCH (end,
+    # decided release_confirm_s after the release by design).
+    contact_ids = rows[rows[:, 1] == EMISSION, 2] if rows.size else np.zeros(0, np.int64)
     ids_seen, n_seen = np.unique(contact_ids, return_counts=True)
     overlapped = ids_seen[n_seen >= 2]
     out["overlapped_windows"] = int(overlapped.size)
     for label, types, windows in (
-        ("contact", (1, 2), "all"),
+        ("contact", (EMISSION,), "all"),
+        ("touch", (1,), "all"),
+        ("detouch", (2,), "all"),
         ("slip_precursor", (3,), "all"),
         ("slip", (4,), "all"),
         ("slip_any", (3, 4), "all"),
-        ("contact_single", (1, 2), "single"),
+        ("contact_single", (EMISSION,), "single"),
         ("slip_precursor_single", (3,), "single"),
         ("slip_single", (4,), "single"),
-        ("contact_overlapped", (1, 2), "overlapped"),
+        ("contact_overlapped", (EMISSION,), "overlapped"),
     ):
         sel = rows[np.isin(rows[:, 1], types)] if rows.size else rows
         if windows != "all" and sel.size:
@@ -369,9 +392,9 @@ def markdown(res: dict) -> str:
         f"Floor, two bare rclpy hops (same run): median {fl['median']:.3f} ms, "
         f"p99 {fl['p99']:.3f} ms. {where}",
         "",
-        "| emissions/s | contact events | latency median / p99 / max (ms) | median / floor "
-        "| driver CPU (% of a core) |",
-        "|---|---|---|---|---|",
+        "| emissions/s | emission events | latency median / p99 / max (ms) | median / floor "
+        "| TOUCH (a contact begins) median / p99 / max (ms) | driver CPU (% of a core) |",
+        "|---|---|---|---|---|---|",
     ]
     for r in res["rates"]:
         c = r["contact"]
@@ -382,6 +405,7 @@ def markdown(res: dict) -> str:
         )
         lines.append(
             f"| {r['rate_hz']:g} | {c['events']} of {r['packets_written']} | {fmt(c)} | {ratio} | "
+            f"{fmt(r.get('touch', {}))} | "
             f"{r.get('driver_cpu_percent_of_one_core', float('nan')):.0f} |"
         )
     s = res.get("slip")
@@ -390,19 +414,19 @@ def markdown(res: dict) -> str:
             "",
             f"Slip (incipient-slip scene, {s['packets']} packets): SLIP_PRECURSOR "
             f"{fmt(s['slip_precursor'])} ms, SLIP {fmt(s['slip'])} ms (median / p99 / max, "
-            f"{s['slip_precursor']['events']} and {s['slip']['events']} events); contact events "
+            f"{s['slip_precursor']['events']} and {s['slip']['events']} events); emission events "
             f"{fmt(s['contact'])} ms.",
         ]
         if s.get("overlapped_windows"):
             lines += [
                 "",
                 f"Of these, {s['overlapped_windows']} packet windows went to the overlap resolver "
-                "(two contact events share their packet id; their contact "
+                "(two emission events share their packet id; their "
                 f"events {fmt(s.get('contact_overlapped', {}))} ms), and so did the "
                 "slip events they decide. Without them: SLIP_PRECURSOR "
                 f"{fmt(s['slip_precursor_single'])} ms, SLIP {fmt(s['slip_single'])} ms "
                 f"({s['slip_precursor_single']['events']} and {s['slip_single']['events']} "
-                f"events), contact events {fmt(s['contact_single'])} ms.",
+                f"events), emission events {fmt(s['contact_single'])} ms.",
             ]
     n = res.get("natural")
     if n:
@@ -411,7 +435,7 @@ def markdown(res: dict) -> str:
             f"Random touches and releases at {n['rate_hz']:g} emissions/s as the fingertip "
             f"renders them ({n['packets']} packets; windows are not spaced apart): contact "
             f"events {fmt(n['contact'])} ms; {n['overlapped_windows']} windows held two "
-            f"emissions and went to the overlap resolver, their contact events "
+            f"emissions and went to the overlap resolver, their emission events "
             f"{fmt(n.get('contact_overlapped', {}))} ms; the others "
             f"{fmt(n.get('contact_single', {}))} ms.",
         ]
@@ -420,7 +444,7 @@ def markdown(res: dict) -> str:
         lines += [
             "",
             f"The same random touches with the driver not pinned to a core (it shares both "
-            f"with the writer and the hand): contact events {fmt(u['contact'])} ms; the "
+            f"with the writer and the hand): emission events {fmt(u['contact'])} ms; the "
             f"overlap resolver's {fmt(u.get('contact_overlapped', {}))} ms, the others "
             f"{fmt(u.get('contact_single', {}))} ms.",
         ]

@@ -51,7 +51,7 @@ def system_rows(d) -> list[str]:
         rows.append(
             f"| live path, {r['rate_hz']:g} emissions/s (random touches, one emission per "
             f"window{_pinned(d)}): device bytes -> "
-            f"ContactEvent in another process, median / p99 | {_lat(c)} "
+            f"the emission's event (Emission) in another process, median / p99 | {_lat(c)} "
             f"(max {c.get('max_ms', 0):.1f} ms;"
             f" {c['median_ms'] / fl['median']:.0f}x the two-hop floor of {fl['median']:.3f} ms"
             + (
@@ -211,12 +211,12 @@ def _setting(r) -> str:
 
 
 def _overlap_delay(s) -> str:
-    """', whose contact events came A ms (median), B ms (max) after the packet' (bench_system)."""
+    """', whose emission events came A ms (median), B ms (max) after the packet' (bench_system)."""
     c = s.get("contact_overlapped") or {}
     if not c.get("events"):
         return ""
     return (
-        f", whose contact events came {c['median_ms']:.1f} ms (median), {c['max_ms']:.1f} ms"
+        f", whose emission events came {c['median_ms']:.1f} ms (median), {c['max_ms']:.1f} ms"
         " (max) after the packet"
     )
 
