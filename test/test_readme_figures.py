@@ -20,4 +20,4 @@ def test_readme_figures_are_generated_from_the_benchmark_results():
     readme = open(os.path.join(ROOT, "README.md"), encoding="utf-8").read()
     assert block in readme, "README figures are stale: run python bench/readme_figures.py --write"
     # the block is not empty: the live-path latency and the localization figures are there
-    assert "device bytes -> ContactEvent" in block and "Cramer-Rao" in block
+    assert "device bytes -> the emission's event (Emission)" in block and "Cramer-Rao" in block
