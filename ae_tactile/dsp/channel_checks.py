@@ -21,9 +21,9 @@ not identical.
 
 Clipping. An ADC (or an amplifier before it) that saturates holds its rail: a run of
 equal samples at the channel's extreme value. A channel is clipped when its dominant
-extreme (the larger excursion from its median) is held for at least
+extreme (the larger excursion from its mean) is held for at least
 ``max(CLIP_MIN_RUN, CLIP_MIN_RUN_S fs)`` consecutive samples and lies at least
-CLIP_MIN_LSB quantization steps from the median (a smooth peak a few LSB high can hold
+CLIP_MIN_LSB quantization steps from the mean (a smooth peak a few LSB high can hold
 one value for a while without clipping). The rail itself need not be known: +/- full
 scale, an amplifier's lower rail, or an offset ADC's all look the same.
 """
@@ -55,7 +55,7 @@ IDENTICAL_MIN_PRETRIGGER = 8
 #: quantized below one LSB of noise holds one value for a sample or two)
 CLIP_MIN_RUN = 4
 CLIP_MIN_RUN_S = 0.3e-6
-#: a clipped extreme lies at least this many quantization steps from the channel's median
+#: a clipped extreme lies at least this many quantization steps from the channel's mean
 CLIP_MIN_LSB = 16.0
 
 
@@ -65,45 +65,33 @@ def _identical_kernel(x, npre, nv_given, share):  # pragma: no cover - compiled
     m = x.shape[1]
     step = np.inf
     mean = np.zeros(4)
+    lo = np.inf
+    hi = -np.inf
     for c in range(4):
+        prev = float(x[c, 0])
         for i in range(m):
             v = float(x[c, i])
             if not math.isfinite(v):
                 return False
             mean[c] += v
-            if i > 0:
-                d = abs(v - float(x[c, i - 1]))
-                if d > 0.0 and d < step:
-                    step = d
+            lo = min(lo, v)
+            hi = max(hi, v)
+            d = abs(v - prev)
+            if d > 0.0 and d < step:
+                step = d
+            prev = v
         mean[c] /= m
-    # the ADC's step shows only where every sample is a multiple of it (codes x LSB) and
-    # the packet spans at most an ADC's 2^24 of them
-    lo = np.inf
-    hi = -np.inf
-    for c in range(4):
-        for i in range(m):
-            lo = min(lo, float(x[c, i]))
-            hi = max(hi, float(x[c, i]))
-    quantized = math.isfinite(step) and (hi - lo) <= MAX_ADC_LEVELS * step
-    for c in range(4):
-        for i in range(m):
-            if not quantized:
-                break
-            r = (float(x[c, i]) - float(x[c, 0])) / step  # (an offset is no step)
-            if abs(r - round(r)) > QUANTIZED_TOL:
-                quantized = False
     dd = 0.0
-    e = 0.0
-    for c in range(4):
-        for i in range(m):
-            a = float(x[c, i]) - mean[c]
-            e += a * a
-            for k in range(c + 1, 4):
-                d = a - (float(x[k, i]) - mean[k])
-                dd += d * d
-    if not e > 0.0:
-        return False
+    for i in range(m):
+        a0 = float(x[0, i]) - mean[0]
+        a1 = float(x[1, i]) - mean[1]
+        a2 = float(x[2, i]) - mean[2]
+        a3 = float(x[3, i]) - mean[3]
+        dd += ((a0 - a1) ** 2 + (a0 - a2) ** 2 + (a0 - a3) ** 2 + (a1 - a2) ** 2
+               + (a1 - a3) ** 2 + (a2 - a3) ** 2)
     dd /= 6.0
+    if not hi > lo:
+        return False
     nv = 0.0
     if npre >= IDENTICAL_MIN_PRETRIGGER:
         nh = npre // 2  # the first half: a packet's own leading edge is no noise
@@ -120,12 +108,26 @@ def _identical_kernel(x, npre, nv_given, share):  # pragma: no cover - compiled
         nv /= 4.0
     elif nv_given > 0.0:
         nv = nv_given
-    if quantized:
-        nv = max(nv, step * step / 12.0)
     # noise below FLOAT_NOISE of the packet's extent is float rounding (an offset added to
     # noise-free samples), not a sensor's: no noise seen
     floor = FLOAT_NOISE * max(abs(hi), abs(lo))
-    return nv > floor * floor and dd <= share * 2.0 * nv * m
+    floor2 = floor * floor
+    if nv > floor2 and dd <= share * 2.0 * nv * m:
+        return True
+    q = step * step / 12.0 if math.isfinite(step) else 0.0
+    if not (q > nv and q > floor2 and dd <= share * 2.0 * q * m):
+        return False
+    # the ADC's step is a noise floor only where every sample is a multiple of it (codes x
+    # LSB) and the packet spans at most an ADC's 2^24 of them
+    if (hi - lo) > MAX_ADC_LEVELS * step:
+        return False
+    for c in range(4):
+        x0 = float(x[c, 0])
+        for i in range(m):
+            r = (float(x[c, i]) - x0) / step  # (an offset is no step)
+            if abs(r - np.floor(r + 0.5)) > QUANTIZED_TOL:
+                return False
+    return True
 
 
 def identical_channels(windows, onset_index=None, noise_rms_v=None, *,
@@ -216,27 +218,31 @@ def _clip_kernel(x, min_run, min_lsb):  # pragma: no cover - compiled
     """Flat-top test of one packet ``x`` (4, M): see the module docstring."""
     m = x.shape[1]
     for c in range(4):
-        row = np.empty(m)
         step = np.inf
+        vmax = -np.inf
+        vmin = np.inf
+        mean = 0.0
+        prev = float(x[c, 0])
         for i in range(m):
-            row[i] = float(x[c, i])
-            if not math.isfinite(row[i]):
+            v = float(x[c, i])
+            if not math.isfinite(v):
                 return False
-            if i > 0:
-                d = abs(row[i] - row[i - 1])
-                if d > 0.0 and d < step:
-                    step = d
-        vmax = row.max()
-        vmin = row.min()
+            d = abs(v - prev)
+            if d > 0.0 and d < step:
+                step = d
+            prev = v
+            vmax = max(vmax, v)
+            vmin = min(vmin, v)
+            mean += v
         if not vmax > vmin:
             continue
-        med = np.median(row)
-        v = vmax if vmax - med >= med - vmin else vmin
-        if not abs(v - med) >= min_lsb * step:
+        mean /= m
+        v = vmax if vmax - mean >= mean - vmin else vmin
+        if not abs(v - mean) >= min_lsb * step:
             continue
         run = 0
         for i in range(m):
-            run = run + 1 if row[i] == v else 0
+            run = run + 1 if float(x[c, i]) == v else 0
             if run >= min_run:
                 return True
     return False
