@@ -135,6 +135,10 @@ class ContactPipeline:
             covered_tol_s=overlap_covered_tol_s, idle=overlap_idle, resolver=overlaps,
         )
         self.hand_stage = HandStage(self.counts, hand)
+        #: on a hand: called right after a batch's apex packets are known, before the slip
+        #: step (the driver reports them to the other fingertips then: their wait for this
+        #: report does not include this fingertip's slip step)
+        self.on_apex: Callable[[], None] | None = None
         self.localizer.learn_inline = False  # `process` learns once the events are out
 
     overlaps = _stage_attr("overlap_stage", "resolver", "The `OverlapResolver` (or None).")
@@ -204,6 +208,8 @@ class ContactPipeline:
         contacts = loc.process(packets)  # localize, screens
         if loc.hand_reports:
             contacts = self.hand_stage.hold_apex(contacts, loc.apex_onsets_ns, loc.apex_held)
+            if self.on_apex is not None:
+                self.on_apex()
         windows = loc.overlap_windows
         if windows:
             # registered before anything of this batch is remembered: the duplicate check

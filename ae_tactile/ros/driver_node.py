@@ -257,6 +257,7 @@ class DriverNode(Node):
             topic = self.p["hand_coincidence_topic"]
             self._fqn = self.get_fully_qualified_name()  # this fingertip, on the hand's topic
             self.pub_apex = self.create_publisher(ApexPackets, topic, EVENT_QOS)
+            self.pipeline.on_apex = self._report_apex
             self.create_subscription(ApexPackets, topic, self._on_hand_apex, EVENT_QOS)
         self.create_timer(self.p["slip_tick_period_s"], self._tick)
         self.create_timer(self.p["marker_period_s"], self._publish_markers)
@@ -290,9 +291,9 @@ class DriverNode(Node):
         if self.pipeline.run_idle_work():
             self._publish_state()
 
-    def _hand_step(self) -> bool:
-        """Reader thread: report this fingertip's apex packets to the hand, and hand out
-        the held ones whose wait is over (True if any)."""
+    def _report_apex(self) -> None:
+        """Reader thread: report this fingertip's apex packets to the hand (called by the
+        pipeline before its slip step, and after each batch)."""
         onsets = self.pipeline.take_apex_onsets()
         if onsets:
             msg = ApexPackets()
@@ -301,6 +302,11 @@ class DriverNode(Node):
             msg.fingertip = self._fqn
             msg.onset_ns = onsets
             self.pub_apex.publish(msg)
+
+    def _hand_step(self) -> bool:
+        """Reader thread: report this fingertip's apex packets to the hand, and hand out
+        the held ones whose wait is over (True if any)."""
+        self._report_apex()
         return self.pipeline.release_coincidence(self.now_ns())
 
     def _on_hand_apex(self, msg: ApexPackets) -> None:
