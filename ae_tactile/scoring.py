@@ -11,6 +11,9 @@ their states, with one physical reading of each kind:
 - a release ends the nearest open contact within ``CONTACT_RADIUS_M``;
 - a micro-slip makes the nearest open contact (within ``CONTACT_RADIUS_M``; else a contact
   of its own) INCIPIENT_SLIP: Cattaneo-Mindlin slip at the edge of a held, loaded contact;
+- a part of the scene that names its contact's centre (``contact_center_m``: an object
+  held from the part's start, e.g. the incipient-slip scene, whose first emissions are
+  micro-slips) begins that contact at the part's start;
 - a slip emission makes it GROSS_SLIP (it sticks again ``QUIET_S`` after its last one, as
   a slide that stopped), and so does a gross-slip interval of the scene's truth (the
   contact nearest the part's contact centre, until the interval's end or the scene's);
@@ -110,7 +113,8 @@ def truth_contacts(truth_events, scene_truth: dict | None = None, end_ns: int | 
     events = sorted(((int(t), int(k), tuple(float(v) for v in p)) for t, k, p in truth_events),
                     key=lambda e: e[0])
     intervals = _gross_intervals(scene_truth)
-    marks = [(a, "gross_on", c, b) for a, b, c in intervals]
+    marks = [(a, "gross_on", c, b) for a, b, c in intervals] + [
+        (t, "held", c, None) for t, c in _held_parts(scene_truth)]
     timeline = sorted([(t, "event", k, p) for t, k, p in events] + marks, key=lambda x: x[0])
     all_c: list[TruthContact] = []
     open_c: list[TruthContact] = []
@@ -120,6 +124,10 @@ def truth_contacts(truth_events, scene_truth: dict | None = None, end_ns: int | 
         if stroke is not None and t - stroke.last_slip_ns > QUIET_S * NS:
             _end(stroke, stroke.last_slip_ns, open_c)
             stroke = None
+        if what == "held":
+            if _nearest(open_c, a, SAME_SPOT_M) is None:
+                _new(all_c, open_c, t, a, STICK)
+            continue
         if what == "gross_on":
             c = _nearest(open_c, a, CONTACT_RADIUS_M) or _new(all_c, open_c, t, a, GROSS)
             c.set(t, GROSS)
@@ -166,6 +174,19 @@ def _gross_intervals(scene_truth) -> list:
         for a, b in part.get("gross_slip_intervals_ns") or []:
             if a is not None:
                 out.append((int(a), None if b is None else int(b), centre))
+    return out
+
+
+def _held_parts(scene_truth) -> list:
+    """[(start ns, contact centre (3,))] of the scene's parts that hold an object from
+    their start (they name its centre)."""
+    if not scene_truth:
+        return []
+    out = []
+    for part in scene_truth.get("parts", [scene_truth]):
+        c = part.get("contact_center_m")
+        if c is not None and part.get("start_time_ns") is not None:
+            out.append((int(part["start_time_ns"]), tuple(float(v) for v in c)))
     return out
 
 

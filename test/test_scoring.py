@@ -45,6 +45,18 @@ def test_micro_slips_then_the_scenes_gross_slip():
     assert cs[0].changes == [(0, STICK), (200 * MS, INC), (500 * MS, GROSS)]
 
 
+def test_a_part_that_holds_an_object_from_its_start_begins_its_contact_there():
+    """The incipient-slip part holds its object from its start (its first emissions are
+    micro-slips): its contact begins at the part's start, beside one held 3 mm away."""
+    other, c = (3e-3, 1e-3, 9.5e-3), (0.0, 1e-3, 9.95e-3)
+    ev = [(0, T, other), (400 * MS, P, (0.5e-3, 1e-3, 9.9e-3))]
+    scene = {"parts": [{"name": "touch", "start_time_ns": 0},
+                       {"name": "load", "start_time_ns": 300 * MS, "gross_slip_time_ns": None,
+                        "gross_slip_intervals_ns": [], "contact_center_m": list(c)}]}
+    cs = truth_contacts(ev, scene, end_ns=S)
+    assert [x.changes for x in cs] == [[(0, STICK)], [(300 * MS, STICK), (400 * MS, INC)]]
+
+
 def test_a_slide_that_stops_sticks_again_after_the_quiet_time():
     ev = [(0, T, (0.0, 0.0, 0.01)), (100 * MS, SL, (0.0, 0.0, 0.01)),
           (120 * MS, SL, (0.1e-3, 0.0, 0.01))]
