@@ -72,10 +72,10 @@ class PulseModel:
         return cls(poles_rad_s=tuple(complex(v) for v in p),
                    residues=tuple(complex(v) for v in r))
 
-    def correct_channels(self, windows, sample_rate_hz):
+    def correct_channels(self, windows, sample_rate_hz, noise_rms_v=None):
         """Windows with the channels' own gain and delay removed (channel k advanced by
-        ``channel_delay_s[k]``, a band-limited shift, and divided by ``channel_gain[k]``);
-        the windows themselves when the model has none.
+        ``channel_delay_s[k]``, a band-limited shift, and divided by ``channel_gain[k]``),
+        and the noise sigma to use on them; both unchanged when the model has none.
 
         Parameters
         ----------
@@ -83,15 +83,26 @@ class PulseModel:
             Windows [V].
         sample_rate_hz : float
             Sample rate [Hz].
+        noise_rms_v : float or array_like (K,), optional
+            A given analog noise sigma [V]: the corrected samples are off the ADC's grid,
+            so its rounding (q^2 / 12, q the apparent quantum of the raw windows), which
+            the estimators add to a given sigma only on quantized data, is added here.
 
         Returns
         -------
-        numpy.ndarray, (K, 4, M)
+        (numpy.ndarray (K, 4, M), noise_rms_v)
         """
         if not self.channel_gain and not self.channel_delay_s:
-            return windows
-        return shift_channels(windows, sample_rate_hz, self.channel_gain or (1.0,) * 4,
-                              self.channel_delay_s or (0.0,) * 4)
+            return windows, noise_rms_v
+        if noise_rms_v is not None:
+            dif = np.abs(np.diff(windows, axis=-1))
+            dif[dif == 0] = np.inf
+            q = dif.min(axis=(-2, -1))
+            q2 = np.where(np.isfinite(q), q * q / 12.0, 0.0)
+            noise_rms_v = np.sqrt(np.asarray(noise_rms_v, float) ** 2 + q2)
+        x = shift_channels(windows, sample_rate_hz, self.channel_gain or (1.0,) * 4,
+                           self.channel_delay_s or (0.0,) * 4)
+        return x, noise_rms_v
 
     @property
     def learnt(self) -> bool:
