@@ -59,14 +59,18 @@ class SlipStage:
         The detector's settings (default: `SlipConfig()`).
     lag_s : float
         How far behind now [s] `tick` keeps the detector's clock (events in flight).
+    model : bool, optional
+        The detector's fingertip model (`SlipDetector`'s ``model``); None: its default.
 
     Returns
     -------
     SlipStage
     """
 
-    def __init__(self, config: SlipConfig | None = None, *, lag_s: float = 0.02):
-        self.detector = SlipDetector(config or SlipConfig(), contact_events=True)
+    def __init__(self, config: SlipConfig | None = None, *, lag_s: float = 0.02,
+                 model: bool | None = None):
+        kw = {} if model is None else {"model": bool(model)}
+        self.detector = SlipDetector(config or SlipConfig(), contact_events=True, **kw)
         self.lag_ns = int(lag_s * 1e9)
         self.lock = threading.Lock()
         self.counts: Counter = Counter()
