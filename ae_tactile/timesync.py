@@ -30,9 +30,11 @@ before a packet sent earlier) keeps its own stamp. The model is rebuilt (counted
   since its packets carry sample times older than the frames sent before them);
 * a frame is earlier than the model by more than ``max_jump_s`` (the device clock stepped
   forward, the host clock back): at once, on that frame;
-* ``step_frames`` frames in a row are later than the model by more than ``step_back_s``
-  (the device clock stepped back without a restart, the host clock forward): a latency
-  that large and that persistent is no transport delay. The new model starts from those
+* ``step_frames`` frames in a row, over ``step_span_s`` of device time, are later than the
+  model by more than ``step_back_s`` and their latency does not fall (the device clock
+  stepped back without a restart, the host clock forward): a latency that large and that
+  persistent is no transport delay, and no backlog read after a host stall either (its
+  latency falls as fast as the device time advances). The new model starts from those
   frames (``clock_steps`` counts these events).
 
 The bucket minima are fitted robustly: a bucket whose minimum sits well above the line
@@ -68,6 +70,10 @@ def _envelope_slope(d: np.ndarray, off: np.ndarray) -> float:
     return float(slope)
 
 
+#: late frames in a row remembered for the step test (a long backlog keeps its newest)
+_LATE_RUN_KEEP = 256
+
+
 class DeviceClockMapper:
     """Map device timestamps (ns) to host timestamps (ns) through the lower envelope.
 
@@ -91,6 +97,10 @@ class DeviceClockMapper:
         host stall the link expects.
     step_frames : int
         Frames in a row needed to detect such a step (one delayed read is not one).
+    step_span_s : float
+        Device time [s] those frames must span, their latency not falling: a backlog read
+        after a host stall is as late but its latency falls as fast as its device time
+        advances (read in one go), a clock step's stays.
     reorder_s : float
         A device time at most this far [s] behind the latest one mapped is a packet out of
         order (e.g. a window that started before a packet sent earlier): it keeps its own
@@ -109,6 +119,7 @@ class DeviceClockMapper:
         step_back_s: float = 0.25,
         step_frames: int = 4,
         reorder_s: float = 0.05,
+        step_span_s: float = 0.05,
     ):
         if not (window_s > 0 and bucket_s > 0 and bucket_s < window_s):
             raise ValueError("need 0 < bucket_s < window_s")
@@ -126,6 +137,9 @@ class DeviceClockMapper:
         self.max_backstep_ns = int(max_backstep_s * 1e9)
         self.step_back_ns = int(step_back_s * 1e9)
         self.step_frames = int(step_frames)
+        if not step_span_s >= 0:
+            raise ValueError("step_span_s must be >= 0")
+        self.step_span_ns = int(step_span_s * 1e9)
         if not reorder_s >= 0:
             raise ValueError("reorder_s must be >= 0")
         self.reorder_ns = int(reorder_s * 1e9)
@@ -144,7 +158,8 @@ class DeviceClockMapper:
         self._last_d: int | None = None
         self._offset_ns = 0.0
         self._skew = 0.0
-        self._late_run: list[tuple[int, int]] = []  # frames in a row later than step_back_s
+        #: (device ns, host ns, latency ns) of the frames in a row later than step_back_s
+        self._late_run: list[tuple[int, int, int]] = []
         self.resyncs += 1
 
     @property
@@ -193,20 +208,31 @@ class DeviceClockMapper:
                 self.reset()
                 did_reset = True
             elif latency > self.step_back_ns:
-                self._late_run.append((device_ns, host_ns))
-                if len(self._late_run) >= self.step_frames:
+                self._late_run.append((device_ns, host_ns, latency))
+                del self._late_run[:-_LATE_RUN_KEEP]
+                if self._late_run_is_a_step():
                     return self._restart_from_late_run()
             else:
                 self._late_run.clear()
         self._add(device_ns, host_ns)
         return did_reset
 
+    def _late_run_is_a_step(self) -> bool:
+        """The late frames in a row are a clock step: at least step_frames of them over
+        step_span of device time, their latency not falling by half that span (a backlog
+        read after a host stall falls by all of it)."""
+        run = self._late_run
+        if len(run) < self.step_frames:
+            return False
+        span = run[-1][0] - run[0][0]
+        return span >= self.step_span_ns and run[0][2] - run[-1][2] < 0.5 * span
+
     def _restart_from_late_run(self) -> bool:
         """A clock step: rebuild the model from the frames that showed it."""
         run = self._late_run
         self.reset()
         self.steps += 1
-        for d, h in run:
+        for d, h, _ in run:
             self._add(d, h)
         return True
 

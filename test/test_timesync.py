@@ -94,7 +94,8 @@ def test_device_clock_step_without_restart_is_detected_and_output_stays_monotoni
     assert np.all(np.diff(mapped) > 0)
     err = np.abs(mapped - true_ns)
     late = np.flatnonzero(err[at:] > 2 * MS)
-    assert late.size == 0 or late.max() < 8  # back within 2 ms after < 8 frames
+    # back within 2 ms after step_span_s (50 ms, 10 frames here) and a few frames
+    assert late.size == 0 or late.max() < 14
     assert np.percentile(err[at + 400 :], 99) < 1 * MS
 
 
@@ -130,3 +131,27 @@ def test_a_packet_out_of_order_keeps_its_own_stamp_and_a_step_back_is_held():
     assert later == in_order + 10 * MS
     stepped = m.to_host_ns(d0 + 160 * MS - 10**9)
     assert stepped == later + 1 and m.clamped == 1
+
+
+@pytest.mark.parametrize("drain", ["one_read", "read_at_3x"])
+def test_a_host_stall_is_no_clock_step(drain):
+    """The host stops reading for 0.6 s (a loaded machine): the frames of that time queue
+    in the kernel and are read late, by up to 0.6 s, at once or three times faster than
+    they came. Their latency falls as their device time advances, where a clock step's
+    would stay: no step, no re-sync, stamps on the true time throughout."""
+    rng = np.random.default_rng(5)
+    true_ns, latency = link(rng, 4000)
+    device_ns = (true_ns - true_ns[0]).astype(np.int64) + 5_000_000_000
+    a, b = 2000, 2120  # 0.6 s at 200 frames/s
+    t_read = true_ns[b] + 1 * MS
+    for i in range(a, b):
+        if drain == "one_read":
+            got = t_read
+        else:  # read back at 3x the rate they came, starting at the end of the stall
+            got = t_read + (true_ns[i] - true_ns[a]) // 3
+        latency[i] = max(got - true_ns[i], latency[i])
+    mapper = DeviceClockMapper(max_backstep_s=3600.0)
+    mapped = simulate(mapper, true_ns, device_ns, latency)
+    assert mapper.steps == 0 and mapper.resyncs == 0
+    assert np.all(np.diff(mapped) > 0)
+    assert np.abs(mapped - true_ns)[400:].max() < 1 * MS  # once the mapping has settled
