@@ -355,7 +355,7 @@ def _fit(init, fs, geo, echo, data, n, min_packets, min_inlier_share, lowpass_se
     y = seg.reshape(n, -1)
     sections = 4 if lowpass_sections is None else int(lowpass_sections)
     v, bounds = _initial_vector(init, fs, sections)
-    theta = np.concatenate([pts, t0[:, None]], axis=1)[:, None, :]
+    theta = theta0 = np.concatenate([pts, t0[:, None]], axis=1)[:, None, :]
     weight = 1.0 / np.sqrt(sigma2)
     first = np.arange(min(n, MODES_PACKETS))
     sub = _Model(geo, plan.fs, start[first], length, init, echo, inside[first])
@@ -402,6 +402,13 @@ def _fit(init, fs, geo, echo, data, n, min_packets, min_inlier_share, lowpass_se
     if pulse.learnt and (np.any(gain != 1.0) or np.any(delay != 0.0)):
         pulse = replace(pulse, channel_gain=tuple(float(g) for g in gain),
                         channel_delay_s=tuple(float(d) for d in delay))
+    # model selection: the initial pulse where it explains the packets at least as well
+    # (the learnt family holds it, but a local optimum may not)
+    model0 = _Model(geo, plan.fs, start, length, init, echo, inside)
+    _, _, ratio0, limit0 = _chi2(model0, seg.reshape(n, -1), theta0, sigma2, n_noise)
+    if not np.median(ratio) < np.median(ratio0):
+        p0, r0 = init.poles_residues()
+        pulse, ratio, limit = PulseModel.from_poles(p0, r0), ratio0, limit0
     ok = ratio <= limit
     n_in = int(ok.sum())
     converged = bool(pulse.learnt and n_in >= min_packets and n_in >= min_inlier_share * n)
