@@ -39,7 +39,7 @@ from ae_tactile.localization.common import (
     QUANT_SIGMA2_Q2,
     QUANT_V_Q2,
 )
-from ae_tactile.localization.noise_model import MIN_PRE_SAMPLES, PSD_FLOOR
+from ae_tactile.localization.noise_model import MIN_PRE_SAMPLES, PSD_FLOOR, WHITE_TEST
 from ae_tactile.localization.pairs import segment_taper
 
 _XI = np.array([1.0, 1.0, -1.0, -1.0])
@@ -238,10 +238,15 @@ def _noise_acov(x, n_pre, pre_mean, L):
                 r += (x[k, i + lag] - mu) * (x[k, i] - mu)
         out[lag] = r / (4.0 * n)
     r0 = out[0]
+    q = 0.0
     for lag in range(1, p + 1):
         r = out[lag]
         rho2 = r * r / max(r0 * r0, 1e-300)
+        q += 4.0 * n * rho2
         out[lag] = r * (rho2 / (rho2 + 1.0 / (4.0 * n))) * (1.0 - lag / (p + 1.0))
+    if not q > p + WHITE_TEST * math.sqrt(2.0 * p):
+        for lag in range(1, p + 1):
+            out[lag] = 0.0
     return out
 
 
@@ -254,9 +259,13 @@ def _noise_gains(acov, f_hz, fs, out):
         if not ok:
             out[j] = 1.0
             continue
+        # cos(l th) by the Chebyshev recurrence: one cosine per bin
+        c1 = math.cos(2.0 * math.pi * f_hz[j] / fs)
+        cm, cl = 1.0, c1
         sh = 1.0
         for lag in range(1, p + 1):
-            sh += 2.0 * (acov[lag] / acov[0]) * math.cos(2.0 * math.pi * f_hz[j] * lag / fs)
+            sh += 2.0 * (acov[lag] / acov[0]) * cl
+            cm, cl = cl, 2.0 * c1 * cl - cm
         out[j] = 1.0 / math.sqrt(max(sh, PSD_FLOOR))
 
 

@@ -18,8 +18,10 @@ steered response power with each bin weighted by 1 / N(f) (the generalised match
 filter), which this weighting gives.
 
 Few pre-trigger samples (P lags need about 3 P samples per channel): the lags are limited
-to a third of the pre-onset samples; fewer than `MIN_PRE_SAMPLES` samples per channel give
-no estimate (white, counted as such by the caller). N(f) is floored at
+to a third of the pre-onset samples; each lag is shrunk towards 0 by rho^2 / (rho^2 +
+1 / (4 n)) (rho = r / r(0), whose sampling variance is 1 / (4 n) for white noise over 4 n
+products) and the colour as a whole by the test `WHITE_TEST`; fewer than
+`MIN_PRE_SAMPLES` samples per channel give no estimate (white). N(f) is floored at
 `PSD_FLOOR` r(0) (a correlogram can dip below zero).
 """
 
@@ -29,6 +31,10 @@ import numpy as np
 
 #: Pre-onset samples per channel below which the colour is not estimated [samples].
 MIN_PRE_SAMPLES = 12
+#: Colour test: Q = 4 n sum_l rho_l^2 is chi^2 with P degrees of freedom for white noise
+#: (mean P, sd sqrt(2 P)); the colour is used only where Q > P + WHITE_TEST sqrt(2 P), so
+#: that a white device is not given the colour of its estimation noise [sd].
+WHITE_TEST = 4.0
 #: Lower bound of N(f) / r(0): a lag-windowed correlogram from few samples can dip to or
 #: below zero where the true spectrum is small, which would give a bin an unbounded weight.
 PSD_FLOOR = 0.05
@@ -89,12 +95,16 @@ def pre_onset_autocov(x, n_pre, pre_mean, seg_len):
     n = np.maximum(n_pre, 1).astype(float)
     r0 = np.einsum("kcm,kcm->k", xp, xp) / (4.0 * n)
     out[:, 0] = r0
+    q = np.zeros(k)
     for lag in range(1, p_max + 1):
         r = np.einsum("kcm,kcm->k", xp[:, :, lag:], xp[:, :, : m_max - lag]) / (4.0 * n)
-        # Wiener shrinkage of the estimate towards white: rho^2 / (rho^2 + 1 / (4 n))
-        rho2 = r * r / np.maximum(r0 * r0, 1e-300)
+        rho2 = np.where(lag <= lags, r * r / np.maximum(r0 * r0, 1e-300), 0.0)
+        q += 4.0 * n * rho2
+        # per lag: Wiener shrinkage towards white, rho^2 / (rho^2 + 1 / (4 n))
         shrink = rho2 / (rho2 + 1.0 / (4.0 * n))
         out[:, lag] = np.where(lag <= lags, r * shrink * (1.0 - lag / (lags + 1.0)), 0.0)
+    # as a whole: white unless the colour is significant (`WHITE_TEST`)
+    out[:, 1:] *= (q > lags + WHITE_TEST * np.sqrt(2.0 * lags))[:, None]
     out[lags < 1] = np.nan
     return out
 
