@@ -38,12 +38,13 @@ from ae_tactile.records import ContactState
 from .contact import ARRIVAL, EVID, PAIRED, REPEAT
 from .fits import circle_centre
 
-#: largest radius of one contact patch as a share of association_radius_m (the largest
-#: Hertz contact's diameter, 2 a_H <= 5 mm): micro-slips of a held contact fall within it
-#: of the touch that announced it, a compression farther from every held contact is a
-#: new contact; a contact nobody announced (its first emission on its ring) reaches the
-#: whole association_radius_m
-PATCH_FRACTION = 0.5
+#: largest radius of one contact patch as a share of association_radius_m (5 mm: 2 mm):
+#: micro-slips of a held contact fall within it of the touch that announced it, a
+#: compression farther from every held contact is a new contact; a contact nobody
+#: announced (its first emission on its ring) reaches the whole association_radius_m.
+#: 0.5 (the largest Hertz contact, a_H = 2.5 mm) lets touches 2-2.5 mm beside a held one
+#: in as micro-slips (docs/slip.md)
+PATCH_FRACTION = 0.4
 #: [s] longest spread of one object's arrival (multi-point touches 0.2-5 ms, broad presses
 #: 1-10 ms, up to 20 ms held out)
 ARRIVAL_WINDOW_S = 20e-3
