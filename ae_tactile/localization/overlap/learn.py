@@ -99,8 +99,9 @@ def _initial_vector(init: PulseModel, fs: float, lowpass_sections: int):
     ln w_amp] of the start and their bounds (lower, upper): ``init``'s alpha and
     high-pass corner, a Butterworth low-pass of 2 x ``lowpass_sections`` poles at
     ``init``'s corner (0.3 fs without one). Bounds: alpha 1e2 .. 3e6 /s, the high-pass
-    section 5 .. 500 kHz, the low-pass sections and the real pole 100 kHz .. fs / 2 (a
-    pole past Nyquist is only aliasing), every zeta 0.05 .. 5."""
+    section 5 .. 500 kHz, the low-pass sections and the real pole 100 kHz .. fs (a
+    chain's fast poles sit near Nyquist; their decay saturates, `_poles_of`), every zeta
+    0.05 .. 5."""
     two_pi = 2 * math.pi
     w_hp = two_pi * (init.highpass_hz if not init.learnt else 100e3)
     alpha = init.alpha_1_s if not init.learnt else 3e3
@@ -115,10 +116,10 @@ def _initial_vector(init: PulseModel, fs: float, lowpass_sections: int):
     for q in up:
         v += [math.log(abs(q)), math.log(-q.real / abs(q))]
         lo += [math.log(two_pi * 100e3), lz[0]]
-        hi += [math.log(two_pi * 0.5 * fs), lz[1]]
+        hi += [math.log(two_pi * fs), lz[1]]
     v.append(math.log(min(3.0 * w_lp, 0.9 * two_pi * fs)))
     lo.append(math.log(two_pi * 100e3))
-    hi.append(math.log(two_pi * 0.5 * fs))
+    hi.append(math.log(two_pi * fs))
     return np.clip(v, np.array(lo) + 1e-6, np.array(hi) - 1e-6), (np.array(lo), np.array(hi))
 
 
