@@ -71,6 +71,14 @@ def require_ros():
         pytest.skip(f"ROS 2 not available in this interpreter ({exc}); run `make test`")
 
 
+@pytest.fixture(autouse=True)
+def _own_ros_home(tmp_path_factory, monkeypatch):
+    """Each test its own ROS_HOME: what a driver learns about a device (its calibration
+    file, ``$ROS_HOME/ae_tactile/calibration``) and the logs never reach the user's home
+    nor another test."""
+    monkeypatch.setenv("ROS_HOME", str(tmp_path_factory.mktemp("ros_home")))
+
+
 @pytest.fixture
 def ros_context():
     """A fresh rclpy context for one test; shut down afterwards."""

@@ -56,6 +56,7 @@ class System:
         # The listener exists before the driver starts acquiring: it sees the first packet.
         self.listener = ctx_node = __import__("rclpy").create_node("listener", context=ctx)
         self.arrays, self.truth, self.diag, self.info = [], [], [], []
+        self.all_diag = []
         ctx_node.create_subscription(PacketArray, "packets", self.arrays.append, 1000)
         ctx_node.create_subscription(ContactEvent, "sim/ground_truth", self.truth.append, 1000)
         ctx_node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 100)
@@ -77,6 +78,7 @@ class System:
 
     def _on_diag(self, msg):
         """Keep the driver's link reports (the simulated fingertip publishes its own)."""
+        self.all_diag.append(msg)
         if msg.status and msg.status[0].name.endswith(": fingertip link"):
             self.diag.append(msg)
 
@@ -334,3 +336,40 @@ def test_hand_parameters_are_checked_and_tunable(ros_context, tmp_path):
         assert longest.successful and drv.pipeline.hand.wait_ns == 1_000_000_000
     finally:
         drv.destroy_node()
+
+
+def test_the_driver_keeps_what_it_learnt_about_its_device_per_serial_number(
+        system_factory, tmp_path):
+    """The driver saves the pipeline's learnt models of the device (calibration_dir, one
+    file per serial number) at shutdown, shows the file in /diagnostics, and a driver
+    started again on the same device loads it (calibration_reset:=true does not)."""
+    import json
+
+    from rclpy.parameter import Parameter
+
+    cal = tmp_path / "cal"
+    params = (Parameter("calibration_dir", value=str(cal)),)
+
+    def localization_values(s):
+        for msg in reversed(s.all_diag):
+            for st in msg.status:
+                if st.name.endswith(": localization"):
+                    return {kv.key: kv.value for kv in st.values}
+        return {}
+
+    first = system_factory(driver_params=params)
+    dev = first.sim.device
+    first.spin(10.0, until=lambda: dev.finished(time.monotonic_ns()))
+    first.spin(3.0, until=lambda: "calibration_file" in localization_values(first)
+               and "AE-SIM-0001" in localization_values(first)["calibration_file"])
+    assert localization_values(first)["calibration_file"] == str(cal / "AE-SIM-0001.json")
+    first.close()
+    doc = json.loads((cal / "AE-SIM-0001.json").read_text())
+    assert doc["serial"] == "AE-SIM-0001" and "interference_echo" in doc["sections"]
+
+    for reset, loaded in ((False, True), (True, False)):
+        s = system_factory(driver_params=params + (Parameter("calibration_reset", value=reset),))
+        s.spin(10.0, until=lambda s=s: "calibration_loaded" in localization_values(s))
+        got = localization_values(s)["calibration_loaded"]
+        assert (got != "(none)") == loaded, (reset, got)
+        s.close()

@@ -233,7 +233,7 @@ def test_localizer_node_counts_every_packet_of_an_oversized_message(ros_context)
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from test_ros_params import _packet_array
 
-    from ae_tactile.msg import ContactEvent, PacketArray
+    from ae_tactile.msg import Emission, PacketArray
     from ae_tactile.ros.conversions import make_packet
     from ae_tactile.ros.localizer_node import LocalizerNode
 
@@ -249,7 +249,7 @@ def test_localizer_node_counts_every_packet_of_an_oversized_message(ros_context)
         PacketArray, "packets", QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
     )
     got, diags = [], []
-    node.create_subscription(ContactEvent, "contacts", got.append, 100)
+    node.create_subscription(Emission, "localized", got.append, 100)  # the split path
     node.create_subscription(
         DiagnosticArray,
         "/diagnostics",

@@ -223,7 +223,7 @@ def test_localizer_node_rejects_bad_packets_one_by_one_and_counts_missing_ones(r
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-    from ae_tactile.msg import ContactEvent, PacketArray
+    from ae_tactile.msg import Emission, PacketArray
     from ae_tactile.ros.localizer_node import LocalizerNode
 
     loc = LocalizerNode(context=ros_context)
@@ -232,7 +232,7 @@ def test_localizer_node_rejects_bad_packets_one_by_one_and_counts_missing_ones(r
         PacketArray, "packets", QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
     )
     got = []
-    node.create_subscription(ContactEvent, "contacts", got.append, 100)
+    node.create_subscription(Emission, "localized", got.append, 100)  # the split path
     ex = SingleThreadedExecutor(context=ros_context)
     ex.add_node(loc)
     ex.add_node(node)

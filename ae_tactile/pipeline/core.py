@@ -356,6 +356,21 @@ class ContactPipeline:
             time.sleep(0.001)
         return True
 
+    def calibration_learners(self) -> dict:
+        """Section name -> learner of what the stages learn about the device (the screens'
+        models; the overlap stage's pulse where it persists): what
+        `ae_tactile.calibration.CalibrationStore` loads and saves.
+
+        Returns
+        -------
+        dict
+        """
+        out = dict(self.localizer.calibration_learners())
+        pulse = getattr(self.overlap_stage, "pulse_learner", None)
+        if hasattr(pulse, "calibration_state") and hasattr(pulse, "load_calibration"):
+            out["overlap_pulse"] = pulse
+        return out
+
     def all_counts(self) -> Counter:
         """Every count of the pipeline (a copy; safe beside the reader and resolver)."""
         # dict.copy is one C call: a consistent copy while other threads count

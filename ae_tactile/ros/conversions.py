@@ -15,7 +15,16 @@ import numpy as np
 from builtin_interfaces.msg import Time
 
 from ae_tactile.geometry import N_CHANNELS
-from ae_tactile.msg import Contact, ContactEvent, ContactState, Emission, Packet, PacketArray
+from ae_tactile.msg import (
+    Contact,
+    ContactEvent,
+    ContactState,
+    Emission,
+    Packet,
+    PacketArray,
+    SensorInfo,
+)
+from ae_tactile.protocol import PROTOCOL_VERSION
 from ae_tactile.records import ContactRecord, EmissionRecord, EventType
 
 NS_PER_S = 1_000_000_000
@@ -372,3 +381,42 @@ def packet_array_msgs(batch, frame_id: str) -> list:
         msg.frames_bad_crc = batch.frames_bad_crc
         out.append(msg)
     return out
+
+
+def sensor_info_msg(status, p: dict, geometry, frame_id: str, stamp) -> SensorInfo:
+    """SensorInfo of a driver: the fingertip's geometry and front end from its parameters
+    ``p``, the device's identity and settings from its STATUS (None: not known yet).
+
+    Parameters
+    ----------
+    status : ae_tactile.protocol.Status or None
+    p : dict
+        The driver's parameter values (medium, channel_gains, highpass_hz, sample_rate_hz).
+    geometry : FingertipGeometry
+    frame_id : str
+    stamp : builtin_interfaces.msg.Time
+
+    Returns
+    -------
+    SensorInfo
+    """
+    msg = SensorInfo()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.medium = p["medium"]
+    msg.radius_m = geometry.radius_m
+    msg.element_offset_m = geometry.element_offset_m
+    msg.sound_speed_m_s = geometry.sound_speed_m_s
+    msg.channel_gains = [float(g) for g in p["channel_gains"]]
+    msg.highpass_hz = p["highpass_hz"]
+    msg.adc_bits = 12
+    msg.protocol_version = PROTOCOL_VERSION
+    if status is not None:
+        msg.serial_number = status.serial_number
+        msg.firmware_version = ".".join(str(v) for v in status.firmware_version)
+        msg.sample_rate_hz = float(status.sample_rate_hz)
+        msg.volts_per_count = float(status.v_per_count)
+        msg.trigger_threshold_v = float(status.threshold_counts * status.v_per_count)
+    else:
+        msg.sample_rate_hz = float(p["sample_rate_hz"])
+    return msg

@@ -95,12 +95,13 @@ def pipeline_statuses(
     events: int,
     slip_events: int,
     emissions: int | None = None,
+    calibration: dict | None = None,
 ) -> list:
     """DiagnosticStatus of the localization (``pipeline``: a ContactPipeline, its counts by
     reason) and slip stages; ``pipeline`` None: the slip stage's only."""
     out = []
     if pipeline is not None:
-        out.append(_localization_status(node_name, hardware_id, pipeline, events))
+        out.append(_localization_status(node_name, hardware_id, pipeline, events, calibration))
     if slip_stage is not None:
         slip = DiagnosticStatus()
         slip.name = f"{node_name}: slip detection"
@@ -122,7 +123,8 @@ def pipeline_statuses(
     return out
 
 
-def _localization_status(node_name, hardware_id, pipeline, events) -> DiagnosticStatus:
+def _localization_status(node_name, hardware_id, pipeline, events,
+                         calibration=None) -> DiagnosticStatus:
     loc = DiagnosticStatus()
     loc.name = f"{node_name}: localization"
     loc.hardware_id = hardware_id
@@ -139,5 +141,10 @@ def _localization_status(node_name, hardware_id, pipeline, events) -> Diagnostic
         KeyValue(key="method", value=pipeline.localizer.method),
         KeyValue(key="published_events", value=str(events)),
         KeyValue(key="interference_echo_test", value=pipeline.localizer.echo_test_status()),
+        KeyValue(key="interference_model", value=pipeline.localizer.interference_model_status()),
     ]
+    loc.values += [KeyValue(key=k, value=str(v)) for k, v in (calibration or {}).items()]
+    if calibration and calibration.get("calibration_last_error"):
+        loc.level = max(loc.level, DiagnosticStatus.WARN)
+        loc.message += f"; calibration: {calibration['calibration_last_error']}"
     return loc

@@ -71,7 +71,7 @@ from ae_tactile.msg import (
     SensorInfo,
 )
 from ae_tactile.pipeline import ContactPipeline, SlipStage
-from ae_tactile.protocol import PROTOCOL_VERSION
+from ae_tactile.pipeline.device_calibration import DeviceCalibration
 from ae_tactile.ros.conversions import (
     ContactEventWire,
     EmissionWire,
@@ -80,6 +80,7 @@ from ae_tactile.ros.conversions import (
     emission_msg,
     ns_to_time_msg,
     packet_array_msgs,
+    sensor_info_msg,
 )
 from ae_tactile.ros.diagnostics import link_rates, link_status, pipeline_statuses
 from ae_tactile.ros.driver_params import (  # noqa: F401  (DRIVER_PARAMS, EVENT_QOS: public here too)
@@ -92,7 +93,13 @@ from ae_tactile.ros.driver_params import (  # noqa: F401  (DRIVER_PARAMS, EVENT_
     packet_qos,
 )
 from ae_tactile.ros.markers import EventMarkers, contact_markers, sensor_markers
-from ae_tactile.ros.node_utils import LATCHED, cpu_list, pin_process, run_node
+from ae_tactile.ros.node_utils import (
+    LATCHED,
+    cpu_list,
+    events_executor,
+    pin_process,
+    run_node,
+)
 from ae_tactile.ros.params import (
     LOCALIZATION_PARAMS,
     ParameterError,
@@ -162,6 +169,7 @@ class DriverNode(Node):
                 f"parameter 'hand_coincidence_topic' = {p['hand_coincidence_topic']!r} needs "
                 "pipeline:=true (the hand's test runs in the driver's pipeline)"
             )
+        self.calibration = None
         if p["pipeline"]:
             self._make_pipeline()
         self.create_subscription(String, "sim/scene_truth", self._on_scene_truth, LATCHED)
@@ -260,10 +268,16 @@ class DriverNode(Node):
             self.pipeline.on_apex = self._report_apex
             self.create_subscription(ApexPackets, topic, self._on_hand_apex, EVENT_QOS)
         self.create_timer(self.p["slip_tick_period_s"], self._tick)
+        if self.p["calibration_dir"].strip().lower() != "none":
+            self.calibration = DeviceCalibration(
+                self.pipeline.calibration_learners, self.p["calibration_dir"].strip(),
+                self.p["calibration_reset"], self.p["calibration_save_period_s"])
         self.create_timer(self.p["marker_period_s"], self._publish_markers)
 
     def _on_batch(self, batch) -> None:
         """Reader thread: one decoded batch -> events, published at once."""
+        if self.calibration is not None:  # the device's own models, once it is known
+            self.calibration.on_device(self.hardware_id(serial_only=True))
         if self.pipeline is not None:
             self.pipeline.process(
                 batch.packets,
@@ -290,6 +304,8 @@ class DriverNode(Node):
             self._publish_state()
         if self.pipeline.run_idle_work():
             self._publish_state()
+        if self.calibration is not None:
+            self.calibration.save_due()
 
     def _report_apex(self) -> None:
         """Reader thread: report this fingertip's apex packets to the hand (called by the
@@ -510,32 +526,17 @@ class DriverNode(Node):
         if key == self._info_key:
             return
         self._info_key = key
-        p = self.p
-        msg = SensorInfo()
-        msg.header.stamp = self.get_clock().now().to_msg()
-        msg.header.frame_id = self.frame_id
-        msg.medium = p["medium"]
-        msg.radius_m = self.geometry.radius_m
-        msg.element_offset_m = self.geometry.element_offset_m
-        msg.sound_speed_m_s = self.geometry.sound_speed_m_s
-        msg.channel_gains = [float(g) for g in p["channel_gains"]]
-        msg.highpass_hz = p["highpass_hz"]
-        msg.adc_bits = 12
-        msg.protocol_version = PROTOCOL_VERSION
-        if st is not None:
-            msg.serial_number = st.serial_number
-            msg.firmware_version = ".".join(str(v) for v in st.firmware_version)
-            msg.sample_rate_hz = float(st.sample_rate_hz)
-            msg.volts_per_count = float(st.v_per_count)
-            msg.trigger_threshold_v = float(st.threshold_counts * st.v_per_count)
-        else:
-            msg.sample_rate_hz = float(p["sample_rate_hz"])
-        self.pub_info.publish(msg)
+        self.pub_info.publish(sensor_info_msg(
+            st, self.p, self.geometry, self.frame_id, self.get_clock().now().to_msg()))
 
     # -------------------------------------------------------------- diagnostics
-    def hardware_id(self) -> str:
+    def hardware_id(self, serial_only: bool = False) -> str | None:
+        """The device's serial number (its STATUS); before it is known, the port (None
+        with ``serial_only``)."""
         st = self.link.device_status
-        return st.serial_number if st is not None else self.link_config.port
+        if st is not None and st.serial_number:
+            return st.serial_number
+        return None if serial_only else self.link_config.port
 
     def _publish_diagnostics(self) -> None:
         self._publish_sensor_info()
@@ -549,6 +550,7 @@ class DriverNode(Node):
             statuses += pipeline_statuses(
                 name, hw, self.pipeline, self.slip_stage, self.published_events,
                 self.published_slip, self.published_emissions,
+                calibration=self.calibration.status() if self.calibration else None,
             )
         msg = DiagnosticArray()
         msg.header.stamp = ns_to_time_msg(now)
@@ -558,6 +560,8 @@ class DriverNode(Node):
     def destroy_node(self):
         if hasattr(self, "link") and self.link._thread is not None:
             self.link.stop()
+        if getattr(self, "calibration", None) is not None:
+            self.calibration.close()  # the reader has stopped: the learners are still
         if getattr(self, "pipeline", None) is not None:
             if getattr(self, "pub_apex", None) is not None:
                 # the apex touches the hand still holds: decided with the reports at hand
@@ -575,19 +579,6 @@ class DriverNode(Node):
                           f"shutdown: {problem}", flush=True)
             self.pipeline.close()
         return super().destroy_node()
-
-
-def events_executor():
-    """rclpy's events executor where available (far less work per timer wake-up, which the
-    reader thread would otherwise wait for), else the single-threaded one."""
-    try:
-        from rclpy.experimental import EventsExecutor  # lazy: optional (newer rclpy only)
-
-        return EventsExecutor()
-    except ImportError:
-        from rclpy.executors import SingleThreadedExecutor  # lazy: the fallback only
-
-        return SingleThreadedExecutor()
 
 
 def main(args=None) -> int:

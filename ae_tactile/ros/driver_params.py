@@ -176,6 +176,25 @@ DRIVER_PARAMS = [
             1.0,
         )
     ),
+    Param(
+        "calibration_dir",
+        "",
+        "Where what the pipeline learns about each device (its pulse, its interference "
+        "model, its echo) is kept, one file per serial number; empty: "
+        "$ROS_HOME/ae_tactile/calibration (~/.ros/...); 'none': not kept",
+    ),
+    Param(
+        "calibration_reset",
+        False,
+        "Start the device's calibration from scratch (its file is replaced by the next save)",
+    ),
+    Param(
+        "calibration_save_period_s",
+        60.0,
+        "How often the device's calibration is saved while running (and at shutdown) (s)",
+        1.0,
+        86_400.0,
+    ),
     tunable(Param("markers", True, "Publish RViz markers on 'markers' (only while subscribed)")),
     Param("marker_period_s", 0.1, "Marker refresh period", 0.02, 5.0),
     Param("marker_lifetime_s", 2.0, "How long an event marker stays (fading)", 0.1, 60.0),

@@ -333,6 +333,17 @@ def run_node(node_factory, args=None, executor_factory=SingleThreadedExecutor) -
     return state["exit"]
 
 
+def events_executor():
+    """rclpy's events executor where available (far less work per timer wake-up, which the
+    reader thread would otherwise wait for), else the single-threaded one."""
+    try:
+        from rclpy.experimental import EventsExecutor  # lazy: optional (newer rclpy only)
+
+        return EventsExecutor()
+    except ImportError:
+        return SingleThreadedExecutor()
+
+
 def exit_process(code: int) -> None:
     """Flush and leave at once, skipping interpreter finalization: native threads of DDS
     and JIT code (daemon threads frozen mid-call) can deadlock the final garbage

@@ -1,0 +1,127 @@
+# SPDX-License-Identifier: Apache-2.0
+"""What the pipeline learnt about a device, loaded when the device is known and saved as
+it goes (`ae_tactile.calibration.CalibrationStore`, one file per serial number).
+
+The driver's reader thread calls `DeviceCalibration.on_device` with the device's serial
+number before each batch (nothing happens while it is unchanged) and `save_due` when it
+is idle; `close` saves once more at shutdown. All three run where the learners are used
+(the reader thread, or after it stopped), so no lock is needed.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+from ae_tactile.calibration import CalibrationStore, default_directory
+
+_LOG = logging.getLogger("ae_tactile.calibration")
+
+
+class DeviceCalibration:
+    """The calibration of the device a pipeline reads.
+
+    Parameters
+    ----------
+    learners : callable
+        Returns the pipeline's learners (section name -> learner with
+        ``calibration_state`` / ``load_calibration``), e.g.
+        ``ContactPipeline.calibration_learners``.
+    directory : str
+        Where the files live ('' : `default_directory`).
+    reset : bool
+        Start the first device from scratch (its file is overwritten by the next save).
+    save_period_s : float
+        Save at most this often while running [s] (and at `close`).
+    clock : callable
+        Monotonic time [s] (tests pass their own).
+
+    Returns
+    -------
+    DeviceCalibration
+    """
+
+    def __init__(self, learners, directory: str = "", reset: bool = False,
+                 save_period_s: float = 60.0, clock=time.monotonic):
+        self._learners = learners
+        self.directory = directory or default_directory()
+        self._reset = bool(reset)
+        self.save_period_s = float(save_period_s)
+        self._clock = clock
+        self.store: CalibrationStore | None = None
+        self._last_save = clock()
+
+    def on_device(self, serial: str | None) -> None:
+        """The device being read is ``serial`` (None: not known yet). A new serial saves
+        the previous device's calibration, resets the learners and loads the new one's.
+
+        Parameters
+        ----------
+        serial : str or None
+
+        Returns
+        -------
+        None
+        """
+        if not serial or (self.store is not None and self.store.serial == serial):
+            return
+        learners = self._learners()
+        if self.store is not None:
+            self.store.save(learners)
+            for learner in learners.values():
+                reset = getattr(learner, "reset", None)
+                if reset is not None:
+                    reset()
+            _LOG.warning("device changed from %s to %s: its own calibration from now on",
+                         self.store.serial, serial)
+        self.store = CalibrationStore(self.directory, serial, reset=self._reset)
+        self._reset = False  # a reset applies to the device the driver started with
+        loaded = self.store.load_into(learners)
+        if loaded:
+            _LOG.info("calibration of %s loaded from %s: %s", serial, self.store.path,
+                      ", ".join(loaded))
+        else:
+            _LOG.info("no calibration of %s in %s yet: learning it from its packets",
+                      serial, self.store.path)
+        self._last_save = self._clock()
+
+    def save_due(self) -> bool:
+        """Save when ``save_period_s`` has passed since the last save. True if written.
+
+        Returns
+        -------
+        bool
+        """
+        if self.store is None or self._clock() - self._last_save < self.save_period_s:
+            return False
+        self._last_save = self._clock()
+        return self.store.save(self._learners())
+
+    def close(self) -> bool:
+        """Save now (shutdown). True if written.
+
+        Returns
+        -------
+        bool
+        """
+        if self.store is None:
+            return False
+        return self.store.save(self._learners())
+
+    def status(self) -> dict:
+        """For diagnostics: the file, the sections loaded, the store's counts, the last
+        problem.
+
+        Returns
+        -------
+        dict
+        """
+        if self.store is None:
+            return {"calibration_file": "(device not known yet)"}
+        s = self.store
+        out = {"calibration_file": s.path,
+               "calibration_loaded": ",".join(s.loaded_sections) or "(none)"}
+        out.update({f"calibration_{k}": v for k, v in s.counts.items()})
+        if s.last_error:
+            out["calibration_last_error"] = s.last_error
+        return out
