@@ -84,18 +84,10 @@ USER_PARAMS = {
     "link; 0 keeps the device's",
     "threshold_counts": "lower triggers on fainter touches, and on more noise; 0 keeps the "
     "device's",
-    "acquisition_timeout_s": "how long a device that stopped sending data goes before the "
-    "driver restarts it (shorter recovers sooner; > 1 s, the heartbeat; 0: never)",
     "localization.min_snr_db": "lower keeps fainter touches, and more false ones from noise",
     "slip.release_confirm_s": "how long after a release's emission its contact ends (its "
     "DETOUCH): shorter frees the contact sooner, longer keeps it through an emission that "
     "only looked like a release",
-    "slip.quiet_s": "how long a slipping contact stays silent before it reads STICK again: "
-    "shorter shows a stopped slide sooner, longer bridges slow slides",
-    "slip.sliding_speed_m_s": "the hand's sliding speed, for TEXTURE's spatial period (or the "
-    "sliding_speed topic); 0: periods in time only",
-    "wait_for_subscribers": "start acquiring only once this many nodes listen on contacts "
-    "(and emissions): no first touch lost, a later start",
     "calibration_dir": "where what the driver learnt about each device is kept (one file per "
     "serial number): a restart starts from it; 'none': learn again each time",
     "initial_force_n": "the grip before any slip (a firmer hold, more pressure "
