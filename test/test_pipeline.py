@@ -538,8 +538,11 @@ def test_the_pipeline_learns_the_echo_after_handing_out_the_contact_events():
 def test_an_echo_still_being_learnt_judges_the_next_batch_when_the_reader_is_behind():
     """The device's first three touches come in one batch while more packets wait (the
     reader behind): their echo is learnt before the next batch is judged, so the
-    input-coupled edges in it are rejected and the apex touches kept. Once learnt, further
-    measurements wait for a moment without packets again."""
+    input-coupled edges in it are rejected and the apex touches kept. While the device's
+    acoustic packet is still being learnt the next batches are measured too; once both
+    are learnt, further measurements wait for a moment without packets again."""
+    from ae_tactile.dsp.acoustic_model import LEARN_KEEP
+
     cfg = SimConfig(reflections=True)
     loc = PacketLocalizer("ml", geometry=cfg.geometry)
     pipe = ContactPipeline(loc, SlipStage(SlipConfig()))
@@ -554,7 +557,17 @@ def test_an_echo_still_being_learnt_judges_the_next_batch_when_the_reader_is_beh
     assert not kept & edges and len(kept & touches_apex) >= 15
     n = loc.echo_learner.n_measured
     pipe.process(_off_apex_touch_views(cfg, 2, 9), lambda c: None, more_waiting=behind)
+    assert loc.screens.acoustic.n_learnt < LEARN_KEEP  # still learning: measured at once
     pipe.process(_off_apex_touch_views(cfg, 1, 10), lambda c: None, more_waiting=behind)
+    assert loc.echo_learner.n_measured > n
+    for seed in range(11, 11 + 4 * LEARN_KEEP):  # the acoustic model fills
+        if loc.screens.acoustic.n_learnt >= LEARN_KEEP:
+            break
+        pipe.process(_off_apex_touch_views(cfg, 4, seed), lambda c: None, more_waiting=behind)
+    assert loc.screens.acoustic.n_learnt >= LEARN_KEEP
+    pipe.process(_off_apex_touch_views(cfg, 2, 3), lambda c: None, more_waiting=behind)
+    n = loc.echo_learner.n_measured
+    pipe.process(_off_apex_touch_views(cfg, 2, 4), lambda c: None, more_waiting=behind)
     assert loc.echo_pending and loc.echo_learner.n_measured == n  # learnt: later, when idle
     pipe.close()
 

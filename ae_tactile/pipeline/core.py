@@ -51,6 +51,7 @@ import time
 from collections import Counter
 from typing import Callable, Sequence
 
+from ae_tactile.dsp.acoustic_model import LEARN_KEEP
 from ae_tactile.dsp.coincidence import HandCoincidence
 from ae_tactile.pipeline.config import COVERED_TOL_S, OVERLAP_HOLD_MAX_S, OVERLAP_INLINE_MAX
 from ae_tactile.pipeline.hand import HandStage
@@ -226,11 +227,13 @@ class ContactPipeline:
             loc.learn_echo()  # else when the link is idle (`run_idle_work`)
 
     def _learn_echo_first(self) -> None:
-        """While the echo test is still being learnt (its first touches, once), what the
-        last batch's touches teach judges this batch's packets, however far behind the
-        reader is (later measurements wait for a moment without packets)."""
+        """While the echo test or the device's acoustic packet is still being learnt (its
+        first touches), what the last batch's touches teach judges this batch's packets,
+        however far behind the reader is (later measurements wait for a moment without
+        packets)."""
         loc = self.localizer
-        if loc.echo_pending and loc.echo_learner.ratio is None:
+        if loc.echo_pending and (loc.echo_learner.ratio is None
+                                 or loc.screens.acoustic.n_learnt < LEARN_KEEP):
             loc.learn_echo()
 
     def _overlaps(self, contacts: list, windows: list, on_localized) -> None:
