@@ -347,14 +347,98 @@ def slip_rows(d) -> list[str]:
     return rows
 
 
+def hand_rows(d) -> list[str]:
+    """bench_hand: per case, the worst finger's reflex latency, memory per fingertip."""
+    if not d or not d.get("cases"):
+        return []
+    rows = []
+    tag = " (a QUICK run: short schedules)" if d.get("quick") else ""
+    for c in d["cases"]:
+        fingers = list((c.get("fingers") or {}).values())
+        lat = [f["latency"]["reflex"] for f in fingers if f["latency"]["reflex"].get("events")]
+        if not lat:
+            continue
+        worst = max(lat, key=lambda e: e["p99_ms"])
+        pss = max((f["driver_memory"].get("pss_mb") or 0) + (f["worker_memory"].get("pss_mb") or 0)
+                  for f in fingers)
+        behind = any(f["device"].get("fell_behind") for f in fingers)
+        rows.append(
+            f"| a hand: {c['fingertips']} fingertip(s) x {c['rate_hz']:g} emissions/s"
+            f" ({'pinned' if c['pinned'] else 'unpinned'}){tag}: reflex events (TOUCH,"
+            f" SLIP_PRECURSOR, SLIP, TEXTURE), worst finger, median / p99 | {_lat(worst)}"
+            f" (max {worst['max_ms']:.1f} ms); {pss:.0f} MB PSS per fingertip (driver + overlap"
+            f" worker){'; a device fell behind' if behind else ''} | bench_hand,"
+            f" {_load_str(d.get('load_average_before'))} |")
+    return rows
+
+
+def zoo_rows(d) -> list[str]:
+    """bench_zoo: the worst over the device zoo and the held-out devices beside nominal."""
+    if not d or "worst" not in d:
+        return []
+    w = d["worst"]
+    mode = " (quick)" if d.get("mode") == "quick" else ""
+
+    def fig(key, pct=True):
+        v = w.get(key)
+        if not v:
+            return "n/a"
+        f = (lambda x: f"{100 * x:.0f} %") if pct else (lambda x: f"{x:.2f}")
+        return (f"nominal {f(v['nominal'])}, worst {f(v['zoo'])} ({v['zoo_device']}),"
+                f" held-out worst {f(v['held_out'])}")
+
+    rms = fig("worst_rms_over_crlb", False)
+    return [
+        f"| device zoo{mode}: apex touches kept after 300 ordinary touches / on a fresh"
+        f" pipeline | {fig('apex_kept')} / {fig('cold_apex_kept')} | bench_zoo |",
+        f"| device zoo{mode}: identical-channel interference rejected (bursts; four equal"
+        f" channels in the pipeline) | {fig('interference_rejected')};"
+        f" {fig('identical_rejected_pipeline')} | bench_zoo |",
+        f"| device zoo{mode}: `ml` RMS over the Cramer-Rao bound (true noise covariance),"
+        f" worst cell; share inside the 68 % ellipse, worst cell | {rms}; "
+        f"{fig('min_inside_68')} | bench_zoo |",
+        f"| device zoo{mode}: overlapping pairs resolved by `localize_with_overlaps` with the"
+        f" default pulse | {fig('overlaps_resolved')} | bench_zoo |",
+        f"| device zoo{mode}: slip, precursor before gross slip / touch-scene runs with a false"
+        f" alarm | {fig('slip_precursor_before_gross')} / {fig('slip_false_alarm_runs')} |"
+        f" bench_zoo |",
+    ]
+
+
+def everyday_rows(d) -> list[str]:
+    """bench_everyday: issue 38's families, nominal draws."""
+    if not d or not d.get("families"):
+        return []
+    fams = [f for f in d["families"] if not f.get("held_out")]
+    det = ("the fingertip model, SlipDetector(model=True), not yet the default"
+           if d.get("detector") == "model" else "the default rules")
+    touch = [f for f in fams if f["family"] in ("multi_point", "touch_beside_held",
+                                                  "broad_press", "tap_beside_held", "hold")]
+    out = []
+    if touch:
+        out.append(
+            f"| everyday touch families ({det}; 'events' model): trials with a false"
+            f" alarm | " + ", ".join(f"{f['family']} {100 * f['trials_with_false']:.1f} %"
+                                     for f in touch) + " | bench_everyday |")
+    mixed = next((f for f in fams if f["family"] == "mixed"), None)
+    if mixed:
+        out.append(f"| everyday mixed stream ({det}): false alarms per hour; contact"
+                   f" state = truth | {_per_hour(mixed['false_per_h'])}/h;"
+                   f" {100 * mixed['state_share']:.1f} % | bench_everyday |")
+    return out
+
+
 def markdown() -> str:
     rows = (
-        system_rows(_load("system.json"))
+        hand_rows(_load("hand.json"))
+        + system_rows(_load("system.json"))
         + localization_rows(_load("localization.json"))
         + overlap_rows(_load("overlap.json"))
         + slip_rows(_load("slip.json"))
         + sim_rows(_load("sim.json"))
         + protocol_rows(_load("protocol.json"), _load("protocol_faults.json"))
+        + zoo_rows(_load("zoo.json"))
+        + everyday_rows(_load("everyday.json"))
     )
     lines = [
         BEGIN,
