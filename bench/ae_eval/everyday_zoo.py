@@ -5,7 +5,8 @@
 model. Here every emission of the same truth is rendered as one triggered packet on the
 DEVICE (`ae_eval.zoo.Device.config`: its front end, noise colour, mismatch, medium; the
 emission's relative amplitude sets its SNR against ``snr_ref_db``) and localized by the
-driver's own `PacketLocalizer` with its screens, in 1 ms read cycles; what it keeps goes to
+driver's own `PacketLocalizer` with its screens (after the device's warm-up: 300 ordinary
+touches it learns the device from), in 1 ms read cycles; what it keeps goes to
 the slip detector as the driver's slip stage feeds it. So a device whose front end makes
 the screens drop apex touches, or whose covariance is wrong, shows in the slip figures.
 Emissions closer than a packet are not overlapped here (bench_zoo's overlap figure).
@@ -27,12 +28,38 @@ from ae_tactile.sim.scene import reference_noise_rms
 from ae_tactile.slip import LocalizedEvent
 
 READ_CYCLE_NS = 1_000_000  # [ns] the driver's read cycle
+WARM_TOUCHES = 300  # ordinary touches a device's localizer has seen before a trial
+_WARM: dict = {}  # (device, medium, rate) -> its localizer after the warm-up (a device in use)
 SNR_REF_DB = 30.0  # [dB] of an emission of relative amplitude 1 (a touch)
 MIN_REL_AMP = 1e-3  # relative amplitudes below this are rendered at this level
 
 
+def warm_localizer(device, cfg, medium):
+    """The device's `PacketLocalizer` after WARM_TOUCHES ordinary touches (polar 0-60 deg,
+    20-40 dB, both polarities, over 30 s, batches of 10 with the learning the driver does
+    when idle): what it has learnt of the device by then. One per device, reused."""
+    key = (device.name, medium, cfg.sample_rate_hz)
+    if key not in _WARM:
+        g = np.random.default_rng([38300, sum(map(ord, device.name))])
+        loc = PacketLocalizer("ml", geometry=cfg.geometry)
+        cos_t = g.uniform(math.cos(math.radians(60.0)), 1.0, WARM_TOUCHES)
+        pts = cfg.geometry.surface_point_from_angles(np.arccos(cos_t),
+                                                     g.uniform(0, 2 * math.pi, WARM_TOUCHES))
+        pk = render_triggered(pts, cfg, snr_db=g.uniform(20.0, 40.0, WARM_TOUCHES),
+                              polarity=g.choice([-1, 1], WARM_TOUCHES), rng=g)
+        t_ns = np.sort(g.integers(0, 30 * NS, WARM_TOUCHES))
+        fs = cfg.sample_rate_hz
+        views = [PacketView(pk.samples_v[i], fs, int(pk.onset_index[i]), int(t_ns[i]),
+                            10**6 + i) for i in range(WARM_TOUCHES)]
+        for k in range(0, WARM_TOUCHES, 10):
+            loc.process(views[k : k + 10])
+            loc.learn_echo()
+        _WARM[key] = loc
+    return _WARM[key]
+
+
 def device_events(scene, device, rng, *, snr_ref_db=SNR_REF_DB, medium="water_skin",
-                  sample_rate_hz=10e6):
+                  sample_rate_hz=10e6, warm=True):
     """The slip detector's input for one scene on one device.
 
     Parameters
@@ -44,6 +71,9 @@ def device_events(scene, device, rng, *, snr_ref_db=SNR_REF_DB, medium="water_sk
         SNR [dB] of a relative amplitude of 1.
     medium : str
     sample_rate_hz : float
+    warm : bool
+        The device's localizer after its warm-up (`warm_localizer`: a device in use), or
+        a fresh one (a device's first touches).
 
     Returns
     -------
@@ -53,7 +83,9 @@ def device_events(scene, device, rng, *, snr_ref_db=SNR_REF_DB, medium="water_sk
     """
     n = scene.t_s.size
     cfg = device.config(medium, sample_rate_hz)
-    loc = PacketLocalizer("ml", geometry=cfg.geometry)
+    loc = warm_localizer(device, cfg, medium) if warm else PacketLocalizer(
+        "ml", geometry=cfg.geometry)
+    loc.counts.clear()
     if n == 0:
         return [], dict(loc.counts)
     pts = cfg.geometry.surface_point_from_xy(scene.xy_m[:, 0], scene.xy_m[:, 1])
