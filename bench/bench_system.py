@@ -433,7 +433,7 @@ def markdown(res: dict) -> str:
         lines += [
             "",
             f"Random touches and releases at {n['rate_hz']:g} emissions/s as the fingertip "
-            f"renders them ({n['packets']} packets; windows are not spaced apart): contact "
+            f"renders them ({n['packets']} packets; windows are not spaced apart): emission "
             f"events {fmt(n['contact'])} ms; {n['overlapped_windows']} windows held two "
             f"emissions and went to the overlap resolver, their emission events "
             f"{fmt(n.get('contact_overlapped', {}))} ms; the others "
