@@ -132,6 +132,7 @@ class Localizer:
         saturated=False,
         geometry=None,
         channel_gains=None,
+        check_identical=True,
     ) -> PacketLocation:
         """Localize one window: the per-packet hot path.
 
@@ -153,6 +154,9 @@ class Localizer:
             Default: the one given at construction, else the default tip.
         channel_gains : array_like (4,), optional
             Relative gains of the 4 channels (divided out).
+        check_identical : bool
+            Reject four identical channels (`packet_identical`, reason NO_SIGNAL); False
+            only where the caller has just checked the window (the pipeline does).
 
         Returns
         -------
@@ -195,7 +199,7 @@ class Localizer:
             ctau,
         )
         loc = PacketLocation(out, pt, cov, ctau)
-        if packet_identical(x, on, nr):
+        if check_identical and packet_identical(x, on, nr):
             _reject_identical_one(loc)
         return loc
 

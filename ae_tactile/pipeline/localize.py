@@ -421,6 +421,7 @@ class PacketLocalizer:
             saturated=self._saturated(p),
             geometry=self.geometry,
             channel_gains=self.channel_gains,
+            check_identical=False,  # `_checked` did, for every packet it passed
         )
         if not r.accepted:
             if int(r.reason) == Reason.OVERLAP:
