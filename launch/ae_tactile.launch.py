@@ -78,8 +78,9 @@ def arguments():
          "the driver's raw packets instead of in the driver (true/false/1/0)"),
         ("wait_for_subscribers", "0", "Driver starts acquiring only once this many "
          "subscribers are matched on `contacts` or `packets` (`packets` only with "
-         "split_pipeline:=true; "
-         "0: at once): a managed start loses no first event"),
+         "split_pipeline:=true, where the localizer counts only once the slip_detector "
+         "listens on `localized`, and the slip_detector listens only once something "
+         "listens on `contacts`; 0: at once): a managed start loses no first event"),
         ("driver_cpus", "", "CPUs the driver runs on, as for taskset -c ('3', '2-3'; "
          "empty: any): a core of its own per finger keeps the reflex path's latency tail "
          "short (the driver's cpu_affinity parameter)"),
@@ -270,9 +271,14 @@ def _setup(context):
             **({"hand_coincidence_topic": hand_topic} if hand_topic else {})})],
         on_exit=_required("driver")))
     if split:
+        # a managed start is a chain: the slip_detector listens on `localized` only once
+        # something listens on `contacts`, the localizer on `packets` (and so counts for the
+        # driver's wait) only once the slip_detector listens on `localized`
+        chain = {exe: [{"wait_for_subscribers": 1}] if wait else []
+                 for exe in ("localizer", "slip_detector")}
         for exe in ("localizer", "slip_detector"):
             actions.append(Node(package=PACKAGE, executable=exe, namespace=ns, output="screen",
-                                parameters=[params_file], on_exit=_required(exe)))
+                                parameters=[params_file, *chain[exe]], on_exit=_required(exe)))
     if rviz:   # closing RViz ends nothing else
         actions.append(Node(
             package="rviz2", executable="rviz2", namespace=ns, output="screen",

@@ -307,6 +307,90 @@ def test_localizer_node_counts_every_packet_of_an_oversized_message(ros_context)
         loc.destroy_node()
 
 
+def test_localizer_listens_on_packets_only_once_localized_has_its_subscriber(ros_context):
+    """wait_for_subscribers:=1 (the split launch's managed start): the localizer does not
+    subscribe to `packets` (so a driver waiting for it does not start) until something
+    listens on `localized`; then it subscribes and the first packet comes out localized."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from test_ros_params import _packet_array
+
+    from ae_tactile.msg import Emission, PacketArray
+    from ae_tactile.ros.localizer_node import LocalizerNode
+
+    loc = LocalizerNode(
+        context=ros_context,
+        parameter_overrides=[Parameter("reliable_qos", value=True),
+                             Parameter("wait_for_subscribers", value=1)],
+    )
+    node = rclpy.create_node("packet_source", context=ros_context)
+    pub = node.create_publisher(
+        PacketArray, "packets", QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    )
+    ex = SingleThreadedExecutor(context=ros_context)
+    ex.add_node(loc)
+    ex.add_node(node)
+    try:
+        # same-process discovery matches within milliseconds; nothing may match meanwhile
+        spin_until(ex, lambda: pub.get_subscription_count() > 0, 1.0)
+        assert pub.get_subscription_count() == 0
+        got = []
+        node.create_subscription(Emission, "localized", got.append, 100)
+        assert spin_until(ex, lambda: pub.get_subscription_count() >= 1, 20.0)
+        pub.publish(_packet_array([0]))
+        assert spin_until(ex, lambda: len(got) >= 1, 30.0), dict(loc.counts)
+        assert got[0].packet_ids[0] == 0
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        loc.destroy_node()
+
+
+def test_slip_detector_listens_on_localized_only_once_contacts_has_its_subscriber(ros_context):
+    """wait_for_subscribers:=1 on the slip_detector (the split launch's managed start): no
+    subscription on `localized` until something listens on `contacts`; then a compression
+    published on `localized` comes out as the contact's TOUCH."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    from ae_tactile.msg import ContactEvent, Emission
+    from ae_tactile.ros.driver_params import EMISSION_QOS, EVENT_QOS
+    from ae_tactile.ros.slip_node import SlipDetectorNode
+
+    det = SlipDetectorNode(
+        context=ros_context, parameter_overrides=[Parameter("wait_for_subscribers", value=1)]
+    )
+    node = rclpy.create_node("emission_source", context=ros_context)
+    pub = node.create_publisher(Emission, "localized", EMISSION_QOS)
+    ex = SingleThreadedExecutor(context=ros_context)
+    ex.add_node(det)
+    ex.add_node(node)
+    try:
+        spin_until(ex, lambda: pub.get_subscription_count() > 0, 1.0)
+        assert pub.get_subscription_count() == 0
+        got = []
+        node.create_subscription(ContactEvent, "contacts", got.append, EVENT_QOS)
+        assert spin_until(ex, lambda: pub.get_subscription_count() >= 1, 20.0)
+        msg = Emission()
+        msg.header.stamp = node.get_clock().now().to_msg()  # as the localizer stamps it
+        msg.header.frame_id = "tip"
+        msg.position.x, msg.position.y, msg.position.z = 1e-3, 0.0, 9.9e-3
+        msg.position_covariance = [1e-10, 0.0, 0.0, 0.0, 1e-10, 0.0, 0.0, 0.0, 1e-10]
+        msg.polarity = 1
+        msg.confidence = 1.0
+        msg.packet_ids = [7]
+        pub.publish(msg)
+        assert spin_until(ex, lambda: got, 30.0), (dict(det.stage.counts), det.received)
+        assert got[0].event_type == ContactEvent.TOUCH and got[0].contact_id >= 1
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        det.destroy_node()
+
+
 @pytest.mark.parametrize(
     "module, given, meant",
     [

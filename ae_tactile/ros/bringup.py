@@ -244,7 +244,8 @@ class Bringup:
     def _add_split_nodes(self, kw: dict) -> None:
         """The velodyne-style split: separate localizer and slip_detector nodes."""
         args = self.args
-        loc_params = [Parameter("reliable_qos", value=bool(args.reliable))]
+        loc_params = [Parameter("reliable_qos", value=bool(args.reliable)),
+                      Parameter("wait_for_subscribers", value=1)]  # the slip_detector
         if args.method:
             loc_params.append(Parameter("localization.method", value=args.method))
         self.localizer = LocalizerNode(parameter_overrides=loc_params, **kw)
@@ -253,6 +254,8 @@ class Bringup:
             if args.sliding_speed
             else []
         )
+        if args.monitor:  # its `contacts` subscription: the chain of a managed start
+            slip_params.append(Parameter("wait_for_subscribers", value=1))
         self.slip = SlipDetectorNode(parameter_overrides=slip_params, **kw)
         self.nodes += [self.localizer, self.slip]
 

@@ -63,6 +63,15 @@ LOCALIZER_PARAMS = [
     Param("marker_lifetime_s", 2.0, "How long an event marker stays (fading)", 0.1, 60.0),
     Param("marker_period_s", 0.1, "Marker refresh period", 0.02, 5.0),
     Param("diagnostics_period_s", 1.0, "Period of /diagnostics messages", 0.05, 60.0),
+    Param(
+        "wait_for_subscribers",
+        0,
+        "Subscribe to 'packets' only once this many subscribers are matched on 'localized' "
+        "(the slip_detector), so that with the driver's wait_for_subscribers the driver "
+        "starts only when the whole chain listens and no first event is lost (0: at once)",
+        0,
+        100,
+    ),
 ]
 
 
@@ -96,9 +105,11 @@ class LocalizerNode(Node):
         reliability = (
             ReliabilityPolicy.RELIABLE if p["reliable_qos"] else ReliabilityPolicy.BEST_EFFORT
         )
-        self.create_subscription(
-            PacketArray, "packets", self._enqueue, QoSProfile(depth=1000, reliability=reliability)
-        )
+        self._packets_qos = QoSProfile(depth=1000, reliability=reliability)
+        if p["wait_for_subscribers"] > 0:
+            self._subscribe_timer = self.create_timer(0.01, self._subscribe_when_matched)
+        else:
+            self._subscribe_packets()
         if p["use_sensor_info"]:
             self.create_subscription(SensorInfo, "sensor_info", self.on_sensor_info, LATCHED)
         self.last_upstream = (0, 0)  # (packets_dropped, frames_bad_crc) seen upstream
@@ -112,6 +123,18 @@ class LocalizerNode(Node):
         self.get_logger().info(
             f"localizer: method '{lp['method']}', min SNR {lp['min_snr_db']:g} dB"
         )
+
+    def _subscribe_packets(self) -> None:
+        self.create_subscription(PacketArray, "packets", self._enqueue, self._packets_qos)
+
+    def _subscribe_when_matched(self) -> None:
+        """A managed start: the driver counts this node among its `packets` subscribers only
+        once the slip_detector listens on `localized` (an emission published before it is
+        matched would be lost: `localized` keeps no history for late joiners)."""
+        if self.pub_events.get_subscription_count() >= self.p["wait_for_subscribers"]:
+            self._subscribe_timer.cancel()
+            self._subscribe_packets()
+            self.get_logger().info("'localized' has its subscribers: listening on 'packets'")
 
     def _on_localization_change(self, changes: dict) -> None:
         self.localizer.update(**changes_for_localizer(changes))

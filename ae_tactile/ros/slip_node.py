@@ -66,6 +66,15 @@ NODE_PARAMS = [
     Param("frame_id", "", "Frame of the outputs; empty = the incoming events' frame"),
     tunable(Param("markers", True, "Publish slip markers on 'markers' (only while subscribed)")),
     Param("diagnostics_period_s", 1.0, "Period of /diagnostics messages", 0.05, 60.0),
+    Param(
+        "wait_for_subscribers",
+        0,
+        "Subscribe to 'localized' only once this many subscribers are matched on 'contacts' "
+        "(the hand), so that in a managed start no first TOUCH is published before its "
+        "consumer listens (0: at once)",
+        0,
+        100,
+    ),
 ]
 
 
@@ -87,7 +96,10 @@ class SlipDetectorNode(Node):
         self.pub_markers = self.create_publisher(MarkerArray, "markers", 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.markers = EventMarkers("", 2.0, namespace="ae_tactile/slip")
-        self.create_subscription(Emission, "localized", self.on_emission, EMISSION_QOS)
+        if self.p["wait_for_subscribers"] > 0:
+            self._subscribe_timer = self.create_timer(0.01, self._subscribe_when_matched)
+        else:
+            self._subscribe_localized()
         self.create_subscription(Float64, "sliding_speed", self.on_speed, 10)
         self.create_timer(self.p["tick_period_s"], self.tick)
         self.create_timer(self.p["marker_period_s"], self.publish_markers)
@@ -100,6 +112,18 @@ class SlipDetectorNode(Node):
         self.published_emissions = 0
         self.received = 0
         self.publish_state(force=True)
+
+    def _subscribe_localized(self) -> None:
+        self.create_subscription(Emission, "localized", self.on_emission, EMISSION_QOS)
+        self.get_logger().info("slip_detector: listening on 'localized'")
+
+    def _subscribe_when_matched(self) -> None:
+        """A managed start (the split launch's chain): the localizer waits for this node on
+        `localized`, the driver for the localizer on `packets`; `contacts` keeps no history
+        for late joiners, so this node listens only once its consumers do."""
+        if self.pub_contacts.get_subscription_count() >= self.p["wait_for_subscribers"]:
+            self._subscribe_timer.cancel()
+            self._subscribe_localized()
 
     def _on_slip_change(self, changes: dict) -> None:
         values = dict(self.slip_params.values, **changes)
