@@ -98,6 +98,7 @@ class AcousticLearner:
         self._low: dict[float, deque] = {}
         self._high: dict[float, deque] = {}
         self._cache: dict[tuple, np.ndarray] = {}
+        self._fresh = 0  # waveforms learnt since the cache was built
         #: channel waveforms accepted so far (all rates)
         self.n_learnt = 0
 
@@ -175,12 +176,19 @@ class AcousticLearner:
             f_top_hz = 0.5 * fs if lp is None else min(float(lp), 0.5 * fs)
         low, high = spectrum_stats(anal, nv[rows, chans][good], f_top_hz, fs)
         waves = direct[good] / np.sqrt(e[good])[:, None]
+        filling = False
         for name, new in (("_waves", list(waves)), ("_low", low), ("_high", high)):
             store = getattr(self, name).setdefault(fs, deque(maxlen=self.keep))
             if name == "_waves" and store and len(store[0]) != n_span:
                 store.clear()  # another body: another echo-free span
+            filling |= len(store) < self.keep
             store.extend(new)
-        self._cache = {}  # templates and the nominal fit are built anew
+        self._fresh += int(good.sum())
+        # templates, limits and the nominal fit are built anew while the model fills, then
+        # once its waveforms have all been replaced (a rebuild costs a screened packet
+        # hundreds of us; a device drifts over minutes)
+        if filling or self._fresh >= self.keep:
+            self._cache, self._fresh = {}, 0
         self.n_learnt += int(good.sum())
         return int(good.sum())
 
@@ -221,13 +229,21 @@ class AcousticLearner:
     def low_max(self, sample_rate_hz: float, nominal: float) -> float:
         """The low-frequency test's limit at this rate: LEARN_MARGIN x the largest share
         of DC the device's touches gave, at least ``nominal``."""
-        v = self._low.get(float(sample_rate_hz))
-        return max(nominal, LEARN_MARGIN * float(np.max(v))) if v else nominal
+        return max(nominal, self._largest("_low", float(sample_rate_hz)))
 
     def high_max(self, sample_rate_hz: float, nominal: float) -> float:
         """The high-frequency test's limit at this rate (as `low_max`)."""
-        v = self._high.get(float(sample_rate_hz))
-        return max(nominal, LEARN_MARGIN * float(np.max(v))) if v else nominal
+        return max(nominal, self._largest("_high", float(sample_rate_hz)))
+
+    def _largest(self, name: str, fs: float) -> float:
+        """LEARN_MARGIN x the largest statistic ``name`` of the touches at rate ``fs``
+        (0: none), kept with the templates."""
+        key = (name, fs)
+        out = self._cache.get(key)
+        if out is None:
+            v = getattr(self, name).get(fs)
+            out = self._cache[key] = LEARN_MARGIN * float(np.max(v)) if v else 0.0
+        return out
 
     def calibration_state(self) -> dict | None:
         """The learnt model as a JSON mapping for `ae_tactile.calibration.CalibrationStore`
@@ -280,7 +296,7 @@ class AcousticLearner:
                 high[fs] = deque(hi, maxlen=self.keep)
         except (KeyError, TypeError, AttributeError) as exc:
             raise ValueError(f"acoustic model: malformed ({exc})") from None
-        self._waves, self._low, self._high, self._cache = waves, low, high, {}
+        self._waves, self._low, self._high, self._cache, self._fresh = waves, low, high, {}, 0
         self.n_learnt = sum(len(w) for w in waves.values())
 
     def status(self) -> str:
