@@ -232,6 +232,12 @@ def run_case(
     while not os.path.exists(port_file) and time.monotonic() < t_end:
         time.sleep(0.01)
     port = open(port_file).read().strip()
+    if port.startswith("/dev/"):
+        # the driver opens a link of this case's own: the kernel hands a freed pty number
+        # to the next process that asks, and a driver reconnecting after the writer is gone
+        # would read a stranger's bytes from the old path (removed when the writer ends)
+        os.symlink(port, os.path.join(tmp, "tty"))
+        port = os.path.join(tmp, "tty")
     listener = Listener(namespace)
     params = {
         "port": port,
@@ -262,6 +268,8 @@ def run_case(
             cpu0 = (cpu_seconds(driver.pid), time.monotonic())
         if writer.poll() is not None and t_stop is None:
             t_stop = time.monotonic()
+            if os.path.islink(port):
+                os.unlink(port)  # the device is gone: its port too (the driver retries)
             cpu1 = (cpu_seconds(driver.pid), time.monotonic())
         if t_stop is not None and time.monotonic() - t_stop > 1.5:
             break

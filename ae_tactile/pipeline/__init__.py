@@ -30,7 +30,6 @@ from ae_tactile.pipeline.config import (
     ROUTE_ALL,
     ROUTE_NONE,
     ROUTE_SPECTRUM,
-    SLIP_MAX_DEFER_S,
     SUSPECT_CONFIDENCE,
     LocalizationConfig,
 )
@@ -69,7 +68,6 @@ __all__ = [
     "ROUTE_ALL",
     "ROUTE_NONE",
     "ROUTE_SPECTRUM",
-    "SLIP_MAX_DEFER_S",
     "SUSPECT_CONFIDENCE",
     "ContactPipeline",
     "ContactRecord",

@@ -53,10 +53,6 @@ OVERLAP_SUSPECT_EXCESS = 0.028
 APEX_OUT_MAX = 10_000
 
 # ---------------------------------------------------------------- slip order (`slip_stage.py`)
-#: [s] longest time the slip step of contact events already handed out may wait while more
-#: packets are waiting on the port (their contact events go out first; a slip event comes
-#: at most this much later than it would alone).
-SLIP_MAX_DEFER_S = 0.5e-3
 #: [s] longest time the slip step waits for the overlap resolver's answer to a window (so
 #: that the slip detector sees every emission in time order, as offline); then the events
 #: go on without it (``slip_hold_expired``) and its emissions, when they come, are
