@@ -60,27 +60,53 @@ CLIP_MIN_LSB = 16.0
 
 
 @njit(cache=True, nogil=True)
+def _smallest_step(x, c0, c1, first_only):  # pragma: no cover - compiled
+    """The smallest nonzero step between consecutive samples of channels c0..c1-1 (inf:
+    none); ``first_only``: the first nonzero step found (an upper bound of the smallest)."""
+    step = np.inf
+    m = x.shape[1]
+    for c in range(c0, c1):
+        prev = float(x[c, 0])
+        for i in range(1, m):
+            v = float(x[c, i])
+            d = abs(v - prev)
+            if d > 0.0:
+                if first_only:
+                    return d
+                if d < step:
+                    step = d
+            prev = v
+    return step
+
+
+@njit(cache=True, nogil=True)
+def _sum_min_max(x, c):  # pragma: no cover - compiled
+    """(sum, min, max) of channel c (the sum is not finite where a sample is not)."""
+    total = 0.0
+    lo = np.inf
+    hi = -np.inf
+    for i in range(x.shape[1]):
+        v = float(x[c, i])
+        total += v
+        lo = min(lo, v)
+        hi = max(hi, v)
+    return total, lo, hi
+
+
+@njit(cache=True, nogil=True)
 def _identical_kernel(x, npre, nv_given, share):  # pragma: no cover - compiled
     """Identical-channel test of one packet ``x`` (4, M): see the module docstring."""
     m = x.shape[1]
-    step = np.inf
     mean = np.zeros(4)
     lo = np.inf
     hi = -np.inf
     for c in range(4):
-        prev = float(x[c, 0])
-        for i in range(m):
-            v = float(x[c, i])
-            if not math.isfinite(v):
-                return False
-            mean[c] += v
-            lo = min(lo, v)
-            hi = max(hi, v)
-            d = abs(v - prev)
-            if d > 0.0 and d < step:
-                step = d
-            prev = v
-        mean[c] /= m
+        total, c_lo, c_hi = _sum_min_max(x, c)
+        if not math.isfinite(total):
+            return False
+        mean[c] = total / m
+        lo = min(lo, c_lo)
+        hi = max(hi, c_hi)
     dd = 0.0
     for i in range(m):
         a0 = float(x[0, i]) - mean[0]
@@ -114,6 +140,12 @@ def _identical_kernel(x, npre, nv_given, share):  # pragma: no cover - compiled
     floor2 = floor * floor
     if nv > floor2 and dd <= share * 2.0 * nv * m:
         return True
+    # the quantization floor q = step^2 / 12 is at most the first step's: most packets
+    # differ by more than that allows, without a scan for the smallest step
+    step = _smallest_step(x, 0, 4, True)
+    if not (math.isfinite(step) and dd <= share * 2.0 * (step * step / 12.0) * m):
+        return False
+    step = _smallest_step(x, 0, 4, False)
     q = step * step / 12.0 if math.isfinite(step) else 0.0
     if not (q > nv and q > floor2 and dd <= share * 2.0 * q * m):
         return False
@@ -218,33 +250,22 @@ def _clip_kernel(x, min_run, min_lsb):  # pragma: no cover - compiled
     """Flat-top test of one packet ``x`` (4, M): see the module docstring."""
     m = x.shape[1]
     for c in range(4):
-        step = np.inf
-        vmax = -np.inf
-        vmin = np.inf
-        mean = 0.0
-        prev = float(x[c, 0])
-        for i in range(m):
-            v = float(x[c, i])
-            if not math.isfinite(v):
-                return False
-            d = abs(v - prev)
-            if d > 0.0 and d < step:
-                step = d
-            prev = v
-            vmax = max(vmax, v)
-            vmin = min(vmin, v)
-            mean += v
+        total, vmin, vmax = _sum_min_max(x, c)
+        if not math.isfinite(total):
+            return False
         if not vmax > vmin:
             continue
-        mean /= m
+        mean = total / m
         v = vmax if vmax - mean >= mean - vmin else vmin
-        if not abs(v - mean) >= min_lsb * step:
-            continue
         run = 0
+        longest = 0
         for i in range(m):
             run = run + 1 if float(x[c, i]) == v else 0
-            if run >= min_run:
-                return True
+            longest = max(longest, run)
+        # held long enough, and far enough from the mean in quantization steps (the
+        # smallest step is looked for only then: few packets hold a value that long)
+        if longest >= min_run and abs(v - mean) >= min_lsb * _smallest_step(x, c, c + 1, False):
+            return True
     return False
 
 
