@@ -386,6 +386,7 @@ class SlipDetector(
             if (
                 self._model
                 and c.state == ContactState.GROSS_SLIP
+                and now - c.last_ns >= self._lift_min
                 and now - c.last_ns >= self._lift_quiet_ns(c)
             ):
                 # silent after sliding: lifted (`ContactModel`)

@@ -37,6 +37,7 @@ from ae_tactile.records import ContactState
 
 from .contact import ARRIVAL, EVID, PAIRED, REPEAT
 from .fits import circle_centre
+from .gross import FOUNDER_SILENCE_RATIO
 
 #: largest radius of one contact patch as a share of association_radius_m (5 mm: 2 mm):
 #: micro-slips of a held contact fall within it of the touch that announced it, a
@@ -64,6 +65,13 @@ RELEASE_WAIT_S = 0.15
 RING_SPREAD = 0.03
 #: localization sigmas (of a difference of two distances) the ring's spread may exceed
 RING_SIGMAS = 2.5
+#: a ring fitted to 5 or more emissions (no touch announced its centre): the largest
+#: relative spread of a load (its annulus c(q) < r < a_H: c >= 0.79 a_H up to q = 0.5)
+RING_SPREAD_FIT = 0.1
+#: a ring fitted to 4 emissions (one beyond the circle's three parameters, so a slide's
+#: 4 points often lie near some circle and a load's annulus off it): wider than this is
+#: a slide at once, else the 5th emission decides
+RING_SPREAD_SLIDE = 0.2
 #: lift: a sliding contact silent for this many of its mean intervals ...
 LIFT_INTERVALS = 5.0
 #: [s] ... but at least this long and at most this long (the NO_CONTACT target is 0.2 s
@@ -87,6 +95,8 @@ class ContactModel:
         self._hold_gap = int(round(HOLD_GAP_S * 1e9))
         self._patch2 = (PATCH_FRACTION * self.config.association_radius_m) ** 2
         self._rel_wait = int(round(RELEASE_WAIT_S * 1e9))
+        #: [ns] no lift is possible sooner (`_lift_quiet_ns` >= it): skips its work
+        self._lift_min = int(LIFT_QUIET_MIN_S * 1e9)
 
     def _arrival_flags(self, c, ev, t):
         """Flags of an emission of a held (not slipping) contact that the arrival or the
@@ -131,9 +141,12 @@ class ContactModel:
         """Slide or load, for an arriving object's unexplained emissions: on one ring (the
         stick front of a load, round the touch that announced it or fitted) they are
         micro-slips (the contact is held and loaded: the precursor decides); spread over
-        a disc they are a slide from the start: SLIP at once. Decided at the 3rd
-        unexplained emission (the 4th of the object), at the 2nd when they are clearly
-        off one ring round the touch."""
+        a disc they are a slide from the start: SLIP at once. Round an announcing touch:
+        decided at the 3rd unexplained emission (the 4th of the object), at the 2nd when
+        they are clearly off one ring. A fitted ring (no touch announced it) has one
+        emission beyond the circle's three parameters at the 4th: only a clear slide
+        (`RING_SPREAD_SLIDE`) is decided there, the rest from the 5th on
+        (`RING_SPREAD_FIT`)."""
         if c.state == ContactState.GROSS_SLIP:
             return
         k = c.valid()
@@ -142,10 +155,12 @@ class ContactModel:
         n = int((((F & (EVID | ARRIVAL)) != 0) & free).sum())  # arrival touches too
         if n < 2:
             return
-        ring = self._ring_spread(c, k, F, free)
+        ring, fitted = self._ring_spread(c, k, F, free)
         if ring is None or (n == 2 and ring <= 2.0 * RING_SPREAD):
             return  # not decided yet
-        if ring <= RING_SPREAD:
+        if fitted and int(free.sum()) <= 4 and ring <= RING_SPREAD_SLIDE:
+            return  # a 4-point fit: wait for the 5th emission
+        if ring <= (RING_SPREAD_FIT if fitted else RING_SPREAD):
             c.arriving = False  # a held contact being loaded: its micro-slips
             self._precursor_decision(c, ev, ev.point_m, t, out)
             return
@@ -154,29 +169,48 @@ class ContactModel:
         out.append(self._slip_event(c, ev, 7, onset=True))
 
     def _ring_spread(self, c, k, F, free):
-        """Relative spread (max - min) / mean of the distances of the contact's unpaired
-        emissions from the touch that announced it (a compression followed by a pause),
-        or from the circle fitted to them (4 or more), less RING_SIGMAS localization sigmas; None:
-        not enough emissions to tell."""
+        """(relative spread, fitted) of the ring the contact's unpaired emissions lie on:
+        (max - min) / mean of their distances, less RING_SIGMAS localization sigmas, from
+        the touch that announced it (a compression followed by a pause of more than
+        ARRIVAL_WINDOW_S: its centre) or, unless that pause is much longer than the
+        intervals after it (`gross.FOUNDER_SILENCE_RATIO`: surely a touch) and when they
+        are not on a ring round it (the "touch" may be the load's first micro-slip), from
+        the circle fitted to them (4 or more; ``fitted``); the thinner ring is taken. The
+        spread None: not enough emissions to tell, or all on a short arc (any ring passes
+        through them)."""
         P = c.p[:k][free]
         sig = RING_SIGMAS * math.sqrt(2.0 * float(c.var[:k][free].max()))
         fp, _, fpol = c.founder
-        T = np.sort(c.t[:k][free])
-        announced = fpol > 0 and len(T) > 1 and T[1] - c.founder_ns > self._w_arrive
-        if announced:
-            D = P - fp
-            d = np.sqrt(np.einsum("ij,ij->i", D, D))
-            d = d[d > sig]  # the touch itself
-            if len(d) < 2:
-                return None
-        else:
-            if len(P) < 4:
-                return None
-            centre = circle_centre(P)
-            if centre is None:
-                return math.inf  # on a line: no ring
-            D = P - centre
-            d = np.sqrt(np.einsum("ij,ij->i", D, D))
+        ann = None
+        if fpol > 0 and len(P) > 2:
+            T = np.sort(c.t[:k][free])
+            if T[1] - c.founder_ns > self._w_arrive:
+                # the pause after it much longer than the intervals after it: surely a
+                # touch (the same test as the activity's onset, `gross`), else maybe the
+                # load's first micro-slip
+                nx = T[2:6]
+                sure = T[1] - T[0] > FOUNDER_SILENCE_RATIO * float(nx[-1] - T[1]) / len(nx)
+                D = P - fp
+                d = np.sqrt(np.einsum("ij,ij->i", D, D))
+                d = d[d > sig]  # the touch itself
+                ann = self._spread(d, sig) if len(d) >= 2 else None
+                if ann is not None and (ann <= RING_SPREAD or sure):
+                    return ann, False
+        if len(P) < 4:
+            return None, True
+        centre = circle_centre(P)
+        if centre is None:
+            return None, True  # on a short arc: any ring through them, not decided yet
+        D = P - centre
+        fit = self._spread(np.sqrt(np.einsum("ij,ij->i", D, D)), sig)
+        if ann is not None and ann < fit:
+            return ann, False
+        return fit, True
+
+    @staticmethod
+    def _spread(d, sig):
+        """Relative spread (max - min - ``sig``) / mean of distances ``d`` [m] (0 at
+        least; inf for a zero mean)."""
         mean = float(d.mean())
         return max(float(d.max() - d.min()) - sig, 0.0) / mean if mean > 0 else math.inf
 
@@ -185,8 +219,8 @@ class ContactModel:
         of its mean intervals over the latest member_history emissions."""
         k = c.valid()
         if k >= 3:
-            tt = np.sort(c.t[:k])
-            iv = float(tt[-1] - tt[0]) / (k - 1) * 1e-9
+            tl = c.tlist[:k] if k < c.H else c.tlist  # [ns] Python ints: no array per call
+            iv = float(max(tl) - min(tl)) / (k - 1) * 1e-9
         else:
             iv = LIFT_QUIET_MAX_S / LIFT_INTERVALS
         q = min(max(LIFT_INTERVALS * iv, LIFT_QUIET_MIN_S), LIFT_QUIET_MAX_S)
