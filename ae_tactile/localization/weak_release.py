@@ -36,6 +36,7 @@ import math
 
 import numpy as np
 
+from ae_tactile.jit import njit
 from ae_tactile.localization.common import Reason
 from ae_tactile.localization.events import confidence
 
@@ -82,17 +83,45 @@ def is_weak_release(
     )
 
 
+@njit(cache=True, nogil=True)
+def _nearest_spot(t_ns, xyz, var, n, t, x, y, z, v, g2, f2):  # pragma: no cover - compiled
+    """Index of the nearest of the first ``n`` remembered touches (oldest first) on the
+    spot of (x, y, z) with variance v, touched no later than t (the oldest on a tie);
+    -1: none."""
+    best = -1
+    best_d2 = np.inf
+    for i in range(n):
+        dx = x - xyz[i, 0]
+        dy = y - xyz[i, 1]
+        dz = z - xyz[i, 2]
+        d2 = dx * dx + dy * dy + dz * dz
+        if d2 <= g2 * (var[i] + v + f2) and d2 < best_d2 and t_ns[i] <= t:
+            best = i
+            best_d2 = d2
+    return best
+
+
 class WeakReleaseGate:
-    """The touches not yet released (time ns, point m, per-axis variance m^2), bounded."""
+    """The touches not yet released (time ns, point m, per-axis variance m^2), bounded:
+    arrays in the order fed (the oldest first), searched by a compiled kernel."""
 
     def __init__(self):
-        self._touches: list[tuple] = []  # (t_ns, x, y, z, var)
+        self._t = np.zeros(CAPACITY + 1, np.int64)
+        self._xyz = np.zeros((CAPACITY + 1, 3))
+        self._var = np.zeros(CAPACITY + 1)
+        self._n = 0
 
     def __len__(self) -> int:
-        return len(self._touches)
+        return self._n
 
     def clear(self) -> None:
-        self._touches.clear()
+        self._n = 0
+
+    def _delete(self, i: int) -> None:
+        n = self._n
+        for a in (self._t, self._xyz, self._var):
+            a[i:n - 1] = a[i + 1:n]
+        self._n = n - 1
 
     def admit(self, time_ns: int, point_m, var_m2: float, polarity: int, weak: bool) -> bool:
         """Feed one event in time order; True when it is kept. A touch (polarity >= 0, the
@@ -108,19 +137,16 @@ class WeakReleaseGate:
             return not weak
         if weak and var > MAX_SIGMA_M * MAX_SIGMA_M:
             return False  # too vague a spot to be any touch's
-        touches = self._touches  # in the order fed (time order): the oldest first
-        best, best_d2 = -1, math.inf
-        for i, (tt, tx, ty, tz, tv) in enumerate(touches):
-            dx, dy, dz = x - tx, y - ty, z - tz
-            d2 = dx * dx + dy * dy + dz * dz
-            if d2 <= _G2 * (tv + var + _F2) and d2 < best_d2 and tt <= t:
-                best, best_d2 = i, d2
+        best = _nearest_spot(self._t, self._xyz, self._var, self._n, t, x, y, z, var,
+                             _G2, _F2)
         if best >= 0:
-            del touches[best]  # released, or replaced by a touch on its spot
+            self._delete(best)  # released, or replaced by a touch on its spot
         if polarity >= 0:
-            touches.append((t, x, y, z, var))
-            if len(touches) > CAPACITY:
-                del touches[0]
+            n = self._n
+            self._t[n], self._xyz[n], self._var[n] = t, (x, y, z), var
+            self._n = n + 1
+            if self._n > CAPACITY:
+                self._delete(0)
             return True
         return best >= 0 or not weak
 
