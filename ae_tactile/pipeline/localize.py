@@ -23,6 +23,7 @@ from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import Localizer, Reason, get_estimator
 from ae_tactile.localization.overlap import suspect_overlap
 from ae_tactile.localization.overlap import warm_up as warm_overlaps
+from ae_tactile.localization.weak_release import WeakReleaseGate
 from ae_tactile.pipeline.config import (
     MAX_PACKET_SAMPLES,
     MAX_SAMPLE_RATE_HZ,
@@ -312,6 +313,8 @@ class PacketLocalizer:
             )
             suspect_overlap(w, sample_rate_hz, on, single, geometry=self.geometry)
             warm_overlaps(self.geometry, sample_rate_hz, n_samples)
+        # the weak-release gate's search (a noise packet never reaches it)
+        WeakReleaseGate().admit(0, (0.0, 0.0, self.geometry.radius_m), 1e-10, -1, False)
         self.overlap_windows = []
 
     # ---------------------------------------------------------------- packets
