@@ -24,6 +24,9 @@ from ae_tactile.localization.overlap import (
     localize_with_overlaps,
     resolve_overlaps,
 )
+from ae_tactile.pipeline import ContactPipeline, PacketLocalizer
+from ae_tactile.pipeline.device_calibration import DeviceCalibration
+from ae_tactile.records import PacketView
 from ae_tactile.sim import render_triggered
 
 TOL_M = 0.1e-3  # issue 37: both emissions of a pair within 0.1 mm
@@ -224,3 +227,164 @@ def test_identical_channels_rejected_by_the_overlap_calls(name):
     single, over = localize_with_overlaps(x, 10e6, on, geometry=cfg.geometry)
     assert not single.accepted.any()
     assert not any(o.accepted for o in over.values())
+
+
+# ---------------------------------------------------------------- the live path
+def _views(samples, onsets, id0, noise=None):
+    """PacketViews of windows, 1 ms apart (ids from id0)."""
+    return [PacketView(np.asarray(samples[i]), 10e6, int(onsets[i]), 10**6 * (id0 + i), id0 + i,
+                       noise_rms_v=0.0 if noise is None else float(noise[i]))
+            for i in range(len(samples))]
+
+
+def _pipeline(cfg):
+    return ContactPipeline(PacketLocalizer("ml", geometry=cfg.geometry), None)
+
+
+def _learn_live(pipe, cfg, rng, max_singles=64):
+    """Single touches through `process` (batches of 12) until the pipeline's pulse learner
+    trusts a pulse; the learner."""
+    learner = pipe.overlap_stage.pulse_learner
+    for k in range(0, max_singles, 12):
+        pk, _ = singles(cfg, 12, rng)
+        pipe.process(_views(pk.samples_v, pk.onset_index, 10_000 + k))
+        learner.wait()
+        if learner.converged:
+            break
+    return learner
+
+
+def _pairs_live(pipe, d, id0=50_000):
+    """The pairs through `process` one window per call; the events of each window."""
+    out: dict = {}
+
+    def take(records):
+        for r in records:
+            out.setdefault(r.packet_ids[0], []).append(r)
+
+    for v in _views(d["samples_v"], d["onset_index"], id0):
+        pipe.process([v], take)
+    assert pipe.wait_idle(120.0)
+    return [out.get(id0 + i, []) for i in range(len(d["samples_v"]))]
+
+
+def _resolved(d, events):
+    return [both_within(d["points_m"][i], events[i]) for i in range(len(events))]
+
+
+@pytest.fixture(scope="module")
+def live_rc2():
+    """rc2_bessel6 (two RC high-pass stages, Bessel-6): a warm pipeline that learnt its
+    pulse from single touches through `process`, a cold one, and 20 pairs."""
+    cfg = ZOO["rc2_bessel6"].config("water_skin", 10e6, reflections=True)
+    rng = np.random.default_rng(37)
+    warm, cold = _pipeline(cfg), _pipeline(cfg)
+    learner = _learn_live(warm, cfg, rng)
+    d = pairs(cfg, 20, rng)
+    yield cfg, warm, cold, learner, d
+    warm.close()
+    cold.close()
+
+
+def test_the_live_pipeline_learns_the_pulse_and_resolves_pairs(live_rc2):
+    """Fed through `ContactPipeline.process` (the driver's path), the pipeline's own pulse
+    learner converges on the device's single touches and its resolver then gives both
+    emissions of >= 90 % of pairs 2-10 us apart within 0.1 mm of the simulator's truth;
+    the cold pipeline (nominal pulse) resolves few, and counts every window it does not
+    resolve."""
+    cfg, warm, cold, learner, d = live_rc2
+    assert learner.converged, learner.state()
+    ok_warm = _resolved(d, _pairs_live(warm, d))
+    assert warm.overlaps.current_pulse(10e6) is learner.pulse
+    assert warm.overlaps.current_pulse(5e6) is None  # learnt at 10 MS/s only
+    cold_events = _pairs_live(cold, d)
+    ok_cold = _resolved(d, cold_events)
+    assert sum(ok_warm) >= 18, ok_warm  # >= 90 % of 20
+    assert sum(ok_cold) <= 4, ok_cold  # the nominal pulse does not describe the device
+    c = cold.all_counts()
+    unresolved = sum(len(e) < 2 for e in cold_events)
+    # every window that did not give two points is counted: rejected by the resolver or
+    # (one point) accepted by the single-source localizer, never silently one emission lost
+    counted = sum(v for k, v in c.items() if k.startswith("overlap_rejected_"))
+    singles_out = sum(len(e) == 1 for e in cold_events)
+    assert counted + singles_out >= unresolved
+    assert c["pulse_converged"] == 0
+
+
+def test_the_learnt_pulse_is_kept_per_device_and_a_reset_clears_it(tmp_path, live_rc2):
+    """The trusted pulse goes into the device's calibration file (section
+    ``overlap_pulse``), a restarted pipeline resolves pairs with it from the first
+    window (before any single touch), diagnostics say so; a reset or another serial
+    starts from the nominal pulse."""
+    cfg, warm, _, learner, d = live_rc2
+    cal = DeviceCalibration(warm.calibration_learners, str(tmp_path))
+    cal.on_device("AE-0037")
+    assert cal.close()
+    assert "learnt at 10 MS/s" in cal.status()["calibration_overlap_pulse"]
+
+    again = _pipeline(cfg)
+    try:
+        cal2 = DeviceCalibration(again.calibration_learners, str(tmp_path))
+        cal2.on_device("AE-0037")
+        assert "overlap_pulse" in cal2.status()["calibration_loaded"]
+        loaded = again.overlap_stage.pulse_learner
+        assert loaded.converged and loaded.loaded
+        assert "loaded" in cal2.status()["calibration_overlap_pulse"]
+        np.testing.assert_allclose(loaded.pulse.poles_rad_s, learner.pulse.poles_rad_s)
+        np.testing.assert_allclose(loaded.pulse.residues, learner.pulse.residues)
+        assert loaded.pulse.channel_gain == learner.pulse.channel_gain
+        ok = _resolved(d, _pairs_live(again, d, id0=60_000))
+        assert sum(ok) >= 18, ok
+    finally:
+        again.close()
+
+    for serial, reset in (("AE-0038", False), ("AE-0037", True)):
+        p = _pipeline(cfg)
+        c = DeviceCalibration(p.calibration_learners, str(tmp_path), reset=reset)
+        c.on_device(serial)
+        lr = p.overlap_stage.pulse_learner
+        assert not lr.converged and lr.calibration_state() is None, serial
+        assert "nominal pulse" in c.status()["calibration_overlap_pulse"]
+        p.close()
+
+
+def test_a_loaded_pulse_of_another_device_is_dropped_on_its_first_touches(live_rc2):
+    """A calibration file whose pulse is not this device's (rc2_bessel6's pulse on a
+    device with a 1e6 /s emission decay): trusted at load, then checked on the first
+    ``min_packets`` single touches, found not to explain them, and dropped (the learner
+    fits the device's own)."""
+    _, _, _, learner, _ = live_rc2
+    cfg = ZOO["alpha_1e6"].config("water_skin", 10e6, reflections=True)
+    other = PulseLearner(cfg.geometry)
+    other.load_calibration(learner.calibration_state())
+    assert other.converged and other.loaded
+    pk, _ = singles(cfg, 12, np.random.default_rng(41))
+    x, on = pk.samples_v, pk.onset_index
+    assert not other.verify(x, 10e6, on)
+    assert not other.converged and not other.loaded
+    same = PulseLearner(learner.geometry)
+    same.load_calibration(learner.calibration_state())
+    cfg_same = ZOO["rc2_bessel6"].config("water_skin", 10e6, reflections=True)
+    pk, _ = singles(cfg_same, 12, np.random.default_rng(43))
+    assert same.verify(pk.samples_v, 10e6, pk.onset_index)
+    assert same.converged and not same.loaded
+
+
+@pytest.mark.parametrize("bad", [
+    {"format": 2},
+    {"poles_rad_s": [[1e5, 0.0]]},  # growing, not decaying
+    {"residues": [[float("nan"), 0.0]]},
+    {"channel_gain": [1.0, -1.0, 1.0, 1.0]},
+    {"channel_delay_s": [0.0, 0.0, 2e-6, 0.0]},
+    {"n_inliers": 40},  # more inliers than candidates
+    {"sample_rate_hz": "fast"},
+])
+def test_an_unusable_saved_pulse_is_refused_and_changes_nothing(live_rc2, bad):
+    _, _, _, learner, _ = live_rc2
+    state = dict(learner.calibration_state(), **bad)
+    if "residues" in bad:
+        state["poles_rad_s"] = state["poles_rad_s"][:1]
+    fresh = PulseLearner()
+    with pytest.raises(ValueError):
+        fresh.load_calibration(state)
+    assert not fresh.converged and fresh.calibration_state() is None

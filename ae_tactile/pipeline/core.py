@@ -225,6 +225,8 @@ class ContactPipeline:
             self.slip_order.after_batch(contacts)
         if loc.echo_pending and (more_waiting is None or self.slip is None or not more_waiting()):
             loc.learn_echo()  # else when the link is idle (`run_idle_work`)
+        if contacts and loc.resolve_overlaps:  # the overlap pulse's candidates: queued only
+            self.overlap_stage.offer_singles(packets, contacts, loc.geometry)
 
     def _learn_echo_first(self) -> None:
         """While the echo test or the device's acoustic packet is still being learnt (its
@@ -361,7 +363,7 @@ class ContactPipeline:
 
     def calibration_learners(self) -> dict:
         """Section name -> learner of what the stages learn about the device (the screens'
-        models; the overlap stage's pulse where it persists): what
+        acoustic packet and wall echo; the overlap stage's pulse, ``overlap_pulse``): what
         `ae_tactile.calibration.CalibrationStore` loads and saves.
 
         Returns
@@ -369,9 +371,7 @@ class ContactPipeline:
         dict
         """
         out = dict(self.localizer.calibration_learners())
-        pulse = getattr(self.overlap_stage, "pulse_learner", None)
-        if hasattr(pulse, "calibration_state") and hasattr(pulse, "load_calibration"):
-            out["overlap_pulse"] = pulse
+        out["overlap_pulse"] = self.overlap_stage.pulse_learner
         return out
 
     def all_counts(self) -> Counter:

@@ -110,18 +110,26 @@ class DeviceCalibration:
 
     def status(self) -> dict:
         """For diagnostics: the file, the sections loaded, the store's counts, the last
-        problem.
+        problem, and each learner's state in words where it says it (``calibration_<section>``,
+        e.g. ``calibration_overlap_pulse``: learnt, loaded and being checked, or the
+        nominal pulse while learning).
 
         Returns
         -------
         dict
         """
+        out = {}
         if self.store is None:
-            return {"calibration_file": "(device not known yet)"}
-        s = self.store
-        out = {"calibration_file": s.path,
-               "calibration_loaded": ",".join(s.loaded_sections) or "(none)"}
-        out.update({f"calibration_{k}": v for k, v in s.counts.items()})
-        if s.last_error:
-            out["calibration_last_error"] = s.last_error
+            out["calibration_file"] = "(device not known yet)"
+        else:
+            s = self.store
+            out["calibration_file"] = s.path
+            out["calibration_loaded"] = ",".join(s.loaded_sections) or "(none)"
+            out.update({f"calibration_{k}": v for k, v in s.counts.items()})
+            if s.last_error:
+                out["calibration_last_error"] = s.last_error
+        for name, learner in self._learners().items():
+            status = getattr(learner, "status", None)
+            if callable(status):
+                out[f"calibration_{name}"] = status()
         return out

@@ -22,7 +22,6 @@ import subprocess
 import sys
 import threading
 from collections import Counter, deque
-from types import SimpleNamespace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -34,6 +33,7 @@ from ae_tactile.pipeline.config import (
     COVERED_TOL_S,
     DUPLICATE_DISTANCE_M,
     DUPLICATE_TIME_S,
+    ECHO_LEARN_CONFIDENCE,
     OVERLAP_INLINE_MAX,
     OVERLAP_MAX_PENDING,
     RECENT_MARGIN_NS,
@@ -43,25 +43,24 @@ from ae_tactile.records import onset_ns, source_record
 
 class OverlapResolver:
     """Localizes every emission of windows that hold several (`resolve_overlaps`) and hands
-    the sources to ``on_records(list[ContactRecord])`` from its own thread. Each source is
-    one contact event naming the shared packet id, stamped at its own emission instant. At
-    most ``max_pending`` windows wait; more are counted (``overlap_dropped_backlog``) and
-    lost rather than delaying anything else.
+    the sources to ``on_records(list[ContactRecord])`` from its own thread: one contact
+    event per source, naming the shared packet id, stamped at its own emission instant. At
+    most ``max_pending`` windows wait; more are counted (``overlap_dropped_backlog``).
 
-    The quick search (one compiled call, most of it without the interpreter lock) runs in
-    this object's thread, beside the reader. The exhaustive search of a window whose
-    quick answer is DEFERRED (tens of milliseconds of numpy and Python, which would hold
-    the lock against the thread that localizes every other packet) runs in a worker
-    process (`ae_tactile.localization.overlap_worker`, started here, warmed up before the
-    first window); so does the quick search where it is not compiled (no numba, a lossy
-    medium). Where the process cannot run (``use_process=False``, or it failed), the
-    thread does that too (``overlap_worker_unavailable``).
+    The quick search (one compiled call, mostly without the interpreter lock) runs in this
+    thread, beside the reader; the exhaustive search of a window whose quick answer is
+    DEFERRED (tens of ms of numpy and Python, holding the lock) runs in a worker process
+    (`ae_tactile.localization.overlap_worker`, warmed up before the first window), as does
+    the quick search where it is not compiled (no numba, a lossy medium). Where the
+    process cannot run (``use_process=False``, or it failed), this thread does it
+    (``overlap_worker_unavailable``). The pulse is the learner's once trusted
+    (`current_pulse`).
 
     ``idle`` (a driver on cores of its own): this thread and the worker run as SCHED_IDLE,
-    so the reader, which shares their core, takes it the moment it wakes. Otherwise the
-    worker is niced and this thread keeps the normal priority: on cores shared with other
-    busy processes, an idle-class thread could wait indefinitely while it holds the
-    interpreter lock or one of the pipeline's locks, and the reader with it.
+    so the reader on their core takes it the moment it wakes. Otherwise the worker is
+    niced and this thread keeps its priority: on cores shared with busy processes an
+    idle-class thread holding the interpreter lock or a pipeline lock could stall the
+    reader indefinitely.
     """
 
     def __init__(
@@ -119,8 +118,9 @@ class OverlapResolver:
 
     def snapshot_counts(self) -> dict:
         """A consistent copy of the counts (the reader and the resolver's thread write them),
-        with the pulse learner's state (``pulse_converged``, ``pulse_inliers``,
-        ``pulse_fits``, ``pulse_candidates_kept``, ``pulse_candidates_offered``)."""
+        with the pulse learner's state (``pulse_converged``, ``pulse_loaded``,
+        ``pulse_inliers``, ``pulse_fits``, ``pulse_fit_errors``, ``pulse_candidates_kept``,
+        ``pulse_candidates_offered``)."""
         with self._count_lock:
             out = dict(self.counts)
         if self.learner is not None:
@@ -128,10 +128,15 @@ class OverlapResolver:
             out.update({k: int(v) for k, v in st.items() if k != "pulse_chi2_median"})
         return out
 
-    def current_pulse(self):
-        """The pulse the fits use: the learnt one once trusted, else the configured one
-        (None: the default `PulseModel.for_sample_rate`)."""
-        learnt = None if self.learner is None else self.learner.pulse
+    def current_pulse(self, sample_rate_hz: float | None = None):
+        """The pulse the fits of windows at ``sample_rate_hz`` [Hz] use: the learnt one
+        once trusted (at that rate, when given), else the configured one (None: the
+        default `PulseModel.for_sample_rate`, untrusted: a window it does not explain is
+        rejected and counted, ``overlap_rejected_UNRESOLVED``)."""
+        learner = self.learner
+        if learner is None:
+            return self.pulse
+        learnt = learner.pulse if sample_rate_hz is None else learner.pulse_at(sample_rate_hz)
         return learnt if learnt is not None else self.pulse
 
     def submit(self, packets: Sequence, *, quick_first: bool = True, hard: bool = False) -> list:
@@ -158,16 +163,10 @@ class OverlapResolver:
         it with ``quick_first=False``). Never raises."""
         self.arrivals_ns = []
         try:
-            with np.errstate(all="ignore"):
-                res = overlap.resolve_overlaps(
-                    np.asarray(p.samples_v, dtype=np.float64)[None],
-                    float(p.sample_rate_hz),
-                    [int(p.onset_index)],
-                    geometry=self.geometry,
-                    pulse=self.current_pulse(),
-                    saturated=[bool(getattr(p, "saturated", False))],
-                    exhaustive=False,
-                )[0]
+            fs = float(p.sample_rate_hz)
+            res = self._resolve(np.asarray(p.samples_v, dtype=np.float64), fs,
+                                int(p.onset_index), bool(getattr(p, "saturated", False)),
+                                self.current_pulse(fs), False)
             records = self._records(p, res)
             if records is not None:
                 stamp = int(p.stamp_ns)
@@ -180,6 +179,13 @@ class OverlapResolver:
         if records is not None:
             self._count("overlap_answered_in_reader")
         return records
+
+    def _resolve(self, samples, fs, onset, sat, pulse, exhaustive):
+        """`resolve_overlaps` of one window (4, M) here: its OverlapPacket."""
+        with np.errstate(all="ignore"):
+            return overlap.resolve_overlaps(
+                samples[None], fs, [onset], geometry=self.geometry, pulse=pulse,
+                saturated=[sat], exhaustive=exhaustive)[0]
 
     def _records(self, p, res) -> list | None:
         """Contact events of one answer (counted), None when it is DEFERRED."""
@@ -201,11 +207,11 @@ class OverlapResolver:
         with self._queue.mutex:
             return self._queue.unfinished_tasks
 
-    def _quick_here(self) -> bool:
+    def _quick_here(self, sample_rate_hz: float | None = None) -> bool:
         """The quick search runs in this thread: compiled (numba, a lossless medium), it
         spends most of its ~0.5 ms without the interpreter lock, so the reader goes on
         beside it, and the answer needs no trip to the worker process."""
-        pulse = self.current_pulse()
+        pulse = self.current_pulse(sample_rate_hz)
         lossless = pulse is None or not pulse.attenuation_db_per_m_at_1mhz > 0
         return overlap._kernels.NUMBA_AVAILABLE and lossless
 
@@ -217,14 +223,10 @@ class OverlapResolver:
         samples = np.asarray(p.samples_v, dtype=np.float64)
         fs, onset = float(p.sample_rate_hz), int(p.onset_index)
         sat = bool(getattr(p, "saturated", False))
-        pulse = self.current_pulse()
-        if quick_first and not hard and self._quick_here():
+        pulse = self.current_pulse(fs)
+        if quick_first and not hard and self._quick_here(fs):
             try:
-                with np.errstate(all="ignore"):
-                    res = overlap.resolve_overlaps(
-                        samples[None], fs, [onset], geometry=self.geometry, pulse=pulse,
-                        saturated=[sat], exhaustive=False,
-                    )[0]
+                res = self._resolve(samples, fs, onset, sat, pulse, False)
             except Exception:  # counted; the worker process answers the window instead
                 self._count("overlap_errors")
             else:
@@ -259,11 +261,7 @@ class OverlapResolver:
                 yield res
                 return
         for exhaustive in (False, True) if quick_first else (True,):
-            with np.errstate(all="ignore"):
-                res = overlap.resolve_overlaps(
-                    samples[None], fs, [onset], geometry=self.geometry, pulse=pulse,
-                    saturated=[sat], exhaustive=exhaustive,
-                )[0]
+            res = self._resolve(samples, fs, onset, sat, pulse, exhaustive)
             yield res
             if res.reason != OverlapReason.DEFERRED:
                 return
@@ -408,9 +406,9 @@ class OverlapStage:
         self._on_late, self._on_window_done = on_late, on_window_done
         self._on_hold, self._on_unhold = on_hold, on_unhold
         self.lock = threading.Lock()
-        #: the pulse learnt from the accepted single emissions (`offer_events`), fitted in
-        #: a thread of its own; the resolver uses it once trusted
-        self.pulse_learner = PulseLearner(background=True)
+        #: the pulse learnt from the accepted single emissions (`offer_singles`), fitted in
+        #: a process of its own; the resolver uses it once trusted
+        self.pulse_learner = PulseLearner(background="process")
         #: (stamp ns, x, y, z) of the contact events handed out that a window still with the
         #: resolver could hold again (duplicate check), oldest first
         self._recent: deque = deque()
@@ -434,41 +432,21 @@ class OverlapStage:
             self.resolver.ready.wait(wait_s)
 
     def _body(self, geometry: FingertipGeometry) -> None:
-        """Another body than the pulse learner's: it starts again on this one."""
+        """Another body than the pulse learner's: it starts again on this one (an equal
+        body is taken as it is)."""
         if self.pulse_learner.geometry != geometry:
             self.pulse_learner.reset()
-            self.pulse_learner.geometry = geometry
+        self.pulse_learner.geometry = geometry
 
-    def offer_events(self, found: list, geometry: FingertipGeometry) -> int:
-        """Offer accepted single emissions to the pulse learner.
-
-        Parameters
-        ----------
-        found : list of (PacketView, ContactRecord)
-            Packets the pipeline kept as single emissions (suspects and interference
-            withdrawn), with their events (``polar_rad``).
-        geometry : FingertipGeometry
-            The body they were localized on (another body resets the learner).
-
-        Returns
-        -------
-        int
-            Candidates kept (the fit checks each one's SNR and residual itself).
-        """
-        self._body(geometry)
-        groups: dict = {}  # by (window length, sample rate)
-        for p, ev in found:
-            key = (int(np.shape(p.samples_v)[1]), float(p.sample_rate_hz))
-            groups.setdefault(key, []).append((p, ev))
-        kept = 0
-        for (_, fs), items in groups.items():
-            w = np.stack([np.asarray(p.samples_v, dtype=np.float64) for p, _ in items])
-            on = np.array([int(p.onset_index) for p, _ in items])
-            single = SimpleNamespace(  # the SNR is checked by the fit itself
-                accepted=np.ones(len(items), bool), snr_db_est=np.full(len(items), np.inf),
-                polar_rad=np.array([float(ev.polar_rad) for _, ev in items]))
-            kept += self.pulse_learner.offer(w, fs, on, single)
-        return kept
+    def offer_singles(self, packets, contacts: list, geometry: FingertipGeometry) -> int:
+        """Queue the batch's single emissions the pipeline kept (suspects and interference
+        withdrawn) for the pulse learner (`PulseLearner.enqueue_records`, confidence >=
+        ECHO_LEARN_CONFIDENCE as for the screens' learners; another body resets it); the
+        fit runs in a process of its own. Cheap: the reader calls it per batch. Returns
+        the candidates queued."""
+        if self.pulse_learner.geometry is not geometry:
+            self._body(geometry)
+        return self.pulse_learner.enqueue_records(packets, contacts, ECHO_LEARN_CONFIDENCE)
 
     def _window_done(self, p) -> None:
         """The resolver answered a window: the slip step of what waited for it runs."""

@@ -36,7 +36,7 @@ from ae_tactile.localization.overlap.pulse import PulseModel, _given, shift_chan
 from ae_tactile.localization.overlap.search import _segments
 from ae_tactile.localization.segments import prepare
 
-__all__ = ["PulseFit", "fit_pulse"]
+__all__ = ["PulseFit", "fit_pulse", "pulse_inliers"]
 
 #: [rad] candidates for learning lie at least this polar angle from the apex: an apex
 #: packet is the one an identical-channel burst imitates
@@ -345,6 +345,52 @@ def fit_pulse(windows, sample_rate_hz, onset_index, *, geometry=None, single=Non
                      for d in data)
         return _fit(init, fs, geo, echo, data, ids.size, min_packets, min_inlier_share,
                     lowpass_sections, rounds)
+
+
+def pulse_inliers(windows, sample_rate_hz, onset_index, pulse, *, geometry=None,
+                  noise_rms_v=None, echo=True) -> tuple[int, int]:
+    """How many packets a given pulse explains: the candidates `fit_pulse` would take
+    (accepted by `localize` away from the apex, SNR >= MIN_LEARN_SNR_DB), each one's
+    one-emission Levenberg-Marquardt fit with ``pulse`` (its channel corrections
+    applied), judged by the residual test that makes a fit converge.
+
+    Parameters
+    ----------
+    windows : array_like, (K, 4, M)
+        Packets [V].
+    sample_rate_hz : float
+        Sample rate [Hz].
+    onset_index : array_like of int, (K,)
+        Onsets [samples].
+    pulse : PulseModel
+        The pulse to check (e.g. one loaded from the device's calibration file).
+    geometry : FingertipGeometry, optional
+        The fingertip (default tip).
+    noise_rms_v : float or array_like (K,), optional
+        Known noise sigma [V]; default measured before the onset.
+    echo : bool
+        Model the first wall echo.
+
+    Returns
+    -------
+    (int, int)
+        (candidates, inliers).
+    """
+    geo = FingertipGeometry() if geometry is None else geometry
+    fs = float(sample_rate_hz)
+    x, on = validate_windows(windows, onset_index)
+    x, nr = pulse.correct_channels(x, fs, noise_rms_v)
+    bare = replace(pulse, channel_gain=(), channel_delay_s=())
+    with np.errstate(all="ignore"):
+        single = localize(x, fs, on, geometry=geo, noise_rms_v=nr)
+        ids, data = _prepare(x, on, fs, geo, nr, single, echo)
+        if data is None:
+            return 0, 0
+        plan, seg, start, length, inside, sigma2, n_noise, pts, t0, _ = data
+        model = _Model(geo, plan.fs, start, length, bare, echo, inside)
+        theta = np.concatenate([pts, t0[:, None]], axis=1)[:, None, :]
+        _, _, ratio, limit = _chi2(model, seg.reshape(ids.size, -1), theta, sigma2, n_noise)
+    return int(ids.size), int(np.sum(ratio <= limit))
 
 
 def _fit(init, fs, geo, echo, data, n, min_packets, min_inlier_share, lowpass_sections,
