@@ -10,7 +10,7 @@ demo:
 		--summary-json log/demo_summary.json --report-png log/demo_summary.png
 
 test:
-	@AE_TACTILE_REQUIRE_ROS=1 tools/run.sh pytest -q -p no:cacheprovider test
+	@AE_TACTILE_REQUIRE_ROS=1 tools/run.sh pytest -q -p no:cacheprovider --durations=15 test
 
 # make bench: every benchmark; make bench-sim: bench/bench_sim.py alone (results in bench/results/)
 bench:
