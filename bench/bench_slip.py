@@ -1177,7 +1177,19 @@ def main(argv=None) -> int:
         default=None,
         help="start no new family after this many seconds (results so far are kept)",
     )
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="write the JSON to this directory instead of bench/results (scratch runs; "
+        "with --quick or --model only: a full run's tables stay with bench/results)",
+    )
     args = ap.parse_args(argv)
+    if args.out is not None:
+        if not (args.quick or args.model):
+            ap.error("--out is for --quick or --model runs")
+        global RESULTS
+        RESULTS = args.out
     if args.model:
         ev.pipelines.DETECTOR_OPTIONS["model"] = True
     warnings.simplefilter("ignore", RuntimeWarning)
