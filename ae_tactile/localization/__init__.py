@@ -15,9 +15,12 @@ Per-packet hot path (compiled with numba when available, `fast.py`):
 
     loc = Localizer("ml").warm_up(geometry, fs, n_samples)
     r = loc.localize_one(window (4, M), fs, onset)   # PacketLocation: accepted, point_m, ...
-See docs/localization.md.
+
+The channels' own delays, learnt from touches (`ChannelDelayLearner`), are taken out of
+the arrivals with ``Localizer.set_channel_delays``. See docs/localization.md.
 """
 
+from ae_tactile.localization.channel_delays import ChannelDelayLearner
 from ae_tactile.localization.common import REASON_DESCRIPTIONS, Reason
 from ae_tactile.localization.estimators import localize, localize_packets
 from ae_tactile.localization.fast import NUMBA_AVAILABLE
@@ -49,4 +52,5 @@ __all__ = [
     "default_band_hz",
     "PacketLocation",
     "NUMBA_AVAILABLE",
+    "ChannelDelayLearner",
 ]

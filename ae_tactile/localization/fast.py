@@ -459,6 +459,19 @@ def _aligned(x, m, seg_start, t, fs, max_shift, L, pre_mean, ca, sa, seg, count,
 
 
 @njit(cache=True, nogil=True)
+def _cut_delayed(x, m, seg_start, t, fs, max_shift, L, pre_mean, ca, sa, seg, count, yb, c0,
+                 gains, cdel):
+    """`_aligned` at the arrivals t_k + cdel[k] (the channels' own delays [s]); c0 is
+    returned less cdel, so that eps_k = t_k - c0[k] everywhere after (t unchanged)."""
+    for k in range(4):
+        t[k] += cdel[k]
+    _aligned(x, m, seg_start, t, fs, max_shift, L, pre_mean, ca, sa, seg, count, yb, c0, gains)
+    for k in range(4):
+        t[k] -= cdel[k]
+        c0[k] -= cdel[k]
+
+
+@njit(cache=True, nogil=True)
 def _polarity(seg, e, pre, stop_s, span, b):
     """Sign and signed amplitude of the first lobe of the aligned mean b[n] = mean_k
     y_k(n + e_k) (4-point Lagrange interpolation, e_k in samples); events.py."""
@@ -680,9 +693,11 @@ def _packet(
     pt,
     cov,
     ctau,
+    cdel,
 ):
     """One packet. out: 16 scalars (see estimators.PacketLocation); pt (3,), cov (3, 3),
-    ctau (2, 2). tabs: `Tables.packed`."""
+    ctau (2, 2). tabs: `Tables.packed`. cdel (4,): the channels' own delays [s] (each
+    arrival is modelled t_k(s) + cdel[k]; zeros: none)."""
     cc, sc, ca, sa, wa, lc, ls, max_lag, geo, ints, fc, fa, auto, scal = tabs
     fs, max_step, lag0, win2 = scal[0], scal[1], int(scal[2]), scal[3]
     pre, L, snr_len, flat_run, max_shift, stop_s, span, n_al = (
@@ -778,7 +793,7 @@ def _packet(
         den = ym - 2 * best + yp
         frac = 0.5 * (ym - yp) / den if den < 0 else 0.0
         frac = min(max(frac, -0.5), 0.5)
-        d6[p] = (best_lag + frac) / fs
+        d6[p] = (best_lag + frac) / fs - (cdel[i] - cdel[j])  # the channels' own delays out
     th0 = np.zeros(3)
     for r_ in range(3):
         for p in range(6):
@@ -805,7 +820,8 @@ def _packet(
     cnt_al = np.empty(4, np.int64)
     ga = np.empty(nba)
     _noise_gains(acov, fa[:nba], fs, ga)
-    _aligned(x, m, seg_start, t, fs, max_shift, L, pre_mean, ca, sa, seg, cnt_al, yb, c0, ga)
+    _cut_delayed(x, m, seg_start, t, fs, max_shift, L, pre_mean, ca, sa, seg, cnt_al, yb, c0,
+                 ga, cdel)
     tol = 1e-4 * max_step
     sx, sy, clamped = _newton(yb, wa, geo, sx, sy, c0, iterations, max_step, tol)
     _times(geo, sx, sy, t)
@@ -814,8 +830,8 @@ def _packet(
     for k in range(4):
         drift = max(drift, abs(t[k] - c0[k] - em))
     if drift * fs >= 0.75:
-        _aligned(x, m, seg_start, t, fs, max_shift, L, pre_mean, ca, sa, seg, cnt_al, yb, c0,
-                 ga)
+        _cut_delayed(x, m, seg_start, t, fs, max_shift, L, pre_mean, ca, sa, seg, cnt_al, yb,
+                     c0, ga, cdel)
         sx, sy, clamped = _newton(yb, wa, geo, sx, sy, c0, iterations, max_step, tol)
     _times(geo, sx, sy, t)
     zb = np.empty((4, nba), np.complex128)
@@ -991,10 +1007,9 @@ def _packet(
         conf = c_snr * c_fit * c_pos * (0.5 if clamped else 1.0)
         conf = min(max(conf, 0.0), 1.0) if math.isfinite(conf) else 0.0
     pt[0], pt[1], pt[2] = sx, sy, sz
-    tmin = min(min(t[0], t[1]), min(t[2], t[3]))
     if not finite_pt:
         _times(geo, sx, sy, t)
-        tmin = min(min(t[0], t[1]), min(t[2], t[3]))
+    tmin = min(min(t[0] + cdel[0], t[1] + cdel[1]), min(t[2] + cdel[2], t[3] + cdel[3]))
     out[0] = tau_x
     out[1] = tau_y
     out[2] = twist
@@ -1032,6 +1047,7 @@ def _batch(
     pt,
     cov,
     ctau,
+    cdel,
 ):
     for i in range(x.shape[0]):
         _packet(
@@ -1051,16 +1067,19 @@ def _batch(
             pt[i],
             cov[i],
             ctau[i],
+            cdel,
         )
 
 
 def run_batch(
-    x, onset, tables: Tables, *, noise_rms, sat, full_scale, gains, iterations, min_snr_db, thr
+    x, onset, tables: Tables, *, noise_rms, sat, full_scale, gains, iterations, min_snr_db, thr,
+    channel_delays_s=None,
 ):
     """Localize K packets with the kernel. x (K, 4, M) float32/float64 C-contiguous,
     onset (K,) int64, noise_rms (K,) float (NaN: measure), sat (K,) int8 (-1 unknown),
-    full_scale float (NaN: unknown), gains (4,) or None. Returns (out (K, 16), point (K, 3),
-    covariance (K, 3, 3), delay covariance (K, 2, 2))."""
+    full_scale float (NaN: unknown), gains (4,) or None, channel_delays_s (4,) float64 [s]
+    or None (the channels' own delays, taken out of the arrivals). Returns (out (K, 16),
+    point (K, 3), covariance (K, 3, 3), delay covariance (K, 2, 2))."""
     k = x.shape[0]
     out = np.empty((k, N_SCALAR_OUT))
     pt = np.empty((k, 3))
@@ -1086,11 +1105,13 @@ def run_batch(
         pt,
         cov,
         ctau,
+        _ZEROS if channel_delays_s is None else channel_delays_s,
     )
     return out, pt, cov, ctau
 
 
 _ONES = np.ones(4)
+_ZEROS = np.zeros(4)
 
 
 def run_one(
@@ -1108,8 +1129,10 @@ def run_one(
     pt,
     cov,
     ctau,
+    channel_delays_s=None,
 ):
-    """One (4, M) window into out (16,), pt (3,), cov (3, 3), ctau (2, 2) (see `_packet`)."""
+    """One (4, M) window into out (16,), pt (3,), cov (3, 3), ctau (2, 2) (see `_packet`);
+    channel_delays_s: (4,) float64 [s] or None (the channels' own delays)."""
     if gains is None:
         g, has, grms = _ONES, False, 1.0
     else:
@@ -1131,4 +1154,5 @@ def run_one(
         pt,
         cov,
         ctau,
+        _ZEROS if channel_delays_s is None else channel_delays_s,
     )

@@ -10,21 +10,25 @@ import math
 
 import numpy as np
 
-from ae_tactile.dsp.channel_checks import packet_identical
+from ae_tactile.dsp.channel_checks import identical_channels, packet_identical
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import fast
-from ae_tactile.localization.common import Reason
+from ae_tactile.localization.common import Reason, per_packet, validate_windows
 from ae_tactile.localization.estimators import (
     _gains_arg,
     _iterations,
+    _noise_arg,
     _plan,
     _positive_arg,
+    _reject_identical,
     localize,
     resolve_engine,
 )
 from ae_tactile.localization.registry import get_estimator
-from ae_tactile.localization.result import PacketLocation
+from ae_tactile.localization.result import PacketLocation, _result_from_kernel
 
+#: the `__call__` keywords the compiled batch with channel delays takes (others: numpy)
+_DELAYED_BATCH_KEYS = frozenset({"geometry", "saturated", "channel_gains", "noise_rms_v"})
 #: the input types `localize_one` takes without conversion
 _FLOATS = (np.dtype(np.float64), np.dtype(np.float32))
 _REALS = (int, np.integer, float, np.floating)
@@ -97,11 +101,76 @@ class Localizer:
                 raise ValueError("min_snr_db must be finite and overlap_threshold positive")
         self._plans = {}
         self._default_geometry = kwargs.get("geometry") or FingertipGeometry()
+        #: the channels' own delays taken out of the arrivals (`set_channel_delays`) [s]
+        self.channel_delays_s = None
+
+    def set_channel_delays(self, channel_delays_s) -> None:
+        """Model each channel's arrival as t_k(s) + d_k from now on (``ml`` only; the other
+        estimators ignore it): the front end's per-channel delay, e.g. a
+        `ae_tactile.localization.ChannelDelayLearner`'s ``applied_delays_s``.
+
+        Parameters
+        ----------
+        channel_delays_s : array_like (4,) or None
+            d_k [s], finite, |d_k| < 1 us (a common part only shifts the emission
+            instant); None: no correction.
+
+        Returns
+        -------
+        None
+            ValueError on a bad value (nothing changed then).
+        """
+        if channel_delays_s is None:
+            self.channel_delays_s = None
+            return
+        d = np.array(channel_delays_s, dtype=np.float64).reshape(-1)
+        if d.shape != (4,) or not np.isfinite(d).all() or np.abs(d).max() >= 1e-6:
+            raise ValueError(
+                "channel_delays_s must be 4 finite delays below 1 us [s], got "
+                f"{channel_delays_s!r}"
+            )
+        self.channel_delays_s = d if d.any() else None
 
     def __call__(self, windows, sample_rate_hz, onset_index, **overrides):
         kw = dict(self.kwargs)
         kw.update(overrides)
-        return localize(windows, sample_rate_hz, onset_index, method=self.method, **kw)
+        d = self.channel_delays_s
+        if d is None or self.method != "ml":
+            return localize(windows, sample_rate_hz, onset_index, method=self.method, **kw)
+        if self._one_engine == "numba" and set(overrides) <= _DELAYED_BATCH_KEYS:
+            return self._batch_delayed(windows, sample_rate_hz, onset_index, kw, d)
+        res = localize(windows, sample_rate_hz, onset_index, method=self.method,
+                       channel_delays_s=d, **kw)
+        geo = kw.get("geometry") or FingertipGeometry()
+        onset = np.asarray(onset_index, dtype=float).reshape(-1)
+        # the emission instant: the earliest arrival is t_k(s) + d_k
+        res.emission_offset_s = onset / float(sample_rate_hz) - (
+            geo.arrival_times_s(res.point_m) + d).min(axis=1)
+        return res
+
+    def _batch_delayed(self, windows, sample_rate_hz, onset_index, kw, d):
+        """`localize` through the compiled kernel with the channels' own delays ``d``
+        (the settings this localizer was built with, which its compiled path holds;
+        overrides: geometry, saturated, channel_gains, noise_rms_v)."""
+        geo = kw.get("geometry") or FingertipGeometry()
+        fs = _positive_arg("sample_rate_hz", sample_rate_hz)
+        x, onset = validate_windows(windows, onset_index, copy=False)
+        k = x.shape[0]
+        if k == 0:
+            return localize(x, fs, onset, method=self.method, **kw)
+        noise = _noise_arg(kw.get("noise_rms_v"), k)
+        sat = kw.get("saturated")
+        sat = (np.full(k, -1, np.int8) if sat is None
+               else per_packet("saturated", sat, k, dtype=bool).astype(np.int8))
+        out, pt, cov, ctau = fast.run_batch(
+            x, onset, self._tables(fs, x.shape[2], geo), noise_rms=noise, sat=sat,
+            full_scale=self._full_scale, gains=_gains_arg(kw.get("channel_gains")),
+            iterations=self._iterations, min_snr_db=self._min_snr_db, thr=self._thr,
+            channel_delays_s=d,
+        )
+        res = _result_from_kernel(self.method, {"iterations": self._iterations}, out, pt, cov,
+                                  ctau)
+        return _reject_identical(res, identical_channels(x, onset, noise))
 
     def _tables(self, fs, m, geometry):
         key = (fs, m, geometry)
@@ -182,22 +251,8 @@ class Localizer:
         pt = np.empty(3)
         cov = np.empty((3, 3))
         ctau = np.empty((2, 2))
-        fast.run_one(
-            x,
-            on,
-            nr,
-            sat,
-            self._full_scale,
-            gains,
-            tb,
-            self._iterations,
-            self._min_snr_db,
-            self._thr,
-            out,
-            pt,
-            cov,
-            ctau,
-        )
+        fast.run_one(x, on, nr, sat, self._full_scale, gains, tb, self._iterations,
+                     self._min_snr_db, self._thr, out, pt, cov, ctau, self.channel_delays_s)
         loc = PacketLocation(out, pt, cov, ctau)
         if check_identical and packet_identical(x, on, nr):
             _reject_identical_one(loc)
@@ -216,7 +271,11 @@ class Localizer:
         x = np.asarray(samples_v)
         if x.ndim != 2:
             raise ValueError(f"samples_v must have shape (4, M), got {x.shape}")
-        res = localize(x[None], sample_rate_hz, [onset_index], method=self.method, **kw)
+        if self.channel_delays_s is not None and self.method == "ml":
+            kw.pop("geometry")
+            res = self(x[None], sample_rate_hz, [onset_index], geometry=geo, **kw)
+        else:
+            res = localize(x[None], sample_rate_hz, [onset_index], method=self.method, **kw)
         return PacketLocation.from_result(res, 0)
 
     def warm_up(self, geometry=None, sample_rate_hz=10e6, n_samples=400):

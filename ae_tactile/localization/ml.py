@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ae_tactile.localization.common import Plan, adc_noise, band_edge_hz
+from ae_tactile.localization.common import PAIRS, Plan, adc_noise, band_edge_hz
 from ae_tactile.localization.covariance import arrival_fisher, sphere_covariance
 from ae_tactile.localization.pairs import aligned_spectra, delays_from_pairs, pair_delays
 from ae_tactile.localization.segments import Prepared, subset
@@ -133,17 +133,17 @@ def _data_band(prep: Prepared, plan: Plan, X):
     return X, mask_al
 
 
-def _recut(prep, plan, ids, s, clamped, al, c0, mask_al, iterations, max_step):
+def _recut(prep, plan, ids, s, clamped, al, c0, mask_al, iterations, max_step, cdel):
     """Re-cut the packets ``ids`` on their fitted points and fit them again; ``s``,
     ``clamped``, ``al`` and ``c0`` are updated in place."""
     geo = plan.geometry
     fs = plan.fs
     sub = subset(prep, ids)
     t = _times(geo, s[ids, 0], s[ids, 1])
-    al2 = aligned_spectra(sub, plan, t)
+    al2 = aligned_spectra(sub, plan, t + cdel)
     if mask_al is not None:
         al2.Yb = al2.Yb * mask_al[ids]
-    c2 = al2.ref[:, None] + al2.shift / fs
+    c2 = al2.ref[:, None] + al2.shift / fs - cdel
     s2, cl2 = newton(al2.Yb, plan.w_al, geo, s[ids], c2, iterations, max_step, 1e-4 * max_step)
     s[ids], clamped[ids] = s2, cl2
     al.Y[ids], al.Yb[ids], al.shift[ids], al.ref[ids], al.count[ids] = (
@@ -157,8 +157,24 @@ def _recut(prep, plan, ids, s, clamped, al, c0, mask_al, iterations, max_step):
     c0[ids] = c2
 
 
-def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4):
-    """Exact-sphere ML fit. Returns the estimator core dict (see estimators.py)."""
+def _delays_arg(channel_delays_s):
+    """(4,) float64 [s] of the channels' own delays (zeros for None); ValueError."""
+    if channel_delays_s is None:
+        return np.zeros(4)
+    d = np.asarray(channel_delays_s, dtype=float)
+    if d.shape != (4,) or not np.isfinite(d).all():
+        raise ValueError(f"channel_delays_s must be 4 finite delays [s], got {channel_delays_s!r}")
+    return d
+
+
+def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4, channel_delays_s=None):
+    """Exact-sphere ML fit. Returns the estimator core dict (see estimators.py).
+
+    ``channel_delays_s`` (4,) [s]: each channel's own delay (front-end group delay), taken
+    out of its arrival: the model is t_k(s) + d_k (None: zeros). The core's ``eps_samples``
+    and ``zb`` are then the residual shifts less d_k, so the misfit and covariance see
+    the corrected channels."""
+    cdel = _delays_arg(channel_delays_s)
     if (
         isinstance(iterations, bool)
         or not isinstance(iterations, (int, np.integer))
@@ -172,23 +188,24 @@ def estimate(prep: Prepared, plan: Plan, *, iterations: int = 4):
     if plan.auto_fallback_hz > 0:
         X, mask_al = _data_band(prep, plan, X)
     d, _, edge = pair_delays(X, plan)
+    d = d - (cdel[PAIRS[:, 0]] - cdel[PAIRS[:, 1]])  # pair lag ~ t_i - t_j: own delays out
     theta0, pair_res = delays_from_pairs(d)
     pts0, _ = geo.point_from_delays(theta0[:, 0], theta0[:, 1], exact=True)
     s = np.nan_to_num(pts0[:, :2])
     # One Newton step is worth about one sample of delay at most.
     max_step = geo.radius_m * geo.sound_speed_m_s / (geo.element_offset_m * fs)
     t = _times(geo, s[:, 0], s[:, 1])
-    al = aligned_spectra(prep, plan, t)
+    al = aligned_spectra(prep, plan, t + cdel)
     if mask_al is not None:
         al.Yb = al.Yb * mask_al
-    c0 = al.ref[:, None] + al.shift / fs
+    c0 = al.ref[:, None] + al.shift / fs - cdel  # eps_k = t_k(s) + d_k - cut_k
     s, clamped = newton(al.Yb, plan.w_al, geo, s, c0, iterations, max_step, 1e-4 * max_step)
     # Re-cut (once) the packets whose fit drifted more than 3/4 sample from the integer cut.
     eps = _times(geo, s[:, 0], s[:, 1]) - c0
     drift = np.abs(eps - eps.mean(axis=1, keepdims=True)).max(axis=1) * fs >= 0.75
     if drift.any():
         _recut(prep, plan, np.nonzero(drift)[0], s, clamped, al, c0, mask_al, iterations,
-               max_step)
+               max_step, cdel)
     t, dt, _ = geo.arrival_time_derivatives(s[:, 0], s[:, 1])
     eps = t - c0
     zb = al.Yb * np.exp(1j * plan.w_al * eps[..., None])

@@ -1,0 +1,336 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Per-channel delay offsets learnt from the device's own touches (`ChannelDelayLearner`).
+
+A real front end's four channels never have equal group delays: channel k adds d_k to
+every arrival, t_k = |s - e_k| / c + T0 + d_k. Only differences matter (a common part
+shifts the emission instant T0), so d is kept with sum(d) = 0 and written in the three
+contrasts of the 2 x 2 array (unit vectors over the channels 11, 1-1, -11, -1-1):
+x = (1, 1, -1, -1) / 2, y = (1, -1, 1, -1) / 2, xy = (1, -1, -1, 1) / 2.
+
+One packet has four arrivals and three unknowns (s_x, s_y, T0): its fit leaves one
+residual, the arrivals' projection on the unit vector n(s) orthogonal to 1 and to
+d t / d s_x, d t / d s_y at the fitted point. d is seen only through it: n . d. n is the
+xy contrast (within 0.3 %) tilted by +-7 % towards x and y as the point moves over the
+fingertip, so from touches at unknown points the xy offset is learnt at once and the x
+and y offsets ~15x more slowly (per packet, 1 / 0.066 of the information): hundreds of
+touches fix the twist, thousands the x and y parts.
+
+Measurement (off the hot path, a batch of kept packets at a time): the numpy ``ml`` fit
+with the offsets in use, then the four channels' own shifts that maximise the steered
+response power from the fit (Newton on the free arrival shifts, the common shift fixed),
+y = n . (shift + offsets in use), its variance n^T F^+ n from the arrival Fisher matrix.
+The offsets are the weighted least squares over the last ``keep`` packets of
+y_i = (B n_i) . beta (beta the three contrasts), with packets whose normalised residual
+lies beyond 4 robust sigma dropped; each contrast's standard error comes from the
+normal equations scaled by the residuals' own spread. A contrast is applied once its
+standard error is below ``tolerance`` times the delay noise of the best-measured tenth
+of the packets (a bias it could leave is then small beside any packet's noise), or once
+it lies 3 standard errors or more from zero (taking it out leaves less bias than it
+removes), with at least ``min_count`` packets in: before that the localizer is unchanged.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ae_tactile.geometry import FingertipGeometry
+from ae_tactile.localization import ml
+from ae_tactile.localization.common import adc_noise, validate_windows
+from ae_tactile.localization.covariance import arrival_fisher
+from ae_tactile.localization.estimators import _plan
+from ae_tactile.localization.segments import prepare
+
+#: the contrasts x, y, xy of the 2 x 2 array as unit vectors over the channels (3, 4)
+CONTRASTS = np.array([[1.0, 1.0, -1.0, -1.0], [1.0, -1.0, 1.0, -1.0], [1.0, -1.0, -1.0, 1.0]]) / 2
+#: packets kept by default (the x and y contrasts need thousands)
+DELAY_KEEP = 4096
+#: packets before any contrast is applied
+DELAY_MIN_COUNT = 64
+#: a contrast is applied once its standard error is below this share of the best-measured
+#: tenth of the packets' delay noise
+DELAY_TOLERANCE = 0.3
+#: a contrast this many standard errors from zero is applied whatever its precision
+DELAY_SIGNIFICANT = 3.0
+#: normalised residuals beyond this many robust sigma are dropped from the fit
+DELAY_TRIM_SIGMA = 4.0
+#: largest offset difference taken as a channel delay [s]: beyond, a wiring or model fault
+MAX_OFFSET_S = 1e-6
+_FORMAT = 1
+
+
+def free_shifts(zb, w_rad_s, iterations: int = 3):
+    """The four channels' own shifts [s] (K, 4), mean 0, that maximise the steered response
+    power sum_f |sum_k zb_k e^{j w delta_k}|^2 from zb (the aligned spectra of a fit).
+
+    Parameters
+    ----------
+    zb : ndarray, (K, 4, nb) complex
+        Band bins of the four channels aligned by the fit.
+    w_rad_s : ndarray, (nb,)
+        Their angular frequencies [rad/s].
+    iterations : int
+        Newton steps.
+
+    Returns
+    -------
+    ndarray, (K, 4)
+        The shifts [s] (each step capped at a quarter period of the top bin).
+    """
+    k = zb.shape[0]
+    delta = np.zeros((k, 4))
+    w2 = w_rad_s * w_rad_s
+    cap = 0.25 * 2 * np.pi / max(float(np.max(w_rad_s)), 1e-300)
+    idx = np.arange(4)
+    proj = np.eye(4) - 0.25
+    for _ in range(iterations):
+        z = zb * np.exp(1j * w_rad_s * delta[..., None])
+        cb = np.conj(z.sum(axis=1))[:, None, :] * z
+        g = -2.0 * (w_rad_s * cb.imag).sum(axis=2)
+        h = 2.0 * np.einsum("kaf,kbf,f->kab", z, np.conj(z), w2).real
+        h[:, idx, idx] -= 2.0 * (w2 * cb.real).sum(axis=2)
+        # the common shift leaves P unchanged: solve on the sum-zero subspace
+        step = -np.einsum("kab,kb->ka", np.linalg.pinv(proj @ h @ proj), g @ proj)
+        step = np.clip(np.nan_to_num(step), -cap, cap)
+        delta += step - step.mean(axis=1, keepdims=True)
+    return delta
+
+
+def residual_normals(geometry: FingertipGeometry, point_m):
+    """Unit vectors n (K, 4) orthogonal to 1 and to d t_k / d(s_x, s_y) at the points: the
+    one combination of the four arrivals a fit leaves (sign: n . xy > 0).
+
+    Parameters
+    ----------
+    geometry : FingertipGeometry
+    point_m : ndarray, (K, 3)
+
+    Returns
+    -------
+    ndarray, (K, 4)
+    """
+    _, dt, _ = geometry.arrival_time_derivatives(point_m[:, 0], point_m[:, 1])
+    a = np.concatenate([np.ones(dt.shape[:2] + (1,)), dt / np.abs(dt).max()], axis=2)
+    q, _ = np.linalg.qr(a, mode="complete")  # (K, 4, 4): last column spans the rest
+    n = q[:, :, 3]
+    n *= np.sign(n @ CONTRASTS[2])[:, None]
+    return n
+
+
+def measure(windows, sample_rate_hz, onset_index, geometry=None, channel_delays_s=None,
+            channel_gains=None):
+    """The delay residual of each packet (see the module docstring).
+
+    Parameters
+    ----------
+    windows : array_like, (K, 4, M)
+        Accepted single-emission packets [V].
+    sample_rate_hz : float
+    onset_index : array_like of int, (K,)
+    geometry : FingertipGeometry, optional
+    channel_delays_s : array_like (4,), optional
+        The offsets in use [s] (the fit is made with them).
+    channel_gains : array_like (4,), optional
+
+    Returns
+    -------
+    tuple of ndarray
+        (u (K, 3): B n, the contrasts' weights; y (K,): n . (shift + offsets in use) [s];
+        var (K,): its variance [s^2]; ok (K,) bool: a usable measurement).
+    """
+    geo = geometry or FingertipGeometry()
+    d = ml._delays_arg(channel_delays_s)
+    x, on = validate_windows(windows, onset_index)
+    plan = _plan(float(sample_rate_hz), geo, x.shape[2], None, 1e-6, 0.3e-6, "ml")
+    with np.errstate(all="ignore"):
+        prep = prepare(x, on, plan, channel_gains=channel_gains)
+        core = ml.estimate(prep, plan, channel_delays_s=d)
+        given = np.zeros(len(on), bool)
+        s2 = adc_noise(prep.sigma2, prep.quant2, given)
+        zb = core["zb"]
+        f = arrival_fisher(zb, plan.w_al, s2, core["count"], plan.n_fft_al, core["n_bins"],
+                           noise_by_noise=True)
+        shift = free_shifts(zb, plan.w_al)
+        n = residual_normals(geo, core["point"])
+        y = np.einsum("ka,ka->k", n, shift + d)
+        var = np.einsum("ka,kab,kb->k", n, np.linalg.pinv(f), n)
+    ok = (np.isfinite(y) & np.isfinite(var) & (var > 0) & np.isfinite(s2) & ~core["clamped"]
+          & (np.abs(y) < MAX_OFFSET_S))
+    return n @ CONTRASTS.T, y, var, ok
+
+
+class ChannelDelayLearner:
+    """Per-channel delay offsets from accepted single packets (module docstring).
+
+    Parameters
+    ----------
+    keep : int
+        Packets kept (the last ones).
+    min_count : int
+        Packets before any contrast is applied.
+    tolerance : float
+        A contrast is applied once its standard error is below this share of the delay
+        noise of the best-measured tenth of the packets.
+
+    Returns
+    -------
+    ChannelDelayLearner
+        ``applied_delays_s``: the offsets to take out of the arrivals (None until a
+        contrast has converged).
+    """
+
+    def __init__(self, keep: int = DELAY_KEEP, min_count: int = DELAY_MIN_COUNT,
+                 tolerance: float = DELAY_TOLERANCE):
+        if not (int(keep) >= 8 and int(min_count) >= 4 and tolerance > 0):
+            raise ValueError("keep >= 8, min_count >= 4 and tolerance > 0 needed")
+        self.keep, self.min_count, self.tolerance = int(keep), int(min_count), float(tolerance)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget every packet (another body, or a reset of the device's calibration)."""
+        self._u = np.zeros((0, 3))
+        self._y = np.zeros(0)
+        self._var = np.zeros(0)
+        #: estimated offsets [s] (4,), sum 0 (None: too few packets)
+        self.delays_s = None
+        #: standard errors of the x, y, xy contrasts [s] (3,)
+        self.stderr_s = np.full(3, np.inf)
+        #: which contrasts are applied (3,)
+        self.converged = np.zeros(3, bool)
+        #: the offsets to take out of the arrivals [s] (4,) or None
+        self.applied_delays_s = None
+        #: packets used by the last fit (after trimming)
+        self.n_used = 0
+
+    @property
+    def n_packets(self) -> int:
+        """Packets kept."""
+        return len(self._y)
+
+    def add(self, windows, sample_rate_hz, onset_index, geometry=None, channel_gains=None) -> int:
+        """Measure accepted single-emission packets (`measure`, with the offsets in use)
+        and refit.
+
+        Parameters
+        ----------
+        windows : array_like, (K, 4, M)
+        sample_rate_hz : float
+        onset_index : array_like of int, (K,)
+        geometry : FingertipGeometry, optional
+        channel_gains : array_like (4,), optional
+
+        Returns
+        -------
+        int
+            Packets taken.
+        """
+        u, y, var, ok = measure(windows, sample_rate_hz, onset_index, geometry,
+                                self.applied_delays_s, channel_gains)
+        self.add_measurements(u[ok], y[ok], var[ok])
+        return int(ok.sum())
+
+    def add_measurements(self, u, y, var) -> None:
+        """Append `measure`'s rows (u (K, 3), y (K,) [s], var (K,) [s^2]) and refit."""
+        self._u = np.concatenate([self._u, np.asarray(u, float)])[-self.keep:]
+        self._y = np.concatenate([self._y, np.asarray(y, float)])[-self.keep:]
+        self._var = np.concatenate([self._var, np.asarray(var, float)])[-self.keep:]
+        self._fit()
+
+    def _fit(self) -> None:
+        """Trimmed weighted least squares of the contrasts; what is applied."""
+        n = len(self._y)
+        if n < max(self.min_count, 8):
+            self.delays_s, self.applied_delays_s = None, None
+            self.converged[:] = False
+            self.stderr_s[:] = np.inf
+            self.n_used = 0
+            return
+        u, y, w = self._u, self._y, 1.0 / self._var
+        keep = np.ones(n, bool)
+        for _ in range(3):
+            a = (u[keep] * w[keep, None]).T @ u[keep]
+            beta = np.linalg.lstsq(a, (u[keep] * w[keep, None]).T @ y[keep], rcond=None)[0]
+            z = (y - u @ beta) * np.sqrt(w)
+            mad = 1.4826 * np.median(np.abs(z[keep] - np.median(z[keep])))
+            new = np.abs(z) <= DELAY_TRIM_SIGMA * max(mad, 1e-12)
+            if (new == keep).all() or new.sum() < 8:
+                break
+            keep = new
+        m = int(keep.sum())
+        a = (u[keep] * w[keep, None]).T @ u[keep]
+        chi2 = float(np.sum(z[keep] ** 2)) / max(m - 3, 1)
+        cov = np.linalg.pinv(a) * chi2
+        self.stderr_s = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        self.delays_s = CONTRASTS.T @ beta
+        noise = math.sqrt(float(np.quantile(self._var[keep], 0.1)))
+        # precise beside the packets' noise, or clearly not zero (taking it out then
+        # leaves less bias than it removes)
+        self.converged = (self.stderr_s <= self.tolerance * noise) | (
+            np.abs(beta) >= DELAY_SIGNIFICANT * self.stderr_s)
+        self.n_used = m
+        if self.converged.any():
+            self.applied_delays_s = CONTRASTS.T @ np.where(self.converged, beta, 0.0)
+        else:
+            self.applied_delays_s = None
+
+    # ------------------------------------------------------------ persistence
+    def calibration_state(self) -> dict | None:
+        """The kept measurements as a JSON mapping for `ae_tactile.calibration.CalibrationStore`
+        (None: nothing learnt).
+
+        Returns
+        -------
+        dict or None
+            {"format": 1, "u": [[x, y, xy], ...], "y_s": [...], "var_s2": [...]}.
+        """
+        if not len(self._y):
+            return None
+        return {"format": _FORMAT, "u": self._u.tolist(), "y_s": self._y.tolist(),
+                "var_s2": self._var.tolist()}
+
+    def load_calibration(self, state: dict) -> None:
+        """Start from a saved `calibration_state`.
+
+        Parameters
+        ----------
+        state : dict
+            As `calibration_state` wrote it.
+
+        Returns
+        -------
+        None
+            ValueError when it cannot be used (another format, unequal lengths, rows that
+            are not unit-norm contrasts, non-finite or out-of-range values): nothing
+            changed then.
+        """
+        if not isinstance(state, dict) or state.get("format") != _FORMAT:
+            raise ValueError("channel delays: unknown format")
+        try:
+            u = np.array(state["u"], dtype=float)
+            y = np.array(state["y_s"], dtype=float)
+            var = np.array(state["var_s2"], dtype=float)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"channel delays: malformed ({exc})") from None
+        if not (u.ndim == 2 and u.shape[1:] == (3,) and y.shape == (len(u),)
+                and var.shape == (len(u),) and np.isfinite(u).all() and np.isfinite(y).all()
+                and np.isfinite(var).all() and (var > 0).all()
+                and (np.abs(y) < MAX_OFFSET_S).all()
+                and np.allclose(np.linalg.norm(u, axis=1), 1.0, atol=1e-6)):
+            raise ValueError("channel delays: values out of range")
+        self.reset()
+        self._u, self._y, self._var = u[-self.keep:], y[-self.keep:], var[-self.keep:]
+        self._fit()
+
+    #: the name of the task's protocol (`load_calibration` is the store's)
+    load_calibration_state = load_calibration
+
+    def status(self) -> str:
+        """The offsets in words (diagnostics)."""
+        if self.delays_s is None:
+            return f"learning ({self.n_packets} of {self.min_count} packets)"
+        d = " / ".join(f"{v * 1e9:+.1f}" for v in self.delays_s)
+        se = " / ".join(f"{v * 1e9:.1f}" for v in self.stderr_s)
+        on = ",".join(n for n, c in zip(("x", "y", "xy"), self.converged) if c) or "none"
+        return (f"offsets {d} ns (x/y/xy se {se} ns) from {self.n_used} packets; "
+                f"applied: {on}")
