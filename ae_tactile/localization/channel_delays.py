@@ -185,6 +185,9 @@ class ChannelDelayLearner:
         if not (int(keep) >= 8 and int(min_count) >= 4 and tolerance > 0):
             raise ValueError("keep >= 8, min_count >= 4 and tolerance > 0 needed")
         self.keep, self.min_count, self.tolerance = int(keep), int(min_count), float(tolerance)
+        #: called with ``applied_delays_s`` whenever it may have changed (a refit, a load,
+        #: a reset): the owner hands it to its `Localizer.set_channel_delays`
+        self.on_update = None
         self.reset()
 
     def reset(self) -> None:
@@ -198,10 +201,27 @@ class ChannelDelayLearner:
         self.stderr_s = np.full(3, np.inf)
         #: which contrasts are applied (3,)
         self.converged = np.zeros(3, bool)
+        #: which contrasts are known to the tolerance (3,): learning may slow down
+        self.precise = np.zeros(3, bool)
         #: the offsets to take out of the arrivals [s] (4,) or None
         self.applied_delays_s = None
         #: packets used by the last fit (after trimming)
         self.n_used = 0
+        self._notify()
+
+    def _notify(self) -> None:
+        if self.on_update is not None:
+            self.on_update(self.applied_delays_s)
+
+    @property
+    def all_converged(self) -> bool:
+        """Every contrast applied."""
+        return bool(self.converged.all())
+
+    @property
+    def all_precise(self) -> bool:
+        """Every contrast known to the tolerance (not merely clearly non-zero)."""
+        return bool(self.precise.all())
 
     @property
     def n_packets(self) -> int:
@@ -243,8 +263,10 @@ class ChannelDelayLearner:
         if n < max(self.min_count, 8):
             self.delays_s, self.applied_delays_s = None, None
             self.converged[:] = False
+            self.precise[:] = False
             self.stderr_s[:] = np.inf
             self.n_used = 0
+            self._notify()
             return
         u, y, w = self._u, self._y, 1.0 / self._var
         keep = np.ones(n, bool)
@@ -266,13 +288,14 @@ class ChannelDelayLearner:
         noise = math.sqrt(float(np.quantile(self._var[keep], 0.1)))
         # precise beside the packets' noise, or clearly not zero (taking it out then
         # leaves less bias than it removes)
-        self.converged = (self.stderr_s <= self.tolerance * noise) | (
-            np.abs(beta) >= DELAY_SIGNIFICANT * self.stderr_s)
+        self.precise = self.stderr_s <= self.tolerance * noise
+        self.converged = self.precise | (np.abs(beta) >= DELAY_SIGNIFICANT * self.stderr_s)
         self.n_used = m
         if self.converged.any():
             self.applied_delays_s = CONTRASTS.T @ np.where(self.converged, beta, 0.0)
         else:
             self.applied_delays_s = None
+        self._notify()
 
     # ------------------------------------------------------------ persistence
     def calibration_state(self) -> dict | None:

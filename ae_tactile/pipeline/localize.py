@@ -20,7 +20,7 @@ from ae_tactile.dsp.channel_checks import packet_clipped, packet_identical
 from ae_tactile.dsp.interference import common_mode_interference
 from ae_tactile.dsp.interference import warm_up as warm_interference
 from ae_tactile.geometry import FingertipGeometry
-from ae_tactile.localization import Localizer, Reason, get_estimator
+from ae_tactile.localization import ChannelDelayLearner, Localizer, Reason, get_estimator
 from ae_tactile.localization.overlap import suspect_overlap
 from ae_tactile.localization.overlap import warm_up as warm_overlaps
 from ae_tactile.localization.weak_release import WeakReleaseGate
@@ -32,6 +32,18 @@ from ae_tactile.pipeline.config import (
 )
 from ae_tactile.pipeline.screens import Screens
 from ae_tactile.records import ContactRecord, EventType, PacketView, packet_record
+
+#: packets measured per learning call of the channel delays (`ChannelDelayLearner.add`)
+DELAY_LEARN_BATCH = 16
+#: one confident packet in this many is kept for the channel delays while a contrast is
+#: not known to its tolerance, then one in DELAY_LEARN_STRIDE_CONVERGED (followed): ~0.3 ms
+#: of numpy per packet measured, when the link is idle
+DELAY_LEARN_STRIDE = 2
+DELAY_LEARN_STRIDE_CONVERGED = 16
+#: packets the channel delays learn from: confident single emissions [0..1] ...
+DELAY_LEARN_CONFIDENCE = 0.3
+#: ... away from the horizon [rad] (a point clamped there is no measurement)
+DELAY_LEARN_MAX_POLAR_RAD = math.radians(80.0)
 
 
 def packet_problem(samples_v, sample_rate_hz, onset_index) -> str | None:
@@ -171,6 +183,12 @@ class PacketLocalizer:
         self._one = getattr(self.localizer, "localize_one", None)
         #: ids of this call's packets found clipped in their samples (`_checked`)
         self._clipped: set = set()
+        #: the channels' own delays, learnt from accepted touches and taken out of the
+        #: arrivals once converged (`ChannelDelayLearner`; persisted as "channel_delays")
+        self.delay_learner = ChannelDelayLearner()
+        self._delay_pending: list = []
+        self._delay_seen = 0
+        self.delay_learner.on_update = self._set_delays
 
     weak_releases = _screen_attr("weak_releases")
     weak_release_min_snr_db = _screen_attr("weak_release_min_snr_db")
@@ -191,21 +209,67 @@ class PacketLocalizer:
 
     @property
     def echo_pending(self) -> bool:
-        """`Screens.echo_pending`."""
-        return self.screens.echo_pending
+        """`Screens.echo_pending`, or a batch of packets kept for `learn_delays`."""
+        return self.screens.echo_pending or len(self._delay_pending) >= DELAY_LEARN_BATCH
 
     def echo_test_status(self) -> str:
         """`Screens.echo_test_status`."""
         return self.screens.echo_test_status()
 
     def learn_echo(self) -> None:
-        """`Screens.learn_echo`: run once the contact events are out."""
+        """`Screens.learn_echo` and the channel delays' learning (`learn_delays`): run
+        once the contact events are out."""
         self.screens.learn_echo()
+        if len(self._delay_pending) >= DELAY_LEARN_BATCH:
+            self.learn_delays()
 
     def calibration_learners(self) -> dict:
-        """`Screens.calibration_learners`: section name -> learner of what the screens
-        learn about the device (for `ae_tactile.calibration.CalibrationStore`)."""
-        return self.screens.calibration_learners()
+        """`Screens.calibration_learners` and the channel delays (``channel_delays``):
+        section name -> learner of what the localize stage learns about the device (for
+        `ae_tactile.calibration.CalibrationStore`)."""
+        out = dict(self.screens.calibration_learners())
+        out["channel_delays"] = self.delay_learner
+        return out
+
+    def _set_delays(self, delays_s) -> None:
+        """The learner's offsets to the localizer in use (`ChannelDelayLearner.on_update`)."""
+        self.localizer.set_channel_delays(delays_s)
+
+    def stash_delays(self, found) -> None:
+        """Keep (copies of) the confident single emissions of a call for `learn_delays`:
+        one in DELAY_LEARN_STRIDE while a contrast is not known to its tolerance, then one in
+        DELAY_LEARN_STRIDE_CONVERGED. Measured when the link is idle (`learn_echo`), at
+        the latest at the start of the next `process` call."""
+        learner = self.delay_learner
+        for p, ev in found:
+            if len(self._delay_pending) >= 4 * DELAY_LEARN_BATCH:
+                return
+            if (ev.weak_release or ev.confidence < DELAY_LEARN_CONFIDENCE
+                    or not ev.polar_rad < DELAY_LEARN_MAX_POLAR_RAD):
+                continue
+            self._delay_seen += 1
+            stride = DELAY_LEARN_STRIDE_CONVERGED if learner.all_precise else DELAY_LEARN_STRIDE
+            if self._delay_seen % stride:
+                continue
+            self._delay_pending.append((np.array(p.samples_v, dtype=np.float64),
+                                        float(p.sample_rate_hz), int(p.onset_index),
+                                        self.geometry, self.channel_gains))
+
+    def learn_delays(self) -> None:
+        """Measure the kept packets (`ChannelDelayLearner.add`, numpy, ~0.3 ms a packet),
+        one call per (rate, window length, body); the learner's offsets reach the
+        localizer through its ``on_update``."""
+        pending, self._delay_pending = self._delay_pending, []
+        groups: dict = {}
+        for item in pending:
+            if item[3] is self.geometry:  # packets of an earlier body are dropped
+                key = (item[1], item[0].shape[1], id(item[4]))
+                groups.setdefault(key, []).append(item)
+        for items in groups.values():
+            fs, gains = items[0][1], items[0][4]
+            with np.errstate(all="ignore"):
+                self.delay_learner.add(np.stack([it[0] for it in items]), fs,
+                                       [it[2] for it in items], self.geometry, gains)
 
     def interference_model_status(self) -> str:
         """`Screens.acoustic_model_status`: the interference screen's model of an acoustic
@@ -247,6 +311,7 @@ class PacketLocalizer:
             localizer = Localizer(cfg.method, min_snr_db=cfg.min_snr_db)
         # everything checked: apply what was given
         if localizer is not None:
+            localizer.set_channel_delays(self.delay_learner.applied_delays_s)
             self.localizer = localizer
             self._one = getattr(localizer, "localize_one", None)
             self.method, self.min_snr_db = cfg.method, cfg.min_snr_db
@@ -256,6 +321,7 @@ class PacketLocalizer:
         if geometry is not None:
             if geometry != self.geometry:
                 sc.new_body()
+                self.delay_learner.reset()  # its measurements are of the old body
             self.geometry = geometry
         if channel_gains is not None:
             self.channel_gains = gains
@@ -336,6 +402,10 @@ class PacketLocalizer:
         """
         counts = self.counts if count else Counter()
         self.overlap_windows = []
+        if len(self._delay_pending) >= DELAY_LEARN_BATCH:
+            # not measured while the link was idle (it never was since): now, so that the
+            # offsets in use never depend on when the link was idle
+            self.learn_delays()
         sc = self.screens
         sc.new_call()
         # the body this call localizes on, and its echo learner (`update` may switch both
@@ -366,6 +436,10 @@ class PacketLocalizer:
             sc.stash_echo(out, body)  # single emissions only (suspects withdrawn)
             if self.learn_inline:
                 sc.learn_echo()
+        if count:
+            self.stash_delays(out)
+            if self.learn_inline and len(self._delay_pending) >= DELAY_LEARN_BATCH:
+                self.learn_delays()
         for _, ev in out:
             counts["events"] += 1
             counts["detouch" if ev.event_type == EventType.DETOUCH else "touch"] += 1
