@@ -200,12 +200,24 @@ class ContactModel:
             return None, True
         centre = circle_centre(P)
         if centre is None:
-            return None, True  # on a short arc: any ring through them, not decided yet
+            # on a line: a stylus or a drag passes along it in time order (no ring); a
+            # load's micro-slips on a short arc of its ring come in any order: not decided
+            return (math.inf if self._in_line_order(c, k, free, P) else None), True
         D = P - centre
         fit = self._spread(np.sqrt(np.einsum("ij,ij->i", D, D)), sig)
         if ann is not None and ann < fit:
             return ann, False
         return fit, True
+
+    @staticmethod
+    def _in_line_order(c, k, free, P):
+        """Do the points ``P`` (the contact's unpaired emissions) follow each other along
+        the line from the first to the last in time order?"""
+        order = np.argsort(c.t[:k][free], kind="stable")
+        Q = P[order]
+        x = (Q - Q[0]) @ (Q[-1] - Q[0])
+        dx = np.diff(x)
+        return bool((dx > 0).all())
 
     @staticmethod
     def _spread(d, sig):
