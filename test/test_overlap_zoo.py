@@ -26,7 +26,7 @@ from ae_tactile.localization.overlap import (
 )
 from ae_tactile.pipeline import ContactPipeline, PacketLocalizer
 from ae_tactile.pipeline.device_calibration import DeviceCalibration
-from ae_tactile.records import PacketView
+from ae_tactile.records import ContactRecord, PacketView
 from ae_tactile.sim import render_triggered
 
 TOL_M = 0.1e-3  # issue 37: both emissions of a pair within 0.1 mm
@@ -388,3 +388,29 @@ def test_an_unusable_saved_pulse_is_refused_and_changes_nothing(live_rc2, bad):
     with pytest.raises(ValueError):
         fresh.load_calibration(state)
     assert not fresh.converged and fresh.calibration_state() is None
+
+
+def test_only_single_touches_away_from_the_apex_are_queued():
+    """`enqueue_records` keeps a reference to the packet of each record that is a single
+    emission's: not at the apex (what interference imitates), not a weak release, of one
+    packet, confident, its peak well above the packet's noise; nothing is fitted before
+    ``min_packets``."""
+    learner = PulseLearner(min_packets=100)
+    x = np.zeros((4, 400), np.float32)
+    packets = [PacketView(x, 10e6, 100, 0, i, noise_rms_v=1e-3) for i in range(7)]
+    off = math.radians(20.0)
+
+    def rec(i, **kw):
+        base = dict(event_type=1, time_ns=0, point_m=(0.0, 0.0, 0.01),
+                    covariance_m2=np.eye(3), packet_ids=(i,), polar_rad=off,
+                    amplitude_v=0.1, confidence=0.9)
+        base.update(kw)
+        return ContactRecord(**base)
+
+    records = [rec(0), rec(1, polar_rad=math.radians(2.0)), rec(2, weak_release=True),
+               rec(3, confidence=0.2), rec(4, amplitude_v=5e-3), rec(5, packet_ids=(5, 6)),
+               rec(99)]  # a packet not in the batch
+    assert learner.enqueue_records(packets, records, 0.5) == 1
+    st = learner.state()
+    assert st["pulse_candidates_kept"] == 1 and st["pulse_fits"] == 0
+    assert learner._windows[0][0] is x  # a reference: the reader copies nothing

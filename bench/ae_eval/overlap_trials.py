@@ -145,3 +145,124 @@ def simulate_overlaps(
         sample_rate_hz=fs,
         config=cfg,
     )
+
+
+# ------------------------------------------------------------------ the live path, per device
+def _single_touches(cfg, n, rng, snr_db=30.0):
+    """``n`` isolated touches / releases within 60 deg of the apex (the learner's input)."""
+    geo = cfg.geometry
+    cos_t = rng.uniform(math.cos(math.radians(60.0)), 1.0, n)
+    pts = geo.surface_point_from_angles(np.arccos(cos_t), rng.uniform(0, 2 * math.pi, n))
+    return render_triggered(pts, cfg, snr_db=snr_db, rng=rng, polarity=rng.choice([-1, 1], n))
+
+
+def _views(samples, onsets, fs, id0):
+    """PacketViews of windows 1 ms apart, sequence ids from ``id0``."""
+    from ae_tactile.records import PacketView  # lazy: only the live-path trials need it
+
+    return [PacketView(np.asarray(samples[i]), fs, int(onsets[i]), 10**6 * (id0 + i), id0 + i)
+            for i in range(len(samples))]
+
+
+def _loss_counted(before, after) -> bool:
+    """The pipeline counted a window's missing emissions: an overlap answer rejected or
+    dropped, or an overlap error."""
+    keys = [k for k in after if k.startswith(("overlap_rejected_", "overlap_dropped_"))
+            or k == "overlap_errors"]
+    return any(after[k] > before.get(k, 0) for k in keys)
+
+
+def live_pairs(pipe, d, id0, tol_m=0.1e-3, wrong_m=0.5e-3):
+    """The pairs of ``d`` (`simulate_overlaps`) through ``pipe.process`` one window at a
+    time (the resolver answered before the next): per window, whether both emissions came
+    out within ``tol_m`` of the truth, a point came out farther than ``wrong_m`` from
+    both, fewer than two points came out without a count (silent), and the window reached
+    the overlap resolver (rejected as OVERLAP or withdrawn as a suspect).
+
+    Returns dict: resolved, wrong, silent, counted, reached (bool arrays), n_events (int
+    array).
+    """
+    n = len(d["samples_v"])
+    got: dict = {}
+
+    def take(records):
+        for r in records:
+            got.setdefault(r.packet_ids[0], []).append(np.asarray(r.point_m, float))
+
+    out = {k: np.zeros(n, bool) for k in ("resolved", "wrong", "silent", "counted",
+                                          "reached")}
+    out["n_events"] = np.zeros(n, int)
+    for i, v in enumerate(_views(d["samples_v"], d["onset_index"], d["sample_rate_hz"], id0)):
+        before = dict(pipe.all_counts())
+        pipe.process([v], take)
+        pipe.wait_idle(60.0)
+        after = pipe.all_counts()
+        out["reached"][i] = any(after[k] > before.get(k, 0)
+                                for k in ("rejected_OVERLAP", "overlap_suspects"))
+        pts = np.array(got.get(id0 + i, np.zeros((0, 3))))
+        truth = d["points_m"][i]
+        out["n_events"][i] = len(pts)
+        if len(pts):
+            err = np.linalg.norm(pts[:, None, :] - truth[None], axis=2)
+            out["resolved"][i] = len(pts) >= 2 and bool(
+                (err.min(axis=0) <= tol_m).all() and (err.min(axis=1) <= tol_m).all())
+            out["wrong"][i] = bool((err.min(axis=1) > wrong_m).any())
+        if len(pts) < 2:
+            counted = _loss_counted(before, after)
+            out["counted"][i], out["silent"][i] = counted, not counted
+    return out
+
+
+def live_device(dev, *, n_pairs=20, max_singles=48, rng=None, sample_rate_hz=10e6,
+                medium="water_skin", fit_in_process=False):
+    """One device through the driver's pipeline (`ContactPipeline`, defaults, its resolver
+    and worker process): pairs cold (the nominal pulse), then single touches (30 dB,
+    batches of 12) until the pipeline's pulse learner trusts a pulse or ``max_singles``
+    were given, then the same pairs warm. The fit runs in the calling thread at normal
+    priority (the same fit; ``fit_in_process``: in the niced process of its own, as in
+    the driver, where on a loaded machine it waits for idle time).
+
+    Pairs: 2-10 us apart (uniform), 1:2, 25 dB on the weaker, wall echo unless the device
+    says otherwise (`simulate_overlaps`). Returns a dict of the figures.
+    """
+    import time  # lazy: only the live-path trials time anything
+
+    from ae_tactile.pipeline import ContactPipeline, PacketLocalizer  # lazy: see above
+
+    gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    cfg = dev.config(medium, sample_rate_hz, reflections=True)
+    pipe = ContactPipeline(PacketLocalizer("ml", geometry=cfg.geometry), None)
+    try:
+        pipe.start_overlaps(wait_s=60.0)
+        d = simulate_overlaps(n_pairs, cfg, separation_s=gen.uniform(2e-6, 10e-6, n_pairs),
+                              amplitude_ratio=2.0, snr_db=25.0, rng=gen)
+        cold = live_pairs(pipe, d, 100_000)
+        learner = pipe.overlap_stage.pulse_learner
+        learner.background = "process" if fit_in_process else False
+        learner.reset()  # the pairs' blends are no learning material: start clean
+        t0 = time.perf_counter()
+        given = 0
+        while given < max_singles and not learner.converged:
+            pk = _single_touches(cfg, 12, gen)
+            pipe.process(_views(pk.samples_v, pk.onset_index, sample_rate_hz, 200_000 + given))
+            given += 12
+            learner.wait()
+        learn_s = time.perf_counter() - t0
+        warm = live_pairs(pipe, d, 300_000)
+        st = learner.state()
+    finally:
+        pipe.close()
+    pct = lambda a: round(100.0 * float(np.mean(a)), 1)  # noqa: E731
+    return dict(
+        device=dev.name, description=dev.description, reflections=bool(cfg.reflections),
+        n_pairs=int(n_pairs), singles_given=int(given), learn_wall_s=round(learn_s, 1),
+        converged=bool(st["pulse_converged"]), fits=int(st["pulse_fits"]),
+        inliers=int(st["pulse_inliers"]), candidates=int(st["pulse_candidates_kept"]),
+        cold_resolved_pct=pct(cold["resolved"]), warm_resolved_pct=pct(warm["resolved"]),
+        warm_reached=int(warm["reached"].sum()),
+        warm_resolved_of_reached_pct=pct(warm["resolved"][warm["reached"]])
+        if warm["reached"].any() else None,
+        cold_wrong=int(cold["wrong"].sum()), warm_wrong=int(warm["wrong"].sum()),
+        cold_silent=int(cold["silent"].sum()), warm_silent=int(warm["silent"].sum()),
+        cold_counted=int(cold["counted"].sum()), warm_counted=int(warm["counted"].sum()),
+    )
