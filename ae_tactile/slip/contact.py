@@ -58,9 +58,6 @@ class Contact:
         # largest per-axis variance: a cheap test for a far release's touch
         self.touch_box = [math.inf, math.inf, math.inf, -math.inf, -math.inf, -math.inf]
         self.touch_var = 0.0
-        # the box holding every emission the contact ever had (m, grown only): a cheap
-        # bound on the distance to its nearest member (`ContactTracking._touch_point_d2`)
-        self.member_box = [math.inf, math.inf, math.inf, -math.inf, -math.inf, -math.inf]
         self.n = 0
         self.state = ContactState.STICK
         self.since_ns = t_ns
@@ -131,22 +128,9 @@ class Contact:
         self.pid[i] = pid
         self.flags[i] = flags
         self.n += 1
-        x, y, z = float(p[0]), float(p[1]), float(p[2])
-        b = self.member_box
-        if x < b[0]:
-            b[0] = x
-        if x > b[3]:
-            b[3] = x
-        if y < b[1]:
-            b[1] = y
-        if y > b[4]:
-            b[4] = y
-        if z < b[2]:
-            b[2] = z
-        if z > b[5]:
-            b[5] = z
         if pol > 0:
             b = self.touch_box
+            x, y, z = float(p[0]), float(p[1]), float(p[2])
             if x < b[0]:
                 b[0] = x
             if x > b[3]:
@@ -163,7 +147,7 @@ class Contact:
                 self.touch_var = float(var)
         if t >= self.last_ns:
             self.last_ns = t
-            self.last_p = (x, y, z)
+            self.last_p = (float(p[0]), float(p[1]), float(p[2]))
         return i
 
     def valid(self):

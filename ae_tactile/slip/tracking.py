@@ -94,13 +94,13 @@ class ContactTracking:
         ):
             # a point of an arriving object: within association_radius_m of its points
             gate = self._assoc2
-            d2 = min(d2, self._touch_point_d2(c, px, py, pz, gate=gate))
+            d2 = min(d2, self._touch_point_d2(c, px, py, pz))
         else:
             # a held or arriving contact's patch: its disc round its touch points (an
             # arriving one's: round any of its emissions)
             gate = self._patch2 if c.founder[2] > 0 else self._assoc2
             if d2 > gate:
-                d2 = min(d2, self._touch_point_d2(c, px, py, pz, c.arriving, gate))
+                d2 = min(d2, self._touch_point_d2(c, px, py, pz, c.arriving))
         return d2, gate
 
     def _object_of_release(self, px, py, pz, t):
@@ -118,23 +118,14 @@ class ContactTracking:
                 continue
             q = c.centre_xyz
             d2 = (px - q[0]) ** 2 + (py - q[1]) ** 2 + (pz - q[2]) ** 2
-            d2 = min(d2, self._touch_point_d2(c, px, py, pz, gate=best_d2))
+            d2 = min(d2, self._touch_point_d2(c, px, py, pz))
             if d2 <= best_d2:
                 best, best_d2 = c, d2
         return best
 
-    def _touch_point_d2(self, c, px, py, pz, any_member=False, gate=None):
+    def _touch_point_d2(self, c, px, py, pz, any_member=False):
         """Squared distance [m^2] from (px, py, pz) to the nearest touch point (founder or
-        arrival touch; ``any_member``: any emission) of contact ``c`` in its buffer; inf
-        when it is surely beyond ``gate`` [m^2] (farther from the box of every emission
-        the contact had: the callers compare with that gate)."""
-        if gate is not None:
-            b = c.member_box
-            dx = max(b[0] - px, px - b[3], 0.0)
-            dy = max(b[1] - py, py - b[4], 0.0)
-            dz = max(b[2] - pz, pz - b[5], 0.0)
-            if dx * dx + dy * dy + dz * dz > gate:
-                return math.inf
+        arrival touch; ``any_member``: any emission) of contact ``c`` in its buffer."""
         k = c.valid()
         m = (c.flags[:k] & TOUCH_POINT) != 0
         if any_member:
