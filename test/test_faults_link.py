@@ -585,3 +585,58 @@ def test_simulated_fingertip_refuses_a_hostile_scene_file_with_a_clear_error(tmp
         path.write_text(text)
         with pytest.raises(SceneError):
             VirtualFingertip(str(path))
+
+
+def test_a_reader_that_falls_behind_says_so_and_when_it_is_back_in_step(tmp_path, caplog):
+    """The consumer of the reader thread takes 35 ms a packet while the fingertip sends
+    40 a second: bytes wait on the port after every batch. The link says once in the log
+    and in its stats that it is behind (bytes waiting after every batch for 0.5 s), with
+    the read lag growing; once the consumer is fast again it catches up and says that
+    too. Every packet sent is delivered once, in order."""
+    import logging
+
+    from test_faults_clock import STEADY
+
+    from ae_tactile.virtual_device import DeviceRunner, VirtualFingertip
+
+    slow = {"on": True}
+    got = []
+
+    def sink(batch):
+        got.extend(batch.packets)
+        if slow["on"]:
+            time.sleep(0.035 * len(batch.packets))  # [s] per packet: the device sends one in 25 ms
+
+    transport = PtyTransport(str(tmp_path / "fingertip"))
+    device = VirtualFingertip(STEADY, record=True)
+    runner = DeviceRunner(device, transport)
+    link = FingertipLink(LinkConfig(port=transport.port), clock_ns=time.monotonic_ns, sink=sink)
+    caplog.set_level(logging.INFO, logger="ae_tactile.link")
+    runner.start()
+    link.start()
+    try:
+        deadline = time.monotonic() + 60.0
+        while not link.stats()["behind"] and time.monotonic() < deadline:
+            time.sleep(0.05)
+        behind = link.stats()
+        slow["on"] = False
+        deadline = time.monotonic() + 60.0
+        while link.stats()["behind"] and time.monotonic() < deadline:
+            time.sleep(0.05)
+        after = link.stats()
+        deadline = time.monotonic() + 60.0
+        while not device.finished(time.monotonic_ns()) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.5)  # the last packets in flight
+    finally:
+        link.stop()
+        runner.stop()
+    assert behind["behind"] == 1 and behind["behind_episodes"] == 1, behind
+    assert behind["read_lag_max_ms"] > 50.0  # packets read long after they were taken
+    assert after["behind"] == 0 and after["behind_episodes"] == 1, after
+    said = [r.getMessage() for r in caplog.records]
+    assert sum("behind the fingertip" in m for m in said) == 1, said
+    assert any("back in step" in m for m in said), said
+    sent = [b.first_sample_index for k, _, b, f in device.sent_log
+            if k == "packet" and f == "sent"]
+    assert [p.device_sample_index for p in got] == sent  # each once, in order: none lost

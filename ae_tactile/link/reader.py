@@ -34,6 +34,7 @@ from ae_tactile.timesync import DeviceClockMapper
 from .commands import DeviceControl
 from .config import LinkConfig
 from .frontend import warm_up
+from .lag import ReadLag
 from .packets import PacketBatch, PacketBuilder, PacketRecord
 from .port import OPEN_ERRORS, PORT_ERRORS, PortBusy, PortLock, SerialPort, open_serial
 
@@ -43,36 +44,13 @@ _FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 #: The link's own counters (`FingertipLink.stats` adds the decoder's and the state).
 COUNTER_NAMES = (
-    "connects",
-    "disconnects",
-    "connect_failures",
-    "port_busy",
-    "read_errors",
-    "link_timeouts",
-    "acquisition_restarts",
-    "acquisition_reconnects",
-    "packets_out",
-    "batches_out",
-    "queue_overflow_packets",
-    "stream_gaps",
-    "stream_samples_lost",
-    "device_restarts_handled",
-    "commands_sent",
-    "commands_unacked",
-    "commands_failed",
-    "frames_ignored",
-    "sync_good_pings",
-    "clock_pings",
-    "clock_pings_used",
-    "sink_errors",
-    "stalled_frames",
-    "spurious_wakeups",
-    "hangups",
-    "internal_errors",
-    "packets_rejected_nonfinite",
-    "packets_rejected_sample_rate",
-    "frames_unusable",
-    "bytes_cut_at_disconnect",
+    "connects", "disconnects", "connect_failures", "port_busy", "read_errors", "link_timeouts",
+    "acquisition_restarts", "acquisition_reconnects", "packets_out", "batches_out",
+    "queue_overflow_packets", "stream_gaps", "stream_samples_lost", "device_restarts_handled",
+    "commands_sent", "commands_unacked", "commands_failed", "frames_ignored",
+    "sync_good_pings", "clock_pings", "clock_pings_used", "sink_errors", "stalled_frames",
+    "spurious_wakeups", "hangups", "internal_errors", "packets_rejected_nonfinite",
+    "packets_rejected_sample_rate", "frames_unusable", "bytes_cut_at_disconnect",
 )
 
 
@@ -138,6 +116,7 @@ class FingertipLink(DeviceControl):
         self.state = "disconnected"
         self.device_status: Status | None = None
         self.counters = dict.fromkeys(COUNTER_NAMES, 0)
+        self.lag = ReadLag(self.log)  # how far behind the device the reader is
         self._packets = PacketBuilder(
             config, self.mapper, self.counters, lambda r: self._emit(int(self.clock_ns()), r)
         )
@@ -227,6 +206,7 @@ class FingertipLink(DeviceControl):
                 clock_clamped=self.mapper.clamped,
                 clock_steps=self.mapper.steps,
                 packets_dropped=self.packets_dropped(),
+                **self.lag.stats(),
             )
             st = self.device_status
             if st is not None:
@@ -573,8 +553,11 @@ class FingertipLink(DeviceControl):
     # ---------------------------------------------------------------- hand-over
     def _emit(self, receive_ns: int, records: list[PacketRecord]) -> None:
         batch = PacketBatch(receive_ns, records, 0, 0)
+        last = records[-1]
         if self.sink is not None:
             with self._lock:
+                self.lag.add(receive_ns, last.stamp_ns, last.samples_v.shape[1],
+                             last.sample_rate_hz)
                 batch.packets_dropped = self.packets_dropped()
                 batch.frames_bad_crc = int(self.decoder.crc_errors)
             self.counters["packets_out"] += len(records)
@@ -584,6 +567,9 @@ class FingertipLink(DeviceControl):
             except Exception as exc:  # the reader must survive any consumer bug
                 self.counters["sink_errors"] += 1
                 self.log.error("packet consumer failed: %r", exc)
+            if self.config.mode == "triggered":  # a raw stream always has bytes coming
+                with self._lock:
+                    self.lag.after_batch(int(self.clock_ns()), self.bytes_waiting())
             return
         try:
             with self._lock:

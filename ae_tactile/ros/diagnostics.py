@@ -22,6 +22,8 @@ LINK_PROBLEMS = (
     "acquisition_restarts",
     "acquisition_reconnects",
     "clock_steps",
+    "behind",  # the reader is behind the device now (ae_tactile.link.lag)
+    "behind_episodes",
 )
 
 
