@@ -291,10 +291,10 @@ class ChannelDelayLearner:
         self.precise = self.stderr_s <= self.tolerance * noise
         self.converged = self.precise | (np.abs(beta) >= DELAY_SIGNIFICANT * self.stderr_s)
         self.n_used = m
-        if self.converged.any():
-            self.applied_delays_s = CONTRASTS.T @ np.where(self.converged, beta, 0.0)
-        else:
-            self.applied_delays_s = None
+        applied = CONTRASTS.T @ np.where(self.converged, beta, 0.0)
+        # an offset of a microsecond is a wiring or model fault, never applied
+        sane = np.isfinite(applied).all() and np.abs(applied).max() < MAX_OFFSET_S
+        self.applied_delays_s = applied if self.converged.any() and sane else None
         self._notify()
 
     # ------------------------------------------------------------ persistence
