@@ -50,8 +50,8 @@ class PulseLearner:
     They must lie at polar angle >= MIN_LEARN_POLAR_RAD (the fit checks SNR >=
     MIN_LEARN_SNR_DB itself). Once ``min_packets`` are kept, and then every
     ``refit_every`` new ones (doubling from the second fit in a row that does not
-    converge, up to ``refit_converged_every``, the interval once a pulse is trusted), `fit_pulse` runs on
-    the newest ``max_packets``: in the calling thread, in a thread of its own
+    converge, up to ``refit_converged_every``, the interval once a pulse is trusted),
+    `fit_pulse` runs on the newest ``max_packets``: in the calling thread, in a thread of its own
     (``background=True``) or in a process of its own started by that thread
     (``background="process"``, the driver: the fit never holds the interpreter lock
     against the reader); one fit at a time. `pulse` is the learnt model once trusted
