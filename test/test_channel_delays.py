@@ -234,7 +234,8 @@ def test_packet_localizer_learns_persists_and_applies():
     assert learner.n_packets >= 600
     assert learner.all_converged
     assert np.abs(learner.delays_s - _true_offsets(dev)).max() < 2e-9
-    np.testing.assert_allclose(pl.localizer.channel_delays_s, learner.applied_delays_s)
+    # in use: what the learning call before the last learnt (taken up at the last hand-off)
+    assert np.abs(pl.localizer.channel_delays_s - _true_offsets(dev)).max() < 2e-9
     pl.update(min_snr_db=6.0)  # a new localizer: the offsets stay
     np.testing.assert_allclose(pl.localizer.channel_delays_s, learner.applied_delays_s)
     state = learner.calibration_state()

@@ -32,6 +32,7 @@ removes), with at least ``min_count`` packets in: before that the localizer is u
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 
@@ -188,10 +189,15 @@ class ChannelDelayLearner:
         #: called with ``applied_delays_s`` whenever it may have changed (a refit, a load,
         #: a reset): the owner hands it to its `Localizer.set_channel_delays`
         self.on_update = None
+        self._lock = threading.RLock()  # a learning thread, the store's saves and loads
         self.reset()
 
     def reset(self) -> None:
         """Forget every packet (another body, or a reset of the device's calibration)."""
+        with self._lock:
+            self._reset_locked()
+
+    def _reset_locked(self) -> None:
         self._u = np.zeros((0, 3))
         self._y = np.zeros(0)
         self._var = np.zeros(0)
@@ -252,10 +258,11 @@ class ChannelDelayLearner:
 
     def add_measurements(self, u, y, var) -> None:
         """Append `measure`'s rows (u (K, 3), y (K,) [s], var (K,) [s^2]) and refit."""
-        self._u = np.concatenate([self._u, np.asarray(u, float)])[-self.keep:]
-        self._y = np.concatenate([self._y, np.asarray(y, float)])[-self.keep:]
-        self._var = np.concatenate([self._var, np.asarray(var, float)])[-self.keep:]
-        self._fit()
+        with self._lock:
+            self._u = np.concatenate([self._u, np.asarray(u, float)])[-self.keep:]
+            self._y = np.concatenate([self._y, np.asarray(y, float)])[-self.keep:]
+            self._var = np.concatenate([self._var, np.asarray(var, float)])[-self.keep:]
+            self._fit()
 
     def _fit(self) -> None:
         """Trimmed weighted least squares of the contrasts; what is applied."""
@@ -307,10 +314,11 @@ class ChannelDelayLearner:
         dict or None
             {"format": 1, "u": [[x, y, xy], ...], "y_s": [...], "var_s2": [...]}.
         """
-        if not len(self._y):
-            return None
-        return {"format": _FORMAT, "u": self._u.tolist(), "y_s": self._y.tolist(),
-                "var_s2": self._var.tolist()}
+        with self._lock:
+            if not len(self._y):
+                return None
+            return {"format": _FORMAT, "u": self._u.tolist(), "y_s": self._y.tolist(),
+                    "var_s2": self._var.tolist()}
 
     def load_calibration(self, state: dict) -> None:
         """Start from a saved `calibration_state`.
@@ -341,15 +349,20 @@ class ChannelDelayLearner:
                 and (np.abs(y) < MAX_OFFSET_S).all()
                 and np.allclose(np.linalg.norm(u, axis=1), 1.0, atol=1e-6)):
             raise ValueError("channel delays: values out of range")
-        self.reset()
-        self._u, self._y, self._var = u[-self.keep:], y[-self.keep:], var[-self.keep:]
-        self._fit()
+        with self._lock:
+            self._reset_locked()
+            self._u, self._y, self._var = u[-self.keep:], y[-self.keep:], var[-self.keep:]
+            self._fit()
 
     #: the name of the task's protocol (`load_calibration` is the store's)
     load_calibration_state = load_calibration
 
     def status(self) -> str:
         """The offsets in words (diagnostics)."""
+        with self._lock:
+            return self._status_locked()
+
+    def _status_locked(self) -> str:
         if self.delays_s is None:
             return f"learning ({self.n_packets} of {self.min_count} packets)"
         d = " / ".join(f"{v * 1e9:+.1f}" for v in self.delays_s)

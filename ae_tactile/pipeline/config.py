@@ -48,6 +48,19 @@ ECHO_LEARN_EVERY = 64
 OVERLAP_SUSPECT_CONFIDENCE = 0.6
 OVERLAP_SUSPECT_EXCESS = 0.028
 
+# ---------------------------------------------------------------- channel delays (`localize.py`)
+#: packets measured per learning call of the channel delays (`ChannelDelayLearner.add`)
+DELAY_LEARN_BATCH = 16
+#: one confident packet in this many is kept for the channel delays while a contrast is
+#: not known to its tolerance, then one in DELAY_LEARN_STRIDE_CONVERGED (followed): ~0.3 ms
+#: of numpy per packet measured, in a learning thread of their own (in a pipeline)
+DELAY_LEARN_STRIDE = 2
+DELAY_LEARN_STRIDE_CONVERGED = 16
+#: packets the channel delays learn from: confident single emissions [0..1] ...
+DELAY_LEARN_CONFIDENCE = 0.3
+#: ... away from the horizon [rad] (a point clamped there is no measurement)
+DELAY_LEARN_MAX_POLAR_RAD = math.radians(80.0)
+
 # ---------------------------------------------------------------- hand (`hand.py`)
 #: [1] apex packet onsets kept for the hand's topic until taken (the newest)
 APEX_OUT_MAX = 10_000

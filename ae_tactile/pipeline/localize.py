@@ -9,7 +9,10 @@ holding overlapping emissions (for the overlap resolver) and gate weak releases.
 
 from __future__ import annotations
 
+import logging
 import math
+import queue
+import threading
 from collections import Counter
 from types import SimpleNamespace
 from typing import Sequence
@@ -23,8 +26,14 @@ from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import ChannelDelayLearner, Localizer, Reason, get_estimator
 from ae_tactile.localization.overlap import suspect_overlap
 from ae_tactile.localization.overlap import warm_up as warm_overlaps
+from ae_tactile.localization.overlap_worker import background_priority
 from ae_tactile.localization.weak_release import WeakReleaseGate
 from ae_tactile.pipeline.config import (
+    DELAY_LEARN_BATCH,
+    DELAY_LEARN_CONFIDENCE,
+    DELAY_LEARN_MAX_POLAR_RAD,
+    DELAY_LEARN_STRIDE,
+    DELAY_LEARN_STRIDE_CONVERGED,
     MAX_PACKET_SAMPLES,
     MAX_SAMPLE_RATE_HZ,
     MIN_SAMPLE_RATE_HZ,
@@ -32,18 +41,6 @@ from ae_tactile.pipeline.config import (
 )
 from ae_tactile.pipeline.screens import Screens
 from ae_tactile.records import ContactRecord, EventType, PacketView, packet_record
-
-#: packets measured per learning call of the channel delays (`ChannelDelayLearner.add`)
-DELAY_LEARN_BATCH = 16
-#: one confident packet in this many is kept for the channel delays while a contrast is
-#: not known to its tolerance, then one in DELAY_LEARN_STRIDE_CONVERGED (followed): ~0.3 ms
-#: of numpy per packet measured, when the link is idle
-DELAY_LEARN_STRIDE = 2
-DELAY_LEARN_STRIDE_CONVERGED = 16
-#: packets the channel delays learn from: confident single emissions [0..1] ...
-DELAY_LEARN_CONFIDENCE = 0.3
-#: ... away from the horizon [rad] (a point clamped there is no measurement)
-DELAY_LEARN_MAX_POLAR_RAD = math.radians(80.0)
 
 
 def packet_problem(samples_v, sample_rate_hz, onset_index) -> str | None:
@@ -188,6 +185,10 @@ class PacketLocalizer:
         self.delay_learner = ChannelDelayLearner()
         self._delay_pending: list = []
         self._delay_seen = 0
+        self._delay_thread: threading.Thread | None = None  # `_hand_off_delays`
+        self._delay_done: threading.Event | None = None  # the learning call under way
+        self._delays_next: tuple | None = None  # (offsets,) it learnt, not yet in use
+        self._deferring = False  # learning inline: offsets wait for the next hand-off
         self.delay_learner.on_update = self._set_delays
 
     weak_releases = _screen_attr("weak_releases")
@@ -209,19 +210,16 @@ class PacketLocalizer:
 
     @property
     def echo_pending(self) -> bool:
-        """`Screens.echo_pending`, or a batch of packets kept for `learn_delays`."""
-        return self.screens.echo_pending or len(self._delay_pending) >= DELAY_LEARN_BATCH
+        """`Screens.echo_pending`."""
+        return self.screens.echo_pending
 
     def echo_test_status(self) -> str:
         """`Screens.echo_test_status`."""
         return self.screens.echo_test_status()
 
     def learn_echo(self) -> None:
-        """`Screens.learn_echo` and the channel delays' learning (`learn_delays`): run
-        once the contact events are out."""
+        """`Screens.learn_echo`: run once the contact events are out."""
         self.screens.learn_echo()
-        if len(self._delay_pending) >= DELAY_LEARN_BATCH:
-            self.learn_delays()
 
     def calibration_learners(self) -> dict:
         """`Screens.calibration_learners` and the channel delays (``channel_delays``):
@@ -232,14 +230,17 @@ class PacketLocalizer:
         return out
 
     def _set_delays(self, delays_s) -> None:
-        """The learner's offsets to the localizer in use (`ChannelDelayLearner.on_update`)."""
-        self.localizer.set_channel_delays(delays_s)
+        """The learner's offsets to the localizer in use (`ChannelDelayLearner.on_update`);
+        from the learning thread they wait for the next hand-off (`_hand_off_delays`)."""
+        if self._deferring or threading.current_thread() is self._delay_thread:
+            self._delays_next = (delays_s,)
+        else:
+            self.localizer.set_channel_delays(delays_s)
 
     def stash_delays(self, found) -> None:
-        """Keep (copies of) the confident single emissions of a call for `learn_delays`:
-        one in DELAY_LEARN_STRIDE while a contrast is not known to its tolerance, then one in
-        DELAY_LEARN_STRIDE_CONVERGED. Measured when the link is idle (`learn_echo`), at
-        the latest at the start of the next `process` call."""
+        """Keep (copies of) the confident single emissions of a call for `_hand_off_delays`:
+        one in DELAY_LEARN_STRIDE until every contrast is precise, then one in
+        DELAY_LEARN_STRIDE_CONVERGED."""
         learner = self.delay_learner
         for p, ev in found:
             if len(self._delay_pending) >= 4 * DELAY_LEARN_BATCH:
@@ -255,11 +256,48 @@ class PacketLocalizer:
                                         float(p.sample_rate_hz), int(p.onset_index),
                                         self.geometry, self.channel_gains))
 
-    def learn_delays(self) -> None:
-        """Measure the kept packets (`ChannelDelayLearner.add`, numpy, ~0.3 ms a packet),
-        one call per (rate, window length, body); the learner's offsets reach the
-        localizer through its ``on_update``."""
-        pending, self._delay_pending = self._delay_pending, []
+    def _hand_off_delays(self) -> None:
+        """Measure the kept packets at once (``learn_inline``) or, in a pipeline, in a niced
+        thread (milliseconds of numpy the reflex path must not wait for); what a call learnt
+        is used from the next hand-off on, which waits for it: never timing-dependent."""
+        if self._delay_done is not None:
+            self._delay_done.wait()
+        if self._delays_next is not None:
+            self.localizer.set_channel_delays(self._delays_next[0])
+            self._delays_next = None
+        if self.learn_inline:
+            self._deferring = True
+            try:
+                self.learn_delays()
+            finally:
+                self._deferring = False
+            return
+        if self._delay_thread is None:
+            self._delay_queue: queue.SimpleQueue = queue.SimpleQueue()
+            self._delay_thread = threading.Thread(target=self._delay_work, daemon=True,
+                                                  name="ae_tactile_channel_delays")
+            self._delay_thread.start()
+        self._delay_done = threading.Event()
+        self._delay_queue.put((self._delay_pending, self._delay_done))
+        self._delay_pending = []
+
+    def _delay_work(self) -> None:
+        background_priority(False)
+        while True:
+            pending, done = self._delay_queue.get()
+            try:
+                self.learn_delays(pending)
+            except Exception:  # the learner's bug must not end the learning
+                logging.getLogger("ae_tactile.pipeline").exception("channel delay learning")
+            finally:
+                done.set()
+
+    def learn_delays(self, pending: list | None = None) -> None:
+        """Measure the kept packets (``pending``, default those kept now) with
+        `ChannelDelayLearner.add` (numpy, ~0.3 ms a packet), one call per (rate, window
+        length, body); the learner's offsets reach the localizer through ``on_update``."""
+        if pending is None:
+            pending, self._delay_pending = self._delay_pending, []
         groups: dict = {}
         for item in pending:
             if item[3] is self.geometry:  # packets of an earlier body are dropped
@@ -402,10 +440,6 @@ class PacketLocalizer:
         """
         counts = self.counts if count else Counter()
         self.overlap_windows = []
-        if len(self._delay_pending) >= DELAY_LEARN_BATCH:
-            # not measured while the link was idle (it never was since): now, so that the
-            # offsets in use never depend on when the link was idle
-            self.learn_delays()
         sc = self.screens
         sc.new_call()
         # the body this call localizes on, and its echo learner (`update` may switch both
@@ -438,8 +472,8 @@ class PacketLocalizer:
                 sc.learn_echo()
         if count:
             self.stash_delays(out)
-            if self.learn_inline and len(self._delay_pending) >= DELAY_LEARN_BATCH:
-                self.learn_delays()
+            if len(self._delay_pending) >= DELAY_LEARN_BATCH:
+                self._hand_off_delays()
         for _, ev in out:
             counts["events"] += 1
             counts["detouch" if ev.event_type == EventType.DETOUCH else "touch"] += 1
