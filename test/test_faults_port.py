@@ -91,7 +91,9 @@ def test_a_device_that_will_not_restart_acquiring_is_reconnected(tmp_path):
             rig.device.halt_acquisition()
 
         rig.runner.call(broken)
-        rig.run(60.0, until=lambda: rig.link.stats()["acquisition_reconnects"] >= 1)
+        # the reconnect is counted, then the port closed (disconnects): wait for both
+        rig.run(60.0, until=lambda: rig.link.stats()["acquisition_reconnects"] >= 1
+                and rig.link.stats()["disconnects"] >= 1)
         s = rig.link.stats()
         assert s["acquisition_restarts"] >= 1 and s["acquisition_reconnects"] >= 1
         assert s["disconnects"] >= 1

@@ -29,6 +29,7 @@ from ae_tactile.localization.overlap import warm_up as warm_overlaps
 from ae_tactile.localization.overlap_worker import background_priority
 from ae_tactile.localization.weak_release import WeakReleaseGate
 from ae_tactile.pipeline.config import (
+    APEX_POLAR_RAD,
     DELAY_LEARN_BATCH,
     DELAY_LEARN_CONFIDENCE,
     DELAY_LEARN_MAX_POLAR_RAD,
@@ -239,14 +240,14 @@ class PacketLocalizer:
 
     def stash_delays(self, found) -> None:
         """Keep (copies of) the confident single emissions of a call for `_hand_off_delays`:
-        one in DELAY_LEARN_STRIDE until every contrast is precise, then one in
-        DELAY_LEARN_STRIDE_CONVERGED."""
+        one in DELAY_LEARN_STRIDE until every contrast is precise, then in ..._CONVERGED."""
         learner = self.delay_learner
         for p, ev in found:
             if len(self._delay_pending) >= 4 * DELAY_LEARN_BATCH:
                 return
+            # not at the apex: interference lands there, and packets the hand must judge
             if (ev.weak_release or ev.confidence < DELAY_LEARN_CONFIDENCE
-                    or not ev.polar_rad < DELAY_LEARN_MAX_POLAR_RAD):
+                    or not APEX_POLAR_RAD <= ev.polar_rad < DELAY_LEARN_MAX_POLAR_RAD):
                 continue
             self._delay_seen += 1
             stride = DELAY_LEARN_STRIDE_CONVERGED if learner.all_precise else DELAY_LEARN_STRIDE

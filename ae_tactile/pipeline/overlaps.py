@@ -572,6 +572,7 @@ class OverlapStage:
         return 0 if self.resolver is None else self.resolver.pending()
 
     def close(self) -> None:
-        """Stop the resolver's thread and worker."""
+        """Stop the resolver's thread and worker, and the pulse learner's fit."""
+        self.pulse_learner.close()
         if self.resolver is not None:
             self.resolver.close()

@@ -92,6 +92,8 @@ class PulseLearner:
         self._generation = 0  # a reset or load makes a running fit's answer stale
         self._thread: threading.Thread | None = None
         self._busy = False
+        self._proc = None  # the fit process under way (`close` ends it)
+        self._closed = False
         self.fits = 0
         self.fit_errors = 0
         self.offered = 0
@@ -114,6 +116,14 @@ class PulseLearner:
     def converged(self) -> bool:
         """A learnt pulse is trusted."""
         return self.pulse is not None
+
+    def close(self) -> None:
+        """No more fits: one under way in its process is ended (its owner closes)."""
+        with self._lock:
+            self._closed = True
+            proc = self._proc
+        if proc is not None:
+            proc.kill()
 
     def reset(self) -> None:
         """Forget the candidates and the learnt pulse (a new device, a changed front end);
@@ -252,7 +262,7 @@ class PulseLearner:
         running; marked started), else None: see `_snapshot_locked`."""
         every = self.refit_converged_every if (self.converged and not self.loaded) else (
             self._every)
-        due = (not self._busy and len(self._windows) >= self.min_packets
+        due = (not self._busy and not self._closed and len(self._windows) >= self.min_packets
                and (self.last is None or self.loaded or self._new >= every))
         if self.loaded and self.last is not None:
             due = due and self._new >= self.min_packets  # check it on fresh packets
@@ -381,15 +391,28 @@ class PulseLearner:
         """`fit_pulse` on the request, in a process of its own (``background="process"``;
         where that fails, here) or here."""
         if self.background == "process":
+            proc = None
             try:
-                out = subprocess.run(
+                proc = subprocess.Popen(
                     [sys.executable, "-m", "ae_tactile.localization.overlap.fit_job"],
-                    input=pickle.dumps(request, protocol=pickle.HIGHEST_PROTOCOL),
-                    stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                    timeout=FIT_TIMEOUT_S, check=False, start_new_session=True)
-                fit = pickle.loads(out.stdout) if out.stdout else None
+                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                    start_new_session=True)
+                with self._lock:
+                    self._proc = proc
+                    if self._closed:
+                        proc.kill()
+                out, _ = proc.communicate(
+                    pickle.dumps(request, protocol=pickle.HIGHEST_PROTOCOL),
+                    timeout=FIT_TIMEOUT_S)
+                fit = pickle.loads(out) if out else None
             except (OSError, subprocess.SubprocessError, pickle.UnpicklingError, EOFError):
                 fit = None
+            finally:
+                with self._lock:
+                    self._proc = None
+                if proc is not None and proc.poll() is None:
+                    proc.kill()
+                    proc.wait()
             return fit if isinstance(fit, PulseFit) else None
         try:
             return fit_pulse(**request)
