@@ -253,16 +253,27 @@ def _pipeline(cfg):
 
 
 def _learn_live(pipe, cfg, rng, max_singles=64):
-    """Single touches through `process` (batches of 12) until the pipeline's pulse learner
-    trusts a pulse; the learner."""
+    """Single touches through `process` (batches of 12), then one window of two
+    overlapping emissions (the pulse learner fits only from then on), then single touches
+    until the learner trusts a pulse. (the learner, its state before the overlap)"""
     learner = pipe.overlap_stage.pulse_learner
-    for k in range(0, max_singles, 12):
+    for k in range(0, 24, 12):
         pk, _ = singles(cfg, 12, rng)
         pipe.process(_views(pk.samples_v, pk.onset_index, 10_000 + k))
+    before = learner.state()
+    learner.wait()
+    d = pairs(cfg, 3, rng)
+    for i, v in enumerate(_views(d["samples_v"], d["onset_index"], 20_000)):
+        if i == 0 or not learner.wanted:  # the first the screens send to the resolver
+            pipe.process([v])
+    for k in range(24, max_singles, 12):
         learner.wait()
         if learner.converged:
             break
-    return learner
+        pk, _ = singles(cfg, 12, rng)
+        pipe.process(_views(pk.samples_v, pk.onset_index, 30_000 + k))
+    learner.wait()
+    return learner, before
 
 
 def _pairs_live(pipe, d, id0=50_000):
@@ -290,9 +301,9 @@ def live_rc2():
     cfg = ZOO["rc2_bessel6"].config("water_skin", 10e6, reflections=True)
     rng = np.random.default_rng(37)
     warm, cold = _pipeline(cfg), _pipeline(cfg)
-    learner = _learn_live(warm, cfg, rng)
+    learner, before = _learn_live(warm, cfg, rng)
     d = pairs(cfg, 20, rng)
-    yield cfg, warm, cold, learner, d
+    yield cfg, warm, cold, learner, d, before
     warm.close()
     cold.close()
 
@@ -303,7 +314,7 @@ def test_the_live_pipeline_learns_the_pulse_and_resolves_pairs(live_rc2):
     emissions of >= 90 % of pairs 2-10 us apart within 0.1 mm of the simulator's truth;
     the cold pipeline (nominal pulse) resolves few, and counts every window it does not
     resolve."""
-    cfg, warm, cold, learner, d = live_rc2
+    cfg, warm, cold, learner, d, _ = live_rc2
     assert learner.converged, learner.state()
     ok_warm = _resolved(d, _pairs_live(warm, d))
     assert warm.overlaps.current_pulse(10e6) is learner.pulse
@@ -322,12 +333,23 @@ def test_the_live_pipeline_learns_the_pulse_and_resolves_pairs(live_rc2):
     assert c["pulse_converged"] == 0
 
 
+def test_no_pulse_fit_before_an_overlapping_window(live_rc2):
+    """The driver's pulse learner keeps candidates from the first single touches but
+    starts no fit (a process of 10-30 s of a core) until the pipeline has seen a window
+    with overlapping emissions; then it fits on the candidates it kept."""
+    _, warm, _, learner, _, before = live_rc2
+    assert before["pulse_candidates_kept"] >= learner.min_packets, before
+    assert before["pulse_fits"] == 0 and before["pulse_wanted"] == 0, before
+    st = learner.state()
+    assert st["pulse_wanted"] == 1 and st["pulse_fits"] >= 1, st
+
+
 def test_the_learnt_pulse_is_kept_per_device_and_a_reset_clears_it(tmp_path, live_rc2):
     """The trusted pulse goes into the device's calibration file (section
     ``overlap_pulse``), a restarted pipeline resolves pairs with it from the first
     window (before any single touch), diagnostics say so; a reset or another serial
     starts from the nominal pulse."""
-    cfg, warm, _, learner, d = live_rc2
+    cfg, warm, _, learner, d, _ = live_rc2
     cal = DeviceCalibration(warm.calibration_learners, str(tmp_path))
     cal.on_device("AE-0037")
     assert cal.close()
@@ -364,7 +386,7 @@ def test_a_loaded_pulse_of_another_device_is_dropped_on_its_first_touches(live_r
     device with a 1e6 /s emission decay): trusted at load, then checked on the first
     ``min_packets`` single touches, found not to explain them, and dropped (the learner
     fits the device's own)."""
-    _, _, _, learner, _ = live_rc2
+    _, _, _, learner, _, _ = live_rc2
     cfg = ZOO["alpha_1e6"].config("water_skin", 10e6, reflections=True)
     other = PulseLearner(cfg.geometry)
     other.load_calibration(learner.calibration_state())
@@ -391,7 +413,7 @@ def test_a_loaded_pulse_of_another_device_is_dropped_on_its_first_touches(live_r
     {"sample_rate_hz": "fast"},
 ])
 def test_an_unusable_saved_pulse_is_refused_and_changes_nothing(live_rc2, bad):
-    _, _, _, learner, _ = live_rc2
+    _, _, _, learner, _, _ = live_rc2
     state = dict(learner.calibration_state(), **bad)
     if "residues" in bad:
         state["poles_rad_s"] = state["poles_rad_s"][:1]

@@ -407,8 +407,9 @@ class OverlapStage:
         self._on_hold, self._on_unhold = on_hold, on_unhold
         self.lock = threading.Lock()
         #: the pulse learnt from the accepted single emissions (`offer_singles`), fitted in
-        #: a process of its own; the resolver uses it once trusted
-        self.pulse_learner = PulseLearner(background="process")
+        #: a process of its own from the first window with overlaps on (`register`); the
+        #: resolver uses it once trusted
+        self.pulse_learner = PulseLearner(background="process", on_demand=True)
         #: (stamp ns, x, y, z) of the contact events handed out that a window still with the
         #: resolver could hold again (duplicate check), oldest first
         self._recent: deque = deque()
@@ -456,9 +457,11 @@ class OverlapStage:
 
     def register(self, windows: list, geometry: FingertipGeometry) -> None:
         """Windows for the resolver: their earliest possible emission stamps keep the
-        duplicate check's memory until they are answered."""
+        duplicate check's memory until they are answered. The pulse learner fits from
+        now on."""
         with self.lock:
             self._pending_ns.update((id(p), earliest_emission_ns(p, geometry)) for p in windows)
+        self.pulse_learner.want()
 
     def claim(self, records: list, *, resolved: bool) -> list:
         """The records whose emission was not handed out already (none earlier within

@@ -58,7 +58,10 @@ class PulseLearner:
     (``converged``), else None: callers then use the default pulse without trusting it.
     A pulse loaded from the device's calibration file is trusted at once and checked on
     the first ``min_packets`` new candidates (`verify`): dropped when it does not explain
-    them. `state` and `status` report the learner for diagnostics. Thread-safe.
+    them. With ``on_demand`` (the driver) candidates are kept but no fit starts before
+    `want` is called (the pipeline calls it on its first window with overlapping
+    emissions): a device whose emissions never overlap never pays for a fit. `state` and
+    `status` report the learner for diagnostics. Thread-safe.
 
     Parameters
     ----------
@@ -70,10 +73,12 @@ class PulseLearner:
         New candidates between fits before and after a pulse is trusted.
     background : bool or "process"
         Where the fit runs (above).
+    on_demand : bool
+        Fits wait for `want` (above).
     """
 
     def __init__(self, geometry=None, *, min_packets=12, max_packets=32, refit_every=16,
-                 refit_converged_every=256, background=False):
+                 refit_converged_every=256, background=False, on_demand=False):
         if background not in (False, True, "process"):
             raise ValueError(f"background must be False, True or 'process', got {background!r}")
         self.geometry = FingertipGeometry() if geometry is None else geometry
@@ -82,6 +87,8 @@ class PulseLearner:
         self.refit_every = int(refit_every)
         self.refit_converged_every = int(refit_converged_every)
         self.background = background
+        #: fits wait for `want` (kept across `reset`: it says how the fingertip is used)
+        self.wanted = not on_demand
         self._lock = threading.Lock()
         #: (samples (4, M) [V], onset, noise [V] or nan), newest last
         self._windows: deque = deque(maxlen=self.max_packets)
@@ -124,6 +131,17 @@ class PulseLearner:
             proc = self._proc
         if proc is not None:
             proc.kill()
+
+    def want(self) -> None:
+        """Fits are needed from now on (overlapping emissions were seen): one starts at
+        once when enough candidates wait. Cheap after the first call."""
+        if self.wanted:
+            return
+        with self._lock:
+            self.wanted = True
+            snap = self._due_locked()
+        if snap is not None:
+            self._start_fit(snap)
 
     def reset(self) -> None:
         """Forget the candidates and the learnt pulse (a new device, a changed front end);
@@ -263,7 +281,8 @@ class PulseLearner:
         every = self.refit_converged_every if (self.converged and not self.loaded) else (
             self._every)
         due = (not self._busy and not self._closed and len(self._windows) >= self.min_packets
-               and (self.last is None or self.loaded or self._new >= every))
+               and (self.last is None or self.loaded or self._new >= every)
+               and (self.wanted or self.loaded))  # a loaded pulse is checked at once
         if self.loaded and self.last is not None:
             due = due and self._new >= self.min_packets  # check it on fresh packets
         if not due:
@@ -479,7 +498,8 @@ class PulseLearner:
         dict
             ``pulse_candidates_offered`` / ``_kept``, ``pulse_fits``, ``pulse_fit_errors``,
             ``pulse_converged`` (0/1), ``pulse_loaded`` (0/1: from the file, not checked
-            yet), ``pulse_inliers`` and ``pulse_chi2_median`` of the latest fit kept.
+            yet), ``pulse_wanted`` (0/1: fits run; see ``on_demand``), ``pulse_inliers``
+            and ``pulse_chi2_median`` of the latest fit kept.
         """
         last = self.last
         return dict(
@@ -489,6 +509,7 @@ class PulseLearner:
             pulse_fit_errors=self.fit_errors,
             pulse_converged=int(self.converged),
             pulse_loaded=int(self.loaded),
+            pulse_wanted=int(self.wanted),
             pulse_inliers=0 if last is None else last.n_inliers,
             pulse_chi2_median=float("nan") if last is None else last.chi2_median,
         )
@@ -501,6 +522,9 @@ class PulseLearner:
             return (f"{how} at {fs / 1e6:g} MS/s: {last.n_inliers} of {last.n_candidates} "
                     f"packets explained, {self.fits} fits")
         kept = len(self._windows)
+        if last is None and not self.wanted:
+            return (f"nominal pulse (no overlapping emissions seen yet: not learnt; {kept} "
+                    f"candidates kept)")
         if last is None:
             return (f"nominal pulse, untrusted (learning: {kept} of {self.min_packets} "
                     f"candidates)")
