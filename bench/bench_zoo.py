@@ -135,7 +135,10 @@ def apex_vs_interference(dev, n, g):
     out = {}
     warm, t_end = warm_pipeline(cfg, g)
     for phase, pipe, t0 in (("cold", _pipeline(cfg), 0), ("warm", warm, t_end)):
-        kept = _kept_ids(pipe, _mixed_views([apex, bursts], fs, t0, g))
+        try:
+            kept = _kept_ids(pipe, _mixed_views([apex, bursts], fs, t0, g))
+        finally:
+            pipe.close()  # its resolver's worker and any pulse fit end with it
         a = sum(1 for i in kept if i < 10**5) / n
         b = sum(1 for i in kept if 10**5 <= i < 2 * 10**5) / n
         key = "" if phase == "warm" else "cold_"
@@ -271,7 +274,10 @@ def identical_channels(dev, n, g):
     single, over = localize_with_overlaps(x, fs, pk.onset_index, geometry=cfg.geometry)
     lwo = [bool(single.accepted[i] or (i in over and over[i].accepted)) for i in range(n)]
     pipe, t_end = warm_pipeline(cfg, g)
-    kept = _kept_ids(pipe, _views(x, fs, pk.onset_index, 0, g, t0_ns=t_end + 10**7))
+    try:
+        kept = _kept_ids(pipe, _views(x, fs, pk.onset_index, 0, g, t0_ns=t_end + 10**7))
+    finally:
+        pipe.close()
     return dict(localize=1 - float(np.mean(res.accepted)), localize_one=1 - float(np.mean(r1)),
                 localize_with_overlaps=1 - float(np.mean(lwo)), pipeline=1 - len(kept) / n)
 
