@@ -28,13 +28,26 @@ def dense():
 
 @pytest.fixture(scope="module")
 def sparse():
-    return {
-        pol: [
-            ev.incipient_slip_trial(s, post_s=0.15, polarity=pol, pipeline="events", **SPARSE)
-            for s in range(60)
-        ]
-        for pol in ("random", "compression", "rarefaction")
-    }
+    """Never-announced sparse emitters through the per-emission rules (``model=False``):
+    the precursor from the third emission wherever it lands, the trade-off point the
+    fingertip model (the default) gives up for slides read as slides (docs/slip.md,
+    "Where targets meet"; its figures on these ramps: bench_slip)."""
+    opts = ev.pipelines.DETECTOR_OPTIONS
+    saved = dict(opts)
+    opts["model"] = False
+    try:
+        return {
+            pol: [
+                ev.incipient_slip_trial(
+                    s, post_s=0.15, polarity=pol, pipeline="events", **SPARSE
+                )
+                for s in range(60)
+            ]
+            for pol in ("random", "compression", "rarefaction")
+        }
+    finally:
+        opts.clear()
+        opts.update(saved)
 
 
 @pytest.mark.parametrize("pol", ["random", "compression", "rarefaction"])

@@ -9,7 +9,13 @@ events and a latched per-finger contact state out. Pure Python + numpy, no rclpy
     det.advance(now_ns)                    # time passing without events (timer)
     det.state                              # FingerState (latched)
 
-Model (docs/slip.md). A held contact is silent. Under a growing tangential load Q the
+Two readings of the emissions (docs/slip.md). The default is the fingertip model
+(`ae_tactile.slip.model`: objects arrive at one point, at several or as a broad press,
+are held, loaded, slide, re-stick and are released; each emission gets the event that
+explains it). ``SlipDetector(model=False)`` gives the older per-emission rules, below,
+which share its precursor, gross-slip, tracking and texture stages.
+
+The rules. A held contact is silent. Under a growing tangential load Q the
 Cattaneo-Mindlin slip annulus c < r < a_H, c = a_H (1 - Q/(mu P))^(1/3), spreads inward
 from the contact edge and its micro-slips emit from ever more places around the edge.
 The evidence is *where* emissions come from, not their sign:
@@ -92,9 +98,10 @@ class SlipDetector(
         SLIP_PRECURSOR / SLIP / TEXTURE.
     model : bool, optional
         Read the emissions with the fingertip model (`ae_tactile.slip.model`: objects
-        arriving, held, loaded, sliding, lifted, released) instead of the per-emission
-        rules (default False while the rules' tests are moved over; bench_everyday runs
-        both).
+        arriving, held, loaded, sliding, lifted, released; the default). False: the
+        older per-emission rules (an emission near a held contact is micro-slip
+        evidence), which give a never-announced sparse load its precursor sooner at the
+        cost of false alarms on multi-point touches and broad presses (docs/slip.md).
 
     Attributes
     ----------
@@ -122,7 +129,7 @@ class SlipDetector(
         config: SlipConfig | None = None,
         *,
         contact_events: bool = False,
-        model: bool = False,
+        model: bool = True,
     ):
         if config is None:
             config = SlipConfig()

@@ -176,9 +176,12 @@ class MicroSlipEvidence:
                 # model floor included, is its release however long the hold
                 held = held | ((F & FOUNDER) != 0)
             cand &= (c.pol[:k] > 0) & held
-            if c.arriving:
-                # a release right after its touch (a tap) lands on its spot to the
-                # localization error: an arriving object's other emissions seldom do
+            if c.arriving and c.n - c.founder_n > 1:
+                # a release of one of an arriving object's points lands on its spot to the
+                # localization error: its other emissions (a slide's) seldom do. A
+                # rarefaction right after the object's one touch, nothing between them (a
+                # tap), keeps the gate with the model floor (the localization bias is that
+                # of one spot), as a held touch's release does
                 cand &= d2 <= 9.0 * vsum
         else:
             cand &= recent

@@ -104,10 +104,13 @@ class ContactTracking:
         return d2, gate
 
     def _object_of_release(self, px, py, pz, t):
-        """The held, silent contact (or one releasing now) nearest a rarefaction within
-        association_radius_m: a broad object leaves where it pleases, so its release may
-        land off its patch (an untouched spot releases nothing). None if none."""
-        best, best_d2 = None, self._assoc2
+        """The held, silent contact (or one releasing now) nearest a rarefaction on its
+        contact area: a broad object leaves where it pleases, so its release may land off
+        its touches' spots, but on the area it touches, within the patch radius (the
+        largest Hertz contact's, `model.PATCH_FRACTION` of association_radius_m) of its
+        centre or of one of its touch points (a rarefaction farther off is another
+        object's, e.g. a tap's release whose touch was lost). None if none."""
+        best, best_d2 = None, self._patch2
         for c in self.contacts:
             if c.moving or c.state != ContactState.STICK:
                 continue
