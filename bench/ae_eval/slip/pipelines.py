@@ -147,8 +147,9 @@ def stream_localized_events(
     return out
 
 
-#: keyword options of every SlipDetector the evaluation builds (``model=True``: the
-#: fingertip model's readings; bench_everyday.py and bench_slip.py --model set it)
+#: keyword options of every SlipDetector the evaluation builds (none: the detector's
+#: defaults, the fingertip model; ``model=False``: the older per-emission rules, which
+#: bench_everyday.py --rules and bench_slip.py --rules set)
 DETECTOR_OPTIONS: dict = {}
 
 
