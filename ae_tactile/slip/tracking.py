@@ -68,7 +68,7 @@ class ContactTracking:
         if best is None and pol < 0:
             best = self._touch_of_release(px, py, pz, var, t)
         if best is None and pol < 0:
-            best = self._object_of_release(px, py, pz, t)
+            best = self._object_of_release(px, py, pz, t, var)
         return best
 
     def _model_distance(self, c, px, py, pz, t, pol):
@@ -103,14 +103,16 @@ class ContactTracking:
                 d2 = min(d2, self._touch_point_d2(c, px, py, pz, c.arriving))
         return d2, gate
 
-    def _object_of_release(self, px, py, pz, t):
-        """The held, silent contact (or one releasing now) nearest a rarefaction on its
-        contact area: a broad object leaves where it pleases, so its release may land off
-        its touches' spots, but on the area it touches, within the patch radius (the
-        largest Hertz contact's, `model.PATCH_FRACTION` of association_radius_m) of its
-        centre or of one of its touch points (a rarefaction farther off is another
-        object's, e.g. a tap's release whose touch was lost). None if none."""
-        best, best_d2 = None, self._patch2
+    def _object_of_release(self, px, py, pz, t, var):
+        """The held, silent contact (or one releasing now) nearest a rarefaction within
+        association_radius_m: a broad object leaves where it pleases, so its release may
+        land off its patch (an untouched spot releases nothing). None if none, or if the
+        rarefaction lands on the spot (the same-spot gate, per-axis variance ``var``
+        [m^2]) where another object was touched and released within evidence_window_s:
+        a spot tapped again, its touch lost, releases there (`_tapped_spot`)."""
+        if self._tapped_spot(np.array((px, py, pz)), t, var):
+            return None
+        best, best_d2 = None, self._assoc2
         for c in self.contacts:
             if c.moving or c.state != ContactState.STICK:
                 continue
@@ -332,6 +334,17 @@ class ContactTracking:
             act.append((c.touch_release_ns, np.array(spot, dtype=float)))
             if len(act) > self.config.max_contacts:
                 del act[0]  # bounded work per event: the oldest forgotten first
+
+    def _tapped_spot(self, p, t, var):
+        """Does ``p`` lie on the spot (the same-spot gate, model floor included, per-axis
+        variance ``var`` [m^2] for both) of a touch and its release of a contact that
+        ended within evidence_window_s before ``t``?"""
+        gate = self._g2 * (2.0 * var + self._f2)
+        for t_act, q in self._ended_activity:
+            d = q - p
+            if t - t_act <= self._w_ev and float(d @ d) <= gate:
+                return True
+        return False
 
     def _ended_activity_near(self, t, *points):
         """Did a contact that ended see a touch and its release within evidence_window_s
