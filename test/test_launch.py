@@ -501,11 +501,27 @@ def test_two_fingers_from_a_parent_launch_file_do_not_cross_talk(launch):
 
 
 @needs_launch
-@pytest.mark.parametrize("value, sim", [("true", True), ("True", True), ("1", True),
-                                        ("false", False), ("0", False)])
+def test_every_boolean_argument_has_one_truthiness_rule():
+    """The launch file's one rule (`flag`): true/1 and false/0 in any case and with spaces;
+    anything else is an error naming the argument."""
+    path = os.path.join(os.path.dirname(__file__), "..", "launch", "ae_tactile.launch.py")
+    spec = importlib.util.spec_from_file_location("ae_tactile_launch_under_test", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    for word in ("true", "True", "TRUE", " 1 ", "1"):
+        assert mod.flag(word, "use_sim") is True, word
+    for word in ("false", "False", "0", " FALSE"):
+        assert mod.flag(word, "use_sim") is False, word
+    for word in ("yes", "", "2", "on"):
+        with pytest.raises(Exception, match="use_sim"):
+            mod.flag(word, "use_sim")
+
+
+@needs_launch
+@pytest.mark.parametrize("value, sim", [("True", True), ("0", False)])
 def test_use_sim_truthiness_is_one_rule(launch, value, sim, tmp_path):
-    """use_sim true/True/1 -> simulated fingertip and the driver reads its pty;
-    false/0 -> no simulator and the driver opens `port`."""
+    """use_sim True (any truthy word, `flag`) -> simulated fingertip and the driver reads
+    its pty; 0 (any falsy word) -> no simulator and the driver opens `port`."""
     from std_msgs.msg import String
     latched, _, _ = _qos()
     s = launch()
