@@ -3,7 +3,7 @@
 false alarms and interference, over randomized trials; the detector's and the
 interference discriminator's cost.
 
-    python3 bench/bench_slip.py [--quick]
+    python3 bench/bench_slip.py [--quick | --scale F] [--rules]
     python3 bench/bench_slip.py --speed   # only the slip step's CPU cost per emission
     python3 bench/bench_slip.py --tables-only   # slip_tables.md from the stored slip.json
 
@@ -34,7 +34,11 @@ always render waveforms. Families:
                 touches kept and bursts rejected by rate, noise (given / estimated),
                 coupling and waveform
 
-Writes bench/results/slip.json (``--quick``: slip_quick.json) and, for a full run, its
+Detector: ``SlipDetector()``'s default, the fingertip model (``--rules``: the older
+per-emission rules, ``model=False``, to slip_rules*.json).
+
+Writes bench/results/slip.json (``--quick``: slip_quick.json) and, for a full run (or a
+``--scale`` one, its trial counts a fraction of a full run's), its
 tables in bench/results/slip_tables.md (``--tables-only`` rebuilds them from the stored
 slip.json without running a trial). Records the machine's load.
 """
