@@ -202,8 +202,9 @@ def learnt_delays(dev, medium, fs, g, n=DELAY_WARM_TOUCHES):
         m = min(200, n - k)
         pk = render_triggered(_cap_points(cfg.geometry, m, g, 70.0), cfg,
                               snr_db=g.uniform(25.0, 40.0, m), rng=g)
-        views = [PacketView(pk.samples_v[i], fs, int(pk.onset_index[i]), (k + i) * 10**6, k + i)
-                 for i in range(m)]
+        # a touch every 25 ms: under the learning's rate limit (DELAY_LEARN_MAX_RATE_HZ)
+        views = [PacketView(pk.samples_v[i], fs, int(pk.onset_index[i]), (k + i) * 25 * 10**6,
+                            k + i) for i in range(m)]
         for i in range(0, m, 8):
             pl.process(views[i : i + 8])
     return pl.localizer.channel_delays_s

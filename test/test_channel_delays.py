@@ -225,8 +225,9 @@ def test_packet_localizer_learns_persists_and_applies():
                               snr_db=g.uniform(25.0, 40.0, 64), rng=g)
         views = []
         for i in range(64):
-            views.append(PacketView(pk.samples_v[i], FS, int(pk.onset_index[i]), seq * 10**6,
-                                    seq))
+            # a touch every 25 ms: under the learning's rate limit (DELAY_LEARN_MAX_RATE_HZ)
+            views.append(PacketView(pk.samples_v[i], FS, int(pk.onset_index[i]),
+                                    seq * 25 * 10**6, seq))
             seq += 1
         for i in range(0, 64, 8):
             pl.process(views[i:i + 8])
@@ -246,3 +247,22 @@ def test_packet_localizer_learns_persists_and_applies():
     assert geo2 != cfg.geometry
     pl.update(geometry=geo2)
     assert pl.localizer.channel_delays_s is None and learner.n_packets == 0
+
+
+def test_a_fast_stream_is_measured_at_the_learning_rate_limit():
+    """Emissions at 1,000/s (a grasp's micro-slips) are measured for the channel delays at
+    most DELAY_LEARN_MAX_RATE_HZ per second of their stamps, whatever the stride: the
+    learning thread's numpy cannot grow with the emission rate."""
+    from ae_tactile.pipeline.config import DELAY_LEARN_MAX_RATE_HZ
+
+    cfg = ZOO["delay_mismatch"].config("water_skin", FS)
+    pl = PacketLocalizer("ml", geometry=cfg.geometry, reject_interference=False,
+                         resolve_overlaps=False)
+    g = np.random.default_rng(13)
+    pk = render_triggered(_points(cfg.geometry, 400, g, 70.0), cfg, snr_db=35.0, rng=g)
+    views = [PacketView(pk.samples_v[i], FS, int(pk.onset_index[i]), i * 10**6, i)
+             for i in range(400)]  # 1 ms apart: 0.4 s
+    accepted = sum(len(pl.process(views[i:i + 8])) for i in range(0, 400, 8))
+    assert accepted > 300, dict(pl.counts)
+    limit = 0.4 * DELAY_LEARN_MAX_RATE_HZ + 1
+    assert 0.5 * limit <= pl.delay_learner.n_packets <= limit, pl.delay_learner.n_packets

@@ -56,6 +56,9 @@ DELAY_LEARN_BATCH = 16
 #: of numpy per packet measured, in a learning thread of their own (in a pipeline)
 DELAY_LEARN_STRIDE = 2
 DELAY_LEARN_STRIDE_CONVERGED = 16
+#: [1/s] and at most this many per second of the device's time: a grasp's micro-slips at
+#: 1,000/s would otherwise cost the learning thread 15 % of a core, held against the reader
+DELAY_LEARN_MAX_RATE_HZ = 50.0
 #: packets the channel delays learn from: confident single emissions [0..1] ...
 DELAY_LEARN_CONFIDENCE = 0.3
 #: ... away from the horizon [rad] (a point clamped there is no measurement)

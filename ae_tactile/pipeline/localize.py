@@ -33,6 +33,7 @@ from ae_tactile.pipeline.config import (
     DELAY_LEARN_BATCH,
     DELAY_LEARN_CONFIDENCE,
     DELAY_LEARN_MAX_POLAR_RAD,
+    DELAY_LEARN_MAX_RATE_HZ,
     DELAY_LEARN_STRIDE,
     DELAY_LEARN_STRIDE_CONVERGED,
     MAX_PACKET_SAMPLES,
@@ -185,7 +186,7 @@ class PacketLocalizer:
         #: arrivals once converged (`ChannelDelayLearner`; persisted as "channel_delays")
         self.delay_learner = ChannelDelayLearner()
         self._delay_pending: list = []
-        self._delay_seen = 0
+        self._delay_seen, self._delay_last_ns = 0, -(1 << 62)  # [1], [ns] last one kept
         self._delay_thread: threading.Thread | None = None  # `_hand_off_delays`
         self._delay_done: threading.Event | None = None  # the learning call under way
         self._delays_next: tuple | None = None  # (offsets,) it learnt, not yet in use
@@ -203,16 +204,8 @@ class PacketLocalizer:
     hand_reports = _screen_attr("hand_reports")
     apex_onsets_ns = _screen_attr("apex_onsets_ns")
     apex_held = _screen_attr("apex_held")
-
-    @property
-    def echo_min_in_use(self) -> float | None:
-        """`Screens.echo_min_in_use`."""
-        return self.screens.echo_min_in_use
-
-    @property
-    def echo_pending(self) -> bool:
-        """`Screens.echo_pending`."""
-        return self.screens.echo_pending
+    echo_min_in_use = _screen_attr("echo_min_in_use")
+    echo_pending = _screen_attr("echo_pending")
 
     def echo_test_status(self) -> str:
         """`Screens.echo_test_status`."""
@@ -240,7 +233,8 @@ class PacketLocalizer:
 
     def stash_delays(self, found) -> None:
         """Keep (copies of) the confident single emissions of a call for `_hand_off_delays`:
-        one in DELAY_LEARN_STRIDE until every contrast is precise, then in ..._CONVERGED."""
+        one in DELAY_LEARN_STRIDE until every contrast is precise, then in ..._CONVERGED;
+        at most DELAY_LEARN_MAX_RATE_HZ by their stamps."""
         learner = self.delay_learner
         for p, ev in found:
             if len(self._delay_pending) >= 4 * DELAY_LEARN_BATCH:
@@ -251,8 +245,10 @@ class PacketLocalizer:
                 continue
             self._delay_seen += 1
             stride = DELAY_LEARN_STRIDE_CONVERGED if learner.all_precise else DELAY_LEARN_STRIDE
-            if self._delay_seen % stride:
+            if self._delay_seen % stride or (
+                    ev.time_ns - self._delay_last_ns < 1e9 / DELAY_LEARN_MAX_RATE_HZ):
                 continue
+            self._delay_last_ns = ev.time_ns
             self._delay_pending.append((np.array(p.samples_v, dtype=np.float64),
                                         float(p.sample_rate_hz), int(p.onset_index),
                                         self.geometry, self.channel_gains))
