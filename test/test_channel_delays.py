@@ -14,7 +14,7 @@ import pytest
 
 from ae_eval.crlb import simulated_crlb
 from ae_eval.zoo import ZOO, held_out
-from ae_tactile.localization import ChannelDelayLearner, Localizer
+from ae_tactile.localization import ChannelDelayLearner, Localizer, localize
 from ae_tactile.localization.channel_delays import CONTRASTS, residual_normals
 from ae_tactile.pipeline import PacketLocalizer
 from ae_tactile.records import PacketView
@@ -167,6 +167,16 @@ def test_zero_offsets_change_nothing_and_both_engines_agree():
             np.testing.assert_array_equal(res.accepted, fast_res.accepted)
             np.testing.assert_allclose(res.emission_offset_s, fast_res.emission_offset_s,
                                        atol=1e-12)
+    # `localize` called with the delays places the emission instant as the localizer does:
+    # the earliest arrival is t_k(s) + d_k
+    direct = localize(pk.samples_v, FS, pk.onset_index, geometry=cfg.geometry,
+                      channel_delays_s=d)
+    np.testing.assert_allclose(direct.point_m, fast_res.point_m, atol=1e-9)
+    t_first = (cfg.geometry.arrival_times_s(direct.point_m) + d).min(axis=1)
+    np.testing.assert_allclose(direct.emission_offset_s,
+                               pk.onset_index / FS - t_first, atol=1e-15)
+    np.testing.assert_allclose(direct.emission_offset_s, fast_res.emission_offset_s,
+                               atol=1e-12)
     # with the true offsets the points move onto the truth (the bias was ~0.1-0.2 mm)
     err_plain = np.linalg.norm(plain.point_m - pk.points_m, axis=1).mean()
     err_fixed = np.linalg.norm(fast_res.point_m - pk.points_m, axis=1).mean()

@@ -381,8 +381,16 @@ def _finish(core, prep, plan, geo, method, min_snr_db, thr, options):
         reason=reason,
         reason_flags=flags.astype(np.uint16),
         options=dict(options),
-        emission_offset_s=prep.onset / plan.fs - geo.arrival_times_s(point).min(axis=1),
+        emission_offset_s=prep.onset / plan.fs - _first_arrival_s(geo, point, options),
     )
+
+
+def _first_arrival_s(geo, point, options) -> np.ndarray:
+    """(K,) [s] the earliest arrival after the emission: t_k(s) + d_k with the channels'
+    own delays d (``channel_delays_s``, `ml`), else t_k(s)."""
+    t = geo.arrival_times_s(point)
+    d = options.get("channel_delays_s")
+    return (t if d is None else t + np.asarray(d, dtype=float)).min(axis=1)
 
 
 def localize_packets(batch, *, method="ml", **kwargs) -> LocalizationResult:

@@ -139,14 +139,8 @@ class Localizer:
             return localize(windows, sample_rate_hz, onset_index, method=self.method, **kw)
         if self._one_engine == "numba" and set(overrides) <= _DELAYED_BATCH_KEYS:
             return self._batch_delayed(windows, sample_rate_hz, onset_index, kw, d)
-        res = localize(windows, sample_rate_hz, onset_index, method=self.method,
-                       channel_delays_s=d, **kw)
-        geo = kw.get("geometry") or FingertipGeometry()
-        onset = np.asarray(onset_index, dtype=float).reshape(-1)
-        # the emission instant: the earliest arrival is t_k(s) + d_k
-        res.emission_offset_s = onset / float(sample_rate_hz) - (
-            geo.arrival_times_s(res.point_m) + d).min(axis=1)
-        return res
+        return localize(windows, sample_rate_hz, onset_index, method=self.method,
+                        channel_delays_s=d, **kw)
 
     def _batch_delayed(self, windows, sample_rate_hz, onset_index, kw, d):
         """`localize` through the compiled kernel with the channels' own delays ``d``
