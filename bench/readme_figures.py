@@ -401,8 +401,9 @@ def zoo_rows(d) -> list[str]:
         f" channels in the pipeline) | {fig('interference_rejected')};"
         f" {fig('identical_rejected_pipeline')} | bench_zoo |",
         f"| device zoo{mode}: `ml` RMS over the Cramer-Rao bound (true noise covariance),"
-        f" worst cell; share inside the 68 % ellipse, worst cell | {rms}; "
-        f"{fig('min_inside_68')} | bench_zoo |",
+        f" worst cell, after the driver learnt the channel delays (before: on a fresh"
+        f" pipeline); share inside the 68 % ellipse, worst cell | {rms} (before:"
+        f" {fig('worst_rms_over_crlb_cold', False)}); {fig('min_inside_68')} | bench_zoo |",
         f"| device zoo{mode}: overlapping pairs resolved by `localize_with_overlaps` with the"
         f" default pulse | {fig('overlaps_resolved')} | bench_zoo |",
         f"| device zoo{mode}: slip, precursor before gross slip / touch-scene runs with a false"
@@ -442,8 +443,8 @@ def everyday_rows(d) -> list[str]:
     if not d or not d.get("families"):
         return []
     fams = [f for f in d["families"] if not f.get("held_out")]
-    det = ("the fingertip model, SlipDetector(model=True), not yet the default"
-           if d.get("detector") == "model" else "the default rules")
+    det = ("the fingertip model, SlipDetector's default"
+           if d.get("detector") == "model" else "the per-emission rules, model=False")
     touch = [f for f in fams if f["family"] in ("multi_point", "touch_beside_held",
                                                   "broad_press", "tap_beside_held", "hold")]
     out = []
