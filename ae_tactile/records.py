@@ -347,6 +347,14 @@ def packet_record(
     )
 
 
+def earliest_emission_ns(p, geometry) -> int:
+    """Earliest possible emission stamp of a window [ns]: its emissions are at most one
+    sphere diameter's travel time older than its first sample (``geometry``: a
+    `FingertipGeometry`)."""
+    g = geometry
+    return int(p.stamp_ns) - int(math.ceil(2.0 * g.radius_m / g.sound_speed_m_s * 1e9))
+
+
 def onset_ns(p) -> float:
     """Host time [ns] of a packet's onset sample (its trigger); NaN if it cannot be told."""
     try:

@@ -36,7 +36,8 @@ from ae_tactile.pipeline.config import (
 from ae_tactile.pipeline.core import ContactPipeline
 from ae_tactile.pipeline.hand import HandStage
 from ae_tactile.pipeline.localize import PacketLocalizer, packet_problem
-from ae_tactile.pipeline.overlaps import OverlapResolver, OverlapStage
+from ae_tactile.pipeline.overlaps import OverlapStage
+from ae_tactile.pipeline.resolver import OverlapResolver
 from ae_tactile.pipeline.screens import Screens, interference_route
 from ae_tactile.pipeline.slip_stage import SlipOrder, SlipStage
 from ae_tactile.records import (

@@ -101,6 +101,14 @@ DUPLICATE_DISTANCE_M = 1e-3
 RECENT_MARGIN_NS = 1_000_000
 #: [1] windows waiting for the resolver at most; more are dropped (``overlap_dropped_backlog``)
 OVERLAP_MAX_PENDING = 64
+#: the late check (`late_check.py`): [1/s] single emissions checked per second of their
+#: stamps at most (~0.1 ms of the resolver's thread each: 200/s is 2 % of a core), [1]
+#: waiting at most, [1] checked per turn of the resolver's thread, [s] how often that
+#: thread looks for them when it has no window to answer
+LATE_CHECK_MAX_RATE_HZ = 200.0
+LATE_CHECK_MAX = 64
+LATE_CHECK_BATCH = 8
+LATE_CHECK_POLL_S = 0.01
 
 #: Sample rates a packet may have [Hz]: from where the localization band (100 kHz up to
 #: fs/4) still has an octave (800 kHz) up to 10x the fastest front end planned (100 MHz:

@@ -56,8 +56,10 @@ from ae_tactile.dsp.coincidence import HandCoincidence
 from ae_tactile.pipeline.config import COVERED_TOL_S, OVERLAP_HOLD_MAX_S, OVERLAP_INLINE_MAX
 from ae_tactile.pipeline.hand import HandStage
 from ae_tactile.pipeline.localize import PacketLocalizer
-from ae_tactile.pipeline.overlaps import OverlapResolver, OverlapStage, earliest_emission_ns
+from ae_tactile.pipeline.overlaps import OverlapStage
+from ae_tactile.pipeline.resolver import OverlapResolver
 from ae_tactile.pipeline.slip_stage import SlipOrder, SlipStage
+from ae_tactile.records import earliest_emission_ns
 
 
 def _ignore(records: list) -> None:
@@ -227,6 +229,7 @@ class ContactPipeline:
             loc.learn_echo()  # else when the link is idle (`run_idle_work`)
         if contacts and loc.resolve_overlaps:  # the overlap pulse's candidates: queued only
             self.overlap_stage.offer_singles(packets, contacts, loc.geometry)
+            self.overlap_stage.check_later(packets, contacts)  # a late second emission?
 
     def _learn_echo_first(self) -> None:
         """While the echo test or the device's acoustic packet is still being learnt (its

@@ -1,346 +1,40 @@
 # SPDX-License-Identifier: Apache-2.0
 """Overlaps: windows holding several emissions, localized emission by emission.
 
-`OverlapResolver` answers windows in its own thread (quick search) and worker process
-(exhaustive search, `ae_tactile.localization.overlap_worker`). `OverlapStage` is the
-pipeline's side of it: which windows are answered in the reader (the first
-``inline_max`` of a batch), which go to the resolver (the others, the second window of a
-pair, hard ones), and the duplicate check that keeps one emission from being handed out
-twice (by the reader and the resolver's thread).
+`OverlapResolver` (`resolver.py`) answers windows in its own thread (quick search) and
+worker process (exhaustive search). `OverlapStage` is the pipeline's side of it: which
+windows are answered in the reader (the first ``inline_max`` of a batch), which go to the
+resolver (the others, the second window of a pair, hard ones), and the duplicate check
+that keeps one emission from being handed out twice (by the reader and the resolver's
+thread).
 
 Locks: `OverlapStage.lock` guards the duplicate check's memory (``_recent``,
 ``_pending_ns``, ``_resolved_newest_ns``); it is taken alone or inside the slip order's
-lock, never around another. `OverlapResolver._count_lock` guards its counts (a leaf).
+lock, never around another. The late check (`late_check.py`) looks at single emissions
+again in the resolver's thread.
 """
 
 from __future__ import annotations
 
-import math
-import pickle
-import queue
-import subprocess
-import sys
 import threading
 from collections import Counter, deque
-from typing import Callable, Sequence
+from typing import Callable
 
 import numpy as np
 
 from ae_tactile.geometry import FingertipGeometry
-from ae_tactile.localization import overlap, overlap_worker
-from ae_tactile.localization.overlap import OverlapReason, PulseLearner
+from ae_tactile.localization.overlap import PulseLearner
 from ae_tactile.pipeline.config import (
     COVERED_TOL_S,
     DUPLICATE_DISTANCE_M,
     DUPLICATE_TIME_S,
     ECHO_LEARN_CONFIDENCE,
     OVERLAP_INLINE_MAX,
-    OVERLAP_MAX_PENDING,
     RECENT_MARGIN_NS,
 )
-from ae_tactile.records import onset_ns, source_record
-
-
-class OverlapResolver:
-    """Localizes every emission of windows that hold several (`resolve_overlaps`) and hands
-    the sources to ``on_records(list[ContactRecord])`` from its own thread: one contact
-    event per source, naming the shared packet id, stamped at its own emission instant. At
-    most ``max_pending`` windows wait; more are counted (``overlap_dropped_backlog``).
-
-    The quick search (one compiled call, mostly without the interpreter lock) runs in this
-    thread, beside the reader; the exhaustive search of a window whose quick answer is
-    DEFERRED (tens of ms of numpy and Python, holding the lock) runs in a worker process
-    (`ae_tactile.localization.overlap_worker`, warmed up before the first window), as does
-    the quick search where it is not compiled (no numba, a lossy medium). Where the
-    process cannot run (``use_process=False``, or it failed), this thread does it
-    (``overlap_worker_unavailable``). The pulse is the learner's once trusted
-    (`current_pulse`).
-
-    ``idle`` (a driver on cores of its own): this thread and the worker run as SCHED_IDLE,
-    so the reader on their core takes it the moment it wakes. Otherwise the worker is
-    niced and this thread keeps its priority: on cores shared with busy processes an
-    idle-class thread holding the interpreter lock or a pipeline lock could stall the
-    reader indefinitely.
-    """
-
-    def __init__(
-        self,
-        geometry: FingertipGeometry,
-        on_records: Callable[[list], None],
-        *,
-        max_pending: int = OVERLAP_MAX_PENDING,
-        pulse=None,
-        use_process: bool = True,
-        on_done: Callable[[object], None] | None = None,
-        idle: bool = False,
-        learner: PulseLearner | None = None,
-    ):
-        self.geometry = geometry
-        #: the pulse learnt from the device's single emissions: used once it is trusted
-        self.learner = learner
-        self.idle = bool(idle)
-        #: what the thread's priority became ("idle", "nice" or "": as created)
-        self.priority = ""
-        self.on_records = on_records
-        #: called with each window once it is answered (sources handed over, rejected or
-        #: failed), after ``on_records``
-        self.on_done = on_done
-        self.pulse = pulse
-        self.counts: Counter = Counter()  # written under _count_lock (two threads count)
-        self._count_lock = threading.Lock()
-        self._queue: queue.Queue = queue.Queue(maxsize=int(max_pending))
-        self.ready = threading.Event()  # the worker has warmed up (or is not used)
-        self._proc = self._start_worker() if use_process else None
-        if not use_process:
-            self._count("overlap_worker_unavailable")
-        self._thread = threading.Thread(target=self._run, name="ae_tactile_overlaps", daemon=True)
-        self._thread.start()
-
-    def _start_worker(self):
-        try:
-            # its own session: a Ctrl-C at the terminal (sent to the foreground process
-            # group) reaches the node, which ends the worker by closing its stdin, and
-            # never interrupts the worker's imports with a traceback
-            return subprocess.Popen(
-                [sys.executable, "-m", "ae_tactile.localization.overlap_worker"]
-                + ([overlap_worker.IDLE_FLAG] if self.idle else []),
-                stdin=subprocess.PIPE,
-                stdout=subprocess.PIPE,
-                start_new_session=True,
-            )
-        except OSError:
-            self._count("overlap_worker_unavailable")
-            return None
-
-    def _count(self, key: str, n: int = 1) -> None:
-        with self._count_lock:
-            self.counts[key] += n
-
-    def snapshot_counts(self) -> dict:
-        """A consistent copy of the counts (the reader and the resolver's thread write them),
-        with the pulse learner's state (``pulse_converged``, ``pulse_loaded``,
-        ``pulse_inliers``, ``pulse_fits``, ``pulse_fit_errors``, ``pulse_candidates_kept``,
-        ``pulse_candidates_offered``)."""
-        with self._count_lock:
-            out = dict(self.counts)
-        if self.learner is not None:
-            st = self.learner.state()
-            out.update({k: int(v) for k, v in st.items() if k != "pulse_chi2_median"})
-        return out
-
-    def current_pulse(self, sample_rate_hz: float | None = None):
-        """The pulse the fits of windows at ``sample_rate_hz`` [Hz] use: the learnt one
-        once trusted (at that rate, when given), else the configured one (None: the
-        default `PulseModel.for_sample_rate`, untrusted: a window it does not explain is
-        rejected and counted, ``overlap_rejected_UNRESOLVED``)."""
-        learner = self.learner
-        if learner is None:
-            return self.pulse
-        learnt = learner.pulse if sample_rate_hz is None else learner.pulse_at(sample_rate_hz)
-        return learnt if learnt is not None else self.pulse
-
-    def submit(self, packets: Sequence, *, quick_first: bool = True, hard: bool = False) -> list:
-        """Queue windows for the resolver (``quick_first=False``: windows whose quick
-        answer was DEFERRED, for the exhaustive search only; ``hard``: the worker process
-        gives the quick answer too, as for a window likely DEFERRED, so that this thread
-        does no fitting beside the reader); returns those queued (the rest are counted)."""
-        queued = []
-        for p in packets:
-            try:
-                self._queue.put_nowait((p, bool(quick_first), bool(hard)))
-                queued.append(p)
-            except queue.Full:
-                self._count("overlap_dropped_backlog")
-        return queued
-
-    #: first arrivals (host ns) of the emissions of the latest `resolve_now` answer
-    arrivals_ns: list = []
-
-    def resolve_now(self, p) -> list | None:
-        """The quick answer to one window in the calling thread (the reader's; one compiled
-        call, about 0.5-1 ms): its emissions' contact events ([] when it is rejected), or None
-        when the worker has to answer it (DEFERRED, or the fit failed here: then `submit`
-        it with ``quick_first=False``). Never raises."""
-        self.arrivals_ns = []
-        try:
-            fs = float(p.sample_rate_hz)
-            res = self._resolve(np.asarray(p.samples_v, dtype=np.float64), fs,
-                                int(p.onset_index), bool(getattr(p, "saturated", False)),
-                                self.current_pulse(fs), False)
-            records = self._records(p, res)
-            if records is not None:
-                stamp = int(p.stamp_ns)
-                self.arrivals_ns = [
-                    stamp + float(np.min(src.arrival_times_s)) * 1e9 for src in res.sources
-                ]
-        except Exception:  # never let one window stop the reader: the worker tries it
-            self._count("overlap_errors")
-            return None
-        if records is not None:
-            self._count("overlap_answered_in_reader")
-        return records
-
-    def _resolve(self, samples, fs, onset, sat, pulse, exhaustive):
-        """`resolve_overlaps` of one window (4, M) here: its OverlapPacket."""
-        with np.errstate(all="ignore"):
-            return overlap.resolve_overlaps(
-                samples[None], fs, [onset], geometry=self.geometry, pulse=pulse,
-                saturated=[sat], exhaustive=exhaustive)[0]
-
-    def _records(self, p, res) -> list | None:
-        """Contact events of one answer (counted), None when it is DEFERRED."""
-        if res.reason == OverlapReason.DEFERRED:
-            self._count("overlap_deferred")
-            return None
-        if not res.accepted:
-            self._count("overlap_rejected_" + res.reason_name)
-            return []
-        records = [source_record(p, src) for src in res.sources]  # may raise: count after
-        self._count("overlap_windows_resolved")
-        self._count("overlap_sources", len(records))
-        return records
-
-    def pending(self) -> int:
-        """Windows queued or being resolved: the queue's unfinished tasks (one per window
-        put, done once its records are handed on), so that no moment between taking a
-        window and working on it reads as idle."""
-        with self._queue.mutex:
-            return self._queue.unfinished_tasks
-
-    def _quick_here(self, sample_rate_hz: float | None = None) -> bool:
-        """The quick search runs in this thread: compiled (numba, a lossless medium), it
-        spends most of its ~0.5 ms without the interpreter lock, so the reader goes on
-        beside it, and the answer needs no trip to the worker process."""
-        pulse = self.current_pulse(sample_rate_hz)
-        lossless = pulse is None or not pulse.attenuation_db_per_m_at_1mhz > 0
-        return overlap._kernels.NUMBA_AVAILABLE and lossless
-
-    def _answers(self, p, quick_first: bool = True, hard: bool = False):
-        """The OverlapPackets of one window: the quick answer (computed here when compiled,
-        `_quick_here`, and the window not ``hard``; else by the worker process) and, when
-        it is DEFERRED, the exhaustive search's from the worker process (only the latter
-        when not ``quick_first``; computed here when the process is not available)."""
-        samples = np.asarray(p.samples_v, dtype=np.float64)
-        fs, onset = float(p.sample_rate_hz), int(p.onset_index)
-        sat = bool(getattr(p, "saturated", False))
-        pulse = self.current_pulse(fs)
-        if quick_first and not hard and self._quick_here(fs):
-            try:
-                res = self._resolve(samples, fs, onset, sat, pulse, False)
-            except Exception:  # counted; the worker process answers the window instead
-                self._count("overlap_errors")
-            else:
-                self._count("overlap_quick_in_thread")
-                yield res
-                if res.reason != OverlapReason.DEFERRED:
-                    return
-                quick_first = False
-        proc = self._proc
-        if proc is not None:
-            try:
-                pickle.dump(
-                    (samples, fs, onset, sat, self.geometry, pulse, quick_first),
-                    proc.stdin,
-                    protocol=pickle.HIGHEST_PROTOCOL,
-                )
-                proc.stdin.flush()
-                res = pickle.load(proc.stdout)
-                if isinstance(res, str):
-                    raise RuntimeError(res)
-                self._count("overlap_worker_answers")
-                if quick_first and res.reason == OverlapReason.DEFERRED:
-                    yield res
-                    res = pickle.load(proc.stdout)
-                    if isinstance(res, str):
-                        raise RuntimeError(res)
-                    self._count("overlap_worker_answers")
-            except (OSError, EOFError, pickle.UnpicklingError):
-                self._count("overlap_worker_unavailable")
-                self._stop_worker()
-            else:
-                yield res
-                return
-        for exhaustive in (False, True) if quick_first else (True,):
-            res = self._resolve(samples, fs, onset, sat, pulse, exhaustive)
-            yield res
-            if res.reason != OverlapReason.DEFERRED:
-                return
-
-    def _done(self, p) -> None:
-        if self.on_done is not None:
-            try:
-                self.on_done(p)
-            except Exception:
-                self._count("overlap_errors")
-
-    def _run(self) -> None:
-        if self.idle:  # this thread only: the reader, on the same core, comes first
-            self.priority = overlap_worker.background_priority(idle=True)
-        if self._proc is not None:
-            try:
-                if pickle.load(self._proc.stdout) != "ready":
-                    raise pickle.UnpicklingError("no ready message")
-            except (OSError, EOFError, pickle.UnpicklingError):
-                self._count("overlap_worker_unavailable")
-                self._stop_worker()
-        self.ready.set()
-        while True:
-            item = self._queue.get()
-            if item is None:
-                self._queue.task_done()
-                self._stop_worker()
-                return
-            p, quick_first, hard = item
-            told = False  # on_done called (the quick answer said DEFERRED)
-            try:
-                for res in self._answers(p, quick_first, hard):
-                    records = self._records(p, res)
-                    if records is None:
-                        # a hard window: what waits for it goes on; its emissions, if
-                        # any, come from the exhaustive search, late, with their stamps
-                        self._done(p)
-                        told = True
-                        continue
-                    if records:
-                        self.on_records(records)
-            except Exception:  # never let one window stop the resolver
-                self._count("overlap_errors")
-            finally:
-                if not told:
-                    self._done(p)
-                self._queue.task_done()
-
-    def _stop_worker(self) -> None:
-        proc, self._proc = self._proc, None
-        if proc is None:
-            return
-        try:
-            proc.stdin.close()  # EOF: the worker exits
-            proc.wait(2.0)
-        except (OSError, subprocess.TimeoutExpired):
-            proc.kill()
-            proc.wait()
-
-    def close(self) -> None:
-        """Stop the thread and the worker process (pending windows are given up)."""
-        while True:
-            try:
-                self._queue.get_nowait()
-            except queue.Empty:
-                break
-            self._queue.task_done()  # given up
-        try:
-            self._queue.put_nowait(None)
-        except queue.Full:
-            pass
-        self._thread.join(3.0)
-
-
-def earliest_emission_ns(p, geometry: FingertipGeometry) -> int:
-    """Earliest possible emission stamp of a window [ns]: its emissions are at most one
-    sphere diameter's travel time older than its first sample."""
-    g = geometry
-    return int(p.stamp_ns) - int(math.ceil(2.0 * g.radius_m / g.sound_speed_m_s * 1e9))
+from ae_tactile.pipeline.late_check import LateCheck
+from ae_tactile.pipeline.resolver import OverlapResolver
+from ae_tactile.records import earliest_emission_ns, onset_ns
 
 
 def _not_in(records: list, recent) -> list:
@@ -379,10 +73,6 @@ class OverlapStage:
         `covered` tolerance [s]; 0 answers every window on its own.
     idle : bool
         The resolver's thread and worker as SCHED_IDLE.
-
-    Returns
-    -------
-    OverlapStage
     """
 
     def __init__(
@@ -410,6 +100,8 @@ class OverlapStage:
         #: a process of its own from the first window with overlaps on (`register`); the
         #: resolver uses it once trusted
         self.pulse_learner = PulseLearner(background="process", on_demand=True)
+        #: single emissions handed out, to be looked at again for a late second one
+        self.late = LateCheck(counts)
         #: (stamp ns, x, y, z) of the contact events handed out that a window still with the
         #: resolver could hold again (duplicate check), oldest first
         self._recent: deque = deque()
@@ -427,7 +119,7 @@ class OverlapStage:
         if self.resolver is None:
             self.resolver = OverlapResolver(
                 geometry, self._on_late, on_done=self._window_done, idle=self.idle,
-                learner=self.pulse_learner,
+                learner=self.pulse_learner, on_idle=self._late_turn,
             )
         if wait_s > 0:
             self.resolver.ready.wait(wait_s)
@@ -448,6 +140,34 @@ class OverlapStage:
         if self.pulse_learner.geometry is not geometry:
             self._body(geometry)
         return self.pulse_learner.enqueue_records(packets, contacts, ECHO_LEARN_CONFIDENCE)
+
+    def check_later(self, packets, contacts: list) -> None:
+        """Queue the batch's single emissions for the late check (`LateCheck.offer`; only
+        while the resolver runs), remembered by the duplicate check until checked."""
+        if self.resolver is None or not contacts:
+            return
+        learner = self.pulse_learner
+        taken, dropped = self.late.offer(
+            packets, contacts, lambda fs: learner.pulse_at(fs) is not None)
+        if taken or dropped:
+            g = self.resolver.geometry
+            with self.lock:
+                self._pending_ns.update((id(p), earliest_emission_ns(p, g)) for p in taken)
+                for p in dropped:
+                    self._pending_ns.pop(id(p), None)
+
+    def _late_turn(self) -> None:
+        """The resolver's thread, no window to answer: check waiting single emissions; a
+        packet found to hold a second emission goes to the resolver as a window."""
+        if not len(self.late):
+            return
+        found, clean = self.late.run(self.resolver.geometry, self.pulse_learner.pulse_at)
+        queued = self.resolver.submit(found) if found else []
+        gone = clean + [p for p in found if all(p is not q for q in queued)]
+        if gone:
+            with self.lock:
+                for p in gone:
+                    self._pending_ns.pop(id(p), None)
 
     def _window_done(self, p) -> None:
         """The resolver answered a window: the slip step of what waited for it runs."""
@@ -571,8 +291,9 @@ class OverlapStage:
             self._on_unhold(list(lost))
 
     def pending(self) -> int:
-        """Windows with the resolver (queued or being answered)."""
-        return 0 if self.resolver is None else self.resolver.pending()
+        """Windows with the resolver (queued or being answered) and single emissions
+        waiting for the late check."""
+        return 0 if self.resolver is None else self.resolver.pending() + len(self.late)
 
     def close(self) -> None:
         """Stop the resolver's thread and worker, and the pulse learner's fit."""
