@@ -310,6 +310,25 @@ def test_namespaced_bringup(ros_context):
         system.close()
 
 
+def test_bringup_scene_is_a_file_or_a_built_in_name(capsys):
+    """`bringup --scene` takes a YAML file or a built-in scene's name (as the launch
+    file's ``scene``); anything else is a usage error naming the built-ins, before any
+    node starts."""
+    require_ros()
+    from ae_tactile.ros.bringup import parse_args
+
+    args = parse_args(["--scene", "incipient_slip"])
+    assert os.path.samefile(args.scene, os.path.join(SCENES, "incipient_slip.yaml"))
+    path = os.path.join(SCENES, "three_pins.yaml")
+    assert os.path.samefile(parse_args(["--scene", path]).scene, path)
+    assert os.path.basename(parse_args([]).scene) == "showcase.yaml"
+    with pytest.raises(SystemExit) as e:
+        parse_args(["--scene", "no_such_scene"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "no_such_scene" in err and "incipient_slip" in err and "Traceback" not in err
+
+
 def test_bringup_executable_with_parameter_file_and_namespace(tmp_path):
     """The demo's entry point as a user runs it: parameter file, namespace, summary file."""
     exe = installed_executable("bringup")

@@ -43,7 +43,8 @@ from ae_tactile.ros.slip_node import SlipDetectorNode
 def parse_args(argv):
     ap = argparse.ArgumentParser(prog="bringup", description=__doc__.split("\n\n")[0])
     ap.add_argument(
-        "--scene", default="", help="scene YAML for the simulated fingertip (default: showcase)"
+        "--scene", default="", help="scene YAML file or built-in scene name for the simulated "
+        "fingertip (default: showcase)"
     )
     ap.add_argument(
         "--no-sim", dest="use_sim", action="store_false", help="use real hardware on --port"
@@ -96,7 +97,31 @@ def parse_args(argv):
     ap.add_argument(
         "--report-png", default="", help="write a PNG summary of the run here (monitor)"
     )
-    return ap.parse_args(argv)
+    args = ap.parse_args(argv)
+    if args.use_sim:
+        try:
+            args.scene = scene_file(args.scene)
+        except ValueError as e:
+            ap.error(str(e))  # a clear message, exit code 2, nothing started
+    return args
+
+
+def scene_file(value: str) -> str:
+    """The scene to play: a YAML file, or a built-in scene's name (config/scenes; as the
+    launch file's ``scene``); empty: the showcase. ValueError naming the built-ins."""
+    if not value:
+        return default_scene_path("showcase.yaml")
+    if os.path.isfile(value):
+        return os.path.abspath(value)
+    name = value if value.endswith(".yaml") else value + ".yaml"
+    builtin = default_scene_path(name)
+    if os.sep not in value and os.path.isfile(builtin):
+        return builtin
+    folder = os.path.dirname(default_scene_path("showcase.yaml"))
+    known = sorted(f[:-5] for f in os.listdir(folder) if f.endswith(".yaml")) if os.path.isdir(
+        folder) else []
+    raise ValueError(f"--scene {value!r} is neither a file nor a built-in scene "
+                     f"({', '.join(known)})")
 
 
 def default_params_file() -> str:
@@ -160,9 +185,7 @@ class Bringup:
         self.scene_info = None
         self._tmp = None
         if args.use_sim:
-            scene = (
-                os.path.abspath(args.scene) if args.scene else default_scene_path("showcase.yaml")
-            )
+            scene = scene_file(args.scene)
             port = self._start_sim(scene, kw, sim_in_process)
             sensor = [Parameter(k, value=v) for k, v in scene_body(scene).items()]
         else:
