@@ -275,6 +275,29 @@ def test_random_touches_on_cap_and_paper_cases():
     assert (tp.time_ns.max() - tp.time_ns.min()) <= 2_000_000
 
 
+def test_paper_touches_and_pins_released_after_hold_s():
+    """hold_s > 0: each touch is released hold_s after it, at its own point, with the
+    opposite polarity (and not when releases do not emit); 0 keeps them to the end."""
+    for gen, dur in (("paper_positions", 0.2), ("three_pins", 0.2)):
+        em = _all(load_scene({"generator": gen, "duration_s": dur,
+                              "params": {"hold_s": 0.1}}))
+        touch = em.kind == KIND_CODE["touch"]
+        release = em.kind == KIND_CODE["release"]
+        assert touch.sum() == release.sum() == 3, gen
+        order = np.argsort(em.time_ns[touch])
+        t_t, t_r = em.time_ns[touch][order], np.sort(em.time_ns[release])
+        np.testing.assert_array_equal(t_r - t_t, 100_000_000)
+        np.testing.assert_allclose(em.point_m[release][np.argsort(em.time_ns[release])],
+                                   em.point_m[touch][order])
+        assert (em.polarity[touch] > 0).all() and (em.polarity[release] < 0).all()
+        off = _all(load_scene({"generator": gen, "duration_s": dur,
+                               "params": {"hold_s": 0.1},
+                               "effects": {"release_emissions": False}}))
+        assert (off.kind == KIND_CODE["touch"]).all()
+        held = _all(load_scene({"generator": gen, "duration_s": dur}))
+        assert (held.kind == KIND_CODE["touch"]).all()
+
+
 def test_tangent_basis_is_orthonormal():
     c = np.array([[0, 0, 1.0], [1.0, 0, 0], [0.3, -0.4, 0.866]])
     e1, e2 = tangent_basis(c)

@@ -60,21 +60,33 @@ def single_touch(ctx, p):
     return StaticEmissions(em, {"generator": "single_touch"})
 
 
+def _released(ctx, p, touches, t, pts):
+    """The touches, and each one's release hold_s [s] after it (opposite polarity,
+    separation speed release_speed_m_s) when hold_s > 0 and releases emit."""
+    if not p["hold_s"] > 0 or not ctx.effects["release_emissions"]:
+        return touches
+    evr = EventParams(p["release_speed_m_s"], p["curvature_1_m"], p["alpha_1_s"])
+    n = len(t)
+    rel = make_emissions(ctx, np.asarray(t) + p["hold_s"], pts, "release", evr, RAREFACTION,
+                         np.arange(n, 2 * n))
+    return EmissionList.concat([touches, rel])
+
+
 def paper_positions(ctx, p):
-    """The paper's Fig. 7: touches at x = 0, 2.5, 5 mm (y = 0), one every interval_s."""
+    """The paper's Fig. 7: touches at x = 0, 2.5, 5 mm (y = 0), one every interval_s; each
+    released hold_s after it (0: held to the end)."""
     geo = ctx.config.geometry
     xs = np.asarray(p["xs_m"], dtype=float)
     pts = geo.surface_point_from_xy(xs, np.zeros_like(xs))
     t = p["start_s"] + p["interval_s"] * np.arange(xs.size)
     ev = EventParams(p["speed_m_s"], p["curvature_1_m"], p["alpha_1_s"])
-    return StaticEmissions(
-        make_emissions(ctx, t, pts, "touch", ev, COMPRESSION, np.arange(xs.size)),
-        {"generator": "paper_positions"},
-    )
+    touches = make_emissions(ctx, t, pts, "touch", ev, COMPRESSION, np.arange(xs.size))
+    return StaticEmissions(_released(ctx, p, touches, t, pts), {"generator": "paper_positions"})
 
 
 def three_pins(ctx, p):
-    """The paper's Fig. 8: a plate with three pins touching within ~2 ms."""
+    """The paper's Fig. 8: a plate with three pins touching within ~2 ms; each pin released
+    hold_s after its touch (0: held to the end)."""
     geo = ctx.config.geometry
     xy = np.asarray(p["points_xy_m"], dtype=float)
     t = np.asarray(p["times_s"], dtype=float)
@@ -84,10 +96,8 @@ def three_pins(ctx, p):
         )
     pts = geo.surface_point_from_xy(xy[:, 0], xy[:, 1])
     ev = EventParams(p["speed_m_s"], p["curvature_1_m"], p["alpha_1_s"])
-    return StaticEmissions(
-        make_emissions(ctx, t, pts, "touch", ev, COMPRESSION, np.arange(t.size)),
-        {"generator": "three_pins"},
-    )
+    touches = make_emissions(ctx, t, pts, "touch", ev, COMPRESSION, np.arange(t.size))
+    return StaticEmissions(_released(ctx, p, touches, t, pts), {"generator": "three_pins"})
 
 
 def plane_slip(ctx, p):

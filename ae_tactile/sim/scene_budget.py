@@ -95,9 +95,9 @@ def expected_emissions(
     if gen == "single_touch":
         return 1.0
     if gen == "paper_positions":
-        return float(len(p["xs_m"]))
+        return float(len(p["xs_m"])) * (rel if p.get("hold_s", 0.0) > 0 else 1.0)
     if gen == "three_pins":
-        return float(len(p["times_s"]))
+        return float(len(p["times_s"])) * (rel if p.get("hold_s", 0.0) > 0 else 1.0)
     if gen == "touch_hold_release":
         return 2.0
     if gen == "plane_slip":

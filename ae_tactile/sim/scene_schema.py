@@ -108,6 +108,10 @@ _EV = {
     "curvature_1_m": _f(DEFAULT_CURVATURE_1_M, "object curvature a_c (1/m)", 1.0, 1e6),
     "alpha_1_s": _f(DEFAULT_ALPHA_1_S, "indentation rate alpha (1/s)", 1.0, 1e6),
 }
+_HOLD = {  # touches released after a hold (0: held to the end of the scene)
+    "hold_s": _f(0.0, "each touch released this long after it (s); 0: never", 0.0, 3600.0),
+    "release_speed_m_s": _f(0.15, "separation speed (m/s)", 1e-4, 20.0),
+}
 _XY = {"x_m": _f(0.0, "contact x (m)", -0.1, 0.1), "y_m": _f(0.0, "contact y (m)", -0.1, 0.1)}
 
 GENERATORS = {
@@ -123,6 +127,7 @@ GENERATORS = {
             ),
             "start_s": _f(1e-3, "first touch (s)", 0.0, 3600.0),
             "interval_s": _f(5e-3, "time between touches (s)", 1e-6, 3600.0),
+            **_HOLD,
             **_EV,
         },
     ),
@@ -135,6 +140,7 @@ GENERATORS = {
             "times_s": Key(
                 "float_list", [1e-3, 1.7e-3, 2.9e-3], "pin touch times (s)", 0.0, 3600.0
             ),
+            **_HOLD,
             **_EV,
         },
     ),
