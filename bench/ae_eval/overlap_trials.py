@@ -156,19 +156,24 @@ def _single_touches(cfg, n, rng, snr_db=30.0):
     return render_triggered(pts, cfg, snr_db=snr_db, rng=rng, polarity=rng.choice([-1, 1], n))
 
 
+#: [ns] between the windows of the live-path trials: 100 windows/s, under the late check's
+#: rate limit (LATE_CHECK_MAX_RATE_HZ), so that every single emission is checked
+WINDOW_SPACING_NS = 10**7
+
+
 def _views(samples, onsets, fs, id0):
-    """PacketViews of windows 1 ms apart, sequence ids from ``id0``."""
+    """PacketViews of windows WINDOW_SPACING_NS apart, sequence ids from ``id0``."""
     from ae_tactile.records import PacketView  # lazy: only the live-path trials need it
 
-    return [PacketView(np.asarray(samples[i]), fs, int(onsets[i]), 10**6 * (id0 + i), id0 + i)
-            for i in range(len(samples))]
+    return [PacketView(np.asarray(samples[i]), fs, int(onsets[i]), WINDOW_SPACING_NS * (id0 + i),
+                       id0 + i) for i in range(len(samples))]
 
 
 def _loss_counted(before, after) -> bool:
     """The pipeline counted a window's missing emissions: an overlap answer rejected or
-    dropped, or an overlap error."""
+    dropped, an overlap error, or a single emission the late check could not look at."""
     keys = [k for k in after if k.startswith(("overlap_rejected_", "overlap_dropped_"))
-            or k == "overlap_errors"]
+            or k in ("overlap_errors", "overlap_unchecked")]
     return any(after[k] > before.get(k, 0) for k in keys)
 
 
@@ -248,7 +253,9 @@ def live_device(dev, *, n_pairs=20, max_singles=48, rng=None, sample_rate_hz=10e
             given += 12
             learner.wait()
         learn_s = time.perf_counter() - t0
+        late0 = pipe.all_counts().get("overlap_late_found", 0)
         warm = live_pairs(pipe, d, 300_000)
+        late = pipe.all_counts().get("overlap_late_found", 0) - late0
         st = learner.state()
     finally:
         pipe.close()
@@ -265,4 +272,5 @@ def live_device(dev, *, n_pairs=20, max_singles=48, rng=None, sample_rate_hz=10e
         cold_wrong=int(cold["wrong"].sum()), warm_wrong=int(warm["wrong"].sum()),
         cold_silent=int(cold["silent"].sum()), warm_silent=int(warm["silent"].sum()),
         cold_counted=int(cold["counted"].sum()), warm_counted=int(warm["counted"].sum()),
+        warm_late_found=int(late),
     )
