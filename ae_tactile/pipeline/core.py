@@ -190,11 +190,16 @@ class ContactPipeline:
         """
         self.set_outputs(on_localized, on_slip, on_contacts=on_contacts,
                          on_emissions=on_emissions)
-        if self.hand_stage.hand is None:
-            self._process(packets, on_localized, more_waiting)
-            return
-        with self.hand_stage.release_lock:
-            self._process(packets, on_localized, more_waiting)
+        stage = self.overlap_stage
+        stage.reader_active = True  # the late check waits (`OverlapStage._late_turn`)
+        try:
+            if self.hand_stage.hand is None:
+                self._process(packets, on_localized, more_waiting)
+                return
+            with self.hand_stage.release_lock:
+                self._process(packets, on_localized, more_waiting)
+        finally:
+            stage.reader_active = False
 
     def set_outputs(self, on_localized=None, on_slip=None, *, on_contacts=None,
                     on_emissions=None) -> None:

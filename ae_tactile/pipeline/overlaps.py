@@ -102,6 +102,11 @@ class OverlapStage:
         self.pulse_learner = PulseLearner(background="process", on_demand=True)
         #: single emissions handed out, to be looked at again for a late second one
         self.late = LateCheck(counts)
+        #: the late check runs only while the reader is idle: not inside `process`
+        #: (``reader_active``) and, where set, no bytes waiting on its port
+        #: (``reader_backlog()``, e.g. the link's ``unread_bytes``: safe from any thread)
+        self.reader_active = False
+        self.reader_backlog: Callable[[], int] | None = None
         #: (stamp ns, x, y, z) of the contact events handed out that a window still with the
         #: resolver could hold again (duplicate check), oldest first
         self._recent: deque = deque()
@@ -157,9 +162,14 @@ class OverlapStage:
                     self._pending_ns.pop(id(p), None)
 
     def _late_turn(self) -> None:
-        """The resolver's thread, no window to answer: check waiting single emissions; a
-        packet found to hold a second emission goes to the resolver as a window."""
-        if not len(self.late):
+        """The resolver's thread, no window to answer and the reader idle: check waiting
+        single emissions; a packet found to hold a second emission goes to the resolver as
+        a window (the reflex path never waits for a check: while the reader is busy they
+        wait, and beyond LATE_CHECK_MAX the oldest are counted unchecked)."""
+        if not len(self.late) or self.reader_active:
+            return
+        backlog = self.reader_backlog
+        if backlog is not None and backlog() > 0:
             return
         found, clean = self.late.run(self.resolver.geometry, self.pulse_learner.pulse_at)
         queued = self.resolver.submit(found) if found else []

@@ -193,6 +193,7 @@ class DriverNode(Node):
             )
             self.pipeline.localizer.warm_up(fs, int(p["packet_samples"] or 400))
             if self.pipeline.localizer.resolve_overlaps:
+                self.pipeline.overlap_stage.reader_backlog = self.link.unread_bytes  # late check
                 self.pipeline.start_overlaps(wait_s=30.0)
         # Everything built so far lives for the whole run: keep it out of the garbage
         # collector's scans, so that a collection in the reader thread stays short.
