@@ -1309,3 +1309,20 @@ def test_a_steady_poisson_stream_on_its_ring_is_no_gross_slip():
     evs = ring_events(rng, 300, 0, 300.0, (0, 0), 1.5e-3, width_m=0.1e-3)
     outs = run(SlipDetector(), evs)
     assert EventType.SLIP not in kinds(outs)
+
+
+def test_the_rate_jump_test_holds_its_level_on_a_poisson_stream():
+    """A held contact's emissions a stationary Poisson stream (200 /s) whose rate the
+    detector learns from its own emissions: the rate-jump test, at level gross_rate_alpha
+    (growth 1: the rate does not grow), fires on no more than that share of the tested
+    emissions (its prior rate is an estimate from ~16 emissions, not the true rate)."""
+    alpha = 0.01
+    det = SlipDetector(SlipConfig(gross_rate_alpha=alpha, gross_rate_growth=1.0))
+    rng = np.random.default_rng(5)
+    hits = calls = 0
+    for _ in range(20):
+        tu = [int(x) for x in np.cumsum(rng.exponential(1.0 / 200.0, 400)) * 1e9]  # [ns]
+        for k in range(50, len(tu)):
+            calls += 1
+            hits += det._rate_jump(tu[:k], tu[k - 1], tu[0])
+    assert hits <= alpha * calls

@@ -254,8 +254,9 @@ class SlipConfig:
     )
     gross_rate_alpha: float = _p(
         1e-5,
-        "... or the latest emissions came so fast that the contact's prior rate (over the "
-        "preceding gross_history_s) explains them with a Poisson probability below this "
+        "... or the latest emissions came so fast that the contact's prior rate (learnt "
+        "from its emissions over the preceding gross_history_s, Gamma(n + 1, time covered) "
+        "x gross_rate_growth) explains them with a probability below this "
         "(a jump of the emission rate; scanned over the latest gross_min_events .. "
         "gross_scan_events emissions)",
         "",

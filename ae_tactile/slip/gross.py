@@ -2,7 +2,8 @@
 """Gross-slip test of the slip detector: SLIP (-> GROSS_SLIP) when the contact moves, when
 the sequential likelihood ratio of gross slip against micro-slip continuation reaches
 ``gross_llr_threshold``, when an emission of the latest window lies inside the stick
-zone, or when the latest emissions' rate is a Poisson tail of the rate before them."""
+zone, or when the latest emissions' rate is a tail of the contact's own micro-slip rate
+(learnt from its emissions before them: a negative binomial predictive)."""
 
 from __future__ import annotations
 
@@ -90,10 +91,15 @@ class GrossSlipTest:
 
     def _rate_jump(self, tu, t, onset):
         """Rate jump (scan statistic): the latest j emissions (times ``tu`` [ns], sorted)
-        span tau; under the contact's prior rate lambda (over the part of gross_history_s
-        before them that it has lived since ``onset``) j - 1 of them in tau is a Poisson
-        tail P(N >= j - 1 | lambda tau); a jump when that is below gross_rate_alpha /
-        (number of spans tested)."""
+        span tau; j - 1 of them in tau under the contact's own micro-slip rate is a tail
+        P(N >= j - 1) below gross_rate_alpha / (number of spans tested): a jump. That rate
+        is known only from the n_p emissions of the part of gross_history_s before them
+        that the contact has lived since ``onset`` (h of it): lambda ~ Gamma(n_p + 1, h)
+        (flat prior), times gross_rate_growth (a Cattaneo-Mindlin load's rate grows as
+        (1 - q)^(-1/3)), the same micro-slip hypothesis as `_gross_llr`; N is then
+        negative binomial (r = n_p + 1, p = b / (b + tau), b = h / gross_rate_growth):
+        a plug-in Poisson rate would read the clusters of a Poisson stream whose rate is
+        learnt from ~10 emissions as jumps."""
         cfg = self.config
         ts = tu[-cfg.gross_scan_events :]
         n = len(ts)
@@ -107,12 +113,13 @@ class GrossSlipTest:
             if covered < w_min:
                 continue
             n_p = bisect_left(tu, t0) - bisect_left(tu, t0 - covered)  # t0 - covered <= T < t0
-            mu = max(n_p, 1) / covered * (t - t0)
-            # P(N >= j - 1) for N ~ Poisson(mu)
-            term, cdf = math.exp(-mu), 0.0
+            b = covered / cfg.gross_rate_growth  # [ns]
+            r, p = n_p + 1.0, b / (b + (t - t0))
+            # P(N >= j - 1) for N ~ NegativeBinomial(r, p): P(0) = p^r, then the ratio
+            term, cdf = math.exp(r * math.log(p)), 0.0
             for i in range(j - 1):
                 cdf += term
-                term *= mu / (i + 1)
+                term *= (r + i) / (i + 1) * (1.0 - p)
             if 1.0 - cdf < alpha:
                 return True
         return False
