@@ -86,7 +86,8 @@ class LateCheck:
     def run(self, geometry, pulse_at) -> tuple[list, list]:
         """Check up to LATE_CHECK_BATCH waiting packets (`suspect_overlap` with the pulse
         ``pulse_at(sample_rate_hz)``, None: not trusted any more, the packet is counted
-        unchecked). Returns (packets holding a second emission, packets done with)."""
+        unchecked). Returns ((packet, point handed out [m]) of the packets holding a
+        second emission, packets done with)."""
         with self.lock:
             n = min(LATE_CHECK_BATCH, len(self._waiting))
             items = [self._waiting.popleft() for _ in range(n)]
@@ -114,8 +115,11 @@ class LateCheck:
                 clean += ps
                 continue
             self._count("overlap_late_checked", len(ps))
-            for p, m in zip(ps, np.asarray(mask, bool)):
-                (found if m else clean).append(p)
+            for (p, point), m in zip(group, np.asarray(mask, bool)):
+                if m:
+                    found.append((p, point))
+                else:
+                    clean.append(p)
         self._count("overlap_late_found", len(found))
         return found, clean
 

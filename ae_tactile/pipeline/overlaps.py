@@ -107,6 +107,8 @@ class OverlapStage:
         #: (``reader_backlog()``, e.g. the link's ``unread_bytes``: safe from any thread)
         self.reader_active = False
         self.reader_backlog: Callable[[], int] | None = None
+        #: sequence id -> point [m] handed out, of the late-checked windows with the resolver
+        self._late_out: dict = {}
         #: (stamp ns, x, y, z) of the contact events handed out that a window still with the
         #: resolver could hold again (duplicate check), oldest first
         self._recent: deque = deque()
@@ -172,8 +174,11 @@ class OverlapStage:
         if backlog is not None and backlog() > 0:
             return
         found, clean = self.late.run(self.resolver.geometry, self.pulse_learner.pulse_at)
-        queued = self.resolver.submit(found) if found else []
-        gone = clean + [p for p in found if all(p is not q for q in queued)]
+        if found:  # the emission each handed out already: its answer's nearest source
+            with self.lock:
+                self._late_out.update((p.sequence_id, pt) for p, pt in found)
+        queued = self.resolver.submit([p for p, _ in found]) if found else []
+        gone = clean + [p for p, _ in found if all(p is not q for q in queued)]
         if gone:
             with self.lock:
                 for p in gone:
@@ -183,6 +188,7 @@ class OverlapStage:
         """The resolver answered a window: the slip step of what waited for it runs."""
         with self.lock:
             self._pending_ns.pop(id(p), None)
+            self._late_out.pop(p.sequence_id, None)
         self._on_window_done(id(p))
 
     def register(self, windows: list, geometry: FingertipGeometry) -> None:
@@ -205,15 +211,16 @@ class OverlapStage:
             return records
         with self.lock:
             rec = self._recent
-            fresh = records
-            if rec and (
+            fresh = self._drop_late_first(records) if self._late_out else records
+            if rec and fresh and (
                 resolved
-                or min(r.time_ns for r in records)
+                or min(r.time_ns for r in fresh)
                 <= self._resolved_newest_ns + DUPLICATE_TIME_S * 1e9
             ):
-                fresh = _not_in(records, np.array(rec, dtype=float))
-                if len(fresh) < len(records):
-                    self.counts["overlap_duplicates"] += len(records) - len(fresh)
+                n = len(fresh)
+                fresh = _not_in(fresh, np.array(rec, dtype=float))
+                if len(fresh) < n:
+                    self.counts["overlap_duplicates"] += n - len(fresh)
             if not fresh:
                 return fresh
             if resolved:
@@ -226,6 +233,22 @@ class OverlapStage:
             while rec and rec[0][0] < keep_from:
                 rec.popleft()
         return fresh
+
+    def _drop_late_first(self, records: list) -> list:
+        """(under the lock) A late-checked window's answer: the source nearest the point
+        handed out for it already is that emission (counted ``overlap_duplicates``)."""
+        out, by_packet = [], {}
+        for r in records:
+            if r.packet_ids and r.packet_ids[0] in self._late_out:
+                by_packet.setdefault(r.packet_ids[0], []).append(r)
+            else:
+                out.append(r)
+        for pid, rs in by_packet.items():
+            point = self._late_out.pop(pid)
+            first = min(rs, key=lambda r: float(np.sum((np.asarray(r.point_m) - point) ** 2)))
+            self.counts["overlap_duplicates"] += 1
+            out += [r for r in rs if r is not first]
+        return out
 
     def overlapping(self, windows: list, on_contacts, geometry: FingertipGeometry) -> list:
         """Windows holding several emissions (registered): the first ``inline_max`` of the
