@@ -112,3 +112,38 @@ def test_a_new_device_on_the_same_port_saves_the_old_and_starts_over(tmp_path, d
     assert cal.store.serial == "B"
     learners = pipe.calibration_learners()
     assert all(lr.calibration_state() is None for lr in learners.values()), learners
+
+
+def test_what_one_body_taught_is_never_loaded_on_another(tmp_path, device):
+    """The file is the serial number's on this body (radius, element offset, sound
+    speed): the same serial on another body (a fingertip refilled with silicone) starts
+    from nothing, and the first body finds its own file again."""
+    from ae_tactile.geometry import FingertipGeometry
+
+    cfg, touches, _, _ = device
+    fs = cfg.sample_rate_hz
+    water = cfg.geometry
+    silicone = FingertipGeometry(radius_m=water.radius_m,
+                                 element_offset_m=water.element_offset_m,
+                                 sound_speed_m_s=1030.0)
+    first = _pipeline(cfg)
+    cal = DeviceCalibration(first.calibration_learners, str(tmp_path),
+                            body=lambda: first.localizer.geometry)
+    cal.on_device("AE-0040")
+    _feed(first, touches, fs, 0, 0)
+    assert cal.close()
+    assert cal.store.serial == "AE-0040_R10mm_a1.5mm_c1480"
+    other = ContactPipeline(PacketLocalizer("ml", geometry=silicone), None)
+    cal2 = DeviceCalibration(other.calibration_learners, str(tmp_path),
+                             body=lambda: other.localizer.geometry)
+    cal2.on_device("AE-0040")
+    assert cal2.store.serial != cal.store.serial
+    assert cal2.store.loaded_sections == []
+    assert all(lr.calibration_state() is None for lr in other.calibration_learners().values())
+    again = _pipeline(cfg)
+    cal3 = DeviceCalibration(again.calibration_learners, str(tmp_path),
+                             body=lambda: again.localizer.geometry)
+    cal3.on_device("AE-0040")
+    assert "interference_acoustic" in cal3.store.loaded_sections
+    for p in (first, other, again):
+        p.close()

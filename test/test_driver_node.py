@@ -368,10 +368,14 @@ def test_the_driver_keeps_what_it_learnt_about_its_device_per_serial_number(
     first.spin(10.0, until=lambda: dev.finished(time.monotonic_ns()))
     first.spin(3.0, until=lambda: "calibration_file" in localization_values(first)
                and "AE-SIM-0001" in localization_values(first)["calibration_file"])
-    assert localization_values(first)["calibration_file"] == str(cal / "AE-SIM-0001.json")
+    # one file per serial number and body: radius, element offset, sound speed
+    g = first.driver.pipeline.localizer.geometry
+    name = (f"AE-SIM-0001_R{g.radius_m * 1e3:g}mm_a{g.element_offset_m * 1e3:g}mm"
+            f"_c{g.sound_speed_m_s:g}")
+    assert localization_values(first)["calibration_file"] == str(cal / f"{name}.json")
     first.close()
-    doc = json.loads((cal / "AE-SIM-0001.json").read_text())
-    assert doc["serial"] == "AE-SIM-0001" and "interference_echo" in doc["sections"]
+    doc = json.loads((cal / f"{name}.json").read_text())
+    assert doc["serial"] == name and "interference_echo" in doc["sections"]
 
     for reset, loaded in ((False, True), (True, False)):
         s = system_factory(driver_params=params + (Parameter("calibration_reset", value=reset),))

@@ -1,6 +1,8 @@
 # SPDX-License-Identifier: Apache-2.0
 """What the pipeline learnt about a device, loaded when the device is known and saved as
-it goes (`ae_tactile.calibration.CalibrationStore`, one file per serial number).
+it goes (`ae_tactile.calibration.CalibrationStore`, one file per serial number and body:
+what was learnt on one body -- its radius, element offset and sound speed -- is never
+applied to another, e.g. a fingertip refilled with another medium).
 
 The driver's reader thread calls `DeviceCalibration.on_device` with the device's serial
 number before each batch (nothing happens while it is unchanged) and `save_due` when it
@@ -35,6 +37,9 @@ class DeviceCalibration:
         Save at most this often while running [s] (and at `close`).
     clock : callable
         Monotonic time [s] (tests pass their own).
+    body : callable, optional
+        Returns the fingertip's `FingertipGeometry` now: its file is that of the serial
+        number and this body (another body, another file).
 
     Returns
     -------
@@ -42,8 +47,9 @@ class DeviceCalibration:
     """
 
     def __init__(self, learners, directory: str = "", reset: bool = False,
-                 save_period_s: float = 60.0, clock=time.monotonic):
+                 save_period_s: float = 60.0, clock=time.monotonic, body=None):
         self._learners = learners
+        self._body = body
         self.directory = directory or default_directory()
         self._reset = bool(reset)
         self.save_period_s = float(save_period_s)
@@ -52,8 +58,9 @@ class DeviceCalibration:
         self._last_save = clock()
 
     def on_device(self, serial: str | None) -> None:
-        """The device being read is ``serial`` (None: not known yet). A new serial saves
-        the previous device's calibration, resets the learners and loads the new one's.
+        """The device being read is ``serial`` (None: not known yet). A new serial, or the
+        same on another body (`key`), saves the previous calibration, resets the learners
+        and loads the new one's.
 
         Parameters
         ----------
@@ -63,7 +70,10 @@ class DeviceCalibration:
         -------
         None
         """
-        if not serial or (self.store is not None and self.store.serial == serial):
+        if not serial:
+            return
+        serial = self.key(serial)
+        if self.store is not None and self.store.serial == serial:
             return
         learners = self._learners()
         if self.store is not None:
@@ -84,6 +94,15 @@ class DeviceCalibration:
             _LOG.info("no calibration of %s in %s yet: learning it from its packets",
                       serial, self.store.path)
         self._last_save = self._clock()
+
+    def key(self, serial: str) -> str:
+        """The file's name for ``serial`` on the current body: ``<serial>_R<radius mm>_a<element
+        offset mm>_c<sound speed m/s>`` (the serial alone without ``body``)."""
+        if self._body is None:
+            return serial
+        g = self._body()
+        return (f"{serial}_R{g.radius_m * 1e3:g}mm_a{g.element_offset_m * 1e3:g}mm"
+                f"_c{g.sound_speed_m_s:g}")
 
     def save_due(self) -> bool:
         """Save when ``save_period_s`` has passed since the last save. True if written.

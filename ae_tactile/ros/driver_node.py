@@ -272,7 +272,8 @@ class DriverNode(Node):
         if self.p["calibration_dir"].strip().lower() != "none":
             self.calibration = DeviceCalibration(
                 self.pipeline.calibration_learners, self.p["calibration_dir"].strip(),
-                self.p["calibration_reset"], self.p["calibration_save_period_s"])
+                self.p["calibration_reset"], self.p["calibration_save_period_s"],
+                body=lambda: self.pipeline.localizer.geometry)
         self.create_timer(self.p["marker_period_s"], self._publish_markers)
 
     def _on_batch(self, batch) -> None:
