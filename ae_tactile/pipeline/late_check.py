@@ -45,6 +45,8 @@ class LateCheck:
     def __init__(self, counts: Counter, *, max_rate_hz: float = LATE_CHECK_MAX_RATE_HZ,
                  max_waiting: int = LATE_CHECK_MAX):
         self.counts = counts
+        for key in ("overlap_unchecked", "overlap_late_checked", "overlap_late_found"):
+            counts.setdefault(key, 0)  # made here: another thread never adds a key later
         self.spacing_ns = 1e9 / float(max_rate_hz) if max_rate_hz > 0 else float("inf")
         self.max_waiting = int(max_waiting)
         self.lock = threading.Lock()  # a leaf: the reader offers, the resolver's thread takes

@@ -109,6 +109,7 @@ class OverlapStage:
         self.reader_backlog: Callable[[], int] | None = None
         #: sequence id -> point [m] handed out, of the late-checked windows with the resolver
         self._late_out: dict = {}
+        self._late_busy = 0  # 1 while the resolver's thread checks (`pending`)
         #: (stamp ns, x, y, z) of the contact events handed out that a window still with the
         #: resolver could hold again (duplicate check), oldest first
         self._recent: deque = deque()
@@ -173,11 +174,15 @@ class OverlapStage:
         backlog = self.reader_backlog
         if backlog is not None and backlog() > 0:
             return
-        found, clean = self.late.run(self.resolver.geometry, self.pulse_learner.pulse_at)
-        if found:  # the emission each handed out already: its answer's nearest source
-            with self.lock:
-                self._late_out.update((p.sequence_id, pt) for p, pt in found)
-        queued = self.resolver.submit([p for p, _ in found]) if found else []
+        self._late_busy = 1  # `pending` counts the packets being checked till handed on
+        try:
+            found, clean = self.late.run(self.resolver.geometry, self.pulse_learner.pulse_at)
+            if found:  # the emission each handed out already: its answer's nearest source
+                with self.lock:
+                    self._late_out.update((p.sequence_id, pt) for p, pt in found)
+            queued = self.resolver.submit([p for p, _ in found]) if found else []
+        finally:
+            self._late_busy = 0
         gone = clean + [p for p, _ in found if all(p is not q for q in queued)]
         if gone:
             with self.lock:
@@ -326,7 +331,9 @@ class OverlapStage:
     def pending(self) -> int:
         """Windows with the resolver (queued or being answered) and single emissions
         waiting for the late check."""
-        return 0 if self.resolver is None else self.resolver.pending() + len(self.late)
+        if self.resolver is None:
+            return 0
+        return self.resolver.pending() + len(self.late) + self._late_busy
 
     def close(self) -> None:
         """Stop the resolver's thread and worker, and the pulse learner's fit."""
