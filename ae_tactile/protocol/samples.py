@@ -7,6 +7,7 @@ what the caller passed, or a view of the received frame bytes).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 from typing import ClassVar
 
@@ -140,6 +141,16 @@ class Packet(_SampleBlock):
             )
         sr, vpc, first, n, pre, onset, nch, sat = _PACKET.unpack_from(buf, off)
         samples = _unpack_samples("PACKET", buf, off, length, PACKET_PREFIX_LEN, n, nch)
+        if (0 < sr and 0.0 < vpc < math.inf and pre < n and (onset < n or onset == NO_ONSET)
+                and sat <= 15 and not samples.flags.writeable and samples.dtype == np.int16):
+            # the usual frame: the wire's types and field widths hold every other bound, so
+            # `__post_init__` would keep each field as it is; it runs (and raises) otherwise
+            body = object.__new__(cls)
+            body.__dict__.update(
+                samples=samples, sample_rate_hz=sr, v_per_count=vpc, first_sample_index=first,
+                pre_trigger=pre, onset_index=onset, saturation_mask=sat,
+            )
+            return body
         return cls(samples, sr, vpc, first, pre, onset, sat)
 
 
