@@ -95,6 +95,9 @@ class Contact:
         self.arriving = True  # no silence of HOLD_GAP_S since its first emission
         self.saw_rarefaction = False  # a rarefaction came (the arrival is over)
         self.slid = False  # it slid (a lift of it may be a re-stick)
+        self.resumed = False  # founded soon after a slide's lift: slide or re-stick
+        self.release_gap_ns = 0  # [ns] silence before its pending release (`model`)
+        self.release_iv_ns = 0.0  # [ns] mean of its latest intervals before it
         self.provisional = False  # its pending release is off its touches (`model`)
 
     @property

@@ -392,14 +392,15 @@ class SlipDetector(
                 c.arriving = False
             if (
                 self._model
-                and c.state == ContactState.GROSS_SLIP
+                and (c.state == ContactState.GROSS_SLIP or c.resumed)
                 and now - c.last_ns >= self._lift_min
                 and now - c.last_ns >= self._lift_quiet_ns(c)
             ):
-                # silent after sliding: lifted (`ContactModel`)
+                # silent after sliding (or after a slide's lift, undecided): lifted
+                # (`ContactModel`); an emission soon after a slide's lift may resume it
                 c.pending_release_ns, c.pending_in_slip = c.last_ns, True
                 c.pending_release_spot = None
-                c.slid = True
+                c.slid = c.state == ContactState.GROSS_SLIP
                 self._end_contact(c)
                 continue
             if c.state in SLIPPING and now - c.last_ns >= self._quiet:

@@ -22,6 +22,7 @@ from .contact import (
     TOUCH_POINT,
     TOUCHED,
 )
+from .model import LIFT_INTERVALS
 
 
 class MicroSlipEvidence:
@@ -36,6 +37,13 @@ class MicroSlipEvidence:
         ``overlap``: it may share a trigger window) to contact ``c``: classify it, update
         the contact and its tests, and append the events they decide to ``out``."""
         slipping = c.state in SLIPPING or c.moving  # a moving contact has no fixed spots
+        if self._model and ev.polarity > 0 and self._released_held(c, t):
+            # a compression after a loaded (held) contact's release on its touch, its
+            # activity stopped round the release: the next object's touch (a re-grasp)
+            self._end_contact(c)
+            n = self._found(ev, p, var, t, overlap)
+            self.last_reading = (Reading.TOUCH if n.confirmed else Reading.UNKNOWN, n.id)
+            return
         flags = OVERLAP if overlap else 0
         kind = None if slipping or not self._model else self._arrival_flags(c, ev, t)
         if slipping:
@@ -109,10 +117,32 @@ class MicroSlipEvidence:
             c.pending_release_ns, c.pending_in_slip = t, True  # confirmed by quiet_s
             c.pending_release_spot = (p.copy(), var)
             self.counts["releases"] += 1
+            if self._model:
+                k = c.valid()
+                tl = sorted(c.t[:k].tolist())[-5:]  # [ns] the latest emissions before it
+                c.release_gap_ns = t - tl[-1]
+                c.release_iv_ns = (tl[-1] - tl[0]) / (len(tl) - 1) if len(tl) > 1 else 0.0
         elif c.pending_release_ns is not None:
             c.pending_release_ns, c.provisional = None, False
             self.counts["releases_cancelled"] += 1
         return EVID | SLIP_EMISSION
+
+    @staticmethod
+    def _released_held(c, t):
+        """Is contact ``c`` a held, loaded contact (INCIPIENT_SLIP, not moving) whose
+        touch's release (a rarefaction on its compression founder's spot) is pending and
+        whose activity stopped round it: the silences before the release and after it up
+        to ``t`` [ns] together longer than `model.LIFT_INTERVALS` of its latest intervals
+        (as a slide's lift; a gross slip's emissions go on at its rate)?"""
+        return (
+            c.state == ContactState.INCIPIENT_SLIP
+            and not c.moving
+            and c.pending_release_ns is not None
+            and c.pending_release_spot is not None
+            and c.founder[2] > 0
+            and c.release_gap_ns + (t - c.pending_release_ns)
+            > LIFT_INTERVALS * c.release_iv_ns
+        )
 
     def _held_emission(self, c, ev, p, var, t):
         """The flags of an emission of a sticking contact: the founding touch's release

@@ -22,8 +22,10 @@ are lifted or released. Each emission gets the reading that explains it:
   silence): the evidence of SLIP_PRECURSOR and the gross-slip test (`evidence`, `gross`);
 * **lift** -- a sliding contact silent for `lift_quiet_s` (a few of its own intervals) is
   lifted: it reads NO_CONTACT; an emission on its disc before it ends (``quiet_s``) shows
-  the slide went on, one after (within ``evidence_window_s``) that the object re-stuck and
-  is being loaded (it founds a held contact, not an arriving one).
+  the slide went on; one soon after (within twice the lift quiet) founds a contact that is
+  either the slide going on (emissions over the disc) or the object re-stuck and loaded
+  (micro-slips on one ring): the slide decision reads which, as for an arriving object;
+  one later (within ``evidence_window_s``) founds a held contact.
 
 The constants below are the model's physical parameters (SI units)."""
 
@@ -160,6 +162,7 @@ class ContactModel:
             return  # not decided yet
         if fitted and int(free.sum()) <= 4 and ring <= RING_SPREAD_SLIDE:
             return  # a 4-point fit: wait for the 5th emission
+        c.resumed = False  # decided: a load or a slide
         if ring <= (RING_SPREAD_FIT if fitted else RING_SPREAD):
             c.arriving = False  # a held contact being loaded: its micro-slips
             self._precursor_decision(c, ev, ev.point_m, t, out)
@@ -182,7 +185,7 @@ class ContactModel:
         sig = RING_SIGMAS * math.sqrt(2.0 * float(c.var[:k][free].max()))
         fp, _, fpol = c.founder
         ann = None
-        if fpol > 0 and len(P) > 2:
+        if fpol > 0 and len(P) > 2 and not c.resumed:
             T = np.sort(c.t[:k][free])
             if T[1] - c.founder_ns > self._w_arrive:
                 # the pause after it much longer than the intervals after it: surely a
@@ -254,11 +257,14 @@ class ContactModel:
         return None
 
     def _resume(self, c, lifted, t):
-        """A contact founded on the disc of a contact that ended: not an arriving object;
-        within twice its lift quiet of a lifted slide, the slide going on (GROSS_SLIP)."""
+        """A contact founded on the disc of a contact that ended: not an arriving object.
+        Within twice its lift quiet of a lifted slide it is either the slide going on
+        (emissions over the disc) or the object re-stuck and loaded (micro-slips on the
+        stick front's ring): the slide decision reads which (`_slide_decision`, a ring
+        fitted to its emissions: its first one is no touch announcing a centre)."""
         c.arriving = False
         if lifted[2] and t - lifted[0] <= 2 * lifted[2]:
-            c.state, c.since_ns, c.slid = ContactState.GROSS_SLIP, t, True
+            c.arriving, c.resumed = True, True
 
 
 def lift_bound(rate_hz, quiet_s, intervals):
