@@ -6,6 +6,8 @@ decides SLIP_PRECURSOR; the gross-slip and texture tests follow."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ae_tactile.records import ContactState, EventType, Reading
@@ -22,7 +24,7 @@ from .contact import (
     TOUCH_POINT,
     TOUCHED,
 )
-from .model import LIFT_INTERVALS
+from .model import LIFT_INTERVALS, RING_SIGMAS, RING_SPREAD_FIT
 
 
 class MicroSlipEvidence:
@@ -37,9 +39,9 @@ class MicroSlipEvidence:
         ``overlap``: it may share a trigger window) to contact ``c``: classify it, update
         the contact and its tests, and append the events they decide to ``out``."""
         slipping = c.state in SLIPPING or c.moving  # a moving contact has no fixed spots
-        if self._model and ev.polarity > 0 and self._released_held(c, t):
-            # a compression after a loaded (held) contact's release on its touch, its
-            # activity stopped round the release: the next object's touch (a re-grasp)
+        if self._model and ev.polarity > 0 and self._released_held(c, p, var, t):
+            # a compression after a loaded (held) contact's release on its touch, off its
+            # disc or its activity stopped round the release: the next object's touch
             self._end_contact(c)
             n = self._found(ev, p, var, t, overlap)
             self.last_reading = (Reading.TOUCH if n.confirmed else Reading.UNKNOWN, n.id)
@@ -128,21 +130,28 @@ class MicroSlipEvidence:
         return EVID | SLIP_EMISSION
 
     @staticmethod
-    def _released_held(c, t):
+    def _released_held(c, p, var, t):
         """Is contact ``c`` a held, loaded contact (INCIPIENT_SLIP, not moving) whose
-        touch's release (a rarefaction on its compression founder's spot) is pending and
-        whose activity stopped round it: the silences before the release and after it up
-        to ``t`` [ns] together longer than `model.LIFT_INTERVALS` of its latest intervals
-        (as a slide's lift; a gross slip's emissions go on at its rate)?"""
-        return (
+        touch's release (a rarefaction on its compression founder's spot) is pending,
+        and is a compression at ``p`` [m] (per-axis variance ``var`` [m^2]) at ``t`` [ns]
+        none of its micro-slips nor its gross slip: off its disc (beyond its radius, a
+        `model.RING_SPREAD_FIT` margin and RING_SIGMAS localization sigmas), or its
+        activity stopped round the release (the silences before the release and after it
+        up to ``t`` together longer than `model.LIFT_INTERVALS` of its latest intervals,
+        as a slide's lift; a gross slip's emissions go on at its rate)?"""
+        if not (
             c.state == ContactState.INCIPIENT_SLIP
             and not c.moving
             and c.pending_release_ns is not None
             and c.pending_release_spot is not None
             and c.founder[2] > 0
-            and c.release_gap_ns + (t - c.pending_release_ns)
-            > LIFT_INTERVALS * c.release_iv_ns
-        )
+        ):
+            return False
+        d = p - c.centre
+        r = c.radius * (1.0 + RING_SPREAD_FIT) + RING_SIGMAS * math.sqrt(2.0 * var)
+        if c.radius > 0 and float(d @ d) > r * r:
+            return True
+        return c.release_gap_ns + (t - c.pending_release_ns) > LIFT_INTERVALS * c.release_iv_ns
 
     def _held_emission(self, c, ev, p, var, t):
         """The flags of an emission of a sticking contact: the founding touch's release
