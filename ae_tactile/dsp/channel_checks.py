@@ -297,3 +297,67 @@ def packet_clipped(samples_v, sample_rate_hz: float) -> bool:
     if not NUMBA_AVAILABLE:
         x = np.ascontiguousarray(x, dtype=np.float64)
     return bool(_clip_kernel(x, run, CLIP_MIN_LSB))
+
+
+@njit(cache=True, nogil=True)
+def _checks_kernel(x, npre, nv, share, run, min_lsb):  # pragma: no cover - compiled
+    """`_identical_kernel`, then (run >= 1: the device did not flag saturation)
+    `_clip_kernel` of one packet: 1 identical, 2 clipped, 0 neither."""
+    if _identical_kernel(x, npre, nv, share):
+        return 1
+    if run >= 1 and x.shape[1] >= run and _clip_kernel(x, run, min_lsb):
+        return 2
+    return 0
+
+
+#: `packet_checks`' answers
+CHECK_PASSED, CHECK_IDENTICAL, CHECK_CLIPPED = 0, 1, 2
+
+
+def packet_checks(samples_v, onset_index, noise_rms_v, sample_rate_hz, flagged: bool) -> int:
+    """`packet_identical` and, unless the device flagged saturation, `packet_clipped` of
+    one packet in one compiled call (the pipeline's per-packet check: one pass of the
+    dispatcher instead of two).
+
+    Parameters
+    ----------
+    samples_v : numpy.ndarray
+        The window (4, M), M >= 2 [V].
+    onset_index : int
+        Its onset sample.
+    noise_rms_v : float or None
+        Per-channel noise sigma [V] when the pretrigger is too short.
+    sample_rate_hz : float
+        Its sample rate [Hz].
+    flagged : bool
+        The device's saturation flag (True: no clipping test).
+
+    Returns
+    -------
+    int
+        CHECK_IDENTICAL, CHECK_CLIPPED or CHECK_PASSED: what `packet_identical` then
+        `packet_clipped` answer.
+    """
+    if not NUMBA_AVAILABLE:
+        if packet_identical(samples_v, onset_index, noise_rms_v):
+            return CHECK_IDENTICAL
+        if not flagged and packet_clipped(samples_v, sample_rate_hz):
+            return CHECK_CLIPPED
+        return CHECK_PASSED
+    x = samples_v
+    if not (isinstance(x, np.ndarray) and x.dtype in (np.float32, np.float64)):
+        x = np.asarray(x, dtype=np.float64)
+    if x.ndim != 2 or x.shape[0] != 4 or x.shape[1] < 2:
+        raise ValueError(f"samples_v must be (4, M) with M >= 2, got shape {x.shape}")
+    on = int(onset_index)
+    if not 0 <= on < x.shape[1]:  # no onset in the window: not identical (packet_identical)
+        return CHECK_CLIPPED if not flagged and packet_clipped(x, sample_rate_hz) else CHECK_PASSED
+    nv = 0.0
+    if noise_rms_v is not None:
+        nr = float(noise_rms_v)
+        nv = nr * nr if math.isfinite(nr) and nr > 0 else 0.0
+    run = 0
+    fs = float(sample_rate_hz)
+    if not flagged and math.isfinite(fs):
+        run = max(CLIP_MIN_RUN, int(math.ceil(CLIP_MIN_RUN_S * fs)))
+    return int(_checks_kernel(x, max(on - 2, 0), nv, IDENTICAL_MAX_SHARE, run, CLIP_MIN_LSB))

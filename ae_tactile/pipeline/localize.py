@@ -19,7 +19,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ae_tactile.dsp.channel_checks import packet_clipped, packet_identical
+from ae_tactile.dsp.channel_checks import CHECK_CLIPPED, CHECK_IDENTICAL, packet_checks
 from ae_tactile.dsp.interference import common_mode_interference
 from ae_tactile.dsp.interference import warm_up as warm_interference
 from ae_tactile.geometry import FingertipGeometry
@@ -481,7 +481,8 @@ class PacketLocalizer:
         whose four channels are one signal (`packet_identical`: rejected_IDENTICAL_CHANNELS,
         never four sensors' view of an emission); a packet whose samples show a flat top at
         a rail (`packet_clipped`) without the device's flag is marked saturated
-        (``clipped_from_samples``; the localizer rejects it as SATURATED)."""
+        (``clipped_from_samples``; the localizer rejects it as SATURATED). Both tests run
+        in one compiled call (`packet_checks`)."""
         good = []
         self._clipped = set()
         for p in packets:
@@ -491,10 +492,12 @@ class PacketLocalizer:
                 counts["rejected_MALFORMED_" + why] += 1
                 continue
             nv = float(getattr(p, "noise_rms_v", 0.0) or 0.0)
-            if packet_identical(p.samples_v, int(p.onset_index), nv):
+            check = packet_checks(p.samples_v, int(p.onset_index), nv, p.sample_rate_hz,
+                                  bool(p.saturated))
+            if check == CHECK_IDENTICAL:
                 counts["rejected_IDENTICAL_CHANNELS"] += 1
                 continue
-            if not p.saturated and packet_clipped(p.samples_v, float(p.sample_rate_hz)):
+            if check == CHECK_CLIPPED:
                 counts["clipped_from_samples"] += 1
                 self._clipped.add(id(p))
             good.append(p)
