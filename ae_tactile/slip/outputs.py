@@ -24,21 +24,25 @@ class SlipOutputs:
     """
 
     def _rate(self, c, t):
-        """The contact's slip emission rate at ``t`` [ns] (1/s), cached per (t, members)."""
-        if c.rate_key == (t, c.n):
+        """The contact's slip emission rate at ``t`` [ns] (1/s), cached per members over
+        the span of time [t0, t1) [ns] in which its count stays the same (an output value
+        only: read at every timer tick, recounted when an emission joins or leaves the
+        window)."""
+        key = c.rate_key
+        if key is not None and key[0] == c.n and key[1] <= t < key[2]:
             return c.rate_val
-        c.rate_key = (t, c.n)
-        c.rate_val = self._rate_now(c, t)
+        c.rate_val, t1 = self._rate_now(c, t)
+        c.rate_key = (c.n, t, t1)
         return c.rate_val
 
     def _rate_now(self, c, t):
-        """Unpaired emissions of the contact in the latest rate_window_s / its length
-        (1/s)."""
+        """(Unpaired emissions of the contact in the latest rate_window_s / its length
+        (1/s), the time [ns] the oldest of them leaves the window)."""
         k = c.valid()
-        F = c.flags[:k]
-        return float((((F & PAIRED) == 0) & (c.t[:k] > t - self._w_rate)).sum()) / (
-            self._w_rate * 1e-9
-        )
+        m = ((c.flags[:k] & PAIRED) == 0) & (c.t[:k] > t - self._w_rate)
+        n = int(m.sum())
+        t1 = int(c.t[:k][m].min()) + self._w_rate if n else t + self._w_rate
+        return n / (self._w_rate * 1e-9), t1
 
     def _due(self, c, kind, t):
         """Is an event of ``kind`` (3 SLIP_PRECURSOR, 4 SLIP, 5 TEXTURE) of the contact due
