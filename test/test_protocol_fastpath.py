@@ -99,3 +99,26 @@ def test_a_writeable_buffer_gives_a_private_read_only_copy():
 
 def test_the_wire_layout_is_the_one_the_test_builds():
     assert _PACKET.size == PACKET_PREFIX_LEN and struct.calcsize("<IfQHHHBB") == _PACKET.size
+
+
+def test_a_decoded_frame_is_the_frame_its_constructor_gives():
+    from dataclasses import fields
+
+    from ae_tactile.protocol import FrameEncoder, StreamDecoder
+    from ae_tactile.protocol.frames import Frame
+
+    enc = FrameEncoder(boot=True)
+    body = Packet(np.ones((4, 8), np.int16), 10_000_000, 2.0**-11, first_sample_index=3)
+    wire = [enc.encode(body, 100 + k) for k in range(3)]
+    enc.skip(2)  # a gap of two frames before the last
+    wire.append(enc.encode(body, 200))
+    got = StreamDecoder().feed(b"".join(wire))
+    offsets = np.cumsum([0] + [len(w) for w in wire])[:-1]
+    for f, off in zip(got, offsets):
+        want = Frame(f.body, f.seq, f.timestamp_us, f.flags, f.device_time_us,
+                     f.dropped_before, f.restart, int(off))
+        assert all(getattr(f, a.name) == getattr(want, a.name) for a in fields(Frame))
+        assert repr(f) == repr(want) and f == want
+    assert [f.dropped_before for f in got] == [0, 0, 0, 2]
+    assert [f.device_time_us for f in got] == [100, 101, 102, 200]
+    assert [f.restart for f in got] == [False] * 4

@@ -541,4 +541,12 @@ class StreamDecoder:
             return None
         self.frames_ok += 1
         self.bytes_decoded += size
-        return Frame(body, h.seq, h.timestamp_us, h.flags, t, su.dropped, su.restart, offset)
+        # `Frame` has no checks of its own: its fields set at once, not one by one through
+        # the frozen dataclass's __init__
+        frame = object.__new__(Frame)
+        frame.__dict__.update(
+            body=body, seq=h.seq, timestamp_us=h.timestamp_us, flags=h.flags,
+            device_time_us=t, dropped_before=su.dropped, restart=su.restart,
+            stream_offset=offset,
+        )
+        return frame

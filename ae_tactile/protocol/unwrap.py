@@ -26,6 +26,10 @@ class SequenceUpdate:
     note: str | None = None
 
 
+#: the usual outcome (immutable: one instance serves every frame in order)
+_IN_ORDER = SequenceUpdate()
+
+
 class SequenceTracker:
     """Counts lost frames from a per-sender u32 sequence number.
 
@@ -75,7 +79,7 @@ class SequenceTracker:
                 )
             return SequenceUpdate(seq, restart, note)
         if expected is None or seq == expected:
-            return SequenceUpdate()
+            return _IN_ORDER
         gap = (seq - expected) % m
         if gap < m // 2:
             self.dropped_frames += gap
