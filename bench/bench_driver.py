@@ -11,11 +11,21 @@ For each rate: packets sent / published / received, drops counted by the driver,
 bytes/s, and the driver process's CPU (user + system time from /proc) per second.
 
 Run: make bench-driver   (results: bench/results/driver.json)
+
+``--in-process``: the CPU time per packet of the driver's core path in this process, no
+ROS (the reader thread's work for one packet at the rates where each read holds one frame):
+decode (`StreamDecoder.feed`, one frame a read), build (`PacketBuilder.packet`: volts,
+noise, onset, host stamp) and localize (`PacketLocalizer.process` of one packet: checks,
+compiled fit, screens, weak-release gate, learning), over the packets of two simulator
+scenes of random touches at 1,000 emissions/s; time.process_time, the best of
+AE_BENCH_REPEATS runs (results: bench/results/driver_in_process.json, with the machine's
+load).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import platform
 import subprocess
@@ -133,7 +143,84 @@ class FakeDevice(threading.Thread):
             time.sleep(0.0005)
 
 
+def _scene_stream(seed: int):
+    """(frames' bytes one per packet, counts, sample rate, v_per_count, geometry) of a
+    random-touch scene at 1,000 emissions/s (4 s)."""
+    import bench_system as bs
+
+    from ae_tactile.geometry import FingertipGeometry
+
+    counts, first, fs, vpc, body = bs.render_scene_packets(
+        "random_touches", {"duration_s": 4.0, "seed": seed, "params": {"rate_hz": 500}})
+    enc = FrameEncoder(boot=True)
+    frames = [
+        enc.encode(Packet(counts[k], int(fs), vpc, first_sample_index=int(first[k]),
+                          pre_trigger=bs.PRE), int(first[k] * 1e6 / fs) & 0xFFFFFFFF)
+        for k in range(len(counts))
+    ]
+    geo = FingertipGeometry(radius_m=body["radius_m"], element_offset_m=body["element_offset_m"],
+                            sound_speed_m_s=body["sound_speed_m_s"])
+    return frames, fs, geo
+
+
+def _stage_us(frames, fs, geo) -> dict:
+    """CPU time per packet [us] of decode, build and localize (one run)."""
+    from ae_tactile.link.config import LinkConfig
+    from ae_tactile.link.packets import PacketBuilder
+    from ae_tactile.pipeline.localize import PacketLocalizer
+    from ae_tactile.timesync import DeviceClockMapper
+
+    mapper = DeviceClockMapper()
+    mapper.update(0, 10**12)
+    builder = PacketBuilder(LinkConfig("bench"), mapper, {}, lambda records: None)
+    loc = PacketLocalizer(geometry=geo)
+    loc.warm_up(fs, N)
+    builder.packet(StreamDecoder().feed(frames[0])[0].body, 0)  # compiled front end
+    dec, n = StreamDecoder(), len(frames)
+    t0 = time.process_time()
+    got = [f for b in frames for f in dec.feed(b)]
+    t1 = time.process_time()
+    records = [builder.packet(f.body, int(f.device_time_us) * 1000) for f in got]
+    t2 = time.process_time()
+    for r in records:
+        loc.process([r])
+    t3 = time.process_time()
+    assert len(got) == n and loc.counts["packets"] == n
+    return {"decode": (t1 - t0) / n * 1e6, "build": (t2 - t1) / n * 1e6,
+            "localize": (t3 - t2) / n * 1e6}
+
+
+def in_process() -> int:
+    """``--in-process``: CPU time per packet of the core path (module docstring)."""
+    repeats = int(os.environ.get("AE_BENCH_REPEATS", "3"))
+    load0 = os.getloadavg()[0]
+    scenes = [_scene_stream(seed) for seed in (101, 102)]
+    best: dict = {}
+    for _ in range(repeats):
+        for frames, fs, geo in scenes:
+            for k, v in _stage_us(frames, fs, geo).items():
+                best[k] = min(best.get(k, math.inf), v)
+    best["total"] = best["decode"] + best["build"] + best["localize"]
+    load1 = os.getloadavg()[0]
+    for k, v in best.items():
+        print(f"{k:>9}: {v:7.1f} us/packet", flush=True)
+    out = {
+        "benchmark": "driver core path in process, CPU us per packet (best of runs)",
+        "machine": platform.platform(), "cpus": os.cpu_count(),
+        "load_average_1min_before_after": [load0, load1],
+        "packets": sum(len(s[0]) for s in scenes), "repeats": repeats,
+        "us_per_packet": {k: round(v, 2) for k, v in best.items()},
+    }
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    os.makedirs(os.path.join(root, "bench", "results"), exist_ok=True)
+    with open(os.path.join(root, "bench", "results", "driver_in_process.json"), "w") as fh:
+        json.dump(out, fh, indent=2)
+    return 0
+
+
 def main() -> int:
+    if "--in-process" in sys.argv[1:]:
+        return in_process()
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
