@@ -31,7 +31,6 @@ from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization.common import adc_noise, make_plan, validate_windows
 from ae_tactile.localization.estimators import localize
 from ae_tactile.localization.overlap.decide import _chi2_limit
-from ae_tactile.localization.overlap.loss import _learnt, _loss_of, _lossy, _with_loss
 from ae_tactile.localization.overlap.model import _lm, _Model
 from ae_tactile.localization.overlap.pulse import PulseModel, _given, shift_channels
 from ae_tactile.localization.overlap.search import _segments
@@ -224,8 +223,6 @@ class _Problem:
         self.tau_d = tn[:, None, :] - t_arr[:, 0, :, None]  # (K, 4, L)
         self.tau_e = tn[:, None, :] - t_arr[:, 1, :, None]
         gain = model.R / d[:, 0, 0]  # (K, 4)
-        #: [m] direct and echo path lengths (K, 4): the loss of each arrival's path
-        self.path_d, self.path_e = d[:, 0, 0], d[:, 0, 1]
         a = amp.reshape(K, 2)
         self.w_d = (a[:, 0:1] * gain)[..., None] * weight[:, None, None]  # (K, 4, 1)
         self.w_e = (a[:, 1:2] * np.ones((1, 4)))[..., None] * weight[:, None, None]
@@ -235,14 +232,9 @@ class _Problem:
         self.mask = mask.reshape(K, 4, L)
         self.y = y.reshape(K, 4, L) * weight[:, None, None] * self.mask
 
-    def design(self, poles, loss: PulseModel | None = None):
-        """Design matrix (rows: samples, columns: the real basis of the poles) and its
-        kinds; ``loss``: a PulseModel whose power-law loss filters each path's basis."""
+    def design(self, poles):
         bd, kinds = _basis(poles, self.tau_d, self.fs)
         be, _ = _basis(poles, self.tau_e, self.fs)
-        if loss is not None and loss.attenuation_db_per_m_at_1mhz > 0:
-            bd = _lossy(bd, self.path_d, self.fs, loss)
-            be = _lossy(be, self.path_e, self.fs, loss)
         a = (self.w_d[..., None] * bd + self.w_e[..., None] * be) * self.mask[..., None]
         return a.reshape(-1, poles.size), kinds
 
@@ -253,10 +245,9 @@ class _Problem:
         return np.where(np.isfinite(r), r, 1e6)
 
     def solve(self, v):
-        """(residual vector, poles, complex residues) at the parameters v (the pole log
-        parameters, then the medium's loss: `_with_loss`)."""
-        poles = _poles_of(v[:-2])
-        a, kinds = self.design(poles, _loss_of(v))
+        """(residual vector, poles, complex residues) at the log parameters v."""
+        poles = _poles_of(v)
+        a, kinds = self.design(poles)
         null = _constraint_null(poles, kinds)
         an = a @ null
         # normal equations, Jacobi-scaled, with a relative ridge (columns of very
@@ -421,7 +412,6 @@ def _fit(init, fs, geo, echo, data, n, min_packets, min_inlier_share, lowpass_se
     v = min(short, key=lambda f: f.cost).x
     v = least_squares(modes.residual, v, method="trf", bounds=bounds, diff_step=1e-4,
                       max_nfev=POLE_FIT_NFEV).x
-    v, bounds = _with_loss(v, bounds, init)
     amp = np.stack([a0, np.zeros(n)], axis=1)
     pulse, ratio, limit = init, np.full(n, np.inf), np.ones(n)
     for _ in range(3):  # shared residues at these poles <-> the packets' refit
@@ -448,7 +438,7 @@ def _fit(init, fs, geo, echo, data, n, min_packets, min_inlier_share, lowpass_se
                               diff_step=1e-4, max_nfev=POLE_FIT_NFEV).x
         _, poles, res = prob.solve(v_new)
         try:
-            cand = _learnt(poles, res, v_new)
+            cand = PulseModel.from_poles(poles, res)
         except ValueError:
             break
         model = _Model(geo, plan.fs, start, length, cand, echo, inside)
@@ -525,7 +515,7 @@ def _shared(geo, fs, start, length, echo, inside, y, theta, amp, weight, v):
     model = _Model(geo, fs, start, length, PulseModel(), echo, inside)
     _, poles, res = _Problem(model, y, theta, amp, weight).solve(v)
     try:
-        pulse = _learnt(poles, res, v)
+        pulse = PulseModel.from_poles(poles, res)
     except ValueError:
         return None
     return pulse, _Model(geo, fs, start, length, pulse, echo, inside)
