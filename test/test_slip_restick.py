@@ -9,9 +9,10 @@ grasp's ring). Expectations from the scenes' truth: no SLIP before q = 0.9."""
 import math
 
 import numpy as np
+from test_slip_model import run_model
 
 from ae_tactile.records import ContactState, EventType
-from ae_tactile.slip import LocalizedEvent, SlipDetector
+from ae_tactile.slip import LocalizedEvent
 
 R = 0.01  # [m] fingertip radius of the hand-built events
 MS = 1_000_000  # [ns]
@@ -25,22 +26,7 @@ def ev(t_ns, x, y, pol, pid=0):
 
 def run(events, end_ns, tick_ns=10 * MS):
     """(outputs, [(t_ns, state)]) of a default detector fed ``events`` with a timer."""
-    det = SlipDetector(contact_events=True)
-    outs, trace, t_prev = [], [], None
-    for e in sorted(events, key=lambda e: e.time_ns):
-        if t_prev is not None:
-            for tt in range(t_prev + tick_ns, e.time_ns, tick_ns):
-                det.advance(tt)
-                outs += det.pop_events()
-                trace.append((tt, det.state.state))
-        outs += det.process(e)
-        trace.append((e.time_ns, det.state.state))
-        t_prev = e.time_ns
-    for tt in range(t_prev + tick_ns, end_ns, tick_ns):
-        det.advance(tt)
-        outs += det.pop_events()
-        trace.append((tt, det.state.state))
-    return outs, trace
+    return run_model(events, end_ns, model=True, tick_ns=tick_ns)
 
 
 def disc(rng, cx, cy, a, n):
