@@ -180,8 +180,9 @@ DRIVER_PARAMS = [
         "calibration_dir",
         "",
         "Where what the pipeline learns about each device (its pulse, its interference "
-        "model, its echo) is kept, one file per serial number; empty: "
-        "$ROS_HOME/ae_tactile/calibration (~/.ros/...); 'none': not kept",
+        "model, its echo) is kept, one file per serial number and body (radius, element "
+        "offset, sound speed); empty: $ROS_HOME/ae_tactile/calibration (~/.ros/...); "
+        "'none': not kept",
     ),
     Param(
         "calibration_reset",
