@@ -93,7 +93,7 @@ def test_a_rejected_emission_reads_unknown():
 # ------------------------------------------------------------------ the fingertip model
 # Hand-built scenes with their truth (what each emission is, when the state changes); the
 # detector reads them with ``model=True``. Each test also states what the per-emission
-# rules (the default) did wrong on the same scene.
+# rules (`model=False`) did wrong on the same scene.
 
 
 def run_model(events, end_ns, model=True, tick_ns=10 * MS):
