@@ -23,9 +23,11 @@ after their instant: the port did not take them, the device fell behind). The tw
 rclpy floor (bench_system.floor_ms) is measured in the same run, before and after, and the
 machine's load average before and after.
 
-Cases: N = 1, 3, 5 fingertips x 200, 1,000, 5,000 emissions/s each; drivers unpinned, and
+Cases: N = 1, 3, 5 fingertips x 200, 1,000, 5,000 emissions/s each; drivers unpinned,
 each pinned to a core of its own where cores allow (N <= CPUs; with N < CPUs the writers
-and this process keep the other CPUs). The knee: per N and placement the highest rate
+and this process keep the other CPUs), and all N in one unpinned `hand_driver` process
+(`hand.launch.py one_process:=true`; its CPU and memory are split evenly over the N
+fingertips in the table). The knee: per N and placement the highest rate
 tried without backlog (the device falls behind, the latency grows over the run, or
 packets are not processed by the end).
 
@@ -35,7 +37,7 @@ up; the estimate is printed first):
     tools/run.sh python bench/bench_hand.py --quick --fingers 1,3 --rates 200 --out /tmp/h
 Options: --quick (short runs, N = 1, 3 at 200 and 1,000/s), --fingers 1,3,5,
 --rates 200,1000,5000, --duration-s S (every case; default by rate), --placement
-unpinned|pinned|both, --out DIR.
+unpinned|pinned|one_process|both (unpinned and pinned)|all (default), --out DIR.
 """
 
 from __future__ import annotations
@@ -236,14 +238,17 @@ class HandLaunch:
     """`ros2 launch ae_tactile hand.launch.py` in its own process group, output in a file,
     a marker in the environment of every process it starts."""
 
-    def __init__(self, fingers, ports, params_file, cpus, log_path):
+    def __init__(self, fingers, ports, params_file, cpus, log_path, one_process=False):
         self.marker = uuid.uuid4().hex
+        self.one_process = one_process
         self.log_path = log_path
         args = [f"fingers:={','.join(fingers)}", "use_sim:=false", f"ports:={','.join(ports)}",
                 f"namespace:={HAND_NS}", f"params_file:={params_file}",
                 "wait_for_subscribers:=1"]
         if cpus:
             args.append(f"driver_cpus:={' '.join(str(c) for c in cpus)}")
+        if one_process:
+            args.append("one_process:=true")
         self.cmd = ["ros2", "launch", "ae_tactile", "hand.launch.py", *args]
         env = dict(os.environ, AE_BENCH_HAND_MARKER=self.marker, PYTHONUNBUFFERED="1")
         self._log = open(log_path, "w")
@@ -253,6 +258,8 @@ class HandLaunch:
 
     def driver_pid(self, finger: str) -> int | None:
         for pid, cmd in marked_processes(self.marker):
+            if self.one_process and "lib/ae_tactile/hand_driver " in cmd:
+                return pid  # every finger's
             if "lib/ae_tactile/driver " in cmd and f"__ns:=/{HAND_NS}/{finger} " in cmd + " ":
                 return pid
         return None
@@ -511,18 +518,20 @@ def _play(listener, launch, devices, duration_s) -> dict:
     return watch
 
 
-def run_case(n: int, rate_hz: float, pinned: bool, duration_s: float, log_dir: str) -> dict:
-    """N fingertips at rate_hz emissions/s each through the hand launch; per-finger facts."""
+def run_case(n: int, rate_hz: float, mode: str, duration_s: float, log_dir: str) -> dict:
+    """N fingertips at rate_hz emissions/s each through the hand launch, the drivers placed
+    by ``mode`` (unpinned, pinned, one_process); per-finger facts."""
     from ae_tactile.ros.cpus import pin_process
 
     fingers = [FINGER_NAMES[k] if k < len(FINGER_NAMES) else f"finger{k}" for k in range(n)]
+    pinned, one = mode == "pinned", mode == "one_process"
     driver_cpus, harness = placement(n, pinned)
     pin_process(harness)  # this process, its threads and what it starts (writers, launch)
     t_case = time.monotonic()
     tmp = tempfile.mkdtemp(prefix="ae_bench_hand_")
     devices = []
     listener = launch = None
-    result = {"fingertips": n, "rate_hz": rate_hz, "pinned": pinned,
+    result = {"fingertips": n, "rate_hz": rate_hz, "pinned": pinned, "one_process": one,
               "driver_cpus": driver_cpus, "harness_cpus": sorted(harness),
               "duration_s": duration_s}
     try:
@@ -532,8 +541,8 @@ def run_case(n: int, rate_hz: float, pinned: bool, duration_s: float, log_dir: s
             devices.append(Device(tmp, f, counts, first, fs, vpc))
         listener = HandListener(fingers)
         launch = HandLaunch(fingers, [d.port for d in devices], params_file(tmp, body),
-                            driver_cpus, os.path.join(log_dir, f"hand_{n}x{rate_hz:g}"
-                                                      f"{'_pinned' if pinned else ''}.log"))
+                            driver_cpus, os.path.join(log_dir, f"hand_{n}x{rate_hz:g}_{mode}.log"),
+                            one_process=one)
         watch = _play(listener, launch, devices, duration_s)
         # the drivers' last diagnostics (period 1 s) hold every packet's count
         written = {d.name: d.result()[0]["written"] for d in devices}
@@ -565,6 +574,11 @@ def run_case(n: int, rate_hz: float, pinned: bool, duration_s: float, log_dir: s
                 "worker_memory": watch["worker_memory"].get(d.name, {}),
                 "diagnostics": listener.diag[d.name],
             }
+            if one:  # one process for the N: its share per fingertip
+                finger["process"] = {k: finger[k] for k in (
+                    "driver_cpu_percent", "worker_cpu_percent", "driver_memory",
+                    "worker_memory")}
+                finger.update(_shared(finger, n))
             finger["backlog"] = backlog(finger)
             result["fingers"][d.name] = finger
             t_first = min(t_first, t0)
@@ -582,6 +596,24 @@ def run_case(n: int, rate_hz: float, pinned: bool, duration_s: float, log_dir: s
     result["backlog"] = any(f["backlog"] for f in result["fingers"].values())
     result["wall_s"] = time.monotonic() - t_case
     return result
+
+
+def _shared(finger: dict, n: int) -> dict:
+    """CPU and memory of the one process (and its workers) split evenly over n fingertips."""
+    def part(v):
+        return None if v is None else v / n
+
+    mem = {k: part(v) if k in ("rss_mb", "pss_mb", "peak_rss_mb") else v
+           for k, v in finger["driver_memory"].items()}
+    wmem = {k: part(v) if k in ("rss_mb", "pss_mb") else v
+            for k, v in finger["worker_memory"].items()}
+    return {"driver_cpu_percent": part(finger["driver_cpu_percent"]),
+            "worker_cpu_percent": part(finger["worker_cpu_percent"]),
+            "driver_memory": mem, "worker_memory": wmem}
+
+
+def _mode(c: dict) -> str:
+    return "one_process" if c.get("one_process") else "pinned" if c["pinned"] else "unpinned"
 
 
 # ---------------------------------------------------------------------------- report
@@ -607,7 +639,8 @@ def case_row(c: dict) -> str:
     dev = [f["device"] for f in fs]
     mem = [f["driver_memory"] for f in fs]
     acc = [f["packets"] for f in fs]
-    where = (f"pinned (CPU {', '.join(map(str, c['driver_cpus']))})" if c["pinned"]
+    where = ("one process, unpinned" if c.get("one_process") else
+             f"pinned (CPU {', '.join(map(str, c['driver_cpus']))})" if c["pinned"]
              else "unpinned")
     lost = sum(a["unaccounted"] for a in acc)
     return (
@@ -638,23 +671,25 @@ def targets(res: dict) -> list[str]:
     """Issue 40's targets against this run's cases (where they were run)."""
     out = []
 
-    def case(n, rate, pinned=False):
+    def case(n, rate, mode="unpinned"):
         return next((c for c in res["cases"] if c["fingertips"] == n
-                     and c["rate_hz"] == rate and c["pinned"] == pinned), None)
+                     and c["rate_hz"] == rate and _mode(c) == mode), None)
 
-    for n, rate in ((3, 1000), (5, 200)):
-        c = case(n, rate)
+    for n, rate, mode in ((3, 1000, "unpinned"), (3, 1000, "one_process"),
+                          (5, 200, "unpinned"), (5, 200, "one_process")):
+        c = case(n, rate, mode)
         if c is None:
             continue
         p99 = [f["latency"]["reflex"].get("p99_ms", np.inf) for f in c["fingers"].values()]
         pre = [f["latency"]["slip_precursor"].get("p99_ms") for f in c["fingers"].values()]
         pre = [p for p in pre if p is not None]
-        out.append(f"{n} x {rate:,}/s unpinned: reflex events p99 <= 2 ms per finger: "
+        out.append(f"{n} x {rate:,}/s {mode.replace('_', ' ')}: reflex events p99 <= 2 ms "
+                   "per finger: "
                    f"{'met' if max(p99) <= 2.0 else 'NOT met'} (worst {max(p99):.2f} ms); "
                    "SLIP_PRECURSOR p99 <= 3 ms: "
                    + (f"{'met' if max(pre) <= 3.0 else 'NOT met'} (worst {max(pre):.2f} ms)"
                       if pre else "no precursor in these scenes"))
-    c = case(1, 5000, True) or case(1, 5000)
+    c = case(1, 5000, "pinned") or case(1, 5000)
     if c is not None:
         f = next(iter(c["fingers"].values()))
         out.append(f"1 x 5,000/s: the device never falls behind: "
@@ -692,7 +727,8 @@ def markdown(res: dict) -> str:
         "never written: **behind**). Packets: each written one decoded or counted as lost, "
         "each decoded one localized or rejected by a counted reason (the drivers' "
         "/diagnostics). Each driver starts a worker process of its own (the overlap "
-        "resolver's): its CPU and memory in parentheses.",
+        "resolver's): its CPU and memory in parentheses. One process: the hand_driver's "
+        "CPU and memory (and its workers') divided by the fingertips.",
         "",
         "| fingertips x emissions/s each | drivers | packets written "
         "| reflex events median / p99 / max (ms) (events) | TOUCH p99 (ms) (events) "
@@ -706,14 +742,14 @@ def markdown(res: dict) -> str:
     lines += [case_row(c) for c in res["cases"]]
     lines += ["", "Knee (highest rate tried without backlog):", ""]
     for k in res["knee"]:
-        lines.append(f"- {k['fingertips']} fingertip(s), {'pinned' if k['pinned'] else 'unpinned'}"
+        lines.append(f"- {k['fingertips']} fingertip(s), {k['mode'].replace('_', ' ')}"
                      + (f": {k['sustained_hz']:,.0f}/s" if k["sustained_hz"]
                         else ": none of the rates tried")
                      + (f" (backlog at {k['backlog_from_hz']:,.0f}/s)" if k["backlog_from_hz"]
                         else " (the highest rate tried)"))
     for f in res.get("failed_cases", []):
-        lines.append(f"- FAILED: {f['fingertips']} x {f['rate_hz']:,.0f}/s"
-                     f"{' pinned' if f['pinned'] else ''}: {f['error'].splitlines()[0]}")
+        lines.append(f"- FAILED: {f['fingertips']} x {f['rate_hz']:,.0f}/s "
+                     f"{f['mode']}: {f['error'].splitlines()[0]}")
     t = targets(res)
     if t:
         lines += ["", "Issue 40's targets:", ""] + [f"- {x}" for x in t]
@@ -722,30 +758,34 @@ def markdown(res: dict) -> str:
 
 def knees(cases: list) -> list:
     out = []
-    for n, pinned in sorted({(c["fingertips"], c["pinned"]) for c in cases}):
+    for n, mode in sorted({(c["fingertips"], _mode(c)) for c in cases}):
         sustained, backlog_from = 0.0, None
-        for c in sorted((c for c in cases if c["fingertips"] == n and c["pinned"] == pinned),
+        for c in sorted((c for c in cases if c["fingertips"] == n and _mode(c) == mode),
                         key=lambda c: c["rate_hz"]):
             if c["backlog"]:
                 backlog_from = c["rate_hz"]
                 break
             sustained = c["rate_hz"]
-        out.append({"fingertips": n, "pinned": pinned, "sustained_hz": sustained,
+        out.append({"fingertips": n, "mode": mode, "sustained_hz": sustained,
                     "backlog_from_hz": backlog_from})
     return out
 
 
+PLACEMENTS = {"unpinned": ("unpinned",), "pinned": ("pinned",),
+              "one_process": ("one_process",), "both": ("unpinned", "pinned"),
+              "all": ("unpinned", "pinned", "one_process")}
+
+
 def plan(fingers, rates, placement_mode, duration_s, quick) -> list:
-    """(N, rate, pinned, duration) of every case, in order; pinned only where N <= CPUs."""
+    """(N, rate, mode, duration) of every case, in order; pinned only where N <= CPUs, one
+    process only for N > 1."""
     cases = []
     for n in fingers:
-        for pinned in (False, True):
-            if (pinned and placement_mode == "unpinned") or \
-                    (not pinned and placement_mode == "pinned") or \
-                    (pinned and n > len(ALL_CPUS)):
+        for mode in PLACEMENTS[placement_mode]:
+            if (mode == "pinned" and n > len(ALL_CPUS)) or (mode == "one_process" and n < 2):
                 continue
             for rate in rates:
-                cases.append((n, float(rate), pinned,
+                cases.append((n, float(rate), mode,
                               duration_s or default_duration_s(rate, quick)))
     return cases
 
@@ -764,7 +804,7 @@ def main(argv=None) -> int:
     ap.add_argument("--fingers", help="fingertip counts, e.g. 1,3,5")
     ap.add_argument("--rates", help="emissions/s per fingertip, e.g. 200,1000,5000")
     ap.add_argument("--duration-s", type=float, help="each device's schedule (s)")
-    ap.add_argument("--placement", choices=("both", "unpinned", "pinned"), default="both")
+    ap.add_argument("--placement", choices=tuple(PLACEMENTS), default="all")
     ap.add_argument("--out", default=bs.RESULTS, help="directory of hand.json, hand_table.md")
     a = ap.parse_args(argv)
     fingers = [int(x) for x in a.fingers.split(",")] if a.fingers else \
@@ -792,13 +832,13 @@ def main(argv=None) -> int:
     res["floor_two_hop_ms"] = bs.floor_ms()
     print("floor:", res["floor_two_hop_ms"], flush=True)
     res["cases"], res["failed_cases"] = [], []
-    for n, rate, pinned, dur in cases:
+    for n, rate, mode, dur in cases:
         try:
-            c = run_case(n, rate, pinned, dur, log_dir)
+            c = run_case(n, rate, mode, dur, log_dir)
         except Exception as exc:  # noqa: BLE001 - one case's failure is recorded, not fatal
-            res["failed_cases"].append({"fingertips": n, "rate_hz": rate, "pinned": pinned,
+            res["failed_cases"].append({"fingertips": n, "rate_hz": rate, "mode": mode,
                                         "error": f"{type(exc).__name__}: {exc}"[-3000:]})
-            print(f"case {n} x {rate:g}/s{' pinned' if pinned else ''} FAILED: {exc}",
+            print(f"case {n} x {rate:g}/s {mode} FAILED: {exc}",
                   flush=True)
             continue
         res["cases"].append(c)

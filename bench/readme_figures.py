@@ -347,8 +347,13 @@ def slip_rows(d) -> list[str]:
     return rows
 
 
-#: the hand cases of issue 40's targets shown in the README (fingertips, rate, pinned)
-HAND_ROWS = {(1, 1000.0, True), (1, 5000.0, True), (3, 1000.0, False), (5, 200.0, False)}
+#: the hand cases of issue 40's targets shown in the README (fingertips, rate, placement)
+HAND_ROWS = {(1, 1000.0, "pinned"), (1, 5000.0, "pinned"), (3, 1000.0, "unpinned"),
+             (3, 1000.0, "one_process"), (5, 200.0, "unpinned"), (5, 200.0, "one_process")}
+
+
+def _hand_mode(c) -> str:
+    return "one_process" if c.get("one_process") else "pinned" if c["pinned"] else "unpinned"
 
 
 def hand_rows(d) -> list[str]:
@@ -358,7 +363,7 @@ def hand_rows(d) -> list[str]:
     rows = []
     tag = " (a QUICK run: short schedules)" if d.get("quick") else ""
     for c in d["cases"]:
-        if not d.get("quick") and (c["fingertips"], c["rate_hz"], c["pinned"]) not in HAND_ROWS:
+        if not d.get("quick") and (c["fingertips"], c["rate_hz"], _hand_mode(c)) not in HAND_ROWS:
             continue
         fingers = list((c.get("fingers") or {}).values())
         lat = [f["latency"]["reflex"] for f in fingers if f["latency"]["reflex"].get("events")]
@@ -370,7 +375,7 @@ def hand_rows(d) -> list[str]:
         behind = any(f["device"].get("fell_behind") for f in fingers)
         rows.append(
             f"| a hand: {c['fingertips']} fingertip(s) x {c['rate_hz']:g} emissions/s"
-            f" ({'pinned' if c['pinned'] else 'unpinned'}){tag}: reflex events (TOUCH,"
+            f" ({_hand_mode(c).replace('_', ' ')}){tag}: reflex events (TOUCH,"
             f" SLIP_PRECURSOR, SLIP, TEXTURE), worst finger, median / p99 | {_lat(worst)}"
             f" (max {worst['max_ms']:.1f} ms); {pss:.0f} MB PSS per fingertip (driver + overlap"
             f" worker){'; a device fell behind' if behind else ''} | bench_hand,"

@@ -14,10 +14,17 @@ Per-finger arguments are comma-separated lists in the order of ``fingers``
 is checked before anything starts: a list of the wrong length, a repeated finger or a
 bad name stops the launch with a message naming it. As in ae_tactile.launch.py, every
 process is required: when one exits, the whole hand stops.
+
+With one_process:=true every finger's driver runs in one `hand_driver` process (the
+simulated fingertips stay processes of their own): see ae_tactile.ros.hand_driver.
 """
+import atexit
 import importlib.util
 import os
+import shutil
+import tempfile
 
+import yaml
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import (
@@ -28,6 +35,7 @@ from launch.actions import (
 )
 from launch.launch_description_sources import PythonLaunchDescriptionSource
 from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
 
 PACKAGE = "ae_tactile"
 FINGER_LAUNCH = "ae_tactile.launch.py"
@@ -68,6 +76,9 @@ def arguments():
          "subscribers are matched on its `contacts` (0: at once)"),
         ("hand_topic", "", "Topic the fingertips share to drop electrical interference they "
          "all see at once (absolute, e.g. /hand/apex_packets; empty: the parameter file's)"),
+        ("one_process", "false", "Run every finger's driver in one process (hand_driver): "
+         "the libraries' memory once for the hand, but the fingers share one core's worth "
+         "of Python (true/false/1/0; driver_cpus not with it)"),
     ]
 
 
@@ -123,6 +134,13 @@ def _setup(context):
                     f"port per finger ({n}: {', '.join(fingers)})")
     scenes = _per_finger(arg("scenes"), "scenes", n, error, one_for_all=True)
     cpus = _per_finger(arg("driver_cpus"), "driver_cpus", n, error, sep=None)
+    if finger_launch.flag(arg("one_process"), "one_process"):
+        if any(cpus):
+            raise error("launch argument 'driver_cpus' cannot be given with one_process:=true "
+                        "(one process for every finger; pin it with taskset or the "
+                        "parameter file's cpu_affinity)")
+        namespaces = [f"{hand_ns}/{f}" if hand_ns else f for f in fingers]
+        return _one_process(finger_launch, fingers, namespaces, use_sim, ports, scenes, arg)
     source = PythonLaunchDescriptionSource(_finger_launch_path())
     actions = []
     for k, finger in enumerate(fingers):
@@ -142,4 +160,42 @@ def _setup(context):
         # scoped: one finger's arguments do not leak into the next include
         actions.append(GroupAction([IncludeLaunchDescription(
             source, launch_arguments=args.items())], scoped=True))
+    return actions
+
+
+def _one_process(finger_launch, fingers, namespaces, use_sim, ports, scenes, arg):
+    """A simulated fingertip per finger (with use_sim) and one hand_driver process whose
+    DriverNodes get their port and frame from a section per node of a parameter file."""
+    params_file = finger_launch._existing_file(arg("params_file"), "params_file")
+    wait = finger_launch._count(arg("wait_for_subscribers"), "wait_for_subscribers")
+    hand_topic = finger_launch._hand_topic(arg("hand_topic"), False)
+    run_dir = tempfile.mkdtemp(prefix="ae_tactile_hand_")
+    atexit.register(shutil.rmtree, run_dir, True)
+    actions, sections = [], {}
+    for k, (finger, ns) in enumerate(zip(fingers, namespaces)):
+        frame = f"{finger}_tip"
+        port = ports[k]
+        if use_sim:
+            port = os.path.join(run_dir, f"{finger}_port")
+            sim_params = os.path.join(run_dir, f"{finger}_sim.yaml")
+            with open(sim_params, "w", encoding="utf-8") as fh:
+                yaml.safe_dump({"/**": {"ros__parameters": {
+                    "scene": finger_launch._scene_path(scenes[k]), "link_path": port,
+                    "frame_id": frame}}}, fh)
+            actions.append(Node(
+                package=PACKAGE, executable="sim_fingertip", namespace=ns, output="screen",
+                parameters=[params_file, sim_params],
+                on_exit=finger_launch._required(f"sim_fingertip ({finger})")))
+        sections[f"/{ns}/driver"] = {"ros__parameters": {
+            "port": port, "frame_id": frame, "pipeline": True,
+            "wait_for_subscribers": wait, "reliable_qos": False,
+            **({"hand_coincidence_topic": hand_topic} if hand_topic else {})}}
+    drivers = os.path.join(run_dir, "drivers.yaml")
+    with open(drivers, "w", encoding="utf-8") as fh:
+        yaml.safe_dump(sections, fh)
+    # no namespace here: it would remap every node of the process; each DriverNode has its own
+    actions.append(Node(
+        package=PACKAGE, executable="hand_driver", output="screen",
+        arguments=["--fingers", ",".join("/" + ns for ns in namespaces)],
+        parameters=[params_file, drivers], on_exit=finger_launch._required("hand_driver")))
     return actions

@@ -31,6 +31,7 @@ import threading
 from contextlib import ExitStack, contextmanager
 
 import rclpy
+import rclpy.logging
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
@@ -42,7 +43,14 @@ from ae_tactile.ros.cpus import (  # noqa: F401  (public here too)
     hand_topic_problem,
     pin_process,
 )
-from ae_tactile.ros.params import Param, ParameterError
+from ae_tactile.ros.node_help import (  # noqa: F401  (public here too)
+    format_usage,
+    module_params,
+    print_help,
+    split_ros_args,
+    wants_help,
+)
+from ae_tactile.ros.params import ParameterError
 
 #: Latched topics (sensor_info, contact_state, sim/port): reliable, transient local, depth 1.
 LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
@@ -288,9 +296,24 @@ def spin_until_stopped(executor, stop: threading.Event) -> None:
         executor.spin_once(timeout_sec=STOP_POLL_S)
 
 
-def run_node(node_factory, args=None, executor_factory=SingleThreadedExecutor) -> int:
+class _ProcessLog:
+    """Stands in for a node in `forward_python_logging`: an rclpy logger of its own."""
+
+    def __init__(self, name: str):
+        self._logger = rclpy.logging.get_logger(name)
+
+    def get_logger(self):
+        return self._logger
+
+
+def run_node(node_factory, args=None, executor_factory=SingleThreadedExecutor,
+             many: bool = False) -> int:
     """Create one node, spin it until SIGINT/SIGTERM/shutdown and destroy it while the
     context is still valid. Returns the exit code: 0, or 2 on a parameter error.
+
+    With ``many``, ``node_factory(nodes)`` appends each node it makes to the list
+    ``nodes`` as soon as it exists (so that those made before a failing one are destroyed
+    too) and they spin in one executor.
 
     A signal during the node's construction (which may JIT-compile for a while) aborts
     the construction; during spinning it ends the loop within STOP_POLL_S. ``-h`` or
@@ -306,16 +329,29 @@ def run_node(node_factory, args=None, executor_factory=SingleThreadedExecutor) -
         ).removesuffix(".py")
         print_help(module, executable)
         return 0
-    node = None
-    with ros_session(args, interrupt=True) as state, forward_python_logging(lambda: node):
+    nodes: list = []
+
+    def log_to():
+        """The node whose logger gets the core's records; with several, the process's
+        own logger (named after the executable): no one node speaks for the others."""
+        if not nodes:
+            return None
+        return _ProcessLog(os.path.basename(sys.argv[0]) or "ae_tactile") if many else nodes[0]
+
+    with ros_session(args, interrupt=True) as state, forward_python_logging(log_to):
         try:
-            node = node_factory()
+            if many:
+                node_factory(nodes)
+            else:
+                nodes.append(node_factory())
             state["interrupt"] = False
-            if not getattr(node, "_ae_tactile_names_checked", False):
-                shared_params.warn_unknown_parameters(node)  # a misspelt -p is not silent
+            for node in nodes:
+                if not getattr(node, "_ae_tactile_names_checked", False):
+                    shared_params.warn_unknown_parameters(node)  # a misspelt -p is not silent
             if not state["stop"].is_set():
                 executor = executor_factory()
-                executor.add_node(node)
+                for node in nodes:
+                    executor.add_node(node)
                 try:
                     spin_until_stopped(executor, state["stop"])
                 finally:
@@ -328,7 +364,7 @@ def run_node(node_factory, args=None, executor_factory=SingleThreadedExecutor) -
         finally:
             state["interrupt"] = False
             state["arm_cleanup_deadline"]()
-            if node is not None:
+            for node in reversed(nodes):
                 node.destroy_node()
     return state["exit"]
 
@@ -422,92 +458,7 @@ def forward_python_logging(get_node, logger_name: str = "ae_tactile", level=logg
         listener.stop()  # hands over what is still queued
 
 
-# ------------------------------------------------------------------ --help
-def _ros_type(value) -> str:
-    if isinstance(value, bool):
-        return "bool"
-    if isinstance(value, int):
-        return "int"
-    if isinstance(value, float):
-        return "double"
-    if isinstance(value, str):
-        return "string"
-    if isinstance(value, (list, tuple)):
-        inner = _ros_type(value[0]) if value else "double"
-        return f"{inner}[]"
-    return type(value).__name__
-
-
-def _fmt_default(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, float):
-        return f"{value:g}"
-    if isinstance(value, str):
-        return repr(value)
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_fmt_default(v) for v in value) + "]"
-    return str(value)
-
-
-def format_usage(executable: str, doc: str, params) -> str:
-    """Usage text of a node executable: synopsis, description, one entry per parameter;
-    ``params`` is a list of (full name, Param)."""
-    lines = [f"usage: ros2 run ae_tactile {executable} [-h] "
-             "[--ros-args [-p NAME:=VALUE ...] [--params-file FILE] [-r __ns:=/NS]]", ""]
-    if doc:
-        lines += [doc.strip(), ""]
-    lines.append("parameters (-p NAME:=VALUE, or a --params-file section for this node):")
-    for name, p in params:
-        rng = ""
-        if p.choices:
-            rng = "; one of " + ", ".join(map(str, p.choices))
-        elif p.lo is not None and p.hi is not None and not isinstance(p.default, bool):
-            rng = f"; {_fmt_default(p.lo)} .. {_fmt_default(p.hi)}"
-        kind = _ros_type(p.default)
-        lines.append(f"  {name} ({kind}, default {_fmt_default(p.default)}{rng})")
-        lines.append(f"      {p.description}")
-    return "\n".join(lines)
-
-
-def _resolve(module, source):
-    """A parameter table: a list of Param, an attribute name of ``module``, or
-    'package.module:attr'; a callable is called. None when it does not exist."""
-    if isinstance(source, str):
-        mod_name, _, attr = source.rpartition(":")
-        try:
-            owner = importlib.import_module(mod_name) if mod_name else module
-        except ImportError:
-            return None
-        source = getattr(owner, attr, None)
-    if callable(source):
-        source = source()
-    if isinstance(source, (list, tuple)) and all(isinstance(p, Param) for p in source):
-        return list(source)
-    return None
-
-
-def module_params(module, tables=None) -> tuple[list, list[str]]:
-    """([(full name, Param)], [tables not found]) of a node module.
-
-    ``tables``: (prefix, source) pairs (see `_resolve`); default: the module's
-    ``NODE_PARAMETERS`` if it has one, else its own module-level ``*_PARAMS`` lists."""
-    if tables is None:
-        tables = getattr(module, "NODE_PARAMETERS", None)
-    if tables is None:
-        tables = [("", name) for name, value in vars(module).items()
-                  if name.endswith("_PARAMS") and _resolve(module, value) is not None
-                  and value is not getattr(shared_params, name, None)]
-    out, missing = [], []
-    for prefix, source in tables:
-        table = _resolve(module, source)
-        if table is None:
-            missing.append(source if isinstance(source, str) else repr(source))
-            continue
-        out.extend((prefix + p.name, p) for p in table)
-    return out, missing
-
-
+# ------------------------------------------------------------------ entry points
 #: `kill -USR1 <pid>` makes a node print every thread's Python stack on stderr (its launch
 #: log) and go on: where a node hangs, even while one thread holds the GIL for good.
 STACKS_SIGNAL = signal.SIGUSR1
@@ -521,47 +472,6 @@ def print_stacks_on_signal(signum: int = STACKS_SIGNAL) -> bool:
         return True
     except (AttributeError, OSError, ValueError, RuntimeError):
         return False
-
-
-def split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
-    """(arguments before --ros-args, --ros-args and what follows)."""
-    if "--ros-args" in argv:
-        i = argv.index("--ros-args")
-        return argv[:i], argv[i:]
-    return argv, []
-
-
-def wants_help(own_args: list[str]) -> bool:
-    """``-h`` or ``--help`` among the arguments before ``--ros-args``."""
-    return any(a in ("-h", "--help") for a in own_args)
-
-
-def print_help(module, executable: str, tables=None) -> None:
-    """Print the usage of the node ``module`` (`format_usage`) with every parameter of
-    ``tables`` (see `module_params`), falling back to the module's own tables.
-
-    Parameters
-    ----------
-    module : module
-        The node's module (its docstring is the description).
-    executable : str
-        Name shown in the synopsis.
-    tables : list or None
-        (prefix, source) pairs of the node's parameters.
-
-    Returns
-    -------
-    None
-    """
-    doc = (module.__doc__ or "").strip()
-    params, missing = module_params(module, tables)
-    if missing:        # the help must work even when a table was renamed
-        fallback, _ = module_params(module)
-        known = {name for name, _ in params}
-        params += [(name, p) for name, p in fallback if name not in known]
-    print(format_usage(executable, doc, params), flush=True)
-    if missing:
-        print(f"\n(parameter tables not found: {', '.join(missing)})", flush=True)
 
 
 def node_main(module_name: str, tables=None, argv=None) -> int:
