@@ -34,9 +34,10 @@ from ros_helpers import cpus_allowed
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 PARENT_LAUNCH = os.path.join(HERE, "launch", "two_fingers.launch.py")
-EXECUTABLES = ["bringup", "driver", "grip_reflex", "localizer", "replay_bag", "sim_fingertip",
-               "slip_detector"]
-NODE_EXECUTABLES = ["driver", "grip_reflex", "localizer", "sim_fingertip", "slip_detector"]
+EXECUTABLES = ["bringup", "driver", "grip_reflex", "hand_driver", "localizer", "replay_bag",
+               "sim_fingertip", "slip_detector"]
+NODE_EXECUTABLES = ["driver", "grip_reflex", "hand_driver", "localizer", "sim_fingertip",
+                    "slip_detector"]
 START_TIMEOUT_S = 180.0     # start-up on a loaded 2-core machine (imports, JIT, discovery)
 SIGTERM_AFTER_S = 60        # launch's SIGINT -> SIGTERM escalation in these tests
 STOP_TIMEOUT_S = 120.0      # > SIGTERM_AFTER_S + launch's 5 s to SIGKILL

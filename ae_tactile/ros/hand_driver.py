@@ -88,15 +88,16 @@ def main(argv: list[str] | None = None) -> int:
               "each fingertip's driver, e.g. /hand/index,/hand/thumb")
         return 0
     parser = argparse.ArgumentParser(prog=EXECUTABLE, add_help=False)
-    parser.add_argument("--fingers", required=True)
+    parser.add_argument("--fingers")
     try:
         opts, rest = parser.parse_known_args(own)
         if rest:
             raise ValueError(f"unrecognized arguments: {' '.join(rest)}")
+        if opts.fingers is None:
+            raise ValueError("needs --fingers NS[,NS...]")
         fingers = namespaces(opts.fingers)
-    except (ValueError, SystemExit) as exc:
-        print(f"{EXECUTABLE}: {exc if isinstance(exc, ValueError) else 'needs --fingers'} "
-              "(see --help)", file=sys.stderr)
+    except ValueError as exc:
+        print(f"{EXECUTABLE}: {exc} (see --help)", file=sys.stderr)
         return 2
     sys.setswitchinterval(0.0005)  # a reader thread gets the GIL back quickly
     return run_node(lambda nodes: make_drivers(fingers, nodes), [sys.argv[0], *ros],
