@@ -322,6 +322,57 @@ def emission_record_of_msg(msg) -> EmissionRecord:
     )
 
 
+class ContactStateWire:
+    """FingerState and ContactSnapshots -> the serialized ContactState message (CDR,
+    little endian), as `ContactEventWire` does for ContactEvent: what rclpy would send for
+    `contact_state_msg`. Layout (XCDR1, each field aligned to its size counted from the
+    byte after the encapsulation):
+
+        int32 sec, uint32 nanosec, string frame_id, uint8 state, <pad to 4>, int32 sec,
+        uint32 nanosec (state_since), <pad to 8>, float64 x3 contact_point,
+        slip_emission_rate_hz, uint32 precursor_count, contact_id, uint32 n, then per
+        contact: uint32 id, <pad to 8>, float64 x3 position, uint8 state, <pad to 4>,
+        int32 sec, uint32 nanosec, <pad to 8>, float64 rate, uint32 precursor_count.
+
+    A test checks it against ``rclpy.serialization.serialize_message``.
+    """
+
+    def __init__(self, frame_id: str):
+        self._frame_id = frame_id.encode("utf-8") + b"\0"
+        self._structs: dict[int, struct.Struct] = {}
+
+    def _struct(self, n: int) -> struct.Struct:
+        st = self._structs.get(n)
+        if st is None:
+            fields = ["i", "I", "I", f"{len(self._frame_id)}s", "B", "i", "I", "3d", "d",
+                      "I", "I", "I"] + ["I", "3d", "B", "i", "I", "d", "I"] * n
+            fmt, off = "<4s", 0
+            for f in fields:
+                size = struct.calcsize("<" + f)
+                align = 1 if f.endswith("s") else min(struct.calcsize("<" + f[-1]), 8)
+                pad = -off % align
+                fmt += f"{pad}x{f}" if pad else f
+                off += pad + size
+            st = self._structs[n] = struct.Struct(fmt)
+        return st
+
+    def encode(self, st, now_ns: int, contacts=()) -> bytes:
+        """The serialized message of ``st`` (a FingerState) and ``contacts``
+        (ContactSnapshots), stamped as `contact_state_msg` stamps it."""
+        stamp = int(st.time_ns) if st.time_ns > 0 else int(now_ns)
+        x, y, z = (float(v) for v in st.contact_point_m)
+        values = [ContactEventWire.ENCAPSULATION, *divmod(stamp, NS_PER_S),
+                  len(self._frame_id), self._frame_id, int(st.state),
+                  *divmod(max(int(st.since_ns), 0), NS_PER_S), x, y, z,
+                  float(st.slip_emission_rate_hz), int(st.precursor_count),
+                  max(int(st.contact_id), 0), len(contacts)]
+        for c in contacts:
+            values += [int(c.contact_id), *(float(v) for v in c.point_m), int(c.state),
+                       *divmod(max(int(c.since_ns), 0), NS_PER_S),
+                       float(c.slip_emission_rate_hz), int(c.precursor_count)]
+        return self._struct(len(contacts)).pack(*values)
+
+
 def contact_msg(c) -> Contact:
     """Contact message of a core `ae_tactile.records.ContactSnapshot`."""
     msg = Contact()

@@ -74,9 +74,9 @@ from ae_tactile.pipeline import ContactPipeline, SlipStage
 from ae_tactile.pipeline.device_calibration import DeviceCalibration
 from ae_tactile.ros.conversions import (
     ContactEventWire,
+    ContactStateWire,
     EmissionWire,
     contact_event_msg,
-    contact_state_msg,
     emission_msg,
     ns_to_time_msg,
     packet_array_msgs,
@@ -249,6 +249,7 @@ class DriverNode(Node):
         self._marker_inbox: deque = deque(maxlen=64)  # ContactRecords not drawn yet
         self._wire = ContactEventWire(self.frame_id)
         self._emission_wire = EmissionWire(self.frame_id)
+        self._state_wire = ContactStateWire(self.frame_id)
         # a DETOUCH decided by the timer's tick (a release confirmed) goes out there too
         self.pipeline.set_outputs(None, self._publish_slip, on_contacts=self._publish_contacts,
                                   on_emissions=self._publish_emissions)
@@ -367,8 +368,7 @@ class DriverNode(Node):
         ):
             return
         self._state_key, self._state_pub_ns = key, now
-        self.pub_state.publish(
-            contact_state_msg(st, self.frame_id, now, self.slip_stage.contacts))
+        self.pub_state.publish(self._state_wire.encode(st, now, self.slip_stage.contacts))
 
     def _tick(self) -> None:
         if self.pipeline is not None:
