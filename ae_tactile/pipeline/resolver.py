@@ -7,6 +7,7 @@ windows reach it. `OverlapResolver._count_lock` guards its counts (a leaf).
 
 from __future__ import annotations
 
+import contextlib
 import pickle
 import queue
 import subprocess
@@ -20,6 +21,7 @@ import numpy as np
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import overlap, overlap_worker
 from ae_tactile.localization.overlap import OverlapReason, PulseLearner
+from ae_tactile.pipeline import worker_share
 from ae_tactile.pipeline.config import LATE_CHECK_POLL_S, OVERLAP_MAX_PENDING
 from ae_tactile.records import source_record
 
@@ -76,6 +78,8 @@ class OverlapResolver:
         self._count_lock = threading.Lock()
         self._queue: queue.Queue = queue.Queue(maxsize=int(max_pending))
         self.ready = threading.Event()  # the worker has warmed up (or is not used)
+        #: the process's one worker, where fingertips share a process (`worker_share`)
+        self._shared = None
         self._proc = self._start_worker() if use_process else None
         if not use_process:
             self._count("overlap_worker_unavailable")
@@ -83,6 +87,11 @@ class OverlapResolver:
         self._thread.start()
 
     def _start_worker(self):
+        if worker_share.enabled():
+            self._shared = worker_share.acquire(self.idle)
+            if self._shared.proc is None:
+                self._count("overlap_worker_unavailable")
+            return self._shared.proc
         try:
             # its own session: a Ctrl-C at the terminal (sent to the foreground process
             # group) reaches the node, which ends the worker by closing its stdin, and
@@ -221,14 +230,25 @@ class OverlapResolver:
                 if res.reason != OverlapReason.DEFERRED:
                     return
                 quick_first = False
-        proc = self._proc
-        if proc is not None:
+        if self._proc is not None and (
+                yield from self._from_worker(samples, fs, onset, sat, pulse, quick_first)):
+            return
+        for exhaustive in (False, True) if quick_first else (True,):
+            res = self._resolve(samples, fs, onset, sat, pulse, exhaustive)
+            yield res
+            if res.reason != OverlapReason.DEFERRED:
+                return
+
+    def _from_worker(self, samples, fs, onset, sat, pulse, quick_first):
+        """The worker process's answers to one window (yielded as `_answers` does); returns
+        True when it gave the last one, False when it could not answer (then here)."""
+        proc, shared = self._proc, self._shared
+        # a shared worker: this window's request and its answers together (the lock stays
+        # held across the yield of a DEFERRED quick answer)
+        with shared.io_lock if shared is not None else contextlib.nullcontext():
             try:
-                pickle.dump(
-                    (samples, fs, onset, sat, self.geometry, pulse, quick_first),
-                    proc.stdin,
-                    protocol=pickle.HIGHEST_PROTOCOL,
-                )
+                pickle.dump((samples, fs, onset, sat, self.geometry, pulse, quick_first),
+                            proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
                 proc.stdin.flush()
                 res = pickle.load(proc.stdout)
                 if isinstance(res, str):
@@ -241,16 +261,13 @@ class OverlapResolver:
                         raise RuntimeError(res)
                     self._count("overlap_worker_answers")
             except (OSError, EOFError, pickle.UnpicklingError):
+                if shared is not None:
+                    shared.broken()
                 self._count("overlap_worker_unavailable")
                 self._stop_worker()
-            else:
-                yield res
-                return
-        for exhaustive in (False, True) if quick_first else (True,):
-            res = self._resolve(samples, fs, onset, sat, pulse, exhaustive)
-            yield res
-            if res.reason != OverlapReason.DEFERRED:
-                return
+                return False
+        yield res
+        return True
 
     def _done(self, p) -> None:
         if self.on_done is not None:
@@ -264,7 +281,10 @@ class OverlapResolver:
             self.priority = overlap_worker.background_priority(idle=True)
         if self._proc is not None:
             try:
-                if pickle.load(self._proc.stdout) != "ready":
+                if self._shared is not None:
+                    if not self._shared.wait_ready():
+                        raise EOFError("the shared worker did not start")
+                elif pickle.load(self._proc.stdout) != "ready":
                     raise pickle.UnpicklingError("no ready message")
             except (OSError, EOFError, pickle.UnpicklingError):
                 self._count("overlap_worker_unavailable")
@@ -305,6 +325,10 @@ class OverlapResolver:
 
     def _stop_worker(self) -> None:
         proc, self._proc = self._proc, None
+        shared, self._shared = self._shared, None
+        if shared is not None:
+            worker_share.release(shared)
+            return
         if proc is None:
             return
         try:

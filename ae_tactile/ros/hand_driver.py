@@ -10,7 +10,8 @@ port, the frame). Topics, services and diagnostics are those of the one-process-
 layout, so a hand's other nodes cannot tell the difference.
 
 What one process saves and costs: the interpreter, numpy, numba's compiled kernels and
-rclpy are loaded once, not once per fingertip (memory), and one executor serves every
+rclpy are loaded once, not once per fingertip (memory), the overlap resolvers share one
+worker process (`ae_tactile.pipeline.worker_share`), and one executor serves every
 fingertip's timers. The fingertips share one interpreter lock, so their reader threads
 take turns: the process uses one core for the Python work of all of them. It suits a hand
 whose summed emission rate one core keeps up with; faster fingertips want a process
@@ -22,6 +23,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from ae_tactile.pipeline import worker_share
 from ae_tactile.ros.driver_node import DriverNode
 from ae_tactile.ros.node_help import print_help, split_ros_args, wants_help
 from ae_tactile.ros.node_utils import events_executor, run_node
@@ -100,5 +102,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{EXECUTABLE}: {exc} (see --help)", file=sys.stderr)
         return 2
     sys.setswitchinterval(0.0005)  # a reader thread gets the GIL back quickly
+    worker_share.enable()  # one overlap worker process for all the fingertips
     return run_node(lambda nodes: make_drivers(fingers, nodes), [sys.argv[0], *ros],
                     executor_factory=events_executor, many=True)
