@@ -99,6 +99,10 @@ class Contact:
         self.release_gap_ns = 0  # [ns] silence before its pending release (`model`)
         self.release_iv_ns = 0.0  # [ns] mean of its latest intervals before it
         self.provisional = False  # its pending release is off its touches (`model`)
+        # sums and counts of ln |amplitude / V| of its touches and of its micro-slips
+        # (`model.touch_llr`: a new object's touch against its next micro-slip)
+        self.touch_ln = [0.0, 0]
+        self.micro_ln = [0.0, 0]
 
     @property
     def centre(self):

@@ -168,6 +168,10 @@ class SlipDetector(
         self._ended_activity = []
         #: (end time ns, centre (3,)) of contacts lifted or released off their touches
         self._lifted = []
+        #: decayed sums of ln |amplitude / V| of the finger's touches (micro-slips) and
+        #: their weight (`ContactModel._note_amplitude`; the device's gain: kept over a reset)
+        self._touch_scale = [0.0, 0.0]
+        self._micro_scale = [0.0, 0.0]
 
     def _apply(self, c: SlipConfig):
         """Take configuration ``c``: its windows in integer ns, squared gates [m^2] and the

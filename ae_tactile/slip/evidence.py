@@ -24,7 +24,7 @@ from .contact import (
     TOUCH_POINT,
     TOUCHED,
 )
-from .model import LIFT_INTERVALS, RING_SIGMAS, RING_SPREAD_FIT
+from .model import LIFT_INTERVALS, RING_SIGMAS, RING_SPREAD_FIT, amp_ln
 
 
 class MicroSlipEvidence:
@@ -39,9 +39,14 @@ class MicroSlipEvidence:
         ``overlap``: it may share a trigger window) to contact ``c``: classify it, update
         the contact and its tests, and append the events they decide to ``out``."""
         slipping = c.state in SLIPPING or c.moving  # a moving contact has no fixed spots
-        if self._model and ev.polarity > 0 and self._released_held(c, p, var, t):
+        x = amp_ln(ev) if self._model else None
+        if self._model and ev.polarity > 0 and (
+            self._released_held(c, p, var, t) or self._louder_than_micro_slip(c, x)
+        ):
             # a compression after a loaded (held) contact's release on its touch, off its
-            # disc or its activity stopped round the release: the next object's touch
+            # disc or its activity stopped round the release, or after any release of a
+            # held contact and as loud as a touch: the next object's touch
+            c.pending_in_slip = False  # released: no re-stuck object to resume
             self._end_contact(c)
             n = self._found(ev, p, var, t, overlap)
             self.last_reading = (Reading.TOUCH if n.confirmed else Reading.UNKNOWN, n.id)
@@ -64,6 +69,11 @@ class MicroSlipEvidence:
             if self._model and kind & EVID and self._provisional_release(c, ev, t):
                 flags |= REPEAT
         c.add(t, p, var, ev.polarity, ev.packet_id, flags)
+        if ev.polarity > 0 and flags & (ARRIVAL | FOUNDER):
+            self._note_amplitude(c, x, True)
+        elif flags & EVID and not flags & REPEAT and c.state != ContactState.GROSS_SLIP:
+            # a micro-slip of a held contact (a provisional release left out)
+            self._note_amplitude(c, x, False)
         if not c.confirmed:
             c.confirmed = True
             self._contact_event(EventType.TOUCH, c, c.founder_ns, c.founder[0])
@@ -128,6 +138,17 @@ class MicroSlipEvidence:
             c.pending_release_ns, c.provisional = None, False
             self.counts["releases_cancelled"] += 1
         return EVID | SLIP_EMISSION
+
+    def _louder_than_micro_slip(self, c, x):
+        """Is a compression of ln-amplitude ``x`` on contact ``c``, whose release is
+        pending (held or loaded, not sliding), more likely a new object's touch than the
+        contact's next micro-slip (`model.touch_llr` > 0)?"""
+        return (
+            c.pending_release_ns is not None
+            and c.state != ContactState.GROSS_SLIP
+            and not c.moving
+            and self._touch_llr(c, x) > 0.0
+        )
 
     @staticmethod
     def _released_held(c, p, var, t):

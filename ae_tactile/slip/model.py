@@ -79,6 +79,41 @@ LIFT_INTERVALS = 5.0
 #: [s] ... but at least this long and at most this long (the NO_CONTACT target is 0.2 s
 #: after a lift; a 20 Hz Poisson slide has a gap of 0.15 s in 5 % of its intervals)
 LIFT_QUIET_MIN_S, LIFT_QUIET_MAX_S = 0.05, 0.15
+#: [ln units] spread of the strength of one kind of emission (object, speed, depth)
+AMP_SPREAD_LN = 0.5
+#: [ln units] touches louder than micro-slips by less than this (1 %) are alike (below an
+#: amplitude's own error)
+AMP_RESOLUTION_LN = 0.01
+#: weight of the finger's earlier touches (micro-slips) at each new one: its scales
+#: remember ~10 of each
+SCALE_DECAY = 0.9
+
+
+def amp_ln(ev):
+    """ln |amplitude_v / 1 V| of an emission, or None when it carries none."""
+    a = abs(ev.amplitude_v)
+    return math.log(a) if a > 0.0 and math.isfinite(a) else None
+
+
+def touch_llr(x, mu_touch, mu_micro):
+    """Log-likelihood ratio of an emission of ln-amplitude ``x`` being a new object's touch
+    (drawn round ``mu_touch``, the ln-amplitude of the finger's touches) against being the
+    next micro-slip of a held contact (round ``mu_micro``, its micro-slips'); Gaussian in
+    ln amplitude with AMP_SPREAD_LN for either (0 when one is unknown, None).
+
+    A source's strength is rho v^2 / a_c (the paper's eq. 11), v the speed at which the
+    surface moves: a touch moves at the object's approach speed, a micro-slip at the local
+    slip speed of an annulus element of a contact already formed. How the two compare is
+    learnt, not assumed: the finger's touches and micro-slips give the scales (equal
+    scales give no evidence). The sensor sits at the centre of the spherical tip, every
+    surface point at the same distance R from it, and the device's gain is common to
+    both, so the two scales compare without any absolute amplitude."""
+    if x is None or mu_touch is None or mu_micro is None:
+        return 0.0
+    d = mu_touch - mu_micro
+    if d < AMP_RESOLUTION_LN:
+        return 0.0  # touches not the louder (e.g. micro-slips read as touches): no evidence
+    return d * (x - 0.5 * (mu_touch + mu_micro)) / (2.0 * AMP_SPREAD_LN**2)
 
 
 class ContactModel:
@@ -99,6 +134,30 @@ class ContactModel:
         self._rel_wait = int(round(RELEASE_WAIT_S * 1e9))
         #: [ns] no lift is possible sooner (`_lift_quiet_ns` >= it): skips its work
         self._lift_min = int(LIFT_QUIET_MIN_S * 1e9)
+
+    def _note_amplitude(self, c, x, touch):
+        """An emission of ln-amplitude ``x`` (or None) of contact ``c``, a touch or a
+        micro-slip (``touch`` False): the contact's scale and the finger's (a decayed mean
+        over its recent ones, the device's gain in it)."""
+        if x is None:
+            return
+        own, fin = (c.touch_ln, self._touch_scale) if touch else (c.micro_ln, self._micro_scale)
+        own[0] += x
+        own[1] += 1
+        fin[0] = SCALE_DECAY * fin[0] + x
+        fin[1] = SCALE_DECAY * fin[1] + 1.0
+
+    def _touch_llr(self, c, x):
+        """`touch_llr` of a compression (ln-amplitude ``x``) on held contact ``c``: touches
+        round the contact's own (the finger's when it had none), micro-slips round its own
+        micro-slips when two or more came (else the finger's, once two came)."""
+        st, nt = c.touch_ln
+        ft = self._touch_scale
+        mu_t = st / nt if nt else (ft[0] / ft[1] if ft[1] >= 1.0 else None)
+        sm, nm = c.micro_ln
+        fm = self._micro_scale
+        mu_m = sm / nm if nm >= 2 else (fm[0] / fm[1] if fm[1] >= 2.0 else None)
+        return touch_llr(x, mu_t, mu_m)
 
     def _arrival_flags(self, c, ev, t):
         """Flags of an emission of a held (not slipping) contact that the arrival or the

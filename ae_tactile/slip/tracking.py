@@ -23,6 +23,7 @@ from .contact import (
     Contact,
 )
 from .fits import circle_centre, drift_fit, percentile90
+from .model import amp_ln
 
 
 class ContactTracking:
@@ -194,6 +195,8 @@ class ContactTracking:
         c.add(t, p, var, ev.polarity, ev.packet_id, FOUNDER | (OVERLAP if overlap else 0))
         c.founder = (p.copy(), var, int(ev.polarity))
         c.founder_ns, c.founder_n = t, 0
+        if ev.polarity > 0 and self._model:
+            self._note_amplitude(c, amp_ln(ev), True)
         c.centre = p.copy()
         c.arriving = self._model  # (the per-emission rules know no arrival)
         lifted = self._near_lifted(p, t) if self._model else None
