@@ -38,6 +38,10 @@ def test_the_likelihood_ratio_is_the_gaussian_one_in_ln_amplitude():
     assert touch_llr(None, mu_t, mu_m) == 0.0
     assert touch_llr(mu_t, None, mu_m) == 0.0 and touch_llr(mu_t, mu_t, None) == 0.0
     assert touch_llr(mu_t + 1.0, mu_t, mu_t) == 0.0
+    # touches louder by less than SCALE_SIGMAS standard errors of the two means: none
+    se = AMP_SPREAD_LN * math.sqrt(1.0 / 3 + 1.0 / 2)
+    assert touch_llr(mu_t, mu_t, mu_t - 1.9 * se, 3, 2) == 0.0
+    assert touch_llr(mu_t, mu_t, mu_t - 2.1 * se, 3, 2) > 0.0
     assert touch_llr(mu_m - 3.0, mu_m, mu_t) == 0.0
 
 

@@ -81,9 +81,9 @@ LIFT_INTERVALS = 5.0
 LIFT_QUIET_MIN_S, LIFT_QUIET_MAX_S = 0.05, 0.15
 #: [ln units] spread of the strength of one kind of emission (object, speed, depth)
 AMP_SPREAD_LN = 0.5
-#: [ln units] touches louder than micro-slips by less than this (1 %) are alike (below an
-#: amplitude's own error)
-AMP_RESOLUTION_LN = 0.01
+#: standard errors by which the finger's touches must be the louder (their mean ln
+#: amplitude above its micro-slips') before amplitude tells one from the other
+SCALE_SIGMAS = 2.0
 #: weight of the finger's earlier touches (micro-slips) at each new one: its scales
 #: remember ~10 of each
 SCALE_DECAY = 0.9
@@ -95,24 +95,25 @@ def amp_ln(ev):
     return math.log(a) if a > 0.0 and math.isfinite(a) else None
 
 
-def touch_llr(x, mu_touch, mu_micro):
+def touch_llr(x, mu_touch, mu_micro, n_touch=math.inf, n_micro=math.inf):
     """Log-likelihood ratio of an emission of ln-amplitude ``x`` being a new object's touch
-    (drawn round ``mu_touch``, the ln-amplitude of the finger's touches) against being the
-    next micro-slip of a held contact (round ``mu_micro``, its micro-slips'); Gaussian in
-    ln amplitude with AMP_SPREAD_LN for either (0 when one is unknown, None).
+    (drawn round ``mu_touch``, the mean ln-amplitude of ``n_touch`` touches of the finger)
+    against being the next micro-slip of a held contact (round ``mu_micro``, of
+    ``n_micro`` micro-slips); Gaussian in ln amplitude with AMP_SPREAD_LN for either.
+    0 (no evidence) when one is unknown (None) or the touches are not the louder by
+    SCALE_SIGMAS standard errors of the two means (scales alike, or not yet told apart).
 
     A source's strength is rho v^2 / a_c (the paper's eq. 11), v the speed at which the
     surface moves: a touch moves at the object's approach speed, a micro-slip at the local
     slip speed of an annulus element of a contact already formed. How the two compare is
-    learnt, not assumed: the finger's touches and micro-slips give the scales (equal
-    scales give no evidence). The sensor sits at the centre of the spherical tip, every
-    surface point at the same distance R from it, and the device's gain is common to
-    both, so the two scales compare without any absolute amplitude."""
+    learnt, not assumed. The sensor sits at the centre of the spherical tip, every surface
+    point at the same distance R from it, and the device's gain is common to both, so the
+    two scales compare without any absolute amplitude."""
     if x is None or mu_touch is None or mu_micro is None:
         return 0.0
     d = mu_touch - mu_micro
-    if d < AMP_RESOLUTION_LN:
-        return 0.0  # touches not the louder (e.g. micro-slips read as touches): no evidence
+    if d <= SCALE_SIGMAS * AMP_SPREAD_LN * math.sqrt(1.0 / n_touch + 1.0 / n_micro):
+        return 0.0
     return d * (x - 0.5 * (mu_touch + mu_micro)) / (2.0 * AMP_SPREAD_LN**2)
 
 
@@ -148,16 +149,22 @@ class ContactModel:
         fin[1] = SCALE_DECAY * fin[1] + 1.0
 
     def _touch_llr(self, c, x):
-        """`touch_llr` of a compression (ln-amplitude ``x``) on held contact ``c``: touches
-        round the contact's own (the finger's when it had none), micro-slips round its own
-        micro-slips when two or more came (else the finger's, once two came)."""
+        """`touch_llr` of a compression (ln-amplitude ``x``) on held contact ``c``: a new
+        object's touch round the finger's touches (the contact's own before the finger
+        has one), its micro-slip round its own micro-slips when two or more came, else
+        round the finger's once it has two."""
+        ft, fm = self._touch_scale, self._micro_scale
         st, nt = c.touch_ln
-        ft = self._touch_scale
-        mu_t = st / nt if nt else (ft[0] / ft[1] if ft[1] >= 1.0 else None)
+        if ft[1] >= 1.0:
+            mu_t, n_t = ft[0] / ft[1], ft[1]
+        else:
+            mu_t, n_t = (st / nt, nt) if nt else (None, 1)
         sm, nm = c.micro_ln
-        fm = self._micro_scale
-        mu_m = sm / nm if nm >= 2 else (fm[0] / fm[1] if fm[1] >= 2.0 else None)
-        return touch_llr(x, mu_t, mu_m)
+        if nm >= 2:
+            mu_m, n_m = sm / nm, nm
+        else:
+            mu_m, n_m = (fm[0] / fm[1], fm[1]) if fm[1] >= 2.0 else (None, 1)
+        return touch_llr(x, mu_t, mu_m, n_t, n_m)
 
     def _arrival_flags(self, c, ev, t):
         """Flags of an emission of a held (not slipping) contact that the arrival or the
