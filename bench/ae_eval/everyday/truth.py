@@ -31,6 +31,10 @@ KINDS = ("touch", "release", "micro_slip", "slip", "texture")
 #: relative first-lobe amplitude of each kind (median; lognormal spread `AMP_SPREAD`)
 KIND_AMP = {"touch": 1.0, "release": 0.5, "micro_slip": 0.2, "slip": 0.3, "texture": 0.3}
 AMP_SPREAD = 0.5  # [ln units] sd of the amplitude of one kind (object, speed, depth)
+#: held-out scenes: a micro-slip's median amplitude relative to a touch's, drawn per scene
+#: log-uniform in this range (nominal: KIND_AMP's 0.2): slip speed against approach speed
+#: differs by object and material, so a reading that relies on the ratio is tested on others
+HELD_OUT_MICRO_RATIO = (0.1, 1.0)
 GEOMETRY = FingertipGeometry()
 
 
@@ -108,10 +112,17 @@ class SceneBuilder:
     contacts: list = field(default_factory=list)
     changes: list = field(default_factory=list)
     episodes: list = field(default_factory=list)
+    micro_ratio: float = KIND_AMP["micro_slip"]
+
+    def __post_init__(self):
+        if self.held_out:  # own stream: the scene's other draws stay as they were
+            self.micro_ratio = draw(np.random.default_rng([49001, int(self.seed)]),
+                                    *HELD_OUT_MICRO_RATIO, log=True)
 
     def emit(self, t_s, x, y, pol, kind, cid):
         """One emission at t_s [s], (x, y) [m], polarity +-1, kind (a name of KINDS)."""
-        amp = KIND_AMP[kind] * math.exp(self.rng.normal(0.0, AMP_SPREAD))
+        median = self.micro_ratio if kind == "micro_slip" else KIND_AMP[kind]
+        amp = median * math.exp(self.rng.normal(0.0, AMP_SPREAD))
         self.rows.append((float(t_s), float(x), float(y), int(pol), amp, KINDS.index(kind),
                           int(cid)))
 
