@@ -329,14 +329,7 @@ class OverlapResolver:
         if shared is not None:
             worker_share.release(shared)
             return
-        if proc is None:
-            return
-        try:
-            proc.stdin.close()  # EOF: the worker exits
-            proc.wait(2.0)
-        except (OSError, subprocess.TimeoutExpired):
-            proc.kill()
-            proc.wait()
+        worker_share.end_worker(proc)
 
     def close(self) -> None:
         """Stop the thread and the worker process (pending windows are given up)."""

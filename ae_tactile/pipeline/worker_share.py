@@ -72,14 +72,19 @@ class SharedWorker:
 
     def close(self) -> None:
         proc, self.proc = self.proc, None
-        if proc is None:
-            return
-        try:
-            proc.stdin.close()  # EOF: the worker exits
-            proc.wait(2.0)
-        except (OSError, subprocess.TimeoutExpired):
-            proc.kill()
-            proc.wait()
+        end_worker(proc)
+
+
+def end_worker(proc) -> None:
+    """End a worker process (None: nothing): EOF on its stdin, killed if it lingers."""
+    if proc is None:
+        return
+    try:
+        proc.stdin.close()  # EOF: the worker exits
+        proc.wait(2.0)
+    except (OSError, subprocess.TimeoutExpired):
+        proc.kill()
+        proc.wait()
 
 
 def acquire(idle: bool) -> SharedWorker:
