@@ -17,7 +17,8 @@ schedule is done (or on SIGINT/SIGTERM) it saves LOG.npz: written_ns (K,) int64 
 time (time.time_ns, CLOCK_REALTIME, the clock rclpy stamps with) at which packet k's last
 byte was written (-1 if not written), and start_ns, the host time of START (so the
 schedule's own lag, a backed-up port, shows too). Latency is measured from there:
-device bytes -> event.
+device bytes -> event. After SIGINT it stops writing, saves the log and keeps the port
+open (the driver still reads what the port holds) until SIGTERM; SIGTERM alone ends it.
 """
 
 from __future__ import annotations
@@ -44,6 +45,8 @@ from ae_tactile.protocol import (
     StreamDecoder,
 )
 from ae_tactile.protocol.frames import Opcode
+
+LINGER_AFTER_STOP_S = 300.0  # [s] the port kept open after SIGINT at most
 
 
 def main(argv) -> int:
@@ -79,7 +82,7 @@ def main(argv) -> int:
     enc = FrameEncoder(boot=True)
     dec = StreamDecoder(direction=Direction.HOST_TO_DEVICE)
     t_boot = time.monotonic_ns()
-    state = {"acquiring": False, "t0": 0, "t0_wall": 0, "stop": False}
+    state = {"acquiring": False, "t0": 0, "t0_wall": 0, "stop": False, "leave": False}
 
     def now_us() -> int:
         return ((time.monotonic_ns() - t_boot) // 1000) & 0xFFFFFFFF
@@ -107,11 +110,14 @@ def main(argv) -> int:
             now_us(),
         )
 
-    def on_signal(*_):
+    def on_stop(*_):  # SIGINT: stop writing; the port stays open until SIGTERM
         state["stop"] = True
 
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    def on_leave(*_):  # SIGTERM: stop writing and close the port now
+        state["stop"] = state["leave"] = True
+
+    signal.signal(signal.SIGINT, on_stop)
+    signal.signal(signal.SIGTERM, on_leave)
     # the frame bodies are built (validated) before START: at run time only the header
     # (sequence number, time stamp) and the CRCs are computed
     bodies = [
@@ -159,9 +165,11 @@ def main(argv) -> int:
         wait = due_s[k] - (time.monotonic_ns() - state["t0"]) * 1e-9
         time.sleep(min(max(wait - 50e-6, 0.0), 0.002))
     np.savez(log_path, written_ns=log, start_ns=np.int64(state["t0_wall"]))
-    # keep the pty open a moment so the driver reads everything before the hang-up
-    t_end = time.monotonic() + 1.0
-    while time.monotonic() < t_end and not state["stop"]:
+    # keep the pty open so the driver reads everything before the hang-up (closing the
+    # master discards what the driver has not read): 1 s after a finished schedule; after
+    # a stop (SIGINT) until SIGTERM, as a driver that fell behind may need longer
+    t_end = time.monotonic() + (LINGER_AFTER_STOP_S if state["stop"] else 1.0)
+    while time.monotonic() < t_end and not state["leave"]:
         try:
             os.read(master, 4096)
         except (BlockingIOError, OSError):
