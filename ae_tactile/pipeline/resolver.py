@@ -8,6 +8,7 @@ windows reach it. `OverlapResolver._count_lock` guards its counts (a leaf).
 from __future__ import annotations
 
 import contextlib
+import logging
 import pickle
 import queue
 import subprocess
@@ -25,12 +26,16 @@ from ae_tactile.pipeline import worker_share
 from ae_tactile.pipeline.config import LATE_CHECK_POLL_S, OVERLAP_MAX_PENDING
 from ae_tactile.records import source_record
 
+_log = logging.getLogger(__name__)
+
 
 class OverlapResolver:
     """Localizes every emission of windows that hold several (`resolve_overlaps`) and hands
     the sources to ``on_records(list[ContactRecord])`` from its own thread: one contact
     event per source, naming the shared packet id, stamped at its own emission instant. At
-    most ``max_pending`` windows wait; more are counted (``overlap_dropped_backlog``).
+    most ``max_pending`` windows wait; more are counted (``overlap_dropped_backlog``). An
+    emission the fit found but too uncertain to hand out (`OverlapPacket.n_dropped`) is
+    counted (``overlap_dropped_uncertain``; the first one logged).
 
     The quick search (one compiled call, mostly without the interpreter lock) runs in this
     thread, beside the reader; the exhaustive search of a window whose quick answer is
@@ -75,6 +80,7 @@ class OverlapResolver:
         self.on_done = on_done
         self.pulse = pulse
         self.counts: Counter = Counter()  # written under _count_lock (two threads count)
+        self._warned_uncertain = False  # the first dropped emission is logged, once
         self._count_lock = threading.Lock()
         self._queue: queue.Queue = queue.Queue(maxsize=int(max_pending))
         self.ready = threading.Event()  # the worker has warmed up (or is not used)
@@ -193,6 +199,16 @@ class OverlapResolver:
         records = [source_record(p, src) for src in res.sources]  # may raise: count after
         self._count("overlap_windows_resolved")
         self._count("overlap_sources", len(records))
+        if res.n_dropped:
+            # fitted emissions not handed out (1-sigma over max_sigma_m or SNR under
+            # min_snr_db): counted and logged, never a window's second emission lost unsaid
+            self._count("overlap_dropped_uncertain", int(res.n_dropped))
+            if not self._warned_uncertain:
+                self._warned_uncertain = True
+                _log.warning(
+                    "the overlap resolver fitted %d emissions in a window and handed out %d: "
+                    "the others were too uncertain (counted: overlap_dropped_uncertain)",
+                    res.n_fitted, len(records))
         return records
 
     def pending(self) -> int:
