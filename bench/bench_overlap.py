@@ -688,11 +688,12 @@ def zoo_main(args):
     only = {s.strip() for s in args.only.split(",") if s.strip()}
     devices = [(d, "zoo") for d in ZOO.values()]
     devices += [(d, "held-out") for d in held_out(args.seed, int(args.held_out))]
-    if only:
-        devices = [(d, k) for d, k in devices if d.name in only]
+    # each device's random stream is its index in the whole list: a run --only some of
+    # them draws the very windows the full run drew for those
+    devices = [(i, d, k) for i, (d, k) in enumerate(devices) if not only or d.name in only]
     t0, cpu0 = time.perf_counter(), time.process_time()
     rows = []
-    for i, (dev, kind) in enumerate(devices):
+    for i, dev, kind in devices:
         r = live_device(dev, n_pairs=args.pairs, rng=np.random.default_rng([args.seed, i]),
                         fit_in_process=args.fit_process)
         r["set"] = kind
