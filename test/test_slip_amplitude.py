@@ -12,7 +12,7 @@ import pytest
 
 from ae_tactile.records import EventType, Reading
 from ae_tactile.slip import LocalizedEvent, SlipDetector
-from ae_tactile.slip.model import AMP_SPREAD_LN, touch_llr
+from ae_tactile.slip.model import AMP_SPREAD_LN, LOST_RELEASE_LLR, P_LOST, touch_llr
 
 R = 0.01  # [m] fingertip radius of the hand-built events
 MS = 1_000_000  # [ns]
@@ -95,3 +95,24 @@ def test_without_amplitudes_the_compression_revives_the_contact():
                           e.confidence, e.packet_id) for e in scene(TOUCH_V)]
     det, outs, rd = run(evs)
     assert rd[-1] == (Reading.MICRO_SLIP, rd[-3][1])
+
+
+def test_a_compression_on_a_silent_held_contact_needs_the_prior_odds_of_a_lost_release():
+    """The same scene with the held object's release lost: a new touch there means that
+    release went unseen (prior probability P_LOST), so the compression is a new object's
+    touch only when its amplitude beats the prior odds (LOST_RELEASE_LLR): three times a
+    touch's median amplitude does (ln-ratio ~6 here), a median touch (~2.6) does not."""
+    mu_t, mu_m = math.log(TOUCH_V), math.log(MICRO_V)
+    assert touch_llr(math.log(3 * TOUCH_V), mu_t, mu_m) > LOST_RELEASE_LLR
+    assert 0.0 < touch_llr(mu_t, mu_t, mu_m) < LOST_RELEASE_LLR
+    assert LOST_RELEASE_LLR == pytest.approx(math.log((1 - P_LOST) / P_LOST))
+    for amp_v, new in ((3 * TOUCH_V, True), (TOUCH_V, False)):
+        evs = [e for e in scene(amp_v) if e.packet_id != 11]  # its release lost
+        det, outs, rd = run(evs)
+        held = rd[-2][1]
+        assert rd[-2][0] == Reading.TOUCH
+        if new:
+            assert rd[-1][0] == Reading.TOUCH and rd[-1][1] != held
+            assert [o.contact_id for o in outs if o.kind == EventType.DETOUCH].count(held) == 1
+        else:
+            assert rd[-1] == (Reading.MICRO_SLIP, held)

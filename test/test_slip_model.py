@@ -186,6 +186,46 @@ def test_a_broad_press_released_elsewhere_on_its_disc_ends_without_alarm():
     assert alarms(run_model(evs, 1000 * MS, model=False)[0])
 
 
+def test_a_broad_press_of_several_compressions_released_once_off_them_ends():
+    """Five compressions within 4 ms over a disc of radius 1.3 mm, held 0.6 s, then one
+    rarefaction on the disc 0.1-0.25 mm from the nearest compression, off its spot (a
+    broad object leaves where it pleases; its other release emissions lost; 3
+    localization sigmas are 60 um): the object is released, the
+    finger reads NO_CONTACT 0.2 s after it, no alarm."""
+    rng = np.random.default_rng(5)
+    pc = disc(rng, 0.0, 2e-3, 0.0, 1.3e-3, 5)
+    evs = [ev((10 + 0.8 * i) * MS, x, y, +1, i) for i, (x, y) in enumerate(pc)]
+    # a point of the disc 0.1-0.25 mm from the nearest compression
+    for x, y in disc(rng, 0.0, 2e-3, 0.0, 1.3e-3, 400):
+        d = np.hypot(pc[:, 0] - x, pc[:, 1] - y)
+        if 0.1e-3 < d.min() < 0.25e-3:
+            break
+    else:
+        raise AssertionError("no such point")
+    evs.append(ev(620 * MS, x, y, -1, 9))
+    outs, trace = run_model(evs, 1200 * MS)
+    assert alarms(outs) == []
+    assert state_at(trace, 400 * MS) == ContactState.STICK
+    assert state_at(trace, 830 * MS) == ContactState.NO_CONTACT
+
+
+def test_objects_arriving_together_released_apart_end_with_the_last():
+    """Four touches 2.2-4 mm apart within 12 ms (one arrival window: read as one
+    object's points), then released one by one on their spots 0.2-0.6 s apart: the
+    points left separately, so the finger stays in contact until the last release (a
+    lost release is allowed for only when the others left together) and reads
+    NO_CONTACT 0.2 s after it."""
+    pts = [(0.0, 0.0), (2.2e-3, 0.0), (0.0, -3.0e-3), (-2.8e-3, 1.5e-3)]
+    evs = [ev((10 + 4 * i) * MS, x, y, +1, i) for i, (x, y) in enumerate(pts)]
+    t_off = [1300, 300, 600, 1000]
+    evs += [ev(t * MS, x + 5e-6, y, -1, 10 + i) for i, ((x, y), t) in enumerate(zip(pts, t_off))]
+    outs, trace = run_model(evs, 1800 * MS)
+    assert alarms(outs) == []
+    for t in (400, 700, 1100, 1250):
+        assert state_at(trace, t * MS) == ContactState.STICK, t
+    assert state_at(trace, 1510 * MS) == ContactState.NO_CONTACT
+
+
 def slide_events(rng, t0_ms, rate_hz, n, cx=0.0, cy=0.0, a=1.0e-3, pid0=0):
     t = t0_ms * MS + np.cumsum(np.r_[0.0, rng.exponential(1e9 / rate_hz, n - 1)])
     xy = disc(rng, cx, cy, 0.0, a, n)

@@ -24,7 +24,7 @@ from .contact import (
     TOUCH_POINT,
     TOUCHED,
 )
-from .model import LIFT_INTERVALS, RING_SIGMAS, RING_SPREAD_FIT, amp_ln
+from .model import LIFT_INTERVALS, LOST_RELEASE_LLR, RING_SIGMAS, RING_SPREAD_FIT, amp_ln
 
 
 class MicroSlipEvidence:
@@ -41,7 +41,7 @@ class MicroSlipEvidence:
         slipping = c.state in SLIPPING or c.moving  # a moving contact has no fixed spots
         x = amp_ln(ev) if self._model else None
         if self._model and ev.polarity > 0 and (
-            self._released_held(c, p, var, t) or self._louder_than_micro_slip(c, x)
+            self._released_held(c, p, var, t) or self._louder_than_micro_slip(c, x, t)
         ):
             # a compression after a loaded (held) contact's release on its touch, off its
             # disc or its activity stopped round the release, or after any release of a
@@ -139,15 +139,22 @@ class MicroSlipEvidence:
             self.counts["releases_cancelled"] += 1
         return EVID | SLIP_EMISSION
 
-    def _louder_than_micro_slip(self, c, x):
-        """Is a compression of ln-amplitude ``x`` on contact ``c``, whose release is
-        pending (held or loaded, not sliding), more likely a new object's touch than the
-        contact's next micro-slip (`model.touch_llr` > 0)?"""
+    def _louder_than_micro_slip(self, c, x, t):
+        """Is a compression of ln-amplitude ``x`` at ``t`` [ns] on contact ``c`` (held or
+        loaded, not sliding) more likely a new object's touch than the contact's next
+        micro-slip (`model.touch_llr`)? With its release pending: when the ratio is
+        above 1. On a silent held contact (STICK, no micro-slip in the window, no release
+        seen): a touch here means its release was lost, so the ratio must beat the prior
+        odds against a lost emission (`model.LOST_RELEASE_LLR`)."""
+        if c.state == ContactState.GROSS_SLIP or c.moving or x is None:
+            return False
+        if c.pending_release_ns is not None:
+            return self._touch_llr(c, x) > 0.0
         return (
-            c.pending_release_ns is not None
-            and c.state != ContactState.GROSS_SLIP
-            and not c.moving
-            and self._touch_llr(c, x) > 0.0
+            c.state == ContactState.STICK
+            and not c.arriving
+            and self._silent(c, t)
+            and self._touch_llr(c, x) > LOST_RELEASE_LLR
         )
 
     @staticmethod
@@ -264,12 +271,22 @@ class MicroSlipEvidence:
             and F[j] & TOUCH_POINT
             and c.pending_release_ns is None
         ):
-            # the release of a point of the object: the object is released when none of
-            # its touch points is left held (or all but one, a release lost, after two)
+            # the release of a point of the object: a point contact leaves where it
+            # touched (on its spot to 3 localization sigmas), and the object is released
+            # when none of its touch points is left held, or all but one (a release lost)
+            # when the others left together, within RELEASE_WINDOW_S (one object's
+            # release; spread out, they were objects of their own); a release elsewhere
+            # on the disc is a broad object's edge peeling off, the whole object's release
+            # (a micro-slip that follows cancels it)
             k = c.valid()
-            tp = ((c.flags[:k] & TOUCH_POINT) != 0) & (c.pol[:k] > 0)
-            left = int((tp & ((c.flags[:k] & PAIRED) == 0)).sum())
-            if left == 0 or (left == 1 and int(tp.sum()) >= 3):
+            F_ = c.flags[:k]
+            tp = ((F_ & TOUCH_POINT) != 0) & (c.pol[:k] > 0)
+            n_tp = int(tp.sum())
+            left = int((tp & ((F_ & PAIRED) == 0)).sum())
+            on_spot = float(d2[j]) <= 9.0 * (float(c.var[j]) + var)
+            burst = 1 + int((((F_ & PAIRED) != 0) & (c.pol[:k] < 0)
+                             & (c.t[:k] >= t - self._w_release)).sum())
+            if not on_spot or left == 0 or (left == 1 and n_tp >= 3 and burst >= n_tp - 1):
                 founder = True
         if founder:
             c.founder_paired = True

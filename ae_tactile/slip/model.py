@@ -84,6 +84,13 @@ AMP_SPREAD_LN = 0.5
 #: standard errors by which the finger's touches must be the louder (their mean ln
 #: amplitude above its micro-slips') before amplitude tells one from the other
 SCALE_SIGMAS = 2.0
+#: share of emissions the localizer loses (missed triggers, rejected fits): the prior
+#: probability that a held contact's release went unseen
+P_LOST = 0.02
+#: [ln units] a compression on a silent held contact is a new object's touch (the held
+#: one's release lost) only when its amplitude says so by more than the prior odds
+#: against a lost release, ln((1 - P_LOST) / P_LOST)
+LOST_RELEASE_LLR = math.log((1.0 - P_LOST) / P_LOST)
 #: weight of the finger's earlier touches (micro-slips) at each new one: its scales
 #: remember ~10 of each
 SCALE_DECAY = 0.9
