@@ -276,17 +276,23 @@ class MicroSlipEvidence:
             # when none of its touch points is left held, or all but one (a release lost)
             # when the others left together, within RELEASE_WINDOW_S (one object's
             # release; spread out, they were objects of their own); a release elsewhere
-            # on the disc is a broad object's edge peeling off, the whole object's release
-            # (a micro-slip that follows cancels it)
+            # on the disc of a silent contact, paired with a point of its arrival, is a
+            # broad object's edge peeling off, the whole object's release (a micro-slip
+            # that follows cancels it; under load, no micro-slip silence: a micro-slip)
             k = c.valid()
             F_ = c.flags[:k]
             tp = ((F_ & TOUCH_POINT) != 0) & (c.pol[:k] > 0)
             n_tp = int(tp.sum())
             left = int((tp & ((F_ & PAIRED) == 0)).sum())
             on_spot = float(d2[j]) <= 9.0 * (float(c.var[j]) + var)
+            broad = (
+                not on_spot
+                and int(c.t[j]) - c.founder_ns <= self._w_arrive
+                and self._silent(c, t)
+            )
             burst = 1 + int((((F_ & PAIRED) != 0) & (c.pol[:k] < 0)
                              & (c.t[:k] >= t - self._w_release)).sum())
-            if not on_spot or left == 0 or (left == 1 and n_tp >= 3 and burst >= n_tp - 1):
+            if broad or left == 0 or (left == 1 and n_tp >= 3 and burst >= n_tp - 1):
                 founder = True
         if founder:
             c.founder_paired = True
