@@ -193,6 +193,8 @@ class OverlapResolver:
         if res.reason == OverlapReason.DEFERRED:
             self._count("overlap_deferred")
             return None
+        if res.n_refused:  # emissions cancelling each other: not reported
+            self._count("overlap_dropped_refused", res.n_refused)
         if not res.accepted:
             self._count("overlap_rejected_" + res.reason_name)
             return []

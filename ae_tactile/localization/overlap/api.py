@@ -354,6 +354,8 @@ def _pulse_of(init, v):
         init.lowpass_order,
         init.alpha_1_s,
         init.attenuation_db_per_m_at_1mhz,
+        attenuation_exponent=init.attenuation_exponent,
+        attenuation_ref_hz=init.attenuation_ref_hz,
     )
 
 

@@ -71,6 +71,7 @@ def _resolve_quick(x, on, plan, geo, pulse, noise_rms_v, saturated, full_scale_v
     res = _answers(
         fits, deferred, N, sigma2, n_noise, *decide_args,
         np.array([pr[4] for pr in preps]), geo, model.tab.h_samples, fs,
+        (ys * ys * masks).sum(axis=1), _misfit(pulse),
     )
     for k, r in zip(ok, res):
         out[k] = r
@@ -126,18 +127,21 @@ def _decide(
     return _answers(
         fits, deferred, N, sigma2, n_noise, max_sources, add_threshold, max_chi2_ratio,
         max_sigma_m, min_snr_db, min_separation_s, scale, geo, model.tab.h_samples, model.fs,
+        (seg * seg).reshape(K, -1).sum(axis=1), _misfit(model.pulse),
     )
 
 
 def _answers(
     fits, deferred, N, sigma2, n_noise, max_sources, add_threshold, max_chi2_ratio,
-    max_sigma_m, min_snr_db, min_separation_s, scale, geo, h_samples, fs,
+    max_sigma_m, min_snr_db, min_separation_s, scale, geo, h_samples, fs, energy,
+    misfit_share=0.0,
 ):
     """The `OverlapPacket` of each window from its fits (one per number of emissions):
     model order, residual test, separation, covariances, per-emission SNR and confidence.
-    N (K,): samples in each window's fit."""
+    N (K,): samples in each window's fit; energy (K,): the window's energy on them;
+    misfit_share: the pulse's own misfit on single touches (`PulseModel.misfit_share`)."""
     K = len(sigma2)
-    J = _model_order(fits, sigma2, max_sources, add_threshold)
+    J, refused = _model_order(fits, sigma2, max_sources, add_threshold, energy, misfit_share)
     out = []
     snr_len = int(round(30e-6 * fs))
     e_pulse = float((h_samples[:snr_len] ** 2).sum())  # the direct wave's energy in 30 us
@@ -168,6 +172,7 @@ def _answers(
                     n_fitted=j,
                     chi2_ratio=float(ratio),
                     noise_rms_v=noise_v,
+                    n_refused=int(refused[i]),
                 )
             )
             continue
@@ -182,22 +187,62 @@ def _answers(
                 n_dropped=dropped,
                 chi2_ratio=float(ratio),
                 noise_rms_v=noise_v,
+                n_refused=int(refused[i]),
             )
         )
     return out
 
 
-def _model_order(fits, sigma2, max_sources, add_threshold):
-    """(K,) emissions per window: emission j+1 is added while the residual energy drops by
-    more than ``add_threshold`` sigma^2."""
+def _misfit(pulse) -> float:
+    """[1] `PulseModel.misfit_share` of a pulse (0 for None, the nominal one)."""
+    return 0.0 if pulse is None else float(getattr(pulse, "misfit_share", 0.0))
+
+
+#: [1] how many times the pulse's misfit on single touches (`PulseModel.misfit_share`) of
+#: the window's energy a further emission must explain. A j-emission fit leaves the misfit
+#: of each of its emissions, their cross terms and the joint fit's own error, which a
+#: spurious emission can absorb: up to ~16x a single touch's share on two overlapping
+#: emissions of the lossy bodies. The allowance stays far under the weakest emission the
+#: resolver is asked for (1:4, ~6 % of a pair's energy): >= 5x on every device whose
+#: share is <= 2.2e-4; a weaker one is refused and counted, never a spurious point
+MISFIT_ALLOWANCE = 50.0
+
+
+def _model_order(fits, sigma2, max_sources, add_threshold, energy=None, misfit_share=0.0):
+    """Emissions per window (K,) and the additions refused (K,): emission j+1 is added
+    while the residual energy drops by more than ``add_threshold`` sigma^2, unless one
+    emission of the larger fit carries more energy than the whole window (``energy``
+    (K,)): only emissions cancelling each other can, which is a fit absorbing the pulse
+    model's own misfit, not a second touch; or unless the drop is within the pulse's own
+    misfit, MISFIT_ALLOWANCE x ``misfit_share`` x the window's energy (refused, counted
+    in ``n_refused``)."""
     J = np.ones(len(sigma2), np.int64)
+    refused = np.zeros(len(sigma2), np.int64)
     going = np.ones(len(sigma2), bool)
     for j in range(2, max_sources + 1):
         gain = (fits[j - 2].rss - fits[j - 1].rss) / sigma2
         step = going & (gain > add_threshold)
+        if energy is not None:
+            over = step & (_source_energy(fits[j - 1], j).max(axis=1) > energy)
+            if misfit_share > 0:
+                over |= step & (gain * sigma2 <= MISFIT_ALLOWANCE * misfit_share * energy)
+            refused += over
+            step &= ~over
         J[step] = j
         going &= step
-    return J
+    return J, refused
+
+
+def _source_energy(fit, j):
+    """(K, j) energy of each emission's modelled waves alone (direct and echo: a^T G a
+    over its block of the amplitude Gram matrix)."""
+    a = fit.amp[:, : 2 * j].reshape(-1, j, 2)
+    g = fit.gram[:, 3 * j :, 3 * j :]
+    out = np.zeros(a.shape[:2])
+    for q in range(j):
+        b = g[:, 2 * q : 2 * q + 2, 2 * q : 2 * q + 2]
+        out[:, q] = np.einsum("ki,kij,kj->k", a[:, q], b, a[:, q])
+    return out
 
 
 def _sources(theta, amp, gram, sigma2, scale, ratio, limit, geo, max_sigma_m, min_snr_db,
@@ -255,3 +300,27 @@ def _sources(theta, amp, gram, sigma2, scale, ratio, limit, geo, max_sigma_m, mi
             )
         )
     return sources, dropped
+
+
+#: [1] quantile of the single touches' misfit shares kept as `PulseModel.misfit_share`
+MISFIT_QUANTILE = 0.9
+
+
+def _misfit_share(ratio, y, sigma2, inside) -> float:
+    """[1] The pulse's misfit on single touches: per packet the residual energy beyond the
+    noise's ((chi^2 ratio - 1) sigma^2 dof) over the packet's energy on the fitted
+    samples, its MISFIT_QUANTILE quantile (0 without packets)."""
+    if len(ratio) == 0:
+        return 0.0
+    dof = np.maximum(4 * inside.sum(axis=1) - 5, 1)
+    energy = np.maximum((y * y).sum(axis=1), 1e-300)
+    share = np.maximum(ratio - 1.0, 0.0) * dof * sigma2 / energy
+    share = share[np.isfinite(share)]
+    return float(np.quantile(share, MISFIT_QUANTILE)) if share.size else 0.0
+
+
+def _trusted(ratio, limit, n, min_packets, min_inlier_share) -> bool:
+    """Enough of the ``n`` candidates pass the residual test (chi^2 ``ratio`` <= ``limit``)
+    for the pulse to be trusted: >= ``min_packets`` and >= ``min_inlier_share`` of them."""
+    n_in = int(np.sum(ratio <= limit))
+    return n_in >= min_packets and n_in >= min_inlier_share * n

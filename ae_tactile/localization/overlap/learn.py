@@ -30,7 +30,15 @@ from scipy.signal import butter
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization.common import adc_noise, make_plan, validate_windows
 from ae_tactile.localization.estimators import localize
-from ae_tactile.localization.overlap.decide import _chi2_limit
+from ae_tactile.localization.overlap.decide import _chi2_limit, _misfit_share, _trusted
+from ae_tactile.localization.overlap.loss import (
+    LEARN_LOSS,
+    _keep_loss,
+    _learnt,
+    _loss_of,
+    _lossy,
+    _with_loss,
+)
 from ae_tactile.localization.overlap.model import _lm, _Model
 from ae_tactile.localization.overlap.pulse import PulseModel, _given, shift_channels
 from ae_tactile.localization.overlap.search import _segments
@@ -214,8 +222,10 @@ class _Problem:
     """The data of the pole fit: per packet its segment, mask, arrival times of the direct
     wave and the echo, and the amplitudes (held fixed while the poles move)."""
 
-    def __init__(self, model: _Model, y, theta, amp, weight):
+    def __init__(self, model: _Model, y, theta, amp, weight, with_loss=False):
         K, L = len(model.start), model.L
+        #: the parameter vector ends with the medium's loss (`loss._with_loss`)
+        self.with_loss = bool(with_loss)
         self.fs = model.fs
         d, _ = model._paths(theta[:, :, :2])  # (K, 1, 2, 4)
         t_arr = theta[:, 0, 2][:, None, None] + d[:, 0] / model.c  # (K, 2, 4)
@@ -223,6 +233,8 @@ class _Problem:
         self.tau_d = tn[:, None, :] - t_arr[:, 0, :, None]  # (K, 4, L)
         self.tau_e = tn[:, None, :] - t_arr[:, 1, :, None]
         gain = model.R / d[:, 0, 0]  # (K, 4)
+        #: [m] direct and echo path lengths (K, 4): the loss of each arrival's path
+        self.path_d, self.path_e = d[:, 0, 0], d[:, 0, 1]
         a = amp.reshape(K, 2)
         self.w_d = (a[:, 0:1] * gain)[..., None] * weight[:, None, None]  # (K, 4, 1)
         self.w_e = (a[:, 1:2] * np.ones((1, 4)))[..., None] * weight[:, None, None]
@@ -232,9 +244,14 @@ class _Problem:
         self.mask = mask.reshape(K, 4, L)
         self.y = y.reshape(K, 4, L) * weight[:, None, None] * self.mask
 
-    def design(self, poles):
+    def design(self, poles, loss: PulseModel | None = None):
+        """Design matrix (rows: samples, columns: the real basis of the poles) and its
+        kinds; ``loss``: a PulseModel whose power-law loss filters each path's basis."""
         bd, kinds = _basis(poles, self.tau_d, self.fs)
         be, _ = _basis(poles, self.tau_e, self.fs)
+        if loss is not None and loss.attenuation_db_per_m_at_1mhz > 0:
+            bd = _lossy(bd, self.path_d, self.fs, loss)
+            be = _lossy(be, self.path_e, self.fs, loss)
         a = (self.w_d[..., None] * bd + self.w_e[..., None] * be) * self.mask[..., None]
         return a.reshape(-1, poles.size), kinds
 
@@ -245,9 +262,10 @@ class _Problem:
         return np.where(np.isfinite(r), r, 1e6)
 
     def solve(self, v):
-        """(residual vector, poles, complex residues) at the log parameters v."""
-        poles = _poles_of(v)
-        a, kinds = self.design(poles)
+        """(residual vector, poles, complex residues) at the parameters v (the pole log
+        parameters, then, with ``with_loss``, the medium's loss: `_with_loss`)."""
+        poles = _poles_of(v[:-2] if self.with_loss else v)
+        a, kinds = self.design(poles, _loss_of(v) if self.with_loss else None)
         null = _constraint_null(poles, kinds)
         an = a @ null
         # normal equations, Jacobi-scaled, with a relative ridge (columns of very
@@ -395,27 +413,58 @@ def pulse_inliers(windows, sample_rate_hz, onset_index, pulse, *, geometry=None,
 
 def _fit(init, fs, geo, echo, data, n, min_packets, min_inlier_share, lowpass_sections,
          rounds):
-    """`fit_pulse` on prepared candidates: the modes (poles, `_Modes`), the shared
-    residues and the packets' refit alternated, the poles polished with the shared
-    residues (`_Problem`), one more round on the inliers."""
+    """`fit_pulse` on prepared candidates: the modes (poles, `_Modes`), then from them the
+    lossless pulse (`_refine`); where it is not trusted, also the pulse with the medium's
+    loss, kept only where it clearly explains the packets better (`_keep_loss`); the
+    initial pulse where it explains them at least as well."""
     plan, seg, start, length, inside, sigma2, n_noise, pts, t0, a0 = data
     y = seg.reshape(n, -1)
     sections = 4 if lowpass_sections is None else int(lowpass_sections)
     v, bounds = _initial_vector(init, fs, sections)
-    theta = theta0 = np.concatenate([pts, t0[:, None]], axis=1)[:, None, :]
+    theta0 = np.concatenate([pts, t0[:, None]], axis=1)[:, None, :]
     weight = 1.0 / np.sqrt(sigma2)
     first = np.arange(min(n, MODES_PACKETS))
     sub = _Model(geo, plan.fs, start[first], length, init, echo, inside[first])
-    modes = _Modes(sub, y[first], theta[first], weight[first])
+    modes = _Modes(sub, y[first], theta0[first], weight[first])
     short = [least_squares(modes.residual, v0, method="trf", bounds=bounds, diff_step=1e-4,
                            max_nfev=POLE_FIT_NFEV // 3) for v0 in _alpha_starts(v, bounds)]
     v = min(short, key=lambda f: f.cost).x
     v = least_squares(modes.residual, v, method="trf", bounds=bounds, diff_step=1e-4,
                       max_nfev=POLE_FIT_NFEV).x
+    args = (init, geo, echo, data, n, weight, rounds)
+    pulse, ratio, limit = _refine(*args, v, bounds, False)
+    if LEARN_LOSS and not _trusted(ratio, limit, n, min_packets, min_inlier_share):
+        lossy = _refine(*args, *_with_loss(v, bounds, init), True)
+        if _keep_loss(ratio, limit, lossy[1], lossy[2]):
+            pulse, ratio, limit = lossy
+    # model selection: the initial pulse where it explains the packets at least as well
+    # (the learnt family holds it, but a local optimum may not)
+    model0 = _Model(geo, plan.fs, start, length, init, echo, inside)
+    _, _, ratio0, limit0 = _chi2(model0, y, theta0, sigma2, n_noise)
+    if not np.median(ratio) < np.median(ratio0):
+        p0, r0 = init.poles_residues()
+        pulse, ratio, limit = PulseModel.from_poles(p0, r0), ratio0, limit0
+    ok = ratio <= limit
+    n_in = int(ok.sum())
+    pulse = replace(pulse, misfit_share=_misfit_share(ratio[ok], y[ok], sigma2[ok],
+                                                      inside[ok]))
+    converged = bool(pulse.learnt and _trusted(ratio, limit, n, min_packets, min_inlier_share))
+    med = float(np.median(ratio[ok])) if n_in else float("nan")
+    return PulseFit(pulse, converged, n, n_in, med, ratio)
+
+
+def _refine(init, geo, echo, data, n, weight, rounds, v, bounds, with_loss):
+    """From the modes' poles v (``with_loss``: then the medium's loss): shared residues
+    and the packets' refit alternated, the channels' gain and delay, the poles polished
+    (`_Problem`), on the inliers once more. Returns (pulse, chi^2 ratios, limits)."""
+    plan, seg, start, length, inside, sigma2, n_noise, pts, t0, a0 = data
+    y = seg.reshape(n, -1)
+    theta = np.concatenate([pts, t0[:, None]], axis=1)[:, None, :]
     amp = np.stack([a0, np.zeros(n)], axis=1)
     pulse, ratio, limit = init, np.full(n, np.inf), np.ones(n)
     for _ in range(3):  # shared residues at these poles <-> the packets' refit
-        got = _shared(geo, plan.fs, start, length, echo, inside, y, theta, amp, weight, v)
+        got = _shared(geo, plan.fs, start, length, echo, inside, y, theta, amp, weight, v,
+                      with_loss)
         if got is None:
             break
         pulse, model = got
@@ -433,12 +482,12 @@ def _fit(init, fs, geo, echo, data, n, min_packets, min_inlier_share, lowpass_se
                 break
         ids = np.nonzero(keep)[0][:POLE_FIT_PACKETS]
         sub = _Model(geo, plan.fs, start[ids], length, pulse, echo, inside[ids])
-        prob = _Problem(sub, y[ids], theta[ids], amp[ids], weight[ids])
+        prob = _Problem(sub, y[ids], theta[ids], amp[ids], weight[ids], with_loss)
         v_new = least_squares(prob.residual, v, method="trf", bounds=bounds,
                               diff_step=1e-4, max_nfev=POLE_FIT_NFEV).x
         _, poles, res = prob.solve(v_new)
         try:
-            cand = PulseModel.from_poles(poles, res)
+            cand = _learnt(poles, res, v_new, with_loss)
         except ValueError:
             break
         model = _Model(geo, plan.fs, start, length, cand, echo, inside)
@@ -449,18 +498,7 @@ def _fit(init, fs, geo, echo, data, n, min_packets, min_inlier_share, lowpass_se
     if pulse.learnt and (np.any(gain != 1.0) or np.any(delay != 0.0)):
         pulse = replace(pulse, channel_gain=tuple(float(g) for g in gain),
                         channel_delay_s=tuple(float(d) for d in delay))
-    # model selection: the initial pulse where it explains the packets at least as well
-    # (the learnt family holds it, but a local optimum may not)
-    model0 = _Model(geo, plan.fs, start, length, init, echo, inside)
-    _, _, ratio0, limit0 = _chi2(model0, seg.reshape(n, -1), theta0, sigma2, n_noise)
-    if not np.median(ratio) < np.median(ratio0):
-        p0, r0 = init.poles_residues()
-        pulse, ratio, limit = PulseModel.from_poles(p0, r0), ratio0, limit0
-    ok = ratio <= limit
-    n_in = int(ok.sum())
-    converged = bool(pulse.learnt and n_in >= min_packets and n_in >= min_inlier_share * n)
-    med = float(np.median(ratio[ok])) if n_in else float("nan")
-    return PulseFit(pulse, converged, n, n_in, med, ratio)
+    return pulse, ratio, limit
 
 
 def _channels(model, seg, y, theta, amp, ratio, limit, weight, sigma2, n_noise):
@@ -509,13 +547,14 @@ def _channels(model, seg, y, theta, amp, ratio, limit, weight, sigma2, n_noise):
     return best
 
 
-def _shared(geo, fs, start, length, echo, inside, y, theta, amp, weight, v):
-    """(pulse, model) with the residues shared by all packets at the poles of v (the
-    packets' parameters held), or None when they give no valid pulse."""
+def _shared(geo, fs, start, length, echo, inside, y, theta, amp, weight, v, with_loss):
+    """(pulse, model) with the residues shared by all packets at the poles of v (and the
+    loss, ``with_loss``; the packets' parameters held), or None when they give no valid
+    pulse."""
     model = _Model(geo, fs, start, length, PulseModel(), echo, inside)
-    _, poles, res = _Problem(model, y, theta, amp, weight).solve(v)
+    _, poles, res = _Problem(model, y, theta, amp, weight, with_loss).solve(v)
     try:
-        pulse = PulseModel.from_poles(poles, res)
+        pulse = _learnt(poles, res, v, with_loss)
     except ValueError:
         return None
     return pulse, _Model(geo, fs, start, length, pulse, echo, inside)

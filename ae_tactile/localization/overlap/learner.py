@@ -448,6 +448,9 @@ class PulseLearner:
         dict or None
             {"format": 1, "sample_rate_hz", "poles_rad_s": [[re, im], ...], "residues":
             [[re, im], ...], "channel_gain": [4] or [], "channel_delay_s": [4] or [],
+            "attenuation_db_per_m_at_1mhz", "attenuation_exponent", "attenuation_ref_hz"
+            (the medium's power-law loss; absent in older files: lossless),
+            "misfit_share" (the pulse's misfit on single touches; absent: 0),
             "n_candidates", "n_inliers", "chi2_median"}.
         """
         with self._lock:
@@ -463,6 +466,10 @@ class PulseLearner:
             "residues": [[float(v.real), float(v.imag)] for v in p.residues],
             "channel_gain": [float(v) for v in p.channel_gain],
             "channel_delay_s": [float(v) for v in p.channel_delay_s],
+            "attenuation_db_per_m_at_1mhz": float(p.attenuation_db_per_m_at_1mhz),
+            "attenuation_exponent": float(p.attenuation_exponent),
+            "attenuation_ref_hz": float(p.attenuation_ref_hz),
+            "misfit_share": float(p.misfit_share),
             "n_candidates": int(last.n_candidates),
             "n_inliers": int(last.n_inliers),
             "chi2_median": chi2 if math.isfinite(chi2) else -1.0,
@@ -552,6 +559,10 @@ def _pulse_from_state(state):
         delay = np.asarray(state.get("channel_delay_s", []), dtype=float).reshape(-1)
         n_cand, n_in = int(state["n_candidates"]), int(state["n_inliers"])
         chi2 = float(state.get("chi2_median", -1.0))
+        loss = float(state.get("attenuation_db_per_m_at_1mhz", 0.0))  # [dB/m]
+        y = float(state.get("attenuation_exponent", 2.0))
+        ref_hz = float(state.get("attenuation_ref_hz", 300e3))
+        misfit = float(state.get("misfit_share", 0.0))  # [1]
     except (KeyError, TypeError, AttributeError) as exc:
         raise ValueError(f"overlap pulse: malformed ({exc})") from None
     if not (math.isfinite(fs) and fs > 0 and 0 <= n_in <= n_cand):
@@ -560,7 +571,13 @@ def _pulse_from_state(state):
         raise ValueError("overlap pulse: channel_gain must be 4 positive numbers or none")
     if delay.size not in (0, 4) or not (np.abs(delay) < 1e-6).all():
         raise ValueError("overlap pulse: channel_delay_s must be 4 delays under 1 us or none")
+    if not (math.isfinite(loss) and loss >= 0 and 0 < y <= 2 and ref_hz > 0):
+        raise ValueError("overlap pulse: loss >= 0, exponent in (0, 2], reference > 0")
+    if not (math.isfinite(misfit) and 0 <= misfit < 1):
+        raise ValueError("overlap pulse: misfit_share must be in [0, 1)")
     pulse = PulseModel.from_poles(poles, res)  # ValueError: not decaying, not finite
     pulse = replace(pulse, channel_gain=tuple(map(float, gain)),
-                    channel_delay_s=tuple(map(float, delay)))
+                    channel_delay_s=tuple(map(float, delay)),
+                    attenuation_db_per_m_at_1mhz=loss, attenuation_exponent=y,
+                    attenuation_ref_hz=ref_hz, misfit_share=misfit)
     return fs, PulseFit(pulse, True, n_cand, n_in, chi2 if chi2 >= 0 else float("nan"))

@@ -15,7 +15,7 @@ import numpy as np
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import overlap_kernels as _kernels
 from ae_tactile.localization.common import Reason
-from ae_tactile.localization.overlap.pulse import PulseModel, _tables
+from ae_tactile.localization.overlap.pulse import PulseModel, _tables, power_law_filter
 
 
 class OverlapReason(IntEnum):
@@ -74,6 +74,9 @@ class OverlapPacket:
     n_dropped     fitted emissions not reported (in-plane sigma > max_sigma_m)
     chi2_ratio    residual energy / (sigma^2 x degrees of freedom) of the selected model
     noise_rms_v   noise sigma used (V)
+    n_refused     emissions the model order refused: one carried more energy than the
+                  window (emissions cancelling each other, not a touch), or the residual
+                  drop was within the pulse's own misfit (`PulseModel.misfit_share`)
     """
 
     accepted: bool
@@ -83,6 +86,7 @@ class OverlapPacket:
     n_dropped: int = 0
     chi2_ratio: float = float("nan")
     noise_rms_v: float = float("nan")
+    n_refused: int = 0
 
     @property
     def reason_name(self) -> str:
@@ -154,6 +158,8 @@ class _Model:
         off = self.start[:, None] / fs - t_arr  # t_0 - t_a
         n0 = np.ceil(-off * fs - 1e-9)
         lossy = path_m is not None and self.pulse.attenuation_db_per_m_at_1mhz > 0
+        power = lossy and self.pulse.attenuation_exponent != 2.0
+        lossy = lossy and not power
         if lossy:
             wa = self.pulse.attenuation_pole_rad_s(path_m)  # (K, A)
             wa = np.where(np.isfinite(wa), wa, 1e15)
@@ -174,6 +180,8 @@ class _Model:
             vals[:, :, 0] += e
             vals[:, :, 1] -= wa[..., None] * e
         vals *= (np.arange(L) >= n0[..., None])[:, :, None, :]
+        if power:  # the causal power-law loss of each path, by FFT
+            vals = power_law_filter(vals, path_m[:, :, None], fs, self.pulse)
         return vals[:, :, 0], vals[:, :, 1]
 
     def evaluate(self, theta):

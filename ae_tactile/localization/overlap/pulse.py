@@ -37,6 +37,11 @@ class PulseModel:
     lowpass_order: int = 4
     alpha_1_s: float = 3000.0
     attenuation_db_per_m_at_1mhz: float = 0.0
+    #: [1] frequency exponent y of the loss: 2 is the one-pole viscous law above; any
+    #: other is the power law att l (f / 1 MHz)^y with its Kramers-Kronig dispersion
+    #: (phase velocity c at ``attenuation_ref_hz`` [Hz]), applied per path by FFT
+    attenuation_exponent: float = 2.0
+    attenuation_ref_hz: float = 300e3
     #: explicit poles [rad/s] and residues of h (a pulse learnt from the device's own
     #: packets, `ae_tactile.localization.overlap.learn`); empty: the front end above
     poles_rad_s: tuple = ()
@@ -45,6 +50,11 @@ class PulseModel:
     #: pulse; empty: identical channels): `correct_channels` removes them from a window
     channel_gain: tuple = ()
     channel_delay_s: tuple = ()
+    #: [1] share of a single emission's energy the pulse leaves unexplained on the
+    #: device's own single touches (residual energy over noise / window energy, a high
+    #: quantile; learnt with the pulse, 0 for the nominal one): a further emission must
+    #: explain more than this misfit of the window's energy (`decide._model_order`)
+    misfit_share: float = 0.0
 
     @classmethod
     def from_poles(cls, poles_rad_s, residues) -> "PulseModel":
@@ -204,6 +214,21 @@ class PulseModel:
 
 
 _PR_CACHE: dict = {}
+
+
+def power_law_filter(x, path_m, fs, pulse: PulseModel):
+    """x (..., L) [V] through each path's power-law loss (``path_m`` (...) [m]): H(f) =
+    exp(-(a(f) + j b(f)) l), a = a1 (f / 1 MHz)^y [Np/m], b = a1 tan(pi y / 2)
+    [(f / 1 MHz)^y - (f / 1 MHz)(f_ref / 1 MHz)^(y - 1)] (Szabo's causal dispersion),
+    by FFT over 2 L samples (the loss's short response does not wrap onto the segment)."""
+    n = 2 * x.shape[-1]
+    a1 = float(pulse.attenuation_db_per_m_at_1mhz) * math.log(10.0) / 20.0  # [Np/m]
+    y = float(pulse.attenuation_exponent)
+    f = np.fft.rfftfreq(n, 1.0 / float(fs)) / 1e6  # [MHz]
+    xr = float(pulse.attenuation_ref_hz) / 1e6
+    b = a1 * math.tan(math.pi * y / 2.0) * (f ** y - f * xr ** (y - 1.0))
+    h = np.exp(-(a1 * f ** y + 1j * b) * np.asarray(path_m, float)[..., None])
+    return np.fft.irfft(np.fft.rfft(x, n=n, axis=-1) * h, n=n, axis=-1)[..., : x.shape[-1]]
 
 
 def shift_channels(x, fs, gain, delay_s):

@@ -73,9 +73,9 @@ def _grid_tables(model: _Model, grid, L) -> _GridTables:
     t = _GRID_TAB_CACHE.get(key)
     if t is None:
         fs = model.fs
-        h = model.tab.h_samples
         nfft = sfft.next_fast_len(2 * L, real=True)
         d = model.geo._xy_distances(grid[:, 0], grid[:, 1])  # (G, 4)
+        h = _template(model, d)
         gain = model.R / d
         tt = d / model.c
         rel = np.rint((tt - tt.min(axis=1, keepdims=True)) * fs).astype(np.int64)  # (G, 4)
@@ -92,6 +92,19 @@ def _grid_tables(model: _Model, grid, L) -> _GridTables:
 
 
 _GRID_TAB_CACHE: dict = {}
+
+
+def _template(model: _Model, d) -> np.ndarray:
+    """The matched filter's pulse (L,): h(m dt), in a lossy medium through the loss of
+    the grid's median direct path (``d`` (G, 4) [m]), since the shape the fits compare
+    is the pulse after its path's loss; one path for all points (the correlation is one
+    FFT per channel), the fit then follows each path's own loss."""
+    h = model.tab.h_samples
+    if not model.pulse.attenuation_db_per_m_at_1mhz > 0:
+        return h
+    path = np.full((1, 1), float(np.median(d)))
+    one = _sub(model, np.array([0]))
+    return one.pulses(one.start[:, None] / model.fs, path)[0][0, 0]
 
 
 def _grid_step(fs: float) -> int:
