@@ -9,6 +9,7 @@ and localhost-only discovery so parallel runs on one machine do not hear each ot
 """
 
 import fcntl
+import logging
 import os
 import random
 import signal
@@ -77,6 +78,17 @@ def _own_ros_home(tmp_path_factory, monkeypatch):
     file, ``$ROS_HOME/ae_tactile/calibration``) and the logs never reach the user's home
     nor another test."""
     monkeypatch.setenv("ROS_HOME", str(tmp_path_factory.mktemp("ros_home")))
+
+
+@pytest.fixture(autouse=True)
+def _logger_class_kept():
+    """A test that imports `launch` in this process (to call the launch file's own
+    functions) leaves launch's logger class behind, whose loggers do not propagate: the
+    core's loggers made after it would hand their records to no handler, and a later test
+    of the log forwarding would fail by the order the tests ran in."""
+    cls = logging.getLoggerClass()
+    yield
+    logging.setLoggerClass(cls)
 
 
 @pytest.fixture
