@@ -42,7 +42,7 @@ The fingertips of one hand (``hand_coincidence_topic``, e.g. /hand/apex_packets,
   for each): ae_tactile/ApexPackets published and read there; an apex packet that no test
   of one packet can tell from interference is held ``hand_coincidence_wait_s`` and
   dropped if another fingertip saw an apex packet within ``hand_coincidence_window_s``
-  (docs/slip.md, "Interference across a hand").
+  (docs/interference.md, "Across a hand").
 """
 
 from __future__ import annotations

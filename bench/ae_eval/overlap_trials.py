@@ -171,9 +171,12 @@ def _views(samples, onsets, fs, id0):
 
 def _loss_counted(before, after) -> bool:
     """The pipeline counted a window's missing emissions: an overlap answer rejected or
-    dropped, an overlap error, or a single emission the late check could not look at."""
+    dropped, an overlap error, a single emission the late check could not look at, or the
+    whole window rejected by a screen (``rejected_<reason>`` other than OVERLAP, which
+    sends the window to the resolver)."""
     keys = [k for k in after if k.startswith(("overlap_rejected_", "overlap_dropped_"))
-            or k in ("overlap_errors", "overlap_unchecked")]
+            or k in ("overlap_errors", "overlap_unchecked")
+            or (k.startswith("rejected_") and k != "rejected_OVERLAP")]
     return any(after[k] > before.get(k, 0) for k in keys)
 
 
