@@ -1177,5 +1177,15 @@ def test_a_hand_drops_the_bursts_every_fingertip_sees_and_keeps_its_touches(laun
         # its own touch, away from the apex, was never held and reached the hand
         touches = [e for e in events[f] if e.event_type == ContactEvent.TOUCH
                    and e.polar_angle_rad > math.radians(10)]
-        assert len(touches) == 1, (f, len(touches), c)
+        assert len(touches) == 1, "\n".join(
+            [f"{f}: {len(touches)} TOUCHes off the apex (polar > 10 deg); "
+             f"counts {sorted(c.items())}"]
+            + [f"  TOUCH t {time_msg_to_ns(e.header.stamp)} polar "
+               f"{math.degrees(e.polar_angle_rad):.2f} azimuth {math.degrees(e.azimuth_angle_rad):.1f} deg contact {e.contact_id}"
+               f" packets {list(e.packet_ids)} amplitude {e.amplitude_v:.3g} confidence"
+               f" {e.confidence:.2f}" for e in touches]
+            + [f"  other event {e.event_type} t {time_msg_to_ns(e.header.stamp)} polar "
+               f"{math.degrees(e.polar_angle_rad):.2f} contact {e.contact_id}"
+               for e in events[f] if e.event_type != ContactEvent.TOUCH
+               and e.polar_angle_rad > math.radians(10)])
     assert_clean_stop(run)
