@@ -1181,7 +1181,8 @@ def test_a_hand_drops_the_bursts_every_fingertip_sees_and_keeps_its_touches(laun
             [f"{f}: {len(touches)} TOUCHes off the apex (polar > 10 deg); "
              f"counts {sorted(c.items())}"]
             + [f"  TOUCH t {time_msg_to_ns(e.header.stamp)} polar "
-               f"{math.degrees(e.polar_angle_rad):.2f} azimuth {math.degrees(e.azimuth_angle_rad):.1f} deg contact {e.contact_id}"
+               f"{math.degrees(e.polar_angle_rad):.2f} azimuth "
+               f"{math.degrees(e.azimuth_angle_rad):.1f} deg contact {e.contact_id}"
                f" packets {list(e.packet_ids)} amplitude {e.amplitude_v:.3g} confidence"
                f" {e.confidence:.2f}" for e in touches]
             + [f"  other event {e.event_type} t {time_msg_to_ns(e.header.stamp)} polar "
