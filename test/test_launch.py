@@ -922,6 +922,38 @@ def test_sigusr1_prints_every_threads_stack_and_the_node_goes_on(tmp_path, exe_n
     assert "Traceback" not in log.read_text(), log.read_text()
 
 
+def test_a_crash_in_compiled_code_leaves_every_threads_stack_in_the_log(tmp_path):
+    """A node that dies of SIGSEGV (a fault in compiled code: numba, rclpy, a driver)
+    says so in its launch log and prints the threads' Python stacks before it dies, so the
+    log says where; it still dies of the signal (exit -11), as without the handler."""
+    require_ros()
+    scene = os.path.join(os.path.dirname(HERE), "config", "scenes", "touch_hold_release.yaml")
+    exe = installed_executable("sim_fingertip")
+    log = tmp_path / "sim_fingertip.txt"
+    env = dict(os.environ, ROS_DOMAIN_ID=str(claim_domain(_domains)), PYTHONUNBUFFERED="1",
+               ROS_LOG_DIR=str(tmp_path / "ros_log"))
+    with open(log, "w") as fh:
+        proc = subprocess.Popen([exe, "--ros-args", "-p", f"scene:={scene}"], stdout=fh,
+                                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
+                                cwd=tmp_path, start_new_session=True)
+        try:
+            deadline = time.monotonic() + START_TIMEOUT_S
+            while "serving on" not in log.read_text() and time.monotonic() < deadline:
+                assert proc.poll() is None, log.read_text()
+                time.sleep(0.1)
+            os.kill(proc.pid, signal.SIGSEGV)
+            code = proc.wait(timeout=STOP_TIMEOUT_S)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(10)
+    out = log.read_text()
+    assert code == -signal.SIGSEGV, out
+    assert "Fatal Python error: Segmentation fault" in out, out
+    # the stacks follow (each thread's, while the others still run: a dump may end early)
+    assert "most recent call first" in out, out
+
+
 def test_a_running_bringup_stops_on_ctrl_c_by_itself(tmp_path):
     """The composed system (driver with its in-process pipeline, simulated fingertip as a
     child process) ends on one Ctrl-C with exit code 0 and no traceback, through its own

@@ -465,9 +465,12 @@ STACKS_SIGNAL = signal.SIGUSR1
 
 
 def print_stacks_on_signal(signum: int = STACKS_SIGNAL) -> bool:
-    """Register faulthandler on ``signum`` (its C handler needs no GIL); False where the
-    platform cannot (the node still runs)."""
+    """Register faulthandler on ``signum`` (its C handler needs no GIL), and on the fatal
+    signals (SIGSEGV, SIGBUS, SIGFPE, SIGABRT, SIGILL: a crash in compiled code prints every
+    thread's Python stack on stderr, the launch log, before the process dies as it would);
+    False where the platform cannot (the node still runs)."""
     try:
+        faulthandler.enable(file=2, all_threads=True)
         faulthandler.register(signum, file=2, all_threads=True, chain=False)
         return True
     except (AttributeError, OSError, ValueError, RuntimeError):
