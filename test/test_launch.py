@@ -12,6 +12,7 @@ Skipped, with the reason, where `ros2 launch` is not available (no ROS 2 sourced
 no ../shared/ros2-launch set up by tools/setup.sh). Waits are on conditions with
 generous timeouts, never on speed.
 """
+import contextlib
 import importlib.util
 import json
 import math
@@ -878,18 +879,11 @@ def test_node_stops_cleanly_on_ctrl_c_twice(tmp_path, signals):
         assert "Traceback" not in out and "RCLError" not in out, out
 
 
-@pytest.mark.parametrize("exe_name, args, ready_text, main_frame", [
-    ("sim_fingertip", ["--ros-args", "-p", "scene:={scene}"], "serving on",
-     "node_utils.py:spin_until_stopped"),
-    ("bringup", ["--scene", "{scene}", "--duration", "600"], "every node up", "bringup.py:spin"),
-])
-def test_sigusr1_prints_every_threads_stack_and_the_node_goes_on(tmp_path, exe_name, args,
-                                                                 ready_text, main_frame):
-    """`kill -USR1` on a running node (or the composed system) prints each thread's Python
-    stack (the main thread in its spin loop) and nothing stops: it still runs, and a
-    Ctrl-C afterwards ends it with exit code 0."""
-    require_ros()
-    from ae_tactile.ros.node_utils import STACKS_SIGNAL
+@contextlib.contextmanager
+def _node_running(tmp_path, exe_name, args, ready_text):
+    """A node executable (``{scene}`` in ``args``: touch_hold_release) in a session of its
+    own, its output in a file, until ``ready_text`` shows: yields (process, log path,
+    deadline); killed afterwards if still running."""
     scene = os.path.join(os.path.dirname(HERE), "config", "scenes", "touch_hold_release.yaml")
     exe = installed_executable(exe_name)
     log = tmp_path / f"{exe_name}.txt"
@@ -904,18 +898,34 @@ def test_sigusr1_prints_every_threads_stack_and_the_node_goes_on(tmp_path, exe_n
             while ready_text not in log.read_text() and time.monotonic() < deadline:
                 assert proc.poll() is None, log.read_text()
                 time.sleep(0.1)
-            os.kill(proc.pid, STACKS_SIGNAL)
-            while not _stuck_frames(log.read_text()) and time.monotonic() < deadline:
-                assert proc.poll() is None, log.read_text()
-                time.sleep(0.1)
-            out = log.read_text()
-            assert proc.poll() is None, out
-            os.killpg(proc.pid, signal.SIGINT)
-            code = proc.wait(timeout=STOP_TIMEOUT_S)
+            yield proc, log, deadline
         finally:
             if proc.poll() is None:
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait(10)
+
+
+@pytest.mark.parametrize("exe_name, args, ready_text, main_frame", [
+    ("sim_fingertip", ["--ros-args", "-p", "scene:={scene}"], "serving on",
+     "node_utils.py:spin_until_stopped"),
+    ("bringup", ["--scene", "{scene}", "--duration", "600"], "every node up", "bringup.py:spin"),
+])
+def test_sigusr1_prints_every_threads_stack_and_the_node_goes_on(tmp_path, exe_name, args,
+                                                                 ready_text, main_frame):
+    """`kill -USR1` on a running node (or the composed system) prints each thread's Python
+    stack (the main thread in its spin loop) and nothing stops: it still runs, and a
+    Ctrl-C afterwards ends it with exit code 0."""
+    require_ros()
+    from ae_tactile.ros.node_utils import STACKS_SIGNAL
+    with _node_running(tmp_path, exe_name, args, ready_text) as (proc, log, deadline):
+        os.kill(proc.pid, STACKS_SIGNAL)
+        while not _stuck_frames(log.read_text()) and time.monotonic() < deadline:
+            assert proc.poll() is None, log.read_text()
+            time.sleep(0.1)
+        out = log.read_text()
+        assert proc.poll() is None, out
+        os.killpg(proc.pid, signal.SIGINT)
+        code = proc.wait(timeout=STOP_TIMEOUT_S)
     stacks = _stuck_frames(out)
     assert stacks and any(f.endswith(main_frame) for f in stacks), out
     assert code == 0, log.read_text()
@@ -927,26 +937,10 @@ def test_a_crash_in_compiled_code_leaves_every_threads_stack_in_the_log(tmp_path
     says so in its launch log and prints the threads' Python stacks before it dies, so the
     log says where; it still dies of the signal (exit -11), as without the handler."""
     require_ros()
-    scene = os.path.join(os.path.dirname(HERE), "config", "scenes", "touch_hold_release.yaml")
-    exe = installed_executable("sim_fingertip")
-    log = tmp_path / "sim_fingertip.txt"
-    env = dict(os.environ, ROS_DOMAIN_ID=str(claim_domain(_domains)), PYTHONUNBUFFERED="1",
-               ROS_LOG_DIR=str(tmp_path / "ros_log"))
-    with open(log, "w") as fh:
-        proc = subprocess.Popen([exe, "--ros-args", "-p", f"scene:={scene}"], stdout=fh,
-                                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
-                                cwd=tmp_path, start_new_session=True)
-        try:
-            deadline = time.monotonic() + START_TIMEOUT_S
-            while "serving on" not in log.read_text() and time.monotonic() < deadline:
-                assert proc.poll() is None, log.read_text()
-                time.sleep(0.1)
-            os.kill(proc.pid, signal.SIGSEGV)
-            code = proc.wait(timeout=STOP_TIMEOUT_S)
-        finally:
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait(10)
+    with _node_running(tmp_path, "sim_fingertip", ["--ros-args", "-p", "scene:={scene}"],
+                       "serving on") as (proc, log, _):
+        os.kill(proc.pid, signal.SIGSEGV)
+        code = proc.wait(timeout=STOP_TIMEOUT_S)
     out = log.read_text()
     assert code == -signal.SIGSEGV, out
     assert "Fatal Python error: Segmentation fault" in out, out
