@@ -26,6 +26,7 @@ import sys
 import tempfile
 import time
 import uuid
+import warnings
 
 import pytest
 import yaml
@@ -251,6 +252,22 @@ def assert_clean_stop(run: LaunchRun):
     assert all(pid in lost and code == "255" for pid, code in died), (
         f"a process died:\n{out[-6000:]}"
     )
+    for name, text in process_outputs(out).items():
+        # a stop may end by a node's clean-up deadline only where the middleware's teardown
+        # hung (rarely, when many processes stop at once on a loaded machine; rclpy keeps
+        # the GIL around it): said as a warning; a hang in the package's own code fails
+        if _assert_no_hang_in_own_code(text):
+            frames = _stuck_frames(text)
+            warnings.warn(f"{name}'s clean-up ended by its deadline, stuck in "
+                          f"{frames[0] if frames else '?'}", stacklevel=2)
+
+
+def process_outputs(out: str) -> dict:
+    """Each launched process's own lines ('[name-N] text' in launch's output), by name."""
+    lines: dict = {}
+    for name, text in re.findall(r"^\[([\w.-]+-\d+)\] ?(.*)$", out, flags=re.M):
+        lines.setdefault(name, []).append(text)
+    return {name: "\n".join(v) for name, v in lines.items()}
 
 
 # ------------------------------------------------------------------ probe node
@@ -771,12 +788,20 @@ def _stuck_frames(out: str) -> list[str]:
     return []
 
 
-def _assert_no_hang_in_own_code(out: str) -> None:
-    """A clean-up that ended only by its deadline (the node's forced exit) may have hung
-    in the middleware (rclpy or below), never in the package's own code."""
+def _forced_exit(out: str) -> bool:
+    """Whether a node's output shows its clean-up ended by the deadline: the deadline
+    thread's line, or faulthandler's 'Timeout (h:mm:ss)!' (the main thread kept the GIL)."""
     from ae_tactile.ros.node_utils import CLEANUP_FORCED_EXIT_TEXT
-    if CLEANUP_FORCED_EXIT_TEXT not in out:
-        return
+    return (CLEANUP_FORCED_EXIT_TEXT in out
+            or re.search(r"^Timeout \(\d+:\d\d:\d\d(?:\.\d+)?\)!$", out, flags=re.M) is not None)
+
+
+def _assert_no_hang_in_own_code(out: str) -> bool:
+    """A clean-up that ended only by its deadline (the node's forced exit) may have hung
+    in the middleware (rclpy or below), never in the package's own code. Returns whether
+    it ended so."""
+    if not _forced_exit(out):
+        return False
     import sysconfig
     frames = _stuck_frames(out)
     assert frames, f"a forced exit without the main thread's stack:\n{out}"
@@ -787,6 +812,7 @@ def _assert_no_hang_in_own_code(out: str) -> None:
                   frames[0])
     third_party = re.search(r"/(?:site|dist)-packages/(?!ae_tactile/)", caller)
     assert third_party, f"the clean-up hung in the package's own code:\n{out}"
+    return True
 
 
 _HANGING_CLEANUP_SCRIPT = """
@@ -807,8 +833,8 @@ with node_utils.ros_session(interrupt=False) as state:
         libc.pthread_mutex_init(mutex, None)
         libc.pthread_mutex_lock(mutex)
         libc.pthread_mutex_lock(mutex)
-    else:  # no signal: the session ends and its clean-up (rclpy's shutdown) gets stuck in
-        # a call that keeps the GIL (as rclpy's bindings keep it around the middleware's):
+    else:  # no signal: the session ends; 'gil-clean-up': its clean-up (rclpy's shutdown) gets
+        # stuck in a call that keeps the GIL (as rclpy's bindings keep it around the middleware's):
         # ctypes.PyDLL does not release it, so no Python thread runs again
         import rclpy
 
@@ -818,7 +844,12 @@ with node_utils.ros_session(interrupt=False) as state:
             libc.pthread_mutex_init(mutex, None)
             libc.pthread_mutex_lock(mutex)
             libc.pthread_mutex_lock(mutex)
-        rclpy.get_default_context().on_shutdown(stuck_with_the_gil)
+        if sys.argv[1] == "gil-clean-up":
+            rclpy.get_default_context().on_shutdown(stuck_with_the_gil)
+if sys.argv[1] == "ends":  # the clean-up ended in time: nothing may end the process later
+    time.sleep(float(sys.argv[2]) + 3.0)
+    print("still running", flush=True)
+    sys.exit(3)
 """
 
 
@@ -830,8 +861,9 @@ def test_a_stop_that_hangs_ends_at_its_deadline_with_the_stacks(tmp_path, where)
     further signal. 'gil-clean-up': a clean-up stuck inside a call that keeps the GIL,
     with no signal ever sent (no Python thread can run again, neither the signal watcher
     nor the deadline thread): the main thread armed the deadline as its clean-up began,
-    so faulthandler's own thread prints the stacks 2 s after it and ends the process
-    (exit code 1). Either way the main thread's innermost frame is in the script."""
+    so faulthandler's own thread prints the stacks 2 s after it and a C timer ends the
+    process with the session's exit code (0), as a launch expects of a stopped node.
+    Either way the main thread's innermost frame is in the script."""
     require_ros()
     script = tmp_path / "hang.py"
     script.write_text(_HANGING_CLEANUP_SCRIPT)
@@ -854,13 +886,27 @@ def test_a_stop_that_hangs_ends_at_its_deadline_with_the_stacks(tmp_path, where)
                 proc.wait(10)
     out = log.read_text()
     from ae_tactile.ros.node_utils import CLEANUP_FORCED_EXIT_TEXT
-    assert code == (0 if signalled else 1), out
+    assert code == 0, out
     assert (CLEANUP_FORCED_EXIT_TEXT in out) == signalled, out
+    assert _forced_exit(out), out
     frames = _stuck_frames(out)
     assert frames and frames[0].startswith(str(script)), out  # where it hung
     if not signalled:
         assert frames[0] == f"{script}:stuck_with_the_gil", out
     assert "Traceback" not in out, out
+
+
+def test_a_clean_up_that_ends_in_time_leaves_nothing_armed(tmp_path):
+    """A session whose clean-up ends within its deadline leaves no stack print and no
+    timed exit behind: the process runs on past the deadline and ends with its own code."""
+    require_ros()
+    script = tmp_path / "hang.py"
+    script.write_text(_HANGING_CLEANUP_SCRIPT)
+    proc = subprocess.run([sys.executable, str(script), "ends", "1.0"], cwd=tmp_path,
+                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                          env=dict(os.environ, PYTHONUNBUFFERED="1"), timeout=STOP_TIMEOUT_S)
+    assert proc.returncode == 3, proc.stdout
+    assert "still running" in proc.stdout and not _forced_exit(proc.stdout), proc.stdout
 
 
 @pytest.mark.parametrize("signals", [

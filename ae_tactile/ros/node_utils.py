@@ -43,6 +43,7 @@ from ae_tactile.ros.cpus import (  # noqa: F401  (public here too)
     hand_topic_problem,
     pin_process,
 )
+from ae_tactile.ros.exit_timer import start_exit_timer
 from ae_tactile.ros.node_help import (  # noqa: F401  (public here too)
     format_usage,
     module_params,
@@ -77,15 +78,20 @@ _STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 FORCE_EXIT_SIGNALS = 3
 
 
-def _start_cleanup_deadline(state: dict, done: threading.Event) -> None:
+def _start_cleanup_deadline(state: dict, done: threading.Event):
     """Bound the clean-up that the first stop signal starts: unless ``done`` is set within
     `CLEANUP_DEADLINE_S`, a daemon thread prints every thread's stack (to file descriptor
     2, whatever ``sys.stderr`` is) and ends the process with the stop's exit code. Should
     the main thread take the GIL for good meanwhile (stuck inside a call that never
-    releases it), faulthandler's own C thread does the same 2 s later, with exit code 1."""
+    releases it), no Python thread runs again: faulthandler's own C thread prints the
+    stacks 2 s later and a C timer (`exit_timer`) ends the process with the same exit
+    code 0.5 s after that (where no such timer can be made: faulthandler ends it, exit
+    code 1). Returns that timer (None without one), to be cancelled with the deadline."""
     deadline_s = float(CLEANUP_DEADLINE_S)
+    stuck_s = deadline_s + 2.0  # [s] after the Python thread's own chance, which prints more
+    exit_timer = start_exit_timer(stuck_s + 0.5, int(state.get("exit", 0)))
     try:
-        faulthandler.dump_traceback_later(deadline_s + 2.0, exit=True, file=2)
+        faulthandler.dump_traceback_later(stuck_s, exit=exit_timer is None, file=2)
     except (OSError, ValueError, RuntimeError):
         pass                                   # the deadline thread below still works
 
@@ -102,6 +108,7 @@ def _start_cleanup_deadline(state: dict, done: threading.Event) -> None:
 
     threading.Thread(target=leave_if_stuck, name="ae_tactile_cleanup_deadline",
                      daemon=True).start()
+    return exit_timer
 
 
 # ------------------------------------------------------------------ start and stop
@@ -159,12 +166,13 @@ class _CleanupDeadline:
         self.lock = threading.Lock()
         self.started = False
         self.closed = False
+        self.exit_timer = None
 
     def arm(self) -> None:
         with self.lock:
             if not self.started and not self.closed:
                 self.started = True
-                _start_cleanup_deadline(self.state, self.done)
+                self.exit_timer = _start_cleanup_deadline(self.state, self.done)
 
     def close(self) -> None:
         with self.lock:
@@ -173,6 +181,8 @@ class _CleanupDeadline:
         self.done.set()
         if started:            # (a timer armed by someone else, e.g. pytest's, stays)
             faulthandler.cancel_dump_traceback_later()
+            if self.exit_timer is not None:
+                self.exit_timer.cancel()
 
 
 def _start_watcher(undo: ExitStack, watch_signals) -> socket.socket:
