@@ -25,7 +25,7 @@ from ae_eval.everyday import (
 )
 from ae_eval.everyday.loaded import add_load
 from ae_eval.everyday.mixed import concat, mixed_stream
-from ae_eval.everyday.truth import GROSS, INC, NO, STICK
+from ae_eval.everyday.truth import GROSS, INC, NO, STICK, disc_xy
 from ae_tactile.records import EventType
 
 NS = 1_000_000_000
@@ -33,6 +33,26 @@ NS = 1_000_000_000
 
 def _kind(scene, name):
     return np.array(scene.kind_names()) == name
+
+
+def _skin(p, q, radius_m=10e-3):
+    """Great-circle distance [m] between the sphere points above in-plane p and q."""
+    a, b = (np.array([x, y, math.sqrt(radius_m**2 - x * x - y * y)]) for x, y in (p, q))
+    return radius_m * math.acos(min(1.0, float(a @ b) / radius_m**2))
+
+
+def test_a_ring_round_a_contact_off_the_apex_is_round_on_the_skin():
+    """Points drawn at one distance round a contact 5 mm off the apex are that far from
+    it along the skin in every direction (in the x-y plane they would lie on an ellipse,
+    ~15 % longer along the meridian)."""
+    rng = np.random.default_rng(5)
+    pts = disc_xy(rng, 5e-3, 0.0, 1e-3, 1e-3, 200)
+    d = [_skin((5e-3, 0.0), p) for p in pts]
+    assert np.allclose(d, 1e-3, rtol=1e-9)
+    # towards the apex the ring reaches polar angle theta - phi (phi = 1 mm / R)
+    theta, phi = math.asin(0.5), 0.1
+    assert 5e-3 - pts[:, 0].min() == pytest.approx(10e-3 * (0.5 - math.sin(theta - phi)),
+                                                   rel=1e-3)
 
 
 @pytest.mark.parametrize("held_out", [False, True])
@@ -49,7 +69,7 @@ def test_multi_point_one_touch_and_one_release_per_point(held_out):
         assert np.ptp(sc.t_s[rel]) <= sc.params["release_window_s"] + 1e-12
         assert sc.t_s[touch].max() < sc.t_s[rel].min()
         pts = sc.xy_m[touch]
-        d = [math.dist(p, q) for i, p in enumerate(pts) for q in pts[i + 1:]]
+        d = [_skin(p, q) for i, p in enumerate(pts) for q in pts[i + 1:]]
         lo, hi = (1.0e-3, 9e-3) if held_out else (1.5e-3, 7e-3)
         assert lo - 1e-12 <= min(d) and max(d) <= hi + 1e-12
         tl = sc.finger_timeline()
@@ -66,7 +86,7 @@ def test_broad_press_emissions_on_its_disc():
         assert _kind(sc, "touch").sum() == p["n_compressions"]
         assert _kind(sc, "release").sum() == p["n_releases"]
         c = sc.contacts[0]
-        r = np.hypot(sc.xy_m[:, 0] - c["x_m"], sc.xy_m[:, 1] - c["y_m"])
+        r = np.array([_skin((c["x_m"], c["y_m"]), q) for q in sc.xy_m])
         assert np.all(r <= p["disc_radius_m"] + 1e-12) and len(sc.contacts) == 1
         assert np.ptp(sc.t_s[_kind(sc, "touch")]) <= p["window_s"]
 
@@ -85,7 +105,7 @@ def test_load_ramp_micro_slips_follow_cattaneo_mindlin():
     # each micro-slip at the stick front c(q) = a (1 - q)^(1/3) or just outside it
     q = np.array(ep["q_micro"])
     m = _kind(sc, "micro_slip")
-    r = np.hypot(*sc.xy_m[m].T)
+    r = np.array([_skin((0.0, 0.0), p) for p in sc.xy_m[m]])
     c = a * (1.0 - q) ** (1.0 / 3.0)
     assert np.all(r >= c - 1e-12) and np.all(r <= c + 0.1 * (a - c) + 1e-12)
     assert ep["t_gross_s"] == pytest.approx(0.1 + ramp)

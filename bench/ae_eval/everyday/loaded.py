@@ -11,7 +11,7 @@ import math
 import numpy as np
 
 from .slides import add_slide, renewal_times
-from .truth import GROSS, INC, STICK, SceneBuilder, cap_xy, disc_xy, draw
+from .truth import GROSS, INC, STICK, SceneBuilder, around_xy, cap_xy, disc_xy, draw
 
 
 def slipped_fraction(q):
@@ -41,8 +41,7 @@ def add_load(b, cid, cx, cy, a_m, t0, ramp_s, n_micro, q_max=1.0, power=1.0,
     c = a_m * (1.0 - q) ** (1.0 / 3.0)
     r = c + rng.uniform(0.0, 0.1, q.size) * (a_m - c)
     th = rng.uniform(0.0, 2.0 * math.pi, q.size)
-    b.emit_many(t, np.column_stack([cx + r * np.cos(th), cy + r * np.sin(th)]),
-                rng.choice([-1, 1], q.size), "micro_slip", cid)
+    b.emit_many(t, around_xy(cx, cy, r, th), rng.choice([-1, 1], q.size), "micro_slip", cid)
     if q.size:
         b.state(float(t[0]), cid, INC)
     t_q = t0 + ramp_s * q_max ** (1.0 / power)
@@ -136,7 +135,7 @@ def regrasp(seed, held_out=False):
     _release(b, c1, cx, cy, t_rel)
     d = draw(rng, 1e-3, 3e-3) if held_out else draw(rng, 0.5e-3, 3e-3)
     h = rng.uniform(0.0, 2.0 * math.pi)
-    x2, y2 = cx + d * math.cos(h), cy + d * math.sin(h)
+    x2, y2 = (float(v) for v in around_xy(cx, cy, d, h)[0])
     t2 = t_rel + (draw(rng, 0.02, 1.0, True) if held_out else draw(rng, 0.05, 0.5))
     c2 = b.contact(x2, y2, t2, 0.0, touch=True, release=False)
     ramp2, n2, _, _, _ = _ramp_draws(rng, held_out)

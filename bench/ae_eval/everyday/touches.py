@@ -10,21 +10,21 @@ import math
 
 import numpy as np
 
-from .truth import SceneBuilder, cap_xy, disc_xy, draw
+from .truth import SceneBuilder, around_xy, cap_xy, disc_xy, draw, skin_distance_m
 
 CAP_R_MAX_M = 7.5e-3  # [m] points stay within this tangent radius (polar angle ~ 49 deg)
 
 
 def spaced_points(rng, n, d_lo, d_hi, first=None, tries=400):
-    """(n, 2) [m] points on the cap, every pair d_lo .. d_hi [m] apart (each new point at
-    a drawn distance from a random earlier one); ``first`` fixes the first point."""
+    """(n, 2) [m] points on the cap, every pair d_lo .. d_hi [m] apart along the skin (each
+    new point at a drawn distance from a random earlier one); ``first`` fixes the first."""
     for _ in range(tries):
         pts = [first if first is not None else cap_xy(rng, 4e-3)]
         while len(pts) < n:
             b = pts[rng.integers(len(pts))]
             d, a = rng.uniform(d_lo, d_hi), rng.uniform(0.0, 2.0 * math.pi)
-            p = (b[0] + d * math.cos(a), b[1] + d * math.sin(a))
-            dd = [math.dist(p, q) for q in pts]
+            p = tuple(float(v) for v in around_xy(b[0], b[1], d, a)[0])
+            dd = [skin_distance_m(p, q) for q in pts]
             if math.hypot(*p) <= CAP_R_MAX_M and min(dd) >= d_lo and max(dd) <= d_hi:
                 pts.append(p)
             elif rng.uniform() < 0.05:
@@ -54,7 +54,7 @@ def multi_point(seed, held_out=False):
     for i in range(n):
         b.contact(pts[i, 0], pts[i, 1], float(t_on[i]), float(t_off[i]))
     b.params.update(n_points=n, window_s=win, hold_s=hold, release_window_s=rwin,
-                    min_spacing_m=float(min(math.dist(p, q) for i, p in enumerate(pts)
+                    min_spacing_m=float(min(skin_distance_m(p, q) for i, p in enumerate(pts)
                                              for q in pts[i + 1:])))
     return b.build()
 
@@ -139,5 +139,5 @@ def tap_beside_held(seed, held_out=False, duration_s=None):
         x, y = (disc_xy(rng, p[1, 0], p[1, 1], 0.0, 1e-3, 1)[0] if held_out else p[1])
         b.contact(float(x), float(y), float(ti), float(ti + hi))
     b.params.update(tap_rate_hz=rate, n_taps=int(t.size), duration_s=dur,
-                    distance_m=float(math.dist(p[0], p[1])))
+                    distance_m=skin_distance_m(p[0], p[1]))
     return b.build()

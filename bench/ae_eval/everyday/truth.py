@@ -52,11 +52,38 @@ def cap_xy(rng, r_max_m=5e-3):
     return r * math.cos(th), r * math.sin(th)
 
 
+def around_xy(cx, cy, r_m, heading_rad, geometry=GEOMETRY):
+    """(n, 2) [m] the points ``r_m`` [m] along the skin (great circles) from the surface
+    point above (cx, cy), leaving it at ``heading_rad`` (0: towards +x, pi/2: towards +y,
+    in its tangent plane), as in-plane (x, y). A disc or ring round a contact is then
+    round on the skin: drawn in the x-y plane it would be an ellipse stretched 1 / cos
+    (polar angle) along the meridian (15 % at 5 mm off the apex of a 10 mm sphere)."""
+    r = np.atleast_1d(np.asarray(r_m, dtype=float))
+    h = np.atleast_1d(np.asarray(heading_rad, dtype=float))
+    R = geometry.radius_m
+    n = geometry.surface_point_from_xy(cx, cy) / R
+    e1 = np.array([1.0, 0.0, 0.0]) - n[0] * n        # +x in the tangent plane
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)                              # +y (right-handed about the normal)
+    u = np.cos(h)[:, None] * e1 + np.sin(h)[:, None] * e2
+    phi = (r / R)[:, None]
+    p = R * (np.cos(phi) * n + np.sin(phi) * u)
+    return p[:, :2]
+
+
+def skin_distance_m(p, q, geometry=GEOMETRY) -> float:
+    """The distance [m] along the skin between the surface points above in-plane p and q."""
+    a, b = geometry.surface_point_from_xy(*p), geometry.surface_point_from_xy(*q)
+    R = geometry.radius_m
+    return float(R * math.acos(min(1.0, max(-1.0, float(a @ b) / (R * R)))))
+
+
 def disc_xy(rng, cx, cy, r_lo, r_hi, n):
-    """(n, 2) [m] points uniform by area in the annulus r_lo <= r <= r_hi round (cx, cy)."""
+    """(n, 2) [m] points uniform by area in the annulus r_lo <= r <= r_hi [m] (along the
+    skin) round the surface point above (cx, cy)."""
     r = np.sqrt(rng.uniform(r_lo**2, r_hi**2, n))
     th = rng.uniform(0.0, 2.0 * math.pi, n)
-    return np.column_stack([cx + r * np.cos(th), cy + r * np.sin(th)])
+    return around_xy(cx, cy, r, th)
 
 
 @dataclass
