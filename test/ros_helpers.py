@@ -4,8 +4,14 @@ reading what /proc says of the processes they start."""
 import os
 import time
 
+#: The longest a test waits for what a working system does [s]: a guard against a hang,
+#: never a bound on speed (a node's first start after an install compiles its numba
+#: kernels for about a minute; a loaded 2-core machine is slow). Waits for something
+#: that must *not* happen pass their own short time.
+HANG_GUARD_S = 180.0
 
-def spin_until(executor, predicate, timeout_s=10.0):
+
+def spin_until(executor, predicate, timeout_s=HANG_GUARD_S):
     """Spin `executor` until predicate() is true or the timeout passes; return predicate()."""
     deadline = time.monotonic() + timeout_s
     while not predicate() and time.monotonic() < deadline:
@@ -13,7 +19,7 @@ def spin_until(executor, predicate, timeout_s=10.0):
     return predicate()
 
 
-def wait_for_subscribers(executor, publisher, count=1, timeout_s=10.0):
+def wait_for_subscribers(executor, publisher, count=1, timeout_s=HANG_GUARD_S):
     """Wait until DDS discovery matched `count` subscriptions to `publisher`."""
     return spin_until(executor, lambda: publisher.get_subscription_count() >= count, timeout_s)
 

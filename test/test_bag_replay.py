@@ -203,7 +203,7 @@ def test_live_packets_record_and_replay(ros_context, tmp_path):
     for n in (sim, drv, loc, rec):
         ex.add_node(n)
     try:
-        spin_until(ex, lambda: sim.device.finished(time.monotonic_ns()), 10.0)
+        spin_until(ex, lambda: sim.device.finished(time.monotonic_ns()))
         # until every published packet is recorded, localized and its event received
         assert spin_until(
             ex,
@@ -212,7 +212,6 @@ def test_live_packets_record_and_replay(ros_context, tmp_path):
                 and loc.idle()
                 and len(live) == loc.counts["events"]
             ),
-            10.0,
         ), f"localized {loc.counts['packets']} of {drv.published_packets}, idle {loc.idle()}"
         spin_until(ex, lambda: False, 0.3)
     finally:

@@ -30,13 +30,13 @@ def driver_and_client(ros_context, tmp_path):
     ex = SingleThreadedExecutor(context=ros_context)
     ex.add_node(drv)
     ex.add_node(client_node)
-    assert spin_until(ex, lambda: client.services_are_ready(), 20.0)
+    assert spin_until(ex, lambda: client.services_are_ready())
 
     def set_params(**values):
         fut = client.set_parameters(
             [Parameter(k.replace("__", "."), value=v) for k, v in values.items()]
         )
-        assert spin_until(ex, fut.done, 20.0)
+        assert spin_until(ex, fut.done)
         return fut.result().results
 
     yield drv, set_params
@@ -159,10 +159,10 @@ def test_a_fingertip_whose_body_disagrees_with_the_parameters_wins_with_one_warn
     for n in (sim, drv, listener):
         ex.add_node(n)
     try:
-        assert spin_until(ex, lambda: drv._body_warned, 30.0)
+        assert spin_until(ex, lambda: drv._body_warned)
         assert drv.geometry.sound_speed_m_s == pytest.approx(1480.0)
         assert drv.pipeline.localizer.geometry.sound_speed_m_s == pytest.approx(1480.0)
-        assert spin_until(ex, lambda: infos and infos[-1].medium == "water_skin", 20.0)
+        assert spin_until(ex, lambda: infos and infos[-1].medium == "water_skin")
         assert infos[-1].sound_speed_m_s == pytest.approx(1480.0)
     finally:
         ex.shutdown()
@@ -237,14 +237,14 @@ def test_localizer_node_rejects_bad_packets_one_by_one_and_counts_missing_ones(r
     ex.add_node(loc)
     ex.add_node(node)
     try:
-        assert spin_until(ex, lambda: pub.get_subscription_count() >= 1, 20.0)
+        assert spin_until(ex, lambda: pub.get_subscription_count() >= 1)
         pub.publish(_packet_array(list(range(8)), bad=(3, 6)))
-        assert spin_until(ex, lambda: len(got) >= 6 and loc.idle(), 30.0)
+        assert spin_until(ex, lambda: len(got) >= 6 and loc.idle())
         assert sorted(e.packet_ids[0] for e in got) == [0, 1, 2, 4, 5, 7]
         assert loc.counts["rejected_MALFORMED_sample_rate"] == 1
         assert loc.counts["rejected_MALFORMED_too_short"] == 1
         pub.publish(_packet_array([5000]))  # 4992 packets never arrived
-        assert spin_until(ex, lambda: len(got) >= 7 and loc.idle(), 30.0)
+        assert spin_until(ex, lambda: len(got) >= 7 and loc.idle())
         assert loc.counts["packets_missing"] == 5000 - 8
     finally:
         ex.shutdown()
