@@ -902,7 +902,8 @@ def test_a_clean_up_that_ends_in_time_leaves_nothing_armed(tmp_path):
     require_ros()
     script = tmp_path / "hang.py"
     script.write_text(_HANGING_CLEANUP_SCRIPT)
-    proc = subprocess.run([sys.executable, str(script), "ends", "1.0"], cwd=tmp_path,
+    # a 3 s deadline: the clean-up (rclpy's shutdown with no node) takes milliseconds
+    proc = subprocess.run([sys.executable, str(script), "ends", "3.0"], cwd=tmp_path,
                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                           env=dict(os.environ, PYTHONUNBUFFERED="1"), timeout=STOP_TIMEOUT_S)
     assert proc.returncode == 3, proc.stdout
