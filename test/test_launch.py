@@ -1230,8 +1230,8 @@ def test_a_hand_drops_the_bursts_every_fingertip_sees_and_keeps_its_touches(laun
         run.output()[-4000:]
     s.probe.spin_for(3.0)  # the last held packets are decided and reported
 
-    def counts(f):
-        name = f"/hand/{f}/driver: localization"
+    def counts(f, what="localization"):
+        name = f"/hand/{f}/driver: {what}"
         st = [st for m in diag for st in m.status if st.name == name]
         return {kv.key: kv.value for kv in st[-1].values} if st else {}
 
@@ -1254,7 +1254,10 @@ def test_a_hand_drops_the_bursts_every_fingertip_sees_and_keeps_its_touches(laun
     for f in ("index", "thumb"):
         c = counts(f)
         late = int(c.get("hand_reports_late", 0))
-        said = f"{f}: counts\n" + "\n".join(f"  {k} = {v}" for k, v in sorted(c.items()))
+        link = {k: v for k, v in counts(f, "fingertip link").items()
+                if k.startswith(("clock", "read_lag", "behind", "latency"))}
+        said = f"{f}: counts\n" + "\n".join(
+            f"  {k} = {v}" for k, v in sorted(c.items()) + sorted(link.items()))
         assert late <= 0.5 * n_bursts, said
         apex = sorted(time_msg_to_ns(e.header.stamp) for e in apex_events(f))
         assert len(apex) <= 0.01 * n_bursts + late, (
