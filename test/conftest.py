@@ -15,6 +15,7 @@ import random
 import signal
 import sys
 import tempfile
+import time
 
 import pytest
 
@@ -89,6 +90,69 @@ def _logger_class_kept():
     cls = logging.getLoggerClass()
     yield
     logging.setLoggerClass(cls)
+
+
+@pytest.fixture(autouse=True)
+def _pipelines_closed(monkeypatch):
+    """Every `ContactPipeline` a test builds is closed when the test ends, as the driver
+    closes its own: else its overlap resolver's worker process and its pulse learner's
+    fit process (a niced fit of minutes) outlive the test and take CPU from the tests
+    after it, until pytest exits. A pipeline a module-scoped fixture builds is made
+    before this fixture and is that fixture's to close."""
+    from ae_tactile.pipeline import core
+
+    made = []
+    init = core.ContactPipeline.__init__
+
+    def tracked(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        made.append(self)
+
+    monkeypatch.setattr(core.ContactPipeline, "__init__", tracked)
+    yield
+    for pipe in made:
+        pipe.close()
+
+
+#: the package's helper processes a pipeline starts (`python -m ...`)
+_HELPERS = ("ae_tactile.localization.overlap_worker", "ae_tactile.localization.overlap.fit_job")
+
+
+def _helper_children() -> dict:
+    """{pid: command} of this process's children that are the package's helpers."""
+    found = {}
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            with open(f"/proc/{pid}/stat") as fh:
+                fields = fh.read().rsplit(")", 1)[1].split()
+            if int(fields[1]) != os.getpid() or fields[0] == "Z":
+                continue
+            with open(f"/proc/{pid}/cmdline", "rb") as fh:
+                cmd = fh.read().replace(b"\0", b" ").decode(errors="replace")
+        except (OSError, IndexError, ValueError):
+            continue
+        if any(h in cmd for h in _HELPERS):
+            found[int(pid)] = cmd
+    return found
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _no_helper_process_left():
+    """A test module leaves none of the helper processes it started running (a closed
+    pipeline's worker and fit end at once; killed ones are given the hang guard's time to
+    go)."""
+    before = set(_helper_children())
+    yield
+    from ros_helpers import HANG_GUARD_S
+
+    deadline = time.monotonic() + HANG_GUARD_S
+    left = {}
+    while time.monotonic() < deadline:
+        left = {p: c for p, c in _helper_children().items() if p not in before}
+        if not left:
+            break
+        time.sleep(0.1)
+    assert not left, f"helper processes left running by this module: {left}"
 
 
 @pytest.fixture
