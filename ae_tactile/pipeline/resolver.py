@@ -362,3 +362,12 @@ class OverlapResolver:
         except queue.Full:
             pass
         self._thread.join(3.0)
+        shared = self._shared  # first: the thread clears _proc before _shared
+        proc = self._proc
+        if self._thread.is_alive() and proc is not None and shared is None:
+            # the thread still waits on its own worker (loading its kernels, or busy on a
+            # window): end the worker, and the thread ends by itself (EOF on its pipe)
+            try:
+                proc.kill()
+            except OSError:
+                pass
