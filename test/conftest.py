@@ -119,20 +119,19 @@ _HELPERS = ("ae_tactile.localization.overlap_worker", "ae_tactile.localization.o
 
 
 def _helper_children() -> dict:
-    """{pid: command} of this process's children that are the package's helpers."""
+    """{pid: command} of this process's children that are the package's helpers (a
+    zombie's command line is empty: an ended helper not yet reaped is not one)."""
+    from ros_helpers import children
+
     found = {}
-    for pid in filter(str.isdigit, os.listdir("/proc")):
+    for pid in children(os.getpid()):
         try:
-            with open(f"/proc/{pid}/stat") as fh:
-                fields = fh.read().rsplit(")", 1)[1].split()
-            if int(fields[1]) != os.getpid() or fields[0] == "Z":
-                continue
             with open(f"/proc/{pid}/cmdline", "rb") as fh:
                 cmd = fh.read().replace(b"\0", b" ").decode(errors="replace")
-        except (OSError, IndexError, ValueError):
+        except OSError:
             continue
         if any(h in cmd for h in _HELPERS):
-            found[int(pid)] = cmd
+            found[pid] = cmd
     return found
 
 
