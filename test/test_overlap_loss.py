@@ -81,6 +81,29 @@ def test_no_wrong_point_on_a_lossy_body_once_its_pulse_is_learnt(lossy_learner):
             assert not r.accepted or r.n_dropped or r.n_refused, i
 
 
+def test_pairs_on_a_lossy_body_resolved_within_the_pulses_own_misfit(lossy_learner):
+    """The same kind of pairs resolved: both emissions within 0.1 mm of the truth in >= 90 %
+    of 20 (issue 37's target). A learnt pulse leaves its own misfit on every emission
+    (the body's loss and dispersion are learnt approximately), 2-15x a single touch's
+    share on an overlapping pair: the residual test allows it (the allowance the model
+    order grants a spurious emission); with the noise's chi^2 limit alone ~30 % of such
+    pairs were rejected."""
+    cfg, learner = lossy_learner
+    rng = np.random.default_rng(37)
+    n = 20
+    d = simulate_overlaps(n, cfg, separation_s=rng.uniform(2e-6, 10e-6, n),
+                          amplitude_ratio=2.0, snr_db=25.0, rng=rng)
+    out = resolve_overlaps(d["samples_v"], cfg.sample_rate_hz, d["onset_index"],
+                           geometry=cfg.geometry, pulse=learner.pulse, exhaustive=True)
+    ok = 0
+    for i, r in enumerate(out):
+        pts = np.array([s.point_m for s in r.sources]).reshape(-1, 3)
+        if len(pts) >= 2:
+            err = np.linalg.norm(pts[:, None, :] - d["points_m"][i][None], axis=2)
+            ok += bool((err.min(axis=0) <= 0.1e-3).all() and (err.min(axis=1) <= 0.1e-3).all())
+    assert ok >= 18, ok
+
+
 def test_the_loss_is_kept_only_where_it_clearly_lowers_the_misfit():
     """Model selection (`loss._keep_loss`): chi^2 ratios of the candidates under the
     lossless pulse and under the pulse with a loss, limit 1.2 each."""

@@ -161,7 +161,10 @@ def _answers(
         dof = max(N[i] - 5 * j, 1)
         ratio = rss / (sigma2[i] * dof)
         noise_v = float(np.sqrt(sigma2[i]) * scale[i])
-        limit = float(_chi2_limit(n_noise[i], dof, max_chi2_ratio))
+        # the noise's chi^2 quantile plus the pulse's own misfit: the residual a right fit
+        # of a learnt pulse leaves (the allowance `_model_order` grants a spurious emission)
+        limit = float(_chi2_limit(n_noise[i], dof, max_chi2_ratio)) + _misfit_ratio(
+            misfit_share, energy[i], sigma2[i], dof)
         times = theta[:, 2].tolist()
         too_close = j > 1 and min(b - a for a, b in zip(times, times[1:])) < min_separation_s
         if not math.isfinite(ratio) or ratio > limit or too_close:
@@ -231,6 +234,15 @@ def _model_order(fits, sigma2, max_sources, add_threshold, energy=None, misfit_s
         J[step] = j
         going &= step
     return J, refused
+
+
+def _misfit_ratio(misfit_share, energy, sigma2, dof) -> float:
+    """[1] The pulse's misfit allowance, MISFIT_ALLOWANCE x ``misfit_share`` x the
+    window's ``energy``, as a chi^2 ratio over ``dof`` samples of noise variance
+    ``sigma2`` (0 for the nominal pulse)."""
+    if misfit_share <= 0.0 or energy is None:
+        return 0.0
+    return MISFIT_ALLOWANCE * misfit_share * float(energy) / (float(sigma2) * dof)
 
 
 def _source_energy(fit, j):
