@@ -61,18 +61,23 @@ def test_the_learner_finds_a_lossy_bodys_loss_and_the_file_keeps_it(lossy_learne
     assert again.pulse.misfit_share == 0.0
 
 
+def _lossy_pairs(lossy_learner, n, seed):
+    """(`simulate_overlaps` record, `resolve_overlaps` answers) of ``n`` pairs on the lossy
+    body (2-10 us apart, 1:2, 25 dB on the weaker) with its learnt pulse."""
+    cfg, learner = lossy_learner
+    rng = np.random.default_rng(seed)
+    d = simulate_overlaps(n, cfg, separation_s=rng.uniform(2e-6, 10e-6, n),
+                          amplitude_ratio=2.0, snr_db=25.0, rng=rng)
+    return d, resolve_overlaps(d["samples_v"], cfg.sample_rate_hz, d["onset_index"],
+                               geometry=cfg.geometry, pulse=learner.pulse, exhaustive=True)
+
+
 def test_no_wrong_point_on_a_lossy_body_once_its_pulse_is_learnt(lossy_learner):
     """Pairs on the lossy body (2-10 us apart, 1:2, 25 dB on the weaker), resolved with its
     learnt pulse: no point handed out lies farther than 0.5 mm from both true emissions
     (the simulator's truth), and a window giving fewer than two points says why (a
     rejection, or emissions dropped or refused, counted)."""
-    cfg, learner = lossy_learner
-    rng = np.random.default_rng(21)
-    n = 10
-    d = simulate_overlaps(n, cfg, separation_s=rng.uniform(2e-6, 10e-6, n),
-                          amplitude_ratio=2.0, snr_db=25.0, rng=rng)
-    out = resolve_overlaps(d["samples_v"], cfg.sample_rate_hz, d["onset_index"],
-                           geometry=cfg.geometry, pulse=learner.pulse, exhaustive=True)
+    d, out = _lossy_pairs(lossy_learner, 10, 21)
     for i, r in enumerate(out):
         pts = np.array([s.point_m for s in r.sources]).reshape(-1, 3)
         err = np.linalg.norm(pts[:, None, :] - d["points_m"][i][None], axis=2)
@@ -88,13 +93,7 @@ def test_pairs_on_a_lossy_body_resolved_within_the_pulses_own_misfit(lossy_learn
     share on an overlapping pair: the residual test allows it (the allowance the model
     order grants a spurious emission); with the noise's chi^2 limit alone ~30 % of such
     pairs were rejected."""
-    cfg, learner = lossy_learner
-    rng = np.random.default_rng(37)
-    n = 20
-    d = simulate_overlaps(n, cfg, separation_s=rng.uniform(2e-6, 10e-6, n),
-                          amplitude_ratio=2.0, snr_db=25.0, rng=rng)
-    out = resolve_overlaps(d["samples_v"], cfg.sample_rate_hz, d["onset_index"],
-                           geometry=cfg.geometry, pulse=learner.pulse, exhaustive=True)
+    d, out = _lossy_pairs(lossy_learner, 20, 37)
     ok = 0
     for i, r in enumerate(out):
         pts = np.array([s.point_m for s in r.sources]).reshape(-1, 3)
