@@ -70,6 +70,8 @@ def test_fused_check_answers_as_its_two_reference_tests(dtype):
     for _ in range(600):
         x, onset, nv = packets(rng)
         if dtype is np.int16:
+            if not np.isfinite(x).all():
+                continue  # ADC counts carry no NaN
             x = np.rint(x * 2**11)
         x = x.astype(dtype)
         fs = float(rng.choice([1e6, 10e6, 40e6]))
