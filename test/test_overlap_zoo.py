@@ -359,6 +359,40 @@ def test_the_live_pipeline_learns_the_pulse_and_resolves_pairs(live_rc2):
     assert c["pulse_converged"] == 0
 
 
+def test_live_pairs_use_the_channel_delays_the_localizer_applies():
+    """A device with channel delays (a held-out draw, 35 / 30 / 5 / 2 ns). Channel delays
+    of the form d_k = beta . e_k (e_k the element's offset) look like a moved point, by
+    ~|beta| R c: the pulse learner, from a few dozen single touches, may learn them
+    poorly (docs/overlap.md, Limits). Once the driver's localizer applies channel delays
+    (its channel-delay learner identifies them over many touches), the resolver fits with
+    them in place of the pulse's own: with the device's delays >= 90 % of 20 pairs have
+    both emissions within 0.1 mm; with the same plus a 0.3 mm point-shift pattern, <= 20 %
+    (the resolver follows the localizer's delays)."""
+    dev = held_out(2026, 3)[0]
+    true = np.array(dev.fields["channel_delay_s"])
+    true -= true.mean()
+    cfg = dev.config("water_skin", 10e6, reflections=True)
+    geo = cfg.geometry
+    beta = np.array([0.3e-3, 0.0]) / (geo.radius_m * geo.sound_speed_m_s)  # [s/m]
+    shifted = true + geo.element_positions_m[:, :2] @ beta
+    rng = np.random.default_rng(5)
+    pipe = _pipeline(cfg)
+    ok = {}
+    try:
+        learner, _ = _learn_live(pipe, cfg, rng)
+        assert learner.converged, learner.state()
+        d = pairs(cfg, 20, rng)
+        for k, (name, delays) in enumerate((("device", true), ("shifted", shifted))):
+            pipe.localizer.localizer.set_channel_delays(delays)
+            used = pipe.overlaps.learnt_pulse_at(10e6)
+            assert np.allclose(used.channel_delay_s, delays, rtol=0.0, atol=1e-13)
+            assert used.channel_gain == learner.pulse.channel_gain  # the rest of it kept
+            ok[name] = sum(_resolved(d, _pairs_live(pipe, d, id0=60_000 + 10_000 * k)))
+    finally:
+        pipe.close()
+    assert ok["device"] >= 18 and ok["shifted"] <= 4, ok
+
+
 def test_no_pulse_fit_before_an_overlapping_window(live_rc2):
     """The driver's pulse learner keeps candidates from the first single touches but
     starts no fit (a process of 10-30 s of a core) until the pipeline has seen a window

@@ -93,6 +93,9 @@ class OverlapStage:
         self.covered_tol_s = covered_tol_s
         self.idle = idle
         self.resolver = resolver
+        #: () -> the channel delays [s] the driver's localizer applies, or None: handed to
+        #: the resolver (`OverlapResolver.channel_delays`)
+        self.channel_delays: Callable[[], object] | None = None
         self._on_late, self._on_window_done = on_late, on_window_done
         self._on_hold, self._on_unhold = on_hold, on_unhold
         self.lock = threading.Lock()
@@ -129,6 +132,7 @@ class OverlapStage:
                 geometry, self._on_late, on_done=self._window_done, idle=self.idle,
                 learner=self.pulse_learner, on_idle=self._late_turn,
             )
+        self.resolver.channel_delays = self.channel_delays
         if wait_s > 0:
             self.resolver.ready.wait(wait_s)
 
@@ -176,7 +180,7 @@ class OverlapStage:
             return
         self._late_busy = 1  # `pending` counts the packets being checked till handed on
         try:
-            found, clean = self.late.run(self.resolver.geometry, self.pulse_learner.pulse_at)
+            found, clean = self.late.run(self.resolver.geometry, self.resolver.learnt_pulse_at)
             if found:  # the emission each handed out already: its answer's nearest source
                 with self.lock:
                     self._late_out.update((p.sequence_id, pt) for p, pt in found)

@@ -15,6 +15,7 @@ import subprocess
 import sys
 import threading
 from collections import Counter
+from dataclasses import replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -69,6 +70,10 @@ class OverlapResolver:
         self.geometry = geometry
         #: called from this thread when it has no window to answer (the late check)
         self.on_idle = on_idle
+        #: () -> the front end's channel delays (4,) [s] the driver's channel-delay learner
+        #: applies, or None (`ContactPipeline` sets it): they replace the learnt pulse's own
+        self.channel_delays: Callable[[], object] | None = None
+        self._delayed = (None, None, None)  # (learnt pulse, delays, the two combined)
         #: the pulse learnt from the device's single emissions: used once it is trusted
         self.learner = learner
         self.idle = bool(idle)
@@ -134,11 +139,32 @@ class OverlapResolver:
         once trusted (at that rate, when given), else the configured one (None: the
         default `PulseModel.for_sample_rate`, untrusted: a window it does not explain is
         rejected and counted, ``overlap_rejected_UNRESOLVED``)."""
+        if self.learner is None:
+            return self.pulse
+        learnt = self.learnt_pulse_at(sample_rate_hz)
+        return learnt if learnt is not None else self.pulse
+
+    def learnt_pulse_at(self, sample_rate_hz: float | None = None):
+        """The learnt pulse once trusted (at ``sample_rate_hz`` [Hz], when given), else None;
+        with the channel delays the driver's channel-delay learner applies (`channel_delays`)
+        in place of the pulse's own: from a few dozen single touches the pulse learner
+        determines their xy (twist) contrast well, their x and y contrasts (a shift of every
+        point, ~|beta| R c for d_k = beta . e_k) poorly; the channel-delay learner identifies
+        those over many touches (docs/localization.md, Channel delays)."""
         learner = self.learner
         if learner is None:
-            return self.pulse
+            return None
         learnt = learner.pulse if sample_rate_hz is None else learner.pulse_at(sample_rate_hz)
-        return learnt if learnt is not None else self.pulse
+        get = self.channel_delays
+        d = get() if (learnt is not None and get is not None) else None
+        if d is None:
+            return learnt
+        d = tuple(float(v) for v in d)
+        pulse, delays, combined = self._delayed
+        if pulse is not learnt or delays != d:  # one combined pulse per change (its tables)
+            combined = replace(learnt, channel_delay_s=d)
+            self._delayed = (learnt, d, combined)
+        return combined
 
     def submit(self, packets: Sequence, *, quick_first: bool = True, hard: bool = False) -> list:
         """Queue windows for the resolver (``quick_first=False``: windows whose quick
