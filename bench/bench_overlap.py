@@ -51,6 +51,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ae_eval.crlb import joint_crlb  # noqa: E402
+from ae_eval.delays import DELAY_WARM_TOUCHES  # noqa: E402
 from ae_eval.overlap_trials import live_device, simulate_overlaps  # noqa: E402
 from ae_eval.zoo import ZOO, held_out  # noqa: E402
 from ae_tactile.localization import NUMBA_AVAILABLE, localize  # noqa: E402
@@ -705,6 +706,7 @@ def zoo_main(args):
         setup=dict(pairs_per_device=args.pairs, seed=args.seed, held_out=args.held_out,
                    medium="water_skin", fs_hz=10e6, separation_us="uniform 2-10",
                    ratio=2, snr_db_weaker=25, singles_snr_db=30, max_singles=48,
+                   delay_touches=DELAY_WARM_TOUCHES,
                    fit="learner's process (niced)" if args.fit_process else "inline",
                    machine=platform.platform(), load_before=os.getloadavg(),
                    wall_s=round(time.perf_counter() - t0, 1),
@@ -746,7 +748,10 @@ def zoo_table(out) -> str:
         f"{s['wall_s']} s wall). Pairs: water, 10 MS/s, 2-10 us apart, 1:{s['ratio']}, "
         f"{s['snr_db_weaker']} dB on the weaker, wall echo unless the device has none; "
         "each window through `ContactPipeline.process` (its resolver and worker). "
-        "*Cold*: the nominal pulse; *warm*: after the pipeline's pulse learner was fed "
+        "*Cold*: the nominal pulse; *warm*: the pipeline's localizer applying the channel "
+        f"delays a driver learns from {s.get('delay_touches', 0):,} ordinary touches "
+        "(`ae_eval.delays`), then its "
+        "pulse learner fed "
         f"single touches ({s['singles_snr_db']} dB, batches of 12, at most "
         f"{s['max_singles']}) until it trusted a pulse (fit: {s['fit']}). Resolved: both "
         "emissions within 0.1 mm of the simulator's truth. Wrong: a point > 0.5 mm from "

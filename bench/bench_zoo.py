@@ -39,6 +39,8 @@ from pathlib import Path
 import numpy as np
 from scipy import linalg
 
+from ae_eval.delays import cap_points as _cap_points
+from ae_eval.delays import learnt_delays
 from ae_eval.overlap_trials import simulate_overlaps
 from ae_eval.zoo import NOMINAL, ZOO, held_out
 from ae_eval.zoo_slip import device_slip_figures
@@ -56,12 +58,6 @@ CHI2_68 = 2.2957
 ECHO_GUARD_S = 0.3e-6
 
 
-def _cap_points(geo, n, g, max_polar_deg, min_polar_deg=0.0):
-    cos_t = g.uniform(math.cos(math.radians(max_polar_deg)),
-                      math.cos(math.radians(min_polar_deg)), n)
-    return geo.surface_point_from_angles(np.arccos(cos_t), g.uniform(0, 2 * math.pi, n))
-
-
 def _views(samples, fs, onset, id0, g, t0_ns=0):
     """Packet views at random times over 1 s after t0_ns (no periodic train for the train
     screen)."""
@@ -75,9 +71,6 @@ def _views(samples, fs, onset, id0, g, t0_ns=0):
 #: touches and releases over the cap, as a fingertip in use gives (what the pipeline may
 #: learn from, through the driver's own path: `ContactPipeline.process` + idle work)
 WARM_TOUCHES = 300
-#: touches a driver has localized before the accuracy cells: what it learns the channel
-#: delays from (one in two kept while learning: ~1,000 measured)
-DELAY_WARM_TOUCHES = 2000
 WARM_SPAN_S = 30.0
 
 
@@ -192,24 +185,6 @@ def true_cov_crlb(cfg, pts, snr_db, g):
     return out
 
 
-def learnt_delays(dev, medium, fs, g, n=DELAY_WARM_TOUCHES):
-    """The channel delay offsets [s] (4,) a driver's PacketLocalizer has in use after ``n``
-    ordinary touches of this device (polar 0-70 deg, 25-40 dB), or None (none applied)."""
-    cfg = dev.config(medium, fs)
-    pl = PacketLocalizer("ml", geometry=cfg.geometry, reject_interference=False,
-                         resolve_overlaps=False)
-    for k in range(0, n, 200):
-        m = min(200, n - k)
-        pk = render_triggered(_cap_points(cfg.geometry, m, g, 70.0), cfg,
-                              snr_db=g.uniform(25.0, 40.0, m), rng=g)
-        # a touch every 25 ms: under the learning's rate limit (DELAY_LEARN_MAX_RATE_HZ)
-        views = [PacketView(pk.samples_v[i], fs, int(pk.onset_index[i]), (k + i) * 25 * 10**6,
-                            k + i) for i in range(m)]
-        for i in range(0, m, 8):
-            pl.process(views[i : i + 8])
-    return pl.localizer.channel_delays_s
-
-
 def accuracy_cell(dev, medium, fs, snr_db, n, g, delays_s=None):
     cfg = dev.config(medium, fs)
     pts = _cap_points(cfg.geometry, n, g, 40.0)
@@ -293,7 +268,8 @@ def run_device(dev, grid, counts, seed):
     out["apex"] = apex_vs_interference(dev, counts["apex"], g)
     # the cells as the driver localizes once it has learnt the channel delays (per medium
     # and rate), and cold (nothing learnt)
-    delays = {(m, fs): learnt_delays(dev, m, fs, g) for m, fs in {(m, fs) for m, fs, _ in grid}}
+    delays = {(m, fs): learnt_delays(dev.config(m, fs), g)
+              for m, fs in {(m, fs) for m, fs, _ in grid}}
     out["cells"] = [accuracy_cell(dev, m, fs, s, counts["cell"], g, delays[m, fs])
                     for m, fs, s in grid]
     cold = [accuracy_cell(dev, m, fs, s, counts["cell"], g) for m, fs, s in grid]

@@ -436,7 +436,7 @@ def overlap_zoo_rows(d) -> list[str]:
     nom = "n/a" if nominal is None else f"{nominal['warm_resolved_pct']:g} %"
     return [
         f"| device zoo: overlapping pairs (2-10 us apart) resolved by the driver's pipeline"
-        f" after it learnt the device's pulse | nominal {nom}, worst"
+        f" after it learnt the device's channel delays and pulse | nominal {nom}, worst"
         f" {worst('zoo', 'warm_resolved_pct')}, held-out worst"
         f" {worst('held-out', 'warm_resolved_pct')}; pulse trusted on {trusted}"
         f" of {len(devs)} devices; second emission lost without a count in {silent} of"

@@ -222,20 +222,24 @@ def live_pairs(pipe, d, id0, tol_m=0.1e-3, wrong_m=0.5e-3):
 
 
 def live_device(dev, *, n_pairs=20, max_singles=48, rng=None, sample_rate_hz=10e6,
-                medium="water_skin", fit_in_process=False):
+                medium="water_skin", fit_in_process=False, delay_touches=None):
     """One device through the driver's pipeline (`ContactPipeline`, defaults, its resolver
     and worker process): pairs cold (the nominal pulse), then single touches (30 dB,
     batches of 12) until the pipeline's pulse learner trusts a pulse or ``max_singles``
     were given, then the same pairs warm. The fit runs in the calling thread at normal
     priority (the same fit; ``fit_in_process``: in the niced process of its own, as in
-    the driver, where on a loaded machine it waits for idle time).
+    the driver, where on a loaded machine it waits for idle time). Before the single
+    touches, the pipeline's localizer gets the channel delays a driver learns from
+    ``delay_touches`` ordinary touches (None: `ae_eval.delays.DELAY_WARM_TOUCHES`, 0:
+    none), which the resolver then fits with.
 
     Pairs: 2-10 us apart (uniform), 1:2, 25 dB on the weaker, wall echo unless the device
     says otherwise (`simulate_overlaps`). Returns a dict of the figures.
     """
     import time  # lazy: only the live-path trials time anything
 
-    from ae_tactile.pipeline import ContactPipeline, PacketLocalizer  # lazy: see above
+    from ae_eval.delays import DELAY_WARM_TOUCHES, learnt_delays  # lazy: see above
+    from ae_tactile.pipeline import ContactPipeline, PacketLocalizer
 
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     cfg = dev.config(medium, sample_rate_hz, reflections=True)
@@ -245,6 +249,12 @@ def live_device(dev, *, n_pairs=20, max_singles=48, rng=None, sample_rate_hz=10e
         d = simulate_overlaps(n_pairs, cfg, separation_s=gen.uniform(2e-6, 10e-6, n_pairs),
                               amplitude_ratio=2.0, snr_db=25.0, rng=gen)
         cold = live_pairs(pipe, d, 100_000)
+        # the channel delays a driver learns in its first minutes (its own stream of draws:
+        # the pairs and singles are those of a run without)
+        n_delay = DELAY_WARM_TOUCHES if delay_touches is None else int(delay_touches)
+        delays = learnt_delays(cfg, np.random.default_rng([sum(map(ord, dev.name)), 37]),
+                               n_delay) if n_delay else None
+        pipe.localizer.localizer.set_channel_delays(delays)
         learner = pipe.overlap_stage.pulse_learner
         learner.background = "process" if fit_in_process else False
         learner.reset()  # the pairs' blends are no learning material: start clean
@@ -275,5 +285,6 @@ def live_device(dev, *, n_pairs=20, max_singles=48, rng=None, sample_rate_hz=10e
         cold_wrong=int(cold["wrong"].sum()), warm_wrong=int(warm["wrong"].sum()),
         cold_silent=int(cold["silent"].sum()), warm_silent=int(warm["silent"].sum()),
         cold_counted=int(cold["counted"].sum()), warm_counted=int(warm["counted"].sum()),
+        delays_learnt_ns=None if delays is None else [round(float(v) * 1e9, 2) for v in delays],
         warm_late_found=int(late),
     )
