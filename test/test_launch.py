@@ -863,6 +863,17 @@ if sys.argv[1] == "ends":  # the clean-up ended in time: nothing may end the pro
     sys.exit(3)
 """
 
+_LATE_SIGINT_SCRIPT = """
+import os, signal, sys
+from ae_tactile.ros import node_utils
+with node_utils.ros_session(interrupt=False) as state:
+    os.kill(os.getpid(), signal.SIGINT)  # a terminal's Ctrl-C
+    state["stop"].wait()
+os.kill(os.getpid(), signal.SIGINT)  # launch's own SIGINT, after the quick clean-up
+print("left", flush=True)
+sys.exit(3)
+"""
+
 
 @pytest.mark.parametrize("where", ["clean-up", "call", "gil-clean-up"])
 def test_a_stop_that_hangs_ends_at_its_deadline_with_the_stacks(tmp_path, where):
@@ -919,6 +930,22 @@ def test_a_clean_up_that_ends_in_time_leaves_nothing_armed(tmp_path):
                           env=dict(os.environ, PYTHONUNBUFFERED="1"), timeout=STOP_TIMEOUT_S)
     assert proc.returncode == 3, proc.stdout
     assert "still running" in proc.stdout and not _forced_exit(proc.stdout), proc.stdout
+
+
+def test_a_second_sigint_after_the_clean_up_does_not_end_the_process_by_the_signal(tmp_path):
+    """A stopped node whose clean-up ended before the second SIGINT of a Ctrl-C under
+    `ros2 launch` (the terminal's reaches every process of the group, then launch sends its
+    own) leaves with its own exit code: the signal is ignored once the session has
+    stopped, not handed back to Python's default (which ends the process by the signal,
+    exit code -2: launch then reports the node as died)."""
+    require_ros()
+    script = tmp_path / "late.py"
+    script.write_text(_LATE_SIGINT_SCRIPT)
+    proc = subprocess.run([sys.executable, str(script)], cwd=tmp_path, stdout=subprocess.PIPE,
+                          stderr=subprocess.STDOUT, text=True, timeout=STOP_TIMEOUT_S,
+                          env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    assert proc.returncode == 3 and "left" in proc.stdout, (proc.returncode, proc.stdout)
+    assert "Traceback" not in proc.stdout, proc.stdout
 
 
 @pytest.mark.parametrize("signals", [

@@ -4,7 +4,8 @@
 - `run_node` / `ros_session`: the first SIGINT or SIGTERM asks the process to stop; the
   second (a terminal's Ctrl-C reaches every process of the group, then `ros2 launch`
   sends its own SIGINT) is ignored while the nodes are destroyed, *before* the context
-  is shut down, so no callback or publisher thread meets an invalid context; a third
+  is shut down, so no callback or publisher thread meets an invalid context, and a SIGINT
+  after the session (a clean-up quicker than launch's signal) is ignored too; a third
   forces the exit, and so does a clean-up still running `CLEANUP_DEADLINE_S` after the
   first or after it began (every thread's stack printed first). Exit code 0 on a signal,
   2 when a node refused its parameters or ROS could not read its arguments (e.g. a
@@ -223,9 +224,11 @@ def _stop_on_signals(state: dict):
     stop = state["stop"]
     deadline = _CleanupDeadline(state)
     interrupted = [False]          # the handler raised its one KeyboardInterrupt
+    signalled = [False]            # a stop signal came: the process is leaving
 
     def handler(signum, frame):
         # (not 'the first signal': the watcher below may have set the event already)
+        signalled[0] = True
         stop.set()
         if state["interrupt"] and not interrupted[0]:
             interrupted[0] = True
@@ -239,11 +242,20 @@ def _stop_on_signals(state: dict):
         previous_wakeup = signal.set_wakeup_fd(wake_write.fileno(), warn_on_full_buffer=False)
         undo.callback(signal.set_wakeup_fd, previous_wakeup)
         for sig in _STOP_SIGNALS:
-            undo.callback(signal.signal, sig, signal.signal(sig, handler))
+            undo.callback(_after_session, sig, signal.signal(sig, handler), signalled)
         sys.unraisablehook = _quiet_unraisable(stop, previous_hook)
         undo.callback(setattr, sys, "unraisablehook", previous_hook)
         undo.callback(deadline.close)
         yield
+
+
+def _after_session(sig, previous, signalled) -> None:
+    """At the end of a session, ``sig``'s handler from before it; SIGINT ignored instead
+    once a stop signal came (``signalled[0]``): a terminal's Ctrl-C reaches every process
+    of the group and `ros2 launch` sends its own SIGINT, and one arriving after a quick
+    clean-up, while the process leaves, would end it by the signal (exit code -2)."""
+    stopping = signalled[0] and sig == signal.SIGINT
+    signal.signal(sig, signal.SIG_IGN if stopping else previous)
 
 
 def _nothing() -> None:
