@@ -27,6 +27,16 @@ standard error is below ``tolerance`` times the delay noise of the best-measured
 of the packets (a bias it could leave is then small beside any packet's noise), or once
 it lies 3 standard errors or more from zero (taking it out leaves less bias than it
 removes), with at least ``min_count`` packets in: before that the localizer is unchanged.
+
+The same residuals test the localizer's noise model: with its delay noise right they are
+y_i ~ N(n_i . d, var_i). A device whose delay noise is larger shows it there, and
+`fit_delay_noise` fits the two ways it is larger, a scale of var_i (coloured noise) and an
+error of each channel's own at any SNR (aliasing). Once that fit explains the residuals
+better by `DELAY_NOISE_DEVIANCE`, the localizer's covariances carry it (``applied_noise``,
+`Localizer.set_channel_delays`): a point's covariance then covers its error on such a
+device instead of claiming the white-noise bound. A bias the four arrivals share (one
+that moves every channel alike, e.g. a lossy body's dispersion) leaves no residual and is
+not seen.
 """
 
 from __future__ import annotations
@@ -58,6 +68,11 @@ DELAY_SIGNIFICANT = 3.0
 DELAY_TRIM_SIGMA = 4.0
 #: largest offset difference taken as a channel delay [s]: beyond, a wiring or model fault
 MAX_OFFSET_S = 1e-6
+#: the residuals' own noise model (`fit_delay_noise`) is applied once it explains them
+#: better than the localizer's by this deviance (chi^2 of 2 degrees of freedom, p = 0.003)
+DELAY_NOISE_DEVIANCE = 11.8
+#: largest noise scale taken (a larger one is a fault of the model, not of the noise)
+MAX_NOISE_SCALE = 100.0
 _FORMAT = 1
 
 
@@ -96,6 +111,51 @@ def free_shifts(zb, w_rad_s, iterations: int = 3):
         step = np.clip(np.nan_to_num(step), -cap, cap)
         delta += step - step.mean(axis=1, keepdims=True)
     return delta
+
+
+def fit_delay_noise(r, var):
+    """The noise model the residuals ``r`` [s] (K,) of packets whose delay noise the
+    localizer puts at ``var`` [s^2] (K,) show: r_k ~ N(0, scale var_k + sd^2), maximum
+    likelihood, ``scale`` >= 1, ``sd`` >= 0.
+
+    ``scale``: the delay noise is that many times the white-noise model's (coloured
+    amplifier noise through the front end; it grows with the noise). ``sd``: each channel's
+    arrival carries an error of its own of that size at any SNR (a sampled waveform that is
+    no exact delayed copy of the others': aliasing behind a weak anti-alias filter, a
+    front end that rings differently per channel). A residual is one unit combination of
+    the four arrivals, so it carries sd^2 in full; tau_x and tau_y (a quarter of a sum of
+    four arrivals) carry sd^2 / 4 each (`delay_noise_covariance`).
+
+    Parameters
+    ----------
+    r, var : ndarray, (K,)
+
+    Returns
+    -------
+    tuple
+        (scale, sd [s], deviance: 2 ln L(scale, sd) - 2 ln L(1, 0) >= 0).
+    """
+    from scipy.optimize import minimize  # lazy: a learner's thread only, not every import
+
+    r2 = np.asarray(r, float) ** 2
+    v = np.asarray(var, float)
+    v0 = float(np.median(v))
+
+    def nll(q):
+        tot = q[0] * v + q[1] * v0
+        return float(np.sum(np.log(tot) + r2 / tot))
+
+    base = nll((1.0, 0.0))
+    best = None
+    for start in ((1.0, 0.0), (max(1.0, float(np.mean(r2 / v))), 0.0),
+                  (1.0, max(0.0, float(np.mean(r2)) / v0 - 1.0))):
+        res = minimize(nll, start, method="L-BFGS-B",
+                       bounds=[(1.0, MAX_NOISE_SCALE), (0.0, (0.99 * MAX_OFFSET_S) ** 2 / v0)])
+        if np.isfinite(res.fun) and (best is None or res.fun < best.fun):
+            best = res
+    if best is None or not best.fun < base:
+        return 1.0, 0.0, 0.0
+    return float(best.x[0]), math.sqrt(float(best.x[1]) * v0), 2.0 * (base - float(best.fun))
 
 
 def residual_normals(geometry: FingertipGeometry, point_m):
@@ -186,8 +246,9 @@ class ChannelDelayLearner:
         if not (int(keep) >= 8 and int(min_count) >= 4 and tolerance > 0):
             raise ValueError("keep >= 8, min_count >= 4 and tolerance > 0 needed")
         self.keep, self.min_count, self.tolerance = int(keep), int(min_count), float(tolerance)
-        #: called with ``applied_delays_s`` whenever it may have changed (a refit, a load,
-        #: a reset): the owner hands it to its `Localizer.set_channel_delays`
+        #: called with ``applied_delays_s`` and ``applied_noise`` whenever they may have
+        #: changed (a refit, a load, a reset): the owner hands them to its
+        #: `Localizer.set_channel_delays`
         self.on_update = None
         self._lock = threading.RLock()  # a learning thread, the store's saves and loads
         self.reset()
@@ -213,11 +274,23 @@ class ChannelDelayLearner:
         self.applied_delays_s = None
         #: packets used by the last fit (after trimming)
         self.n_used = 0
+        #: the delay noise the residuals show (`fit_delay_noise`): scale of the localizer's
+        #: white-noise variance, per-channel timing error [s], deviance over the localizer's
+        self.noise_scale, self.timing_sd_s, self.noise_deviance = 1.0, 0.0, 0.0
+        #: (scale, sd [s]) applied to the localizer's covariances: (1, 0) until the
+        #: residuals show their own noise by DELAY_NOISE_DEVIANCE
+        self.applied_noise = (1.0, 0.0)
         self._notify()
 
     def _notify(self) -> None:
         if self.on_update is not None:
-            self.on_update(self.applied_delays_s)
+            self.on_update(*self.applied)
+
+    @property
+    def applied(self) -> tuple:
+        """(``applied_delays_s``, ``applied_noise``): `Localizer.set_channel_delays`'s
+        arguments."""
+        return self.applied_delays_s, self.applied_noise
 
     @property
     def all_converged(self) -> bool:
@@ -273,6 +346,8 @@ class ChannelDelayLearner:
             self.precise[:] = False
             self.stderr_s[:] = np.inf
             self.n_used = 0
+            self.noise_scale, self.timing_sd_s, self.noise_deviance = 1.0, 0.0, 0.0
+            self.applied_noise = (1.0, 0.0)
             self._notify()
             return
         u, y, w = self._u, self._y, 1.0 / self._var
@@ -286,13 +361,24 @@ class ChannelDelayLearner:
             if (new == keep).all() or new.sum() < 8:
                 break
             keep = new
+        # the residuals' own noise model, and the offsets weighted by it
+        self.noise_scale, self.timing_sd_s, self.noise_deviance = fit_delay_noise(
+            (y - u @ beta)[keep], self._var[keep])
+        noisy = self.noise_deviance >= DELAY_NOISE_DEVIANCE
+        self.applied_noise = (self.noise_scale, self.timing_sd_s) if noisy else (1.0, 0.0)
+        if noisy:
+            w = 1.0 / (self.noise_scale * self._var + self.timing_sd_s**2)
+            a = (u[keep] * w[keep, None]).T @ u[keep]
+            beta = np.linalg.lstsq(a, (u[keep] * w[keep, None]).T @ y[keep], rcond=None)[0]
+            z = (y - u @ beta) * np.sqrt(w)
         m = int(keep.sum())
         a = (u[keep] * w[keep, None]).T @ u[keep]
         chi2 = float(np.sum(z[keep] ** 2)) / max(m - 3, 1)
         cov = np.linalg.pinv(a) * chi2
         self.stderr_s = np.sqrt(np.maximum(np.diag(cov), 0.0))
         self.delays_s = CONTRASTS.T @ beta
-        noise = math.sqrt(float(np.quantile(self._var[keep], 0.1)))
+        scale, sd = self.applied_noise
+        noise = math.sqrt(float(np.quantile(scale * self._var[keep] + sd * sd, 0.1)))
         # precise beside the packets' noise, or clearly not zero (taking it out then
         # leaves less bias than it removes)
         self.precise = self.stderr_s <= self.tolerance * noise
@@ -368,5 +454,8 @@ class ChannelDelayLearner:
         d = " / ".join(f"{v * 1e9:+.1f}" for v in self.delays_s)
         se = " / ".join(f"{v * 1e9:.1f}" for v in self.stderr_s)
         on = ",".join(n for n, c in zip(("x", "y", "xy"), self.converged) if c) or "none"
+        scale, sd = self.applied_noise
+        noise = (f"delay noise {scale:.2f} x the model's + {sd * 1e9:.1f} ns per channel"
+                 if (scale, sd) != (1.0, 0.0) else "delay noise as modelled")
         return (f"offsets {d} ns (x/y/xy se {se} ns) from {self.n_used} packets; "
-                f"applied: {on}")
+                f"applied: {on}; {noise}")

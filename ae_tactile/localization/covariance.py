@@ -89,6 +89,13 @@ def _safe_inv2(m):
     return np.where(ok[:, None, None], inv, np.nan), ok
 
 
+def delay_noise_covariance(timing_sd_s):
+    """(2, 2) [s^2]: what independent per-channel arrival errors of ``timing_sd_s`` [s] add
+    to the covariance of (tau_x, tau_y), each a quarter of a signed sum of the four
+    arrivals (`FingertipGeometry.delays_from_arrival_times`)."""
+    return np.eye(2) * (float(timing_sd_s) ** 2 / 4.0)
+
+
 def delay_covariance_from_fisher(F_eps):
     """C_tau (K, 2, 2) for (tau_x, tau_y) from F_eps (pseudo-inverse on the rank-3 space)."""
     # F_eps 1 = 0; F + (1 1^T)/4 is invertible and its inverse acts as F^+ on contrasts.

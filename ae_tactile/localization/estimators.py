@@ -33,6 +33,7 @@ from ae_tactile.localization.common import (
     primary_reason,
     validate_windows,
 )
+from ae_tactile.localization.covariance import delay_noise_covariance
 from ae_tactile.localization.events import (
     confidence,
     polarity_amplitude,
@@ -115,6 +116,7 @@ def localize(
     pre_onset_s=1e-6,
     echo_guard_s=0.3e-6,
     engine=None,
+    delay_noise=None,
     **options,
 ) -> LocalizationResult:
     """Localize K packets (see the module docstring).
@@ -127,10 +129,8 @@ def localize(
         Sample rate [Hz], > 0.
     onset_index : array_like of int, (K,)
         First sample at/after the earliest arrival (the detector's or the simulator's).
-    method : str
-        A name in `available_methods()` (default ``"ml"``).
-    geometry : FingertipGeometry, optional
-        The fingertip (default tip).
+    method : str, geometry : FingertipGeometry, optional
+        A name in `available_methods()` (default ``"ml"``); the fingertip (default tip).
     band_hz : (float, float), optional
         Signal band [Hz] of the estimators; None: ``ml`` picks each packet's upper edge
         from its spectrum, the others use `default_band_hz(fs)`.
@@ -140,16 +140,16 @@ def localize(
     saturated, full_scale_v : array_like of bool (K,), float, optional
         Upstream clip flags; ADC clip level [V]. With neither, a flat top of >= max(4,
         0.3 us fs) samples at a channel's dominant extreme flags saturation.
-    channel_gains : array_like (4,), optional
-        Relative gains of the 4 channels (divided out).
+    channel_gains : array_like (4,), optional: the channels' relative gains (divided out).
     min_snr_db, overlap_threshold : float
-        LOW_SNR below this [dB]; OVERLAP when the excess misfit exceeds that (default
-        per method).
+        LOW_SNR below this [dB]; OVERLAP above that excess misfit (default per method).
     pre_onset_s, echo_guard_s : float
-        Noise samples end this long before the onset [s]; the analysis ends this long
-        before the first wall echo [s].
+        Noise ends this long before the onset [s]; analysis, before the first echo [s].
     engine : {None, "numba", "numpy"}
         None: the compiled kernel for ``ml`` when numba is available.
+    delay_noise : (float, float), optional
+        A device's delay noise (`ChannelDelayLearner.applied_noise`), carried by the
+        covariances: (scale >= 1, per-channel timing sd [s]); None: the model's.
     **options
         Passed to the estimator (e.g. ``iterations=``).
 
@@ -166,10 +166,11 @@ def localize(
     x, onset = validate_windows(windows, onset_index, copy=eng != "numba")
     plan = _plan(sample_rate_hz, geo, x.shape[2], band_hz, pre_onset_s, echo_guard_s, method)
     min_snr_db, thr = _thresholds(info, min_snr_db, overlap_threshold)
+    dn = delay_noise_arg(delay_noise)
     same = identical_channels(x, onset, noise := _noise_arg(noise_rms_v, x.shape[0]))
     if eng == "numba":
         return _reject_identical(_localize_compiled(x, onset, plan, method, options, noise,
-            saturated, full_scale_v, channel_gains, min_snr_db, thr), same)
+            saturated, full_scale_v, channel_gains, min_snr_db, thr, dn), same)
     if x.shape[0] == 0:
         return _empty(method, options)
     with np.errstate(all="ignore"):
@@ -177,7 +178,23 @@ def localize(
                        saturated=saturated, full_scale_v=full_scale_v,
                        channel_gains=channel_gains)
         return _reject_identical(_finish(info.function(prep, plan, **options), prep, plan,
-                                         geo, method, min_snr_db, thr, options), same)
+                                         geo, method, min_snr_db, thr, options, dn), same)
+
+
+def delay_noise_arg(delay_noise):
+    """A checked delay noise (scale, timing sd [s]): None or (1, 0) -> None (the model's);
+    ValueError unless 1 <= scale < inf and 0 <= sd < 1 us."""
+    if delay_noise is None:
+        return None
+    try:
+        scale, sd = (float(v) for v in delay_noise)
+    except (TypeError, ValueError):
+        raise ValueError(f"delay_noise must be (scale, timing_sd_s), got {delay_noise!r}") \
+            from None
+    if not (1.0 <= scale < np.inf and 0.0 <= sd < 1e-6):
+        raise ValueError("delay_noise needs 1 <= scale < inf and 0 <= timing_sd_s < 1 us, "
+                         f"got {delay_noise!r}")
+    return None if (scale, sd) == (1.0, 0.0) else (scale, sd)
 
 
 def _reject_identical(res, same):
@@ -209,7 +226,7 @@ def _thresholds(info, min_snr_db, overlap_threshold):
 
 
 def _localize_compiled(x, onset, plan, method, options, noise, saturated, full_scale_v,
-                       channel_gains, min_snr_db, thr):
+                       channel_gains, min_snr_db, thr, delay_noise=None):
     """`localize` through the compiled ``ml`` kernel (`fast.run_batch`)."""
     k = x.shape[0]
     iterations = _iterations(options)
@@ -233,6 +250,7 @@ def _localize_compiled(x, onset, plan, method, options, noise, saturated, full_s
         iterations=iterations,
         min_snr_db=min_snr_db,
         thr=thr,
+        delay_noise=delay_noise,
     )
     return _result_from_kernel(method, options, out, pt, cov, ctau)
 
@@ -318,7 +336,7 @@ def _point_covariance(geo, point, theta, c_tau, cov_ok):
     return point, theta, cov, c_tau_safe, finite_pt
 
 
-def _finish(core, prep, plan, geo, method, min_snr_db, thr, options):
+def _finish(core, prep, plan, geo, method, min_snr_db, thr, options, delay_noise=None):
     flags = prep.flags.copy()
     mis, sigma2, snr, excess = _noise_snr_excess(core, prep)
     flags[snr < min_snr_db] |= 1 << Reason.LOW_SNR
@@ -328,6 +346,8 @@ def _finish(core, prep, plan, geo, method, min_snr_db, thr, options):
     point = np.asarray(core["point"], float)
     clamped = np.asarray(core["clamped"], bool).copy()
     c_tau, cov_ok = core["covariance"](sigma2)
+    if delay_noise is not None:  # the device's own delay noise (the kernel's cnoise)
+        c_tau = delay_noise[0] * c_tau + delay_noise_covariance(delay_noise[1])
     c_tau = np.where(np.isfinite(c_tau), c_tau, np.nan)
     # Horizon check on the raw delays of the method.
     raw = np.asarray(core["raw_delays"], float)

@@ -694,10 +694,13 @@ def _packet(
     cov,
     ctau,
     cdel,
+    cnoise,
 ):
     """One packet. out: 16 scalars (see estimators.PacketLocation); pt (3,), cov (3, 3),
     ctau (2, 2). tabs: `Tables.packed`. cdel (4,): the channels' own delays [s] (each
-    arrival is modelled t_k(s) + cdel[k]; zeros: none)."""
+    arrival is modelled t_k(s) + cdel[k]; zeros: none). cnoise (2,): the device's delay
+    noise, (scale of the model's tau covariance, variance [s^2] added to tau_x and tau_y;
+    `channel_delays.fit_delay_noise`; (1, 0): the model's)."""
     cc, sc, ca, sa, wa, lc, ls, max_lag, geo, ints, fc, fa, auto, scal = tabs
     fs, max_step, lag0, win2 = scal[0], scal[1], int(scal[2]), scal[3]
     pre, L, snr_len, flat_run, max_shift, stop_s, span, n_al = (
@@ -926,6 +929,9 @@ def _packet(
         t01 = a0 * jo + a1 * jd
         t11 = b0 * jo + b1 * jd
         cov_ok = math.isfinite(t00) and math.isfinite(t01) and math.isfinite(t11)
+        t00 = cnoise[0] * t00 + cnoise[1]
+        t01 = cnoise[0] * t01
+        t11 = cnoise[0] * t11 + cnoise[1]
     else:
         t00 = t01 = t11 = 0.0
     # ---- horizon check on the start's delays
@@ -1048,6 +1054,7 @@ def _batch(
     cov,
     ctau,
     cdel,
+    cnoise,
 ):
     for i in range(x.shape[0]):
         _packet(
@@ -1068,18 +1075,20 @@ def _batch(
             cov[i],
             ctau[i],
             cdel,
+            cnoise,
         )
 
 
 def run_batch(
     x, onset, tables: Tables, *, noise_rms, sat, full_scale, gains, iterations, min_snr_db, thr,
-    channel_delays_s=None,
+    channel_delays_s=None, delay_noise=None,
 ):
     """Localize K packets with the kernel. x (K, 4, M) float32/float64 C-contiguous,
     onset (K,) int64, noise_rms (K,) float (NaN: measure), sat (K,) int8 (-1 unknown),
     full_scale float (NaN: unknown), gains (4,) or None, channel_delays_s (4,) float64 [s]
-    or None (the channels' own delays, taken out of the arrivals). Returns (out (K, 16),
-    point (K, 3), covariance (K, 3, 3), delay covariance (K, 2, 2))."""
+    or None (the channels' own delays, taken out of the arrivals), delay_noise (scale,
+    timing sd [s]) or None (`noise_args`). Returns (out (K, 16), point (K, 3), covariance
+    (K, 3, 3), delay covariance (K, 2, 2))."""
     k = x.shape[0]
     out = np.empty((k, N_SCALAR_OUT))
     pt = np.empty((k, 3))
@@ -1106,12 +1115,24 @@ def run_batch(
         cov,
         ctau,
         _ZEROS if channel_delays_s is None else channel_delays_s,
+        noise_args(delay_noise),
     )
     return out, pt, cov, ctau
 
 
 _ONES = np.ones(4)
 _ZEROS = np.zeros(4)
+_MODEL_NOISE = np.array([1.0, 0.0])
+
+
+def noise_args(delay_noise):
+    """The kernel's cnoise (2,) of a delay noise (scale, per-channel timing sd [s]) or None
+    (the model's): (scale, sd^2 / 4), what tau_x and tau_y each gain
+    (`covariance.delay_noise_covariance`)."""
+    if delay_noise is None:
+        return _MODEL_NOISE
+    scale, sd = delay_noise
+    return np.array([float(scale), float(sd) ** 2 / 4.0])
 
 
 def run_one(
@@ -1130,9 +1151,11 @@ def run_one(
     cov,
     ctau,
     channel_delays_s=None,
+    cnoise=_MODEL_NOISE,
 ):
     """One (4, M) window into out (16,), pt (3,), cov (3, 3), ctau (2, 2) (see `_packet`);
-    channel_delays_s: (4,) float64 [s] or None (the channels' own delays)."""
+    channel_delays_s: (4,) float64 [s] or None (the channels' own delays); cnoise: the
+    delay noise as `noise_args` gives it."""
     if gains is None:
         g, has, grms = _ONES, False, 1.0
     else:
@@ -1155,4 +1178,5 @@ def run_one(
         cov,
         ctau,
         _ZEROS if channel_delays_s is None else channel_delays_s,
+        cnoise,
     )

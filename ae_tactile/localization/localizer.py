@@ -21,6 +21,7 @@ from ae_tactile.localization.estimators import (
     _plan,
     _positive_arg,
     _reject_identical,
+    delay_noise_arg,
     localize,
     resolve_engine,
 )
@@ -103,37 +104,49 @@ class Localizer:
         self._default_geometry = kwargs.get("geometry") or FingertipGeometry()
         #: the channels' own delays taken out of the arrivals (`set_channel_delays`) [s]
         self.channel_delays_s = None
+        #: the device's delay noise the covariances carry (`set_channel_delays`): (scale,
+        #: per-channel timing sd [s]), None: the white-noise model's
+        self.delay_noise = None
+        self._cnoise = fast.noise_args(None)
 
-    def set_channel_delays(self, channel_delays_s) -> None:
+    def set_channel_delays(self, channel_delays_s, delay_noise=None) -> None:
         """Model each channel's arrival as t_k(s) + d_k from now on (``ml`` only; the other
         estimators ignore it): the front end's per-channel delay, e.g. a
-        `ae_tactile.localization.ChannelDelayLearner`'s ``applied_delays_s``.
+        `ae_tactile.localization.ChannelDelayLearner`'s ``applied_delays_s``; and the
+        delay noise its residuals show (its ``applied_noise``), carried by every
+        covariance from now on (every method).
 
         Parameters
         ----------
         channel_delays_s : array_like (4,) or None
             d_k [s], finite, |d_k| < 1 us (a common part only shifts the emission
             instant); None: no correction.
+        delay_noise : (float, float) or None
+            (scale >= 1 of the model's delay covariance, each channel's own timing error
+            [s], 0 <= sd < 1 us); None: the model's.
 
         Returns
         -------
         None
             ValueError on a bad value (nothing changed then).
         """
+        dn = delay_noise_arg(delay_noise)
         if channel_delays_s is None:
-            self.channel_delays_s = None
-            return
-        d = np.array(channel_delays_s, dtype=np.float64).reshape(-1)
-        if d.shape != (4,) or not np.isfinite(d).all() or np.abs(d).max() >= 1e-6:
-            raise ValueError(
-                "channel_delays_s must be 4 finite delays below 1 us [s], got "
-                f"{channel_delays_s!r}"
-            )
-        self.channel_delays_s = d if d.any() else None
+            d = None
+        else:
+            d = np.array(channel_delays_s, dtype=np.float64).reshape(-1)
+            if d.shape != (4,) or not np.isfinite(d).all() or np.abs(d).max() >= 1e-6:
+                raise ValueError(
+                    "channel_delays_s must be 4 finite delays below 1 us [s], got "
+                    f"{channel_delays_s!r}"
+                )
+        self.channel_delays_s = d if d is not None and d.any() else None
+        self.delay_noise, self._cnoise = dn, fast.noise_args(dn)
 
     def __call__(self, windows, sample_rate_hz, onset_index, **overrides):
         kw = dict(self.kwargs)
         kw.update(overrides)
+        kw.setdefault("delay_noise", self.delay_noise)
         d = self.channel_delays_s
         if d is None or self.method != "ml":
             return localize(windows, sample_rate_hz, onset_index, method=self.method, **kw)
@@ -160,7 +173,7 @@ class Localizer:
             x, onset, self._tables(fs, x.shape[2], geo), noise_rms=noise, sat=sat,
             full_scale=self._full_scale, gains=_gains_arg(kw.get("channel_gains")),
             iterations=self._iterations, min_snr_db=self._min_snr_db, thr=self._thr,
-            channel_delays_s=d,
+            channel_delays_s=d, delay_noise=self.delay_noise,
         )
         res = _result_from_kernel(self.method, {"iterations": self._iterations}, out, pt, cov,
                                   ctau)
@@ -246,7 +259,8 @@ class Localizer:
         cov = np.empty((3, 3))
         ctau = np.empty((2, 2))
         fast.run_one(x, on, nr, sat, self._full_scale, gains, tb, self._iterations,
-                     self._min_snr_db, self._thr, out, pt, cov, ctau, self.channel_delays_s)
+                     self._min_snr_db, self._thr, out, pt, cov, ctau, self.channel_delays_s,
+                     self._cnoise)
         loc = PacketLocation(out, pt, cov, ctau)
         if check_identical and packet_identical(x, on, nr):
             _reject_identical_one(loc)
@@ -269,7 +283,8 @@ class Localizer:
             kw.pop("geometry")
             res = self(x[None], sample_rate_hz, [onset_index], geometry=geo, **kw)
         else:
-            res = localize(x[None], sample_rate_hz, [onset_index], method=self.method, **kw)
+            res = localize(x[None], sample_rate_hz, [onset_index], method=self.method,
+                           delay_noise=self.delay_noise, **kw)
         return PacketLocation.from_result(res, 0)
 
     def warm_up(self, geometry=None, sample_rate_hz=10e6, n_samples=400):

@@ -223,13 +223,13 @@ class PacketLocalizer:
         out["channel_delays"] = self.delay_learner
         return out
 
-    def _set_delays(self, delays_s) -> None:
-        """The learner's offsets to the localizer in use (`ChannelDelayLearner.on_update`);
-        from the learning thread they wait for the next hand-off (`_hand_off_delays`)."""
+    def _set_delays(self, delays_s, noise=None) -> None:
+        """The learner's offsets and delay noise to the localizer (its ``on_update``); from
+        the learning thread they wait for the next hand-off (`_hand_off_delays`)."""
         if self._deferring or threading.current_thread() is self._delay_thread:
-            self._delays_next = (delays_s,)
+            self._delays_next = (delays_s, noise)
         else:
-            self.localizer.set_channel_delays(delays_s)
+            self.localizer.set_channel_delays(delays_s, noise)
 
     def stash_delays(self, found) -> None:
         """Keep (copies of) the confident single emissions of a call for `_hand_off_delays`:
@@ -260,7 +260,7 @@ class PacketLocalizer:
         if self._delay_done is not None:
             self._delay_done.wait()
         if self._delays_next is not None:
-            self.localizer.set_channel_delays(self._delays_next[0])
+            self.localizer.set_channel_delays(*self._delays_next)
             self._delays_next = None
         if self.learn_inline:
             self._deferring = True
@@ -346,7 +346,7 @@ class PacketLocalizer:
             localizer = Localizer(cfg.method, min_snr_db=cfg.min_snr_db)
         # everything checked: apply what was given
         if localizer is not None:
-            localizer.set_channel_delays(self.delay_learner.applied_delays_s)
+            localizer.set_channel_delays(*self.delay_learner.applied)
             self.localizer = localizer
             self._one = getattr(localizer, "localize_one", None)
             self.method, self.min_snr_db = cfg.method, cfg.min_snr_db
