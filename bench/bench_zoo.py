@@ -40,7 +40,7 @@ import numpy as np
 from scipy import linalg
 
 from ae_eval.delays import cap_points as _cap_points
-from ae_eval.delays import learnt_delays
+from ae_eval.delays import learnt_channel_model
 from ae_eval.overlap_trials import simulate_overlaps
 from ae_eval.zoo import NOMINAL, ZOO, held_out
 from ae_eval.zoo_slip import device_slip_figures
@@ -185,12 +185,12 @@ def true_cov_crlb(cfg, pts, snr_db, g):
     return out
 
 
-def accuracy_cell(dev, medium, fs, snr_db, n, g, delays_s=None):
+def accuracy_cell(dev, medium, fs, snr_db, n, g, delays_s=None, delay_noise=None):
     cfg = dev.config(medium, fs)
     pts = _cap_points(cfg.geometry, n, g, 40.0)
     pk = render_triggered(pts, cfg, snr_db=snr_db, rng=g)
     res = localize(pk.samples_v, fs, pk.onset_index, geometry=cfg.geometry,
-                   saturated=pk.saturated, channel_delays_s=delays_s)
+                   saturated=pk.saturated, channel_delays_s=delays_s, delay_noise=delay_noise)
     acc = res.accepted
     e = (res.point_m - pk.points_m)[:, :2]
     d2 = np.full(n, np.inf)
@@ -203,6 +203,8 @@ def accuracy_cell(dev, medium, fs, snr_db, n, g, delays_s=None):
     rms = math.sqrt(np.mean(np.sum(e[acc] ** 2, axis=1))) if acc.any() else float("nan")
     crb = math.sqrt(np.mean(bound[acc] ** 2)) if acc.any() else float("nan")
     return dict(medium=medium, sample_rate_hz=fs, snr_db=snr_db, n=n,
+                delay_noise=None if delay_noise is None else [delay_noise[0],
+                                                              delay_noise[1] * 1e9],
                 accepted=float(acc.mean()), rms_m=rms, crlb_rms_m=crb,
                 rms_over_crlb=rms / crb if acc.any() else float("nan"),
                 inside_68=float(np.mean(d2[acc] <= CHI2_68)) if acc.any() else float("nan"))
@@ -268,9 +270,9 @@ def run_device(dev, grid, counts, seed):
     out["apex"] = apex_vs_interference(dev, counts["apex"], g)
     # the cells as the driver localizes once it has learnt the channel delays (per medium
     # and rate), and cold (nothing learnt)
-    delays = {(m, fs): learnt_delays(dev.config(m, fs), g)
-              for m, fs in {(m, fs) for m, fs, _ in grid}}
-    out["cells"] = [accuracy_cell(dev, m, fs, s, counts["cell"], g, delays[m, fs])
+    learnt = {(m, fs): learnt_channel_model(dev.config(m, fs), g)
+              for m, fs in sorted({(m, fs) for m, fs, _ in grid})}  # in a fixed order
+    out["cells"] = [accuracy_cell(dev, m, fs, s, counts["cell"], g, *learnt[m, fs])
                     for m, fs, s in grid]
     cold = [accuracy_cell(dev, m, fs, s, counts["cell"], g) for m, fs, s in grid]
     out["worst_rms_over_crlb_cold"] = float(np.nanmax([c["rms_over_crlb"] for c in cold]))

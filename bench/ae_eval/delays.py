@@ -1,7 +1,8 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The channel delays a driver has learnt after a while in use: ordinary touches of a
-device through a `PacketLocalizer` (its `ChannelDelayLearner`), for benchmarks that
-measure the driver as it runs after its first minutes, not only on a fresh pipeline."""
+"""The channel delays and delay noise a driver has learnt after a while in use: ordinary
+touches of a device through a `PacketLocalizer` (its `ChannelDelayLearner`), for
+benchmarks that measure the driver as it runs after its first minutes, not only on a fresh
+pipeline."""
 
 from __future__ import annotations
 
@@ -25,10 +26,11 @@ def cap_points(geo, n, g, max_polar_deg, min_polar_deg=0.0):
     return geo.surface_point_from_angles(np.arccos(cos_t), g.uniform(0, 2 * math.pi, n))
 
 
-def learnt_delays(cfg, g, n=DELAY_WARM_TOUCHES):
-    """The channel delay offsets [s] (4,) a driver's PacketLocalizer has in use after ``n``
+def learnt_channel_model(cfg, g, n=DELAY_WARM_TOUCHES):
+    """(channel delay offsets [s] (4,) or None (none applied), delay noise (scale, timing
+    sd [s]) or None (the model's)): what a driver's PacketLocalizer has in use after ``n``
     ordinary touches of the device of simulator config ``cfg`` (polar 0-70 deg, 25-40 dB,
-    one every 25 ms), or None (none applied)."""
+    one every 25 ms)."""
     fs = cfg.sample_rate_hz
     pl = PacketLocalizer("ml", geometry=cfg.geometry, reject_interference=False,
                          resolve_overlaps=False)
@@ -41,4 +43,4 @@ def learnt_delays(cfg, g, n=DELAY_WARM_TOUCHES):
                             k + i) for i in range(m)]
         for i in range(0, m, 8):
             pl.process(views[i : i + 8])
-    return pl.localizer.channel_delays_s
+    return pl.localizer.channel_delays_s, pl.localizer.delay_noise

@@ -238,7 +238,7 @@ def live_device(dev, *, n_pairs=20, max_singles=48, rng=None, sample_rate_hz=10e
     """
     import time  # lazy: only the live-path trials time anything
 
-    from ae_eval.delays import DELAY_WARM_TOUCHES, learnt_delays  # lazy: see above
+    from ae_eval.delays import DELAY_WARM_TOUCHES, learnt_channel_model  # lazy: see above
     from ae_tactile.pipeline import ContactPipeline, PacketLocalizer
 
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
@@ -252,9 +252,10 @@ def live_device(dev, *, n_pairs=20, max_singles=48, rng=None, sample_rate_hz=10e
         # the channel delays a driver learns in its first minutes (its own stream of draws:
         # the pairs and singles are those of a run without)
         n_delay = DELAY_WARM_TOUCHES if delay_touches is None else int(delay_touches)
-        delays = learnt_delays(cfg, np.random.default_rng([sum(map(ord, dev.name)), 37]),
-                               n_delay) if n_delay else None
-        pipe.localizer.localizer.set_channel_delays(delays)
+        delays, noise = learnt_channel_model(
+            cfg, np.random.default_rng([sum(map(ord, dev.name)), 37]), n_delay
+        ) if n_delay else (None, None)
+        pipe.localizer.localizer.set_channel_delays(delays, noise)
         learner = pipe.overlap_stage.pulse_learner
         learner.background = "process" if fit_in_process else False
         learner.reset()  # the pairs' blends are no learning material: start clean
@@ -286,5 +287,7 @@ def live_device(dev, *, n_pairs=20, max_singles=48, rng=None, sample_rate_hz=10e
         cold_silent=int(cold["silent"].sum()), warm_silent=int(warm["silent"].sum()),
         cold_counted=int(cold["counted"].sum()), warm_counted=int(warm["counted"].sum()),
         delays_learnt_ns=None if delays is None else [round(float(v) * 1e9, 2) for v in delays],
+        delay_noise_learnt=None if noise is None else [round(noise[0], 3),
+                                                       round(noise[1] * 1e9, 3)],
         warm_late_found=int(late),
     )
