@@ -406,9 +406,11 @@ def zoo_rows(d) -> list[str]:
         f" channels in the pipeline) | {fig('interference_rejected')};"
         f" {fig('identical_rejected_pipeline')} | bench_zoo |",
         f"| device zoo{mode}: `ml` RMS over the Cramer-Rao bound (true noise covariance),"
-        f" worst cell, after the driver learnt the channel delays (before: on a fresh"
-        f" pipeline); share inside the 68 % ellipse, worst cell | {rms} (before:"
-        f" {fig('worst_rms_over_crlb_cold', False)}); {fig('min_inside_68')} | bench_zoo |",
+        f" worst cell, after the driver learnt the channel delays and delay noise (before:"
+        f" on a fresh pipeline); share inside the 68 % ellipse over a device's cells"
+        f" (the device farthest from 68 %) and in its worst cell | {rms} (before:"
+        f" {fig('worst_rms_over_crlb_cold', False)}); {fig('inside_68_pooled')};"
+        f" {fig('min_inside_68')} | bench_zoo |",
         f"| device zoo{mode}: overlapping pairs resolved by `localize_with_overlaps` with the"
         f" default pulse | {fig('overlaps_resolved')} | bench_zoo |",
         f"| device zoo{mode}: slip, precursor before gross slip / touch-scene runs with a false"
