@@ -168,3 +168,49 @@ def test_the_pipeline_uses_the_learnt_noise_and_its_calibration_file_keeps_it():
     assert pl.localizer.delay_noise == pytest.approx(learner.applied_noise)
     pl.delay_learner.reset()
     assert pl.localizer.delay_noise is None
+
+
+def test_resolved_overlaps_carry_the_localizers_delay_noise():
+    """Two emissions in one window resolved by the overlap resolver: with the localizer's
+    delay noise (scale 2, 20 ns per channel) handed to it, each source's point is as
+    without and its covariance 2 C + the image of (20 ns)^2 / 4 I at its point; a
+    ContactPipeline hands its localizer's noise to the resolver."""
+    import threading
+
+    from ae_eval.overlap_trials import simulate_overlaps
+    from ae_tactile.localization.covariance import delay_noise_covariance
+    from ae_tactile.pipeline import ContactPipeline, OverlapResolver
+    from ae_tactile.records import PacketView
+    from ae_tactile.sim import SimConfig
+
+    cfg = SimConfig(reflections=True)
+    d = simulate_overlaps(1, cfg, separation_s=np.array([4e-6]), amplitude_ratio=2.0,
+                          snr_db=30.0, rng=5)
+    view = PacketView(d["samples_v"][0], d["sample_rate_hz"], int(d["onset_index"][0]), 0, 7)
+    got = {}
+    for noise in (None, (2.0, 20e-9)):
+        recs, done = [], threading.Event()
+
+        def hand_over(r, recs=recs, done=done):
+            recs.extend(r)
+            done.set()
+
+        res = OverlapResolver(cfg.geometry, hand_over, use_process=False)
+        res.delay_noise = lambda noise=noise: noise
+        res.submit([view])
+        assert done.wait(300.0), dict(res.counts)
+        res.close()
+        got[noise] = recs
+    plain, noisy = got[None], got[(2.0, 20e-9)]
+    assert len(plain) == len(noisy) == 2
+    for a, b in zip(plain, noisy):
+        assert np.array_equal(a.point_m, b.point_m)
+        extra = cfg.geometry.point_covariance(np.array(a.point_m), delay_noise_covariance(20e-9))
+        np.testing.assert_allclose(b.covariance_m2, 2.0 * a.covariance_m2 + extra, rtol=1e-9)
+        assert np.trace(extra) > np.trace(a.covariance_m2)  # 20 ns outweighs a 30 dB fit
+    pipe = ContactPipeline(PacketLocalizer("ml", geometry=cfg.geometry), None)
+    try:
+        pipe.localizer.localizer.set_channel_delays(None, (1.5, 3e-9))
+        assert pipe.overlap_stage.delay_noise() == (1.5, 3e-9)
+    finally:
+        pipe.close()

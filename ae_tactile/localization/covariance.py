@@ -96,6 +96,20 @@ def delay_noise_covariance(timing_sd_s):
     return np.eye(2) * (float(timing_sd_s) ** 2 / 4.0)
 
 
+def with_delay_noise(geometry, point_m, covariance_m2, delay_noise):
+    """(3, 3) [m^2]: a point's covariance ``covariance_m2`` from a fit whose delay noise
+    is the model's, made to carry a device's delay noise (scale, per-channel timing sd
+    [s]; None: unchanged): scale C + the image of `delay_noise_covariance` at the point
+    (the map from delays to a point is linear)."""
+    c = np.asarray(covariance_m2, dtype=float)
+    if delay_noise is None:
+        return c
+    scale, sd = delay_noise
+    extra = geometry.point_covariance(np.asarray(point_m, dtype=float),
+                                      delay_noise_covariance(sd))
+    return scale * c + extra
+
+
 def delay_covariance_from_fisher(F_eps):
     """C_tau (K, 2, 2) for (tau_x, tau_y) from F_eps (pseudo-inverse on the rank-3 space)."""
     # F_eps 1 = 0; F + (1 1^T)/4 is invertible and its inverse acts as F^+ on contrasts.

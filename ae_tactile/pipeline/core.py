@@ -137,8 +137,10 @@ class ContactPipeline:
             so.unhold_windows, inline_max=overlap_inline_max,
             covered_tol_s=overlap_covered_tol_s, idle=overlap_idle, resolver=overlaps,
         )
-        # the overlap fits use the channel delays the localizer applies once learnt
+        # the overlap fits use the channel delays the localizer applies once learnt, and
+        # their covariances carry its delay noise
         self.overlap_stage.channel_delays = lambda: self.localizer.localizer.channel_delays_s
+        self.overlap_stage.delay_noise = lambda: self.localizer.localizer.delay_noise
         self.hand_stage = HandStage(self.counts, hand)
         #: on a hand: called right after a batch's apex packets are known, before the slip
         #: step (the driver reports them to the other fingertips then: their wait for this

@@ -96,6 +96,8 @@ class OverlapStage:
         #: () -> the channel delays [s] the driver's localizer applies, or None: handed to
         #: the resolver (`OverlapResolver.channel_delays`)
         self.channel_delays: Callable[[], object] | None = None
+        #: () -> the localizer's delay noise or None (`OverlapResolver.delay_noise`)
+        self.delay_noise: Callable[[], object] | None = None
         self._on_late, self._on_window_done = on_late, on_window_done
         self._on_hold, self._on_unhold = on_hold, on_unhold
         self.lock = threading.Lock()
@@ -133,6 +135,7 @@ class OverlapStage:
                 learner=self.pulse_learner, on_idle=self._late_turn,
             )
         self.resolver.channel_delays = self.channel_delays
+        self.resolver.delay_noise = self.delay_noise
         if wait_s > 0:
             self.resolver.ready.wait(wait_s)
 

@@ -22,6 +22,7 @@ import numpy as np
 
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import overlap, overlap_worker
+from ae_tactile.localization.covariance import with_delay_noise
 from ae_tactile.localization.overlap import OverlapReason, PulseLearner
 from ae_tactile.pipeline import worker_share
 from ae_tactile.pipeline.config import LATE_CHECK_POLL_S, OVERLAP_MAX_PENDING
@@ -73,6 +74,10 @@ class OverlapResolver:
         #: () -> the front end's channel delays (4,) [s] the driver's channel-delay learner
         #: applies, or None (`ContactPipeline` sets it): they replace the learnt pulse's own
         self.channel_delays: Callable[[], object] | None = None
+        #: () -> the localizer's delay noise (scale, timing sd [s]) or None
+        #: (`Localizer.delay_noise`; `ContactPipeline` sets it): the resolved emissions'
+        #: covariances carry it as the localizer's do
+        self.delay_noise: Callable[[], object] | None = None
         self._delayed = (None, None, None)  # (learnt pulse, delays, the two combined)
         #: the pulse learnt from the device's single emissions: used once it is trusted
         self.learner = learner
@@ -225,6 +230,11 @@ class OverlapResolver:
             self._count("overlap_rejected_" + res.reason_name)
             return []
         records = [source_record(p, src) for src in res.sources]  # may raise: count after
+        noise = self.delay_noise() if self.delay_noise is not None else None
+        if noise is not None:
+            for rec in records:
+                rec.covariance_m2 = with_delay_noise(self.geometry, rec.point_m,
+                                                     rec.covariance_m2, noise)
         self._count("overlap_windows_resolved")
         self._count("overlap_sources", len(records))
         if res.n_dropped:
