@@ -214,3 +214,31 @@ def test_resolved_overlaps_carry_the_localizers_delay_noise():
         assert pipe.overlap_stage.delay_noise() == (1.5, 3e-9)
     finally:
         pipe.close()
+
+
+def test_localize_with_overlaps_carries_the_delay_noise_on_both_paths():
+    """The one-call overlap path: its single-emission results and its resolved emissions
+    carry a given delay noise alike (same points, covariance 2 C + the image of the timing
+    term)."""
+    from ae_eval.overlap_trials import simulate_overlaps
+    from ae_tactile.localization.overlap import localize_with_overlaps
+    from ae_tactile.localization.covariance import delay_noise_covariance
+    from ae_tactile.sim import SimConfig
+
+    cfg = SimConfig(reflections=True)
+    d = simulate_overlaps(3, cfg, separation_s=np.array([3e-6, 4e-6, 6e-6]),
+                          amplitude_ratio=2.0, snr_db=30.0, rng=7)
+    args = (d["samples_v"], d["sample_rate_hz"], d["onset_index"])
+    s0, o0 = localize_with_overlaps(*args, geometry=cfg.geometry)
+    s1, o1 = localize_with_overlaps(*args, geometry=cfg.geometry, delay_noise=(2.0, 20e-9))
+    np.testing.assert_allclose(s1.delay_covariance_s2, 2.0 * s0.delay_covariance_s2
+                               + delay_noise_covariance(20e-9), rtol=1e-9)
+    resolved = [k for k, r in o0.items() if r.sources]
+    assert resolved and sorted(o1) == sorted(o0)
+    for k in resolved:
+        for a, b in zip(o0[k].sources, o1[k].sources):
+            assert np.array_equal(a.point_m, b.point_m)
+            extra = cfg.geometry.point_covariance(np.asarray(a.point_m),
+                                                  delay_noise_covariance(20e-9))
+            np.testing.assert_allclose(b.covariance_m2, 2.0 * a.covariance_m2 + extra,
+                                       rtol=1e-9)

@@ -14,7 +14,8 @@ from scipy.optimize import minimize
 from ae_tactile.dsp.channel_checks import identical_channels
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization.common import Reason, adc_noise, make_plan, validate_windows
-from ae_tactile.localization.estimators import localize
+from ae_tactile.localization.covariance import with_delay_noise
+from ae_tactile.localization.estimators import delay_noise_arg, localize
 from ae_tactile.localization.overlap.decide import _decide, _first_reason, _resolve_quick
 from ae_tactile.localization.overlap.learner import PulseLearner
 from ae_tactile.localization.overlap.model import (
@@ -42,9 +43,8 @@ def resolve_overlaps(
     Parameters
     ----------
     windows : array_like, (K, 4, M) or (4, M)
-        Packet windows [V].
+        Packet windows [V]; sample_rate_hz [Hz] > 0.
     sample_rate_hz : float
-        Sample rate [Hz], > 0.
     onset_index : array_like of int, (K,)
         First sample at/after the earliest arrival (detector or trigger).
     geometry : FingertipGeometry, optional
@@ -373,6 +373,14 @@ def _calibration_rss(v, init, fit):
     return float(np.sum(rss))
 
 
+def _carry_delay_noise(overlap, geo, noise):
+    """The resolved emissions of ``overlap`` ({index: OverlapPacket}) made to carry a
+    device's delay noise (None: unchanged), as `localize`'s points do."""
+    for res in overlap.values() if noise is not None else ():
+        for src in res.sources:
+            src.covariance_m2 = with_delay_noise(geo, src.point_m, src.covariance_m2, noise)
+
+
 def localize_with_overlaps(windows, sample_rate_hz, onset_index, *, geometry=None, pulse=None,
                            noise_rms_v=None, saturated=None, max_sources=3,
                            overlap_kwargs=None, **localize_kwargs):
@@ -398,22 +406,19 @@ def localize_with_overlaps(windows, sample_rate_hz, onset_index, *, geometry=Non
         Sample rate [Hz], > 0.
     onset_index : array_like of int, (K,)
         First sample at/after the earliest arrival.
-    geometry : FingertipGeometry, optional
-        The fingertip (default tip).
+    geometry : FingertipGeometry, optional: the fingertip (default tip).
     pulse : PulseModel or PulseLearner, optional
         The front end's pulse (default `PulseModel.for_sample_rate`, judged on the batch),
         or a learner: it is offered this batch's accepted packets first, and its pulse is
         used once converged.
     noise_rms_v : float or array_like (K,), optional
         Known noise sigma [V]; default measured before the onset.
-    saturated : array_like of bool (K,), optional
-        Upstream clip flags.
-    max_sources : int
-        1, 2 or 3 emissions per window.
+    saturated : array_like of bool (K,), optional: upstream clip flags.
+    max_sources : int: 1, 2 or 3 emissions per window.
     overlap_kwargs : dict, optional
         Further keyword arguments of `resolve_overlaps`.
     **localize_kwargs
-        Keyword arguments of `localize` (``method``, ``min_snr_db``...).
+        Of `localize` (``method``, ``delay_noise``: the resolved emissions carry it too).
 
     Returns
     -------
@@ -445,6 +450,7 @@ def localize_with_overlaps(windows, sample_rate_hz, onset_index, *, geometry=Non
     if ids.size:
         overlap = _overlaps_of(x, sample_rate_hz, on, ids, geo, pulse, noise_rms_v, saturated,
                                max_sources, overlap_kwargs)
+    _carry_delay_noise(overlap, geo, delay_noise_arg(localize_kwargs.get("delay_noise")))
     drop = sus & ~_kept_suspects(sus, overlap, trusted)
     single.accepted = single.accepted & ~drop
     single.confidence = np.where(drop, 0.0, single.confidence)
