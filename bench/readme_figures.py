@@ -130,10 +130,17 @@ def localization_rows(d) -> list[str]:
         ratios = [c["methods"]["ml"]["ratio_to_crlb"] for c in cells]
         cal = [c["methods"]["ml"]["in_1515sigma_ellipse"] for c in cells]
         snrs = [c["snr_db"] for c in cells]
+        learnt = [c.get("ml_in_1515sigma_ellipse_learnt_noise") for c in cells]
+        noise = cells[0].get("delay_noise_learnt")
+        after = ""
+        if noise is not None and None not in learnt:
+            after = (f" ({min(learnt) * 100:.0f}-{max(learnt) * 100:.0f} % once the driver has"
+                     f" learnt this front end's delay noise: {noise[1]:.1f} ns per channel,"
+                     f" x{noise[0]:.2f})")
         rows.append(
             f"| localization `ml`, {label} MS/s, {min(snrs):g}-{max(snrs):g} dB "
             f"| {min(ratios):.2f}-{max(ratios):.2f}x the Cramer-Rao bound; "
-            f"{min(cal) * 100:.0f}-{max(cal) * 100:.0f} % inside the 68 % ellipse "
+            f"{min(cal) * 100:.0f}-{max(cal) * 100:.0f} % inside the 68 % ellipse{after} "
             "| bench_localization |"
         )
     t = d.get("timing", {}).get("10 MS/s", {})

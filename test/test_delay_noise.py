@@ -221,8 +221,8 @@ def test_localize_with_overlaps_carries_the_delay_noise_on_both_paths():
     carry a given delay noise alike (same points, covariance 2 C + the image of the timing
     term)."""
     from ae_eval.overlap_trials import simulate_overlaps
-    from ae_tactile.localization.overlap import localize_with_overlaps
     from ae_tactile.localization.covariance import delay_noise_covariance
+    from ae_tactile.localization.overlap import localize_with_overlaps
     from ae_tactile.sim import SimConfig
 
     cfg = SimConfig(reflections=True)
