@@ -308,3 +308,41 @@ def resolve_front_end_lowpass(sample_rate_hz: float, lowpass_hz, lowpass_order):
     hz = auto_hz if hz_auto else lowpass_hz
     order = (auto_order if hz_auto else 4) if order_auto else lowpass_order
     return hz, order
+
+
+#: Low-pass families of a front end (`front_end_stages`).
+LOWPASS_FAMILIES = ("butter", "bessel", "cheby1")
+
+
+def front_end_stages(highpass_hz=100e3, highpass_order=2, highpass_rc_hz=None,
+                     lowpass_hz=1e6, lowpass_order=4, lowpass_family="butter",
+                     lowpass_ripple_db=0.5, amplifier_pole_hz=None) -> list:
+    """An analog front end as stages (zeros, poles [rad/s], gain), the one definition the
+    simulator's chain and the localizer's pulse model share: the high-pass (Butterworth of
+    ``highpass_order`` at ``highpass_hz``, or one first-order RC stage per corner of
+    ``highpass_rc_hz`` [Hz]), the low-pass (None: none) of ``lowpass_family`` ('butter';
+    'bessel', its corner at -3 dB; 'cheby1', ``lowpass_ripple_db`` [dB] of ripple), and
+    an optional first-order amplifier pole [Hz]. Unity pass-band gain."""
+    from scipy import signal  # lazy: geometry is imported where scipy.signal is not needed
+
+    w = 2 * np.pi
+    if highpass_rc_hz is None or len(highpass_rc_hz) == 0:
+        stages = [signal.butter(int(highpass_order), w * highpass_hz, btype="highpass",
+                                analog=True, output="zpk")]
+    else:
+        stages = [signal.butter(1, w * f, btype="highpass", analog=True, output="zpk")
+                  for f in highpass_rc_hz]
+    if lowpass_hz is not None:
+        wn, n = w * lowpass_hz, int(lowpass_order)
+        if lowpass_family == "bessel":
+            stages.append(signal.bessel(n, wn, analog=True, output="zpk", norm="mag"))
+        elif lowpass_family == "cheby1":
+            stages.append(signal.cheby1(n, lowpass_ripple_db, wn, analog=True, output="zpk"))
+        elif lowpass_family == "butter":
+            stages.append(signal.butter(n, wn, analog=True, output="zpk"))
+        else:
+            raise ValueError(f"lowpass_family must be one of {LOWPASS_FAMILIES}, "
+                             f"got {lowpass_family!r}")
+    if amplifier_pole_hz is not None:
+        stages.append(signal.butter(1, w * amplifier_pole_hz, analog=True, output="zpk"))
+    return stages

@@ -108,6 +108,9 @@ class Localizer:
         #: per-channel timing sd [s]), None: the white-noise model's
         self.delay_noise = None
         self._cnoise = fast.noise_args(None)
+        #: the device's pulse that refines every accepted point (`set_front_end`); None:
+        #: the estimator's answer as it is
+        self.front_end = None
 
     def set_channel_delays(self, channel_delays_s, delay_noise=None) -> None:
         """Model each channel's arrival as t_k(s) + d_k from now on (``ml`` only; the other
@@ -143,7 +146,51 @@ class Localizer:
         self.channel_delays_s = d if d is not None and d.any() else None
         self.delay_noise, self._cnoise = dn, fast.noise_args(dn)
 
+    def set_front_end(self, pulse) -> None:
+        """Refine every accepted point from now on by the one-emission fit with the
+        device's pulse (`ae_tactile.localization.refine`): the estimate that stays at the
+        Cramer-Rao bound behind an anti-alias filter that lets the pulse alias, at
+        ~0.1-0.3 ms a packet. A packet whose fit fails its residual test keeps the
+        estimator's answer (``refined`` False).
+
+        Parameters
+        ----------
+        pulse : PulseModel or None
+            The device's front end (`PulseModel.from_spec` of what it states,
+            `PulseModel.from_config`, or one learnt); None: no refinement.
+
+        Returns
+        -------
+        None
+            TypeError on anything else.
+        """
+        from ae_tactile.localization.overlap.pulse import PulseModel  # lazy: cycle
+
+        if pulse is not None and not isinstance(pulse, PulseModel):
+            raise TypeError(f"pulse must be a PulseModel or None, got {type(pulse).__name__}")
+        self.front_end = pulse
+
+    def _refined(self, res, windows, sample_rate_hz, onset_index, kw):
+        """``res`` with its accepted points refined with `front_end` (unchanged without
+        one)."""
+        if self.front_end is None:
+            return res
+        from ae_tactile.localization.refine import refine_result  # lazy: cycle
+
+        return refine_result(res, windows, sample_rate_hz, onset_index, self.front_end,
+                             geometry=kw.get("geometry") or self._default_geometry,
+                             noise_rms_v=kw.get("noise_rms_v"),
+                             channel_delays_s=self.channel_delays_s)[0]
+
     def __call__(self, windows, sample_rate_hz, onset_index, **overrides):
+        res = self._call(windows, sample_rate_hz, onset_index, **overrides)
+        if self.front_end is None:
+            return res
+        kw = dict(self.kwargs)
+        kw.update(overrides)
+        return self._refined(res, windows, sample_rate_hz, onset_index, kw)
+
+    def _call(self, windows, sample_rate_hz, onset_index, **overrides):
         kw = dict(self.kwargs)
         kw.update(overrides)
         kw.setdefault("delay_noise", self.delay_noise)
@@ -264,7 +311,27 @@ class Localizer:
         loc = PacketLocation(out, pt, cov, ctau)
         if check_identical and packet_identical(x, on, nr):
             _reject_identical_one(loc)
+        if loc.accepted and self.front_end is not None:
+            self._refine_one(loc, x, fs, on, nr, geo)
         return loc
+
+    def _refine_one(self, loc, x, fs, on, nr, geo) -> None:
+        """`localize_one`'s answer refined in place with `front_end` (`set_front_end`)."""
+        from ae_tactile.localization.refine import refine_points  # lazy: cycle
+
+        got = refine_points(x[None], fs, [on], loc.point_m[None], [loc.emission_offset_s],
+                            self.front_end, geometry=geo,
+                            noise_rms_v=None if not math.isfinite(nr) else nr,
+                            channel_delays_s=self.channel_delays_s)
+        if not got.refined[0]:
+            return
+        p = got.point_m[0]
+        loc.point_m, loc.covariance_m2 = p, got.covariance_m2[0]
+        loc.emission_offset_s = float(got.emission_offset_s[0])
+        polar, azimuth = geo.angles_from_points(p[None])
+        loc.polar_rad, loc.azimuth_rad = float(polar[0]), float(azimuth[0])
+        loc.tau_x_s, loc.tau_y_s = (float(v) for v in geo.exact_delays_s(p))
+        loc.refined = True
 
     def _one_numpy(self, samples_v, sample_rate_hz, onset_index, geo, noise_rms_v, saturated,
                    channel_gains) -> PacketLocation:
@@ -285,6 +352,7 @@ class Localizer:
         else:
             res = localize(x[None], sample_rate_hz, [onset_index], method=self.method,
                            delay_noise=self.delay_noise, **kw)
+            res = self._refined(res, x[None], sample_rate_hz, [onset_index], kw)
         return PacketLocation.from_result(res, 0)
 
     def warm_up(self, geometry=None, sample_rate_hz=10e6, n_samples=400):

@@ -66,6 +66,8 @@ class LocalizationResult:
     reason_flags: np.ndarray
     options: dict = field(default_factory=dict)
     emission_offset_s: np.ndarray = None
+    #: (K,) bool: the point was refined with the device's pulse (`refine.refine_result`)
+    refined: np.ndarray = None
 
     def __len__(self):
         return int(self.accepted.shape[0])
@@ -176,6 +178,7 @@ class PacketLocation:
         "overlap_excess",
         "clamped",
         "emission_offset_s",
+        "refined",
     )
 
     def __init__(self, out, point, cov, ctau):
@@ -211,6 +214,7 @@ class PacketLocation:
         ) = out.tolist()
         self.polarity = int(pol)
         self.clamped = bool(clamped)
+        self.refined = False  # refined with the device's pulse (`Localizer.set_front_end`)
 
     @classmethod
     def from_result(cls, res: LocalizationResult, i: int = 0):
@@ -236,12 +240,14 @@ class PacketLocation:
             ],
             dtype=float,
         )
-        return cls(
+        loc = cls(
             out,
             res.point_m[i].copy(),
             res.covariance_m2[i].copy(),
             res.delay_covariance_s2[i].copy(),
         )
+        loc.refined = res.refined is not None and bool(res.refined[i])
+        return loc
 
     def __repr__(self):
         p = self.point_m * 1e3

@@ -12,6 +12,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, fields, replace
 
+import numpy as np
+
+from ae_tactile.localization.overlap.pulse import PulseModel
 from ae_tactile.localization.weak_release import MIN_SNR_DB as WEAK_RELEASE_MIN_SNR_DB
 from ae_tactile.localization.weak_release import check_min_snr_db
 
@@ -159,6 +162,9 @@ class LocalizationConfig:
         Lowest SNR of a weak release [dB].
     resolve_overlaps : bool
         Localize each emission of a window holding several.
+    front_end : str
+        The device's stated front end (`PulseModel.from_spec`); refines every accepted
+        point with its pulse; empty: none.
     overlap_inline_max : int
         Overlapping windows per batch answered in the reader (`ContactPipeline`).
 
@@ -224,6 +230,15 @@ class LocalizationConfig:
         "overlap_inline_max of a batch in the reader, the others beside it); false: reject "
         "such windows",
     )
+    front_end: str = _setting(
+        "",
+        "Refine every accepted point by the one-emission fit with the pulse of the "
+        "device's stated analog front end, name=value items of PulseModel.from_spec (e.g. "
+        "'highpass_hz=50e3 highpass_order=1 lowpass_hz=800e3 lowpass_order=2', RC stages "
+        "as highpass_rc_hz=60e3/69e3, lowpass_family=butter, bessel or cheby1): at the "
+        "Cramer-Rao bound where the anti-alias filter lets the pulse alias, 0.1-0.3 ms a "
+        "packet (docs/localization.md); empty: no refinement",
+    )
     overlap_inline_max: int = _setting(
         OVERLAP_INLINE_MAX,
         "Overlapping windows per batch whose quick fit runs in the reader (about 1 ms each: "
@@ -238,6 +253,9 @@ class LocalizationConfig:
                            ("weak_release_min_snr_db", check_min_snr_db),
                            ("overlap_inline_max", int)):
             object.__setattr__(self, name, conv(getattr(self, name)))
+        object.__setattr__(self, "front_end", str(self.front_end).strip())
+        if self.front_end:
+            PulseModel.from_spec(self.front_end)  # ValueError naming the bad item
         for f in fields(self):
             if isinstance(f.default, bool):
                 object.__setattr__(self, f.name, bool(getattr(self, f.name)))
@@ -250,3 +268,46 @@ class LocalizationConfig:
     def describe(cls) -> dict[str, dict]:
         """Per field: default, doc, unit, lo, hi (the ROS table's source)."""
         return {f.name: {"default": f.default, **f.metadata} for f in fields(cls)}
+
+
+# ---------------------------------------------------------------- checks
+def packet_problem(samples_v, sample_rate_hz, onset_index) -> str | None:
+    """Why a packet cannot be localized at all: the per-packet check.
+
+    Parameters
+    ----------
+    samples_v : numpy.ndarray
+        The packet's window (4, N) [V].
+    sample_rate_hz : float
+        Its sample rate [Hz].
+    onset_index : int
+        Its onset sample.
+
+    Returns
+    -------
+    str or None
+        "shape", "too_short", "too_long" (over MAX_PACKET_SAMPLES), "sample_rate" (not
+        finite, or outside MIN_SAMPLE_RATE_HZ .. MAX_SAMPLE_RATE_HZ) or "onset"; None if it
+        can be localized.
+    """
+    x = samples_v
+    if not isinstance(x, np.ndarray) or x.ndim != 2 or x.shape[0] != 4:
+        return "shape"
+    if x.shape[1] < 8:
+        return "too_short"
+    if x.shape[1] > MAX_PACKET_SAMPLES:
+        return "too_long"
+    try:
+        fs = float(sample_rate_hz)
+    except (TypeError, ValueError):
+        return "sample_rate"
+    if not (math.isfinite(fs) and MIN_SAMPLE_RATE_HZ <= fs <= MAX_SAMPLE_RATE_HZ):
+        return "sample_rate"
+    if not 0 <= int(onset_index) < x.shape[1]:
+        return "onset"
+    return None
+
+
+def front_end_pulse(spec: str):
+    """The pulse of a stated front end (`LocalizationConfig.front_end`); None if empty."""
+    return PulseModel.from_spec(spec) if spec else None

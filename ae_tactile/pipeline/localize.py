@@ -10,7 +10,6 @@ holding overlapping emissions (for the overlap resolver) and gate weak releases.
 from __future__ import annotations
 
 import logging
-import math
 import queue
 import threading
 from collections import Counter
@@ -36,50 +35,12 @@ from ae_tactile.pipeline.config import (
     DELAY_LEARN_MAX_RATE_HZ,
     DELAY_LEARN_STRIDE,
     DELAY_LEARN_STRIDE_CONVERGED,
-    MAX_PACKET_SAMPLES,
-    MAX_SAMPLE_RATE_HZ,
-    MIN_SAMPLE_RATE_HZ,
     LocalizationConfig,
+    front_end_pulse,
+    packet_problem,
 )
 from ae_tactile.pipeline.screens import Screens
 from ae_tactile.records import ContactRecord, EventType, PacketView, packet_record
-
-
-def packet_problem(samples_v, sample_rate_hz, onset_index) -> str | None:
-    """Why a packet cannot be localized at all: the per-packet check.
-
-    Parameters
-    ----------
-    samples_v : numpy.ndarray
-        The packet's window (4, N) [V].
-    sample_rate_hz : float
-        Its sample rate [Hz].
-    onset_index : int
-        Its onset sample.
-
-    Returns
-    -------
-    str or None
-        "shape", "too_short", "too_long" (over MAX_PACKET_SAMPLES), "sample_rate" (not
-        finite, or outside MIN_SAMPLE_RATE_HZ .. MAX_SAMPLE_RATE_HZ) or "onset"; None if it
-        can be localized.
-    """
-    x = samples_v
-    if not isinstance(x, np.ndarray) or x.ndim != 2 or x.shape[0] != 4:
-        return "shape"
-    if x.shape[1] < 8:
-        return "too_short"
-    if x.shape[1] > MAX_PACKET_SAMPLES:
-        return "too_long"
-    try:
-        fs = float(sample_rate_hz)
-    except (TypeError, ValueError):
-        return "sample_rate"
-    if not (math.isfinite(fs) and MIN_SAMPLE_RATE_HZ <= fs <= MAX_SAMPLE_RATE_HZ):
-        return "sample_rate"
-    if not 0 <= int(onset_index) < x.shape[1]:
-        return "onset"
-    return None
 
 
 def _gains_or_none(channel_gains):
@@ -158,6 +119,7 @@ class PacketLocalizer:
         #: the settings in use (`update` replaces it)
         self.config = cfg
         self.localizer = Localizer(cfg.method, min_snr_db=cfg.min_snr_db)
+        self.localizer.set_front_end(front_end_pulse(cfg.front_end))
         self.screens = Screens(
             reject_interference=cfg.reject_interference,
             interference_echo_min=cfg.interference_echo_min,
@@ -347,6 +309,7 @@ class PacketLocalizer:
         # everything checked: apply what was given
         if localizer is not None:
             localizer.set_channel_delays(*self.delay_learner.applied)
+            localizer.set_front_end(front_end_pulse(cfg.front_end))
             self.localizer = localizer
             self._one = getattr(localizer, "localize_one", None)
             self.method, self.min_snr_db = cfg.method, cfg.min_snr_db
@@ -366,6 +329,8 @@ class PacketLocalizer:
         sc = self.screens
         if name == "min_confidence":
             self.min_confidence = value
+        elif name == "front_end":
+            self.localizer.set_front_end(front_end_pulse(value))
         elif name == "resolve_overlaps":
             self.resolve_overlaps = value
         elif name == "weak_releases":
@@ -542,6 +507,8 @@ class PacketLocalizer:
         if r.confidence < self.min_confidence:
             counts["below_min_confidence"] += 1
             return None
+        if self.localizer.front_end is not None:
+            counts["refined" if r.refined else "refine_failed"] += 1
         return packet_record(
             p, r.point_m, r.covariance_m2, r.polar_rad, r.azimuth_rad, r.tau_x_s, r.tau_y_s,
             r.amplitude_v, r.confidence, r.polarity, r.emission_offset_s, r.overlap_excess,
@@ -590,6 +557,8 @@ class PacketLocalizer:
             if res.confidence[j] < self.min_confidence:
                 counts["below_min_confidence"] += 1
                 continue
+            if self.localizer.front_end is not None:
+                counts["refined" if res.refined[j] else "refine_failed"] += 1
             rec = packet_record(
                 p, res.point_m[j], res.covariance_m2[j], res.polar_rad[j], res.azimuth_rad[j],
                 res.tau_x_s[j], res.tau_y_s[j], res.amplitude_v[j], res.confidence[j],

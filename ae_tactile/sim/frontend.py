@@ -33,6 +33,7 @@ import math
 import numpy as np
 from scipy import signal
 
+from ae_tactile.geometry import front_end_stages
 from ae_tactile.sim.propagation import path_lengths
 from ae_tactile.sim.response import att_support_samples, fast_support_samples
 
@@ -54,28 +55,10 @@ def analog_stages(config) -> list[tuple[np.ndarray, np.ndarray, float]]:
     -------
     list of (ndarray, ndarray, float)
     """
-    w = 2 * math.pi
-    if config.highpass_rc_hz is None:
-        stages = [signal.butter(config.highpass_order, w * config.highpass_hz,
-                                btype="highpass", analog=True, output="zpk")]
-    else:
-        stages = [signal.butter(1, w * f, btype="highpass", analog=True, output="zpk")
-                  for f in config.highpass_rc_hz]
-    if config.lowpass_hz is not None:
-        wn = w * config.lowpass_hz
-        n = config.lowpass_order
-        if config.lowpass_family == "bessel":
-            stages.append(signal.bessel(n, wn, btype="lowpass", analog=True, output="zpk",
-                                        norm="mag"))
-        elif config.lowpass_family == "cheby1":
-            stages.append(signal.cheby1(n, config.lowpass_ripple_db, wn, btype="lowpass",
-                                        analog=True, output="zpk"))
-        else:
-            stages.append(signal.butter(n, wn, btype="lowpass", analog=True, output="zpk"))
-    if config.amplifier_pole_hz is not None:
-        stages.append(signal.butter(1, w * config.amplifier_pole_hz, btype="lowpass",
-                                    analog=True, output="zpk"))
-    return stages
+    return front_end_stages(
+        config.highpass_hz, config.highpass_order, config.highpass_rc_hz, config.lowpass_hz,
+        config.lowpass_order, config.lowpass_family, config.lowpass_ripple_db,
+        config.amplifier_pole_hz)
 
 
 class FrontEnd:

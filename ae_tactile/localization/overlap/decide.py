@@ -290,14 +290,7 @@ def _sources(theta, amp, gram, sigma2, scale, ratio, limit, geo, max_sigma_m, mi
             dropped += 1
             continue
         sz = math.sqrt(max(R**2 - sx * sx - sy * sy, 0.0))
-        g = np.array(
-            [
-                [1.0, 0.0],
-                [0.0, 1.0],
-                [-sx / max(sz, 1e-6 * R), -sy / max(sz, 1e-6 * R)],
-            ]
-        )
-        c3 = g @ c_xy @ g.T
+        c3 = surface_covariance(sx, sy, c_xy, R)
         c_snr = math.sqrt(min(max((snr - min_snr_db) / 20.0, 0.0), 1.0))
         c_pos = 1.0 / (1.0 + (sig / 0.5e-3) ** 2)
         c_fit = min(max(1.0 - max(ratio - 1.0, 0.0) / max(limit - 1.0, 1e-9), 0.0), 1.0)
@@ -316,6 +309,14 @@ def _sources(theta, amp, gram, sigma2, scale, ratio, limit, geo, max_sigma_m, mi
             )
         )
     return sources, dropped
+
+
+def surface_covariance(sx, sy, c_xy, R) -> np.ndarray:
+    """(3, 3) covariance [m^2] of the surface point (s_x, s_y, sqrt(R^2 - s_x^2 - s_y^2))
+    [m] from that of (s_x, s_y) (``c_xy`` (2, 2)), by linear propagation."""
+    sz = max(math.sqrt(max(R * R - sx * sx - sy * sy, 0.0)), 1e-6 * R)
+    g = np.array([[1.0, 0.0], [0.0, 1.0], [-sx / sz, -sy / sz]])
+    return g @ c_xy @ g.T
 
 
 #: [1] quantile of the single touches' misfit shares kept as `PulseModel.misfit_share`

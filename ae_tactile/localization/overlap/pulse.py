@@ -10,9 +10,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import signal
 
-from ae_tactile.geometry import front_end_lowpass
+from ae_tactile.geometry import LOWPASS_FAMILIES, front_end_lowpass, front_end_stages
 
 
 @dataclass(frozen=True)
@@ -55,6 +54,26 @@ class PulseModel:
     #: quantile; learnt with the pulse, 0 for the nominal one): a further emission must
     #: explain more than this misfit of the window's energy (`decide._model_order`)
     misfit_share: float = 0.0
+    #: the front end's other shapes: one first-order RC stage per corner [Hz] in place of
+    #: the Butterworth high-pass (empty: the Butterworth), the low-pass family ('butter',
+    #: 'bessel' with its corner at -3 dB, 'cheby1' with ``lowpass_ripple_db`` [dB] of
+    #: ripple) and an amplifier pole [Hz] (None: none), as `geometry.front_end_stages`
+    highpass_rc_hz: tuple = ()
+    lowpass_family: str = "butter"
+    lowpass_ripple_db: float = 0.5
+    amplifier_pole_hz: float | None = None
+
+    def __post_init__(self):
+        if self.lowpass_family not in LOWPASS_FAMILIES:
+            raise ValueError(f"lowpass_family must be one of {LOWPASS_FAMILIES}, "
+                             f"got {self.lowpass_family!r}")
+        if any(not (math.isfinite(f) and f > 0) for f in self.highpass_rc_hz):
+            raise ValueError(f"highpass_rc_hz must hold positive corners [Hz], got "
+                             f"{self.highpass_rc_hz!r}")
+
+    def _slowest_corner_hz(self) -> float:
+        """The lowest high-pass corner [Hz] (the pulse's longest time scale)."""
+        return min(self.highpass_rc_hz) if self.highpass_rc_hz else self.highpass_hz
 
     @classmethod
     def from_poles(cls, poles_rad_s, residues) -> "PulseModel":
@@ -122,15 +141,79 @@ class PulseModel:
     @classmethod
     def from_config(cls, config) -> "PulseModel":
         """From any object with the front-end attributes of ``ae_tactile.sim.SimConfig``
-        (and its medium loss when its ``attenuation`` is on)."""
+        (its high-pass, low-pass family, amplifier pole and emission decay, and its medium
+        loss, with the power law's exponent, when its ``attenuation`` is on): the pulse a
+        device's stated front end gives."""
         att = float(getattr(config, "attenuation_db_per_m", 0.0) or 0.0)
+        rc = getattr(config, "highpass_rc_hz", None)
+        amp = getattr(config, "amplifier_pole_hz", None)
         return cls(
             float(config.highpass_hz),
             int(config.highpass_order),
             None if config.lowpass_hz is None else float(config.lowpass_hz),
             int(config.lowpass_order),
+            float(getattr(config, "emission_alpha_1_s", 3000.0)),
             attenuation_db_per_m_at_1mhz=att,
+            attenuation_exponent=(float(config.attenuation_exponent)
+                                  if getattr(config, "attenuation_law", "pole") == "power"
+                                  else 2.0),
+            attenuation_ref_hz=float(getattr(config, "attenuation_ref_hz", 300e3)),
+            highpass_rc_hz=tuple(float(f) for f in rc) if rc else (),
+            lowpass_family=str(getattr(config, "lowpass_family", "butter")),
+            lowpass_ripple_db=float(getattr(config, "lowpass_ripple_db", 0.5)),
+            amplifier_pole_hz=None if amp is None else float(amp),
         )
+
+    @classmethod
+    def from_spec(cls, spec: str) -> "PulseModel":
+        """A front end stated as text, e.g. the driver's ``front_end`` parameter:
+        whitespace- or comma-separated ``name=value`` of the fields in `SPEC_FIELDS`,
+        ``highpass_rc_hz`` as corners joined by '/': "highpass_hz=50e3 highpass_order=1
+        lowpass_hz=800e3 lowpass_order=2", "highpass_rc_hz=60e3/69e3 lowpass_hz=600e3
+        lowpass_order=6 lowpass_family=bessel". Unnamed fields keep their defaults
+        (``lowpass_hz=none``: no low-pass).
+
+        Parameters
+        ----------
+        spec : str
+
+        Returns
+        -------
+        PulseModel
+            ValueError naming the item on an unknown name, a bad value or a repeated name.
+        """
+        kw: dict = {}
+        for item in str(spec).replace(",", " ").split():
+            name, eq, value = item.partition("=")
+            if not eq or name not in SPEC_FIELDS:
+                raise ValueError(f"front end item {item!r}: expected name=value with a name "
+                                 f"in {sorted(SPEC_FIELDS)}")
+            if name in kw:
+                raise ValueError(f"front end item {item!r}: {name} given twice")
+            try:
+                kw[name] = SPEC_FIELDS[name](value)
+            except ValueError as e:
+                raise ValueError(f"front end item {item!r}: {e}") from None
+        try:
+            return cls(**kw)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"front end {spec!r}: {e}") from None
+
+    def spec(self) -> str:
+        """The `from_spec` text of this front end (a learnt pulse: its pole count)."""
+        if self.learnt:
+            return f"learnt ({len(self.poles_rad_s)} poles)"
+        out = []
+        for name in SPEC_FIELDS:
+            v = getattr(self, name)
+            if name == "highpass_rc_hz":
+                if v:
+                    out.append(f"{name}=" + "/".join(f"{f:g}" for f in v))
+            elif name in ("highpass_hz", "highpass_order") and self.highpass_rc_hz:
+                continue
+            elif v is not None or name == "lowpass_hz":
+                out.append(f"{name}={v:g}" if isinstance(v, float) else f"{name}={v}")
+        return " ".join(out)
 
     @classmethod
     def for_sample_rate(cls, sample_rate_hz: float) -> "PulseModel":
@@ -165,41 +248,26 @@ class PulseModel:
             res = res / h[np.argmax(np.abs(h))]
             _PR_CACHE[self] = (poles, res)
             return poles, res
-        zs, ps, k = (
-            [np.zeros(1, complex)],
-            [np.array([-self.alpha_1_s, -2.0 * self.alpha_1_s], complex)],
-            1.0,
-        )
-        z, p, kk = signal.butter(
-            self.highpass_order,
-            2 * math.pi * self.highpass_hz,
-            btype="highpass",
-            analog=True,
-            output="zpk",
-        )
-        zs.append(z)
-        ps.append(p)
-        k *= kk
-        if self.lowpass_hz is not None:
-            z, p, kk = signal.butter(
-                self.lowpass_order,
-                2 * math.pi * self.lowpass_hz,
-                btype="lowpass",
-                analog=True,
-                output="zpk",
-            )
+        zs = [np.zeros(1, complex)]
+        ps, k = [np.array([-self.alpha_1_s, -2.0 * self.alpha_1_s])], 1.0
+        for z, p, kk in front_end_stages(
+                self.highpass_hz, self.highpass_order, self.highpass_rc_hz or None,
+                self.lowpass_hz, self.lowpass_order, self.lowpass_family,
+                self.lowpass_ripple_db, self.amplifier_pole_hz):
             zs.append(z)
             ps.append(p)
             k *= kk
         zeros = np.concatenate(zs).astype(complex)
         poles = np.concatenate(ps).astype(complex)
+        # equal corners (two alike RC stages) would make a double pole: split by 1e-6
+        poles = poles * (1.0 + 1e-6 * _repeats(poles))
         res = np.array(
             [
                 k * np.prod(q - zeros) / np.prod(q - np.delete(poles, i))
                 for i, q in enumerate(poles)
             ]
         )
-        t = np.linspace(0.0, 20.0 / (2 * math.pi * self.highpass_hz), 20001)
+        t = np.linspace(0.0, 20.0 / (2 * math.pi * self._slowest_corner_hz()), 20001)
         h = (res[None, :] * np.exp(poles[None, :] * t[:, None])).sum(axis=1).real
         res = res / h[np.argmax(np.abs(h))]
         _PR_CACHE[self] = (poles, res)
@@ -291,3 +359,45 @@ def _tables(pulse: PulseModel, fs: float, n: int) -> _Tables:
 
 
 _TAB_CACHE: dict = {}
+
+
+def _repeats(poles) -> np.ndarray:
+    """Per pole, how many earlier poles equal it (within 1e-9 relative): 0 for simple."""
+    out = np.zeros(poles.size)
+    for i in range(1, poles.size):
+        out[i] = np.sum(np.abs(poles[:i] - poles[i]) <= 1e-9 * abs(poles[i]))
+    return out
+
+
+def _opt_hz(value: str):
+    """A corner [Hz] or 'none'."""
+    return None if value.lower() == "none" else _hz(value)
+
+
+def _hz(value: str) -> float:
+    """A positive finite number (a frequency [Hz], a rate [1/s], a ripple [dB])."""
+    v = float(value)
+    if not (math.isfinite(v) and v > 0):
+        raise ValueError(f"must be positive and finite, got {value}")
+    return v
+
+
+def _order(value: str) -> int:
+    v = int(value)
+    if not 1 <= v <= 12:
+        raise ValueError(f"order must be 1 .. 12, got {value}")
+    return v
+
+
+#: The fields a stated front end names (`PulseModel.from_spec`) and their parsers.
+SPEC_FIELDS = {
+    "highpass_hz": _hz,
+    "highpass_order": _order,
+    "highpass_rc_hz": lambda v: tuple(_hz(f) for f in v.split("/")),
+    "lowpass_hz": _opt_hz,
+    "lowpass_order": _order,
+    "lowpass_family": str,
+    "lowpass_ripple_db": _hz,
+    "amplifier_pole_hz": _opt_hz,
+    "alpha_1_s": _hz,
+}

@@ -1,0 +1,180 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Refinement with the device's stated front end (issue 37 point 3: ml within 1.15x the
+Cramer-Rao bound on every device): behind an anti-alias filter that lets the pulse alias
+the band-limited estimator locks to the samples; the one-emission fit with the front end's
+own pulse models the aliasing and reaches the bound. The expectations are the bound (the
+simulator's Fisher information) and the true points, never the estimator's own output."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from ae_eval.crlb import simulated_crlb
+from ae_eval.zoo import ZOO
+from ae_tactile.localization import Localizer, localize
+from ae_tactile.localization.overlap import PulseModel
+from ae_tactile.localization.refine import refine_points, refine_result
+from ae_tactile.pipeline import LocalizationConfig, PacketLocalizer
+from ae_tactile.records import PacketView
+from ae_tactile.sim import render_triggered
+
+FS = 2e6  # [Hz] below the 800 kHz low-pass's Nyquist rate: the pulse aliases
+ALIASING = "highpass_hz=50e3 highpass_order=1 lowpass_hz=800e3 lowpass_order=2"
+CHI2_2D_68 = -2.0 * math.log(1.0 - 0.68)  # [1] the 68 % ellipse of a 2-D Gaussian
+
+
+def _points(geo, n, g, max_polar_deg=40.0):
+    cos_t = g.uniform(math.cos(math.radians(max_polar_deg)), 1.0, n)
+    return geo.surface_point_from_angles(np.arccos(cos_t), g.uniform(0, 2 * math.pi, n))
+
+
+def _packets(name, n, seed, snr_db=40.0):
+    """n packets of zoo device ``name`` at FS, 40 dB, and the bound [m] at each point."""
+    g = np.random.default_rng(seed)
+    cfg = ZOO[name].config("water_skin", FS)
+    pts = _points(cfg.geometry, n, g)
+    u = g.uniform(0.05, 0.95, n)
+    pk = render_triggered(pts, cfg, snr_db=snr_db, subsample_offset=u, rng=g)
+    bound = simulated_crlb(pts, cfg, snr_db=snr_db, subsample_offset=u)["rms_m"]
+    return cfg, pk, bound
+
+
+def _rms(points, truth):
+    e = (points - truth)[:, :2]
+    return math.sqrt(np.mean(np.sum(e**2, axis=1)))
+
+
+def test_the_stated_front_end_is_the_aliasing_devices_own_pulse():
+    """The zoo's aliasing device stated as text is the simulator's chain (the same
+    stages, `geometry.front_end_stages`): the fit of its noise-free packets with that pulse
+    lands on the true points to a micrometre, where ml is tens of micrometres off."""
+    g = np.random.default_rng(1)
+    cfg = ZOO["hp1_50k_lp2_800k"].config("water_skin", FS)
+    pts = _points(cfg.geometry, 12, g)
+    pk = render_triggered(pts, cfg, subsample_offset=g.uniform(0.05, 0.95, 12), rng=g)
+    stated = PulseModel.from_spec(ALIASING)
+    assert stated == PulseModel.from_config(cfg)
+    clean = pk.clean_v if pk.clean_v is not None else pk.samples_v
+    ml = localize(clean, FS, pk.onset_index, geometry=cfg.geometry, noise_rms_v=1e-6)
+    got = refine_points(clean, FS, pk.onset_index, ml.point_m, ml.emission_offset_s, stated,
+                        geometry=cfg.geometry, noise_rms_v=1e-6)
+    assert got.refined.all()
+    assert np.abs(got.point_m - pk.points_m).max() < 1e-6
+    assert _rms(ml.point_m, pk.points_m) > 10e-6
+
+
+def test_refinement_reaches_the_bound_where_ml_locks_to_the_samples():
+    """hp1_50k_lp2_800k at 2 MS/s, 40 dB: ml is several times the bound; the refined points
+    are within 1.3x of it (the issue's 1.15 with 60 points' sampling spread) and their 68 %
+    ellipses hold 68 +- 15 % of the true points."""
+    cfg, pk, bound = _packets("hp1_50k_lp2_800k", 60, 2)
+    crb = math.sqrt(np.mean(bound**2))
+    ml = localize(pk.samples_v, FS, pk.onset_index, geometry=cfg.geometry)
+    assert ml.accepted.all()
+    assert _rms(ml.point_m, pk.points_m) > 4.0 * crb
+    res, got = refine_result(ml, pk.samples_v, FS, pk.onset_index,
+                             PulseModel.from_spec(ALIASING), geometry=cfg.geometry)
+    assert got.refined.mean() >= 0.95 and np.array_equal(res.refined, got.refined)
+    m = res.refined
+    assert _rms(res.point_m[m], pk.points_m[m]) <= 1.3 * crb
+    e = (res.point_m - pk.points_m)[m, :2]
+    d2 = [v @ np.linalg.solve(c[:2, :2], v) for v, c in zip(e, res.covariance_m2[m])]
+    assert 0.53 <= np.mean(np.array(d2) <= CHI2_2D_68) <= 0.83
+    # the directions and delays follow the refined points
+    polar = np.arccos(res.point_m[m, 2] / cfg.geometry.radius_m)
+    np.testing.assert_allclose(res.polar_rad[m], polar, atol=1e-9)
+    tau = cfg.geometry.exact_delays_s(res.point_m[m])
+    np.testing.assert_allclose(res.tau_x_s[m], tau[:, 0], atol=1e-15)
+
+
+def test_a_wrong_front_end_fails_its_residual_test_and_keeps_the_estimate():
+    """The nominal front end (2nd-order 100 kHz high-pass, 8th-order 600 kHz low-pass) is
+    not this device's: at 40 dB its fits leave more than noise, so the packets keep ml's
+    answer, unchanged, rather than a point of the wrong model."""
+    cfg, pk, _ = _packets("hp1_50k_lp2_800k", 30, 3)
+    ml = localize(pk.samples_v, FS, pk.onset_index, geometry=cfg.geometry)
+    res, got = refine_result(ml, pk.samples_v, FS, pk.onset_index,
+                             PulseModel.for_sample_rate(FS), geometry=cfg.geometry)
+    assert got.refined.mean() <= 0.2
+    assert np.all(got.chi2_ratio[~got.refined] > 1.2)
+    keep = ~res.refined
+    np.testing.assert_array_equal(res.point_m[keep], ml.point_m[keep])
+    np.testing.assert_array_equal(res.covariance_m2[keep], ml.covariance_m2[keep])
+
+
+def test_the_per_packet_path_refines_as_the_batch_does():
+    """`Localizer.set_front_end`: `localize_one` (the driver's hot path) gives the batch
+    call's refined points; `set_front_end(None)` restores the estimator's."""
+    cfg, pk, _ = _packets("hp1_50k_lp2_800k", 10, 4)
+    loc = Localizer("ml", geometry=cfg.geometry)
+    loc.set_front_end(PulseModel.from_spec(ALIASING))
+    batch = loc(pk.samples_v, FS, pk.onset_index)
+    for i in range(10):
+        one = loc.localize_one(np.ascontiguousarray(pk.samples_v[i]), FS,
+                               int(pk.onset_index[i]))
+        assert one.refined == bool(batch.refined[i])
+        np.testing.assert_allclose(one.point_m, batch.point_m[i], atol=1e-9)
+    loc.set_front_end(None)
+    plain = loc(pk.samples_v, FS, pk.onset_index)
+    assert plain.refined is None
+    np.testing.assert_array_equal(
+        plain.point_m, localize(pk.samples_v, FS, pk.onset_index,
+                                geometry=cfg.geometry).point_m)
+    with pytest.raises(TypeError):
+        loc.set_front_end(ALIASING)
+
+
+def test_the_drivers_front_end_setting_refines_its_records_and_counts_them():
+    """PacketLocalizer(front_end=...) (the driver's localization.front_end): its records
+    are the refined points, each accepted packet counted as refined or refine_failed; the
+    setting changes at run time, and a bad one is refused with the item named and nothing
+    changed."""
+    cfg, pk, _ = _packets("hp1_50k_lp2_800k", 20, 5)
+    views = [PacketView(pk.samples_v[i], FS, int(pk.onset_index[i]), 10**9 + i * 10**7, i)
+             for i in range(20)]
+
+    def errors(pl, part):
+        recs = pl.process(part)
+        return [np.linalg.norm(np.asarray(r.point_m) - pk.points_m[r.packet_ids[0]])
+                for r in recs]
+
+    pl = PacketLocalizer("ml", geometry=cfg.geometry, front_end=ALIASING)
+    e = errors(pl, views[:1]) + errors(pl, views[1:10])  # per packet, then a batch
+    assert pl.counts["refined"] + pl.counts["refine_failed"] == 10
+    assert pl.counts["refined"] >= 9
+    pl.update(front_end="")
+    e_ml = errors(pl, views[10:])
+    assert pl.counts["refined"] + pl.counts["refine_failed"] == 10  # no longer counted
+    assert np.sqrt(np.mean(np.square(e))) < 0.25 * np.sqrt(np.mean(np.square(e_ml)))
+    with pytest.raises(ValueError, match="lowpass_family"):
+        pl.update(front_end="lowpass_family=elliptic")
+    assert pl.localizer.front_end is None and pl.config.front_end == ""
+
+
+@pytest.mark.parametrize("spec, problem", [
+    ("lowpass_hz=800e3 lowpass_order", "expected name=value"),
+    ("highpass_hz=0", "positive"),
+    ("lowpass_order=13", "order"),
+    ("highpass_rc_hz=60e3/-1", "positive"),
+    ("alpha_1_s=3e3 alpha_1_s=1e4", "twice"),
+    ("gain=2", "expected name=value"),
+])
+def test_a_front_end_that_cannot_be_read_is_refused_by_name(spec, problem):
+    with pytest.raises(ValueError, match=problem):
+        PulseModel.from_spec(spec)
+    with pytest.raises(ValueError):
+        LocalizationConfig(front_end=spec)
+
+
+def test_a_stated_front_end_reads_back_as_itself():
+    """`spec()` is `from_spec`'s text: a front end written to a parameter file and read
+    again is the same pulse; RC stages and the low-pass families are part of it."""
+    for text in (ALIASING, "highpass_rc_hz=60e3/69e3 lowpass_hz=600e3 lowpass_order=6 "
+                 "lowpass_family=bessel", "lowpass_hz=none alpha_1_s=1e4",
+                 "lowpass_family=cheby1 lowpass_ripple_db=1 amplifier_pole_hz=3e6"):
+        pm = PulseModel.from_spec(text)
+        assert PulseModel.from_spec(pm.spec()) == pm
+    assert PulseModel.from_spec("") == PulseModel()
