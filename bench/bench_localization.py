@@ -286,8 +286,8 @@ def run(quick=False):
         fs = cfg.sample_rate_hz
         # what the driver's learner makes of this front end from its first touches: the
         # delay noise its covariances then carry (the points do not change)
-        _, noise = learnt_channel_model(cfg, np.random.default_rng([2024, len(cells)]),
-                                        500 if quick else 2000)
+        noise = learnt_channel_model(cfg, np.random.default_rng([2024, len(cells)]),
+                                     500 if quick else 2000).delay_noise
         pts = cap_points(geo, n_points)
         point_id = np.repeat(np.arange(n_points), n_real)
         P = pts[point_id]

@@ -418,6 +418,11 @@ def zoo_rows(d) -> list[str]:
         f" (the device farthest from 68 %) and in its worst cell | {rms} (before:"
         f" {fig('worst_rms_over_crlb_cold', False)}); {fig('inside_68_pooled')};"
         f" {fig('min_inside_68')} | bench_zoo |",
+        f"| device zoo{mode}: points published with the device's stated front end"
+        f" (`localization.front_end`, corners off by up to 8 %, calibrated on the warm-up"
+        f" touches, refined where trusted): RMS over the bound, worst cell; share inside the"
+        f" 68 % ellipse over a device's cells | {fig('worst_rms_over_crlb_published', False)};"
+        f" {fig('inside_68_pooled_published')} | bench_zoo |",
         f"| device zoo{mode}: overlapping pairs resolved by `localize_with_overlaps` with the"
         f" default pulse | {fig('overlaps_resolved')} | bench_zoo |",
         f"| device zoo{mode}: slip, precursor before gross slip / touch-scene runs with a false"

@@ -8,6 +8,7 @@ simulator's Fisher information) and the true points, never the estimator's own o
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ import pytest
 from ae_eval.crlb import simulated_crlb
 from ae_eval.zoo import ZOO
 from ae_tactile.localization import Localizer, localize
+from ae_tactile.localization.front_end import calibrate_front_end
 from ae_tactile.localization.overlap import PulseModel
 from ae_tactile.localization.refine import refine_points, refine_result
 from ae_tactile.pipeline import LocalizationConfig, PacketLocalizer
@@ -127,31 +129,104 @@ def test_the_per_packet_path_refines_as_the_batch_does():
         loc.set_front_end(ALIASING)
 
 
-def test_the_drivers_front_end_setting_refines_its_records_and_counts_them():
-    """PacketLocalizer(front_end=...) (the driver's localization.front_end): its records
-    are the refined points, each accepted packet counted as refined or refine_failed; the
-    setting changes at run time, and a bad one is refused with the item named and nothing
-    changed."""
-    cfg, pk, _ = _packets("hp1_50k_lp2_800k", 20, 5)
-    views = [PacketView(pk.samples_v[i], FS, int(pk.onset_index[i]), 10**9 + i * 10**7, i)
-             for i in range(20)]
+def _stream(name, n, seed, snr_lo=25.0, snr_hi=40.0, max_polar_deg=60.0):
+    """n touches of zoo device ``name`` at FS (SNR drawn in [snr_lo, snr_hi] dB) as the
+    driver's packets, 0.1 s apart."""
+    g = np.random.default_rng(seed)
+    cfg = ZOO[name].config("water_skin", FS)
+    pts = _points(cfg.geometry, n, g, max_polar_deg)
+    pk = render_triggered(pts, cfg, snr_db=g.uniform(snr_lo, snr_hi, n), rng=g,
+                          polarity=np.ones(n))
+    views = [PacketView(pk.samples_v[i], FS, int(pk.onset_index[i]), 10**9 + i * 10**8, i)
+             for i in range(n)]
+    return cfg, pk, views
 
-    def errors(pl, part):
-        recs = pl.process(part)
-        return [np.linalg.norm(np.asarray(r.point_m) - pk.points_m[r.packet_ids[0]])
-                for r in recs]
 
-    pl = PacketLocalizer("ml", geometry=cfg.geometry, front_end=ALIASING)
-    e = errors(pl, views[:1]) + errors(pl, views[1:10])  # per packet, then a batch
-    assert pl.counts["refined"] + pl.counts["refine_failed"] == 10
-    assert pl.counts["refined"] >= 9
+def _errors(pl, views, pk):
+    return [float(np.linalg.norm(np.asarray(r.point_m) - pk.points_m[r.packet_ids[0]]))
+            for r in pl.process(views)]
+
+
+def test_the_stated_corners_are_calibrated_from_the_devices_own_touches():
+    """A front end stated with its components' tolerance (high-pass corner 8 % high,
+    low-pass 7 % low, the decay unknown): the calibration finds the factors back to 1 %
+    and the decay to 10 %, and the calibrated pulse refines to the bound where the stated
+    one fails its residual test at 40 dB."""
+    cfg, pk, _ = _stream("hp1_50k_lp2_800k", 40, 6)
+    true = PulseModel.from_config(cfg)
+    stated = replace(true, highpass_hz=true.highpass_hz * 1.08,
+                     lowpass_hz=true.lowpass_hz * 0.93, alpha_1_s=1e4)
+    fit = calibrate_front_end(pk.samples_v, FS, pk.onset_index, stated, geometry=cfg.geometry)
+    assert fit.converged and fit.n_inliers >= 0.9 * fit.n_candidates
+    assert fit.highpass_factor == pytest.approx(1 / 1.08, rel=0.01)
+    assert fit.lowpass_factor == pytest.approx(1 / 0.93, rel=0.01)
+    assert fit.alpha_1_s == pytest.approx(true.alpha_1_s, rel=0.1)
+    cfg, pk, bound = _packets("hp1_50k_lp2_800k", 40, 7)
+    ml = localize(pk.samples_v, FS, pk.onset_index, geometry=cfg.geometry)
+    res, got = refine_result(ml, pk.samples_v, FS, pk.onset_index, fit.pulse,
+                             geometry=cfg.geometry)
+    assert got.refined.mean() >= 0.95
+    assert _rms(res.point_m, pk.points_m) <= 1.3 * math.sqrt(np.mean(bound**2))
+    _, as_stated = refine_result(ml, pk.samples_v, FS, pk.onset_index, stated,
+                                 geometry=cfg.geometry)
+    assert as_stated.refined.mean() <= 0.2
+
+
+def test_a_statement_of_another_filter_is_not_trusted_and_refines_nothing():
+    """A 6th-order Bessel low-pass stated for a 2nd-order Butterworth: no corners make it
+    the device's pulse, the calibration is not trusted (three tries, then the learner stops),
+    the status says so and the driver keeps ml's answers (counted neither refined nor
+    failed: no refinement runs)."""
+    cfg, pk, views = _stream("hp1_50k_lp2_800k", 240, 8)
+    spec = "highpass_hz=50e3 highpass_order=1 lowpass_hz=800e3 lowpass_order=6 " \
+           "lowpass_family=bessel"
+    fit = calibrate_front_end(pk.samples_v[:40], FS, pk.onset_index[:40],
+                              PulseModel.from_spec(spec), geometry=cfg.geometry)
+    assert not fit.converged and fit.n_inliers < 0.9 * fit.n_candidates
+    pl = PacketLocalizer("ml", geometry=cfg.geometry, front_end=spec)
+    for k in range(0, 240, 10):
+        pl.process(views[k:k + 10])
+    # 240 touches keep some 110 for learning: enough for 4 calibrations, 3 are tried
+    assert pl.front_end_learner.attempts == 3 and pl.localizer.front_end is None
+    assert "does not describe this device" in pl.front_end_status()
+    assert pl.counts["refined"] == pl.counts["refine_failed"] == 0
+
+
+def test_the_driver_calibrates_its_stated_front_end_then_refines_and_keeps_it():
+    """PacketLocalizer(front_end=...) (the driver's localization.front_end, stated with
+    tolerance): ml's answers while it calibrates on the kept touches, the refined points
+    after (each accepted packet counted refined or refine_failed), 4x smaller errors; the
+    calibration is saved and loaded for the same statement (refining at once), refused
+    for another; the setting changes at run time, a bad one refused with nothing changed."""
+    stated = "highpass_hz=54e3 highpass_order=1 lowpass_hz=760e3 lowpass_order=2"
+    cfg, pk, views = _stream("hp1_50k_lp2_800k", 160, 9)
+    pl = PacketLocalizer("ml", geometry=cfg.geometry, front_end=stated)
+    before = []
+    k = 0
+    while pl.localizer.front_end is None and k < 120:
+        before += _errors(pl, views[k:k + 10], pk)
+        k += 10
+    assert pl.localizer.front_end is not None, pl.front_end_status()
+    assert pl.front_end_status().startswith("calibrated")
+    refined0 = pl.counts["refined"]
+    assert refined0 == pl.counts["refine_failed"] == 0  # nothing refined while calibrating
+    after = _errors(pl, views[k:k + 1], pk) + _errors(pl, views[k + 1:k + 40], pk)
+    assert pl.counts["refined"] + pl.counts["refine_failed"] == len(after)
+    assert pl.counts["refined"] >= 0.9 * len(after)
+    assert np.sqrt(np.mean(np.square(after))) < 0.25 * np.sqrt(np.mean(np.square(before)))
+    state = pl.calibration_learners()["front_end"].calibration_state()
+    again = PacketLocalizer("ml", geometry=cfg.geometry, front_end=stated)
+    again.calibration_learners()["front_end"].load_calibration(state)
+    assert again.localizer.front_end == pl.localizer.front_end
+    other = PacketLocalizer("ml", geometry=cfg.geometry, front_end="lowpass_hz=600e3")
+    with pytest.raises(ValueError, match="another statement"):
+        other.calibration_learners()["front_end"].load_calibration(state)
+    assert other.localizer.front_end is None
     pl.update(front_end="")
-    e_ml = errors(pl, views[10:])
-    assert pl.counts["refined"] + pl.counts["refine_failed"] == 10  # no longer counted
-    assert np.sqrt(np.mean(np.square(e))) < 0.25 * np.sqrt(np.mean(np.square(e_ml)))
+    assert pl.localizer.front_end is None and pl.front_end_status().startswith("none")
     with pytest.raises(ValueError, match="lowpass_family"):
         pl.update(front_end="lowpass_family=elliptic")
-    assert pl.localizer.front_end is None and pl.config.front_end == ""
+    assert pl.config.front_end == ""
 
 
 @pytest.mark.parametrize("spec, problem", [
@@ -178,3 +253,37 @@ def test_a_stated_front_end_reads_back_as_itself():
         pm = PulseModel.from_spec(text)
         assert PulseModel.from_spec(pm.spec()) == pm
     assert PulseModel.from_spec("") == PulseModel()
+
+
+def test_the_pipeline_calibrates_beside_the_reader_and_refines_what_it_publishes():
+    """ContactPipeline (the driver's in-process path): the calibration runs in the
+    learning thread beside the reader and is used from the next hand-off on; the contact
+    records it publishes after that are the refined points, and its calibration file
+    section holds the factors (`calibration_learners`)."""
+    from ae_tactile.pipeline import ContactPipeline
+
+    stated = "highpass_hz=47e3 highpass_order=1 lowpass_hz=840e3 lowpass_order=2"
+    cfg, pk, views = _stream("hp1_50k_lp2_800k", 240, 10)
+    pipe = ContactPipeline(PacketLocalizer("ml", geometry=cfg.geometry, front_end=stated),
+                           None)
+    out: list = []
+    try:
+        k = 0
+        while pipe.localizer.localizer.front_end is None and k < 200:
+            pipe.process(views[k:k + 8], out.extend)
+            k += 8
+        assert pipe.localizer.localizer.front_end is not None, pipe.localizer.front_end_status()
+        n0 = len(out)
+        pipe.process(views[k:k + 40], out.extend)
+    finally:
+        pipe.close()
+    late = out[n0:]
+    assert len(late) >= 30
+    err = [np.linalg.norm(np.asarray(r.point_m) - pk.points_m[r.packet_ids[0]]) for r in late]
+    early = [np.linalg.norm(np.asarray(r.point_m) - pk.points_m[r.packet_ids[0]])
+             for r in out[:n0]]
+    assert np.sqrt(np.mean(np.square(err))) < 0.25 * np.sqrt(np.mean(np.square(early)))
+    state = pipe.calibration_learners()["front_end"].calibration_state()
+    assert state["stated"] == PulseModel.from_spec(stated).spec()
+    assert state["highpass_factor"] == pytest.approx(50 / 47, rel=0.02)
+    assert state["lowpass_factor"] == pytest.approx(800 / 840, rel=0.02)

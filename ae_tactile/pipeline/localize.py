@@ -23,6 +23,7 @@ from ae_tactile.dsp.interference import common_mode_interference
 from ae_tactile.dsp.interference import warm_up as warm_interference
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import ChannelDelayLearner, Localizer, Reason, get_estimator
+from ae_tactile.localization.front_end import FrontEndLearner
 from ae_tactile.localization.overlap import suspect_overlap
 from ae_tactile.localization.overlap import warm_up as warm_overlaps
 from ae_tactile.localization.overlap_worker import background_priority
@@ -119,7 +120,6 @@ class PacketLocalizer:
         #: the settings in use (`update` replaces it)
         self.config = cfg
         self.localizer = Localizer(cfg.method, min_snr_db=cfg.min_snr_db)
-        self.localizer.set_front_end(front_end_pulse(cfg.front_end))
         self.screens = Screens(
             reject_interference=cfg.reject_interference,
             interference_echo_min=cfg.interference_echo_min,
@@ -154,6 +154,11 @@ class PacketLocalizer:
         self._delays_next: tuple | None = None  # (offsets,) it learnt, not yet in use
         self._deferring = False  # learning inline: offsets wait for the next hand-off
         self.delay_learner.on_update = self._set_delays
+        #: the stated front end (``front_end``) calibrated on the same kept packets; its
+        #: pulse refines every accepted point once trusted (`_set_front_end`)
+        self.front_end_learner = FrontEndLearner(front_end_pulse(cfg.front_end))
+        self._front_next: list = []  # a calibrated pulse not yet in use (from the thread)
+        self.front_end_learner.on_update = self._set_front_end
 
     weak_releases = _screen_attr("weak_releases")
     weak_release_min_snr_db = _screen_attr("weak_release_min_snr_db")
@@ -183,7 +188,20 @@ class PacketLocalizer:
         `ae_tactile.calibration.CalibrationStore`)."""
         out = dict(self.screens.calibration_learners())
         out["channel_delays"] = self.delay_learner
+        out["front_end"] = self.front_end_learner
         return out
+
+    def _set_front_end(self, pulse) -> None:
+        """The calibrated pulse to the localizer (the learner's ``on_update``); from the
+        learning thread it waits for the next hand-off, as the delays do."""
+        if self._deferring or threading.current_thread() is self._delay_thread:
+            self._front_next = [pulse]
+        else:
+            self.localizer.set_front_end(pulse)
+
+    def front_end_status(self) -> str:
+        """`FrontEndLearner.status`: the stated front end's calibration, in words."""
+        return self.front_end_learner.status()
 
     def _set_delays(self, delays_s, noise=None) -> None:
         """The learner's offsets and delay noise to the localizer (its ``on_update``); from
@@ -224,6 +242,8 @@ class PacketLocalizer:
         if self._delays_next is not None:
             self.localizer.set_channel_delays(*self._delays_next)
             self._delays_next = None
+        if self._front_next:
+            self.localizer.set_front_end(self._front_next.pop())
         if self.learn_inline:
             self._deferring = True
             try:
@@ -267,6 +287,9 @@ class PacketLocalizer:
             with np.errstate(all="ignore"):
                 self.delay_learner.add(np.stack([it[0] for it in items]), fs,
                                        [it[2] for it in items], self.geometry, gains)
+            if self.front_end_learner.wanted and gains is None:
+                self.front_end_learner.add(np.stack([it[0] for it in items]), fs,
+                                           [it[2] for it in items], self.geometry)
 
     def interference_model_status(self) -> str:
         """`Screens.acoustic_model_status`: the interference screen's model of an acoustic
@@ -309,7 +332,7 @@ class PacketLocalizer:
         # everything checked: apply what was given
         if localizer is not None:
             localizer.set_channel_delays(*self.delay_learner.applied)
-            localizer.set_front_end(front_end_pulse(cfg.front_end))
+            localizer.set_front_end(self.localizer.front_end)
             self.localizer = localizer
             self._one = getattr(localizer, "localize_one", None)
             self.method, self.min_snr_db = cfg.method, cfg.min_snr_db
@@ -330,7 +353,7 @@ class PacketLocalizer:
         if name == "min_confidence":
             self.min_confidence = value
         elif name == "front_end":
-            self.localizer.set_front_end(front_end_pulse(value))
+            self.front_end_learner.set_stated(front_end_pulse(value))
         elif name == "resolve_overlaps":
             self.resolve_overlaps = value
         elif name == "weak_releases":

@@ -254,7 +254,7 @@ def live_device(dev, *, n_pairs=20, max_singles=48, rng=None, sample_rate_hz=10e
         n_delay = DELAY_WARM_TOUCHES if delay_touches is None else int(delay_touches)
         delays, noise = learnt_channel_model(
             cfg, np.random.default_rng([sum(map(ord, dev.name)), 37]), n_delay
-        ) if n_delay else (None, None)
+        )[:2] if n_delay else (None, None)
         pipe.localizer.localizer.set_channel_delays(delays, noise)
         learner = pipe.overlap_stage.pulse_learner
         learner.background = "process" if fit_in_process else False
