@@ -75,6 +75,18 @@ def test_tuning_parameters_change_at_once_and_are_validated(driver_and_client):
     assert loc.weak_releases is False and loc.weak_release_min_snr_db == -2.0
     (r,) = set_params(localization__weak_release_min_snr_db=-90.0)  # outside -20 .. 80
     assert not r.successful and loc.weak_release_min_snr_db == -2.0
+    # the stated front end: taken (calibrated on the device's touches before it refines),
+    # refused by name when it cannot be read, withdrawn with ""
+    assert loc.front_end_status().startswith("none")
+    (r,) = set_params(localization__front_end="highpass_hz=50e3 highpass_order=1 "
+                                                "lowpass_hz=800e3 lowpass_order=2")
+    assert r.successful and loc.front_end_status().startswith("calibrating")
+    assert loc.localizer.front_end is None  # nothing refined before it is calibrated
+    (r,) = set_params(localization__front_end="lowpass_family=elliptic")
+    assert not r.successful and "lowpass_family" in r.reason
+    assert loc.config.front_end.startswith("highpass_hz=50e3")
+    (r,) = set_params(localization__front_end="")
+    assert r.successful and loc.front_end_status().startswith("none")
     (r,) = set_params(slip__sliding_speed_m_s=0.02)
     assert r.successful
     assert drv.slip_stage.detector.config.sliding_speed_m_s == pytest.approx(0.02)
