@@ -106,14 +106,24 @@ def refine_points(windows, sample_rate_hz, onset_index, point_m, emission_offset
     ids = np.nonzero(np.isfinite(p0).all(axis=1) & np.isfinite(t0))[0]
     if ids.size == 0:
         return out
-    x, nr = pulse.correct_channels(x[ids], fs, _rows(noise_rms_v, K, ids))
-    if channel_delays_s is not None:
-        x = shift_channels(x, fs, (1.0,) * 4, tuple(float(d) for d in channel_delays_s))
-    bare = replace(pulse, channel_gain=(), channel_delay_s=())
     plan = make_plan(fs, geo, x.shape[2], (100e3, 1e6))
+    nr = _rows(noise_rms_v, K, ids)
+    delays = None if channel_delays_s is None or not np.any(channel_delays_s) else \
+        tuple(float(d) for d in channel_delays_s)
+    noise_v2 = None
+    x = x[ids]
+    if delays is not None or pulse.channel_gain or pulse.channel_delay_s:
+        if nr is None:
+            noise_v2 = _raw_noise_v2(x, on[ids], plan)  # before the shift leaves the grid
+        x, nr = pulse.correct_channels(x, fs, nr)
+        if delays is not None:
+            x = shift_channels(x, fs, (1.0,) * 4, delays)
+    bare = replace(pulse, channel_gain=(), channel_delay_s=())
     with np.errstate(all="ignore"):
         prep = prepare(x, on[ids], plan, noise_rms_v=nr, spectra=False)
         sigma2 = adc_noise(prep.sigma2, prep.quant2, _given(prep))
+        if noise_v2 is not None:
+            sigma2 = noise_v2 / prep.scale**2
         seg, start, length, inside = _segments(prep, plan, geo, plan.fs, None)
         model = _Model(geo, plan.fs, start, length, bare, echo, inside)
         theta = np.concatenate([p0[ids], t0[ids, None]], axis=1)[:, None, :]
@@ -178,6 +188,15 @@ def _fill(out, ids, th, ratio, ok, gram, sigma2, R) -> None:
         out.covariance_m2[k] = c3
         out.emission_offset_s[k] = T
         out.refined[k] = True
+
+
+def _raw_noise_v2(x, on, plan) -> np.ndarray:
+    """(K,) noise variance [V^2] on the signal samples of the raw windows, the ADC's
+    rounding included (`adc_noise`): a fractional shift moves the samples off the ADC's
+    grid, where the quantum can no longer be seen."""
+    with np.errstate(all="ignore"):
+        raw = prepare(np.array(x, float), on, plan, spectra=False)  # it scales in place
+        return adc_noise(raw.sigma2, raw.quant2, _given(raw)) * raw.scale**2
 
 
 def _rows(v, K, ids):
