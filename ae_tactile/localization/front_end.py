@@ -11,7 +11,9 @@ one factor k_hp on every high-pass corner, one k_lp on the low-pass corner and t
 emission decay alpha (a property of the body and the object, not of the electronics),
 minimising the summed residual of the one-emission fits (3 Levenberg-Marquardt steps from
 each packet's matched-filter time, as `calibrate_pulse`) by Nelder-Mead, from alpha =
-3e3 /s and 1e5 /s. The calibration is trusted (``converged``) when the pulse explains at
+3e3, 1e5 and 1e6 /s; then each chain's gain (a few % apart in any real amplifier: the
+median least-squares scale of the fitted model per channel), kept where it explains
+more packets. The calibration is trusted (``converged``) when the pulse explains at
 least FRONT_END_MIN_INLIERS packets to the noise and FRONT_END_MIN_INLIER_SHARE of them
 (the resolver's residual test, `pulse_inliers`); the factors stay within
 MAX_CORNER_FACTOR of the statement (beyond, the statement is wrong, not its tolerance).
@@ -52,9 +54,11 @@ FRONT_END_MIN_INLIER_SHARE = 0.9
 #: [1] calibrated corners within this factor of the stated ones
 MAX_CORNER_FACTOR = 1.5
 #: [1/s] starts of the emission decay (its decades in real bodies: 1e3 .. 1e6)
-ALPHA_STARTS_1_S = (3e3, 1e5)
+ALPHA_STARTS_1_S = (3e3, 1e5, 1e6)
 #: objective evaluations per start
 CALIBRATION_MAXFEV = 60
+#: [1] chains' gains within this of alike are not corrected (below what the fits see)
+MIN_CHANNEL_GAIN = 3e-3
 #: [1] untrusted calibrations before the learner stops trying (the statement does not
 #: describe the device: a lossy body, another family); a new statement starts again
 MAX_ATTEMPTS = 3
@@ -63,7 +67,8 @@ _FORMAT = 1  # of `FrontEndLearner.calibration_state`
 
 @dataclass
 class FrontEndFit:
-    """One calibration: the pulse (the stated one with the fitted factors and decay),
+    """One calibration: the pulse (the stated one with the fitted factors and decay, and
+    the chains' own gains where they differ),
     the factors k_hp, k_lp [1] and decay [1/s], the candidates offered and the packets
     it explains (``n_inliers``), and whether it is trusted (``converged``)."""
 
@@ -77,8 +82,10 @@ class FrontEndFit:
 
     def describe(self) -> str:
         """The calibration in words (diagnostics)."""
+        g = self.pulse.channel_gain
+        gains = ", chain gains " + "/".join(f"{v:.3f}" for v in g) if g else ""
         return (f"corners x{self.highpass_factor:.3f} (high-pass) x{self.lowpass_factor:.3f} "
-                f"(low-pass) of the stated, emission decay {self.alpha_1_s:.3g} /s: "
+                f"(low-pass) of the stated, emission decay {self.alpha_1_s:.3g} /s{gains}: "
                 f"{self.n_inliers} of {self.n_candidates} packets explained")
 
 
@@ -153,14 +160,36 @@ def calibrate_front_end(windows, sample_rate_hz, onset_index, stated, *, geometr
         if best is None or r.fun < best.fun:
             best = r
     v = best.x if best is not None and math.isfinite(best.fun) else v0
+    nr = None if noise_rms_v is None else np.broadcast_to(
+        np.asarray(noise_rms_v, float), (len(on),))[ids]
     pulse = scaled_front_end(stated, v)
-    n_cand, n_in = pulse_inliers(x[ids], fs, on[ids], pulse, geometry=geo,
-                                 noise_rms_v=None if noise_rms_v is None else
-                                 np.broadcast_to(np.asarray(noise_rms_v, float),
-                                                 (len(on),))[ids])
+    n_cand, n_in = pulse_inliers(x[ids], fs, on[ids], pulse, geometry=geo, noise_rms_v=nr)
+    gains = _channel_gains(pulse, data)
+    if gains is not None:  # the chains' own gains, kept where they explain more packets
+        with_gains = replace(pulse, channel_gain=gains)
+        n2 = pulse_inliers(x[ids], fs, on[ids], with_gains, geometry=geo, noise_rms_v=nr)[1]
+        if n2 > n_in:
+            pulse, n_in = with_gains, n2
     ok = n_in >= FRONT_END_MIN_INLIERS and n_in >= FRONT_END_MIN_INLIER_SHARE * n_cand
     k_hp, k_lp, alpha = (float(math.exp(c)) for c in v)
     return FrontEndFit(pulse, k_hp, k_lp, alpha, int(n_cand), int(n_in), bool(ok))
+
+
+def _channel_gains(pulse, data) -> tuple | None:
+    """Each chain's gain [1] (mean 1) from the one-emission fits with ``pulse``: per
+    packet and channel the least-squares scale of the fitted model to the samples, the
+    median over the packets; None where every gain is within MIN_CHANNEL_GAIN of 1."""
+    geo, fs, start, length, inside, seg, pts, y = data
+    with np.errstate(all="ignore"):
+        model = _Model(geo, fs, start, length, pulse, True, inside)
+        th, amp, _, _ = _lm(model, y, _time_search(model, seg, pts)[:, None, :], iterations=5)
+        phi, _ = model.evaluate(th)
+    m = np.einsum("kj,kjn->kn", amp, phi).reshape(seg.shape)  # (K, 4, L)
+    g = np.median(np.einsum("kcl,kcl->kc", seg, m) / np.einsum("kcl,kcl->kc", m, m), axis=0)
+    if not np.all(np.isfinite(g)) or np.any(g <= 0):
+        return None
+    g = g / g.mean()
+    return None if np.max(np.abs(g - 1.0)) < MIN_CHANNEL_GAIN else tuple(float(v) for v in g)
 
 
 def _calibration_data(x, on, fs, geo, pts):
@@ -252,7 +281,7 @@ class FrontEndLearner:
             return {"format": _FORMAT, "stated": self.stated.spec(),
                     "highpass_factor": f.highpass_factor, "lowpass_factor": f.lowpass_factor,
                     "alpha_1_s": f.alpha_1_s, "n_candidates": f.n_candidates,
-                    "n_inliers": f.n_inliers}
+                    "n_inliers": f.n_inliers, "channel_gain": list(self.pulse.channel_gain)}
 
     def load_calibration(self, state: dict) -> None:
         """Start from a saved `calibration_state` of the same statement.
@@ -270,16 +299,18 @@ class FrontEndLearner:
             v = [math.log(float(state["highpass_factor"])),
                  math.log(float(state["lowpass_factor"])), math.log(float(state["alpha_1_s"]))]
             n_cand, n_in = int(state["n_candidates"]), int(state["n_inliers"])
+            gains = tuple(float(g) for g in state.get("channel_gain", ()))
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"front end: malformed ({exc})") from None
         lim = math.log(MAX_CORNER_FACTOR)
-        if not (abs(v[0]) <= lim and abs(v[1]) <= lim and 5.0 < v[2] < 15.0):
-            raise ValueError("front end: factors or decay out of range")
+        if not (abs(v[0]) <= lim and abs(v[1]) <= lim and 5.0 < v[2] < 15.0) or (
+                gains and (len(gains) != 4 or not all(0.5 < g < 2.0 for g in gains))):
+            raise ValueError("front end: factors, decay or gains out of range")
         with self._lock:
             if self.stated is None or stated != self.stated:
                 raise ValueError("front end: calibrated for another statement "
                                  f"({state['stated']!r})")
-            pulse = scaled_front_end(stated, v)
+            pulse = replace(scaled_front_end(stated, v), channel_gain=gains)
             self.fit = FrontEndFit(pulse, *(math.exp(c) for c in v), n_cand, n_in, True)
             self.pulse = pulse
         if self.on_update is not None:

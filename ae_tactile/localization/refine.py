@@ -16,11 +16,12 @@ so aliasing is part of the model; with the device's pulse it reaches the bound (
 docs/localization.md, "Refinement with the front end's pulse").
 
 Parameters (s_x, s_y, T) by Levenberg-Marquardt from the ml point, (A, B) by linear least
-squares; the fit window, the first wall echo, the residual test and the covariance (the
-(s_x, s_y) block of the inverse Fisher matrix, inflated by the chi^2 ratio above 1) are the
-overlap resolver's. A packet whose fit fails the residual test (a wrong pulse, a second
-emission) keeps its ml answer (``refined`` False): refinement never makes a packet worse
-than the model it can check.
+squares; the fit window, the first wall echo and the residual test are the overlap
+resolver's. The covariance is that of this fit under the noise's colour measured before
+the onset (`_sandwich`: the inverse Fisher matrix where the noise is white), inflated by
+the chi^2 ratio above 1. A packet whose fit fails the residual test (a wrong pulse, a
+second emission) keeps its ml answer (``refined`` False): refinement never makes a packet
+worse than the model it can check.
 """
 
 from __future__ import annotations
@@ -29,11 +30,13 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy import fft as sfft
 
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization.common import adc_noise, make_plan, validate_windows
+from ae_tactile.localization.noise_model import pre_onset_autocov
 from ae_tactile.localization.overlap.decide import _chi2_limit, surface_covariance
-from ae_tactile.localization.overlap.model import _lm, _Model
+from ae_tactile.localization.overlap.model import _lm, _Model, _sub
 from ae_tactile.localization.overlap.pulse import PulseModel, _given, shift_channels
 from ae_tactile.localization.overlap.search import _segments
 from ae_tactile.localization.segments import prepare
@@ -107,17 +110,8 @@ def refine_points(windows, sample_rate_hz, onset_index, point_m, emission_offset
     if ids.size == 0:
         return out
     plan = make_plan(fs, geo, x.shape[2], (100e3, 1e6))
-    nr = _rows(noise_rms_v, K, ids)
-    delays = None if channel_delays_s is None or not np.any(channel_delays_s) else \
-        tuple(float(d) for d in channel_delays_s)
-    noise_v2 = None
-    x = x[ids]
-    if delays is not None or pulse.channel_gain or pulse.channel_delay_s:
-        if nr is None:
-            noise_v2 = _raw_noise_v2(x, on[ids], plan)  # before the shift leaves the grid
-        x, nr = pulse.correct_channels(x, fs, nr)
-        if delays is not None:
-            x = shift_channels(x, fs, (1.0,) * 4, delays)
+    x, nr, noise_v2 = _corrected(x[ids], on[ids], fs, plan, pulse, channel_delays_s,
+                                 _rows(noise_rms_v, K, ids))
     bare = replace(pulse, channel_gain=(), channel_delay_s=())
     with np.errstate(all="ignore"):
         prep = prepare(x, on[ids], plan, noise_rms_v=nr, spectra=False)
@@ -127,14 +121,17 @@ def refine_points(windows, sample_rate_hz, onset_index, point_m, emission_offset
         seg, start, length, inside = _segments(prep, plan, geo, plan.fs, None)
         model = _Model(geo, plan.fs, start, length, bare, echo, inside)
         theta = np.concatenate([p0[ids], t0[ids, None]], axis=1)[:, None, :]
-        th, _, rss, gram = _lm(model, seg.reshape(ids.size, -1), theta, int(iterations))
+        th, amp, rss, gram = _lm(model, seg.reshape(ids.size, -1), theta, int(iterations))
+        n_pre = np.clip(prep.seg_start, 0, x.shape[2])
+        rho = _noise_correlation(pre_onset_autocov(prep.x, n_pre, prep.pre_mean, plan.seg_len))
+        cov5 = _sandwich(model, th, amp, gram, rho, sigma2)
     dof = np.maximum(model.mask.sum(axis=1) - 5, 1)
     ratio = rss / (sigma2 * dof)
     n_noise = np.maximum(4 * (prep.onset - plan.pre), 4).astype(float)
     if nr is not None:
         n_noise[:] = np.inf
     ok = np.isfinite(ratio) & (ratio <= _chi2_limit(n_noise, dof, None))
-    _fill(out, ids, th[:, 0], ratio, ok, gram, sigma2, geo.radius_m)
+    _fill(out, ids, th[:, 0], ratio, ok, cov5, geo.radius_m)
     return out
 
 
@@ -167,27 +164,84 @@ def refine_result(result, windows, sample_rate_hz, onset_index, pulse, **kw):
                    tau_x_s=tx, tau_y_s=ty, refined=m), got
 
 
-def _fill(out, ids, th, ratio, ok, gram, sigma2, R) -> None:
+def _noise_correlation(acov) -> np.ndarray:
+    """(K, P + 1) the noise's correlation at lags 0..P [1] from the pre-onset
+    autocovariance; white (1, 0, ...) where it is unknown."""
+    rho = acov / acov[:, :1]
+    bad = ~np.all(np.isfinite(rho), axis=1)
+    rho[bad] = 0.0
+    rho[bad, 0] = 1.0
+    return rho
+
+
+def _sandwich(model, th, amp, gram, rho, sigma2) -> np.ndarray:
+    """(n, 5, 5) covariance of the fit's (s_x, s_y, T, A, B). Where the noise is white
+    (``rho`` has no lag beyond 0: the pre-onset estimate keeps only a significant colour)
+    sigma2 G^-1 with G = J J^T, the fit's own ``gram``; where the front end colours it,
+    G^-1 B G^-1 with B = J Sigma J^T, Sigma the noise's covariance along each channel
+    (sigma2 times the Toeplitz matrix of ``rho``): the fit weighs the samples alike, and
+    the white formula would be 2-3x too small under amplifier noise."""
+    out = sigma2[:, None, None] * np.linalg.pinv(gram, rcond=1e-13, hermitian=True)
+    col = np.nonzero(np.any(rho[:, 1:] != 0.0, axis=1))[0]
+    if col.size == 0:
+        return out
+    sub = _sub(model, col)
+    phi, parts = sub.evaluate(th[col])
+    jac = np.concatenate([sub.jacobian(parts, amp[col]), phi], axis=1)  # (m, 5, 4L)
+    m, q, _ = jac.shape
+    j4 = jac.reshape(m, q, 4, model.L)
+    r = rho[col]
+    P = r.shape[1] - 1
+    # J Sigma J^T by Parseval on a zero-padded length (>= L + P: the circular correlation
+    # is the banded Toeplitz one): sum over bins of Jf S Jf^H, S the spectrum of rho
+    nf = sfft.next_fast_len(model.L + P + 1, real=True)
+    jf = sfft.rfft(j4, n=nf, axis=-1)  # (m, q, 4, F)
+    kern = np.zeros((m, nf))
+    kern[:, : P + 1] = r
+    if P:
+        kern[:, nf - P:] = r[:, :0:-1]
+    wts = np.full(jf.shape[-1], 2.0)
+    wts[0] = 1.0
+    if nf % 2 == 0:
+        wts[-1] = 1.0
+    spec = sfft.rfft(kern, axis=-1).real * wts / nf  # (m, F)
+    b = np.einsum("mqcf,mrcf,mf->mqr", jf, jf.conj(), spec).real
+    g = np.einsum("mqcl,mrcl->mqr", j4, j4)
+    gi = np.linalg.pinv(g, rcond=1e-13, hermitian=True)
+    out[col] = sigma2[col, None, None] * (gi @ b @ gi)
+    return out
+
+
+def _fill(out, ids, th, ratio, ok, cov5, R) -> None:
     """``out``'s rows ``ids``: the fits (th (n, 3): s_x, s_y [m], T [s]) that passed the
-    residual test (``ok``) and lie on the cap, with their covariance (the inverse Fisher
-    matrix gram / sigma^2, inflated by the chi^2 ratio above 1)."""
+    residual test (``ok``) and lie on the cap, with their covariance (``cov5`` (n, 5, 5),
+    inflated by the chi^2 ratio above 1)."""
     for j, k in enumerate(ids):
         sx, sy, T = (float(v) for v in th[j])
         out.chi2_ratio[k] = ratio[j]
         if not ok[j] or sx * sx + sy * sy >= R * R:
             continue
-        fis = gram[j] / (sigma2[j] * max(float(ratio[j]), 1.0))
-        try:
-            cov = np.linalg.pinv(fis, rcond=1e-13, hermitian=True)
-        except np.linalg.LinAlgError:
-            continue
-        c3 = surface_covariance(sx, sy, cov[:2, :2], R)
+        c3 = surface_covariance(sx, sy, cov5[j, :2, :2] * max(float(ratio[j]), 1.0), R)
         if not np.all(np.isfinite(c3)):
             continue
         out.point_m[k] = (sx, sy, math.sqrt(R * R - sx * sx - sy * sy))
         out.covariance_m2[k] = c3
         out.emission_offset_s[k] = T
         out.refined[k] = True
+
+
+def _corrected(x, on, fs, plan, pulse, channel_delays_s, nr):
+    """(windows with the pulse's channel corrections and the channels' own delays taken
+    out, noise sigma [V] to give, noise variance [V^2] measured before the shift or None)."""
+    delays = None if channel_delays_s is None or not np.any(channel_delays_s) else \
+        tuple(float(d) for d in channel_delays_s)
+    if delays is None and not (pulse.channel_gain or pulse.channel_delay_s):
+        return x, nr, None
+    noise_v2 = _raw_noise_v2(x, on, plan) if nr is None else None  # before the shift
+    x, nr = pulse.correct_channels(x, fs, nr)
+    if delays is not None:
+        x = shift_channels(x, fs, (1.0,) * 4, delays)
+    return x, nr, noise_v2
 
 
 def _raw_noise_v2(x, on, plan) -> np.ndarray:
