@@ -289,13 +289,15 @@ def test_the_pipeline_calibrates_beside_the_reader_and_refines_what_it_publishes
     assert state["lowpass_factor"] == pytest.approx(800 / 840, rel=0.02)
 
 
-def test_channel_delays_taken_out_keep_the_adcs_rounding_in_the_noise():
+@pytest.mark.parametrize("name", ["nominal", "alpha_1e6"])
+def test_channel_delays_taken_out_keep_the_adcs_rounding_in_the_noise(name):
     """At 40 dB the 12-bit ADC's rounding is a good part of the noise; taking the channels'
     own delays out shifts the samples off the ADC's grid, where the quantum cannot be
-    seen: the noise is measured before the shift, so the residual test judges the fit as
-    without the shift (it failed 100 % of the nominal device's packets, chi^2 3x)."""
+    seen: the noise (its level and its colour) is measured before the shift, so the
+    residual test and the covariance judge the fit as without the shift (the test failed
+    100 % of the nominal device's packets, chi^2 3x)."""
     g = np.random.default_rng(12)
-    cfg = ZOO["nominal"].config("water_skin", 10e6)
+    cfg = ZOO[name].config("water_skin", 10e6)
     pts = _points(cfg.geometry, 30, g)
     pk = render_triggered(pts, cfg, snr_db=40.0, rng=g)
     ml = localize(pk.samples_v, 10e6, pk.onset_index, geometry=cfg.geometry)
@@ -307,6 +309,12 @@ def test_channel_delays_taken_out_keep_the_adcs_rounding_in_the_noise():
                             channel_delays_s=(1e-9, -1e-9, 0.5e-9, -0.5e-9))
     assert plain.refined.mean() >= 0.9 and shifted.refined.mean() >= 0.9
     assert np.median(shifted.chi2_ratio) == pytest.approx(np.median(plain.chi2_ratio), rel=0.2)
+    # and the noise's colour is read before the shift too (its rounding read as colour
+    # made the claimed sigma 5x too small: 2 % of the points inside the 68 % ellipse)
+    both = plain.refined & shifted.refined
+    sd = [np.sqrt(np.trace(r.covariance_m2[both][:, :2, :2], axis1=1, axis2=2))
+          for r in (plain, shifted)]
+    assert np.median(sd[1]) == pytest.approx(np.median(sd[0]), rel=0.2)
 
 
 def test_under_amplifier_noise_the_ellipses_hold_what_they_claim():

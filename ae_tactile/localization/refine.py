@@ -110,7 +110,8 @@ def refine_points(windows, sample_rate_hz, onset_index, point_m, emission_offset
     if ids.size == 0:
         return out
     plan = make_plan(fs, geo, x.shape[2], (100e3, 1e6))
-    x, nr, noise_v2 = _corrected(x[ids], on[ids], fs, plan, pulse, channel_delays_s,
+    raw = x[ids]
+    x, nr, noise_v2 = _corrected(raw, on[ids], fs, plan, pulse, channel_delays_s,
                                  _rows(noise_rms_v, K, ids))
     bare = replace(pulse, channel_gain=(), channel_delay_s=())
     with np.errstate(all="ignore"):
@@ -122,8 +123,8 @@ def refine_points(windows, sample_rate_hz, onset_index, point_m, emission_offset
         model = _Model(geo, plan.fs, start, length, bare, echo, inside)
         theta = np.concatenate([p0[ids], t0[ids, None]], axis=1)[:, None, :]
         th, amp, rss, gram = _lm(model, seg.reshape(ids.size, -1), theta, int(iterations))
-        n_pre = np.clip(prep.seg_start, 0, x.shape[2])
-        rho = _noise_correlation(pre_onset_autocov(prep.x, n_pre, prep.pre_mean, plan.seg_len))
+        rho = _noise_correlation(prep if x is raw else prepare(
+            np.array(raw, float), on[ids], plan, spectra=False), plan)  # before any shift
         cov5 = _sandwich(model, th, amp, gram, rho, sigma2)
     dof = np.maximum(model.mask.sum(axis=1) - 5, 1)
     ratio = rss / (sigma2 * dof)
@@ -164,9 +165,12 @@ def refine_result(result, windows, sample_rate_hz, onset_index, pulse, **kw):
                    tau_x_s=tx, tau_y_s=ty, refined=m), got
 
 
-def _noise_correlation(acov) -> np.ndarray:
+def _noise_correlation(prep, plan) -> np.ndarray:
     """(K, P + 1) the noise's correlation at lags 0..P [1] from the pre-onset
-    autocovariance; white (1, 0, ...) where it is unknown."""
+    autocovariance of the prepared raw windows (a fractional shift's rounding would read
+    as colour); white (1, 0, ...) where it is unknown."""
+    n_pre = np.clip(prep.seg_start, 0, prep.x.shape[2])
+    acov = pre_onset_autocov(prep.x, n_pre, prep.pre_mean, plan.seg_len)
     rho = acov / acov[:, :1]
     bad = ~np.all(np.isfinite(rho), axis=1)
     rho[bad] = 0.0
