@@ -203,9 +203,16 @@ def accuracy_cell(dev, medium, fs, snr_db, n, g, learnt=None):
                                                               delay_noise[1] * 1e9],
                **_errors(res, pk.points_m, bound))
     if front_end is not None:
+        t0 = time.perf_counter()
         ref, got = refine_result(res, pk.samples_v, fs, pk.onset_index, front_end,
                                  geometry=cfg.geometry, channel_delays_s=delays_s)
+        dt = (time.perf_counter() - t0) / n  # [s] a packet, batched (the floor: ml's below)
+        t0 = time.perf_counter()
+        localize(pk.samples_v, fs, pk.onset_index, geometry=cfg.geometry,
+                 saturated=pk.saturated, channel_delays_s=delays_s, delay_noise=delay_noise)
         out["refined"] = dict(share=float(got.refined[res.accepted].mean()),
+                              seconds_per_packet=dt,
+                              ml_seconds_per_packet=(time.perf_counter() - t0) / n,
                               **_errors(ref, pk.points_m, bound))
     return out
 
@@ -315,6 +322,8 @@ def run_device(dev, grid, counts, seed):
     out["inside_68_pooled_published"] = _pooled(pub, out["cells"])
     out["refined_share"] = float(np.mean([c["refined"]["share"] if "refined" in c else 0.0
                                           for c in out["cells"]]))
+    t = [c["refined"]["seconds_per_packet"] for c in out["cells"] if "refined" in c]
+    out["refine_ms_per_packet"] = 1e3 * float(np.median(t)) if t else float("nan")
     out["seconds"] = round(time.time() - t0, 1)
     print(f"{dev.name:>18}: apex kept {out['apex']['apex_kept']:.2f}, interference rejected"
           f" {out['apex']['interference_rejected']:.2f}, worst rms/crlb"
@@ -363,7 +372,8 @@ def table(result) -> str:
         "",
         "| device | apex kept % warm (cold) | interf. rejected % warm (cold) | worst rms/CRLB,"
         " delays and delay noise learnt (cold) | inside 68 %, all cells (cells min-max) |"
-        " with the stated front end: worst rms/CRLB / inside 68 % / cells refined % |"
+        " with the stated front end: worst rms/CRLB / inside 68 % / cells refined % /"
+        " refinement ms a packet (median cell, batched) |"
         " overlaps resolved %, one call with the nominal pulse |"
         " silent 2nd drop % | identical"
         " rejected % (localize / localize_one / with_overlaps / pipeline) | slip: precursor"
@@ -382,7 +392,8 @@ def table(result) -> str:
             f" {_pct(r.get('inside_68_pooled'))} ({_pct(r['inside_68_range'][0])}-"
             f"{_pct(r['inside_68_range'][1])}) |"
             f" {r['worst_rms_over_crlb_published']:.2f} /"
-            f" {_pct(r['inside_68_pooled_published'])} / {_pct(r['refined_share'])} |"
+            f" {_pct(r['inside_68_pooled_published'])} / {_pct(r['refined_share'])} /"
+            f" {r['refine_ms_per_packet']:.2f} |"
             f" {_pct(r['overlap']['resolved'])} | {_pct(r['overlap']['silent_second_dropped'])} |"
             f" {_pct(idn['localize'])} / {_pct(idn['localize_one'])} /"
             f" {_pct(idn['localize_with_overlaps'])} / {_pct(idn['pipeline'])} |"

@@ -150,7 +150,7 @@ class Localizer:
         """Refine every accepted point from now on by the one-emission fit with the
         device's pulse (`ae_tactile.localization.refine`): the estimate that stays at the
         Cramer-Rao bound behind an anti-alias filter that lets the pulse alias, at
-        ~0.1-0.3 ms a packet. A packet whose fit fails its residual test keeps the
+        0.2-0.4 ms a packet. A packet whose fit fails its residual test keeps the
         estimator's answer (``refined`` False).
 
         Parameters

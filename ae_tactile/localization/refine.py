@@ -13,7 +13,7 @@ sample instant) at the four arrival times of a surface point,
     y_k(n / f_s) = A (R / d_k) h(n / f_s - T - d_k / c) + B h(n / f_s - T - e_k / c) + noise,
 
 so aliasing is part of the model; with the device's pulse it reaches the bound (see
-docs/localization.md, "Refinement with the front end's pulse").
+docs/front_end.md).
 
 Parameters (s_x, s_y, T) by Levenberg-Marquardt from the ml point, (A, B) by linear least
 squares; the fit window, the first wall echo and the residual test are the overlap

@@ -236,8 +236,8 @@ class LocalizationConfig:
         "device's stated analog front end, name=value items of PulseModel.from_spec (e.g. "
         "'highpass_hz=50e3 highpass_order=1 lowpass_hz=800e3 lowpass_order=2', RC stages "
         "as highpass_rc_hz=60e3/69e3, lowpass_family=butter, bessel or cheby1): at the "
-        "Cramer-Rao bound where the anti-alias filter lets the pulse alias, 0.1-0.3 ms a "
-        "packet (docs/localization.md); empty: no refinement",
+        "Cramer-Rao bound where the anti-alias filter lets the pulse alias, 0.2-0.4 ms a "
+        "packet (docs/front_end.md); empty: no refinement",
     )
     overlap_inline_max: int = _setting(
         OVERLAP_INLINE_MAX,

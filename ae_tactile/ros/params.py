@@ -88,7 +88,7 @@ USER_PARAMS = {
     "localization.front_end": "the fingertip's analog front end as its maker states it (e.g. "
     "'highpass_hz=50e3 highpass_order=1 lowpass_hz=800e3 lowpass_order=2'): calibrated on "
     "its touches, then every point refined to the Cramer-Rao bound where the anti-alias "
-    "filter lets the pulse alias, at 0.1-0.3 ms a packet; empty: no refinement",
+    "filter lets the pulse alias, at 0.2-0.4 ms a packet; empty: no refinement",
     "slip.release_confirm_s": "how long after a release's emission its contact ends (its "
     "DETOUCH): shorter frees the contact sooner, longer keeps it through an emission that "
     "only looked like a release",
