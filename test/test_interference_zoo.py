@@ -192,4 +192,5 @@ def test_the_echo_learnt_survives_a_restart():
     with pytest.raises(ValueError):
         again.load_calibration({"format": 1, "betas": [float("nan")]})
     pipe_learners = PacketLocalizer("ml").calibration_learners()
-    assert set(pipe_learners) == {"interference_acoustic", "interference_echo", "channel_delays"}
+    assert set(pipe_learners) == {"interference_acoustic", "interference_echo", "channel_delays",
+                                  "front_end"}

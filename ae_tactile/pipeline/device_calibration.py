@@ -84,15 +84,18 @@ class DeviceCalibration:
                     reset()
             _LOG.warning("device changed from %s to %s: its own calibration from now on",
                          self.store.serial, serial)
-        self.store = CalibrationStore(self.directory, serial, reset=self._reset)
+        store = CalibrationStore(self.directory, serial, reset=self._reset)
         self._reset = False  # a reset applies to the device the driver started with
-        loaded = self.store.load_into(learners)
+        loaded = store.load_into(learners)
+        # in use once loaded: `status` (another thread's diagnostics) never shows the new
+        # file with nothing loaded yet
+        self.store = store
         if loaded:
-            _LOG.info("calibration of %s loaded from %s: %s", serial, self.store.path,
+            _LOG.info("calibration of %s loaded from %s: %s", serial, store.path,
                       ", ".join(loaded))
         else:
             _LOG.info("no calibration of %s in %s yet: learning it from its packets",
-                      serial, self.store.path)
+                      serial, store.path)
         self._last_save = self._clock()
 
     def key(self, serial: str) -> str:

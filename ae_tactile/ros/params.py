@@ -92,8 +92,6 @@ USER_PARAMS = {
     "slip.release_confirm_s": "how long after a release's emission its contact ends (its "
     "DETOUCH): shorter frees the contact sooner, longer keeps it through an emission that "
     "only looked like a release",
-    "calibration_dir": "where what the driver learnt about each device is kept (one file per "
-    "serial number and body): a restart starts from it; 'none': learn again each time",
     "initial_force_n": "the grip before any slip (a firmer hold, more pressure "
     "on the object)",
     "gain": "force factor per slip precursor (fewer slips, a harder squeeze)",
