@@ -110,9 +110,8 @@ def refine_points(windows, sample_rate_hz, onset_index, point_m, emission_offset
     if ids.size == 0:
         return out
     plan = make_plan(fs, geo, x.shape[2], (100e3, 1e6))
-    raw = x[ids]
-    x, nr, noise_v2 = _corrected(raw, on[ids], fs, plan, pulse, channel_delays_s,
-                                 _rows(noise_rms_v, K, ids))
+    x, nr, noise_v2, raw = _corrected(x[ids], on[ids], fs, plan, pulse, channel_delays_s,
+                                      _rows(noise_rms_v, K, ids))
     bare = replace(pulse, channel_gain=(), channel_delay_s=())
     with np.errstate(all="ignore"):
         prep = prepare(x, on[ids], plan, noise_rms_v=nr, spectra=False)
@@ -123,8 +122,7 @@ def refine_points(windows, sample_rate_hz, onset_index, point_m, emission_offset
         model = _Model(geo, plan.fs, start, length, bare, echo, inside)
         theta = np.concatenate([p0[ids], t0[ids, None]], axis=1)[:, None, :]
         th, amp, rss, gram = _lm(model, seg.reshape(ids.size, -1), theta, int(iterations))
-        rho = _noise_correlation(prep if x is raw else prepare(
-            np.array(raw, float), on[ids], plan, spectra=False), plan)  # before any shift
+        rho = _noise_correlation(prep if raw is None else raw, plan)  # before any shift
         cov5 = _sandwich(model, th, amp, gram, rho, sigma2)
     dof = np.maximum(model.mask.sum(axis=1) - 5, 1)
     ratio = rss / (sigma2 * dof)
@@ -236,25 +234,22 @@ def _fill(out, ids, th, ratio, ok, cov5, R) -> None:
 
 def _corrected(x, on, fs, plan, pulse, channel_delays_s, nr):
     """(windows with the pulse's channel corrections and the channels' own delays taken
-    out, noise sigma [V] to give, noise variance [V^2] measured before the shift or None)."""
+    out, noise sigma [V] to give, noise variance [V^2] measured before the shift or None,
+    the raw windows prepared or None when nothing was shifted). The noise is measured on
+    the raw windows: a shift moves the samples off the ADC's grid, where its quantum (part
+    of the noise) can no longer be seen and its rounding reads as colour."""
     delays = None if channel_delays_s is None or not np.any(channel_delays_s) else \
         tuple(float(d) for d in channel_delays_s)
     if delays is None and not (pulse.channel_gain or pulse.channel_delay_s):
-        return x, nr, None
-    noise_v2 = _raw_noise_v2(x, on, plan) if nr is None else None  # before the shift
+        return x, nr, None, None
+    with np.errstate(all="ignore"):
+        raw = prepare(np.array(x, float), on, plan, spectra=False)  # it scales in place
+    noise_v2 = adc_noise(raw.sigma2, raw.quant2, _given(raw)) * raw.scale**2 \
+        if nr is None else None
     x, nr = pulse.correct_channels(x, fs, nr)
     if delays is not None:
         x = shift_channels(x, fs, (1.0,) * 4, delays)
-    return x, nr, noise_v2
-
-
-def _raw_noise_v2(x, on, plan) -> np.ndarray:
-    """(K,) noise variance [V^2] on the signal samples of the raw windows, the ADC's
-    rounding included (`adc_noise`): a fractional shift moves the samples off the ADC's
-    grid, where the quantum can no longer be seen."""
-    with np.errstate(all="ignore"):
-        raw = prepare(np.array(x, float), on, plan, spectra=False)  # it scales in place
-        return adc_noise(raw.sigma2, raw.quant2, _given(raw)) * raw.scale**2
+    return x, nr, noise_v2, raw
 
 
 def _rows(v, K, ids):
