@@ -31,11 +31,16 @@ before a packet sent earlier) keeps its own stamp. The model is rebuilt (counted
 * a frame is earlier than the model by more than ``max_jump_s`` (the device clock stepped
   forward, the host clock back): at once, on that frame;
 * ``step_frames`` frames in a row, over ``step_span_s`` of device time, are later than the
-  model by more than ``step_back_s`` and their latency does not fall (the device clock
-  stepped back without a restart, the host clock forward): a latency that large and that
-  persistent is no transport delay, and no backlog read after a host stall either (its
-  latency falls as fast as the device time advances). The new model starts from those
-  frames (``clock_steps`` counts these events).
+  model by more than ``step_back_s``, the first of them behind the latest device time by
+  at least half its latency, and their latency does not fall (the device clock stepped
+  back without a restart): a latency that large and that persistent is no transport delay,
+  and no backlog read after a host stall either (its latency falls as fast as the device
+  time advances). A reader that stays behind (a busy host) is as late for as long, but
+  its device times go on: no step. The new model starts from those frames
+  (``clock_steps`` counts these events).
+
+The host clock stepping (the system clock, set by NTP) is the caller's to see, against a
+monotonic clock: `shift_host` moves the model with it (``host_steps``).
 
 The bucket minima are fitted robustly: a bucket whose minimum sits well above the line
 (every frame of it delayed, e.g. behind a burst of garbage or a host stall) is left out
@@ -147,6 +152,7 @@ class DeviceClockMapper:
         self.resyncs = 0  # model resets (device restart, offset jump)
         self.clamped = 0  # outputs held back to stay monotonic
         self.steps = 0  # clock steps detected from a persistent latency (step_back_s)
+        self.host_steps = 0  # host clock steps the caller reported (shift_host)
         self._floor_out: int | None = None  # last output of any model: outputs stay after it
         self.reset()
         self.resyncs = 0
@@ -208,6 +214,11 @@ class DeviceClockMapper:
                 self.reset()
                 did_reset = True
             elif latency > self.step_back_ns:
+                if not self._late_run and self._last_d - device_ns < latency // 2:
+                    # late, but the device time did not go back with it: a reader behind
+                    # (a busy host), whose frames the envelope leaves out; no step
+                    self._add(device_ns, host_ns)
+                    return did_reset
                 self._late_run.append((device_ns, host_ns, latency))
                 del self._late_run[:-_LATE_RUN_KEEP]
                 if self._late_run_is_a_step():
@@ -235,6 +246,17 @@ class DeviceClockMapper:
         for d, h, _ in run:
             self._add(d, h)
         return True
+
+    def shift_host(self, step_ns: int) -> None:
+        """The host clock stepped by ``step_ns`` [ns] (seen by the caller against a
+        monotonic clock): the model moves with it, so the next stamps are in the host's new
+        time (after a step back, held after the last one handed out until they pass it)."""
+        step_ns = int(step_ns)
+        self.host_steps += 1
+        self._offset_ns += step_ns
+        for b in self._buckets:
+            b[2] += step_ns
+        self._late_run = [(d, h + step_ns, lat) for d, h, lat in self._late_run]
 
     def _add(self, device_ns: int, host_ns: int) -> None:
         """One pair into the bucket minima (and the fit, when a minimum moved)."""

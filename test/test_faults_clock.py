@@ -8,6 +8,7 @@ counters, stamps and packet counts.
 """
 
 import os
+import time
 
 import numpy as np
 import pytest
@@ -141,3 +142,29 @@ def test_stamps_stay_true_after_a_burst_of_garbage(tmp_path):
     assert np.abs(err_ms).max() < 3.0, np.round(err_ms[np.abs(err_ms) >= 3.0], 2)
     print(f"after garbage bursts: |error| p50 {np.median(np.abs(err_ms)):.2f} ms,"
           f" max {np.abs(err_ms).max():.2f} ms over {len(err_ms)} packets")
+
+
+@pytest.mark.parametrize("step_s", [2.0, -2.0])
+def test_a_host_clock_step_moves_the_stamps_with_it(tmp_path, step_s):
+    """The host clock the link stamps with (the system clock under ROS) is stepped by 2 s
+    while packets come (NTP setting it): the link sees the step against the monotonic
+    clock, the mapping moves with it, and the packets after it are stamped in the host's
+    new time, with no device clock step, no re-sync and stamps that never go back."""
+    shift = [0]
+    with Rig(PtyTransport(str(tmp_path / "fingertip")), scene=STEADY) as rig:
+        rig.link.clock_ns = lambda: time.monotonic_ns() + shift[0]
+        rig.wait_connected()
+        rig.run(60.0, until=lambda: len(rig.records) >= 30)
+        n_before = len(rig.records)
+        shift[0] = int(step_s * 1e9)
+        rig.run(60.0, until=lambda: len(rig.records) >= n_before + 200)
+        s = rig.link.stats()
+    stamps = np.array([r.stamp_ns for r in rig.records], dtype=np.int64)
+    assert np.all(np.diff(stamps) > 0)
+    truth = true_stamps(rig, rig.records)
+    err_ms = (stamps - truth - np.where(np.arange(truth.size) >= n_before, shift[0], 0)) / MS
+    assert np.abs(err_ms[:n_before]).max() < 3.0
+    # a step forward: true at once; a step back: held after the last stamp for 2 s (40/s)
+    settle = n_before + (5 if step_s > 0 else 100)
+    assert np.abs(err_ms[settle:]).max() < 3.0, np.round(err_ms[n_before:settle + 5], 2)
+    assert s["clock_host_steps"] == 1 and s["clock_steps"] == 0 and s["clock_resyncs"] == 1

@@ -155,3 +155,52 @@ def test_a_host_stall_is_no_clock_step(drain):
     assert mapper.steps == 0 and mapper.resyncs == 0
     assert np.all(np.diff(mapped) > 0)
     assert np.abs(mapped - true_ns)[400:].max() < 1 * MS  # once the mapping has settled
+
+
+@pytest.mark.parametrize("lag_ms", [300, 900])
+def test_a_reader_that_stays_behind_is_no_clock_step(lag_ms):
+    """A starved reader (a busy host): it falls behind by lag_ms over 0.2 s, then reads at
+    the rate the frames come, that far behind, for 2 s, then catches up. Its latency does
+    not fall while it stays behind, as a clock step's would not; but the device time never
+    goes back, and only a device clock that steps back moves the frames late at once:
+    no step, no re-sync, every stamp on the true time."""
+    rng = np.random.default_rng(6)
+    true_ns, latency = link(rng, 4000)
+    device_ns = (true_ns - true_ns[0]).astype(np.int64) + 5_000_000_000
+    a = 2000
+    ramp, hold, drain = 40, 400, 60  # frames at 200/s: 0.2 s, 2 s, 0.3 s
+    lag = np.concatenate([np.linspace(0, lag_ms * MS, ramp), np.full(hold, lag_ms * MS),
+                          np.linspace(lag_ms * MS, 0, drain)]).astype(np.int64)
+    latency[a : a + lag.size] += lag
+    mapper = DeviceClockMapper(max_backstep_s=3600.0)
+    mapped = simulate(mapper, true_ns, device_ns, latency)
+    assert mapper.steps == 0 and mapper.resyncs == 0
+    assert np.all(np.diff(mapped) > 0)
+    assert np.abs(mapped - true_ns)[400:].max() < 1 * MS
+
+
+def test_a_host_clock_step_moves_the_mapping_with_it():
+    """The host clock (the system clock ROS stamps with) is stepped forward by 2 s (NTP at
+    start-up) or back by 2 s: the link sees it against the monotonic clock and moves the
+    mapping by the step at once, so stamps are the host's new time from the next frame
+    (held monotonic after a step back), with no re-sync and no learning again."""
+    for shift_ms in (2000, -2000):
+        rng = np.random.default_rng(7)
+        true_ns, latency = link(rng, 3000)
+        device_ns = (true_ns - true_ns[0]).astype(np.int64) + 5_000_000_000
+        at = 1500
+        mapper = DeviceClockMapper(max_backstep_s=3600.0)
+        out = []
+        for k, (t, d, lat) in enumerate(zip(true_ns, device_ns, latency)):
+            host = int(t + (shift_ms * MS if k >= at else 0))
+            if k == at:
+                mapper.shift_host(shift_ms * MS)
+            mapper.update(int(d), host + int(lat))
+            out.append(mapper.to_host_ns(int(d)))
+        mapped = np.array(out, dtype=np.int64)
+        truth = true_ns + np.where(np.arange(true_ns.size) >= at, shift_ms * MS, 0)
+        assert mapper.resyncs == 0 and mapper.steps == 0 and mapper.host_steps == 1
+        assert np.all(np.diff(mapped) > 0)
+        err = np.abs(mapped - truth)
+        settled = slice(at + (0 if shift_ms > 0 else 410), None)  # a step back: held 2 s
+        assert err[400:at].max() < 1 * MS and err[settled].max() < 1 * MS, shift_ms

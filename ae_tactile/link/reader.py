@@ -127,6 +127,7 @@ class FingertipLink(DeviceControl):
         self._stall_reported = False  # this stall of a partial frame is reported
         self._open_failure_logged = False
         self._clock_step_logged = False
+        self._host_minus_mono: int | None = None  # host clock - monotonic clock [ns]
         self._rate_mismatch_logged = False
         self._device_fs = 0.0  # [Hz] its STATUS / SET_SAMPLE_RATE ACK rate; 0: unknown
         self._acquisition_expected = False  # START sent on this connection
@@ -191,7 +192,8 @@ class FingertipLink(DeviceControl):
             The link's counters (COUNTER_NAMES), the decoder's, ``state``
             ("disconnected", "connecting" or "connected"), ``queue_depth``,
             ``last_error``, the clock mapping's ``clock_resyncs`` / ``clock_clamped`` /
-            ``clock_steps`` (clock steps without a restart, each a re-sync),
+            ``clock_steps`` (device clock steps without a restart, each a re-sync),
+            ``clock_host_steps`` (host clock steps the mapping followed),
             ``packets_dropped`` and, once the device sent a STATUS, its ``device_*``
             fields.
         """
@@ -205,6 +207,7 @@ class FingertipLink(DeviceControl):
                 clock_resyncs=self.mapper.resyncs,
                 clock_clamped=self.mapper.clamped,
                 clock_steps=self.mapper.steps,
+                clock_host_steps=self.mapper.host_steps,
                 packets_dropped=self.packets_dropped(),
                 **self.lag.stats(),
             )
@@ -458,6 +461,7 @@ class FingertipLink(DeviceControl):
             with self._lock:
                 self.state = "connected"
         receive_ns = int(self.clock_ns())
+        self._follow_host_clock(receive_ns)
         records: list[PacketRecord] = []
         for frame in frames:
             try:
@@ -467,6 +471,18 @@ class FingertipLink(DeviceControl):
                 self.log.warning("frame seq %d unusable: %r", frame.seq, exc)
         if records:
             self._emit(receive_ns, records)
+
+    def _follow_host_clock(self, receive_ns: int) -> None:
+        """The host clock stepped (its offset to the monotonic clock moved by more than
+        ``clock_step_s``: NTP setting the system clock, a paused simulated clock): the
+        clock mapping moves with it (``clock_host_steps``; logged)."""
+        host_minus_mono = receive_ns - time.monotonic_ns()
+        last, self._host_minus_mono = self._host_minus_mono, host_minus_mono
+        if last is None or abs(host_minus_mono - last) <= self.mapper.step_back_ns:
+            return
+        self.mapper.shift_host(host_minus_mono - last)
+        self.log.warning("host clock stepped by %+.3f s: clock mapping moved with it",
+                         (host_minus_mono - last) / 1e9)
 
     def _handle_frame(self, frame, receive_ns: int, records: list) -> None:
         """One decoded frame: clock mapping, device status, ACKs, packet records."""
