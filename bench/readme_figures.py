@@ -408,9 +408,12 @@ def zoo_rows(d) -> list[str]:
     rms = fig("worst_rms_over_crlb", False)
     return [
         f"| device zoo{mode}: apex touches kept after 300 ordinary touches / on a fresh"
-        f" pipeline | {fig('apex_kept')} / {fig('cold_apex_kept')} | bench_zoo |",
-        f"| device zoo{mode}: identical-channel interference rejected (bursts; four equal"
-        f" channels in the pipeline) | {fig('interference_rejected')};"
+        f" pipeline / on a fresh pipeline given the front end as stated (`localization."
+        f"front_end`) | {fig('apex_kept')} / {fig('cold_apex_kept')} /"
+        f" {fig('stated_apex_kept')} | bench_zoo |",
+        f"| device zoo{mode}: identical-channel interference rejected (bursts, warm / fresh"
+        f" with the front end stated; four equal channels in the pipeline) |"
+        f" {fig('interference_rejected')} / {fig('stated_interference_rejected')};"
         f" {fig('identical_rejected_pipeline')} | bench_zoo |",
         f"| device zoo{mode}: `ml` RMS over the Cramer-Rao bound (true noise covariance),"
         f" worst cell, after the driver learnt the channel delays and delay noise (before:"

@@ -218,7 +218,7 @@ class AcousticLearner:
         Where the nominal front end describes the device, its templates stay in use (the
         learnt ones would only add the touches' noise)."""
         fs = float(sample_rate_hz)
-        key = ("nominal", fs, tuple(front_end))
+        key = ("nominal", fs, front_end)  # a tuple or a PulseModel: both hashable
         out = self._cache.get(key)
         if out is None:
             r = residual(np.array(self._waves[fs]), fs, front_end)

@@ -58,6 +58,7 @@ from ae_tactile.dsp.burst_train import (
 from ae_tactile.dsp.burst_train import (
     BurstTrain as BurstTrain,
 )
+from ae_tactile.dsp.acoustic_model import spectrum_stats
 from ae_tactile.geometry import resolve_front_end_lowpass
 from ae_tactile.jit import NUMBA_AVAILABLE, njit
 
@@ -68,42 +69,91 @@ SHAPE_MIN = 0.94
 SHAPE_LAGS = 10
 SHAPE_LEAD = 2
 SHAPE_CHUNK = 256  # candidates per shape-test step (memory: 256 x 4 x span floats)
+#: [1] the spectrum tests' limits over a stated front end's largest statistics (its pulses
+#: span the corners' tolerance and the emission decays): room for the noise's scatter of
+#: the statistics (apex touches at 20 dB kept on every zoo device with a stated front end)
+PULSE_MARGIN = 1.2
 
 
 def acoustic_templates(
     sample_rate_hz: float,
     n_samples: int,
-    highpass_hz: float,
-    highpass_order: int,
-    lowpass_hz: float | None,
-    lowpass_order: int,
+    highpass_hz: float = 100e3,
+    highpass_order: int = 2,
+    lowpass_hz: float | None = None,
+    lowpass_order: int = 4,
     n_offsets: int = 4,
+    pulse=None,
 ) -> np.ndarray:
     """Unit-norm templates (n_offsets, n_samples) of an acoustic packet: the front end's
     response to a pressure step (a touch's Eq. 9 pulse is a step in the band, emission.py),
     the step at sub-sample offsets j / n_offsets before the first sample... + 1 sample.
+    ``pulse`` (a `PulseModel`: a front end stated or calibrated for the device, its
+    emission's decay included) in place of the Butterworth front end given by the other
+    arguments: its pulse at those instants.
 
     The analysis length changes from packet to packet (it stops at the window's end), so
     the responses are computed once for a length rounded up to a power of two (>= 256)
     and cut: a new length costs a slice, not a new simulation (~15 ms)."""
     n_cap = max(256, 1 << (int(n_samples) - 1).bit_length())
-    y = _step_responses(
-        float(sample_rate_hz), n_cap, highpass_hz, highpass_order, lowpass_hz, lowpass_order,
-        n_offsets,
-    )[:, : int(n_samples)]
-    return y / np.linalg.norm(y, axis=1, keepdims=True)
+    if pulse is not None:
+        y = _pulse_responses(float(sample_rate_hz), n_cap, pulse, n_offsets)
+    else:
+        y = _step_responses(float(sample_rate_hz), n_cap, highpass_hz, highpass_order,
+                            lowpass_hz, lowpass_order, n_offsets)
+    y = y[:, : int(n_samples)]
+    return y / np.maximum(np.linalg.norm(y, axis=1, keepdims=True), 1e-300)
+
+
+def _pulses(front_end) -> tuple | None:
+    """The `PulseModel`s of ``front_end`` (one, or a tuple of them: a family, e.g. the
+    stated front end over the emission decays); None for the Butterworth tuple."""
+    if not isinstance(front_end, tuple):
+        return (front_end,)
+    if front_end and hasattr(front_end[0], "waveform"):
+        return front_end
+    return None
+
+
+def _front_end_templates(sample_rate_hz, n_samples, front_end) -> np.ndarray:
+    """`acoustic_templates` of ``front_end``: `PulseModel`s (`_pulses`: the templates of
+    each, stacked), or the Butterworth tuple (high-pass Hz, order, low-pass Hz or None,
+    order)."""
+    pulses = _pulses(front_end)
+    if pulses is not None:
+        return _distinct(np.concatenate([acoustic_templates(sample_rate_hz, n_samples, pulse=p)
+                                         for p in pulses]))
+    hp, hp_order, lp, lp_order = front_end
+    return acoustic_templates(sample_rate_hz, n_samples, float(hp), int(hp_order),
+                              None if lp is None else float(lp), int(lp_order))
+
+
+#: [1] a family's template this close to one kept (squared correlation) adds nothing: it
+#: would explain at most 0.2 % more of a packet than the kept one, against the shape
+#: test's 6 %
+DISTINCT_MAX = 0.998
+
+
+def _distinct(t: np.ndarray) -> np.ndarray:
+    """The rows of unit-norm templates ``t`` (J, L) that differ from the ones kept before
+    them (squared correlation below DISTINCT_MAX): a family's near copies cost time only."""
+    keep = [0]
+    for j in range(1, t.shape[0]):
+        c = t[keep] @ t[j]
+        if float(np.max(c * c)) < DISTINCT_MAX:
+            keep.append(j)
+    return t[keep]
 
 
 @lru_cache(maxsize=32)
-def _lag_templates(sample_rate_hz, n_samples, n_lags, highpass_hz, highpass_order, lowpass_hz,
-                   lowpass_order) -> np.ndarray:
+def _lag_templates(sample_rate_hz, n_samples, n_lags, front_end) -> np.ndarray:
     """The shape test's templates for a span of ``n_samples``, (n_lags * J, n_samples): for
-    each lag l < n_lags the unit-norm `acoustic_templates` of length n_samples - l behind
-    l zeros (computed once per span; one product correlates a packet with all of them)."""
+    each lag l < n_lags the unit-norm templates of ``front_end`` (`_front_end_templates`)
+    of length n_samples - l behind l zeros (computed once per span; one product
+    correlates a packet with all of them)."""
     rows = []
     for lag in range(n_lags):
-        t = acoustic_templates(sample_rate_hz, n_samples - lag, highpass_hz, highpass_order,
-                               lowpass_hz, lowpass_order)
+        t = _front_end_templates(sample_rate_hz, n_samples - lag, front_end)
         rows.append(np.pad(t, ((0, 0), (lag, 0))))
     out = np.concatenate(rows)
     out.setflags(write=False)
@@ -128,12 +178,12 @@ def warm_up(sample_rate_hz: float, highpass_hz=100e3, highpass_order=2, lowpass_
         packet_common_share(z, 0.0, 6)
         z.flags.writeable = False
         packet_common_share(z, 0.0, 6)
-    acoustic_templates(fs, 128, float(highpass_hz), int(highpass_order), lp, order)
+    front_end = (float(highpass_hz), int(highpass_order), lp, int(order))
+    _front_end_templates(fs, 128, front_end)
     t_echo = 10e-6 if geometry is None else 2.0 * geometry.radius_m / geometry.sound_speed_m_s
     n = SHAPE_LEAD + min(int(t_echo * fs) - 1, max(4, int(round(window_s * fs))))
     if n >= SHAPE_LAGS + 4:
-        _lag_templates(fs, n, SHAPE_LAGS, float(highpass_hz), int(highpass_order),
-                       None if lp is None else float(lp), int(order))
+        _lag_templates(fs, n, SHAPE_LAGS, front_end)
 
 
 @lru_cache(maxsize=16)
@@ -158,6 +208,26 @@ def _step_responses(
         out[j] = np.interp(t, fine, yf)
     out.setflags(write=False)
     return out
+
+
+@lru_cache(maxsize=16)
+def _pulse_responses(sample_rate_hz, n_samples, pulse, n_offsets) -> np.ndarray:
+    """``pulse``'s waveform (n_offsets, n_samples) at the instants of `_step_responses`."""
+    j = np.arange(n_offsets)[:, None] / n_offsets
+    out = pulse.waveform((np.arange(n_samples)[None, :] + 1.0 - j) / sample_rate_hz)
+    out.setflags(write=False)
+    return out
+
+
+@lru_cache(maxsize=16)
+def _pulse_limits(sample_rate_hz, n_samples, front_end, f_top_hz) -> tuple[float, float]:
+    """The spectrum tests' limits [1] an acoustic packet of the ``front_end``'s pulses
+    needs over an analysis length of ``n_samples``: PULSE_MARGIN x their largest low and
+    high statistics (over the sub-sample offsets), as the device's own touches set them
+    once learnt."""
+    t = _front_end_templates(sample_rate_hz, n_samples, front_end)
+    low, high = spectrum_stats(t, 0.0, f_top_hz, sample_rate_hz)
+    return PULSE_MARGIN * float(low.max()), PULSE_MARGIN * float(high.max())
 
 
 def _unexplained_share(span, tpls, nv, nv_rel_var, shape_min, shape_z):
@@ -292,7 +362,6 @@ def _shape_scores(x, on, cand, common, nv, nv_rel_var, w, fs, geometry, front_en
     chi^2 (a weak touch is never rejected for noise), before the first wall echo (2R/c
     after the onset, when the geometry is known). Only with a noise level (given, or from
     >= 8 pretrigger samples): weak touches could not be told from a mismatch."""
-    highpass_hz, highpass_order, lowpass_hz, lowpass_order = front_end
     m = x.shape[2]
     t_echo = 10e-6 if geometry is None else 2.0 * geometry.radius_m / geometry.sound_speed_m_s
     nl = SHAPE_LAGS
@@ -306,10 +375,8 @@ def _shape_scores(x, on, cand, common, nv, nv_rel_var, w, fs, geometry, front_en
     shape_score = np.zeros(cand.size)
     for n in np.unique(n_span[n_span >= nl + 4]):  # shorter: no shape test
         n = int(n)
-        tpls = learned.templates(fs, n, nl) if learned is not None else _lag_templates(
-            fs, n, nl, float(highpass_hz), int(highpass_order),
-            None if lowpass_hz is None else float(lowpass_hz), int(lowpass_order),
-        )
+        tpls = (learned.templates(fs, n, nl) if learned is not None
+                else _lag_templates(fs, n, nl, front_end))
         group = np.flatnonzero(n_span == n)
         for i in range(0, group.size, SHAPE_CHUNK):  # bounded memory: (chunk, 4, n)
             part = group[i : i + SHAPE_CHUNK]
@@ -356,12 +423,10 @@ def _model(acoustic, fs, front_end, low_max, high_max):
 
 
 def _nominal_residual(waves, sample_rate_hz, front_end) -> np.ndarray:
-    """What the nominal templates (the shape test's, ``front_end`` = (high-pass Hz,
-    order, low-pass Hz or None, order)) leave unexplained of each unit-norm waveform
-    ``waves`` (J, L) [1]: 1 - the best squared correlation over offsets and lags."""
-    hp, hp_order, lp, lp_order = front_end
-    tpls = _lag_templates(float(sample_rate_hz), waves.shape[1], SHAPE_LAGS, float(hp),
-                          int(hp_order), None if lp is None else float(lp), int(lp_order))
+    """What the front end's templates (the shape test's, ``front_end`` a `PulseModel` or
+    (high-pass Hz, order, low-pass Hz or None, order)) leave unexplained of each unit-norm
+    waveform ``waves`` (J, L) [1]: 1 - the best squared correlation over offsets and lags."""
+    tpls = _lag_templates(float(sample_rate_hz), waves.shape[1], SHAPE_LAGS, front_end)
     c = waves @ tpls.T
     return 1.0 - (c * c).max(axis=1)
 
@@ -390,7 +455,7 @@ def common_mode_interference(
     common_min: float = COMMON_MIN, highpass_hz: float = 100e3, highpass_order: int = 2,
     lowpass_order: int | str = "auto", shape_min: float | None = SHAPE_MIN,
     shape_z: float = 5.0, low_max: float = LOW_MAX, high_max: float = HIGH_MAX,
-    acoustic=None,
+    acoustic=None, pulse=None,
 ):
     """(mask (K,) bool: interference, score (K,) float) for packets ``windows`` (K, 4, M)
     volts at ``sample_rate_hz`` with onsets ``onset_index`` (K,) (window-relative samples).
@@ -412,15 +477,27 @@ def common_mode_interference(
     (`ae_tactile.dsp.acoustic_model.AcousticLearner`); once it is ready at this rate its
     waveforms are the shape test's templates and its limits the spectrum tests' (at least
     ``low_max``, ``high_max``), instead of the nominal front end's.
+    ``pulse``: the device's front end as a `PulseModel` (stated, `LocalizationConfig.
+    front_end`, or calibrated on its touches), or a tuple of them (the stated one over the
+    emission decays, `ae_tactile.localization.front_end.decay_family`): their pulses give
+    the templates and the spectrum tests' limits, the first's low-pass the band, in place
+    of ``highpass_*`` / ``lowpass_*``.
     Non-finite windows give mask False and score NaN (the localizer rejects them)."""
     x, fs, on = _checked_args(windows, sample_rate_hz, onset_index)
     k, _, m = x.shape
     if k == 0:
         return np.zeros(0, bool), np.zeros(0)
-    lowpass_hz, lowpass_order = _front_end_lowpass(fs, lowpass_hz, lowpass_order)
-    front_end = (highpass_hz, highpass_order, lowpass_hz, lowpass_order)
-    learned, low_max, high_max = _model(acoustic, fs, front_end, low_max, high_max)
+    if pulse is not None:
+        lowpass_hz, front_end = _pulses(pulse)[0].lowpass_hz, pulse
+    else:
+        lowpass_hz, lowpass_order = _front_end_lowpass(fs, lowpass_hz, lowpass_order)
+        front_end = (float(highpass_hz), int(highpass_order), lowpass_hz, int(lowpass_order))
     w = max(4, min(m, int(round(window_s * fs))))
+    f_top = 0.5 * fs if lowpass_hz is None else min(lowpass_hz, 0.5 * fs)
+    if pulse is not None:  # the spectrum a stated front end's packet has
+        low_pulse, high_pulse = _pulse_limits(fs, w, front_end, f_top)
+        low_max, high_max = max(low_max, low_pulse), max(high_max, high_pulse)
+    learned, low_max, high_max = _model(acoustic, fs, front_end, low_max, high_max)
     start = np.clip(on - 1, 0, max(0, m - w))
     s_full = x.mean(axis=1)  # (K, M) common mode
     q_full = np.einsum("kcm,kcm->km", x, x) * 0.25  # (K, M) mean channel power
@@ -435,7 +512,6 @@ def common_mode_interference(
     mean = s.sum(axis=1) / w
     low = np.maximum((mean * mean * w - nv * 0.25) / np.maximum(e_s, tiny), 0.0)
     d = s[:, 1:] - s[:, :-1]
-    f_top = 0.5 * fs if lowpass_hz is None else min(lowpass_hz, 0.5 * fs)
     band = 2.0 * (1.0 - math.cos(2.0 * math.pi * f_top / fs))
     e_d = np.einsum("kw,kw->k", d, d) - (w - 1) * nv * 0.5
     high = np.maximum(e_d / np.maximum(e_s * band, tiny), 0.0)

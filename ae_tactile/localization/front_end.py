@@ -55,6 +55,27 @@ FRONT_END_MIN_INLIER_SHARE = 0.9
 MAX_CORNER_FACTOR = 1.5
 #: [1/s] starts of the emission decay (its decades in real bodies: 1e3 .. 1e6)
 ALPHA_STARTS_1_S = (3e3, 1e5, 1e6)
+#: [1/s] emission decays the interference screen's templates span while the decay is
+#: unknown (a statement does not give it): its range in real bodies, a step per ~half
+#: decade (adjacent pulses then correlate above the shape test's 0.94)
+ALPHA_SPAN_1_S = (3e3, 3e4, 1e5, 3e5, 1e6)
+#: [1] how far a stated corner may be off (the components' tolerance: 5-10 % parts)
+STATED_CORNER_TOLERANCE = 0.1
+
+
+def decay_family(stated: PulseModel | None) -> tuple | None:
+    """The pulses the stated front end may give: over the decays an emission may have
+    (`ALPHA_SPAN_1_S`), its high-pass and low-pass corners each at their stated value and
+    +-`STATED_CORNER_TOLERANCE` off; the interference screen's templates and spectrum
+    limits before the calibration measures the device (None: no statement)."""
+    if stated is None:
+        return None
+    out = []
+    for k_hp in (1.0 - STATED_CORNER_TOLERANCE, 1.0, 1.0 + STATED_CORNER_TOLERANCE):
+        for k_lp in (1.0 - STATED_CORNER_TOLERANCE, 1.0, 1.0 + STATED_CORNER_TOLERANCE):
+            out.extend(scaled_front_end(stated, (math.log(k_hp), math.log(k_lp), math.log(a)))
+                       for a in ALPHA_SPAN_1_S)
+    return tuple(out)
 #: objective evaluations per start
 CALIBRATION_MAXFEV = 60
 #: [1] chains' gains within this of alike are not corrected (below what the fits see)

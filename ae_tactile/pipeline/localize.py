@@ -23,7 +23,7 @@ from ae_tactile.dsp.interference import common_mode_interference
 from ae_tactile.dsp.interference import warm_up as warm_interference
 from ae_tactile.geometry import FingertipGeometry
 from ae_tactile.localization import ChannelDelayLearner, Localizer, Reason, get_estimator
-from ae_tactile.localization.front_end import FrontEndLearner
+from ae_tactile.localization.front_end import FrontEndLearner, decay_family
 from ae_tactile.localization.overlap import suspect_overlap
 from ae_tactile.localization.overlap import warm_up as warm_overlaps
 from ae_tactile.localization.overlap_worker import background_priority
@@ -159,6 +159,7 @@ class PacketLocalizer:
         self.front_end_learner = FrontEndLearner(front_end_pulse(cfg.front_end))
         self._front_next: list = []  # a calibrated pulse not yet in use (from the thread)
         self.front_end_learner.on_update = self._set_front_end
+        self.screens.pulse = decay_family(self.front_end_learner.stated)
 
     weak_releases = _screen_attr("weak_releases")
     weak_release_min_snr_db = _screen_attr("weak_release_min_snr_db")
@@ -197,7 +198,15 @@ class PacketLocalizer:
         if self._deferring or threading.current_thread() is self._delay_thread:
             self._front_next = [pulse]
         else:
-            self.localizer.set_front_end(pulse)
+            self._use_front_end(pulse)
+
+    def _use_front_end(self, pulse) -> None:
+        """The calibrated pulse (None: not calibrated) refines the points; the screen's
+        templates are its pulse, else the stated front end's over the emission decays
+        (else the nominal front end's)."""
+        self.localizer.set_front_end(pulse)
+        self.screens.pulse = (pulse if pulse is not None
+                              else decay_family(self.front_end_learner.stated))
 
     def front_end_status(self) -> str:
         """`FrontEndLearner.status`: the stated front end's calibration, in words."""
@@ -243,7 +252,7 @@ class PacketLocalizer:
             self.localizer.set_channel_delays(*self._delays_next)
             self._delays_next = None
         if self._front_next:
-            self.localizer.set_front_end(self._front_next.pop())
+            self._use_front_end(self._front_next.pop())
         if self.learn_inline:
             self._deferring = True
             try:

@@ -167,6 +167,9 @@ class Screens:
         #: the device's own acoustic packets (templates and spectrum limits of the
         #: discriminator), learnt from its accepted touches away from the apex
         self.acoustic = AcousticLearner()
+        #: the device's front end (`PulseModel`, stated or calibrated; None: the nominal
+        #: one): the discriminator's templates until its own packets are learnt
+        self.pulse = None
         #: packets the discriminator judged and rejected (the unusual-share warning)
         self.screened = 0
         self.screened_rejected = 0
@@ -320,7 +323,7 @@ class Screens:
             )
             try:
                 mask, _ = self.interference(w, fs, onset, geometry=geometry,
-                                            acoustic=self.acoustic, **kw)
+                                            acoustic=self.acoustic, pulse=self.pulse, **kw)
             except ValueError:
                 continue
             drop.update(i for i, m in zip(ids, np.asarray(mask, bool)) if m)
