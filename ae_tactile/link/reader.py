@@ -473,16 +473,14 @@ class FingertipLink(DeviceControl):
             self._emit(receive_ns, records)
 
     def _follow_host_clock(self, receive_ns: int) -> None:
-        """The host clock stepped (its offset to the monotonic clock moved by more than
-        ``clock_step_s``: NTP setting the system clock, a paused simulated clock): the
-        clock mapping moves with it (``clock_host_steps``; logged)."""
-        host_minus_mono = receive_ns - time.monotonic_ns()
-        last, self._host_minus_mono = self._host_minus_mono, host_minus_mono
-        if last is None or abs(host_minus_mono - last) <= self.mapper.step_back_ns:
+        """The host clock stepped (its offset to the monotonic clock moved > clock_step_s:
+        NTP, a paused sim clock): the mapping moves with it (``clock_host_steps``)."""
+        last, self._host_minus_mono = self._host_minus_mono, receive_ns - time.monotonic_ns()
+        step_ns = 0 if last is None else self._host_minus_mono - last
+        if abs(step_ns) <= self.mapper.step_back_ns:
             return
-        self.mapper.shift_host(host_minus_mono - last)
-        self.log.warning("host clock stepped by %+.3f s: clock mapping moved with it",
-                         (host_minus_mono - last) / 1e9)
+        self.mapper.shift_host(step_ns)
+        self.log.warning("host clock stepped by %+.3f s: mapping moved with it", step_ns / 1e9)
 
     def _handle_frame(self, frame, receive_ns: int, records: list) -> None:
         """One decoded frame: clock mapping, device status, ACKs, packet records."""
