@@ -138,6 +138,9 @@ class Plan:
     auto_fallback_hz: float = 0.0
 
 
+#: [s] a segment starts this long before its arrival (its noise is measured before it)
+PRE_ONSET_S = 1e-6
+
 #: Per-bin SNR (channel-summed power over its noise expectation, 3-bin mean) above which a
 #: bin counts as signal for the data-driven band edge.
 BAND_EDGE_POWER_RATIO = 2.0
@@ -198,7 +201,7 @@ def make_plan(
     geometry,
     n_samples,
     band_hz,
-    pre_onset_s=1e-6,
+    pre_onset_s=PRE_ONSET_S,
     echo_guard_s=0.3e-6,
     auto_fallback_hz=None,
 ) -> Plan:

@@ -121,7 +121,7 @@ def _resolve_ids(x, on, ids, fs, geo, pulse, noise_rms_v, saturated, full_scale_
     K = x.shape[0]
     if noise_rms_v is not None:
         noise_rms_v = np.broadcast_to(np.asarray(noise_rms_v, float), (K,))[ids]
-    x, noise_rms_v = pulse.correct_channels(x[ids], fs, noise_rms_v)
+    x, noise_rms_v = pulse.correct_channels(x[ids], fs, noise_rms_v, on[ids])
     if saturated is not None:
         saturated = np.broadcast_to(np.asarray(saturated, bool), (K,))[ids]
     plan = make_plan(fs, geo, x.shape[2], band_hz)
@@ -435,7 +435,7 @@ def localize_with_overlaps(windows, sample_rate_hz, onset_index, *, geometry=Non
     pulse, trusted = _pulse_of_call(pulse, x, sample_rate_hz, on, single, noise_rms_v)
     if pulse is not None and (pulse.channel_gain or pulse.channel_delay_s):
         # the device's channels made alike once, for every step (then none does it again)
-        x, noise_rms_v = pulse.correct_channels(x, sample_rate_hz, noise_rms_v)
+        x, noise_rms_v = pulse.correct_channels(x, sample_rate_hz, noise_rms_v, on)
         pulse = replace(pulse, channel_gain=(), channel_delay_s=())
         single = localize(x, sample_rate_hz, on, geometry=geo, noise_rms_v=noise_rms_v,
                           saturated=saturated, **localize_kwargs)

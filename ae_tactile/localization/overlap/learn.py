@@ -397,7 +397,7 @@ def pulse_inliers(windows, sample_rate_hz, onset_index, pulse, *, geometry=None,
     geo = FingertipGeometry() if geometry is None else geometry
     fs = float(sample_rate_hz)
     x, on = validate_windows(windows, onset_index)
-    x, nr = pulse.correct_channels(x, fs, noise_rms_v)
+    x, nr = pulse.correct_channels(x, fs, noise_rms_v, on)
     bare = replace(pulse, channel_gain=(), channel_delay_s=())
     with np.errstate(all="ignore"):
         single = localize(x, fs, on, geometry=geo, noise_rms_v=nr)

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ae_tactile.geometry import LOWPASS_FAMILIES, front_end_lowpass, front_end_stages
+from ae_tactile.localization.common import PRE_ONSET_S, adc_noise
+from ae_tactile.localization.segments import _pre_onset_noise, _quantum2
 
 
 @dataclass(frozen=True)
@@ -101,7 +103,7 @@ class PulseModel:
         return cls(poles_rad_s=tuple(complex(v) for v in p),
                    residues=tuple(complex(v) for v in r))
 
-    def correct_channels(self, windows, sample_rate_hz, noise_rms_v=None):
+    def correct_channels(self, windows, sample_rate_hz, noise_rms_v=None, onset_index=None):
         """Windows with the channels' own gain and delay removed (channel k advanced by
         ``channel_delay_s[k]``, a band-limited shift, and divided by ``channel_gain[k]``),
         and the noise sigma to use on them; both unchanged when the model has none.
@@ -116,6 +118,12 @@ class PulseModel:
             A given analog noise sigma [V]: the corrected samples are off the ADC's grid,
             so its rounding (q^2 / 12, q the apparent quantum of the raw windows), which
             the estimators add to a given sigma only on quantized data, is added here.
+        onset_index : array_like of int (K,), optional
+            With no sigma given: the noise is measured on the raw windows before their
+            onsets (as the estimators measure it, the quantum included) and returned as the
+            sigma to use: after the shift the samples are off the ADC's grid, where the
+            quantum can no longer be seen (below ~1 LSB of noise the shifted samples would
+            under-read it).
 
         Returns
         -------
@@ -123,7 +131,9 @@ class PulseModel:
         """
         if not self.channel_gain and not self.channel_delay_s:
             return windows, noise_rms_v
-        if noise_rms_v is not None:
+        if noise_rms_v is None and onset_index is not None:
+            noise_rms_v = raw_noise_rms(windows, onset_index, sample_rate_hz)
+        elif noise_rms_v is not None:
             dif = np.abs(np.diff(windows, axis=-1))
             dif[dif == 0] = np.inf
             q = dif.min(axis=(-2, -1))
@@ -282,6 +292,19 @@ class PulseModel:
 
 
 _PR_CACHE: dict = {}
+
+
+def raw_noise_rms(windows, onset_index, sample_rate_hz) -> np.ndarray:
+    """(K,) noise sigma [V] of raw windows (K, 4, M), measured as the estimators measure
+    it: the pooled variance of the samples before each onset (less the segments'
+    `pre_onset_s` lead), through the quantizer's relation when they are quantized
+    (`adc_noise`: sigma^2 + q^2 / 12); NaN with fewer than 4 such samples."""
+    x = np.asarray(windows, float)
+    on = np.broadcast_to(np.asarray(onset_index, np.int64).reshape(-1), (x.shape[0],))
+    pre = max(2, int(math.ceil(PRE_ONSET_S * float(sample_rate_hz))))
+    n_pre = np.clip(on - pre, 0, x.shape[2])
+    sigma2, _ = _pre_onset_noise(x, n_pre)
+    return np.sqrt(adc_noise(sigma2, _quantum2(x), False))
 
 
 def power_law_filter(x, path_m, fs, pulse: PulseModel):

@@ -74,7 +74,7 @@ def suspect_overlap(
     geo = FingertipGeometry() if geometry is None else geometry
     pulse = PulseModel.for_sample_rate(sample_rate_hz) if pulse is None else pulse
     x, on = validate_windows(windows, onset_index)
-    x, noise_rms_v = pulse.correct_channels(x, sample_rate_hz, noise_rms_v)
+    x, noise_rms_v = pulse.correct_channels(x, sample_rate_hz, noise_rms_v, on)
     K = x.shape[0]
     acc = np.asarray(single_source_result.accepted, bool)
     pts = np.asarray(single_source_result.point_m, float)
