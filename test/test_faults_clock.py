@@ -59,11 +59,20 @@ def test_device_clock_step_keeps_stamps_monotonic_and_true(tmp_path, step_s, reb
         s = rig.link.stats()
         stamps = np.array([r.stamp_ns for r in rig.records], dtype=np.int64)
         assert np.all(np.diff(stamps) > 0)  # never back, never twice the same
-        err_ms = (stamps - true_stamps(rig, rig.records)) / MS
+        truth = true_stamps(rig, rig.records)
+        err_ms = (stamps - truth) / MS
+        # After the step the device clock's offset is new: the mapping can be no better
+        # than the least-delayed frame since (the envelope), each packet's delay its read
+        # time less its last sample's true time (a busy host reads late for a while).
+        end = truth + np.array([(r.samples_v.shape[1] - 1) * 1e9 / r.sample_rate_hz
+                                for r in rig.records], dtype=np.int64)
+        delay_ms = (np.array(rig.receive_ns, dtype=np.int64) - end) / MS
+        floor_ms = np.minimum.accumulate(delay_ms[n_before:])
         after = np.abs(err_ms[n_before:])
-        off = np.flatnonzero(after > 3.0)
-        # back within 3 ms of the true host time after a few packets, and staying there
-        assert off.size == 0 or off.max() < 8, (off, err_ms[n_before : n_before + 12])
+        off = np.flatnonzero(after > 3.0 + floor_ms)
+        # back within 3 ms of the true host time, less that floor, after a few packets
+        assert off.size == 0 or off.max() < 8, (off, err_ms[n_before : n_before + 12],
+                                                floor_ms[:12])
         assert np.abs(err_ms[:n_before]).max() < 3.0
         assert s["internal_errors"] == 0 and s["disconnects"] == 0
         if reboot:

@@ -31,6 +31,7 @@ class Rig:
             LinkConfig(port=transport.port, **link_kw), clock_ns=time.monotonic_ns
         )
         self.records = []
+        self.receive_ns = []  # host time each record's batch was read [ns]
         self.truth = []
 
     def __enter__(self):
@@ -43,6 +44,7 @@ class Rig:
         while time.monotonic() < t_end and not (until and until()):
             for b in self.link.poll():
                 self.records.extend(b.packets)
+                self.receive_ns.extend([b.receive_ns] * len(b.packets))
             self.truth.extend(self.device.pop_truth())
             time.sleep(0.005)
 
