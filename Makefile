@@ -10,7 +10,8 @@ demo:
 		--summary-json log/demo_summary.json --report-png log/demo_summary.png
 
 test:
-	@AE_TACTILE_REQUIRE_ROS=1 tools/run.sh pytest -q -p no:cacheprovider --durations=15 test
+	@AE_TACTILE_REQUIRE_ROS=1 tools/run.sh pytest -q -p no:cacheprovider -n 2 --dist loadfile \
+		--durations=15 test   # two workers, a test file each (pytest-xdist); own ROS domains
 
 # make bench: every benchmark; make bench-sim: bench/bench_sim.py alone (results in bench/results/)
 bench:
