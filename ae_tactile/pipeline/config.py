@@ -237,7 +237,8 @@ class LocalizationConfig:
         "'highpass_hz=50e3 highpass_order=1 lowpass_hz=800e3 lowpass_order=2', RC stages "
         "as highpass_rc_hz=60e3/69e3, lowpass_family=butter, bessel or cheby1): at the "
         "Cramer-Rao bound where the anti-alias filter lets the pulse alias, 0.2-0.4 ms a "
-        "packet (docs/front_end.md); empty: no refinement",
+        "packet (docs/front_end.md); it is also the interference screen's model of a touch "
+        "until the device's own are learnt; empty: no refinement, the nominal model",
     )
     overlap_inline_max: int = _setting(
         OVERLAP_INLINE_MAX,
