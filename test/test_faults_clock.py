@@ -41,6 +41,18 @@ def true_stamps(rig, records):
     return np.array(out, dtype=np.int64)
 
 
+def floor_ms(rig, truth, start=0):
+    """[ms] From record ``start`` on, the least read delay so far of the records with true
+    times ``truth`` (the first ones): each record's read time less its last sample's true
+    time. No clock mapping can be truer than the least-delayed frame it has seen (its
+    envelope): on a busy host every frame may be read late for a while."""
+    recs = rig.records[: len(truth)]
+    end = truth + np.array([(r.samples_v.shape[1] - 1) * 1e9 / r.sample_rate_hz
+                            for r in recs], dtype=np.int64)
+    delay_ms = (np.array(rig.receive_ns[: len(truth)], dtype=np.int64) - end) / MS
+    return np.minimum.accumulate(delay_ms[start:])
+
+
 @pytest.mark.parametrize("reboot", [False, True], ids=["no_reboot", "reboot"])
 @pytest.mark.parametrize("step_s", [-5.0, -1000.0, 1000.0])
 def test_device_clock_step_keeps_stamps_monotonic_and_true(tmp_path, step_s, reboot):
@@ -61,19 +73,14 @@ def test_device_clock_step_keeps_stamps_monotonic_and_true(tmp_path, step_s, reb
         assert np.all(np.diff(stamps) > 0)  # never back, never twice the same
         truth = true_stamps(rig, rig.records)
         err_ms = (stamps - truth) / MS
-        # After the step the device clock's offset is new: the mapping can be no better
-        # than the least-delayed frame since (the envelope), each packet's delay its read
-        # time less its last sample's true time (a busy host reads late for a while).
-        end = truth + np.array([(r.samples_v.shape[1] - 1) * 1e9 / r.sample_rate_hz
-                                for r in rig.records], dtype=np.int64)
-        delay_ms = (np.array(rig.receive_ns, dtype=np.int64) - end) / MS
-        floor_ms = np.minimum.accumulate(delay_ms[n_before:])
-        after = np.abs(err_ms[n_before:])
-        off = np.flatnonzero(after > 3.0 + floor_ms)
-        # back within 3 ms of the true host time, less that floor, after a few packets
+        # After the step the device clock's offset is new: the mapping learns it afresh
+        # from the frames read since (`floor_ms`).
+        after_floor = floor_ms(rig, truth, n_before)
+        off = np.flatnonzero(np.abs(err_ms[n_before:]) > 3.0 + after_floor)
+        # back within 3 ms of the true host time, plus that floor, after a few packets
         assert off.size == 0 or off.max() < 8, (off, err_ms[n_before : n_before + 12],
-                                                floor_ms[:12])
-        assert np.abs(err_ms[:n_before]).max() < 3.0
+                                                after_floor[:12])
+        assert np.all(np.abs(err_ms[:n_before]) < 3.0 + floor_ms(rig, truth)[:n_before])
         assert s["internal_errors"] == 0 and s["disconnects"] == 0
         if reboot:
             assert s["device_restarts_handled"] == 1
@@ -132,7 +139,8 @@ def test_stamps_stay_true_after_a_burst_of_garbage(tmp_path):
     """A burst of garbage on the line (noise on the wire) delays the frames behind it by
     the time the host takes to scan it: those packets arrive late, but their stamps come
     from the device clock, and the late arrivals do not pull the mapping; every packet
-    after the burst is stamped within 3 ms of the true host time."""
+    after the burst is stamped within 3 ms of the true host time (plus the least delay of
+    any frame read: the most any mapping can know)."""
     rng = np.random.default_rng(5)
     with Rig(PtyTransport(str(tmp_path / "fingertip")), scene=STEADY) as rig:
         rig.wait_connected()
@@ -147,8 +155,12 @@ def test_stamps_stay_true_after_a_burst_of_garbage(tmp_path):
     assert s["bytes_discarded"] >= 5 * 300_000  # the bursts went through the decoder
     stamps = np.array([r.stamp_ns for r in rig.records], dtype=np.int64)
     assert np.all(np.diff(stamps) > 0)
-    err_ms = (stamps - true_stamps(rig, rig.records)) / MS
-    assert np.abs(err_ms).max() < 3.0, np.round(err_ms[np.abs(err_ms) >= 3.0], 2)
+    truth = true_stamps(rig, rig.records)
+    err_ms = (stamps - truth) / MS
+    # the bursts' late frames do not pull the mapping: within 3 ms plus the least delay
+    # of any frame read (`floor_ms`: 0.1-0.5 ms on an idle host)
+    off = np.abs(err_ms) >= 3.0 + floor_ms(rig, truth)
+    assert not off.any(), np.round(err_ms[off], 2)
     print(f"after garbage bursts: |error| p50 {np.median(np.abs(err_ms)):.2f} ms,"
           f" max {np.abs(err_ms).max():.2f} ms over {len(err_ms)} packets")
 
@@ -172,8 +184,11 @@ def test_a_host_clock_step_moves_the_stamps_with_it(tmp_path, step_s):
     assert np.all(np.diff(stamps) > 0)
     truth = true_stamps(rig, rig.records)
     err_ms = (stamps - truth - np.where(np.arange(truth.size) >= n_before, shift[0], 0)) / MS
-    assert np.abs(err_ms[:n_before]).max() < 3.0
-    # a step forward: true at once; a step back: held after the last stamp for 2 s (40/s)
+    bound = 3.0 + floor_ms(rig, truth[:n_before])  # before the step, in one host time
+    assert np.all(np.abs(err_ms[:n_before]) < bound)
+    # a step forward: true at once; a step back: held after the last stamp for 2 s (40/s);
+    # the mapping is kept (no new floor to learn): within the bound at the step
     settle = n_before + (5 if step_s > 0 else 100)
-    assert np.abs(err_ms[settle:]).max() < 3.0, np.round(err_ms[n_before:settle + 5], 2)
+    assert np.all(np.abs(err_ms[settle:]) < bound[-1]), np.round(
+        err_ms[n_before:settle + 5], 2)
     assert s["clock_host_steps"] == 1 and s["clock_steps"] == 0 and s["clock_resyncs"] == 1
